@@ -1,0 +1,27 @@
+"""``python -m bench`` (``make bench``): run the benchmarks, print and save their numbers."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+from bench import frames_throughput
+
+RESULTS = Path("bench/results")
+
+
+def main() -> None:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    results = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "frames": frames_throughput.run(Path("data/bench")),
+    }
+    (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=2))
+    print(f"saved {RESULTS / 'latest.json'}")
+
+
+if __name__ == "__main__":
+    main()

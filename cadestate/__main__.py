@@ -1,0 +1,3 @@
+from cadestate.cli import main
+
+main()

@@ -1,0 +1,48 @@
+"""Digests that tie every stage run to what it read and what it wrote.
+
+A stage run records ``config_hash`` (its config section), ``inputs_hash`` (its input files or its
+upstream stages' output hashes), ``code_hash`` (its source) and ``output_hash`` (what it wrote).
+A stage is stale when any of the first three differs from what it would be now
+(:mod:`tasks.status`). Digests are 16 hex characters of SHA-256.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import inspect
+import os
+
+import pyarrow as pa
+
+
+def digest(*parts: str) -> str:
+    """Digest of an ordered sequence of strings."""
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(p.encode())
+        h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """Full hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def table_digest(table: pa.Table) -> str:
+    """Digest of a table's content (Arrow IPC bytes of its columns, schema metadata excluded)."""
+    table = table.replace_schema_metadata(None)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    return hashlib.sha256(sink.getvalue().to_pybytes()).hexdigest()[:16]
+
+
+def code_digest(*modules: str) -> str:
+    """Digest of the source of the named modules (a stage's logic)."""
+    return digest(*(inspect.getsource(importlib.import_module(m)) for m in modules))

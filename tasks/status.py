@@ -1,0 +1,65 @@
+"""Where each clip stands: the last run of every stage, and why it is stale if it is.
+
+A stage is stale when its last completed run used another config section, other code, or
+inputs other than its upstream stages' latest outputs (or when an upstream stage is stale: it
+will rerun and may change them). Read from the ``runs`` table only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from cadestate.config import Config
+from tasks.registry import STAGES, upstream_inputs_hash
+from warehouse import Warehouse
+
+
+@dataclass(frozen=True)
+class StageStatus:
+    clip: str
+    stage: str
+    status: str  # completed | failed | paused | never run
+    last_run_at: str
+    rows_written: int
+    stale_reasons: tuple[str, ...]
+
+
+def pipeline_status(wh: Warehouse, config: Config, clips: Sequence[str] | None = None) -> list[StageStatus]:
+    """One :class:`StageStatus` per (clip, stage), clips sorted, stages in pipeline order."""
+    runs = wh.read("runs", clips=clips).sort_by("started_at").to_pylist()
+    names = sorted(set(clips or wh.partitions("clips")) | {r["clip"] for r in runs})
+    last: dict[tuple[str, str], dict] = {}
+    last_ok: dict[tuple[str, str], dict] = {}
+    for r in runs:
+        last[(r["clip"], r["stage"])] = r
+        if r["status"] == "completed":
+            last_ok[(r["clip"], r["stage"])] = r
+    result = []
+    for clip in names:
+        stale_stages: set[str] = set()
+        for stage in STAGES.values():
+            latest, ok = last.get((clip, stage.name)), last_ok.get((clip, stage.name))
+            reasons = []
+            if ok is None:
+                reasons.append("never completed")
+            else:
+                if ok["config_hash"] != config.section_hash(stage.name):
+                    reasons.append("config changed")
+                if ok["code_hash"] != stage.code_hash:
+                    reasons.append("code changed")
+                ups = [last_ok.get((clip, u)) for u in stage.upstream]
+                if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash([u["output_hash"] for u in ups]):
+                    reasons.append("inputs changed")
+                if any(u in stale_stages for u in stage.upstream):
+                    reasons.append("upstream stale")
+            if reasons:
+                stale_stages.add(stage.name)
+            result.append(StageStatus(
+                clip, stage.name,
+                latest["status"] if latest else "never run",
+                latest["started_at"].strftime("%Y-%m-%d %H:%M:%S") if latest else "",
+                ok["rows_written"] if ok else 0,
+                tuple(reasons),
+            ))
+    return result

@@ -1,0 +1,121 @@
+"""Reading videos with PyAV: probing, and decoding the frame nearest to each requested timestamp.
+
+Time frame: microseconds since the start of the video stream (the stream's ``start_time`` is
+subtracted), the frame of RealEstate10K timestamps.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from fractions import Fraction
+
+import av
+import numpy as np
+
+
+class VideoError(ValueError):
+    """An unreadable, corrupt or truncated video, or one that lacks a requested frame."""
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """Properties of a video's first video stream (sizes in px, times in µs)."""
+
+    width: int
+    height: int
+    fps: float
+    duration_us: int
+    codec: str
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """One decoded frame: ``time_us`` (stream time, µs) and ``rgb`` uint8[H, W, 3]."""
+
+    time_us: int
+    rgb: np.ndarray
+
+
+def _open(path: str | os.PathLike) -> av.container.InputContainer:
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as e:
+        raise VideoError(f"{path}: cannot open video: {e}") from None
+    if not container.streams.video:
+        container.close()
+        raise VideoError(f"{path}: no video stream")
+    return container
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Read the stream properties and decode the first frame (a corrupt file fails here)."""
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        try:
+            first = next(container.decode(stream), None)
+        except av.error.FFmpegError as e:
+            raise VideoError(f"{path}: cannot decode video: {e}") from None
+        if first is None:
+            raise VideoError(f"{path}: the video stream has no decodable frame")
+        if stream.duration is not None and stream.time_base is not None:
+            duration_us = int(round(stream.duration * stream.time_base * 1_000_000))
+        elif container.duration is not None:
+            duration_us = int(container.duration)  # AV_TIME_BASE is 1 µs
+        else:
+            duration_us = 0
+        fps = float(stream.average_rate) if stream.average_rate else 0.0
+        return VideoInfo(first.width, first.height, fps, duration_us, stream.codec_context.name)
+
+
+def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction) -> int:
+    if frame.pts is None:
+        raise VideoError("a decoded frame has no timestamp")
+    return int(round((frame.pts - start) * time_base * 1_000_000))
+
+
+def decode_at(
+    path: str | os.PathLike, timestamps_us: np.ndarray, seek_threshold_us: int = 1_000_000
+) -> Iterator[DecodedFrame]:
+    """Yield, for each timestamp (strictly increasing, µs), the decoded frame nearest to it.
+
+    Decodes forward while the next timestamp is near; seeks (to the keyframe before it, then
+    decodes forward) when it is more than ``seek_threshold_us`` ahead. The caller checks how far
+    each frame's ``time_us`` is from the timestamp it asked for.
+    """
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        time_base = stream.time_base
+        start = stream.start_time or 0
+        frames: Iterator[av.VideoFrame] | None = None
+        # (time_us, frame) of the latest decoded frame before the current target, and of the first
+        # one at or after it (None at the end). Frames are converted to RGB only when yielded.
+        prev: tuple[int, av.VideoFrame] | None = None
+        nxt: tuple[int, av.VideoFrame] | None = None
+
+        def advance() -> tuple[int, av.VideoFrame] | None:
+            try:
+                frame = next(frames, None)
+            except av.error.FFmpegError as e:
+                raise VideoError(f"{path}: decoding failed (corrupt or truncated video?): {e}") from None
+            return None if frame is None else (_frame_time_us(frame, start, time_base), frame)
+
+        for target in np.asarray(timestamps_us, dtype=np.int64).tolist():
+            if frames is None or (nxt is not None and target - nxt[0] > seek_threshold_us):
+                if target > seek_threshold_us:
+                    offset = start + int(Fraction(target, 1_000_000) / time_base)
+                    try:
+                        container.seek(offset, stream=stream, backward=True)
+                    except av.error.FFmpegError as e:
+                        raise VideoError(f"{path}: seek to {target} µs failed: {e}") from None
+                frames = container.decode(stream)
+                prev, nxt = None, advance()
+            while nxt is not None and nxt[0] < target:
+                prev, nxt = nxt, advance()
+            candidates = [f for f in (prev, nxt) if f is not None]
+            if not candidates:
+                raise VideoError(f"{path}: no frame could be decoded near {target} µs")
+            time_us, frame = min(candidates, key=lambda f: abs(f[0] - target))
+            yield DecodedFrame(time_us, frame.to_ndarray(format="rgb24"))

@@ -1,0 +1,94 @@
+"""The cadestate command line: help everywhere, SQL formats, clear one-line errors."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import subprocess
+import sys
+
+import click
+import pytest
+from typer.main import get_command
+from typer.testing import CliRunner
+
+from cadestate.cli import app
+
+runner = CliRunner()
+
+
+def commands(group: click.Group, prefix=()):
+    for name, cmd in group.commands.items():
+        yield prefix + (name,)
+        if isinstance(cmd, click.Group):
+            yield from commands(cmd, prefix + (name,))
+
+
+@pytest.mark.parametrize("path", [()] + list(commands(get_command(app))))
+def test_every_command_has_help(path):
+    result = runner.invoke(app, [*path, "--help"])
+    assert result.exit_code == 0 and "Usage:" in result.output
+    assert len(result.output.split("\n\n")[1].strip()) > 20  # a real description
+
+
+def cli(*args):
+    """Run the real command in a fresh process, with a user's environment (no test log level)."""
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+    return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env)
+
+
+@pytest.mark.slow
+def test_ingest_then_sql_status_tables(tmp_path, small_clip):
+    w = str(tmp_path / "w")
+    result = runner.invoke(app, ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path), "--clip", "room_1"])
+    assert result.exit_code == 0, result.output
+    assert "completed" in result.output
+    rows = json.loads(cli("-w", w, "sql", "SELECT clip, count(*) AS n FROM frames GROUP BY clip", "--format", "json").stdout)
+    assert rows == [{"clip": "room_1", "n": 30}]
+    out = cli("-w", w, "sql", "SELECT stage, status FROM runs ORDER BY started_at", "-f", "csv").stdout
+    assert list(csv.reader(io.StringIO(out))) == [["stage", "status"], ["ingest", "completed"], ["frames", "completed"]]
+    status = runner.invoke(app, ["-w", w, "status"])
+    assert status.exit_code == 0 and status.output.count("yes") == 2
+    tables = runner.invoke(app, ["-w", w, "tables"])
+    assert "frames" in tables.output and "30" in tables.output
+    again = runner.invoke(app, ["-w", w, "run"])
+    assert again.exit_code == 0 and again.output.count("cached") == 2
+
+
+def test_sql_errors_and_read_only(tmp_path):
+    w = str(tmp_path / "w")
+    bad = cli("-w", w, "sql", "SELECT nope FROM frames")
+    assert bad.returncode == 2 and bad.stderr.startswith("error: SQL error:") and "Traceback" not in bad.stderr
+    write = cli("-w", w, "sql", "CREATE TABLE t (i INT)")
+    assert write.returncode == 2 and "read-only" in write.stderr
+
+
+@pytest.mark.slow
+def test_stage_failures_are_one_clear_line(tmp_path):
+    cams = tmp_path / "c.txt"
+    cams.write_text("url\n0 1 1 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1\n")
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"")
+    result = cli("-w", str(tmp_path / "w"), "ingest", str(video), str(cams))
+    assert result.returncode == 1
+    assert "error: clip v, stage ingest: " in result.stderr and "c.txt:2: expected 19 columns, found 18" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_usage_errors_are_one_clear_line(tmp_path):
+    result = cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "nowhere"))
+    assert result.returncode == 2 and "nowhere: not a folder" in result.stderr and "Traceback" not in result.stderr
+    result = cli("-w", str(tmp_path / "w"), "tables", "nope")
+    assert result.returncode == 2 and "unknown table 'nope'" in result.stderr
+
+
+def test_config_check_names_the_key(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("[frames]\njpeg_quality = 500\n")
+    result = cli("config", "check", str(f))
+    assert result.returncode == 2 and "[frames] jpeg_quality: must be <= 100, got 500" in result.stderr
+    f.write_text("[frames]\njpeg_quality = 50\n")
+    assert cli("config", "check", str(f)).returncode == 0
+    assert "jpeg_quality = 50" in cli("-c", str(f), "config", "show").stdout

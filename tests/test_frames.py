@@ -1,0 +1,175 @@
+"""Ingest and frame extraction as plain functions: exact frames, clear failures, nothing half-written."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from bench.demo_clip import DemoClipSpec, decode_index, make_demo_clip
+from cadestate.config import FramesConfig, IngestConfig
+from cadestate.geometry import project, quaternion_to_matrix
+from cadestate.lineage import file_sha256
+from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
+from tasks.frames import extract_frames
+from tasks.ingest import ClipSource, discover_clips, ingest_clip
+from tasks.video import VideoError, decode_at, probe_video
+from warehouse import WarehouseError, connect
+
+
+def ingest(wh, video: Path, cameras: Path, clip: str = "small"):
+    return ingest_clip(wh, IngestConfig(), ClipSource(clip, video, cameras), file_sha256(video), file_sha256(cameras), "r0")
+
+
+def test_extracted_frames_are_exactly_the_camera_frames(wh, small_clip):
+    ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    out = extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    frames = wh.read("frames").to_pylist()
+    assert out.rows_written == len(frames) == len(small_clip.frame_indices) == 30
+    for row, index in zip(frames, small_clip.frame_indices):
+        image = np.asarray(Image.open(wh.root / row["image_path"]))
+        assert image.shape == (192, 320, 3) and (row["width"], row["height"]) == (320, 192)
+        assert decode_index(image) == index  # the very frame the camera line names
+        assert row["timestamp_error_us"] == 0
+    assert {p.parent.name for p in (wh.root / "media" / "frames" / "small").glob("*/*")} == {"run1"}
+
+
+def test_frames_table_geometry_matches_the_camera_file(wh, small_clip):
+    ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    cams = parse_camera_file(small_clip.cameras_path)
+    row = wh.read("frames").to_pylist()[7]
+    R, t = np.reshape(row["world_to_camera_R"], (3, 3)), np.asarray(row["world_to_camera_t"])
+    np.testing.assert_array_equal(R, cams.R[7])
+    np.testing.assert_array_equal(t, cams.t[7])
+    np.testing.assert_allclose(np.reshape(row["camera_to_world_R"], (3, 3)), R.T)
+    centre = np.asarray(row["camera_center"])
+    np.testing.assert_allclose(R @ centre + t, 0, atol=1e-12)
+    assert abs(centre[1] - 1.5) < 1e-9  # the demo camera walks at 1.5 m, world +Y up
+    K = np.reshape(row["K"], (3, 3))
+    assert K[0, 2] == pytest.approx(160) and K[1, 2] == pytest.approx(96)
+    uv, depth = project(K, R, t, (centre + 2.0 * R[2])[None])  # 2 m along the optical axis
+    np.testing.assert_allclose(uv[0], [160, 96]) and depth[0] == pytest.approx(2)
+    # The same numbers through SQL on the catalog: DuckDB arrays, 1-based.
+    con = connect(wh)
+    assert con.execute("SELECT camera_center[2] FROM frames WHERE frame_index = 7").fetchone()[0] == pytest.approx(1.5)
+    con.close()
+
+
+def test_sparse_timestamps_are_reached_by_seeking(small_clip):
+    ts = parse_camera_file(small_clip.cameras_path).timestamps_us
+    pick = ts[[0, 4, 11, 29]]
+    frames = list(decode_at(small_clip.video_path, pick, seek_threshold_us=100_000))
+    assert [f.time_us for f in frames] == list(pick)
+    assert [decode_index(f.rgb) for f in frames] == list(small_clip.frame_indices[[0, 4, 11, 29]])
+
+
+def test_timestamp_discrepancy_past_tolerance_fails_and_writes_nothing(wh, small_clip, tmp_path):
+    cams = parse_camera_file(small_clip.cameras_path)
+    shifted = tmp_path / "shifted.txt"  # every camera 15 ms after its frame (half a frame at 30 fps)
+    write_camera_file(shifted, CameraTrack(cams.url, cams.timestamps_us + 15_000, cams.intrinsics, cams.world_to_camera))
+    ingest(wh, small_clip.video_path, shifted)
+    with pytest.raises(VideoError, match=r"clip small \(.*small.mp4\): camera line 2 asks for 15000 µs but the nearest video frame is at 0 µs \(-15000 µs"):
+        extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    assert wh.read("frames").num_rows == 0
+    assert not list((wh.root / "media").rglob("*.jpg")) and not list((wh.root / "_staging").iterdir())
+    # A looser tolerance accepts it and records the discrepancy per frame.
+    extract_frames(wh, FramesConfig(max_timestamp_error_us=20_000), "small", "run2", show_progress=False)
+    assert set(wh.read("frames").column("timestamp_error_us").to_pylist()) == {-15_000}  # the earlier frame is always nearer
+
+
+def test_corrupt_video_fails_clearly_at_ingest(wh, small_clip, tmp_path):
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(np.random.default_rng(0).bytes(50_000))
+    with pytest.raises(VideoError, match="junk.mp4: cannot"):
+        ingest(wh, junk, small_clip.cameras_path)
+    assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs").exists()
+
+
+def test_truncated_video_fails_and_keeps_previous_frames(wh, small_clip, tmp_path):
+    ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    before = wh.read("frames")
+    cut = tmp_path / "cut.mp4"
+    data = small_clip.video_path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(VideoError, match="cut.mp4"):
+        ingest(wh, cut, small_clip.cameras_path)
+        extract_frames(wh, FramesConfig(), "small", "run2", show_progress=False)
+    assert wh.read("frames").equals(before)
+    assert all((wh.root / p).exists() for p in before.column("image_path").to_pylist())
+
+
+def test_cameras_past_the_end_of_the_video_fail_at_ingest(wh, small_clip, tmp_path):
+    cams = parse_camera_file(small_clip.cameras_path)
+    late = tmp_path / "late.txt"
+    write_camera_file(late, CameraTrack(cams.url, cams.timestamps_us + 5_000_000, cams.intrinsics, cams.world_to_camera))
+    with pytest.raises(VideoError, match=r"the video lasts 3000000 µs but .*late.txt asks for a frame at 7900000 µs \(line 31\)"):
+        ingest(wh, small_clip.video_path, late)
+
+
+def test_malformed_camera_file_fails_at_ingest_naming_the_line(wh, small_clip, tmp_path):
+    bad = tmp_path / "bad.txt"
+    lines = small_clip.cameras_path.read_text().splitlines()
+    lines[5] = lines[5].replace(" ", " nan ", 1)
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CameraFileError, match=r"bad.txt:6: "):
+        ingest(wh, small_clip.video_path, bad)
+    assert wh.read("clips").num_rows == 0
+
+
+def test_png_frames_are_lossless(wh, small_clip):
+    ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    extract_frames(wh, FramesConfig(image_format="png"), "small", "run1", show_progress=False)
+    first = wh.read("frames").to_pylist()[0]
+    assert first["image_path"].endswith(".png")
+    decoded = next(decode_at(small_clip.video_path, np.array([first["timestamp_us"]])))
+    np.testing.assert_array_equal(np.asarray(Image.open(wh.root / first["image_path"])), decoded.rgb)
+
+
+def test_ingest_keeps_inputs_and_probe(wh, small_clip):
+    out = ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    row = wh.read("clips").to_pylist()[0]
+    assert (row["num_cameras"], row["width"], row["height"], row["codec"]) == (30, 320, 192, "h264")
+    assert row["fps"] == pytest.approx(30) and row["url"] == "synthetic://demo/small"
+    assert file_sha256(wh.root / row["video_path"]) == row["video_sha256"] == file_sha256(small_clip.video_path)
+    assert out.rows_written == 1
+    info = probe_video(small_clip.video_path)
+    assert info.duration_us == 3_000_000
+
+
+def test_discover_clips_pairs_videos_with_camera_files(tmp_path, small_clip):
+    shutil.copy(small_clip.video_path, tmp_path / "a.mp4")
+    shutil.copy(small_clip.cameras_path, tmp_path / "a.txt")
+    assert [s.clip for s in discover_clips(tmp_path)] == ["a"]
+    shutil.copy(small_clip.video_path, tmp_path / "b.mp4")
+    with pytest.raises(FileNotFoundError, match="b.mp4: no camera file b.txt"):
+        discover_clips(tmp_path)
+    with pytest.raises(WarehouseError, match="invalid clip name"):
+        ClipSource("bad name", tmp_path / "a.mp4", tmp_path / "a.txt")
+
+
+def remux(src: Path, dst: Path) -> None:
+    """Copy the video stream into another container (no re-encoding)."""
+    import av
+
+    with av.open(str(src)) as inp, av.open(str(dst), "w") as out:
+        stream = out.add_stream_from_template(inp.streams.video[0])
+        for packet in inp.demux(inp.streams.video[0]):
+            if packet.dts is not None:
+                packet.stream = stream
+                out.mux(packet)
+
+
+def test_video_that_opens_but_ends_early_fails_at_extraction(wh, small_clip, tmp_path):
+    mkv = tmp_path / "full.mkv"
+    remux(small_clip.video_path, mkv)
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(mkv.read_bytes()[: int(mkv.stat().st_size * 0.6)])
+    ingest(wh, cut, small_clip.cameras_path)  # the header still promises 3 s
+    with pytest.raises(VideoError, match=r"clip small \(.*cut.mkv\): camera line \d+ asks for \d+ µs but the nearest video frame is at"):
+        extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    assert wh.read("frames").num_rows == 0 and not list((wh.root / "_staging").iterdir())

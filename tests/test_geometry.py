@@ -1,0 +1,77 @@
+"""Coordinate-frame conventions of cadestate.geometry, checked by round trips and known answers."""
+
+import numpy as np
+import pytest
+
+from cadestate.geometry import (
+    camera_to_world, intrinsics_matrix, look_at, matrix_to_quaternion, normalised_intrinsics,
+    project, quaternion_to_matrix, rotation_error, world_to_camera,
+)
+
+rng = np.random.default_rng(0)
+
+
+def random_rotations(n):
+    q = rng.normal(size=(n, 4))
+    return quaternion_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True))
+
+
+def test_intrinsics_round_trip_and_known_values():
+    n = np.array([0.8, 1.4, 0.5, 0.45])
+    K = intrinsics_matrix(n, 640, 360)
+    assert K[0, 0] == 0.8 * 640 and K[1, 1] == 1.4 * 360 and K[0, 2] == 320 and K[1, 2] == 0.45 * 360
+    np.testing.assert_allclose(normalised_intrinsics(K, 640, 360), n)
+
+
+def test_camera_to_world_round_trip_and_centre_projects_behind():
+    R = random_rotations(5)
+    t = rng.normal(size=(5, 3))
+    R_cw, c = camera_to_world(R, t)
+    R2, t2 = world_to_camera(R_cw, c)
+    np.testing.assert_allclose(R2, R)
+    np.testing.assert_allclose(t2, t)
+    # The camera centre maps to the camera-frame origin.
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R, c) + t, 0, atol=1e-12)
+
+
+def test_quaternion_round_trip_and_convention():
+    for R in random_rotations(50):
+        q = matrix_to_quaternion(R)
+        assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        np.testing.assert_allclose(quaternion_to_matrix(q), R, atol=1e-12)
+    # (w, x, y, z) order: 90° about +Y maps +Z to +X (right-handed).
+    q = np.array([np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0])
+    np.testing.assert_allclose(quaternion_to_matrix(q) @ [0, 0, 1], [1, 0, 0], atol=1e-12)
+    # 180° rotations (w = 0) are handled by the pivoting branch.
+    for axis in np.eye(3):
+        R = quaternion_to_matrix(np.r_[0.0, axis])
+        np.testing.assert_allclose(quaternion_to_matrix(matrix_to_quaternion(R)), R, atol=1e-12)
+
+
+def test_look_at_is_opencv_with_world_up():
+    R, t = look_at([0, 1.5, 0], [0, 1.5, -4])  # looking down -Z, +Y up
+    assert rotation_error(R) < 1e-12
+    K = intrinsics_matrix([0.8, 1.4, 0.5, 0.5], 640, 360)
+    uv, depth = project(K, R, t, np.array([[0, 1.5, -4], [1, 1.5, -4], [0, 2.5, -4], [0, 1.5, 4]]))
+    np.testing.assert_allclose(uv[0], [320, 180])  # target at the principal point
+    assert uv[1, 0] > 320  # world +X is image right
+    assert uv[2, 1] < 180  # world up is image up (y down)
+    assert depth[0] == pytest.approx(4) and depth[3] < 0  # behind the camera: negative depth
+
+
+def test_project_matches_formula():
+    R = random_rotations(1)[0]
+    t = np.array([0.1, -0.2, 3.0])
+    K = np.array([[500.0, 0, 300], [0, 480, 200], [0, 0, 1]])
+    X = rng.normal(size=(10, 3)) * 0.5
+    uv, depth = project(K, R, t, X)
+    Xc = X @ R.T + t
+    np.testing.assert_allclose(uv[:, 0], 500 * Xc[:, 0] / Xc[:, 2] + 300)
+    np.testing.assert_allclose(uv[:, 1], 480 * Xc[:, 1] / Xc[:, 2] + 200)
+    np.testing.assert_allclose(depth, Xc[:, 2])
+
+
+def test_rotation_error_flags_reflections_and_scaling():
+    assert rotation_error(np.eye(3)) == 0
+    assert rotation_error(np.diag([1.0, 1, -1])) == pytest.approx(2)
+    assert rotation_error(1.01 * np.eye(3)) > 0.02

@@ -1,0 +1,178 @@
+"""Warehouse: schema checks, atomic and idempotent writes, filtered reads, the DuckDB catalog."""
+
+from __future__ import annotations
+
+import datetime as dt
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import duckdb
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from schemas import TableSpec
+from warehouse import Warehouse, WarehouseError, check_clip_name, connect
+from warehouse.catalog import CATALOG_FILE
+
+
+def run_rows(clip: str, n: int, stage: str = "ingest") -> pa.Table:
+    now = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    return pa.Table.from_pylist([
+        {"clip": clip, "run_id": f"r{i}", "stage": stage, "status": "completed", "config_hash": "c",
+         "inputs_hash": "i", "output_hash": "o", "code_hash": "k", "started_at": now,
+         "duration_s": float(i), "rows_written": i, "message": ""}
+        for i in range(n)
+    ])
+
+
+def clip_rows(clip: str, marker: int = 0, n: int = 1) -> pa.Table:
+    return pa.Table.from_pylist([
+        {"clip": clip, "url": f"u{marker}-{i}", "source_video": "v", "source_cameras": "c", "video_path": "p",
+         "cameras_path": "q", "video_sha256": "s", "cameras_sha256": "t", "num_cameras": marker,
+         "first_timestamp_us": i, "last_timestamp_us": 1, "width": 2, "height": 3, "fps": 30.0,
+         "duration_us": 4, "codec": "h264", "ingested_at": dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)}
+        for i in range(n)
+    ])
+
+
+def test_replace_write_is_idempotent_and_partitioned(wh):
+    assert wh.write("clips", "a", clip_rows("a", 1)) == 1
+    wh.write("clips", "b", clip_rows("b", 2))
+    wh.write("clips", "a", clip_rows("a", 1))  # same data again
+    assert len(wh.files("clips", ["a"])) == 1
+    assert wh.read("clips").column("num_cameras").to_pylist() == [1, 2]
+    wh.write("clips", "a", clip_rows("a", 5))  # replace touches only partition a
+    assert wh.read("clips").column("num_cameras").to_pylist() == [5, 2]
+    assert wh.partitions("clips") == ["a", "b"]
+
+
+def test_append_mode_keeps_history(wh):
+    wh.write("runs", "a", run_rows("a", 2))
+    wh.write("runs", "a", run_rows("a", 3))
+    assert wh.read("runs").num_rows == 5 and len(wh.files("runs")) == 2
+
+
+def test_read_filters_columns_and_clips(wh):
+    wh.write("runs", "a", run_rows("a", 4, "ingest"))
+    wh.write("runs", "b", run_rows("b", 3, "frames"))
+    assert wh.read("runs", clips=["b"]).num_rows == 3
+    got = wh.read("runs", filters=[("rows_written", ">=", 2)], columns=["clip", "rows_written"])
+    assert got.column_names == ["clip", "rows_written"]
+    assert sorted(got.column("rows_written").to_pylist()) == [2, 2, 3]
+    assert wh.read("frames").num_rows == 0 and wh.read("frames").schema == wh.spec("frames").schema
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda t: t.drop_columns(["url"]), "missing columns ['url']"),
+        (lambda t: t.append_column("extra", pa.array([1])), "unexpected columns ['extra']"),
+        (lambda t: t.set_column(0, "clip", pa.array(["other"])), "must have clip = 'a'"),
+        (lambda t: t.set_column(1, "url", pa.array([None], pa.string())), "column 'url' has nulls"),
+        (lambda t: t.set_column(8, "num_cameras", pa.array(["x"])), "does not fit the schema"),
+        (lambda t: pa.concat_tables([t, t]), "duplicate key {'clip': 'a'}"),
+    ],
+)
+def test_write_rejects_data_that_does_not_fit(wh, mutate, message):
+    wh.write("clips", "a", clip_rows("a", 1))
+    with pytest.raises(WarehouseError) as e:
+        wh.write("clips", "a", mutate(clip_rows("a", 7)))
+    assert message in str(e.value)
+    assert wh.read("clips").column("num_cameras").to_pylist() == [1]  # previous state intact
+
+
+@pytest.mark.parametrize("name", ["", "../x", "a/b", ".hidden", "-x", "a b", "x" * 201])
+def test_clip_names_that_are_not_safe_folder_names_are_rejected(name):
+    with pytest.raises(WarehouseError, match="invalid clip name"):
+        check_clip_name(name)
+
+
+def test_unknown_table(wh):
+    with pytest.raises(WarehouseError, match="unknown table 'nope'"):
+        wh.read("nope")
+
+
+def test_failure_mid_write_leaves_previous_state(wh, monkeypatch):
+    wh.write("clips", "a", clip_rows("a", 1))
+
+    def broken_write(table, where, **kwargs):
+        with open(where, "wb") as f:
+            f.write(b"PAR1 half a file")
+        raise OSError("disk full (injected)")
+
+    monkeypatch.setattr(pq, "write_table", broken_write)
+    with pytest.raises(OSError, match="injected"):
+        wh.write("clips", "a", clip_rows("a", 2))
+    monkeypatch.undo()
+    assert wh.read("clips").column("num_cameras").to_pylist() == [1]
+    assert [p.name for p in wh.partition_dir("clips", "a").iterdir()] == ["part.parquet"]
+
+
+NUMBERS = TableSpec(
+    name="numbers", mode="replace", key=("clip", "i"), description="test table",
+    schema=pa.schema([pa.field("clip", pa.string(), False), pa.field("i", pa.int64(), False), pa.field("marker", pa.int64(), False)]),
+)
+
+
+def numbers(marker: int, n: int = 200_000) -> pa.Table:
+    return pa.table({"clip": ["a"] * n, "i": range(n), "marker": [marker] * n})
+
+
+def _write_forever(root: str, ready) -> None:
+    wh = Warehouse(root, {"numbers": NUMBERS})
+    ready.set()
+    marker = 0
+    while True:
+        marker += 1
+        wh.write("numbers", "a", numbers(marker))
+
+
+def test_process_killed_mid_write_leaves_a_whole_partition(tmp_path):
+    root = tmp_path / "w"
+    wh = Warehouse(root, {"numbers": NUMBERS})
+    wh.write("numbers", "a", numbers(0))
+    ctx = mp.get_context("spawn")
+    for delay in (0.9, 1.3, 1.7, 2.1):
+        ready = ctx.Event()
+        proc = ctx.Process(target=_write_forever, args=(str(root), ready))
+        proc.start()
+        ready.wait(30)
+        time.sleep(delay)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.join()
+        table = wh.read("numbers")
+        # Whatever moment it died, the partition is one complete write (all rows, one marker).
+        assert table.num_rows == 200_000
+        assert len(set(table.column("marker").to_pylist())) == 1
+        con = connect(wh)
+        assert con.execute("SELECT count(*), count(DISTINCT marker) FROM numbers").fetchone() == (200_000, 1)
+        con.close()
+
+
+def test_catalog_has_every_table_even_empty_and_follows_writes(wh):
+    con = connect(wh)
+    for name in wh.tables:
+        assert con.execute(f"SELECT count(*) FROM {name}").fetchone() == (0,)
+    con.close()
+    wh.write("runs", "a", run_rows("a", 3))
+    wh.write("runs", "b", run_rows("b", 2, "frames"))
+    con = connect(wh)
+    assert con.execute("SELECT stage, count(*) FROM runs GROUP BY stage ORDER BY stage").fetchall() == [("frames", 2), ("ingest", 3)]
+    with pytest.raises(duckdb.Error):  # opened read-only
+        con.execute("CREATE TABLE x (i INT)")
+    con.close()
+
+
+def test_catalog_opens_in_a_plain_duckdb_client(wh):
+    wh.write("runs", "a", run_rows("a", 3))
+    code = (
+        "import duckdb, sys; c = duckdb.connect(sys.argv[1], read_only=True); "
+        "print(c.execute('SELECT sum(rows_written) FROM runs').fetchone()[0])"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(wh.root / CATALOG_FILE)], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "3"

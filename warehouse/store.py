@@ -1,0 +1,233 @@
+"""Parquet storage: one folder per table, one sub-folder per clip partition.
+
+Layout under the warehouse root::
+
+    tables/<table>/clip=<clip>/part.parquet        replace-mode tables (one file, swapped whole)
+    tables/<table>/clip=<clip>/<time>-<id>.parquet append-mode tables (one file per write)
+    media/<kind>/<clip>/<version>/...              images and other files that rows point to
+    inputs/<clip>/...                              the clip's video and camera file
+    catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
+    _prefect/                                      Prefect's local state and cached task results
+
+Atomicity: every Parquet file is written under a temporary name in its final folder, flushed to
+disk and renamed into place (``os.replace``), so a reader or a crash sees the old file or the
+new one, never half of one. Media are written to a fresh version folder that no row points to
+yet; rows start pointing to it only when their table partition is swapped in, and superseded
+versions are removed afterwards (:meth:`Warehouse.publish_media`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import shutil
+import time
+import uuid
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+
+from schemas import PARTITION_COLUMN, TABLES, TableSpec
+
+CLIP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+REPLACE_FILE = "part.parquet"
+TMP_SUFFIX = ".tmp"
+
+
+class WarehouseError(ValueError):
+    """Data that does not fit its table, or an unknown table or clip."""
+
+
+def check_clip_name(name: str) -> str:
+    """Clip names become folder names: letters, digits, '_', '.', '-' (not starting with '.' or '-')."""
+    if not isinstance(name, str) or not CLIP_NAME.match(name):
+        raise WarehouseError(
+            f"invalid clip name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
+        )
+    return name
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, fsync, rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
+
+
+class Warehouse:
+    """A warehouse rooted at a local directory."""
+
+    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] = TABLES):
+        self.root = Path(root).expanduser().resolve()
+        self.tables = tables
+
+    def __repr__(self) -> str:
+        return f"Warehouse({str(self.root)!r})"
+
+    # -- layout ------------------------------------------------------------------------------
+    def spec(self, table: str) -> TableSpec:
+        try:
+            return self.tables[table]
+        except KeyError:
+            raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.tables))})") from None
+
+    def table_dir(self, table: str) -> Path:
+        return self.root / "tables" / self.spec(table).name
+
+    def partition_dir(self, table: str, clip: str) -> Path:
+        return self.table_dir(table) / f"{PARTITION_COLUMN}={check_clip_name(clip)}"
+
+    def inputs_dir(self, clip: str) -> Path:
+        return self.root / "inputs" / check_clip_name(clip)
+
+    def files(self, table: str, clips: Sequence[str] | None = None) -> list[Path]:
+        """Data files of ``table`` (all partitions, or those of ``clips``), sorted."""
+        base = self.table_dir(table)
+        if clips is None:
+            dirs = sorted(base.glob(f"{PARTITION_COLUMN}=*"))
+        else:
+            dirs = [self.partition_dir(table, c) for c in clips]
+        return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
+
+    def partitions(self, table: str) -> list[str]:
+        """Clips that have data in ``table``."""
+        prefix = f"{PARTITION_COLUMN}="
+        return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
+
+    # -- writing -----------------------------------------------------------------------------
+    def conform(self, table: str, clip: str, data: pa.Table) -> pa.Table:
+        """Check ``data`` against the table's schema and return it cast to that schema exactly."""
+        spec = self.spec(table)
+        names = set(data.column_names)
+        missing = [n for n in spec.schema.names if n not in names]
+        extra = sorted(names - set(spec.schema.names))
+        if missing or extra:
+            raise WarehouseError(f"table {table}: missing columns {missing}, unexpected columns {extra}")
+        for f in spec.schema:
+            if not f.nullable and data.column(f.name).null_count:
+                raise WarehouseError(f"table {table}: column {f.name!r} has nulls but is not nullable")
+        try:
+            data = data.select(spec.schema.names).cast(spec.schema)
+        except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as e:
+            raise WarehouseError(f"table {table}: data does not fit the schema: {e}") from None
+        if data.num_rows and not pc.all(pc.equal(data.column(PARTITION_COLUMN), clip)).as_py():
+            raise WarehouseError(f"table {table}: every row of partition {clip!r} must have clip = {clip!r}")
+        if data.num_rows and spec.mode == "replace":
+            counts = data.group_by(list(spec.key)).aggregate([([], "count_all")])
+            dup = counts.filter(pc.greater(counts.column("count_all"), 1))
+            if dup.num_rows:
+                first = {k: dup.column(k)[0].as_py() for k in spec.key}
+                raise WarehouseError(f"table {table}: duplicate key {first} ({dup.num_rows} duplicated keys)")
+        return data
+
+    def write(self, table: str, clip: str, data: pa.Table) -> int:
+        """Write one partition atomically; returns the rows written.
+
+        ``replace`` tables: the partition becomes exactly ``data`` (rewriting identical data is a
+        no-op in effect: idempotent). ``append`` tables: ``data`` is added as a new file.
+        """
+        spec = self.spec(table)
+        data = self.conform(table, clip, data)
+        part = self.partition_dir(table, clip)
+        part.mkdir(parents=True, exist_ok=True)
+        if spec.mode == "replace":
+            final = part / REPLACE_FILE
+        else:
+            final = part / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
+        tmp = part / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
+        try:
+            pq.write_table(data, tmp, compression="zstd")
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+        finally:
+            tmp.unlink(missing_ok=True)
+        _fsync_dir(part)
+        from warehouse.catalog import refresh_catalog  # the catalog's views follow the tables
+
+        refresh_catalog(self)
+        return data.num_rows
+
+    def delete(self, table: str, clip: str) -> None:
+        """Remove a partition (all its files)."""
+        shutil.rmtree(self.partition_dir(table, clip), ignore_errors=True)
+
+    # -- reading -----------------------------------------------------------------------------
+    def read(
+        self,
+        table: str,
+        clips: Sequence[str] | None = None,
+        filters: pc.Expression | list | None = None,
+        columns: Sequence[str] | None = None,
+    ) -> pa.Table:
+        """Read a table (optionally some clips, a row filter and a column subset).
+
+        ``filters`` is a pyarrow expression or DNF tuples as in ``pyarrow.parquet``
+        (``[("timestamp_us", ">=", 10)]``). Files written before a column was added read it as null.
+        """
+        spec = self.spec(table)
+        files = [str(f) for f in self.files(table, clips)]
+        if not files:
+            empty = spec.schema.empty_table()
+            return empty.select(list(columns)) if columns else empty
+        if isinstance(filters, list):
+            filters = pq.filters_to_expression(filters)
+        dataset = ds.dataset(files, schema=spec.schema, format="parquet")
+        result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
+        return result.sort_by([(k, "ascending") for k in spec.key if not columns or k in columns])
+
+    # -- media -------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def staging(self) -> Iterator[Path]:
+        """A fresh folder inside the warehouse for files being produced; removed on exit."""
+        path = self.root / "_staging" / uuid.uuid4().hex
+        path.mkdir(parents=True)
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def publish_media(self, kind: str, clip: str, staged: Path, version: str) -> Path:
+        """Move a staged folder to ``media/<kind>/<clip>/<version>`` (a new, unreferenced path).
+
+        Returns the final folder. Call :meth:`prune_media` after the rows pointing to it are written.
+        """
+        final = self.root / "media" / kind / check_clip_name(clip) / version
+        if final.exists():
+            raise WarehouseError(f"media version {final} exists already")
+        final.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(staged, final)
+        _fsync_dir(final.parent)
+        return final
+
+    def prune_media(self, kind: str, clip: str, keep: str) -> None:
+        """Remove every media version of (kind, clip) but ``keep``."""
+        for old in (self.root / "media" / kind / check_clip_name(clip)).glob("*"):
+            if old.name != keep:
+                shutil.rmtree(old, ignore_errors=True)
+
+    def relative(self, path: Path) -> str:
+        """``path`` relative to the warehouse root, with '/' separators (as stored in tables)."""
+        return Path(path).resolve().relative_to(self.root).as_posix()
