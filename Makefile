@@ -1,8 +1,9 @@
 # One entry point per job. Every target sets up what it needs first (idempotent).
-#   make run    - set up, generate a demo clip, run the annotate_clip flow on it, print a SQL summary
-#   make test   - set up and run the whole test suite (slow end-to-end tests included; CI runs this)
-#   make bench  - set up and run the benchmarks (numbers printed and written to bench/results/)
-#   make lock   - re-resolve requirements.lock from pyproject.toml
+#   make run          - set up, build the CAD library, generate a demo clip, run the flows, print a SQL summary
+#   make test         - set up and run the whole test suite (slow end-to-end tests included; CI runs this)
+#   make bench        - set up and run the benchmarks (numbers printed and written to bench/results/)
+#   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
+#   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
 PYTHON ?= python3.11
 VENV := .venv
@@ -13,8 +14,16 @@ UV_VERSION := 0.13.9
 DEMO_DIR ?= data/demo
 WAREHOUSE ?= data/warehouse
 export CADESTATE_WAREHOUSE ?= $(WAREHOUSE)
+# The embedded CAD library: Debian's sweethome3d-furniture, fetched (not installed) and unpacked
+# into a cache outside the repository, checked against its SHA-256.
+CACHE ?= $(HOME)/.cache/cadestate
+SH3D_VERSION := 1.8-1
+SH3D_SHA256 := 3ccb90c63f9525e887a767b9cd5c8b6933b8b6b2973a615a5359ee68a2118668
+SH3D_DEB := $(CACHE)/deb/sweethome3d-furniture_$(SH3D_VERSION)_all.deb
+SH3D_ROOT := $(CACHE)/sweethome3d-furniture_$(SH3D_VERSION)
+export CADESTATE_SH3D_DIR := $(SH3D_ROOT)/usr/share/sweethome3d/furniture
 
-.PHONY: setup run test test-fast bench lock clean
+.PHONY: setup run test test-fast bench lock clean cad-library
 
 setup: $(VENV)/.installed
 
@@ -25,20 +34,36 @@ $(VENV)/.installed: pyproject.toml requirements.lock
 	$(BIN)/uv pip install -q --python $(BIN)/python --no-deps --config-settings editable_mode=compat -e .
 	touch $@
 
-run: setup
+cad-library: $(SH3D_ROOT)/.unpacked
+
+$(SH3D_DEB):
+	mkdir -p $(@D)
+	cd $(@D) && { apt-get download sweethome3d-furniture=$(SH3D_VERSION) 2>/dev/null || \
+	  { apt-get update -qq && apt-get download sweethome3d-furniture=$(SH3D_VERSION); }; }
+	echo "$(SH3D_SHA256)  $@" | sha256sum -c --quiet
+
+$(SH3D_ROOT)/.unpacked: $(SH3D_DEB)
+	rm -rf $(SH3D_ROOT).tmp && dpkg-deb -x $< $(SH3D_ROOT).tmp
+	rm -rf $(SH3D_ROOT) && mv $(SH3D_ROOT).tmp $(SH3D_ROOT) && touch $@
+
+run: setup cad-library
+	$(BIN)/cadestate cad ingest
 	$(BIN)/cadestate demo make $(DEMO_DIR)
 	$(BIN)/cadestate ingest $(DEMO_DIR)
 	$(BIN)/cadestate sql "SELECT clip, count(*) AS frames, any_value(width) || 'x' || any_value(height) AS size, \
 	  max(abs(timestamp_error_us)) AS max_ts_error_us, \
 	  round(max(camera_center[1]) - min(camera_center[1]), 2) AS x_travel_m, \
 	  round(avg(camera_center[2]), 2) AS mean_camera_height_m FROM frames GROUP BY clip ORDER BY clip"
+	$(BIN)/cadestate sql "SELECT class, count(*) AS models, count(*) FILTER (symmetry > 1) AS symmetric, \
+	  round(median(extent[2]), 2) AS median_height_m FROM cad_models GROUP BY class ORDER BY models DESC LIMIT 12"
 	$(BIN)/cadestate sql "SELECT clip, stage, status, round(duration_s, 2) AS seconds, rows_written, config_hash \
 	  FROM runs ORDER BY started_at"
+	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
 
-test: setup
+test: setup cad-library
 	$(BIN)/python -m pytest
 
-test-fast: setup
+test-fast: setup cad-library
 	$(BIN)/python -m pytest -m "not slow"
 
 bench: setup

@@ -72,6 +72,24 @@ class FramesConfig:
 
 
 @dataclass(frozen=True)
+class CadIngestConfig:
+    """Stage ``cad_ingest``: canonicalise a CAD library, detect symmetries, sample surfaces."""
+
+    source: str = _opt("", "CAD source folder (Sweet Home 3D *.sh3f, ShapeNet layout, or meshes + models.csv); empty = the embedded Sweet Home 3D library.")
+    samples: int = _opt(4096, "Surface samples per model (symmetry detection, later geometry).", lo=256, hi=1_000_000)
+    symmetry_tolerance: float = _opt(0.02, "Largest symmetric-copy distance, relative to the model size, that counts as symmetric.", lo=0.0, hi=1.0)
+
+
+@dataclass(frozen=True)
+class CadViewsConfig:
+    """Stage ``cad_views``: render every model from random viewpoints (for appearance retrieval)."""
+
+    views: int = _opt(10, "Rendered views per model.", lo=1, hi=100)
+    size: int = _opt(224, "Side of the square renders.", lo=32, hi=2048)
+    seed: int = _opt(0, "Seed of the random viewpoints.", lo=0)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration. ``source`` is the file it came from (None for built-in defaults)."""
 
@@ -79,6 +97,8 @@ class Config:
     prefect: PrefectConfig = field(default_factory=PrefectConfig)
     ingest: IngestConfig = field(default_factory=IngestConfig)
     frames: FramesConfig = field(default_factory=FramesConfig)
+    cad_ingest: CadIngestConfig = field(default_factory=CadIngestConfig)
+    cad_views: CadViewsConfig = field(default_factory=CadViewsConfig)
     source: str | None = None
 
     def section(self, name: str) -> Any:
@@ -97,6 +117,8 @@ SECTIONS: dict[str, type] = {
     "prefect": PrefectConfig,
     "ingest": IngestConfig,
     "frames": FramesConfig,
+    "cad_ingest": CadIngestConfig,
+    "cad_views": CadViewsConfig,
 }
 """Section name -> dataclass; one entry per field of :class:`Config` (a test keeps them in step)."""
 RUNTIME_SECTIONS = ("warehouse", "prefect")

@@ -13,7 +13,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from cadestate.config import PrefectConfig
+from cadestate.config import Config, PrefectConfig
 
 
 def prepare_prefect_environment(root: Path, verbose: bool = False) -> None:
@@ -36,6 +36,16 @@ def warehouse_results(root: Path) -> Iterator[None]:
 
     with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / "_prefect" / "results")}):
         yield
+
+
+def run_flow(flow, config: Config, *args):
+    """Run ``flow(*args)`` with this warehouse's Prefect settings and the configured task runner;
+    returns the reports its final state carries (see :mod:`flows.reports`)."""
+    root = Path(config.warehouse.root).expanduser().resolve()
+    prepare_prefect_environment(root)
+    with warehouse_results(root):
+        state = flow.with_options(task_runner=task_runner(config.prefect))(*args, return_state=True)
+    return state.result(raise_on_failure=False)
 
 
 def task_runner(cfg: PrefectConfig):

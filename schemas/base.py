@@ -1,10 +1,10 @@
 """The pattern every warehouse table follows.
 
 A table is a :class:`TableSpec`: a pyarrow schema whose fields carry their meaning in metadata
-(``description``, ``unit``, ``frame``), the key columns that identify a row, and a write mode.
-Every table is partitioned by clip (``clips=<name>`` folders), or is a single ``_global``
-partition for library-wide tables (the CAD library later), so a stage rewrites exactly the
-partitions it owns and nothing else.
+(``description``, ``unit``, ``frame``), the key columns that identify a row, a partition column
+and a write mode. Per-clip tables are partitioned by ``clip`` (``clip=<name>`` folders), CAD
+library tables by ``library``, so a stage rewrites exactly the partitions it owns and nothing else.
+The partition column is the schema's first field.
 
 Write modes:
 - ``replace``: one Parquet file per partition, swapped atomically as a whole. Stage outputs.
@@ -17,11 +17,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import pyarrow as pa
-
-PARTITION_COLUMN = "clip"
-GLOBAL_PARTITION = "_global"
-"""Partition name of tables that do not belong to one clip."""
-
 
 def column(
     name: str,
@@ -46,7 +41,8 @@ def vector(size: int, dtype: pa.DataType = pa.float64()) -> pa.DataType:
     return pa.list_(pa.field("item", dtype, nullable=False), size)
 
 
-CLIP = column(PARTITION_COLUMN, pa.string(), "Clip name; the partition key of every per-clip table.")
+CLIP = column("clip", pa.string(), "Clip name; the partition key of every per-clip table.")
+LIBRARY = column("library", pa.string(), "CAD library name; the partition key of every CAD-library table.")
 
 
 @dataclass(frozen=True)
@@ -55,8 +51,8 @@ class TableSpec:
 
     Attributes:
         name: table (and DuckDB view) name.
-        schema: pyarrow schema; the first field is always ``clip``.
-        key: columns that identify a row within the table (``clip`` included).
+        schema: pyarrow schema; its first field is the partition column.
+        key: columns that identify a row within the table (the partition column included).
         mode: ``replace`` (a partition is rewritten as a whole) or ``append`` (a history).
         description: one line for ``cadestate tables`` and the catalog's comments.
     """
@@ -67,9 +63,14 @@ class TableSpec:
     mode: Literal["replace", "append"]
     description: str
 
+    @property
+    def partition(self) -> str:
+        """The partition column (``clip`` or ``library``)."""
+        return self.schema.names[0]
+
     def __post_init__(self) -> None:
-        if self.schema.names[0] != PARTITION_COLUMN:
-            raise ValueError(f"table {self.name}: the first column must be {PARTITION_COLUMN!r}")
+        if self.partition not in ("clip", "library") or self.key[0] != self.partition:
+            raise ValueError(f"table {self.name}: the first column and first key must be 'clip' or 'library'")
         missing = [k for k in self.key if k not in self.schema.names]
         if missing:
             raise ValueError(f"table {self.name}: key columns {missing} are not in the schema")

@@ -70,7 +70,7 @@ RUNS = TableSpec(
     name="runs",
     mode="append",
     key=("clip", "run_id"),
-    description="Every stage run (completed, failed or paused) with its lineage: config hash, input hash, output hash.",
+    description="Every stage run (completed, failed or paused) with its lineage; CAD-library stages use the library as clip.",
     schema=pa.schema(
         [
             CLIP,

@@ -21,7 +21,7 @@ from cadestate.lineage import digest
 from tasks.cameras import parse_camera_file
 from tasks.stage import StageOutput
 from tasks.video import VideoError, probe_video
-from warehouse import Warehouse, WarehouseError, check_clip_name
+from warehouse import Warehouse, WarehouseError, check_name
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".webm", ".mov", ".avi")
 CAMERAS_FILE = "cameras.txt"
@@ -38,7 +38,7 @@ class ClipSource:
     cameras: Path
 
     def __post_init__(self) -> None:
-        check_clip_name(self.clip)
+        check_name(self.clip)
 
 
 def discover_clips(folder: str | os.PathLike) -> list[ClipSource]:
@@ -129,7 +129,7 @@ def ingest_clip(
 
 def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:
     """The warehouse's copies of a registered clip's video and camera file, and its ``clips`` row."""
-    rows = wh.read("clips", clips=[clip]).to_pylist()
+    rows = wh.read("clips", partitions=[clip]).to_pylist()
     if not rows:
         raise WarehouseError(f"clip {clip!r} is not ingested (see `cadestate status`)")
     row = rows[0]

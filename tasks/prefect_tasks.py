@@ -15,15 +15,19 @@ from prefect import task
 from prefect.cache_policies import TASK_SOURCE, CacheKeyFnPolicy
 from prefect.utilities.hashing import hash_objects
 
-from cadestate.config import FramesConfig, IngestConfig, section_hash
+from cadestate.config import CadIngestConfig, CadViewsConfig, FramesConfig, IngestConfig, section_hash
+from tasks.cad_ingest import ingest_library
+from tasks.cad_sources import CadItem
+from tasks.cad_views import render_library
 from tasks.frames import extract_frames
 from tasks.ingest import ClipSource, ingest_clip, ingest_inputs_hash
 from tasks.registry import upstream_inputs_hash
 from tasks.stage import StageRun, run_stage
 from warehouse import Warehouse
 
-NOT_IN_KEY = ("source", "show_progress")
-"""Parameters that do not change a task's result (paths of identical inputs, display)."""
+NOT_IN_KEY = ("source", "items", "show_progress")
+"""Parameters that do not change a task's result given the others (paths of inputs whose content
+digest is a parameter too, display)."""
 
 
 def _cache_key(context: Any, parameters: dict[str, Any]) -> str | None:
@@ -56,5 +60,26 @@ def frames_task(root: str, clip: str, cfg: FramesConfig, ingest: StageRun, code_
     )
 
 
-STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task}
+@task(name="cad_ingest", cache_policy=CACHE_POLICY, persist_result=True)
+def cad_ingest_task(root: str, library: str, items: list[CadItem], items_digest: str, cfg: CadIngestConfig,
+                    code_hash: str, show_progress: bool = True) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, library, "cad_ingest", config_hash=section_hash("cad_ingest", cfg), code_hash=code_hash,
+        inputs_hash=items_digest, body=lambda run_id: ingest_library(wh, cfg, library, items, run_id, show_progress),
+    )
+
+
+@task(name="cad_views", cache_policy=CACHE_POLICY, persist_result=True)
+def cad_views_task(root: str, library: str, cfg: CadViewsConfig, cad_ingest: StageRun, code_hash: str,
+                   show_progress: bool = True) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, library, "cad_views", config_hash=section_hash("cad_views", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([cad_ingest.output_hash]),
+        body=lambda run_id: render_library(wh, cfg, library, run_id, show_progress),
+    )
+
+
+STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "cad_ingest": cad_ingest_task, "cad_views": cad_views_task}
 """One task per stage of :data:`tasks.registry.STAGES`, in pipeline order (a test checks it)."""

@@ -11,13 +11,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
-from tasks.registry import STAGES, upstream_inputs_hash
+from tasks.registry import stages_of, upstream_inputs_hash
 from warehouse import Warehouse
 
 
 @dataclass(frozen=True)
 class StageStatus:
-    clip: str
+    clip: str  # or library
     stage: str
     status: str  # completed | failed | paused | never run
     last_run_at: str
@@ -25,10 +25,14 @@ class StageStatus:
     stale_reasons: tuple[str, ...]
 
 
-def pipeline_status(wh: Warehouse, config: Config, clips: Sequence[str] | None = None) -> list[StageStatus]:
-    """One :class:`StageStatus` per (clip, stage), clips sorted, stages in pipeline order."""
-    runs = wh.read("runs", clips=clips).sort_by("started_at").to_pylist()
-    names = sorted(set(clips or wh.partitions("clips")) | {r["clip"] for r in runs})
+def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None = None,
+                    scope: str = "clip") -> list[StageStatus]:
+    """One :class:`StageStatus` per (clip or library, stage), names sorted, stages in pipeline order."""
+    stages = stages_of(scope)
+    runs = [r for r in wh.read("runs", partitions=names).sort_by("started_at").to_pylist()
+            if r["stage"] in {s.name for s in stages}]
+    registered = wh.partitions("clips" if scope == "clip" else "cad_models")
+    names = sorted(set(names or registered) | {r["clip"] for r in runs})
     last: dict[tuple[str, str], dict] = {}
     last_ok: dict[tuple[str, str], dict] = {}
     for r in runs:
@@ -38,7 +42,7 @@ def pipeline_status(wh: Warehouse, config: Config, clips: Sequence[str] | None =
     result = []
     for clip in names:
         stale_stages: set[str] = set()
-        for stage in STAGES.values():
+        for stage in stages:
             latest, ok = last.get((clip, stage.name)), last_ok.get((clip, stage.name))
             reasons = []
             if ok is None:

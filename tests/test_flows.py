@@ -84,7 +84,31 @@ def test_a_bad_clip_does_not_stop_the_others(config, source, tmp_path):
     ]
     assert "broken.mp4: cannot open video" in reports[0].message
     wh = Warehouse(config.warehouse.root)
-    failed = wh.read("runs", clips=["broken"]).to_pylist()
+    failed = wh.read("runs", partitions=["broken"]).to_pylist()
     assert [(r["stage"], r["status"]) for r in failed] == [("ingest", "failed")]
     assert "cannot open video" in failed[0]["message"]
     assert wh.partitions("frames") == ["small"]
+
+
+def test_cad_library_flow_caches_per_stage(config, tmp_path):
+    import trimesh
+
+    from cadestate.config import CadViewsConfig
+    from flows.cad_library import run_cad_library
+    from tasks.cad_sources import folder_items
+
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    trimesh.creation.box((1.0, 0.5, 0.6)).export(folder / "box.obj")
+    trimesh.creation.cone(0.3, 0.8).export(folder / "cone.ply")
+    (folder / "models.csv").write_text("id,class\nbox,table\ncone,lamp\n")
+    items = list(folder_items(folder, "lib"))
+    small = dataclasses.replace(config, cad_views=CadViewsConfig(views=2, size=64))
+    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", "cad_ingest", "completed"), ("lib", "cad_views", "completed")]
+    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", "cad_ingest", "cached"), ("lib", "cad_views", "cached")]
+    bigger = dataclasses.replace(small, cad_views=CadViewsConfig(views=3, size=64))
+    assert states(run_cad_library(items, bigger, show_progress=False)) == [("lib", "cad_ingest", "cached"), ("lib", "cad_views", "completed")]
+    wh = Warehouse(config.warehouse.root)
+    assert wh.read("cad_views").num_rows == 6
+    status = {(r.clip, r.stage): r.stale_reasons for r in pipeline_status(wh, bigger, scope="library")}
+    assert status == {("lib", "cad_ingest"): (), ("lib", "cad_views"): ()}

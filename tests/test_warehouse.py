@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from schemas import TableSpec
-from warehouse import Warehouse, WarehouseError, check_clip_name, connect
+from warehouse import Warehouse, WarehouseError, check_name, connect
 from warehouse.catalog import CATALOG_FILE
 
 
@@ -60,7 +60,7 @@ def test_append_mode_keeps_history(wh):
 def test_read_filters_columns_and_clips(wh):
     wh.write("runs", "a", run_rows("a", 4, "ingest"))
     wh.write("runs", "b", run_rows("b", 3, "frames"))
-    assert wh.read("runs", clips=["b"]).num_rows == 3
+    assert wh.read("runs", partitions=["b"]).num_rows == 3
     got = wh.read("runs", filters=[("rows_written", ">=", 2)], columns=["clip", "rows_written"])
     assert got.column_names == ["clip", "rows_written"]
     assert sorted(got.column("rows_written").to_pylist()) == [2, 2, 3]
@@ -89,7 +89,7 @@ def test_write_rejects_data_that_does_not_fit(wh, mutate, message):
 @pytest.mark.parametrize("name", ["", "../x", "a/b", ".hidden", "-x", "a b", "x" * 201])
 def test_clip_names_that_are_not_safe_folder_names_are_rejected(name):
     with pytest.raises(WarehouseError, match="invalid clip name"):
-        check_clip_name(name)
+        check_name(name)
 
 
 def test_unknown_table(wh):

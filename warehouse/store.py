@@ -1,10 +1,11 @@
-"""Parquet storage: one folder per table, one sub-folder per clip partition.
+"""Parquet storage: one folder per table, one sub-folder per partition (a clip, or a CAD library).
 
 Layout under the warehouse root::
 
     tables/<table>/clip=<clip>/part.parquet        replace-mode tables (one file, swapped whole)
     tables/<table>/clip=<clip>/<time>-<id>.parquet append-mode tables (one file per write)
-    media/<kind>/<clip>/<version>/...              images and other files that rows point to
+    tables/<table>/library=<library>/...           CAD-library tables, partitioned by library
+    media/<kind>/<partition>/<version>/...         images and other files that rows point to
     inputs/<clip>/...                              the clip's video and camera file
     catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
     _prefect/                                      Prefect's local state and cached task results
@@ -32,22 +33,23 @@ import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from schemas import PARTITION_COLUMN, TABLES, TableSpec
+from schemas import TABLES, TableSpec
 
-CLIP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
 TMP_SUFFIX = ".tmp"
 
 
 class WarehouseError(ValueError):
-    """Data that does not fit its table, or an unknown table or clip."""
+    """Data that does not fit its table, or an unknown table or partition."""
 
 
-def check_clip_name(name: str) -> str:
-    """Clip names become folder names: letters, digits, '_', '.', '-' (not starting with '.' or '-')."""
-    if not isinstance(name, str) or not CLIP_NAME.match(name):
+def check_name(name: str, what: str = "clip") -> str:
+    """Clip, library and model names become folder and file names: letters, digits, '_', '.', '-'
+    (at most 200, not starting with '.' or '-')."""
+    if not isinstance(name, str) or not NAME.match(name):
         raise WarehouseError(
-            f"invalid clip name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
+            f"invalid {what} name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
         )
     return name
 
@@ -96,28 +98,29 @@ class Warehouse:
     def table_dir(self, table: str) -> Path:
         return self.root / "tables" / self.spec(table).name
 
-    def partition_dir(self, table: str, clip: str) -> Path:
-        return self.table_dir(table) / f"{PARTITION_COLUMN}={check_clip_name(clip)}"
+    def partition_dir(self, table: str, part: str) -> Path:
+        spec = self.spec(table)
+        return self.table_dir(table) / f"{spec.partition}={check_name(part, spec.partition)}"
 
     def inputs_dir(self, clip: str) -> Path:
-        return self.root / "inputs" / check_clip_name(clip)
+        return self.root / "inputs" / check_name(clip)
 
-    def files(self, table: str, clips: Sequence[str] | None = None) -> list[Path]:
-        """Data files of ``table`` (all partitions, or those of ``clips``), sorted."""
+    def files(self, table: str, partitions: Sequence[str] | None = None) -> list[Path]:
+        """Data files of ``table`` (all partitions, or the named ones), sorted."""
         base = self.table_dir(table)
-        if clips is None:
-            dirs = sorted(base.glob(f"{PARTITION_COLUMN}=*"))
+        if partitions is None:
+            dirs = sorted(base.glob(f"{self.spec(table).partition}=*"))
         else:
-            dirs = [self.partition_dir(table, c) for c in clips]
+            dirs = [self.partition_dir(table, p) for p in partitions]
         return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
 
     def partitions(self, table: str) -> list[str]:
-        """Clips that have data in ``table``."""
-        prefix = f"{PARTITION_COLUMN}="
+        """Partitions (clips, or libraries) that have data in ``table``."""
+        prefix = f"{self.spec(table).partition}="
         return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
 
     # -- writing -----------------------------------------------------------------------------
-    def conform(self, table: str, clip: str, data: pa.Table) -> pa.Table:
+    def conform(self, table: str, part: str, data: pa.Table) -> pa.Table:
         """Check ``data`` against the table's schema and return it cast to that schema exactly."""
         spec = self.spec(table)
         names = set(data.column_names)
@@ -132,8 +135,9 @@ class Warehouse:
             data = data.select(spec.schema.names).cast(spec.schema)
         except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as e:
             raise WarehouseError(f"table {table}: data does not fit the schema: {e}") from None
-        if data.num_rows and not pc.all(pc.equal(data.column(PARTITION_COLUMN), clip)).as_py():
-            raise WarehouseError(f"table {table}: every row of partition {clip!r} must have clip = {clip!r}")
+        column = spec.partition
+        if data.num_rows and not pc.all(pc.equal(data.column(column), part)).as_py():
+            raise WarehouseError(f"table {table}: every row of partition {part!r} must have {column} = {part!r}")
         if data.num_rows and spec.mode == "replace":
             counts = data.group_by(list(spec.key)).aggregate([([], "count_all")])
             dup = counts.filter(pc.greater(counts.column("count_all"), 1))
@@ -142,21 +146,21 @@ class Warehouse:
                 raise WarehouseError(f"table {table}: duplicate key {first} ({dup.num_rows} duplicated keys)")
         return data
 
-    def write(self, table: str, clip: str, data: pa.Table) -> int:
+    def write(self, table: str, part: str, data: pa.Table) -> int:
         """Write one partition atomically; returns the rows written.
 
         ``replace`` tables: the partition becomes exactly ``data`` (rewriting identical data is a
         no-op in effect: idempotent). ``append`` tables: ``data`` is added as a new file.
         """
         spec = self.spec(table)
-        data = self.conform(table, clip, data)
-        part = self.partition_dir(table, clip)
-        part.mkdir(parents=True, exist_ok=True)
+        data = self.conform(table, part, data)
+        folder = self.partition_dir(table, part)
+        folder.mkdir(parents=True, exist_ok=True)
         if spec.mode == "replace":
-            final = part / REPLACE_FILE
+            final = folder / REPLACE_FILE
         else:
-            final = part / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
-        tmp = part / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
+            final = folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
+        tmp = folder / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
         try:
             pq.write_table(data, tmp, compression="zstd")
             with open(tmp, "rb+") as f:
@@ -164,31 +168,31 @@ class Warehouse:
             os.replace(tmp, final)
         finally:
             tmp.unlink(missing_ok=True)
-        _fsync_dir(part)
+        _fsync_dir(folder)
         from warehouse.catalog import refresh_catalog  # the catalog's views follow the tables
 
         refresh_catalog(self)
         return data.num_rows
 
-    def delete(self, table: str, clip: str) -> None:
+    def delete(self, table: str, part: str) -> None:
         """Remove a partition (all its files)."""
-        shutil.rmtree(self.partition_dir(table, clip), ignore_errors=True)
+        shutil.rmtree(self.partition_dir(table, part), ignore_errors=True)
 
     # -- reading -----------------------------------------------------------------------------
     def read(
         self,
         table: str,
-        clips: Sequence[str] | None = None,
+        partitions: Sequence[str] | None = None,
         filters: pc.Expression | list | None = None,
         columns: Sequence[str] | None = None,
     ) -> pa.Table:
-        """Read a table (optionally some clips, a row filter and a column subset).
+        """Read a table (optionally some partitions, a row filter and a column subset).
 
         ``filters`` is a pyarrow expression or DNF tuples as in ``pyarrow.parquet``
         (``[("timestamp_us", ">=", 10)]``). Files written before a column was added read it as null.
         """
         spec = self.spec(table)
-        files = [str(f) for f in self.files(table, clips)]
+        files = [str(f) for f in self.files(table, partitions)]
         if not files:
             empty = spec.schema.empty_table()
             return empty.select(list(columns)) if columns else empty
@@ -209,12 +213,12 @@ class Warehouse:
         finally:
             shutil.rmtree(path, ignore_errors=True)
 
-    def publish_media(self, kind: str, clip: str, staged: Path, version: str) -> Path:
-        """Move a staged folder to ``media/<kind>/<clip>/<version>`` (a new, unreferenced path).
+    def publish_media(self, kind: str, part: str, staged: Path, version: str) -> Path:
+        """Move a staged folder to ``media/<kind>/<part>/<version>`` (a new, unreferenced path).
 
         Returns the final folder. Call :meth:`prune_media` after the rows pointing to it are written.
         """
-        final = self.root / "media" / kind / check_clip_name(clip) / version
+        final = self.root / "media" / kind / check_name(part, "partition") / version
         if final.exists():
             raise WarehouseError(f"media version {final} exists already")
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -222,9 +226,9 @@ class Warehouse:
         _fsync_dir(final.parent)
         return final
 
-    def prune_media(self, kind: str, clip: str, keep: str) -> None:
-        """Remove every media version of (kind, clip) but ``keep``."""
-        for old in (self.root / "media" / kind / check_clip_name(clip)).glob("*"):
+    def prune_media(self, kind: str, part: str, keep: str) -> None:
+        """Remove every media version of (kind, part) but ``keep``."""
+        for old in (self.root / "media" / kind / check_name(part, "partition")).glob("*"):
             if old.name != keep:
                 shutil.rmtree(old, ignore_errors=True)
 

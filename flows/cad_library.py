@@ -1,0 +1,41 @@
+"""Flow ``build_cad_library``: ingest a CAD source, one library at a time (in parallel on the task runner).
+
+Per library: cad_ingest (canonical meshes, symmetry, surface samples) -> cad_views (renders).
+Reports like the clip flows: completed, cached, failed or skipped per stage and library.
+"""
+
+from __future__ import annotations
+
+from itertools import groupby
+from pathlib import Path
+
+from prefect import flow
+from prefect.futures import PrefectFuture
+from prefect.states import State
+
+from cadestate.config import Config
+from flows.reports import StageReport, finish
+from flows.runtime import run_flow
+from tasks.cad_sources import CadItem, items_digest
+from tasks.prefect_tasks import cad_ingest_task, cad_views_task
+from tasks.registry import STAGES
+
+
+@flow(name="build_cad_library", log_prints=True)
+def build_cad_library(root: str, items: list[CadItem], config: Config, show_progress: bool = True) -> State:
+    """Ingest and render every library of ``items``."""
+    submitted: list[tuple[str, str, PrefectFuture]] = []
+    by_library = groupby(sorted(items, key=lambda i: i.library), key=lambda i: i.library)
+    for library, group in by_library:
+        group = list(group)
+        ingest = cad_ingest_task.submit(root, library, group, items_digest(group), config.cad_ingest,
+                                        STAGES["cad_ingest"].code_hash, show_progress)
+        views = cad_views_task.submit(root, library, config.cad_views, ingest, STAGES["cad_views"].code_hash, show_progress)
+        submitted += [(library, "cad_ingest", ingest), (library, "cad_views", views)]
+    return finish(submitted, [], f"{len({i.library for i in items})} CAD librar(y/ies)")
+
+
+def run_cad_library(items: list[CadItem], config: Config, show_progress: bool = True) -> list[StageReport]:
+    """Build the CAD library from ``items`` with ``config``; one report per stage run."""
+    root = str(Path(config.warehouse.root).expanduser().resolve())
+    return run_flow(build_cad_library, config, root, items, config, show_progress)

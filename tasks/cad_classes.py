@@ -1,0 +1,97 @@
+"""The class vocabulary of CAD models, close to the ShapeNet classes that CAD-Estate uses.
+
+Each class has a name, an id (its ShapeNetCore v2 synset where ShapeNet has the class, else
+``cadestate-<name>``; the official layout's ``shapenet_classes.json`` lists both), whether it
+stands upright (used by the pose solver's up-axis term), and the COCO detector labels that
+correspond to it. Source categories are mapped by :func:`classify` from the item's name (and
+its source category as a fallback); the original category is always kept beside the class.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CadClass:
+    name: str
+    id: str
+    upright: bool = True
+    coco: tuple[str, ...] = ()
+
+
+CLASSES: tuple[CadClass, ...] = (
+    CadClass("chair", "03001627", coco=("chair",)),
+    CadClass("sofa", "04256520", coco=("couch",)),
+    CadClass("bed", "02818832", coco=("bed",)),
+    CadClass("table", "04379243", coco=("dining table",)),
+    CadClass("cabinet", "02933112"),
+    CadClass("bookshelf", "02871439"),
+    CadClass("lamp", "03636649"),
+    CadClass("display", "03211117", coco=("tv", "laptop")),
+    CadClass("bin", "02747177"),
+    CadClass("plant", "03991062", coco=("potted plant",)),
+    CadClass("bathtub", "02808440"),
+    CadClass("toilet", "cadestate-toilet", coco=("toilet",)),
+    CadClass("sink", "cadestate-sink", coco=("sink",)),
+    CadClass("bench", "02828884", coco=("bench",)),
+    CadClass("piano", "03928116"),
+    CadClass("stove", "04330267", coco=("oven",)),
+    CadClass("microwave", "03761084", coco=("microwave",)),
+    CadClass("washer", "04554684"),
+    CadClass("refrigerator", "cadestate-refrigerator", coco=("refrigerator",)),
+    CadClass("radiator", "cadestate-radiator"),
+    CadClass("jar", "03593526", coco=("vase",)),
+    CadClass("clock", "03046257", coco=("clock",)),
+    CadClass("loudspeaker", "03691459"),
+    CadClass("laptop", "03642806", upright=False, coco=("laptop",)),
+    CadClass("door", "cadestate-door"),
+    CadClass("window", "cadestate-window"),
+    CadClass("vehicle", "02958343", coco=("car", "motorcycle", "bicycle", "truck", "bus")),
+    CadClass("other", "cadestate-other", upright=False),
+)
+BY_NAME: dict[str, CadClass] = {c.name: c for c in CLASSES}
+
+# Ordered rules: the first pattern found in the lower-cased item name decides. Specific phrases
+# come before the general words they contain ("bedside table" before "bed", "sofa bed" ...).
+_RULES: tuple[tuple[str, str], ...] = (
+    (r"bedside table|night ?stand|television cabinet|tv stand|sink cabinet|filing cabinet|drawers|dresser|"
+     r"wardrobe|cupboard|cabinet|sideboard|chest(?! freezer)|locker|\bsafe\b|vanity|island\b", "cabinet"),
+    (r"washbasin|\bsink\b|\bbasin\b|lavatory", "sink"),
+    (r"toilet(?! paper| brush)|urinal|bidet|\bwc\b|potty", "toilet"),
+    (r"bathtub|\bbath\b|jacuzzi|island bath|corner bathtub", "bathtub"),
+    (r"sofa|couch|futon|chaise", "sofa"),
+    (r"piano bench|\bbench\b", "bench"),
+    (r"armchair|chair|stool|\bseat\b|\bpuff\b|ottoman", "chair"),
+    (r"\bbed\b|crib|cot\b|bunk|day bed|hospital bed|tatami", "bed"),
+    (r"bookcase|shel(f|ves)", "bookshelf"),
+    (r"table|desk|workbench", "table"),
+    (r"lamp|light|chandelier|lantern|spotlight|lamppost", "lamp"),
+    (r"\btv\b|television|screen|monitor|imac|video projector", "display"),
+    (r"laptop|ibook", "laptop"),
+    (r"trash|\bbin\b|dustbin", "bin"),
+    (r"vase|\bjar\b|pottery", "jar"),
+    (r"plant|tree|ficus|yucca|cactus|bamboo|orchid|flower|tulip|lily|bonsai|palm|bush|hedge|pine|"
+     r"spathiphyllum|succulent|maple|acacia|poplar|cypress|beech|blossom", "plant"),
+    (r"piano", "piano"),
+    (r"microwave", "microwave"),
+    (r"stove|cooker|oven|cooktop|hood", "stove"),
+    (r"washing machine|dryer", "washer"),
+    (r"fridge|refrigerator|freezer", "refrigerator"),
+    (r"radiator", "radiator"),
+    (r"clock", "clock"),
+    (r"speaker|stereo", "loudspeaker"),
+    (r"door", "door"),
+    (r"window", "window"),
+)
+_CATEGORY_RULES: dict[str, str] = {"vehicles": "vehicle", "lights": "lamp", "doors and windows": "window"}
+
+
+def classify(name: str, category: str = "") -> str:
+    """The class name of an item from its name (and, failing that, its source category)."""
+    lowered = name.lower()
+    for pattern, cls in _RULES:
+        if re.search(pattern, lowered):
+            return cls
+    return _CATEGORY_RULES.get(category.lower(), "other")

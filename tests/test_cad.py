@@ -1,0 +1,215 @@
+"""CAD library: sources, canonical frame, bad input, views, the official export."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from cadestate.config import CadIngestConfig, CadViewsConfig
+from cadestate.geometry import project
+from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
+from tasks.cad_classes import BY_NAME, CLASSES, classify
+from tasks.cad_export import ExportError, export_official, triangle_soup
+from tasks.cad_ingest import ingest_library
+from tasks.cad_sources import (
+    CadSourceError, folder_items, guess_kind, items_digest, load_item, read_java_properties, shapenet_items,
+    sweethome3d_items,
+)
+from tasks.cad_views import render_library, view_camera, viewpoints
+
+SH3D = Path(os.environ.get("CADESTATE_SH3D_DIR", "/nonexistent"))
+needs_sh3d = pytest.mark.skipif(not SH3D.is_dir(), reason="Sweet Home 3D library not fetched (make cad-library)")
+
+
+def chair_like() -> trimesh.Trimesh:
+    """Seat, a backrest on the -Z side, four legs: no rotational symmetry. Units: cm."""
+    parts = [trimesh.creation.box((50, 5, 50), trimesh.transformations.translation_matrix((0, 45, 0))),
+             trimesh.creation.box((50, 50, 5), trimesh.transformations.translation_matrix((0, 72, -22.5)))]
+    parts += [trimesh.creation.box((4, 45, 4), trimesh.transformations.translation_matrix((x, 22.5, z)))
+              for x in (-22, 22) for z in (-22, 22)]
+    return trimesh.util.concatenate(parts)
+
+
+@pytest.fixture(scope="module")
+def mesh_folder(tmp_path_factory) -> Path:
+    """A folder source: good meshes in four formats, plus an unreadable, an empty and a degenerate one."""
+    d = tmp_path_factory.mktemp("meshes")
+    trimesh.creation.box((100, 40, 60)).export(d / "crate.obj")  # cm: unit_m 0.01
+    cylinder = trimesh.creation.cylinder(radius=0.3, height=0.7, sections=64)
+    cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    cylinder.export(d / "stool.ply")
+    chair_like().export(d / "chair.stl")
+    trimesh.creation.box((0.8, 0.5, 0.8)).export(d / "cube.glb")
+    (d / "broken.obj").write_text("v 0 0 0\nv not a number\nf 1 2 3\n")
+    (d / "empty.obj").write_text("# nothing\n")
+    trimesh.Trimesh([[0, 0, 0]] * 3, [[0, 1, 2]], process=False).export(d / "flat.off")
+    (d / "models.csv").write_text(
+        "id,class,unit_m,licence,creator\n"
+        "crate,box,0.01,CC0-1.0,test\nstool,chair,1,CC0-1.0,test\nchair,chair,0.01,CC0-1.0,test\n"
+        "cube,table,1,CC0-1.0,test\nbroken,chair,1,,\nempty,chair,1,,\nflat,table,1,,\nmissing,lamp,1,,\n"
+    )
+    return d
+
+
+@pytest.fixture(scope="module")
+def ingested(mesh_folder, tmp_path_factory):
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path_factory.mktemp("wh"))
+    items = list(folder_items(mesh_folder, "testlib"))
+    out = ingest_library(wh, CadIngestConfig(samples=2048), "testlib", items, "run1", show_progress=False)
+    return wh, out
+
+
+def test_folder_source_lists_every_row(mesh_folder):
+    items = list(folder_items(mesh_folder, "testlib"))
+    assert [i.item for i in items] == ["crate", "stool", "chair", "cube", "broken", "empty", "flat", "missing"]
+    assert {i.cad_id for i in items} == {f"testlib.{i.item}" for i in items}
+    assert items[0].cls == "other" and items[1].cls == "chair" and items[0].unit_m == 0.01
+    assert guess_kind(mesh_folder) == "folder"
+
+
+def test_ingest_canonicalises_and_reports_bad_items(ingested):
+    wh, out = ingested
+    models = {m["cad_id"].split(".")[1]: m for m in wh.read("cad_models").to_pylist()}
+    assert sorted(models) == ["chair", "crate", "cube", "stool"] and out.rows_written == 4
+    issues = {i["item"]: i for i in wh.read("cad_issues").to_pylist()}
+    assert sorted(issues) == ["broken", "empty", "flat", "missing"]
+    assert all(i["severity"] == "skipped" for i in issues.values())
+    assert "not found" in issues["missing"]["problem"] and "degenerate" in issues["flat"]["problem"]
+    assert "no triangles" in issues["empty"]["problem"]
+    np.testing.assert_allclose(models["crate"]["extent"], [1.0, 0.4, 0.6], atol=1e-6)  # cm -> m
+    np.testing.assert_allclose(models["stool"]["extent"], [0.6, 0.7, 0.6], atol=1e-3)
+    for m in models.values():  # canonical: centred bounding box
+        mesh = trimesh.util.concatenate(list(trimesh.load(wh.root / m["mesh_path"], force="scene").dump()))
+        np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0, atol=1e-6)
+        np.testing.assert_allclose(mesh.bounds[1] - mesh.bounds[0], m["extent"], atol=1e-6)
+    assert {k: models[k]["symmetry"] for k in models} == {"crate": 2, "cube": 4, "stool": 36, "chair": 1}
+    samples = wh.read("cad_samples").to_pylist()
+    assert all(len(s["points"]) == 2048 for s in samples)
+
+
+def test_ingest_rerun_gives_the_same_result(ingested, mesh_folder):
+    wh, out = ingested
+    before = wh.read("cad_models").drop_columns(["mesh_path"])
+    again = ingest_library(wh, CadIngestConfig(samples=2048), "testlib", list(folder_items(mesh_folder, "testlib")),
+                           "run2", show_progress=False)
+    assert again.output_hash == out.output_hash and wh.read("cad_models").drop_columns(["mesh_path"]).equals(before)
+    assert [p.name for p in (wh.root / "media" / "cad" / "testlib").iterdir()] == ["run2"]  # old meshes pruned
+    assert wh.read("cad_issues").num_rows == 4  # replaced, not appended
+
+
+def test_shapenet_layout(tmp_path):
+    for synset, model in (("03001627", "abc123"), ("04379243", "def456"), ("99999999", "zzz")):
+        folder = tmp_path / synset / model / "models"
+        folder.mkdir(parents=True)
+        trimesh.creation.box((0.5, 0.9, 0.5)).export(folder / "model_normalized.obj")
+    items = list(shapenet_items(tmp_path))
+    assert [(i.cad_id, i.cls) for i in items] == [("shapenet.abc123", "chair"), ("shapenet.def456", "table"), ("shapenet.zzz", "other")]
+    assert guess_kind(tmp_path) == "shapenet"
+    scene, missing = load_item(items[0])
+    assert missing == [] and np.allclose(scene.extents, [0.5, 0.9, 0.5])
+    with pytest.raises(CadSourceError, match="no <synset>/<model_id>"):
+        list(shapenet_items(tmp_path / "03001627"))
+
+
+def test_items_digest_tracks_files(mesh_folder, tmp_path):
+    items = list(folder_items(mesh_folder, "testlib"))
+    assert items_digest(items) == items_digest(list(folder_items(mesh_folder, "testlib")))
+    assert items_digest(items[:3]) != items_digest(items)
+
+
+def test_java_properties():
+    data = "# c\nname#1=Caf\\u00e9 table\nlong=a \\\n   b\nkey\\ with\\ space = v\n! bang\ncolon:x\n".encode("latin-1")
+    assert read_java_properties(data) == {"name#1": "Café table", "long": "a b", "key with space": "v", "colon": "x"}
+
+
+@pytest.mark.parametrize("name, category, expected", [
+    ("Armchair", "", "chair"), ("Bedside table", "", "cabinet"), ("Bed", "", "bed"), ("Sofa bed", "", "sofa"),
+    ("Coffee table", "", "table"), ("Washbasin", "", "sink"), ("Toilets unit", "", "toilet"),
+    ("Toilet paper dispenser", "", "other"), ("Wall flat TV", "", "display"), ("Ficus", "", "plant"),
+    ("Bookcase", "", "bookshelf"), ("Concept Sedan 01", "Vehicles", "vehicle"), ("Spoon", "Kitchen", "other"),
+])
+def test_classify(name, category, expected):
+    assert classify(name, category) == expected
+
+
+def test_class_vocabulary_is_consistent():
+    assert len({c.id for c in CLASSES}) == len(CLASSES) == len(BY_NAME)
+    assert BY_NAME["chair"].id == "03001627" and BY_NAME["table"].id == "04379243"  # ShapeNet synsets
+
+
+def test_views_frame_the_model(ingested):
+    wh, _ = ingested
+    out = render_library(wh, CadViewsConfig(views=3, size=96), "testlib", "v1", show_progress=False)
+    views = wh.read("cad_views").to_pylist()
+    assert out.rows_written == len(views) == 4 * 3
+    assert all((wh.root / v["image_path"]).is_file() for v in views)
+    np.testing.assert_array_equal(viewpoints("x", 3, 0), viewpoints("x", 3, 0))
+    assert not np.array_equal(viewpoints("x", 3, 0), viewpoints("y", 3, 0))
+    crate = next(m for m in wh.read("cad_models").to_pylist() if m["cad_id"] == "testlib.crate")
+    mesh = RenderMesh.from_trimesh(trimesh.load(wh.root / crate["mesh_path"], force="scene"))
+    camera = view_camera(np.asarray(crate["extent"]), 30.0, 20.0, 96)
+    with Renderer(96, 96) as renderer:
+        ids = renderer.render([Instance(mesh, np.eye(4), 0)], camera).instance_id
+    ys, xs = np.nonzero(ids == 0)
+    assert xs.min() > 0 and ys.min() > 0 and xs.max() < 95 and ys.max() < 95  # whole model in view
+    assert (xs.max() - xs.min()) > 40  # and it fills a good part of it
+    uv, depth = project(camera.K, camera.R, camera.t, np.zeros((1, 3)))
+    np.testing.assert_allclose(uv[0], [48, 48], atol=1e-9)  # looking at the canonical origin
+
+
+def test_export_official_round_trip(ingested, tmp_path):
+    wh, _ = ingested
+    out = tmp_path / "official"
+    assert export_official(wh, out, show_progress=False) == 4
+    classes = json.loads((out / "shapenet_classes.json").read_text())
+    assert classes[0] == {"id": "03001627", "human_readable": "chair"} and len(classes) == len(CLASSES)
+    symmetry = json.loads((out / "symmetry_dict.json").read_text())
+    assert symmetry["03001627_testlib.stool"] == 36 and symmetry["cadestate-other_testlib.crate"] == 2
+    npz = np.load(out / "03001627" / "testlib.chair.npz")
+    assert npz["vertices"].dtype == np.float32 and npz["vertices"].shape[1:] == (3, 3)
+    chair = next(m for m in wh.read("cad_models").to_pylist() if m["cad_id"] == "testlib.chair")
+    np.testing.assert_array_equal(npz["vertices"], triangle_soup(wh.root / chair["mesh_path"]))
+    assert str(npz["label"]) == "03001627" and str(npz["mesh_id"]) == "testlib.chair"
+    # The official loader's object-to-world (translate . rotate . scale . mirror) is ours.
+    q = np.array([np.cos(0.3), 0, np.sin(0.3), 0])
+    M = object_to_world([1, 0, 2], q, [1.1, 0.9, 1.2], True)
+    v = npz["vertices"].reshape(-1, 3).astype(np.float64)
+    mirrored_scaled = v * [-1, 1, 1] * [1.1, 0.9, 1.2]
+    from cadestate.geometry import quaternion_to_matrix
+    expected = mirrored_scaled @ quaternion_to_matrix(q).T + [1, 0, 2]
+    np.testing.assert_allclose(v @ M[:3, :3].T + M[:3, 3], expected, atol=1e-9)
+    with pytest.raises(ExportError, match="not empty"):
+        export_official(wh, out, show_progress=False)
+
+
+@needs_sh3d
+def test_sweet_home_3d_catalogues():
+    items = list(sweethome3d_items(SH3D))
+    assert len(items) == 783  # 175 + 135 + 90 + 395, less the people (characters)
+    assert {i.library for i in items} == {"sh3d-blendswap-cc-0", "sh3d-blendswap-cc-by", "sh3d-katorlegaz", "sh3d-scopia"}
+    assert all(i.category.lower() != "characters" for i in items)
+    assert {i.licence for i in items} == {"CC0-1.0", "CC-BY-3.0", "CC-BY-3.0-US"}
+    assert len({i.cad_id for i in items}) == len(items)
+    armchair = next(i for i in items if i.cad_id == "sh3d-blendswap-cc-0.armchair")
+    assert armchair.size_m == pytest.approx((0.594, 1.05, 0.627)) and armchair.creator == "Absfrm"
+
+
+@needs_sh3d
+def test_sweet_home_3d_models_take_their_catalogue_size(tmp_path):
+    from warehouse import Warehouse
+
+    items = list(sweethome3d_items(SH3D))
+    rotated = [i for i in items if i.rotation is not None and i.rotation != (1, 0, 0, 0, 1, 0, 0, 0, 1)][:2]
+    pick = [next(i for i in items if i.cad_id == "sh3d-blendswap-cc-0.armchair"), *rotated]
+    wh = Warehouse(tmp_path)
+    ingest_library(wh, CadIngestConfig(samples=512), "sh3d-mixed", pick, "r", show_progress=False)
+    for m, item in zip(wh.read("cad_models").sort_by("cad_id").to_pylist(), sorted(pick, key=lambda i: i.cad_id)):
+        np.testing.assert_allclose(m["extent"], item.size_m, rtol=1e-6)  # width, height, depth in metres
+        assert m["licence"] == item.licence and m["creator"] == item.creator
