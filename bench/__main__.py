@@ -7,7 +7,7 @@ import os
 import platform
 from pathlib import Path
 
-from bench import frames_throughput
+from bench import cad_throughput, frames_throughput
 
 RESULTS = Path("bench/results")
 
@@ -17,6 +17,7 @@ def main() -> None:
     results = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
         "frames": frames_throughput.run(Path("data/bench")),
+        "cad": cad_throughput.run(),
     }
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))

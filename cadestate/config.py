@@ -77,7 +77,8 @@ class CadIngestConfig:
 
     source: str = _opt("", "CAD source folder (Sweet Home 3D *.sh3f, ShapeNet layout, or meshes + models.csv); empty = the embedded Sweet Home 3D library.")
     samples: int = _opt(4096, "Surface samples per model (symmetry detection, later geometry).", lo=256, hi=1_000_000)
-    symmetry_tolerance: float = _opt(0.02, "Largest symmetric-copy distance, relative to the model size, that counts as symmetric.", lo=0.0, hi=1.0)
+    symmetry_tolerance: float = _opt(0.008, "Largest symmetric-copy distance, relative to the model size, that counts as symmetric.", lo=0.0, hi=1.0)
+    workers: int = _opt(2, "Processes that ingest models in parallel (results do not depend on it).", lo=1, hi=256)
 
 
 @dataclass(frozen=True)

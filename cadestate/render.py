@@ -42,12 +42,12 @@ class Material:
         color = np.asarray(self.color, np.float32).reshape(-1)
         if len(color) not in (3, 4):
             raise ValueError(f"Material.color must have 3 or 4 values, got {color.shape}")
-        object.__setattr__(self, "color", np.append(color, np.float32(1.0))[:4])
+        object.__setattr__(self, "color", _read_only(np.append(color, np.float32(1.0))[:4]))
         if self.texture is not None:
             tex = np.ascontiguousarray(self.texture, dtype=np.uint8)
             if tex.ndim != 3 or tex.shape[2] not in (3, 4) or 0 in tex.shape:
                 raise ValueError(f"Material.texture must be uint8[H, W, 3|4], got {tex.shape}")
-            object.__setattr__(self, "texture", tex)
+            object.__setattr__(self, "texture", _read_only(tex))
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,7 +69,7 @@ class RenderMesh:
             a = np.ascontiguousarray(getattr(self, name), dtype=dtype)
             if a.ndim != len(shape) or any(want not in (None, got) for want, got in zip(shape, a.shape)):
                 raise ValueError(f"RenderMesh.{name} has shape {a.shape}, expected {shape}")
-            object.__setattr__(self, name, a)
+            object.__setattr__(self, name, _read_only(a))
             return a
 
         n_vert = len(coerce("positions", np.float32, (None, 3)))
@@ -126,6 +126,13 @@ class RenderMesh:
         return RenderMesh.concatenate(parts)
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view: meshes are immutable because renderers cache their GPU copies."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
+
+
 def _convert_trimesh(mesh: trimesh.Trimesh, transform: np.ndarray) -> RenderMesh:
     """One output vertex per group of face corners that share a vertex and a smooth edge chain."""
     faces, vertices = np.asarray(mesh.faces, np.int64), np.asarray(mesh.vertices, np.float64)
@@ -158,10 +165,14 @@ def _trimesh_materials(mesh: trimesh.Trimesh) -> tuple[tuple[Material, ...], np.
         mat, uv = visual.material, visual.uv
         pbr = isinstance(mat, trimesh.visual.material.PBRMaterial)
         image = mat.baseColorTexture if pbr else getattr(mat, "image", None)
-        if image is None or uv is None or len(uv) != len(mesh.vertices):
-            return (Material(np.asarray(mat.main_color) / 255.0),), zeros, None
-        factor = mat.baseColorFactor if pbr else None
-        color = np.ones(4) if factor is None else trimesh.visual.color.to_rgba(factor) / 255.0
+        textured = image is not None and uv is not None and len(uv) == len(mesh.vertices)
+        if pbr:  # glTF: the factor (default white) multiplies the texture
+            factor = mat.baseColorFactor
+            color = np.ones(4) if factor is None else trimesh.visual.color.to_rgba(factor) / 255.0
+        else:  # OBJ: the texture alone, as Kd beside map_Kd is often a placeholder
+            color = np.ones(4) if textured else np.asarray(mat.main_color) / 255.0
+        if not textured:
+            return (Material(color),), zeros, None
         rgba = "A" in image.getbands() or "transparency" in image.info
         texture = np.asarray(image.convert("RGBA" if rgba else "RGB"))
         return (Material(color, texture),), zeros, np.asarray(uv, np.float32)

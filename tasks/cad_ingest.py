@@ -13,7 +13,12 @@ degenerate is skipped and listed in ``cad_issues``; the stage never stops halfwa
 
 from __future__ import annotations
 
+import multiprocessing
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from itertools import repeat
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -103,39 +108,62 @@ def _is_textured(scene: trimesh.Scene) -> bool:
     return False
 
 
+@dataclass(frozen=True)
+class ItemResult:
+    """What ingesting one item produced: its ``cad_models`` row (None when skipped), its surface
+    samples float32[N, 3] (canonical frame), and its ``cad_issues`` rows."""
+
+    model: dict | None
+    points: np.ndarray | None
+    issues: list[dict]
+
+
+def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResult:
+    """Canonicalise one item, write ``out_dir/<cad_id>.glb``; never raises for a bad item."""
+    issue = {"library": item.library, "item": item.item, "source_path": item.path}
+    try:
+        scene, missing = load_item(item)
+        model = canonicalise(scene, item)
+    except Exception as e:  # any unreadable item is reported and skipped
+        return ItemResult(None, None, [{**issue, "severity": "skipped", "problem": f"{type(e).__name__}: {e}"}])
+    points = sample_surface(model.mesh, cfg.samples, seed=0)
+    symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
+    (out_dir / f"{item.cad_id}.glb").write_bytes(model.scene.export(file_type="glb"))
+    issues = [{**issue, "severity": "warning", "problem": f"missing files (rendered without them): {', '.join(missing)}"}] if missing else []
+    row = {
+        "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id, "name": item.name,
+        "source_category": item.category, "source": item.source, "source_path": item.path, "licence": item.licence,
+        "creator": item.creator, "extent": model.extent.tolist(), "symmetry": symmetry.order,
+        "symmetry_errors": [symmetry.errors[k] for k in (2, 4, 36)], "num_vertices": len(model.mesh.vertices),
+        "num_faces": len(model.mesh.faces), "textured": _is_textured(model.scene),
+    }
+    return ItemResult(row, points.astype(np.float32), issues)
+
+
+def _map_items(items: list[CadItem], cfg: CadIngestConfig, out_dir: Path) -> Iterator[ItemResult]:
+    """ingest_item over ``items`` in order, on ``cfg.workers`` processes (spawned: safe beside threads)."""
+    if cfg.workers == 1 or len(items) < 2:
+        yield from (ingest_item(item, cfg, out_dir) for item in items)
+        return
+    with ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield from pool.map(ingest_item, items, repeat(cfg), repeat(out_dir), chunksize=4)
+
+
 def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: list[CadItem], run_id: str,
                    show_progress: bool = True) -> StageOutput:
     """Ingest every item of ``library`` (see module docstring); returns rows written to ``cad_models``."""
     models, samples, issues = [], [], []
     with wh.staging() as staged:
-        for item in progress(items, total=len(items), description=f"cad {library}", enabled=show_progress):
-            try:
-                scene, missing = load_item(item)
-                model = canonicalise(scene, item)
-            except Exception as e:  # any unreadable item is reported and skipped
-                issues.append({"library": library, "item": item.item, "source_path": item.path,
-                               "severity": "skipped", "problem": f"{type(e).__name__}: {e}"})
+        results = _map_items(items, cfg, staged)
+        for result in progress(results, total=len(items), description=f"cad {library}", enabled=show_progress):
+            issues += [{**i, "library": library} for i in result.issues]
+            if result.model is None:
                 continue
-            points = sample_surface(model.mesh, cfg.samples, seed=0)
-            symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
-            glb = staged / f"{item.cad_id}.glb"
-            glb.write_bytes(model.scene.export(file_type="glb"))
-            textured = _is_textured(model.scene)
-            if missing:
-                issues.append({"library": library, "item": item.item, "source_path": item.path,
-                               "severity": "warning", "problem": f"missing files (rendered without them): {', '.join(missing)}"})
-            models.append({
-                "library": library, "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id,
-                "name": item.name, "source_category": item.category, "source": item.source, "source_path": item.path,
-                "licence": item.licence, "creator": item.creator, "extent": model.extent.tolist(),
-                "symmetry": symmetry.order, "symmetry_errors": [symmetry.errors[k] for k in (2, 4, 36)],
-                "num_vertices": len(model.mesh.vertices), "num_faces": len(model.mesh.faces), "textured": textured,
-                "mesh_path": f"media/{MEDIA_KIND}/{library}/{run_id}/{glb.name}",
-            })
-            samples.append({"library": library, "cad_id": item.cad_id, "points": points.astype(np.float32).tolist()})
+            cad_id = result.model["cad_id"]
+            models.append({**result.model, "library": library, "mesh_path": f"media/{MEDIA_KIND}/{library}/{run_id}/{cad_id}.glb"})
+            samples.append({"library": library, "cad_id": cad_id, "points": result.points.tolist()})
         wh.publish_media(MEDIA_KIND, library, staged, run_id)
-    issues_table = pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema)
-    wh.write("cad_issues", library, issues_table)
+    wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
     wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
     table = pa.Table.from_pylist(models, schema=wh.spec("cad_models").schema)
     rows = wh.write("cad_models", library, table)
@@ -143,4 +171,3 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
     skipped = sum(i["severity"] == "skipped" for i in issues)
     return StageOutput(rows, table_digest(table.drop_columns(["mesh_path"])),
                        message=f"{skipped} item(s) skipped, see cad_issues" if skipped else "")
-

@@ -131,7 +131,7 @@ def test_java_properties():
 
 @pytest.mark.parametrize("name, category, expected", [
     ("Armchair", "", "chair"), ("Bedside table", "", "cabinet"), ("Bed", "", "bed"), ("Sofa bed", "", "sofa"),
-    ("Coffee table", "", "table"), ("Washbasin", "", "sink"), ("Toilets unit", "", "toilet"),
+    ("Coffee table", "", "table"), ("Desk lamp", "", "lamp"), ("Desk", "", "table"), ("Tablet", "", "other"), ("Table fan", "", "other"), ("Washbasin", "", "sink"), ("Toilets unit", "", "toilet"),
     ("Toilet paper dispenser", "", "other"), ("Wall flat TV", "", "display"), ("Ficus", "", "plant"),
     ("Bookcase", "", "bookshelf"), ("Concept Sedan 01", "Vehicles", "vehicle"), ("Spoon", "Kitchen", "other"),
 ])
@@ -213,3 +213,9 @@ def test_sweet_home_3d_models_take_their_catalogue_size(tmp_path):
     for m, item in zip(wh.read("cad_models").sort_by("cad_id").to_pylist(), sorted(pick, key=lambda i: i.cad_id)):
         np.testing.assert_allclose(m["extent"], item.size_m, rtol=1e-6)  # width, height, depth in metres
         assert m["licence"] == item.licence and m["creator"] == item.creator
+
+
+def test_config_default_is_the_calibrated_symmetry_tolerance():
+    from tasks.cad_symmetry import DEFAULT_TOLERANCE
+
+    assert CadIngestConfig().symmetry_tolerance == DEFAULT_TOLERANCE

@@ -92,3 +92,27 @@ def test_config_check_names_the_key(tmp_path):
     f.write_text("[frames]\njpeg_quality = 50\n")
     assert cli("config", "check", str(f)).returncode == 0
     assert "jpeg_quality = 50" in cli("-c", str(f), "config", "show").stdout
+
+
+@pytest.mark.slow
+def test_cad_ingest_sheet_export(tmp_path):
+    import trimesh
+
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    trimesh.creation.box((1.0, 0.5, 0.6)).export(folder / "box.obj")
+    (folder / "bad.obj").write_text("f 1 2 3\n")
+    (folder / "models.csv").write_text("id,class\nbox,table\nbad,chair\n")
+    (tmp_path / "c.toml").write_text("[cad_views]\nviews = 2\nsize = 64\n")
+    w = str(tmp_path / "w")
+    result = runner.invoke(app, ["-w", w, "-c", str(tmp_path / "c.toml"), "cad", "ingest", str(folder), "--library", "mine"])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("completed") == 2
+    issues = json.loads(cli("-w", w, "sql", "SELECT item, severity FROM cad_issues", "-f", "json").stdout)
+    assert issues == [{"item": "bad", "severity": "skipped"}]
+    sheet = runner.invoke(app, ["-w", w, "cad", "sheet", str(tmp_path / "s.png")])
+    assert sheet.exit_code == 0 and (tmp_path / "s.png").stat().st_size > 1000
+    export = runner.invoke(app, ["-w", w, "cad", "export-official", str(tmp_path / "official")])
+    assert export.exit_code == 0 and (tmp_path / "official" / "04379243" / "mine.box.npz").is_file()
+    again = cli("-w", w, "cad", "export-official", str(tmp_path / "official"))
+    assert again.returncode == 2 and "exists and is not empty" in again.stderr

@@ -317,6 +317,7 @@ def test_from_trimesh_keeps_textures(renderer, kind):
 def test_gpu_buffers_are_uploaded_once_and_freed_with_the_mesh(renderer):
     camera = fronto_camera()
     mesh, _ = screen_quad(Material((0.2, 0.4, 0.6)))
+    assert not mesh.positions.flags.writeable  # immutable, so the GPU copy stays valid
     before = renderer.cached_meshes
     first = renderer.render([Instance(mesh, np.eye(4), 0), Instance(mesh, np.eye(4), 1)], camera)
     assert renderer.cached_meshes == before + 1

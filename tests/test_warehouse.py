@@ -65,6 +65,7 @@ def test_read_filters_columns_and_clips(wh):
     assert got.column_names == ["clip", "rows_written"]
     assert sorted(got.column("rows_written").to_pylist()) == [2, 2, 3]
     assert wh.read("frames").num_rows == 0 and wh.read("frames").schema == wh.spec("frames").schema
+    assert sorted(wh.read("runs", columns=["stage"]).column("stage").to_pylist()) == ["frames"] * 3 + ["ingest"] * 4
 
 
 @pytest.mark.parametrize(

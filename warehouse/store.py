@@ -200,7 +200,8 @@ class Warehouse:
             filters = pq.filters_to_expression(filters)
         dataset = ds.dataset(files, schema=spec.schema, format="parquet")
         result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
-        return result.sort_by([(k, "ascending") for k in spec.key if not columns or k in columns])
+        keys = [(k, "ascending") for k in spec.key if not columns or k in columns]
+        return result.sort_by(keys) if keys else result
 
     # -- media -------------------------------------------------------------------------------
     @contextlib.contextmanager

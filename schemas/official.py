@@ -1,0 +1,180 @@
+"""The official CAD-Estate annotation files (``frames.json``, ``objects.json``): dataclasses, reader, writer.
+
+Conventions (google-research/cad-estate, ``input_file_structures.py``, ``frames.py``, ``objects.py``):
+
+- ``frames.json``: ``clip_name``; ``image_size`` = (height, width) or null; ``frames``: one entry per
+  frame with ``timestamp`` (int µs), ``key_frame`` (bool), ``intrinsics`` (fx, fy, cx, cy),
+  ``extrinsics`` {``translation``: (x, y, z), ``rotation``: (w, x, y, z)}: the camera matrix is
+  ``translate(t) · R(q)``, **world->view**. Our cameras are OpenCV; intrinsics are stored
+  normalised like RealEstate10K's (fx, cx by width; fy, cy by height).
+- ``objects.json``: ``clip_name``; ``objects``: one entry per object with ``track_id`` (str),
+  ``is_track_automatic``, ``class`` (class id: ShapeNet synset or cadestate-<name>), optional
+  ``cad_id``, optional pose ``translation``, ``rotation`` (w, x, y, z), ``scale`` (absent when the
+  pose failed verification), ``is_mirrored``, and ``track``: per-frame entries with ``timestamp``,
+  ``box`` (ymin, xmin, ymax, xmax) normalised to [0, 1] and ``correspondences`` (list of
+  ``{"2d": (x, y) normalised, "3d": (x, y, z) object space}``) or null.
+- Object-to-world: mirror => scale => rotation => translation (``cadestate.render.object_to_world``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from warehouse.store import atomic_write_bytes
+
+
+class OfficialFormatError(ValueError):
+    """A malformed frames.json / objects.json; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame: ``timestamp`` µs; ``intrinsics`` (fx, fy, cx, cy) normalised; world->camera
+    ``translation`` (x, y, z) and ``rotation`` (w, x, y, z) quaternion (OpenCV camera axes)."""
+
+    timestamp: int
+    key_frame: bool
+    intrinsics: tuple[float, float, float, float]
+    translation: tuple[float, float, float]
+    rotation: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class FramesFile:
+    clip_name: str
+    image_size: tuple[int, int] | None  # (height, width)
+    frames: tuple[Frame, ...]
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """A 2D point (x, y) normalised to [0, 1] and its 3D point (x, y, z) in the object's CAD frame."""
+
+    xy: tuple[float, float]
+    xyz: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class TrackEntry:
+    """The object's box on one frame: (ymin, xmin, ymax, xmax) normalised to [0, 1]."""
+
+    timestamp: int
+    box: tuple[float, float, float, float]
+    correspondences: tuple[Correspondence, ...] | None = None
+
+
+@dataclass(frozen=True)
+class ObjectAnnotation:
+    """One object. The pose (translation, rotation (w, x, y, z), scale) is None when absent."""
+
+    track_id: str
+    cls: str
+    is_track_automatic: bool
+    is_mirrored: bool
+    track: tuple[TrackEntry, ...]
+    cad_id: str | None = None
+    translation: tuple[float, float, float] | None = None
+    rotation: tuple[float, float, float, float] | None = None
+    scale: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class ObjectsFile:
+    clip_name: str
+    objects: tuple[ObjectAnnotation, ...] = field(default_factory=tuple)
+
+
+def _tuple(where: str, value: Any, n: int, kind: type = float) -> tuple:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise OfficialFormatError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    try:
+        return tuple(kind(v) for v in value)
+    except (TypeError, ValueError):
+        raise OfficialFormatError(f"{where}: expected numbers, got {value!r}") from None
+
+
+def frames_to_json(f: FramesFile) -> dict:
+    return {
+        "clip_name": f.clip_name,
+        "image_size": list(f.image_size) if f.image_size else None,
+        "frames": [{"timestamp": fr.timestamp, "key_frame": fr.key_frame, "intrinsics": list(fr.intrinsics),
+                    "extrinsics": {"translation": list(fr.translation), "rotation": list(fr.rotation)}}
+                   for fr in f.frames],
+    }
+
+
+def frames_from_json(data: dict, source: str = "frames.json") -> FramesFile:
+    try:
+        frames = tuple(
+            Frame(int(fr["timestamp"]), bool(fr["key_frame"]), _tuple(f"{source}: frames[{i}].intrinsics", fr["intrinsics"], 4),
+                  _tuple(f"{source}: frames[{i}].extrinsics.translation", fr["extrinsics"]["translation"], 3),
+                  _tuple(f"{source}: frames[{i}].extrinsics.rotation", fr["extrinsics"]["rotation"], 4))
+            for i, fr in enumerate(data["frames"]))
+        size = data.get("image_size")
+        return FramesFile(str(data["clip_name"]), _tuple(f"{source}: image_size", size, 2, int) if size else None, frames)
+    except KeyError as e:
+        raise OfficialFormatError(f"{source}: missing field {e.args[0]!r}") from None
+
+
+def objects_to_json(f: ObjectsFile) -> dict:
+    objects = []
+    for o in f.objects:
+        entry: dict[str, Any] = {"track_id": o.track_id, "is_track_automatic": o.is_track_automatic, "class": o.cls}
+        if o.cad_id is not None:
+            entry["cad_id"] = o.cad_id
+        if o.translation is not None:
+            entry.update(translation=list(o.translation), rotation=list(o.rotation), scale=list(o.scale))
+        entry["is_mirrored"] = o.is_mirrored
+        entry["track"] = [{"timestamp": t.timestamp, "box": list(t.box),
+                           "correspondences": None if t.correspondences is None else
+                           [{"2d": list(c.xy), "3d": list(c.xyz)} for c in t.correspondences]}
+                          for t in o.track]
+        objects.append(entry)
+    return {"clip_name": f.clip_name, "objects": objects}
+
+
+def objects_from_json(data: dict, source: str = "objects.json") -> ObjectsFile:
+    objects = []
+    try:
+        for i, o in enumerate(data["objects"]):
+            where = f"{source}: objects[{i}]"
+            track = tuple(
+                TrackEntry(int(t["timestamp"]), _tuple(f"{where}.track[{j}].box", t["box"], 4),
+                           None if t.get("correspondences") is None else tuple(
+                               Correspondence(_tuple(f"{where}.track[{j}].2d", c["2d"], 2), _tuple(f"{where}.track[{j}].3d", c["3d"], 3))
+                               for c in t["correspondences"]))
+                for j, t in enumerate(o["track"]))
+            posed = "translation" in o
+            objects.append(ObjectAnnotation(
+                track_id=str(o["track_id"]), cls=str(o["class"]), is_track_automatic=bool(o["is_track_automatic"]),
+                is_mirrored=bool(o.get("is_mirrored", False)), track=track, cad_id=o.get("cad_id"),
+                translation=_tuple(f"{where}.translation", o["translation"], 3) if posed else None,
+                rotation=_tuple(f"{where}.rotation", o["rotation"], 4) if posed else None,
+                scale=_tuple(f"{where}.scale", o["scale"], 3) if posed else None))
+        return ObjectsFile(str(data["clip_name"]), tuple(objects))
+    except KeyError as e:
+        raise OfficialFormatError(f"{source}: missing field {e.args[0]!r}") from None
+
+
+def write_json(path: str | os.PathLike, data: dict) -> None:
+    """Write JSON atomically."""
+    atomic_write_bytes(Path(path), json.dumps(data, indent=1).encode())
+
+
+def read_frames(path: str | os.PathLike) -> FramesFile:
+    return frames_from_json(_load(path), str(path))
+
+
+def read_objects(path: str | os.PathLike) -> ObjectsFile:
+    return objects_from_json(_load(path), str(path))
+
+
+def _load(path: str | os.PathLike) -> dict:
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise OfficialFormatError(f"{path}: not valid JSON: {e}") from None

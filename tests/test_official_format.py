@@ -1,0 +1,58 @@
+"""The official CAD-Estate JSON files round-trip through our reader and writer; bad files name the field."""
+
+import json
+
+import pytest
+
+from schemas.official import (
+    Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, OfficialFormatError, TrackEntry,
+    frames_to_json, objects_from_json, objects_to_json, read_frames, read_objects, write_json,
+)
+
+
+def sample_files():
+    frames = FramesFile("abc_123", (360, 640), (
+        Frame(0, True, (0.8, 1.4, 0.5, 0.5), (0.1, -1.5, 2.0), (1.0, 0.0, 0.0, 0.0)),
+        Frame(33333, False, (0.8, 1.4, 0.5, 0.5), (0.2, -1.5, 2.0), (0.99, 0.0, 0.141, 0.0)),
+    ))
+    posed = ObjectAnnotation("0", "03001627", True, True, (
+        TrackEntry(0, (0.1, 0.2, 0.5, 0.6), (Correspondence((0.3, 0.4), (0.1, 0.2, -0.3)),)),
+        TrackEntry(33333, (0.1, 0.25, 0.5, 0.65)),
+    ), cad_id="sh3d-scopia.chair", translation=(1.0, 0.4, -2.0), rotation=(1.0, 0.0, 0.0, 0.0), scale=(1.0, 1.1, 0.9))
+    unposed = ObjectAnnotation("1", "04379243", False, False, (TrackEntry(0, (0.5, 0.5, 0.9, 0.9)),))
+    return frames, ObjectsFile("abc_123", (posed, unposed))
+
+
+def test_round_trip(tmp_path):
+    frames, objects = sample_files()
+    write_json(tmp_path / "frames.json", frames_to_json(frames))
+    write_json(tmp_path / "objects.json", objects_to_json(objects))
+    assert read_frames(tmp_path / "frames.json") == frames
+    assert read_objects(tmp_path / "objects.json") == objects
+
+
+def test_official_field_names_and_absent_pose():
+    _, objects = sample_files()
+    data = objects_to_json(objects)
+    posed, unposed = data["objects"]
+    assert set(posed) == {"track_id", "is_track_automatic", "class", "cad_id", "translation", "rotation", "scale",
+                          "is_mirrored", "track"}
+    assert "translation" not in unposed and "cad_id" not in unposed
+    assert posed["track"][0]["correspondences"] == [{"2d": [0.3, 0.4], "3d": [0.1, 0.2, -0.3]}]
+    assert posed["track"][1]["correspondences"] is None
+
+
+def test_malformed_files_name_the_field(tmp_path):
+    _, objects = sample_files()
+    data = objects_to_json(objects)
+    data["objects"][0]["track"][1]["box"] = [0.1, 0.2]
+    with pytest.raises(OfficialFormatError, match=r"objects\[0\].track\[1\].box: expected a list of 4"):
+        objects_from_json(data, "objects.json")
+    del data["objects"][1]["class"]
+    data["objects"][0]["track"][1]["box"] = [0.1, 0.2, 0.3, 0.4]
+    with pytest.raises(OfficialFormatError, match="missing field 'class'"):
+        objects_from_json(data)
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(OfficialFormatError, match="bad.json: not valid JSON"):
+        read_frames(tmp_path / "bad.json")
+    json.dumps(data)  # still plain JSON
