@@ -1,7 +1,8 @@
 # One entry point per job. Every target sets up what it needs first (idempotent).
 #   make run          - set up, build the CAD library, generate a demo clip, run the flows, print a SQL summary
 #   make test         - set up and run the whole test suite (slow end-to-end tests included; CI runs this)
-#   make bench        - set up and run the benchmarks (numbers printed and written to bench/results/)
+#   make bench        - set up, run the throughput benchmarks (bench/results/), then the synthetic benchmark
+#                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
@@ -66,8 +67,14 @@ test: setup cad-library
 test-fast: setup cad-library
 	$(BIN)/python -m pytest -m "not slow"
 
-bench: setup
+BENCH_DIR ?= data/bench/default
+
+bench: setup cad-library
 	$(BIN)/python -m bench
+	$(BIN)/cadestate cad ingest --no-progress
+	$(BIN)/cadestate bench generate --out $(BENCH_DIR) --no-progress
+	$(BIN)/cadestate bench run $(BENCH_DIR) --no-progress
+	$(BIN)/cadestate bench report $(BENCH_DIR)
 
 lock:
 	$(BIN)/uv pip compile pyproject.toml --extra test --find-links $(FIND_LINKS) --python-version 3.11 -o requirements.lock

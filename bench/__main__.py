@@ -16,7 +16,7 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     results = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-        "frames": frames_throughput.run(Path("data/bench")),
+        "frames": frames_throughput.run(Path("data/bench/perf")),
         "cad": cad_throughput.run(),
     }
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")

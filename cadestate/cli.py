@@ -35,7 +35,9 @@ demo_app = typer.Typer(help="Synthetic demo clips (video + RealEstate10K camera 
 cad_app = typer.Typer(help="The CAD library: ingest CAD collections, render them, export them in the official layout.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 app.add_typer(demo_app, name="demo")
+bench_app = typer.Typer(help="The synthetic benchmark: rendered walkthroughs with exact ground truth, evaluators.", no_args_is_help=True)
 app.add_typer(cad_app, name="cad")
+app.add_typer(bench_app, name="bench")
 out = Console()
 err = Console(stderr=True, soft_wrap=True)  # error lines stay whole (greppable)
 
@@ -333,12 +335,64 @@ def cad_sheet(
     out.print(f"wrote {out_file} ({count} models)")
 
 
+@bench_app.command("generate")
+def bench_generate(
+    ctx: typer.Context,
+    bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there are kept).")],
+    seed: Annotated[int, typer.Option(help="Benchmark seed (clip i uses seed*1000+i).")] = 20261123,
+    clips: Annotated[int, typer.Option(help="Number of clips.")] = 12,
+    frames: Annotated[int, typer.Option(help="Video frames per clip at 30 fps; every 2nd is a camera line.")] = 276,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Generate walkthrough clips of furnished rooms from the CAD library, with exact ground truth
+    (official frames.json/objects.json, RealEstate10K cameras, visibility). Needs `cadestate cad ingest`."""
+    from bench.benchmark import generate
+    from bench.walkthrough import WalkthroughSpec
+
+    manifest, seconds = generate(bench_dir, seed, clips, ctx.obj.open_warehouse(), WalkthroughSpec(num_video_frames=frames), progress)
+    timing = f", {sum(seconds) / len(seconds):.1f} s per clip" if seconds else ""
+    out.print(f"{bench_dir}: {len(manifest.clips)} clips ({len(seconds)} generated now{timing}, "
+              f"{len(manifest.clips) - len(seconds)} already there)")
+
+
+@bench_app.command("run")
+def bench_run(
+    ctx: typer.Context,
+    bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Write the simulated annotators' label files (<bench>/labels/, once), then run the pipeline
+    stages that exist on every benchmark clip (cached stages do no work)."""
+    from bench.benchmark import clip_sources, read_manifest
+    from bench.labels import simulate_labels
+
+    made = simulate_labels(bench_dir, list(read_manifest(bench_dir).clips), ctx.obj.open_warehouse(), progress)
+    err.print(f"simulated labels: {made} clip(s) labelled now")
+    _run(ctx.obj, clip_sources(bench_dir), progress)
+
+
+@bench_app.command("report")
+def bench_report(
+    bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown.")] = False,
+) -> None:
+    """Report the benchmark: metrics of the stages that exist, dataset statistics, example frames with
+    ground-truth boxes (written to <bench>/report/ and <bench>/report.md)."""
+    from bench.benchmark import report, report_markdown
+
+    result = report(bench_dir)
+    markdown = report_markdown(result)
+    (bench_dir / "report.md").write_text(markdown)
+    print(json.dumps(result, indent=1) if as_json else markdown)
+
+
 class CliError(Exception):
     """An error to print as one line, without a traceback."""
 
 
 def main() -> None:
     """Entry point: known input errors become one clear line on stderr and exit status 2."""
+    from bench.benchmark import BenchmarkError
     from tasks.cad_export import ExportError
     from tasks.cad_sources import CadSourceError
     from tasks.cameras import CameraFileError
@@ -348,6 +402,6 @@ def main() -> None:
     try:
         app()
     except (CliError, ConfigError, CameraFileError, VideoError, WarehouseError, CadSourceError, ExportError,
-            FileNotFoundError) as e:
+            BenchmarkError, FileNotFoundError) as e:
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)

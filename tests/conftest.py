@@ -33,3 +33,37 @@ def small_clip(tmp_path_factory):
 @pytest.fixture
 def wh(tmp_path) -> Warehouse:
     return Warehouse(tmp_path / "warehouse")
+
+
+SMALL_LIBRARY = {  # class -> Sweet Home 3D models (cad_id); others of the class fill in if one is absent
+    "chair": ["sh3d-blendswap-cc-0.armchair", "sh3d-blendswap-cc-0.oakchair", "sh3d-blendswap-cc-0.plasticchair"],
+    "table": ["sh3d-blendswap-cc-0.oaktable", "sh3d-blendswap-cc-0.tablewithtablecloth"],
+    "sofa": ["sh3d-blendswap-cc-0.sofa", "sh3d-blendswap-cc-0.couch"],
+    "bed": ["sh3d-blendswap-cc-0.bed1"],
+    "plant": ["sh3d-blendswap-cc-0.littleplant", "sh3d-blendswap-cc-0.decorativeplant"],
+    "display": ["sh3d-blendswap-cc-0.led-tv", "sh3d-scopia.tv"],
+    "cabinet": ["sh3d-blendswap-cc-0.televisioncabinet", "sh3d-blendswap-cc-0.cupboard"],
+    "bookshelf": ["sh3d-blendswap-cc-0.bookcase"],
+}
+
+
+@pytest.fixture(scope="session")
+def small_cad_library(tmp_path_factory):
+    """(warehouse, cad_models rows): about 15 Sweet Home 3D models of 8 classes, ingested once per session.
+    Skips when the library is not fetched (`make cad-library`, which `make test` runs)."""
+    from cadestate.config import CadIngestConfig
+    from tasks.cad_ingest import ingest_library
+    from tasks.cad_sources import default_source, sweethome3d_items
+
+    source = default_source()
+    if not source.is_dir():
+        pytest.skip(f"Sweet Home 3D furniture not found at {source} (run `make cad-library`)")
+    items = list(sweethome3d_items(source))
+    by_id = {i.cad_id: i for i in items}
+    pick = []
+    for cls, ids in SMALL_LIBRARY.items():
+        chosen = [by_id[i] for i in ids if i in by_id]
+        pick += chosen + [i for i in items if i.cls == cls and i not in chosen][:len(ids) - len(chosen)]
+    wh = Warehouse(tmp_path_factory.mktemp("small_cad_wh"))
+    ingest_library(wh, CadIngestConfig(samples=512, workers=1), "sh3d-small", pick, "r", show_progress=False)
+    return wh, wh.read("cad_models").to_pylist()

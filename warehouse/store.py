@@ -174,10 +174,6 @@ class Warehouse:
         refresh_catalog(self)
         return data.num_rows
 
-    def delete(self, table: str, part: str) -> None:
-        """Remove a partition (all its files)."""
-        shutil.rmtree(self.partition_dir(table, part), ignore_errors=True)
-
     # -- reading -----------------------------------------------------------------------------
     def read(
         self,

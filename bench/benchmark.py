@@ -1,0 +1,160 @@
+"""The synthetic benchmark: generate it (once, cached), run the pipeline on it, report.
+
+A benchmark folder holds ``manifest.json`` (seed, clip names, the CAD library it was drawn from),
+and per clip ``<name>.mp4``, ``<name>.txt`` and ``<name>/{frames,objects,visibility}.json``
+(:mod:`bench.walkthrough`). Clip ``i`` of seed ``S`` is generated from seed ``S * 1000 + i``, so
+the default benchmark (:data:`DEFAULT_SEED`, :data:`DEFAULT_CLIPS`) is the same everywhere the
+same CAD library is.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from bench.ignore import is_ignored
+from bench.labels import label_statistics
+from bench.stats import dataset_statistics, statistics_markdown
+from bench.walkthrough import WalkthroughSpec, generate_clip
+from cadestate.lineage import digest
+from cadestate.progress import progress
+from schemas.official import ObjectAnnotation, TrackEntry, read_frames, read_objects
+from tasks.cad_classes import CLASSES
+from tasks.ingest import ClipSource
+from tasks.video import decode_at
+from warehouse import Warehouse
+
+DEFAULT_SEED = 20261123
+DEFAULT_CLIPS = 12
+MANIFEST = "manifest.json"
+CLASS_NAMES = {c.id: c.name for c in CLASSES}
+
+
+class BenchmarkError(ValueError):
+    """A benchmark folder that cannot be used (no manifest, missing files, no CAD library)."""
+
+
+@dataclass(frozen=True)
+class Manifest:
+    seed: int
+    clips: tuple[str, ...]
+    library: str  # digest of the cad_ids drawn from
+
+    def to_json(self) -> dict:
+        return {"seed": self.seed, "clips": list(self.clips), "library": self.library}
+
+
+def library_models(wh: Warehouse) -> list[dict]:
+    """The CAD library rows scenes are drawn from (every ingested library)."""
+    models = wh.read("cad_models").to_pylist()
+    if not models:
+        raise BenchmarkError(f"no CAD model in {wh.root}: run `cadestate cad ingest` first")
+    return models
+
+
+def read_manifest(bench_dir: Path) -> Manifest:
+    path = Path(bench_dir) / MANIFEST
+    if not path.is_file():
+        raise BenchmarkError(f"{bench_dir}: not a benchmark folder (no {MANIFEST}); see `cadestate bench generate`")
+    data = json.loads(path.read_text())
+    return Manifest(int(data["seed"]), tuple(data["clips"]), str(data["library"]))
+
+
+def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: WalkthroughSpec = WalkthroughSpec(),
+             show_progress: bool = True) -> tuple[Manifest, list[float]]:
+    """Generate the clips that are missing; returns the manifest and the seconds each new clip took."""
+    bench_dir = Path(bench_dir)
+    models = library_models(wh)
+    manifest = Manifest(seed, tuple(f"bench_{seed}_{i:02d}" for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
+    if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
+        raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
+    todo = [(i, name) for i, name in enumerate(manifest.clips) if not (bench_dir / name / "objects.json").is_file()]
+    seconds = []
+    for i, name in progress(todo, total=len(todo), description="bench clips", enabled=show_progress):
+        seconds.append(generate_clip(bench_dir, name, seed * 1000 + i, models, wh.root, spec).timings["total"])
+    (bench_dir / MANIFEST).write_text(json.dumps(manifest.to_json(), indent=1))
+    return manifest, seconds
+
+
+def clip_sources(bench_dir: Path) -> list[ClipSource]:
+    """The benchmark's clips as pipeline inputs."""
+    bench_dir = Path(bench_dir)
+    return [ClipSource(name, bench_dir / f"{name}.mp4", bench_dir / f"{name}.txt") for name in read_manifest(bench_dir).clips]
+
+
+def ignore_rule(bench_dir: Path, clip: str) -> Callable[[ObjectAnnotation, TrackEntry], bool]:
+    """``gt_ignore(object, entry)`` for one clip, from its visibility file and the class vocabulary."""
+    visibility = json.loads((Path(bench_dir) / clip / "visibility.json").read_text())
+    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
+                 for f in visibility["frames"] for o in f["objects"]}
+
+    def gt_ignore(obj: ObjectAnnotation, entry: TrackEntry) -> bool:
+        visible, truncated = fractions.get((entry.timestamp, obj.track_id), (0.0, 1.0))
+        return is_ignored(CLASS_NAMES.get(obj.cls, "other"), visible, truncated)
+
+    return gt_ignore
+
+
+def example_frame(bench_dir: Path, clip: str, out_file: Path) -> None:
+    """The middle camera-line frame of ``clip`` with its ground-truth boxes (green: evaluated, grey: ignore)."""
+    frames, objects = read_frames(Path(bench_dir) / clip / "frames.json"), read_objects(Path(bench_dir) / clip / "objects.json")
+    ts = frames.frames[len(frames.frames) // 2].timestamp
+    rgb = next(decode_at(Path(bench_dir) / f"{clip}.mp4", np.array([ts]))).rgb
+    image = Image.fromarray(rgb)
+    draw = ImageDraw.Draw(image)
+    gt_ignore = ignore_rule(bench_dir, clip)
+    H, W = rgb.shape[:2]
+    for obj in objects.objects:
+        for entry in obj.track:
+            if entry.timestamp == ts:
+                y0, x0, y1, x1 = entry.box
+                colour = (150, 150, 150) if gt_ignore(obj, entry) else (0, 220, 0)
+                draw.rectangle([x0 * W, y0 * H, x1 * W, y1 * H], outline=colour, width=2)
+                draw.text((x0 * W + 3, y0 * H + 2), CLASS_NAMES.get(obj.cls, obj.cls), fill=colour)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    image.save(out_file)
+
+
+def report(bench_dir: Path, examples: int = 3) -> dict:
+    """Metrics of what the pipeline can do so far, dataset statistics, and example frames."""
+    bench_dir = Path(bench_dir)
+    manifest = read_manifest(bench_dir)
+    pairs = [(read_frames(bench_dir / c / "frames.json"), read_objects(bench_dir / c / "objects.json")) for c in manifest.clips]
+    boxes = ignored = 0
+    for clip, (_, objects) in zip(manifest.clips, pairs):
+        gt_ignore = ignore_rule(bench_dir, clip)
+        for obj in objects.objects:
+            boxes += len(obj.track)
+            ignored += sum(gt_ignore(obj, e) for e in obj.track)
+    pictures = []
+    for clip in manifest.clips[:examples]:
+        out = bench_dir / "report" / f"{clip}.png"
+        example_frame(bench_dir, clip, out)
+        pictures.append(str(out.relative_to(bench_dir)))
+    return {
+        "benchmark": {"seed": manifest.seed, "clips": len(manifest.clips)},
+        "statistics": dataset_statistics(pairs),
+        "simulated_labels": label_statistics(bench_dir, list(manifest.clips)),
+        "ground_truth_boxes": {"total": boxes, "ignore": ignored},
+        "examples": pictures,
+        "not_yet_measured": ["detection (issue 5)", "tracking (issue 6)", "pose accuracy (issue 7)", "retrieval (issue 8)"],
+    }
+
+
+def report_markdown(result: dict) -> str:
+    """The report as markdown (pictures linked relative to the benchmark folder)."""
+    lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
+             "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
+             f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
+             f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden, cut off, or no COCO class).", "",
+             "## Simulated annotators (label files of `cadestate bench run`)", "",
+             "| | |", "|---|---:|", *[f"| {k.replace('_', ' ')} | {v} |" for k, v in result["simulated_labels"].items()], "",
+             "## Examples (green: evaluated boxes, grey: ignore regions)", ""]
+    lines += [f"![{p}]({p})" for p in result["examples"]]
+    lines += ["", "Not measured yet: " + ", ".join(result["not_yet_measured"]) + "."]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,94 @@
+"""The "ignore region" rule of the synthetic benchmark: the ONE place it is defined.
+
+Used by detection and tracking evaluation (``bench.eval_tracking``). A ground-truth box is
+*ignored* (neither a miss when no prediction covers it, nor a target whose prediction counts as a
+false positive) when
+
+- the object is mostly hidden: visible fraction < ``MIN_VISIBLE_FRACTION`` (0.3), or
+- it is cut off by the image border: truncated fraction > ``MAX_TRUNCATED_FRACTION`` (0.5), or
+- its class has no COCO detector name (``COCO_CLASSES``): the automatic tracker cannot find it.
+
+Predictions on ignore regions are *dropped* (not counted as false positives). Decision, per frame:
+predictions are first matched one-to-one (Hungarian, IoU >= ``IGNORE_IOU``) to the non-ignored
+ground-truth boxes; only the predictions left unmatched are then dropped when they overlap any
+ignore box with IoU >= ``IGNORE_IOU`` (an ignore box can absorb several predictions, like COCO's
+crowd regions). So a prediction that covers a real object is never thrown away because an ignored
+one lies nearby.
+
+Boxes are (ymin, xmin, ymax, xmax), normalised to [0, 1] as in the official ``objects.json``
+(IoU does not change when x and y are scaled independently, so pixels work just as well).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+MIN_VISIBLE_FRACTION = 0.3
+"""A ground-truth box whose object is less visible than this (occlusion) is ignored."""
+
+MAX_TRUNCATED_FRACTION = 0.5
+"""A ground-truth box whose object has more than this share outside the image is ignored."""
+
+IGNORE_IOU = 0.5
+"""IoU at which a prediction counts as lying on a (ground-truth or ignore) box."""
+
+COCO_CLASSES = frozenset({
+    "chair", "sofa", "bed", "table", "display", "plant", "toilet", "sink", "microwave", "stove",
+    "refrigerator", "clock", "jar", "laptop", "bench", "vehicle",
+})
+"""Class names (tasks/cad_classes.py vocabulary) that a COCO detector can find."""
+
+
+def is_ignored(class_name: str, visible_fraction: float = 1.0, truncated_fraction: float = 0.0, *,
+               coco_classes: frozenset[str] | set[str] = COCO_CLASSES,
+               min_visible: float = MIN_VISIBLE_FRACTION, max_truncated: float = MAX_TRUNCATED_FRACTION) -> bool:
+    """Whether one ground-truth box is an ignore region.
+
+    ``class_name``: the human-readable class ("chair"), not the ShapeNet synset;
+    ``visible_fraction``: share of the object's projection not hidden by other objects, in [0, 1];
+    ``truncated_fraction``: share of the object's projection outside the image, in [0, 1].
+    """
+    return (visible_fraction < min_visible or truncated_fraction > max_truncated
+            or class_name not in coco_classes)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of boxes float[N, 4] x float[M, 4] (ymin, xmin, ymax, xmax) -> float[N, M] (0 for empty boxes)."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    y0 = np.maximum(a[:, None, 0], b[None, :, 0])
+    x0 = np.maximum(a[:, None, 1], b[None, :, 1])
+    y1 = np.minimum(a[:, None, 2], b[None, :, 2])
+    x1 = np.minimum(a[:, None, 3], b[None, :, 3])
+    inter = np.clip(y1 - y0, 0, None) * np.clip(x1 - x0, 0, None)
+    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
+    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    union = area_a[:, None] + area_b[None, :] - inter
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(union > 0, inter / union, 0.0)
+
+
+def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore: np.ndarray,
+                        iou_threshold: float = IGNORE_IOU) -> np.ndarray:
+    """Which predictions of ONE frame lie on ignore regions and must be dropped.
+
+    ``pred_boxes`` float[M, 4]; ``gt_boxes`` float[N, 4]; ``gt_ignore`` bool[N].
+    Returns bool[M]: True for a prediction that is not matched (Hungarian, IoU >= threshold) to a
+    non-ignored ground-truth box and overlaps some ignore box with IoU >= threshold.
+    """
+    pred_boxes = np.asarray(pred_boxes, dtype=np.float64).reshape(-1, 4)
+    gt_boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)
+    gt_ignore = np.asarray(gt_ignore, dtype=bool).reshape(-1)
+    drop = np.zeros(len(pred_boxes), dtype=bool)
+    if len(pred_boxes) == 0 or not gt_ignore.any():
+        return drop
+    matched = np.zeros(len(pred_boxes), dtype=bool)
+    valid = gt_boxes[~gt_ignore]
+    if len(valid):
+        iou = box_iou(valid, pred_boxes)
+        score = np.where(iou >= iou_threshold, iou, 0.0)
+        rows, cols = linear_sum_assignment(-score)
+        matched[cols[score[rows, cols] > 0]] = True
+    on_ignore = (box_iou(gt_boxes[gt_ignore], pred_boxes) >= iou_threshold).any(axis=0)
+    return on_ignore & ~matched

@@ -1,0 +1,83 @@
+"""The benchmark driver: generate (cached), run through the real flow, report with pictures."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bench.benchmark import BenchmarkError, clip_sources, generate, ignore_rule, read_manifest, report, report_markdown
+from bench.walkthrough import WalkthroughSpec
+from cadestate.config import Config, WarehouseConfig
+from schemas.official import read_objects
+
+SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=24, sample_every=2, alone_scale=0.5)
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def benchmark(small_cad_library, tmp_path_factory):
+    wh, _ = small_cad_library
+    folder = tmp_path_factory.mktemp("bench")
+    manifest, made = generate(folder, 5, 2, wh, SPEC, show_progress=False)
+    return folder, manifest, made
+
+
+def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
+    folder, manifest, made = benchmark
+    assert len(made) == 2 and manifest.clips == ("bench_5_00", "bench_5_01")
+    before = (folder / "bench_5_00" / "objects.json").read_bytes()
+    again, made_again = generate(folder, 5, 2, small_cad_library[0], SPEC, show_progress=False)
+    assert made_again == [] and again == manifest == read_manifest(folder)
+    assert (folder / "bench_5_00" / "objects.json").read_bytes() == before
+
+
+def test_ignore_rule_uses_visibility_and_class(benchmark):
+    folder, manifest, _ = benchmark
+    objects = read_objects(folder / manifest.clips[0] / "objects.json")
+    gt_ignore = ignore_rule(folder, manifest.clips[0])
+    flags = [gt_ignore(o, e) for o in objects.objects for e in o.track]
+    assert any(flags) or all(o.cls != "02871439" for o in objects.objects)
+    bookshelves = [gt_ignore(o, e) for o in objects.objects if o.cls == "02871439" for e in o.track]
+    assert all(bookshelves)  # no COCO class: always an ignore region
+
+
+def test_report_has_statistics_and_pictures(benchmark):
+    folder, manifest, _ = benchmark
+    result = report(folder, examples=1)
+    assert result["statistics"]["clips"] == 2 and result["statistics"]["frames"] == 24
+    assert (folder / result["examples"][0]).stat().st_size > 1000
+    markdown = report_markdown(result)
+    assert "Table 2" in markdown and result["examples"][0] in markdown
+    json.dumps(result)
+
+
+def test_simulated_labels_match_the_noise_model(benchmark, small_cad_library):
+    from bench.labels import label_statistics, simulate_labels
+
+    folder, manifest, _ = benchmark
+    assert simulate_labels(folder, list(manifest.clips), small_cad_library[0], show_progress=False) == 2
+    assert simulate_labels(folder, list(manifest.clips), small_cad_library[0], show_progress=False) == 0  # kept
+    stats = label_statistics(folder, list(manifest.clips))
+    assert stats["objects_with_correspondences"] >= 2
+    assert 4 <= stats["points_per_keyframe"] <= 6
+    # 2D Gaussian clicks of sigma 3 px: mean distance 3 * sqrt(pi / 2) = 3.76 px
+    assert 2.5 < stats["click_error_px_mean"] < 5.0
+
+
+def test_bench_run_ingests_every_clip(benchmark, tmp_path):
+    from flows.annotate_clip import run_clips
+    from warehouse import Warehouse
+
+    folder, _, _ = benchmark
+    config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "w")))
+    reports = run_clips(clip_sources(folder), config, show_progress=False)
+    assert {r.state for r in reports} == {"completed"} and len(reports) == 4
+    frames = Warehouse(config.warehouse.root).read("frames")
+    assert frames.num_rows == 24 and max(abs(v) for v in frames.column("timestamp_error_us").to_pylist()) == 0
+
+
+def test_not_a_benchmark_folder(tmp_path):
+    with pytest.raises(BenchmarkError, match="not a benchmark folder"):
+        read_manifest(tmp_path)
