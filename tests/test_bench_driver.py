@@ -81,3 +81,13 @@ def test_bench_run_ingests_every_clip(benchmark, tmp_path):
 def test_not_a_benchmark_folder(tmp_path):
     with pytest.raises(BenchmarkError, match="not a benchmark folder"):
         read_manifest(tmp_path)
+
+
+def test_cli_defaults_are_the_default_benchmark():
+    import inspect
+
+    from bench.benchmark import DEFAULT_CLIPS, DEFAULT_SEED
+    from cadestate.cli import bench_generate
+
+    params = inspect.signature(bench_generate).parameters
+    assert params["seed"].default == DEFAULT_SEED and params["clips"].default == DEFAULT_CLIPS
