@@ -1,0 +1,79 @@
+"""``cadestate cad``: ingest CAD collections, look at them, export them in the official layout."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cadestate.cli.common import CliError, print_reports, cad_app, err, out
+
+
+class SourceKind(str, Enum):
+    auto = "auto"
+    sweethome3d = "sweethome3d"
+    shapenet = "shapenet"
+    folder = "folder"
+
+
+@cad_app.command("ingest")
+def cad_ingest(
+    ctx: typer.Context,
+    source: Annotated[Optional[Path], typer.Argument(help="CAD source folder (default: [cad_ingest] source, else the embedded Sweet Home 3D library).")] = None,
+    kind: Annotated[SourceKind, typer.Option(help="Source layout (auto: guess from the folder).")] = SourceKind.auto,
+    library: Annotated[Optional[str], typer.Option(help="Library name for shapenet/folder sources (default: from the folder).")] = None,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Canonicalise a CAD collection (metres, +Y up, front +Z, centred), detect symmetries, render views.
+
+    \b
+    Sources:
+      sweethome3d  a folder of *.sh3f catalogues (default: Debian's sweethome3d-furniture, `make cad-library`)
+      shapenet     ShapeNetCore v2: <synset>/<model_id>/models/model_normalized.obj
+      folder       meshes (OBJ/GLB/PLY/OFF/STL) + models.csv with columns id,class[,file,licence,creator,unit_m]
+    Unreadable, empty or degenerate models are skipped and listed in the cad_issues table.
+    """
+    from flows.runtime import prepare_prefect_environment
+    from tasks.cad_sources import default_source, guess_kind, source_items
+
+    cfg = ctx.obj.config()
+    path = source or (Path(cfg.cad_ingest.source) if cfg.cad_ingest.source else default_source())
+    if not path.is_dir():
+        raise CliError(f"{path}: CAD source folder not found" + ("" if source else " (run `make cad-library`)"))
+    items = source_items(guess_kind(path) if kind is SourceKind.auto else kind.value, path, library)
+    root = Path(cfg.warehouse.root).resolve()
+    prepare_prefect_environment(root, ctx.obj.verbose)
+    from flows.cad_library import run_cad_library
+
+    err.print(f"{len(items)} models from {path} into {root}; Prefect's local API starts first (~20 s)")
+    raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress)))
+
+
+@cad_app.command("export-official")
+def cad_export_official(
+    ctx: typer.Context,
+    out_dir: Annotated[Path, typer.Argument(help="New (or empty) folder to write.")],
+    library: Annotated[Optional[list[str]], typer.Option(help="Only these libraries (repeatable; default: all).")] = None,
+) -> None:
+    """Write the library in the official CAD-Estate layout (shapenet_classes.json, symmetry_dict.json,
+    <class>/<cad_id>.npz with float32[T,3,3] vertices), loadable by the official cad_estate code."""
+    from tasks.cad_export import export_official
+
+    count = export_official(ctx.obj.open_warehouse(), out_dir, library)
+    out.print(f"wrote {count} models to {out_dir}")
+
+
+@cad_app.command("sheet")
+def cad_sheet(
+    ctx: typer.Context,
+    out_file: Annotated[Path, typer.Argument(help="PNG to write.")],
+    where: Annotated[str, typer.Option(help="SQL condition on cad_models, e.g. \"class = 'chair'\".")] = "true",
+    limit: Annotated[int, typer.Option(help="At most this many models.")] = 48,
+) -> None:
+    """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
+    from tasks.cad_sheet import contact_sheet
+
+    count = contact_sheet(ctx.obj.open_warehouse(), out_file, where, limit)
+    out.print(f"wrote {out_file} ({count} models)")

@@ -1,0 +1,199 @@
+"""Commands over clips, the warehouse and the configuration: ingest, run, status, sql, tables, catalog, config, demo."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from cadestate.cli.common import CliError, State, run_sources, app, config_app, demo_app, err, out
+from cadestate.config import describe_defaults, load_config, to_toml
+
+
+@app.callback()
+def main_options(
+    ctx: typer.Context,
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Config TOML (default: $CADESTATE_CONFIG, else ./cadestate.toml, else built-in defaults).")] = None,
+    warehouse: Annotated[Optional[Path], typer.Option("--warehouse", "-w", help="Warehouse root (overrides [warehouse] root and $CADESTATE_WAREHOUSE).")] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's flow and task logs.")] = False,
+) -> None:
+    ctx.obj = State(config, warehouse, verbose)
+
+
+@app.command()
+def ingest(
+    ctx: typer.Context,
+    sources: Annotated[list[Path], typer.Argument(help="VIDEO CAMERAS.txt for one clip, or one or more folders of <name>.mp4 + <name>.txt pairs.")],
+    clip: Annotated[Optional[str], typer.Option(help="Clip name (one clip only; default: the video's file name without suffix).")] = None,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).
+
+    Camera files are RealEstate10K text files: line 1 the video URL, then one line per frame with
+    timestamp (µs), fx fy cx cy (normalised), 0 0, and a 3x4 world->camera [R|t], row-major.
+
+    \b
+    Examples:
+      cadestate ingest room.mp4 room.txt --clip room_01
+      cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
+    """
+    from tasks.ingest import ClipSource, discover_clips
+
+    if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
+        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1])]
+    else:
+        if clip:
+            raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
+        items = [s for folder in sources for s in discover_clips(folder)]
+    run_sources(ctx.obj, items, progress)
+
+
+@app.command()
+def run(
+    ctx: typer.Context,
+    clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to rerun (default: every ingested clip).")] = None,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Rerun the pipeline on ingested clips: stages whose config, code and inputs are unchanged are cached (no work)."""
+    from tasks.ingest import ClipSource, clip_inputs
+
+    wh = ctx.obj.open_warehouse()
+    names = clips or wh.partitions("clips")
+    if not names:
+        err.print("no clip is ingested yet: see `cadestate ingest --help`")
+        raise typer.Exit(1)
+    items = []
+    for name in names:
+        video, cameras, _ = clip_inputs(wh, name)
+        items.append(ClipSource(name, video, cameras))
+    run_sources(ctx.obj, items, progress)
+
+
+@app.command()
+def status(
+    ctx: typer.Context,
+    clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to show (default: all).")] = None,
+) -> None:
+    """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed since)."""
+    from tasks.status import pipeline_status
+
+    wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
+    for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
+        rows = pipeline_status(wh, cfg, clips, scope)
+        table = Table(scope, "stage", "last run", "status", "rows", "up to date", title=title)
+        for r in rows:
+            fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
+            table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
+        out.print(table if rows else f"no {title} yet")
+
+
+class Format(str, Enum):
+    table = "table"
+    csv = "csv"
+    json = "json"
+
+
+@app.command()
+def sql(
+    ctx: typer.Context,
+    query: Annotated[str, typer.Argument(help="SQL over the warehouse views (see `cadestate tables`).")],
+    format: Annotated[Format, typer.Option("--format", "-f", help="Output format.")] = Format.table,
+) -> None:
+    """Run a SQL query on the catalog (read-only) and print the result.
+
+    Example:  cadestate sql "SELECT clip, count(*) FROM frames GROUP BY clip" --format csv
+    """
+    import duckdb
+
+    from warehouse import connect
+
+    con = connect(ctx.obj.open_warehouse(), read_only=True)
+    try:
+        cur = con.execute(query)
+        names = [d[0] for d in cur.description] if cur.description else []
+        rows = cur.fetchall() if names else []
+    except duckdb.Error as e:
+        raise CliError(f"SQL error: {e}") from None
+    finally:
+        con.close()
+    if format is Format.json:
+        print(json.dumps([dict(zip(names, r)) for r in rows], default=str, indent=1))
+    elif format is Format.csv:
+        writer = csv.writer(sys.stdout)
+        writer.writerow(names)
+        writer.writerows(rows)
+    else:
+        table = Table(*names)
+        for r in rows:
+            table.add_row(*("NULL" if v is None else escape(str(v)) for v in r))
+        out.print(table)
+
+
+@app.command()
+def tables(
+    ctx: typer.Context,
+    name: Annotated[Optional[str], typer.Argument(help="A table: show its columns with units and frames.")] = None,
+) -> None:
+    """List the warehouse tables (row counts), or one table's columns."""
+    import pyarrow.parquet as pq
+
+    wh = ctx.obj.open_warehouse()
+    if name:
+        spec = wh.spec(name)
+        table = Table("column", "type", "unit", "frame", "description", title=f"{name}: {spec.description}")
+        for row in spec.describe():
+            table.add_row(*map(escape, row))
+        out.print(table)
+        out.print(f"key: {', '.join(spec.key)}   mode: {spec.mode}   partitioned by clip")
+        return
+    table = Table("table", "rows", "clips", "description")
+    for tname, spec in wh.tables.items():
+        files = wh.files(tname)
+        rows = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+        table.add_row(tname, str(rows), str(len(wh.partitions(tname))), escape(spec.description))
+    out.print(table)
+
+
+@app.command()
+def catalog(ctx: typer.Context) -> None:
+    """Rebuild <warehouse>/catalog.duckdb (after moving a warehouse, say)."""
+    from warehouse import refresh_catalog
+
+    out.print(f"catalog: {refresh_catalog(ctx.obj.open_warehouse())}")
+
+
+@config_app.command("show")
+def config_show(
+    ctx: typer.Context,
+    defaults: Annotated[bool, typer.Option("--defaults", help="Print every key with its documentation and default.")] = False,
+) -> None:
+    """Print the effective configuration as TOML (or the documented defaults)."""
+    print(describe_defaults() if defaults else to_toml(ctx.obj.config()))
+
+
+@config_app.command("check")
+def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to validate.")]) -> None:
+    """Validate a config file: unknown sections or keys and bad values are errors naming the key."""
+    load_config(path)
+    out.print(f"{path}: ok")
+
+
+@demo_app.command("make")
+def demo_make(
+    out_dir: Annotated[Path, typer.Argument(help="Folder for <name>.mp4 and <name>.txt.")],
+    name: Annotated[str, typer.Option(help="Clip name.")] = "demo_0000",
+    seed: Annotated[int, typer.Option(help="Random seed (same seed, same clip).")] = 0,
+    frames: Annotated[int, typer.Option(help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
+) -> None:
+    """Generate a synthetic walkthrough clip with exact cameras (138 camera lines by default)."""
+    from bench.demo_clip import DemoClipSpec, make_demo_clip
+
+    clip = make_demo_clip(out_dir, DemoClipSpec(name=name, seed=seed, num_video_frames=frames))
+    out.print(f"wrote {clip.video_path} and {clip.cameras_path} ({len(clip.frame_indices)} cameras)")
