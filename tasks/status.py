@@ -31,8 +31,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     stages = stages_of(scope)
     runs = [r for r in wh.read("runs", partitions=names).sort_by("started_at").to_pylist()
             if r["stage"] in {s.name for s in stages}]
-    registered = wh.partitions("clips" if scope == "clip" else "cad_models")
-    names = sorted(set(names or registered) | {r["clip"] for r in runs})
+    known = set(wh.partitions("clips" if scope == "clip" else "cad_models")) | {r["clip"] for r in runs}
+    names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here
     last: dict[tuple[str, str], dict] = {}
     last_ok: dict[tuple[str, str], dict] = {}
     for r in runs:
@@ -62,7 +62,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             result.append(StageStatus(
                 clip, stage.name,
                 latest["status"] if latest else "never run",
-                latest["started_at"].strftime("%Y-%m-%d %H:%M:%S") if latest else "",
+                latest["started_at"].strftime("%m-%d %H:%M") if latest else "",
                 ok["rows_written"] if ok else 0,
                 tuple(reasons),
             ))

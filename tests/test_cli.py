@@ -50,7 +50,7 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip):
     out = cli("-w", w, "sql", "SELECT stage, status FROM runs ORDER BY started_at", "-f", "csv").stdout
     assert list(csv.reader(io.StringIO(out))) == [["stage", "status"], ["ingest", "completed"], ["frames", "completed"]]
     status = runner.invoke(app, ["-w", w, "status"])
-    assert status.exit_code == 0 and status.output.count("yes") == 2
+    assert status.exit_code == 0 and status.output.count("yes") == 2 and "room_1" in status.output
     tables = runner.invoke(app, ["-w", w, "tables"])
     assert "frames" in tables.output and "30" in tables.output
     again = runner.invoke(app, ["-w", w, "run"])

@@ -112,3 +112,4 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
     assert wh.read("cad_views").num_rows == 6
     status = {(r.clip, r.stage): r.stale_reasons for r in pipeline_status(wh, bigger, scope="library")}
     assert status == {("lib", "cad_ingest"): (), ("lib", "cad_views"): ()}
+    assert pipeline_status(wh, bigger, ["lib"], scope="clip") == []  # a library is not a clip

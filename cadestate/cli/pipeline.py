@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
-from rich.table import Table
+from rich.table import Column, Table
 
 from cadestate.cli.common import CliError, State, run_sources, app, config_app, demo_app, err, out
 from cadestate.config import describe_defaults, load_config, to_toml
@@ -87,11 +87,12 @@ def status(
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
         rows = pipeline_status(wh, cfg, clips, scope)
-        table = Table(scope, "stage", "last run", "status", "rows", "up to date", title=title)
+        table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
+                      Column("fresh", min_width=5), title=f"{title} (times UTC)")
         for r in rows:
             fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
             table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
-        out.print(table if rows else f"no {title} yet")
+        out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
 
 
 class Format(str, Enum):
