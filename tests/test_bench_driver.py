@@ -34,13 +34,24 @@ def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
 
 
 def test_ignore_rule_uses_visibility_and_class(benchmark):
+    from bench.benchmark import CLASS_NAMES
+    from bench.ignore import COCO_CLASSES, MAX_TRUNCATED_FRACTION, MIN_VISIBLE_FRACTION
+
     folder, manifest, _ = benchmark
-    objects = read_objects(folder / manifest.clips[0] / "objects.json")
-    gt_ignore = ignore_rule(folder, manifest.clips[0])
-    flags = [gt_ignore(o, e) for o in objects.objects for e in o.track]
-    assert any(flags) or all(o.cls != "02871439" for o in objects.objects)
-    bookshelves = [gt_ignore(o, e) for o in objects.objects if o.cls == "02871439" for e in o.track]
-    assert all(bookshelves)  # no COCO class: always an ignore region
+    seen = set()
+    for clip in manifest.clips:
+        visibility = json.loads((folder / clip / "visibility.json").read_text())
+        fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
+                     for f in visibility["frames"] for o in f["objects"]}
+        gt_ignore = ignore_rule(folder, clip)
+        for obj in read_objects(folder / clip / "objects.json").objects:
+            coco = CLASS_NAMES[obj.cls] in COCO_CLASSES
+            for entry in obj.track:
+                visible, truncated = fractions[(entry.timestamp, obj.track_id)]
+                expected = not coco or visible < MIN_VISIBLE_FRACTION or truncated > MAX_TRUNCATED_FRACTION
+                assert gt_ignore(obj, entry) == expected
+                seen.add((coco, expected))
+    assert {(True, False), (True, True)} <= seen  # both outcomes occur for COCO classes
 
 
 def test_report_has_statistics_and_pictures(benchmark):
