@@ -17,12 +17,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from bench.annotators import KeyframeCorrespondences, annotate_correspondences, draw_manual_track, track_to_json
+from bench.annotators import (KeyframeCorrespondences, annotate_correspondences, draw_manual_track, frame_camera,
+                              track_to_json)
 from bench.noise import DEFAULT_NOISE, AnnotatorNoise
-from cadestate.geometry import intrinsics_matrix, project, quaternion_to_matrix
+from cadestate.geometry import project
 from cadestate.progress import progress
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import read_frames, read_objects
+from tasks.cad_symmetry import rotation_y
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
@@ -86,13 +88,9 @@ def label_statistics(bench_dir: Path, clips: list[str]) -> dict:
                 points += len(kf.xy)
                 coplanar += kf.coplanar
                 swapped += kf.symmetry_deg != 0
-                frame = by_ts[kf.timestamp]
-                xyz = np.asarray(kf.xyz, float)
-                sym = np.radians(kf.symmetry_deg)  # clicked point = true point rotated about +Y by sym
-                R_sym = np.array([[np.cos(sym), 0, np.sin(sym)], [0, 1, 0], [-np.sin(sym), 0, np.cos(sym)]])
-                world = (xyz @ R_sym) @ M[:3, :3].T + M[:3, 3]
-                uv, _ = project(intrinsics_matrix(frame.intrinsics, W, H), quaternion_to_matrix(frame.rotation),
-                                np.asarray(frame.translation), world)
+                camera = frame_camera(by_ts[kf.timestamp], W, H)
+                true_xyz = np.asarray(kf.xyz, float) @ rotation_y(kf.symmetry_deg)  # undo the symmetric swap
+                uv, _ = project(camera.K, camera.R, camera.t, true_xyz @ M[:3, :3].T + M[:3, 3])
                 residuals += np.linalg.norm(np.asarray(kf.xy) * [W, H] - uv, axis=1).tolist()
     return {
         "objects": objects_n, "objects_with_correspondences": annotated, "keyframes": keyframes,

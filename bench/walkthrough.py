@@ -23,23 +23,20 @@ from __future__ import annotations
 import functools
 import math
 import os
-import secrets
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from fractions import Fraction
 from pathlib import Path
 
-import av
 import numpy as np
 import trimesh
 
 from bench.scene import Scene, generate_scene
-from cadestate.geometry import intrinsics_matrix, look_at, matrix_to_quaternion, project
+from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at, matrix_to_quaternion, project
 from cadestate.render import Camera, Instance, Lighting, Renderer, RenderMesh
 from schemas.official import Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json, \
     objects_to_json, write_json
 from tasks.cameras import CameraTrack, write_camera_file
+from tasks.video import frame_timestamp_us, write_video
 
 ROOM_INSTANCE_ID = 0
 """Instance id of the room (walls, floor, ...); object ``k`` of the scene gets id ``k + 1``."""
@@ -89,17 +86,6 @@ class ClipGroundTruth:
     timings: dict = field(default_factory=dict)
 
 
-def frame_timestamp_us(index: int, fps: int) -> int:
-    """Time of video frame ``index`` in integer µs: ``round(index * 1e6 / fps)``, exactly."""
-    return round(Fraction(index * 1_000_000, fps))
-
-
-def normalised_intrinsics(spec: WalkthroughSpec) -> np.ndarray:
-    """float64[4] (fx, fy, cx, cy) normalised, square pixels, centred principal point."""
-    fx = 0.5 / math.tan(math.radians(spec.hfov_deg) / 2)
-    return np.array([fx, fx * spec.width / spec.height, 0.5, 0.5])
-
-
 @functools.lru_cache(maxsize=256)
 def _load_mesh(path: str, mtime_ns: int) -> RenderMesh:
     return RenderMesh.from_trimesh(trimesh.load(path, force="scene"))
@@ -131,7 +117,7 @@ def camera_path(scene: Scene, spec: WalkthroughSpec, rng: np.random.Generator,
     n = spec.num_video_frames
     s = _smooth(np.linspace(0.0, 1.0, n))
     time_s = np.arange(n) / spec.fps
-    K = intrinsics_matrix(normalised_intrinsics(spec), spec.width, spec.height)
+    K = intrinsics_matrix(hfov_intrinsics(spec.hfov_deg, spec.width, spec.height), spec.width, spec.height)
     room = scene.room
     centres = np.array([o.translation for o in scene.objects])
     best, best_score, found = None, -1.0, 0
@@ -177,33 +163,6 @@ def camera_path(scene: Scene, spec: WalkthroughSpec, rng: np.random.Generator,
     return best
 
 
-def _write_video(path: Path, spec: WalkthroughSpec, frames) -> None:
-    """Encode the uint8[H, W, 3] RGB frames of the iterable ``frames``: frame ``i`` gets pts ``i``
-    in time base ``1/fps``; one GOP per second. Encoding runs on a worker thread while the caller's
-    thread (the one owning the GL context) renders the next frame."""
-    with av.open(str(path), "w", format="mp4") as container, ThreadPoolExecutor(1) as pool:
-        stream = container.add_stream(spec.codec, rate=spec.fps)
-        stream.width, stream.height, stream.pix_fmt = spec.width, spec.height, "yuv420p"
-        stream.time_base = Fraction(1, spec.fps)
-        stream.codec_context.gop_size = spec.fps
-        if spec.codec == "libx264":
-            stream.codec_context.options = {"crf": str(spec.crf), "preset": "veryfast"}
-
-        def encode(index: int, image: np.ndarray) -> None:
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
-            frame.pts = index
-            container.mux(stream.encode(frame))
-
-        pending = None
-        for index, image in enumerate(frames):
-            if pending is not None:
-                pending.result()
-            pending = pool.submit(encode, index, image)
-        if pending is not None:
-            pending.result()
-        container.mux(stream.encode())
-
-
 def _box_of(mask: np.ndarray) -> tuple[int, int, int, int]:
     """(row min, col min, row max + 1, col max + 1) of a non-empty bool mask."""
     rows, cols = np.any(mask, axis=1), np.any(mask, axis=0)
@@ -227,7 +186,7 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
     rng = np.random.default_rng([int(seed), 0xCA3E7A])
     lighting = random_lighting(rng)
     poses = camera_path(scene, spec, rng)
-    normalised = normalised_intrinsics(spec)
+    normalised = hfov_intrinsics(spec.hfov_deg, spec.width, spec.height)
     W, H = spec.width, spec.height
     K = intrinsics_matrix(normalised, W, H)
     meshes = [load_mesh(Path(wh_root) / o.mesh_path) for o in scene.objects]
@@ -285,13 +244,9 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
                 yield result.rgb
 
         video_path = out_dir / f"{name}.mp4"
-        tmp = out_dir / f".{name}.{secrets.token_hex(8)}.mp4.tmp"
         t1 = time.perf_counter()
-        try:
-            _write_video(tmp, spec, frames())
-            os.replace(tmp, video_path)
-        finally:
-            tmp.unlink(missing_ok=True)
+        options = {"crf": str(spec.crf), "preset": "veryfast"} if spec.codec == "libx264" else None
+        write_video(video_path, frames(), spec.width, spec.height, spec.fps, spec.codec, options)
         timings["render_encode"] = time.perf_counter() - t1 - t_alone
         timings["alone_renders"] = t_alone
     finally:
@@ -343,7 +298,7 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
 def render_frame(scene: Scene, pose: np.ndarray, spec: WalkthroughSpec, wh_root: str | os.PathLike,
                  lighting: Lighting = Lighting()) -> np.ndarray:
     """uint8[H, W, 3] of ``scene`` seen from world->camera ``pose`` float[3, 4] (for previews)."""
-    K = intrinsics_matrix(normalised_intrinsics(spec), spec.width, spec.height)
+    K = intrinsics_matrix(hfov_intrinsics(spec.hfov_deg, spec.width, spec.height), spec.width, spec.height)
     instances = [Instance(m, np.eye(4), ROOM_INSTANCE_ID) for m in scene.room.meshes] + [
         Instance(load_mesh(Path(wh_root) / o.mesh_path), o.object_to_world(), k + 1) for k, o in enumerate(scene.objects)]
     with Renderer(spec.width, spec.height, spec.supersample) as r:
@@ -352,4 +307,4 @@ def render_frame(scene: Scene, pose: np.ndarray, spec: WalkthroughSpec, wh_root:
 
 
 __all__ = ["WalkthroughSpec", "ClipGroundTruth", "generate_clip", "camera_path", "render_frame", "load_mesh",
-           "random_lighting", "frame_timestamp_us", "normalised_intrinsics", "ROOM_INSTANCE_ID"]
+           "random_lighting", "ROOM_INSTANCE_ID"]

@@ -60,6 +60,13 @@ def normalised_intrinsics(K: np.ndarray, width: int, height: int) -> np.ndarray:
     )
 
 
+def hfov_intrinsics(hfov_deg: float, width: int, height: int) -> np.ndarray:
+    """float64[4] normalised (fx, fy, cx, cy) of a camera with horizontal field of view ``hfov_deg``,
+    square pixels and the principal point at the image centre."""
+    fx = 0.5 / np.tan(np.radians(hfov_deg) / 2)
+    return np.array([fx, fx * width / height, 0.5, 0.5])
+
+
 def camera_to_world(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World->camera ``(R, t)`` to camera->world ``(R_cw, c)``.
 

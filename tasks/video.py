@@ -1,4 +1,4 @@
-"""Reading videos with PyAV: probing, and decoding the frame nearest to each requested timestamp.
+"""Videos with PyAV: probing, decoding the frame nearest to each requested timestamp, and writing.
 
 Time frame: microseconds since the start of the video stream (the stream's ``start_time`` is
 subtracted), the frame of RealEstate10K timestamps.
@@ -7,9 +7,12 @@ subtracted), the frame of RealEstate10K timestamps.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+import secrets
+from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 
 import av
 import numpy as np
@@ -119,3 +122,45 @@ def decode_at(
                 raise VideoError(f"{path}: no frame could be decoded near {target} µs")
             time_us, frame = min(candidates, key=lambda f: abs(f[0] - target))
             yield DecodedFrame(time_us, frame.to_ndarray(format="rgb24"))
+
+
+def frame_timestamp_us(index: int, fps: int) -> int:
+    """Time of video frame ``index`` in integer µs: ``round(index * 1e6 / fps)``, computed exactly."""
+    return round(Fraction(index * 1_000_000, fps))
+
+
+def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], width: int, height: int, fps: int,
+                codec: str = "libx264", options: dict[str, str] | None = None) -> None:
+    """Encode the uint8[H, W, 3] RGB ``frames`` into an MP4 at ``path``, replaced atomically.
+
+    Frame ``i`` gets pts ``i`` in time base ``1/fps`` (exact times, see :func:`frame_timestamp_us`);
+    one GOP per second. Encoding runs on a worker thread while the caller's thread produces the
+    next frame (a renderer's GL context stays on the caller's thread).
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{secrets.token_hex(8)}{path.suffix}.tmp")
+    try:
+        with av.open(str(tmp), "w", format="mp4") as container, ThreadPoolExecutor(1) as pool:
+            stream = container.add_stream(codec, rate=fps)
+            stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+            stream.time_base = Fraction(1, fps)
+            stream.codec_context.gop_size = fps
+            if options:
+                stream.codec_context.options = options
+
+            def encode(index: int, image: np.ndarray) -> None:
+                frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+                frame.pts = index
+                container.mux(stream.encode(frame))
+
+            pending: Future | None = None
+            for index, image in enumerate(frames):
+                if pending is not None:
+                    pending.result()
+                pending = pool.submit(encode, index, image)
+            if pending is not None:
+                pending.result()
+            container.mux(stream.encode())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

