@@ -66,8 +66,12 @@ run: setup cad-library models
 	  round(avg(camera_center[2]), 2) AS mean_camera_height_m FROM frames GROUP BY clip ORDER BY clip"
 	$(BIN)/cadestate sql "SELECT class, count(*) AS models, count(*) FILTER (symmetry > 1) AS symmetric, \
 	  round(median(extent[2]), 2) AS median_height_m FROM cad_models GROUP BY class ORDER BY models DESC LIMIT 12"
-	$(BIN)/cadestate sql "SELECT clip, stage, status, round(duration_s, 2) AS seconds, rows_written, config_hash \
-	  FROM runs ORDER BY started_at"
+	$(BIN)/cadestate sql "SELECT t.clip, t.track_id, t.label, t.num_detections AS boxes, \
+	  c.cad_id AS best_candidate, c.cad_class, round(c.score, 3) AS score \
+	  FROM tracks t JOIN cad_candidates c USING (clip, track_id) WHERE c.rank = 1 ORDER BY t.clip, t.track_id"
+	$(BIN)/cadestate sql "SELECT clip, stage, status, round(duration_s, 2) AS seconds, rows_written \
+	  FROM runs WHERE clip IN (SELECT clip FROM clips) QUALIFY row_number() OVER (PARTITION BY clip, stage ORDER BY started_at DESC) = 1 \
+	  ORDER BY clip, started_at"
 	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
 
 test: setup cad-library models
@@ -78,7 +82,7 @@ test-fast: setup cad-library models
 
 BENCH_DIR ?= data/bench/default
 
-bench: setup cad-library
+bench: setup cad-library models
 	$(BIN)/python -m bench
 	$(BIN)/cadestate cad ingest --no-progress
 	$(BIN)/cadestate bench generate --out $(BENCH_DIR) --no-progress

@@ -7,7 +7,7 @@ import os
 import platform
 from pathlib import Path
 
-from bench import cad_throughput, frames_throughput
+from bench import cad_throughput, detect_throughput, frames_throughput, pose_bench, retrieval_bench, track_bench
 
 RESULTS = Path("bench/results")
 
@@ -18,6 +18,10 @@ def main() -> None:
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
         "frames": frames_throughput.run(Path("data/bench/perf")),
         "cad": cad_throughput.run(),
+        "detection": detect_throughput.run(Path("data/bench/perf")),
+        "pose": pose_bench.run(),
+        "retrieval": retrieval_bench.run(),
+        "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True) if track_bench.BENCH_DIR.is_dir() else "no benchmark",
     }
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))

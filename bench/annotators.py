@@ -182,10 +182,14 @@ def _render_view(renderer: Renderer, rmesh: RenderMesh, M: np.ndarray, camera: C
 
 def choose_keyframes(frames: FramesFile, obj: ObjectAnnotation, samples: SurfaceSamples, noise: AnnotatorNoise,
                      rng: np.random.Generator, image_size: tuple[int, int] | None = None) -> list[int]:
-    """Frame indices an annotator would annotate: ``keyframes_per_object`` frames spread evenly over
-    those where the object is well visible (share of the surface samples in view at least
-    ``well_visible_fraction`` of the best frame), restricted to the object's track when it has one
-    and to the ``key_frame`` frames when any are marked."""
+    """Frame indices an annotator would annotate: ``keyframes_per_object`` key-frames evenly spaced
+    in time over the object's whole visible track (paper 3.2-3.3: "a set of evenly spaced
+    key-frames"), restricted to the object's track when it has one and to the ``key_frame`` frames
+    when any are marked. Visible: some surface samples clickable. Each key-frame is the frame
+    nearest its evenly spaced target time among those where the object is well visible (share of
+    the surface samples in view at least ``well_visible_fraction`` of the best frame), taken only
+    from the frames nearer that target than any other (the annotator navigates to a good view
+    near each key-frame); when there is none, the visible frame nearest the target."""
     W, H = _size(frames, image_size)
     idx = list(range(len(frames.frames)))
     stamps = {e.timestamp for e in obj.track}
@@ -197,10 +201,21 @@ def choose_keyframes(frames: FramesFile, obj: ObjectAnnotation, samples: Surface
     score = np.array([visible_mask(samples, M, frame_camera(frames.frames[i], W, H), noise)[0].mean() for i in idx])
     if not len(idx) or score.max() <= 0:
         return []
-    good = [i for i, s in zip(idx, score) if s >= noise.well_visible_fraction * score.max()]
+    visible = [(frames.frames[i].timestamp, i, s) for i, s in zip(idx, score) if s > 0]
+    t = np.array([v[0] for v in visible], np.float64)
+    good = np.array([v[2] >= noise.well_visible_fraction * score.max() for v in visible])
     lo, hi = noise.keyframes_per_object
-    n = min(int(rng.integers(lo, hi + 1)), len(good))
-    return [good[k] for k in np.unique(np.round(np.linspace(0, len(good) - 1, n)).astype(int))]
+    n = min(int(rng.integers(lo, hi + 1)), int(good.sum()))
+    targets = np.linspace(t.min(), t.max(), n) if n > 1 else np.array([t[good][np.argmax([v[2] for v, g in zip(visible, good) if g])]])
+    segment = np.argmin(np.abs(t[:, None] - targets[None]), axis=1)  # the target each visible frame is nearest to
+    out = []
+    for k, target in enumerate(targets):
+        mine = np.flatnonzero(segment == k)
+        if not len(mine):
+            continue
+        pool = mine[good[mine]] if good[mine].any() else mine
+        out.append(visible[int(pool[np.argmin(np.abs(t[pool] - target))])][1])
+    return sorted(set(out))
 
 
 # ----------------------------------------------------------------------------------------- 3.3 clicks

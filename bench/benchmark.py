@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from bench.eval_detection import FrameBoxes, evaluate_detections
 from bench.ignore import is_ignored
 from bench.labels import label_statistics
 from bench.stats import dataset_statistics, statistics_markdown
@@ -120,8 +121,32 @@ def example_frame(bench_dir: Path, clip: str, out_file: Path) -> None:
     image.save(out_file)
 
 
-def report(bench_dir: Path, examples: int = 3) -> dict:
-    """Metrics of what the pipeline can do so far, dataset statistics, and example frames."""
+def detection_frames(bench_dir: Path, clip: str, wh: Warehouse) -> list[FrameBoxes]:
+    """Ground truth (with the ignore rule) and the ``detections`` of one clip, frame by frame."""
+    objects = read_objects(Path(bench_dir) / clip / "objects.json")
+    gt_ignore = ignore_rule(bench_dir, clip)
+    gt: dict[int, list[tuple[tuple, str, bool]]] = {}
+    for obj in objects.objects:
+        for e in obj.track:
+            gt.setdefault(e.timestamp, []).append((e.box, CLASS_NAMES.get(obj.cls, "other"), gt_ignore(obj, e)))
+    preds: dict[int, list[dict]] = {}
+    for d in wh.read("detections", partitions=[clip], columns=["timestamp_us", "box", "label"]).to_pylist():
+        preds.setdefault(d["timestamp_us"], []).append(d)
+    frames = read_frames(Path(bench_dir) / clip / "frames.json")
+    return [FrameBoxes(np.array([b for b, _, _ in gt.get(f.timestamp, [])], np.float64).reshape(-1, 4),
+                       [c for _, c, _ in gt.get(f.timestamp, [])],
+                       np.array([i for _, _, i in gt.get(f.timestamp, [])], bool),
+                       np.array([d["box"] for d in preds.get(f.timestamp, [])], np.float64).reshape(-1, 4),
+                       [d["label"] for d in preds.get(f.timestamp, [])]) for f in frames.frames]
+
+
+def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> dict:
+    """Metrics of what the pipeline can do so far (of the clips in ``wh``), dataset statistics,
+    and example frames."""
+    from bench.pose_bench import pose_accuracy  # imports this module
+    from bench.retrieval_bench import retrieval_accuracy  # imports this module
+    from bench.track_bench import tracking_accuracy  # imports this module
+
     bench_dir = Path(bench_dir)
     manifest = read_manifest(bench_dir)
     pairs = [(read_frames(bench_dir / c / "frames.json"), read_objects(bench_dir / c / "objects.json")) for c in manifest.clips]
@@ -136,25 +161,50 @@ def report(bench_dir: Path, examples: int = 3) -> dict:
         out = bench_dir / "report" / f"{clip}.png"
         example_frame(bench_dir, clip, out)
         pictures.append(str(out.relative_to(bench_dir)))
+    detected = [c for c in manifest.clips if wh is not None and c in wh.partitions("detections")]
+    detection = evaluate_detections([f for c in detected for f in detection_frames(bench_dir, c, wh)]) if detected else None
     return {
         "benchmark": {"seed": manifest.seed, "clips": len(manifest.clips)},
+        "detection": detection and {"clips": len(detected), **detection},
+        "tracking": tracking_accuracy(bench_dir, wh) if wh is not None else None,
+        "pose": pose_accuracy(bench_dir, wh) if wh is not None else None,
         "statistics": dataset_statistics(pairs),
         "simulated_labels": label_statistics(bench_dir, list(manifest.clips)),
         "ground_truth_boxes": {"total": boxes, "ignore": ignored},
         "examples": pictures,
-        "not_yet_measured": ["detection (issue 5)", "tracking (issue 6)", "pose accuracy (issue 7)", "retrieval (issue 8)"],
+        "retrieval": retrieval_accuracy(bench_dir, wh) if wh is not None else None,
     }
 
 
 def report_markdown(result: dict) -> str:
     """The report as markdown (pictures linked relative to the benchmark folder)."""
+    from bench.pose_bench import pose_markdown  # imports this module
+    from bench.retrieval_bench import retrieval_markdown  # imports this module
+    from bench.track_bench import tracking_markdown  # imports this module
+
     lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
              "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
              f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden, cut off, or no COCO class).", "",
              "## Simulated annotators (label files of `cadestate bench run`)", "",
              "| | |", "|---|---:|", *[f"| {k.replace('_', ' ')} | {v} |" for k, v in result["simulated_labels"].items()], "",
+             *detection_markdown(result.get("detection")),
+             *tracking_markdown(result.get("tracking")),
+             *retrieval_markdown(result.get("retrieval")),
+             *pose_markdown(result.get("pose")),
              "## Examples (green: evaluated boxes, grey: ignore regions)", ""]
     lines += [f"![{p}]({p})" for p in result["examples"]]
-    lines += ["", "Not measured yet: " + ", ".join(result["not_yet_measured"]) + "."]
     return "\n".join(lines) + "\n"
+
+
+def detection_markdown(detection: dict | None) -> list[str]:
+    """Lines of the report's detection section (empty before the detect stage ran)."""
+    if not detection:
+        return []
+    rows = [f"| {c} | {m['ground_truth']} | {m['predictions']} | {m['recall'] if m['recall'] is not None else '-'} "
+            f"| {m['precision'] if m['precision'] is not None else '-'} |" for c, m in detection["per_class"].items()]
+    return [f"## Detection (IoU >= {detection['iou']}, {detection['clips']} clips, ignore regions excluded)", "",
+            f"Recall {detection['recall']}, precision {detection['precision']}, class-agnostic recall "
+            f"{detection['class_agnostic_recall']} ({detection['ground_truth']} ground-truth boxes, "
+            f"{detection['predictions']} kept predictions).", "",
+            "| class | ground truth | predictions | recall | precision |", "|---|---:|---:|---:|---:|", *rows, ""]

@@ -5,7 +5,9 @@ scale error <= 20 %, where
 
 - rotation error = 2·arccos(|<q, q_gt>|) in degrees, minimised over ``R_gt · R_y(2πi/m)``,
   i = 0..m-1, m = the ground-truth CAD model's symmetry order about its up axis +Y (1, 2, 4, 36);
-- scale error = 100·|mean(s / s_gt) − 1| (per-axis ratios, averaged);
+- scale error = 100·|mean(s / s_gt) − 1| (per-axis ratios, averaged), with s_gt taken in the
+  symmetric version that minimised the rotation error: a 4-way model turned by 90 or 270
+  degrees has its x and z scales swapped (:func:`symmetric_scale`);
 - translation error = Euclidean distance in metres.
 
 Decisions (not fixed by Scan2CAD, documented and tested here):
@@ -68,16 +70,33 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
 
 
-def rotation_error_deg(q, q_gt, symmetry: int | str | None = 1) -> float:
-    """Angle in degrees between rotations q and q_gt (float[4], (w, x, y, z)), minimised over the
-    symmetric versions ``q_gt · q_y(2πi/m)`` of the ground truth (rotation about the object's +Y)."""
+def symmetric_rotation_error(q, q_gt, symmetry: int | str | None = 1) -> tuple[float, int]:
+    """(angle in degrees, i): the angle between rotations q and q_gt (float[4], (w, x, y, z)),
+    minimised over the symmetric versions ``q_gt · q_y(2πi/m)`` of the ground truth (rotation
+    about the object's +Y), and the i that attains it."""
     q, q_gt = _normalise(q), _normalise(q_gt)
     m = symmetry_order(symmetry)
     half = np.pi * np.arange(m) / m  # half of 2πi/m
     q_sym = np.stack([np.cos(half), np.zeros(m), np.sin(half), np.zeros(m)], -1)  # float[m, 4]
     candidates = _qmul(q_gt[None], q_sym)
     dots = np.clip(np.abs(candidates @ q), 0.0, 1.0)
-    return float(np.degrees(2.0 * np.arccos(dots.max())))
+    i = int(dots.argmax())
+    return float(np.degrees(2.0 * np.arccos(dots[i]))), i
+
+
+def rotation_error_deg(q, q_gt, symmetry: int | str | None = 1) -> float:
+    """Angle in degrees between rotations q and q_gt, minimised over the ground truth's symmetric
+    versions (see :func:`symmetric_rotation_error`)."""
+    return symmetric_rotation_error(q, q_gt, symmetry)[0]
+
+
+def symmetric_scale(s_gt, symmetry: int | str | None, index: int) -> np.ndarray:
+    """The ground-truth scale float[3] (sx, sy, sz) expressed in the symmetric version ``index`` of
+    :func:`symmetric_rotation_error`: for a 4-way model turned by 90 or 270 degrees about +Y the CAD
+    x and z axes trade places, so (sx, sy, sz) -> (sz, sy, sx) (R_y(90) diag(a, b, c) R_y(-90) =
+    diag(c, b, a)); unchanged otherwise (2-way: 180 degrees keeps the axes; 36-way: sx = sz)."""
+    s_gt = np.asarray(s_gt, dtype=np.float64).reshape(3)
+    return s_gt[[2, 1, 0]] if symmetry_order(symmetry) == 4 and index % 2 == 1 else s_gt
 
 
 def translation_error(t, t_gt) -> float:
@@ -95,8 +114,9 @@ def is_correct(t, q, s, t_gt, q_gt, s_gt, symmetry: int | str | None = 1, *, mir
                mirrored_gt: bool = False, max_translation: float = MAX_TRANSLATION_M,
                max_rotation: float = MAX_ROTATION_DEG, max_scale: float = MAX_SCALE_PCT) -> bool:
     """Scan2CAD criterion (all three errors within threshold) plus an equal mirror flag."""
+    re, i = symmetric_rotation_error(q, q_gt, symmetry)
     return (mirrored == mirrored_gt and translation_error(t, t_gt) <= max_translation
-            and rotation_error_deg(q, q_gt, symmetry) <= max_rotation and scale_error_pct(s, s_gt) <= max_scale)
+            and re <= max_rotation and scale_error_pct(s, symmetric_scale(s_gt, symmetry, i)) <= max_scale)
 
 
 @dataclass(frozen=True)
@@ -191,8 +211,8 @@ def _symmetry_of(gt: PosedObject, symmetries: Symmetries) -> int:
 
 def _pair(gt: PosedObject, pred: PosedObject, symmetry: int, require_class: bool) -> PoseMatch:
     te = translation_error(pred.translation, gt.translation)
-    re = rotation_error_deg(pred.rotation, gt.rotation, symmetry)
-    se = scale_error_pct(pred.scale, gt.scale)
+    re, i = symmetric_rotation_error(pred.rotation, gt.rotation, symmetry)
+    se = scale_error_pct(pred.scale, symmetric_scale(gt.scale, symmetry, i))
     mirror_ok = pred.is_mirrored == gt.is_mirrored
     class_ok = pred.cls == gt.cls or not require_class
     ok = mirror_ok and class_ok and te <= MAX_TRANSLATION_M and re <= MAX_ROTATION_DEG and se <= MAX_SCALE_PCT

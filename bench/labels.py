@@ -100,3 +100,37 @@ def label_statistics(bench_dir: Path, clips: list[str]) -> dict:
         "symmetric_swap_keyframe_share": round(swapped / max(keyframes, 1), 3),
         "click_error_px_mean": round(float(np.mean(residuals)), 2) if residuals else None,
     }
+
+
+def correspondence_rows(labels: dict) -> list[dict]:
+    """Rows of the ``correspondences`` table (:data:`schemas.pose.CORRESPONDENCES`) from one clip's
+    label file (:func:`simulate_clip_labels`): one per click, point_index in click order."""
+    rows = []
+    for obj in labels["objects"]:
+        for kf in map(KeyframeCorrespondences.from_json, obj["correspondences"]):
+            for i, (xy, xyz) in enumerate(zip(kf.xy, kf.xyz)):
+                rows.append({"clip": labels["clip_name"], "track_id": str(obj["track_id"]), "timestamp_us": kf.timestamp,
+                             "point_index": i, "cad_id": obj["cad_id"], "point_2d": list(xy), "point_3d": list(xyz),
+                             "is_mirrored": kf.is_mirrored})
+    return rows
+
+
+def write_correspondences(bench_dir: Path, clips: list[str], wh: Warehouse) -> int:
+    """Load each clip's simulated correspondences into the warehouse's ``correspondences`` table
+    (the pose stage's input; a partition is rewritten only when its content changes). Returns rows."""
+    import pyarrow as pa
+
+    from cadestate.lineage import table_digest
+    from schemas.pose import CORRESPONDENCES
+
+    total = 0
+    for clip in clips:
+        path = Path(bench_dir) / LABELS / f"{clip}.json"
+        if not path.is_file():
+            continue
+        table = pa.Table.from_pylist(correspondence_rows(json.loads(path.read_text())), schema=CORRESPONDENCES.schema)
+        table = wh.conform("correspondences", clip, table).sort_by([(k, "ascending") for k in CORRESPONDENCES.key])
+        if table_digest(table) != table_digest(wh.read("correspondences", [clip])):
+            wh.write("correspondences", clip, table)
+        total += table.num_rows
+    return total

@@ -91,6 +91,100 @@ class CadViewsConfig:
 
 
 @dataclass(frozen=True)
+class DetectConfig:
+    """Stage ``detect``: run an ONNX object detector on every frame of a clip."""
+
+    adapter: str = _opt("nanodet", "Output layout of the ONNX model (see tasks/detectors.py): 'nanodet' or 'yolov8'.", choices=("nanodet", "yolov8"))
+    model: str = _opt("", "ONNX detector file; empty = the NanoDet-m built by `make models`.")
+    labels: tuple = _opt((), "Label map: class names in the model's output order; empty = COCO-80 (the default model's).")
+    input_size: int = _opt(416, "Side of the square letterboxed network input (416 for NanoDet-m, usually 640 for YOLOv8).", lo=32, hi=4096)
+    score_threshold: float = _opt(0.35, "Lowest detection score kept.", lo=0.0, hi=1.0)
+    nms_iou: float = _opt(0.6, "Class-aware NMS: a box overlapping a better one of its class above this IoU is dropped.", lo=0.0, hi=1.0)
+    max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
+    classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
+    batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)
+    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256)
+
+
+@dataclass(frozen=True)
+class EmbedConfig:
+    """Stage ``embed``: one appearance descriptor per detection crop, from the detector's own
+    backbone (NanoDet-m, average-pooled). ``cad_embed`` embeds the CAD views with these settings too."""
+
+    crop_size: int = _opt(128, "Side of the square letterboxed crop fed to the embedder.", lo=32, hi=1024)
+    context: float = _opt(0.1, "Box margin added on every side before cropping, as a fraction of the box size.", lo=0.0, hi=2.0)
+    batch_size: int = _opt(32, "Crops per network call.", lo=1, hi=4096)
+    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256)
+
+
+@dataclass(frozen=True)
+class CadEmbedConfig:
+    """Stage ``cad_embed``: embed every CAD view (with the ``[embed]`` settings) and fit the
+    centring or whitening that every descriptor goes through before it is compared."""
+
+    whitening: str = _opt("whiten", "Transform fitted on the CAD view descriptors: 'none', 'centre' or 'whiten' (PCA whitening).", choices=("none", "centre", "whiten"))
+    whitening_dims: int = _opt(128, "Dimensions kept by 'whiten' (at most the descriptor size).", lo=1, hi=4096)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Stage ``tracking``: associate a clip's detections into tracks by clique partitioning of the
+    graph of pairwise log-odds (cues and their fitted calibration: tasks/track_affinity.py,
+    tasks/track_calibration.py)."""
+
+    window: int = _opt(8, "Detections at most this many frames apart get an edge (farther pairs weigh 0).", lo=1, hi=1000)
+    min_score: float = _opt(0.0, "Detections scoring below this are left out of tracking.", lo=0.0, hi=1.0)
+    use_cameras: bool = _opt(True, "Compensate box motion for the camera rotation between two frames.")
+    appearance_weight: float = _opt(1.0, "Multiplier of the appearance log-likelihood ratio (0 switches the cue off).", lo=0.0, hi=100.0)
+    label_weight: float = _opt(1.0, "Multiplier of the label-agreement log-likelihood ratio.", lo=0.0, hi=100.0)
+    motion_weight: float = _opt(1.0, "Multiplier of the box-continuity log-likelihood ratio.", lo=0.0, hi=100.0)
+    bias: float = _opt(0.0, "Added to every edge's log-odds (negative: fewer, purer merges).", lo=-100.0, hi=100.0)
+    refine: bool = _opt(True, "Refine the greedy contraction by Kernighan-Lin moves and joins.")
+    min_detections: int = _opt(3, "Tracks with fewer detections are dropped (1 keeps singletons).", lo=1, hi=1_000_000)
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """Stage ``pose``: 9-DoF pose of every annotated track from its correspondences (paper 3.4; tasks/pose_solver.py)."""
+
+    alpha: float = _opt(100.0, "Weight of the up-axis term |R e_y - e_y|_1 (px per unit); 0 switches it off.", lo=0.0)
+    beta: float = _opt(1000.0, "Weight of the front-of-camera term (px per metre of depth below min_depth).", lo=0.0)
+    min_depth: float = _opt(0.05, "Depth (m) below which an annotated point counts as not in front of its camera.", lo=0.0)
+    upright_classes: tuple = _opt(
+        ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "lamp", "display", "bin", "plant", "bathtub", "toilet",
+         "sink", "bench", "piano", "stove", "microwave", "washer", "refrigerator", "radiator", "jar", "clock",
+         "loudspeaker", "door", "window", "vehicle"),
+        "Classes that stand upright: the up-axis term applies to them (default: the upright classes of tasks/cad_classes.py).")
+    iterations: int = _opt(400, "Adam iterations (the fallback for objects the LM leaves unusable; all objects when lm_iterations = 0).", lo=1, hi=100_000)
+    lr: float = _opt(0.02, "Initial Adam learning rate (rotation 6D, log-scale, translation in units of camera distance).", lo=1e-6, hi=1.0)
+    lr_final: float = _opt(1e-5, "Learning rate at the last iteration (exponential decay).", lo=1e-9, hi=1.0)
+    lm_iterations: int = _opt(20, "Levenberg-Marquardt (IRLS) iterations from the closed-form starts (Adam only as fallback); 0 = Adam only, as in the paper.", lo=0, hi=10_000)
+    starts: int = _opt(4, "Starts per object: the linear fit turned by i*360/starts degrees about its up axis.", lo=1, hi=64)
+    coplanar: bool = _opt(True, "Tie the scale perpendicular to co-planar 3D points to the mean of the other two.")
+    symmetry: bool = _opt(True, "Per key-frame best symmetric rotation (2/4/36-way models); 36-way: sx = sz.")
+    coplanar_tol: float = _opt(0.02, "Co-planar (collinear) when the smallest (middle) singular value of the centred 3D points is below this fraction of the largest.", lo=0.0, hi=1.0)
+    min_points: int = _opt(6, "Fewest correspondences per track to solve it.", lo=5, hi=10_000)
+    max_reprojection_px: float = _opt(20.0, "Mean reprojection error (px) above which a pose gets status high_residual.", lo=0.0)
+    min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax.", lo=0.0, hi=180.0)
+    threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
+    huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
+
+
+@dataclass(frozen=True)
+class LabelSimilarityConfig:
+    """Stage ``label_similarity``: cosine of every detector label and every CAD class (sentence encoder)."""
+
+    template: str = _opt("{}", "How a name is written before embedding ('{}' is the name, e.g. 'a photo of a {}').")
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Stage ``retrieval``: the top CAD models of every track (appearance x class-label similarity)."""
+
+    top_k: int = _opt(10, "Candidates kept per track (the paper shows annotators 10).", lo=1, hi=1000)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration. ``source`` is the file it came from (None for built-in defaults)."""
 
@@ -100,6 +194,13 @@ class Config:
     frames: FramesConfig = field(default_factory=FramesConfig)
     cad_ingest: CadIngestConfig = field(default_factory=CadIngestConfig)
     cad_views: CadViewsConfig = field(default_factory=CadViewsConfig)
+    cad_embed: CadEmbedConfig = field(default_factory=CadEmbedConfig)
+    label_similarity: LabelSimilarityConfig = field(default_factory=LabelSimilarityConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    embed: EmbedConfig = field(default_factory=EmbedConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
     source: str | None = None
 
     def section(self, name: str) -> Any:
@@ -120,6 +221,13 @@ SECTIONS: dict[str, type] = {
     "frames": FramesConfig,
     "cad_ingest": CadIngestConfig,
     "cad_views": CadViewsConfig,
+    "cad_embed": CadEmbedConfig,
+    "label_similarity": LabelSimilarityConfig,
+    "detect": DetectConfig,
+    "embed": EmbedConfig,
+    "tracking": TrackingConfig,
+    "retrieval": RetrievalConfig,
+    "pose": PoseConfig,
 }
 """Section name -> dataclass; one entry per field of :class:`Config` (a test keeps them in step)."""
 RUNTIME_SECTIONS = ("warehouse", "prefect")
@@ -134,6 +242,10 @@ def section_hash(name: str, section: Any) -> str:
 
 def _check_value(where: str, f: dataclasses.Field, value: Any) -> Any:
     expected = type(f.default)
+    if expected is tuple:  # a list of strings in TOML
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{where}: expected a list of strings, got {value!r}")
+        return tuple(value)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if type(value) is not expected:
@@ -196,7 +308,7 @@ def describe_defaults() -> str:
     for name, cls in SECTIONS.items():
         lines.append(f"[{name}]")
         if cls.__doc__:
-            lines.append(f"# {cls.__doc__.strip()}")
+            lines += [f"# {line.strip()}" for line in cls.__doc__.strip().splitlines()]
         for f in dataclasses.fields(cls):
             lines.append(f"# {f.metadata['doc']}")
             lines.append(f"{f.name} = {json.dumps(f.default)}")

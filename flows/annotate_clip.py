@@ -1,7 +1,7 @@
 """Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner).
 
-Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames (later
-stages append here). A failing clip does not stop the others: each stage run is reported as
+Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames -> detect ->
+embed -> tracking -> retrieval, and frames -> pose (later stages append here). A failing clip does not stop the others: each stage run is reported as
 completed, cached (no work: unchanged inputs, config and code), failed, or skipped (an upstream
 stage failed), and the flow ends Failed when any stage failed.
 """
@@ -19,8 +19,13 @@ from cadestate.lineage import file_sha256
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
 from tasks.ingest import ClipSource
-from tasks.prefect_tasks import frames_task, ingest_task
+from tasks.detect import model_fingerprint
+from tasks.pose import cad_models_digest, correspondences_digest
+from tasks.prefect_tasks import (detect_task, embed_task, frames_task, ingest_task, pose_task, retrieval_task,
+                                 tracking_task)
+from tasks.retrieval import library_digest
 from tasks.registry import STAGES
+from warehouse import Warehouse
 
 
 def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: bool) -> list[tuple[str, PrefectFuture]]:
@@ -28,7 +33,16 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
     ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, STAGES["ingest"].code_hash)
     frames = frames_task.submit(root, source.clip, config.frames, ingest, STAGES["frames"].code_hash, show_progress)
-    return [("ingest", ingest), ("frames", frames)]
+    detect = detect_task.submit(root, source.clip, config.detect, frames, model_fingerprint(config.detect),
+                                STAGES["detect"].code_hash, show_progress)
+    embed = embed_task.submit(root, source.clip, config.embed, detect, STAGES["embed"].code_hash, show_progress)
+    tracking = tracking_task.submit(root, source.clip, config.tracking, frames, detect, embed, STAGES["tracking"].code_hash)
+    retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, library_digest(Warehouse(root)),
+                                      STAGES["retrieval"].code_hash)
+    pose = pose_task.submit(root, source.clip, config.pose, frames, correspondences_digest(Warehouse(root), source.clip),
+                            cad_models_digest(Warehouse(root), source.clip), STAGES["pose"].code_hash)
+    return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
+            ("retrieval", retrieval), ("pose", pose)]
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:

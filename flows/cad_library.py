@@ -1,6 +1,8 @@
 """Flow ``build_cad_library``: ingest a CAD source, one library at a time (in parallel on the task runner).
 
-Per library: cad_ingest (canonical meshes, symmetry, surface samples) -> cad_views (renders).
+Per library: cad_ingest (canonical meshes, symmetry, surface samples) -> cad_views (renders) ->
+cad_embed (view descriptors and their whitening); cad_ingest -> label_similarity (detector labels x
+the library's classes).
 Reports like the clip flows: completed, cached, failed or skipped per stage and library.
 """
 
@@ -17,7 +19,7 @@ from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
 from tasks.cad_sources import CadItem, items_digest
-from tasks.prefect_tasks import cad_ingest_task, cad_views_task
+from tasks.prefect_tasks import cad_embed_task, cad_ingest_task, cad_views_task, label_similarity_task
 from tasks.registry import STAGES
 
 
@@ -31,7 +33,12 @@ def build_cad_library(root: str, items: list[CadItem], config: Config, show_prog
         ingest = cad_ingest_task.submit(root, library, group, items_digest(group), config.cad_ingest,
                                         STAGES["cad_ingest"].code_hash, show_progress)
         views = cad_views_task.submit(root, library, config.cad_views, ingest, STAGES["cad_views"].code_hash, show_progress)
-        submitted += [(library, "cad_ingest", ingest), (library, "cad_views", views)]
+        embed = cad_embed_task.submit(root, library, config.embed, config.cad_embed, views,
+                                      STAGES["cad_embed"].code_hash, show_progress)
+        labels = label_similarity_task.submit(root, library, config.label_similarity, config.detect, ingest,
+                                              STAGES["label_similarity"].code_hash)
+        submitted += [(library, "cad_ingest", ingest), (library, "cad_views", views), (library, "cad_embed", embed),
+                      (library, "label_similarity", labels)]
     return finish(submitted, [], f"{len({i.library for i in items})} CAD librar(y/ies)")
 
 

@@ -2,8 +2,9 @@
 
 Each class has a name, an id (its ShapeNetCore v2 synset where ShapeNet has the class, else
 ``cadestate-<name>``; the official layout's ``shapenet_classes.json`` lists both), whether it
-stands upright (used by the pose solver's up-axis term), and the COCO detector labels that
-correspond to it. Source categories are mapped by :func:`classify` from the item's name (and
+stands upright (used by the pose solver's up-axis term), the COCO detector labels that
+correspond to it, and other words it is known by (embedded with its name for the class-label
+similarity of retrieval: "display" alone is far from a detector's "tv"). Source categories are mapped by :func:`classify` from the item's name (and
 its source category as a fallback); the original category is always kept beside the class.
 """
 
@@ -19,6 +20,12 @@ class CadClass:
     id: str
     upright: bool = True
     coco: tuple[str, ...] = ()
+    words: tuple[str, ...] = ()
+
+    @property
+    def text(self) -> str:
+        """The name and the other words of the class, as the sentence encoder reads them."""
+        return ", ".join((self.name, *self.words))
 
 
 CLASSES: tuple[CadClass, ...] = (
@@ -29,8 +36,8 @@ CLASSES: tuple[CadClass, ...] = (
     CadClass("cabinet", "02933112"),
     CadClass("bookshelf", "02871439"),
     CadClass("lamp", "03636649"),
-    CadClass("display", "03211117", coco=("tv", "laptop")),
-    CadClass("bin", "02747177"),
+    CadClass("display", "03211117", coco=("tv", "laptop"), words=("television", "monitor")),
+    CadClass("bin", "02747177", words=("trash can",)),
     CadClass("plant", "03991062", coco=("potted plant",)),
     CadClass("bathtub", "02808440"),
     CadClass("toilet", "cadestate-toilet", coco=("toilet",)),
@@ -42,7 +49,7 @@ CLASSES: tuple[CadClass, ...] = (
     CadClass("washer", "04554684"),
     CadClass("refrigerator", "cadestate-refrigerator", coco=("refrigerator",)),
     CadClass("radiator", "cadestate-radiator"),
-    CadClass("jar", "03593526", coco=("vase",)),
+    CadClass("jar", "03593526", coco=("vase",), words=("vase",)),
     CadClass("clock", "03046257", coco=("clock",)),
     CadClass("loudspeaker", "03691459"),
     CadClass("laptop", "03642806", upright=False, coco=("laptop",)),

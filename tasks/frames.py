@@ -18,7 +18,7 @@ from PIL import Image
 
 from cadestate.config import FramesConfig
 from cadestate.geometry import camera_to_world, intrinsics_matrix
-from cadestate.lineage import table_digest
+from cadestate.lineage import digest, file_sha256, table_digest
 from cadestate.progress import progress
 from tasks.cameras import CameraTrack, parse_camera_file
 from tasks.ingest import clip_inputs
@@ -92,10 +92,11 @@ def extract_frames(wh: Warehouse, cfg: FramesConfig, clip: str, run_id: str, sho
             saving.append(pool.submit(_save, frame.rgb, staged / names[i], cfg))
         for job in saving:
             job.result()
+        images_digest = digest(*(file_sha256(staged / name) for name in names))
         final = wh.publish_media(MEDIA_KIND, clip, staged, run_id)
     image_paths = [wh.relative(final / name) for name in names]
     table = frames_table(clip, cameras, image_paths, row["width"], row["height"], times)
     rows = wh.write("frames", clip, table)
     wh.prune_media(MEDIA_KIND, clip, keep=run_id)
-    # The output digest covers the cameras and decoded times, not the run-specific image folder.
-    return StageOutput(rows, table_digest(table.drop_columns(["image_path"])))
+    # The output digest covers the cameras, decoded times and image bytes, not the run-specific image folder.
+    return StageOutput(rows, digest(table_digest(table.drop_columns(["image_path"])), images_digest))

@@ -15,14 +15,23 @@ from prefect import task
 from prefect.cache_policies import TASK_SOURCE, CacheKeyFnPolicy
 from prefect.utilities.hashing import hash_objects
 
-from cadestate.config import CadIngestConfig, CadViewsConfig, FramesConfig, IngestConfig, section_hash
+from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadViewsConfig, DetectConfig, EmbedConfig, FramesConfig,
+                              IngestConfig, LabelSimilarityConfig, PoseConfig, RetrievalConfig, TrackingConfig,
+                              section_hash)
+from tasks.cad_embed import embed_library
 from tasks.cad_ingest import ingest_library
 from tasks.cad_sources import CadItem
 from tasks.cad_views import render_library
+from tasks.detect import detect_clip
+from tasks.embed import embed_clip
 from tasks.frames import extract_frames
 from tasks.ingest import ClipSource, ingest_clip, ingest_inputs_hash
-from tasks.registry import upstream_inputs_hash
+from tasks.label_similarity import label_similarity, labels_digest
+from tasks.pose import solve_clip
+from tasks.registry import config_hash, upstream_inputs_hash
+from tasks.retrieval import retrieve_clip
 from tasks.stage import StageRun, run_stage
+from tasks.tracking import track_clip
 from warehouse import Warehouse
 
 NOT_IN_KEY = ("source", "items", "show_progress")
@@ -60,6 +69,28 @@ def frames_task(root: str, clip: str, cfg: FramesConfig, ingest: StageRun, code_
     )
 
 
+@task(name="detect", cache_policy=CACHE_POLICY, persist_result=True)
+def detect_task(root: str, clip: str, cfg: DetectConfig, frames: StageRun, model_sha256: str, code_hash: str,
+                show_progress: bool = True) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "detect", config_hash=section_hash("detect", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([frames.output_hash, model_sha256]),
+        body=lambda run_id: detect_clip(wh, cfg, clip, run_id, show_progress),
+    )
+
+
+@task(name="embed", cache_policy=CACHE_POLICY, persist_result=True)
+def embed_task(root: str, clip: str, cfg: EmbedConfig, detect: StageRun, code_hash: str,
+               show_progress: bool = True) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "embed", config_hash=section_hash("embed", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([detect.output_hash]),
+        body=lambda run_id: embed_clip(wh, cfg, clip, run_id, show_progress),
+    )
+
+
 @task(name="cad_ingest", cache_policy=CACHE_POLICY, persist_result=True)
 def cad_ingest_task(root: str, library: str, items: list[CadItem], items_digest: str, cfg: CadIngestConfig,
                     code_hash: str, show_progress: bool = True) -> StageRun:
@@ -81,5 +112,63 @@ def cad_views_task(root: str, library: str, cfg: CadViewsConfig, cad_ingest: Sta
     )
 
 
-STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "cad_ingest": cad_ingest_task, "cad_views": cad_views_task}
+@task(name="cad_embed", cache_policy=CACHE_POLICY, persist_result=True)
+def cad_embed_task(root: str, library: str, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, cad_views: StageRun,
+                   code_hash: str, show_progress: bool = True) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, library, "cad_embed", config_hash=config_hash("cad_embed", {"cad_embed": cfg, "embed": embed_cfg}),
+        code_hash=code_hash, inputs_hash=upstream_inputs_hash([cad_views.output_hash]),
+        body=lambda run_id: embed_library(wh, embed_cfg, cfg, library, run_id, show_progress),
+    )
+
+
+@task(name="tracking", cache_policy=CACHE_POLICY, persist_result=True)
+def tracking_task(root: str, clip: str, cfg: TrackingConfig, frames: StageRun, detect: StageRun, embed: StageRun,
+                  code_hash: str) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "tracking", config_hash=section_hash("tracking", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([frames.output_hash, detect.output_hash, embed.output_hash]),
+        body=lambda run_id: track_clip(wh, cfg, clip, run_id),
+    )
+
+
+@task(name="retrieval", cache_policy=CACHE_POLICY, persist_result=True)
+def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRun, library_digest: str,
+                   code_hash: str) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "retrieval", config_hash=section_hash("retrieval", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([tracking.output_hash, library_digest]),
+        body=lambda run_id: retrieve_clip(wh, cfg, clip, run_id),
+    )
+
+
+@task(name="label_similarity", cache_policy=CACHE_POLICY, persist_result=True)
+def label_similarity_task(root: str, library: str, cfg: LabelSimilarityConfig, detect_cfg: DetectConfig,
+                          cad_ingest: StageRun, code_hash: str) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, library, "label_similarity", config_hash=section_hash("label_similarity", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([cad_ingest.output_hash, labels_digest(detect_cfg)]),
+        body=lambda run_id: label_similarity(wh, cfg, detect_cfg, library, run_id),
+    )
+
+
+@task(name="pose", cache_policy=CACHE_POLICY, persist_result=True)
+def pose_task(root: str, clip: str, cfg: PoseConfig, frames: StageRun, correspondences_digest: str,
+              cad_models_digest: str, code_hash: str) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "pose", config_hash=section_hash("pose", cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([frames.output_hash, correspondences_digest, cad_models_digest]),
+        body=lambda run_id: solve_clip(wh, cfg, clip, run_id),
+    )
+
+
+STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
+               "tracking": tracking_task, "retrieval": retrieval_task, "pose": pose_task,
+               "cad_ingest": cad_ingest_task, "cad_views": cad_views_task, "cad_embed": cad_embed_task,
+               "label_similarity": label_similarity_task}
 """One task per stage of :data:`tasks.registry.STAGES`, in pipeline order (a test checks it)."""

@@ -7,10 +7,12 @@ run of it covers: a clip, or a CAD library (its runs use the library name as ``r
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Literal
+from typing import Any, Literal
 
+from cadestate.config import section_hash
 from cadestate.lineage import code_digest, digest
 
 
@@ -22,6 +24,8 @@ class StageDef:
     tables: tuple[str, ...]
     modules: tuple[str, ...]
     description: str
+    extra_sections: tuple[str, ...] = ()  # config sections it reads besides its own
+
 
     @cached_property
     def code_hash(self) -> str:
@@ -35,11 +39,28 @@ STAGES: dict[str, StageDef] = {
                  "validate the video and camera file, keep them, register the clip"),
         StageDef("frames", "clip", ("ingest",), ("frames",), ("tasks.frames", "tasks.cameras", "tasks.video"),
                  "extract the frame at every camera timestamp"),
+        StageDef("detect", "clip", ("frames",), ("detections",), ("tasks.detect", "tasks.detectors", "tasks.models.nanodet"),
+                 "detect objects in every frame (ONNX detector)"),
+        StageDef("embed", "clip", ("detect",), ("embeddings",), ("tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+                 "one appearance descriptor per detection"),
+        StageDef("tracking", "clip", ("frames", "detect", "embed"), ("tracks", "track_detections", "track_appearance"),
+                 ("tasks.tracking", "tasks.track_affinity", "tasks.track_partition", "tasks.track_calibration"),
+                 "associate detections into tracks by clique partitioning"),
+        StageDef("retrieval", "clip", ("tracking",), ("cad_candidates",), ("tasks.retrieval", "tasks.whitening"),
+                 "top CAD models of every track (appearance x class-label similarity)"),
+        StageDef("pose", "clip", ("frames",), ("poses",),
+                 ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm"),
+                 "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
         StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
                  ("tasks.cad_ingest", "tasks.cad_sources", "tasks.cad_classes", "tasks.cad_symmetry"),
                  "canonicalise a CAD library, detect symmetries, sample surfaces"),
         StageDef("cad_views", "library", ("cad_ingest",), ("cad_views",), ("tasks.cad_views", "cadestate.render"),
                  "render every CAD model from random viewpoints"),
+        StageDef("cad_embed", "library", ("cad_views",), ("cad_embeddings", "embedding_whitening"),
+                 ("tasks.cad_embed", "tasks.embed", "tasks.whitening", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+                 "embed every CAD view, fit the descriptor whitening", extra_sections=("embed",)),
+        StageDef("label_similarity", "library", ("cad_ingest",), ("label_similarity",), ("tasks.label_similarity",),
+                 "similarity of every detector label and CAD class (sentence encoder)"),
     )
 }
 
@@ -47,6 +68,45 @@ STAGES: dict[str, StageDef] = {
 def stages_of(scope: str) -> list[StageDef]:
     """The stages of one scope, in pipeline order."""
     return [s for s in STAGES.values() if s.scope == scope]
+
+
+def config_hash(stage: str, sections: Mapping[str, Any]) -> str:
+    """``runs.config_hash`` of ``stage``: its section's digest, combined with the digests of its
+    ``extra_sections``; ``sections`` maps section names to their dataclasses."""
+    own = section_hash(stage, sections[stage])
+    extra = STAGES[stage].extra_sections
+    return digest(own, *(section_hash(n, sections[n]) for n in extra)) if extra else own
+
+
+def extra_inputs(stage: str, config: Any) -> list[str]:
+    """Digests of what ``stage`` reads besides its upstream stages' outputs (``config``: a
+    :class:`cadestate.config.Config`): the detector's model file for ``detect``, the detector's
+    label map for ``label_similarity``."""
+    if stage == "detect":
+        from tasks.detect import model_fingerprint
+
+        return [model_fingerprint(config.detect)]
+    if stage == "label_similarity":
+        from tasks.label_similarity import labels_digest
+
+        return [labels_digest(config.detect)]
+    return []
+
+
+def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
+    """Digests of the warehouse data of one clip that ``stage`` reads besides its upstream stages'
+    outputs: the clip's ``correspondences`` (human labels) and the ``cad_models`` facts (class,
+    symmetry) of the models they reference for ``pose``, the CAD libraries' descriptors and label
+    similarities for ``retrieval``."""
+    if stage == "retrieval":
+        from tasks.retrieval import library_digest
+
+        return [library_digest(wh)]
+    if stage == "pose":
+        from tasks.pose import cad_models_digest, correspondences_digest
+
+        return [correspondences_digest(wh, clip), cad_models_digest(wh, clip)]
+    return []
 
 
 def upstream_inputs_hash(output_hashes: list[str]) -> str:

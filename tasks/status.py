@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
-from tasks.registry import stages_of, upstream_inputs_hash
+from tasks.registry import clip_inputs, config_hash, extra_inputs, stages_of, upstream_inputs_hash
 from warehouse import Warehouse
 
 
@@ -48,12 +48,13 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             if ok is None:
                 reasons.append("never completed")
             else:
-                if ok["config_hash"] != config.section_hash(stage.name):
+                if ok["config_hash"] != config_hash(stage.name, {n: config.section(n) for n in (stage.name, *stage.extra_sections)}):
                     reasons.append("config changed")
                 if ok["code_hash"] != stage.code_hash:
                     reasons.append("code changed")
                 ups = [last_ok.get((clip, u)) for u in stage.upstream]
-                if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash([u["output_hash"] for u in ups]):
+                if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash(
+                        [u["output_hash"] for u in ups] + extra_inputs(stage.name, config) + clip_inputs(stage.name, wh, clip)):
                     reasons.append("inputs changed")
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")

@@ -366,3 +366,18 @@ def test_keyframes_follow_the_track_and_other_inputs(renderer):
     for kc in kcs:
         assert facing_camera(frames, obj, box, kc).all()
         np.testing.assert_allclose(kc.xy, project_normalised(frames, obj, kc), atol=1e-6)
+
+
+def test_keyframes_are_evenly_spaced_over_the_whole_visible_track(monkeypatch):
+    """Paper 3.2-3.3: key-frames evenly spaced over the track, not clustered where the object is
+    best seen. Visible on frames 4-23, well visible only on 16-23: the key-frames still span 4-23."""
+    import bench.annotators as annotators
+
+    frames, box = make_frames(), trimesh.creation.box((1.0, 0.8, 0.6))
+    obj = make_object(frames, box)
+    share = {f.timestamp: 0.0 if i < 4 else (0.2 if i < 16 else 0.6) for i, f in enumerate(frames.frames)}
+    monkeypatch.setattr(annotators, "frame_camera", lambda frame, W, H: frame.timestamp)
+    monkeypatch.setattr(annotators, "visible_mask", lambda samples, M, cam, noise: (np.arange(100) < 100 * share[cam], None))
+    noise = replace(EXACT, keyframes_per_object=(4, 4))
+    kf = annotators.choose_keyframes(frames, obj, None, noise, np.random.default_rng(0))
+    assert kf == [4, 10, 17, 23]

@@ -311,3 +311,57 @@ def test_stats_on_two_clips():
     assert "| Dataset | Total |" in statistics_markdown(s)
     with pytest.raises(ValueError):
         dataset_statistics([(_frames("A", 1), clips[1][1])])
+
+
+# ---- detection -------------------------------------------------------------------------------------
+def test_detection_mapping_covers_the_detectable_classes():
+    from bench.eval_detection import DETECTOR_TO_CLASS
+    from tasks.models.nanodet import COCO_LABELS
+
+    assert set(DETECTOR_TO_CLASS.values()) == set(COCO_CLASSES) and set(DETECTOR_TO_CLASS) <= set(COCO_LABELS)
+
+
+def test_detection_recall_precision_by_hand():
+    from bench.eval_detection import OTHER, FrameBoxes, evaluate_detections
+
+    chair, sofa, hidden = [0.1, 0.1, 0.5, 0.3], [0.5, 0.5, 0.9, 0.9], [0.1, 0.6, 0.3, 0.8]
+    frames = [
+        # chair found; sofa called "chair" (a sofa miss, a chair false positive); a prediction on the
+        # ignored (hidden) box is dropped; a "book" elsewhere is a false positive of no class
+        FrameBoxes(np.array([chair, sofa, hidden]), ["chair", "sofa", "table"], np.array([False, False, True]),
+                   np.array([chair, sofa, hidden, [0.0, 0.0, 0.05, 0.05]]), ["chair", "chair", "dining table", "book"]),
+        # sofa found as couch, chair missed
+        FrameBoxes(np.array([chair, sofa]), ["chair", "sofa"], np.array([False, False]),
+                   np.array([[0.51, 0.5, 0.9, 0.9]]), ["couch"]),
+    ]
+    r = evaluate_detections(frames)
+    assert r["ground_truth"] == 4 and r["predictions"] == 4
+    assert r["per_class"]["chair"] == {"ground_truth": 2, "predictions": 2, "true_positives": 1, "recall": 0.5, "precision": 0.5}
+    assert r["per_class"]["sofa"]["recall"] == 0.5 and r["per_class"]["sofa"]["precision"] == 1.0
+    assert r["per_class"][OTHER] == {"ground_truth": 0, "predictions": 1, "true_positives": 0, "recall": None, "precision": 0.0}
+    assert "table" not in r["per_class"]  # only an ignore box and a dropped prediction
+    assert r["recall"] == 0.5 and r["precision"] == 0.5 and r["class_agnostic_recall"] == 0.75
+
+
+# ---- pose: 4-way symmetric models turned by 90 degrees ---------------------------------------------
+def test_four_way_symmetric_pose_turned_by_90_degrees_swaps_sx_and_sz():
+    """A 4-way model posed R_gt·R_y(90) with (sz, sy, sx) is the same object as R_gt with (sx, sy, sz)."""
+    from bench.eval_pose import symmetric_rotation_error, symmetric_scale
+    from cadestate.geometry import matrix_to_quaternion
+    from tasks.cad_symmetry import rotation_y
+
+    q_gt = matrix_to_quaternion(rotation_y(30.0))
+    s_gt = (0.5, 0.7, 1.5)
+    q_turned = matrix_to_quaternion(rotation_y(120.0))  # R_gt · R_y(90)
+    err, i = symmetric_rotation_error(q_turned, q_gt, 4)
+    assert err < 1e-6 and i % 2 == 1
+    assert symmetric_scale(s_gt, 4, i).tolist() == [1.5, 0.7, 0.5]
+    assert is_correct((0, 0, 0), q_turned, (1.5, 0.7, 0.5), (0, 0, 0), q_gt, s_gt, 4)
+    assert not is_correct((0, 0, 0), q_turned, s_gt, (0, 0, 0), q_gt, s_gt, 4)  # the unswapped sizes are 44 % off
+    assert is_correct((0, 0, 0), q_gt, s_gt, (0, 0, 0), q_gt, s_gt, 4)
+    # 180 degrees keeps the axes; a 2-way model never swaps
+    assert is_correct((0, 0, 0), matrix_to_quaternion(rotation_y(210.0)), s_gt, (0, 0, 0), q_gt, s_gt, 4)
+    assert symmetric_scale(s_gt, 2, 1).tolist() == list(s_gt)
+    gt = PosedObject("1", "table", (0, 0, 0), tuple(q_gt), s_gt, cad_id="m", clip="c")
+    pred = PosedObject("1", "table", (0, 0, 0), tuple(q_turned), (1.5, 0.7, 0.5), cad_id="m", clip="c")
+    assert match_and_score([pred], [gt], {"m": 4}).num_correct == 1

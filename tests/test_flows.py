@@ -8,19 +8,28 @@ from pathlib import Path
 
 import pytest
 
-from cadestate.config import Config, FramesConfig, WarehouseConfig
+from cadestate.config import Config, EmbedConfig, FramesConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
 from tasks.ingest import ClipSource, clip_inputs
 from tasks.prefect_tasks import STAGE_TASKS
-from tasks.registry import STAGES
+from tasks.registry import STAGES, stages_of
 from tasks.status import pipeline_status
 from warehouse import Warehouse
 
 pytestmark = pytest.mark.slow
 
 
+CLIP_STAGES = [s.name for s in stages_of("clip")]
+
+
 def states(reports):
     return [(r.clip, r.stage, r.state) for r in reports]
+
+
+def expect(clip: str, **states_by_stage: str) -> list[tuple[str, str, str]]:
+    """(clip, stage, state) for every clip stage: the given ones, others ``states_by_stage['rest']``."""
+    rest = states_by_stage.pop("rest")
+    return [(clip, s, states_by_stage.get(s, rest)) for s in CLIP_STAGES]
 
 
 def snapshot(root: Path) -> dict[str, int]:
@@ -44,12 +53,12 @@ def test_every_stage_has_one_task_in_pipeline_order():
 
 def test_unchanged_rerun_does_nothing(config, source):
     first = run_clips([source], config, show_progress=False)
-    assert states(first) == [("small", "ingest", "completed"), ("small", "frames", "completed")]
+    assert states(first) == expect("small", rest="completed")
     wh = Warehouse(config.warehouse.root)
     before, runs_before = snapshot(wh.root), wh.read("runs").num_rows
     again = run_clips([source], config, show_progress=False)
-    assert states(again) == [("small", "ingest", "cached"), ("small", "frames", "cached")]
-    assert snapshot(wh.root) == before and wh.read("runs").num_rows == runs_before == 2
+    assert states(again) == expect("small", rest="cached")
+    assert snapshot(wh.root) == before and wh.read("runs").num_rows == runs_before == len(CLIP_STAGES)
     # Rerunning from the warehouse's own copies (what `cadestate run` does) is the same clip: cached.
     video, cameras, _ = clip_inputs(wh, "small")
     assert {r.state for r in run_clips([ClipSource("small", video, cameras)], config, show_progress=False)} == {"cached"}
@@ -58,17 +67,26 @@ def test_unchanged_rerun_does_nothing(config, source):
 def test_changed_stage_config_reruns_that_stage_only(config, source):
     run_clips([source], config, show_progress=False)
     wh = Warehouse(config.warehouse.root)
-    changed = dataclasses.replace(config, frames=FramesConfig(jpeg_quality=70))
+    changed = dataclasses.replace(config, frames=FramesConfig(seek_threshold_us=0))  # seeks, same frames
     status = {r.stage: r.stale_reasons for r in pipeline_status(wh, changed)}
-    assert status == {"ingest": (), "frames": ("config changed",)}
+    assert status == {s: ("config changed",) if s == "frames" else ("upstream stale",) if s != "ingest" else ()
+                      for s in CLIP_STAGES}
     reports = run_clips([source], changed, show_progress=False)
-    assert states(reports) == [("small", "ingest", "cached"), ("small", "frames", "completed")]
+    # frames reran and wrote the same frames: nothing downstream reruns
+    assert states(reports) == expect("small", frames="completed", rest="cached")
     runs = wh.read("runs", filters=[("stage", "==", "frames")]).to_pylist()
     assert [r["config_hash"] for r in runs] == [config.section_hash("frames"), changed.section_hash("frames")]
     assert all(not r.stale_reasons for r in pipeline_status(wh, changed))
     assert len(list((wh.root / "media" / "frames" / "small").iterdir())) == 1  # old images pruned
     # Back to the first config: its cached results are reused, no work.
     assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached"}
+
+
+def test_changed_images_rerun_what_reads_them(config, source):
+    run_clips([source], config, show_progress=False)
+    lower = dataclasses.replace(config, frames=FramesConfig(jpeg_quality=60))  # other pixels: detect must look again
+    reports = {r.stage: r.state for r in run_clips([source], lower, show_progress=False)}
+    assert reports["ingest"] == "cached" and reports["frames"] == reports["detect"] == "completed"
 
 
 def test_a_bad_clip_does_not_stop_the_others(config, source, tmp_path):
@@ -78,10 +96,7 @@ def test_a_bad_clip_does_not_stop_the_others(config, source, tmp_path):
     shutil.copy(source.cameras, bad_dir / "broken.txt")
     broken = ClipSource("broken", bad_dir / "broken.mp4", bad_dir / "broken.txt")
     reports = run_clips([broken, source], config, show_progress=False)
-    assert states(reports) == [
-        ("broken", "ingest", "failed"), ("broken", "frames", "skipped"),
-        ("small", "ingest", "completed"), ("small", "frames", "completed"),
-    ]
+    assert states(reports) == expect("broken", ingest="failed", rest="skipped") + expect("small", rest="completed")
     assert "broken.mp4: cannot open video" in reports[0].message
     wh = Warehouse(config.warehouse.root)
     failed = wh.read("runs", partitions=["broken"]).to_pylist()
@@ -104,12 +119,19 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
     (folder / "models.csv").write_text("id,class\nbox,table\ncone,lamp\n")
     items = list(folder_items(folder, "lib"))
     small = dataclasses.replace(config, cad_views=CadViewsConfig(views=2, size=64))
-    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", "cad_ingest", "completed"), ("lib", "cad_views", "completed")]
-    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", "cad_ingest", "cached"), ("lib", "cad_views", "cached")]
+    names = [s.name for s in stages_of("library")]
+    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", s, "completed") for s in names]
+    assert states(run_cad_library(items, small, show_progress=False)) == [("lib", s, "cached") for s in names]
     bigger = dataclasses.replace(small, cad_views=CadViewsConfig(views=3, size=64))
-    assert states(run_cad_library(items, bigger, show_progress=False)) == [("lib", "cad_ingest", "cached"), ("lib", "cad_views", "completed")]
+    rerun = {"cad_views", "cad_embed"}  # the renders changed; the classes (label_similarity) did not
+    assert states(run_cad_library(items, bigger, show_progress=False)) == [
+        ("lib", s, "completed" if s in rerun else "cached") for s in names]
     wh = Warehouse(config.warehouse.root)
-    assert wh.read("cad_views").num_rows == 6
+    assert wh.read("cad_views").num_rows == wh.read("cad_embeddings").num_rows == 6
+    # [embed] is read by cad_embed too: changing it makes the library's descriptors stale
     status = {(r.clip, r.stage): r.stale_reasons for r in pipeline_status(wh, bigger, scope="library")}
-    assert status == {("lib", "cad_ingest"): (), ("lib", "cad_views"): ()}
+    assert status == {("lib", s): () for s in names}
+    crops = dataclasses.replace(bigger, embed=EmbedConfig(crop_size=96))
+    status = {r.stage: r.stale_reasons for r in pipeline_status(wh, crops, scope="library")}
+    assert status["cad_embed"] == ("config changed",) and status["cad_views"] == ()
     assert pipeline_status(wh, bigger, ["lib"], scope="clip") == []  # a library is not a clip

@@ -11,7 +11,7 @@ import sys
 
 from rich.markup import escape
 
-from cadestate.cli import bench, cad, pipeline  # noqa: F401  (register the commands)
+from cadestate.cli import bench, cad, labels, pipeline  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import CliError, app, err
 from cadestate.config import ConfigError
@@ -25,12 +25,13 @@ def main() -> None:
     from tasks.cad_export import ExportError
     from tasks.cad_sources import CadSourceError
     from tasks.cameras import CameraFileError
+    from tasks.labels import LabelError
     from tasks.video import VideoError
     from warehouse import WarehouseError
 
     try:
         app()
     except (CliError, ConfigError, CameraFileError, VideoError, WarehouseError, CadSourceError, ExportError,
-            BenchmarkError, FileNotFoundError) as e:
+            BenchmarkError, LabelError, FileNotFoundError) as e:
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)

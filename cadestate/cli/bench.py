@@ -40,15 +40,18 @@ def bench_run(
     """Write the simulated annotators' label files (<bench>/labels/, once), then run the pipeline
     stages that exist on every benchmark clip (cached stages do no work)."""
     from bench.benchmark import clip_sources, read_manifest
-    from bench.labels import simulate_labels
+    from bench.labels import simulate_labels, write_correspondences
 
     made = simulate_labels(bench_dir, list(read_manifest(bench_dir).clips), ctx.obj.open_warehouse(), progress)
     err.print(f"simulated labels: {made} clip(s) labelled now")
+    rows = write_correspondences(bench_dir, list(read_manifest(bench_dir).clips), ctx.obj.open_warehouse())
+    err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
     run_sources(ctx.obj, clip_sources(bench_dir), progress)
 
 
 @bench_app.command("report")
 def bench_report(
+    ctx: typer.Context,
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown.")] = False,
 ) -> None:
@@ -56,7 +59,7 @@ def bench_report(
     ground-truth boxes (written to <bench>/report/ and <bench>/report.md)."""
     from bench.benchmark import report, report_markdown
 
-    result = report(bench_dir)
+    result = report(bench_dir, wh=ctx.obj.open_warehouse())
     markdown = report_markdown(result)
     (bench_dir / "report.md").write_text(markdown)
     print(json.dumps(result, indent=1) if as_json else markdown)

@@ -20,8 +20,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -157,81 +156,22 @@ def build(cache_dir: Path | None = None) -> Path:
     return target
 
 
-# ---- pre/post-processing ------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Detections:
-    """K detections in image pixels: boxes float32[K,4] (x1, y1, x2, y2), scores float32[K],
-    labels int64[K] (indices into COCO_LABELS), sorted by decreasing score."""
-
-    boxes: np.ndarray
-    scores: np.ndarray
-    labels: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.scores)
-
-    @property
-    def names(self) -> list[str]:
-        return [COCO_LABELS[i] for i in self.labels]
+# ---- layout: pre-processing and raw-output decoding (see tasks/detectors.py for the rest) ------
+def prepare(canvas: np.ndarray) -> np.ndarray:
+    """Letterboxed RGB float32[S,S,3] in 0-255 -> network input float32[3,S,S]: BGR, (x - MEAN) / STD."""
+    return np.ascontiguousarray(((canvas[..., ::-1] - MEAN) / STD).transpose(2, 0, 1), dtype=np.float32)
 
 
-def _resize_bilinear(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
-    """uint8[H,W,3] -> float32[nh,nw,3], half-pixel-centre bilinear (cv2.INTER_LINEAR-like)."""
-    h, w = rgb.shape[:2]
-    ys = np.clip((np.arange(nh) + 0.5) * (h / nh) - 0.5, 0, h - 1)
-    xs = np.clip((np.arange(nw) + 0.5) * (w / nw) - 0.5, 0, w - 1)
-    y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
-    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
-    fy, fx = (ys - y0)[:, None, None].astype(np.float32), (xs - x0)[None, :, None].astype(np.float32)
-    im = rgb.astype(np.float32)
-    top = im[y0][:, x0] * (1 - fx) + im[y0][:, x1] * fx
-    bot = im[y1][:, x0] * (1 - fx) + im[y1][:, x1] * fx
-    return top * (1 - fy) + bot * fy
-
-
-def letterbox(rgb: np.ndarray, size: int = SIZE) -> tuple[np.ndarray, float, tuple[int, int]]:
-    """RGB uint8[H,W,3] -> (input float32[1,3,size,size], scale, (pad_x, pad_y)).
-
-    The image is resized by `scale = size / max(H, W)` keeping its aspect, centred on a black
-    canvas at offset (pad_x, pad_y), turned to BGR and normalised with MEAN/STD. A pixel (x, y)
-    of the image lands at (x * scale + pad_x, y * scale + pad_y) in the input.
-    """
-    h, w = rgb.shape[:2]
-    scale = size / max(h, w)
-    nh, nw = round(h * scale), round(w * scale)
-    canvas = np.zeros((size, size, 3), np.float32)
-    px, py = (size - nw) // 2, (size - nh) // 2
-    canvas[py:py + nh, px:px + nw] = _resize_bilinear(rgb, nh, nw)
-    x = (canvas[..., ::-1] - MEAN) / STD
-    return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32), scale, (px, py)
-
-
-def to_image(boxes: np.ndarray, scale: float, pad: tuple[int, int],
-             image_size: tuple[int, int]) -> np.ndarray:
-    """Letterbox-space boxes float[K,4] -> image pixels, clipped to image_size (H, W)."""
-    px, py = pad
-    h, w = image_size
-    out = (np.asarray(boxes, np.float64) - [px, py, px, py]) / scale
-    return np.clip(out, 0, [w, h, w, h]).astype(np.float32)
-
-
-def to_letterbox(boxes: np.ndarray, scale: float, pad: tuple[int, int]) -> np.ndarray:
-    """Image-pixel boxes float[K,4] -> letterbox (network input) space."""
-    px, py = pad
-    return (np.asarray(boxes, np.float64) * scale + [px, py, px, py]).astype(np.float32)
-
-
-def split_outputs(outputs: Mapping[str, np.ndarray] | Sequence[np.ndarray],
-                  size: int = SIZE) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """The six raw outputs (any order) -> {stride: (scores float[N,80], dists float[N,44])}."""
-    arrays = list(outputs.values()) if isinstance(outputs, Mapping) else list(outputs)
+def split_outputs(outputs: Sequence[np.ndarray], size: int = SIZE,
+                  num_labels: int = len(COCO_LABELS)) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The six raw outputs of one image (any order) -> {stride: (scores float[N,C], dists float[N,44])}."""
     cells = {(size // s) ** 2: s for s in STRIDES}
     per: dict[int, dict[str, np.ndarray]] = {}
-    for arr in arrays:
+    for arr in outputs:
         arr = np.asarray(arr).reshape(-1, np.shape(arr)[-1])
-        if arr.shape[0] not in cells or arr.shape[1] not in (len(COCO_LABELS), 4 * (REG_MAX + 1)):
-            raise ValueError(f"unexpected NanoDet output shape {arr.shape}")
-        kind = "cls" if arr.shape[1] == len(COCO_LABELS) else "box"
+        if arr.shape[0] not in cells or arr.shape[1] not in (num_labels, 4 * (REG_MAX + 1)):
+            raise ValueError(f"unexpected NanoDet output shape {arr.shape} (input {size}, {num_labels} labels)")
+        kind = "cls" if arr.shape[1] == num_labels else "box"
         per.setdefault(cells[arr.shape[0]], {})[kind] = arr
     if sorted(per) != sorted(STRIDES) or any(len(v) != 2 for v in per.values()):
         raise ValueError("need class scores and box distributions for strides 8, 16 and 32")
@@ -250,61 +190,19 @@ def distance_boxes(dists: np.ndarray, stride: int, cells: np.ndarray, size: int 
     return np.stack([cx - d[:, 0], cy - d[:, 1], cx + d[:, 2], cy + d[:, 3]], 1)
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float) -> np.ndarray:
-    """Class-aware greedy NMS; returns kept indices int64[K] by decreasing score."""
-    off = boxes + labels[:, None] * (np.abs(boxes).max(initial=0) + 1) * 2  # classes never overlap
-    area = (off[:, 2] - off[:, 0]) * (off[:, 3] - off[:, 1])
-    order = np.argsort(-scores, kind="stable")
-    keep: list[int] = []
-    while order.size:
-        i, rest = order[0], order[1:]
-        keep.append(int(i))
-        wh = np.clip(np.minimum(off[i, 2:], off[rest, 2:]) - np.maximum(off[i, :2], off[rest, :2]), 0, None)
-        inter = wh[:, 0] * wh[:, 1]
-        order = rest[inter / np.maximum(area[i] + area[rest] - inter, 1e-9) <= iou]
-    return np.array(keep, np.int64)
-
-
-def decode(outputs: Mapping[str, np.ndarray] | Sequence[np.ndarray], scale: float,
-           pad: tuple[int, int], image_size: tuple[int, int], score_threshold: float = 0.35,
-           nms_iou: float = 0.6, max_detections: int = 100) -> Detections:
-    """Raw outputs of one letterboxed image -> Detections in the pixels of the (H, W) image.
-
-    Each cell votes for its best class; cells scoring >= score_threshold are decoded, reduced by
-    class-aware NMS (IoU > nms_iou suppressed) and the best max_detections are kept.
-    """
+def candidates(outputs: Sequence[np.ndarray], size: int, num_labels: int,
+               score_threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw outputs of one image -> boxes float[K,4] (x1, y1, x2, y2, letterbox pixels), scores
+    float[K], labels int64[K]: each cell votes for its best class; cells below the threshold drop."""
     boxes, scores, labels = [], [], []
-    for stride, (cls, dist) in split_outputs(outputs).items():
+    for stride, (cls, dist) in split_outputs(outputs, size, num_labels).items():
         label = cls.argmax(1)
         score = cls[np.arange(len(label)), label]
-        keep = score >= score_threshold
-        cells = np.flatnonzero(keep)
-        boxes.append(distance_boxes(dist[cells], stride, cells))
-        scores.append(score[keep])
-        labels.append(label[keep])
-    b, s, lab = np.concatenate(boxes), np.concatenate(scores), np.concatenate(labels).astype(np.int64)
-    k = nms(b, s, lab, nms_iou)[:max_detections]
-    return Detections(to_image(b[k], scale, pad, image_size), s[k].astype(np.float32), lab[k])
-
-
-
-def load_session(model_path: Path, threads: int = 2):  # -> onnxruntime.InferenceSession
-    """A CPU onnxruntime session of the model."""
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    return ort.InferenceSession(str(model_path), opts, providers=["CPUExecutionProvider"])
-
-
-def detect(session, rgb: np.ndarray, score_threshold: float = 0.35, nms_iou: float = 0.6,
-           max_detections: int = 100) -> Detections:
-    """Detect COCO objects in one RGB uint8[H,W,3] image with a `load_session` session."""
-    x, scale, pad = letterbox(rgb)
-    names = [o.name for o in session.get_outputs()]
-    outs = session.run(None, {session.get_inputs()[0].name: x})
-    return decode(dict(zip(names, outs)), scale, pad, rgb.shape[:2], score_threshold, nms_iou,
-                  max_detections)
+        cells = np.flatnonzero(score >= score_threshold)
+        boxes.append(distance_boxes(dist[cells], stride, cells, size))
+        scores.append(score[cells])
+        labels.append(label[cells])
+    return np.concatenate(boxes), np.concatenate(scores), np.concatenate(labels).astype(np.int64)
 
 
 def main() -> None:

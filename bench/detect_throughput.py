@@ -1,0 +1,52 @@
+"""Detection and embedding throughput on the paper's average clip (138 frames, 640x360).
+
+Detection: the ``[detect]`` default detector over the 138 frames of :mod:`bench.frames_throughput`'s
+clip, batched as the stage runs it (ms per frame, median of ``repeats``). Embedding: crops of
+every detected box, tiled to ``crops`` crops, through the ``[embed]`` default embedder
+(descriptors per second, crop preparation included).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.demo_clip import make_demo_clip
+from bench.frames_throughput import SPEC
+from cadestate.config import DetectConfig, EmbedConfig
+from tasks.cameras import parse_camera_file
+from tasks.detectors import load_detector
+from tasks.models.embedder import load_embedder
+from tasks.video import decode_at
+
+
+def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
+    video, cameras = cache_dir / f"{SPEC.name}.mp4", cache_dir / f"{SPEC.name}.txt"
+    if not (video.exists() and cameras.exists()):
+        make_demo_clip(cache_dir, SPEC)
+    images = [f.rgb for f in decode_at(video, parse_camera_file(cameras).timestamps_us)]
+    detector, cfg = load_detector(DetectConfig()), DetectConfig()
+    seconds, detections = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        detections = detector.detect(images)
+        seconds.append(time.perf_counter() - t0)
+    embedder = load_embedder(EmbedConfig())
+    pairs = [(im, box) for im, det in zip(images, detections) for box in det.boxes]
+    if not pairs:  # nothing detected: time crops of the central quarter instead
+        pairs = [(im, np.array([160, 90, 480, 270], np.float32)) for im in images]
+    pairs = (pairs * (crops // len(pairs) + 1))[:crops]
+    t0 = time.perf_counter()
+    for start in range(0, crops, 32):
+        chunk = pairs[start:start + 32]
+        embedder.embed_inputs(np.concatenate([embedder.crops(im, box[None]) for im, box in chunk]))
+    embed_s = time.perf_counter() - t0
+    return {
+        "frames": len(images), "size": f"{SPEC.width}x{SPEC.height}", "detector_threads": cfg.threads,
+        "detect_ms_per_frame": round(1000 * statistics.median(seconds) / len(images), 1),
+        "boxes_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
+        "embeddings_per_s": round(crops / embed_s, 1), "crop_size": EmbedConfig().crop_size,
+    }

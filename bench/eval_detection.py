@@ -1,0 +1,82 @@
+"""Per-class detection recall and precision at IoU 0.5 on the synthetic benchmark.
+
+Detector labels are COCO names; ground-truth classes are the CAD vocabulary
+(:mod:`tasks.cad_classes`), whose ``coco`` fields say which COCO name stands for which class
+(``DETECTOR_TO_CLASS``; the classes of :data:`bench.ignore.COCO_CLASSES`). Per frame:
+
+1. predictions on ignore regions are dropped (:func:`bench.ignore.predictions_to_drop`, the one
+   ignore rule);
+2. per class, predictions whose label maps to it are matched one-to-one (Hungarian on IoU,
+   IoU >= 0.5) to the non-ignored ground-truth boxes of that class: true positives;
+3. unmatched non-ignored ground truth is a miss of its class; an unmatched kept prediction is a
+   false positive of the class its label maps to (or of ``"(other label)"`` when it maps to none).
+
+``class-agnostic`` recall matches any label to any class (the detector found *something* there),
+which separates localisation from naming.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from bench.ignore import IGNORE_IOU, box_iou, predictions_to_drop
+from tasks.cad_classes import CLASSES
+
+DETECTOR_TO_CLASS: dict[str, str] = {label: c.name for c in CLASSES for label in c.coco if label != "laptop" or c.name == "laptop"}
+"""COCO label -> class ("laptop" is a class of its own, not a display)."""
+OTHER = "(other label)"
+
+
+@dataclass(frozen=True)
+class FrameBoxes:
+    """One frame: ground truth boxes float[N,4], classes [N], ignore bool[N]; predictions float[M,4]
+    and labels [M] (detector names). Boxes (ymin, xmin, ymax, xmax) normalised."""
+
+    gt_boxes: np.ndarray
+    gt_classes: Sequence[str]
+    gt_ignore: np.ndarray
+    pred_boxes: np.ndarray
+    pred_labels: Sequence[str]
+
+
+def _match(iou: np.ndarray) -> int:
+    """Size of the best one-to-one matching with IoU >= IGNORE_IOU."""
+    if iou.size == 0:
+        return 0
+    rows, cols = linear_sum_assignment(-iou)
+    return int((iou[rows, cols] >= IGNORE_IOU).sum())
+
+
+def evaluate_detections(frames: Iterable[FrameBoxes]) -> dict:
+    """Counts and rates per class, overall, and class-agnostic (see module docstring)."""
+    tp, gt_n, pred_n = Counter(), Counter(), Counter()
+    agnostic_tp = 0
+    for f in frames:
+        keep = ~predictions_to_drop(f.pred_boxes, f.gt_boxes, f.gt_ignore)
+        pred_boxes = np.asarray(f.pred_boxes, np.float64).reshape(-1, 4)[keep]
+        pred_cls = np.array([DETECTOR_TO_CLASS.get(label, OTHER) for label in f.pred_labels], dtype=object)[keep]
+        valid = ~np.asarray(f.gt_ignore, bool)
+        gt_boxes = np.asarray(f.gt_boxes, np.float64).reshape(-1, 4)[valid]
+        gt_cls = np.array(list(f.gt_classes), dtype=object)[valid]
+        gt_n.update(gt_cls.tolist())
+        pred_n.update(pred_cls.tolist())
+        agnostic_tp += _match(box_iou(gt_boxes, pred_boxes))
+        for c in set(gt_cls.tolist()):
+            tp[c] += _match(box_iou(gt_boxes[gt_cls == c], pred_boxes[pred_cls == c]))
+    classes = sorted(set(gt_n) | set(pred_n))
+    per_class = {c: {"ground_truth": gt_n[c], "predictions": pred_n[c], "true_positives": tp[c],
+                     "recall": round(tp[c] / gt_n[c], 4) if gt_n[c] else None,
+                     "precision": round(tp[c] / pred_n[c], 4) if pred_n[c] else None} for c in classes}
+    total_gt, total_pred, total_tp = sum(gt_n.values()), sum(pred_n.values()), sum(tp.values())
+    return {
+        "iou": IGNORE_IOU,
+        "recall": round(total_tp / total_gt, 4) if total_gt else None,
+        "precision": round(total_tp / total_pred, 4) if total_pred else None,
+        "class_agnostic_recall": round(agnostic_tp / total_gt, 4) if total_gt else None,
+        "ground_truth": total_gt, "predictions": total_pred, "per_class": per_class,
+    }

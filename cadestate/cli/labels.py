@@ -1,0 +1,160 @@
+"""``cadestate labels``: the human tasks' label files: ingest, validate, schemas, tool imports."""
+
+from __future__ import annotations
+
+import json
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.markup import escape
+
+from cadestate.cli.common import CliError, app, err, out
+
+labels_app = typer.Typer(help="Label files of the human tasks: ingest them, validate them, print their JSON Schemas, "
+                              "import manual tracks from CVAT or Label Studio.", no_args_is_help=True)
+app.add_typer(labels_app, name="labels")
+
+
+class Which(str, Enum):
+    label = "label"
+    task = "task"
+
+
+class FrameMap(str, Enum):
+    frames = "frames"
+    video = "video"
+
+
+@labels_app.command("ingest")
+def labels_ingest(
+    ctx: typer.Context,
+    source: Annotated[Path, typer.Argument(help="Folder of label files (every *.json below it), or one file.")],
+) -> None:
+    """Validate label files and append the valid ones to the label tables (idempotent).
+
+    Invalid files are listed (file and field) and skipped; files ingested before are skipped. Exit
+    status 1 when any file was invalid. The clips with new labels are printed; `cadestate run`
+    reruns the stages their labels made stale (new correspondences: the pose stage).
+    """
+    from tasks.label_ingest import ingest_labels
+
+    cfg = ctx.obj.config()
+    report = ingest_labels(ctx.obj.open_warehouse(), source, coplanar_tol=cfg.pose.coplanar_tol)
+    out.print(f"{len(report.ingested)} label file(s) ingested, {len(report.duplicates)} already ingested, "
+              f"{len(report.errors)} invalid; {report.coplanar_keyframes} co-planar key-frame(s)")
+    for table, rows in sorted(report.rows.items()):
+        out.print(f"  {table}: {rows} row(s)")
+    if report.clips:
+        out.print(f"clips with new labels: {escape(', '.join(report.clips))}")
+    for e in report.errors:
+        err.print(f"[red]error:[/] {escape(e)}", highlight=False)
+    raise typer.Exit(0 if report.ok else 1)
+
+
+@labels_app.command("validate")
+def labels_validate(
+    ctx: typer.Context,
+    files: Annotated[list[Path], typer.Argument(help="Label files to check.")],
+    offline: Annotated[bool, typer.Option(help="Check the format only, not against the warehouse.")] = False,
+) -> None:
+    """Check label files without ingesting them (format, then the warehouse: clip, task, tracks, frames)."""
+    from tasks.labels import ClipFacts, LabelError, validate_label
+
+    facts = None if offline else ClipFacts(ctx.obj.open_warehouse())
+    bad = 0
+    for f in files:
+        try:
+            lf = validate_label(f, facts=facts)
+            out.print(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
+        except LabelError as e:
+            bad += 1
+            err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
+    raise typer.Exit(1 if bad else 0)
+
+
+@labels_app.command("schema")
+def labels_schema(
+    kind: Annotated[Optional[str], typer.Argument(help="manual_track | cad_selection | correspondences | verification (default: all).")] = None,
+    which: Annotated[Which, typer.Option("--file", help="The label file's schema or the task file's.")] = Which.label,
+    write: Annotated[Optional[Path], typer.Option(help="Write every schema into this folder instead of printing.")] = None,
+) -> None:
+    """Print the JSON Schema (draft 2020-12) of a label or task file."""
+    from schemas.labels import KINDS, json_schema, publish_schemas
+
+    if write is not None:
+        for p in publish_schemas(str(write)):
+            out.print(p)
+        return
+    if kind is not None and kind not in KINDS:
+        raise CliError(f"unknown kind {kind!r} (kinds: {', '.join(KINDS)})")
+    doc = json_schema(kind, which.value) if kind else {f"{k}.{which.value}": json_schema(k, which.value) for k in KINDS}
+    print(json.dumps(doc, indent=2, ensure_ascii=False))
+
+
+def _label_map(pairs: list[str] | None) -> dict[str, str]:
+    out_map = {}
+    for p in pairs or []:
+        if "=" not in p:
+            raise CliError(f"--map {p!r}: expected TOOL_LABEL=CLASS")
+        k, v = p.split("=", 1)
+        out_map[k] = v
+    return out_map
+
+
+def _write_import(result, out_dir: Path, stem: str) -> None:
+    from tasks.label_import import write_label
+
+    for d in result.dropped:
+        err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False)
+    path = write_label(result.document, out_dir, stem)
+    n = len(result.document["answers"])
+    out.print(f"{escape(str(path))}: {n} manual track(s) for task {escape(result.document['task_id'])}; "
+              f"ingest with `cadestate labels ingest {escape(str(out_dir))}`")
+
+
+ClipOpt = Annotated[str, typer.Option("--clip", help="The clip the annotations are for.")]
+TaskOpt = Annotated[Optional[str], typer.Option("--task", help="The manual_track task answered (default: the clip's newest).")]
+OutOpt = Annotated[Path, typer.Option("--out", help="Folder to write the label file to.")]
+FrameOpt = Annotated[FrameMap, typer.Option("--frame-map", help="frames: tool frame n = the clip's n-th extracted frame; "
+                                                                  "video: tool frame n = video frame n.")]
+MapOpt = Annotated[Optional[list[str]], typer.Option("--map", help="Rename a tool label: TOOL_LABEL=CLASS (repeatable).")]
+
+
+@labels_app.command("import-cvat")
+def labels_import_cvat(
+    ctx: typer.Context,
+    file: Annotated[Path, typer.Argument(help="CVAT for video 1.1 annotations.xml.")],
+    clip: ClipOpt,
+    task: TaskOpt = None,
+    out_dir: OutOpt = Path("labels"),
+    frame_map: FrameOpt = FrameMap.frames,
+    all_frames: Annotated[bool, typer.Option(help="Keep interpolated boxes too (default: keyframe=1 boxes only).")] = False,
+    skip_source: Annotated[Optional[list[str]], typer.Option(help="Leave out tracks with this source (e.g. file: pre-loaded tracks).")] = None,
+    label_map: MapOpt = None,
+) -> None:
+    """Make a manual_track label file from CVAT video XML (boxes in pixels, 0-based frames)."""
+    from tasks.label_import import import_cvat
+
+    result = import_cvat(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
+                         skip_sources=tuple(skip_source or ()), label_map=_label_map(label_map))
+    _write_import(result, out_dir, f"{clip}.{file.stem}.cvat")
+
+
+@labels_app.command("import-labelstudio")
+def labels_import_labelstudio(
+    ctx: typer.Context,
+    file: Annotated[Path, typer.Argument(help="Label Studio JSON export with videorectangle results.")],
+    clip: ClipOpt,
+    task: TaskOpt = None,
+    out_dir: OutOpt = Path("labels"),
+    frame_map: FrameOpt = FrameMap.frames,
+    label_map: MapOpt = None,
+) -> None:
+    """Make a manual_track label file from a Label Studio video export (percent boxes, 1-based frames)."""
+    from tasks.label_import import import_labelstudio
+
+    result = import_labelstudio(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value,
+                                label_map=_label_map(label_map))
+    _write_import(result, out_dir, f"{clip}.{file.stem}.labelstudio")

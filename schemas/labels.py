@@ -1,0 +1,435 @@
+"""The four human tasks of the paper (Sec. 3.1-3.5): task files, label files and label tables.
+
+A stage that needs people writes a **task file** (everything an annotation UI needs) and pauses;
+people answer with a **label file**; ``cadestate labels ingest DIR`` validates label files, keeps
+them in the warehouse and resumes the clips. Both are JSON; their JSON Schemas (draft 2020-12) are
+generated from the dataclasses below (:func:`json_schema`, ``cadestate labels schema KIND``) and
+published in ``schemas/json/``.
+
+Kinds (``kind``):
+
+- ``manual_track`` (3.1, val/test): draw the objects the automatic tracks missed, as boxes on a
+  few regularly spaced key-frames; the automatic tracks are shown.
+- ``cad_selection`` (3.2): per track, pick the best of (up to) 10 CAD candidates, or none.
+- ``correspondences`` (3.3): per track, 4-6 clicks per key-frame pairing a point on the CAD model
+  with an image point; the annotator may mirror the model.
+- ``verification`` (3.5): per track, the posed CAD rendered over its key-frames: accept or reject.
+
+Conventions (as in the official CAD-Estate files, :mod:`schemas.official`): timestamps are camera
+timestamps in µs (rows of ``frames``); boxes are (ymin, xmin, ymax, xmax) normalised to [0, 1];
+image points are (x, y) normalised by width and height, origin top-left, x right, y down; 3D
+points are in the canonical, unmirrored CAD frame (metres, +Y up, front +Z, bbox-centred; see
+:mod:`schemas.pose`); paths are relative to the warehouse root; ``track_id`` is ``tracks.track_id``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import pyarrow as pa
+
+from schemas.base import CLIP, TableSpec, column, vector
+from schemas.core import UTC_TS
+from schemas.dataclass_json import fixed, json_schema_of, spec
+
+TASK_FORMAT = "cadestate-task/1"
+LABEL_FORMAT = "cadestate-label/1"
+KINDS = ("manual_track", "cad_selection", "correspondences", "verification")
+Kind = Literal["manual_track", "cad_selection", "correspondences", "verification"]
+
+UNIT = {"minimum": 0.0, "maximum": 1.0}
+Box = tuple[float, float, float, float]
+BOX = "Box (ymin, xmin, ymax, xmax), normalised by image height (y) and width (x)."
+IMAGE = "image, normalised [0,1], origin top-left, x right, y down"
+CAD = "canonical CAD (+Y up, front +Z, unmirrored)"
+TRACK_ID = {"minimum": 0, "maximum": 2**31 - 1}  # tracks.track_id is an int32
+FORMAT = "Format and version of the file."
+KIND = "The task kind."
+
+
+# ------------------------------------------------------------------------------ shared records
+
+@dataclass(frozen=True, kw_only=True)
+class TimedBox:
+    """A box on one frame."""
+
+    timestamp_us: int = spec("Camera timestamp of the frame (a `frames` row).", unit="µs")
+    box: Box = spec(BOX, frame=IMAGE, items=UNIT)
+
+
+@dataclass(frozen=True, kw_only=True)
+class KeyframeView:
+    """A key-frame shown to the annotator, with the object's box when it has one there."""
+
+    timestamp_us: int = spec("Camera timestamp (a `frames` row).", unit="µs")
+    frame_index: int = spec("frames.frame_index.", minimum=0)
+    image_path: str = spec("The frame's image, relative to the warehouse root.")
+    box: Box | None = spec(BOX + " Null: no box on this frame.", frame=IMAGE, items=UNIT, default=None)
+    overlay_path: str | None = spec("Verification only: the posed CAD rendered over the frame, relative to the "
+                                    "warehouse root.", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExistingTrack:
+    """A track found already (shown so that only missing objects are drawn)."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    label: str = spec("Class (tracks.label).")
+    boxes: tuple[TimedBox, ...] = spec("Its boxes on the task's key-frames.")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CadCandidate:
+    """One retrieved CAD model (a `cad_candidates` row)."""
+
+    rank: int = spec("1 = best.", minimum=1, maximum=2**31 - 1)
+    cad_id: str = spec("cad_models.cad_id.", minLength=1)
+    library: str = spec("CAD library of the model.")
+    cad_class: str = spec("cad_models.class.")
+    score: float = spec("Retrieval score in [0, 1].")
+    mesh_path: str = spec("The canonical mesh, relative to the warehouse root.")
+    render_paths: tuple[str, ...] = spec("Renders of the model (cad_views), relative to the warehouse root.")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Pose:
+    """A 9-DoF pose, official order: X_world = T + R · diag(S) · diag(-1, 1, 1)[mirrored] · X_cad."""
+
+    translation: tuple[float, float, float] = spec("T.", unit="m", frame="world (+Y up)")
+    rotation: tuple[float, float, float, float] = spec("R as a unit quaternion (w, x, y, z).", frame="CAD -> world")
+    scale: tuple[float, float, float] = spec("S along the CAD axes.", frame=CAD)
+    is_mirrored: bool = spec("Mirror x -> -x before scaling.")
+
+
+# ------------------------------------------------------------------------------ answers
+
+@dataclass(frozen=True, kw_only=True)
+class ManualTrackAnswer:
+    """One object the automatic tracks missed: its class and its boxes."""
+
+    label: str = spec("Class of the object.", minLength=1)
+    boxes: tuple[TimedBox, ...] = spec("Boxes on the frames where the object is visible (one per frame).", minItems=1)
+    source_id: str | None = spec("The object's id in the annotation tool (e.g. 'cvat:3'), for tracing.", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CadSelectionAnswer:
+    """The CAD model chosen for one track."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    cad_id: str | None = spec("The chosen candidate's cad_id; null: none of the candidates is similar enough "
+                              "(the track leaves the pipeline).", minLength=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondencePoint:
+    """One click: an image point and the matching point on the CAD model."""
+
+    x: float = spec("Image x, normalised by the width.", frame=IMAGE, **UNIT)
+    y: float = spec("Image y, normalised by the height.", frame=IMAGE, **UNIT)
+    xyz: tuple[float, float, float] = spec("The point on the CAD model.", unit="m", frame=CAD)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceKeyframe:
+    """The clicks of one key-frame (different points on every key-frame are fine)."""
+
+    timestamp_us: int = spec("Camera timestamp of the key-frame (a `frames` row).", unit="µs")
+    points: tuple[CorrespondencePoint, ...] = spec("4-6 correspondences.", minItems=4, maxItems=6)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceAnswer:
+    """The correspondences of one track."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    cad_id: str = spec("The CAD model clicked on (the task's cad_id for the track).", minLength=1)
+    is_mirrored: bool = spec("The annotator mirrored the model (x -> -x); 3D points stay unmirrored.")
+    keyframes: tuple[CorrespondenceKeyframe, ...] = spec("Key-frames annotated (one entry per timestamp).", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class VerificationAnswer:
+    """The verdict on one track's pose: accept only if the CAD aligns on every key-frame."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    verdict: Literal["accept", "reject"] = spec("accept: aligned on all key-frames; reject: otherwise.")
+    comment: str | None = spec("Free text.", default=None)
+
+
+# ------------------------------------------------------------------------------ task items
+
+@dataclass(frozen=True, kw_only=True)
+class CadSelectionItem:
+    """One track to choose a CAD model for."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    label: str = spec("Class of the track.")
+    keyframes: tuple[KeyframeView, ...] = spec("Evenly spaced frames of the track, with its box.", minItems=1)
+    candidates: tuple[CadCandidate, ...] = spec("The retrieved candidates, best first.", minItems=1, maxItems=10)
+    previous: CadSelectionAnswer | None = spec("The answer given before, if any.", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceItem:
+    """One track to click correspondences for, with the chosen CAD model."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    label: str = spec("Class of the track.")
+    cad_id: str = spec("The chosen CAD model.", minLength=1)
+    library: str = spec("Its CAD library.")
+    mesh_path: str = spec("Its canonical mesh (metres, +Y up, front +Z), relative to the warehouse root.")
+    render_paths: tuple[str, ...] = spec("Renders of the model, relative to the warehouse root.")
+    symmetry: int = spec("Symmetry order about +Y (1, 2, 4, 36).", minimum=1)
+    keyframes: tuple[KeyframeView, ...] = spec("Key-frames to annotate, with the track's box.", minItems=1)
+    previous: CorrespondenceAnswer | None = spec("The answer given before, if any.", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class VerificationItem:
+    """One posed track to verify; ``keyframes[*].overlay_path`` are the renders to judge."""
+
+    track_id: int = spec("tracks.track_id.", **TRACK_ID)
+    label: str = spec("Class of the track.")
+    cad_id: str = spec("The posed CAD model.", minLength=1)
+    mesh_path: str = spec("Its canonical mesh, relative to the warehouse root.")
+    pose: Pose = spec("The solved pose that was rendered.")
+    keyframes: tuple[KeyframeView, ...] = spec("Key-frames with overlays.", minItems=1)
+    previous: VerificationAnswer | None = spec("The verdict given before, if any.", default=None)
+
+
+# ------------------------------------------------------------------------------ files
+
+@dataclass(frozen=True, kw_only=True)
+class TaskHeader:
+    """Fields every task file has."""
+
+    format: str = spec("Format and version.", default="")
+    kind: str = spec("The task kind.", default="")
+    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+    clip: str = spec("Clip name.", minLength=1)
+    created_at: str = spec("When the task was written, ISO 8601 UTC.")
+    image_size: tuple[int, int] = spec("(height, width) of the clip's frames.", unit="px", items={"minimum": 1})
+    instructions: str = spec("What to do, for the annotator.", default="")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LabelHeader:
+    """Fields every label file has."""
+
+    format: str = spec("Format and version.", default="")
+    kind: str = spec("The task kind.", default="")
+    task_id: str = spec("The task answered (its task file's task_id).", minLength=1)
+    clip: str = spec("Clip name (the task's).", minLength=1)
+    annotator: str | None = spec("Who answered (free text).", default=None)
+    created_at: str | None = spec("When the answers were given, ISO 8601 (orders labels ingested together).", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ManualTrackTask(TaskHeader):
+    """Draw the objects that no existing track covers, as boxes on the key-frames (Sec. 3.1)."""
+
+    format: str = fixed(FORMAT, TASK_FORMAT)
+    kind: str = fixed(KIND, "manual_track")
+    keyframes: tuple[KeyframeView, ...] = spec("Regularly spaced key-frames to draw on.", minItems=1)
+    existing_tracks: tuple[ExistingTrack, ...] = spec("Tracks found already, with their boxes on the key-frames.")
+    classes: tuple[str, ...] = spec("Allowed classes; empty: any.")
+    previous: tuple[ManualTrackAnswer, ...] = spec("Objects drawn before, if any.", default=())
+
+
+@dataclass(frozen=True, kw_only=True)
+class CadSelectionTask(TaskHeader):
+    """Per track, choose the CAD candidate that looks closest to the object, or none (Sec. 3.2)."""
+
+    format: str = fixed(FORMAT, TASK_FORMAT)
+    kind: str = fixed(KIND, "cad_selection")
+    items: tuple[CadSelectionItem, ...] = spec("Tracks to answer.", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceTask(TaskHeader):
+    """Per track and key-frame, click 4-6 3D<->2D point correspondences (Sec. 3.3)."""
+
+    format: str = fixed(FORMAT, TASK_FORMAT)
+    kind: str = fixed(KIND, "correspondences")
+    items: tuple[CorrespondenceItem, ...] = spec("Tracks to answer.", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class VerificationTask(TaskHeader):
+    """Per track, accept the pose only if the rendered CAD aligns on every key-frame (Sec. 3.5)."""
+
+    format: str = fixed(FORMAT, TASK_FORMAT)
+    kind: str = fixed(KIND, "verification")
+    items: tuple[VerificationItem, ...] = spec("Tracks to answer.", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ManualTrackLabel(LabelHeader):
+    """The objects drawn for a manual-track task; an empty list: nothing is missing. A newer label
+    for the same task replaces the whole answer."""
+
+    format: str = fixed(FORMAT, LABEL_FORMAT)
+    kind: str = fixed(KIND, "manual_track")
+    answers: tuple[ManualTrackAnswer, ...] = spec("The missing objects.")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CadSelectionLabel(LabelHeader):
+    """CAD choices for some or all tracks of a cad_selection task."""
+
+    format: str = fixed(FORMAT, LABEL_FORMAT)
+    kind: str = fixed(KIND, "cad_selection")
+    answers: tuple[CadSelectionAnswer, ...] = spec("One per answered track.", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceLabel(LabelHeader):
+    """Correspondences for some or all tracks of a correspondences task."""
+
+    format: str = fixed(FORMAT, LABEL_FORMAT)
+    kind: str = fixed(KIND, "correspondences")
+    answers: tuple[CorrespondenceAnswer, ...] = spec("One per answered track.", minItems=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class VerificationLabel(LabelHeader):
+    """Verdicts for some or all tracks of a verification task."""
+
+    format: str = fixed(FORMAT, LABEL_FORMAT)
+    kind: str = fixed(KIND, "verification")
+    answers: tuple[VerificationAnswer, ...] = spec("One per answered track.", minItems=1)
+
+
+TASK_CLASSES: dict[str, type] = {"manual_track": ManualTrackTask, "cad_selection": CadSelectionTask,
+                                 "correspondences": CorrespondenceTask, "verification": VerificationTask}
+LABEL_CLASSES: dict[str, type] = {"manual_track": ManualTrackLabel, "cad_selection": CadSelectionLabel,
+                                  "correspondences": CorrespondenceLabel, "verification": VerificationLabel}
+Task = ManualTrackTask | CadSelectionTask | CorrespondenceTask | VerificationTask
+Label = ManualTrackLabel | CadSelectionLabel | CorrespondenceLabel | VerificationLabel
+
+
+def json_schema(kind: str, which: Literal["task", "label"] = "label") -> dict:
+    """The JSON Schema (draft 2020-12) of the ``which`` file of ``kind``."""
+    classes = TASK_CLASSES if which == "task" else LABEL_CLASSES if which == "label" else None
+    if classes is None or kind not in classes:
+        raise KeyError(f"unknown schema {kind!r}/{which!r} (kinds: {', '.join(KINDS)}; which: task, label)")
+    return json_schema_of(classes[kind], schema_id=f"https://cadestate.invalid/schemas/{kind}.{which}.schema.json",
+                          title=f"cadestate {kind} {which} file")
+
+
+def schema_file_name(kind: str, which: str) -> str:
+    """Name of the published schema file in ``schemas/json/``."""
+    return f"{kind}.{which}.schema.json"
+
+
+# ------------------------------------------------------------------------------ tables
+
+def _answer_table(name: str, description: str, key: tuple[str, ...], columns: list[pa.Field]) -> TableSpec:
+    """An append-mode answer table: (clip, label_sha256, ingested_at, task_id) then ``columns``."""
+    head = [CLIP, column("label_sha256", pa.string(), "SHA-256 of the label file (label_files.label_sha256)."),
+            column("ingested_at", UTC_TS, "When the label file was ingested (label_files.ingested_at)."),
+            column("task_id", pa.string(), "The task answered (label_tasks.task_id).")]
+    return TableSpec(name=name, mode="append", key=("clip", "ingested_at", "label_sha256", *key),
+                     description=description, schema=pa.schema(head + columns))
+
+
+LABEL_TASKS = TableSpec(
+    name="label_tasks",
+    mode="append",
+    key=("clip", "created_at", "task_id"),
+    description="Every task file written for people (history): its kind, path, and the document itself.",
+    schema=pa.schema([
+        CLIP,
+        column("task_id", pa.string(), "Unique id of the task."),
+        column("kind", pa.string(), "manual_track | cad_selection | correspondences | verification."),
+        column("path", pa.string(), "The task file, relative to the warehouse root."),
+        column("task_sha256", pa.string(), "SHA-256 of the task file."),
+        column("num_items", pa.int32(), "Tracks to answer (manual_track: key-frames)."),
+        column("created_at", UTC_TS, "When the task was written."),
+        column("document", pa.string(), "The task file's JSON (what labels are validated against)."),
+    ]),
+)
+
+LABEL_FILES = TableSpec(
+    name="label_files",
+    mode="append",
+    key=("clip", "ingested_at", "label_sha256"),
+    description="Every ingested label file (history; a newer label for the same task and track supersedes an older one).",
+    schema=pa.schema([
+        CLIP,
+        column("label_sha256", pa.string(), "SHA-256 of the file's bytes (a file is ingested once)."),
+        column("ingested_at", UTC_TS, "When it was ingested (strictly increasing: 'newer' means ingested later)."),
+        column("task_id", pa.string(), "The task answered."),
+        column("kind", pa.string(), "manual_track | cad_selection | correspondences | verification."),
+        column("source_path", pa.string(), "The file's path when it was ingested."),
+        column("annotator", pa.string(), "Who answered (from the file).", nullable=True),
+        column("created_at", UTC_TS, "When the answers were given (from the file).", nullable=True),
+        column("num_answers", pa.int32(), "Answers in the file (tracks; manual_track: objects drawn)."),
+        column("document", pa.string(), "The label file's JSON, as ingested."),
+    ]),
+)
+
+MANUAL_TRACK_LABELS = _answer_table(
+    "manual_track_labels", "Boxes of the objects people drew for manual-track tasks (one row per box; history).",
+    ("object_index", "timestamp_us"), [
+        column("object_index", pa.int32(), "0-based index of the object within its label file."),
+        column("label", pa.string(), "Class of the object."),
+        column("source_id", pa.string(), "The object's id in the annotation tool.", nullable=True),
+        column("timestamp_us", pa.int64(), "Frame of the box.", unit="µs"),
+        column("box", vector(4), "(ymin, xmin, ymax, xmax), normalised.", frame=IMAGE),
+    ])
+
+CAD_SELECTION_LABELS = _answer_table(
+    "cad_selection_labels", "The CAD model people chose per track, or none (history).", ("track_id",), [
+        column("track_id", pa.int32(), "tracks.track_id."),
+        column("cad_id", pa.string(), "The chosen cad_id; null: none of the candidates.", nullable=True),
+        column("rank", pa.int32(), "The chosen candidate's rank in the task (null: none).", nullable=True),
+    ])
+
+CORRESPONDENCE_LABELS = _answer_table(
+    "correspondence_labels", "3D<->2D clicks per track and key-frame, with the co-planarity found at ingest (history; "
+    "the newest answer per track goes to `correspondences`).", ("track_id", "timestamp_us", "point_index"), [
+        column("track_id", pa.int32(), "tracks.track_id."),
+        column("timestamp_us", pa.int64(), "Key-frame.", unit="µs"),
+        column("point_index", pa.int32(), "0-based index of the click within its key-frame."),
+        column("cad_id", pa.string(), "CAD model clicked on."),
+        column("point_2d", vector(2), "Image point (x, y), normalised.", frame=IMAGE),
+        column("point_3d", vector(3), "Point on the CAD model.", unit="m", frame=CAD),
+        column("is_mirrored", pa.bool_(), "The annotator mirrored the model for this track."),
+        column("keyframe_coplanar", pa.bool_(), "The key-frame's 3D points lie on one plane (tasks.pose_checks, "
+                                                "[pose] coplanar_tol)."),
+        column("keyframe_coplanar_axis", pa.int32(), "CAD axis (0 x, 1 y, 2 z) nearest the normal of that plane; -1 none."),
+        column("track_coplanar_axis", pa.int32(), "The same for all of the answer's points (symmetry-aware, as the "
+                                                  "solver ties the scale along it); -1 none."),
+    ])
+
+VERIFICATION_LABELS = _answer_table(
+    "verification_labels", "Verdicts of people on solved poses (history).", ("track_id",), [
+        column("track_id", pa.int32(), "tracks.track_id."),
+        column("cad_id", pa.string(), "The posed CAD model (from the task)."),
+        column("accepted", pa.bool_(), "True: the rendered CAD aligns on every key-frame."),
+        column("comment", pa.string(), "Free text.", nullable=True),
+    ])
+
+ANSWER_TABLES = {"manual_track": MANUAL_TRACK_LABELS, "cad_selection": CAD_SELECTION_LABELS,
+                 "correspondences": CORRESPONDENCE_LABELS, "verification": VERIFICATION_LABELS}
+LABEL_TABLES = (LABEL_TASKS, LABEL_FILES, *ANSWER_TABLES.values())
+
+
+
+def publish_schemas(folder: str | None = None) -> list[str]:
+    """Write every task and label JSON Schema to ``folder`` (default ``schemas/json/``); returns the paths."""
+    import json
+    from pathlib import Path
+
+    out = Path(folder) if folder else Path(__file__).parent / "json"
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for kind in KINDS:
+        for which in ("task", "label"):
+            path = out / schema_file_name(kind, which)
+            path.write_text(json.dumps(json_schema(kind, which), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+            paths.append(str(path))
+    return paths

@@ -1,0 +1,78 @@
+"""Tables of 9-DoF pose solving (paper section 3.4): ``correspondences`` (human clicks) and ``poses``.
+
+Frames: 2D points are normalised image coordinates (x by the width, y by the height; origin at
+the top-left corner, x right, y down); 3D points are in the canonical CAD frame of the model
+(metres, +Y up, front +Z, bbox-centred), *unmirrored*. Poses map that frame to the world with the
+official CAD-Estate order mirror => scale => rotation => translation, i.e.
+``X_world = T + R · diag(S) · diag(-1, 1, 1)[mirrored] · X_cad`` (see :mod:`cadestate.render`).
+"""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+from schemas.base import CLIP, TableSpec, column, vector
+
+CAD_FRAME = "canonical CAD (+Y up, front +Z, unmirrored)"
+
+
+def _maybe(size: int) -> pa.DataType:
+    """A fixed-size float64 list for a nullable column (a null row's child slots are null too,
+    which a non-nullable item field cannot hold)."""
+    return pa.list_(pa.field("item", pa.float64()), size)
+
+CORRESPONDENCES = TableSpec(
+    name="correspondences",
+    mode="replace",
+    key=("clip", "track_id", "timestamp_us", "point_index"),
+    description="3D<->2D point correspondences of the human task (one row per click): the input of pose solving.",
+    schema=pa.schema([
+        CLIP,
+        column("track_id", pa.string(), "Track (object) the click belongs to."),
+        column("timestamp_us", pa.int64(), "Key-frame: camera timestamp of the frame clicked on (a `frames` row).", unit="µs"),
+        column("point_index", pa.int32(), "0-based index of the click within its key-frame."),
+        column("cad_id", pa.string(), "CAD model the 3D points lie on (a `cad_models` row)."),
+        column("point_2d", vector(2), "Clicked image point (x, y), normalised by width and height.",
+               frame="image, normalised [0,1], origin top-left, x right, y down"),
+        column("point_3d", vector(3), "Matching point on the CAD model.", unit="m", frame=CAD_FRAME),
+        column("is_mirrored", pa.bool_(), "The annotator mirrored the CAD model (x -> -x) for this track; same on every row of a track."),
+    ]),
+)
+
+POSES = TableSpec(
+    name="poses",
+    mode="replace",
+    key=("clip", "track_id"),
+    description="One 9-DoF pose per annotated track, solved from its correspondences; use only status = 'ok'.",
+    schema=pa.schema([
+        CLIP,
+        column("track_id", pa.string(), "Track (object)."),
+        column("cad_id", pa.string(), "CAD model posed."),
+        column("class", pa.string(), "Class of the CAD model."),
+        column("status", pa.string(), "ok | invalid_input | too_few_points | single_keyframe | collinear_points | "
+                                      "behind_camera | high_residual | low_parallax | unknown_cad | missing_camera (tasks/pose_checks.py)."),
+        column("message", pa.string(), "Why the status is what it is, in words."),
+        column("translation", _maybe(3), "T of the object-to-world T·R·S·mirror (null: not solved).", unit="m",
+               frame="world (+Y up)", nullable=True),
+        column("rotation", _maybe(4), "R as a unit quaternion (w, x, y, z) (null: not solved).", frame="CAD -> world", nullable=True),
+        column("scale", _maybe(3), "S (sx, sy, sz) along the CAD axes (null: not solved).", frame=CAD_FRAME, nullable=True),
+        column("is_mirrored", pa.bool_(), "Mirror x -> -x before scaling (from the correspondences)."),
+        column("symmetry", pa.int32(), "Symmetry order about +Y of the CAD model used by the solver (1, 2, 4, 36)."),
+        column("upright", pa.bool_(), "The up-axis term applied (class in [pose] upright_classes)."),
+        column("coplanar_axis", pa.int32(), "CAD axis (0 x, 1 y, 2 z) perpendicular to co-planar 3D points, whose scale "
+                                            "was tied to the mean of the other two; -1 none."),
+        column("num_keyframes", pa.int32(), "Key-frames with correspondences."),
+        column("num_points", pa.int32(), "Correspondences used."),
+        column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front (null: not solved).", nullable=True),
+        column("loss_reprojection", pa.float64(), "Final L_repr: L1 reprojection error per point (|du| + |dv|).", unit="px", nullable=True),
+        column("loss_up", pa.float64(), "Final L_up: |R e_y - e_y|_1 (0 when not upright).", nullable=True),
+        column("loss_front", pa.float64(), "Final L_front: mean depth below [pose] min_depth.", unit="m", nullable=True),
+        column("keyframe_timestamps_us", pa.list_(pa.int64()), "Key-frames, in the order of keyframe_error_px.", unit="µs"),
+        column("keyframe_error_px", pa.list_(pa.float64()), "Mean Euclidean reprojection error per key-frame (empty: not solved).", unit="px"),
+        column("parallax_deg", pa.float64(), "Largest angle between the rays from the object to its key-frame cameras.",
+               unit="deg", nullable=True),
+        column("iterations", pa.int32(), "Optimiser iterations run (0: not solved)."),
+        column("start", pa.int32(), "Which start won (turn by start·360/starts deg about up; -1: not solved)."),
+        column("config_hash", pa.string(), "Digest of the [pose] config section that produced the row."),
+    ]),
+)

@@ -1,0 +1,339 @@
+"""Task files out, label files in: writing tasks and validating labels (see :mod:`schemas.labels`).
+
+A stage that needs people calls :func:`write_task` (the task file goes to
+``<warehouse>/label_tasks/<clip>/<task_id>.json`` and its document to the ``label_tasks`` table)
+and pauses; :func:`validate_label` checks a label file in two steps:
+
+1. the document: JSON (no duplicate keys), every number finite, then the kind's JSON Schema;
+2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
+   a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
+   frames of the clip, boxes have positive size, no track or key-frame is answered twice.
+
+Every failure is a :class:`LabelError` whose message names the file and the field as a JSON path,
+e.g. ``labels/c1.json: $.answers[2].keyframes[0].points[3].x: not a finite number``.
+Ingest (into the answer tables) is :mod:`tasks.label_ingest`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import hashlib
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pyarrow as pa
+
+from cadestate.lineage import digest
+from schemas.dataclass_json import from_json, to_json
+from schemas.labels import KINDS, LABEL_CLASSES, LABEL_FORMAT, TASK_CLASSES, TASK_FORMAT, Label, Task, json_schema
+from warehouse import Warehouse, atomic_write_bytes, check_name
+
+TASK_DIR = "label_tasks"
+"""Folder of the task files under the warehouse root."""
+
+
+class LabelError(ValueError):
+    """A task or label file that does not fit its format or the warehouse: names the file and field."""
+
+
+@dataclass(frozen=True)
+class LabelFile:
+    """A validated label file: where it came from, its bytes' SHA-256, its text and its content."""
+
+    path: Path
+    sha256: str
+    document: str
+    label: Label
+
+    @property
+    def kind(self) -> str:
+        return self.label.kind
+
+    @property
+    def clip(self) -> str:
+        return self.label.clip
+
+    @property
+    def task_id(self) -> str:
+        return self.label.task_id
+
+
+# ------------------------------------------------------------------------------ documents
+
+def json_path(parts: Iterator[Any] | list[Any]) -> str:
+    """``$.answers[2].x`` from path elements (strings are keys, integers are indices)."""
+    out = "$"
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else f".{p}"
+    return out
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    keys = [k for k, _ in pairs]
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise ValueError(f"duplicate key {dup[0]!r}")
+    return dict(pairs)
+
+
+def parse_json(data: bytes, name: str) -> Any:
+    """Parse bytes as UTF-8 JSON; errors name the file and line/column."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates)
+    except json.JSONDecodeError as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
+    except (ValueError, RecursionError) as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e}") from None
+
+
+def nonfinite_path(doc: Any, path: tuple = ()) -> tuple | None:
+    """Path of the first NaN or infinite number in ``doc`` (JSON allows neither), else None."""
+    if isinstance(doc, float) and not math.isfinite(doc):
+        return path
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+    for k, v in items:
+        if (found := nonfinite_path(v, (*path, k))) is not None:
+            return found
+    return None
+
+
+@functools.cache
+def _validator(kind: str, which: str) -> jsonschema.Draft202012Validator:
+    return jsonschema.Draft202012Validator(json_schema(kind, which))
+
+
+def _schema_error(e: jsonschema.ValidationError) -> str:
+    if e.validator == "additionalProperties":
+        extra = sorted(set(e.instance) - set(e.schema.get("properties", {})))
+        return f"unknown field(s) {', '.join(map(repr, extra))}"
+    if e.validator == "required":
+        return e.message.replace("is a required property", "is missing")
+    if e.validator == "const":
+        return f"must be {e.validator_value!r}, not {e.instance!r}"
+    if e.validator == "anyOf":  # a nullable field: say which types fit
+        kinds = [repr(b["type"]) if "type" in b else b.get("$ref", "?").rsplit("/", 1)[-1] for b in e.validator_value]
+        return f"{e.instance!r} is not of type {' or '.join(kinds)}"[:200]
+    message = e.message
+    return message if len(message) <= 200 else message[:197] + "..."
+
+
+def check_document(doc: Any, which: str, name: str) -> str:
+    """Check ``doc`` against the JSON Schema of its kind; returns the kind."""
+    if not isinstance(doc, dict):
+        raise LabelError(f"{name}: $: expected a JSON object, not {type(doc).__name__}")
+    try:
+        bad = nonfinite_path(doc)
+    except RecursionError:
+        raise LabelError(f"{name}: $: nested too deeply") from None
+    if bad is not None:
+        raise LabelError(f"{name}: {json_path(bad)}: not a finite number")
+    expected = LABEL_FORMAT if which == "label" else TASK_FORMAT
+    fmt = doc.get("format")
+    if fmt != expected:
+        other = {LABEL_FORMAT: " (a label file)", TASK_FORMAT: " (a task file)"}.get(fmt, "") if isinstance(fmt, str) else ""
+        raise LabelError(f"{name}: $.format: must be {expected!r}, not {repr(fmt)[:60]}{other}")
+    kind = doc.get("kind")
+    if kind not in KINDS:
+        raise LabelError(f"{name}: $.kind: must be one of {', '.join(KINDS)}, not {kind!r}")
+    errors = list(_validator(kind, which).iter_errors(doc))
+    if errors:
+        e = jsonschema.exceptions.best_match(errors)
+        more = f" (and {len(errors) - 1} more error(s))" if len(errors) > 1 else ""
+        raise LabelError(f"{name}: {json_path(e.absolute_path)}: {_schema_error(e)}{more}")
+    return kind
+
+
+def _check_time(value: str | None, field: str, name: str) -> dt.datetime | None:
+    if value is None:
+        return None
+    try:
+        t = dt.datetime.fromisoformat(value)
+    except ValueError:
+        raise LabelError(f"{name}: $.{field}: not an ISO 8601 date-time: {value!r}") from None
+    return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
+
+
+def parse_label(data: bytes, name: str) -> Label:
+    """A label document's content after the format checks (no warehouse involved)."""
+    doc = parse_json(data, name)
+    kind = check_document(doc, "label", name)
+    _check_time(doc.get("created_at"), "created_at", name)
+    return from_json(LABEL_CLASSES[kind], doc)
+
+
+def parse_task(data: bytes | str, name: str) -> Task:
+    """A task document's content after the format checks."""
+    doc = parse_json(data.encode() if isinstance(data, str) else data, name)
+    kind = check_document(doc, "task", name)
+    return from_json(TASK_CLASSES[kind], doc)
+
+
+# ------------------------------------------------------------------------------ task files
+
+def new_task_id(kind: str, clip: str, *parts: str) -> str:
+    """A task id that is the same whenever the task's inputs are (``parts``: digests of what the
+    task shows), so a rerun with unchanged upstream work finds the labels of the earlier run."""
+    return f"{check_name(clip)}.{kind}.{digest(kind, clip, *parts)[:12]}"
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+def write_task(wh: Warehouse, task: Task) -> Path:
+    """Write the task file (atomically) and register it in ``label_tasks``; returns its path.
+
+    Checks the task against its own schema first (a stage bug must not reach people). Writing the
+    same task again (same id and bytes) leaves everything as it is."""
+    doc = to_json(task)
+    text = json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n"
+    parse_task(text, f"task {task.task_id}")
+    created_at = _check_time(task.created_at, "created_at", f"task {task.task_id}")
+    data = text.encode()
+    path = wh.root / TASK_DIR / check_name(task.clip) / f"{check_name(task.task_id, 'task id')}.json"
+    sha = hashlib.sha256(data).hexdigest()
+    known = wh.read("label_tasks", [task.clip], filters=[("task_id", "=", task.task_id)], columns=["task_sha256"])
+    if path.is_file() and path.read_bytes() == data and sha in known.column("task_sha256").to_pylist():
+        return path
+    atomic_write_bytes(path, data)
+    items = getattr(task, "items", None)
+    row = {"clip": task.clip, "task_id": task.task_id, "kind": task.kind, "path": wh.relative(path),
+           "task_sha256": sha, "num_items": len(items if items is not None else task.keyframes),
+           "created_at": created_at, "document": text}
+    wh.write("label_tasks", task.clip, pa.Table.from_pylist([row]))
+    return path
+
+
+def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
+    """The newest ``label_tasks`` row of a task (its document is what labels are checked against)."""
+    rows = wh.read("label_tasks", [clip], filters=[("task_id", "=", task_id)]).to_pylist() if clip in wh.partitions("label_tasks") else []
+    return max(rows, key=lambda r: r["created_at"]) if rows else None
+
+
+def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
+    """The newest ``label_tasks`` row of ``kind`` for ``clip`` (e.g. the task an import answers)."""
+    if clip not in wh.partitions("label_tasks"):
+        return None
+    rows = wh.read("label_tasks", [clip], filters=[("kind", "=", kind)]).to_pylist()
+    return max(rows, key=lambda r: r["created_at"]) if rows else None
+
+
+# ------------------------------------------------------------------------------ warehouse checks
+
+class ClipFacts:
+    """What label checks need from the warehouse, read once per clip (ingest reuses one instance)."""
+
+    def __init__(self, wh: Warehouse):
+        self.wh = wh
+        self._clips = set(wh.partitions("clips"))
+
+    def has_clip(self, clip: str) -> bool:
+        return clip in self._clips
+
+    @functools.cache
+    def timestamps(self, clip: str) -> frozenset[int]:
+        return frozenset(self.wh.read("frames", [clip], columns=["timestamp_us"]).column("timestamp_us").to_pylist())
+
+    @functools.cache
+    def task(self, clip: str, task_id: str) -> Task | None:
+        row = latest_task(self.wh, clip, task_id)
+        return None if row is None else parse_task(row["document"], f"task {task_id}")
+
+
+def _fail(name: str, path: list, message: str) -> LabelError:
+    return LabelError(f"{name}: {json_path(path)}: {message}")
+
+
+def _check_boxes(boxes, stamps: frozenset[int], name: str, path: list) -> None:
+    seen = set()
+    for j, b in enumerate(boxes):
+        if b.timestamp_us not in stamps:
+            raise _fail(name, [*path, j, "timestamp_us"], f"{b.timestamp_us} is not a frame of the clip")
+        if b.timestamp_us in seen:
+            raise _fail(name, [*path, j, "timestamp_us"], f"a second box on frame {b.timestamp_us}")
+        seen.add(b.timestamp_us)
+        ymin, xmin, ymax, xmax = b.box
+        if not (ymin < ymax and xmin < xmax):
+            raise _fail(name, [*path, j, "box"], f"empty box {list(b.box)}: need ymin < ymax and xmin < xmax")
+
+
+def _items(task: Task, name: str, label: Label) -> dict[int, Any]:
+    """The task's items by track id, and a check that each answered track is one of them, once."""
+    items = {it.track_id: it for it in task.items}
+    seen = set()
+    for i, a in enumerate(label.answers):
+        if a.track_id not in items:
+            raise _fail(name, ["answers", i, "track_id"],
+                        f"unknown track {a.track_id} (task {task.task_id} has tracks {', '.join(map(str, sorted(items)))})")
+        if a.track_id in seen:
+            raise _fail(name, ["answers", i, "track_id"], f"track {a.track_id} is answered twice")
+        seen.add(a.track_id)
+    return items
+
+
+def check_label(label: Label, facts: ClipFacts, name: str) -> None:
+    """The warehouse checks of a parsed label (see the module docstring)."""
+    if not facts.has_clip(label.clip):
+        raise _fail(name, ["clip"], f"unknown clip {label.clip!r}")
+    task = facts.task(label.clip, label.task_id)
+    if task is None:
+        raise _fail(name, ["task_id"], f"unknown task {label.task_id!r} for clip {label.clip!r}")
+    if task.kind != label.kind:
+        raise _fail(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
+    stamps = facts.timestamps(label.clip)
+    if label.kind == "manual_track":
+        for i, a in enumerate(label.answers):
+            if task.classes and a.label not in task.classes:
+                raise _fail(name, ["answers", i, "label"], f"class {a.label!r} is not one of the task's: {', '.join(task.classes)}")
+            _check_boxes(a.boxes, stamps, name, ["answers", i, "boxes"])
+        return
+    items = _items(task, name, label)
+    for i, a in enumerate(label.answers):
+        item = items[a.track_id]
+        if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
+            raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
+        if label.kind == "correspondences":
+            if a.cad_id != item.cad_id:
+                raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")
+            seen = set()
+            for j, kf in enumerate(a.keyframes):
+                where = ["answers", i, "keyframes", j, "timestamp_us"]
+                if kf.timestamp_us not in stamps:
+                    raise _fail(name, where, f"{kf.timestamp_us} is not a frame of the clip")
+                if kf.timestamp_us in seen:
+                    raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
+                seen.add(kf.timestamp_us)
+
+
+def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
+                   data: bytes | None = None) -> LabelFile:
+    """Validate one label file: its format, and against the warehouse when ``wh`` (or ``facts``) is
+    given. Raises :class:`LabelError` naming the file and the field."""
+    path = Path(path)
+    name = str(path)
+    if data is None:
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise LabelError(f"{name}: $: cannot read: {e.strerror or e}") from None
+    label = parse_label(data, name)
+    if facts is None and wh is not None:
+        facts = ClipFacts(wh)
+    if facts is not None:
+        check_label(label, facts, name)
+    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label)
+
+
+def label_document(kind: str, clip: str, task_id: str, answers: list[dict], **header: Any) -> dict:
+    """A label document (plain JSON data) for ``kind``: what importers and simulated annotators write."""
+    return {"format": LABEL_FORMAT, "kind": kind, "task_id": task_id, "clip": clip, **header, "answers": answers}

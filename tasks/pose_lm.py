@@ -1,0 +1,230 @@
+"""Levenberg-Marquardt solver of the pose objective (:mod:`tasks.pose_solver`), batched over objects.
+
+The objective is the solver's L1 loss (reprojection + alpha · up + beta · front). It is minimised
+by iteratively reweighted least squares (weights 1 / max(|r|, eps), so the weighted squares equal
+the L1 terms at the current point) with Gauss-Newton steps on an *analytic* Jacobian, from the
+closed-form start: along the weakly observed depth <-> size direction (small baselines) this lands
+on the minimum in a few iterations where fixed-size gradient steps (Adam) crawl.
+
+Parameters per object, relative to the current pose: a rotation increment ``w`` (R <- R exp([w]x),
+no singularity), a translation step in units of ``scale_t`` (the distance to the cameras),
+log-scales ``ls`` (the scales are ``L exp(ls)`` with ``L`` float[B, 3, 3] the linear scale ties of
+:func:`tasks.pose_init.tie_scales`) and, for 36-way symmetric models, one rotation about +Y per
+key-frame ``phi``. The discrete symmetric rotation of every key-frame (2/4-way, and the 30-degree
+grid of 36-way models) is re-chosen at every iteration as the best at the current pose (the min
+of the objective). A step is kept only when it lowers the object's loss (then the damping
+shrinks; otherwise it grows), so the loss never increases; an object stops once its steps no
+longer help (its later iterations are skipped: per-object convergence mask).
+
+Frames: CAD points in the canonical CAD frame (unmirrored; the mirror ``diag(m, 1, 1)`` applies
+after the symmetric rotation), world +Y up, cameras world->camera OpenCV, pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+DTYPE = torch.float64
+IRLS_EPS_PX = 1e-3
+"""Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices float[B, 3, 3] of axis-angle vectors float[B, 3] (Rodrigues)."""
+    theta = torch.linalg.norm(w, dim=-1, keepdim=True)[..., None]  # float[B, 1, 1]
+    Kx = skew(w)
+    small = theta < 1e-8
+    t = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, 1 - theta**2 / 6, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(t)) / t**2)
+    return torch.eye(3, dtype=w.dtype) + a * Kx + b * (Kx @ Kx)
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """float[..., 3] -> cross-product matrices float[..., 3, 3] ([v]x u = v x u)."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([torch.stack([o, -z, y], -1), torch.stack([z, o, -x], -1), torch.stack([-y, x, o], -1)], -2)
+
+
+def scale_ties(axis: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
+    """The linear map L float[B, 3, 3] of :func:`tasks.pose_init.tie_scales` (s_tied = L s)."""
+    from tasks.pose_init import tie_scales
+
+    B = axis.shape[0]
+    eye = torch.eye(3, dtype=DTYPE)
+    cols = [tie_scales(eye[j].expand(B, 3), axis, tie36) for j in range(3)]
+    return torch.stack(cols, -1)
+
+
+@dataclass
+class Problem:
+    """The per-object data the LM needs (a view of :class:`tasks.pose_solver.Batch`).
+
+    pts float[B, P, 3]; uv float[B, P, 2] px; kf int[B, P]; pmask bool[B, P]; K, Rc float[B, F, 3, 3];
+    tc float[B, F, 3]; fmask bool[B, F]; mirror float[B]; upright bool[B]; offsets float[B, O]
+    (radians), omask bool[B, O]; L float[B, 3, 3] scale ties; free_phi float[B, F] (1: phi free);
+    scale_t float[B].
+    """
+
+    pts: torch.Tensor
+    uv: torch.Tensor
+    kf: torch.Tensor
+    pmask: torch.Tensor
+    K: torch.Tensor
+    Rc: torch.Tensor
+    tc: torch.Tensor
+    fmask: torch.Tensor
+    mirror: torch.Tensor
+    upright: torch.Tensor
+    offsets: torch.Tensor
+    omask: torch.Tensor
+    L: torch.Tensor
+    free_phi: torch.Tensor
+    scale_t: torch.Tensor
+
+    def __post_init__(self):
+        B, P = self.kf.shape
+        self.Rp = torch.gather(self.Rc, 1, self.kf[..., None, None].expand(B, P, 3, 3))
+        self.tp = torch.gather(self.tc, 1, self.kf[..., None].expand(B, P, 3))
+        self.Kp = torch.gather(self.K, 1, self.kf[..., None, None].expand(B, P, 3, 3))
+        self.npts = self.pmask.sum(1).clamp(min=1).to(DTYPE)
+        self.mvec = torch.stack([self.mirror, torch.ones_like(self.mirror), torch.ones_like(self.mirror)], -1)
+
+    def subset(self, idx: torch.Tensor) -> Problem:
+        return Problem(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+
+
+def _rotate_y(p: torch.Tensor, ang: torch.Tensor, derivative: bool = False) -> torch.Tensor:
+    c, s = torch.cos(ang), torch.sin(ang)
+    x, y, z = p.unbind(-1)
+    if derivative:
+        return torch.stack([-s * x + c * z, torch.zeros_like(y), -c * x - s * z], -1)
+    return torch.stack([c * x + s * z, y, -s * x + c * z], -1)
+
+
+def robust(d: torch.Tensor, huber_px: float) -> torch.Tensor:
+    """Per-coordinate reprojection loss of residuals d (px): |d| (L1, the paper's) or, with
+    ``huber_px`` > 0, the Huber loss d^2 / (2 huber_px) inside +-huber_px and |d| - huber_px / 2 outside."""
+    a = d.abs()
+    return a if huber_px <= 0 else torch.where(a <= huber_px, a * a / (2 * huber_px), a - huber_px / 2)
+
+
+def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, beta: float, huber_px: float = 0.0):
+    """Total loss float[B] (min over each key-frame's symmetric rotations) and the chosen offset
+    per key-frame int[B, F]."""
+    B, P = pb.kf.shape
+    F = pb.Rc.shape[1]
+    ang = pb.offsets[:, None, :] + torch.gather(phi, 1, pb.kf)[:, :, None]  # float[B, P, O]
+    x = _rotate_y(pb.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang) * pb.mvec[:, None, None]
+    world = torch.einsum("bij,bpoj->bpoi", R, x * s[:, None, None, :]) + T[:, None, None, :]
+    cam = torch.einsum("bpij,bpoj->bpoi", pb.Rp, world) + pb.tp[:, :, None, :]
+    depth = cam[..., 2]
+    proj = cam[..., :2] / depth.clamp(min=1e-6)[..., None]
+    pix = torch.einsum("bpij,bpoj->bpoi", pb.Kp[..., :2, :2], proj) + pb.Kp[:, :, None, :2, 2]
+    per_point = robust(pix - pb.uv[:, :, None, :], huber_px).sum(-1) * pb.pmask[..., None]
+    per_kf = torch.zeros(B, F, per_point.shape[2], dtype=DTYPE).scatter_add(1, pb.kf[..., None].expand_as(per_point), per_point)
+    per_kf = torch.where(pb.omask[:, None, :], per_kf, torch.full_like(per_kf, float("inf")))
+    best, choice = per_kf.min(-1)  # the rotation is chosen by the reprojection term (as the solver's evaluate)
+    best = torch.where(pb.fmask, best, torch.zeros_like(best))
+    z = torch.gather(depth, 2, torch.gather(choice, 1, pb.kf)[..., None])[..., 0]
+    front = (torch.relu(min_depth - z) * pb.pmask).sum(1)
+    up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.upright
+    return torch.nan_to_num((best.sum(1) + beta * front) / pb.npts + alpha * up, nan=float("inf")), choice
+
+
+def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
+    """Signed residuals float[B, N] (their absolute sum is the loss at the chosen rotations) and
+    their Jacobian float[B, N, 9 + F] with respect to (w, translation step, ls, phi)."""
+    B, P = pb.kf.shape
+    F = pb.Rc.shape[1]
+    s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
+    ang = torch.gather(pb.offsets, 1, torch.gather(choice, 1, pb.kf)) + torch.gather(phi, 1, pb.kf)  # float[B, P]
+    x = _rotate_y(pb.pts, ang) * pb.mvec[:, None]
+    dx = _rotate_y(pb.pts, ang, True) * pb.mvec[:, None]
+    y = x * s[:, None]
+    world = torch.einsum("bij,bpj->bpi", R, y) + T[:, None]
+    cam = torch.einsum("bpij,bpj->bpi", pb.Rp, world) + pb.tp
+    z = cam[..., 2]
+    zs = z.clamp(min=1e-6)
+    proj = cam[..., :2] / zs[..., None]
+    K2 = pb.Kp[..., :2, :2]
+    pix = torch.einsum("bpij,bpj->bpi", K2, proj) + pb.Kp[..., :2, 2]
+    w = pb.pmask.to(DTYPE) / pb.npts[:, None]  # float[B, P]
+    r_pix = (pix - pb.uv) * w[..., None]
+    # d proj / d cam: [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    dproj = torch.zeros(B, P, 2, 3, dtype=DTYPE)
+    dproj[..., 0, 0] = 1 / zs
+    dproj[..., 1, 1] = 1 / zs
+    dproj[..., :, 2] = -proj / zs[..., None]
+    dpix_dX = K2 @ dproj @ pb.Rp  # float[B, P, 2, 3]
+    # d world / d (w, t, ls): -R [y]x, scale_t I, R diag(x) L diag(exp ls)
+    G = torch.cat([-R[:, None] @ skew(y),
+                   pb.scale_t[:, None, None, None] * torch.eye(3, dtype=DTYPE).expand(B, P, 3, 3),
+                   (R[:, None] * x[..., None, :]) @ (pb.L * torch.exp(ls)[:, None, :])[:, None]], -1)  # float[B, P, 3, 9]
+    dX_dphi = torch.einsum("bij,bpj->bpi", R, dx * s[:, None])  # float[B, P, 3]
+    onehot = torch.nn.functional.one_hot(pb.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.kf)[..., None]
+    Jpix = torch.cat([dpix_dX @ G, torch.einsum("bpai,bpi->bpa", dpix_dX, dX_dphi)[..., None] * onehot[:, :, None, :]], -1)
+    Jpix = Jpix * w[..., None, None]  # float[B, P, 2, D]
+    # front of camera: beta * relu(min_depth - z) / npts
+    active = (z < min_depth).to(DTYPE) * w
+    r_front = beta * torch.relu(min_depth - z) * w
+    dz = torch.cat([pb.Rp[..., 2:, :] @ G, (pb.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
+    J_front = -beta * active[..., None] * dz[:, :, 0]  # float[B, P, D]
+    # up axis: alpha * (R e_y - e_y); d/dw = -alpha R [e_y]x
+    up = pb.upright.to(DTYPE)[:, None]
+    r_up = alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * up
+    e_y = torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE).expand(B, 3)
+    J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
+    J_up[..., :3] = -alpha * up[..., None] * (R @ skew(e_y))
+    r = torch.cat([r_pix.flatten(1), r_front, r_up], 1)
+    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up], 1)
+    return torch.nan_to_num(r), torch.nan_to_num(J)
+
+
+def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, iterations: int,
+             min_depth: float, alpha: float, beta: float, huber_px: float = 0.0, lam0: float = 1e-3, rtol: float = 1e-9
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Minimise the loss from poses R float[B, 3, 3], log-scales ls float[B, 3] (before the ties
+    ``pb.L``), T float[B, 3], phi float[B, F]. Returns the final (R, ls, T, phi) and the number of
+    iterations each object ran int[B]."""
+    B, F = phi.shape
+    R, ls, T, phi = R.clone(), ls.clone(), T.clone(), phi.clone()
+    lam = torch.full((B,), lam0, dtype=DTYPE)
+    run = torch.zeros(B, dtype=torch.long)
+    active = torch.ones(B, dtype=torch.bool)
+    s_of = lambda sub, l: torch.einsum("bij,bj->bi", sub.L, torch.exp(l))  # noqa: E731
+    loss, choice = loss_and_choice(pb, R, s_of(pb, ls), T, phi, min_depth, alpha, beta, huber_px)
+    for _ in range(iterations):
+        idx = torch.nonzero(active)[:, 0]
+        if len(idx) == 0:
+            break
+        sub = pb.subset(idx) if len(idx) < B else pb
+        Ri, lsi, Ti, phii = R[idx], ls[idx], T[idx], phi[idx]
+        r, J = residuals_jacobian(sub, Ri, lsi, Ti, phii, choice[idx], min_depth, alpha, beta)
+        # IRLS weights: L1 1/|r| (smoothed below IRLS_EPS_PX); Huber: 1/huber_px inside +-huber_px.
+        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.npts[:, None])
+        H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
+        g = torch.einsum("bnd,bn,bn->bd", J, wgt, r)
+        diag = H.diagonal(dim1=1, dim2=2)
+        damp = torch.diag_embed(lam[idx, None] * diag + 1e-9 * (diag.amax(-1, keepdim=True) + 1e-12))
+        delta = torch.nan_to_num(-torch.linalg.solve(H + damp, g[..., None])[..., 0])
+        cand = (Ri @ so3_exp(delta[:, :3]), lsi + delta[:, 6:9], Ti + sub.scale_t[:, None] * delta[:, 3:6],
+                phii + delta[:, 9:] * sub.free_phi)
+        loss1, choice1 = loss_and_choice(sub, cand[0], s_of(sub, cand[1]), cand[2], cand[3], min_depth, alpha, beta,
+                                         huber_px)
+        loss0 = loss[idx]
+        better = loss1 < loss0
+        R[idx] = torch.where(better[:, None, None], cand[0], Ri)
+        ls[idx] = torch.where(better[:, None], cand[1], lsi)
+        T[idx] = torch.where(better[:, None], cand[2], Ti)
+        phi[idx] = torch.where(better[:, None], cand[3], phii)
+        loss[idx] = torch.where(better, loss1, loss0)
+        choice[idx] = torch.where(better[:, None], choice1, choice[idx])
+        lam[idx] = torch.where(better, (lam[idx] * 0.3).clamp(min=1e-9), lam[idx] * 10)
+        run[idx] += 1
+        tiny = (loss0 - loss1).abs() <= rtol * loss0.abs() + 1e-12
+        active[idx] = ~((better & tiny) | (lam[idx] > 1e8))
+    return R, ls, T, phi, run

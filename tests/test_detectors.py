@@ -1,0 +1,165 @@
+"""Detector adapters on tiny torch models exported to ONNX here, letterbox geometry, NMS, config."""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from cadestate.config import ConfigError, DetectConfig, config_from_dict  # noqa: E402
+from tasks.detectors import Detector, Letterbox, letterbox, load_detector, nms  # noqa: E402
+from tasks.models import nanodet as nd  # noqa: E402
+
+
+class FixedOutputs(torch.nn.Module):
+    """Returns constant tensors (one per output) for every image of the batch, whatever it shows,
+    plus 0 x the image mean so the graph depends on its input."""
+
+    def __init__(self, outputs: list[np.ndarray]) -> None:
+        super().__init__()
+        self.values = torch.nn.ParameterList([torch.nn.Parameter(torch.from_numpy(o), requires_grad=False) for o in outputs])
+
+    def forward(self, x):
+        zero = x.mean(dim=(1, 2, 3)) * 0
+        return tuple(v.unsqueeze(0) + zero.view(-1, *([1] * v.dim())) for v in self.values)
+
+
+def export(module: torch.nn.Module, path, size: int, dynamic_batch: bool, n_outputs: int) -> None:
+    names = [f"out{i}" for i in range(n_outputs)]
+    axes = {"images": {0: "batch"}, **{n: {0: "batch"} for n in names}} if dynamic_batch else None
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter is deprecated but needs no onnxscript
+        torch.onnx.export(module, torch.zeros(1, 3, size, size), buf, dynamo=False, input_names=["images"],
+                          output_names=names, dynamic_axes=axes, opset_version=17)
+    path.write_bytes(buf.getvalue())
+
+
+# ---- YOLOv8 layout --------------------------------------------------------------------------------
+LABELS = ("chair", "sofa", "table")
+
+
+def yolo_outputs(size: int = 64, transposed: bool = False) -> np.ndarray:
+    """[4 + 3, N] with N = 6 anchors: (cx, cy, w, h) in canvas px, then 3 class scores."""
+    rows = [  # cx, cy, w, h, chair, sofa, table
+        (20, 32, 10, 20, 0.9, 0.1, 0.0),   # chair 0.9
+        (21, 32, 10, 20, 0.8, 0.0, 0.0),   # chair 0.8, IoU 0.82 with the first: suppressed
+        (21, 32, 10, 20, 0.0, 0.7, 0.0),   # sofa on the same spot: another class, kept
+        (50, 40, 8, 8, 0.0, 0.0, 0.5),     # table 0.5
+        (10, 10, 4, 4, 0.2, 0.0, 0.0),     # below the threshold
+        (40, 20, 6, 6, 0.0, 0.0, 0.36),    # table 0.36
+    ]
+    out = np.array(rows, np.float32).T
+    return np.ascontiguousarray(out.T if transposed else out)
+
+
+@pytest.mark.parametrize("transposed", [False, True])
+def test_yolov8_adapter_on_exported_model(tmp_path, transposed):
+    path = tmp_path / "yolo.onnx"
+    export(FixedOutputs([yolo_outputs(transposed=transposed)]), path, 64, dynamic_batch=True, n_outputs=1)
+    det = Detector(path, "yolov8", LABELS, 64, score_threshold=0.3, nms_iou=0.6, batch_size=2)
+    assert det.batch_size == 2
+    images = [np.zeros((32, 64, 3), np.uint8), np.zeros((64, 32, 3), np.uint8), np.zeros((64, 64, 3), np.uint8)]
+    wide, tall, square = det.detect(images)  # two network calls: a batch of 2, then 1
+    assert square.names == ("chair", "sofa", "table", "table")
+    np.testing.assert_allclose(square.scores, [0.9, 0.7, 0.5, 0.36], atol=1e-6)
+    np.testing.assert_allclose(square.boxes[0], [15, 22, 25, 42], atol=1e-4)
+    # a 32 x 64 image sits at pad_y = 16 of the 64 x 64 canvas, scale 1: boxes shift up and clip
+    np.testing.assert_allclose(wide.boxes[0], [15, 6, 25, 26], atol=1e-4)
+    np.testing.assert_allclose(wide.boxes[3], [37, 1, 43, 7], atol=1e-4)
+    # a 64 x 32 image: pad_x = 16
+    np.testing.assert_allclose(tall.boxes[0], [0, 22, 9, 42], atol=1e-4)
+    assert square.labels.tolist() == [0, 1, 2, 2]
+    few = Detector(path, "yolov8", LABELS, 64, score_threshold=0.3, max_detections=2).detect(images[2:])[0]
+    assert few.names == ("chair", "sofa")
+
+
+def test_yolov8_adapter_rejects_a_wrong_label_map(tmp_path):
+    path = tmp_path / "yolo.onnx"
+    export(FixedOutputs([yolo_outputs()]), path, 64, dynamic_batch=True, n_outputs=1)
+    det = Detector(path, "yolov8", ("a", "b", "c", "d", "e"), 64)
+    with pytest.raises(ValueError, match="5 labels"):
+        det.detect([np.zeros((64, 64, 3), np.uint8)])
+
+
+# ---- NanoDet layout ---------------------------------------------------------------------------------
+def nanodet_outputs(size: int = 64, num_labels: int = 3) -> list[np.ndarray]:
+    """Six outputs [N, C] / [N, 44] per stride with one confident cell: stride 16, row 1, col 2,
+    class 1 at 0.9, one-hot distance bins (left 3, top 2, right 1, bottom 0)."""
+    outs = []
+    for s in nd.STRIDES:
+        n = (size // s) ** 2
+        cls = np.full((n, num_labels), 0.01, np.float32)
+        box = np.zeros((n, 44), np.float32)
+        if s == 16:
+            cell = 1 * (size // s) + 2
+            cls[cell, 1] = 0.9
+            logits = np.zeros((4, 11), np.float32)
+            logits[np.arange(4), [3, 2, 1, 0]] = 60.0
+            box[cell] = logits.reshape(44)
+        outs += [cls, box]
+    return outs
+
+
+def test_nanodet_adapter_on_exported_model(tmp_path):
+    path = tmp_path / "nanodet.onnx"
+    export(FixedOutputs(nanodet_outputs()), path, 64, dynamic_batch=False, n_outputs=6)
+    det = Detector(path, "nanodet", LABELS, 64, score_threshold=0.3, batch_size=8)
+    assert det.batch_size == 1  # fixed batch: one image per call
+    a, b = det.detect([np.zeros((64, 64, 3), np.uint8), np.zeros((32, 64, 3), np.uint8)])
+    # cell centre ((2 + 0.5) * 16, (1 + 0.5) * 16) = (40, 24); distances 48, 32, 16, 0
+    assert a.names == ("sofa",) and a.scores[0] == pytest.approx(0.9)
+    np.testing.assert_allclose(a.boxes[0], [0, 0, 56, 24], atol=1e-3)  # x1 = -8 clipped
+    np.testing.assert_allclose(b.boxes[0], [0, 0, 56, 8], atol=1e-3)  # pad_y 16
+    with pytest.raises(ValueError, match="input is 64x64"):
+        Detector(path, "nanodet", LABELS, 416)
+
+
+def test_nanodet_candidates_use_cell_centres():
+    boxes, scores, labels = nd.candidates(nanodet_outputs(), 64, 3, 0.3)
+    assert labels.tolist() == [1] and scores.tolist() == pytest.approx([0.9])
+    np.testing.assert_allclose(boxes[0], [-8, -8, 56, 24], atol=1e-3)
+
+
+# ---- shared pieces ------------------------------------------------------------------------------------
+def test_letterbox_geometry_and_round_trip():
+    img = np.zeros((300, 451, 3), np.uint8)
+    img[..., 0] = 255  # red
+    canvas, lb = letterbox(img, 416, fill=7.0)
+    assert canvas.shape == (416, 416, 3) and lb.scale == pytest.approx(416 / 451)
+    assert lb.pad == (0, (416 - round(300 * lb.scale)) // 2) == Letterbox.of((300, 451), 416).pad
+    np.testing.assert_allclose(canvas[lb.pad[1] + 5, 10], [255, 0, 0], atol=1e-3)
+    np.testing.assert_allclose(canvas[0, 0], [7, 7, 7])
+    x = nd.prepare(canvas)
+    np.testing.assert_allclose(x[:, lb.pad[1] + 5, 10], (np.array([0, 0, 255], np.float32) - nd.MEAN) / nd.STD, atol=1e-4)
+    boxes = np.array([[10, 20, 200, 290], [0, 0, 451, 300]], np.float32)
+    np.testing.assert_allclose(lb.to_image(lb.to_canvas(boxes)), boxes, atol=1e-3)
+
+
+def test_class_aware_nms():
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [1, 0, 11, 10], [50, 50, 60, 60]], np.float64)
+    scores = np.array([0.9, 0.8, 0.7, 0.6])
+    labels = np.array([0, 0, 1, 0])
+    assert nms(boxes, scores, labels, 0.6).tolist() == [0, 2, 3]
+    assert nms(boxes, scores, labels, 0.9).tolist() == [0, 1, 2, 3]
+    assert nms(boxes[:0], scores[:0], labels[:0], 0.5).tolist() == []
+
+
+def test_detect_config_label_map_and_errors(tmp_path):
+    cfg = config_from_dict({"detect": {"adapter": "yolov8", "labels": ["a", "b"], "input_size": 640}})
+    assert cfg.detect.labels == ("a", "b")
+    with pytest.raises(ConfigError, match=r"\[detect\] labels: expected a list of strings"):
+        config_from_dict({"detect": {"labels": "chair"}})
+    with pytest.raises(ConfigError, match="adapter"):
+        config_from_dict({"detect": {"adapter": "ssd"}})
+    with pytest.raises(FileNotFoundError, match="nothere.onnx"):
+        load_detector(DetectConfig(model=str(tmp_path / "nothere.onnx")))
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="junk.onnx: not a loadable ONNX model"):
+        load_detector(DetectConfig(model=str(tmp_path / "junk.onnx")))
+    with pytest.raises(ValueError, match=r"classes \['sofa'\]"):
+        load_detector(DetectConfig(model=str(tmp_path / "junk.onnx"), labels=("a",), classes=("sofa",)))

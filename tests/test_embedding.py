@@ -1,0 +1,158 @@
+"""The appearance embedder (NanoDet-m backbone), whitening, and the detect / embed / cad_embed stages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cadestate.config import CadEmbedConfig, DetectConfig, EmbedConfig, FramesConfig, IngestConfig
+from tasks.models import nanodet as nd
+from tasks.whitening import fit_whitening, read_whitening, whitening_table
+
+pytestmark = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
+                                reason="the NanoDet-m model is not built (`make models`, which `make test` runs)")
+
+
+@pytest.fixture(scope="module")
+def embedder():
+    from tasks.models.embedder import load_embedder
+
+    return load_embedder(EmbedConfig())
+
+
+def photos():
+    from skimage import data
+
+    return data.chelsea(), data.stereo_motorcycle()[0]
+
+
+def test_embedder_is_deterministic_and_unit_norm(embedder):
+    from tasks.models.embedder import load_embedder
+
+    cat, moto = photos()
+    boxes = np.array([[0, 0, 420, 300], [100, 50, 300, 250], [10, 10, 60, 40]], np.float64)
+    a = embedder.embed(cat, boxes)
+    assert a.shape == (3, 768) and a.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1, atol=1e-5)
+    b = load_embedder(EmbedConfig(batch_size=1, threads=1)).embed(cat, boxes)  # other batching, threads
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    np.testing.assert_array_equal(a[1], embedder.embed(cat, boxes[1:2])[0])  # alone or with others
+    assert load_embedder(EmbedConfig()).sha256 == embedder.sha256  # the cut graph is byte-stable
+
+
+def test_embedder_sees_the_object_not_the_frame(embedder):
+    cat, moto = photos()
+    cat_v = embedder.embed(cat, [[0, 0, 420, 300]])[0]
+    cat_small = embedder.embed(cat[::2, ::2].copy(), [[0, 0, 210, 150]])[0]  # same cat, half the pixels
+    moto_v = embedder.embed(moto, [[92, 78, 686, 452]])[0]
+    assert cat_v @ cat_small > 0.95 and cat_v @ cat_small > cat_v @ moto_v + 0.1
+
+
+def test_crops_are_clipped_and_size_checked(embedder):
+    from tasks.models.embedder import Embedder, crop_boxes
+
+    np.testing.assert_array_equal(crop_boxes(np.array([[10, 10, 20, 30]]), (40, 50), 0.5),
+                                  [[5, 0, 25, 40]])  # grown 5 / 10 px per side, clipped to the image
+    np.testing.assert_array_equal(crop_boxes(np.array([[49.5, 39.5, 49.5, 39.5]]), (40, 50), 0.1),
+                                  [[49, 39, 50, 40]])  # a degenerate box still gives one pixel
+    x = embedder.crops(np.zeros((40, 50, 3), np.uint8), np.array([[0, 0, 50, 40]]))
+    assert x.shape == (1, 3, 128, 128)
+    with pytest.raises(ValueError, match="multiple of 32"):
+        Embedder(nd.default_cache_dir() / nd.ONNX_NAME, crop_size=100)
+
+
+def test_whitening_centres_and_whitens():
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(500, 16)) * np.linspace(5, 0.1, 16) + 3.0
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    none, centre, white = (fit_whitening(v, m, 8) for m in ("none", "centre", "whiten"))
+    np.testing.assert_allclose(none.apply(v), v, atol=1e-6)
+    assert abs(centre.apply(v).mean(0)).max() < abs(v.mean(0)).max()
+    w = (v - white.mean) @ white.projection.T
+    eig = np.linalg.eigvalsh(np.cov(w.T))
+    assert white.projection.shape == (8, 16) and eig.max() < 1.0 and eig.min() > 0.5  # near-identity (shrunk)
+    np.testing.assert_allclose(np.linalg.norm(white.apply(v), axis=1), 1, atol=1e-5)
+    again = fit_whitening(v[::-1], "whiten", 8)  # order of the views does not matter
+    np.testing.assert_allclose(again.apply(v), white.apply(v), atol=1e-4)
+    table = whitening_table("lib", white, len(v))
+    assert table.num_rows == 1 and table["dims"][0].as_py() == 8
+
+
+# ---- stages ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def detected(small_clip, tmp_path_factory):
+    from tasks.detect import detect_clip
+    from tasks.embed import embed_clip
+    from tasks.frames import extract_frames
+    from tasks.ingest import ClipSource, ingest_clip
+    from cadestate.lineage import file_sha256
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path_factory.mktemp("det_wh"))
+    source = ClipSource("small", small_clip.video_path, small_clip.cameras_path)
+    ingest_clip(wh, IngestConfig(), source, file_sha256(source.video), file_sha256(source.cameras), "r0")
+    extract_frames(wh, FramesConfig(), "small", "r1", show_progress=False)
+    cfg = DetectConfig(score_threshold=0.2)
+    out = detect_clip(wh, cfg, "small", "r2", show_progress=False)
+    emb = embed_clip(wh, EmbedConfig(), "small", "r3", show_progress=False)
+    return wh, cfg, out, emb
+
+
+def test_detect_and_embed_stages(detected):
+    from tasks.detect import DET_ID_STRIDE, detect_clip
+    from tasks.embed import embed_clip
+
+    wh, cfg, out, emb = detected
+    dets = wh.read("detections").to_pylist()
+    assert out.rows_written == len(dets) > 0
+    frames = {f["frame_index"]: f["timestamp_us"] for f in wh.read("frames").to_pylist()}
+    for d in dets:
+        ymin, xmin, ymax, xmax = d["box"]
+        assert 0 <= ymin < ymax <= 1 and 0 <= xmin < xmax <= 1
+        assert d["timestamp_us"] == frames[d["frame_index"]] and d["det_id"] // DET_ID_STRIDE == d["frame_index"]
+        assert d["score"] >= cfg.score_threshold and d["label"] == nd.COCO_LABELS[d["label_id"]]
+        assert d["model_sha256"] == nd.ONNX_SHA256
+    per_frame = {}
+    for d in sorted(dets, key=lambda d: d["det_id"]):
+        per_frame.setdefault(d["frame_index"], []).append(d["score"])
+    assert all(s == sorted(s, reverse=True) for s in per_frame.values())  # rank = by score
+    vectors = wh.read("embeddings").to_pylist()
+    assert sorted(v["owner_id"] for v in vectors) == sorted(d["det_id"] for d in dets) and emb.rows_written == len(dets)
+    assert {v["owner"] for v in vectors} == {"detection"} and len(vectors[0]["vector"]) == 768
+    # reruns are idempotent: same rows, same output digests
+    assert detect_clip(wh, cfg, "small", "r4", show_progress=False).output_hash == out.output_hash
+    assert embed_clip(wh, EmbedConfig(), "small", "r5", show_progress=False).output_hash == emb.output_hash
+    # the label filter drops other classes before ranking
+    only = detect_clip(wh, DetectConfig(score_threshold=0.2, classes=(dets[0]["label"],)), "small", "r6", show_progress=False)
+    kept = wh.read("detections").to_pylist()
+    assert {d["label"] for d in kept} == {dets[0]["label"]} and only.rows_written == len(kept) <= len(dets)
+
+
+def test_detect_needs_frames(wh):
+    from tasks.detect import detect_clip
+
+    with pytest.raises(LookupError, match="clip nope has no frames"):
+        detect_clip(wh, DetectConfig(), "nope", "r", show_progress=False)
+
+
+def test_cad_embed_stage(small_cad_library):
+    from cadestate.config import CadViewsConfig
+    from tasks.cad_embed import embed_library, object_box
+    from tasks.cad_views import render_library
+
+    wh, models = small_cad_library
+    render_library(wh, CadViewsConfig(views=2, size=96), "sh3d-small", "v1", show_progress=False)
+    out = embed_library(wh, EmbedConfig(), CadEmbedConfig(whitening="whiten", whitening_dims=8), "sh3d-small", "e1",
+                        show_progress=False)
+    rows = wh.read("cad_embeddings").to_pylist()
+    assert len(rows) == 2 * len(models) and out.rows_written == len(rows) + 1 + len(models)  # + whitening + model means
+    assert wh.read("cad_model_embeddings").num_rows == len(models)
+    w = read_whitening(wh, "sh3d-small")
+    assert w.method == "whiten" and w.projection.shape == (8, 768)
+    v = np.array([r["vector"] for r in rows], np.float32)
+    np.testing.assert_allclose(np.linalg.norm(w.apply(v), axis=1), 1, atol=1e-5)
+    white = np.full((10, 12, 3), 255, np.uint8)
+    white[2:5, 3:9] = 0
+    np.testing.assert_array_equal(object_box(white), [[3, 2, 9, 5]])
+    with pytest.raises(LookupError, match="no embedding whitening for CAD library 'other'"):
+        read_whitening(wh, "other")

@@ -1,0 +1,447 @@
+"""Task and label files of the human tasks: schemas, validation (with fuzzing), ingest, supersession, tool imports."""
+
+from __future__ import annotations
+
+import copy
+import datetime as dt
+import json
+import random
+import shutil
+from pathlib import Path
+
+import jsonschema
+import pyarrow as pa
+import pytest
+from typer.testing import CliRunner
+
+from cadestate.cli import app
+from schemas import TABLES
+from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
+                            ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
+                            json_schema, schema_file_name)
+from tasks.label_import import import_cvat, import_labelstudio, write_label
+from tasks.label_ingest import answers_digest, current_answers, ingest_labels, label_history
+from tasks.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
+from warehouse import Warehouse
+
+CLIP = "c1"
+W, H = 320, 192
+STAMPS = [i * 100_000 for i in range(10)]  # 10 frames, 10 fps
+NOW = "2026-01-01T00:00:00+00:00"
+CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
+TOP = [[-0.4, 0.5, -0.3], [0.4, 0.5, -0.3], [0.4, 0.5, 0.3], [-0.4, 0.5, 0.3]]  # y = 0.5: co-planar, normal +Y
+
+
+def _dummy(field: pa.Field):
+    t = field.type
+    if pa.types.is_fixed_size_list(t):
+        return [0.0] * t.list_size
+    if pa.types.is_timestamp(t):
+        return dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    if pa.types.is_string(t):
+        return "x"
+    return 1
+
+
+def _rows(table: str, rows: list[dict]) -> pa.Table:
+    schema = TABLES[table].schema
+    return pa.Table.from_pylist([{f.name: r.get(f.name, _dummy(f)) for f in schema} for r in rows], schema=schema)
+
+
+def _kf(ts: int, box=(0.2, 0.2, 0.6, 0.6)) -> KeyframeView:
+    return KeyframeView(timestamp_us=ts, frame_index=ts // 100_000, image_path=f"media/frames/{CLIP}/v/{ts}.jpg", box=box)
+
+
+def _candidates(ids: list[str]) -> tuple[CadCandidate, ...]:
+    return tuple(CadCandidate(rank=i + 1, cad_id=c, library="lib", cad_class="chair", score=0.5, mesh_path=f"media/cad/{c}.glb",
+                              render_paths=(f"media/cad_views/{c}/0.png",)) for i, c in enumerate(ids))
+
+
+def _tasks() -> list:
+    head = dict(clip=CLIP, created_at=NOW, image_size=(H, W))
+    return [
+        ManualTrackTask(task_id="c1.mt", **head, keyframes=tuple(_kf(t) for t in STAMPS[::2]), classes=("chair", "table"),
+                        existing_tracks=(ExistingTrack(track_id=0, label="chair", boxes=(TimedBox(timestamp_us=0, box=(0.1, 0.1, 0.3, 0.3)),)),)),
+        CadSelectionTask(task_id="c1.cs", **head, items=tuple(
+            CadSelectionItem(track_id=t, label="chair", keyframes=(_kf(0), _kf(500_000)), candidates=_candidates([f"m{t}a", f"m{t}b"]))
+            for t in (0, 1, 2))),
+        CorrespondenceTask(task_id="c1.co", **head, items=tuple(
+            CorrespondenceItem(track_id=t, label="chair", cad_id=f"m{t}a", library="lib", mesh_path=f"media/cad/m{t}a.glb",
+                               render_paths=(), symmetry=1, keyframes=(_kf(0), _kf(300_000), _kf(600_000))) for t in (0, 1))),
+        VerificationTask(task_id="c1.ve", **head, items=tuple(
+            VerificationItem(track_id=t, label="chair", cad_id=f"m{t}a", mesh_path="m.glb",
+                             pose=Pose(translation=(0, 0, 2), rotation=(1, 0, 0, 0), scale=(1, 1, 1), is_mirrored=False),
+                             keyframes=(_kf(0),)) for t in (0, 1))),
+    ]
+
+
+@pytest.fixture(scope="module")
+def base_wh(tmp_path_factory) -> Path:
+    wh = Warehouse(tmp_path_factory.mktemp("labels") / "wh")
+    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    wh.write("frames", CLIP, _rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "video_time_us": t + 1000,
+                                               "width": W, "height": H} for i, t in enumerate(STAMPS)]))
+    for task in _tasks():
+        write_task(wh, task)
+    return wh.root
+
+
+@pytest.fixture
+def lwh(base_wh, tmp_path) -> Warehouse:
+    shutil.copytree(base_wh, tmp_path / "wh")
+    return Warehouse(tmp_path / "wh")
+
+
+def good(kind: str) -> dict:
+    return copy.deepcopy(_good(kind))
+
+
+def _good(kind: str) -> dict:
+    head = {"format": "cadestate-label/1", "kind": kind, "clip": CLIP, "annotator": "ann", "created_at": NOW}
+    if kind == "manual_track":
+        return {**head, "task_id": "c1.mt", "answers": [{"label": "table", "boxes": [
+            {"timestamp_us": 0, "box": [0.5, 0.5, 0.9, 0.8]}, {"timestamp_us": 400_000, "box": [0.5, 0.4, 0.9, 0.7]}]}]}
+    if kind == "cad_selection":
+        return {**head, "task_id": "c1.cs", "answers": [{"track_id": 0, "cad_id": "m0b"}, {"track_id": 1, "cad_id": None}]}
+    if kind == "correspondences":
+        pts = lambda xyz: [{"x": 0.1 + 0.1 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(xyz)]  # noqa: E731
+        return {**head, "task_id": "c1.co", "answers": [{"track_id": 0, "cad_id": "m0a", "is_mirrored": True, "keyframes": [
+            {"timestamp_us": 0, "points": pts(CUBE)}, {"timestamp_us": 300_000, "points": pts(TOP)}]}]}
+    return {**head, "task_id": "c1.ve", "answers": [{"track_id": 0, "verdict": "accept"}, {"track_id": 1, "verdict": "reject",
+                                                                                             "comment": "off by a lot"}]}
+
+
+def put(folder: Path, name: str, doc) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_text(doc if isinstance(doc, str) else json.dumps(doc))
+    return path
+
+
+# ------------------------------------------------------------------------------ schemas
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("which", ["task", "label"])
+def test_schemas_are_valid_and_published(kind, which):
+    schema = json_schema(kind, which)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    published = Path(__file__).parent.parent / "schemas" / "json" / schema_file_name(kind, which)
+    assert json.loads(published.read_text()) == schema, "run `cadestate labels schema --write schemas/json`"
+
+
+def test_good_labels_and_tasks(lwh, tmp_path):
+    for kind in KINDS:
+        lf = validate_label(put(tmp_path, f"{kind}.json", good(kind)), lwh)
+        assert lf.kind == kind and lf.clip == CLIP and len(lf.sha256) == 64
+        jsonschema.validate(good(kind), json_schema(kind, "label"))
+    assert lwh.read("label_tasks").num_rows == 4
+    write_task(lwh, _tasks()[1])  # the same task again: nothing new
+    assert lwh.read("label_tasks").num_rows == 4
+    task_file = lwh.root / lwh.read("label_tasks").to_pylist()[0]["path"]
+    jsonschema.validate(json.loads(task_file.read_text()), json_schema(json.loads(task_file.read_text())["kind"], "task"))
+    assert new_task_id("cad_selection", CLIP, "a") == new_task_id("cad_selection", CLIP, "a") != new_task_id("cad_selection", CLIP, "b")
+
+
+def test_write_task_rejects_a_bad_task(lwh):
+    bad = ManualTrackTask(task_id="c1.bad", clip=CLIP, created_at=NOW, image_size=(H, W), keyframes=(_kf(0, box=(0.1, 0.1, 1.5, 0.5)),),
+                          existing_tracks=(), classes=())
+    with pytest.raises(LabelError, match=r"\$\.keyframes\[0\]\.box\[2\]"):
+        write_task(lwh, bad)
+
+
+def _edit(kind, fn):
+    doc = good(kind)
+    fn(doc)
+    return doc
+
+
+MALFORMED = [
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][3].__setitem__("x", float("nan")),
+     r"\$\.answers\[0\]\.keyframes\[0\]\.points\[3\]\.x: not a finite number"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][1].__setitem__("y", 1.2),
+     r"\$\.answers\[0\]\.keyframes\[0\]\.points\[1\]\.y: 1.2 is greater than the maximum of 1"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"][0]["xyz"].__setitem__(2, float("inf")),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points\[0\]\.xyz\[2\]: not a finite number"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"].pop(),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points: .*(too short|non-empty|fewer)"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 123),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: 123 is not a frame of the clip"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 0),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: key-frame 0 is answered twice"),
+    ("correspondences", lambda d: d["answers"][0].__setitem__("cad_id", "m0b"), r"\$\.answers\[0\]\.cad_id: 'm0b' is not the task's model"),
+    ("correspondences", lambda d: d["answers"][0].__setitem__("track_id", 7), r"\$\.answers\[0\]\.track_id: unknown track 7"),
+    ("cad_selection", lambda d: d["answers"][0].__setitem__("cad_id", "m1a"), r"\$\.answers\[0\]\.cad_id: 'm1a' is not a candidate of track 0"),
+    ("cad_selection", lambda d: d["answers"][1].__setitem__("track_id", 0), r"\$\.answers\[1\]\.track_id: track 0 is answered twice"),
+    ("cad_selection", lambda d: d["answers"][0].__setitem__("track_id", "0"), r"\$\.answers\[0\]\.track_id: '0' is not of type 'integer'"),
+    ("cad_selection", lambda d: d.__setitem__("clip", "nope"), r"\$\.clip: unknown clip 'nope'"),
+    ("cad_selection", lambda d: d.__setitem__("task_id", "c1.zz"), r"\$\.task_id: unknown task 'c1.zz'"),
+    ("cad_selection", lambda d: d.__setitem__("task_id", "c1.ve"), r"\$\.kind: task c1.ve is a verification task"),
+    ("cad_selection", lambda d: d.__setitem__("kind", "cad"), r"\$\.kind: must be one of"),
+    ("cad_selection", lambda d: d.pop("answers"), r"\$: 'answers' is missing"),
+    ("cad_selection", lambda d: d.__setitem__("extra", 1), r"\$: unknown field\(s\) 'extra'"),
+    ("cad_selection", lambda d: d.__setitem__("created_at", "yesterday"), r"\$\.created_at: not an ISO 8601"),
+    ("verification", lambda d: d["answers"][0].__setitem__("verdict", "maybe"), r"\$\.answers\[0\]\.verdict: 'maybe' is not one of"),
+    ("manual_track", lambda d: d["answers"][0]["boxes"][0].__setitem__("box", [0.5, 0.5, 0.4, 0.8]),
+     r"\$\.answers\[0\]\.boxes\[0\]\.box: empty box"),
+    ("manual_track", lambda d: d["answers"][0]["boxes"][1].__setitem__("box", [0.5, 0.5, 0.9, -0.1]),
+     r"\$\.answers\[0\]\.boxes\[1\]\.box\[3\]: -0.1 is less than the minimum of 0"),
+    ("manual_track", lambda d: d["answers"][0].__setitem__("label", "lamp"), r"\$\.answers\[0\]\.label: class 'lamp' is not one of"),
+]
+
+
+@pytest.mark.parametrize("kind, edit, message", MALFORMED)
+def test_malformed_labels_name_file_and_field(lwh, tmp_path, kind, edit, message):
+    path = put(tmp_path / "labels", "x.json", json.dumps(_edit(kind, edit)))
+    with pytest.raises(LabelError) as e:
+        validate_label(path, lwh)
+    assert str(e.value).startswith(f"{path}: ")
+    assert __import__("re").search(message, str(e.value)), str(e.value)
+
+
+@pytest.mark.parametrize("text, message", [
+    ('{"a": 1, "a": 2}', "duplicate key 'a'"), ("{", "not valid JSON"), ("[1, 2]", "expected a JSON object"),
+    (b"\xff\xfe", "not UTF-8"), ("", "not valid JSON"),
+])
+def test_unreadable_documents(tmp_path, text, message):
+    path = tmp_path / "bad.json"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(LabelError, match=message):
+        validate_label(path)
+
+
+# ------------------------------------------------------------------------------ fuzzing
+
+def _paths(doc, path=()):
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+    for k, v in items:
+        yield (*path, k), v
+        yield from _paths(v, (*path, k))
+
+
+def _set(doc, path, value):
+    for k in path[:-1]:
+        doc = doc[k]
+    if value is _DELETE:
+        del doc[path[-1]]
+    else:
+        doc[path[-1]] = value
+
+
+_DELETE = object()
+
+
+def mutations(doc: dict, rng: random.Random, n: int):
+    """(mutated text, must_fail) pairs: deletions, type changes, NaN, out-of-range values, truncation, byte flips."""
+    text = json.dumps(doc)
+    nodes = list(_paths(doc))
+    for _ in range(n):
+        path, value = rng.choice(nodes)
+        d = copy.deepcopy(doc)
+        op = rng.randrange(8)
+        if op == 0:
+            _set(d, path, _DELETE)
+            yield json.dumps(d), False
+        elif op == 1:
+            _set(d, path, {"junk": 1})  # no field of any label accepts this object
+            yield json.dumps(d), True
+        elif op == 2 and isinstance(value, (int, float)) and not isinstance(value, bool):
+            _set(d, path, rng.choice([float("nan"), float("inf"), -float("inf")]))
+            yield json.dumps(d), True
+        elif op == 3 and isinstance(value, (int, float)) and not isinstance(value, bool):
+            _set(d, path, str(value))
+            yield json.dumps(d), True
+        elif op == 4 and isinstance(value, str):
+            _set(d, path, 7)
+            yield json.dumps(d), True
+        elif op == 5 and isinstance(value, (int, float)) and not isinstance(value, bool):
+            _set(d, path, rng.choice([-1, 2, 1e12, -0.5, 1.5]))
+            yield json.dumps(d), False
+        elif op == 6:
+            yield text[:rng.randrange(len(text))], True
+        else:
+            i = rng.randrange(len(text))
+            yield text[:i] + rng.choice('{}[]",:0a-') + text[i + 1:], False
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_fuzzed_labels_raise_label_error_naming_the_file(lwh, tmp_path, kind):
+    rng = random.Random(f"fuzz-{kind}")
+    facts = ClipFacts(lwh)
+    failed = 0
+    for i, (text, must_fail) in enumerate(mutations(good(kind), rng, 60)):
+        path = put(tmp_path, f"{kind}-{i}.json", text)
+        try:
+            validate_label(path, facts=facts)
+        except LabelError as e:
+            failed += 1
+            assert str(e).startswith(f"{path}: $"), str(e)
+        else:
+            assert not must_fail, f"accepted: {text}"
+    assert failed >= 30
+
+
+# ------------------------------------------------------------------------------ ingest
+
+def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
+    d = tmp_path / "labels"
+    for kind in KINDS:
+        put(d, f"{kind}.json", good(kind))
+    put(d, "bad.json", _edit("verification", lambda x: x["answers"][0].__setitem__("track_id", 9)))
+    put(d / ".hidden", "skip.json", "not json")
+    first = ingest_labels(lwh, d)
+    assert len(first.ingested) == 4 and first.clips == [CLIP]
+    assert first.errors == [f"{d / 'bad.json'}: $.answers[0].track_id: unknown track 9 (task c1.ve has tracks 0, 1)"]
+    counts = {t: lwh.read(t).num_rows for t in ("label_files", "manual_track_labels", "cad_selection_labels",
+                                                "correspondence_labels", "verification_labels", "correspondences")}
+    assert counts == {"label_files": 4, "manual_track_labels": 2, "cad_selection_labels": 2, "correspondence_labels": 9,
+                      "verification_labels": 2, "correspondences": 9}
+    shutil.copy(d / "verification.json", d / "copy.json")
+    again = ingest_labels(lwh, d)
+    assert again.ingested == [] and len(again.duplicates) == 5 and again.clips == []
+    assert {t: lwh.read(t).num_rows for t in counts} == counts
+    corr = lwh.read("correspondences").to_pylist()
+    assert {r["track_id"] for r in corr} == {"0"} and all(r["is_mirrored"] for r in corr)
+    rows = lwh.read("correspondence_labels").to_pylist()
+    assert {r["timestamp_us"]: (r["keyframe_coplanar"], r["keyframe_coplanar_axis"]) for r in rows} == {0: (False, -1), 300_000: (True, 1)}
+    assert {r["track_coplanar_axis"] for r in rows} == {-1} and first.coplanar_keyframes == 1
+    sel = lwh.read("cad_selection_labels").to_pylist()
+    assert [(r["track_id"], r["cad_id"], r["rank"]) for r in sel] == [(0, "m0b", 2), (1, None, None)]
+
+
+def test_supersession_keeps_history(lwh, tmp_path):
+    ingest_labels(lwh, put(tmp_path / "a", "sel.json", good("cad_selection")))
+    newer = _edit("cad_selection", lambda d: d.__setitem__("answers", [{"track_id": 0, "cad_id": "m0a"}]))  # partial: track 0 only
+    ingest_labels(lwh, put(tmp_path / "b", "sel.json", newer))
+    now = {r["track_id"]: r["cad_id"] for r in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()}
+    assert now == {0: "m0a", 1: None}
+    assert lwh.read("cad_selection_labels").num_rows == 3  # both files stay in the history
+    hist = label_history(lwh).to_pylist()
+    assert [h["superseded"] for h in hist] == [False, False]  # the first still answers track 1
+    ingest_labels(lwh, put(tmp_path / "c", "sel.json", _edit("cad_selection", lambda d: d["answers"].reverse())))
+    assert [h["superseded"] for h in label_history(lwh).to_pylist()] == [True, True, False]
+    # manual tracks: the newer label replaces the whole answer, even an empty one (nothing missing)
+    ingest_labels(lwh, put(tmp_path / "d", "mt.json", good("manual_track")))
+    ingest_labels(lwh, put(tmp_path / "e", "mt.json", _edit("manual_track", lambda d: d.__setitem__("answers", []))))
+    assert current_answers(lwh, "manual_track", [CLIP]).num_rows == 0 and lwh.read("manual_track_labels").num_rows == 2
+    # correspondences: the newest answer per track is what the pose stage reads
+    ingest_labels(lwh, put(tmp_path / "f", "co.json", good("correspondences")))
+    flipped = _edit("correspondences", lambda d: (d["answers"][0].__setitem__("is_mirrored", False), d["answers"][0]["keyframes"].pop()))
+    ingest_labels(lwh, put(tmp_path / "g", "co.json", flipped))
+    corr = lwh.read("correspondences").to_pylist()
+    assert len(corr) == 5 and not any(r["is_mirrored"] for r in corr)
+    assert lwh.read("correspondence_labels").num_rows == 14
+
+
+def test_answers_digest_follows_the_answers_not_the_files(lwh, tmp_path):
+    before = answers_digest(lwh, "verification", CLIP)
+    ingest_labels(lwh, put(tmp_path / "a", "v.json", good("verification")))
+    first = answers_digest(lwh, "verification", CLIP, "c1.ve")
+    ingest_labels(lwh, put(tmp_path / "b", "v.json", _edit("verification", lambda d: d.__setitem__("annotator", "other"))))
+    assert answers_digest(lwh, "verification", CLIP, "c1.ve") == first != before
+    ingest_labels(lwh, put(tmp_path / "c", "v.json", _edit("verification", lambda d: d["answers"][0].__setitem__("verdict", "reject"))))
+    assert answers_digest(lwh, "verification", CLIP, "c1.ve") != first
+
+
+def test_same_batch_is_ordered_by_created_at(lwh, tmp_path):
+    d = tmp_path / "labels"
+    put(d, "a.json", _edit("verification", lambda x: (x.__setitem__("created_at", "2026-03-02T00:00:00Z"), x["answers"].pop())))
+    put(d, "b.json", _edit("verification", lambda x: (x.__setitem__("created_at", "2026-03-01T00:00:00Z"),
+                                                        x["answers"][0].__setitem__("verdict", "reject"), x["answers"].pop())))
+    ingest_labels(lwh, d)
+    assert [r["accepted"] for r in current_answers(lwh, "verification", [CLIP], task_id="c1.ve").to_pylist()] == [True]
+
+
+def test_answers_without_a_commit_record_are_ignored(lwh, tmp_path):
+    path = put(tmp_path, "v.json", good("verification"))
+    lf = validate_label(path, lwh)
+    from tasks.label_ingest import answer_rows
+
+    orphan = answer_rows(lf, ClipFacts(lwh), dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc))  # a crash before label_files
+    lwh.write("verification_labels", CLIP, pa.Table.from_pylist(orphan, schema=TABLES["verification_labels"].schema))
+    assert current_answers(lwh, "verification", [CLIP]).num_rows == 0
+    assert len(ingest_labels(lwh, path).ingested) == 1
+    assert current_answers(lwh, "verification", [CLIP]).num_rows == 2
+
+
+# ------------------------------------------------------------------------------ tool imports
+
+CVAT = f"""<?xml version="1.0" encoding="utf-8"?>
+<annotations>
+  <version>1.1</version>
+  <meta><task><id>4</id><name>c1</name><size>10</size><mode>interpolation</mode>
+    <original_size><width>{W}</width><height>{H}</height></original_size></task></meta>
+  <track id="0" label="chair" source="manual">
+    <box frame="0" xtl="32" ytl="19.2" xbr="160" ybr="96" outside="0" occluded="0" keyframe="1" z_order="0"></box>
+    <box frame="1" xtl="33" ytl="19.2" xbr="161" ybr="96" outside="0" occluded="0" keyframe="0" z_order="0"></box>
+    <box frame="3" xtl="-2" ytl="0" xbr="64" ybr="96" outside="0" occluded="1" keyframe="1" z_order="0"></box>
+    <box frame="5" xtl="32" ytl="19.2" xbr="160" ybr="96" outside="1" occluded="0" keyframe="1" z_order="0"></box>
+  </track>
+  <track id="1" label="table" source="file">
+    <box frame="2" xtl="0" ytl="0" xbr="10" ybr="10" outside="0" occluded="0" keyframe="1" z_order="0"></box>
+  </track>
+</annotations>
+"""
+
+
+def test_cvat_import(lwh, tmp_path):
+    xml = put(tmp_path, "annotations.xml", CVAT)
+    result = import_cvat(lwh, xml, CLIP, skip_sources=("file",))
+    doc = result.document
+    assert doc["task_id"] == "c1.mt" and doc["kind"] == "manual_track" and len(doc["answers"]) == 1
+    a = doc["answers"][0]
+    assert a["label"] == "chair" and a["source_id"] == "cvat:0"
+    assert [b["timestamp_us"] for b in a["boxes"]] == [0, 300_000]
+    assert a["boxes"][0]["box"] == pytest.approx([0.1, 0.1, 0.5, 0.5]) and a["boxes"][1]["box"] == pytest.approx([0.0, 0.0, 0.5, 0.2])
+    assert len(import_cvat(lwh, xml, CLIP, keyframes_only=False).document["answers"][0]["boxes"]) == 3
+    out = write_label(doc, tmp_path / "labels", "c1.cvat")
+    report = ingest_labels(lwh, out.parent)
+    assert report.ok and lwh.read("manual_track_labels").num_rows == 2
+    with pytest.raises(LabelError, match="not a CVAT annotations file"):
+        import_cvat(lwh, put(tmp_path, "x.xml", "<root/>"), CLIP)
+    with pytest.raises(LabelError, match=r"box\[0\]: attribute 'xtl' must be a number"):
+        import_cvat(lwh, put(tmp_path, "y.xml", CVAT.replace('xtl="32"', 'xtl="abc"', 1)), CLIP)
+
+
+def test_labelstudio_import(lwh, tmp_path):
+    seq = [{"frame": 1, "enabled": True, "rotation": 0, "x": 10, "y": 10, "width": 40, "height": 40, "time": 0.0},
+           {"frame": 4, "enabled": False, "rotation": 90, "x": 50, "y": 10, "width": 10, "height": 20, "time": 0.3}]
+    export = [{"id": 1, "data": {"video": f"/data/upload/{CLIP}.mp4"}, "annotations": [
+        {"id": 2, "was_cancelled": True, "result": []},
+        {"id": 3, "was_cancelled": False, "updated_at": "2026-01-02", "result": [
+            {"id": "r1", "type": "videorectangle", "from_name": "box", "to_name": "video",
+             "value": {"framesCount": 10, "duration": 1.0, "sequence": seq, "labels": ["desk"]}},
+            {"id": "r2", "type": "labels", "value": {}}]}]},
+        {"id": 9, "data": {"video": "/data/upload/other.mp4"}, "annotations": []}]
+    path = put(tmp_path, "ls.json", export)
+    for mode in ("frames", "video"):
+        doc = import_labelstudio(lwh, path, CLIP, "c1.mt", frame_map=mode, label_map={"desk": "table"}).document
+        (a,) = doc["answers"]
+        assert a["label"] == "table" and a["source_id"] == "labelstudio:r1"
+        assert [b["timestamp_us"] for b in a["boxes"]] == [0, 300_000]
+        assert a["boxes"][0]["box"] == pytest.approx([0.1, 0.1, 0.5, 0.5])
+        # rotated 90 deg about its top-left corner (160, 19.2) px: 32 x 38.4 px -> x in [121.6, 160], y in [19.2, 51.2]
+        assert a["boxes"][1]["box"] == pytest.approx([19.2 / H, 121.6 / W, 51.2 / H, 0.5])
+    with pytest.raises(LabelError, match="class 'desk' is not one of"):
+        import_labelstudio(lwh, path, CLIP)
+
+
+# ------------------------------------------------------------------------------ command line
+
+def test_cli_schema_validate_ingest(lwh, tmp_path):
+    runner = CliRunner()
+    w = ["-w", str(lwh.root)]
+    result = runner.invoke(app, ["labels", "schema", "correspondences"])
+    assert result.exit_code == 0 and json.loads(result.output) == json_schema("correspondences", "label")
+    result = runner.invoke(app, ["labels", "schema", "--file", "task"])
+    assert result.exit_code == 0 and set(json.loads(result.output)) == {f"{k}.task" for k in KINDS}
+    d = tmp_path / "labels"
+    put(d, "ok.json", good("verification"))
+    bad = put(d, "bad.json", _edit("verification", lambda x: x["answers"][0].__setitem__("verdict", 1)))
+    result = runner.invoke(app, [*w, "labels", "validate", str(d / "ok.json"), str(bad)])
+    assert result.exit_code == 1 and "ok (verification" in result.output
+    result = runner.invoke(app, [*w, "labels", "ingest", str(d)])
+    assert result.exit_code == 1 and "1 label file(s) ingested" in result.output and "clips with new labels: c1" in result.output
+    xml = put(tmp_path, "annotations.xml", CVAT)
+    result = runner.invoke(app, [*w, "labels", "import-cvat", str(xml), "--clip", CLIP, "--out", str(d), "--skip-source", "file"])
+    assert result.exit_code == 0, result.output
+    assert validate_label(d / "c1.annotations.cvat.json", lwh).kind == "manual_track"

@@ -1,0 +1,242 @@
+"""The 9-DoF pose solver (tasks/pose_solver.py) on small synthetic problems built here."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from bench.eval_pose import rotation_error_deg
+from cadestate.geometry import look_at, matrix_to_quaternion, quaternion_to_matrix
+from cadestate.render import object_to_world
+from tasks.cad_symmetry import rotation_y
+from tasks.pose_checks import coplanar_axis
+from tasks.pose_init import symmetry_offsets, tie_scales
+from tasks.pose_solver import ObjectCorrespondences, SolverOptions, evaluate, make_batch, solve_poses
+
+K = np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]])
+
+
+def make_object(seed: int, mirrored=False, symmetry=1, coplanar=False, swap=False, noise=0.0, keyframes=4,
+                points=5, upright=True):
+    """A random posed object seen by ``keyframes`` cameras 3 m away; returns (problem, (T, q, S)).
+    ``swap``: each key-frame's 3D points carry a random symmetric rotation (as annotators do)."""
+    rng = np.random.default_rng(seed)
+    R = rotation_y(rng.uniform(0, 360)) if upright else quaternion_to_matrix(rng.normal(size=4))
+    q = matrix_to_quaternion(R)
+    s = rng.uniform(0.5, 1.5, 3)
+    if symmetry in (4, 36):
+        s[2] = s[0]
+    if coplanar:
+        s[1] = (s[0] + s[2]) / 2  # the solver's tie: the only size it can recover
+    T = np.array([rng.uniform(-2, 2), rng.uniform(0, 1), rng.uniform(-2, 2)])
+    M = object_to_world(T, q, s, mirrored)
+    Rs, ts, xy, xyz, kf = [], [], [], [], []
+    for f in range(keyframes):
+        ang = np.radians(rng.uniform(-40, 40) + 20 * f)
+        Rc, tc = look_at(T + np.array([3 * np.sin(ang), 1.2, 3 * np.cos(ang)]), T)
+        p = rng.uniform(-0.5, 0.5, (points, 3))
+        if coplanar:
+            p[:, 1] = 0.5  # the top face
+        cam = (p @ M[:3, :3].T + M[:3, 3]) @ Rc.T + tc
+        uv = cam @ K.T
+        uv = uv[:, :2] / uv[:, 2:] + (rng.normal(0, noise, (points, 2)) if noise else 0)
+        if swap and symmetry > 1:
+            deg = rng.uniform(0, 360) if symmetry == 36 else 360 * rng.integers(0, symmetry) / symmetry
+            p = p @ rotation_y(deg).T
+        Rs.append(Rc), ts.append(tc), xy.append(uv), xyz.append(p)
+        kf += [f] * points
+    problem = ObjectCorrespondences(np.concatenate(xy), np.concatenate(xyz), np.array(kf), np.array([K] * keyframes),
+                                    np.array(Rs), np.array(ts), mirrored, symmetry, upright)
+    return problem, (T, q, s)
+
+
+CASES = {
+    "plain": dict(),
+    "mirrored": dict(mirrored=True),
+    "coplanar": dict(coplanar=True),
+    "sym2": dict(symmetry=2, swap=True),
+    "sym4": dict(symmetry=4, swap=True),
+    "sym36": dict(symmetry=36, swap=True),
+    "not upright": dict(upright=False),
+    "mirrored sym2 coplanar": dict(mirrored=True, symmetry=2, swap=True, coplanar=True),
+}
+
+
+@pytest.fixture(scope="module")
+def solved():
+    objects = {name: make_object(i, **kw) for i, (name, kw) in enumerate(CASES.items())}
+    results = solve_poses([o for o, _ in objects.values()])
+    return {name: (objects[name][0], objects[name][1], r) for name, r in zip(objects, results)}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_exact_recovery(solved, case):
+    problem, (T, q, s), r = solved[case]
+    assert r.status == "ok", r.message
+    assert np.linalg.norm(r.translation - T) < 1e-3  # < 1 mm
+    assert np.abs(r.scale / s - 1).max() < 1e-3  # < 0.1 %
+    if problem.symmetry == 36:  # the rotation about the up axis is free: compare the up axes
+        up, up_gt = quaternion_to_matrix(r.rotation)[:, 1], quaternion_to_matrix(q)[:, 1]
+        assert np.degrees(np.arccos(min(1.0, up @ up_gt))) < 0.1
+        assert abs(r.scale[0] - r.scale[2]) < 1e-9  # tied
+    else:
+        assert rotation_error_deg(r.rotation, q, problem.symmetry) < 0.1
+    assert r.keyframe_error_px.max() < 0.01
+    if case.startswith("coplanar") or "coplanar" in case:
+        assert r.coplanar_axis == 1
+
+
+def test_pose_is_official_object_to_world(solved):
+    """Projecting the CAD points with object_to_world(result) reproduces the clicks."""
+    problem, _, r = solved["mirrored"]
+    M = object_to_world(r.translation, r.rotation, r.scale, problem.mirrored)
+    for f in range(len(problem.K)):
+        sel = problem.keyframe == f
+        cam = (problem.xyz[sel] @ M[:3, :3].T + M[:3, 3]) @ problem.R[f].T + problem.t[f]
+        uv = cam @ problem.K[f].T
+        assert np.allclose(uv[:, :2] / uv[:, 2:], problem.xy[sel], atol=1e-3)
+
+
+def test_noisy_clicks_still_close():
+    problem, (T, q, s) = make_object(11, noise=2.0, keyframes=5, points=6)
+    r = solve_poses([problem])[0]
+    assert r.status == "ok"
+    assert np.linalg.norm(r.translation - T) < 0.2 and rotation_error_deg(r.rotation, q) < 10
+
+
+def test_loss_terms_match_hand_computation():
+    problem, (T, q, s) = make_object(3, keyframes=2, points=4)
+    opts = SolverOptions(alpha=7.0, beta=11.0, min_depth=3.2, huber_px=0.0)  # the paper's L1
+    b = make_batch([problem], [-1], opts)
+    R = quaternion_to_matrix(q) @ rotation_y(5.0)  # a pose near the truth, tilted by 0.1 rad about x
+    tilt = np.array([[1, 0, 0], [0, np.cos(0.1), -np.sin(0.1)], [0, np.sin(0.1), np.cos(0.1)]])
+    R = tilt @ R
+    T2 = T + np.array([0.05, -0.02, 0.1])
+    off, om = symmetry_offsets(b.sym, True)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)[None]  # noqa: E731
+    e = evaluate(b, t(R), t(s), t(T2), torch.zeros(1, 2, dtype=torch.float64), off, om, opts)
+    # by hand
+    world = problem.xyz * s @ R.T + T2
+    l1, depth, kf_err = [], [], [[], []]
+    for i, X in enumerate(world):
+        f = problem.keyframe[i]
+        c = problem.R[f] @ X + problem.t[f]
+        uv = (K @ c)[:2] / c[2]
+        l1.append(np.abs(uv - problem.xy[i]).sum())
+        depth.append(c[2])
+        kf_err[f].append(np.linalg.norm(uv - problem.xy[i]))
+    n = len(world)
+    assert float(e["reprojection"]) == pytest.approx(sum(l1) / n, rel=1e-9)
+    assert float(e["up"]) == pytest.approx(np.abs(R[:, 1] - [0, 1, 0]).sum(), rel=1e-9)
+    assert float(e["front"]) == pytest.approx(np.maximum(0, 3.2 - np.array(depth)).sum() / n, rel=1e-9)
+    assert float(e["front"]) > 0
+    assert float(e["total"]) == pytest.approx(sum(l1) / n + 7 * float(e["up"]) + 11 * float(e["front"]), rel=1e-9)
+    assert np.allclose(e["kf_px"][0].numpy(), [np.mean(k) for k in kf_err])
+    assert float(e["residuals"].abs().sum()) == pytest.approx(float(e["total"]), rel=1e-9)
+    # Huber: quadratic within huber_px, L1 beyond (per coordinate)
+    d = np.concatenate([(K @ (problem.R[f] @ X + problem.t[f]))[:2] / (problem.R[f] @ X + problem.t[f])[2] - problem.xy[i]
+                        for i, (X, f) in enumerate(zip(world, problem.keyframe))])
+    hub = np.where(np.abs(d) <= 4.0, d**2 / 8.0, np.abs(d) - 2.0)
+    eh = evaluate(b, t(R), t(s), t(T2), torch.zeros(1, 2, dtype=torch.float64), off, om, dataclasses.replace(opts, huber_px=4.0))
+    assert float(eh["reprojection"]) == pytest.approx(hub.sum() / n, rel=1e-9)
+
+
+def test_symmetric_reprojection_takes_best_rotation_per_keyframe():
+    problem, (T, q, s) = make_object(5, symmetry=2, keyframes=3)
+    xyz = problem.xyz.copy()
+    xyz[problem.keyframe == 1] = xyz[problem.keyframe == 1] @ rotation_y(180).T  # key-frame 1 swapped
+    problem = dataclasses.replace(problem, xyz=xyz)
+    opts = SolverOptions()
+    b = make_batch([problem], [-1], opts)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)[None]  # noqa: E731
+    off, om = symmetry_offsets(b.sym, True)
+    e = evaluate(b, t(quaternion_to_matrix(q)), t(s), t(T), torch.zeros(1, 3, dtype=torch.float64), off, om, opts)
+    assert float(e["reprojection"]) < 1e-9  # the GT pose explains every key-frame with its own rotation
+    b1 = make_batch([dataclasses.replace(problem, symmetry=1)], [-1], opts)
+    off1, om1 = symmetry_offsets(b1.sym, True)
+    e1 = evaluate(b1, t(quaternion_to_matrix(q)), t(s), t(T), torch.zeros(1, 3, dtype=torch.float64), off1, om1, opts)
+    assert float(e1["reprojection"]) > 1.0
+
+
+def test_coplanar_detection_and_ties():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-1, 1, (8, 3))
+    assert coplanar_axis(p, np.repeat([0, 1], 4), 1, 0.02) == -1
+    p[:, 2] = 0.3 + 1e-4 * rng.normal(size=8)  # within tolerance of the plane z = 0.3
+    assert coplanar_axis(p, np.repeat([0, 1], 4), 1, 0.02) == 2
+    q = p.copy()
+    q[4:] = q[4:] @ rotation_y(180).T  # the symmetric copy of the face on key-frame 1
+    assert coplanar_axis(q, np.repeat([0, 1], 4), 1, 0.02) == -1
+    assert coplanar_axis(q, np.repeat([0, 1], 4), 2, 0.02) == 2
+    s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([1, -1]), torch.tensor([False, True]))
+    assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]
+
+
+def test_degenerate_inputs_get_a_clear_status():
+    good, _ = make_object(1)
+    few = dataclasses.replace(good, xy=good.xy[:4], xyz=good.xyz[:4], keyframe=good.keyframe[:4])
+    one_view = dataclasses.replace(good, keyframe=np.zeros_like(good.keyframe))
+    line = good.xyz.copy()
+    line[:, 1:] = 0.0
+    collinear = dataclasses.replace(good, xyz=line)
+    nan_xy = good.xy.copy()
+    nan_xy[3, 0] = np.nan
+    nan = dataclasses.replace(good, xy=nan_xy)
+    bad_index = dataclasses.replace(good, keyframe=good.keyframe + 1)
+    # Points behind every camera: turn each camera around (180 deg about its y axis), so the clicks
+    # are those of points behind it.
+    flip = np.diag([-1.0, 1.0, -1.0])
+    behind = dataclasses.replace(good, R=flip @ good.R, t=good.t @ flip.T)
+    results = solve_poses([few, one_view, collinear, nan, bad_index, behind, good])
+    status = [r.status for r in results]
+    assert status[:5] == ["too_few_points", "single_keyframe", "collinear_points", "invalid_input", "invalid_input"]
+    assert status[5] in ("behind_camera", "high_residual"), results[5].message
+    assert status[6] == "ok"
+    for r in results[:5]:
+        assert r.translation is None and r.message
+    assert "NaN" in results[3].message or "non-finite" in results[3].message
+
+
+def test_batching_and_determinism():
+    """An object's pose does not depend on what else is in the batch, and reruns are identical."""
+    a, _ = make_object(7, noise=1.0)
+    b, _ = make_object(8, symmetry=2, swap=True, noise=1.0)
+    opts = SolverOptions(iterations=100, lm_iterations=5)
+    alone = solve_poses([a], opts)[0]
+    together = solve_poses([b, a], opts)[1]
+    again = solve_poses([b, a], opts)[1]
+    assert np.allclose(alone.translation, together.translation, atol=1e-9)
+    assert np.array_equal(together.translation, again.translation) and np.array_equal(together.rotation, again.rotation)
+
+
+def test_lm_jacobian_matches_finite_differences():
+    """The analytic Jacobian of tasks/pose_lm.py (rotation increment, translation step, log-scales,
+    36-way per-key-frame rotations) against central differences of its own residuals."""
+    from tasks.pose_lm import Problem, residuals_jacobian, scale_ties, so3_exp
+
+    problem, (T, q, s) = make_object(4, symmetry=36, swap=True, mirrored=True, keyframes=3, points=4)
+    opts = SolverOptions(min_depth=2.9)  # some points inside min_depth: the front term is active
+    b = make_batch([problem], [-1], opts)
+    off, om = symmetry_offsets(torch.ones_like(b.sym), True)
+    L = scale_ties(b.axis, b.sym >= 36)
+    pb = Problem(b.pts, b.uv, b.kf, b.pmask, b.K, b.Rc, b.tc, b.fmask, b.mirror, b.upright, off, om, L,
+                 torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))
+    R = torch.tensor(quaternion_to_matrix(q) @ rotation_y(7.0), dtype=torch.float64)[None] @ so3_exp(torch.tensor([[0.05, 0, 0.02]]).double())
+    ls, T0 = torch.log(torch.tensor(s))[None] + 0.05, torch.tensor(T)[None] + 0.1
+    phi, choice = torch.tensor([[0.1, -0.3, 0.7]]).double(), torch.zeros(1, 3, dtype=torch.long)
+
+    def res(d):
+        return residuals_jacobian(pb, R @ so3_exp(d[:, :3]), ls + d[:, 6:9], T0 + 2.5 * d[:, 3:6], phi + d[:, 9:], choice,
+                                  opts.min_depth, opts.alpha, opts.beta)[0]
+
+    r, J = residuals_jacobian(pb, R, ls, T0, phi, choice, opts.min_depth, opts.alpha, opts.beta)
+    assert (r[0, 2 * 12: 2 * 12 + 12] > 0).any()  # front residuals active
+    h = 1e-6
+    for k in range(12):
+        e = torch.zeros(1, 12, dtype=torch.float64)
+        e[0, k] = h
+        num = (res(e) - res(-e)) / (2 * h)
+        assert torch.allclose(J[..., k], num, atol=1e-5 * (1 + num.abs().max())), k

@@ -1,0 +1,129 @@
+"""Tracking stage logic (tasks/tracking.py, tasks/track_affinity.py) on synthetic detections."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cadestate.config import TrackingConfig
+from tasks.track_affinity import candidate_pairs, rotation_warp, Cameras
+from tasks.tracking import track_detections, vote
+
+
+def synthetic_clip(seed: int = 0, frames: int = 40, objects: int = 4):
+    """Objects drifting slowly, each with its own descriptor (+ noise) and label; one clutter box per 7 frames."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0.2, 0.8, (objects, 2))
+    vel = rng.normal(0, 0.003, (objects, 2))
+    looks = rng.normal(0, 1, (objects, 64))
+    rows = []
+    for f in range(frames):
+        for o in range(objects):
+            cy, cx = centres[o] + f * vel[o]
+            rows.append((f, (cy - 0.1, cx - 0.08, cy + 0.1, cx + 0.08), f"c{o % 2}", looks[o] + rng.normal(0, 0.3, 64), o))
+        if f % 7 == 3:
+            y, x = rng.uniform(0, 0.9, 2)
+            rows.append((f, (y, x, y + 0.05, x + 0.05), f"c{f}", rng.normal(0, 1, 64), -1))
+    perm = rng.permutation(len(rows))
+    rows = [rows[k] for k in perm]
+    frame = np.array([r[0] for r in rows])
+    det_id = frame * 10000 + np.array([k for k in range(len(rows))])  # unique, not in frame order
+    return (det_id, frame, np.array([r[1] for r in rows]), np.array([r[2] for r in rows], dtype=object),
+            np.array([r[3] for r in rows], dtype=np.float32), np.array([r[4] for r in rows]))
+
+
+def test_tracks_follow_objects_one_detection_per_frame():
+    det_id, frame, boxes, labels, vec, truth = synthetic_clip()
+    res = track_detections(det_id, frame, boxes, labels, vec, None, TrackingConfig())
+    t = res.track
+    kept = t >= 0
+    assert len(np.unique(t[kept])) == 4
+    for k in np.unique(t[kept]):  # each track is one object, all its frames
+        assert len(np.unique(truth[t == k])) == 1 and np.sum(t == k) == 40
+        assert len(np.unique(frame[t == k])) == np.sum(t == k)  # no two detections of one frame
+    assert np.all(t[truth == -1] == -1)  # clutter singletons are below min_detections
+
+
+def test_track_ids_are_stable_and_independent_of_input_order():
+    det_id, frame, boxes, labels, vec, _ = synthetic_clip(1)
+    cfg = TrackingConfig(min_detections=1)
+    ref = track_detections(det_id, frame, boxes, labels, vec, None, cfg).track
+    assert np.array_equal(ref, track_detections(det_id, frame, boxes, labels, vec, None, cfg).track)
+    perm = np.random.default_rng(5).permutation(len(det_id))
+    again = track_detections(det_id[perm], frame[perm], boxes[perm], labels[perm], vec[perm], None, cfg).track
+    assert np.array_equal(again, ref[perm])
+    # ids are ranks by first det_id
+    firsts = [det_id[ref == k].min() for k in range(ref.max() + 1)]
+    assert firsts == sorted(firsts)
+
+
+def test_min_detections_and_empty_input():
+    det_id, frame, boxes, labels, vec, _ = synthetic_clip(2)
+    everything = track_detections(det_id, frame, boxes, labels, vec, None, TrackingConfig(min_detections=1)).track
+    assert np.all(everything >= 0)
+    empty = track_detections(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 4)), np.zeros(0, object), None, None, TrackingConfig())
+    assert len(empty.track) == 0
+
+
+def test_candidate_pairs_window_and_rotation_warp_identity():
+    a, b = candidate_pairs(np.array([2, 0, 1, 1, 5]), 2)
+    pairs = sorted(zip(a.tolist(), b.tolist()))
+    assert pairs == [(1, 0), (1, 2), (1, 3), (2, 0), (3, 0)]
+    K = np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]])
+    cams = Cameras(np.stack([K, K]), np.stack([np.eye(3), np.eye(3)]), 640, 360)
+    box = np.array([[0.2, 0.3, 0.5, 0.6]])
+    assert np.allclose(rotation_warp(box, np.array([0]), np.array([1]), cams), box)
+
+
+def test_vote_weights_by_score_and_breaks_ties_by_name():
+    assert vote(["chair", "couch", "chair"], [0.2, 0.9, 0.3]) == ("couch", 0.9 / 1.4)
+    assert vote(["b", "a"], [0.5, 0.5])[0] == "a"
+
+
+def test_tracking_accuracy_of_warehouse_tracks(tmp_path):
+    """bench.track_bench.tracking_accuracy (the `tracking` section of `cadestate bench report`): the
+    pipeline's tracks joined to their detections, scored against ground truth with the ignore rule."""
+    import json
+
+    import pyarrow as pa
+    import pytest
+
+    pytest.importorskip("trackeval")
+    from bench.track_bench import tracking_accuracy, tracking_markdown
+    from schemas.detection import DETECTIONS
+    from schemas.official import ObjectAnnotation, ObjectsFile, TrackEntry, objects_to_json, write_json
+    from schemas.tracking import TRACK_DETECTIONS, TRACKS
+    from warehouse import Warehouse
+
+    bench, clip = tmp_path / "bench", "c0"
+    (bench / clip).mkdir(parents=True)
+    (bench / "manifest.json").write_text(json.dumps({"seed": 1, "clips": [clip, "not_tracked"], "library": "x"}))
+    boxes = {"a": (0.1, 0.1, 0.4, 0.3), "b": (0.5, 0.5, 0.9, 0.8), "c": (0.1, 0.6, 0.3, 0.9)}  # c: mostly hidden
+    write_json(bench / clip / "objects.json", objects_to_json(ObjectsFile(clip, tuple(
+        ObjectAnnotation(k, "03001627", False, False, tuple(TrackEntry(1000 * f, boxes[k]) for f in range(3)), None)
+        for k in boxes))))
+    (bench / clip / "visibility.json").write_text(json.dumps({"frames": [
+        {"timestamp": 1000 * f, "objects": [{"track_id": k, "visible_fraction": 0.1 if k == "c" else 1.0, "truncated_fraction": 0.0}
+                                            for k in boxes]} for f in range(3)]}))
+    wh = Warehouse(tmp_path / "wh")
+    assert tracking_accuracy(bench, wh) is None and tracking_markdown(None) == []
+    # track 0 follows a; b is followed by track 1 then track 2 (one ID switch); track 3 lies on c (dropped)
+    track_of = {"a": [0, 0, 0], "b": [1, 1, 2], "c": [3, 3, 3]}
+    dets, members = [], []
+    for f in range(3):
+        for r, k in enumerate(boxes):
+            det_id = f * 10000 + r
+            dets.append({"clip": clip, "det_id": det_id, "timestamp_us": 1000 * f, "frame_index": f, "box": list(boxes[k]),
+                         "label": "chair", "label_id": 56, "score": 0.9, "model_sha256": "x"})
+            members.append({"clip": clip, "track_id": track_of[k][f], "det_id": det_id, "frame_index": f, "timestamp_us": 1000 * f})
+    wh.write("detections", clip, pa.Table.from_pylist(dets, schema=DETECTIONS.schema))
+    wh.write("track_detections", clip, pa.Table.from_pylist(members, schema=TRACK_DETECTIONS.schema))
+    wh.write("tracks", clip, pa.Table.from_pylist(
+        [{"clip": clip, "track_id": t, "label": "chair", "label_votes": 1.0, "first_timestamp_us": 0, "last_timestamp_us": 2000,
+          "first_frame_index": 0, "last_frame_index": 2, "num_detections": 3, "mean_score": 0.9, "cohesion": 1.0}
+         for t in range(4)], schema=TRACKS.schema))
+    r = tracking_accuracy(bench, wh)
+    assert r["clips"] == 1 and r["tracks"] == 4
+    assert (r["true_positives"], r["false_positives"], r["misses"], r["id_switches"]) == (6, 0, 0, 1)
+    assert r["ignored_gt_boxes"] == 3 and r["dropped_pred_boxes"] == 3
+    assert r["mota"] == pytest.approx(5 / 6, abs=1e-4)
+    assert any("| HOTA |" in line for line in tracking_markdown(r))
