@@ -37,6 +37,8 @@ def _dummy(field: pa.Field):
         return "x"
     if pa.types.is_boolean(t):
         return False
+    if pa.types.is_list(t):
+        return []
     return 1
 
 
@@ -160,3 +162,41 @@ def test_no_candidates_completes_with_nothing(wh):
 def test_run_stage_records_paused(wh):
     run = _run(wh, "cad_selection", lambda rid: StageOutput(0, "h", "waits", paused=True))
     assert run.status == "paused" and wh.read("runs").column("status").to_pylist() == ["paused"]
+
+
+def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
+    import numpy as np
+    import trimesh
+    from PIL import Image
+
+    from cadestate.config import VerificationConfig
+    from tasks.human_tasks import verification_stage
+
+    mesh = hwh.root / "media/cad/lib/lib.chair_a.glb"
+    mesh.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(1, 1, 1)).export(mesh)
+    K = [300.0, 0, W / 2, 0, 300.0, H / 2, 0, 0, 1]
+    frames = hwh.read("frames", [CLIP]).to_pylist()
+    for f in frames:
+        f.update(K=K, world_to_camera_R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], world_to_camera_t=[0.0, 0, 0])
+        path = hwh.root / f["image_path"]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(path)
+    hwh.write("frames", CLIP, pa.Table.from_pylist(frames, schema=TABLES["frames"].schema))
+    pose = {"clip": CLIP, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair", "status": "ok", "translation": [0.0, 0, 4],
+            "rotation": [1.0, 0, 0, 0], "scale": [1.0, 1, 1], "is_mirrored": False, "keyframe_timestamps_us": STAMPS[:8]}
+    hwh.write("poses", CLIP, _rows("poses", [pose, {**pose, "track_id": "1", "status": "high_residual"}]))
+    cfg = VerificationConfig(keyframes=3)
+    first = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert first.status == "paused" and "1 of 1 poses unanswered in verification task" in first.message
+    task = _task(hwh, first.message)
+    [item] = task["items"]
+    assert item["track_id"] == 0 and len(item["keyframes"]) == 3
+    overlay = np.asarray(Image.open(hwh.root / item["keyframes"][0]["overlay_path"]))
+    assert overlay[H // 2, W // 2].max() > 50 and overlay[2, 2].max() < 10  # the box in the middle, the frame around
+    assert hwh.read("verified_poses", [CLIP]).num_rows == 0
+    ingest_labels(hwh, _label(tmp_path / "v", "v.json", "verification", task["task_id"], [{"track_id": 0, "verdict": "accept"}],
+                              "2026-01-01T00:00:00+00:00"))
+    done = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert done.status == "completed" and "1 of 1 poses accepted" in done.message
+    assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
