@@ -185,6 +185,28 @@ class RetrievalConfig:
 
 
 @dataclass(frozen=True)
+class CadSelectionConfig:
+    """Stage ``cad_selection`` (human task, paper 3.2): per track, people pick one of its CAD candidates."""
+
+    keyframes: int = _opt(6, "Evenly spaced frames of each track shown with its box.", lo=1, hi=100)
+
+
+@dataclass(frozen=True)
+class CorrespondenceTaskConfig:
+    """Stage ``correspondence_task`` (human task, paper 3.3): 3D<->2D clicks on the chosen CAD model."""
+
+    keyframes: int = _opt(6, "Evenly spaced frames of each track offered for clicking.", lo=1, hi=100)
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Stage ``verification`` (human task, paper 3.5): people accept or reject each solved pose."""
+
+    keyframes: int = _opt(6, "Key-frames of each posed track rendered with the CAD overlay.", lo=1, hi=100)
+    overlay_alpha: float = _opt(0.5, "Opacity of the rendered CAD over the frame.", lo=0.0, hi=1.0)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration. ``source`` is the file it came from (None for built-in defaults)."""
 
@@ -200,7 +222,10 @@ class Config:
     embed: EmbedConfig = field(default_factory=EmbedConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    cad_selection: CadSelectionConfig = field(default_factory=CadSelectionConfig)
+    correspondence_task: CorrespondenceTaskConfig = field(default_factory=CorrespondenceTaskConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
     source: str | None = None
 
     def section(self, name: str) -> Any:
@@ -227,7 +252,10 @@ SECTIONS: dict[str, type] = {
     "embed": EmbedConfig,
     "tracking": TrackingConfig,
     "retrieval": RetrievalConfig,
+    "cad_selection": CadSelectionConfig,
+    "correspondence_task": CorrespondenceTaskConfig,
     "pose": PoseConfig,
+    "verification": VerificationConfig,
 }
 """Section name -> dataclass; one entry per field of :class:`Config` (a test keeps them in step)."""
 RUNTIME_SECTIONS = ("warehouse", "prefect")

@@ -1,9 +1,12 @@
 """Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner).
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames -> detect ->
-embed -> tracking -> retrieval, and frames -> pose (later stages append here). A failing clip does not stop the others: each stage run is reported as
-completed, cached (no work: unchanged inputs, config and code), failed, or skipped (an upstream
-stage failed), and the flow ends Failed when any stage failed.
+embed -> tracking -> retrieval -> cad_selection -> correspondence_task, and frames -> pose ->
+verification. A failing clip does not stop the others: each stage run is reported as completed,
+cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
+paused (a human task waits for labels; what is answered goes on) or waiting (not run: an upstream
+human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
+named ``Paused`` with a message naming the waiting tasks when a human task waits.
 """
 
 from __future__ import annotations
@@ -21,8 +24,9 @@ from flows.runtime import run_flow
 from tasks.ingest import ClipSource
 from tasks.detect import model_fingerprint
 from tasks.pose import cad_models_digest, correspondences_digest
-from tasks.prefect_tasks import (detect_task, embed_task, frames_task, ingest_task, pose_task, retrieval_task,
-                                 tracking_task)
+from tasks.label_ingest import answers_digest
+from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, detect_task, embed_task, frames_task,
+                                 ingest_task, pose_task, retrieval_task, tracking_task, verification_task)
 from tasks.retrieval import library_digest
 from tasks.registry import STAGES
 from warehouse import Warehouse
@@ -39,10 +43,19 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     tracking = tracking_task.submit(root, source.clip, config.tracking, frames, detect, embed, STAGES["tracking"].code_hash)
     retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, library_digest(Warehouse(root)),
                                       STAGES["retrieval"].code_hash)
-    pose = pose_task.submit(root, source.clip, config.pose, frames, correspondences_digest(Warehouse(root), source.clip),
-                            cad_models_digest(Warehouse(root), source.clip), STAGES["pose"].code_hash)
+    wh = Warehouse(root)
+    selection = cad_selection_task.submit(root, source.clip, config.cad_selection, retrieval,
+                                          answers_digest(wh, "cad_selection", source.clip), STAGES["cad_selection"].code_hash)
+    clicks = correspondence_task_task.submit(root, source.clip, config.correspondence_task, selection,
+                                             answers_digest(wh, "correspondences", source.clip),
+                                             STAGES["correspondence_task"].code_hash)
+    pose = pose_task.submit(root, source.clip, config.pose, frames, correspondences_digest(wh, source.clip),
+                            cad_models_digest(wh, source.clip), STAGES["pose"].code_hash)
+    verify = verification_task.submit(root, source.clip, config.verification, pose,
+                                      answers_digest(wh, "verification", source.clip), STAGES["verification"].code_hash)
     return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
-            ("retrieval", retrieval), ("pose", pose)]
+            ("retrieval", retrieval), ("cad_selection", selection), ("correspondence_task", clicks), ("pose", pose),
+            ("verification", verify)]
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:

@@ -16,7 +16,7 @@ class StageReport:
 
     clip: str
     stage: str
-    state: str  # completed | cached | failed | skipped
+    state: str  # completed | cached | failed | skipped | paused | waiting
     rows_written: int = 0
     duration_s: float = 0.0
     message: str = ""
@@ -27,6 +27,8 @@ def report(clip: str, stage: str, future: PrefectFuture) -> StageReport:
     state = future.state
     if state.is_completed():
         run: StageRun = state.result()
+        if run.status in ("paused", "waiting"):
+            return StageReport(clip, stage, run.status, run.rows_written, run.duration_s, run.message)
         if state.name == "Cached":
             return StageReport(clip, stage, "cached")
         return StageReport(clip, stage, "completed", run.rows_written, run.duration_s, run.message)
@@ -43,4 +45,12 @@ def finish(submitted: list[tuple[str, str, PrefectFuture]], reports: list[StageR
     reports = reports + [report(clip, stage, fut) for clip, stage, fut in submitted]
     failed = [r for r in reports if r.state == "failed"]
     message = f"{what}: {len(reports)} stage runs, {len(failed)} failed"
-    return Failed(message=message, data=reports) if failed else Completed(message=message, data=reports)
+    if failed:
+        return Failed(message=message, data=reports)
+    paused = [r for r in reports if r.state == "paused"]
+    if paused:
+        # Prefect's Paused state carries no result and expects a resume through its API; the
+        # labels resume a clip instead (a new flow run), so the run completes, named Paused.
+        waits = "; ".join(f"{r.clip} {r.stage}: {r.message}" for r in paused)
+        return Completed(name="Paused", message=f"{message}, {len(paused)} paused: {waits}", data=reports)
+    return Completed(message=message, data=reports)

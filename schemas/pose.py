@@ -76,3 +76,24 @@ POSES = TableSpec(
         column("config_hash", pa.string(), "Digest of the [pose] config section that produced the row."),
     ]),
 )
+
+VERIFIED_POSES = TableSpec(
+    name="verified_poses",
+    mode="replace",
+    key=("clip", "track_id"),
+    description="The verdict of people on each solved pose (verification task, paper 3.5): accepted poses are the "
+                "dataset's; tracks not answered yet are absent.",
+    schema=pa.schema([
+        CLIP,
+        column("track_id", pa.string(), "Track (object), as poses.track_id."),
+        column("cad_id", pa.string(), "CAD model posed."),
+        column("class", pa.string(), "Class of the CAD model."),
+        column("accepted", pa.bool_(), "True: the rendered CAD aligns on every key-frame."),
+        column("translation", _maybe(3), "T of the object-to-world T·R·S·mirror.", unit="m", frame="world (+Y up)", nullable=True),
+        column("rotation", _maybe(4), "R as a unit quaternion (w, x, y, z).", frame="CAD -> world", nullable=True),
+        column("scale", _maybe(3), "S (sx, sy, sz) along the CAD axes.", frame=CAD_FRAME, nullable=True),
+        column("is_mirrored", pa.bool_(), "Mirror x -> -x before scaling."),
+        column("task_id", pa.string(), "The verification task answered (label_tasks.task_id)."),
+        column("comment", pa.string(), "The verifier's comment.", nullable=True),
+    ]),
+)

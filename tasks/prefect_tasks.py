@@ -15,7 +15,7 @@ from prefect import task
 from prefect.cache_policies import TASK_SOURCE, CacheKeyFnPolicy
 from prefect.utilities.hashing import hash_objects
 
-from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadViewsConfig, DetectConfig, EmbedConfig, FramesConfig,
+from cadestate.config import (CadEmbedConfig, CadSelectionConfig, CorrespondenceTaskConfig, VerificationConfig, CadIngestConfig, CadViewsConfig, DetectConfig, EmbedConfig, FramesConfig,
                               IngestConfig, LabelSimilarityConfig, PoseConfig, RetrievalConfig, TrackingConfig,
                               section_hash)
 from tasks.cad_embed import embed_library
@@ -30,7 +30,8 @@ from tasks.label_similarity import label_similarity, labels_digest
 from tasks.pose import solve_clip
 from tasks.registry import config_hash, upstream_inputs_hash
 from tasks.retrieval import retrieve_clip
-from tasks.stage import StageRun, run_stage
+from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, verification_stage
+from tasks.stage import StageRun, run_stage, waiting_run
 from tasks.tracking import track_clip
 from warehouse import Warehouse
 
@@ -167,8 +168,43 @@ def pose_task(root: str, clip: str, cfg: PoseConfig, frames: StageRun, correspon
     )
 
 
+def _human_task(root: str, clip: str, stage: str, cfg, upstream: StageRun, answers_digest: str, code_hash: str,
+                body) -> StageRun:
+    """A human-task stage: ``waiting`` (not run) while its upstream waits with nothing answered,
+    else run (completed, or paused until its labels are in)."""
+    waiting = waiting_run(clip, stage, [upstream])
+    if waiting is not None:
+        return waiting
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, stage, config_hash=section_hash(stage, cfg), code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([upstream.output_hash, answers_digest]),
+        body=lambda run_id: body(wh, cfg, clip, run_id),
+    )
+
+
+@task(name="cad_selection", cache_policy=CACHE_POLICY, persist_result=True)
+def cad_selection_task(root: str, clip: str, cfg: CadSelectionConfig, retrieval: StageRun, answers_digest: str,
+                       code_hash: str) -> StageRun:
+    return _human_task(root, clip, "cad_selection", cfg, retrieval, answers_digest, code_hash, cad_selection_stage)
+
+
+@task(name="correspondence_task", cache_policy=CACHE_POLICY, persist_result=True)
+def correspondence_task_task(root: str, clip: str, cfg: CorrespondenceTaskConfig, cad_selection: StageRun,
+                             answers_digest: str, code_hash: str) -> StageRun:
+    return _human_task(root, clip, "correspondence_task", cfg, cad_selection, answers_digest, code_hash,
+                       correspondence_task_stage)
+
+
+@task(name="verification", cache_policy=CACHE_POLICY, persist_result=True)
+def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: StageRun, answers_digest: str,
+                      code_hash: str) -> StageRun:
+    return _human_task(root, clip, "verification", cfg, pose, answers_digest, code_hash, verification_stage)
+
+
 STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
-               "tracking": tracking_task, "retrieval": retrieval_task, "pose": pose_task,
+               "tracking": tracking_task, "retrieval": retrieval_task, "cad_selection": cad_selection_task,
+               "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
                "cad_ingest": cad_ingest_task, "cad_views": cad_views_task, "cad_embed": cad_embed_task,
                "label_similarity": label_similarity_task}
 """One task per stage of :data:`tasks.registry.STAGES`, in pipeline order (a test checks it)."""

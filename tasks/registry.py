@@ -48,9 +48,15 @@ STAGES: dict[str, StageDef] = {
                  "associate detections into tracks by clique partitioning"),
         StageDef("retrieval", "clip", ("tracking",), ("cad_candidates",), ("tasks.retrieval", "tasks.whitening"),
                  "top CAD models of every track (appearance x class-label similarity)"),
+        StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest"),
+                 "human task (3.2): people choose each track's CAD model among its candidates; pauses until answered"),
+        StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest"),
+                 "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
                  ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
+        StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest") + ("cadestate.render",),
+                 "human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered"),
         StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
                  ("tasks.cad_ingest", "tasks.cad_sources", "tasks.cad_classes", "tasks.cad_symmetry"),
                  "canonicalise a CAD library, detect symmetries, sample surfaces"),
@@ -93,15 +99,25 @@ def extra_inputs(stage: str, config: Any) -> list[str]:
     return []
 
 
+HUMAN_TASK_KINDS = {"cad_selection": "cad_selection", "correspondence_task": "correspondences",
+                    "verification": "verification"}
+"""Stages that wait for people -> the label kind that answers them."""
+
+
 def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     """Digests of the warehouse data of one clip that ``stage`` reads besides its upstream stages'
     outputs: the clip's ``correspondences`` (human labels) and the ``cad_models`` facts (class,
     symmetry) of the models they reference for ``pose``, the CAD libraries' descriptors and label
-    similarities for ``retrieval``."""
+    similarities for ``retrieval``; for the human-task stages, the answers in force of their label
+    kind (ingesting labels makes them stale: a rerun resumes them)."""
     if stage == "retrieval":
         from tasks.retrieval import library_digest
 
         return [library_digest(wh)]
+    if stage in HUMAN_TASK_KINDS:
+        from tasks.label_ingest import answers_digest
+
+        return [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
     if stage == "pose":
         from tasks.pose import cad_models_digest, correspondences_digest
 

@@ -2,7 +2,7 @@
 
 Every stage function has the form ``body(run_id) -> StageOutput`` and is wrapped by
 :func:`run_stage`, which times it, writes a ``runs`` row (completed or failed, with the lineage
-digests) and returns a small picklable :class:`StageRun` (the Prefect task result).
+digests; ``paused`` when the body says it waits for people) and returns a small picklable :class:`StageRun` (the Prefect task result).
 """
 
 from __future__ import annotations
@@ -20,16 +20,21 @@ from warehouse import Warehouse
 
 @dataclass(frozen=True)
 class StageOutput:
-    """What a stage body reports: rows it wrote and the digest of its output."""
+    """What a stage body reports: rows it wrote and the digest of its output. ``paused``: the stage
+    wrote a task file for people and waits for their labels (what is answered is in the output;
+    ``message`` names the task file and how many items wait); the run is recorded as ``paused``."""
 
     rows_written: int
     output_hash: str
     message: str = ""
+    paused: bool = False
 
 
 @dataclass(frozen=True)
 class StageRun:
-    """One recorded stage run (a row of ``runs``)."""
+    """One recorded stage run (a row of ``runs``). ``status``: completed | failed | paused, or
+    ``waiting`` (not recorded: the stage did not run because an upstream stage is paused with
+    nothing answered yet)."""
 
     clip: str
     stage: str
@@ -88,7 +93,19 @@ def run_stage(
                           duration_s=time.perf_counter() - t0, message=str(e))
         record_run(wh, failed, started_at)
         raise
-    run = StageRun(**common, status="completed", output_hash=out.output_hash, rows_written=out.rows_written,
+    run = StageRun(**common, status="paused" if out.paused else "completed", output_hash=out.output_hash, rows_written=out.rows_written,
                    duration_s=time.perf_counter() - t0, message=out.message)
     record_run(wh, run, started_at)
     return run
+
+
+def waiting_run(clip: str, stage: str, upstream: list[StageRun]) -> StageRun | None:
+    """A ``waiting`` result when an upstream run waits for people with nothing answered yet
+    (paused with no rows, or itself waiting): the stage does not run on nothing. Else None."""
+    blocked = [u for u in upstream if u.status == "waiting" or (u.status == "paused" and u.rows_written == 0)]
+    if not blocked:
+        return None
+    names = ", ".join(sorted({u.stage for u in blocked}))
+    return StageRun(clip=clip, stage=stage, run_id="", status="waiting", config_hash="", inputs_hash="",
+                    output_hash="waiting:" + "|".join(u.output_hash for u in blocked), code_hash="", rows_written=0,
+                    duration_s=0.0, message=f"waits for {names}: " + "; ".join(u.message for u in blocked if u.message))

@@ -1,6 +1,6 @@
 """Where each clip stands: the last run of every stage, and why it is stale if it is.
 
-A stage is stale when its last completed run used another config section, other code, or
+A stage is stale when its last completed (or paused) run used another config section, other code, or
 inputs other than its upstream stages' latest outputs (or when an upstream stage is stale: it
 will rerun and may change them). Read from the ``runs`` table only.
 """
@@ -23,6 +23,7 @@ class StageStatus:
     last_run_at: str
     rows_written: int
     stale_reasons: tuple[str, ...]
+    message: str = ""  # the last run's message (for a paused run: the task file and what it waits for)
 
 
 def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None = None,
@@ -37,7 +38,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     last_ok: dict[tuple[str, str], dict] = {}
     for r in runs:
         last[(r["clip"], r["stage"])] = r
-        if r["status"] == "completed":
+        if r["status"] in ("completed", "paused"):  # a paused run's output is valid (what is answered)
             last_ok[(r["clip"], r["stage"])] = r
     result = []
     for clip in names:
@@ -66,5 +67,6 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                 latest["started_at"].strftime("%m-%d %H:%M") if latest else "",
                 ok["rows_written"] if ok else 0,
                 tuple(reasons),
+                latest["message"] if latest else "",
             ))
     return result

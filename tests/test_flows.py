@@ -135,3 +135,70 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
     status = {r.stage: r.stale_reasons for r in pipeline_status(wh, crops, scope="library")}
     assert status["cad_embed"] == ("config changed",) and status["cad_views"] == ()
     assert pipeline_status(wh, bigger, ["lib"], scope="clip") == []  # a library is not a clip
+
+
+def _fake_retrieval(wh, cfg, clip, run_id):
+    """Two candidates of a one-model-per-class library for every track (no descriptors needed)."""
+    import pyarrow as pa
+
+    from cadestate.lineage import table_digest
+    from tasks.stage import StageOutput
+
+    tracks = wh.read("tracks", [clip], columns=["track_id"]).column("track_id").to_pylist()
+    rows = [{"clip": clip, "track_id": t, "rank": r + 1, "library": "lib", "cad_id": f"lib.m{r}", "cad_class": "chair",
+             "score": 0.9 - 0.1 * r, "appearance": 0.5, "class_similarity": 1.0} for t in tracks for r in range(2)]
+    table = pa.Table.from_pylist(rows, schema=wh.spec("cad_candidates").schema)
+    wh.write("cad_candidates", clip, table)
+    return StageOutput(len(rows), table_digest(table), "fake")
+
+
+def test_clip_pauses_for_labels_and_ingest_resumes_it(config, source, monkeypatch, tmp_path):
+    import json
+
+    import tasks.prefect_tasks
+    from tasks.human_tasks import selected_models
+    from tasks.label_ingest import ingest_labels
+    from tasks.labels import label_document
+
+    monkeypatch.setattr(tasks.prefect_tasks, "retrieve_clip", _fake_retrieval)
+    first = run_clips([source], config, show_progress=False)
+    wh = Warehouse(config.warehouse.root)
+    tracks = wh.read("tracks", ["small"], columns=["track_id"]).column("track_id").to_pylist()
+    assert tracks, "the small clip has tracks"
+    assert states(first) == expect("small", cad_selection="paused", correspondence_task="waiting", rest="completed")
+    paused = {r.stage: r for r in first}["cad_selection"]
+    assert f"{len(tracks)} of {len(tracks)} tracks unanswered in cad_selection task label_tasks/small/" in paused.message
+    status = {r.stage: r for r in pipeline_status(wh, config)}
+    assert status["cad_selection"].status == "paused" and not status["cad_selection"].stale_reasons
+    assert "unanswered" in status["cad_selection"].message
+    assert [r["status"] for r in wh.read("runs", filters=[("stage", "==", "cad_selection")]).to_pylist()] == ["paused"]
+    # an unchanged rerun stays paused, doing no work
+    again = run_clips([source], config, show_progress=False)
+    assert states(again) == expect("small", cad_selection="paused", correspondence_task="waiting", rest="cached")
+
+    task_path = wh.root / paused.message.split(" task ", 1)[1].split(";")[0]
+    task = json.loads(task_path.read_text())
+    answers = [{"track_id": t, "cad_id": "lib.m1"} for t in tracks]
+    label = tmp_path / "labels" / "sel.json"
+    label.parent.mkdir()
+    label.write_text(json.dumps(label_document("cad_selection", "small", task["task_id"], answers)))
+    assert ingest_labels(wh, label.parent).clips == ["small"]
+    assert {r.stage: r.stale_reasons for r in pipeline_status(wh, config)}["cad_selection"] == ("inputs changed",)
+    resumed = run_clips([source], config, show_progress=False)
+    # upstream work is reused; the selection completes, the correspondences task now waits for clicks
+    assert states(resumed) == expect("small", cad_selection="completed", correspondence_task="paused", rest="cached")
+    assert selected_models(wh, "small") == {t: "lib.m1" for t in tracks}
+    clicks = {r.stage: r for r in resumed}["correspondence_task"]
+    assert f"{len(tracks)} of {len(tracks)} tracks unanswered in correspondences task" in clicks.message
+    # nothing changed since: a rerun does no work
+    assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached", "paused"}
+
+
+def test_flow_state_names_the_paused_tasks():
+    from flows.reports import StageReport, finish
+
+    state = finish([], [StageReport("a", "cad_selection", "paused", message="waits for labels: 2 of 3 tracks"),
+                        StageReport("a", "correspondence_task", "waiting")], "1 clip(s)")
+    assert state.is_completed() and state.name == "Paused"
+    assert "a cad_selection: waits for labels: 2 of 3 tracks" in state.message
+    assert finish([], [StageReport("a", "pose", "completed")], "x").name == "Completed"

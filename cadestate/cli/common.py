@@ -62,7 +62,8 @@ class CliError(Exception):
 
 def print_reports(reports) -> int:
     table = Table("clip", "stage", "state", "rows", "seconds", "message", title="stage runs")
-    colours = {"completed": "green", "cached": "cyan", "failed": "red", "skipped": "yellow"}
+    colours = {"completed": "green", "cached": "cyan", "failed": "red", "skipped": "yellow", "paused": "magenta",
+               "waiting": "magenta"}
     for r in reports:
         table.add_row(escape(r.clip), r.stage, f"[{colours[r.state]}]{r.state}[/]", str(r.rows_written),
                       f"{r.duration_s:.2f}", escape(r.message))
@@ -70,10 +71,15 @@ def print_reports(reports) -> int:
     failed = [r for r in reports if r.state == "failed"]
     for r in failed:
         err.print(f"[red]error:[/] clip {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
+    paused = [r for r in reports if r.state == "paused"]
+    for r in paused:
+        err.print(f"[magenta]paused:[/] clip {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
+    if paused and not failed:
+        err.print("answer the task files with label files, then `cadestate labels ingest DIR` resumes the clips")
     return 1 if failed else 0
 
 
-def run_sources(state: State, items, progress: bool) -> None:
+def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     from flows.runtime import prepare_prefect_environment
 
     cfg = state.config()
@@ -82,4 +88,7 @@ def run_sources(state: State, items, progress: bool) -> None:
     from flows.annotate_clip import run_clips
 
     err.print(f"running {len(items)} clip(s) into {root}; Prefect's local API starts first (~20 s)")
-    raise typer.Exit(print_reports(run_clips(items, cfg, show_progress=progress)))
+    code = print_reports(run_clips(items, cfg, show_progress=progress))
+    if exit:
+        raise typer.Exit(code)
+    return code

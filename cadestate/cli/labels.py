@@ -31,12 +31,16 @@ class FrameMap(str, Enum):
 def labels_ingest(
     ctx: typer.Context,
     source: Annotated[Path, typer.Argument(help="Folder of label files (every *.json below it), or one file.")],
+    resume: Annotated[bool, typer.Option(help="Rerun the flow of every clip with new labels (cached stages do no work).")] = True,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
-    """Validate label files and append the valid ones to the label tables (idempotent).
+    """Validate label files, append the valid ones to the label tables (idempotent) and resume the
+    clips they answer.
 
-    Invalid files are listed (file and field) and skipped; files ingested before are skipped. Exit
-    status 1 when any file was invalid. The clips with new labels are printed; `cadestate run`
-    reruns the stages their labels made stale (new correspondences: the pose stage).
+    Invalid files are listed (file and field) and skipped; files ingested before are skipped. The
+    clips with new labels are rerun (the stages their labels made stale, e.g. cad_selection, and
+    what follows; everything upstream is cached). Exit status 1 when any file was invalid or a
+    resumed stage failed.
     """
     from tasks.label_ingest import ingest_labels
 
@@ -50,7 +54,15 @@ def labels_ingest(
         out.print(f"clips with new labels: {escape(', '.join(report.clips))}")
     for e in report.errors:
         err.print(f"[red]error:[/] {escape(e)}", highlight=False)
-    raise typer.Exit(0 if report.ok else 1)
+    code = 0 if report.ok else 1
+    if resume and report.clips:
+        from cadestate.cli.common import run_sources
+        from tasks.ingest import ClipSource, clip_inputs
+
+        wh = ctx.obj.open_warehouse()
+        sources = [ClipSource(c, *clip_inputs(wh, c)[:2]) for c in report.clips]
+        code = max(code, run_sources(ctx.obj, sources, progress, exit=False))
+    raise typer.Exit(code)
 
 
 @labels_app.command("validate")

@@ -81,7 +81,8 @@ def status(
     ctx: typer.Context,
     clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to show (default: all).")] = None,
 ) -> None:
-    """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed since)."""
+    """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed
+    since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered)."""
     from tasks.status import pipeline_status
 
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
@@ -93,6 +94,9 @@ def status(
             fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
             table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
         out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
+        waits = [r for r in rows if r.status == "paused"]
+        for r in waits:
+            out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
 
 
 class Format(str, Enum):

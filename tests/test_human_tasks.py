@@ -1,0 +1,202 @@
+"""The human-task stages: cad_selection and correspondence_task write task files, pause until
+label files answer them (partial labels advance), and resume when the labels are ingested."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pyarrow as pa
+import pytest
+
+from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig
+from schemas import TABLES
+from tasks.human_tasks import (cad_selection_stage, cad_selection_task_id, correspondence_task_stage, evenly_spaced,
+                               selected_models)
+from tasks.label_ingest import ingest_labels
+from tasks.labels import label_document
+from tasks.registry import clip_inputs
+from tasks.stage import StageOutput, run_stage, waiting_run
+from warehouse import Warehouse
+
+CLIP = "c1"
+W, H = 320, 192
+STAMPS = [i * 100_000 for i in range(20)]
+CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
+
+
+def _dummy(field: pa.Field):
+    import datetime as dt
+
+    t = field.type
+    if pa.types.is_fixed_size_list(t):
+        return [0.0] * t.list_size
+    if pa.types.is_timestamp(t):
+        return dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    if pa.types.is_string(t):
+        return "x"
+    if pa.types.is_boolean(t):
+        return False
+    if pa.types.is_list(t):
+        return []
+    return 1
+
+
+def _rows(table: str, rows: list[dict]) -> pa.Table:
+    schema = TABLES[table].schema
+    return pa.Table.from_pylist([{f.name: r.get(f.name, _dummy(f)) for f in schema} for r in rows], schema=schema)
+
+
+@pytest.fixture
+def hwh(tmp_path) -> Warehouse:
+    """A clip of 20 frames with 3 tracks (0, 1 chairs; 2 a table) and 2 CAD candidates each."""
+    wh = Warehouse(tmp_path / "wh")
+    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    wh.write("frames", CLIP, _rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "width": W, "height": H,
+                                               "image_path": f"media/frames/{CLIP}/v/{i:04d}.jpg"} for i, t in enumerate(STAMPS)]))
+    dets, tds = [], []
+    for track, frames in ((0, range(0, 20)), (1, range(5, 15)), (2, range(10, 13))):
+        for f in frames:
+            det_id = track * 1000 + f
+            dets.append({"clip": CLIP, "det_id": det_id, "timestamp_us": STAMPS[f], "frame_index": f,
+                         "box": [0.1 + 0.01 * track, 0.1, 0.5, 0.5], "label": "chair" if track < 2 else "dining table"})
+            tds.append({"clip": CLIP, "track_id": track, "det_id": det_id, "frame_index": f, "timestamp_us": STAMPS[f]})
+    wh.write("detections", CLIP, _rows("detections", dets))
+    wh.write("track_detections", CLIP, _rows("track_detections", tds))
+    wh.write("tracks", CLIP, _rows("tracks", [{"clip": CLIP, "track_id": t, "label": "chair" if t < 2 else "dining table"}
+                                              for t in range(3)]))
+    models = ["lib.chair_a", "lib.chair_b", "lib.table_a", "lib.table_b"]
+    wh.write("cad_models", "lib", _rows("cad_models", [{"library": "lib", "cad_id": m, "class": m.split(".")[1][:-2],
+                                                         "symmetry": 1, "mesh_path": f"media/cad/lib/{m}.glb"} for m in models]))
+    wh.write("cad_views", "lib", _rows("cad_views", [{"library": "lib", "cad_id": m, "view": v,
+                                                       "image_path": f"media/cad_views/lib/{m}/{v}.png"}
+                                                      for m in models for v in range(2)]))
+    cands = [{"clip": CLIP, "track_id": t, "rank": r + 1, "library": "lib", "cad_id": m, "cad_class": m.split(".")[1][:-2],
+              "score": 0.9 - 0.1 * r} for t in range(3) for r, m in enumerate(models[:2] if t < 2 else models[2:])]
+    wh.write("cad_candidates", CLIP, _rows("cad_candidates", cands))
+    return wh
+
+
+def _run(wh: Warehouse, stage: str, body) -> object:
+    return run_stage(wh, CLIP, stage, config_hash="c", inputs_hash="i", code_hash="k", body=lambda run_id: body(run_id))
+
+
+def _label(folder: Path, name: str, kind: str, task_id: str, answers: list[dict], when: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_text(json.dumps(label_document(kind, CLIP, task_id, answers, annotator="t", created_at=when)))
+    return path
+
+
+def _task(wh: Warehouse, message: str) -> dict:
+    rel = message.split(" task ", 1)[1].split(";")[0]
+    return json.loads((wh.root / rel).read_text())
+
+
+def test_evenly_spaced():
+    assert evenly_spaced(20, 6) == [0, 4, 8, 11, 15, 19]
+    assert evenly_spaced(3, 6) == [0, 1, 2] and evenly_spaced(0, 6) == []
+
+
+def test_cad_selection_pauses_then_resumes_with_partial_labels(hwh, tmp_path):
+    cfg = CadSelectionConfig()
+    first = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, cfg, CLIP, rid))
+    assert first.status == "paused" and first.rows_written == 0
+    assert "3 of 3 tracks unanswered in cad_selection task label_tasks/c1/" in first.message
+    task = _task(hwh, first.message)
+    assert task["task_id"] == cad_selection_task_id(hwh, CLIP) and [it["track_id"] for it in task["items"]] == [0, 1, 2]
+    item = task["items"][0]
+    assert len(item["keyframes"]) == 6 and item["keyframes"][0]["box"] == [0.1, 0.1, 0.5, 0.5]
+    assert [c["cad_id"] for c in item["candidates"]] == ["lib.chair_a", "lib.chair_b"]
+    assert item["candidates"][1]["render_paths"] == ["media/cad_views/lib/lib.chair_b/0.png", "media/cad_views/lib/lib.chair_b/1.png"]
+    assert item["candidates"][0]["mesh_path"] == "media/cad/lib/lib.chair_a.glb"
+    assert len(task["items"][2]["keyframes"]) == 3
+    runs = hwh.read("runs").to_pylist()
+    assert [(r["stage"], r["status"]) for r in runs] == [("cad_selection", "paused")]
+    # nothing answered: the correspondences task does not run on nothing
+    assert waiting_run(CLIP, "correspondence_task", [first]).status == "waiting"
+
+    # a partial label: track 1 gets a model; the stage stays paused but advances
+    before = clip_inputs("cad_selection", hwh, CLIP)
+    report = ingest_labels(hwh, _label(tmp_path / "l1", "a.json", "cad_selection", task["task_id"],
+                                       [{"track_id": 1, "cad_id": "lib.chair_b"}], "2026-01-01T00:00:00+00:00"))
+    assert report.ok, report.errors
+    assert clip_inputs("cad_selection", hwh, CLIP) != before  # ingest makes the stage stale
+    second = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, cfg, CLIP, rid))
+    assert second.status == "paused" and second.rows_written == 1 and "2 of 3 tracks unanswered" in second.message
+    assert _task(hwh, second.message)["task_id"] == task["task_id"]  # same inputs, same task: old labels still match
+    assert waiting_run(CLIP, "correspondence_task", [second]) is None
+    assert selected_models(hwh, CLIP) == {1: "lib.chair_b"}
+    corr = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    assert corr.status == "paused" and "1 of 1 tracks unanswered in correspondences task" in corr.message
+    ctask = _task(hwh, corr.message)
+    assert [(it["track_id"], it["cad_id"], it["mesh_path"]) for it in ctask["items"]] == [(1, "lib.chair_b", "media/cad/lib/lib.chair_b.glb")]
+
+    # the rest: track 0 a model, track 2 none -> completed
+    ingest_labels(hwh, _label(tmp_path / "l2", "b.json", "cad_selection", task["task_id"],
+                              [{"track_id": 0, "cad_id": "lib.chair_a"}, {"track_id": 2, "cad_id": None}], "2026-01-02T00:00:00+00:00"))
+    third = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, cfg, CLIP, rid))
+    assert third.status == "completed" and third.rows_written == 2 and third.output_hash != second.output_hash
+    assert selected_models(hwh, CLIP) == {0: "lib.chair_a", 1: "lib.chair_b", 2: None}
+
+    # correspondences for both chosen tracks: answered through a label, the pose input is written
+    corr = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    ctask = _task(hwh, corr.message)
+    assert corr.status == "paused" and [it["track_id"] for it in ctask["items"]] == [0, 1]
+    pts = [{"x": 0.1 + 0.1 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)]
+    answers = [{"track_id": t, "cad_id": c, "is_mirrored": False,
+                "keyframes": [{"timestamp_us": STAMPS[5], "points": pts}, {"timestamp_us": STAMPS[10], "points": pts}]}
+               for t, c in ((0, "lib.chair_a"), (1, "lib.chair_b"))]
+    assert ingest_labels(hwh, _label(tmp_path / "l3", "c.json", "correspondences", ctask["task_id"], answers,
+                                     "2026-01-03T00:00:00+00:00")).ok
+    done = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    assert done.status == "completed" and done.rows_written == 2
+    assert sorted(set(hwh.read("correspondences", [CLIP]).column("track_id").to_pylist())) == ["0", "1"]
+
+
+def test_no_candidates_completes_with_nothing(wh):
+    out = _run(wh, "cad_selection", lambda rid: cad_selection_stage(wh, CadSelectionConfig(), CLIP, rid))
+    assert out.status == "completed" and out.rows_written == 0 and "no CAD candidates" in out.message
+
+
+def test_run_stage_records_paused(wh):
+    run = _run(wh, "cad_selection", lambda rid: StageOutput(0, "h", "waits", paused=True))
+    assert run.status == "paused" and wh.read("runs").column("status").to_pylist() == ["paused"]
+
+
+def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
+    import numpy as np
+    import trimesh
+    from PIL import Image
+
+    from cadestate.config import VerificationConfig
+    from tasks.human_tasks import verification_stage
+
+    mesh = hwh.root / "media/cad/lib/lib.chair_a.glb"
+    mesh.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(1, 1, 1)).export(mesh)
+    K = [300.0, 0, W / 2, 0, 300.0, H / 2, 0, 0, 1]
+    frames = hwh.read("frames", [CLIP]).to_pylist()
+    for f in frames:
+        f.update(K=K, world_to_camera_R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], world_to_camera_t=[0.0, 0, 0])
+        path = hwh.root / f["image_path"]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(path)
+    hwh.write("frames", CLIP, pa.Table.from_pylist(frames, schema=TABLES["frames"].schema))
+    pose = {"clip": CLIP, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair", "status": "ok", "translation": [0.0, 0, 4],
+            "rotation": [1.0, 0, 0, 0], "scale": [1.0, 1, 1], "is_mirrored": False, "keyframe_timestamps_us": STAMPS[:8]}
+    hwh.write("poses", CLIP, _rows("poses", [pose, {**pose, "track_id": "1", "status": "high_residual"}]))
+    cfg = VerificationConfig(keyframes=3)
+    first = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert first.status == "paused" and "1 of 1 poses unanswered in verification task" in first.message
+    task = _task(hwh, first.message)
+    [item] = task["items"]
+    assert item["track_id"] == 0 and len(item["keyframes"]) == 3
+    overlay = np.asarray(Image.open(hwh.root / item["keyframes"][0]["overlay_path"]))
+    assert overlay[H // 2, W // 2].max() > 50 and overlay[2, 2].max() < 10  # the box in the middle, the frame around
+    assert hwh.read("verified_poses", [CLIP]).num_rows == 0
+    ingest_labels(hwh, _label(tmp_path / "v", "v.json", "verification", task["task_id"], [{"track_id": 0, "verdict": "accept"}],
+                              "2026-01-01T00:00:00+00:00"))
+    done = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert done.status == "completed" and "1 of 1 poses accepted" in done.message
+    assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
