@@ -73,6 +73,7 @@ run: setup cad-library models
 	  FROM runs WHERE clip IN (SELECT clip FROM clips) QUALIFY row_number() OVER (PARTITION BY clip, stage ORDER BY started_at DESC) = 1 \
 	  ORDER BY clip, started_at"
 	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
+	$(BIN)/cadestate status
 
 test: setup cad-library models
 	$(BIN)/python -m pytest
