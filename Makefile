@@ -84,10 +84,10 @@ test-fast: setup cad-library models
 BENCH_DIR ?= data/bench/default
 
 bench: setup cad-library models
-	$(BIN)/python -m bench
 	$(BIN)/cadestate cad ingest --no-progress
 	$(BIN)/cadestate bench generate --out $(BENCH_DIR) --no-progress
 	$(BIN)/cadestate bench run $(BENCH_DIR) --no-progress
+	$(BIN)/python -m bench
 	$(BIN)/cadestate bench report $(BENCH_DIR)
 
 lock:
