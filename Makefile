@@ -67,7 +67,7 @@ run: setup cad-library models
 	$(BIN)/cadestate sql "SELECT class, count(*) AS models, count(*) FILTER (symmetry > 1) AS symmetric, \
 	  round(median(extent[2]), 2) AS median_height_m FROM cad_models GROUP BY class ORDER BY models DESC LIMIT 12"
 	$(BIN)/cadestate sql "SELECT t.clip, t.track_id, t.label, t.num_detections AS boxes, \
-	  c.cad_id AS best_candidate, c.cad_class, round(c.score, 3) AS score \
+	  c.cad_id AS best_candidate, c.cad_class, round(c.score::DOUBLE, 3) AS score \
 	  FROM tracks t JOIN cad_candidates c USING (clip, track_id) WHERE c.rank = 1 ORDER BY t.clip, t.track_id"
 	$(BIN)/cadestate sql "SELECT clip, stage, status, round(duration_s, 2) AS seconds, rows_written \
 	  FROM runs WHERE clip IN (SELECT clip FROM clips) QUALIFY row_number() OVER (PARTITION BY clip, stage ORDER BY started_at DESC) = 1 \
