@@ -36,17 +36,42 @@ def bench_run(
     ctx: typer.Context,
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+    answer_tasks: Annotated[bool, typer.Option(
+        help="Let the simulated annotators answer the clips' open human tasks through label files "
+             "(<bench>/labels/<clip>/), ingest them and rerun, until no clip waits. Off: the simulated "
+             "correspondences of the ground-truth tracks go into the warehouse directly (the pose numbers of "
+             "`bench report` match poses to ground-truth track ids).")] = False,
+    max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs.")] = 6,
 ) -> None:
     """Write the simulated annotators' label files (<bench>/labels/, once), then run the pipeline
     stages that exist on every benchmark clip (cached stages do no work)."""
     from bench.benchmark import clip_sources, read_manifest
     from bench.labels import simulate_labels, write_correspondences
 
-    made = simulate_labels(bench_dir, list(read_manifest(bench_dir).clips), ctx.obj.open_warehouse(), progress)
+    clips = list(read_manifest(bench_dir).clips)
+    made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)
     err.print(f"simulated labels: {made} clip(s) labelled now")
-    rows = write_correspondences(bench_dir, list(read_manifest(bench_dir).clips), ctx.obj.open_warehouse())
-    err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
-    run_sources(ctx.obj, clip_sources(bench_dir), progress)
+    if not answer_tasks:
+        rows = write_correspondences(bench_dir, clips, ctx.obj.open_warehouse())
+        err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
+        run_sources(ctx.obj, clip_sources(bench_dir), progress)
+        return
+    from bench.simulated_labels import annotate_until_done
+    from cadestate.cli.common import print_reports
+    from flows.runtime import prepare_prefect_environment
+
+    cfg = ctx.obj.config()
+    prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose)
+    from flows.annotate_clip import run_clips
+
+    sources = {s.clip: s for s in clip_sources(bench_dir)}
+    reports, waiting = annotate_until_done(
+        bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
+        max_rounds, log=err.print)
+    code = print_reports(reports)
+    if waiting:
+        err.print(f"still waiting after {max_rounds} run(s): {', '.join(waiting)}")
+    raise typer.Exit(code or (1 if waiting else 0))
 
 
 @bench_app.command("report")

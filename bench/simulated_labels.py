@@ -1,0 +1,224 @@
+"""The benchmark's simulated annotators answer the pipeline's human tasks through real label files.
+
+:func:`answer_tasks` reads a clip's open task files (the newest ``label_tasks`` row of each kind,
+items without an answer in force), answers them as the simulated annotators of
+:mod:`bench.annotators` would, with the noise model :class:`bench.noise.AnnotatorNoise`, and writes
+label files (validated by :func:`tasks.labels.validate_label`) to ``<bench>/labels/<clip>/``:
+
+- ``cad_selection``: a track matched to a ground-truth object (:func:`bench.retrieval_bench.track_truth`)
+  gets :func:`bench.annotators.select_cad` of the object's true model among the track's candidates
+  (shape distances of the meshes); an unmatched track (a false positive, or a track mixing
+  objects) gets null ("none fits"), so the loop ends.
+- ``correspondences``: :func:`bench.annotators.annotate_correspondences` on the task's key-frames,
+  clicking on the **selected** model (the mesh the task shows) placed at the ground-truth object's
+  pose, with the other objects of the scene occluding. When the selected model is not the true one
+  the clicks are where that model would be if it stood in the object's place (what a person
+  clicking on the shown model would do). A track with no clickable key-frame gets a new
+  cad_selection answer null (the annotator gives up on the model), so nothing waits forever.
+- ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model
+  against the true model at the true pose, on the task's key-frames; unmatched tracks: reject.
+
+:func:`annotate_until_done` is the ``cadestate bench run --answer-tasks`` loop: run the clips,
+answer their open tasks, ingest the labels (:func:`tasks.label_ingest.ingest_labels`), rerun the
+clips that got labels, until no clip waits or ``max_rounds``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from bench.annotators import Pose, annotate_correspondences, mesh_shape_distance, select_cad, verify_pose
+from bench.noise import DEFAULT_NOISE, AnnotatorNoise
+from bench.retrieval_bench import track_truth
+from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
+from schemas.official import read_frames, read_objects
+from tasks.label_ingest import current_answers, ingest_labels
+from tasks.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
+from warehouse import Warehouse, atomic_write_bytes
+
+LABELS = "labels"
+ANNOTATOR = "simulated (bench.annotators)"
+KINDS = ("cad_selection", "correspondences", "verification")
+
+
+def label_dir(bench_dir: Path, clip: str) -> Path:
+    """Where the simulated annotators write the clip's label files."""
+    return Path(bench_dir) / LABELS / clip
+
+
+class _Clip:
+    """What the simulated annotators know of one clip: ground truth, meshes, track -> object."""
+
+    def __init__(self, bench_dir: Path, wh: Warehouse, clip: str):
+        self.wh, self.clip = wh, clip
+        self.frames = read_frames(Path(bench_dir) / clip / "frames.json")
+        self.objects = {o.track_id: o for o in read_objects(Path(bench_dir) / clip / "objects.json").objects}
+        self.truth = track_truth(bench_dir, wh, clip)
+        self.index = {f.timestamp: i for i, f in enumerate(self.frames.frames)}
+        self.models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "mesh_path", "symmetry"]).to_pylist()}
+        self._meshes: dict[str, trimesh.Scene] = {}
+        self._distances: dict[tuple[str, str], float] = {}
+
+    def gt(self, track_id: int):
+        o = self.objects.get(self.truth.get(track_id) or self.truth.get(str(track_id)) or "")
+        return o if o is not None and o.translation is not None and o.cad_id in self.models else None
+
+    def mesh(self, cad_id: str):
+        if cad_id not in self._meshes:
+            self._meshes[cad_id] = trimesh.load(self.wh.root / self.models[cad_id]["mesh_path"], force="scene")
+        return self._meshes[cad_id]
+
+    def distance(self, a: str, b: str) -> float:
+        key = tuple(sorted((a, b)))
+        if key not in self._distances:
+            self._distances[key] = (mesh_shape_distance(self.mesh(a), self.mesh(b))
+                                    if a in self.models and b in self.models else float("inf"))
+        return self._distances[key]
+
+    def occluders(self, except_id: str) -> list[Instance]:
+        return [Instance(RenderMesh.from_trimesh(self.mesh(o.cad_id)),
+                         object_to_world(o.translation, o.rotation, o.scale, o.is_mirrored), k + 1)
+                for k, o in enumerate(self.objects.values())
+                if o.track_id != except_id and o.translation is not None and o.cad_id in self.models]
+
+    def keyframes(self, views) -> list[int]:
+        return [self.index[v.timestamp_us] for v in views if v.timestamp_us in self.index]
+
+
+def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
+    """(task, its items without an answer in force) of the newest task of each kind, if any waits."""
+    out = []
+    for kind in KINDS:
+        row = latest_task_of_kind(wh, clip, kind)
+        if row is None:
+            continue
+        task = parse_task(row["document"], row["path"])
+        answered = set(current_answers(wh, kind, [clip], task.task_id).column("track_id").to_pylist())
+        todo = [it for it in task.items if it.track_id not in answered]
+        if todo:
+            out.append((task, todo))
+    return out
+
+
+def _select(c: _Clip, item, noise: AnnotatorNoise) -> dict:
+    o = c.gt(item.track_id)
+    cad_id = None
+    if o is not None:
+        cad_id = select_cad(o.cad_id, [k.cad_id for k in item.candidates], c.distance, noise,
+                            noise.rng(c.clip, "select_cad", item.track_id))
+    return {"track_id": item.track_id, "cad_id": cad_id}
+
+
+def _correspond(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict | None:
+    o = c.gt(item.track_id)
+    if o is None or item.cad_id not in c.models:
+        return None
+    keyframes = c.keyframes(item.keyframes)
+    if not keyframes:
+        return None
+    clicks = annotate_correspondences(c.frames, o, c.mesh(item.cad_id), noise=noise,
+                                      rng=noise.rng(c.clip, "correspondences", item.track_id, item.cad_id),
+                                      renderer=renderer, symmetry_order=int(item.symmetry), keyframes=keyframes,
+                                      occluders=c.occluders(o.track_id))
+    if not clicks:
+        return None
+    return {"track_id": item.track_id, "cad_id": item.cad_id, "is_mirrored": bool(o.is_mirrored),
+            "keyframes": [{"timestamp_us": int(kf.timestamp),
+                           "points": [{"x": float(x), "y": float(y), "xyz": [float(v) for v in xyz]}
+                                      for (x, y), xyz in zip(kf.xy, kf.xyz)]} for kf in clicks]}
+
+
+def _verify(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict:
+    o = c.gt(item.track_id)
+    ok = False
+    if o is not None and item.cad_id in c.models:
+        p = item.pose
+        ok = verify_pose(c.frames, o, Pose(tuple(p.translation), tuple(p.rotation), tuple(p.scale), bool(p.is_mirrored)),
+                         c.mesh(item.cad_id), c.keyframes(item.keyframes), noise=noise, gt_mesh=c.mesh(o.cad_id),
+                         renderer=renderer)
+    return {"track_id": item.track_id, "verdict": "accept" if ok else "reject",
+            "comment": None if o is not None else "no ground-truth object"}
+
+
+def _write(wh: Warehouse, folder: Path, kind: str, clip: str, task_id: str, answers: list[dict]) -> Path:
+    """Validate the label document, then write it as ``<task_id>.<n>.json`` (n: next free)."""
+    doc = label_document(kind, clip, task_id, answers, annotator=ANNOTATOR, created_at=utc_now().isoformat())
+    data = (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode()
+    n = 0
+    while (folder / f"{task_id}.{n}.json").exists():
+        n += 1
+    path = folder / f"{task_id}.{n}.json"
+    validate_label(path, wh, data=data)  # a simulator bug must not reach the warehouse
+    atomic_write_bytes(path, data)
+    return path
+
+
+def answer_tasks(bench_dir: Path, wh: Warehouse, clip: str, noise: AnnotatorNoise = DEFAULT_NOISE) -> list[Path]:
+    """Answer the clip's open tasks as the simulated annotators (module docstring); returns the
+    label files written under ``<bench>/labels/<clip>/`` (not ingested)."""
+    tasks = open_tasks(wh, clip)
+    if not tasks:
+        return []
+    c = _Clip(bench_dir, wh, clip)
+    folder = label_dir(bench_dir, clip)
+    folder.mkdir(parents=True, exist_ok=True)
+    H, W = c.frames.image_size
+    written = []
+    with Renderer(W, H) as renderer:
+        for task, items in tasks:
+            if task.kind == "cad_selection":
+                answers = [_select(c, it, noise) for it in items]
+            elif task.kind == "correspondences":
+                answers, give_up = [], []
+                for it in items:
+                    a = _correspond(c, it, noise, renderer)
+                    (answers.append(a) if a is not None else give_up.append(it.track_id))
+                if give_up:  # nothing to click on: the annotator rejects the model instead
+                    sel = latest_task_of_kind(wh, clip, "cad_selection")
+                    if sel is not None:
+                        sel_task = parse_task(sel["document"], sel["path"])
+                        ids = {it.track_id for it in sel_task.items}
+                        none = [{"track_id": t, "cad_id": None} for t in give_up if t in ids]
+                        if none:
+                            written.append(_write(wh, folder, "cad_selection", clip, sel_task.task_id, none))
+            else:
+                answers = [_verify(c, it, noise, renderer) for it in items]
+            if answers:
+                written.append(_write(wh, folder, task.kind, clip, task.task_id, answers))
+    return written
+
+
+def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: Callable[[list[str]], list],
+                        max_rounds: int = 6, noise: AnnotatorNoise = DEFAULT_NOISE,
+                        log: Callable[[str], None] = lambda s: None) -> tuple[list, list[str]]:
+    """Run ``clips`` (``run(clips)`` -> stage reports), answer the open tasks of the clips that
+    wait, ingest the label files, rerun those clips; until none waits or ``max_rounds`` runs.
+    Returns (the reports of every run, the clips still waiting)."""
+    reports: list = []
+    todo = list(clips)
+    for round_ in range(max_rounds):
+        new = run(todo)
+        reports += new
+        waiting = sorted({r.clip for r in new if r.state == "paused"})
+        if not waiting or round_ == max_rounds - 1:
+            return reports, waiting
+        written = {clip: answer_tasks(bench_dir, wh, clip, noise) for clip in waiting}
+        resumed = []
+        for clip, paths in written.items():
+            if not paths:
+                continue
+            report = ingest_labels(wh, label_dir(bench_dir, clip))
+            if report.errors:
+                raise LabelError("; ".join(report.errors))
+            resumed += report.clips
+        log(f"round {round_ + 1}: {len(waiting)} clip(s) waited; {sum(map(len, written.values()))} label file(s) "
+            f"written and ingested; resuming {len(resumed)}")
+        if not resumed:
+            return reports, waiting
+        todo = sorted(set(resumed))
+    return reports, []
