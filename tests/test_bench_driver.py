@@ -120,15 +120,62 @@ def test_simulated_annotators_answer_through_label_files(benchmark, small_cad_li
     wh = Warehouse(tmp_path / "w")
     config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "w")))
     sources = {s.clip: s for s in clip_sources(folder)}
+    clips = [manifest.clips[0]]  # one clip: the test's time
     reports, waiting = annotate_until_done(
-        folder, wh, list(manifest.clips), lambda clips: run_clips([sources[c] for c in clips], config, show_progress=False))
+        folder, wh, clips, lambda clips: run_clips([sources[c] for c in clips], config, show_progress=False))
     assert waiting == [] and not [r for r in reports if r.state == "failed"]
-    for clip in manifest.clips:
+    for clip in clips:
         assert open_tasks(wh, clip) == []
         for path in sorted(label_dir(folder, clip).glob("*.json")):
             validate_label(path, wh)
     files = wh.read("label_files")
-    assert files.num_rows == sum(len(list(label_dir(folder, c).glob("*.json"))) for c in manifest.clips)
+    assert files.num_rows == sum(len(list(label_dir(folder, c).glob("*.json"))) for c in clips)
     if wh.read("label_tasks").num_rows:  # the tiny benchmark's detector found objects: they went all the way
         verified = wh.read("verified_poses")
         assert verified.num_rows >= 1 or wh.read("poses").num_rows == 0
+    _answer_each_task_kind(folder, wh, manifest.clips[0])
+
+
+def _answer_each_task_kind(folder, wh, clip):
+    """The human-task stages of one clip, with candidates written here (the small library has no
+    retrieval embeddings): each task is answered by label files, ingested, and the stage completes."""
+    import pyarrow as pa
+
+    from bench.retrieval_bench import track_truth
+    from bench.simulated_labels import answer_tasks, label_dir, open_tasks
+    from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig, PoseConfig, VerificationConfig
+    from schemas.official import read_objects
+    from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
+    from tasks.label_ingest import ingest_labels
+    from tasks.pose import solve_clip
+
+    truth = track_truth(folder, wh, clip)
+    objects = {o.track_id: o for o in read_objects(folder / clip / "objects.json").objects}
+    models = {r["cad_id"]: r for r in wh.read("cad_models").to_pylist()}
+    tracks = sorted(wh.read("tracks", [clip], columns=["track_id"]).column("track_id").to_pylist())
+    assert truth, "the tiny benchmark's tracks should match ground-truth objects"
+    other = sorted(models)[0]
+    rows = []
+    for t in tracks:
+        first = objects[truth[t]].cad_id if t in truth else other
+        for rank, cad_id in enumerate(dict.fromkeys([first, other]), 1):
+            rows.append({"clip": clip, "track_id": t, "rank": rank, "library": models[cad_id]["library"], "cad_id": cad_id,
+                         "cad_class": models[cad_id]["class"], "score": 0.5, "appearance": 0.5, "class_similarity": 0.5})
+    wh.write("cad_candidates", clip, pa.Table.from_pylist(rows, schema=wh.spec("cad_candidates").schema))
+
+    def answer(stage):
+        assert stage().paused
+        assert answer_tasks(folder, wh, clip)
+        assert ingest_labels(wh, label_dir(folder, clip)).ok
+        return stage()
+
+    done = answer(lambda: cad_selection_stage(wh, CadSelectionConfig(), clip, "t"))
+    assert not done.paused
+    chosen = selected_models(wh, clip)
+    assert {t for t, c in chosen.items() if c is not None} == {t for t in truth if objects[truth[t]].cad_id in models}
+    assert not answer(lambda: correspondence_task_stage(wh, CorrespondenceTaskConfig(), clip, "t")).paused
+    assert wh.read("correspondences", [clip]).num_rows > 0
+    solve_clip(wh, PoseConfig(), clip, "t")
+    assert not answer(lambda: verification_stage(wh, VerificationConfig(), clip, "t")).paused
+    assert wh.read("verified_poses", [clip]).num_rows >= 1
+    assert open_tasks(wh, clip) == []
