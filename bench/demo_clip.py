@@ -156,8 +156,10 @@ def _render(room: _Room, rays_cam: np.ndarray, pose: np.ndarray, shape: tuple[in
     pixels); returns uint8[H, W, 3].
     """
     R = pose[:, :3].astype(np.float32)
-    eye = (-R.T @ pose[:, 3]).astype(np.float32)[:, None]
-    d = R.T @ rays_cam  # world-frame ray directions
+    # Elementwise products and sums, not BLAS: a BLAS kernel may round differently with the
+    # threads it gets, and a pixel on a boundary then flips (the clip must be bit-identical).
+    eye = -(R * pose[:, 3:4].astype(np.float32)).sum(axis=0)[:, None]  # -R^T t
+    d = (R[:, :, None] * rays_cam[:, None, :]).sum(axis=0)  # R^T rays: world-frame ray directions
     with np.errstate(divide="ignore"):
         inv = 1.0 / d
     exits = np.maximum((room.lo[:, None] - eye) * inv, (room.hi[:, None] - eye) * inv)
@@ -221,7 +223,7 @@ def make_demo_clip(out_dir: Path, spec: DemoClipSpec = DemoClipSpec()) -> DemoCl
     u, v = np.meshgrid(np.arange(small[1]) + 0.5, np.arange(small[0]) + 0.5)
     pixels = np.stack([u * _RENDER_SCALE, v * _RENDER_SCALE, np.ones_like(u)]).reshape(3, -1)  # full-size
     K_inv = np.linalg.inv(intrinsics_matrix(normalised, spec.width, spec.height))
-    rays_cam = (K_inv @ pixels).astype(np.float32)
+    rays_cam = (K_inv[:, :, None] * pixels[None]).sum(axis=1).astype(np.float32)  # K^-1 pixels, no BLAS
 
     def draw(index: int) -> np.ndarray:
         picture = Image.fromarray(_render(room, rays_cam, poses[index], small))
