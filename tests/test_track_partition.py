@@ -45,21 +45,11 @@ def test_heuristic_is_near_optimal_on_noisy_instances():
     assert min(ratios) > 0.97 and np.mean(ratios) > 0.99
 
 
-def object_instance(n: int, rng: np.random.Generator, per_frame: int = 6, window: int = 6, noise: float = 0.6):
-    """bench/track_bench.py's random_instance (objects living over frame intervals, +-2 weights
-    with noise of std 2 * noise), as the benchmark draws its random instances."""
-    F = max(1, n // per_frame)
-    frames = np.sort(rng.integers(0, F, n))
-    life = max(2, F // 3)
-    n_obj = max(per_frame * 3, 2)
-    start = rng.integers(-life, F, n_obj)
-    obj = np.empty(n, dtype=np.int64)
-    for k, f in enumerate(frames):
-        alive = np.flatnonzero((start <= f) & (f < start + life))
-        obj[k] = rng.choice(alive) if len(alive) else rng.integers(n_obj)
-    a, b = candidate_pairs(frames, window)
-    w = np.where(obj[a] == obj[b], 2.0, -2.0) + rng.normal(0, 2 * noise, len(a))
-    return n, a, b, w, frames
+def object_instance(n: int, rng: np.random.Generator):
+    """The benchmark's kind of random instance (bench/track_bench.py), a little less noisy."""
+    from bench.track_bench import random_instance
+
+    return random_instance(n, rng, per_frame=6, window=6, noise=0.6)
 
 
 def test_heuristic_reaches_995_permille_of_the_optimum_on_random_instances():
