@@ -22,13 +22,9 @@ from cadestate.lineage import file_sha256
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
 from tasks.ingest import ClipSource
-from tasks.detect import model_fingerprint
-from tasks.pose import cad_models_digest, correspondences_digest
-from tasks.label_ingest import answers_digest
 from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, detect_task, embed_task, frames_task,
                                  ingest_task, pose_task, retrieval_task, tracking_task, verification_task)
-from tasks.retrieval import library_digest
-from tasks.registry import STAGES
+from tasks.registry import STAGES, clip_inputs, extra_inputs
 from warehouse import Warehouse
 
 
@@ -37,22 +33,24 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
     ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, STAGES["ingest"].code_hash)
     frames = frames_task.submit(root, source.clip, config.frames, ingest, STAGES["frames"].code_hash, show_progress)
-    detect = detect_task.submit(root, source.clip, config.detect, frames, model_fingerprint(config.detect),
-                                STAGES["detect"].code_hash, show_progress)
+    wh = Warehouse(root)
+
+    def more(stage: str) -> list[str]:  # what the stage reads besides upstream outputs: as `cadestate status` sees it
+        return extra_inputs(stage, config) + clip_inputs(stage, wh, source.clip)
+
+    detect = detect_task.submit(root, source.clip, config.detect, frames, more("detect"), STAGES["detect"].code_hash,
+                                show_progress)
     embed = embed_task.submit(root, source.clip, config.embed, detect, STAGES["embed"].code_hash, show_progress)
     tracking = tracking_task.submit(root, source.clip, config.tracking, frames, detect, embed, STAGES["tracking"].code_hash)
-    retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, library_digest(Warehouse(root)),
+    retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, more("retrieval"),
                                       STAGES["retrieval"].code_hash)
-    wh = Warehouse(root)
-    selection = cad_selection_task.submit(root, source.clip, config.cad_selection, retrieval,
-                                          answers_digest(wh, "cad_selection", source.clip), STAGES["cad_selection"].code_hash)
+    selection = cad_selection_task.submit(root, source.clip, config.cad_selection, retrieval, more("cad_selection"),
+                                          STAGES["cad_selection"].code_hash)
     clicks = correspondence_task_task.submit(root, source.clip, config.correspondence_task, selection,
-                                             answers_digest(wh, "correspondences", source.clip),
-                                             STAGES["correspondence_task"].code_hash)
-    pose = pose_task.submit(root, source.clip, config.pose, frames, correspondences_digest(wh, source.clip),
-                            cad_models_digest(wh, source.clip), STAGES["pose"].code_hash)
-    verify = verification_task.submit(root, source.clip, config.verification, pose,
-                                      answers_digest(wh, "verification", source.clip), STAGES["verification"].code_hash)
+                                             more("correspondence_task"), STAGES["correspondence_task"].code_hash)
+    pose = pose_task.submit(root, source.clip, config.pose, frames, more("pose"), STAGES["pose"].code_hash)
+    verify = verification_task.submit(root, source.clip, config.verification, pose, more("verification"),
+                                      STAGES["verification"].code_hash)
     return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
             ("retrieval", retrieval), ("cad_selection", selection), ("correspondence_task", clicks), ("pose", pose),
             ("verification", verify)]

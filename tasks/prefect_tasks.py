@@ -71,12 +71,12 @@ def frames_task(root: str, clip: str, cfg: FramesConfig, ingest: StageRun, code_
 
 
 @task(name="detect", cache_policy=CACHE_POLICY, persist_result=True)
-def detect_task(root: str, clip: str, cfg: DetectConfig, frames: StageRun, model_sha256: str, code_hash: str,
+def detect_task(root: str, clip: str, cfg: DetectConfig, frames: StageRun, more_inputs: list[str], code_hash: str,
                 show_progress: bool = True) -> StageRun:
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "detect", config_hash=section_hash("detect", cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([frames.output_hash, model_sha256]),
+        inputs_hash=upstream_inputs_hash([frames.output_hash, *more_inputs]),
         body=lambda run_id: detect_clip(wh, cfg, clip, run_id, show_progress),
     )
 
@@ -136,12 +136,12 @@ def tracking_task(root: str, clip: str, cfg: TrackingConfig, frames: StageRun, d
 
 
 @task(name="retrieval", cache_policy=CACHE_POLICY, persist_result=True)
-def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRun, library_digest: str,
+def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRun, more_inputs: list[str],
                    code_hash: str) -> StageRun:
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "retrieval", config_hash=section_hash("retrieval", cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([tracking.output_hash, library_digest]),
+        inputs_hash=upstream_inputs_hash([tracking.output_hash, *more_inputs]),
         body=lambda run_id: retrieve_clip(wh, cfg, clip, run_id),
     )
 
@@ -158,17 +158,17 @@ def label_similarity_task(root: str, library: str, cfg: LabelSimilarityConfig, d
 
 
 @task(name="pose", cache_policy=CACHE_POLICY, persist_result=True)
-def pose_task(root: str, clip: str, cfg: PoseConfig, frames: StageRun, correspondences_digest: str,
-              cad_models_digest: str, code_hash: str) -> StageRun:
+def pose_task(root: str, clip: str, cfg: PoseConfig, frames: StageRun, more_inputs: list[str],
+              code_hash: str) -> StageRun:
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "pose", config_hash=section_hash("pose", cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([frames.output_hash, correspondences_digest, cad_models_digest]),
+        inputs_hash=upstream_inputs_hash([frames.output_hash, *more_inputs]),
         body=lambda run_id: solve_clip(wh, cfg, clip, run_id),
     )
 
 
-def _human_task(root: str, clip: str, stage: str, cfg, upstream: StageRun, answers_digest: str, code_hash: str,
+def _human_task(root: str, clip: str, stage: str, cfg, upstream: StageRun, more_inputs: list[str], code_hash: str,
                 body) -> StageRun:
     """A human-task stage: ``waiting`` (not run) while its upstream waits with nothing answered,
     else run (completed, or paused until its labels are in)."""
@@ -178,28 +178,28 @@ def _human_task(root: str, clip: str, stage: str, cfg, upstream: StageRun, answe
     wh = Warehouse(root)
     return run_stage(
         wh, clip, stage, config_hash=section_hash(stage, cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([upstream.output_hash, answers_digest]),
+        inputs_hash=upstream_inputs_hash([upstream.output_hash, *more_inputs]),
         body=lambda run_id: body(wh, cfg, clip, run_id),
     )
 
 
 @task(name="cad_selection", cache_policy=CACHE_POLICY, persist_result=True)
-def cad_selection_task(root: str, clip: str, cfg: CadSelectionConfig, retrieval: StageRun, answers_digest: str,
+def cad_selection_task(root: str, clip: str, cfg: CadSelectionConfig, retrieval: StageRun, more_inputs: list[str],
                        code_hash: str) -> StageRun:
-    return _human_task(root, clip, "cad_selection", cfg, retrieval, answers_digest, code_hash, cad_selection_stage)
+    return _human_task(root, clip, "cad_selection", cfg, retrieval, more_inputs, code_hash, cad_selection_stage)
 
 
 @task(name="correspondence_task", cache_policy=CACHE_POLICY, persist_result=True)
 def correspondence_task_task(root: str, clip: str, cfg: CorrespondenceTaskConfig, cad_selection: StageRun,
-                             answers_digest: str, code_hash: str) -> StageRun:
-    return _human_task(root, clip, "correspondence_task", cfg, cad_selection, answers_digest, code_hash,
+                             more_inputs: list[str], code_hash: str) -> StageRun:
+    return _human_task(root, clip, "correspondence_task", cfg, cad_selection, more_inputs, code_hash,
                        correspondence_task_stage)
 
 
 @task(name="verification", cache_policy=CACHE_POLICY, persist_result=True)
-def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: StageRun, answers_digest: str,
+def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: StageRun, more_inputs: list[str],
                       code_hash: str) -> StageRun:
-    return _human_task(root, clip, "verification", cfg, pose, answers_digest, code_hash, verification_stage)
+    return _human_task(root, clip, "verification", cfg, pose, more_inputs, code_hash, verification_stage)
 
 
 STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
