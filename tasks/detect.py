@@ -21,8 +21,7 @@ from PIL import Image
 from cadestate.config import DetectConfig
 from cadestate.lineage import file_sha256, table_digest
 from cadestate.progress import progress
-from tasks.detectors import Detections, load_detector
-from tasks.models import nanodet
+from tasks.detectors import Detections, detector_path, load_detector
 from tasks.stage import StageOutput
 from warehouse import Warehouse
 
@@ -32,7 +31,7 @@ DET_ID_STRIDE = 10_000  # det_id = frame_index * DET_ID_STRIDE + rank
 
 def model_fingerprint(cfg: DetectConfig) -> str:
     """SHA-256 of the detector file ``cfg`` names (empty when it is missing: the stage then fails clearly)."""
-    path = (Path(cfg.model).expanduser() if cfg.model else nanodet.default_cache_dir() / nanodet.ONNX_NAME).resolve()
+    path = detector_path(cfg).resolve()
     if not path.is_file():
         return ""
     st = path.stat()

@@ -212,10 +212,15 @@ class Detector:
                           tuple(self.labels[i] for i in labels[k]))
 
 
+def detector_path(cfg) -> Path:  # cfg: cadestate.config.DetectConfig
+    """The ONNX file ``[detect] model`` names; empty: the NanoDet-m of `make models`."""
+    return Path(cfg.model).expanduser() if cfg.model else nanodet.default_cache_dir() / nanodet.ONNX_NAME
+
+
 def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
-    """The detector ``[detect]`` describes: its model (default: the NanoDet-m of `make models`),
-    adapter and label map (default: COCO-80)."""
-    model = Path(cfg.model).expanduser() if cfg.model else nanodet.default_cache_dir() / nanodet.ONNX_NAME
+    """The detector ``[detect]`` describes: its model (:func:`detector_path`), adapter and label
+    map (default: COCO-80)."""
+    model = detector_path(cfg)
     if not cfg.model and not nanodet.is_built(model.parent):
         raise FileNotFoundError(f"the default detector {model} is missing or not verified: run `make models`")
     labels = cfg.labels or nanodet.COCO_LABELS
