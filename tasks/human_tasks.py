@@ -105,8 +105,14 @@ def write_task_once(wh: Warehouse, task) -> Path:
     return write_task(wh, task)
 
 
-def paused_message(kind: str, path: str, waiting: int, total: int, what: str = "tracks") -> str:
-    return f"waits for labels: {waiting} of {total} {what} unanswered in {kind} task {path}"
+def task_output(rows: int, output_hash: str, summary: str, kind: str, path: str, waiting: int, total: int,
+                what: str = "tracks") -> StageOutput:
+    """A human-task stage's result: completed, or paused while ``waiting`` of ``total`` items of
+    its ``kind`` task at ``path`` are unanswered (the message names the task file)."""
+    if not waiting:
+        return StageOutput(rows, output_hash, summary)
+    return StageOutput(rows, output_hash, f"waits for labels: {waiting} of {total} {what} unanswered in {kind} task {path}; "
+                                          f"{summary}", paused=True)
 
 
 # ------------------------------------------------------------------------------ cad_selection
@@ -172,10 +178,7 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     output = digest("cad_selection", task_id, *(f"{t}\t{answers[t]}" for t in answered))
     waiting = len(track_ids) - len(answered)
     summary = f"{len(chosen)} of {len(track_ids)} tracks have a CAD model, {len(answered) - len(chosen)} none"
-    if waiting:
-        return StageOutput(len(chosen), output, f"{paused_message('cad_selection', path, waiting, len(track_ids))}; {summary}",
-                           paused=True)
-    return StageOutput(len(chosen), output, summary)
+    return task_output(len(chosen), output, summary, "cad_selection", path, waiting, len(track_ids))
 
 
 # ------------------------------------------------------------------------------ correspondences
@@ -216,10 +219,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     output = digest("correspondence_task", task_id, *map(str, answered))
     waiting = len(track_ids) - len(answered)
     summary = f"{len(answered)} of {len(track_ids)} tracks have correspondences"
-    if waiting:
-        return StageOutput(len(answered), output, f"{paused_message('correspondences', path, waiting, len(track_ids))}; {summary}",
-                           paused=True)
-    return StageOutput(len(answered), output, summary)
+    return task_output(len(answered), output, summary, "correspondences", path, waiting, len(track_ids))
 
 
 # ------------------------------------------------------------------------------ verification
@@ -327,10 +327,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     waiting = len(items) - len(verified)
     accepted = sum(r["accepted"] for r in verified)
     summary = f"{accepted} of {len(items)} poses accepted, {len(verified) - accepted} rejected"
-    if waiting:
-        return StageOutput(len(verified), table_digest(table),
-                           f"{paused_message('verification', path, waiting, len(items), 'poses')}; {summary}", paused=True)
-    return StageOutput(len(verified), table_digest(table), summary)
+    return task_output(len(verified), table_digest(table), summary, "verification", path, waiting, len(items), "poses")
 
 
 def _mesh_path(wh: Warehouse, cad_id: str) -> str:
