@@ -1,5 +1,6 @@
 # One entry point per job. Every target sets up what it needs first (idempotent).
-#   make run          - set up, build the CAD library, generate a demo clip, run the flows, print a SQL summary
+#   make run          - set up, build the CAD library, generate a demo clip, run it end to end (simulated
+#                       annotators answer its human tasks through label files), print a SQL summary
 #   make test         - set up and run the whole test suite (slow end-to-end tests included; CI runs this)
 #   make bench        - set up, run the throughput benchmarks (bench/results/), then the synthetic benchmark
 #                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
@@ -14,6 +15,8 @@ BIN := $(VENV)/bin
 FIND_LINKS ?= $(or $(PIP_FIND_LINKS),/opt/wheels)
 UV_VERSION := 0.13.9
 DEMO_DIR ?= data/demo
+DEMO_SEED ?= 7
+DEMO_CLIP := bench_$(DEMO_SEED)_00
 WAREHOUSE ?= data/warehouse
 export CADESTATE_WAREHOUSE ?= $(WAREHOUSE)
 # The embedded CAD library: Debian's sweethome3d-furniture, fetched (not installed) and unpacked
@@ -56,23 +59,39 @@ models: $(NANODET)
 $(NANODET): | setup
 	$(BIN)/python -m tasks.models.nanodet $(CADESTATE_MODELS)
 
+run: export COLUMNS = 180
 run: setup cad-library models
 	$(BIN)/cadestate cad ingest
-	$(BIN)/cadestate demo make $(DEMO_DIR)
-	$(BIN)/cadestate ingest $(DEMO_DIR)
+	$(BIN)/cadestate bench generate --out $(DEMO_DIR) --seed $(DEMO_SEED) --clips 1
+	$(BIN)/cadestate bench run $(DEMO_DIR)
+	@echo "== the demo clip's frames and cameras"
 	$(BIN)/cadestate sql "SELECT clip, count(*) AS frames, any_value(width) || 'x' || any_value(height) AS size, \
 	  max(abs(timestamp_error_us)) AS max_ts_error_us, \
 	  round(max(camera_center[1]) - min(camera_center[1]), 2) AS x_travel_m, \
-	  round(avg(camera_center[2]), 2) AS mean_camera_height_m FROM frames GROUP BY clip ORDER BY clip"
+	  round(avg(camera_center[2]), 2) AS mean_camera_height_m FROM frames WHERE clip = '$(DEMO_CLIP)' GROUP BY clip"
+	@echo "== the CAD library"
 	$(BIN)/cadestate sql "SELECT class, count(*) AS models, count(*) FILTER (symmetry > 1) AS symmetric, \
 	  round(median(extent[2]), 2) AS median_height_m FROM cad_models GROUP BY class ORDER BY models DESC LIMIT 12"
-	$(BIN)/cadestate sql "SELECT t.clip, t.track_id, t.label, t.num_detections AS boxes, \
-	  c.cad_id AS best_candidate, c.cad_class, round(c.score::DOUBLE, 3) AS score \
-	  FROM tracks t JOIN cad_candidates c USING (clip, track_id) WHERE c.rank = 1 ORDER BY t.clip, t.track_id"
-	$(BIN)/cadestate sql "SELECT clip, stage, status, round(duration_s, 2) AS seconds, rows_written \
-	  FROM runs WHERE clip IN (SELECT clip FROM clips) QUALIFY row_number() OVER (PARTITION BY clip, stage ORDER BY started_at DESC) = 1 \
-	  ORDER BY clip, started_at"
-	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
+	@echo "== every track: retrieval's best guess, the model the annotator chose, its pose, the verdict"
+	$(BIN)/cadestate sql "SELECT t.track_id, t.label, t.num_detections AS boxes, c.cad_id AS top_candidate, \
+	  p.cad_id AS chosen_model, p.status AS pose, round(p.loss_reprojection, 2) AS reprojection_px, v.accepted \
+	  FROM tracks t LEFT JOIN cad_candidates c ON c.clip = t.clip AND c.track_id = t.track_id AND c.rank = 1 \
+	  LEFT JOIN poses p ON p.clip = t.clip AND p.track_id = CAST(t.track_id AS VARCHAR) \
+	  LEFT JOIN verified_poses v ON v.clip = p.clip AND v.track_id = p.track_id \
+	  WHERE t.clip = '$(DEMO_CLIP)' ORDER BY t.track_id"
+	@echo "== wall time per stage, all runs of the clip (first run, then each resume after labels)"
+	$(BIN)/cadestate sql "SELECT stage, runs, states, seconds FROM (SELECT stage, count(*) AS runs, \
+	  string_agg(status, ' > ' ORDER BY started_at) AS states, round(sum(duration_s), 2) AS seconds, min(started_at) AS first \
+	  FROM runs WHERE clip = '$(DEMO_CLIP)' GROUP BY stage UNION ALL SELECT 'total', count(*), '', round(sum(duration_s), 2), \
+	  NULL FROM runs WHERE clip = '$(DEMO_CLIP)') ORDER BY first NULLS LAST"
+	@echo "== accepted poses, in the official CAD-Estate convention (object -> world: mirror, scale, rotation, translation)"
+	$(BIN)/cadestate sql "SELECT track_id, class, cad_id, list_transform(translation, lambda x: round(x, 2)) AS t_m, \
+	  list_transform(rotation, lambda x: round(x, 3)) AS q_wxyz, list_transform(scale, lambda x: round(x, 2)) AS s, is_mirrored \
+	  FROM verified_poses WHERE clip = '$(DEMO_CLIP)' AND accepted ORDER BY CAST(track_id AS INTEGER)"
+	$(BIN)/cadestate bench report $(DEMO_DIR) > /dev/null
+	@echo "== $(DEMO_DIR)/report.md: accuracy against the demo's ground truth, with pictures ($(DEMO_DIR)/report/)"
+	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "cad_id IN (SELECT cad_id FROM verified_poses WHERE accepted) \
+	  OR class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
 	$(BIN)/cadestate status
 
 test: setup cad-library models

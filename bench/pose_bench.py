@@ -1,7 +1,8 @@
 """Pose solving on the synthetic benchmark: Scan2CAD accuracy, ablation, timing.
 
 - :func:`pose_accuracy`: the ``poses`` table of the warehouse (what `cadestate bench run` wrote)
-  against the ground truth (``bench report``). Only ``status = 'ok'`` poses count as predictions.
+  against the ground truth (``bench report``), pipeline tracks mapped to ground-truth objects; only
+  ``status = 'ok'`` poses count as predictions; with the verification verdicts' agreement.
 - :func:`run` (``python -m bench``, ``make bench``): the solver on the ground-truth tracks of the
   default benchmark at click noise 0, 3 and 6 px, the paper's ablation (base, + co-planar,
   + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as fallback) vs Adam alone, and
@@ -61,12 +62,36 @@ def score(predictions: list[PosedObject], gt: list[PosedObject], symmetries: dic
             "class_accuracy_all_pct": pct(full.class_accuracy)}
 
 
+def _ground_truth_keyed(bench_dir: Path, wh: Warehouse, clip: str, rows: list[dict]) -> list[dict]:
+    """The clip's ``poses`` rows with ``track_id`` as the ground-truth object they pose.
+
+    Correspondences that came through label files (``bench run``, the simulated annotators
+    answering the pipeline's tasks) are on pipeline tracks: each is mapped to its ground-truth
+    object by :func:`bench.retrieval_bench.track_truth`; tracks matching no object are dropped, and
+    of several tracks of one object the one with most key-frames (then the lowest id) counts.
+    Correspondences written directly on ground-truth tracks (``bench run --gt-tracks``) are keyed
+    by ground-truth ids already."""
+    if clip not in wh.partitions("correspondence_labels"):
+        return rows
+    from bench.retrieval_bench import track_truth
+
+    truth = track_truth(bench_dir, wh, clip)
+    best: dict[str, dict] = {}
+    for r in sorted(rows, key=lambda r: (-r["num_keyframes"], int(r["track_id"]))):
+        gt = truth.get(int(r["track_id"]))
+        if gt is not None and gt not in best:
+            best[gt] = {**r, "track_id": gt, "pipeline_track_id": r["track_id"]}
+    return list(best.values())
+
+
 def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
-    """Accuracy of the warehouse's ``poses`` of the benchmark's clips (None before the pose stage ran)."""
+    """Accuracy of the warehouse's ``poses`` of the benchmark's clips (None before the pose stage
+    ran), and how the verification answers relate to it: the share of accepted poses that are
+    correct, and of correct poses that were accepted."""
     clips = [c for c in read_manifest(bench_dir).clips if c in wh.partitions("poses")]
     if not clips:
         return None
-    rows = wh.read("poses", clips).to_pylist()
+    rows = [r for c in clips for r in _ground_truth_keyed(bench_dir, wh, c, wh.read("poses", [c]).to_pylist())]
     preds = [PosedObject(r["track_id"], r["class"], tuple(r["translation"]), tuple(r["rotation"]), tuple(r["scale"]),
                          r["is_mirrored"], r["cad_id"], r["clip"]) for r in rows if r["status"] == "ok"]
     gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
@@ -74,19 +99,46 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    return {"clips": len(clips), **score(preds, gt, symmetries, {(r["clip"], r["track_id"]) for r in rows}),
-            "statuses": statuses}
+    annotated = {(r["clip"], r["track_id"]) for r in rows}
+    result = {"clips": len(clips), **score(preds, gt, symmetries, annotated), "statuses": statuses}
+    return {**result, "verification": _verification_agreement(wh, clips, rows, preds, gt, symmetries)}
+
+
+def _verification_agreement(wh: Warehouse, clips: list[str], rows: list[dict], preds: list[PosedObject],
+                            gt: list[PosedObject], symmetries: dict[str, int]) -> dict | None:
+    """Accepted / rejected verdicts of ``verified_poses`` against Scan2CAD correctness (None: no verdicts)."""
+    verdicts = {(r["clip"], r["track_id"]): r["accepted"] for r in wh.read("verified_poses", clips).to_pylist()}
+    if not verdicts:
+        return None
+    pipeline_id = {(r["clip"], r["track_id"]): r.get("pipeline_track_id", r["track_id"]) for r in rows}
+    pairs = match_and_score(preds, gt, symmetries, "track", require_class=False).matches
+    judged = [(verdicts[(m.pred.clip, pipeline_id[m.pred.key])], m.correct) for m in pairs
+              if (m.pred.clip, pipeline_id[m.pred.key]) in verdicts]
+    accepted = [ok for acc, ok in judged if acc]
+    correct = [acc for acc, ok in judged if ok]
+    return {"verdicts": len(verdicts), "judged_on_ground_truth": len(judged), "accepted": len(accepted),
+            "accepted_correct_pct": round(100 * sum(accepted) / len(accepted), 1) if accepted else None,
+            "correct_accepted_pct": round(100 * sum(correct) / len(correct), 1) if correct else None}
 
 
 def pose_markdown(result: dict | None) -> list[str]:
     """Lines of the report's pose section (empty before the pose stage ran)."""
     if not result:
         return []
-    return [f"## Pose accuracy (Scan2CAD: <= 20 cm, 20 deg, 20 %; {result['clips']} clips, ground-truth tracks)", "",
+    return [f"## Pose accuracy (Scan2CAD: <= 20 cm, 20 deg, 20 %; {result['clips']} clips)", "",
             f"Objects with correspondences: {result['instance_accuracy_pct']} % correct (instance mean; class mean "
             f"{result['class_accuracy_pct']} %) of {result['annotated_objects']}. Over all {result['all_objects']} "
             f"ground-truth objects: {result['instance_accuracy_all_pct']} % (class mean {result['class_accuracy_all_pct']} %).",
-            f"Solver statuses: {', '.join(f'{k} {v}' for k, v in sorted(result['statuses'].items()))}.", ""]
+            f"Solver statuses: {', '.join(f'{k} {v}' for k, v in sorted(result['statuses'].items()))}.", "",
+            *_verification_markdown(result.get("verification"))]
+
+
+def _verification_markdown(v: dict | None) -> list[str]:
+    if not v:
+        return []
+    return [f"Verification (simulated annotators' verdicts on {v['judged_on_ground_truth']} poses of ground-truth "
+            f"objects): {v['accepted']} accepted, of which {v['accepted_correct_pct']} % are correct by Scan2CAD; "
+            f"{v['correct_accepted_pct']} % of the correct poses were accepted.", ""]
 
 
 def _renoise(labels: dict, bench_dir: Path, clip: str, sigma: float, seed: int) -> dict:

@@ -25,7 +25,9 @@ clips that got labels, until no clip waits or ``max_rounds``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -207,6 +209,7 @@ def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: C
         waiting = sorted({r.clip for r in new if r.state == "paused"})
         if not waiting or round_ == max_rounds - 1:
             return reports, waiting
+        started = time.perf_counter()
         written = {clip: answer_tasks(bench_dir, wh, clip, noise) for clip in waiting}
         resumed = []
         for clip, paths in written.items():
@@ -217,8 +220,22 @@ def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: C
                 raise LabelError("; ".join(report.errors))
             resumed += report.clips
         log(f"round {round_ + 1}: {len(waiting)} clip(s) waited; {sum(map(len, written.values()))} label file(s) "
-            f"written and ingested; resuming {len(resumed)}")
+            f"written and ingested in {time.perf_counter() - started:.1f} s; resuming {len(resumed)}")
         if not resumed:
             return reports, waiting
         todo = sorted(set(resumed))
     return reports, []
+
+
+def merge_rounds(reports: list) -> list:
+    """One report per (clip, stage) over the runs of :func:`annotate_until_done`, in first-run
+    order: the state, rows and message of its last run that did work (a later ``cached`` run
+    changed nothing), and the seconds of all its runs summed."""
+    merged: dict[tuple[str, str], object] = {}
+    total: dict[tuple[str, str], float] = {}
+    for r in reports:
+        key = (r.clip, r.stage)
+        total[key] = total.get(key, 0.0) + r.duration_s
+        if key not in merged or r.state != "cached":
+            merged[key] = r
+    return [dataclasses.replace(r, duration_s=total[k]) for k, r in merged.items()]

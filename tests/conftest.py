@@ -47,12 +47,9 @@ SMALL_LIBRARY = {  # class -> Sweet Home 3D models (cad_id); others of the class
 }
 
 
-@pytest.fixture(scope="session")
-def small_cad_library(tmp_path_factory):
-    """(warehouse, cad_models rows): about 15 Sweet Home 3D models of 8 classes, ingested once per session.
-    Skips when the library is not fetched (`make cad-library`, which `make test` runs)."""
-    from cadestate.config import CadIngestConfig
-    from tasks.cad_ingest import ingest_library
+def small_library_items() -> list:
+    """The Sweet Home 3D items of SMALL_LIBRARY (about 15 models of 8 classes). Skips the test when
+    the library is not fetched (`make cad-library`, which `make test` runs)."""
     from tasks.cad_sources import default_source, sweethome3d_items
 
     source = default_source()
@@ -64,6 +61,16 @@ def small_cad_library(tmp_path_factory):
     for cls, ids in SMALL_LIBRARY.items():
         chosen = [by_id[i] for i in ids if i in by_id]
         pick += chosen + [i for i in items if i.cls == cls and i not in chosen][:len(ids) - len(chosen)]
+    return pick
+
+
+@pytest.fixture(scope="session")
+def small_cad_library(tmp_path_factory):
+    """(warehouse, cad_models rows): SMALL_LIBRARY canonicalised (cad_ingest only), once per session."""
+    from cadestate.config import CadIngestConfig
+    from tasks.cad_ingest import ingest_library
+
+    pick = small_library_items()
     wh = Warehouse(tmp_path_factory.mktemp("small_cad_wh"))
     ingest_library(wh, CadIngestConfig(samples=512, workers=1), "sh3d-small", pick, "r", show_progress=False)
     return wh, wh.read("cad_models").to_pylist()

@@ -381,3 +381,15 @@ def test_keyframes_are_evenly_spaced_over_the_whole_visible_track(monkeypatch):
     noise = replace(EXACT, keyframes_per_object=(4, 4))
     kf = annotators.choose_keyframes(frames, obj, None, noise, np.random.default_rng(0))
     assert kf == [4, 10, 17, 23]
+
+
+def test_merge_rounds_keeps_the_last_work_and_sums_the_time():
+    from bench.simulated_labels import merge_rounds
+    from flows.reports import StageReport
+
+    runs = [StageReport("c", "detect", "completed", 5, 2.0, "5 boxes"), StageReport("c", "cad_selection", "paused", 0, 0.5, "waits"),
+            StageReport("c", "detect", "cached", 0, 0.1), StageReport("c", "cad_selection", "completed", 3, 0.25, "3 chosen"),
+            StageReport("c", "cad_selection", "cached", 0, 0.0)]
+    assert merge_rounds(runs) == [StageReport("c", "detect", "completed", 5, 2.1, "5 boxes"),
+                                  StageReport("c", "cad_selection", "completed", 3, 0.75, "3 chosen")]
+    assert merge_rounds([StageReport("c", "ingest", "cached", 0, 0.0)]) == [StageReport("c", "ingest", "cached", 0, 0.0)]

@@ -37,14 +37,17 @@ def bench_run(
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
     answer_tasks: Annotated[bool, typer.Option(
-        help="Let the simulated annotators answer the clips' open human tasks through label files "
-             "(<bench>/labels/<clip>/), ingest them and rerun, until no clip waits. Off: the simulated "
-             "correspondences of the ground-truth tracks go into the warehouse directly (the pose numbers of "
-             "`bench report` match poses to ground-truth track ids).")] = False,
-    max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs.")] = 6,
+        "--answer-tasks/--gt-tracks",
+        help="--answer-tasks (default): the simulated annotators answer the clips' open human tasks through "
+             "label files (<bench>/labels/<clip>/), which are ingested, and the clips rerun until none waits: the "
+             "whole pipeline from video to verified poses. --gt-tracks: no human tasks; the simulated clicks on the "
+             "ground-truth tracks go into `correspondences` directly (poses of ground-truth tracks, as "
+             "`python -m bench.pose_bench` solves them).")] = True,
+    max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs of the clips.")] = 6,
 ) -> None:
-    """Write the simulated annotators' label files (<bench>/labels/, once), then run the pipeline
-    stages that exist on every benchmark clip (cached stages do no work)."""
+    """Run the pipeline on every benchmark clip, the simulated annotators answering its human tasks
+    (cached stages do no work). Also writes the simulated annotators' clicks on the ground-truth
+    tracks (<bench>/labels/<clip>.json, once), the input of `python -m bench.pose_bench`."""
     from bench.benchmark import clip_sources, read_manifest
     from bench.labels import simulate_labels, write_correspondences
 
@@ -56,7 +59,7 @@ def bench_run(
         err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
         run_sources(ctx.obj, clip_sources(bench_dir), progress)
         return
-    from bench.simulated_labels import annotate_until_done
+    from bench.simulated_labels import annotate_until_done, merge_rounds
     from cadestate.cli.common import print_reports
     from flows.runtime import prepare_prefect_environment
 
@@ -68,7 +71,7 @@ def bench_run(
     reports, waiting = annotate_until_done(
         bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
         max_rounds, log=err.print)
-    code = print_reports(reports)
+    code = print_reports(merge_rounds(reports))
     if waiting:
         err.print(f"still waiting after {max_rounds} run(s): {', '.join(waiting)}")
     raise typer.Exit(code or (1 if waiting else 0))
