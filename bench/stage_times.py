@@ -1,0 +1,41 @@
+"""End-to-end wall time of the benchmark's clips, broken down by stage (``make bench``).
+
+Read from the ``runs`` table that ``cadestate bench run`` filled: per clip and stage, the seconds
+of all its runs summed (the first run, and each resume after the simulated annotators' labels
+were ingested; cached runs cost ~0). Reported per stage as the median over clips, with the
+median of each clip's total. What the table cannot see is left out: Prefect's scheduling, and
+the simulated annotators' own time (``bench run`` logs it per round).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+from statistics import median
+
+from bench.benchmark import read_manifest
+from tasks.registry import stages_of
+from warehouse import Warehouse
+
+
+def stage_seconds(wh: Warehouse, clips: list[str]) -> dict[str, dict[str, float]]:
+    """clip -> stage -> seconds of all its runs summed (clips without runs left out)."""
+    out: dict[str, dict[str, float]] = defaultdict(lambda: defaultdict(float))
+    for r in wh.read("runs", [c for c in clips if c in wh.partitions("runs")], columns=["clip", "stage", "duration_s"]).to_pylist():
+        out[r["clip"]][r["stage"]] += float(r["duration_s"] or 0.0)
+    return {c: dict(s) for c, s in out.items()}
+
+
+def run(bench_dir: Path = Path("data/bench/default"), wh: Warehouse | None = None) -> dict:
+    """Median seconds per stage and per clip over the benchmark's clips that ran."""
+    if not (Path(bench_dir) / "manifest.json").is_file():
+        return {"skipped": f"{bench_dir}: no benchmark (`cadestate bench generate`)"}
+    wh = wh or Warehouse("data/warehouse")
+    per_clip = stage_seconds(wh, list(read_manifest(bench_dir).clips))
+    if not per_clip:
+        return {"skipped": f"{bench_dir}: no clip has run (`cadestate bench run {bench_dir}`)"}
+    seen = {s for c in per_clip.values() for s in c}
+    stages = [s.name for s in stages_of("clip") if s.name in seen]
+    return {"clips": len(per_clip),
+            "median_s_per_stage": {s: round(median(c.get(s, 0.0) for c in per_clip.values()), 2) for s in stages},
+            "median_s_per_clip": round(median(sum(c.values()) for c in per_clip.values()), 1)}
