@@ -22,11 +22,12 @@ after the symmetric rotation), world +Y up, cameras world->camera OpenCV, pixels
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
-DTYPE = torch.float64
+from tasks.pose_batch import DTYPE, Batch
+
 IRLS_EPS_PX = 1e-3
 """Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
 
@@ -61,40 +62,23 @@ def scale_ties(axis: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class Problem:
-    """The per-object data the LM needs (a view of :class:`tasks.pose_solver.Batch`).
+    """What the LM needs per object: the objects' :class:`tasks.pose_batch.Batch` and the run's extras.
 
-    pts float[B, P, 3]; uv float[B, P, 2] px; kf int[B, P]; pmask bool[B, P]; K, Rc float[B, F, 3, 3];
-    tc float[B, F, 3]; fmask bool[B, F]; mirror float[B]; upright bool[B]; offsets float[B, O]
-    (radians), omask bool[B, O]; L float[B, 3, 3] scale ties; free_phi float[B, F] (1: phi free);
-    scale_t float[B].
+    offsets float[B, O] (radians) and omask bool[B, O]: the discrete symmetric rotations about +Y
+    each key-frame may take; L float[B, 3, 3] scale ties; free_phi float[B, F] (1: the key-frame's
+    rotation about +Y is free, 36-way models); scale_t float[B] translation unit (distance to the
+    cameras, world units).
     """
 
-    pts: torch.Tensor
-    uv: torch.Tensor
-    kf: torch.Tensor
-    pmask: torch.Tensor
-    K: torch.Tensor
-    Rc: torch.Tensor
-    tc: torch.Tensor
-    fmask: torch.Tensor
-    mirror: torch.Tensor
-    upright: torch.Tensor
+    b: Batch
     offsets: torch.Tensor
     omask: torch.Tensor
     L: torch.Tensor
     free_phi: torch.Tensor
     scale_t: torch.Tensor
 
-    def __post_init__(self):
-        B, P = self.kf.shape
-        self.Rp = torch.gather(self.Rc, 1, self.kf[..., None, None].expand(B, P, 3, 3))
-        self.tp = torch.gather(self.tc, 1, self.kf[..., None].expand(B, P, 3))
-        self.Kp = torch.gather(self.K, 1, self.kf[..., None, None].expand(B, P, 3, 3))
-        self.npts = self.pmask.sum(1).clamp(min=1).to(DTYPE)
-        self.mvec = torch.stack([self.mirror, torch.ones_like(self.mirror), torch.ones_like(self.mirror)], -1)
-
     def subset(self, idx: torch.Tensor) -> Problem:
-        return Problem(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+        return Problem(self.b.select(idx), *(getattr(self, f.name)[idx] for f in fields(self)[1:]))
 
 
 def _rotate_y(p: torch.Tensor, ang: torch.Tensor, derivative: bool = False) -> torch.Tensor:
@@ -115,66 +99,66 @@ def robust(d: torch.Tensor, huber_px: float) -> torch.Tensor:
 def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, beta: float, huber_px: float = 0.0):
     """Total loss float[B] (min over each key-frame's symmetric rotations) and the chosen offset
     per key-frame int[B, F]."""
-    B, P = pb.kf.shape
-    F = pb.Rc.shape[1]
-    ang = pb.offsets[:, None, :] + torch.gather(phi, 1, pb.kf)[:, :, None]  # float[B, P, O]
-    x = _rotate_y(pb.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang) * pb.mvec[:, None, None]
+    B, P = pb.b.kf.shape
+    F = pb.b.Rc.shape[1]
+    ang = pb.offsets[:, None, :] + torch.gather(phi, 1, pb.b.kf)[:, :, None]  # float[B, P, O]
+    x = _rotate_y(pb.b.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang) * pb.b.mvec[:, None, None]
     world = torch.einsum("bij,bpoj->bpoi", R, x * s[:, None, None, :]) + T[:, None, None, :]
-    cam = torch.einsum("bpij,bpoj->bpoi", pb.Rp, world) + pb.tp[:, :, None, :]
+    cam = torch.einsum("bpij,bpoj->bpoi", pb.b.Rp, world) + pb.b.tp[:, :, None, :]
     depth = cam[..., 2]
     proj = cam[..., :2] / depth.clamp(min=1e-6)[..., None]
-    pix = torch.einsum("bpij,bpoj->bpoi", pb.Kp[..., :2, :2], proj) + pb.Kp[:, :, None, :2, 2]
-    per_point = robust(pix - pb.uv[:, :, None, :], huber_px).sum(-1) * pb.pmask[..., None]
-    per_kf = torch.zeros(B, F, per_point.shape[2], dtype=DTYPE).scatter_add(1, pb.kf[..., None].expand_as(per_point), per_point)
+    pix = torch.einsum("bpij,bpoj->bpoi", pb.b.Kp[..., :2, :2], proj) + pb.b.Kp[:, :, None, :2, 2]
+    per_point = robust(pix - pb.b.uv[:, :, None, :], huber_px).sum(-1) * pb.b.pmask[..., None]
+    per_kf = torch.zeros(B, F, per_point.shape[2], dtype=DTYPE).scatter_add(1, pb.b.kf[..., None].expand_as(per_point), per_point)
     per_kf = torch.where(pb.omask[:, None, :], per_kf, torch.full_like(per_kf, float("inf")))
     best, choice = per_kf.min(-1)  # the rotation is chosen by the reprojection term (as the solver's evaluate)
-    best = torch.where(pb.fmask, best, torch.zeros_like(best))
-    z = torch.gather(depth, 2, torch.gather(choice, 1, pb.kf)[..., None])[..., 0]
-    front = (torch.relu(min_depth - z) * pb.pmask).sum(1)
-    up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.upright
-    return torch.nan_to_num((best.sum(1) + beta * front) / pb.npts + alpha * up, nan=float("inf")), choice
+    best = torch.where(pb.b.fmask, best, torch.zeros_like(best))
+    z = torch.gather(depth, 2, torch.gather(choice, 1, pb.b.kf)[..., None])[..., 0]
+    front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
+    up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
+    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up, nan=float("inf")), choice
 
 
 def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
     """Signed residuals float[B, N] (their absolute sum is the loss at the chosen rotations) and
     their Jacobian float[B, N, 9 + F] with respect to (w, translation step, ls, phi)."""
-    B, P = pb.kf.shape
-    F = pb.Rc.shape[1]
+    B, P = pb.b.kf.shape
+    F = pb.b.Rc.shape[1]
     s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
-    ang = torch.gather(pb.offsets, 1, torch.gather(choice, 1, pb.kf)) + torch.gather(phi, 1, pb.kf)  # float[B, P]
-    x = _rotate_y(pb.pts, ang) * pb.mvec[:, None]
-    dx = _rotate_y(pb.pts, ang, True) * pb.mvec[:, None]
+    ang = torch.gather(pb.offsets, 1, torch.gather(choice, 1, pb.b.kf)) + torch.gather(phi, 1, pb.b.kf)  # float[B, P]
+    x = _rotate_y(pb.b.pts, ang) * pb.b.mvec[:, None]
+    dx = _rotate_y(pb.b.pts, ang, True) * pb.b.mvec[:, None]
     y = x * s[:, None]
     world = torch.einsum("bij,bpj->bpi", R, y) + T[:, None]
-    cam = torch.einsum("bpij,bpj->bpi", pb.Rp, world) + pb.tp
+    cam = torch.einsum("bpij,bpj->bpi", pb.b.Rp, world) + pb.b.tp
     z = cam[..., 2]
     zs = z.clamp(min=1e-6)
     proj = cam[..., :2] / zs[..., None]
-    K2 = pb.Kp[..., :2, :2]
-    pix = torch.einsum("bpij,bpj->bpi", K2, proj) + pb.Kp[..., :2, 2]
-    w = pb.pmask.to(DTYPE) / pb.npts[:, None]  # float[B, P]
-    r_pix = (pix - pb.uv) * w[..., None]
+    K2 = pb.b.Kp[..., :2, :2]
+    pix = torch.einsum("bpij,bpj->bpi", K2, proj) + pb.b.Kp[..., :2, 2]
+    w = pb.b.pmask.to(DTYPE) / pb.b.npts[:, None]  # float[B, P]
+    r_pix = (pix - pb.b.uv) * w[..., None]
     # d proj / d cam: [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
     dproj = torch.zeros(B, P, 2, 3, dtype=DTYPE)
     dproj[..., 0, 0] = 1 / zs
     dproj[..., 1, 1] = 1 / zs
     dproj[..., :, 2] = -proj / zs[..., None]
-    dpix_dX = K2 @ dproj @ pb.Rp  # float[B, P, 2, 3]
+    dpix_dX = K2 @ dproj @ pb.b.Rp  # float[B, P, 2, 3]
     # d world / d (w, t, ls): -R [y]x, scale_t I, R diag(x) L diag(exp ls)
     G = torch.cat([-R[:, None] @ skew(y),
                    pb.scale_t[:, None, None, None] * torch.eye(3, dtype=DTYPE).expand(B, P, 3, 3),
                    (R[:, None] * x[..., None, :]) @ (pb.L * torch.exp(ls)[:, None, :])[:, None]], -1)  # float[B, P, 3, 9]
     dX_dphi = torch.einsum("bij,bpj->bpi", R, dx * s[:, None])  # float[B, P, 3]
-    onehot = torch.nn.functional.one_hot(pb.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.kf)[..., None]
+    onehot = torch.nn.functional.one_hot(pb.b.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.b.kf)[..., None]
     Jpix = torch.cat([dpix_dX @ G, torch.einsum("bpai,bpi->bpa", dpix_dX, dX_dphi)[..., None] * onehot[:, :, None, :]], -1)
     Jpix = Jpix * w[..., None, None]  # float[B, P, 2, D]
     # front of camera: beta * relu(min_depth - z) / npts
     active = (z < min_depth).to(DTYPE) * w
     r_front = beta * torch.relu(min_depth - z) * w
-    dz = torch.cat([pb.Rp[..., 2:, :] @ G, (pb.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
+    dz = torch.cat([pb.b.Rp[..., 2:, :] @ G, (pb.b.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
     J_front = -beta * active[..., None] * dz[:, :, 0]  # float[B, P, D]
     # up axis: alpha * (R e_y - e_y); d/dw = -alpha R [e_y]x
-    up = pb.upright.to(DTYPE)[:, None]
+    up = pb.b.upright.to(DTYPE)[:, None]
     r_up = alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * up
     e_y = torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE).expand(B, 3)
     J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
@@ -205,7 +189,7 @@ def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, ph
         Ri, lsi, Ti, phii = R[idx], ls[idx], T[idx], phi[idx]
         r, J = residuals_jacobian(sub, Ri, lsi, Ti, phii, choice[idx], min_depth, alpha, beta)
         # IRLS weights: L1 1/|r| (smoothed below IRLS_EPS_PX); Huber: 1/huber_px inside +-huber_px.
-        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.npts[:, None])
+        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.b.npts[:, None])
         H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
         g = torch.einsum("bnd,bn,bn->bd", J, wgt, r)
         diag = H.diagonal(dim1=1, dim2=2)

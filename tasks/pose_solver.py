@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from cadestate.geometry import matrix_to_quaternion
+from tasks.pose_batch import Batch
 from tasks.pose_init import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose_checks import check_object, coplanar_axis, final_status
 from tasks.pose_lm import Problem, lm_solve, robust, scale_ties
@@ -146,37 +147,6 @@ def rotation_6d(a: torch.Tensor) -> torch.Tensor:
     return torch.stack([b1, b2, torch.linalg.cross(b1, b2)], -1)
 
 
-@dataclass
-class Batch:
-    """B objects padded to P points and F key-frames (padding: zeros, masked out).
-
-    pts float[B, P, 3] CAD frame; uv float[B, P, 2] px; xn float[B, P, 2] K^-1 (u, v, 1);
-    kf int[B, P]; pmask bool[B, P]; K, Rc float[B, F, 3, 3], tc float[B, F, 3] world->camera;
-    fmask bool[B, F]; mirror float[B] (-1 mirrored, else 1); sym int[B]; upright bool[B];
-    axis int[B] co-planar axis (-1 none).
-    """
-
-    pts: torch.Tensor
-    uv: torch.Tensor
-    xn: torch.Tensor
-    kf: torch.Tensor
-    pmask: torch.Tensor
-    K: torch.Tensor
-    Rc: torch.Tensor
-    tc: torch.Tensor
-    fmask: torch.Tensor
-    mirror: torch.Tensor
-    sym: torch.Tensor
-    upright: torch.Tensor
-    axis: torch.Tensor
-
-    def repeat(self, n: int) -> Batch:
-        return Batch(*(getattr(self, f).repeat_interleave(n, 0) for f in self.__dataclass_fields__))
-
-    def select(self, idx: torch.Tensor) -> Batch:
-        return Batch(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
-
-
 def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: SolverOptions) -> Batch:
     B = len(objects)
     P = max(len(o.xy) for o in objects)
@@ -207,22 +177,19 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     F = b.Rc.shape[1]
     ang = offsets[:, None, :] + torch.gather(phi, 1, b.kf)[:, :, None]  # float[B, P, O]
     x = rotate_y(b.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang)
-    x = x * torch.stack([b.mirror, torch.ones_like(b.mirror), torch.ones_like(b.mirror)], -1)[:, None, None]
+    x = x * b.mvec[:, None, None]
     world = torch.einsum("bij,bpoj->bpoi", R, x * s[:, None, None, :]) + T[:, None, None, :]
-    Rp = torch.gather(b.Rc, 1, b.kf[..., None, None].expand(B, P, 3, 3))
-    tp = torch.gather(b.tc, 1, b.kf[..., None].expand(B, P, 3))
-    Kp = torch.gather(b.K, 1, b.kf[..., None, None].expand(B, P, 3, 3))
-    cam = torch.einsum("bpij,bpoj->bpoi", Rp, world) + tp[:, :, None, :]
+    cam = torch.einsum("bpij,bpoj->bpoi", b.Rp, world) + b.tp[:, :, None, :]
     depth = cam[..., 2]
     proj = cam[..., :2] / depth.clamp(min=1e-6)[..., None]
-    pix = torch.einsum("bpij,bpoj->bpoi", Kp[..., :2, :2], proj) + Kp[:, :, None, :2, 2]
+    pix = torch.einsum("bpij,bpoj->bpoi", b.Kp[..., :2, :2], proj) + b.Kp[:, :, None, :2, 2]
     d = pix - b.uv[:, :, None, :]
     l1 = robust(d, opts.huber_px).sum(-1) * b.pmask[..., None]  # float[B, P, O]
     per_kf = torch.zeros(B, F, l1.shape[2], dtype=DTYPE).scatter_add(1, b.kf[..., None].expand_as(l1), l1)
     per_kf = torch.where(omask[:, None, :], per_kf, torch.full_like(per_kf, float("inf")))
     best_kf, choice = per_kf.min(-1)  # float[B, F], int[B, F]
     best_kf = torch.where(b.fmask, best_kf, torch.zeros_like(best_kf))
-    npts = b.pmask.sum(1).clamp(min=1).to(DTYPE)
+    npts = b.npts
     choice_p = torch.gather(choice, 1, b.kf)[..., None]  # int[B, P, 1]
     z = torch.gather(depth, 2, choice_p)[..., 0]
     e = torch.linalg.norm(torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0], dim=-1) * b.pmask
@@ -292,8 +259,7 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
         its += opts.iterations
     with torch.no_grad():
         if opts.lm_iterations > 0:
-            pb = Problem(b.pts, b.uv, b.kf, b.pmask, b.K, b.Rc, b.tc, b.fmask, b.mirror, b.upright, offsets, omask,
-                         scale_ties(b.axis, b.sym >= 36), is36 * b.fmask, scale_t)
+            pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), is36 * b.fmask, scale_t)
             R, ls, T, phi, run = lm_solve(pb, R, ls, T, phi, opts.lm_iterations, opts.min_depth, opts.alpha, opts.beta,
                                           opts.huber_px)
             its += run
