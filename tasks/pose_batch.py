@@ -23,7 +23,10 @@ class Batch:
     normalised image coordinates K^-1 (u, v, 1); kf int[B, P] key-frame of each point; pmask
     bool[B, P]; K float[B, F, 3, 3] px; Rc float[B, F, 3, 3], tc float[B, F, 3] world->camera;
     fmask bool[B, F]; mirror float[B] (-1 mirrored, else 1); sym int[B] symmetry order about +Y;
-    upright bool[B] (the up-axis term applies); axis int[B] co-planar CAD axis (-1 none).
+    upright bool[B] (the up-axis term applies); axis int[B] co-planar CAD axis (-1 none); half
+    float[B, 3] half the CAD bounding-box size (canonical CAD frame, 0 when unknown); floor_y
+    float[B] the support-plane (floor) height on world +Y and floor_w float[B] the weight of the
+    floor term (px per world unit; 0: no floor term, see :func:`tasks.pose_lm.support_bottom`).
 
     Derived per point (not fields; recomputed by :meth:`repeat` and :meth:`select`): Rp float[B, P,
     3, 3], tp float[B, P, 3], Kp float[B, P, 3, 3] its key-frame's camera; npts float[B] points per
@@ -43,6 +46,9 @@ class Batch:
     sym: torch.Tensor
     upright: torch.Tensor
     axis: torch.Tensor
+    half: torch.Tensor
+    floor_y: torch.Tensor
+    floor_w: torch.Tensor
 
     def __post_init__(self) -> None:
         B, P = self.kf.shape

@@ -1,6 +1,6 @@
 """Levenberg-Marquardt solver of the pose objective (:mod:`tasks.pose_solver`), batched over objects.
 
-The objective is the solver's L1 loss (reprojection + alpha · up + beta · front). It is minimised
+The objective is the solver's loss (reprojection + alpha · up + beta · front + floor). It is minimised
 by iteratively reweighted least squares (weights 1 / max(|r|, eps), so the weighted squares equal
 the L1 terms at the current point) with Gauss-Newton steps on an *analytic* Jacobian, from the
 closed-form start: along the weakly observed depth <-> size direction (small baselines) this lands
@@ -81,6 +81,24 @@ class Problem:
         return Problem(self.b.select(idx), *(getattr(self, f.name)[idx] for f in fields(self)[1:]))
 
 
+def support_bottom(R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lowest point along world +Y (the up axis) of each posed CAD bounding box, bottom
+    float[B] (world units), and the box's extent along +Y, height float[B], for poses R float[B,
+    3, 3] (CAD -> world), scales s float[B, 3], T float[B, 3] and half-sizes half float[B, 3]
+    (canonical CAD frame, bbox-centred, so the mirror does not matter): the corner
+    (+-hx, +-hy, +-hz) reaches T_y + sum_j R[1, j] s_j (+-h_j), whose minimum is
+    T_y - sum_j |R[1, j]| s_j h_j. (The per-key-frame rotations of 36-way models are ignored: they
+    turn about +Y, which moves no corner of an upright box up or down.)"""
+    reach = (R[:, 1, :].abs() * s * half).sum(-1)
+    return T[:, 1] - reach, 2 * reach
+
+
+def floor_residual(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """The signed floor term float[B] (px): floor_w · (bottom - floor_y); 0 where floor_w is 0."""
+    bottom, _ = support_bottom(R, s, T, b.half)
+    return torch.where(b.floor_w > 0, b.floor_w * (bottom - b.floor_y), torch.zeros_like(bottom))
+
+
 def _rotate_y(p: torch.Tensor, ang: torch.Tensor, derivative: bool = False) -> torch.Tensor:
     c, s = torch.cos(ang), torch.sin(ang)
     x, y, z = p.unbind(-1)
@@ -116,7 +134,8 @@ def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, b
     z = torch.gather(depth, 2, torch.gather(choice, 1, pb.b.kf)[..., None])[..., 0]
     front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
-    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up, nan=float("inf")), choice
+    floor = floor_residual(pb.b, R, s, T).abs()
+    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up + floor, nan=float("inf")), choice
 
 
 def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
@@ -163,9 +182,25 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     e_y = torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE).expand(B, 3)
     J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
     J_up[..., :3] = -alpha * up[..., None] * (R @ skew(e_y))
-    r = torch.cat([r_pix.flatten(1), r_front, r_up], 1)
-    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up], 1)
+    r_floor, J_floor = _floor_jacobian(pb, R, ls, T, s)
+    r = torch.cat([r_pix.flatten(1), r_front, r_up, r_floor], 1)
+    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up, J_floor], 1)
     return torch.nan_to_num(r), torch.nan_to_num(J)
+
+
+def _floor_jacobian(pb: Problem, R, ls, T, s) -> tuple[torch.Tensor, torch.Tensor]:
+    """The floor residual float[B, 1] (:func:`floor_residual`) and its Jacobian float[B, 1, 9 + F]:
+    with a = |R[1, :]| and c_j = sign(R[1, j]) s_j h_j, d bottom / dw = -(c x R[1, :]) (as
+    R[1, j] <- R[1, j] + w . (e_j x R[1, :])), d bottom / d(translation step) = scale_t e_y and
+    d bottom / d ls_k = -sum_j a_j h_j L[j, k] exp(ls_k)."""
+    B, F = pb.b.fmask.shape
+    w = torch.where(pb.b.floor_w > 0, pb.b.floor_w, torch.zeros_like(pb.b.floor_w))[:, None]  # float[B, 1]
+    row, h = R[:, 1, :], pb.b.half
+    J = torch.zeros(B, 1, 9 + F, dtype=DTYPE)
+    J[:, 0, :3] = -w * torch.linalg.cross(torch.sign(row) * s * h, row)
+    J[:, 0, 4] = w[:, 0] * pb.scale_t
+    J[:, 0, 6:9] = -w * torch.einsum("bj,bjk->bk", row.abs() * h, pb.L) * torch.exp(ls)
+    return floor_residual(pb.b, R, s, T)[:, None], J
 
 
 def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, iterations: int,

@@ -11,12 +11,14 @@ Frames (see :mod:`cadestate.geometry`):
 
 Objective per object (all key-frames together)::
 
-    L = L_repr + alpha · L_up + beta · L_front
+    L = L_repr + alpha · L_up + beta · L_front [+ L_floor]
     L_repr  = sum over key-frames of min over symmetric rotations Q of
               sum over the key-frame's points rho(u(T, R, S, M Q x) - u_click) (px), / points
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
     L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
+    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support-plane
+              prior of :mod:`tasks.pose_floor`; bottom: lowest world-Y of the posed CAD bbox)
 
 Special parameterisations (each can be switched off for the ablation):
 
@@ -52,7 +54,7 @@ from cadestate.geometry import matrix_to_quaternion
 from tasks.pose_batch import Batch
 from tasks.pose_init import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose_checks import check_object, coplanar_axis, final_status
-from tasks.pose_lm import Problem, lm_solve, robust, scale_ties
+from tasks.pose_lm import Problem, floor_residual, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,12 @@ class ObjectCorrespondences:
         mirrored: the CAD model is mirrored (x -> -x in the CAD frame) before scaling.
         symmetry: order of rotational symmetry about +Y (1, 2, 4, 36).
         upright: the class stands upright (the up-axis term applies).
+        extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
+            None when unknown (then no floor term can apply).
+        on_floor: the class usually rests on the floor ([pose] floor_classes).
+        floor_height: the clip's floor height on world +Y (the support-plane prior, see
+            :mod:`tasks.pose_floor`); floor_weight: weight of the floor term, px per world unit
+            (0: none).
     """
 
     xy: np.ndarray
@@ -78,6 +86,10 @@ class ObjectCorrespondences:
     mirrored: bool = False
     symmetry: int = 1
     upright: bool = True
+    extent: np.ndarray | None = None
+    on_floor: bool = False
+    floor_height: float = 0.0
+    floor_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -111,6 +123,15 @@ class SolverOptions:
     huber_px: float = 5.0
     """0: the paper's L1 reprojection loss; > 0: Huber loss with this threshold (px): quadratic
     within it (the efficient estimator for Gaussian click error), L1 beyond (robust to bad clicks)."""
+    floor_prior: float = 30.0
+    """Weight of the support-plane (floor) term of :mod:`tasks.pose_floor`, px per object height of
+    distance between the object's bottom and its clip's floor; 0 disables the prior."""
+    floor_max_gap: float = 0.5
+    """Objects whose own bottom is farther than this many object heights from the floor keep their
+    own pose (they stand on something else)."""
+    floor_max_growth: float = 0.5
+    """A pose re-solved with the floor term is kept only if its reprojection loss grew by at most
+    this fraction of the loss without it (else the data contradict the floor)."""
 
 
 @dataclass
@@ -121,7 +142,10 @@ class PoseResult:
     object-to-world = T · R · S · diag(-1, 1, 1)[mirrored] (:func:`cadestate.render.object_to_world`).
     ``keyframe_error_px`` float[F]: mean Euclidean reprojection error per key-frame (px).
     ``status``: ok | invalid_input | too_few_points | single_keyframe | collinear_points |
-    behind_camera | high_residual | low_parallax.
+    behind_camera | high_residual | low_parallax. ``loss_floor``: the final floor term (px; 0
+    without it); ``floor_prior``: how the support-plane prior treated the object (none | no_floor |
+    off_floor | rejected | used, see :mod:`tasks.pose_floor`), ``floor_height`` the clip's floor
+    height on world +Y (NaN: none).
     """
 
     status: str
@@ -138,6 +162,9 @@ class PoseResult:
     parallax_deg: float = float("nan")
     iterations: int = 0
     start: int = -1
+    loss_floor: float = float("nan")
+    floor_prior: str = "none"
+    floor_height: float = float("nan")
 
 
 def rotation_6d(a: torch.Tensor) -> torch.Tensor:
@@ -161,11 +188,14 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
         h = np.linalg.solve(o.K[o.keyframe], np.concatenate([o.xy, np.ones((n, 1))], 1)[..., None])[..., 0]
         xn[b, :n] = h[:, :2] / h[:, 2:]
     T = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
+    half = [np.zeros(3) if o.extent is None else np.asarray(o.extent, np.float64) / 2 for o in objects]
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
                  torch.as_tensor([bool(o.upright) and opts.alpha > 0 for o in objects]),
-                 torch.as_tensor(axes if opts.coplanar else [-1] * B))
+                 torch.as_tensor(axes if opts.coplanar else [-1] * B), T(np.stack(half)),
+                 T([float(o.floor_height) for o in objects]),
+                 T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]))
 
 
 def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor,
@@ -199,12 +229,14 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * b.upright
     front = (torch.relu(opts.min_depth - z) * b.pmask).sum(1) / npts
     d_best = torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0] * b.pmask[..., None]
+    floor = floor_residual(b, R, s, T)
     # Signed residuals whose absolute sum is the total loss (for the IRLS / Levenberg-Marquardt polish).
     residuals = torch.cat([d_best.flatten(1) / npts[:, None],
                            opts.alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * b.upright[:, None],
-                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None]], 1)
-    return {"total": repr_ + opts.alpha * up + opts.beta * front, "reprojection": repr_, "up": up,
-            "front": front, "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)), "residuals": residuals}
+                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], floor[:, None]], 1)
+    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs(), "reprojection": repr_, "up": up,
+            "front": front, "floor": floor.abs(), "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)),
+            "residuals": residuals}
 
 
 def _start_scale(b: Batch, T0: torch.Tensor) -> torch.Tensor:
@@ -354,4 +386,4 @@ def _solve(objects, todo, axes, opts, results) -> None:
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
-            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]))
+            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]))
