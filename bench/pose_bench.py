@@ -4,9 +4,11 @@
   against the ground truth (``bench report``), pipeline tracks mapped to ground-truth objects; only
   ``status = 'ok'`` poses count as predictions; with the verification verdicts' agreement.
 - :func:`run` (``python -m bench``, ``make bench``): the solver on the ground-truth tracks of the
-  default benchmark at click noise 0, 3 and 6 px, the paper's ablation (base, + co-planar,
-  + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as fallback) vs Adam alone, and
-  time per object and for 1,000 objects in one batch.
+  default benchmark at click noise 0, 3 and 6 px (the default ``[pose]`` config), the paper's
+  ablation (base, + co-planar, + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as
+  fallback) vs Adam alone, with vs without the support-plane (floor) prior of
+  :mod:`tasks.pose_floor` (every other row keeps the default prior on), and time per object and
+  for 1,000 objects in one batch. Tracks are solved with their clip, so each clip gets its floor.
 
 Click noise: 3 px uses the label files as the simulated annotators wrote them; 0 and 6 px redraw
 only the clicks of those same label files (same key-frames, 3D points, symmetric swaps and
@@ -35,7 +37,7 @@ from schemas.official import read_frames, read_objects
 from schemas.pose import CORRESPONDENCES
 from tasks.cad_classes import BY_NAME
 from tasks.cad_symmetry import rotation_y
-from tasks.pose import TrackInput, solve_tracks, solver_options, track_inputs
+from tasks.pose import MODEL_FACTS, TrackInput, solve_tracks, solver_options, track_inputs
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -169,7 +171,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
     """(clip, track) inputs from the label files (clicks redrawn at ``sigma`` px unless None), the
     ground truth and the symmetry of every model."""
     clips = read_manifest(bench_dir).clips
-    models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "class", "symmetry"]).to_pylist()}
+    models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()}
     tracks = []
     for clip in clips:
         path = Path(bench_dir) / LABELS / f"{clip}.json"
@@ -179,7 +181,8 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
         if sigma is not None:
             labels = _renoise(labels, bench_dir, clip, sigma, seed)
         corr = pa.Table.from_pylist(correspondence_rows(labels), schema=CORRESPONDENCES.schema)
-        tracks += [(clip, t) for t in track_inputs(corr, wh.read("frames", [clip]), models, cfg.upright_classes)]
+        tracks += [(clip, t) for t in track_inputs(corr, wh.read("frames", [clip]), models, cfg.upright_classes,
+                                                   cfg.floor_classes)]
     gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
     return tracks, gt, {k: int(m["symmetry"]) for k, m in models.items()}
 
@@ -187,7 +190,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
 def evaluate(tracks, gt, symmetries, cfg: PoseConfig) -> dict:
     """Solve ``tracks`` with ``cfg`` and score them; adds the seconds the solve took."""
     t0 = time.perf_counter()
-    results = solve_tracks([t for _, t in tracks], solver_options(cfg))
+    results = solve_tracks([t for _, t in tracks], solver_options(cfg), [c for c, _ in tracks])
     seconds = time.perf_counter() - t0
     preds = [PosedObject(t.track_id, t.cls, tuple(r.translation), tuple(r.rotation), tuple(r.scale), t.mirrored, t.cad_id, c)
              for (c, t), r in zip(tracks, results) if r.status == "ok"]
@@ -199,18 +202,20 @@ def evaluate(tracks, gt, symmetries, cfg: PoseConfig) -> dict:
 
 
 def timing(tracks, cfg: PoseConfig, singles: int = 10, batch: int = 1000) -> dict:
-    """Seconds per object solved alone (mean over ``singles`` objects) and for ``batch`` objects
-    in one call (the benchmark's tracks repeated)."""
-    problems = [t for _, t in tracks if t.problem is not None]
+    """Seconds per object solved alone (mean over ``singles`` objects; alone, it gets no floor
+    prior) and for ``batch`` objects in one call (the benchmark's tracks repeated, each repetition
+    a clip of its own, so the floor prior's re-solve is included)."""
+    problems = [(c, t) for c, t in tracks if t.problem is not None]
     opts = solver_options(cfg)
-    solve_tracks(problems[:1], opts)  # warm-up (torch's first call)
+    solve_tracks([problems[0][1]], opts)  # warm-up (torch's first call)
     t0 = time.perf_counter()
-    for t in problems[:singles]:
+    for _, t in problems[:singles]:
         solve_tracks([t], opts)
     per_object = (time.perf_counter() - t0) / min(singles, len(problems))
     many = [problems[i % len(problems)] for i in range(batch)]
+    clips = [f"{c}/{i // len(problems)}" for i, (c, _) in enumerate(many)]
     t0 = time.perf_counter()
-    solve_tracks(many, opts)
+    solve_tracks([t for _, t in many], opts, clips)
     return {"per_object_s": round(per_object, 3), f"batch_{batch}_s": round(time.perf_counter() - t0, 1),
             "threads": cfg.threads}
 
@@ -231,7 +236,8 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
                 "+symmetry": dataclasses.replace(cfg, alpha=0.0),
                 "full, L1 loss (paper)": dataclasses.replace(cfg, huber_px=0.0),
                 "full, Adam only": dataclasses.replace(cfg, lm_iterations=0),
-                "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0)}
+                "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0),
+                "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0)}
     out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c) for name, c in ablation.items()}
     out["ablation_3px"]["+up-axis (full)"] = out["accuracy"]["3px"]
     out["timing"] = timing(tracks3, cfg, batch=batch)

@@ -63,7 +63,7 @@ POSES = TableSpec(
                                             "was tied to the mean of the other two; -1 none."),
         column("num_keyframes", pa.int32(), "Key-frames with correspondences."),
         column("num_points", pa.int32(), "Correspondences used."),
-        column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front (null: not solved).", nullable=True),
+        column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front + L_floor (null: not solved).", nullable=True),
         column("loss_reprojection", pa.float64(), "Final L_repr: L1 reprojection error per point (|du| + |dv|).", unit="px", nullable=True),
         column("loss_up", pa.float64(), "Final L_up: |R e_y - e_y|_1 (0 when not upright).", nullable=True),
         column("loss_front", pa.float64(), "Final L_front: mean depth below [pose] min_depth.", unit="m", nullable=True),
@@ -73,6 +73,16 @@ POSES = TableSpec(
                unit="deg", nullable=True),
         column("iterations", pa.int32(), "Optimiser iterations run (0: not solved)."),
         column("start", pa.int32(), "Which start won (turn by start·360/starts deg about up; -1: not solved)."),
+        column("loss_floor", pa.float64(), "Final L_floor: [pose] floor_prior · |bottom - floor_height| / object height "
+                                           "(0 unless floor_prior is 'used'; null: not solved).", unit="px", nullable=True),
+        column("floor_prior", pa.string(), "The support-plane prior (tasks/pose_floor.py): none (off, not a floor class, no "
+                                           "bounding box or no pose) | no_floor (the clip has no floor estimate) | off_floor "
+                                           "(bottom farther than [pose] floor_max_gap heights from the floor: own pose kept) | "
+                                           "rejected (the reprojection loss grew more than [pose] floor_max_growth: own pose "
+                                           "kept) | used (the pose was solved with the floor term)."),
+        column("floor_height", pa.float64(), "The clip's floor height estimate (lowest bounding-box point of its solved "
+                                             "floor objects, weighted median; null: none).", unit="m",
+               frame="world (+Y up), height along +Y", nullable=True),
         column("config_hash", pa.string(), "Digest of the [pose] config section that produced the row."),
     ]),
 )

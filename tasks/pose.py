@@ -19,7 +19,8 @@ import pyarrow as pa
 
 from cadestate.config import PoseConfig, section_hash
 from cadestate.lineage import digest, table_digest
-from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions, solve_poses
+from tasks.pose_floor import solve_with_floor
+from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions
 from tasks.stage import StageOutput
 from warehouse import Warehouse
 
@@ -36,21 +37,21 @@ def correspondences_digest(wh: Warehouse, clip: str) -> str:
     return table_digest(wh.read("correspondences", [clip]))
 
 
-MODEL_FACTS = ("cad_id", "class", "symmetry")
+MODEL_FACTS = ("cad_id", "class", "symmetry", "extent")
 """The ``cad_models`` columns the stage reads."""
 
 
 def cad_models_digest(wh: Warehouse, clip: str) -> str:
-    """Digest of the ``cad_models`` facts (cad_id, class, symmetry) of the models the clip's
+    """Digest of the ``cad_models`` facts (:data:`MODEL_FACTS`) of the models the clip's
     correspondences reference (part of the stage's inputs hash: a re-ingested library that changes
-    a model's class or symmetry re-solves the clips that use it, and only those). A referenced
+    a model's class, symmetry or bounding box re-solves the clips that use it, and only those). A referenced
     model missing from ``cad_models`` leaves a row with nulls (it turns into ``unknown_cad``)."""
     needed = sorted(set(wh.read("correspondences", [clip], columns=["cad_id"]).column("cad_id").to_pylist()))
     if not needed:
         return digest("no models")
     facts = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist() if r["cad_id"] in needed}
-    rows = [facts.get(c, {"cad_id": c, "class": None, "symmetry": None}) for c in needed]
-    return digest(*(f"{r['cad_id']}\t{r['class']}\t{r['symmetry']}" for r in rows))
+    rows = [facts.get(c, {"cad_id": c, "class": None, "symmetry": None, "extent": None}) for c in needed]
+    return digest(*(f"{r['cad_id']}\t{r['class']}\t{r['symmetry']}\t{r['extent']}" for r in rows))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +63,7 @@ class TrackInput:
     cls: str
     symmetry: int
     upright: bool
+    on_floor: bool
     mirrored: bool
     timestamps: tuple[int, ...]
     num_points: int
@@ -70,11 +72,13 @@ class TrackInput:
     message: str = ""
 
 
-def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upright_classes: tuple[str, ...]) -> list[TrackInput]:
+def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upright_classes: tuple[str, ...],
+                 floor_classes: tuple[str, ...]) -> list[TrackInput]:
     """Group correspondence rows by track and attach the key-frame cameras and model facts.
 
     ``corr``: rows of ``correspondences``; ``frames``: rows of ``frames`` (K, world_to_camera_R/t,
-    width, height); ``models``: cad_id -> {"class", "symmetry"}.
+    width, height); ``models``: cad_id -> {"class", "symmetry", "extent"} (extent may be missing:
+    then the floor prior does not apply to the track).
     """
     cams = {r["timestamp_us"]: r for r in frames.select(["timestamp_us", "K", "world_to_camera_R", "world_to_camera_t",
                                                          "width", "height"]).to_pylist()}
@@ -91,8 +95,8 @@ def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upri
         model = models.get(cad_id)
         cls = model["class"] if model else ""
         base = dict(track_id=track_id, cad_id=cad_id, cls=cls, symmetry=int(model["symmetry"]) if model else 1,
-                    upright=cls in upright_classes, mirrored=bool(rs[0]["is_mirrored"]), timestamps=stamps,
-                    num_points=len(rs))
+                    upright=cls in upright_classes, on_floor=cls in floor_classes, mirrored=bool(rs[0]["is_mirrored"]),
+                    timestamps=stamps, num_points=len(rs))
         if len(cad_ids) > 1 or len(mirrors) > 1:
             out.append(TrackInput(**base, problem=None, status="invalid_input",
                                   message=f"a track's rows must share one cad_id and mirror flag: {sorted(cad_ids)}, {sorted(mirrors)}"))
@@ -115,7 +119,9 @@ def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upri
             K=np.array([x["K"] for x in c], np.float64).reshape(-1, 3, 3),
             R=np.array([x["world_to_camera_R"] for x in c], np.float64).reshape(-1, 3, 3),
             t=np.array([x["world_to_camera_t"] for x in c], np.float64).reshape(-1, 3),
-            mirrored=base["mirrored"], symmetry=base["symmetry"], upright=base["upright"])
+            mirrored=base["mirrored"], symmetry=base["symmetry"], upright=base["upright"],
+            extent=None if model.get("extent") is None else np.asarray(model["extent"], np.float64),
+            on_floor=base["on_floor"])
         out.append(TrackInput(**base, problem=problem))
     return out
 
@@ -137,17 +143,21 @@ def poses_table(clip: str, tracks: list[TrackInput], results: list[PoseResult], 
             "num_keyframes": len(t.timestamps), "num_points": t.num_points, "loss_total": num(r.loss_total),
             "loss_reprojection": num(r.loss_reprojection), "loss_up": num(r.loss_up), "loss_front": num(r.loss_front),
             "keyframe_timestamps_us": list(t.timestamps), "keyframe_error_px": [float(v) for v in r.keyframe_error_px],
-            "parallax_deg": num(r.parallax_deg), "iterations": r.iterations, "start": r.start, "config_hash": config_hash,
+            "parallax_deg": num(r.parallax_deg), "iterations": r.iterations, "start": r.start, "loss_floor": num(r.loss_floor),
+            "floor_prior": r.floor_prior, "floor_height": num(r.floor_height), "config_hash": config_hash,
         })
     from schemas.pose import POSES
 
     return pa.Table.from_pylist(rows, schema=POSES.schema) if rows else POSES.schema.empty_table()
 
 
-def solve_tracks(tracks: list[TrackInput], opts: SolverOptions) -> list[PoseResult]:
-    """Solve every track that has a problem; the others keep their input status."""
-    todo = [t.problem for t in tracks if t.problem is not None]
-    solved = iter(solve_poses(todo, opts)) if todo else iter(())
+def solve_tracks(tracks: list[TrackInput], opts: SolverOptions, clips: list[str] | None = None) -> list[PoseResult]:
+    """Solve every track that has a problem (with the floor prior of :mod:`tasks.pose_floor`, one
+    floor per clip: ``clips`` names each track's clip, None = all of one clip); the others keep
+    their input status."""
+    clips = clips or [""] * len(tracks)
+    todo = [(t.problem, c) for t, c in zip(tracks, clips) if t.problem is not None]
+    solved = iter(solve_with_floor([p for p, _ in todo], [c for _, c in todo], opts))
     return [next(solved) if t.problem is not None else PoseResult(t.status, t.message) for t in tracks]
 
 
@@ -161,7 +171,7 @@ def solve_clip(wh: Warehouse, cfg: PoseConfig, clip: str, run_id: str) -> StageO
     needed = sorted(set(corr.column("cad_id").to_pylist()))
     models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()
               if r["cad_id"] in needed}
-    tracks = track_inputs(corr, frames, models, cfg.upright_classes)
+    tracks = track_inputs(corr, frames, models, cfg.upright_classes, cfg.floor_classes)
     results = solve_tracks(tracks, solver_options(cfg))
     table = poses_table(clip, tracks, results, section_hash("pose", cfg))
     rows = wh.write("poses", clip, table)

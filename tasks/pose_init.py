@@ -23,7 +23,8 @@ import math
 
 import torch
 
-DTYPE = torch.float64
+from tasks.pose_batch import DTYPE
+
 ROT36_OFFSETS = 12
 """Rotation offsets (every 30 degrees) tried per key-frame for 36-way symmetric models."""
 

@@ -1,6 +1,6 @@
 """Levenberg-Marquardt solver of the pose objective (:mod:`tasks.pose_solver`), batched over objects.
 
-The objective is the solver's L1 loss (reprojection + alpha · up + beta · front). It is minimised
+The objective is the solver's loss (reprojection + alpha · up + beta · front + floor). It is minimised
 by iteratively reweighted least squares (weights 1 / max(|r|, eps), so the weighted squares equal
 the L1 terms at the current point) with Gauss-Newton steps on an *analytic* Jacobian, from the
 closed-form start: along the weakly observed depth <-> size direction (small baselines) this lands
@@ -22,11 +22,12 @@ after the symmetric rotation), world +Y up, cameras world->camera OpenCV, pixels
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
-DTYPE = torch.float64
+from tasks.pose_batch import DTYPE, Batch
+
 IRLS_EPS_PX = 1e-3
 """Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
 
@@ -61,40 +62,41 @@ def scale_ties(axis: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class Problem:
-    """The per-object data the LM needs (a view of :class:`tasks.pose_solver.Batch`).
+    """What the LM needs per object: the objects' :class:`tasks.pose_batch.Batch` and the run's extras.
 
-    pts float[B, P, 3]; uv float[B, P, 2] px; kf int[B, P]; pmask bool[B, P]; K, Rc float[B, F, 3, 3];
-    tc float[B, F, 3]; fmask bool[B, F]; mirror float[B]; upright bool[B]; offsets float[B, O]
-    (radians), omask bool[B, O]; L float[B, 3, 3] scale ties; free_phi float[B, F] (1: phi free);
-    scale_t float[B].
+    offsets float[B, O] (radians) and omask bool[B, O]: the discrete symmetric rotations about +Y
+    each key-frame may take; L float[B, 3, 3] scale ties; free_phi float[B, F] (1: the key-frame's
+    rotation about +Y is free, 36-way models); scale_t float[B] translation unit (distance to the
+    cameras, world units).
     """
 
-    pts: torch.Tensor
-    uv: torch.Tensor
-    kf: torch.Tensor
-    pmask: torch.Tensor
-    K: torch.Tensor
-    Rc: torch.Tensor
-    tc: torch.Tensor
-    fmask: torch.Tensor
-    mirror: torch.Tensor
-    upright: torch.Tensor
+    b: Batch
     offsets: torch.Tensor
     omask: torch.Tensor
     L: torch.Tensor
     free_phi: torch.Tensor
     scale_t: torch.Tensor
 
-    def __post_init__(self):
-        B, P = self.kf.shape
-        self.Rp = torch.gather(self.Rc, 1, self.kf[..., None, None].expand(B, P, 3, 3))
-        self.tp = torch.gather(self.tc, 1, self.kf[..., None].expand(B, P, 3))
-        self.Kp = torch.gather(self.K, 1, self.kf[..., None, None].expand(B, P, 3, 3))
-        self.npts = self.pmask.sum(1).clamp(min=1).to(DTYPE)
-        self.mvec = torch.stack([self.mirror, torch.ones_like(self.mirror), torch.ones_like(self.mirror)], -1)
-
     def subset(self, idx: torch.Tensor) -> Problem:
-        return Problem(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+        return Problem(self.b.select(idx), *(getattr(self, f.name)[idx] for f in fields(self)[1:]))
+
+
+def support_bottom(R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lowest point along world +Y (the up axis) of each posed CAD bounding box, bottom
+    float[B] (world units), and the box's extent along +Y, height float[B], for poses R float[B,
+    3, 3] (CAD -> world), scales s float[B, 3], T float[B, 3] and half-sizes half float[B, 3]
+    (canonical CAD frame, bbox-centred, so the mirror does not matter): the corner
+    (+-hx, +-hy, +-hz) reaches T_y + sum_j R[1, j] s_j (+-h_j), whose minimum is
+    T_y - sum_j |R[1, j]| s_j h_j. (The per-key-frame rotations of 36-way models are ignored: they
+    turn about +Y, which moves no corner of an upright box up or down.)"""
+    reach = (R[:, 1, :].abs() * s * half).sum(-1)
+    return T[:, 1] - reach, 2 * reach
+
+
+def floor_residual(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """The signed floor term float[B] (px): floor_w · (bottom - floor_y); 0 where floor_w is 0."""
+    bottom, _ = support_bottom(R, s, T, b.half)
+    return torch.where(b.floor_w > 0, b.floor_w * (bottom - b.floor_y), torch.zeros_like(bottom))
 
 
 def _rotate_y(p: torch.Tensor, ang: torch.Tensor, derivative: bool = False) -> torch.Tensor:
@@ -115,73 +117,90 @@ def robust(d: torch.Tensor, huber_px: float) -> torch.Tensor:
 def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, beta: float, huber_px: float = 0.0):
     """Total loss float[B] (min over each key-frame's symmetric rotations) and the chosen offset
     per key-frame int[B, F]."""
-    B, P = pb.kf.shape
-    F = pb.Rc.shape[1]
-    ang = pb.offsets[:, None, :] + torch.gather(phi, 1, pb.kf)[:, :, None]  # float[B, P, O]
-    x = _rotate_y(pb.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang) * pb.mvec[:, None, None]
+    B, P = pb.b.kf.shape
+    F = pb.b.Rc.shape[1]
+    ang = pb.offsets[:, None, :] + torch.gather(phi, 1, pb.b.kf)[:, :, None]  # float[B, P, O]
+    x = _rotate_y(pb.b.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang) * pb.b.mvec[:, None, None]
     world = torch.einsum("bij,bpoj->bpoi", R, x * s[:, None, None, :]) + T[:, None, None, :]
-    cam = torch.einsum("bpij,bpoj->bpoi", pb.Rp, world) + pb.tp[:, :, None, :]
+    cam = torch.einsum("bpij,bpoj->bpoi", pb.b.Rp, world) + pb.b.tp[:, :, None, :]
     depth = cam[..., 2]
     proj = cam[..., :2] / depth.clamp(min=1e-6)[..., None]
-    pix = torch.einsum("bpij,bpoj->bpoi", pb.Kp[..., :2, :2], proj) + pb.Kp[:, :, None, :2, 2]
-    per_point = robust(pix - pb.uv[:, :, None, :], huber_px).sum(-1) * pb.pmask[..., None]
-    per_kf = torch.zeros(B, F, per_point.shape[2], dtype=DTYPE).scatter_add(1, pb.kf[..., None].expand_as(per_point), per_point)
+    pix = torch.einsum("bpij,bpoj->bpoi", pb.b.Kp[..., :2, :2], proj) + pb.b.Kp[:, :, None, :2, 2]
+    per_point = robust(pix - pb.b.uv[:, :, None, :], huber_px).sum(-1) * pb.b.pmask[..., None]
+    per_kf = torch.zeros(B, F, per_point.shape[2], dtype=DTYPE).scatter_add(1, pb.b.kf[..., None].expand_as(per_point), per_point)
     per_kf = torch.where(pb.omask[:, None, :], per_kf, torch.full_like(per_kf, float("inf")))
     best, choice = per_kf.min(-1)  # the rotation is chosen by the reprojection term (as the solver's evaluate)
-    best = torch.where(pb.fmask, best, torch.zeros_like(best))
-    z = torch.gather(depth, 2, torch.gather(choice, 1, pb.kf)[..., None])[..., 0]
-    front = (torch.relu(min_depth - z) * pb.pmask).sum(1)
-    up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.upright
-    return torch.nan_to_num((best.sum(1) + beta * front) / pb.npts + alpha * up, nan=float("inf")), choice
+    best = torch.where(pb.b.fmask, best, torch.zeros_like(best))
+    z = torch.gather(depth, 2, torch.gather(choice, 1, pb.b.kf)[..., None])[..., 0]
+    front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
+    up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
+    floor = floor_residual(pb.b, R, s, T).abs()
+    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up + floor, nan=float("inf")), choice
 
 
 def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
     """Signed residuals float[B, N] (their absolute sum is the loss at the chosen rotations) and
     their Jacobian float[B, N, 9 + F] with respect to (w, translation step, ls, phi)."""
-    B, P = pb.kf.shape
-    F = pb.Rc.shape[1]
+    B, P = pb.b.kf.shape
+    F = pb.b.Rc.shape[1]
     s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
-    ang = torch.gather(pb.offsets, 1, torch.gather(choice, 1, pb.kf)) + torch.gather(phi, 1, pb.kf)  # float[B, P]
-    x = _rotate_y(pb.pts, ang) * pb.mvec[:, None]
-    dx = _rotate_y(pb.pts, ang, True) * pb.mvec[:, None]
+    ang = torch.gather(pb.offsets, 1, torch.gather(choice, 1, pb.b.kf)) + torch.gather(phi, 1, pb.b.kf)  # float[B, P]
+    x = _rotate_y(pb.b.pts, ang) * pb.b.mvec[:, None]
+    dx = _rotate_y(pb.b.pts, ang, True) * pb.b.mvec[:, None]
     y = x * s[:, None]
     world = torch.einsum("bij,bpj->bpi", R, y) + T[:, None]
-    cam = torch.einsum("bpij,bpj->bpi", pb.Rp, world) + pb.tp
+    cam = torch.einsum("bpij,bpj->bpi", pb.b.Rp, world) + pb.b.tp
     z = cam[..., 2]
     zs = z.clamp(min=1e-6)
     proj = cam[..., :2] / zs[..., None]
-    K2 = pb.Kp[..., :2, :2]
-    pix = torch.einsum("bpij,bpj->bpi", K2, proj) + pb.Kp[..., :2, 2]
-    w = pb.pmask.to(DTYPE) / pb.npts[:, None]  # float[B, P]
-    r_pix = (pix - pb.uv) * w[..., None]
+    K2 = pb.b.Kp[..., :2, :2]
+    pix = torch.einsum("bpij,bpj->bpi", K2, proj) + pb.b.Kp[..., :2, 2]
+    w = pb.b.pmask.to(DTYPE) / pb.b.npts[:, None]  # float[B, P]
+    r_pix = (pix - pb.b.uv) * w[..., None]
     # d proj / d cam: [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
     dproj = torch.zeros(B, P, 2, 3, dtype=DTYPE)
     dproj[..., 0, 0] = 1 / zs
     dproj[..., 1, 1] = 1 / zs
     dproj[..., :, 2] = -proj / zs[..., None]
-    dpix_dX = K2 @ dproj @ pb.Rp  # float[B, P, 2, 3]
+    dpix_dX = K2 @ dproj @ pb.b.Rp  # float[B, P, 2, 3]
     # d world / d (w, t, ls): -R [y]x, scale_t I, R diag(x) L diag(exp ls)
     G = torch.cat([-R[:, None] @ skew(y),
                    pb.scale_t[:, None, None, None] * torch.eye(3, dtype=DTYPE).expand(B, P, 3, 3),
                    (R[:, None] * x[..., None, :]) @ (pb.L * torch.exp(ls)[:, None, :])[:, None]], -1)  # float[B, P, 3, 9]
     dX_dphi = torch.einsum("bij,bpj->bpi", R, dx * s[:, None])  # float[B, P, 3]
-    onehot = torch.nn.functional.one_hot(pb.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.kf)[..., None]
+    onehot = torch.nn.functional.one_hot(pb.b.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.b.kf)[..., None]
     Jpix = torch.cat([dpix_dX @ G, torch.einsum("bpai,bpi->bpa", dpix_dX, dX_dphi)[..., None] * onehot[:, :, None, :]], -1)
     Jpix = Jpix * w[..., None, None]  # float[B, P, 2, D]
     # front of camera: beta * relu(min_depth - z) / npts
     active = (z < min_depth).to(DTYPE) * w
     r_front = beta * torch.relu(min_depth - z) * w
-    dz = torch.cat([pb.Rp[..., 2:, :] @ G, (pb.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
+    dz = torch.cat([pb.b.Rp[..., 2:, :] @ G, (pb.b.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
     J_front = -beta * active[..., None] * dz[:, :, 0]  # float[B, P, D]
     # up axis: alpha * (R e_y - e_y); d/dw = -alpha R [e_y]x
-    up = pb.upright.to(DTYPE)[:, None]
+    up = pb.b.upright.to(DTYPE)[:, None]
     r_up = alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * up
     e_y = torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE).expand(B, 3)
     J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
     J_up[..., :3] = -alpha * up[..., None] * (R @ skew(e_y))
-    r = torch.cat([r_pix.flatten(1), r_front, r_up], 1)
-    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up], 1)
+    r_floor, J_floor = _floor_jacobian(pb, R, ls, T, s)
+    r = torch.cat([r_pix.flatten(1), r_front, r_up, r_floor], 1)
+    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up, J_floor], 1)
     return torch.nan_to_num(r), torch.nan_to_num(J)
+
+
+def _floor_jacobian(pb: Problem, R, ls, T, s) -> tuple[torch.Tensor, torch.Tensor]:
+    """The floor residual float[B, 1] (:func:`floor_residual`) and its Jacobian float[B, 1, 9 + F]:
+    with a = |R[1, :]| and c_j = sign(R[1, j]) s_j h_j, d bottom / dw = -(c x R[1, :]) (as
+    R[1, j] <- R[1, j] + w . (e_j x R[1, :])), d bottom / d(translation step) = scale_t e_y and
+    d bottom / d ls_k = -sum_j a_j h_j L[j, k] exp(ls_k)."""
+    B, F = pb.b.fmask.shape
+    w = torch.where(pb.b.floor_w > 0, pb.b.floor_w, torch.zeros_like(pb.b.floor_w))[:, None]  # float[B, 1]
+    row, h = R[:, 1, :], pb.b.half
+    J = torch.zeros(B, 1, 9 + F, dtype=DTYPE)
+    J[:, 0, :3] = -w * torch.linalg.cross(torch.sign(row) * s * h, row)
+    J[:, 0, 4] = w[:, 0] * pb.scale_t
+    J[:, 0, 6:9] = -w * torch.einsum("bj,bjk->bk", row.abs() * h, pb.L) * torch.exp(ls)
+    return floor_residual(pb.b, R, s, T)[:, None], J
 
 
 def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, iterations: int,
@@ -205,7 +224,7 @@ def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, ph
         Ri, lsi, Ti, phii = R[idx], ls[idx], T[idx], phi[idx]
         r, J = residuals_jacobian(sub, Ri, lsi, Ti, phii, choice[idx], min_depth, alpha, beta)
         # IRLS weights: L1 1/|r| (smoothed below IRLS_EPS_PX); Huber: 1/huber_px inside +-huber_px.
-        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.npts[:, None])
+        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.b.npts[:, None])
         H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
         g = torch.einsum("bnd,bn,bn->bd", J, wgt, r)
         diag = H.diagonal(dim1=1, dim2=2)

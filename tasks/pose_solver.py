@@ -11,12 +11,14 @@ Frames (see :mod:`cadestate.geometry`):
 
 Objective per object (all key-frames together)::
 
-    L = L_repr + alpha · L_up + beta · L_front
+    L = L_repr + alpha · L_up + beta · L_front [+ L_floor]
     L_repr  = sum over key-frames of min over symmetric rotations Q of
               sum over the key-frame's points rho(u(T, R, S, M Q x) - u_click) (px), / points
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
     L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
+    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support-plane
+              prior of :mod:`tasks.pose_floor`; bottom: lowest world-Y of the posed CAD bbox)
 
 Special parameterisations (each can be switched off for the ablation):
 
@@ -49,9 +51,10 @@ import numpy as np
 import torch
 
 from cadestate.geometry import matrix_to_quaternion
+from tasks.pose_batch import Batch
 from tasks.pose_init import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose_checks import check_object, coplanar_axis, final_status
-from tasks.pose_lm import Problem, lm_solve, robust, scale_ties
+from tasks.pose_lm import Problem, floor_residual, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,12 @@ class ObjectCorrespondences:
         mirrored: the CAD model is mirrored (x -> -x in the CAD frame) before scaling.
         symmetry: order of rotational symmetry about +Y (1, 2, 4, 36).
         upright: the class stands upright (the up-axis term applies).
+        extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
+            None when unknown (then no floor term can apply).
+        on_floor: the class usually rests on the floor ([pose] floor_classes).
+        floor_height: the clip's floor height on world +Y (the support-plane prior, see
+            :mod:`tasks.pose_floor`); floor_weight: weight of the floor term, px per world unit
+            (0: none).
     """
 
     xy: np.ndarray
@@ -77,6 +86,10 @@ class ObjectCorrespondences:
     mirrored: bool = False
     symmetry: int = 1
     upright: bool = True
+    extent: np.ndarray | None = None
+    on_floor: bool = False
+    floor_height: float = 0.0
+    floor_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +123,15 @@ class SolverOptions:
     huber_px: float = 5.0
     """0: the paper's L1 reprojection loss; > 0: Huber loss with this threshold (px): quadratic
     within it (the efficient estimator for Gaussian click error), L1 beyond (robust to bad clicks)."""
+    floor_prior: float = 30.0
+    """Weight of the support-plane (floor) term of :mod:`tasks.pose_floor`, px per object height of
+    distance between the object's bottom and its clip's floor; 0 disables the prior."""
+    floor_max_gap: float = 0.5
+    """Objects whose own bottom is farther than this many object heights from the floor keep their
+    own pose (they stand on something else)."""
+    floor_max_growth: float = 0.5
+    """A pose re-solved with the floor term is kept only if its reprojection loss grew by at most
+    this fraction of the loss without it (else the data contradict the floor)."""
 
 
 @dataclass
@@ -120,7 +142,10 @@ class PoseResult:
     object-to-world = T · R · S · diag(-1, 1, 1)[mirrored] (:func:`cadestate.render.object_to_world`).
     ``keyframe_error_px`` float[F]: mean Euclidean reprojection error per key-frame (px).
     ``status``: ok | invalid_input | too_few_points | single_keyframe | collinear_points |
-    behind_camera | high_residual | low_parallax.
+    behind_camera | high_residual | low_parallax. ``loss_floor``: the final floor term (px; 0
+    without it); ``floor_prior``: how the support-plane prior treated the object (none | no_floor |
+    off_floor | rejected | used, see :mod:`tasks.pose_floor`), ``floor_height`` the clip's floor
+    height on world +Y (NaN: none).
     """
 
     status: str
@@ -137,6 +162,9 @@ class PoseResult:
     parallax_deg: float = float("nan")
     iterations: int = 0
     start: int = -1
+    loss_floor: float = float("nan")
+    floor_prior: str = "none"
+    floor_height: float = float("nan")
 
 
 def rotation_6d(a: torch.Tensor) -> torch.Tensor:
@@ -144,37 +172,6 @@ def rotation_6d(a: torch.Tensor) -> torch.Tensor:
     b1 = torch.nn.functional.normalize(a[:, :3], dim=-1)
     b2 = torch.nn.functional.normalize(a[:, 3:] - (b1 * a[:, 3:]).sum(-1, keepdim=True) * b1, dim=-1)
     return torch.stack([b1, b2, torch.linalg.cross(b1, b2)], -1)
-
-
-@dataclass
-class Batch:
-    """B objects padded to P points and F key-frames (padding: zeros, masked out).
-
-    pts float[B, P, 3] CAD frame; uv float[B, P, 2] px; xn float[B, P, 2] K^-1 (u, v, 1);
-    kf int[B, P]; pmask bool[B, P]; K, Rc float[B, F, 3, 3], tc float[B, F, 3] world->camera;
-    fmask bool[B, F]; mirror float[B] (-1 mirrored, else 1); sym int[B]; upright bool[B];
-    axis int[B] co-planar axis (-1 none).
-    """
-
-    pts: torch.Tensor
-    uv: torch.Tensor
-    xn: torch.Tensor
-    kf: torch.Tensor
-    pmask: torch.Tensor
-    K: torch.Tensor
-    Rc: torch.Tensor
-    tc: torch.Tensor
-    fmask: torch.Tensor
-    mirror: torch.Tensor
-    sym: torch.Tensor
-    upright: torch.Tensor
-    axis: torch.Tensor
-
-    def repeat(self, n: int) -> Batch:
-        return Batch(*(getattr(self, f).repeat_interleave(n, 0) for f in self.__dataclass_fields__))
-
-    def select(self, idx: torch.Tensor) -> Batch:
-        return Batch(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
 
 def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: SolverOptions) -> Batch:
@@ -191,11 +188,14 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
         h = np.linalg.solve(o.K[o.keyframe], np.concatenate([o.xy, np.ones((n, 1))], 1)[..., None])[..., 0]
         xn[b, :n] = h[:, :2] / h[:, 2:]
     T = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
+    half = [np.zeros(3) if o.extent is None else np.asarray(o.extent, np.float64) / 2 for o in objects]
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
                  torch.as_tensor([bool(o.upright) and opts.alpha > 0 for o in objects]),
-                 torch.as_tensor(axes if opts.coplanar else [-1] * B))
+                 torch.as_tensor(axes if opts.coplanar else [-1] * B), T(np.stack(half)),
+                 T([float(o.floor_height) for o in objects]),
+                 T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]))
 
 
 def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor,
@@ -207,22 +207,19 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     F = b.Rc.shape[1]
     ang = offsets[:, None, :] + torch.gather(phi, 1, b.kf)[:, :, None]  # float[B, P, O]
     x = rotate_y(b.pts[:, :, None, :].expand(-1, -1, ang.shape[2], -1), ang)
-    x = x * torch.stack([b.mirror, torch.ones_like(b.mirror), torch.ones_like(b.mirror)], -1)[:, None, None]
+    x = x * b.mvec[:, None, None]
     world = torch.einsum("bij,bpoj->bpoi", R, x * s[:, None, None, :]) + T[:, None, None, :]
-    Rp = torch.gather(b.Rc, 1, b.kf[..., None, None].expand(B, P, 3, 3))
-    tp = torch.gather(b.tc, 1, b.kf[..., None].expand(B, P, 3))
-    Kp = torch.gather(b.K, 1, b.kf[..., None, None].expand(B, P, 3, 3))
-    cam = torch.einsum("bpij,bpoj->bpoi", Rp, world) + tp[:, :, None, :]
+    cam = torch.einsum("bpij,bpoj->bpoi", b.Rp, world) + b.tp[:, :, None, :]
     depth = cam[..., 2]
     proj = cam[..., :2] / depth.clamp(min=1e-6)[..., None]
-    pix = torch.einsum("bpij,bpoj->bpoi", Kp[..., :2, :2], proj) + Kp[:, :, None, :2, 2]
+    pix = torch.einsum("bpij,bpoj->bpoi", b.Kp[..., :2, :2], proj) + b.Kp[:, :, None, :2, 2]
     d = pix - b.uv[:, :, None, :]
     l1 = robust(d, opts.huber_px).sum(-1) * b.pmask[..., None]  # float[B, P, O]
     per_kf = torch.zeros(B, F, l1.shape[2], dtype=DTYPE).scatter_add(1, b.kf[..., None].expand_as(l1), l1)
     per_kf = torch.where(omask[:, None, :], per_kf, torch.full_like(per_kf, float("inf")))
     best_kf, choice = per_kf.min(-1)  # float[B, F], int[B, F]
     best_kf = torch.where(b.fmask, best_kf, torch.zeros_like(best_kf))
-    npts = b.pmask.sum(1).clamp(min=1).to(DTYPE)
+    npts = b.npts
     choice_p = torch.gather(choice, 1, b.kf)[..., None]  # int[B, P, 1]
     z = torch.gather(depth, 2, choice_p)[..., 0]
     e = torch.linalg.norm(torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0], dim=-1) * b.pmask
@@ -232,12 +229,14 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * b.upright
     front = (torch.relu(opts.min_depth - z) * b.pmask).sum(1) / npts
     d_best = torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0] * b.pmask[..., None]
+    floor = floor_residual(b, R, s, T)
     # Signed residuals whose absolute sum is the total loss (for the IRLS / Levenberg-Marquardt polish).
     residuals = torch.cat([d_best.flatten(1) / npts[:, None],
                            opts.alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * b.upright[:, None],
-                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None]], 1)
-    return {"total": repr_ + opts.alpha * up + opts.beta * front, "reprojection": repr_, "up": up,
-            "front": front, "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)), "residuals": residuals}
+                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], floor[:, None]], 1)
+    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs(), "reprojection": repr_, "up": up,
+            "front": front, "floor": floor.abs(), "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)),
+            "residuals": residuals}
 
 
 def _start_scale(b: Batch, T0: torch.Tensor) -> torch.Tensor:
@@ -292,8 +291,7 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
         its += opts.iterations
     with torch.no_grad():
         if opts.lm_iterations > 0:
-            pb = Problem(b.pts, b.uv, b.kf, b.pmask, b.K, b.Rc, b.tc, b.fmask, b.mirror, b.upright, offsets, omask,
-                         scale_ties(b.axis, b.sym >= 36), is36 * b.fmask, scale_t)
+            pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), is36 * b.fmask, scale_t)
             R, ls, T, phi, run = lm_solve(pb, R, ls, T, phi, opts.lm_iterations, opts.min_depth, opts.alpha, opts.beta,
                                           opts.huber_px)
             its += run
@@ -388,4 +386,4 @@ def _solve(objects, todo, axes, opts, results) -> None:
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
-            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]))
+            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]))

@@ -222,8 +222,7 @@ def test_lm_jacobian_matches_finite_differences():
     b = make_batch([problem], [-1], opts)
     off, om = symmetry_offsets(torch.ones_like(b.sym), True)
     L = scale_ties(b.axis, b.sym >= 36)
-    pb = Problem(b.pts, b.uv, b.kf, b.pmask, b.K, b.Rc, b.tc, b.fmask, b.mirror, b.upright, off, om, L,
-                 torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))
+    pb = Problem(b, off, om, L, torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))
     R = torch.tensor(quaternion_to_matrix(q) @ rotation_y(7.0), dtype=torch.float64)[None] @ so3_exp(torch.tensor([[0.05, 0, 0.02]]).double())
     ls, T0 = torch.log(torch.tensor(s))[None] + 0.05, torch.tensor(T)[None] + 0.1
     phi, choice = torch.tensor([[0.1, -0.3, 0.7]]).double(), torch.zeros(1, 3, dtype=torch.long)

@@ -68,6 +68,8 @@ def test_stage_writes_one_pose_per_track(posed_clip):
     assert np.allclose(ok["scale"], s, rtol=1e-3)
     assert len(ok["keyframe_error_px"]) == ok["num_keyframes"] == 4 and max(ok["keyframe_error_px"]) < 0.01
     assert ok["config_hash"] == section_hash("pose", PoseConfig())
+    assert ok["floor_prior"] == "no_floor" and ok["floor_height"] is None  # a table, alone in its clip
+    assert poses["2"]["floor_prior"] == "none" and ok["loss_floor"] == 0.0
     assert poses["2"]["status"] == "unknown_cad" and poses["2"]["translation"] is None
     assert poses["3"]["status"] == "too_few_points" and poses["3"]["rotation"] is None
 

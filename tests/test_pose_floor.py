@@ -1,0 +1,165 @@
+"""The support-plane (floor) prior (tasks/pose_floor.py) on small synthetic clips built here."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from cadestate.geometry import look_at, matrix_to_quaternion
+from cadestate.render import object_to_world
+from tasks.cad_symmetry import rotation_y
+from tasks.pose_floor import estimate_floors, solve_with_floor, weighted_median
+from tasks.pose_init import symmetry_offsets
+from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions, evaluate, make_batch, solve_poses
+from tests.test_pose_solver import K
+
+
+def clip_objects(seed: int, bottoms: list[float], noise: float = 3.0, baseline: float = 0.8,
+                 distance: float = 4.0) -> tuple[list[ObjectCorrespondences], list[tuple]]:
+    """Objects of a floor class whose bottoms stand at the given heights (world +Y up, floor at 0),
+    ``distance`` m in front of four key-frame cameras spread over ``baseline`` m at eye height 1.5
+    m (a low-parallax walkthrough), 6 clicks of ``noise`` px per key-frame. Returns the problems and
+    the true (T, q, s)."""
+    rng = np.random.default_rng(seed)
+    eyes = [np.array([x, 1.5, 0.0]) for x in np.linspace(-baseline / 2, baseline / 2, 4)]
+    objects, truth = [], []
+    for i, bottom in enumerate(bottoms):
+        extent = rng.uniform(0.5, 1.2, 3)
+        s = rng.uniform(0.85, 1.15, 3)
+        q = matrix_to_quaternion(rotation_y(rng.uniform(0, 360)))
+        x = (i - (len(bottoms) - 1) / 2) * 1.2
+        T = np.array([x, bottom + s[1] * extent[1] / 2, -distance + rng.uniform(-0.5, 0.5)])
+        M = object_to_world(T, q, s, False)
+        xy, xyz, kf, Rs, ts = [], [], [], [], []
+        for f, eye in enumerate(eyes):
+            Rc, tc = look_at(eye, np.array([0.0, 0.5, -distance]))
+            p = rng.uniform(-0.5, 0.5, (6, 3)) * extent
+            cam = (p @ M[:3, :3].T + M[:3, 3]) @ Rc.T + tc
+            uv = cam @ K.T
+            xy.append(uv[:, :2] / uv[:, 2:] + rng.normal(0, noise, (6, 2)))
+            xyz.append(p), kf.append(np.full(6, f)), Rs.append(Rc), ts.append(tc)
+        objects.append(ObjectCorrespondences(np.concatenate(xy), np.concatenate(xyz), np.concatenate(kf),
+                                             np.array([K] * 4), np.array(Rs), np.array(ts), extent=extent,
+                                             on_floor=True))
+        truth.append((T, q, s))
+    return objects, truth
+
+
+def translation_errors(results: list[PoseResult], truth: list[tuple]) -> np.ndarray:
+    return np.array([np.linalg.norm(r.translation - T) for r, (T, _, _) in zip(results, truth)])
+
+
+def test_floor_prior_recovers_low_parallax_objects_better():
+    """Three clips of five floor objects each, 3 px clicks, 0.6 m of camera travel at 5 m: the
+    shared floor fixes the depth the clicks leave loose."""
+    objects, truth, groups = [], [], []
+    for clip in range(3):
+        o, t = clip_objects(10 + clip, [0.0] * 5, baseline=0.6, distance=5.0)
+        objects, truth, groups = objects + o, truth + t, groups + [f"c{clip}"] * 5
+    without = translation_errors(solve_poses(objects), truth)
+    results = solve_with_floor(objects, groups)
+    with_prior = translation_errors(results, truth)
+    assert all(r.floor_prior == "used" for r in results)
+    assert all(abs(r.floor_height) < 0.05 for r in results)
+    assert with_prior.mean() < 0.85 * without.mean(), (with_prior, without)
+    assert with_prior.max() < without.max() and (with_prior > 0.2).sum() < (without > 0.2).sum()
+
+
+def test_object_on_a_table_keeps_its_own_height():
+    """A floor-class object standing 0.8 m up (on a table) among three floor objects: the floor
+    estimate ignores it (weighted median) and it keeps its own pose, whether the gap check or the
+    reprojection check stops the prior."""
+    objects, truth = clip_objects(3, [0.0, 0.0, 0.0, 0.8], noise=1.0, baseline=2.0)
+    groups = ["c"] * 4
+    alone = solve_poses(objects)
+    for opts, outcome in ((SolverOptions(), "off_floor"), (SolverOptions(floor_max_gap=1e9), "rejected")):
+        results = solve_with_floor(objects, groups, opts)
+        assert abs(results[3].floor_height) < 0.05
+        assert results[3].floor_prior == outcome
+        assert np.array_equal(results[3].translation, alone[3].translation)
+        assert np.array_equal(results[3].scale, alone[3].scale)
+        assert [r.floor_prior for r in results[:3]] == ["used"] * 3
+
+
+def test_weighted_median_is_robust_to_one_outlier():
+    assert weighted_median(np.array([0.01, -0.02, 0.9, 0.0]), np.ones(4)) == pytest.approx(0.005)
+    assert weighted_median(np.array([0.01, -0.02, 0.9]), np.ones(3)) == 0.01
+    assert weighted_median(np.array([0.01, -0.02, 0.9]), np.array([1.0, 1.0, 1.5])) == 0.01
+    assert weighted_median(np.array([0.01, -0.02, 0.9]), np.array([1.0, 1.0, 3.0])) == 0.9  # it outweighs both
+
+
+def test_floor_estimates_need_two_solved_floor_objects():
+    objects, _ = clip_objects(4, [0.0, 0.0, 0.0])
+    results = solve_poses(objects)
+    bottoms = np.array([0.01, 0.02, 0.5])
+    floors = estimate_floors(objects, results, ["a", "a", "b"], bottoms)
+    assert set(floors) == {"a"} and 0.01 <= floors["a"] <= 0.02
+    off = [dataclasses.replace(objects[0], on_floor=False), *objects[1:]]
+    assert estimate_floors(off, results, ["a", "a", "b"], bottoms) == {}
+    out = solve_with_floor(objects, ["a", "b", "c"])  # one object per clip: no floor anywhere
+    assert [r.floor_prior for r in out] == ["no_floor"] * 3 and all(np.isnan(r.floor_height) for r in out)
+
+
+def test_floor_term_matches_hand_computation():
+    """L_floor = weight · |lowest corner of the posed bbox along +Y - floor|, in the total and in
+    the signed residuals; a tilted, mirrored pose so every axis reaches down."""
+    objects, _ = clip_objects(5, [0.0])
+    o = dataclasses.replace(objects[0], mirrored=True, floor_height=0.3, floor_weight=7.0)
+    opts = SolverOptions(huber_px=0.0)  # L1: the residuals' absolute sum is the loss
+    b = make_batch([o], [-1], opts)
+    tilt = np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    R, s, T = tilt @ rotation_y(40.0), np.array([0.9, 1.1, 1.3]), np.array([0.2, 0.1, -4.0])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * o.extent / 2
+    M = object_to_world(T, matrix_to_quaternion(R), s, True)
+    bottom = (corners @ M[:3, :3].T + M[:3, 3])[:, 1].min()
+    off, om = symmetry_offsets(b.sym, True)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)[None]  # noqa: E731
+    e = evaluate(b, t(R), t(s), t(T), torch.zeros(1, 4, dtype=torch.float64), off, om, opts)
+    assert float(e["floor"]) == pytest.approx(7.0 * abs(bottom - 0.3), rel=1e-12)
+    assert float(e["total"]) == pytest.approx(float(e["reprojection"] + opts.alpha * e["up"] + opts.beta * e["front"]
+                                                     + e["floor"]), rel=1e-12)
+    assert float(e["residuals"].abs().sum()) == pytest.approx(float(e["total"]), rel=1e-9)
+
+
+def test_lm_floor_jacobian_matches_finite_differences():
+    from tasks.pose_lm import Problem, residuals_jacobian, scale_ties, so3_exp
+
+    objects, _ = clip_objects(6, [0.0])
+    o = dataclasses.replace(objects[0], floor_height=0.2, floor_weight=5.0, upright=False)
+    b = make_batch([o], [-1], SolverOptions())
+    off, om = symmetry_offsets(b.sym, True)
+    pb = Problem(b, off, om, scale_ties(b.axis, b.sym >= 36), torch.zeros(1, 4, dtype=torch.float64),
+                 torch.tensor([4.0], dtype=torch.float64))
+    R = torch.tensor(rotation_y(30.0), dtype=torch.float64)[None] @ so3_exp(torch.tensor([[0.3, -0.2, 0.1]]).double())
+    ls, T = torch.tensor([[0.1, -0.05, 0.2]]).double(), torch.tensor([[0.1, 0.6, -4.0]]).double()
+    phi, choice = torch.zeros(1, 4, dtype=torch.float64), torch.zeros(1, 4, dtype=torch.long)
+
+    def floor_row(d):
+        return residuals_jacobian(pb, R @ so3_exp(d[:, :3]), ls + d[:, 6:9], T + 4.0 * d[:, 3:6], phi + d[:, 9:], choice,
+                                  0.05, 100.0, 1000.0)[0][:, -1]
+
+    r, J = residuals_jacobian(pb, R, ls, T, phi, choice, 0.05, 100.0, 1000.0)
+    assert float(r[0, -1].abs()) > 0.1
+    h = 1e-6
+    for k in range(13):
+        e = torch.zeros(1, 13, dtype=torch.float64)
+        e[0, k] = h
+        num = (floor_row(e) - floor_row(-e)) / (2 * h)
+        assert torch.allclose(J[:, -1, k], num, atol=1e-6 * (1 + float(num.abs().max()))), k
+
+
+def test_prior_off_is_the_solver_alone():
+    """floor_prior = 0 (or no floor-class object) gives exactly what the solver gives without the feature."""
+    objects, _ = clip_objects(7, [0.0] * 3)
+    groups = ["c"] * 3
+    alone = solve_poses(objects)
+    for objs, opts in ((objects, SolverOptions(floor_prior=0.0)),
+                       ([dataclasses.replace(o, on_floor=False) for o in objects], SolverOptions())):
+        out = solve_with_floor(objs, groups, opts)
+        for a, r in zip(alone, out):
+            assert np.array_equal(a.translation, r.translation) and np.array_equal(a.rotation, r.rotation)
+            assert np.array_equal(a.scale, r.scale) and a.loss_total == r.loss_total and r.floor_prior == "none"
+            assert r.loss_floor == 0.0
