@@ -20,7 +20,7 @@ from flows.reports import StageReport, finish
 from flows.runtime import run_flow
 from tasks.cad_sources import CadItem, items_digest
 from tasks.prefect_tasks import cad_embed_task, cad_ingest_task, cad_views_task, label_similarity_task
-from tasks.registry import STAGES
+from tasks.registry import STAGES, extra_inputs
 
 
 @flow(name="build_cad_library", log_prints=True)
@@ -36,7 +36,7 @@ def build_cad_library(root: str, items: list[CadItem], config: Config, show_prog
         embed = cad_embed_task.submit(root, library, config.embed, config.cad_embed, views,
                                       STAGES["cad_embed"].code_hash, show_progress)
         labels = label_similarity_task.submit(root, library, config.label_similarity, config.detect, ingest,
-                                              STAGES["label_similarity"].code_hash)
+                                              extra_inputs("label_similarity", config), STAGES["label_similarity"].code_hash)
         submitted += [(library, "cad_ingest", ingest), (library, "cad_views", views), (library, "cad_embed", embed),
                       (library, "label_similarity", labels)]
     return finish(submitted, [], f"{len({i.library for i in items})} CAD librar(y/ies)")

@@ -26,7 +26,7 @@ from tasks.detect import detect_clip
 from tasks.embed import embed_clip
 from tasks.frames import extract_frames
 from tasks.ingest import ClipSource, ingest_clip, ingest_inputs_hash
-from tasks.label_similarity import label_similarity, labels_digest
+from tasks.label_similarity import label_similarity
 from tasks.pose import solve_clip
 from tasks.registry import config_hash, upstream_inputs_hash
 from tasks.retrieval import retrieve_clip
@@ -148,11 +148,11 @@ def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRu
 
 @task(name="label_similarity", cache_policy=CACHE_POLICY, persist_result=True)
 def label_similarity_task(root: str, library: str, cfg: LabelSimilarityConfig, detect_cfg: DetectConfig,
-                          cad_ingest: StageRun, code_hash: str) -> StageRun:
+                          cad_ingest: StageRun, more_inputs: list[str], code_hash: str) -> StageRun:
     wh = Warehouse(root)
     return run_stage(
         wh, library, "label_similarity", config_hash=section_hash("label_similarity", cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([cad_ingest.output_hash, labels_digest(detect_cfg)]),
+        inputs_hash=upstream_inputs_hash([cad_ingest.output_hash, *more_inputs]),
         body=lambda run_id: label_similarity(wh, cfg, detect_cfg, library, run_id),
     )
 
