@@ -31,7 +31,8 @@ from warehouse import Warehouse
 def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: bool) -> list[tuple[str, PrefectFuture]]:
     """Submit the stage tasks of one clip, each fed by its upstream's future."""
     video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
-    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, STAGES["ingest"].code_hash)
+    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, source.split,
+                                STAGES["ingest"].code_hash)
     frames = frames_task.submit(root, source.clip, config.frames, ingest, STAGES["frames"].code_hash, show_progress)
     wh = Warehouse(root)
 

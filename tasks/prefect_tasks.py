@@ -50,11 +50,12 @@ CACHE_POLICY = TASK_SOURCE + CacheKeyFnPolicy(cache_key_fn=_cache_key)
 
 @task(name="ingest", cache_policy=CACHE_POLICY, persist_result=True)
 def ingest_task(root: str, clip: str, source: ClipSource, cfg: IngestConfig, video_sha256: str,
-                cameras_sha256: str, code_hash: str) -> StageRun:
+                cameras_sha256: str, split: str, code_hash: str) -> StageRun:
+    """``split`` is ``source.split``, given apart because ``source`` is not in the cache key."""
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "ingest", config_hash=section_hash("ingest", cfg), code_hash=code_hash,
-        inputs_hash=ingest_inputs_hash(clip, video_sha256, cameras_sha256),
+        inputs_hash=ingest_inputs_hash(clip, video_sha256, cameras_sha256, split),
         body=lambda run_id: ingest_clip(wh, cfg, source, video_sha256, cameras_sha256, run_id),
     )
 
