@@ -2,8 +2,8 @@
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames -> detect ->
 embed -> tracking -> manual_tracks -> retrieval -> cad_selection -> correspondence_task, and
-frames -> pose -> verification. A failing clip does not stop the others: each stage run is reported as completed,
-cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
+frames -> pose -> verification. A failing clip does not stop the others: each stage run is
+reported as completed, cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
 paused (a human task waits for labels; what is answered goes on) or waiting (not run: an upstream
 human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
 named ``Paused`` with a message naming the waiting tasks when a human task waits.
@@ -57,8 +57,8 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     verify = verification_task.submit(root, source.clip, config.verification, pose, more("verification"),
                                       STAGES["verification"].code_hash)
     return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
-            ("manual_tracks", manual), ("retrieval", retrieval), ("cad_selection", selection), ("correspondence_task", clicks), ("pose", pose),
-            ("verification", verify)]
+            ("manual_tracks", manual), ("retrieval", retrieval), ("cad_selection", selection),
+            ("correspondence_task", clicks), ("pose", pose), ("verification", verify)]
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:

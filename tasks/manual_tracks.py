@@ -99,7 +99,8 @@ def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[M
 def manual_track_table(wh: Warehouse, embed_cfg: EmbedConfig, clip: str, task_id: str, rows: list[dict]) -> pa.Table:
     """``manual_tracks`` of the answer in force (``manual_track_labels`` rows of one label): one row
     per box, with its descriptor."""
-    frame_of = {f["timestamp_us"]: f["frame_index"] for f in wh.read("frames", [clip], columns=["timestamp_us", "frame_index"]).to_pylist()}
+    frames = wh.read("frames", [clip], columns=["timestamp_us", "frame_index"]).to_pylist()
+    frame_of = {f["timestamp_us"]: f["frame_index"] for f in frames}
     rows = sorted(rows, key=lambda r: (r["object_index"], r["timestamp_us"]))
     if not rows:
         return MANUAL_TRACKS.schema.empty_table()
@@ -131,7 +132,8 @@ def manual_tracks_stage(wh: Warehouse, cfg: ManualTracksConfig, embed_cfg: Embed
     keyframes = [frames[i] for i in regular_keyframes([f["timestamp_us"] for f in frames], cfg.keyframes)]
     stamps = {f["timestamp_us"] for f in keyframes}
     existing = tuple(ExistingTrack(track_id=t.track_id, label=t.label,
-                                   boxes=tuple(TimedBox(timestamp_us=b.timestamp_us, box=b.box) for b in t.boxes if b.timestamp_us in stamps))
+                                   boxes=tuple(TimedBox(timestamp_us=b.timestamp_us, box=b.box)
+                                               for b in t.boxes if b.timestamp_us in stamps))
                      for t in clip_tracks(wh, clip).values() if not t.manual)
     classes = task_classes(wh, detector_labels)
     task_id = new_task_id(KIND, clip, digest(*map(str, sorted(stamps))), digest(*classes),

@@ -139,9 +139,9 @@ def tracking_task(root: str, clip: str, cfg: TrackingConfig, frames: StageRun, d
 
 
 @task(name="manual_tracks", cache_policy=CACHE_POLICY, persist_result=True)
-def manual_tracks_task(root: str, clip: str, cfg: ManualTracksConfig, embed_cfg: EmbedConfig, detector_labels: tuple[str, ...],
-                       ingest: StageRun, frames: StageRun, tracking: StageRun, more_inputs: list[str],
-                       code_hash: str) -> StageRun:
+def manual_tracks_task(root: str, clip: str, cfg: ManualTracksConfig, embed_cfg: EmbedConfig,
+                       detector_labels: tuple[str, ...], ingest: StageRun, frames: StageRun, tracking: StageRun,
+                       more_inputs: list[str], code_hash: str) -> StageRun:
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "manual_tracks", config_hash=config_hash("manual_tracks", {"manual_tracks": cfg, "embed": embed_cfg}),
@@ -223,8 +223,8 @@ def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: Stage
 
 
 STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
-               "tracking": tracking_task, "manual_tracks": manual_tracks_task, "retrieval": retrieval_task, "cad_selection": cad_selection_task,
-               "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
+               "tracking": tracking_task, "manual_tracks": manual_tracks_task, "retrieval": retrieval_task,
+               "cad_selection": cad_selection_task, "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
                "cad_ingest": cad_ingest_task, "cad_views": cad_views_task, "cad_embed": cad_embed_task,
                "label_similarity": label_similarity_task}
 """One task per stage of :data:`tasks.registry.STAGES`, in pipeline order (a test checks it)."""
