@@ -4,7 +4,8 @@ A benchmark folder holds ``manifest.json`` (seed, clip names, the CAD library it
 and per clip ``<name>.mp4``, ``<name>.txt`` and ``<name>/{frames,objects,visibility}.json``
 (:mod:`bench.walkthrough`). Clip ``i`` of seed ``S`` is generated from seed ``S * 1000 + i``, so
 the default benchmark (:data:`DEFAULT_SEED`, :data:`DEFAULT_CLIPS`) is the same everywhere the
-same CAD library is.
+same CAD library is. Splits are not stored: clip ``i`` is ``val`` when ``i % VAL_EVERY`` is
+``VAL_EVERY - 1`` (:func:`clip_split`), so every benchmark, old manifests included, has them.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from warehouse import Warehouse
 DEFAULT_SEED = 20261123
 DEFAULT_CLIPS = 12
 MANIFEST = "manifest.json"
+VAL_EVERY = 4
 CLASS_NAMES = {c.id: c.name for c in CLASSES}
 
 
@@ -82,10 +84,18 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     return manifest, seconds
 
 
+def clip_split(index: int) -> str:
+    """The split of the benchmark's clip ``index``: every ``VAL_EVERY``-th clip (3, 7, 11, ...) is
+    ``val`` (it gets the manual-track task), the others ``train``. A function of the index alone,
+    so generating more clips never moves one to another split."""
+    return "val" if index % VAL_EVERY == VAL_EVERY - 1 else "train"
+
+
 def clip_sources(bench_dir: Path) -> list[ClipSource]:
-    """The benchmark's clips as pipeline inputs."""
+    """The benchmark's clips as pipeline inputs, with their splits (:func:`clip_split`)."""
     bench_dir = Path(bench_dir)
-    return [ClipSource(name, bench_dir / f"{name}.mp4", bench_dir / f"{name}.txt") for name in read_manifest(bench_dir).clips]
+    return [ClipSource(name, bench_dir / f"{name}.mp4", bench_dir / f"{name}.txt", clip_split(i))
+            for i, name in enumerate(read_manifest(bench_dir).clips)]
 
 
 def ignore_rule(bench_dir: Path, clip: str) -> Callable[[ObjectAnnotation, TrackEntry], bool]:

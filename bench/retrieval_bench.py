@@ -97,20 +97,51 @@ def run(models: int = 12_000, views: int = 10, tracks: int = 30, per_track: int 
             "retrieval_s_per_clip": round(statistics.median(seconds), 3)}
 
 
-def track_truth(bench_dir: Path, wh: Warehouse, clip: str) -> dict[int, str]:
-    """Pipeline track id -> ground-truth track id, for tracks whose detections mostly (> half)
-    match (IoU >= 0.5) boxes of one ground-truth object."""
-    from bench.track_bench import detector_clip
+def drawn_box_truth(bench_dir: Path, clip: str, boxes: list[tuple[int, tuple]]) -> list[str]:
+    """The ground-truth object of each drawn box (timestamp_us, (ymin, xmin, ymax, xmax)): matched
+    to the ground-truth boxes of its frame as detections are (Hungarian, IoU >= 0.5); "" when none."""
+    from scipy.optimize import linear_sum_assignment
 
+    from bench.ignore import box_iou
+
+    gt: dict[int, list[tuple[tuple, str]]] = {}
+    for o in read_objects(Path(bench_dir) / clip / "objects.json").objects:
+        for e in o.track:
+            gt.setdefault(e.timestamp, []).append((e.box, o.track_id))
+    truth = [""] * len(boxes)
+    for ts in {t for t, _ in boxes}:
+        mine = [k for k, (t, _) in enumerate(boxes) if t == ts]
+        theirs = gt.get(ts, [])
+        if not theirs:
+            continue
+        iou = box_iou(np.array([boxes[k][1] for k in mine]), np.array([b for b, _ in theirs]))
+        for r, c in zip(*linear_sum_assignment(-iou)):
+            if iou[r, c] >= 0.5:
+                truth[mine[r]] = theirs[c][1]
+    return truth
+
+
+def track_truth(bench_dir: Path, wh: Warehouse, clip: str) -> dict[int, str]:
+    """Pipeline track id -> ground-truth track id, for tracks (automatic and manual,
+    :func:`tasks.clip_tracks.clip_tracks`) whose boxes mostly (> half) match (IoU >= 0.5) boxes of
+    one ground-truth object: detections as :func:`bench.track_bench.detector_clip` matches them,
+    drawn boxes by :func:`drawn_box_truth`."""
+    from bench.track_bench import detector_clip
+    from tasks.clip_tracks import clip_tracks
+
+    tracks = clip_tracks(wh, clip)
     cb = detector_clip(wh, bench_dir, clip)
-    if cb is None:
-        return {}
-    truth = dict(zip(cb.det_id.tolist(), cb.truth.tolist()))
-    members: dict[int, list[str]] = {}
-    for m in wh.read("track_detections", partitions=[clip], columns=["track_id", "det_id"]).to_pylist():
-        members.setdefault(m["track_id"], []).append(truth.get(m["det_id"], ""))
+    detected = dict(zip(cb.det_id.tolist(), cb.truth.tolist())) if cb is not None else {}
+    drawn = [(t.track_id, b) for t in tracks.values() for b in t.boxes if b.det_id is None]
+    drawn_truth = drawn_box_truth(bench_dir, clip, [(b.timestamp_us, b.box) for _, b in drawn])
+    members: dict[int, list[str]] = {t: [detected.get(b.det_id, "") for b in track.boxes if b.det_id is not None]
+                                     for t, track in tracks.items()}
+    for (t, _), truth in zip(drawn, drawn_truth):
+        members[t].append(truth)
     result = {}
     for track_id, ids in members.items():
+        if not ids:
+            continue
         best, count = Counter(ids).most_common(1)[0]
         if best and count * 2 > len(ids):
             result[track_id] = best

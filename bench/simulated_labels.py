@@ -5,8 +5,14 @@ items without an answer in force), answers them as the simulated annotators of
 :mod:`bench.annotators` would, with the noise model :class:`bench.noise.AnnotatorNoise`, and writes
 label files (validated by :func:`tasks.labels.validate_label`) to ``<bench>/labels/<clip>/``:
 
-- ``cad_selection``: a track matched to a ground-truth object (:func:`bench.retrieval_bench.track_truth`)
-  gets :func:`bench.annotators.select_cad` of the object's true model among the track's candidates
+- ``manual_track`` (val/test clips): the ground-truth objects that no automatic track of the task
+  matches (:func:`bench.retrieval_bench.track_truth`), drawn with
+  :func:`bench.annotators.draw_manual_track` on the task's key-frames where they are not an
+  ignore region (mostly hidden or cut off), as the task's class that corresponds to the object's
+  (its class's COCO labels, :mod:`tasks.cad_classes`); objects of no such class are left out.
+  ``source_id``: ``gt:<ground-truth track id>``. Nothing missing: an empty answer.
+- ``cad_selection``: a track matched to a ground-truth object (:func:`bench.retrieval_bench.track_truth`; a manual
+  track too, by its boxes) gets :func:`bench.annotators.select_cad` of the object's true model among the track's candidates
   (shape distances of the meshes); an unmatched track (a false positive, or a track mixing
   objects) gets null ("none fits"), so the loop ends.
 - ``correspondences``: :func:`bench.annotators.annotate_correspondences` on the task's key-frames,
@@ -34,18 +40,20 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from bench.annotators import Pose, annotate_correspondences, mesh_shape_distance, select_cad, verify_pose
+from bench.annotators import Pose, annotate_correspondences, draw_manual_track, mesh_shape_distance, select_cad, verify_pose
+from bench.benchmark import CLASS_NAMES, ignore_rule
 from bench.noise import DEFAULT_NOISE, AnnotatorNoise
 from bench.retrieval_bench import track_truth
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
-from schemas.official import read_frames, read_objects
-from tasks.label_ingest import current_answers, ingest_labels
+from schemas.official import FramesFile, read_frames, read_objects
+from tasks.cad_classes import BY_NAME
+from tasks.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
 ANNOTATOR = "simulated (bench.annotators)"
-KINDS = ("cad_selection", "correspondences", "verification")
+KINDS = ("manual_track", "cad_selection", "correspondences", "verification")
 
 
 def label_dir(bench_dir: Path, clip: str) -> Path:
@@ -93,18 +101,49 @@ class _Clip:
 
 
 def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
-    """(task, its items without an answer in force) of the newest task of each kind, if any waits."""
+    """(task, its items without an answer in force) of the newest task of each kind, if any waits
+    (a manual-track task is answered whole: its items are its key-frames until it is)."""
     out = []
     for kind in KINDS:
         row = latest_task_of_kind(wh, clip, kind)
         if row is None:
             continue
         task = parse_task(row["document"], row["path"])
-        answered = set(current_answers(wh, kind, [clip], task.task_id).column("track_id").to_pylist())
-        todo = [it for it in task.items if it.track_id not in answered]
+        if kind == "manual_track":
+            todo = [] if task.task_id in answered_tasks(wh, kind, clip) else list(task.keyframes)
+        else:
+            answered = set(current_answers(wh, kind, [clip], task.task_id).column("track_id").to_pylist())
+            todo = [it for it in task.items if it.track_id not in answered]
         if todo:
             out.append((task, todo))
     return out
+
+
+def task_label(cls: str, classes: tuple[str, ...]) -> str | None:
+    """The first of the task's ``classes`` that names ground-truth class ``cls`` (a class id; its
+    class's COCO labels, :data:`tasks.cad_classes.CLASSES`), or None."""
+    known = BY_NAME.get(CLASS_NAMES.get(cls, ""))
+    return next((label for label in (known.coco if known else ()) if label in classes), None)
+
+
+def _draw_missing(c: _Clip, bench_dir: Path, task, noise: AnnotatorNoise) -> list[dict]:
+    """The manual-track answer: the objects no automatic track of the task matches (module docstring)."""
+    found = {c.truth.get(t.track_id) for t in task.existing_tracks}
+    stamps = {kf.timestamp_us for kf in task.keyframes}
+    keyframes = FramesFile(c.frames.clip_name, c.frames.image_size, tuple(f for f in c.frames.frames if f.timestamp in stamps))
+    gt_ignore = ignore_rule(bench_dir, c.clip)
+    answers = []
+    for o in sorted(c.objects.values(), key=lambda o: o.track_id):
+        label = task_label(o.cls, task.classes)
+        if o.track_id in found or label is None:
+            continue
+        shown = dataclasses.replace(o, track=tuple(e for e in o.track if e.timestamp in stamps and not gt_ignore(o, e)))
+        boxes = [e for e in draw_manual_track(keyframes, shown, noise, noise.rng(c.clip, "manual_track", o.track_id))
+                 if e.box[0] < e.box[2] and e.box[1] < e.box[3]]
+        if boxes:
+            answers.append({"label": label, "source_id": f"gt:{o.track_id}",
+                            "boxes": [{"timestamp_us": int(e.timestamp), "box": [float(v) for v in e.box]} for e in boxes]})
+    return answers
 
 
 def _select(c: _Clip, item, noise: AnnotatorNoise) -> dict:
@@ -173,6 +212,9 @@ def answer_tasks(bench_dir: Path, wh: Warehouse, clip: str, noise: AnnotatorNois
     written = []
     with Renderer(W, H) as renderer:
         for task, items in tasks:
+            if task.kind == "manual_track":  # an empty answer too: "nothing is missing" completes the task
+                written.append(_write(wh, folder, task.kind, clip, task.task_id, _draw_missing(c, bench_dir, task, noise)))
+                continue
             if task.kind == "cad_selection":
                 answers = [_select(c, it, noise) for it in items]
             elif task.kind == "correspondences":

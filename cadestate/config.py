@@ -144,6 +144,17 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class ManualTracksConfig:
+    """Stage ``manual_tracks`` (human task, paper 3.1): on the val/test clips people draw the objects
+    the automatic tracks missed, as boxes on key-frames regularly spaced in time, in one of the
+    detector labels retrieval can score; the drawn boxes are embedded with the ``[embed]`` settings."""
+
+    splits: tuple = _opt(("val", "test"), "Clip splits (`cadestate ingest --split`) that get the task; other clips "
+                                          "complete at once with no manual track.")
+    keyframes: int = _opt(6, "Key-frames of the task, regularly spaced in time over the clip (the paper's 6).", lo=1, hi=1000)
+
+
+@dataclass(frozen=True)
 class PoseConfig:
     """Stage ``pose``: 9-DoF pose of every annotated track from its correspondences (paper 3.4; tasks/pose_solver.py)."""
 
@@ -228,6 +239,7 @@ class Config:
     detect: DetectConfig = field(default_factory=DetectConfig)
     embed: EmbedConfig = field(default_factory=EmbedConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    manual_tracks: ManualTracksConfig = field(default_factory=ManualTracksConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
     cad_selection: CadSelectionConfig = field(default_factory=CadSelectionConfig)
     correspondence_task: CorrespondenceTaskConfig = field(default_factory=CorrespondenceTaskConfig)
@@ -258,6 +270,7 @@ SECTIONS: dict[str, type] = {
     "detect": DetectConfig,
     "embed": EmbedConfig,
     "tracking": TrackingConfig,
+    "manual_tracks": ManualTracksConfig,
     "retrieval": RetrievalConfig,
     "cad_selection": CadSelectionConfig,
     "correspondence_task": CorrespondenceTaskConfig,

@@ -1,9 +1,9 @@
 """Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner).
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames -> detect ->
-embed -> tracking -> retrieval -> cad_selection -> correspondence_task, and frames -> pose ->
-verification. A failing clip does not stop the others: each stage run is reported as completed,
-cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
+embed -> tracking -> manual_tracks -> retrieval -> cad_selection -> correspondence_task, and
+frames -> pose -> verification. A failing clip does not stop the others: each stage run is
+reported as completed, cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
 paused (a human task waits for labels; what is answered goes on) or waiting (not run: an upstream
 human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
 named ``Paused`` with a message naming the waiting tasks when a human task waits.
@@ -22,8 +22,10 @@ from cadestate.lineage import file_sha256
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
 from tasks.ingest import ClipSource
+from tasks.label_similarity import detector_labels
 from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, detect_task, embed_task, frames_task,
-                                 ingest_task, pose_task, retrieval_task, tracking_task, verification_task)
+                                 ingest_task, manual_tracks_task, pose_task, retrieval_task, tracking_task,
+                                 verification_task)
 from tasks.registry import STAGES, clip_inputs, extra_inputs
 from warehouse import Warehouse
 
@@ -31,7 +33,8 @@ from warehouse import Warehouse
 def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: bool) -> list[tuple[str, PrefectFuture]]:
     """Submit the stage tasks of one clip, each fed by its upstream's future."""
     video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
-    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, STAGES["ingest"].code_hash)
+    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, source.split,
+                                STAGES["ingest"].code_hash)
     frames = frames_task.submit(root, source.clip, config.frames, ingest, STAGES["frames"].code_hash, show_progress)
     wh = Warehouse(root)
 
@@ -42,7 +45,9 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
                                 show_progress)
     embed = embed_task.submit(root, source.clip, config.embed, detect, STAGES["embed"].code_hash, show_progress)
     tracking = tracking_task.submit(root, source.clip, config.tracking, frames, detect, embed, STAGES["tracking"].code_hash)
-    retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, more("retrieval"),
+    manual = manual_tracks_task.submit(root, source.clip, config.manual_tracks, config.embed, detector_labels(config.detect),
+                                       ingest, frames, tracking, more("manual_tracks"), STAGES["manual_tracks"].code_hash)
+    retrieval = retrieval_task.submit(root, source.clip, config.retrieval, tracking, manual, more("retrieval"),
                                       STAGES["retrieval"].code_hash)
     selection = cad_selection_task.submit(root, source.clip, config.cad_selection, retrieval, more("cad_selection"),
                                           STAGES["cad_selection"].code_hash)
@@ -52,8 +57,8 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     verify = verification_task.submit(root, source.clip, config.verification, pose, more("verification"),
                                       STAGES["verification"].code_hash)
     return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
-            ("retrieval", retrieval), ("cad_selection", selection), ("correspondence_task", clicks), ("pose", pose),
-            ("verification", verify)]
+            ("manual_tracks", manual), ("retrieval", retrieval), ("cad_selection", selection),
+            ("correspondence_task", clicks), ("pose", pose), ("verification", verify)]
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:

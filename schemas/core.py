@@ -37,9 +37,14 @@ CLIPS = TableSpec(
             column("duration_us", pa.int64(), "Duration of the video stream.", unit="µs"),
             column("codec", pa.string(), "Video codec name."),
             column("ingested_at", UTC_TS, "When the clip was ingested."),
+            column("split", pa.string(), "Dataset split (`cadestate ingest --split`): 'train', 'val', 'test', ...; "
+                   "null (clips ingested before splits existed) reads as 'train'. [manual_tracks] splits get the "
+                   "manual-track task.", nullable=True),
         ]
     ),
 )
+DEFAULT_SPLIT = "train"
+"""The split of a clip ingested without one."""
 
 FRAMES = TableSpec(
     name="frames",

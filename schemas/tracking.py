@@ -1,16 +1,21 @@
-"""Tables of automatic tracking (stage ``tracking``): ``tracks``, ``track_detections``,
-``track_appearance`` per clip.
+"""Tables of tracks: automatic tracking (stage ``tracking``: ``tracks``, ``track_detections``,
+``track_appearance``) and manual tracks (stage ``manual_tracks``: ``manual_tracks``), per clip.
 
 A track is one physical object: a cluster of the clip's detections (at most one per frame).
 ``track_id`` is the track's rank when tracks are ordered by their first detection id, so it is
 the same on every rerun with unchanged inputs (and never depends on the order rows were read).
+A manual track (drawn by people on the val/test splits, paper Sec. 3.1) has the id
+``MANUAL_TRACK_BASE`` + the object's index in the label that drew it: never an automatic id.
 """
 
 from __future__ import annotations
 
 import pyarrow as pa
 
-from schemas.base import CLIP, TableSpec, column
+from schemas.base import CLIP, TableSpec, column, vector
+
+MANUAL_TRACK_BASE = 1_000_000
+"""Track ids of manual tracks start here (automatic ids are ranks: far below; int32 above)."""
 
 TRACKS = TableSpec(
     name="tracks",
@@ -64,6 +69,30 @@ TRACK_APPEARANCE = TableSpec(
             column("num_vectors", pa.int32(), "Descriptors averaged."),
             column("medoid_det_id", pa.int64(), "The detection whose descriptor is closest to the mean (a representative crop)."),
             column("model_sha256", pa.string(), "SHA-256 of the embedder of the descriptors."),
+        ]
+    ),
+)
+
+MANUAL_TRACKS = TableSpec(
+    name="manual_tracks",
+    mode="replace",
+    key=("clip", "track_id", "timestamp_us"),
+    description="One row per box of a manual track (the objects people drew for the clip's manual-track task), "
+                "with the box's appearance descriptor.",
+    schema=pa.schema(
+        [
+            CLIP,
+            column("track_id", pa.int32(), "Track id: MANUAL_TRACK_BASE (1,000,000) + the object's index in its label file."),
+            column("label", pa.string(), "Class the annotator chose (a detector label, as tracks.label)."),
+            column("source_id", pa.string(), "The object's id in the annotation tool.", nullable=True),
+            column("timestamp_us", pa.int64(), "Frame of the box (a frames row).", unit="µs"),
+            column("frame_index", pa.int32(), "frames.frame_index of the box."),
+            column("box", vector(4), "(ymin, xmin, ymax, xmax), normalised by image height (y) and width (x).",
+                   frame="image, normalised [0,1], origin top-left"),
+            column("vector", pa.list_(pa.field("item", pa.float32(), nullable=False)),
+                   "Appearance descriptor of the box's crop, unit L2 norm (as embeddings.vector: same embedder, same [embed])."),
+            column("model_sha256", pa.string(), "SHA-256 of the ONNX embedder."),
+            column("task_id", pa.string(), "The manual_track task the label answered (label_tasks.task_id)."),
         ]
     ),
 )

@@ -8,6 +8,8 @@ items wait, and what is answered already goes on (partial labels advance). The a
 (:func:`tasks.label_ingest.answers_digest`) are part of each stage's inputs, so ingesting labels
 makes the stage stale and a rerun resumes it, reusing every cached upstream stage.
 
+Tracks are the clip's automatic and manual ones alike (:func:`tasks.clip_tracks.clip_tracks`).
+
 - ``cad_selection`` (after ``retrieval``): per track, its candidates (renders from ``cad_views``,
   meshes from ``cad_models``) on evenly spaced key-frames of the track with its boxes. Output:
   the chosen model per answered track (:func:`selected_models`, from ``cad_selection_labels``).
@@ -34,12 +36,15 @@ from schemas.dataclass_json import to_json
 from schemas.labels import (CadCandidate, CadSelectionAnswer, CadSelectionItem, CadSelectionTask, CorrespondenceItem,
                             CorrespondenceTask, KeyframeView, Pose, VerificationAnswer, VerificationItem,
                             VerificationTask)
+from tasks.clip_tracks import ClipTrack, clip_tracks
 from tasks.label_ingest import answers_digest, current_answers
 from tasks.labels import latest_task, new_task_id, parse_task, utc_now, write_task
 from tasks.stage import StageOutput
 from warehouse import Warehouse
 
 INSTRUCTIONS = {
+    "manual_track": "Draw every object that none of the existing tracks covers: its class and a box on each key-frame "
+                    "where it is visible. Answer with no object if nothing is missing.",
     "cad_selection": "For every track, choose the CAD candidate whose shape is closest to the object; "
                      "cad_id null if none is similar enough.",
     "correspondences": "For every track, on each key-frame you annotate, click 4-6 points on the CAD model and the "
@@ -64,31 +69,20 @@ def image_size(wh: Warehouse, clip: str) -> tuple[int, int]:
     return int(frames.column("height")[0].as_py()), int(frames.column("width")[0].as_py())
 
 
-def track_keyframes(wh: Warehouse, clip: str, track_ids: list[int], k: int) -> dict[int, tuple[KeyframeView, ...]]:
-    """Per track, ``k`` evenly spaced frames of its detections with its box there."""
-    td = wh.read("track_detections", [clip], columns=["track_id", "det_id", "frame_index", "timestamp_us"]).to_pylist()
-    dets = {r["det_id"]: r for r in wh.read("detections", [clip], columns=["det_id", "box", "timestamp_us", "frame_index"]).to_pylist()}
-    frames = wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()
-    by_ts = {f["timestamp_us"]: f for f in frames}
-    by_index = {f["frame_index"]: f for f in frames}
-    per_track: dict[int, list[dict]] = defaultdict(list)
-    wanted = set(track_ids)
-    for r in td:
-        if r["track_id"] in wanted:
-            per_track[r["track_id"]].append(r)
+def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], track_ids: list[int],
+                    k: int) -> dict[int, tuple[KeyframeView, ...]]:
+    """Per track of ``track_ids`` (automatic or manual, from ``tracks``: :func:`clip_tracks`),
+    ``k`` evenly spaced frames of its boxes with its box there."""
+    frames = {f["frame_index"]: f for f in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
     out = {}
     for t in track_ids:
-        rows = sorted(per_track.get(t, []), key=lambda r: (r["frame_index"], r["det_id"]))
+        boxes = tracks[t].boxes if t in tracks else ()
         views = []
-        for i in evenly_spaced(len(rows), k):
-            r = rows[i]
-            det = dets.get(r["det_id"], {})
-            frame = by_index.get(det.get("frame_index", r["frame_index"])) or by_ts.get(det.get("timestamp_us", r["timestamp_us"]))
-            if frame is None:
-                continue
-            box = det.get("box")
-            views.append(KeyframeView(timestamp_us=int(frame["timestamp_us"]), frame_index=int(frame["frame_index"]),
-                                      image_path=frame["image_path"], box=tuple(float(v) for v in box) if box else None))
+        for i in evenly_spaced(len(boxes), k):
+            frame = frames.get(boxes[i].frame_index)
+            if frame is not None:
+                views.append(KeyframeView(timestamp_us=int(frame["timestamp_us"]), frame_index=int(frame["frame_index"]),
+                                          image_path=frame["image_path"], box=tuple(float(v) for v in boxes[i].box)))
         out[t] = tuple(views)
     return out
 
@@ -159,9 +153,10 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     for r in rows:
         by_track[int(r["track_id"])].append(r)
     track_ids = sorted(by_track)
-    labels = {int(r["track_id"]): r["label"] for r in wh.read("tracks", [clip], columns=["track_id", "label"]).to_pylist()}
+    tracks = clip_tracks(wh, clip)
+    labels = {t: track.label for t, track in tracks.items()}
     models, renders = _model_facts(wh, {r["cad_id"] for r in rows})
-    keyframes = track_keyframes(wh, clip, track_ids, cfg.keyframes)
+    keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
     items = []
     for t in track_ids:
         cs = tuple(CadCandidate(rank=int(r["rank"]), cad_id=r["cad_id"], library=r["library"], cad_class=r["cad_class"],
@@ -202,8 +197,9 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     track_ids = sorted(chosen)
     task_id = new_task_id("correspondences", clip, *(f"{t}:{chosen[t]}" for t in track_ids))
     models, renders = _model_facts(wh, set(chosen.values()))
-    labels = {int(r["track_id"]): r["label"] for r in wh.read("tracks", [clip], columns=["track_id", "label"]).to_pylist()}
-    keyframes = track_keyframes(wh, clip, track_ids, cfg.keyframes)
+    tracks = clip_tracks(wh, clip)
+    labels = {t: track.label for t, track in tracks.items()}
+    keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
     items = []
     for t in track_ids:
         m = models.get(chosen[t]) or {}

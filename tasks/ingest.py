@@ -18,6 +18,7 @@ import pyarrow as pa
 
 from cadestate.config import IngestConfig
 from cadestate.lineage import digest
+from schemas.core import DEFAULT_SPLIT
 from tasks.cameras import parse_camera_file
 from tasks.stage import StageOutput
 from tasks.video import VideoError, probe_video
@@ -31,18 +32,21 @@ END_TOLERANCE_US = 100_000
 
 @dataclass(frozen=True)
 class ClipSource:
-    """A clip to ingest: its name, its video file and its RealEstate10K camera file."""
+    """A clip to ingest: its name, its video file, its RealEstate10K camera file and its dataset
+    split (``train``, ``val``, ``test``: the val/test clips get the manual-track task)."""
 
     clip: str
     video: Path
     cameras: Path
+    split: str = DEFAULT_SPLIT
 
     def __post_init__(self) -> None:
         check_name(self.clip)
+        check_name(self.split, "split")
 
 
-def discover_clips(folder: str | os.PathLike) -> list[ClipSource]:
-    """Clips of a folder: each ``<name>.<video suffix>`` paired with ``<name>.txt``.
+def discover_clips(folder: str | os.PathLike, split: str = DEFAULT_SPLIT) -> list[ClipSource]:
+    """Clips of a folder (all of dataset split ``split``): each ``<name>.<video suffix>`` paired with ``<name>.txt``.
 
     A video without a camera file is an error (naming it), since SfM cameras come later.
     """
@@ -57,13 +61,14 @@ def discover_clips(folder: str | os.PathLike) -> list[ClipSource]:
         cameras = video.with_suffix(".txt")
         if not cameras.is_file():
             raise FileNotFoundError(f"{video}: no camera file {cameras.name} beside it")
-        sources.append(ClipSource(video.stem, video, cameras))
+        sources.append(ClipSource(video.stem, video, cameras, split))
     return sources
 
 
-def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str) -> str:
-    """Lineage digest of a clip's inputs (also the ingest stage's output hash)."""
-    return digest("ingest", clip, video_sha256, cameras_sha256)
+def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split: str = DEFAULT_SPLIT) -> str:
+    """Lineage digest of a clip's inputs and split (also the ingest stage's output hash, so a new
+    split reruns what follows ingest: frames, which writes the same frames, and manual_tracks)."""
+    return digest("ingest", clip, video_sha256, cameras_sha256, split)
 
 
 def _place(src: Path, dst: Path, link: bool) -> None:
@@ -122,9 +127,10 @@ def ingest_clip(
         "duration_us": info.duration_us,
         "codec": info.codec,
         "ingested_at": dt.datetime.now(dt.timezone.utc),
+        "split": source.split,
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row]))
-    return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256))
+    return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split))
 
 
 def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:
@@ -134,3 +140,15 @@ def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:
         raise WarehouseError(f"clip {clip!r} is not ingested (see `cadestate status`)")
     row = rows[0]
     return wh.root / row["video_path"], wh.root / row["cameras_path"], row
+
+
+def clip_split(row: dict) -> str:
+    """The split of a ``clips`` row (``train`` for clips ingested before splits existed)."""
+    return row.get("split") or DEFAULT_SPLIT
+
+
+def registered_source(wh: Warehouse, clip: str) -> ClipSource:
+    """A registered clip as a :class:`ClipSource` of the warehouse's copies, with its split (what
+    ``cadestate run`` and label ingest rerun: the same clip, so cached)."""
+    video, cameras, row = clip_inputs(wh, clip)
+    return ClipSource(clip, video, cameras, clip_split(row))

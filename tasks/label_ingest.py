@@ -32,7 +32,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from cadestate.lineage import table_digest
+from cadestate.lineage import digest, table_digest
 from schemas.labels import ANSWER_TABLES, KINDS
 from schemas.pose import CORRESPONDENCES
 from tasks.labels import ClipFacts, LabelError, LabelFile, utc_now, validate_label
@@ -248,12 +248,23 @@ def current_answers(wh: Warehouse, kind: str, clips: list[str] | None = None, ta
     return rows
 
 
+def answered_tasks(wh: Warehouse, kind: str, clip: str) -> set[str]:
+    """Ids of the clip's tasks of ``kind`` that some ingested label file answers (for
+    ``manual_track`` an empty answer, "nothing is missing", answers its task too)."""
+    return set(_committed_files(wh, kind, [clip]).column("task_id").to_pylist())
+
+
 def answers_digest(wh: Warehouse, kind: str, clip: str, task_id: str | None = None) -> str:
     """Digest of the answers in force (without where they came from): part of the inputs hash of a
-    stage that consumes labels, so it reruns when its answers change and stays cached otherwise."""
+    stage that consumes labels, so it reruns when its answers change and stays cached otherwise.
+    For ``manual_track`` the answered tasks count too (an empty answer has no rows)."""
     rows = current_answers(wh, kind, [clip], task_id).drop_columns(["label_sha256", "ingested_at"])
     keys = ["task_id"] + [k for k in ANSWER_TABLES[kind].key if k in rows.column_names]
-    return table_digest(rows.sort_by([(k, "ascending") for k in keys]))
+    rows_digest = table_digest(rows.sort_by([(k, "ascending") for k in keys]))
+    if kind != "manual_track":
+        return rows_digest
+    answered = sorted(t for t in answered_tasks(wh, kind, clip) if task_id is None or t == task_id)
+    return digest(rows_digest, *answered)
 
 
 def correspondence_table(wh: Warehouse, clip: str) -> pa.Table:

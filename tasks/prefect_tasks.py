@@ -15,8 +15,9 @@ from prefect import task
 from prefect.cache_policies import TASK_SOURCE, CacheKeyFnPolicy
 from prefect.utilities.hashing import hash_objects
 
-from cadestate.config import (CadEmbedConfig, CadSelectionConfig, CorrespondenceTaskConfig, VerificationConfig, CadIngestConfig, CadViewsConfig, DetectConfig, EmbedConfig, FramesConfig,
-                              IngestConfig, LabelSimilarityConfig, PoseConfig, RetrievalConfig, TrackingConfig,
+from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadSelectionConfig, CadViewsConfig, CorrespondenceTaskConfig,
+                              DetectConfig, EmbedConfig, FramesConfig, IngestConfig, LabelSimilarityConfig,
+                              ManualTracksConfig, PoseConfig, RetrievalConfig, TrackingConfig, VerificationConfig,
                               section_hash)
 from tasks.cad_embed import embed_library
 from tasks.cad_ingest import ingest_library
@@ -27,6 +28,7 @@ from tasks.embed import embed_clip
 from tasks.frames import extract_frames
 from tasks.ingest import ClipSource, ingest_clip, ingest_inputs_hash
 from tasks.label_similarity import label_similarity
+from tasks.manual_tracks import manual_tracks_stage
 from tasks.pose import solve_clip
 from tasks.registry import config_hash, upstream_inputs_hash
 from tasks.retrieval import retrieve_clip
@@ -50,11 +52,12 @@ CACHE_POLICY = TASK_SOURCE + CacheKeyFnPolicy(cache_key_fn=_cache_key)
 
 @task(name="ingest", cache_policy=CACHE_POLICY, persist_result=True)
 def ingest_task(root: str, clip: str, source: ClipSource, cfg: IngestConfig, video_sha256: str,
-                cameras_sha256: str, code_hash: str) -> StageRun:
+                cameras_sha256: str, split: str, code_hash: str) -> StageRun:
+    """``split`` is ``source.split``, given apart because ``source`` is not in the cache key."""
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "ingest", config_hash=section_hash("ingest", cfg), code_hash=code_hash,
-        inputs_hash=ingest_inputs_hash(clip, video_sha256, cameras_sha256),
+        inputs_hash=ingest_inputs_hash(clip, video_sha256, cameras_sha256, split),
         body=lambda run_id: ingest_clip(wh, cfg, source, video_sha256, cameras_sha256, run_id),
     )
 
@@ -135,13 +138,30 @@ def tracking_task(root: str, clip: str, cfg: TrackingConfig, frames: StageRun, d
     )
 
 
+@task(name="manual_tracks", cache_policy=CACHE_POLICY, persist_result=True)
+def manual_tracks_task(root: str, clip: str, cfg: ManualTracksConfig, embed_cfg: EmbedConfig,
+                       detector_labels: tuple[str, ...], ingest: StageRun, frames: StageRun, tracking: StageRun,
+                       more_inputs: list[str], code_hash: str) -> StageRun:
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "manual_tracks", config_hash=config_hash("manual_tracks", {"manual_tracks": cfg, "embed": embed_cfg}),
+        code_hash=code_hash,
+        inputs_hash=upstream_inputs_hash([ingest.output_hash, frames.output_hash, tracking.output_hash, *more_inputs]),
+        body=lambda run_id: manual_tracks_stage(wh, cfg, embed_cfg, detector_labels, clip, run_id),
+    )
+
+
 @task(name="retrieval", cache_policy=CACHE_POLICY, persist_result=True)
-def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRun, more_inputs: list[str],
-                   code_hash: str) -> StageRun:
+def retrieval_task(root: str, clip: str, cfg: RetrievalConfig, tracking: StageRun, manual_tracks: StageRun,
+                   more_inputs: list[str], code_hash: str) -> StageRun:
+    """``waiting`` (not run) while the manual-track task waits with nothing answered."""
+    waiting = waiting_run(clip, "retrieval", [manual_tracks])
+    if waiting is not None:
+        return waiting
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "retrieval", config_hash=section_hash("retrieval", cfg), code_hash=code_hash,
-        inputs_hash=upstream_inputs_hash([tracking.output_hash, *more_inputs]),
+        inputs_hash=upstream_inputs_hash([tracking.output_hash, manual_tracks.output_hash, *more_inputs]),
         body=lambda run_id: retrieve_clip(wh, cfg, clip, run_id),
     )
 
@@ -203,8 +223,8 @@ def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: Stage
 
 
 STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
-               "tracking": tracking_task, "retrieval": retrieval_task, "cad_selection": cad_selection_task,
-               "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
+               "tracking": tracking_task, "manual_tracks": manual_tracks_task, "retrieval": retrieval_task,
+               "cad_selection": cad_selection_task, "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
                "cad_ingest": cad_ingest_task, "cad_views": cad_views_task, "cad_embed": cad_embed_task,
                "label_similarity": label_similarity_task}
 """One task per stage of :data:`tasks.registry.STAGES`, in pipeline order (a test checks it)."""

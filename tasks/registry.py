@@ -46,16 +46,25 @@ STAGES: dict[str, StageDef] = {
         StageDef("tracking", "clip", ("frames", "detect", "embed"), ("tracks", "track_detections", "track_appearance"),
                  ("tasks.tracking", "tasks.track_affinity", "tasks.track_partition", "tasks.track_calibration"),
                  "associate detections into tracks by clique partitioning"),
-        StageDef("retrieval", "clip", ("tracking",), ("cad_candidates",), ("tasks.retrieval", "tasks.whitening"),
-                 "top CAD models of every track (appearance x class-label similarity)"),
-        StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest"),
+        StageDef("manual_tracks", "clip", ("ingest", "frames", "tracking"), ("manual_tracks", "label_tasks"),
+                 ("tasks.manual_tracks", "tasks.clip_tracks", "tasks.human_tasks", "tasks.ingest", "tasks.labels",
+                  "tasks.label_ingest", "tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+                 "human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
+                 extra_sections=("embed",)),
+        StageDef("retrieval", "clip", ("tracking", "manual_tracks"), ("cad_candidates",),
+                 ("tasks.retrieval", "tasks.whitening", "tasks.clip_tracks"),
+                 "top CAD models of every track, automatic and manual (appearance x class-label similarity)"),
+        StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",),
+                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_ingest"),
                  "human task (3.2): people choose each track's CAD model among its candidates; pauses until answered"),
-        StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest"),
+        StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",),
+                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_ingest"),
                  "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
                  ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
-        StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"), ("tasks.human_tasks", "tasks.labels", "tasks.label_ingest") + ("cadestate.render",),
+        StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
+                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_ingest", "cadestate.render"),
                  "human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered"),
         StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
                  ("tasks.cad_ingest", "tasks.cad_sources", "tasks.cad_classes", "tasks.cad_symmetry"),
@@ -87,20 +96,20 @@ def config_hash(stage: str, sections: Mapping[str, Any]) -> str:
 def extra_inputs(stage: str, config: Any) -> list[str]:
     """Digests of what ``stage`` reads besides its upstream stages' outputs (``config``: a
     :class:`cadestate.config.Config`): the detector's model file for ``detect``, the detector's
-    label map for ``label_similarity``."""
+    label map for ``label_similarity`` and ``manual_tracks`` (its classes without a CAD library)."""
     if stage == "detect":
         from tasks.detect import model_fingerprint
 
         return [model_fingerprint(config.detect)]
-    if stage == "label_similarity":
+    if stage in ("label_similarity", "manual_tracks"):
         from tasks.label_similarity import labels_digest
 
         return [labels_digest(config.detect)]
     return []
 
 
-HUMAN_TASK_KINDS = {"cad_selection": "cad_selection", "correspondence_task": "correspondences",
-                    "verification": "verification"}
+HUMAN_TASK_KINDS = {"manual_tracks": "manual_track", "cad_selection": "cad_selection",
+                    "correspondence_task": "correspondences", "verification": "verification"}
 """Stages that wait for people -> the label kind that answers them."""
 
 
@@ -108,8 +117,9 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     """Digests of the warehouse data of one clip that ``stage`` reads besides its upstream stages'
     outputs: the clip's ``correspondences`` (human labels) and the ``cad_models`` facts (class,
     symmetry) of the models they reference for ``pose``, the CAD libraries' descriptors and label
-    similarities for ``retrieval``; for the human-task stages, the answers in force of their label
-    kind (ingesting labels makes them stale: a rerun resumes them)."""
+    similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
+    classes); for the human-task stages, the answers in force of their label kind (ingesting labels
+    makes them stale: a rerun resumes them)."""
     if stage == "retrieval":
         from tasks.retrieval import library_digest
 
@@ -117,7 +127,12 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     if stage in HUMAN_TASK_KINDS:
         from tasks.label_ingest import answers_digest
 
-        return [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
+        answers = [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
+        if stage == "manual_tracks":
+            from tasks.manual_tracks import similarity_labels
+
+            return [digest(*similarity_labels(wh)), *answers]
+        return answers
     if stage == "pose":
         from tasks.pose import cad_models_digest, correspondences_digest
 

@@ -9,7 +9,8 @@ exactly ``c(l_f, k_m) * (1 + w_f . mean_v b_mv) / 2``, and grouping the track's 
 label gives ``sum_l c(l, k_m) * (n_l + (sum_{f in l} w_f) . b_m) / (2F)``: one small matrix
 product per library however many views it has (``cad_model_embeddings`` holds b_m).
 
-Reads: the clip's ``tracks``, ``track_detections``, ``detections``, ``embeddings``; every
+Reads: the clip's tracks, automatic and manual (:mod:`tasks.clip_tracks`: ``tracks``,
+``track_detections``, ``detections``, ``embeddings``, ``manual_tracks``); every
 library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similarity``. Writes:
 the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries; none while
 the warehouse has no CAD library). Each library's descriptors are compared after that library's
@@ -25,6 +26,7 @@ import pyarrow as pa
 
 from cadestate.config import RetrievalConfig
 from cadestate.lineage import digest, table_digest
+from tasks.clip_tracks import MissingDescriptor, clip_tracks
 from tasks.stage import StageOutput
 from tasks.whitening import Whitening, read_whitening
 from warehouse import Warehouse
@@ -100,19 +102,21 @@ def library_digest(wh: Warehouse) -> str:
 
 
 def track_groups(wh: Warehouse, clip: str) -> tuple[list[int], list[TrackGroups]]:
-    """The clip's track ids and their detections grouped by label, with raw descriptors."""
-    members = wh.read("track_detections", partitions=[clip], columns=["track_id", "det_id"]).to_pylist()
-    labels = {d["det_id"]: d["label"] for d in wh.read("detections", partitions=[clip], columns=["det_id", "label"]).to_pylist()}
-    vectors = {e["owner_id"]: e["vector"] for e in wh.read("embeddings", partitions=[clip], filters=[("owner", "==", "detection")],
-                                                          columns=["owner_id", "vector"]).to_pylist()}
-    by_track: dict[int, dict[str, list]] = {}
-    for m in sorted(members, key=lambda m: (m["track_id"], m["det_id"])):
-        if m["det_id"] not in vectors:
-            raise RetrievalError(f"clip {clip}: detection {m['det_id']} has no descriptor: rerun its embed stage")
-        by_track.setdefault(m["track_id"], {}).setdefault(labels[m["det_id"]], []).append(vectors[m["det_id"]])
-    ids = sorted(by_track)
-    groups = [TrackGroups(sorted(by_track[t]), np.array([len(by_track[t][l]) for l in sorted(by_track[t])]),
-                          [np.asarray(by_track[t][l], np.float32) for l in sorted(by_track[t])]) for t in ids]
+    """The clip's track ids (automatic and manual, :func:`tasks.clip_tracks.clip_tracks`) and their
+    boxes grouped by label, with raw descriptors."""
+    try:
+        tracks = clip_tracks(wh, clip, vectors=True)
+    except MissingDescriptor as e:
+        raise RetrievalError(str(e)) from None
+    ids, groups = [], []
+    for t, track in tracks.items():
+        by_label: dict[str, list[np.ndarray]] = {}
+        for b in track.boxes:
+            by_label.setdefault(b.label, []).append(b.vector)
+        labels = sorted(by_label)
+        ids.append(t)
+        groups.append(TrackGroups(labels, np.array([len(by_label[l]) for l in labels]),
+                                  [np.asarray(by_label[l], np.float32) for l in labels]))
     return ids, groups
 
 

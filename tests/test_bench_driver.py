@@ -134,6 +134,7 @@ def test_simulated_annotators_answer_through_label_files(benchmark, small_cad_li
         verified = wh.read("verified_poses")
         assert verified.num_rows >= 1 or wh.read("poses").num_rows == 0
     _answer_each_task_kind(folder, wh, manifest.clips[0])
+    _draw_missing_objects(folder, wh, manifest.clips[0])
 
 
 def _answer_each_task_kind(folder, wh, clip):
@@ -179,3 +180,39 @@ def _answer_each_task_kind(folder, wh, clip):
     assert not answer(lambda: verification_stage(wh, VerificationConfig(), clip, "t")).paused
     assert wh.read("verified_poses", [clip]).num_rows >= 1
     assert open_tasks(wh, clip) == []
+
+
+def _draw_missing_objects(folder, wh, clip):
+    """The manual-track task on the clip taken as val, with the longest matched automatic track taken
+    out: the simulated annotator draws that track's object (through a label file), the stage
+    completes, and track_truth maps the new manual track to the object by its boxes."""
+    import pyarrow as pa
+
+    from bench.retrieval_bench import track_truth
+    from bench.simulated_labels import answer_tasks, label_dir
+    from cadestate.config import DetectConfig, EmbedConfig, ManualTracksConfig
+    from schemas.tracking import MANUAL_TRACK_BASE
+    from tasks.label_ingest import ingest_labels
+    from tasks.label_similarity import detector_labels
+    from tasks.manual_tracks import manual_tracks_stage
+
+    members = wh.read("track_detections", [clip]).to_pylist()
+    truth = track_truth(folder, wh, clip)
+    gone = max(truth, key=lambda t: (sum(m["track_id"] == t for m in members), -t))
+    wh.write("track_detections", clip, pa.Table.from_pylist([m for m in members if m["track_id"] != gone],
+                                                            schema=wh.spec("track_detections").schema))
+    cfg = ManualTracksConfig(splits=("train",))
+
+    def stage():
+        return manual_tracks_stage(wh, cfg, EmbedConfig(), detector_labels(DetectConfig()), clip, "t")
+
+    assert stage().paused
+    [path] = answer_tasks(folder, wh, clip)
+    drawn = {a["source_id"]: a for a in json.loads(path.read_text())["answers"]}
+    assert f"gt:{truth[gone]}" in drawn and drawn[f"gt:{truth[gone]}"]["label"] in detector_labels(DetectConfig())
+    assert not set(drawn) & {f"gt:{g}" for t, g in truth.items() if t != gone}  # found objects are not drawn again
+    assert ingest_labels(wh, label_dir(folder, clip)).ok
+    done = stage()
+    assert not done.paused and done.rows_written == sum(len(a["boxes"]) for a in drawn.values())
+    manual = {g for t, g in track_truth(folder, wh, clip).items() if t >= MANUAL_TRACK_BASE}
+    assert truth[gone] in manual

@@ -202,3 +202,35 @@ def test_flow_state_names_the_paused_tasks():
     assert state.is_completed() and state.name == "Paused"
     assert "a cad_selection: waits for labels: 2 of 3 tracks" in state.message
     assert finish([], [StageReport("a", "pose", "completed")], "x").name == "Completed"
+
+
+def test_a_val_clip_waits_for_its_manual_tracks(config, source, tmp_path):
+    """Changing the split reruns ingest (frames rerun and write the same frames) and manual_tracks,
+    which pauses; what follows waits; an empty answer ("nothing missing") resumes the clip."""
+    import json
+
+    from tasks.ingest import registered_source
+    from tasks.label_ingest import ingest_labels
+    from tasks.labels import label_document
+
+    assert states(run_clips([source], config, show_progress=False)) == expect("small", rest="completed")  # train
+    val = dataclasses.replace(source, split="val")
+    reports = run_clips([val], config, show_progress=False)
+    assert states(reports) == expect("small", ingest="completed", frames="completed", manual_tracks="paused",
+                                     retrieval="waiting", cad_selection="waiting", correspondence_task="waiting",
+                                     rest="cached")
+    wh = Warehouse(config.warehouse.root)
+    assert registered_source(wh, "small").split == "val"  # what `cadestate run` reruns
+    status = {r.stage: r for r in pipeline_status(wh, config)}
+    assert status["manual_tracks"].status == "paused" and not status["manual_tracks"].stale_reasons
+    assert "key-frames unanswered in manual_track task" in status["manual_tracks"].message
+    paused = {r.stage: r for r in reports}["manual_tracks"]
+    task = json.loads((wh.root / paused.message.split(" task ", 1)[1].split(";")[0]).read_text())
+    label = tmp_path / "labels" / "none.json"
+    label.parent.mkdir()
+    label.write_text(json.dumps(label_document("manual_track", "small", task["task_id"], [])))
+    assert ingest_labels(wh, label).clips == ["small"]
+    assert {r.stage: r.stale_reasons for r in pipeline_status(wh, config)}["manual_tracks"] == ("inputs changed",)
+    # nothing missing: the same (empty) manual tracks as before, so retrieval's earlier result is reused
+    resumed = run_clips([val], config, show_progress=False)
+    assert states(resumed) == expect("small", manual_tracks="completed", rest="cached")

@@ -57,10 +57,10 @@ def labels_ingest(
     code = 0 if report.ok else 1
     if resume and report.clips:
         from cadestate.cli.common import run_sources
-        from tasks.ingest import ClipSource, clip_inputs
+        from tasks.ingest import registered_source
 
         wh = ctx.obj.open_warehouse()
-        sources = [ClipSource(c, *clip_inputs(wh, c)[:2]) for c in report.clips]
+        sources = [registered_source(wh, c) for c in report.clips]
         code = max(code, run_sources(ctx.obj, sources, progress, exit=False))
     raise typer.Exit(code)
 

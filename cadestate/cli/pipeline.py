@@ -32,6 +32,9 @@ def ingest(
     ctx: typer.Context,
     sources: Annotated[list[Path], typer.Argument(help="VIDEO CAMERAS.txt for one clip, or one or more folders of <name>.mp4 + <name>.txt pairs.")],
     clip: Annotated[Optional[str], typer.Option(help="Clip name (one clip only; default: the video's file name without suffix).")] = None,
+    split: Annotated[str, typer.Option(help="Dataset split of these clips: train, val, test ([manual_tracks] splits, "
+                                            "val and test by default, get the manual-track task). Changing it reruns "
+                                            "what depends on it.")] = "train",
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).
@@ -43,15 +46,16 @@ def ingest(
     Examples:
       cadestate ingest room.mp4 room.txt --clip room_01
       cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
+      cadestate ingest val_clips/ --split val
     """
     from tasks.ingest import ClipSource, discover_clips
 
     if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
-        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1])]
+        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1], split)]
     else:
         if clip:
             raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
-        items = [s for folder in sources for s in discover_clips(folder)]
+        items = [s for folder in sources for s in discover_clips(folder, split)]
     run_sources(ctx.obj, items, progress)
 
 
@@ -61,18 +65,16 @@ def run(
     clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to rerun (default: every ingested clip).")] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
-    """Rerun the pipeline on ingested clips: stages whose config, code and inputs are unchanged are cached (no work)."""
-    from tasks.ingest import ClipSource, clip_inputs
+    """Rerun the pipeline on ingested clips (each keeps its split): stages whose config, code and inputs are
+    unchanged are cached (no work)."""
+    from tasks.ingest import registered_source
 
     wh = ctx.obj.open_warehouse()
     names = clips or wh.partitions("clips")
     if not names:
         err.print("no clip is ingested yet: see `cadestate ingest --help`")
         raise typer.Exit(1)
-    items = []
-    for name in names:
-        video, cameras, _ = clip_inputs(wh, name)
-        items.append(ClipSource(name, video, cameras))
+    items = [registered_source(wh, name) for name in names]
     run_sources(ctx.obj, items, progress)
 
 

@@ -1,0 +1,223 @@
+"""The manual-track human task (paper 3.1): only val/test clips get it; it pauses until a label
+(written by hand or imported from CVAT) answers it; the drawn objects become tracks with the embed
+stage's descriptors, which retrieval and the later human tasks take like automatic ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cadestate.config import CadSelectionConfig, EmbedConfig, ManualTracksConfig, RetrievalConfig
+from schemas.tracking import MANUAL_TRACK_BASE
+from tasks.label_ingest import ingest_labels
+from tasks.manual_tracks import manual_tracks_stage, regular_keyframes
+from tasks.models import nanodet as nd
+from tasks.registry import clip_inputs
+from tasks.stage import run_stage
+from test_human_tasks import _label, _rows, _task
+from warehouse import Warehouse
+
+CLIP = "c1"
+W, H = 320, 192
+STAMPS = [i * 100_000 for i in range(20)]
+LABELS = ("chair", "couch", "dining table")
+needs_embedder = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
+                                    reason="the NanoDet-m model is not built (`make models`, which `make test` runs)")
+
+
+def _clip(wh: Warehouse, split: str) -> None:
+    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "split": split, "width": W, "height": H}]))
+
+
+@pytest.fixture
+def mwh(tmp_path) -> Warehouse:
+    """A val clip of 20 frames (noise images) with 2 automatic tracks: 0 (chair, every frame) and
+    1 (dining table, frames 5-12), no embeddings yet."""
+    from PIL import Image
+
+    wh = Warehouse(tmp_path / "wh")
+    _clip(wh, "val")
+    rng = np.random.default_rng(0)
+    frames = []
+    for i, t in enumerate(STAMPS):
+        path = f"media/frames/{CLIP}/v/{i:04d}.jpg"
+        (wh.root / path).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(rng.integers(0, 255, (H, W, 3), np.uint8)).save(wh.root / path)
+        frames.append({"clip": CLIP, "timestamp_us": t, "frame_index": i, "width": W, "height": H, "image_path": path})
+    wh.write("frames", CLIP, _rows("frames", frames))
+    dets, members = [], []
+    for track, span, label in ((0, range(20), "chair"), (1, range(5, 13), "dining table")):
+        for f in span:
+            dets.append({"clip": CLIP, "det_id": f * 10000 + track, "timestamp_us": STAMPS[f], "frame_index": f,
+                         "box": [0.1 + 0.2 * track, 0.1, 0.4 + 0.2 * track, 0.5], "label": label})
+            members.append({"clip": CLIP, "track_id": track, "det_id": f * 10000 + track, "frame_index": f,
+                            "timestamp_us": STAMPS[f]})
+    wh.write("detections", CLIP, _rows("detections", dets))
+    wh.write("track_detections", CLIP, _rows("track_detections", members))
+    wh.write("tracks", CLIP, _rows("tracks", [{"clip": CLIP, "track_id": 0, "label": "chair"},
+                                              {"clip": CLIP, "track_id": 1, "label": "dining table"}]))
+    return wh
+
+
+def _run(wh: Warehouse, cfg: ManualTracksConfig = ManualTracksConfig()):
+    return run_stage(wh, CLIP, "manual_tracks", config_hash="c", inputs_hash="i", code_hash="k",
+                     body=lambda run_id: manual_tracks_stage(wh, cfg, EmbedConfig(), LABELS, CLIP, run_id))
+
+
+COUCH = [{"timestamp_us": STAMPS[f], "box": [0.5, 0.55, 0.9, 0.95]} for f in (0, 4, 8)]
+
+
+def test_regular_keyframes():
+    assert regular_keyframes(STAMPS, 6) == [0, 4, 8, 11, 15, 19]
+    assert regular_keyframes([0, 10, 20, 1000], 3) == [0, 2, 3]  # nearest to 0, 500, 1000
+    assert regular_keyframes([0, 1, 2, 3, 1000], 4) == [0, 1, 3, 4]  # two targets near 0 share frames: by index
+    assert regular_keyframes(STAMPS[:3], 6) == [0, 1, 2]
+
+
+def test_train_clip_completes_without_a_task(mwh):
+    _clip(mwh, "train")
+    run = _run(mwh)
+    assert run.status == "completed" and run.rows_written == 0
+    assert "split 'train' is not one of [manual_tracks] splits (val, test)" in run.message
+    assert mwh.partitions("manual_tracks") == [CLIP] and mwh.read("label_tasks").num_rows == 0
+    assert _run(mwh, ManualTracksConfig(splits=("train",))).status == "paused"  # the config decides
+
+
+@needs_embedder
+def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
+    from tasks.embed import embed_clip
+    from tasks.human_tasks import cad_selection_stage
+    from tasks.retrieval import retrieve_clip
+
+    first = _run(mwh)
+    assert first.status == "paused" and first.rows_written == 0
+    assert "6 of 6 key-frames unanswered in manual_track task label_tasks/c1/" in first.message
+    task = _task(mwh, first.message)
+    assert task["kind"] == "manual_track" and task["classes"] == list(LABELS)
+    assert [k["frame_index"] for k in task["keyframes"]] == [0, 4, 8, 11, 15, 19]
+    assert task["keyframes"][0]["image_path"] == f"media/frames/{CLIP}/v/0000.jpg"
+    shown = {t["track_id"]: [b["timestamp_us"] for b in t["boxes"]] for t in task["existing_tracks"]}
+    assert shown == {0: [STAMPS[f] for f in (0, 4, 8, 11, 15, 19)], 1: [STAMPS[8], STAMPS[11]]}
+    assert task["existing_tracks"][1]["label"] == "dining table" and task["previous"] == []
+    assert _task(mwh, _run(mwh).message)["task_id"] == task["task_id"]  # unchanged inputs: the same task
+
+    before = clip_inputs("manual_tracks", mwh, CLIP)
+    label = _label(tmp_path / "l", "m.json", "manual_track", task["task_id"],
+                   [{"label": "couch", "boxes": COUCH, "source_id": "hand:1"}], "2026-01-01T00:00:00+00:00")
+    assert ingest_labels(mwh, label).ok
+    assert clip_inputs("manual_tracks", mwh, CLIP) != before  # ingest makes the stage stale
+    done = _run(mwh)
+    assert done.status == "completed" and done.rows_written == 3 and "1 manual tracks (3 boxes)" in done.message
+    rows = mwh.read("manual_tracks", [CLIP]).to_pylist()
+    assert {r["track_id"] for r in rows} == {MANUAL_TRACK_BASE} and [r["frame_index"] for r in rows] == [0, 4, 8]
+    assert {(r["label"], r["source_id"], r["task_id"]) for r in rows} == {("couch", "hand:1", task["task_id"])}
+    assert _run(mwh).output_hash == done.output_hash  # idempotent
+
+    # the drawn box's descriptor is the embed stage's for a detection with the same box
+    det = {"clip": CLIP, "det_id": 4 * 10000 + 9, "timestamp_us": STAMPS[4], "frame_index": 4, "box": COUCH[1]["box"],
+           "label": "couch"}
+    mwh.write("detections", CLIP, _rows("detections", mwh.read("detections", [CLIP]).to_pylist() + [det]))
+    embed_clip(mwh, EmbedConfig(), CLIP, "e", show_progress=False)
+    vectors = {e["owner_id"]: e["vector"] for e in mwh.read("embeddings", [CLIP]).to_pylist()}
+    np.testing.assert_allclose(rows[1]["vector"], vectors[det["det_id"]], atol=1e-5)
+    assert rows[1]["model_sha256"] == mwh.read("embeddings", [CLIP]).column("model_sha256")[0].as_py()
+
+    # retrieval ranks the manual track (the couch is a sofa), and CAD selection shows it with its boxes
+    _library(mwh)
+    retrieve_clip(mwh, RetrievalConfig(top_k=2), CLIP, "r")
+    ranked = [r["cad_id"] for r in mwh.read("cad_candidates", [CLIP]).to_pylist() if r["track_id"] == MANUAL_TRACK_BASE]
+    assert ranked == ["lib.sofa", "lib.chair"]
+    selection = _task(mwh, _run_cad_selection(mwh, cad_selection_stage).message)
+    [item] = [it for it in selection["items"] if it["track_id"] == MANUAL_TRACK_BASE]
+    assert item["label"] == "couch" and [k["box"] for k in item["keyframes"]] == [c["box"] for c in COUCH]
+
+
+def _run_cad_selection(wh, stage):
+    return run_stage(wh, CLIP, "cad_selection", config_hash="c", inputs_hash="i", code_hash="k",
+                     body=lambda run_id: stage(wh, CadSelectionConfig(), CLIP, run_id))
+
+
+def _library(wh: Warehouse) -> None:
+    """A 3-model library (no whitening) whose label similarities make a couch a sofa."""
+    import pyarrow as pa
+
+    from tasks.whitening import fit_whitening, whitening_table
+
+    def write(name, rows):
+        wh.write(name, "lib", pa.Table.from_pylist(rows, schema=wh.spec(name).schema))
+
+    rng = np.random.default_rng(1)
+    looks = rng.normal(size=(3, 768))
+    looks /= np.linalg.norm(looks, axis=1, keepdims=True)
+    write("embedding_whitening", whitening_table("lib", fit_whitening(looks, "none", 768), 3).to_pylist())
+    write("cad_model_embeddings", [{"library": "lib", "cad_id": f"lib.{c}", "class": c, "vector": v.tolist(), "views": 1}
+                                   for c, v in zip(("chair", "sofa", "table"), looks)])
+    sim = {("chair", "chair"): 1.0, ("chair", "sofa"): 0.5, ("chair", "table"): 0.4, ("couch", "chair"): 0.3,
+           ("couch", "sofa"): 0.9, ("couch", "table"): 0.2, ("dining table", "chair"): 0.4,
+           ("dining table", "sofa"): 0.2, ("dining table", "table"): 0.9}
+    write("label_similarity", [{"library": "lib", "detector_label": d, "cad_class": c, "similarity": s, "encoder": "test"}
+                               for (d, c), s in sim.items()])
+
+
+@needs_embedder
+def test_empty_answer_completes_and_a_newer_label_supersedes(mwh, tmp_path):
+    task = _task(mwh, _run(mwh).message)
+    ingest_labels(mwh, _label(tmp_path / "a", "a.json", "manual_track", task["task_id"],
+                              [{"label": "couch", "boxes": COUCH}, {"label": "chair", "boxes": COUCH[:1]}],
+                              "2026-01-01T00:00:00+00:00"))
+    two = _run(mwh)
+    assert two.status == "completed" and sorted(set(mwh.read("manual_tracks", [CLIP]).column("track_id").to_pylist())) == [
+        MANUAL_TRACK_BASE, MANUAL_TRACK_BASE + 1]
+    before = clip_inputs("manual_tracks", mwh, CLIP)
+    ingest_labels(mwh, _label(tmp_path / "b", "b.json", "manual_track", task["task_id"], [], "2026-01-02T00:00:00+00:00"))
+    assert clip_inputs("manual_tracks", mwh, CLIP) != before
+    none = _run(mwh)
+    assert none.status == "completed" and none.rows_written == 0 and "nothing missing" in none.message
+    assert mwh.read("manual_tracks", [CLIP]).num_rows == 0 and none.output_hash != two.output_hash
+
+
+def test_an_empty_answer_alone_completes(mwh, tmp_path):
+    task = _task(mwh, _run(mwh).message)
+    ingest_labels(mwh, _label(tmp_path / "a", "a.json", "manual_track", task["task_id"], [], "2026-01-01T00:00:00+00:00"))
+    done = _run(mwh)
+    assert done.status == "completed" and done.rows_written == 0  # no embedder needed for nothing
+
+
+def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
+    task = _task(mwh, _run(mwh).message)
+    ingest_labels(mwh, _label(tmp_path / "a", "a.json", "manual_track", task["task_id"],
+                              [{"label": "couch", "boxes": COUCH, "source_id": "s"}], "2026-01-01T00:00:00+00:00"))
+    members = [m for m in mwh.read("track_detections", [CLIP]).to_pylist() if m["track_id"] == 0]
+    mwh.write("track_detections", CLIP, _rows("track_detections", members))  # tracking changed: track 1 is gone
+    again = _run(mwh)
+    new = _task(mwh, again.message)
+    assert again.status == "paused" and new["task_id"] != task["task_id"]
+    assert [t["track_id"] for t in new["existing_tracks"]] == [0]
+    assert new["previous"] == [{"label": "couch", "boxes": COUCH, "source_id": "s"}]
+    assert mwh.read("manual_tracks", [CLIP]).num_rows == 0  # the old answer does not answer the new task
+
+
+@needs_embedder
+def test_a_cvat_import_answers_the_task(mwh, tmp_path):
+    from tasks.label_import import import_cvat, write_label
+
+    task = _task(mwh, _run(mwh).message)
+    xml = tmp_path / "annotations.xml"
+    xml.write_text(f"""<?xml version="1.0" encoding="utf-8"?>
+<annotations><version>1.1</version>
+ <meta><task><original_size><width>{W}</width><height>{H}</height></original_size></task></meta>
+ <track id="3" label="couch" source="manual">
+  <box frame="4" xtl="32" ytl="19.2" xbr="160" ybr="96" outside="0" occluded="0" keyframe="1"/>
+  <box frame="6" xtl="40" ytl="19.2" xbr="168" ybr="96" outside="0" occluded="0" keyframe="0"/>
+  <box frame="8" xtl="48" ytl="19.2" xbr="176" ybr="96" outside="0" occluded="0" keyframe="1"/>
+  <box frame="9" xtl="48" ytl="19.2" xbr="176" ybr="96" outside="1" occluded="0" keyframe="1"/>
+ </track>
+</annotations>""")
+    result = import_cvat(mwh, xml, CLIP)
+    assert result.document["task_id"] == task["task_id"]  # the clip's newest manual-track task
+    assert ingest_labels(mwh, write_label(result.document, tmp_path / "labels", "cvat")).ok
+    done = _run(mwh)
+    rows = mwh.read("manual_tracks", [CLIP]).to_pylist()
+    assert done.status == "completed" and [r["frame_index"] for r in rows] == [4, 8]
+    assert rows[0]["source_id"] == "cvat:3" and rows[0]["box"] == pytest.approx([0.1, 0.1, 0.5, 0.5])
+    assert np.linalg.norm(rows[0]["vector"]) == pytest.approx(1.0, abs=1e-5)
