@@ -257,7 +257,7 @@ def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: C
         for clip, paths in written.items():
             if not paths:
                 continue
-            report = ingest_labels(wh, label_dir(bench_dir, clip))
+            report = ingest_labels(wh, paths)  # only this round's: the folder may hold another warehouse's
             if report.errors:
                 raise LabelError("; ".join(report.errors))
             resumed += report.clips

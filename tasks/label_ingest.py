@@ -25,6 +25,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,9 +61,11 @@ class IngestReport:
         return not self.errors
 
 
-def label_paths(source: str | Path) -> list[Path]:
-    """The label files of ``source``: the file itself, or every ``*.json`` below the folder
-    (hidden files and folders skipped), sorted."""
+def label_paths(source: str | Path | Sequence[str | Path]) -> list[Path]:
+    """The label files of ``source``: the file itself, every ``*.json`` below the folder (hidden
+    files and folders skipped), or the files of a list; sorted."""
+    if isinstance(source, (list, tuple)):
+        return sorted(p for item in source for p in label_paths(item))
     source = Path(source)
     if source.is_file():
         return [source]
@@ -157,9 +160,9 @@ def _ingest_times(wh: Warehouse, n: int, now: dt.datetime | None) -> list[dt.dat
     return [start + dt.timedelta(microseconds=i) for i in range(n)]
 
 
-def ingest_labels(wh: Warehouse, source: str | Path, *, coplanar_tol: float = DEFAULT_COPLANAR_TOL,
+def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, coplanar_tol: float = DEFAULT_COPLANAR_TOL,
                   now: dt.datetime | None = None) -> IngestReport:
-    """Validate and ingest the label files of ``source`` (a folder or one file); see the module doc."""
+    """Validate and ingest the label files of ``source`` (a folder, one file or a list of them); see the module doc."""
     report = IngestReport()
     known = set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
     facts = ClipFacts(wh)

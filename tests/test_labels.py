@@ -22,6 +22,7 @@ from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionT
 from tasks.label_import import import_cvat, import_labelstudio, write_label
 from tasks.label_ingest import answers_digest, current_answers, ingest_labels, label_history
 from tasks.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
+from conftest import table_rows
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -32,20 +33,6 @@ CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5
 TOP = [[-0.4, 0.5, -0.3], [0.4, 0.5, -0.3], [0.4, 0.5, 0.3], [-0.4, 0.5, 0.3]]  # y = 0.5: co-planar, normal +Y
 
 
-def _dummy(field: pa.Field):
-    t = field.type
-    if pa.types.is_fixed_size_list(t):
-        return [0.0] * t.list_size
-    if pa.types.is_timestamp(t):
-        return dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
-    if pa.types.is_string(t):
-        return "x"
-    return 1
-
-
-def _rows(table: str, rows: list[dict]) -> pa.Table:
-    schema = TABLES[table].schema
-    return pa.Table.from_pylist([{f.name: r.get(f.name, _dummy(f)) for f in schema} for r in rows], schema=schema)
 
 
 def _kf(ts: int, box=(0.2, 0.2, 0.6, 0.6)) -> KeyframeView:
@@ -78,8 +65,8 @@ def _tasks() -> list:
 @pytest.fixture(scope="module")
 def base_wh(tmp_path_factory) -> Path:
     wh = Warehouse(tmp_path_factory.mktemp("labels") / "wh")
-    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
-    wh.write("frames", CLIP, _rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "video_time_us": t + 1000,
+    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    wh.write("frames", CLIP, table_rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "video_time_us": t + 1000,
                                                "width": W, "height": H} for i, t in enumerate(STAMPS)]))
     for task in _tasks():
         write_task(wh, task)
@@ -281,6 +268,13 @@ def test_fuzzed_labels_raise_label_error_naming_the_file(lwh, tmp_path, kind):
 
 
 # ------------------------------------------------------------------------------ ingest
+
+def test_ingest_a_list_of_files_reads_only_those(lwh, tmp_path):
+    d = tmp_path / "labels"
+    chosen = [put(d, "sel.json", good("cad_selection")), put(d, "mt.json", good("manual_track"))]
+    put(d, "bad.json", "not json")  # in the folder, not in the list
+    report = ingest_labels(lwh, chosen)
+    assert report.ok and sorted(report.ingested) == sorted(map(str, chosen))
 
 def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
     d = tmp_path / "labels"
