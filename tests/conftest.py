@@ -74,3 +74,33 @@ def small_cad_library(tmp_path_factory):
     wh = Warehouse(tmp_path_factory.mktemp("small_cad_wh"))
     ingest_library(wh, CadIngestConfig(samples=512, workers=1), "sh3d-small", pick, "r", show_progress=False)
     return wh, wh.read("cad_models").to_pylist()
+
+
+def _filler(field):
+    """A placeholder value of ``field``'s type, for columns a test does not care about."""
+    import datetime as dt
+
+    import pyarrow as pa
+
+    t = field.type
+    if pa.types.is_fixed_size_list(t):
+        return [0.0] * t.list_size
+    if pa.types.is_timestamp(t):
+        return dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    if pa.types.is_string(t):
+        return "x"
+    if pa.types.is_boolean(t):
+        return False
+    if pa.types.is_list(t):
+        return []
+    return 1
+
+
+def table_rows(table: str, rows: list[dict]):
+    """``rows`` as a pyarrow table of the warehouse table ``table``, unset columns filled in."""
+    import pyarrow as pa
+
+    from schemas import TABLES
+
+    schema = TABLES[table].schema
+    return pa.Table.from_pylist([{f.name: r.get(f.name, _filler(f)) for f in schema} for r in rows], schema=schema)

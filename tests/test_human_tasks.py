@@ -17,6 +17,7 @@ from tasks.label_ingest import ingest_labels
 from tasks.labels import label_document
 from tasks.registry import clip_inputs
 from tasks.stage import StageOutput, run_stage, waiting_run
+from conftest import table_rows
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -25,34 +26,14 @@ STAMPS = [i * 100_000 for i in range(20)]
 CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
 
 
-def _dummy(field: pa.Field):
-    import datetime as dt
-
-    t = field.type
-    if pa.types.is_fixed_size_list(t):
-        return [0.0] * t.list_size
-    if pa.types.is_timestamp(t):
-        return dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
-    if pa.types.is_string(t):
-        return "x"
-    if pa.types.is_boolean(t):
-        return False
-    if pa.types.is_list(t):
-        return []
-    return 1
-
-
-def _rows(table: str, rows: list[dict]) -> pa.Table:
-    schema = TABLES[table].schema
-    return pa.Table.from_pylist([{f.name: r.get(f.name, _dummy(f)) for f in schema} for r in rows], schema=schema)
 
 
 @pytest.fixture
 def hwh(tmp_path) -> Warehouse:
     """A clip of 20 frames with 3 tracks (0, 1 chairs; 2 a table) and 2 CAD candidates each."""
     wh = Warehouse(tmp_path / "wh")
-    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
-    wh.write("frames", CLIP, _rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "width": W, "height": H,
+    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    wh.write("frames", CLIP, table_rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "width": W, "height": H,
                                                "image_path": f"media/frames/{CLIP}/v/{i:04d}.jpg"} for i, t in enumerate(STAMPS)]))
     dets, tds = [], []
     for track, frames in ((0, range(0, 20)), (1, range(5, 15)), (2, range(10, 13))):
@@ -61,19 +42,19 @@ def hwh(tmp_path) -> Warehouse:
             dets.append({"clip": CLIP, "det_id": det_id, "timestamp_us": STAMPS[f], "frame_index": f,
                          "box": [0.1 + 0.01 * track, 0.1, 0.5, 0.5], "label": "chair" if track < 2 else "dining table"})
             tds.append({"clip": CLIP, "track_id": track, "det_id": det_id, "frame_index": f, "timestamp_us": STAMPS[f]})
-    wh.write("detections", CLIP, _rows("detections", dets))
-    wh.write("track_detections", CLIP, _rows("track_detections", tds))
-    wh.write("tracks", CLIP, _rows("tracks", [{"clip": CLIP, "track_id": t, "label": "chair" if t < 2 else "dining table"}
+    wh.write("detections", CLIP, table_rows("detections", dets))
+    wh.write("track_detections", CLIP, table_rows("track_detections", tds))
+    wh.write("tracks", CLIP, table_rows("tracks", [{"clip": CLIP, "track_id": t, "label": "chair" if t < 2 else "dining table"}
                                               for t in range(3)]))
     models = ["lib.chair_a", "lib.chair_b", "lib.table_a", "lib.table_b"]
-    wh.write("cad_models", "lib", _rows("cad_models", [{"library": "lib", "cad_id": m, "class": m.split(".")[1][:-2],
+    wh.write("cad_models", "lib", table_rows("cad_models", [{"library": "lib", "cad_id": m, "class": m.split(".")[1][:-2],
                                                          "symmetry": 1, "mesh_path": f"media/cad/lib/{m}.glb"} for m in models]))
-    wh.write("cad_views", "lib", _rows("cad_views", [{"library": "lib", "cad_id": m, "view": v,
+    wh.write("cad_views", "lib", table_rows("cad_views", [{"library": "lib", "cad_id": m, "view": v,
                                                        "image_path": f"media/cad_views/lib/{m}/{v}.png"}
                                                       for m in models for v in range(2)]))
     cands = [{"clip": CLIP, "track_id": t, "rank": r + 1, "library": "lib", "cad_id": m, "cad_class": m.split(".")[1][:-2],
               "score": 0.9 - 0.1 * r} for t in range(3) for r, m in enumerate(models[:2] if t < 2 else models[2:])]
-    wh.write("cad_candidates", CLIP, _rows("cad_candidates", cands))
+    wh.write("cad_candidates", CLIP, table_rows("cad_candidates", cands))
     return wh
 
 
@@ -185,7 +166,7 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     hwh.write("frames", CLIP, pa.Table.from_pylist(frames, schema=TABLES["frames"].schema))
     pose = {"clip": CLIP, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair", "status": "ok", "translation": [0.0, 0, 4],
             "rotation": [1.0, 0, 0, 0], "scale": [1.0, 1, 1], "is_mirrored": False, "keyframe_timestamps_us": STAMPS[:8]}
-    hwh.write("poses", CLIP, _rows("poses", [pose, {**pose, "track_id": "1", "status": "high_residual"}]))
+    hwh.write("poses", CLIP, table_rows("poses", [pose, {**pose, "track_id": "1", "status": "high_residual"}]))
     cfg = VerificationConfig(keyframes=3)
     first = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
     assert first.status == "paused" and "1 of 1 poses unanswered in verification task" in first.message

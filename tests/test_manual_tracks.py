@@ -14,7 +14,8 @@ from tasks.manual_tracks import manual_tracks_stage, regular_keyframes
 from tasks.models import nanodet as nd
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
-from test_human_tasks import _label, _rows, _task
+from conftest import table_rows
+from test_human_tasks import _label, _task
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -26,7 +27,7 @@ needs_embedder = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
 
 
 def _clip(wh: Warehouse, split: str) -> None:
-    wh.write("clips", CLIP, _rows("clips", [{"clip": CLIP, "split": split, "width": W, "height": H}]))
+    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "split": split, "width": W, "height": H}]))
 
 
 @pytest.fixture
@@ -44,7 +45,7 @@ def mwh(tmp_path) -> Warehouse:
         (wh.root / path).parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rng.integers(0, 255, (H, W, 3), np.uint8)).save(wh.root / path)
         frames.append({"clip": CLIP, "timestamp_us": t, "frame_index": i, "width": W, "height": H, "image_path": path})
-    wh.write("frames", CLIP, _rows("frames", frames))
+    wh.write("frames", CLIP, table_rows("frames", frames))
     dets, members = [], []
     for track, span, label in ((0, range(20), "chair"), (1, range(5, 13), "dining table")):
         for f in span:
@@ -52,9 +53,9 @@ def mwh(tmp_path) -> Warehouse:
                          "box": [0.1 + 0.2 * track, 0.1, 0.4 + 0.2 * track, 0.5], "label": label})
             members.append({"clip": CLIP, "track_id": track, "det_id": f * 10000 + track, "frame_index": f,
                             "timestamp_us": STAMPS[f]})
-    wh.write("detections", CLIP, _rows("detections", dets))
-    wh.write("track_detections", CLIP, _rows("track_detections", members))
-    wh.write("tracks", CLIP, _rows("tracks", [{"clip": CLIP, "track_id": 0, "label": "chair"},
+    wh.write("detections", CLIP, table_rows("detections", dets))
+    wh.write("track_detections", CLIP, table_rows("track_detections", members))
+    wh.write("tracks", CLIP, table_rows("tracks", [{"clip": CLIP, "track_id": 0, "label": "chair"},
                                               {"clip": CLIP, "track_id": 1, "label": "dining table"}]))
     return wh
 
@@ -116,7 +117,7 @@ def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
     # the drawn box's descriptor is the embed stage's for a detection with the same box
     det = {"clip": CLIP, "det_id": 4 * 10000 + 9, "timestamp_us": STAMPS[4], "frame_index": 4, "box": COUCH[1]["box"],
            "label": "couch"}
-    mwh.write("detections", CLIP, _rows("detections", mwh.read("detections", [CLIP]).to_pylist() + [det]))
+    mwh.write("detections", CLIP, table_rows("detections", mwh.read("detections", [CLIP]).to_pylist() + [det]))
     embed_clip(mwh, EmbedConfig(), CLIP, "e", show_progress=False)
     vectors = {e["owner_id"]: e["vector"] for e in mwh.read("embeddings", [CLIP]).to_pylist()}
     np.testing.assert_allclose(rows[1]["vector"], vectors[det["det_id"]], atol=1e-5)
@@ -188,7 +189,7 @@ def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
     ingest_labels(mwh, _label(tmp_path / "a", "a.json", "manual_track", task["task_id"],
                               [{"label": "couch", "boxes": COUCH, "source_id": "s"}], "2026-01-01T00:00:00+00:00"))
     members = [m for m in mwh.read("track_detections", [CLIP]).to_pylist() if m["track_id"] == 0]
-    mwh.write("track_detections", CLIP, _rows("track_detections", members))  # tracking changed: track 1 is gone
+    mwh.write("track_detections", CLIP, table_rows("track_detections", members))  # tracking changed: track 1 is gone
     again = _run(mwh)
     new = _task(mwh, again.message)
     assert again.status == "paused" and new["task_id"] != task["task_id"]
