@@ -17,12 +17,12 @@ from tasks.cad_classes import BY_NAME, CLASSES, classify
 from tasks.cad_export import ExportError, export_official, triangle_soup
 from tasks.cad_ingest import ingest_library
 from tasks.cad_sources import (
-    CadSourceError, folder_items, guess_kind, items_digest, load_item, read_java_properties, shapenet_items,
+    CadSourceError, default_source, folder_items, guess_kind, items_digest, load_item, read_java_properties, shapenet_items,
     sweethome3d_items,
 )
 from tasks.cad_views import render_library, view_camera, viewpoints
 
-SH3D = Path(os.environ.get("CADESTATE_SH3D_DIR", "/nonexistent"))
+SH3D = default_source()
 needs_sh3d = pytest.mark.skipif(not SH3D.is_dir(), reason="Sweet Home 3D library not fetched (make cad-library)")
 
 
