@@ -17,8 +17,9 @@ Objective per object (all key-frames together)::
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
     L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
-    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support-plane
-              prior of :mod:`tasks.pose_floor`; bottom: lowest world-Y of the posed CAD bbox)
+    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support
+              prior of :mod:`tasks.pose_support`; bottom: lowest world-Y of the posed CAD bbox;
+              floor_height: the support's height, the floor or a host's top)
 
 Special parameterisations (each can be switched off for the ablation):
 
@@ -71,10 +72,13 @@ class ObjectCorrespondences:
         upright: the class stands upright (the up-axis term applies).
         extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
             None when unknown (then no floor term can apply).
-        on_floor: the class usually rests on the floor ([pose] floor_classes).
-        floor_height: the clip's floor height on world +Y (the support-plane prior, see
-            :mod:`tasks.pose_floor`); floor_weight: weight of the floor term, px per world unit
-            (0: none).
+        on_floor: the class usually rests on the floor ([pose] floor_classes): it helps estimate
+            its clip's floor, and gets the support prior.
+        rests: the class rests on a support, the floor or another object's top (upright classes
+            but [pose] wall_classes): it gets the support prior (:mod:`tasks.pose_support`).
+        floor_height: the height on world +Y of the support the object rests on (the floor or a
+            host's top, see :mod:`tasks.pose_support`); floor_weight: weight of the support term,
+            px per world unit (0: none).
     """
 
     xy: np.ndarray
@@ -88,6 +92,7 @@ class ObjectCorrespondences:
     upright: bool = True
     extent: np.ndarray | None = None
     on_floor: bool = False
+    rests: bool = False
     floor_height: float = 0.0
     floor_weight: float = 0.0
 
@@ -124,14 +129,17 @@ class SolverOptions:
     """0: the paper's L1 reprojection loss; > 0: Huber loss with this threshold (px): quadratic
     within it (the efficient estimator for Gaussian click error), L1 beyond (robust to bad clicks)."""
     floor_prior: float = 30.0
-    """Weight of the support-plane (floor) term of :mod:`tasks.pose_floor`, px per object height of
-    distance between the object's bottom and its clip's floor; 0 disables the prior."""
+    """Weight of the support term of :mod:`tasks.pose_support`, px per object height of distance
+    between the object's bottom and its support (its clip's floor or a host's top); 0 disables the prior."""
     floor_max_gap: float = 0.5
-    """Objects whose own bottom is farther than this many object heights from the floor keep their
-    own pose (they stand on something else)."""
+    """Objects whose own bottom is farther than this many object heights from every support keep
+    their own pose (they stand on something unseen, or hang)."""
     floor_max_growth: float = 0.5
-    """A pose re-solved with the floor term is kept only if its reprojection loss grew by at most
-    this fraction of the loss without it (else the data contradict the floor)."""
+    """A pose re-solved with the support term is kept only if its reprojection loss grew by at most
+    this fraction of the loss without it (else the data contradict the support)."""
+    host_supports: bool = True
+    """Besides the floor, the tops of other solved objects are supports (:mod:`tasks.pose_support`);
+    False: the floor only."""
 
 
 @dataclass
@@ -142,10 +150,12 @@ class PoseResult:
     object-to-world = T · R · S · diag(-1, 1, 1)[mirrored] (:func:`cadestate.render.object_to_world`).
     ``keyframe_error_px`` float[F]: mean Euclidean reprojection error per key-frame (px).
     ``status``: ok | invalid_input | too_few_points | single_keyframe | collinear_points |
-    behind_camera | high_residual | low_parallax. ``loss_floor``: the final floor term (px; 0
-    without it); ``floor_prior``: how the support-plane prior treated the object (none | no_floor |
-    off_floor | rejected | used, see :mod:`tasks.pose_floor`), ``floor_height`` the clip's floor
-    height on world +Y (NaN: none).
+    behind_camera | high_residual | low_parallax. ``loss_floor``: the final support term (px; 0
+    without it); ``floor_prior``: how the support prior treated the object (none | no_floor |
+    off_floor | rejected | used | host, see :mod:`tasks.pose_support`), ``floor_height`` the clip's
+    floor height on world +Y (NaN: none); ``support`` the index, among the objects solved
+    together, of the host whose top it was pulled to (or tried: rejected) (-1: the floor or none);
+    ``support_height`` that height on world +Y (NaN: none).
     """
 
     status: str
@@ -165,6 +175,8 @@ class PoseResult:
     loss_floor: float = float("nan")
     floor_prior: str = "none"
     floor_height: float = float("nan")
+    support: int = -1
+    support_height: float = float("nan")
 
 
 def rotation_6d(a: torch.Tensor) -> torch.Tensor:
