@@ -28,7 +28,8 @@ Procedure (:func:`solve_with_support`), per group of objects (a clip):
    that can hold it (:func:`can_hold`: status ``ok``, upright, and the object's bottom centre,
    slid along its viewing ray to that top's height, lies over the host's footprint: its centre
    of mass is above the top face, the static condition for resting on it). The object takes the
-   nearest candidate (by height) within ``floor_max_gap`` object heights of its own bottom;
+   nearest candidate (by height) within ``floor_max_gap`` object heights of its own bottom, or the
+   floor when its bottom lies below it (nothing of a room is below its floor: :func:`nearest_support`);
 4. pass 1: objects whose support is the floor are solved again (all groups in one batch, from the
    same starts) with the term ``floor_prior / height · |bottom - support|`` (px per object height,
    L1: robust); with ``host_supports`` off, the floor is the only candidate (no pass 2);
@@ -152,13 +153,15 @@ def nearest_support(i: int, floor: float, hosts: list[int], objects: list[Object
                     results: list[PoseResult], pose_i: PoseResult, bottom_i: float, height_i: float,
                     tops: np.ndarray, max_gap: float) -> tuple[int, float] | None:
     """(support, height): the nearest (by height) of the floor (:data:`FLOOR`) and the ``hosts``
-    that can hold object ``i`` (:func:`can_hold`; ``tops`` float[N] every object's top), within
+    that can hold object ``i`` (:func:`can_hold`; ``tops`` float[N] every object's top) within
     ``max_gap`` · ``height_i`` of its bottom; ties go to the floor, then the lower index. None: no
-    support within the gap."""
+    support within the gap. The gap bounds how far *above* the floor a bottom may be (it may stand
+    on something unseen), not below: nothing of a room lies below its floor, so a bottom sunk into
+    it takes the floor at any depth (the reprojection test of :func:`resolve` still applies)."""
     cands = [(FLOOR, floor)] + [(j, float(tops[j])) for j in hosts
                                 if can_hold(j, i, objects, results, pose_i, bottom_i, tops[j])]
-    best = min(cands, key=lambda c: (abs(bottom_i - c[1]), c[0]))
-    return best if abs(bottom_i - best[1]) <= max_gap * height_i else None
+    within = [c for c in cands if abs(bottom_i - c[1]) <= max_gap * height_i or (c[0] == FLOOR and bottom_i < c[1])]
+    return min(within, key=lambda c: (abs(bottom_i - c[1]), c[0])) if within else None
 
 
 def resolve(objects: list[ObjectCorrespondences], before: list[PoseResult], todo: list[tuple[int, int, float]],

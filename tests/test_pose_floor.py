@@ -252,6 +252,9 @@ def test_nearest_support_prefers_the_nearer_height_and_respects_the_gap():
     assert pick(0.5, [0, 1, 2, 3, 4]) == (3, pytest.approx(tops[3]))
     assert pick(0.5, [0, 1, 2]) is None  # the floor is 0.75 m (about two heights) below
     assert pick(10.0, [0, 1, 2]) == (FLOOR, 0.0)
+    # Below the floor any distance is within reach (nothing of a room is below its floor); above, the gap applies.
+    below = lambda bottom: nearest_support(4, 0.0, [], objects, first, first[4], bottom, 0.4, tops, 0.5)  # noqa: E731
+    assert below(-1.0) == (FLOOR, 0.0) and below(0.19) == (FLOOR, 0.0) and below(0.21) is None
 
 
 def test_support_prior_is_deterministic():
