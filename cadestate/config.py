@@ -165,7 +165,7 @@ class PoseConfig:
     coplanar_tol: float = _opt(0.02, "Co-planar (collinear) when the smallest (middle) singular value of the centred 3D points is below this fraction of the largest.", lo=0.0, hi=1.0)
     min_points: int = _opt(6, "Fewest correspondences per track to solve it.", lo=5, hi=10_000)
     max_reprojection_px: float = _opt(20.0, "Mean reprojection error (px) above which a pose gets status high_residual.", lo=0.0)
-    min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax.", lo=0.0, hi=180.0)
+    min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)
     threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
     huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
     floor_prior: float = _opt(30.0, "Support prior (tasks/pose_support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (weighted median of the bottoms of its solved floor objects) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)

@@ -37,7 +37,7 @@ Procedure (:func:`solve_with_support`), per group of objects (a clip):
    put on the floor (a host's top is only as good as its own depth, so only floor-supported hosts
    count), with their pass-1 poses, and are solved again the same way (one more batch);
 6. a re-solved pose is kept only if its reprojection loss grew by at most ``floor_max_growth``
-   times the loss without the prior: an object that hangs on a wall or stands on something
+   times the loss without the prior (at least that of a 1 px click error, :func:`allowed_loss`): an object that hangs on a wall or stands on something
    unseen is not dragged onto a support the clicks contradict.
 
 ``PoseResult.floor_prior`` records the outcome per object: ``none`` (prior off, a class that does
@@ -45,8 +45,12 @@ not rest, unknown bounding box or no pose), ``no_floor`` (its clip has no floor 
 ``off_floor`` (no support within the gap: own pose kept), ``rejected`` (the re-solve grew the
 reprojection loss too much: own pose kept), ``used`` (solved on the floor) or ``host`` (solved on
 the top of object ``PoseResult.support``); ``support_height`` is the height it was pulled to (or
-tried). The solve's ``low_parallax`` status is kept as it is: it reports the geometry of the
-clicks, and a pose that rests on its support is not checked by them along the viewing ray.
+tried). Status: a pose kept on its support whose key-frames see it under too little parallax
+(``low_parallax``) becomes ``ok`` when the support observes its depth instead: the ray from the
+cameras to its bottom is inclined by at least ``min_parallax_deg`` (:func:`supported_status`), so
+sliding it along the ray would move it off the support. The depth then rests on the support
+height (the floor's median, or the host's re-solved top), not on the clicks' parallax; the message
+says so.
 """
 
 from __future__ import annotations
@@ -58,7 +62,7 @@ import torch
 
 from cadestate.geometry import quaternion_to_matrix
 from tasks.pose_batch import DTYPE
-from tasks.pose_lm import support_bottom
+from tasks.pose_lm import robust, support_bottom
 from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions, solve_poses
 
 MIN_FLOOR_OBJECTS = 2
@@ -164,6 +168,20 @@ def nearest_support(i: int, floor: float, hosts: list[int], objects: list[Object
     return min(within, key=lambda c: (abs(bottom_i - c[1]), c[0])) if within else None
 
 
+CLICK_PX = 1.0
+"""Precision of a human click (px): a reprojection loss below that of clicks this far off (in x and
+y) is no measure of how well a pose fits, so the reprojection test of :func:`resolve` grants at
+least ``floor_max_growth`` times that loss (noise-free clicks would otherwise reject any change)."""
+
+
+def allowed_loss(before: float, opts: SolverOptions) -> float:
+    """The largest reprojection loss (the solver's robust loss per point) a pose re-solved on its
+    support may have, given its loss ``before`` without the support: before + floor_max_growth ·
+    max(before, the loss of a click off by :data:`CLICK_PX` in x and y)."""
+    click = 2 * float(robust(torch.tensor(CLICK_PX, dtype=DTYPE), opts.huber_px))
+    return before + opts.floor_max_growth * max(before, click)
+
+
 def resolve(objects: list[ObjectCorrespondences], before: list[PoseResult], todo: list[tuple[int, int, float]],
             heights: np.ndarray, opts: SolverOptions) -> dict[int, PoseResult]:
     """Solve the objects ``todo`` [(index, support, support height)] again, in one batch, with the
@@ -174,11 +192,32 @@ def resolve(objects: list[ObjectCorrespondences], before: list[PoseResult], todo
                          for i, _, y in todo], opts)
     out = {}
     for (i, s, y), r in zip(todo, again):
-        kept = (r.translation is not None
-                and r.loss_reprojection <= before[i].loss_reprojection * (1 + opts.floor_max_growth))
+        kept = r.translation is not None and r.loss_reprojection <= allowed_loss(before[i].loss_reprojection, opts)
         outcome = ("used" if s == FLOOR else "host") if kept else "rejected"
-        out[i] = dataclasses.replace(r if kept else before[i], floor_prior=outcome, support=s, support_height=y)
+        r = supported_status(objects[i], r, y, opts.min_parallax_deg) if kept else before[i]
+        out[i] = dataclasses.replace(r, floor_prior=outcome, support=s, support_height=y)
     return out
+
+
+def support_angle(o: ObjectCorrespondences, r: PoseResult, y: float) -> float:
+    """The elevation (degrees) of the ray from the object's cameras' mean centre to its bottom
+    centre resting at height ``y``: the angle under which the support observes its depth (sliding
+    it along the ray by dd moves its bottom by dd · sin(angle))."""
+    c, T = camera_centre(o), np.asarray(r.translation, np.float64)
+    return float(np.degrees(np.arctan2(abs(c[1] - y), np.hypot(T[0] - c[0], T[2] - c[2]))))
+
+
+def supported_status(o: ObjectCorrespondences, r: PoseResult, y: float, min_parallax_deg: float) -> PoseResult:
+    """``r`` re-solved resting at height ``y``, its status ``low_parallax`` lifted to ``ok`` when the
+    support observes its depth (:func:`support_angle` at least ``min_parallax_deg``): its key-frames
+    alone could not tell the depth, the support height does."""
+    if r.status != "low_parallax":
+        return r
+    angle = support_angle(o, r, y)
+    if angle < min_parallax_deg:
+        return r
+    return dataclasses.replace(r, status="ok", message=f"depth fixed by its support, its bottom seen {angle:.1f} deg "
+                                                         f"below/above the cameras ({r.message})")
 
 
 def solve_with_support(objects: list[ObjectCorrespondences], groups: list[str],

@@ -11,8 +11,8 @@ import torch
 from cadestate.geometry import look_at, matrix_to_quaternion
 from cadestate.render import object_to_world
 from tasks.cad_symmetry import rotation_y
-from tasks.pose_support import (FLOOR, bottoms, estimate_floors, nearest_support, over_footprint, slid_centre,
-                                solve_with_support, weighted_median)
+from tasks.pose_support import (FLOOR, allowed_loss, bottoms, estimate_floors, nearest_support, over_footprint,
+                                slid_centre, solve_with_support, supported_status, weighted_median)
 from tasks.pose_init import symmetry_offsets
 from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions, evaluate, make_batch, solve_poses
 from tests.test_pose_solver import K
@@ -263,3 +263,24 @@ def test_support_prior_is_deterministic():
     for x, y in zip(a, b):
         assert np.array_equal(x.translation, y.translation) and np.array_equal(x.rotation, y.rotation)
         assert np.array_equal(x.scale, y.scale) and (x.floor_prior, x.support) == (y.floor_prior, y.support)
+
+
+def test_support_lifts_low_parallax_only_when_it_observes_the_depth():
+    """Cameras at (0, 1.5, 0), the object 4 m away horizontally: resting at height 0 its bottom is
+    seen atan(1.5 / 4) = 20.6 deg below the cameras, so the support fixes its depth; resting at the
+    cameras' height it does not."""
+    o = ObjectCorrespondences(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.array([K, K]),
+                              np.array([np.eye(3)] * 2), np.array([[0.1, -1.5, 0.0], [-0.1, -1.5, 0.0]]), rests=True)
+    r = PoseResult("low_parallax", "key-frames see the object under 0.50 deg < 1.0 deg", np.array([0.0, 0.3, -4.0]),
+                   np.array([1.0, 0, 0, 0]), np.ones(3))
+    lifted = supported_status(o, r, 0.0, 1.0)
+    assert lifted.status == "ok" and "20.6 deg" in lifted.message and "0.50 deg" in lifted.message
+    assert supported_status(o, r, 1.5, 1.0).status == "low_parallax"
+    assert supported_status(o, dataclasses.replace(r, status="high_residual"), 0.0, 1.0).status == "high_residual"
+
+
+def test_allowed_loss_growth_has_a_one_pixel_floor():
+    huber, l1 = SolverOptions(huber_px=5.0, floor_max_growth=0.5), SolverOptions(huber_px=0.0, floor_max_growth=0.5)
+    assert allowed_loss(4.0, huber) == pytest.approx(6.0) and allowed_loss(4.0, l1) == pytest.approx(6.0)
+    assert allowed_loss(0.0, huber) == pytest.approx(0.5 * 2 * 1 / 10)  # Huber(1 px; 5 px) = 1 / 10 per coordinate
+    assert allowed_loss(0.0, l1) == pytest.approx(0.5 * 2)
