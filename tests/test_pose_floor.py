@@ -284,3 +284,19 @@ def test_allowed_loss_growth_has_a_one_pixel_floor():
     assert allowed_loss(4.0, huber) == pytest.approx(6.0) and allowed_loss(4.0, l1) == pytest.approx(6.0)
     assert allowed_loss(0.0, huber) == pytest.approx(0.5 * 2 * 1 / 10)  # Huber(1 px; 5 px) = 1 / 10 per coordinate
     assert allowed_loss(0.0, l1) == pytest.approx(0.5 * 2)
+
+
+def test_poses_table_names_the_host_track():
+    """``PoseResult.support`` indexes the solved tracks; the ``poses`` row names the host by its
+    track id (a track without a problem before them does not shift it)."""
+    from tasks.pose import TrackInput, poses_table, solve_tracks
+
+    objects, _ = table_clip(21)
+    base = dict(cad_id="m", cls="x", symmetry=1, upright=True, on_floor=False, mirrored=False, timestamps=(0, 1, 2, 3))
+    tracks = [TrackInput(track_id="0", num_points=3, problem=None, status="too_few_points", **base)]
+    tracks += [TrackInput(track_id=str(10 + i), num_points=len(o.xy), problem=o, **base) for i, o in enumerate(objects)]
+    rows = {r["track_id"]: r for r in poses_table("c", tracks, solve_tracks(tracks, SolverOptions()), "h").to_pylist()}
+    assert rows["14"]["floor_prior"] == "host" and rows["14"]["support_track"] == "13"
+    assert rows["14"]["support_height"] == pytest.approx(0.75, abs=0.05)
+    assert rows["13"]["floor_prior"] == "used" and rows["13"]["support_track"] is None
+    assert rows["0"]["support_track"] is None and rows["0"]["support_height"] is None
