@@ -55,7 +55,7 @@ from cadestate.geometry import matrix_to_quaternion
 from tasks.pose_batch import Batch
 from tasks.pose_init import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose_checks import check_object, coplanar_axis, final_status
-from tasks.pose_lm import Problem, floor_residual, lm_solve, robust, scale_ties
+from tasks.pose_lm import Problem, bottom_sd, floor_residual, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -155,7 +155,8 @@ class PoseResult:
     off_floor | rejected | used | host, see :mod:`tasks.pose_support`), ``floor_height`` the clip's
     floor height on world +Y (NaN: none); ``support`` the index, among the objects solved
     together, of the host whose top it was pulled to (or tried: rejected) (-1: the floor or none);
-    ``support_height`` that height on world +Y (NaN: none).
+    ``support_height`` that height on world +Y (NaN: none); ``bottom_sd`` how loosely the fit
+    holds the bottom height (world units, relative: :func:`tasks.pose_lm.bottom_sd`).
     """
 
     status: str
@@ -177,6 +178,7 @@ class PoseResult:
     floor_height: float = float("nan")
     support: int = -1
     support_height: float = float("nan")
+    bottom_sd: float = float("nan")
 
 
 def rotation_6d(a: torch.Tensor) -> torch.Tensor:
@@ -290,8 +292,8 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
              opts: SolverOptions, adam: bool = True
              ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine the given starts: Adam (``opts.iterations``, when ``adam``) then Levenberg-Marquardt
-    (``opts.lm_iterations``, :func:`tasks.pose_lm.lm_solve`). Returns the final loss terms, R, s,
-    T (float[B, ...]) and the iterations run per object int[B]."""
+    (``opts.lm_iterations``, :func:`tasks.pose_lm.lm_solve`). Returns the final loss terms (and
+    ``phi``), R, s, T (float[B, ...]) and the iterations run per object int[B]."""
     offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
     is36 = (b.sym >= 36).to(DTYPE)[:, None]
     scale_t = _start_scale(b, T0)
@@ -308,7 +310,7 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
                                           opts.huber_px)
             its += run
         s = tie_scales(torch.exp(ls), b.axis, b.sym >= 36)
-        return evaluate(b, R, s, T, phi, offsets, omask, opts), R, s, T, its
+        return {**evaluate(b, R, s, T, phi, offsets, omask, opts), "phi": phi}, R, s, T, its
 
 
 def solve_poses(objects: list[ObjectCorrespondences], opts: SolverOptions = SolverOptions()) -> list[PoseResult]:
@@ -383,6 +385,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
             total = torch.nan_to_num(terms["total"], nan=float("inf")).view(B, S)
     best = total.argmin(1)
     pick = torch.arange(B) * S + best
+    sd = _bottom_sd(bs.select(pick), Rf[pick], sf[pick], Tf[pick], terms["phi"][pick], opts)
     cam_c = -torch.einsum("bfji,bfj->bfi", b.Rc, b.tc).numpy()
     for j, i in enumerate(todo):
         k = int(pick[j])
@@ -398,4 +401,14 @@ def _solve(objects, todo, axes, opts, results) -> None:
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
-            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]))
+            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]),
+            bottom_sd=float(sd[j]))
+
+
+def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):
+    """:func:`tasks.pose_lm.bottom_sd` float[B] of the final poses."""
+    with torch.no_grad():
+        offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
+        pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
+                     _start_scale(b, T))
+        return bottom_sd(pb, R, torch.log(s.clamp(min=1e-12)), T, phi, opts.min_depth, opts.alpha, opts.beta, opts.huber_px)

@@ -17,12 +17,15 @@ own height (its posed bounding box's extent along +Y).
 Procedure (:func:`solve_with_support`), per group of objects (a clip):
 
 1. every object is solved without the prior (:func:`tasks.pose_solver.solve_poses`);
-2. the floor height is the weighted median (:func:`weighted_median`) of the bottoms (lowest point
-   of the posed CAD bounding box along +Y, :func:`tasks.pose_lm.support_bottom`) of the objects
-   of floor classes (``on_floor``) with status ``ok`` and a known bounding box; weight =
-   points x tan^2(parallax), the inverse variance of a bottom whose depth error shrinks with the
-   parallax of its key-frames and the number of clicks. Fewer than :data:`MIN_FLOOR_OBJECTS` such
-   objects: no floor (a median of one object is no check on it), and no prior in that clip;
+2. the floor height is estimated from the bottoms (lowest point of the posed CAD bounding box
+   along +Y, :func:`tasks.pose_lm.support_bottom`) of the objects of floor classes (``on_floor``)
+   with status ``ok`` and a known bounding box, each weighted by its inverse variance 1 /
+   ``bottom_sd``^2 (how loosely its own fit holds its bottom: the Gauss-Newton approximation,
+   :func:`tasks.pose_lm.bottom_sd`; it grows as parallax and clicks shrink): the weighted mean of
+   the bottoms within ``floor_max_gap`` object heights of their weighted median
+   (:func:`weighted_median`; the objects that rest on it: one standing on something else, or
+   badly solved, does not pull it). Fewer than :data:`MIN_FLOOR_OBJECTS` such objects: no floor (a
+   median of one object is no check on it), and no prior in that clip;
 3. candidate supports of an object that rests (``on_floor`` or ``rests``, with a known bounding
    box and a pose): the floor, and the top (bottom + height) of every other object of the clip
    that can hold it (:func:`can_hold`: status ``ok``, upright, and the object's bottom centre,
@@ -100,16 +103,22 @@ def bottoms(objects: list[ObjectCorrespondences], results: list[PoseResult]) -> 
 
 
 def estimate_floors(objects: list[ObjectCorrespondences], results: list[PoseResult], groups: list[str],
-                    bottom: np.ndarray) -> dict[str, float]:
+                    bottom: np.ndarray, height: np.ndarray, max_gap: float) -> dict[str, float]:
     """Floor height (world +Y) per group that has at least :data:`MIN_FLOOR_OBJECTS` usable objects
-    (module docstring, step 2)."""
-    samples: dict[str, list[tuple[float, float]]] = {}
-    for o, r, g, y in zip(objects, results, groups, bottom):
-        if o.on_floor and r.status == "ok" and np.isfinite(y):
-            weight = len(o.xy) * np.tan(np.radians(min(r.parallax_deg, 89.0))) ** 2
-            samples.setdefault(g, []).append((float(y), float(weight)))
-    return {g: weighted_median(np.array([y for y, _ in s]), np.array([w for _, w in s]))
-            for g, s in sorted(samples.items()) if len(s) >= MIN_FLOOR_OBJECTS}
+    (module docstring, step 2): the inverse-variance weighted mean of their ``bottom`` float[N]
+    within ``max_gap`` · ``height`` float[N] of the weighted median (those that rest on it)."""
+    samples: dict[str, list[tuple[float, float, float]]] = {}
+    for o, r, g, y, h in zip(objects, results, groups, bottom, height):
+        if o.on_floor and r.status == "ok" and np.isfinite(y) and np.isfinite(r.bottom_sd) and r.bottom_sd > 0:
+            samples.setdefault(g, []).append((float(y), 1.0 / r.bottom_sd**2, float(h)))
+    floors = {}
+    for g, s in sorted(samples.items()):
+        if len(s) < MIN_FLOOR_OBJECTS:
+            continue
+        y, w, h = (np.array(c) for c in zip(*s))
+        near = np.abs(y - weighted_median(y, w)) <= max_gap * h
+        floors[g] = float((y[near] * w[near]).sum() / w[near].sum())
+    return floors
 
 
 def camera_centre(o: ObjectCorrespondences) -> np.ndarray:
@@ -228,7 +237,7 @@ def solve_with_support(objects: list[ObjectCorrespondences], groups: list[str],
     if opts.floor_prior <= 0 or not objects:
         return first
     bottom, height = bottoms(objects, first)
-    floors = estimate_floors(objects, first, groups, bottom)
+    floors = estimate_floors(objects, first, groups, bottom, height, opts.floor_max_gap)
     out = [dataclasses.replace(r, floor_height=floors.get(g, float("nan"))) for r, g in zip(first, groups)]
     members: dict[str, list[int]] = {}
     for i, g in enumerate(groups):

@@ -97,19 +97,21 @@ def test_floor_prior_recovers_low_parallax_objects_better():
 
 
 def test_object_on_a_table_keeps_its_own_height():
-    """A floor-class object standing 0.8 m up (on a table) among three floor objects: the floor
-    estimate ignores it (weighted median) and it keeps its own pose, whether the gap check or the
-    reprojection check stops the prior."""
+    """A floor-class object standing 0.8 m up (on an unseen table) among three floor objects: the
+    floor estimate leaves it out (it is beyond floor_max_gap of the weighted median) and it keeps
+    its own pose. With an unbounded gap it counts as resting on the floor, in the estimate too, and
+    the reprojection check is what keeps it up."""
     objects, truth = clip_objects(3, [0.0, 0.0, 0.0, 0.8], noise=1.0, baseline=2.0)
     groups = ["c"] * 4
     alone = solve_poses(objects)
     for opts, outcome in ((SolverOptions(), "off_floor"), (SolverOptions(floor_max_gap=1e9), "rejected")):
         results = solve_with_support(objects, groups, opts)
-        assert abs(results[3].floor_height) < 0.05
         assert results[3].floor_prior == outcome
         assert np.array_equal(results[3].translation, alone[3].translation)
         assert np.array_equal(results[3].scale, alone[3].scale)
-        assert [r.floor_prior for r in results[:3]] == ["used"] * 3
+    results = solve_with_support(objects, groups)
+    assert abs(results[3].floor_height) < 0.05
+    assert [r.floor_prior for r in results[:3]] == ["used"] * 3
 
 
 def test_weighted_median_is_robust_to_one_outlier():
@@ -122,11 +124,25 @@ def test_weighted_median_is_robust_to_one_outlier():
 def test_floor_estimates_need_two_solved_floor_objects():
     objects, _ = clip_objects(4, [0.0, 0.0, 0.0])
     results = solve_poses(objects)
-    bottoms = np.array([0.01, 0.02, 0.5])
-    floors = estimate_floors(objects, results, ["a", "a", "b"], bottoms)
+    bottoms, heights = np.array([0.01, 0.02, 0.5]), np.ones(3)
+    floors = estimate_floors(objects, results, ["a", "a", "b"], bottoms, heights, 0.5)
     assert set(floors) == {"a"} and 0.01 <= floors["a"] <= 0.02
     off = [dataclasses.replace(objects[0], on_floor=False), *objects[1:]]
-    assert estimate_floors(off, results, ["a", "a", "b"], bottoms) == {}
+    assert estimate_floors(off, results, ["a", "a", "b"], bottoms, heights, 0.5) == {}
+
+
+def test_floor_estimate_is_the_inverse_variance_mean_of_the_bottoms_near_the_median():
+    """Bottoms 0.0 (sd 0.01), 0.03 (sd 0.02) and 0.9 (sd 0.02, but 0.9 heights from the weighted
+    median 0.0: it stands on something else): (0 / 0.01^2 + 0.03 / 0.02^2) / (1 / 0.01^2 + 1 / 0.02^2)."""
+    objects, _ = clip_objects(4, [0.0, 0.0, 0.0])
+    results = [dataclasses.replace(r, bottom_sd=sd) for r, sd in zip(solve_poses(objects), (0.01, 0.02, 0.02))]
+    assert all(np.isfinite(r.bottom_sd) and r.bottom_sd > 0 for r in solve_poses(objects))
+    floors = estimate_floors(objects, results, ["a"] * 3, np.array([0.0, 0.03, 0.9]), np.ones(3), 0.5)
+    assert floors["a"] == pytest.approx((0.03 / 0.02**2) / (1 / 0.01**2 + 1 / 0.02**2), rel=1e-12)
+    # The weighted median is 0.9 when its weight outweighs the others': then it alone is the floor.
+    results[2] = dataclasses.replace(results[2], bottom_sd=0.001)
+    heavy = estimate_floors(objects, results, ["a"] * 3, np.array([0.0, 0.03, 0.9]), np.full(3, 0.1), 0.5)
+    assert heavy["a"] == pytest.approx(0.9)
     out = solve_with_support(objects, ["a", "b", "c"])  # one object per clip: no floor anywhere
     assert [r.floor_prior for r in out] == ["no_floor"] * 3 and all(np.isnan(r.floor_height) for r in out)
 
@@ -300,3 +316,10 @@ def test_poses_table_names_the_host_track():
     assert rows["14"]["support_height"] == pytest.approx(0.75, abs=0.05)
     assert rows["13"]["floor_prior"] == "used" and rows["13"]["support_track"] is None
     assert rows["0"]["support_track"] is None and rows["0"]["support_height"] is None
+
+
+def test_bottom_sd_shrinks_with_parallax():
+    """The same object and clicks seen over 0.3 m or 2 m of camera travel: the wider baseline holds
+    its bottom (its depth) tighter."""
+    narrow, wide = (solve_poses(clip_objects(8, [0.0], noise=2.0, baseline=b)[0])[0] for b in (0.3, 2.0))
+    assert 0 < wide.bottom_sd < narrow.bottom_sd / 2, (wide.bottom_sd, narrow.bottom_sd)
