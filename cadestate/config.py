@@ -168,7 +168,7 @@ class PoseConfig:
     min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)
     threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
     huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
-    floor_prior: float = _opt(30.0, "Support prior (tasks/pose_support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (weighted median of the bottoms of its solved floor objects) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
+    floor_prior: float = _opt(30.0, "Support prior (tasks/pose_support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (the inverse-variance weighted mean of its solved floor objects' bottoms within floor_max_gap of their weighted median) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
     floor_classes: tuple = _opt(
         ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "bin", "bathtub", "toilet", "bench", "piano", "stove",
          "washer", "refrigerator"),
@@ -177,7 +177,7 @@ class PoseConfig:
         ("window", "clock", "radiator"),
         "Upright classes fixed to walls rather than resting on a surface: no support prior (every other upright class rests on the floor or on another object).")
     host_supports: bool = _opt(True, "Besides the floor, the top of another solved, floor-supported object is a support when the object's centre lies over its footprint; false: the floor only.")
-    floor_max_gap: float = _opt(0.5, "A resting object whose own bottom is more than this many object heights from every support keeps its own pose.", lo=0.0)
+    floor_max_gap: float = _opt(0.5, "A resting object whose own bottom is more than this many object heights above the floor and from every host top keeps its own pose (a bottom below the floor always takes the floor); the floor estimate averages the floor objects within this gap of their median.", lo=0.0)
     floor_max_growth: float = _opt(0.5, "The pose re-solved with the support prior is kept only if its reprojection loss grew by at most this fraction.", lo=0.0)
 
 

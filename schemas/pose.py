@@ -82,8 +82,9 @@ POSES = TableSpec(
                                            "bottom: own pose kept) | rejected (the reprojection loss grew more than [pose] "
                                            "floor_max_growth: own pose kept) | used (solved resting on the floor) | host "
                                            "(solved resting on the top of support_track)."),
-        column("floor_height", pa.float64(), "The clip's floor height estimate (lowest bounding-box point of its solved "
-                                             "floor objects, weighted median; null: none).", unit="m",
+        column("floor_height", pa.float64(), "The clip's floor height estimate (lowest bounding-box points of its solved "
+                                             "floor objects, inverse-variance weighted mean of those within [pose] "
+                                             "floor_max_gap heights of their weighted median; null: none).", unit="m",
                frame="world (+Y up), height along +Y", nullable=True),
         column("support_track", pa.string(), "The track whose top the object was solved resting on (floor_prior 'host') or "
                                              "tried to (a rejected host); null: the floor or none.", nullable=True),

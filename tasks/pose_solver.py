@@ -132,8 +132,9 @@ class SolverOptions:
     """Weight of the support term of :mod:`tasks.pose_support`, px per object height of distance
     between the object's bottom and its support (its clip's floor or a host's top); 0 disables the prior."""
     floor_max_gap: float = 0.5
-    """Objects whose own bottom is farther than this many object heights from every support keep
-    their own pose (they stand on something unseen, or hang)."""
+    """Objects whose own bottom is farther than this many object heights above the floor and from
+    every host top keep their own pose (they stand on something unseen, or hang); a bottom below
+    the floor always takes it. The floor estimate averages the floor objects within this gap."""
     floor_max_growth: float = 0.5
     """A pose re-solved with the support term is kept only if its reprojection loss grew by at most
     this fraction of the loss without it (else the data contradict the support)."""
