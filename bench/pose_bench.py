@@ -6,9 +6,10 @@
 - :func:`run` (``python -m bench``, ``make bench``): the solver on the ground-truth tracks of the
   default benchmark at click noise 0, 3 and 6 px (the default ``[pose]`` config), the paper's
   ablation (base, + co-planar, + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as
-  fallback) vs Adam alone, with vs without the support-plane (floor) prior of
-  :mod:`tasks.pose_floor` (every other row keeps the default prior on), and time per object and
-  for 1,000 objects in one batch. Tracks are solved with their clip, so each clip gets its floor.
+  fallback) vs Adam alone, with vs without the support prior of :mod:`tasks.pose_support` (off;
+  the floor only, no host tops; the floor prior for floor classes only, as before host supports;
+  every other row keeps the default prior on), and time per object and for 1,000 objects in one
+  batch. Tracks are solved with their clip, so each clip gets its floor and its hosts.
 
 Click noise: 3 px uses the label files as the simulated annotators wrote them; 0 and 6 px redraw
 only the clicks of those same label files (same key-frames, 3D points, symmetric swaps and
@@ -182,7 +183,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
             labels = _renoise(labels, bench_dir, clip, sigma, seed)
         corr = pa.Table.from_pylist(correspondence_rows(labels), schema=CORRESPONDENCES.schema)
         tracks += [(clip, t) for t in track_inputs(corr, wh.read("frames", [clip]), models, cfg.upright_classes,
-                                                   cfg.floor_classes)]
+                                                   cfg.floor_classes, cfg.wall_classes)]
     gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
     return tracks, gt, {k: int(m["symmetry"]) for k, m in models.items()}
 
@@ -237,8 +238,14 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
                 "full, L1 loss (paper)": dataclasses.replace(cfg, huber_px=0.0),
                 "full, Adam only": dataclasses.replace(cfg, lm_iterations=0),
                 "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0),
-                "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0)}
+                "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0),
+                "full, floor only (no host supports)": dataclasses.replace(cfg, host_supports=False)}
     out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c) for name, c in ablation.items()}
+    # The floor prior as it was before host supports: floor classes only (every upright class in
+    # wall_classes, so none but the floor classes rests), the floor only.
+    floor_only = dataclasses.replace(cfg, host_supports=False, wall_classes=cfg.upright_classes)
+    out["ablation_3px"]["full, floor prior for floor classes only"] = evaluate(
+        bench_tracks(bench_dir, wh, floor_only)[0], gt, sym, floor_only)
     out["ablation_3px"]["+up-axis (full)"] = out["accuracy"]["3px"]
     out["timing"] = timing(tracks3, cfg, batch=batch)
     return out

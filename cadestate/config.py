@@ -176,16 +176,20 @@ class PoseConfig:
     coplanar_tol: float = _opt(0.02, "Co-planar (collinear) when the smallest (middle) singular value of the centred 3D points is below this fraction of the largest.", lo=0.0, hi=1.0)
     min_points: int = _opt(6, "Fewest correspondences per track to solve it.", lo=5, hi=10_000)
     max_reprojection_px: float = _opt(20.0, "Mean reprojection error (px) above which a pose gets status high_residual.", lo=0.0)
-    min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax.", lo=0.0, hi=180.0)
+    min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)
     threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
     huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
-    floor_prior: float = _opt(30.0, "Support-plane prior (tasks/pose_floor.py): weight, px per object height, of the distance between a floor object's bottom and its clip's floor (weighted median of the bottoms of its solved floor objects, world +Y up); 0 switches it off.", lo=0.0)
+    floor_prior: float = _opt(30.0, "Support prior (tasks/pose_support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (the inverse-variance weighted mean of its solved floor objects' bottoms within floor_max_gap of their weighted median) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
     floor_classes: tuple = _opt(
         ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "bin", "bathtub", "toilet", "bench", "piano", "stove",
          "washer", "refrigerator"),
-        "Classes that rest on the floor: they estimate their clip's floor and get the floor prior (classes often on furniture, e.g. lamp, plant, display, are left out).")
-    floor_max_gap: float = _opt(0.5, "A floor object whose own bottom is more than this many object heights from the floor keeps its own pose.", lo=0.0)
-    floor_max_growth: float = _opt(0.5, "The pose re-solved with the floor prior is kept only if its reprojection loss grew by at most this fraction.", lo=0.0)
+        "Classes that rest on the floor: they estimate their clip's floor (classes often on furniture, e.g. lamp, plant, display, are left out).")
+    wall_classes: tuple = _opt(
+        ("window", "clock", "radiator"),
+        "Upright classes fixed to walls rather than resting on a surface: no support prior (every other upright class rests on the floor or on another object).")
+    host_supports: bool = _opt(True, "Besides the floor, the top of another solved, floor-supported object is a support when the object's centre lies over its footprint; false: the floor only.")
+    floor_max_gap: float = _opt(0.5, "A resting object whose own bottom is more than this many object heights above the floor and from every host top keeps its own pose (a bottom below the floor always takes the floor); the floor estimate averages the floor objects within this gap of their median.", lo=0.0)
+    floor_max_growth: float = _opt(0.5, "The pose re-solved with the support prior is kept only if its reprojection loss grew by at most this fraction.", lo=0.0)
 
 
 @dataclass(frozen=True)

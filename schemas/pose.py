@@ -73,15 +73,23 @@ POSES = TableSpec(
                unit="deg", nullable=True),
         column("iterations", pa.int32(), "Optimiser iterations run (0: not solved)."),
         column("start", pa.int32(), "Which start won (turn by start·360/starts deg about up; -1: not solved)."),
-        column("loss_floor", pa.float64(), "Final L_floor: [pose] floor_prior · |bottom - floor_height| / object height "
-                                           "(0 unless floor_prior is 'used'; null: not solved).", unit="px", nullable=True),
-        column("floor_prior", pa.string(), "The support-plane prior (tasks/pose_floor.py): none (off, not a floor class, no "
-                                           "bounding box or no pose) | no_floor (the clip has no floor estimate) | off_floor "
-                                           "(bottom farther than [pose] floor_max_gap heights from the floor: own pose kept) | "
-                                           "rejected (the reprojection loss grew more than [pose] floor_max_growth: own pose "
-                                           "kept) | used (the pose was solved with the floor term)."),
-        column("floor_height", pa.float64(), "The clip's floor height estimate (lowest bounding-box point of its solved "
-                                             "floor objects, weighted median; null: none).", unit="m",
+        column("loss_floor", pa.float64(), "Final L_floor, the support term: [pose] floor_prior · |bottom - support_height| / "
+                                           "object height (0 unless floor_prior is 'used' or 'host'; null: not solved).",
+               unit="px", nullable=True),
+        column("floor_prior", pa.string(), "The support prior (tasks/pose_support.py): none (off, a class that does not rest "
+                                           "on a support, no bounding box or no pose) | no_floor (the clip has no floor "
+                                           "estimate) | off_floor (no support within [pose] floor_max_gap heights of its "
+                                           "bottom: own pose kept) | rejected (the reprojection loss grew more than [pose] "
+                                           "floor_max_growth: own pose kept) | used (solved resting on the floor) | host "
+                                           "(solved resting on the top of support_track)."),
+        column("floor_height", pa.float64(), "The clip's floor height estimate (lowest bounding-box points of its solved "
+                                             "floor objects, inverse-variance weighted mean of those within [pose] "
+                                             "floor_max_gap heights of their weighted median; null: none).", unit="m",
+               frame="world (+Y up), height along +Y", nullable=True),
+        column("support_track", pa.string(), "The track whose top the object was solved resting on (floor_prior 'host') or "
+                                             "tried to (a rejected host); null: the floor or none.", nullable=True),
+        column("support_height", pa.float64(), "Height of the support the object was solved resting on (or tried to: "
+                                               "rejected); null: none.", unit="m",
                frame="world (+Y up), height along +Y", nullable=True),
         column("config_hash", pa.string(), "Digest of the [pose] config section that produced the row."),
     ]),

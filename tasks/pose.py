@@ -19,7 +19,7 @@ import pyarrow as pa
 
 from cadestate.config import PoseConfig, section_hash
 from cadestate.lineage import digest, table_digest
-from tasks.pose_floor import solve_with_floor
+from tasks.pose_support import solve_with_support
 from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions
 from tasks.stage import StageOutput
 from warehouse import Warehouse
@@ -73,12 +73,13 @@ class TrackInput:
 
 
 def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upright_classes: tuple[str, ...],
-                 floor_classes: tuple[str, ...]) -> list[TrackInput]:
+                 floor_classes: tuple[str, ...], wall_classes: tuple[str, ...] = ()) -> list[TrackInput]:
     """Group correspondence rows by track and attach the key-frame cameras and model facts.
 
     ``corr``: rows of ``correspondences``; ``frames``: rows of ``frames`` (K, world_to_camera_R/t,
     width, height); ``models``: cad_id -> {"class", "symmetry", "extent"} (extent may be missing:
-    then the floor prior does not apply to the track).
+    then the support prior does not apply to the track). Upright classes but ``wall_classes`` rest
+    on a support (:mod:`tasks.pose_support`).
     """
     cams = {r["timestamp_us"]: r for r in frames.select(["timestamp_us", "K", "world_to_camera_R", "world_to_camera_t",
                                                          "width", "height"]).to_pylist()}
@@ -121,13 +122,15 @@ def track_inputs(corr: pa.Table, frames: pa.Table, models: dict[str, dict], upri
             t=np.array([x["world_to_camera_t"] for x in c], np.float64).reshape(-1, 3),
             mirrored=base["mirrored"], symmetry=base["symmetry"], upright=base["upright"],
             extent=None if model.get("extent") is None else np.asarray(model["extent"], np.float64),
-            on_floor=base["on_floor"])
+            on_floor=base["on_floor"], rests=base["upright"] and cls not in wall_classes)
         out.append(TrackInput(**base, problem=problem))
     return out
 
 
 def poses_table(clip: str, tracks: list[TrackInput], results: list[PoseResult], config_hash: str) -> pa.Table:
-    """Rows of ``poses`` (see :data:`schemas.pose.POSES`)."""
+    """Rows of ``poses`` (see :data:`schemas.pose.POSES`). ``PoseResult.support`` indexes the
+    solved tracks (those with a problem, in order; :func:`solve_tracks`)."""
+    hosts = dict(enumerate(t.track_id for t in tracks if t.problem is not None))
     def vec(a):
         return None if a is None else [float(v) for v in a]
 
@@ -144,7 +147,8 @@ def poses_table(clip: str, tracks: list[TrackInput], results: list[PoseResult], 
             "loss_reprojection": num(r.loss_reprojection), "loss_up": num(r.loss_up), "loss_front": num(r.loss_front),
             "keyframe_timestamps_us": list(t.timestamps), "keyframe_error_px": [float(v) for v in r.keyframe_error_px],
             "parallax_deg": num(r.parallax_deg), "iterations": r.iterations, "start": r.start, "loss_floor": num(r.loss_floor),
-            "floor_prior": r.floor_prior, "floor_height": num(r.floor_height), "config_hash": config_hash,
+            "floor_prior": r.floor_prior, "floor_height": num(r.floor_height),
+            "support_track": hosts.get(r.support), "support_height": num(r.support_height), "config_hash": config_hash,
         })
     from schemas.pose import POSES
 
@@ -152,12 +156,12 @@ def poses_table(clip: str, tracks: list[TrackInput], results: list[PoseResult], 
 
 
 def solve_tracks(tracks: list[TrackInput], opts: SolverOptions, clips: list[str] | None = None) -> list[PoseResult]:
-    """Solve every track that has a problem (with the floor prior of :mod:`tasks.pose_floor`, one
-    floor per clip: ``clips`` names each track's clip, None = all of one clip); the others keep
-    their input status."""
+    """Solve every track that has a problem (with the support prior of :mod:`tasks.pose_support`,
+    one floor per clip: ``clips`` names each track's clip, None = all of one clip); the others keep
+    their input status. A result's ``support`` indexes the tracks that have a problem, in order."""
     clips = clips or [""] * len(tracks)
     todo = [(t.problem, c) for t, c in zip(tracks, clips) if t.problem is not None]
-    solved = iter(solve_with_floor([p for p, _ in todo], [c for _, c in todo], opts))
+    solved = iter(solve_with_support([p for p, _ in todo], [c for _, c in todo], opts))
     return [next(solved) if t.problem is not None else PoseResult(t.status, t.message) for t in tracks]
 
 
@@ -171,7 +175,7 @@ def solve_clip(wh: Warehouse, cfg: PoseConfig, clip: str, run_id: str) -> StageO
     needed = sorted(set(corr.column("cad_id").to_pylist()))
     models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()
               if r["cad_id"] in needed}
-    tracks = track_inputs(corr, frames, models, cfg.upright_classes, cfg.floor_classes)
+    tracks = track_inputs(corr, frames, models, cfg.upright_classes, cfg.floor_classes, cfg.wall_classes)
     results = solve_tracks(tracks, solver_options(cfg))
     table = poses_table(clip, tracks, results, section_hash("pose", cfg))
     rows = wh.write("poses", clip, table)

@@ -14,7 +14,8 @@ After solving (the pose is kept, for inspection, but must not be used):
 - ``behind_camera``: a point lies at depth <= 0 in a camera that clicked it;
 - ``high_residual``: mean reprojection error above ``max_reprojection_px``;
 - ``low_parallax``: the key-frame cameras see the object under less than ``min_parallax_deg``
-  of angle, so its depth is unobservable.
+  of angle, so its depth is unobservable (unless the support prior of :mod:`tasks.pose_support`
+  rests it on a support that observes its depth: then ``ok``, and its message says so).
 """
 
 from __future__ import annotations

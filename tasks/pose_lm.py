@@ -188,19 +188,44 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     return torch.nan_to_num(r), torch.nan_to_num(J)
 
 
-def _floor_jacobian(pb: Problem, R, ls, T, s) -> tuple[torch.Tensor, torch.Tensor]:
-    """The floor residual float[B, 1] (:func:`floor_residual`) and its Jacobian float[B, 1, 9 + F]:
-    with a = |R[1, :]| and c_j = sign(R[1, j]) s_j h_j, d bottom / dw = -(c x R[1, :]) (as
-    R[1, j] <- R[1, j] + w . (e_j x R[1, :])), d bottom / d(translation step) = scale_t e_y and
-    d bottom / d ls_k = -sum_j a_j h_j L[j, k] exp(ls_k)."""
+def bottom_gradient(pb: Problem, R: torch.Tensor, ls: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """d bottom / d (w, translation step, ls, phi) float[B, 9 + F] (:func:`support_bottom`): with
+    a = |R[1, :]| and c_j = sign(R[1, j]) s_j h_j, d bottom / dw = -(c x R[1, :]) (as R[1, j] <-
+    R[1, j] + w . (e_j x R[1, :])), d bottom / d(translation step) = scale_t e_y and d bottom / d ls_k
+    = -sum_j a_j h_j L[j, k] exp(ls_k); 0 for phi (turns about +Y move no corner up or down)."""
     B, F = pb.b.fmask.shape
-    w = torch.where(pb.b.floor_w > 0, pb.b.floor_w, torch.zeros_like(pb.b.floor_w))[:, None]  # float[B, 1]
     row, h = R[:, 1, :], pb.b.half
-    J = torch.zeros(B, 1, 9 + F, dtype=DTYPE)
-    J[:, 0, :3] = -w * torch.linalg.cross(torch.sign(row) * s * h, row)
-    J[:, 0, 4] = w[:, 0] * pb.scale_t
-    J[:, 0, 6:9] = -w * torch.einsum("bj,bjk->bk", row.abs() * h, pb.L) * torch.exp(ls)
-    return floor_residual(pb.b, R, s, T)[:, None], J
+    g = torch.zeros(B, 9 + F, dtype=DTYPE)
+    g[:, :3] = -torch.linalg.cross(torch.sign(row) * s * h, row)
+    g[:, 4] = pb.scale_t
+    g[:, 6:9] = -torch.einsum("bj,bjk->bk", row.abs() * h, pb.L) * torch.exp(ls)
+    return g
+
+
+def _floor_jacobian(pb: Problem, R, ls, T, s) -> tuple[torch.Tensor, torch.Tensor]:
+    """The floor residual float[B, 1] (:func:`floor_residual`) and its Jacobian float[B, 1, 9 + F],
+    floor_w times :func:`bottom_gradient`."""
+    w = torch.where(pb.b.floor_w > 0, pb.b.floor_w, torch.zeros_like(pb.b.floor_w))[:, None]  # float[B, 1]
+    return floor_residual(pb.b, R, s, T)[:, None], w[:, :, None] * bottom_gradient(pb, R, ls, s)[:, None, :]
+
+
+def bottom_sd(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, min_depth: float,
+              alpha: float, beta: float, huber_px: float) -> torch.Tensor:
+    """How loosely the fit holds each object's bottom height, float[B] (world units, relative:
+    up to the scale of the click noise): sqrt(g^T H^-1 g) with g = :func:`bottom_gradient` and H
+    the Gauss-Newton (IRLS) matrix of the loss at the pose, as :func:`lm_solve` builds it (the
+    Laplace approximation of the bottom's variance). Parameters without any residual (the
+    key-frame rotations of models that are not 36-way) are left out."""
+    s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
+    _, choice = loss_and_choice(pb, R, s, T, phi, min_depth, alpha, beta, huber_px)
+    r, J = residuals_jacobian(pb, R, ls, T, phi, choice, min_depth, alpha, beta)
+    wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / pb.b.npts[:, None])
+    H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
+    diag = H.diagonal(dim1=1, dim2=2)
+    H = H + torch.diag_embed((diag <= 0).to(DTYPE) + 1e-12 * diag.amax(-1, keepdim=True))
+    g = bottom_gradient(pb, R, ls, s)
+    var = (g * torch.linalg.solve(H, g[..., None])[..., 0]).sum(-1)
+    return torch.sqrt(torch.nan_to_num(var, nan=float("inf")).clamp(min=0))
 
 
 def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, iterations: int,

@@ -17,8 +17,9 @@ Objective per object (all key-frames together)::
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
     L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
-    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support-plane
-              prior of :mod:`tasks.pose_floor`; bottom: lowest world-Y of the posed CAD bbox)
+    L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support
+              prior of :mod:`tasks.pose_support`; bottom: lowest world-Y of the posed CAD bbox;
+              floor_height: the support's height, the floor or a host's top)
 
 Special parameterisations (each can be switched off for the ablation):
 
@@ -54,7 +55,7 @@ from cadestate.geometry import matrix_to_quaternion
 from tasks.pose_batch import Batch
 from tasks.pose_init import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose_checks import check_object, coplanar_axis, final_status
-from tasks.pose_lm import Problem, floor_residual, lm_solve, robust, scale_ties
+from tasks.pose_lm import Problem, bottom_sd, floor_residual, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -71,10 +72,13 @@ class ObjectCorrespondences:
         upright: the class stands upright (the up-axis term applies).
         extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
             None when unknown (then no floor term can apply).
-        on_floor: the class usually rests on the floor ([pose] floor_classes).
-        floor_height: the clip's floor height on world +Y (the support-plane prior, see
-            :mod:`tasks.pose_floor`); floor_weight: weight of the floor term, px per world unit
-            (0: none).
+        on_floor: the class usually rests on the floor ([pose] floor_classes): it helps estimate
+            its clip's floor, and gets the support prior.
+        rests: the class rests on a support, the floor or another object's top (upright classes
+            but [pose] wall_classes): it gets the support prior (:mod:`tasks.pose_support`).
+        floor_height: the height on world +Y of the support the object rests on (the floor or a
+            host's top, see :mod:`tasks.pose_support`); floor_weight: weight of the support term,
+            px per world unit (0: none).
     """
 
     xy: np.ndarray
@@ -88,6 +92,7 @@ class ObjectCorrespondences:
     upright: bool = True
     extent: np.ndarray | None = None
     on_floor: bool = False
+    rests: bool = False
     floor_height: float = 0.0
     floor_weight: float = 0.0
 
@@ -124,14 +129,18 @@ class SolverOptions:
     """0: the paper's L1 reprojection loss; > 0: Huber loss with this threshold (px): quadratic
     within it (the efficient estimator for Gaussian click error), L1 beyond (robust to bad clicks)."""
     floor_prior: float = 30.0
-    """Weight of the support-plane (floor) term of :mod:`tasks.pose_floor`, px per object height of
-    distance between the object's bottom and its clip's floor; 0 disables the prior."""
+    """Weight of the support term of :mod:`tasks.pose_support`, px per object height of distance
+    between the object's bottom and its support (its clip's floor or a host's top); 0 disables the prior."""
     floor_max_gap: float = 0.5
-    """Objects whose own bottom is farther than this many object heights from the floor keep their
-    own pose (they stand on something else)."""
+    """Objects whose own bottom is farther than this many object heights above the floor and from
+    every host top keep their own pose (they stand on something unseen, or hang); a bottom below
+    the floor always takes it. The floor estimate averages the floor objects within this gap."""
     floor_max_growth: float = 0.5
-    """A pose re-solved with the floor term is kept only if its reprojection loss grew by at most
-    this fraction of the loss without it (else the data contradict the floor)."""
+    """A pose re-solved with the support term is kept only if its reprojection loss grew by at most
+    this fraction of the loss without it (else the data contradict the support)."""
+    host_supports: bool = True
+    """Besides the floor, the tops of other solved objects are supports (:mod:`tasks.pose_support`);
+    False: the floor only."""
 
 
 @dataclass
@@ -142,10 +151,13 @@ class PoseResult:
     object-to-world = T · R · S · diag(-1, 1, 1)[mirrored] (:func:`cadestate.render.object_to_world`).
     ``keyframe_error_px`` float[F]: mean Euclidean reprojection error per key-frame (px).
     ``status``: ok | invalid_input | too_few_points | single_keyframe | collinear_points |
-    behind_camera | high_residual | low_parallax. ``loss_floor``: the final floor term (px; 0
-    without it); ``floor_prior``: how the support-plane prior treated the object (none | no_floor |
-    off_floor | rejected | used, see :mod:`tasks.pose_floor`), ``floor_height`` the clip's floor
-    height on world +Y (NaN: none).
+    behind_camera | high_residual | low_parallax. ``loss_floor``: the final support term (px; 0
+    without it); ``floor_prior``: how the support prior treated the object (none | no_floor |
+    off_floor | rejected | used | host, see :mod:`tasks.pose_support`), ``floor_height`` the clip's
+    floor height on world +Y (NaN: none); ``support`` the index, among the objects solved
+    together, of the host whose top it was pulled to (or tried: rejected) (-1: the floor or none);
+    ``support_height`` that height on world +Y (NaN: none); ``bottom_sd`` how loosely the fit
+    holds the bottom height (world units, relative: :func:`tasks.pose_lm.bottom_sd`).
     """
 
     status: str
@@ -165,6 +177,9 @@ class PoseResult:
     loss_floor: float = float("nan")
     floor_prior: str = "none"
     floor_height: float = float("nan")
+    support: int = -1
+    support_height: float = float("nan")
+    bottom_sd: float = float("nan")
 
 
 def rotation_6d(a: torch.Tensor) -> torch.Tensor:
@@ -278,8 +293,8 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
              opts: SolverOptions, adam: bool = True
              ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine the given starts: Adam (``opts.iterations``, when ``adam``) then Levenberg-Marquardt
-    (``opts.lm_iterations``, :func:`tasks.pose_lm.lm_solve`). Returns the final loss terms, R, s,
-    T (float[B, ...]) and the iterations run per object int[B]."""
+    (``opts.lm_iterations``, :func:`tasks.pose_lm.lm_solve`). Returns the final loss terms (and
+    ``phi``), R, s, T (float[B, ...]) and the iterations run per object int[B]."""
     offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
     is36 = (b.sym >= 36).to(DTYPE)[:, None]
     scale_t = _start_scale(b, T0)
@@ -296,7 +311,7 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
                                           opts.huber_px)
             its += run
         s = tie_scales(torch.exp(ls), b.axis, b.sym >= 36)
-        return evaluate(b, R, s, T, phi, offsets, omask, opts), R, s, T, its
+        return {**evaluate(b, R, s, T, phi, offsets, omask, opts), "phi": phi}, R, s, T, its
 
 
 def solve_poses(objects: list[ObjectCorrespondences], opts: SolverOptions = SolverOptions()) -> list[PoseResult]:
@@ -371,6 +386,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
             total = torch.nan_to_num(terms["total"], nan=float("inf")).view(B, S)
     best = total.argmin(1)
     pick = torch.arange(B) * S + best
+    sd = _bottom_sd(bs.select(pick), Rf[pick], sf[pick], Tf[pick], terms["phi"][pick], opts)
     cam_c = -torch.einsum("bfji,bfj->bfi", b.Rc, b.tc).numpy()
     for j, i in enumerate(todo):
         k = int(pick[j])
@@ -386,4 +402,14 @@ def _solve(objects, todo, axes, opts, results) -> None:
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
-            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]))
+            float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]),
+            bottom_sd=float(sd[j]))
+
+
+def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):
+    """:func:`tasks.pose_lm.bottom_sd` float[B] of the final poses."""
+    with torch.no_grad():
+        offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
+        pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
+                     _start_scale(b, T))
+        return bottom_sd(pb, R, torch.log(s.clamp(min=1e-12)), T, phi, opts.min_depth, opts.alpha, opts.beta, opts.huber_px)
