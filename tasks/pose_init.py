@@ -11,9 +11,11 @@ Linear fit: with ``A = R S`` (a general 3x3 matrix) every click gives two equati
 (the depth times the reprojection error, in normalised units). All key-frames of an object are
 solved at once (their baselines fix the depth, which one view cannot). The 3D points of a
 symmetric model may carry a different symmetric rotation on each key-frame
-(:mod:`bench.annotators`); the fit then chooses one rotation offset per key-frame by coordinate
-descent on the linear residual (the normal equations of each (key-frame, offset) are summed, so
-every trial is one 12x12 solve). ``A`` is split into R and S (column norms, nearest rotation),
+(:mod:`bench.annotators`); the fit then chooses one rotation offset per key-frame: the assignment
+with the least linear residual over all of them when there are at most :data:`MAX_ASSIGNMENTS`,
+else by coordinate descent (the normal equations of each (key-frame, offset) are summed, so every
+trial is one 12x12 solve). Descent alone can stop in a wrong assignment when the key-frames see
+the object under little parallax. ``A`` is split into R and S (column norms, nearest rotation),
 with the co-planar and 36-way scale ties, and snapped to a rotation about +Y for upright classes.
 """
 
@@ -27,6 +29,9 @@ from tasks.pose_batch import DTYPE
 
 ROT36_OFFSETS = 12
 """Rotation offsets (every 30 degrees) tried per key-frame for 36-way symmetric models."""
+MAX_ASSIGNMENTS = 4096
+"""Symmetric models: up to this many assignments of offsets to key-frames (O^(F-1)) are all tried
+(the least linear residual wins); beyond it, coordinate descent over the key-frames."""
 
 
 def rotate_y(points: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -146,11 +151,7 @@ def linear_init(pts: torch.Tensor, xn: torch.Tensor, kf: torch.Tensor, pmask: to
     v = torch.einsum("bki,bfok->bfoi", Q, v)
 
     def solve(Mt: torch.Tensor, vt: torch.Tensor, ct: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lam = 1e-10 * Mt.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] / 12 + 1e-15
-        pad = torch.diag_embed(unused).view(B, *([1] * (Mt.dim() - 3)), 12, 12)
-        theta = torch.linalg.solve(Mt + lam * eye + pad, vt[..., None])[..., 0]
-        res = torch.einsum("...i,...ij,...j->...", theta, Mt, theta) - 2 * (theta * vt).sum(-1) + ct
-        return theta, res
+        return _solve_normal(Mt, vt, ct, unused)
 
     assign = torch.zeros(B, F, dtype=torch.long)
     pick = lambda t, a: torch.gather(t, 2, a.view(B, F, 1, *([1] * (t.dim() - 3))).expand(  # noqa: E731
@@ -166,10 +167,64 @@ def linear_init(pts: torch.Tensor, xn: torch.Tensor, kf: torch.Tensor, pmask: to
                 res = torch.where(omask, res, torch.full_like(res, float("inf")))
                 best = torch.nan_to_num(res, nan=float("inf")).argmin(-1)
                 assign[:, f] = torch.where(fmask[:, f], best, assign[:, f])
+        assign = _exhaustive_where_small(M, v, c, omask, fmask, unused, assign)
     theta, _ = solve(pick(M, assign).sum(1), pick(v, assign).sum(1), pick(c, assign).sum(1))
     theta = torch.einsum("bij,bj->bi", Q, theta)
     A, T = theta[:, :9].reshape(B, 3, 3), theta[:, 9:]
     return A, T, torch.gather(offsets, 1, assign)
+
+
+def _solve_normal(Mt: torch.Tensor, vt: torch.Tensor, ct: torch.Tensor, unused: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solve normal equations Mt float[B, ..., 12, 12] theta = vt float[B, ..., 12] (a tiny ridge;
+    ``unused`` float[B, 12] pins unknowns an object does not have to 0); returns theta and the
+    residual float[B, ...] (ct: the constant term, float[B, ...])."""
+    eye = torch.eye(12, dtype=DTYPE)
+    lam = 1e-10 * Mt.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] / 12 + 1e-15
+    pad = torch.diag_embed(unused).view(unused.shape[0], *([1] * (Mt.dim() - 3)), 12, 12)
+    theta = torch.linalg.solve(Mt + lam * eye + pad, vt[..., None])[..., 0]
+    res = torch.einsum("...i,...ij,...j->...", theta, Mt, theta) - 2 * (theta * vt).sum(-1) + ct
+    return theta, res
+
+
+def _exhaustive_where_small(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, omask: torch.Tensor, fmask: torch.Tensor,
+                            unused: torch.Tensor, assign: torch.Tensor) -> torch.Tensor:
+    """``assign`` int[B, F] with the objects whose assignments number at most
+    :data:`MAX_ASSIGNMENTS` (their valid offsets ^ (their key-frames - 1), grouped by offset count)
+    replaced by :func:`_exhaustive_assignment`. Key-frames are a prefix of each object's F."""
+    n_off, n_frames = omask.sum(1), fmask.sum(1)
+    out = assign.clone()
+    for k in sorted(set(n_off.tolist()) - {1}):
+        rows = torch.nonzero(n_off == k)[:, 0]
+        f = int(n_frames[rows].max())
+        if f > 1 and k ** (f - 1) <= MAX_ASSIGNMENTS:
+            out[rows, :f] = _exhaustive_assignment(M[rows, :f, :k], v[rows, :f, :k], c[rows, :f, :k], omask[rows, :k],
+                                                   fmask[rows, :f], unused[rows])
+    return out
+
+
+def _exhaustive_assignment(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, omask: torch.Tensor, fmask: torch.Tensor,
+                           unused: torch.Tensor, chunk: int = 64) -> torch.Tensor:
+    """The symmetric offset per key-frame int[B, F] whose summed linear fit has the least
+    residual, over every assignment: the first key-frame keeps offset 0 (the offsets form a group,
+    so turning them all by one of them turns A alike and leaves the residual), the others take
+    each of the O offsets. M float[B, F, O, 12, 12], v float[B, F, O, 12], c float[B, F, O]: the
+    normal equations of each (key-frame, offset); ``unused`` as in :func:`_solve_normal`."""
+    B, F, O = c.shape
+    grids = [torch.zeros(1, dtype=torch.long)] + [torch.arange(O)] * (F - 1)
+    combos = torch.cartesian_prod(*grids)  # int[C, F]
+    frames = torch.arange(F)[:, None]
+    best_res = torch.full((B,), float("inf"), dtype=DTYPE)
+    best = torch.zeros(B, F, dtype=torch.long)
+    for start in range(0, len(combos), chunk):
+        cc = combos[start:start + chunk].T  # int[F, K]
+        _, res = _solve_normal(M[:, frames, cc].sum(1), v[:, frames, cc].sum(1), c[:, frames, cc].sum(1), unused)  # [B, K]
+        valid = (omask[:, cc] | ~fmask[:, :, None]).all(1)  # bool[B, K]: every used offset exists for the object
+        res = torch.where(valid, torch.nan_to_num(res, nan=float("inf")), torch.full_like(res, float("inf")))
+        k = res.argmin(1)
+        better = res[torch.arange(B), k] < best_res
+        best_res = torch.where(better, res[torch.arange(B), k], best_res)
+        best = torch.where(better[:, None], cc.T[k], best)
+    return best
 
 
 def fit_scale_translation(pts: torch.Tensor, xn: torch.Tensor, kf: torch.Tensor, pmask: torch.Tensor, Rc: torch.Tensor,
