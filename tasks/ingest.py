@@ -147,6 +147,11 @@ def clip_split(row: dict) -> str:
     return row.get("split") or DEFAULT_SPLIT
 
 
+def registered_splits(wh: Warehouse) -> dict[str, str]:
+    """clip -> split of every registered clip (what a re-ingest keeps unless told otherwise)."""
+    return {r["clip"]: clip_split(r) for r in wh.read("clips").to_pylist()}
+
+
 def registered_source(wh: Warehouse, clip: str) -> ClipSource:
     """A registered clip as a :class:`ClipSource` of the warehouse's copies, with its split (what
     ``cadestate run`` and label ingest rerun: the same clip, so cached)."""

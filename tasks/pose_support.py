@@ -40,19 +40,20 @@ Procedure (:func:`solve_with_support`), per group of objects (a clip):
    put on the floor (a host's top is only as good as its own depth, so only floor-supported hosts
    count), with their pass-1 poses, and are solved again the same way (one more batch);
 6. a re-solved pose is kept only if its reprojection loss grew by at most ``floor_max_growth``
-   times the loss without the prior (at least that of a 1 px click error, :func:`allowed_loss`): an object that hangs on a wall or stands on something
-   unseen is not dragged onto a support the clicks contradict.
+   times the loss without the prior (at least that of a 1 px click error, :func:`allowed_loss`)
+   and its status is no worse (:data:`STATUS_RANK`): an object that hangs on a wall or stands on
+   something unseen is not dragged onto a support the clicks contradict.
 
 ``PoseResult.floor_prior`` records the outcome per object: ``none`` (prior off, a class that does
 not rest, unknown bounding box or no pose), ``no_floor`` (its clip has no floor estimate),
 ``off_floor`` (no support within the gap: own pose kept), ``rejected`` (the re-solve grew the
-reprojection loss too much: own pose kept), ``used`` (solved on the floor) or ``host`` (solved on
+reprojection loss too much, or ended with a worse status: own pose kept), ``used`` (solved on the floor) or ``host`` (solved on
 the top of object ``PoseResult.support``); ``support_height`` is the height it was pulled to (or
 tried). Status: a pose kept on its support whose key-frames see it under too little parallax
 (``low_parallax``) becomes ``ok`` when the support observes its depth instead: the ray from the
 cameras to its bottom is inclined by at least ``min_parallax_deg`` (:func:`supported_status`), so
 sliding it along the ray would move it off the support. The depth then rests on the support
-height (the floor's median, or the host's re-solved top), not on the clicks' parallax; the message
+height (the floor estimate, or the host's re-solved top), not on the clicks' parallax; the message
 says so.
 """
 
@@ -183,6 +184,12 @@ y) is no measure of how well a pose fits, so the reprojection test of :func:`res
 least ``floor_max_growth`` times that loss (noise-free clicks would otherwise reject any change)."""
 
 
+STATUS_RANK = {"ok": 0, "low_parallax": 1}
+"""Statuses a re-solve may end with, best first: it is kept only if its status is no worse than
+the pose's own (after :func:`supported_status`); any other status (high_residual, behind_camera)
+ranks last, so a re-solve never turns a usable pose into an unusable one."""
+
+
 def allowed_loss(before: float, opts: SolverOptions) -> float:
     """The largest reprojection loss (the solver's robust loss per point) a pose re-solved on its
     support may have, given its loss ``before`` without the support: before + floor_max_growth ·
@@ -195,15 +202,18 @@ def resolve(objects: list[ObjectCorrespondences], before: list[PoseResult], todo
             heights: np.ndarray, opts: SolverOptions) -> dict[int, PoseResult]:
     """Solve the objects ``todo`` [(index, support, support height)] again, in one batch, with the
     support term; each keeps the new pose only if its reprojection loss grew by at most
-    ``floor_max_growth`` over ``before`` (module docstring, step 6). Index -> result, its
+    ``floor_max_growth`` over ``before`` (module docstring, step 6) and its status is no worse
+    (:data:`STATUS_RANK`). Index -> result, its
     ``floor_prior`` ``used`` / ``host`` / ``rejected``."""
     again = solve_poses([dataclasses.replace(objects[i], floor_height=y, floor_weight=opts.floor_prior / heights[i])
                          for i, _, y in todo], opts)
     out = {}
     for (i, s, y), r in zip(todo, again):
-        kept = r.translation is not None and r.loss_reprojection <= allowed_loss(before[i].loss_reprojection, opts)
+        r = supported_status(objects[i], r, y, opts.min_parallax_deg) if r.translation is not None else r
+        kept = (r.translation is not None and r.loss_reprojection <= allowed_loss(before[i].loss_reprojection, opts)
+                and STATUS_RANK.get(r.status, len(STATUS_RANK)) <= STATUS_RANK.get(before[i].status, len(STATUS_RANK)))
         outcome = ("used" if s == FLOOR else "host") if kept else "rejected"
-        r = supported_status(objects[i], r, y, opts.min_parallax_deg) if kept else before[i]
+        r = r if kept else before[i]
         out[i] = dataclasses.replace(r, floor_prior=outcome, support=s, support_height=y)
     return out
 

@@ -58,6 +58,12 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip):
     assert "frames" in tables.output and "30" in tables.output
     again = runner.invoke(app, ["-w", w, "run"])
     assert again.exit_code == 0 and again.output.count("cached") == len(stages)
+    args = ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path), "--clip", "room_1"]
+    val = runner.invoke(app, [*args, "--split", "val"])
+    assert val.exit_code == 0 and "manual_tracks" in val.output and "paused" in val.output
+    kept = runner.invoke(app, args)  # no --split: the registered clip keeps its split
+    assert kept.exit_code == 0 and "completed" not in kept.output
+    assert json.loads(cli("-w", w, "sql", "SELECT split FROM clips", "--format", "json").stdout) == [{"split": "val"}]
 
 
 def test_sql_errors_and_read_only(tmp_path):

@@ -22,7 +22,7 @@ from bench.walkthrough import WalkthroughSpec
 from cadestate.config import CadIngestConfig, CadViewsConfig, Config, WarehouseConfig
 from flows.annotate_clip import run_clips
 from flows.cad_library import run_cad_library
-from tests.conftest import small_library_items
+from conftest import small_library_items
 from warehouse import Warehouse
 
 pytestmark = pytest.mark.slow

@@ -32,9 +32,10 @@ def ingest(
     ctx: typer.Context,
     sources: Annotated[list[Path], typer.Argument(help="VIDEO CAMERAS.txt for one clip, or one or more folders of <name>.mp4 + <name>.txt pairs.")],
     clip: Annotated[Optional[str], typer.Option(help="Clip name (one clip only; default: the video's file name without suffix).")] = None,
-    split: Annotated[str, typer.Option(help="Dataset split of these clips: train, val, test ([manual_tracks] splits, "
-                                            "val and test by default, get the manual-track task). Changing it reruns "
-                                            "what depends on it.")] = "train",
+    split: Annotated[Optional[str], typer.Option(
+        help="Dataset split of these clips: train, val, test ([manual_tracks] splits, val and test by default, get "
+             "the manual-track task). Default: a clip ingested before keeps its split, a new one is train. "
+             "Changing it reruns what depends on it.")] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).
@@ -48,14 +49,18 @@ def ingest(
       cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
       cadestate ingest val_clips/ --split val
     """
-    from tasks.ingest import ClipSource, discover_clips
+    import dataclasses
+
+    from tasks.ingest import ClipSource, discover_clips, registered_splits
 
     if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
-        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1], split)]
+        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1])]
     else:
         if clip:
             raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
-        items = [s for folder in sources for s in discover_clips(folder, split)]
+        items = [s for folder in sources for s in discover_clips(folder)]
+    known = registered_splits(ctx.obj.open_warehouse())
+    items = [dataclasses.replace(s, split=split or known.get(s.clip, "train")) for s in items]
     run_sources(ctx.obj, items, progress)
 
 
