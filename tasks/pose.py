@@ -1,8 +1,9 @@
 """Stage ``pose``: a 9-DoF pose per annotated track from its 3D<->2D correspondences (section 3.4).
 
 Reads: the clip's ``correspondences`` partition (normalised clicks, CAD-frame points, mirror
-flag), its ``frames`` (the key-frames' cameras: K in pixels, world->camera R, t) and
-``cad_models`` (class and symmetry of each model). Writes: the clip's ``poses`` partition, one
+flag) of the tracks whose chosen model they use (:func:`answered_correspondences`), its
+``frames`` (the key-frames' cameras: K in pixels, world->camera R, t) and ``cad_models`` (class,
+symmetry and bounding box of each model). Writes: the clip's ``poses`` partition, one
 row per track, with a status (only ``ok`` poses are fit for use; see :mod:`tasks.pose_checks`).
 A clip without correspondences gets an empty partition, and the run's message says so.
 
@@ -33,8 +34,9 @@ def solver_options(cfg: PoseConfig) -> SolverOptions:
 
 
 def correspondences_digest(wh: Warehouse, clip: str) -> str:
-    """Digest of the clip's ``correspondences`` partition (part of the stage's inputs hash)."""
-    return table_digest(wh.read("correspondences", [clip]))
+    """Digest of the clip's :func:`answered_correspondences` (part of the stage's inputs hash: new
+    clicks, or a changed choice of model, re-solve the clip)."""
+    return table_digest(answered_correspondences(wh, clip))
 
 
 MODEL_FACTS = ("cad_id", "class", "symmetry", "extent")
@@ -46,7 +48,7 @@ def cad_models_digest(wh: Warehouse, clip: str) -> str:
     correspondences reference (part of the stage's inputs hash: a re-ingested library that changes
     a model's class, symmetry or bounding box re-solves the clips that use it, and only those). A referenced
     model missing from ``cad_models`` leaves a row with nulls (it turns into ``unknown_cad``)."""
-    needed = sorted(set(wh.read("correspondences", [clip], columns=["cad_id"]).column("cad_id").to_pylist()))
+    needed = sorted(set(answered_correspondences(wh, clip).column("cad_id").to_pylist()))
     if not needed:
         return digest("no models")
     facts = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist() if r["cad_id"] in needed}
@@ -165,9 +167,25 @@ def solve_tracks(tracks: list[TrackInput], opts: SolverOptions, clips: list[str]
     return [next(solved) if t.problem is not None else PoseResult(t.status, t.message) for t in tracks]
 
 
+def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
+    """The clip's ``correspondences`` that answer its current tasks. When they came from label
+    files, only the tracks whose clicks use the model chosen for them now
+    (:func:`tasks.human_tasks.selected_models`): a track whose choice changed, or that no longer
+    exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
+    directly (``bench run --gt-tracks``) are all kept."""
+    corr = wh.read("correspondences", [clip])
+    if clip not in wh.partitions("correspondence_labels"):
+        return corr
+    from tasks.human_tasks import selected_models
+
+    chosen = {str(t): c for t, c in selected_models(wh, clip).items() if c is not None}
+    keep = [chosen.get(t) == c for t, c in zip(corr.column("track_id").to_pylist(), corr.column("cad_id").to_pylist())]
+    return corr.filter(pa.array(keep, pa.bool_()))
+
+
 def solve_clip(wh: Warehouse, cfg: PoseConfig, clip: str, run_id: str) -> StageOutput:
     """Solve the clip's tracks and write its ``poses`` partition (see module docstring)."""
-    corr = wh.read("correspondences", [clip])
+    corr = answered_correspondences(wh, clip)
     if corr.num_rows == 0:
         rows = wh.write("poses", clip, poses_table(clip, [], [], section_hash("pose", cfg)))
         return StageOutput(rows, table_digest(wh.read("poses", [clip])), "no correspondences for this clip: nothing to pose")

@@ -62,7 +62,7 @@ STAGES: dict[str, StageDef] = {
                  "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
                  ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm",
-                  "tasks.pose_batch", "tasks.pose_support"),
+                  "tasks.pose_batch", "tasks.pose_support", "tasks.human_tasks"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
         StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
                  ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_ingest", "cadestate.render"),
@@ -116,8 +116,8 @@ HUMAN_TASK_KINDS = {"manual_tracks": "manual_track", "cad_selection": "cad_selec
 
 def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     """Digests of the warehouse data of one clip that ``stage`` reads besides its upstream stages'
-    outputs: the clip's ``correspondences`` (human labels) and the ``cad_models`` facts (class,
-    symmetry) of the models they reference for ``pose``, the CAD libraries' descriptors and label
+    outputs: the clip's ``correspondences`` (human labels, of the tracks whose chosen model they
+    use) and the ``cad_models`` facts (class, symmetry, bounding box) of their models for ``pose``, the CAD libraries' descriptors and label
     similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
     classes); for the human-task stages, the answers in force of their label kind (ingesting labels
     makes them stale: a rerun resumes them)."""
