@@ -5,7 +5,7 @@ A track is one physical object: a cluster of the clip's detections (at most one 
 ``track_id`` is the track's rank when tracks are ordered by their first detection id, so it is
 the same on every rerun with unchanged inputs (and never depends on the order rows were read).
 A manual track (drawn by people on the val/test splits, paper Sec. 3.1) has the id
-``MANUAL_TRACK_BASE`` + the object's index in the label that drew it: never an automatic id.
+``MANUAL_TRACK_BASE`` + a digest of the drawn object (tasks.manual_tracks.manual_track_ids): never an automatic id.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ MANUAL_TRACKS = TableSpec(
     schema=pa.schema(
         [
             CLIP,
-            column("track_id", pa.int32(), "Track id: MANUAL_TRACK_BASE (1,000,000) + the object's index in its label file."),
+            column("track_id", pa.int32(), "Track id: MANUAL_TRACK_BASE (1,000,000) + a digest of the object (its source_id, else its class and boxes), stable when other objects of the answer change."),
             column("label", pa.string(), "Class the annotator chose (a detector label, as tracks.label)."),
             column("source_id", pa.string(), "The object's id in the annotation tool.", nullable=True),
             column("timestamp_us", pa.int64(), "Frame of the box (a frames row).", unit="µs"),

@@ -9,9 +9,9 @@ before; then it pauses until a label answers the task. The newest label of the t
 answer in force (a newer one replaces it whole); an empty answer ("nothing is missing")
 completes the stage with no manual track.
 
-Each drawn object becomes a track with id ``MANUAL_TRACK_BASE`` + its index in the label
-(:data:`schemas.tracking.MANUAL_TRACK_BASE`), one ``manual_tracks`` row per box, each box
-embedded exactly as the ``embed`` stage embeds detections (:func:`tasks.embed.embed_frame_boxes`
+Each drawn object becomes a track with an id from ``MANUAL_TRACK_BASE`` on, a digest of the
+object (:func:`manual_track_ids`; :data:`schemas.tracking.MANUAL_TRACK_BASE`), one
+``manual_tracks`` row per box, each box embedded exactly as the ``embed`` stage embeds detections (:func:`tasks.embed.embed_frame_boxes`
 with ``[embed]``), so retrieval and the later human tasks take it as any track
 (:mod:`tasks.clip_tracks`). The task id is a digest of what the task asks (key-frame timestamps,
 the tracks' boxes on them, the classes), not of image paths, so labels keep answering it when the
@@ -23,6 +23,7 @@ labels. Writes: ``manual_tracks``, the task file and its ``label_tasks`` row.
 
 from __future__ import annotations
 
+import zlib
 import json
 from collections import defaultdict
 
@@ -96,6 +97,26 @@ def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[M
     return _answers([r for r in rows if r["task_id"] == task_id])
 
 
+def manual_track_ids(rows: list[dict]) -> dict[int, int]:
+    """object_index -> track id of the drawn objects (``manual_track_labels`` rows of one label):
+    ``MANUAL_TRACK_BASE`` + a digest of the object's ``source_id`` (its id in the annotation tool),
+    else of its class and boxes, so a revised answer that drops or reorders objects keeps every
+    other object's id (and the clicks given on it). Clashes take the next free id, in object order."""
+    objects: dict[int, list[dict]] = {}
+    for r in sorted(rows, key=lambda r: (r["object_index"], r["timestamp_us"])):
+        objects.setdefault(r["object_index"], []).append(r)
+    span = 2**31 - 1 - MANUAL_TRACK_BASE
+    ids: dict[int, int] = {}
+    for index, boxes in objects.items():
+        key = boxes[0]["source_id"] or "\n".join([boxes[0]["label"]] + [f"{b['timestamp_us']} {[round(v, 6) for v in b['box']]}"
+                                                                         for b in boxes])
+        offset = zlib.crc32(key.encode()) % span
+        while MANUAL_TRACK_BASE + offset in ids.values():
+            offset = (offset + 1) % span
+        ids[index] = MANUAL_TRACK_BASE + offset
+    return ids
+
+
 def manual_track_table(wh: Warehouse, embed_cfg: EmbedConfig, clip: str, task_id: str, rows: list[dict]) -> pa.Table:
     """``manual_tracks`` of the answer in force (``manual_track_labels`` rows of one label): one row
     per box, with its descriptor."""
@@ -104,11 +125,16 @@ def manual_track_table(wh: Warehouse, embed_cfg: EmbedConfig, clip: str, task_id
     rows = sorted(rows, key=lambda r: (r["object_index"], r["timestamp_us"]))
     if not rows:
         return MANUAL_TRACKS.schema.empty_table()
+    lost = sorted({r["timestamp_us"] for r in rows} - set(frame_of))
+    if lost:
+        raise ValueError(f"clip {clip}: the manual-track label {rows[0]['label_sha256'][:12]} of task {task_id} has boxes "
+                         f"on timestamps that are no frame of the clip any more: {lost[:5]} (µs); answer the new task")
+    ids = manual_track_ids(rows)
     embedder = load_embedder(embed_cfg)
     vectors = embed_frame_boxes(wh, embedder, embed_cfg, clip, [(frame_of[r["timestamp_us"]], r["box"]) for r in rows])
     n = len(rows)
     return pa.table({
-        "clip": [clip] * n, "track_id": pa.array([MANUAL_TRACK_BASE + r["object_index"] for r in rows], pa.int32()),
+        "clip": [clip] * n, "track_id": pa.array([ids[r["object_index"]] for r in rows], pa.int32()),
         "label": [r["label"] for r in rows], "source_id": [r["source_id"] for r in rows],
         "timestamp_us": [r["timestamp_us"] for r in rows], "frame_index": [frame_of[r["timestamp_us"]] for r in rows],
         "box": [list(r["box"]) for r in rows], "vector": vectors_array(vectors), "model_sha256": [embedder.sha256] * n,
