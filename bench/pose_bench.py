@@ -71,16 +71,19 @@ def _ground_truth_keyed(bench_dir: Path, wh: Warehouse, clip: str, rows: list[di
     Correspondences that came through label files (``bench run``, the simulated annotators
     answering the pipeline's tasks) are on pipeline tracks: each is mapped to its ground-truth
     object by :func:`bench.retrieval_bench.track_truth`; tracks matching no object are dropped, and
-    of several tracks of one object the one with most key-frames (then the lowest id) counts.
-    Correspondences written directly on ground-truth tracks (``bench run --gt-tracks``) are keyed
-    by ground-truth ids already."""
-    if clip not in wh.partitions("correspondence_labels"):
-        return rows
+    of several tracks of one object an ``ok`` one with most key-frames (then the lowest id) counts.
+    Correspondences written directly on ground-truth tracks (``bench run --gt-tracks``: the
+    partition is not what the labels give) are keyed by ground-truth ids already."""
     from bench.retrieval_bench import track_truth
+    from cadestate.lineage import table_digest
+    from tasks.label_ingest import correspondence_table
 
+    from_labels = table_digest(correspondence_table(wh, clip)) == table_digest(wh.read("correspondences", [clip]))
+    if clip not in wh.partitions("correspondence_labels") or not from_labels:
+        return rows
     truth = track_truth(bench_dir, wh, clip)
     best: dict[str, dict] = {}
-    for r in sorted(rows, key=lambda r: (-r["num_keyframes"], int(r["track_id"]))):
+    for r in sorted(rows, key=lambda r: (r["status"] != "ok", -r["num_keyframes"], int(r["track_id"]))):
         gt = truth.get(int(r["track_id"]))
         if gt is not None and gt not in best:
             best[gt] = {**r, "track_id": gt, "pipeline_track_id": r["track_id"]}

@@ -157,7 +157,8 @@ def linear_init(pts: torch.Tensor, xn: torch.Tensor, kf: torch.Tensor, pmask: to
     pick = lambda t, a: torch.gather(t, 2, a.view(B, F, 1, *([1] * (t.dim() - 3))).expand(  # noqa: E731
         B, F, 1, *t.shape[3:]))[:, :, 0]
     if O > 1:
-        for _ in range(sweeps):
+        assign, searched = _exhaustive_where_small(M, v, c, omask, fmask, unused)
+        for _ in range(sweeps if not bool(searched.all()) else 0):
             for f in range(F):
                 Mt, vt, ct = pick(M, assign).sum(1), pick(v, assign).sum(1), pick(c, assign).sum(1)
                 Mt = Mt[:, None] - pick(M, assign)[:, f, None] + M[:, f]  # float[B, O, 12, 12]
@@ -166,8 +167,7 @@ def linear_init(pts: torch.Tensor, xn: torch.Tensor, kf: torch.Tensor, pmask: to
                 _, res = solve(Mt, vt, ct)
                 res = torch.where(omask, res, torch.full_like(res, float("inf")))
                 best = torch.nan_to_num(res, nan=float("inf")).argmin(-1)
-                assign[:, f] = torch.where(fmask[:, f], best, assign[:, f])
-        assign = _exhaustive_where_small(M, v, c, omask, fmask, unused, assign)
+                assign[:, f] = torch.where(fmask[:, f] & ~searched, best, assign[:, f])
     theta, _ = solve(pick(M, assign).sum(1), pick(v, assign).sum(1), pick(c, assign).sum(1))
     theta = torch.einsum("bij,bj->bi", Q, theta)
     A, T = theta[:, :9].reshape(B, 3, 3), theta[:, 9:]
@@ -187,23 +187,26 @@ def _solve_normal(Mt: torch.Tensor, vt: torch.Tensor, ct: torch.Tensor, unused: 
 
 
 def _exhaustive_where_small(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, omask: torch.Tensor, fmask: torch.Tensor,
-                            unused: torch.Tensor, assign: torch.Tensor) -> torch.Tensor:
-    """``assign`` int[B, F] with the objects whose assignments number at most
-    :data:`MAX_ASSIGNMENTS` (their valid offsets ^ (their key-frames - 1), grouped by offset count)
-    replaced by :func:`_exhaustive_assignment`. Key-frames are a prefix of each object's F."""
+                            unused: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Offsets int[B, F] of the objects whose assignments number at most :data:`MAX_ASSIGNMENTS`
+    (their valid offsets ^ (their key-frames - 1); grouped by offset count and key-frame count) by
+    :func:`_exhaustive_assignment`, 0 elsewhere; and which objects those are, bool[B] (objects
+    with one offset count as searched). Key-frames are a prefix of each object's F."""
     n_off, n_frames = omask.sum(1), fmask.sum(1)
-    out = assign.clone()
-    for k in sorted(set(n_off.tolist()) - {1}):
-        rows = torch.nonzero(n_off == k)[:, 0]
-        f = int(n_frames[rows].max())
-        if f > 1 and k ** (f - 1) <= MAX_ASSIGNMENTS:
-            out[rows, :f] = _exhaustive_assignment(M[rows, :f, :k], v[rows, :f, :k], c[rows, :f, :k], omask[rows, :k],
-                                                   fmask[rows, :f], unused[rows])
-    return out
+    out = torch.zeros(fmask.shape, dtype=torch.long)
+    searched = (n_off <= 1) | (n_frames <= 1)
+    for k, f in sorted({(int(k), int(f)) for k, f in zip(n_off.tolist(), n_frames.tolist()) if k > 1 and f > 1}):
+        if k ** (f - 1) > MAX_ASSIGNMENTS:
+            continue
+        rows = torch.nonzero((n_off == k) & (n_frames == f))[:, 0]
+        out[rows, :f] = _exhaustive_assignment(M[rows, :f, :k], v[rows, :f, :k], c[rows, :f, :k], omask[rows, :k],
+                                               fmask[rows, :f], unused[rows])
+        searched[rows] = True
+    return out, searched
 
 
 def _exhaustive_assignment(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, omask: torch.Tensor, fmask: torch.Tensor,
-                           unused: torch.Tensor, chunk: int = 64) -> torch.Tensor:
+                           unused: torch.Tensor, chunk: int = 16) -> torch.Tensor:
     """The symmetric offset per key-frame int[B, F] whose summed linear fit has the least
     residual, over every assignment: the first key-frame keeps offset 0 (the offsets form a group,
     so turning them all by one of them turns A alike and leaves the residual), the others take

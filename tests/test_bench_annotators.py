@@ -395,7 +395,7 @@ def test_merge_rounds_keeps_the_last_work_and_sums_the_time():
     assert merge_rounds([StageReport("c", "ingest", "cached", 0, 0.0)]) == [StageReport("c", "ingest", "cached", 0, 0.0)]
 
 
-def test_stage_seconds_sums_every_run_of_a_stage(tmp_path):
+def test_stage_seconds_sums_the_runs_of_the_current_output(tmp_path):
     import datetime as dt
 
     import pyarrow as pa
@@ -406,10 +406,12 @@ def test_stage_seconds_sums_every_run_of_a_stage(tmp_path):
 
     wh = Warehouse(tmp_path / "w")
     when = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
-    rows = [{"clip": "a", "run_id": f"r{i}", "stage": stage, "status": status, "duration_s": s, "started_at": when,
-             "config_hash": "c", "inputs_hash": "i", "output_hash": "o", "code_hash": "k", "rows_written": 0, "message": ""}
-            for i, (stage, status, s) in enumerate([("detect", "completed", 2.0), ("cad_selection", "paused", 0.5),
-                                                    ("cad_selection", "completed", 0.25)])]
+    runs = [("detect", "completed", 9.0), ("detect", "completed", 2.0), ("cad_selection", "completed", 4.0),
+            ("cad_selection", "paused", 0.5), ("cad_selection", "completed", 0.25), ("pose", "paused", 1.0)]
+    rows = [{"clip": "a", "run_id": f"r{i}", "stage": stage, "status": status, "duration_s": s,
+             "started_at": when + dt.timedelta(seconds=i), "config_hash": "c", "inputs_hash": "i", "output_hash": "o",
+             "code_hash": "k", "rows_written": 0, "message": ""} for i, (stage, status, s) in enumerate(runs)]
     schema = TABLES["runs"].schema
     wh.write("runs", "a", pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in rows], schema=schema))
-    assert stage_seconds(wh, ["a", "b"]) == {"a": {"detect": 2.0, "cad_selection": 0.75}}
+    # the last completed run and the pauses it resumed; older history left out; a stage never completed: all
+    assert stage_seconds(wh, ["a", "b"]) == {"a": {"detect": 2.0, "cad_selection": 0.75, "pose": 1.0}}
