@@ -24,7 +24,7 @@ label files (validated by :func:`tasks.labels.validate_label`) to ``<bench>/labe
 - ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model
   against the true model at the true pose, on the task's key-frames; unmatched tracks: reject.
 
-:func:`annotate_until_done` is the ``cadestate bench run --answer-tasks`` loop: run the clips,
+:func:`annotate_until_done` is the ``cadestate bench run`` loop (the default; ``--gt-tracks`` skips it): run the clips,
 answer their open tasks, ingest the labels (:func:`tasks.label_ingest.ingest_labels`), rerun the
 clips that got labels, until no clip waits or ``max_rounds``.
 """
@@ -37,7 +37,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import trimesh
 
 from bench.annotators import Pose, annotate_correspondences, draw_manual_track, mesh_shape_distance, select_cad, verify_pose

@@ -60,7 +60,10 @@ def _automatic(wh: Warehouse, clip: str, vectors: bool) -> list[ClipTrack]:
                                                              columns=["owner_id", "vector"]).to_pylist()}
     boxes: dict[int, list[TrackBox]] = {}
     for m in sorted(members, key=lambda m: (m["track_id"], m["det_id"])):
-        d = dets[m["det_id"]]
+        d = dets.get(m["det_id"])
+        if d is None:
+            raise MissingDescriptor(f"clip {clip}: track {m['track_id']} lists detection {m['det_id']}, which `detections` "
+                                    "does not have: rerun its tracking stage")
         if vectors and m["det_id"] not in looks:
             raise MissingDescriptor(f"clip {clip}: detection {m['det_id']} has no descriptor: rerun its embed stage")
         vector = np.asarray(looks[m["det_id"]], np.float32) if vectors else None

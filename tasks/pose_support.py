@@ -24,8 +24,8 @@ Procedure (:func:`solve_with_support`), per group of objects (a clip):
    :func:`tasks.pose_lm.bottom_sd`; it grows as parallax and clicks shrink): the weighted mean of
    the bottoms within ``floor_max_gap`` object heights of their weighted median
    (:func:`weighted_median`; the objects that rest on it: one standing on something else, or
-   badly solved, does not pull it). Fewer than :data:`MIN_FLOOR_OBJECTS` such objects: no floor (a
-   median of one object is no check on it), and no prior in that clip;
+   badly solved, does not pull it). Fewer than :data:`MIN_FLOOR_OBJECTS` such objects before that
+   cut: no floor (a median of one object is no check on it), and no prior in that clip;
 3. candidate supports of an object that rests (``on_floor`` or ``rests``, with a known bounding
    box and a pose): the floor, and the top (bottom + height) of every other object of the clip
    that can hold it (:func:`can_hold`: status ``ok``, upright, and the object's bottom centre,

@@ -106,7 +106,7 @@ def test_cli_defaults_are_the_default_benchmark():
 
 
 def test_simulated_annotators_answer_through_label_files(benchmark, small_cad_library, tmp_path):
-    """`bench run --answer-tasks`: run, answer the open tasks with label files, ingest, rerun,
+    """`bench run` (its default loop): run, answer the open tasks with label files, ingest, rerun,
     until no clip waits; every label file written is valid and ingested."""
     import shutil
 

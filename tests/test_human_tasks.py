@@ -26,8 +26,6 @@ STAMPS = [i * 100_000 for i in range(20)]
 CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
 
 
-
-
 @pytest.fixture
 def hwh(tmp_path) -> Warehouse:
     """A clip of 20 frames with 3 tracks (0, 1 chairs; 2 a table) and 2 CAD candidates each."""

@@ -33,8 +33,6 @@ CUBE = [[-0.5, -0.5, -0.5], [0.5, -0.5, -0.5], [0.5, 0.5, -0.5], [-0.5, 0.5, 0.5
 TOP = [[-0.4, 0.5, -0.3], [0.4, 0.5, -0.3], [0.4, 0.5, 0.3], [-0.4, 0.5, 0.3]]  # y = 0.5: co-planar, normal +Y
 
 
-
-
 def _kf(ts: int, box=(0.2, 0.2, 0.6, 0.6)) -> KeyframeView:
     return KeyframeView(timestamp_us=ts, frame_index=ts // 100_000, image_path=f"media/frames/{CLIP}/v/{ts}.jpg", box=box)
 
