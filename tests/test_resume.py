@@ -1,7 +1,7 @@
 """Pause and resume end where an uninterrupted run ends (issue 8).
 
-A benchmark clip runs through the real flow with a real (small) CAD library: it pauses at each
-human task, the simulated annotators answer through label files, ``labels ingest`` resumes it.
+A benchmark clip, taken as val, runs through the real flow with a real (small) CAD library: it
+pauses at each of the four human tasks, the simulated annotators answer through label files, ``labels ingest`` resumes it.
 The uninterrupted run is the same clip in a fresh warehouse that holds every answer before the
 clip runs (the label tables copied over; task ids depend only on what a task shows, so the
 answers fit): it must go straight through, pausing nowhere, to the same tables.
@@ -31,7 +31,7 @@ SPEC = WalkthroughSpec(width=480, height=270, num_video_frames=60, sample_every=
 SEED = 3
 LABEL_TABLES = ("label_tasks", "label_files", "manual_track_labels", "cad_selection_labels", "correspondence_labels",
                 "verification_labels", "correspondences")
-RESULT_TABLES = ("tracks", "cad_candidates", "poses", "verified_poses")
+RESULT_TABLES = ("tracks", "manual_tracks", "cad_candidates", "poses", "verified_poses")
 VOLATILE = {"run_id", "created_at", "ingested_at"}  # when and by which run, not what
 
 
@@ -60,14 +60,14 @@ def _content(wh: Warehouse, table: str, clip: str) -> pa.Table:
 def test_resumed_clip_equals_an_uninterrupted_run(library, tmp_path):
     folder = tmp_path / "bench"
     manifest, _ = generate(folder, SEED, 1, Warehouse(library.warehouse.root), SPEC, show_progress=False)
-    clip, source = manifest.clips[0], clip_sources(folder)[0]
+    clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")  # all four tasks
 
     resumed = _copy(library, tmp_path / "resumed")
     wa = Warehouse(resumed.warehouse.root)
     reports, waiting = annotate_until_done(folder, wa, [clip], lambda _: run_clips([source], resumed, show_progress=False))
     assert waiting == [] and not [r for r in reports if r.state == "failed"]
     paused_at = {r.stage for r in reports if r.state == "paused"}
-    assert {"cad_selection", "correspondence_task", "verification"} <= paused_at, "the clip paused at each task"
+    assert {"manual_tracks", "cad_selection", "correspondence_task", "verification"} <= paused_at, "it paused at each task"
     assert wa.read("verified_poses", [clip]).num_rows >= 1, "some poses went all the way to verification"
     scored = pose_accuracy(folder, wa)  # pipeline tracks mapped to ground-truth objects
     assert scored["annotated_objects"] >= 1 and scored["verification"]["verdicts"] == wa.read("verified_poses", [clip]).num_rows
