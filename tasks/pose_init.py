@@ -191,7 +191,8 @@ def _exhaustive_where_small(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, o
     """Offsets int[B, F] of the objects whose assignments number at most :data:`MAX_ASSIGNMENTS`
     (their valid offsets ^ (their key-frames - 1); grouped by offset count and key-frame count) by
     :func:`_exhaustive_assignment`, 0 elsewhere; and which objects those are, bool[B] (objects
-    with one offset count as searched). Key-frames are a prefix of each object's F."""
+    with one offset count as searched). Key-frames and valid offsets are prefixes of F and O
+    (:func:`symmetry_offsets`)."""
     n_off, n_frames = omask.sum(1), fmask.sum(1)
     out = torch.zeros(fmask.shape, dtype=torch.long)
     searched = (n_off <= 1) | (n_frames <= 1)
@@ -199,19 +200,19 @@ def _exhaustive_where_small(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, o
         if k ** (f - 1) > MAX_ASSIGNMENTS:
             continue
         rows = torch.nonzero((n_off == k) & (n_frames == f))[:, 0]
-        out[rows, :f] = _exhaustive_assignment(M[rows, :f, :k], v[rows, :f, :k], c[rows, :f, :k], omask[rows, :k],
-                                               fmask[rows, :f], unused[rows])
+        out[rows, :f] = _exhaustive_assignment(M[rows, :f, :k], v[rows, :f, :k], c[rows, :f, :k], unused[rows])
         searched[rows] = True
     return out, searched
 
 
-def _exhaustive_assignment(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, omask: torch.Tensor, fmask: torch.Tensor,
-                           unused: torch.Tensor, chunk: int = 16) -> torch.Tensor:
+def _exhaustive_assignment(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, unused: torch.Tensor,
+                           chunk: int = 16) -> torch.Tensor:
     """The symmetric offset per key-frame int[B, F] whose summed linear fit has the least
     residual, over every assignment: the first key-frame keeps offset 0 (the offsets form a group,
     so turning them all by one of them turns A alike and leaves the residual), the others take
-    each of the O offsets. M float[B, F, O, 12, 12], v float[B, F, O, 12], c float[B, F, O]: the
-    normal equations of each (key-frame, offset); ``unused`` as in :func:`_solve_normal`."""
+    each of the O offsets. Every object has all F key-frames and all O offsets (the caller groups
+    them so). M float[B, F, O, 12, 12], v float[B, F, O, 12], c float[B, F, O]: the normal
+    equations of each (key-frame, offset); ``unused`` as in :func:`_solve_normal`."""
     B, F, O = c.shape
     grids = [torch.zeros(1, dtype=torch.long)] + [torch.arange(O)] * (F - 1)
     combos = torch.cartesian_prod(*grids)  # int[C, F]
@@ -221,8 +222,7 @@ def _exhaustive_assignment(M: torch.Tensor, v: torch.Tensor, c: torch.Tensor, om
     for start in range(0, len(combos), chunk):
         cc = combos[start:start + chunk].T  # int[F, K]
         _, res = _solve_normal(M[:, frames, cc].sum(1), v[:, frames, cc].sum(1), c[:, frames, cc].sum(1), unused)  # [B, K]
-        valid = (omask[:, cc] | ~fmask[:, :, None]).all(1)  # bool[B, K]: every used offset exists for the object
-        res = torch.where(valid, torch.nan_to_num(res, nan=float("inf")), torch.full_like(res, float("inf")))
+        res = torch.nan_to_num(res, nan=float("inf"))
         k = res.argmin(1)
         better = res[torch.arange(B), k] < best_res
         best_res = torch.where(better, res[torch.arange(B), k], best_res)

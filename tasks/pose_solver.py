@@ -295,23 +295,28 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
     """Refine the given starts: Adam (``opts.iterations``, when ``adam``) then Levenberg-Marquardt
     (``opts.lm_iterations``, :func:`tasks.pose_lm.lm_solve`). Returns the final loss terms (and
     ``phi``), R, s, T (float[B, ...]) and the iterations run per object int[B]."""
-    offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
-    is36 = (b.sym >= 36).to(DTYPE)[:, None]
-    scale_t = _start_scale(b, T0)
+    pb = _problem(b, T0)
     its = torch.zeros(b.pts.shape[0], dtype=torch.long)
     with torch.no_grad():
         R, ls, T, phi = R0, torch.log(s0.clamp(min=1e-6)), T0, phi0
     if adam and opts.iterations > 0:
-        R, ls, T, phi = _adam(b, R0, s0, T0, phi0, offsets, omask, scale_t, is36, opts)
+        R, ls, T, phi = _adam(b, R0, s0, T0, phi0, pb.offsets, pb.omask, pb.scale_t, (b.sym >= 36).to(DTYPE)[:, None], opts)
         its += opts.iterations
     with torch.no_grad():
         if opts.lm_iterations > 0:
-            pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), is36 * b.fmask, scale_t)
             R, ls, T, phi, run = lm_solve(pb, R, ls, T, phi, opts.lm_iterations, opts.min_depth, opts.alpha, opts.beta,
                                           opts.huber_px)
             its += run
         s = tie_scales(torch.exp(ls), b.axis, b.sym >= 36)
-        return {**evaluate(b, R, s, T, phi, offsets, omask, opts), "phi": phi}, R, s, T, its
+        return {**evaluate(b, R, s, T, phi, pb.offsets, pb.omask, opts), "phi": phi}, R, s, T, its
+
+
+def _problem(b: Batch, T: torch.Tensor) -> Problem:
+    """The :class:`tasks.pose_lm.Problem` of batch ``b``: its discrete symmetric offsets (36-way
+    models get a free angle instead), scale ties, and translation unit from the translations T."""
+    offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
+    return Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
+                   _start_scale(b, T))
 
 
 def solve_poses(objects: list[ObjectCorrespondences], opts: SolverOptions = SolverOptions()) -> list[PoseResult]:
@@ -409,7 +414,5 @@ def _solve(objects, todo, axes, opts, results) -> None:
 def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):
     """:func:`tasks.pose_lm.bottom_sd` float[B] of the final poses."""
     with torch.no_grad():
-        offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
-        pb = Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
-                     _start_scale(b, T))
-        return bottom_sd(pb, R, torch.log(s.clamp(min=1e-12)), T, phi, opts.min_depth, opts.alpha, opts.beta, opts.huber_px)
+        return bottom_sd(_problem(b, T), R, torch.log(s.clamp(min=1e-12)), T, phi, opts.min_depth, opts.alpha, opts.beta,
+                         opts.huber_px)
