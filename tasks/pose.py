@@ -33,22 +33,24 @@ def solver_options(cfg: PoseConfig) -> SolverOptions:
     return SolverOptions(**{k: v for k, v in dataclasses.asdict(cfg).items() if k in SOLVER_FIELDS})
 
 
-def correspondences_digest(wh: Warehouse, clip: str) -> str:
-    """Digest of the clip's :func:`answered_correspondences` (part of the stage's inputs hash: new
-    clicks, or a changed choice of model, re-solve the clip)."""
-    return table_digest(answered_correspondences(wh, clip))
+def input_digests(wh: Warehouse, clip: str) -> list[str]:
+    """The stage's inputs besides ``frames``, from one read: the digest of the clip's
+    :func:`answered_correspondences` (new clicks, or a changed choice of model, re-solve the clip)
+    and :func:`cad_models_digest` of the models they use."""
+    corr = answered_correspondences(wh, clip)
+    return [table_digest(corr), cad_models_digest(wh, corr)]
 
 
 MODEL_FACTS = ("cad_id", "class", "symmetry", "extent")
 """The ``cad_models`` columns the stage reads."""
 
 
-def cad_models_digest(wh: Warehouse, clip: str) -> str:
-    """Digest of the ``cad_models`` facts (:data:`MODEL_FACTS`) of the models the clip's
-    correspondences reference (part of the stage's inputs hash: a re-ingested library that changes
-    a model's class, symmetry or bounding box re-solves the clips that use it, and only those). A referenced
-    model missing from ``cad_models`` leaves a row with nulls (it turns into ``unknown_cad``)."""
-    needed = sorted(set(answered_correspondences(wh, clip).column("cad_id").to_pylist()))
+def cad_models_digest(wh: Warehouse, corr: pa.Table) -> str:
+    """Digest of the ``cad_models`` facts (:data:`MODEL_FACTS`) of the models that the
+    correspondences ``corr`` reference (a re-ingested library that changes a model's class,
+    symmetry or bounding box re-solves the clips that use it, and only those). A referenced model
+    missing from ``cad_models`` leaves a row with nulls (it turns into ``unknown_cad``)."""
+    needed = sorted(set(corr.column("cad_id").to_pylist()))
     if not needed:
         return digest("no models")
     facts = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist() if r["cad_id"] in needed}

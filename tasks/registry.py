@@ -135,9 +135,9 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
             return [digest(*similarity_labels(wh)), *answers]
         return answers
     if stage == "pose":
-        from tasks.pose import cad_models_digest, correspondences_digest
+        from tasks.pose import input_digests
 
-        return [correspondences_digest(wh, clip), cad_models_digest(wh, clip)]
+        return input_digests(wh, clip)
     return []
 
 

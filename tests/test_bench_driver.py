@@ -183,15 +183,15 @@ def _answer_each_task_kind(folder, wh, clip):
     # taking a model back (a newer cad_selection label: none fits) takes the track's pose back too
     from tasks.human_tasks import cad_selection_task_id
     from tasks.labels import label_document
-    from tasks.pose import correspondences_digest
+    from tasks.registry import clip_inputs
 
     posed = sorted(int(t) for t in wh.read("poses", [clip]).column("track_id").to_pylist())
-    before = correspondences_digest(wh, clip)
+    before = clip_inputs("pose", wh, clip)[0]
     doc = label_document("cad_selection", clip, cad_selection_task_id(wh, clip), [{"track_id": posed[0], "cad_id": None}],
                          annotator="t", created_at="2030-01-01T00:00:00+00:00")
     (label_dir(folder, clip) / "take-back.json").write_text(json.dumps(doc))
     assert ingest_labels(wh, label_dir(folder, clip) / "take-back.json").ok
-    assert correspondences_digest(wh, clip) != before  # the pose stage is stale
+    assert clip_inputs("pose", wh, clip)[0] != before  # the pose stage is stale
     solve_clip(wh, PoseConfig(), clip, "t")
     assert sorted(int(t) for t in wh.read("poses", [clip]).column("track_id").to_pylist()) == posed[1:]
 

@@ -12,7 +12,8 @@ from cadestate.geometry import camera_to_world
 from schemas.cad import CAD_MODELS
 from schemas.core import FRAMES
 from schemas.pose import CORRESPONDENCES
-from tasks.pose import cad_models_digest, correspondences_digest, solve_clip, solver_options
+from cadestate.lineage import table_digest
+from tasks.pose import answered_correspondences, cad_models_digest, solve_clip, solver_options
 from tasks.registry import STAGES, clip_inputs
 from tests.test_pose_solver import K, make_object
 
@@ -83,7 +84,8 @@ def test_clip_without_correspondences_writes_an_empty_partition(wh):
 def test_changed_correspondences_change_the_inputs_hash(posed_clip):
     wh, problem, _ = posed_clip
     before = clip_inputs("pose", wh, "c1")
-    assert before == [correspondences_digest(wh, "c1"), cad_models_digest(wh, "c1")]
+    corr = answered_correspondences(wh, "c1")
+    assert before == [table_digest(corr), cad_models_digest(wh, corr)]
     rows = wh.read("correspondences", ["c1"]).to_pylist()
     rows[0]["point_2d"] = [0.5, 0.5]
     wh.write("correspondences", "c1", pa.Table.from_pylist(rows, schema=CORRESPONDENCES.schema))
@@ -94,15 +96,15 @@ def test_changed_model_facts_change_the_inputs_hash(posed_clip):
     """The class and symmetry the solver uses come from cad_models: a change there re-solves the
     clip (lineage), a change to a model the clip does not use does not."""
     wh, problem, _ = posed_clip
-    before = cad_models_digest(wh, "c1")
+    before = cad_models_digest(wh, answered_correspondences(wh, "c1"))
     other = [_model("lib.box", "table", 2), _model("lib.other", "chair", 1)]
     wh.write("cad_models", "lib", pa.Table.from_pylist(other, schema=CAD_MODELS.schema))
-    assert cad_models_digest(wh, "c1") == before  # lib.other is not referenced by c1
+    assert cad_models_digest(wh, answered_correspondences(wh, "c1")) == before  # lib.other is not referenced by c1
     wh.write("cad_models", "lib", pa.Table.from_pylist([_model("lib.box", "table", 4)], schema=CAD_MODELS.schema))
-    assert cad_models_digest(wh, "c1") != before
+    assert cad_models_digest(wh, answered_correspondences(wh, "c1")) != before
     wh.write("cad_models", "lib", pa.Table.from_pylist([_model("lib.box", "cabinet", 2)], schema=CAD_MODELS.schema))
-    assert cad_models_digest(wh, "c1") != before
-    assert clip_inputs("pose", wh, "c1")[1] == cad_models_digest(wh, "c1")
+    assert cad_models_digest(wh, answered_correspondences(wh, "c1")) != before
+    assert clip_inputs("pose", wh, "c1")[1] == cad_models_digest(wh, answered_correspondences(wh, "c1"))
 
 
 def test_registry_and_config():
