@@ -416,13 +416,9 @@ def draw_manual_track(frames: FramesFile | None, gt_obj: ObjectAnnotation, noise
     stamps = {f.timestamp for f in frames.frames} if frames is not None else None
     entries = sorted((e for e in gt_obj.track if e.box[2] > e.box[0] and e.box[3] > e.box[1]
                       and (stamps is None or e.timestamp in stamps)), key=lambda e: e.timestamp)
-    n = noise.track_keyframes
-    if len(entries) > n:
-        t = np.array([e.timestamp for e in entries], np.float64)
-        pick = np.unique([int(np.argmin(np.abs(t - target))) for target in np.linspace(t[0], t[-1], n)])
-        if len(pick) < n:  # irregular timestamps: fall back to regular spacing in index
-            pick = np.unique(np.round(np.linspace(0, len(entries) - 1, n)).astype(int))
-        entries = [entries[i] for i in pick]
+    from tasks.manual_tracks import regular_keyframes  # the manual-track task's own spacing
+
+    entries = [entries[i] for i in regular_keyframes([e.timestamp for e in entries], noise.track_keyframes)]
     out = []
     for e in entries:
         box = np.asarray(e.box, np.float64)

@@ -97,43 +97,21 @@ def run(models: int = 12_000, views: int = 10, tracks: int = 30, per_track: int 
             "retrieval_s_per_clip": round(statistics.median(seconds), 3)}
 
 
-def drawn_box_truth(bench_dir: Path, clip: str, boxes: list[tuple[int, tuple]]) -> list[str]:
-    """The ground-truth object of each drawn box (timestamp_us, (ymin, xmin, ymax, xmax)): matched
-    to the ground-truth boxes of its frame as detections are (Hungarian, IoU >= 0.5); "" when none."""
-    from scipy.optimize import linear_sum_assignment
-
-    from bench.ignore import box_iou
-
-    gt: dict[int, list[tuple[tuple, str]]] = {}
-    for o in read_objects(Path(bench_dir) / clip / "objects.json").objects:
-        for e in o.track:
-            gt.setdefault(e.timestamp, []).append((e.box, o.track_id))
-    truth = [""] * len(boxes)
-    for ts in {t for t, _ in boxes}:
-        mine = [k for k, (t, _) in enumerate(boxes) if t == ts]
-        theirs = gt.get(ts, [])
-        if not theirs:
-            continue
-        iou = box_iou(np.array([boxes[k][1] for k in mine]), np.array([b for b, _ in theirs]))
-        for r, c in zip(*linear_sum_assignment(-iou)):
-            if iou[r, c] >= 0.5:
-                truth[mine[r]] = theirs[c][1]
-    return truth
-
-
 def track_truth(bench_dir: Path, wh: Warehouse, clip: str) -> dict[int, str]:
     """Pipeline track id -> ground-truth track id, for tracks (automatic and manual,
     :func:`tasks.clip_tracks.clip_tracks`) whose boxes mostly (> half) match (IoU >= 0.5) boxes of
-    one ground-truth object: detections as :func:`bench.track_bench.detector_clip` matches them,
-    drawn boxes by :func:`drawn_box_truth`."""
-    from bench.track_bench import detector_clip
+    one ground-truth object, matched as :func:`bench.track_bench.match_truth` matches boxes
+    (detections through :func:`bench.track_bench.detector_clip`)."""
+    from bench.track_bench import detector_clip, gt_clip, match_truth
     from tasks.clip_tracks import clip_tracks
 
     tracks = clip_tracks(wh, clip)
     cb = detector_clip(wh, bench_dir, clip)
     detected = dict(zip(cb.det_id.tolist(), cb.truth.tolist())) if cb is not None else {}
     drawn = [(t.track_id, b) for t in tracks.values() for b in t.boxes if b.det_id is None]
-    drawn_truth = drawn_box_truth(bench_dir, clip, [(b.timestamp_us, b.box) for _, b in drawn])
+    drawn_truth = (match_truth(np.array([b.frame_index for _, b in drawn], np.int64),
+                               np.array([b.box for _, b in drawn], np.float64).reshape(-1, 4),
+                               gt_clip(bench_dir, clip, embed=False)) if drawn else [])
     members: dict[int, list[str]] = {t: [detected.get(b.det_id, "") for b in track.boxes if b.det_id is not None]
                                      for t, track in tracks.items()}
     for (t, _), truth in zip(drawn, drawn_truth):

@@ -138,13 +138,29 @@ def open_warehouse(root: str | Path | None = None):
     return Warehouse(root if root is not None else load_config().warehouse.root)
 
 
-def detector_clip(wh, bench_dir: Path, clip: str) -> ClipBoxes | None:
-    """The clip's detector boxes from the warehouse ``wh``, each matched to a ground-truth box
-    of its frame (Hungarian, IoU >= 0.5) for its true identity; None when not detected yet."""
+def match_truth(frame: np.ndarray, boxes: np.ndarray, gt: ClipBoxes) -> np.ndarray:
+    """The ground-truth identity object[N] of each box float[N, 4] (ymin, xmin, ymax, xmax,
+    normalised) on frame int[N]: matched to ``gt``'s boxes of its frame (Hungarian on IoU, kept
+    when >= 0.5); "" when unmatched."""
     from scipy.optimize import linear_sum_assignment
 
     from bench.ignore import box_iou
 
+    truth = np.full(len(frame), "", dtype=object)
+    for f in np.unique(frame):
+        p, g = np.flatnonzero(frame == f), np.flatnonzero(gt.frame_index == f)
+        if len(g) == 0:
+            continue
+        iou = box_iou(boxes[p], gt.boxes[g])
+        r, c = linear_sum_assignment(-iou)
+        ok = iou[r, c] >= 0.5
+        truth[p[r[ok]]] = gt.truth[g[c[ok]]]
+    return truth
+
+
+def detector_clip(wh, bench_dir: Path, clip: str) -> ClipBoxes | None:
+    """The clip's detector boxes from the warehouse ``wh``, each matched to a ground-truth box
+    of its frame (:func:`match_truth`) for its true identity; None when not detected yet."""
     if clip not in wh.partitions("detections") or clip not in wh.partitions("embeddings"):
         return None
     d = wh.read("detections", partitions=[clip], columns=["det_id", "timestamp_us", "frame_index", "box", "label", "score"]).to_pydict()
@@ -158,16 +174,7 @@ def detector_clip(wh, bench_dir: Path, clip: str) -> ClipBoxes | None:
     det_id = np.array(get("det_id"), dtype=np.int64)
     frame = np.array(get("frame_index"), dtype=np.int64)
     boxes = np.array(get("box"), dtype=np.float64).reshape(-1, 4)
-    gt = gt_clip(bench_dir, clip, embed=False)
-    truth = np.full(len(det_id), "", dtype=object)
-    for f in np.unique(frame):
-        p, g = np.flatnonzero(frame == f), np.flatnonzero(gt.frame_index == f)
-        if len(g) == 0:
-            continue
-        iou = box_iou(boxes[p], gt.boxes[g])
-        r, c = linear_sum_assignment(-iou)
-        ok = iou[r, c] >= 0.5
-        truth[p[r[ok]]] = gt.truth[g[c[ok]]]
+    truth = match_truth(frame, boxes, gt_clip(bench_dir, clip, embed=False))
     return ClipBoxes(clip, det_id, frame, np.array(get("timestamp_us"), dtype=np.int64), boxes,
                      np.array(get("label"), dtype=object), np.array(get("score"), dtype=np.float64), truth,
                      np.array([vec[i] for i in det_id], dtype=np.float32), cams)

@@ -11,8 +11,8 @@ completes the stage with no manual track.
 
 Each drawn object becomes a track with an id from ``MANUAL_TRACK_BASE`` on, a digest of the
 object (:func:`manual_track_ids`; :data:`schemas.tracking.MANUAL_TRACK_BASE`), one
-``manual_tracks`` row per box, each box embedded exactly as the ``embed`` stage embeds detections (:func:`tasks.embed.embed_frame_boxes`
-with ``[embed]``), so retrieval and the later human tasks take it as any track
+``manual_tracks`` row per box, each box embedded exactly as the ``embed`` stage embeds
+detections (:func:`tasks.embed.embed_frame_boxes` with ``[embed]``), so retrieval and the later human tasks take it as any track
 (:mod:`tasks.clip_tracks`). The task id is a digest of what the task asks (key-frame timestamps,
 the tracks' boxes on them, the classes), not of image paths, so labels keep answering it when the
 frames are extracted again.
@@ -23,8 +23,8 @@ labels. Writes: ``manual_tracks``, the task file and its ``label_tasks`` row.
 
 from __future__ import annotations
 
-import zlib
 import json
+import zlib
 from collections import defaultdict
 
 import numpy as np
