@@ -104,3 +104,29 @@ def table_rows(table: str, rows: list[dict]):
 
     schema = TABLES[table].schema
     return pa.Table.from_pylist([{f.name: r.get(f.name, _filler(f)) for f in schema} for r in rows], schema=schema)
+
+
+@pytest.fixture(scope="session")
+def small_library_warehouse(tmp_path_factory):
+    """A Config whose warehouse holds SMALL_LIBRARY with every library stage (views, descriptors,
+    label similarity) run by the real flow, once per session; tests copy it (:func:`warehouse_copy`)."""
+    from cadestate.config import CadIngestConfig, CadViewsConfig, Config, WarehouseConfig
+    from flows.cad_library import run_cad_library
+
+    root = tmp_path_factory.mktemp("library")
+    config = Config(warehouse=WarehouseConfig(root=str(root)), cad_ingest=CadIngestConfig(samples=512, workers=1),
+                    cad_views=CadViewsConfig(views=4, size=96))
+    reports = run_cad_library(small_library_items(), config, show_progress=False)
+    assert {r.state for r in reports} == {"completed"}, [r.message for r in reports if r.state != "completed"]
+    return config
+
+
+def warehouse_copy(config, to):
+    """``config`` with its warehouse copied to the folder ``to``."""
+    import dataclasses
+    import shutil
+
+    from cadestate.config import WarehouseConfig
+
+    shutil.copytree(config.warehouse.root, to)
+    return dataclasses.replace(config, warehouse=WarehouseConfig(root=str(to)))

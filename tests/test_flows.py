@@ -137,30 +137,16 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
     assert pipeline_status(wh, bigger, ["lib"], scope="clip") == []  # a library is not a clip
 
 
-def _fake_retrieval(wh, cfg, clip, run_id):
-    """Two candidates of a one-model-per-class library for every track (no descriptors needed)."""
-    import pyarrow as pa
-
-    from cadestate.lineage import table_digest
-    from tasks.stage import StageOutput
-
-    tracks = wh.read("tracks", [clip], columns=["track_id"]).column("track_id").to_pylist()
-    rows = [{"clip": clip, "track_id": t, "rank": r + 1, "library": "lib", "cad_id": f"lib.m{r}", "cad_class": "chair",
-             "score": 0.9 - 0.1 * r, "appearance": 0.5, "class_similarity": 1.0} for t in tracks for r in range(2)]
-    table = pa.Table.from_pylist(rows, schema=wh.spec("cad_candidates").schema)
-    wh.write("cad_candidates", clip, table)
-    return StageOutput(len(rows), table_digest(table), "fake")
-
-
-def test_clip_pauses_for_labels_and_ingest_resumes_it(config, source, monkeypatch, tmp_path):
+def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, source, tmp_path):
+    """The clip with a real (small) CAD library: retrieval ranks it, CAD selection pauses."""
     import json
 
-    import tasks.prefect_tasks
+    from conftest import warehouse_copy
     from tasks.human_tasks import selected_models
     from tasks.label_ingest import ingest_labels
     from tasks.labels import label_document
 
-    monkeypatch.setattr(tasks.prefect_tasks, "retrieve_clip", _fake_retrieval)
+    config = warehouse_copy(small_library_warehouse, tmp_path / "warehouse")
     first = run_clips([source], config, show_progress=False)
     wh = Warehouse(config.warehouse.root)
     tracks = wh.read("tracks", ["small"], columns=["track_id"]).column("track_id").to_pylist()
@@ -178,7 +164,8 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(config, source, monkeypatc
 
     task_path = wh.root / paused.message.split(" task ", 1)[1].split(";")[0]
     task = json.loads(task_path.read_text())
-    answers = [{"track_id": t, "cad_id": "lib.m1"} for t in tracks]
+    chosen = {it["track_id"]: it["candidates"][1]["cad_id"] for it in task["items"]}  # each track's second candidate
+    answers = [{"track_id": t, "cad_id": chosen[t]} for t in tracks]
     label = tmp_path / "labels" / "sel.json"
     label.parent.mkdir()
     label.write_text(json.dumps(label_document("cad_selection", "small", task["task_id"], answers)))
@@ -187,7 +174,7 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(config, source, monkeypatc
     resumed = run_clips([source], config, show_progress=False)
     # upstream work is reused; the selection completes, the correspondences task now waits for clicks
     assert states(resumed) == expect("small", cad_selection="completed", correspondence_task="paused", rest="cached")
-    assert selected_models(wh, "small") == {t: "lib.m1" for t in tracks}
+    assert selected_models(wh, "small") == {t: chosen[t] for t in tracks}
     clicks = {r.stage: r for r in resumed}["correspondence_task"]
     assert f"{len(tracks)} of {len(tracks)} tracks unanswered in correspondences task" in clicks.message
     # nothing changed since: a rerun does no work

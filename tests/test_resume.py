@@ -10,7 +10,6 @@ answers fit): it must go straight through, pausing nowhere, to the same tables.
 from __future__ import annotations
 
 import dataclasses
-import shutil
 
 import pyarrow as pa
 import pytest
@@ -19,10 +18,8 @@ from bench.benchmark import clip_sources, generate
 from bench.pose_bench import pose_accuracy
 from bench.simulated_labels import annotate_until_done
 from bench.walkthrough import WalkthroughSpec
-from cadestate.config import CadIngestConfig, CadViewsConfig, Config, WarehouseConfig
 from flows.annotate_clip import run_clips
-from flows.cad_library import run_cad_library
-from conftest import small_library_items
+from conftest import warehouse_copy
 from warehouse import Warehouse
 
 pytestmark = pytest.mark.slow
@@ -35,34 +32,19 @@ RESULT_TABLES = ("tracks", "manual_tracks", "cad_candidates", "poses", "verified
 VOLATILE = {"run_id", "created_at", "ingested_at"}  # when and by which run, not what
 
 
-@pytest.fixture(scope="module")
-def library(tmp_path_factory) -> Config:
-    """A warehouse holding SMALL_LIBRARY with every library stage run by the real flow."""
-    root = tmp_path_factory.mktemp("library")
-    config = Config(warehouse=WarehouseConfig(root=str(root)), cad_ingest=CadIngestConfig(samples=512, workers=1),
-                    cad_views=CadViewsConfig(views=4, size=96))
-    reports = run_cad_library(small_library_items(), config, show_progress=False)
-    assert {r.state for r in reports} == {"completed"}, [r.message for r in reports if r.state != "completed"]
-    return config
-
-
-def _copy(config: Config, to) -> Config:
-    shutil.copytree(config.warehouse.root, to)
-    return dataclasses.replace(config, warehouse=WarehouseConfig(root=str(to)))
-
-
 def _content(wh: Warehouse, table: str, clip: str) -> pa.Table:
     t = wh.read(table, [clip])
     t = t.drop_columns([c for c in t.column_names if c in VOLATILE])
     return t.sort_by([(k, "ascending") for k in wh.spec(table).key if k in t.column_names])
 
 
-def test_resumed_clip_equals_an_uninterrupted_run(library, tmp_path):
+def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, tmp_path):
+    library = small_library_warehouse
     folder = tmp_path / "bench"
     manifest, _ = generate(folder, SEED, 1, Warehouse(library.warehouse.root), SPEC, show_progress=False)
     clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")  # all four tasks
 
-    resumed = _copy(library, tmp_path / "resumed")
+    resumed = warehouse_copy(library, tmp_path / "resumed")
     wa = Warehouse(resumed.warehouse.root)
     reports, waiting = annotate_until_done(folder, wa, [clip], lambda _: run_clips([source], resumed, show_progress=False))
     assert waiting == [] and not [r for r in reports if r.state == "failed"]
@@ -72,7 +54,7 @@ def test_resumed_clip_equals_an_uninterrupted_run(library, tmp_path):
     scored = pose_accuracy(folder, wa)  # pipeline tracks mapped to ground-truth objects
     assert scored["annotated_objects"] >= 1 and scored["verification"]["verdicts"] == wa.read("verified_poses", [clip]).num_rows
 
-    straight = _copy(library, tmp_path / "straight")
+    straight = warehouse_copy(library, tmp_path / "straight")
     wb = Warehouse(straight.warehouse.root)
     for table in LABEL_TABLES:
         if clip in wa.partitions(table):
