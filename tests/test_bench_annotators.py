@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from bench.annotators import (KeyframeCorrespondences, Pose, SurfaceSamples, annotate_correspondences,
+from bench.annotators import (KeyframeCorrespondences, Pose, SurfaceSamples, annotate_correspondences, choose_keyframes,
                               draw_manual_track, frame_camera, mesh_shape_distance, pose_mask_ious, select_cad,
                               shape_distance, track_to_json, verify_pose, visible_mask)
 from bench.noise import AnnotatorNoise
-from cadestate.geometry import look_at, matrix_to_quaternion, project
+from cadestate.geometry import look_at, matrix_to_quaternion, project, quaternion_to_matrix
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import Frame, FramesFile, ObjectAnnotation, TrackEntry
 from tasks.cad_symmetry import rotation_y
@@ -368,19 +368,30 @@ def test_keyframes_follow_the_track_and_other_inputs(renderer):
         np.testing.assert_allclose(kc.xy, project_normalised(frames, obj, kc), atol=1e-6)
 
 
-def test_keyframes_are_evenly_spaced_over_the_whole_visible_track(monkeypatch):
-    """Paper 3.2-3.3: key-frames evenly spaced over the track, not clustered where the object is
-    best seen. Visible on frames 4-23, well visible only on 16-23: the key-frames still span 4-23."""
-    import bench.annotators as annotators
+def _aimed_frames(aside: list[float]) -> FramesFile:
+    """:func:`make_frames` with camera i looking ``aside[i]`` metres to the right of CENTRE (the
+    object then shows on the image's left, cut off by its edge, or out of view)."""
+    out = []
+    for f, shift in zip(make_frames().frames, aside):
+        R0, t0 = quaternion_to_matrix(np.asarray(f.rotation)), np.asarray(f.translation)
+        R, t = look_at(-R0.T @ t0, CENTRE + shift * R0[0])
+        out.append(Frame(f.timestamp, False, f.intrinsics, tuple(t.tolist()), tuple(matrix_to_quaternion(R).tolist())))
+    return FramesFile("synthetic", (H, W), tuple(out))
 
-    frames, box = make_frames(), trimesh.creation.box((1.0, 0.8, 0.6))
+
+def test_keyframes_are_evenly_spaced_over_the_whole_visible_track():
+    """Paper 3.2-3.3: key-frames evenly spaced over the track, not clustered where the object is
+    best seen. Out of view on frames 0-3, mostly cut off by the image edge on 4-15, whole on 16-23
+    (so well visible only there): the key-frames still span 4-23."""
+    frames = _aimed_frames([8.0] * 4 + [2.7] * 12 + [0.0] * 8)
+    box = trimesh.creation.box((1.0, 0.8, 0.6))
     obj = make_object(frames, box)
-    share = {f.timestamp: 0.0 if i < 4 else (0.2 if i < 16 else 0.6) for i, f in enumerate(frames.frames)}
-    monkeypatch.setattr(annotators, "frame_camera", lambda frame, W, H: frame.timestamp)
-    monkeypatch.setattr(annotators, "visible_mask", lambda samples, M, cam, noise: (np.arange(100) < 100 * share[cam], None))
+    samples = SurfaceSamples.from_mesh(box, 2000, seed=0)
+    M = Pose.of(obj).matrix()
+    share = [visible_mask(samples, M, frame_camera(f, W, H), EXACT)[0].mean() for f in frames.frames]
+    assert max(share[:4]) == 0 and 0 < max(share[4:16]) < EXACT.well_visible_fraction * max(share) <= min(share[16:])
     noise = replace(EXACT, keyframes_per_object=(4, 4))
-    kf = annotators.choose_keyframes(frames, obj, None, noise, np.random.default_rng(0))
-    assert kf == [4, 10, 17, 23]
+    assert choose_keyframes(frames, obj, samples, noise, np.random.default_rng(0)) == [4, 10, 17, 23]
 
 
 def test_merge_rounds_keeps_the_last_work_and_sums_the_time():
