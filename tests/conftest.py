@@ -130,3 +130,12 @@ def warehouse_copy(config, to):
 
     shutil.copytree(config.warehouse.root, to)
     return dataclasses.replace(config, warehouse=WarehouseConfig(root=str(to)))
+
+
+def pytest_terminal_summary(terminalreporter):
+    """How many generated cases the fuzz suite (tests/fuzz) ran, per suite."""
+    from fuzz.harness import CASES
+
+    if CASES:
+        per = ", ".join(f"{k} {v}" for k, v in sorted(CASES.items()))
+        terminalreporter.write_line(f"fuzz: {sum(CASES.values())} generated cases ran ({per})")
