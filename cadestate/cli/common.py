@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 from rich.markup import escape
 from rich.table import Table
 
@@ -34,8 +34,27 @@ app.add_typer(demo_app, name="demo")
 bench_app = typer.Typer(help="The synthetic benchmark: rendered walkthroughs with exact ground truth, evaluators.", no_args_is_help=True)
 app.add_typer(cad_app, name="cad")
 app.add_typer(bench_app, name="bench")
-out = Console()
-err = Console(stderr=True, soft_wrap=True)  # error lines stay whole (greppable)
+UNWRAPPED_WIDTH = 100_000
+"""The width tables are laid out in when the output is not a terminal: their natural width."""
+
+
+class LineConsole(Console):
+    """A console whose lines are never hard-wrapped: text is soft-wrapped (a terminal folds long
+    lines on screen, a script reads them whole), and when the output is not a terminal (a pipe, a
+    file, CI) tables take their natural width instead of the 80 columns Rich assumes."""
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        size = Console.size.fget(self)
+        return size if self.is_terminal else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        Console.size.fset(self, new_size)
+
+
+out = LineConsole(soft_wrap=True)
+err = LineConsole(stderr=True, soft_wrap=True)  # error lines stay whole (greppable)
 
 
 @dataclasses.dataclass

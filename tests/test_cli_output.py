@@ -1,0 +1,48 @@
+"""Output meant for scripts is never hard-wrapped: lines naming files stay whole at 80 columns and
+without a terminal; in a terminal, tables fit its width."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+LONG = "x" * 120
+
+
+def cli(*args: str, cwd, columns: int = 80) -> subprocess.CompletedProcess:
+    """The real command in a fresh process whose output is a pipe (no terminal), at ``columns``."""
+    env = {**os.environ, "COLUMNS": str(columns)}
+    return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd)
+
+
+def test_lines_naming_files_stay_whole_without_a_terminal(tmp_path):
+    folder = tmp_path / ("schemas_" + "a" * 90)
+    result = cli("labels", "schema", "--write", str(folder), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines and all(line.startswith(str(folder)) and line.endswith(".json") for line in lines), result.stdout
+    bad = folder / "bad.json"
+    bad.write_text(json.dumps({"format": "cadestate-label/1", "kind": "verification"}))
+    result = cli("labels", "validate", "--offline", str(bad), cwd=tmp_path)
+    errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert result.returncode == 1 and len(errors) == 1 and errors[0].startswith(f"error: {bad}"), result.stderr
+
+
+def test_tables_take_their_natural_width_without_a_terminal(tmp_path):
+    result = cli("-w", str(tmp_path / "w"), "sql", f"SELECT '{LONG}' AS v, 2 AS n", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert any(LONG in line for line in result.stdout.splitlines()), result.stdout
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="util-linux `script` gives the command a terminal")
+def test_tables_fit_an_80_column_terminal(tmp_path):
+    command = f"{sys.executable} -m cadestate -w {tmp_path / 'w'} sql \"SELECT '{LONG}' AS v\""
+    result = subprocess.run(["script", "-qec", command, "/dev/null"], capture_output=True, text=True, cwd=tmp_path,
+                            env={**os.environ, "COLUMNS": "80", "TERM": "dumb"})
+    assert result.returncode == 0, result.stdout
+    lines = [ln for ln in result.stdout.splitlines() if ln.strip()]
+    assert lines and max(len(ln) for ln in lines) <= 80 and LONG not in result.stdout
