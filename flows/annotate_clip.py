@@ -27,11 +27,14 @@ from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, d
                                  ingest_task, manual_tracks_task, pose_task, retrieval_task, tracking_task,
                                  verification_task)
 from tasks.registry import STAGES, clip_inputs, extra_inputs
+from tasks.stage import settle_interrupted
 from warehouse import Warehouse
 
 
 def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: bool) -> list[tuple[str, PrefectFuture]]:
-    """Submit the stage tasks of one clip, each fed by its upstream's future."""
+    """Submit the stage tasks of one clip, each fed by its upstream's future (runs of it that a killed
+    process left unrecorded are recorded as interrupted first)."""
+    settle_interrupted(Warehouse(root), source.clip)
     video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
     ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, source.split,
                                 STAGES["ingest"].code_hash)

@@ -21,6 +21,8 @@ from flows.runtime import run_flow
 from tasks.cad_sources import CadItem, items_digest
 from tasks.prefect_tasks import cad_embed_task, cad_ingest_task, cad_views_task, label_similarity_task
 from tasks.registry import STAGES, extra_inputs
+from tasks.stage import settle_interrupted
+from warehouse import Warehouse
 
 
 @flow(name="build_cad_library", log_prints=True)
@@ -30,6 +32,7 @@ def build_cad_library(root: str, items: list[CadItem], config: Config, show_prog
     by_library = groupby(sorted(items, key=lambda i: i.library), key=lambda i: i.library)
     for library, group in by_library:
         group = list(group)
+        settle_interrupted(Warehouse(root), library)
         ingest = cad_ingest_task.submit(root, library, group, items_digest(group), config.cad_ingest,
                                         STAGES["cad_ingest"].code_hash, show_progress)
         views = cad_views_task.submit(root, library, config.cad_views, ingest, STAGES["cad_views"].code_hash, show_progress)

@@ -75,13 +75,13 @@ RUNS = TableSpec(
     name="runs",
     mode="append",
     key=("clip", "run_id"),
-    description="Every stage run (completed, failed or paused) with its lineage; CAD-library stages use the library as clip.",
+    description="Every stage run (completed, failed, paused or interrupted) with its lineage; CAD-library stages use the library as clip.",
     schema=pa.schema(
         [
             CLIP,
             column("run_id", pa.string(), "Unique id of this stage run: UTC start time, then 8 random hex digits (sorts by time)."),
             column("stage", pa.string(), "Stage name (= its config section)."),
-            column("status", pa.string(), "completed | failed | paused."),
+            column("status", pa.string(), "completed | failed | paused | interrupted (its process ended mid-run; recorded by the clip's next run)."),
             column("config_hash", pa.string(), "Digest of the stage's config section."),
             column("inputs_hash", pa.string(), "Digest of everything the stage read (input files, upstream outputs)."),
             column("output_hash", pa.string(), "Digest of what the stage wrote; empty unless completed."),

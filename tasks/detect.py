@@ -88,4 +88,5 @@ def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_p
     table = pa.Table.from_pylist(rows, schema=wh.spec("detections").schema)
     written = wh.write("detections", clip, table)
     labels = sorted({r["label"] for r in rows})
-    return StageOutput(written, table_digest(table), f"{written} boxes in {len(frames)} frames ({', '.join(labels[:8])}{'…' if len(labels) > 8 else ''})")
+    shown = f" ({', '.join(labels[:8])}{'…' if len(labels) > 8 else ''})" if labels else ""
+    return StageOutput(written, table_digest(table), f"{written} boxes in {len(frames)} frames{shown}")

@@ -26,8 +26,9 @@ def pixel_boxes(boxes: list[list[float]], width: int, height: int) -> np.ndarray
 
 
 def vectors_array(vectors: np.ndarray) -> pa.ListArray:
-    """float32[N,D] -> an Arrow list<float32> column of N rows (no Python lists in between)."""
-    v = np.ascontiguousarray(vectors, np.float32).reshape(len(vectors), -1)
+    """float32[N,D] -> an Arrow list<float32> column of N rows (no Python lists in between); N may be 0."""
+    v = np.ascontiguousarray(vectors, np.float32)
+    v = v.reshape(len(v), -1) if len(v) else v.reshape(0, 0)
     offsets = np.arange(len(v) + 1, dtype=np.int32) * v.shape[1]
     return pa.ListArray.from_arrays(pa.array(offsets), pa.array(v.ravel()),
                                     type=pa.list_(pa.field("item", pa.float32(), nullable=False)))

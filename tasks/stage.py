@@ -3,19 +3,32 @@
 Every stage function has the form ``body(run_id) -> StageOutput`` and is wrapped by
 :func:`run_stage`, which times it, writes a ``runs`` row (completed or failed, with the lineage
 digests; ``paused`` when the body says it waits for people) and returns a small picklable :class:`StageRun` (the Prefect task result).
+
+A run in progress is journalled by a marker file, ``<warehouse>/_running/<clip>/<stage>.<run_id>.json``
+(the process, its host and start), written before the body starts and removed once its ``runs`` row
+is written. A process killed mid-stage (``kill -9``, a lost machine) leaves its marker: ``cadestate
+status`` shows the stage ``interrupted``, and the next run of the clip records the run in ``runs``
+with status ``interrupted`` (:func:`settle_interrupted`).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import json
+import socket
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
+import psutil
 import pyarrow as pa
 
-from warehouse import Warehouse
+from warehouse import Warehouse, atomic_write_bytes, check_name
+
+RUNNING_DIR = "_running"
+"""Folder of the markers of runs in progress, under the warehouse root."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +81,76 @@ def record_run(wh: Warehouse, run: StageRun, started_at: dt.datetime) -> None:
     wh.write("runs", run.clip, pa.Table.from_pylist([row]))
 
 
+@dataclass(frozen=True)
+class RunMarker:
+    """A stage run in progress (or interrupted), as its marker file records it. ``process_start``:
+    the process's creation time (epoch seconds), which tells a live process from a recycled pid."""
+
+    clip: str
+    stage: str
+    run_id: str
+    pid: int
+    host: str
+    process_start: float
+    started_at: dt.datetime
+    path: Path
+
+    @property
+    def alive(self) -> bool:
+        """Whether the run's process still runs (a run on another host is taken as running)."""
+        if self.host != socket.gethostname():
+            return True
+        try:
+            return abs(psutil.Process(self.pid).create_time() - self.process_start) < 1.0
+        except psutil.Error:
+            return False
+
+
+def _marker_dir(wh: Warehouse, clip: str) -> Path:
+    return wh.root / RUNNING_DIR / check_name(clip)
+
+
+def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at: dt.datetime) -> Path:
+    """Write the marker of a run that starts now; returns its path."""
+    me = psutil.Process()
+    doc = {"clip": clip, "stage": stage, "run_id": run_id, "pid": me.pid, "host": socket.gethostname(),
+           "process_start": me.create_time(), "started_at": started_at.isoformat()}
+    path = _marker_dir(wh, clip) / f"{stage}.{run_id}.json"
+    atomic_write_bytes(path, json.dumps(doc).encode())
+    return path
+
+
+def run_markers(wh: Warehouse, clip: str) -> list[RunMarker]:
+    """The markers of ``clip``'s runs in progress or interrupted, oldest first (unreadable ones skipped:
+    a marker is written atomically, so only a foreign file is unreadable)."""
+    folder, markers = _marker_dir(wh, clip), []
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            d = json.loads(path.read_text())
+            markers.append(RunMarker(d["clip"], d["stage"], d["run_id"], int(d["pid"]), d["host"], float(d["process_start"]),
+                                     dt.datetime.fromisoformat(d["started_at"]), path))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return sorted(markers, key=lambda m: m.run_id)  # run ids sort by start time
+
+
+def settle_interrupted(wh: Warehouse, clip: str) -> list[StageRun]:
+    """Record every run of ``clip`` whose process ended without recording it (its marker is left and
+    its process is gone) as an ``interrupted`` row of ``runs``, and remove its marker. Returns them."""
+    settled = []
+    for m in run_markers(wh, clip):
+        if m.alive:
+            continue
+        run = StageRun(clip=clip, stage=m.stage, run_id=m.run_id, status="interrupted", config_hash="", inputs_hash="",
+                       output_hash="", code_hash="", rows_written=0, duration_s=0.0,
+                       message=f"interrupted: process {m.pid} on {m.host} ended before the run finished (killed or crashed); "
+                               "its output was not written")
+        record_run(wh, run, m.started_at)
+        m.path.unlink(missing_ok=True)
+        settled.append(run)
+    return settled
+
+
 def run_stage(
     wh: Warehouse,
     clip: str,
@@ -86,16 +169,19 @@ def run_stage(
     run_id = f"{started_at:%Y%m%dT%H%M%S%fZ}-{uuid.uuid4().hex[:8]}"  # sorts by time
     t0 = time.perf_counter()
     common = dict(clip=clip, stage=stage, run_id=run_id, config_hash=config_hash, inputs_hash=inputs_hash, code_hash=code_hash)
+    marker = _start_marker(wh, clip, stage, run_id, started_at)
     try:
         out = body(run_id)
     except Exception as e:
         failed = StageRun(**common, status="failed", output_hash="", rows_written=0,
                           duration_s=time.perf_counter() - t0, message=str(e))
         record_run(wh, failed, started_at)
+        marker.unlink(missing_ok=True)
         raise
     run = StageRun(**common, status="paused" if out.paused else "completed", output_hash=out.output_hash, rows_written=out.rows_written,
                    duration_s=time.perf_counter() - t0, message=out.message)
     record_run(wh, run, started_at)
+    marker.unlink(missing_ok=True)
     return run
 
 

@@ -2,7 +2,10 @@
 
 A stage is stale when its last completed (or paused) run used another config section, other code, or
 inputs other than its upstream stages' latest outputs (or when an upstream stage is stale: it
-will rerun and may change them). Read from the ``runs`` table only.
+will rerun and may change them). Read from the ``runs`` table and the markers of runs in progress
+(:mod:`tasks.stage`): a stage whose process is running shows ``running``, one whose process ended
+mid-run (killed) ``interrupted``. :func:`clip_notes` adds what a user should know about a clip's
+results (nothing detected, so every later stage ran on nothing).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from dataclasses import dataclass
 
 from cadestate.config import Config
 from tasks.registry import clip_inputs, config_hash, extra_inputs, stages_of, upstream_inputs_hash
+from tasks.stage import run_markers
 from warehouse import Warehouse
 
 
@@ -19,7 +23,7 @@ from warehouse import Warehouse
 class StageStatus:
     clip: str  # or library
     stage: str
-    status: str  # completed | failed | paused | never run
+    status: str  # completed | failed | paused | interrupted | running | never run
     last_run_at: str
     rows_written: int
     stale_reasons: tuple[str, ...]
@@ -43,6 +47,10 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     result = []
     for clip in names:
         stale_stages: set[str] = set()
+        for m in run_markers(wh, clip):  # runs not recorded yet: in progress, or their process was killed
+            last[(clip, m.stage)] = {"status": "running" if m.alive else "interrupted", "started_at": m.started_at,
+                                     "message": f"process {m.pid} on {m.host}" + ("" if m.alive else
+                                                " ended before the run finished (killed or crashed)")}
         for stage in stages:
             latest, ok = last.get((clip, stage.name)), last_ok.get((clip, stage.name))
             reasons = []
@@ -70,3 +78,15 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                 latest["message"] if latest else "",
             ))
     return result
+
+
+def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
+    """What a user should know about each clip beyond its stages' states, one line per note:
+    a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
+    threshold or class filter) runs every later stage on nothing."""
+    notes = []
+    for r in rows:
+        if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
+            notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
+                         "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")
+    return notes

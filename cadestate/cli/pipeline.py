@@ -90,7 +90,7 @@ def status(
 ) -> None:
     """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed
     since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered)."""
-    from tasks.status import pipeline_status
+    from tasks.status import clip_notes, pipeline_status
 
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
@@ -101,9 +101,14 @@ def status(
             fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
             table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
         out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
-        waits = [r for r in rows if r.status == "paused"]
-        for r in waits:
-            out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
+        for r in rows:
+            if r.status == "paused":
+                out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
+            elif r.status == "interrupted":
+                out.print(f"[red]{escape(r.clip)} was interrupted[/] at {r.stage} ({r.last_run_at}): {escape(r.message)}; "
+                          f"`cadestate run {escape(r.clip)}` reruns it")
+        for note in clip_notes(rows):
+            out.print(f"[yellow]note:[/] {escape(note)}")
 
 
 class Format(str, Enum):

@@ -1,0 +1,88 @@
+"""Stage runs in progress and interrupted: a process killed mid-stage is shown by `status` and recorded
+as an interrupted run by the clip's next run; a clip with nothing detected flows through every stage."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+from typer.testing import CliRunner
+
+from cadestate.cli import app
+from cadestate.config import Config, DetectConfig, WarehouseConfig
+from flows.annotate_clip import run_clips
+from tasks.ingest import ClipSource
+from tasks.registry import stages_of
+from tasks.stage import StageOutput, run_markers, run_stage, settle_interrupted
+from tasks.status import pipeline_status
+from warehouse import Warehouse
+
+HASHES = dict(config_hash="c", inputs_hash="i", code_hash="k")
+
+
+def test_a_run_is_journalled_while_it_runs(wh):
+    wh.write("clips", "c1", _clip_row("c1"))
+    seen = {}
+
+    def body(run_id: str) -> StageOutput:
+        seen["markers"] = [(m.stage, m.run_id, m.alive) for m in run_markers(wh, "c1")]
+        seen["status"] = {r.stage: r.status for r in pipeline_status(wh, Config(), ["c1"])}["detect"]
+        return StageOutput(0, "h")
+
+    run = run_stage(wh, "c1", "detect", body=body, **HASHES)
+    assert seen == {"markers": [("detect", run.run_id, True)], "status": "running"}
+    assert run_markers(wh, "c1") == [] and settle_interrupted(wh, "c1") == []
+    assert wh.read("runs").column("status").to_pylist() == ["completed"]
+
+
+def test_a_failed_run_leaves_no_marker(wh):
+    with pytest.raises(RuntimeError):
+        run_stage(wh, "c1", "detect", body=lambda run_id: (_ for _ in ()).throw(RuntimeError("boom")), **HASHES)
+    assert run_markers(wh, "c1") == [] and wh.read("runs").column("status").to_pylist() == ["failed"]
+
+
+def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
+    """A real process runs a stage whose body kills it with SIGKILL (as `kill -9` would)."""
+    wh.write("clips", "c1", _clip_row("c1"))
+    script = textwrap.dedent(f"""
+        import os, signal
+        from tasks.stage import run_stage
+        from warehouse import Warehouse
+        run_stage(Warehouse({str(wh.root)!r}), "c1", "detect", config_hash="c", inputs_hash="i", code_hash="k",
+                  body=lambda run_id: os.kill(os.getpid(), signal.SIGKILL))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == -9, done.stderr
+    assert wh.read("runs").num_rows == 0  # the process died before it could record anything
+    [marker] = run_markers(wh, "c1")
+    assert marker.stage == "detect" and not marker.alive
+    status = {r.stage: r for r in pipeline_status(wh, Config(), ["c1"])}
+    assert status["detect"].status == "interrupted" and "killed" in status["detect"].message
+    shown = CliRunner().invoke(app, ["-w", str(wh.root), "status", "c1"])
+    assert shown.exit_code == 0 and "c1 was interrupted at detect" in shown.output, shown.output
+    [settled] = settle_interrupted(wh, "c1")
+    assert (settled.stage, settled.run_id, settled.status) == ("detect", marker.run_id, "interrupted")
+    runs = wh.read("runs").to_pylist()
+    assert [(r["stage"], r["run_id"], r["status"]) for r in runs] == [("detect", marker.run_id, "interrupted")]
+    assert runs[0]["started_at"] == marker.started_at and run_markers(wh, "c1") == []
+    assert settle_interrupted(wh, "c1") == []  # recorded once
+
+
+@pytest.mark.slow
+def test_a_clip_with_no_detection_flows_through_every_stage(tmp_path, small_clip):
+    """An empty room, a dark video or a strict threshold: zero rows everywhere, and a note in status."""
+    config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "w")), detect=DetectConfig(score_threshold=0.999))
+    reports = run_clips([ClipSource("dark", small_clip.video_path, small_clip.cameras_path)], config, show_progress=False)
+    assert [(r.stage, r.state) for r in reports] == [(s.name, "completed") for s in stages_of("clip")]
+    rows = {r.stage: r.rows_written for r in reports}
+    assert rows["frames"] == 30 and all(rows[s] == 0 for s in ("detect", "embed", "tracking", "retrieval", "pose"))
+    shown = CliRunner().invoke(app, ["-w", config.warehouse.root, "status"])
+    assert shown.exit_code == 0 and "note: dark: no object detected in any frame" in shown.output, shown.output
+
+
+def _clip_row(clip: str):
+    from conftest import table_rows
+
+    return table_rows("clips", [{"clip": clip, "split": "train"}])
