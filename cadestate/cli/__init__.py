@@ -1,8 +1,9 @@
 """``cadestate``: the one command line of the pipeline (see ``cadestate --help``).
 
 Modules: :mod:`cadestate.cli.common` (apps, state, output), :mod:`cadestate.cli.pipeline` (clips,
-warehouse, configuration), :mod:`cadestate.cli.cad` (the CAD library), :mod:`cadestate.cli.bench`
-(the synthetic benchmark). Importing them registers their commands.
+warehouse, configuration), :mod:`cadestate.cli.labels` (label files), :mod:`cadestate.cli.cad` (the
+CAD library), :mod:`cadestate.cli.bench` (the synthetic benchmark). Importing them registers their
+commands; each command imports what it needs when it runs, so a command pays only for itself.
 """
 
 from __future__ import annotations
@@ -13,25 +14,37 @@ from rich.markup import escape
 
 from cadestate.cli import bench, cad, labels, pipeline  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
-from cadestate.cli.common import CliError, app, err
-from cadestate.config import ConfigError
+from cadestate.cli.common import app, err
 
 __all__ = ["app", "bench_generate", "main"]
+
+INPUT_ERRORS = {
+    "cadestate.cli.common": "CliError",
+    "cadestate.config": "ConfigError",
+    "tasks.cameras": "CameraFileError",
+    "tasks.video": "VideoError",
+    "warehouse.store": "WarehouseError",
+    "tasks.cad_sources": "CadSourceError",
+    "tasks.cad_export": "ExportError",
+    "bench.benchmark": "BenchmarkError",
+    "tasks.labels": "LabelError",
+    "builtins": "FileNotFoundError",
+}
+"""Exception types that mean bad input (module -> class): shown as one line, exit status 2."""
+
+
+def is_input_error(e: BaseException) -> bool:
+    """Whether ``e`` is one of :data:`INPUT_ERRORS`. Only modules already imported are looked at: an
+    exception's class is imported before it can be raised, so no command imports a module for this."""
+    return any(isinstance(e, getattr(sys.modules[m], name)) for m, name in INPUT_ERRORS.items() if m in sys.modules)
 
 
 def main() -> None:
     """Entry point: known input errors become one clear line on stderr and exit status 2."""
-    from bench.benchmark import BenchmarkError
-    from tasks.cad_export import ExportError
-    from tasks.cad_sources import CadSourceError
-    from tasks.cameras import CameraFileError
-    from tasks.labels import LabelError
-    from tasks.video import VideoError
-    from warehouse import WarehouseError
-
     try:
         app()
-    except (CliError, ConfigError, CameraFileError, VideoError, WarehouseError, CadSourceError, ExportError,
-            BenchmarkError, LabelError, FileNotFoundError) as e:
+    except Exception as e:
+        if not is_input_error(e):
+            raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)
