@@ -38,7 +38,7 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --disable-pip-version-check uv==$(UV_VERSION)
-	$(BIN)/uv pip install -q --python $(BIN)/python --find-links $(FIND_LINKS) -r requirements.lock
+	$(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python --find-links $(FIND_LINKS) -r requirements.lock
 	$(BIN)/uv pip install -q --python $(BIN)/python --no-deps --config-settings editable_mode=compat -e .
 	touch $@
 
