@@ -20,7 +20,7 @@ from prefect.states import State
 from cadestate.config import Config
 from cadestate.lineage import file_sha256
 from flows.reports import StageReport, finish
-from flows.runtime import run_flow
+from flows.runtime import run_flow, run_tags
 from tasks.ingest import ClipSource
 from tasks.label_similarity import detector_labels
 from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, detect_task, embed_task, frames_task,
@@ -90,6 +90,9 @@ def build_dataset(root: str, sources: list[ClipSource], config: Config, show_pro
 def run_clips(sources: list[ClipSource], config: Config, show_progress: bool = True) -> list[StageReport]:
     """Run the pipeline on ``sources`` with ``config`` and return one report per stage run."""
     root = str(Path(config.warehouse.root).expanduser().resolve())
+    tags = run_tags(Path(root), {s.clip: s.split for s in sources})
     if len(sources) == 1:
-        return run_flow(annotate_clip, config, root, sources[0], config, show_progress)
-    return run_flow(build_dataset, config, root, sources, config, show_progress)
+        return run_flow(annotate_clip, config, root, sources[0], config, show_progress,
+                        run_name=f"annotate_clip/{sources[0].clip}", tags=tags)
+    return run_flow(build_dataset, config, root, sources, config, show_progress,
+                    run_name=f"build_dataset/{len(sources)} clips", tags=tags)

@@ -48,4 +48,6 @@ def build_cad_library(root: str, items: list[CadItem], config: Config, show_prog
 def run_cad_library(items: list[CadItem], config: Config, show_progress: bool = True) -> list[StageReport]:
     """Build the CAD library from ``items`` with ``config``; one report per stage run."""
     root = str(Path(config.warehouse.root).expanduser().resolve())
-    return run_flow(build_cad_library, config, root, items, config, show_progress)
+    libraries = sorted({i.library for i in items})
+    return run_flow(build_cad_library, config, root, items, config, show_progress,
+                    run_name=f"build_cad_library/{', '.join(libraries)}", tags=[f"library:{lib}" for lib in libraries])

@@ -12,7 +12,7 @@ import sys
 
 from rich.markup import escape
 
-from cadestate.cli import bench, cad, labels, pipeline  # noqa: F401  (register the commands)
+from cadestate.cli import bench, cad, labels, pipeline, server  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import app, err
 
@@ -32,19 +32,24 @@ INPUT_ERRORS = {
 }
 """Exception types that mean bad input (module -> class): shown as one line, exit status 2."""
 
+ENVIRONMENT_ERRORS = {"flows.server": "ServerError"}
+"""Exception types that mean the environment failed (Prefect's API): one line, exit status 1."""
 
-def is_input_error(e: BaseException) -> bool:
-    """Whether ``e`` is one of :data:`INPUT_ERRORS`. Only modules already imported are looked at: an
-    exception's class is imported before it can be raised, so no command imports a module for this."""
-    return any(isinstance(e, getattr(sys.modules[m], name)) for m, name in INPUT_ERRORS.items() if m in sys.modules)
+
+def is_one_of(e: BaseException, types: dict[str, str]) -> bool:
+    """Whether ``e`` is one of ``types`` (module -> class). Only modules already imported are looked at:
+    an exception's class is imported before it can be raised, so no command imports a module for this."""
+    return any(isinstance(e, getattr(sys.modules[m], name)) for m, name in types.items() if m in sys.modules)
 
 
 def main() -> None:
-    """Entry point: known input errors become one clear line on stderr and exit status 2."""
+    """Entry point: known input errors become one clear line on stderr and exit status 2 (1 for a
+    failing environment)."""
     try:
         app()
     except Exception as e:
-        if not is_input_error(e):
+        codes = [code for types, code in ((INPUT_ERRORS, 2), (ENVIRONMENT_ERRORS, 1)) if is_one_of(e, types)]
+        if not codes:
             raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
-        sys.exit(2)
+        sys.exit(codes[0])

@@ -64,7 +64,7 @@ def bench_run(
     from flows.runtime import prepare_prefect_environment
 
     cfg = ctx.obj.config()
-    prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose)
+    prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
     from flows.annotate_clip import run_clips
 
     sources = {s.clip: s for s in clip_sources(bench_dir)}

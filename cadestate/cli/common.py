@@ -103,10 +103,11 @@ def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
 
     cfg = state.config()
     root = Path(cfg.warehouse.root).resolve()
-    prepare_prefect_environment(root, state.verbose)  # before Prefect is first imported
+    api = prepare_prefect_environment(root, state.verbose, cfg.prefect.startup_timeout_s)  # before Prefect is imported
     from flows.annotate_clip import run_clips
 
-    err.print(f"running {len(items)} clip(s) into {root}; Prefect's local API starts first (~20 s)")
+    err.print(f"running {len(items)} clip(s) into {root} " + (f"on the Prefect server at {api}" if api else
+              "(Prefect's local API starts first, ~20 s; `cadestate server start` saves it)"))
     code = print_reports(run_clips(items, cfg, show_progress=progress))
     if exit:
         raise typer.Exit(code)

@@ -1,0 +1,65 @@
+"""``cadestate server``: a real Prefect server for this warehouse, in the background."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+
+from cadestate.cli.common import app, out
+
+server_app = typer.Typer(help="A Prefect server for this warehouse (its database under the warehouse, or PostgreSQL): "
+                              "while it is up every command uses it instead of starting Prefect's ephemeral API (~20 s), "
+                              "and its UI shows every flow run.", no_args_is_help=True)
+app.add_typer(server_app, name="server")
+
+
+def _root(ctx: typer.Context) -> Path:
+    return Path(ctx.obj.config().warehouse.root).expanduser().resolve()
+
+
+@server_app.command("start")
+def server_start(
+    ctx: typer.Context,
+    host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Port (0: a free one).")] = 4200,
+    database_url: Annotated[str, typer.Option(help="SQLAlchemy URL of a PostgreSQL database "
+                                                   "(postgresql+asyncpg://user:password@host/db); default: SQLite under "
+                                                   "<warehouse>/_prefect/home.")] = "",
+) -> None:
+    """Start the server in the background (a no-op when it is up) and wait until it answers.
+
+    Its PID, URL and log are kept under <warehouse>/_prefect/ (server.json, server.log);
+    `cadestate server stop` stops it.
+    """
+    from flows.server import start_server
+
+    info = start_server(_root(ctx), host, port, database_url, timeout_s=ctx.obj.config().prefect.startup_timeout_s)
+    out.print(f"Prefect server up: {escape(info.api_url)} (UI {escape(info.api_url.removesuffix('/api'))}, "
+              f"pid {info.pid}, log {escape(info.log)})")
+
+
+@server_app.command("stop")
+def server_stop(ctx: typer.Context) -> None:
+    """Stop the server of this warehouse; commands fall back to ephemeral mode."""
+    from flows.server import stop_server
+
+    info = stop_server(_root(ctx))
+    out.print(f"stopped the Prefect server at {escape(info.api_url)} (pid {info.pid})" if info else "no server was started")
+
+
+@server_app.command("status")
+def server_status(ctx: typer.Context) -> None:
+    """Whether this warehouse's server is up (exit status 0) or down (exit status 1)."""
+    from flows.server import read_server, running_server
+
+    root = _root(ctx)
+    if (info := running_server(root)) is not None:
+        out.print(f"up: {escape(info.api_url)} (pid {info.pid}, since {info.started_at}, log {escape(info.log)})")
+        return
+    known = read_server(root)
+    out.print(f"down (last started at {escape(known.api_url)}, pid {known.pid}: not answering; see {escape(known.log)})"
+              if known else "down: commands run Prefect in ephemeral mode; `cadestate server start` starts one")
+    raise typer.Exit(1)

@@ -1,0 +1,166 @@
+"""A real Prefect server per warehouse, run in the background (``cadestate server start|stop|status``).
+
+While it is up, every command of this warehouse talks to it (``PREFECT_API_URL``) instead of starting
+Prefect's ephemeral API (~20 s per command on 2 cores); when it is down, commands fall back to
+ephemeral mode. Its state lives under the warehouse:
+
+    _prefect/home/          PREFECT_HOME: the server's SQLite database (unless a database URL is given)
+    _prefect/server.json    the running server: pid, process start time, URL, database, log
+    _prefect/server.log     its output
+
+Nothing here imports Prefect: the server is a separate process (``prefect server start``).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import psutil
+
+from warehouse.store import atomic_write_bytes
+
+SERVER_FILE = "server.json"
+LOG_FILE = "server.log"
+
+
+class ServerError(RuntimeError):
+    """The Prefect server could not be started, reached or stopped; the message says why and what to do."""
+
+
+@dataclass(frozen=True)
+class ServerInfo:
+    """A server started by ``cadestate server start``: its process (pid and creation time, which tell
+    it from a recycled pid), API URL (``http://HOST:PORT/api``), database URL ('' = SQLite under
+    PREFECT_HOME) and log file."""
+
+    pid: int
+    process_start: float
+    api_url: str
+    database_url: str
+    log: str
+    started_at: str
+
+    @property
+    def process_alive(self) -> bool:
+        try:
+            return abs(psutil.Process(self.pid).create_time() - self.process_start) < 1.0
+        except psutil.Error:
+            return False
+
+
+def prefect_dir(root: Path) -> Path:
+    return Path(root) / "_prefect"
+
+
+def prefect_home(root: Path) -> Path:
+    """PREFECT_HOME of a warehouse (shared by its server and its ephemeral runs)."""
+    return prefect_dir(root) / "home"
+
+
+def read_server(root: Path) -> ServerInfo | None:
+    """The server recorded for this warehouse, or None (no record, or an unreadable one)."""
+    try:
+        return ServerInfo(**json.loads((prefect_dir(root) / SERVER_FILE).read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def healthy(api_url: str, timeout_s: float = 2.0) -> bool:
+    """Whether the Prefect API at ``api_url`` answers its health check."""
+    try:
+        with urllib.request.urlopen(f"{api_url}/health", timeout=timeout_s) as response:
+            return response.status == 200
+    except (OSError, urllib.error.URLError, ValueError):
+        return False
+
+
+def running_server(root: Path) -> ServerInfo | None:
+    """The warehouse's server if its process lives and its API answers, else None."""
+    info = read_server(root)
+    return info if info is not None and info.process_alive and healthy(info.api_url) else None
+
+
+def free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def server_environment(root: Path, database_url: str = "") -> dict[str, str]:
+    """The environment of the server process: this warehouse's PREFECT_HOME, no telemetry, and the
+    database URL when one is given (e.g. ``postgresql+asyncpg://user:pw@host/db``)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_HOME")}
+    env.update(PREFECT_HOME=str(prefect_home(root)), PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_LOGGING_LEVEL="WARNING")
+    if database_url:
+        env["PREFECT_SERVER_DATABASE_CONNECTION_URL"] = database_url
+    return env
+
+
+def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_url: str = "",
+                 timeout_s: float = 180.0) -> ServerInfo:
+    """Start ``prefect server start`` in the background for this warehouse and wait until its API
+    answers (at most ``timeout_s``). A server already up is returned as is. ``port`` 0 takes a free one."""
+    root = Path(root)
+    if (up := running_server(root)) is not None:
+        return up
+    prefect_home(root).mkdir(parents=True, exist_ok=True)
+    port = port or free_port(host)
+    log = prefect_dir(root) / LOG_FILE
+    prefect = Path(sys.executable).with_name("prefect")
+    command = [str(prefect), "server", "start", "--host", host, "--port", str(port)]
+    with open(log, "ab") as out:
+        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                   env=server_environment(root, database_url), start_new_session=True)
+    info = ServerInfo(pid=process.pid, process_start=psutil.Process(process.pid).create_time(),
+                      api_url=f"http://{host}:{port}/api", database_url=database_url, log=str(log),
+                      started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
+    atomic_write_bytes(prefect_dir(root) / SERVER_FILE, json.dumps(asdict(info), indent=1).encode())
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise ServerError(f"the Prefect server exited with status {process.returncode} while starting: see {log}")
+        if healthy(info.api_url, timeout_s=1.0):
+            return info
+        time.sleep(0.5)
+    _terminate(info)
+    raise ServerError(f"the Prefect server did not answer within {timeout_s:.0f} s (see {log}); "
+                      "a busy machine may need a longer [prefect] startup_timeout_s")
+
+
+def _terminate(info: ServerInfo, timeout_s: float = 20.0) -> None:
+    """Stop the server's process group (the server and the services it started): SIGTERM, then SIGKILL."""
+    if not info.process_alive:
+        return
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(info.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            psutil.Process(info.pid).wait(timeout_s)
+            return
+        except psutil.TimeoutExpired:
+            continue
+        except psutil.Error:
+            return
+
+
+def stop_server(root: Path) -> ServerInfo | None:
+    """Stop the warehouse's server (if one was started) and forget it; returns what was stopped."""
+    info = read_server(root)
+    if info is not None:
+        _terminate(info)
+        (prefect_dir(root) / SERVER_FILE).unlink(missing_ok=True)
+    return info

@@ -1,0 +1,65 @@
+"""`cadestate server`: a real Prefect server per warehouse that every command uses while it is up,
+named and tagged flow runs, fallback to ephemeral mode, and Prefect failing to start in one line."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import httpx
+import pytest
+
+from flows.server import read_server, running_server
+
+pytestmark = pytest.mark.slow
+
+
+def cli(*args: str, cwd) -> subprocess.CompletedProcess:
+    """The real command in a fresh process with a user's environment (no Prefect settings of the tests)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
+                          timeout=600)
+
+
+def flow_runs(api_url: str) -> list[dict]:
+    response = httpx.post(f"{api_url}/flow_runs/filter", json={"limit": 50, "sort": "START_TIME_ASC"}, timeout=30)
+    response.raise_for_status()
+    return response.json()
+
+
+def test_commands_use_the_server_while_it_is_up_and_fall_back_when_it_is_down(tmp_path, small_clip):
+    w = tmp_path / "w"
+    video, cameras = str(small_clip.video_path), str(small_clip.cameras_path)
+    started = cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path)
+    try:
+        assert started.returncode == 0, started.stderr
+        info = running_server(w)
+        assert info is not None and "Prefect server up" in started.stdout
+        assert (w / "_prefect" / "home").is_dir() and (w / "_prefect" / "server.log").is_file()
+        assert cli("-w", str(w), "server", "status", cwd=tmp_path).returncode == 0
+        again = cli("-w", str(w), "server", "start", cwd=tmp_path)  # already up: the same server
+        assert again.returncode == 0 and read_server(w).pid == info.pid
+        run = cli("-w", str(w), "ingest", video, cameras, "--clip", "room_1", "--split", "val", "--no-progress", cwd=tmp_path)
+        assert f"on the Prefect server at {info.api_url}" in run.stderr, run.stderr
+        [flow_run] = flow_runs(info.api_url)
+        assert flow_run["name"] == "annotate_clip/room_1"
+        assert {"clip:room_1", "split:val"} <= set(flow_run["tags"])
+    finally:
+        stopped = cli("-w", str(w), "server", "stop", cwd=tmp_path)
+    assert stopped.returncode == 0 and "stopped the Prefect server" in stopped.stdout
+    assert read_server(w) is None and not info.process_alive
+    down = cli("-w", str(w), "server", "status", cwd=tmp_path)
+    assert down.returncode == 1 and down.stdout.startswith("down")
+    rerun = cli("-w", str(w), "run", "--no-progress", cwd=tmp_path)
+    assert rerun.returncode == 0 and "Prefect's local API starts first" in rerun.stderr, rerun.stderr
+
+
+def test_prefect_failing_to_start_is_one_line(tmp_path, small_clip):
+    config = tmp_path / "c.toml"
+    config.write_text("[prefect]\nstartup_timeout_s = 1\n")
+    result = cli("-c", str(config), "-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path),
+                 str(small_clip.cameras_path), "--no-progress", cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "cadestate server start" in errors[0] and "[prefect] startup_timeout_s" in errors[0]
