@@ -53,6 +53,21 @@ class PrefectConfig:
 
 
 @dataclass(frozen=True)
+class ScheduleConfig:
+    """What `cadestate serve` schedules on the Prefect server (not part of lineage)."""
+
+    inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4 + <name>.txt) that the build_dataset deployment ingests.")
+    inbox_cron: str = _opt("*/10 * * * *", "Cron schedule of the build_dataset deployment (UTC).")
+    inbox_split: str = _opt("train", "Dataset split of the inbox's clips (val and test clips get the manual-track task).")
+    labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.")
+    labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).")
+    stable_s: float = _opt(10.0, "A clip's files are taken once their sizes have not changed for this long "
+                                 "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
+    suspend_timeout_s: int = _opt(7 * 86400, "A served clip waiting for people is suspended this long at most before it fails.",
+                                  lo=60, hi=365 * 86400)
+
+
+@dataclass(frozen=True)
 class IngestConfig:
     """Stage ``ingest``: validate a clip's video and camera file and register it."""
 
@@ -236,6 +251,7 @@ class Config:
 
     warehouse: WarehouseConfig = field(default_factory=WarehouseConfig)
     prefect: PrefectConfig = field(default_factory=PrefectConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     ingest: IngestConfig = field(default_factory=IngestConfig)
     frames: FramesConfig = field(default_factory=FramesConfig)
     cad_ingest: CadIngestConfig = field(default_factory=CadIngestConfig)
@@ -267,6 +283,7 @@ class Config:
 SECTIONS: dict[str, type] = {
     "warehouse": WarehouseConfig,
     "prefect": PrefectConfig,
+    "schedule": ScheduleConfig,
     "ingest": IngestConfig,
     "frames": FramesConfig,
     "cad_ingest": CadIngestConfig,
@@ -284,7 +301,7 @@ SECTIONS: dict[str, type] = {
     "verification": VerificationConfig,
 }
 """Section name -> dataclass; one entry per field of :class:`Config` (a test keeps them in step)."""
-RUNTIME_SECTIONS = ("warehouse", "prefect")
+RUNTIME_SECTIONS = ("warehouse", "prefect", "schedule")
 """Sections that do not affect results (no lineage)."""
 
 

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from cadestate.cli.common import app, out
+from cadestate.cli.common import CliError, app, out
 
 server_app = typer.Typer(help="A Prefect server for this warehouse (its database under the warehouse, or PostgreSQL): "
                               "while it is up every command uses it instead of starting Prefect's ephemeral API (~20 s), "
@@ -63,3 +63,36 @@ def server_status(ctx: typer.Context) -> None:
     out.print(f"down (last started at {escape(known.api_url)}, pid {known.pid}: not answering; see {escape(known.log)})"
               if known else "down: commands run Prefect in ephemeral mode; `cadestate server start` starts one")
     raise typer.Exit(1)
+
+
+@app.command()
+def serve(ctx: typer.Context) -> None:
+    """Serve the dataset-building deployments on this warehouse's Prefect server until stopped (Ctrl-C).
+
+    \b
+      build_dataset   on [schedule] inbox_cron: every new <name>.mp4 + <name>.txt of [schedule] inbox
+                      gets an annotate_clip run (half-copied files wait; <name>.done marks a pair ready)
+      ingest_labels   on [schedule] labels_cron: the label files of [schedule] labels_inbox are ingested
+                      and the clips they answer resumed
+      annotate_clip   one run per clip, suspended while people answer its tasks
+
+    Start the server first (`cadestate server start`); its UI shows the runs, and a run can be
+    started by hand there or with `prefect deployment run build_dataset_inbox/build_dataset`.
+    """
+    import os
+
+    from flows.runtime import prepare_prefect_environment
+    from flows.server import running_server
+
+    cfg = ctx.obj.config()
+    root = _root(ctx)
+    if running_server(root) is None:
+        raise CliError(f"no Prefect server is up for {root}: start one with `cadestate server start`")
+    prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs
+    os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))
+    from prefect import serve as prefect_serve
+
+    from flows.deployments import deployments
+
+    config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
+    prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))

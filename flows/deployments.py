@@ -1,0 +1,188 @@
+"""Deployments that `cadestate serve` serves on the warehouse's Prefect server (no work pool needed).
+
+- ``annotate_clip`` (run on demand, one flow run per clip, named ``annotate_clip/<clip>``): the
+  stages of one clip. When a human task waits, the run is **suspended** (a real Prefect pause,
+  ``Suspended`` in the UI, for at most ``[schedule] suspend_timeout_s``); a label ingest that
+  answers the clip resumes it through the API and it goes on from its cached stages.
+- ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
+  (``<name>.mp4`` + ``<name>.txt``) not ingested yet with the same bytes gets an ``annotate_clip``
+  run. Files still being copied wait: a pair is taken once neither file changed for
+  ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
+- ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
+  ``[schedule] labels_inbox`` and resumes the clips they answer.
+
+Parameters are plain strings (the warehouse root and the config file), so the Prefect UI can start
+a run by hand. Served runs keep their results under the warehouse, as every run does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import (DeploymentFilter, DeploymentFilterName, FlowRunFilter, FlowRunFilterState,
+                                            FlowRunFilterStateType, FlowRunFilterTags)
+from prefect.client.schemas.objects import StateType
+from prefect.client.schemas.sorting import FlowRunSort
+from prefect.deployments import run_deployment
+from prefect.deployments.runner import EntrypointType
+from prefect.flow_runs import resume_flow_run, suspend_flow_run
+
+from cadestate.config import Config, WarehouseConfig, load_config
+from cadestate.lineage import digest, file_sha256
+from flows.annotate_clip import _run
+from flows.reports import StageReport
+from flows.runtime import run_tags, warehouse_results
+from tasks.ingest import ClipSource
+from warehouse import Warehouse
+
+ANNOTATE_DEPLOYMENT = "annotate_clip"
+ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
+"""The deployment (flow name/deployment name) that runs one clip."""
+ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED]
+
+
+def served_config(warehouse: str, config_path: str) -> Config:
+    """The config of a served run: the file (or the defaults), with the warehouse given."""
+    cfg = load_config(Path(config_path) if config_path else None)
+    return dataclasses.replace(cfg, warehouse=WarehouseConfig(root=warehouse))
+
+
+def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float | None = None) -> list[ClipSource]:
+    """The clips of ``inbox`` whose copy is complete: ``<name>.mp4`` with ``<name>.txt``, each
+    unchanged for ``stable_s`` seconds (mtime), or with a ``<name>.done`` marker; sorted by name."""
+    now = time.time() if now is None else now
+    ready = []
+    for video in sorted(inbox.glob("*.mp4")) if inbox.is_dir() else []:
+        cameras = video.with_suffix(".txt")
+        if not cameras.is_file():
+            continue
+        done = video.with_suffix(".done").exists()
+        if done or all(now - p.stat().st_mtime >= stable_s for p in (video, cameras)):
+            ready.append(ClipSource(video.stem, video, cameras, split))
+    return ready
+
+
+def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
+    """The pairs that need a run: not ingested yet with these exact bytes (a changed file counts as
+    new), or whose last run of some stage failed or was interrupted. Clips done cost nothing."""
+    known = {(r["clip"], r["video_sha256"], r["cameras_sha256"])
+             for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
+    todo = []
+    for p in pairs:
+        if (p.clip, file_sha256(p.video), file_sha256(p.cameras)) not in known:
+            todo.append(p)
+            continue
+        last = {r["stage"]: r["status"] for r in wh.read("runs", partitions=[p.clip], columns=["stage", "status", "started_at"])
+                .sort_by("started_at").to_pylist()}
+        if {"failed", "interrupted"} & set(last.values()):
+            todo.append(p)
+    return todo
+
+
+def active_clip_runs(clip: str, states: list[StateType]) -> list:
+    """Flow runs of the annotate_clip deployment for ``clip`` in one of ``states``."""
+    with get_client(sync_client=True) as client:
+        return client.read_flow_runs(
+            flow_run_filter=FlowRunFilter(tags=FlowRunFilterTags(all_=[f"clip:{clip}"]),
+                                          state=FlowRunFilterState(type=FlowRunFilterStateType(any_=states))),
+            deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=[ANNOTATE_DEPLOYMENT])),
+            sort=FlowRunSort.START_TIME_ASC, limit=200)
+
+
+def start_clip_run(warehouse: str, config_path: str, source: ClipSource) -> str:
+    """Create an annotate_clip run for ``source`` (it runs on the serving process); returns its id."""
+    run = run_deployment(ANNOTATE, timeout=0, as_subflow=False, flow_run_name=f"annotate_clip/{source.clip}",
+                         tags=run_tags(Path(warehouse), {source.clip: source.split}),
+                         parameters={"warehouse": warehouse, "config_path": config_path, "clip": source.clip,
+                                     "video": str(source.video), "cameras": str(source.cameras), "split": source.split})
+    return str(run.id)
+
+
+def resume_clips(clips: list[str]) -> list[str]:
+    """Resume the suspended annotate_clip runs of ``clips`` (through the API); returns the clips
+    resumed. The others have no suspended run (they run in ephemeral mode, or not at all yet)."""
+    resumed = []
+    for clip in clips:
+        runs = [r for r in active_clip_runs(clip, [StateType.PAUSED]) if r.state_name == "Suspended"]
+        for r in runs:
+            resume_flow_run(r.id)
+        if runs:
+            resumed.append(clip)
+    return resumed
+
+
+@flow(name="annotate_clip", flow_run_name="annotate_clip/{clip}", log_prints=True)
+def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str, cameras: str,
+                         split: str = "train") -> list[StageReport]:
+    """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest)."""
+    cfg = served_config(warehouse, config_path)
+    root = str(Path(warehouse).resolve())
+    with warehouse_results(Path(root)):
+        state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
+    reports: list[StageReport] = state.result(raise_on_failure=False)
+    waits = sorted(f"{r.stage}: {r.message}" for r in reports if r.state == "paused")
+    if waits:
+        get_run_logger().info("clip %s waits for people (%s); suspended until labels answer it", clip, "; ".join(waits))
+        suspend_flow_run(timeout=cfg.schedule.suspend_timeout_s, key=digest(*waits))
+    return reports
+
+
+@flow(name="build_dataset_inbox", flow_run_name="build_dataset/inbox", log_prints=True)
+def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
+    """Start an annotate_clip run for every completely copied clip of ``[schedule] inbox`` that
+    needs one (:func:`pairs_to_run`) and has no run under way; returns the clips started."""
+    cfg = served_config(warehouse, config_path)
+    pairs = pairs_to_run(Warehouse(warehouse), ready_pairs(Path(cfg.schedule.inbox), cfg.schedule.stable_s,
+                                                       cfg.schedule.inbox_split))
+    started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
+    for p in pairs:
+        if p.clip in started:
+            start_clip_run(warehouse, config_path, p)
+    get_run_logger().info("inbox %s: %d new clip(s) started: %s", cfg.schedule.inbox, len(started), ", ".join(started))
+    return started
+
+
+@flow(name="ingest_labels", flow_run_name="ingest_labels/inbox", log_prints=True)
+def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
+    """Ingest the label files of ``[schedule] labels_inbox`` (files ingested before are skipped) and
+    resume the clips they answer: a suspended run is resumed, a clip with none gets a new run."""
+    from tasks.ingest import registered_source
+    from tasks.label_ingest import ingest_labels
+
+    cfg = served_config(warehouse, config_path)
+    inbox = Path(cfg.schedule.labels_inbox)
+    if not inbox.is_dir():
+        return []
+    wh = Warehouse(warehouse)
+    report = ingest_labels(wh, inbox, coplanar_tol=cfg.pose.coplanar_tol)
+    logger = get_run_logger()
+    for e in report.errors:
+        logger.warning("invalid label file: %s", e)
+    resumed = resume_clips(report.clips)
+    for clip in sorted(set(report.clips) - set(resumed)):
+        if not active_clip_runs(clip, ACTIVE):
+            start_clip_run(warehouse, config_path, registered_source(wh, clip))
+    return report.clips
+
+
+def deployments(config: Config, config_path: str) -> list:
+    """The three deployments for this warehouse and config, with their schedules. Served runs use
+    the local thread runner (the serving process imports the flows by module path)."""
+    root = str(Path(config.warehouse.root).expanduser().resolve())
+    params = {"warehouse": root, "config_path": str(Path(config_path).resolve()) if config_path else ""}
+    module = EntrypointType.MODULE_PATH
+    return [
+        annotate_clip_served.to_deployment(
+            name=ANNOTATE_DEPLOYMENT, entrypoint_type=module, tags=["cadestate"],
+            description="The stages of one clip; suspended while people answer its tasks."),
+        build_dataset_inbox.to_deployment(
+            name="build_dataset", cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,
+            tags=["cadestate"], description=f"Annotate every new clip of {config.schedule.inbox}."),
+        ingest_labels_inbox.to_deployment(
+            name="ingest_labels", cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
+            tags=["cadestate"], description=f"Ingest the label files of {config.schedule.labels_inbox} and resume their clips."),
+    ]

@@ -1,0 +1,135 @@
+"""`cadestate serve`: deployments on a real Prefect server build a dataset from an inbox on a schedule;
+a clip waiting for people is a suspended flow run, resumed through the API when labels answer it."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from flows.deployments import pairs_to_run, ready_pairs
+from flows.server import read_server
+from tasks.ingest import ClipSource
+from warehouse import Warehouse
+
+
+def test_only_completely_copied_pairs_are_taken(tmp_path):
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    for name in ("old", "fresh", "marked", "alone"):
+        (inbox / f"{name}.mp4").write_bytes(b"v")
+        if name != "alone":
+            (inbox / f"{name}.txt").write_text("c")
+    (inbox / "marked.done").touch()
+    now = time.time()
+    for p in (inbox / "old.mp4", inbox / "old.txt"):
+        os.utime(p, (now - 60, now - 60))
+    assert [p.clip for p in ready_pairs(inbox, 10.0, "val", now)] == ["marked", "old"]
+    assert {p.split for p in ready_pairs(inbox, 10.0, "val", now)} == {"val"}
+    assert [p.clip for p in ready_pairs(inbox, 0.0, now=now)] == ["fresh", "marked", "old"]
+    assert ready_pairs(tmp_path / "missing", 0.0) == []
+
+
+def test_clips_done_are_not_run_again(tmp_path, small_clip):
+    from conftest import table_rows
+    from cadestate.lineage import file_sha256
+
+    wh = Warehouse(tmp_path / "w")
+    pair = ClipSource("room", small_clip.video_path, small_clip.cameras_path)
+    assert pairs_to_run(wh, [pair]) == [pair]
+    wh.write("clips", "room", table_rows("clips", [{"clip": "room", "video_sha256": file_sha256(pair.video),
+                                                     "cameras_sha256": file_sha256(pair.cameras)}]))
+    assert pairs_to_run(wh, [pair]) == []
+    wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": "r1", "stage": "detect", "status": "failed"}]))
+    assert pairs_to_run(wh, [pair]) == [pair]  # its last detect run failed: it runs again
+
+
+def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
+                          timeout=600)
+
+
+class Api:
+    """The few REST calls of Prefect's API the test needs."""
+
+    def __init__(self, url: str):
+        self.url = url
+
+    def post(self, path: str, body: dict) -> object:
+        response = httpx.post(f"{self.url}{path}", json=body, timeout=30)
+        response.raise_for_status()
+        return response.json()
+
+    def deployment_id(self, name: str) -> str | None:
+        found = self.post("/deployments/filter", {"deployments": {"name": {"any_": [name]}}, "limit": 5})
+        return found[0]["id"] if found else None
+
+    def run(self, deployment: str) -> None:
+        self.post(f"/deployments/{self.deployment_id(deployment)}/create_flow_run", {})
+
+    def flow_run(self, name: str) -> dict | None:
+        found = self.post("/flow_runs/filter", {"flow_runs": {"name": {"any_": [name]}}, "limit": 5, "sort": "START_TIME_DESC"})
+        return found[0] if found else None
+
+
+def wait_for(what: str, check, timeout_s: float = 420.0, every_s: float = 3.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if (value := check()) is not None:
+            return value
+        time.sleep(every_s)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.mark.slow
+def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, small_clip):
+    w, inbox, labels = tmp_path / "w", tmp_path / "inbox", tmp_path / "labels"
+    inbox.mkdir()
+    labels.mkdir()
+    config = tmp_path / "c.toml"
+    config.write_text(f'[schedule]\ninbox = "{inbox}"\nlabels_inbox = "{labels}"\ninbox_split = "val"\n'
+                      f'inbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\n')  # runs are triggered by the test
+    common = ["-c", str(config), "-w", str(w)]
+    assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    serving = subprocess.Popen([sys.executable, "-m", "cadestate", *common, "serve"], cwd=tmp_path, env=env,
+                               stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        api = Api(read_server(w).api_url)
+        wait_for("the deployments", lambda: api.deployment_id("ingest_labels"))
+        shutil.copy(small_clip.video_path, inbox / "room_1.mp4")
+        shutil.copy(small_clip.cameras_path, inbox / "room_1.txt")
+        (inbox / "room_1.done").touch()
+        api.run("build_dataset")
+        run = wait_for("a suspended clip", lambda: (r := api.flow_run("annotate_clip/room_1")) and
+                       r["state"]["name"] in ("Suspended", "Failed", "Crashed", "Completed") and r or None)
+        assert run["state"]["name"] == "Suspended", (tmp_path / "serve.log").read_text()[-3000:]
+        assert {"clip:room_1", "split:val"} <= set(run["tags"])
+        wh = Warehouse(w)
+        assert wh.read("frames", partitions=["room_1"]).num_rows == 30
+        [task] = (w / "label_tasks" / "room_1").glob("*.json")
+        (labels / "room_1.json").write_text(json.dumps({
+            "format": "cadestate-label/1", "kind": "manual_track", "clip": "room_1", "task_id": task.stem,
+            "annotator": "test", "created_at": "2026-11-23T00:00:00Z", "answers": []}))
+        api.run("ingest_labels")
+        done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/room_1")) and
+                        r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
+        assert done["id"] == run["id"] and done["state"]["type"] == "COMPLETED"
+        assert wh.read("manual_track_labels", partitions=["room_1"]).num_rows == 0  # "nothing missing" answers it
+        assert {r["stage"]: r["status"] for r in wh.read("runs", partitions=["room_1"]).to_pylist()}["manual_tracks"] == "completed"
+        api.run("build_dataset")  # a clip done costs nothing: no new run for it
+        time.sleep(20)
+        assert api.flow_run("annotate_clip/room_1")["id"] == run["id"]
+    finally:
+        os.killpg(serving.pid, signal.SIGTERM)
+        serving.wait(60)
+        cli(*common, "server", "stop", cwd=tmp_path)
