@@ -192,8 +192,13 @@ def config_show(
 
 @config_app.command("check")
 def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to validate.")]) -> None:
-    """Validate a config file: unknown sections or keys and bad values are errors naming the key."""
-    load_config(path)
+    """Validate a config file: unknown sections or keys, bad values (nan and inf included), keys that
+    contradict each other and a [detect] model that does not fit its adapter and labels are errors
+    naming the key."""
+    from tasks.detectors import check_detect_config
+
+    config = load_config(path)
+    check_detect_config(config.detect, config.source)
     out.print(f"{path}: ok")
 
 
