@@ -1,8 +1,10 @@
 """Pipeline configuration: one TOML file, one section per stage, validated strictly.
 
 Every key has a default, so an empty file (or none) is a valid configuration. Unknown sections,
-unknown keys, wrong types and out-of-range values are errors that name the file, the section and
-the key. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
+unknown keys, wrong types, out-of-range values (nan and inf included; integers must fit in 64 bits)
+and keys that contradict each other are errors that name the file, the section and the key.
+Checks that need a file the configuration names (the detector model) are
+:func:`tasks.detectors.check_detect_config`'s, run by ``cadestate config check`` and before a run. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
 knows which stages a config change made stale (see :mod:`cadestate.lineage`).
 
 Sections ``warehouse`` and ``prefect`` say *where* and *how* to run; they do not change any
@@ -14,8 +16,11 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
+import re
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,22 +28,43 @@ from typing import Any
 DEFAULT_CONFIG_FILE = "cadestate.toml"
 ENV_CONFIG = "CADESTATE_CONFIG"
 ENV_WAREHOUSE = "CADESTATE_WAREHOUSE"
+INT_RANGE = (-(2**63), 2**63 - 1)
+"""Integer values must fit in int64 (the warehouse's and numpy's integers)."""
+DESCRIPTOR_DIM = 768
+"""Size of the appearance descriptors (tasks/models/embedder.py DIM): the most [cad_embed] whitening_dims keeps."""
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
 
 class ConfigError(ValueError):
     """An invalid configuration; the message names the file, section and key."""
 
 
-def _opt(default: Any, doc: str, *, choices: tuple | None = None, lo: float | None = None, hi: float | None = None):
-    """A config key with its documentation and constraints (kept in dataclass field metadata)."""
-    return field(default=default, metadata={"doc": doc, "choices": choices, "lo": lo, "hi": hi})
+def _opt(default: Any, doc: str, *, choices: tuple | None = None, lo: float | None = None, hi: float | None = None,
+         check: Callable[[Any], str | None] | None = None):
+    """A config key with its documentation and constraints (kept in dataclass field metadata);
+    ``check(value)`` says what else is wrong with a value, or None."""
+    return field(default=default, metadata={"doc": doc, "choices": choices, "lo": lo, "hi": hi, "check": check})
+
+
+def _non_empty(value: str) -> str | None:
+    return None if value.strip() else "must not be empty"
+
+
+def _template_problem(template: str) -> str | None:
+    """What is wrong with a name template (a format string that writes the name), or None."""
+    try:
+        written = template.format("\0")
+    except (IndexError, KeyError, ValueError, AttributeError, TypeError) as e:
+        return f"not a format string with one '{{}}' for the name ({type(e).__name__}: {e})"
+    return None if "\0" in written else "must contain '{}', where the name goes"
 
 
 @dataclass(frozen=True)
 class WarehouseConfig:
     """Where the warehouse lives (not part of lineage)."""
 
-    root: str = _opt("data/warehouse", "Warehouse root directory; env CADESTATE_WAREHOUSE and --warehouse override it.")
+    root: str = _opt("data/warehouse", "Warehouse root directory; env CADESTATE_WAREHOUSE and --warehouse override it.",
+                     check=_non_empty)
 
 
 @dataclass(frozen=True)
@@ -140,7 +166,8 @@ class CadEmbedConfig:
     centring or whitening that every descriptor goes through before it is compared."""
 
     whitening: str = _opt("whiten", "Transform fitted on the CAD view descriptors: 'none', 'centre' or 'whiten' (PCA whitening).", choices=("none", "centre", "whiten"))
-    whitening_dims: int = _opt(128, "Dimensions kept by 'whiten' (at most the descriptor size).", lo=1, hi=4096)
+    whitening_dims: int = _opt(128, f"Dimensions kept by 'whiten' (at most the descriptor size, {DESCRIPTOR_DIM}).",
+                               lo=1, hi=DESCRIPTOR_DIM)
 
 
 @dataclass(frozen=True)
@@ -185,7 +212,7 @@ class PoseConfig:
         "Classes that stand upright: the up-axis term applies to them (default: the upright classes of tasks/cad_classes.py).")
     iterations: int = _opt(400, "Adam iterations (the fallback for objects the LM leaves unusable; all objects when lm_iterations = 0).", lo=1, hi=100_000)
     lr: float = _opt(0.02, "Initial Adam learning rate (rotation 6D, log-scale, translation in units of camera distance).", lo=1e-6, hi=1.0)
-    lr_final: float = _opt(1e-5, "Learning rate at the last iteration (exponential decay).", lo=1e-9, hi=1.0)
+    lr_final: float = _opt(1e-5, "Learning rate at the last iteration (exponential decay; at most lr).", lo=1e-9, hi=1.0)
     lm_iterations: int = _opt(20, "Levenberg-Marquardt (IRLS) iterations from the closed-form starts (Adam only as fallback); 0 = Adam only, as in the paper.", lo=0, hi=10_000)
     starts: int = _opt(4, "Starts per object: the linear fit turned by i*360/starts degrees about its up axis.", lo=1, hi=64)
     coplanar: bool = _opt(True, "Tie the scale perpendicular to co-planar 3D points to the mean of the other two.")
@@ -213,7 +240,8 @@ class PoseConfig:
 class LabelSimilarityConfig:
     """Stage ``label_similarity``: cosine of every detector label and every CAD class (sentence encoder)."""
 
-    template: str = _opt("{}", "How a name is written before embedding ('{}' is the name, e.g. 'a photo of a {}').")
+    template: str = _opt("{}", "How a name is written before embedding ('{}' is the name, e.g. 'a photo of a {}').",
+                         check=_template_problem)
 
 
 @dataclass(frozen=True)
@@ -311,24 +339,55 @@ def section_hash(name: str, section: Any) -> str:
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
+def _shown(value: Any, limit: int = 60) -> str:
+    """``repr(value)``, cut to about ``limit`` characters (errors stay one readable line)."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int of more than sys.get_int_max_str_digits() digits
+        return f"<{type(value).__name__} too large to show>"
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _name(key: str) -> str:
+    """A section or key name as errors show it: bare, or quoted when TOML needed quotes."""
+    return key if _BARE_KEY.fullmatch(key) else _shown(key)
+
+
 def _check_value(where: str, f: dataclasses.Field, value: Any) -> Any:
     expected = type(f.default)
     if expected is tuple:  # a list of strings in TOML
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise ConfigError(f"{where}: expected a list of strings, got {value!r}")
+            raise ConfigError(f"{where}: expected a list of strings, got {_shown(value)}")
         return tuple(value)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise ConfigError(f"{where}: must be a finite number, got {_shown(value)}") from None
     if type(value) is not expected:
-        raise ConfigError(f"{where}: expected {expected.__name__}, got {type(value).__name__} {value!r}")
+        raise ConfigError(f"{where}: expected {expected.__name__}, got {type(value).__name__} {_shown(value)}")
+    if expected is float and not math.isfinite(value):
+        raise ConfigError(f"{where}: must be a finite number, got {_shown(value)}")
+    if expected is int and not INT_RANGE[0] <= value <= INT_RANGE[1]:
+        raise ConfigError(f"{where}: must fit in 64 bits, got {_shown(value)}")
     meta = f.metadata
     if meta.get("choices") and value not in meta["choices"]:
-        raise ConfigError(f"{where}: must be one of {', '.join(map(repr, meta['choices']))}, got {value!r}")
+        raise ConfigError(f"{where}: must be one of {', '.join(map(repr, meta['choices']))}, got {_shown(value)}")
     if meta.get("lo") is not None and value < meta["lo"]:
         raise ConfigError(f"{where}: must be >= {meta['lo']}, got {value!r}")
     if meta.get("hi") is not None and value > meta["hi"]:
         raise ConfigError(f"{where}: must be <= {meta['hi']}, got {value!r}")
+    problem = meta["check"](value) if meta.get("check") else None
+    if problem:
+        raise ConfigError(f"{where}: {problem}, got {_shown(value)}")
     return value
+
+
+def _check_across(config: Config, source: str) -> None:
+    """Checks of keys against each other (after each key on its own)."""
+    if config.pose.lr_final > config.pose.lr:
+        raise ConfigError(f"{source}: [pose] lr_final: must be <= [pose] lr ({config.pose.lr!r}), "
+                          f"got {config.pose.lr_final!r} (the learning rate decays from lr to lr_final)")
 
 
 def config_from_dict(data: dict[str, Any], source: str = "<config>") -> Config:
@@ -336,7 +395,7 @@ def config_from_dict(data: dict[str, Any], source: str = "<config>") -> Config:
     sections: dict[str, Any] = {}
     for name, values in data.items():
         if name not in SECTIONS:
-            raise ConfigError(f"{source}: unknown section [{name}] (known: {', '.join(SECTIONS)})")
+            raise ConfigError(f"{source}: unknown section [{_name(name)}] (known: {', '.join(SECTIONS)})")
         if not isinstance(values, dict):
             raise ConfigError(f"{source}: [{name}] must be a table of keys")
         cls = SECTIONS[name]
@@ -344,10 +403,12 @@ def config_from_dict(data: dict[str, Any], source: str = "<config>") -> Config:
         kwargs = {}
         for key, value in values.items():
             if key not in known:
-                raise ConfigError(f"{source}: [{name}] unknown key {key!r} (known: {', '.join(known)})")
+                raise ConfigError(f"{source}: [{name}] unknown key {_shown(key)} (known: {', '.join(known)})")
             kwargs[key] = _check_value(f"{source}: [{name}] {key}", known[key], value)
         sections[name] = cls(**kwargs)
-    return Config(**sections, source=source)
+    config = Config(**sections, source=source)
+    _check_across(config, source)
+    return config
 
 
 def load_config(path: str | os.PathLike | None = None) -> Config:
@@ -362,9 +423,11 @@ def load_config(path: str | os.PathLike | None = None) -> Config:
         raise ConfigError(f"{candidate}: config file not found")
     if candidate.is_file():
         try:
-            data = tomllib.loads(candidate.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            data = tomllib.loads(candidate.read_text(encoding="utf-8-sig"))  # a leading BOM is dropped
+        except ValueError as e:  # TOMLDecodeError, UnicodeDecodeError, an int of too many digits
             raise ConfigError(f"{candidate}: not valid TOML: {e}") from None
+        except OSError as e:
+            raise ConfigError(f"{candidate}: cannot read config file: {e.strerror or e}") from None
         config = config_from_dict(data, str(candidate))
     else:
         config = Config()

@@ -1,8 +1,10 @@
 """Read and write RealEstate10K camera files.
 
-File format (one text file per clip, UTF-8, ``\\n`` or ``\\r\\n`` line endings):
+File format (one text file per clip, UTF-8, ``\\n`` or ``\\r\\n`` line endings; a leading UTF-8
+byte-order mark, as Windows editors write, is dropped: it is an encoding artefact, not part of the URL):
 
-- line 1: the source video URL;
+- line 1: the source video URL: any text that is not itself a camera line (19 numbers), which
+  would mean that the URL line is missing;
 - every further line: one camera, 19 whitespace-separated columns
   ``timestamp fx fy cx cy 0 0 r11 r12 r13 t1 r21 r22 r23 t2 r31 r32 r33 t3``;
 - blank lines only at the end of the file.
@@ -10,10 +12,12 @@ File format (one text file per clip, UTF-8, ``\\n`` or ``\\r\\n`` line endings):
 Frames (see :mod:`cadestate.geometry`):
 
 - ``timestamp``: integer microseconds since the start of the video, strictly increasing.
-- ``fx fy cx cy``: intrinsics **normalised** by the image width (fx, cx) and height (fy, cy).
+- ``fx fy cx cy``: intrinsics **normalised** by the image width (fx, cx) and height (fy, cy);
+  fx and fy within FOCAL_RANGE (a field of view of 1 to 179 degrees), the principal point
+  (cx, cy) inside the image give or take PRINCIPAL_POINT_MARGIN.
 - columns 6-7: unused (conventionally 0); any finite value is accepted and dropped.
 - ``[R|t]`` (row-major 3x4): **world->camera**, ``X_cam = R @ X_world + t``, OpenCV camera axes
-  (x right, y down, z forward).
+  (x right, y down, z forward); every |t| component at most TRANSLATION_MAX.
 """
 
 from __future__ import annotations
@@ -30,6 +34,15 @@ from cadestate.geometry import rotation_error
 
 ROTATION_TOLERANCE = 1e-3
 """Largest ``rotation_error`` (max |R R^T - I|, |det R - 1|) accepted for the R of [R|t]."""
+FOV_RANGE_DEG = (1.0, 179.0)
+"""Fields of view (degrees, per image axis) that a camera line may describe."""
+FOCAL_RANGE = (0.5 / math.tan(math.radians(FOV_RANGE_DEG[1] / 2)), 0.5 / math.tan(math.radians(FOV_RANGE_DEG[0] / 2)))
+"""(lowest, highest) normalised focal length fx or fy: those of FOV_RANGE_DEG (fov = 2 atan(1 / 2f))."""
+PRINCIPAL_POINT_MARGIN = 0.1
+"""How far outside [0, 1] (the image, normalised) the principal point cx, cy may lie."""
+TRANSLATION_MAX = 1e6
+"""Largest |t| component of [R|t] (scene units; RealEstate10K scenes span tens of units)."""
+BOM = "\ufeff"
 
 COLUMNS = ("timestamp", "fx", "fy", "cx", "cy", "unused1", "unused2",
            "r11", "r12", "r13", "t1", "r21", "r22", "r23", "t2", "r31", "r32", "r33", "t3")
@@ -54,9 +67,10 @@ class CameraTrack:
       timestamps_us: int64[N], N >= 1, non-negative and strictly increasing, microseconds since
         the start of the video.
       intrinsics: float64[N, 4] normalised (fx, fy, cx, cy): fx, cx divided by image width, fy, cy
-        by height; finite, fx and fy > 0.
+        by height; finite, fx and fy within FOCAL_RANGE, cx and cy within PRINCIPAL_POINT_MARGIN
+        of [0, 1].
       world_to_camera: float64[N, 3, 4] [R|t], X_cam = R @ X_world + t, OpenCV camera axes;
-        finite, R a rotation within ROTATION_TOLERANCE.
+        finite, R a rotation within ROTATION_TOLERANCE, |t| components at most TRANSLATION_MAX.
     """
 
     url: str
@@ -122,19 +136,58 @@ class CameraFileError(ValueError):
         return f"{self.path}:{self.line}: {self.message}"
 
 
+def _column(name: str) -> str:
+    """How errors name a column: ``column 2 (fx)``."""
+    return f"column {COLUMNS.index(name) + 1} ({name})"
+
+
 def _camera_problem(intrinsics: np.ndarray, world_to_camera: np.ndarray) -> str | None:
-    """What is wrong with one camera (float[4] intrinsics, float[3, 4] [R|t]), or None."""
+    """What is wrong with one camera (float[4] intrinsics, float[3, 4] [R|t]), or None; the
+    message names the column."""
     if not (np.all(np.isfinite(intrinsics)) and np.all(np.isfinite(world_to_camera))):
         return "intrinsics and [R|t] must be finite"
-    for name, value in zip(("fx", "fy"), intrinsics[:2]):
+    lo, hi = FOCAL_RANGE
+    for name, value in zip(("fx", "fy"), intrinsics[:2].tolist()):
         if not value > 0:
-            return f"{name} must be > 0, found {float(value)!r}"
+            return f"{_column(name)} must be > 0, found {value!r}"
+        if not lo <= value <= hi:
+            return (f"{_column(name)} = {value!r} is not a field of view of {FOV_RANGE_DEG[0]:g} to "
+                    f"{FOV_RANGE_DEG[1]:g} degrees (normalised focal length in [{lo:.4g}, {hi:.4g}])")
+    margin = PRINCIPAL_POINT_MARGIN
+    for name, value in zip(("cx", "cy"), intrinsics[2:].tolist()):
+        if not -margin <= value <= 1 + margin:
+            return (f"{_column(name)} = {value!r} puts the principal point outside the image "
+                    f"(normalised, must be in [{-margin:g}, {1 + margin:g}])")
     R = world_to_camera[:, :3]
     error = rotation_error(R)
     if error > ROTATION_TOLERANCE:
         return (f"R is not a rotation: rotation error {error:.3g} > {ROTATION_TOLERANCE:g} "
                 f"(det {np.linalg.det(R):.3g})")
+    for name, value in zip(("t1", "t2", "t3"), world_to_camera[:, 3].tolist()):
+        if abs(value) > TRANSLATION_MAX:
+            return f"{_column(name)} = {value!r} is too far from the origin (|t| must be <= {TRANSLATION_MAX:g})"
     return None
+
+
+def _quote(text: str, limit: int = 40) -> str:
+    """``repr(text)``, cut to about ``limit`` characters (errors show what the file holds, on one line)."""
+    shown = repr(text)
+    return shown if len(shown) <= limit else shown[:limit] + "..."
+
+
+def _is_number(text: str) -> bool:
+    """Whether Python reads ``text`` as a float (nan and inf included)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_camera_line(line: str) -> bool:
+    """Whether ``line`` is 19 numbers: a camera line, which a URL line never is."""
+    fields = line.split()
+    return len(fields) == len(COLUMNS) and all(map(_is_number, fields))
 
 
 def _parse_camera_line(fields: list[str]) -> tuple[int, np.ndarray]:
@@ -145,15 +198,15 @@ def _parse_camera_line(fields: list[str]) -> tuple[int, np.ndarray]:
     if len(fields) != len(COLUMNS):
         raise ValueError(f"expected {len(COLUMNS)} columns, found {len(fields)}")
     if not _TIMESTAMP.fullmatch(fields[0]):
-        raise ValueError(f"column 1 (timestamp) is not a non-negative integer: {fields[0]!r}")
+        raise ValueError(f"column 1 (timestamp) is not a non-negative integer: {_quote(fields[0])}")
     timestamp = int(fields[0])
     if timestamp > _INT64_MAX:
-        raise ValueError(f"column 1 (timestamp) does not fit in int64: {fields[0]!r}")
+        raise ValueError(f"column 1 (timestamp) does not fit in int64: {_quote(fields[0])}")
     values = np.empty(len(COLUMNS) - 1)
     for col, (name, text) in enumerate(zip(COLUMNS[1:], fields[1:]), start=2):
         value = float(text) if _FLOAT.fullmatch(text) else math.nan
         if not math.isfinite(value):
-            raise ValueError(f"column {col} ({name}) is not a finite number: {text!r}")
+            raise ValueError(f"column {col} ({name}) is not a finite number: {_quote(text)}")
         values[col - 2] = value
     return timestamp, values
 
@@ -161,14 +214,20 @@ def _parse_camera_line(fields: list[str]) -> tuple[int, np.ndarray]:
 def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
     """Parse the contents of a camera file; ``source`` names it in errors.
 
+    A leading byte-order mark is dropped (see the module docstring).
+
     Raises:
       CameraFileError: ``f"{source}:{line}: {what is wrong}"`` at the first problem found.
     """
+    text = text.removeprefix(BOM)
     lines = text.split("\n")  # a "\r" left by "\r\n" is whitespace, dropped like any other
     if not text.strip():
         raise CameraFileError(source, 0, "empty file")
     if not lines[0].strip():
         raise CameraFileError(source, 1, "line 1 (the URL) is empty")
+    if _is_camera_line(lines[0]):
+        raise CameraFileError(source, 1, "line 1 is a camera line (19 numbers), not the video URL: "
+                                         "the URL line is missing")
     last = max(i for i, line in enumerate(lines) if line.strip())
     if last == 0:
         raise CameraFileError(source, 0, "no camera lines after the URL")
@@ -202,7 +261,8 @@ def parse_camera_file(path: str | os.PathLike[str]) -> CameraTrack:
     """Read and parse a camera file (UTF-8).
 
     Raises:
-      CameraFileError: malformed contents, or (line 0) an unreadable or non-UTF-8 file.
+      CameraFileError: malformed contents, a non-UTF-8 byte (naming its line), or (line 0) an
+        unreadable file.
     """
     source = os.fspath(path)
     try:
@@ -213,8 +273,9 @@ def parse_camera_file(path: str | os.PathLike[str]) -> CameraTrack:
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise CameraFileError(source, 0, f"not valid UTF-8 (byte 0x{data[e.start]:02x} at "
-                                         f"offset {e.start})") from None
+        line = data.count(b"\n", 0, e.start) + 1
+        raise CameraFileError(source, line, f"not valid UTF-8 (byte 0x{data[e.start]:02x} at "
+                                            f"offset {e.start})") from None
     return parse_camera_text(text, source)
 
 

@@ -19,18 +19,25 @@ Layouts (``[detect] adapter``):
     then C class scores in [0, 1] (no objectness). A transposed [B, N, 4 + C] output is accepted.
 
 Models whose input batch is fixed to 1 run one image per call; others get ``batch_size`` images.
+A model's declared output shapes must fit its layout and label map (:func:`output_problem`):
+:func:`check_detect_config` checks that from the file before a run, :class:`Detector` from its session.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from cadestate.config import ConfigError, DetectConfig
 from cadestate.lineage import file_sha256
 from tasks.models import nanodet
+
+Shape = tuple[int | None, ...]
+"""A tensor shape as a model declares it: None for a dimension it leaves open (named or unknown)."""
 
 
 @dataclass(frozen=True)
@@ -155,6 +162,119 @@ LAYOUTS: dict[str, Layout] = {
 }
 
 
+def _nanodet_problem(outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    box = 4 * (nanodet.REG_MAX + 1)
+    if len(outputs) != 2 * len(nanodet.STRIDES):
+        return "adapter", (f"the model has {len(outputs)} outputs; the nanodet layout reads "
+                           f"{2 * len(nanodet.STRIDES)} (class scores and box distributions per stride)")
+    classes = sorted({s[-1] for s in outputs if s and s[-1] is not None} - {box, num_labels})
+    if classes:
+        return "labels", f"the model scores {classes[0]} classes but [detect] labels has {num_labels} names"
+    return None
+
+
+def _yolov8_problem(outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    if len(outputs) != 1 or len(outputs[0]) != 3:
+        shapes = ", ".join(str(list(s)) for s in outputs)
+        return "adapter", f"the model's outputs {shapes} are not the yolov8 layout's one [B, 4 + C, N]"
+    dims = outputs[0][1:]
+    if None not in dims and 4 + num_labels not in dims:
+        return "labels", (f"the model's output [B, {dims[0]}, {dims[1]}] has no axis of 4 + C = {4 + num_labels} "
+                          f"for the C = {num_labels} names of [detect] labels")
+    return None
+
+
+def output_problem(adapter: str, outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    """(``[detect]`` key, what is wrong) when a model with these declared output shapes cannot be
+    read by ``adapter`` with ``num_labels`` labels; None when they fit or open dimensions leave it open."""
+    return {"nanodet": _nanodet_problem, "yolov8": _yolov8_problem}[adapter](outputs, num_labels)
+
+
+def _shape(dims: Sequence) -> Shape:
+    """A declared shape with every dimension that is not a positive int as None."""
+    return tuple(d if isinstance(d, int) and d > 0 else None for d in dims)
+
+
+def onnx_shapes(path: Path) -> tuple[list[Shape], list[Shape]]:
+    """Input and output shapes of an ONNX file, read with ``onnx`` (no session: cheap): as declared,
+    and where an output leaves a non-batch dimension open, as ONNX shape inference finds them.
+
+    Raises:
+      ValueError: the file is not an ONNX model (naming it).
+    """
+    import onnx
+    from google.protobuf.message import DecodeError
+
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except (DecodeError, OSError) as e:
+        raise ValueError(f"{path}: not an ONNX model ({type(e).__name__}: {e})") from None
+    if not model.ir_version or not model.graph.input or not model.graph.output:
+        raise ValueError(f"{path}: not an ONNX model (no IR version, graph inputs or outputs)")
+
+    def shapes(values) -> list[Shape]:
+        return [_shape([d.dim_value for d in v.type.tensor_type.shape.dim]) for v in values]
+
+    outputs = shapes(model.graph.output)
+    if any(None in s[1:] for s in outputs):
+        try:
+            outputs = shapes(onnx.shape_inference.infer_shapes(model).graph.output)
+        except onnx.shape_inference.InferenceError:
+            pass  # the declared shapes, open dimensions and all
+    return shapes(model.graph.input), outputs
+
+
+def _label_map_problem(cfg: DetectConfig) -> tuple[str, str] | None:
+    """(key, what is wrong) with ``[detect] labels`` and ``classes`` on their own, or None."""
+    labels = cfg.labels or nanodet.COCO_LABELS
+    blank = [i for i, name in enumerate(labels, start=1) if not name.strip()]
+    if blank:
+        return "labels", f"label {blank[0]} is blank"
+    twice = sorted(name for name, n in Counter(labels).items() if n > 1)
+    if twice:
+        return "labels", f"{twice[0]!r} appears more than once"
+    unknown = sorted(set(cfg.classes) - set(labels))
+    if unknown:
+        which = "[detect] labels" if cfg.labels else "the default COCO-80 label map"
+        return "classes", f"{', '.join(map(repr, unknown))} not in {which}"
+    return None
+
+
+def check_detect_config(cfg: DetectConfig, source: str | None) -> None:
+    """Check ``[detect]`` against its label map and model file before a run (``cadestate config
+    check`` and ``cadestate ingest`` call it): classes in the label map, no empty or repeated label,
+    the model an ONNX file whose declared input size and outputs fit ``input_size``, ``adapter`` and
+    ``labels``. A missing default model is left to the detect stage (which asks for `make models`).
+
+    Raises:
+      ConfigError: ``"{source}: [detect] {key}: {what is wrong}"``.
+    """
+    where = source or "built-in defaults"
+    problem = _label_map_problem(cfg)
+    path = detector_path(cfg)
+    if problem is None and (cfg.model or path.is_file()):
+        if not path.is_file():
+            problem = "model", f"{path}: no such file"
+        else:
+            try:
+                inputs, outputs = onnx_shapes(path)
+            except ValueError as e:
+                problem = "model", str(e)
+            else:
+                problem = _input_problem(inputs[0], cfg.input_size) or output_problem(
+                    cfg.adapter, outputs, len(cfg.labels or nanodet.COCO_LABELS))
+    if problem:
+        raise ConfigError(f"{where}: [detect] {problem[0]}: {problem[1]}")
+
+
+def _input_problem(shape: Shape, input_size: int) -> tuple[str, str] | None:
+    """(key, what is wrong) when a model input of ``shape`` [B, 3, S, S] does not take ``input_size``."""
+    side = shape[2:4]
+    if len(side) == 2 and None not in side and side != (input_size, input_size):
+        return "input_size", f"the model's input is {side[0]}x{side[1]} but [detect] input_size is {input_size}"
+    return None
+
+
 def load_session(model: Path | bytes, threads: int = 2):  # -> onnxruntime.InferenceSession
     """A CPU onnxruntime session of a model file or serialized model (sequential execution)."""
     import onnxruntime as ort
@@ -187,8 +307,10 @@ class Detector:
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
         self.batch_size = batch_size if not isinstance(shape[0], int) else shape[0]
-        if isinstance(shape[2], int) and (shape[2], shape[3]) != (input_size, input_size):
-            raise ValueError(f"{model_path}: input is {shape[2]}x{shape[3]} but [detect] input_size is {input_size}")
+        problem = _input_problem(_shape(shape), input_size) or output_problem(
+            adapter, [_shape(o.shape) for o in self.session.get_outputs()], len(self.labels))
+        if problem:
+            raise ValueError(f"{model_path}: {problem[1]} ([detect] {problem[0]})")
 
     def _run(self, batch: np.ndarray) -> list[list[np.ndarray]]:
         """Network on float32[B,3,S,S] -> per image, its outputs without the batch axis."""
@@ -223,10 +345,10 @@ def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
     model = detector_path(cfg)
     if not cfg.model and not nanodet.is_built(model.parent):
         raise FileNotFoundError(f"the default detector {model} is missing or not verified: run `make models`")
+    problem = _label_map_problem(cfg)
+    if problem:
+        raise ValueError(f"[detect] {problem[0]}: {problem[1]}")
     labels = cfg.labels or nanodet.COCO_LABELS
-    unknown = sorted(set(cfg.classes) - set(labels))
-    if unknown:
-        raise ValueError(f"[detect] classes {unknown} are not in the label map")
     return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
                     nms_iou=cfg.nms_iou, max_detections=cfg.max_detections, batch_size=cfg.batch_size,
                     threads=cfg.threads)

@@ -2,12 +2,15 @@
 
 Reads: a video file and a RealEstate10K camera file. Writes: ``inputs/<clip>/video<ext>``,
 ``inputs/<clip>/cameras.txt`` and the clip's row of ``clips``. Fails (writing nothing) on a
-malformed camera file, an unreadable video, or cameras that ask for times past the video's end.
+malformed camera file, an unreadable video, cameras that ask for times past the video's end, or
+intrinsics made for another frame shape (:func:`check_clip_inputs`, which ``cadestate ingest``
+also runs before it starts anything).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import math
 import os
 import shutil
 import uuid
@@ -19,15 +22,21 @@ import pyarrow as pa
 from cadestate.config import IngestConfig
 from cadestate.lineage import digest
 from schemas.core import DEFAULT_SPLIT
-from tasks.cameras import parse_camera_file
+from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file
 from tasks.stage import StageOutput
-from tasks.video import VideoError, probe_video
+from tasks.video import VideoInfo, probe_video
 from warehouse import Warehouse, WarehouseError, check_name
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".webm", ".mov", ".avi")
 CAMERAS_FILE = "cameras.txt"
 END_TOLERANCE_US = 100_000
 """Camera timestamps may exceed the stream's declared duration by this much (last frame's length)."""
+ASPECT_ERROR = 0.10
+"""Normalised intrinsics imply the frame's width/height: fy/fx = pixel aspect * W/H. A camera line
+whose implied aspect differs from the video's by more than this fraction was made for another
+video (a 16:9 camera file on a 4:3 video differs by 33 %): refused."""
+ASPECT_WARNING = 0.02
+"""A difference above this fraction (but within ASPECT_ERROR) is reported as suspicious."""
 
 
 @dataclass(frozen=True)
@@ -88,18 +97,72 @@ def _place(src: Path, dst: Path, link: bool) -> None:
         tmp.unlink(missing_ok=True)
 
 
+@dataclass(frozen=True)
+class CheckedInputs:
+    """A clip's parsed camera file and probed video, found to belong together; ``warnings``: what
+    is legal but suspicious, one line each, naming the camera file and line."""
+
+    cameras: CameraTrack
+    video: VideoInfo
+    warnings: tuple[str, ...] = ()
+
+
+def _aspect_errors(cameras: CameraTrack, video: VideoInfo) -> list[float]:
+    """Per camera, the relative difference between the frame aspect its intrinsics imply and the video's."""
+    fx, fy = cameras.intrinsics[:, 0], cameras.intrinsics[:, 1]
+    ratio = (fy / fx) / (video.pixel_aspect * video.width / video.height)
+    return [math.expm1(abs(math.log(r))) for r in ratio.tolist()]
+
+
+def _aspect_message(cameras: CameraTrack, index: int, video: VideoInfo, path: Path) -> str:
+    """Why camera ``index`` does not fit ``video`` (the implied and the real frame aspect)."""
+    fx, fy = cameras.intrinsics[index, :2].tolist()
+    implied = fy / fx / video.pixel_aspect
+    pixels = f", pixel aspect {video.pixel_aspect:.4g}" if video.pixel_aspect != 1.0 else ""
+    return (f"fy/fx = {fy / fx:.4g} fits frames of aspect {implied:.4g} (width/height) but {path} is "
+            f"{video.width}x{video.height} ({video.width / video.height:.4g}{pixels})")
+
+
+def check_clip_inputs(video: Path, cameras: Path) -> CheckedInputs:
+    """Parse ``cameras``, probe ``video`` and check that they belong together: no camera past the
+    video's end (give or take END_TOLERANCE_US), intrinsics for the video's frame aspect
+    (ASPECT_ERROR; ASPECT_WARNING gives a warning).
+
+    Raises:
+      CameraFileError: a malformed camera file, or a camera line that does not fit the video
+        (naming the camera file and line).
+      VideoError: an unreadable video.
+    """
+    track = parse_camera_file(cameras)
+    info = probe_video(video)
+    if info.duration_us:
+        past = [i for i, t in enumerate(track.timestamps_us.tolist()) if t > info.duration_us + END_TOLERANCE_US]
+        if past:
+            raise CameraFileError(str(cameras), past[0] + 2, (
+                f"timestamp {int(track.timestamps_us[past[0]])} µs is past the end of {video}, which lasts "
+                f"{info.duration_us} µs ({len(past)} of the {len(track)} cameras are past it)"))
+    errors = _aspect_errors(track, info)
+    bad = [i for i, e in enumerate(errors) if e > ASPECT_ERROR]
+    if bad:
+        raise CameraFileError(str(cameras), bad[0] + 2, (
+            f"{_aspect_message(track, bad[0], info, video)}: the intrinsics are another video's "
+            f"(differ by {errors[bad[0]]:.0%}, more than {ASPECT_ERROR:.0%})"))
+    worst = max(range(len(errors)), key=errors.__getitem__)
+    warnings = ()
+    if errors[worst] > ASPECT_WARNING:
+        warnings = (f"{cameras}:{worst + 2}: {_aspect_message(track, worst, info, video)} "
+                    f"(differ by {errors[worst]:.1%}: non-square pixels or a cropped video?)",)
+    return CheckedInputs(track, info, warnings)
+
+
 def ingest_clip(
     wh: Warehouse, cfg: IngestConfig, source: ClipSource, video_sha256: str, cameras_sha256: str, run_id: str
 ) -> StageOutput:
-    """Validate ``source`` and register it (see module docstring). ``run_id`` is unused by ingest."""
-    cameras = parse_camera_file(source.cameras)
-    info = probe_video(source.video)
+    """Validate ``source`` (:func:`check_clip_inputs`; its warnings become the stage's message) and
+    register it (see module docstring). ``run_id`` is unused by ingest."""
+    checked = check_clip_inputs(source.video, source.cameras)
+    cameras, info = checked.cameras, checked.video
     last = int(cameras.timestamps_us[-1])
-    if info.duration_us and last > info.duration_us + END_TOLERANCE_US:
-        raise VideoError(
-            f"{source.video}: the video lasts {info.duration_us} µs but {source.cameras} asks for a frame "
-            f"at {last} µs (line {len(cameras) + 1})"
-        )
     inputs = wh.inputs_dir(source.clip)
     inputs.mkdir(parents=True, exist_ok=True)
     for old in inputs.glob("video.*"):  # a re-ingest with another container format
@@ -130,7 +193,8 @@ def ingest_clip(
         "split": source.split,
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row]))
-    return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split))
+    return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split),
+                       message="; ".join(checked.warnings))
 
 
 def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:

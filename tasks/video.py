@@ -24,13 +24,15 @@ class VideoError(ValueError):
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """Properties of a video's first video stream (sizes in px, times in µs)."""
+    """Properties of a video's first video stream (sizes in px, times in µs; ``pixel_aspect``:
+    the sample aspect ratio, a pixel's width over its height, 1 when the stream does not say)."""
 
     width: int
     height: int
     fps: float
     duration_us: int
     codec: str
+    pixel_aspect: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,9 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         else:
             duration_us = 0
         fps = float(stream.average_rate) if stream.average_rate else 0.0
-        return VideoInfo(first.width, first.height, fps, duration_us, stream.codec_context.name)
+        sar = stream.sample_aspect_ratio
+        pixel_aspect = float(sar) if sar and sar > 0 else 1.0
+        return VideoInfo(first.width, first.height, fps, duration_us, stream.codec_context.name, pixel_aspect)
 
 
 def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction) -> int:

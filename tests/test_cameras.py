@@ -11,7 +11,10 @@ import pytest
 from cadestate.geometry import look_at, quaternion_to_matrix, rotation_error
 from tasks import cameras
 from tasks.cameras import (
+    FOCAL_RANGE,
+    PRINCIPAL_POINT_MARGIN,
     ROTATION_TOLERANCE,
+    TRANSLATION_MAX,
     CameraFileError,
     CameraTrack,
     format_camera_track,
@@ -33,11 +36,11 @@ def camera_line(timestamp: object, intrinsics=INTRINSICS, R=R0, t=T0, unused=(0,
 
 
 def random_track(n: int, seed: int = 0) -> CameraTrack:
-    """A valid track: random unit quaternions, translations and intrinsics over many magnitudes."""
+    """A valid track: random unit quaternions, translations over many magnitudes, intrinsics in range."""
     rng = np.random.default_rng(seed)
     R = quaternion_to_matrix(rng.normal(size=(n, 4)))
-    t = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-8, 8, size=(n, 1))
-    intrinsics = np.abs(rng.normal(size=(n, 4))) + 1e-3
+    t = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-8, 5, size=(n, 1))
+    intrinsics = np.concatenate([rng.uniform(0.2, 5.0, size=(n, 2)), rng.uniform(0.0, 1.0, size=(n, 2))], axis=1)
     intrinsics[0, 2:] = [-0.0, 1.0 / 3.0]
     timestamps = np.cumsum(rng.integers(1, 10**6, size=n)).astype(np.int64)
     return CameraTrack(URL, timestamps, intrinsics, np.concatenate([R, t[:, :, None]], axis=2))
@@ -108,6 +111,26 @@ def test_crlf_and_trailing_blank_lines_accepted():
         assert_identical(parse_camera_text(text), expected)
 
 
+def test_bom_is_dropped():
+    text = "\n".join([URL, camera_line(10)])
+    assert_identical(parse_camera_text("\ufeff" + text), parse_camera_text(text))
+
+
+def test_bom_is_dropped_from_a_file(tmp_path):
+    path = tmp_path / "clip.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + "\n".join([URL, camera_line(10)]).encode())
+    assert parse_camera_file(path).url == URL
+
+
+def test_range_boundaries_are_accepted():
+    lo, hi = FOCAL_RANGE
+    assert lo == pytest.approx(0.5 / np.tan(np.radians(89.5))) and hi == pytest.approx(0.5 / np.tan(np.radians(0.5)))
+    m, big = PRINCIPAL_POINT_MARGIN, TRANSLATION_MAX
+    lines = [camera_line(0, (lo, hi, -m, 1 + m), t=(big, -big, 0.0)), camera_line(1, (hi, lo, 1 + m, -m))]
+    track = parse_camera_text("\n".join([URL, *lines]))
+    assert track.intrinsics[0].tolist() == [lo, hi, -m, 1 + m] and track.t[0, 0] == big
+
+
 def test_rotation_tolerance_boundary():
     noise = np.full((3, 3), ROTATION_TOLERANCE / 10)
     assert 0 < rotation_error(R0 + noise) <= ROTATION_TOLERANCE
@@ -154,8 +177,20 @@ MALFORMED = [
     pytest.param(replaced(1, camera_line(200, R=1.01 * R0)), 3, "not a rotation: rotation error 0.0303",
                  id="scaled-rotation"),
     pytest.param(replaced(2, camera_line(300, R=R0 * [[-1], [1], [1]])), 4, "(det -1)", id="reflection"),
-    pytest.param(replaced_column(0, 2, "0"), 2, "fx must be > 0, found 0.0", id="zero-fx"),
-    pytest.param(replaced_column(1, 3, "-1.5"), 3, "fy must be > 0, found -1.5", id="negative-fy"),
+    pytest.param(replaced_column(0, 2, "0"), 2, "column 2 (fx) must be > 0, found 0.0", id="zero-fx"),
+    pytest.param(replaced_column(1, 3, "-1.5"), 3, "column 3 (fy) must be > 0, found -1.5", id="negative-fy"),
+    pytest.param(replaced_column(1, 2, "1e300"), 3, "column 2 (fx) = 1e+300 is not a field of view of 1 to 179 "
+                 "degrees (normalised focal length in [0.004363, 57.29])", id="huge-fx"),
+    pytest.param(replaced_column(2, 3, "0.004"), 4, "column 3 (fy) = 0.004 is not a field of view", id="tiny-fy"),
+    pytest.param(replaced_column(0, 4, "-40"), 2, "column 4 (cx) = -40.0 puts the principal point outside the "
+                 "image (normalised, must be in [-0.1, 1.1])", id="cx-outside"),
+    pytest.param(replaced_column(1, 5, "1.2"), 3, "column 5 (cy) = 1.2 puts the principal point outside",
+                 id="cy-outside"),
+    pytest.param(replaced_column(2, 11, "1e200"), 4, "column 11 (t1) = 1e+200 is too far from the origin "
+                 "(|t| must be <= 1e+06)", id="huge-t1"),
+    pytest.param(replaced_column(0, 19, "-2e6"), 2, "column 19 (t3) = -2000000.0 is too far", id="far-t3"),
+    pytest.param(replaced_column(0, 2, "x" * 100), 2, "column 2 (fx) is not a finite number: '" + "x" * 39 + "...",
+                 id="long-field-cut"),
     pytest.param(replaced(1, ""), 3, "blank line before more camera lines", id="blank-middle"),
     pytest.param(replaced(1, " \t"), 3, "blank line before more camera lines", id="whitespace-middle"),
 ]
@@ -178,6 +213,11 @@ def test_malformed_camera_lines(tmp_path, camera_lines, line, message):
     pytest.param("\n" + GOOD[0], 1, "line 1 (the URL) is empty", id="empty-url"),
     pytest.param(URL, 0, "no camera lines", id="url-only"),
     pytest.param(URL + "\n\n  \n", 0, "no camera lines", id="url-and-blank-lines"),
+    pytest.param("\n".join(GOOD), 1, "line 1 is a camera line (19 numbers), not the video URL: the URL line is "
+                 "missing", id="missing-url"),
+    pytest.param("\n".join(GOOD).replace("100", "nan", 1), 1, "the URL line is missing", id="missing-url-nan"),
+    pytest.param("\ufeff" + "\n".join(GOOD), 1, "the URL line is missing", id="missing-url-after-bom"),
+    pytest.param("\ufeff", 0, "empty file", id="bom-only"),
 ])
 def test_malformed_whole_file(text, line, message):
     with pytest.raises(CameraFileError) as info:
@@ -193,10 +233,10 @@ def test_default_source_name():
 
 def test_non_utf8_file(tmp_path):
     path = tmp_path / "clip.txt"
-    path.write_bytes(URL.encode() + b"\n" + GOOD[0].encode() + b" \xff\n")
+    path.write_bytes(URL.encode() + b"\n" + GOOD[0].encode() + b"\n" + GOOD[1].encode() + b" \xff\n")
     with pytest.raises(CameraFileError, match="not valid UTF-8") as info:
         parse_camera_file(path)
-    assert (info.value.path, info.value.line) == (str(path), 0)
+    assert (info.value.path, info.value.line) == (str(path), 3)  # the line of the bad byte
 
 
 def test_missing_file(tmp_path):
@@ -236,8 +276,10 @@ def test_track_properties_and_equality():
                       world_to_camera=np.zeros((0, 3, 4))), "N >= 1", id="empty"),
     pytest.param(dict(timestamps_us=np.array([0, 5, 5])), "strictly increasing", id="duplicate-timestamps"),
     pytest.param(dict(timestamps_us=np.array([-1, 5, 6])), "non-negative", id="negative-timestamp"),
-    pytest.param(dict(intrinsics=np.array([[1.0, 1, 0, 0]] * 2 + [[1.0, 0, 0, 0]])), "camera 2: fy must be > 0",
-                 id="zero-fy"),
+    pytest.param(dict(intrinsics=np.array([[1.0, 1, 0, 0]] * 2 + [[1.0, 0, 0, 0]])),
+                 r"camera 2: column 3 \(fy\) must be > 0", id="zero-fy"),
+    pytest.param(dict(intrinsics=np.array([[1.0, 1, 0, 0]] * 2 + [[1.0, 1, 2, 0]])),
+                 r"camera 2: column 4 \(cx\) = 2.0 puts the principal point outside", id="cx-outside"),
     pytest.param(dict(intrinsics=np.array([[1.0, np.nan, 0, 0]] * 3)), "camera 0: .*finite", id="nan"),
     pytest.param(dict(world_to_camera=np.stack([np.eye(3, 4)] * 3) * 2), "camera 0: R is not a rotation",
                  id="scaled"),

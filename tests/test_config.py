@@ -5,8 +5,9 @@ import dataclasses
 import pytest
 
 from cadestate.config import (
-    SECTIONS, Config, ConfigError, config_from_dict, describe_defaults, load_config, to_toml,
+    DESCRIPTOR_DIM, SECTIONS, Config, ConfigError, config_from_dict, describe_defaults, load_config, to_toml,
 )
+from fuzz.harness import assert_clean_error, run_cli
 
 
 def test_sections_cover_every_config_field():
@@ -37,6 +38,23 @@ def test_defaults_are_valid_and_documented():
         ({"ingest": {"link_inputs": 1}}, "[ingest] link_inputs: expected bool, got int"),
         ({"prefect": {"task_runner": "ray"}}, "[prefect] task_runner: must be one of"),
         ({"frames": 3}, "[frames] must be a table"),
+        ({"detect": {"score_threshold": float("nan")}}, "[detect] score_threshold: must be a finite number, got nan"),
+        ({"pose": {"alpha": float("inf")}}, "[pose] alpha: must be a finite number, got inf"),
+        ({"tracking": {"bias": float("-inf")}}, "[tracking] bias: must be a finite number, got -inf"),
+        ({"pose": {"beta": 10**400}}, "[pose] beta: must be a finite number, got 1000000000"),
+        ({"frames": {"seek_threshold_us": 2**63}}, "[frames] seek_threshold_us: must fit in 64 bits"),
+        ({"cad_views": {"seed": -(2**63) - 1}}, "[cad_views] seed: must fit in 64 bits"),
+        ({"frames": {"seek_threshold_us": 16**5000}}, "[frames] seek_threshold_us: must fit in 64 bits, got <int too large to show>"),
+        ({"pose": {"lr": 0.01, "lr_final": 0.02}}, "[pose] lr_final: must be <= [pose] lr (0.01), got 0.02"),
+        ({"pose": {"lr_final": 0.5}}, "[pose] lr_final: must be <= [pose] lr (0.02)"),
+        ({"cad_embed": {"whitening_dims": DESCRIPTOR_DIM + 1}}, "[cad_embed] whitening_dims: must be <= 768, got 769"),
+        ({"label_similarity": {"template": "a photo of a {name}"}},
+         "[label_similarity] template: not a format string with one '{}' for the name (KeyError: 'name')"),
+        ({"label_similarity": {"template": "a photo"}}, "[label_similarity] template: must contain '{}', where the name goes"),
+        ({"label_similarity": {"template": "{"}}, "[label_similarity] template: not a format string"),
+        ({"warehouse": {"root": " "}}, "[warehouse] root: must not be empty"),
+        ({"a\nb": {}}, "unknown section ['a\\nb']"),
+        ({"detect": {"classes": [1] * 1000}}, "[detect] classes: expected a list of strings, got [" + "1, " * 19 + "1,..."),
     ],
 )
 def test_bad_config_names_the_key(data, message):
@@ -67,3 +85,36 @@ def test_load_file_env_and_errors(tmp_path, monkeypatch):
         load_config(f)
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_whitening_dims_bound_is_the_descriptor_size():
+    from tasks.models.embedder import DIM
+
+    assert DESCRIPTOR_DIM == DIM
+
+
+def test_unreadable_and_odd_files(tmp_path, monkeypatch):
+    f = tmp_path / "c.toml"
+    f.write_bytes("\ufeff[frames]\njpeg_quality = 80\n".encode())  # a BOM, as Windows editors write
+    assert load_config(f).frames.jpeg_quality == 80
+    f.write_text("[frames]\njpeg_quality = " + "1" * 5000 + "\n")  # more digits than Python reads
+    with pytest.raises(ConfigError, match="c.toml: not valid TOML: Exceeds the limit"):
+        load_config(f)
+    monkeypatch.setattr(type(f), "read_text", lambda *a, **k: (_ for _ in ()).throw(PermissionError(13, "Permission denied")))
+    with pytest.raises(ConfigError, match="c.toml: cannot read config file: Permission denied"):
+        load_config(f)
+
+
+def test_config_check_checks_the_detect_model(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('[detect]\nclasses = ["sofa"]\n')  # COCO-80 says "couch"
+    assert_clean_error(run_cli("config", "check", str(f)),
+                       mentions=f"{f}: [detect] classes: 'sofa' not in the default COCO-80 label map")
+    (tmp_path / "m.onnx").write_bytes(b"not a model")
+    f.write_text(f'[detect]\nmodel = "{tmp_path / "m.onnx"}"\n')
+    assert_clean_error(run_cli("config", "check", str(f)), mentions=f"{f}: [detect] model: {tmp_path / 'm.onnx'}: not an ONNX model")
+    f.write_text("[detect]\nscore_threshold = nan\n")
+    assert_clean_error(run_cli("config", "check", str(f)), mentions="[detect] score_threshold: must be a finite number, got nan")
+    f.write_text("[detect]\nscore_threshold = 0.5\n")
+    result = run_cli("config", "check", str(f))
+    assert result.code == 0 and f"{f}: ok" in result.stdout

@@ -11,7 +11,9 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from cadestate.config import ConfigError, DetectConfig, config_from_dict  # noqa: E402
-from tasks.detectors import Detector, Letterbox, letterbox, load_detector, nms  # noqa: E402
+from tasks.detectors import (  # noqa: E402
+    Detector, Letterbox, check_detect_config, letterbox, load_detector, nms, output_problem,
+)
 from tasks.models import nanodet as nd  # noqa: E402
 
 
@@ -81,9 +83,9 @@ def test_yolov8_adapter_on_exported_model(tmp_path, transposed):
 def test_yolov8_adapter_rejects_a_wrong_label_map(tmp_path):
     path = tmp_path / "yolo.onnx"
     export(FixedOutputs([yolo_outputs()]), path, 64, dynamic_batch=True, n_outputs=1)
-    det = Detector(path, "yolov8", ("a", "b", "c", "d", "e"), 64)
-    with pytest.raises(ValueError, match="5 labels"):
-        det.detect([np.zeros((64, 64, 3), np.uint8)])
+    with pytest.raises(ValueError, match=r"yolo.onnx: the model's output \[B, 7, 6\] has no axis of 4 \+ C = 9 for "
+                                         r"the C = 5 names of \[detect\] labels \(\[detect\] labels\)"):
+        Detector(path, "yolov8", ("a", "b", "c", "d", "e"), 64)  # at load, not mid-run
 
 
 # ---- NanoDet layout ---------------------------------------------------------------------------------
@@ -117,6 +119,28 @@ def test_nanodet_adapter_on_exported_model(tmp_path):
     np.testing.assert_allclose(b.boxes[0], [0, 0, 56, 8], atol=1e-3)  # pad_y 16
     with pytest.raises(ValueError, match="input is 64x64"):
         Detector(path, "nanodet", LABELS, 416)
+
+
+def test_nanodet_adapter_rejects_a_wrong_label_map_or_layout(tmp_path):
+    path = tmp_path / "nanodet.onnx"
+    export(FixedOutputs(nanodet_outputs()), path, 64, dynamic_batch=False, n_outputs=6)
+    with pytest.raises(ValueError, match=r"the model scores 3 classes but \[detect\] labels has 80 names"):
+        Detector(path, "nanodet", nd.COCO_LABELS, 64)
+    with pytest.raises(ValueError, match=r"not the yolov8 layout's one \[B, 4 \+ C, N\] \(\[detect\] adapter\)"):
+        Detector(path, "yolov8", LABELS, 64)
+
+
+@pytest.mark.parametrize("outputs, num_labels, problem", [
+    ([(1, 84, 8400)], 80, None),
+    ([(1, 8400, 84)], 80, None),
+    ([(None, 84, None)], 3, None),  # open dimensions: nothing to say
+    ([(1, 84, 8400)], 3, "labels"),
+    ([(1, 84)], 80, "adapter"),
+    ([(1, 84, 8400)] * 2, 80, "adapter"),
+])
+def test_yolov8_output_problem(outputs, num_labels, problem):
+    found = output_problem("yolov8", outputs, num_labels)
+    assert (found and found[0]) == problem
 
 
 def test_nanodet_candidates_use_cell_centres():
@@ -161,5 +185,51 @@ def test_detect_config_label_map_and_errors(tmp_path):
     (tmp_path / "junk.onnx").write_bytes(b"not a model")
     with pytest.raises(ValueError, match="junk.onnx: not a loadable ONNX model"):
         load_detector(DetectConfig(model=str(tmp_path / "junk.onnx")))
-    with pytest.raises(ValueError, match=r"classes \['sofa'\]"):
+    with pytest.raises(ValueError, match=r"\[detect\] classes: 'sofa' not in \[detect\] labels"):
         load_detector(DetectConfig(model=str(tmp_path / "junk.onnx"), labels=("a",), classes=("sofa",)))
+
+
+def check(tmp_path, **detect) -> str:
+    """The ConfigError of check_detect_config on a [detect] section."""
+    with pytest.raises(ConfigError) as e:
+        check_detect_config(DetectConfig(**detect), str(tmp_path / "c.toml"))
+    assert str(e.value).startswith(f"{tmp_path / 'c.toml'}: [detect] ")
+    return str(e.value).split(": [detect] ", 1)[1]
+
+
+def test_check_detect_config_reads_the_model_file(tmp_path):
+    yolo = tmp_path / "yolo.onnx"
+    export(FixedOutputs([yolo_outputs()]), yolo, 64, dynamic_batch=True, n_outputs=1)
+    ok = dict(model=str(yolo), adapter="yolov8", labels=LABELS, input_size=64)
+    check_detect_config(DetectConfig(**ok), "c.toml")
+    assert check(tmp_path, **ok | dict(labels=LABELS + ("bed",))) == (  # shapes inferred: the graph leaves them open
+        "labels: the model's output [B, 7, 6] has no axis of 4 + C = 8 for the C = 4 names of [detect] labels")
+    assert check(tmp_path, **ok | dict(input_size=640)) == (
+        "input_size: the model's input is 64x64 but [detect] input_size is 640")
+    assert check(tmp_path, **ok | dict(adapter="nanodet")).startswith(
+        "adapter: the model has 1 outputs; the nanodet layout reads 6")
+    assert check(tmp_path, **ok | dict(model=str(tmp_path / "nothere.onnx"))) == f"model: {tmp_path}/nothere.onnx: no such file"
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    assert check(tmp_path, **ok | dict(model=str(tmp_path / "junk.onnx"))).startswith(
+        f"model: {tmp_path}/junk.onnx: not an ONNX model (DecodeError")
+    (tmp_path / "empty.onnx").write_bytes(b"")
+    assert check(tmp_path, **ok | dict(model=str(tmp_path / "empty.onnx"))) == (
+        f"model: {tmp_path}/empty.onnx: not an ONNX model (no IR version, graph inputs or outputs)")
+    assert check(tmp_path, **ok | dict(model=str(tmp_path))).startswith(f"model: {tmp_path}: no such file")
+
+
+def test_check_detect_config_label_map(tmp_path):
+    assert check(tmp_path, classes=("sofa",)) == "classes: 'sofa' not in the default COCO-80 label map"
+    assert check(tmp_path, labels=("a", "b"), classes=("b", "c")) == "classes: 'c' not in [detect] labels"
+    assert check(tmp_path, labels=("a", " ")) == "labels: label 2 is blank"
+    assert check(tmp_path, labels=("a", "b", "a")) == "labels: 'a' appears more than once"
+
+
+def test_check_detect_config_on_the_default_model(tmp_path):
+    from tasks.detectors import detector_path
+
+    if not detector_path(DetectConfig()).is_file():
+        pytest.skip("the default detector is not built (`make models`)")
+    check_detect_config(DetectConfig(), None)  # COCO-80 fits NanoDet-m
+    assert check(tmp_path, labels=("chair", "sofa")) == "labels: the model scores 80 classes but [detect] labels has 2 names"
+    assert check(tmp_path, adapter="yolov8").startswith("adapter: the model's outputs [1, 2704, 80], ")

@@ -15,8 +15,8 @@ from cadestate.geometry import project, quaternion_to_matrix
 from cadestate.lineage import file_sha256
 from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
 from tasks.frames import extract_frames
-from tasks.ingest import ClipSource, discover_clips, ingest_clip
-from tasks.video import VideoError, decode_at, probe_video
+from tasks.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip
+from tasks.video import VideoError, decode_at, probe_video, write_video
 from warehouse import WarehouseError, connect
 
 
@@ -105,10 +105,48 @@ def test_truncated_video_fails_and_keeps_previous_frames(wh, small_clip, tmp_pat
 
 def test_cameras_past_the_end_of_the_video_fail_at_ingest(wh, small_clip, tmp_path):
     cams = parse_camera_file(small_clip.cameras_path)
-    late = tmp_path / "late.txt"
-    write_camera_file(late, CameraTrack(cams.url, cams.timestamps_us + 5_000_000, cams.intrinsics, cams.world_to_camera))
-    with pytest.raises(VideoError, match=r"the video lasts 3000000 µs but .*late.txt asks for a frame at 7900000 µs \(line 31\)"):
+    late = tmp_path / "late.txt"  # cameras from 2.8 s: the first one past the 3 s video (+0.1 s) is the 5th
+    write_camera_file(late, CameraTrack(cams.url, cams.timestamps_us + 2_800_000, cams.intrinsics, cams.world_to_camera))
+    with pytest.raises(CameraFileError, match=r"late.txt:6: timestamp 3200000 µs is past the end of .*small.mp4, "
+                                              r"which lasts 3000000 µs \(26 of the 30 cameras are past it\)$"):
         ingest(wh, small_clip.video_path, late)
+    assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs").exists()
+
+
+def with_intrinsics(src: Path, dst: Path, fx: float, fy: float) -> Path:
+    """A copy of the camera file ``src`` at ``dst`` with every camera's fx and fy replaced."""
+    cams = parse_camera_file(src)
+    intrinsics = cams.intrinsics.copy()
+    intrinsics[:, :2] = fx, fy
+    write_camera_file(dst, CameraTrack(cams.url, cams.timestamps_us, intrinsics, cams.world_to_camera))
+    return dst
+
+
+def test_intrinsics_of_another_aspect_fail_at_ingest(wh, small_clip, tmp_path):
+    video = tmp_path / "four_three.mp4"  # 4:3, one second
+    write_video(video, (np.zeros((48, 64, 3), np.uint8) for _ in range(30)), 64, 48, 30)
+    wide = with_intrinsics(small_clip.cameras_path, tmp_path / "wide.txt", 0.8, 0.8 * 16 / 9)
+    lines = wide.read_text().splitlines()
+    wide.write_text("\n".join(lines[:11]) + "\n")  # 10 cameras within the second
+    with pytest.raises(CameraFileError, match=r"wide.txt:2: fy/fx = 1.778 fits frames of aspect 1.778 \(width/height\) "
+                                              r"but .*four_three.mp4 is 64x48 \(1.333\): the intrinsics are another "
+                                              r"video's \(differ by 33%, more than 10%\)$"):
+        ingest(wh, video, wide)
+    assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs").exists()
+
+
+def test_slightly_other_aspect_is_a_warning(wh, small_clip, tmp_path):
+    aspect = 320 / 192
+    assert check_clip_inputs(small_clip.video_path, small_clip.cameras_path).warnings == ()
+    near = with_intrinsics(small_clip.cameras_path, tmp_path / "near.txt", 0.8, 0.8 * aspect * 1.05)
+    checked = check_clip_inputs(small_clip.video_path, near)
+    assert checked.warnings == (f"{near}:2: fy/fx = 1.75 fits frames of aspect 1.75 (width/height) but "
+                                f"{small_clip.video_path} is 320x192 (1.667) (differ by 5.0%: non-square pixels "
+                                f"or a cropped video?)",)
+    assert ingest(wh, small_clip.video_path, near).message == checked.warnings[0]  # the stage reports it
+    far = with_intrinsics(small_clip.cameras_path, tmp_path / "far.txt", 0.8, 0.8 * aspect * (1 + ASPECT_ERROR) * 1.01)
+    with pytest.raises(CameraFileError, match="far.txt:2: .*differ by 11%, more than 10%"):
+        check_clip_inputs(small_clip.video_path, far)
 
 
 def test_malformed_camera_file_fails_at_ingest_naming_the_line(wh, small_clip, tmp_path):
@@ -173,3 +211,27 @@ def test_video_that_opens_but_ends_early_fails_at_extraction(wh, small_clip, tmp
     with pytest.raises(VideoError, match=r"clip small \(.*cut.mkv\): camera line \d+ asks for \d+ µs but the nearest video frame is at"):
         extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
     assert wh.read("frames").num_rows == 0 and not list((wh.root / "_staging").iterdir())
+
+
+def test_aspect_check_honours_non_square_pixels(small_clip, tmp_path):
+    import av
+    from fractions import Fraction
+
+    video = tmp_path / "anamorphic.mp4"  # 64x48 pixels, each 4:3 wide: shown as 16:9
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        stream.codec_context.sample_aspect_ratio = Fraction(4, 3)
+        for i in range(30):
+            frame = av.VideoFrame.from_ndarray(np.zeros((48, 64, 3), np.uint8), format="rgb24")
+            frame.pts = i
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode())
+    assert probe_video(video).pixel_aspect == pytest.approx(4 / 3)
+    wide = with_intrinsics(small_clip.cameras_path, tmp_path / "wide.txt", 0.8, 0.8 * 16 / 9)
+    wide.write_text("\n".join(wide.read_text().splitlines()[:11]) + "\n")
+    assert check_clip_inputs(video, wide).warnings == ()
+    square = with_intrinsics(wide, tmp_path / "square.txt", 0.8, 0.8 * 4 / 3)
+    with pytest.raises(CameraFileError, match=r"fits frames of aspect 1 \(width/height\) but .* is 64x48 "
+                                              r"\(1.333, pixel aspect 1.333\)"):
+        check_clip_inputs(video, square)

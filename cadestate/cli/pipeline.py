@@ -42,6 +42,8 @@ def ingest(
 
     Camera files are RealEstate10K text files: line 1 the video URL, then one line per frame with
     timestamp (µs), fx fy cx cy (normalised), 0 0, and a 3x4 world->camera [R|t], row-major.
+    Every camera file, video and the [detect] model are checked before anything starts: a bad one
+    is refused (naming the file and line, or the config key) and nothing is written.
 
     \b
     Examples:
@@ -51,7 +53,8 @@ def ingest(
     """
     import dataclasses
 
-    from tasks.ingest import ClipSource, discover_clips, registered_splits
+    from tasks.detectors import check_detect_config
+    from tasks.ingest import ClipSource, check_clip_inputs, discover_clips, registered_splits
 
     if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
         items = [ClipSource(clip or sources[0].stem, sources[0], sources[1])]
@@ -59,6 +62,11 @@ def ingest(
         if clip:
             raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
         items = [s for folder in sources for s in discover_clips(folder)]
+    cfg = ctx.obj.config()
+    for item in items:  # the ingest stage checks again; here a bad input stops everything before it starts
+        for warning in check_clip_inputs(item.video, item.cameras).warnings:
+            err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+    check_detect_config(cfg.detect, cfg.source)
     known = registered_splits(ctx.obj.open_warehouse())
     items = [dataclasses.replace(s, split=split or known.get(s.clip, "train")) for s in items]
     run_sources(ctx.obj, items, progress)
@@ -197,8 +205,13 @@ def config_show(
 
 @config_app.command("check")
 def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to validate.")]) -> None:
-    """Validate a config file: unknown sections or keys and bad values are errors naming the key."""
-    load_config(path)
+    """Validate a config file: unknown sections or keys, bad values (nan and inf included), keys that
+    contradict each other and a [detect] model that does not fit its adapter and labels are errors
+    naming the key."""
+    from tasks.detectors import check_detect_config
+
+    config = load_config(path)
+    check_detect_config(config.detect, config.source)
     out.print(f"{path}: ok")
 
 
