@@ -6,7 +6,8 @@ every video frame with :class:`cadestate.render.Renderer` (Lambert + ambient, te
 supersampled RGB) and writes, each file atomically:
 
 - ``<out>/<name>.mp4``: H.264, frame ``i`` at pts ``i`` in time base ``1/fps`` (exact times);
-- ``<out>/<name>.txt``: RealEstate10K camera file of every ``sample_every``-th video frame;
+- ``<out>/<name>.txt``: RealEstate10K camera file of every ``sample_every``-th video frame (line 1:
+  ``synthetic://walkthrough/<video id>``, the video id of ``name``, :func:`tasks.clip_names.video_id_of`);
 - ``<out>/<name>/frames.json``, ``<out>/<name>/objects.json``: the official CAD-Estate format
   (:mod:`schemas.official`; intrinsics in pixels, the camera file's normalised), one frame per camera line, one object per placed model, track boxes
   = bounding boxes of the object's visible pixels in the instance-id mask;
@@ -36,6 +37,7 @@ from cadestate.render import Camera, Instance, Lighting, Renderer, RenderMesh
 from schemas.official import Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json, \
     objects_to_json, write_json
 from tasks.cameras import CameraTrack, write_camera_file
+from tasks.clip_names import video_id_of
 from tasks.video import frame_timestamp_us, write_video
 
 ROOM_INSTANCE_ID = 0
@@ -255,7 +257,7 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
 
     t2 = time.perf_counter()
     timestamps = np.array([frame_timestamp_us(int(i), spec.fps) for i in frame_indices], dtype=np.int64)
-    track = CameraTrack(url=f"synthetic://walkthrough/{name}", timestamps_us=timestamps,
+    track = CameraTrack(url=f"synthetic://walkthrough/{video_id_of(name)}", timestamps_us=timestamps,
                         intrinsics=np.tile(normalised, (len(frame_indices), 1)),
                         world_to_camera=np.ascontiguousarray(poses[frame_indices]))
     cameras_path = out_dir / f"{name}.txt"
