@@ -14,19 +14,17 @@ import shutil
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.render import object_to_world
 from conftest import table_rows
+from dataset_fixture import write_accepted, write_frames, write_tracks
 from official_loader import image_path, load_frames, load_objects, to_pixels
 from schemas.official import read_objects
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.cameras import parse_camera_file
 from tasks.export_official import export_dataset
 from tasks.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
-from tasks.frames import frames_table
-from tasks.video import decode_at
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=0.5)
@@ -41,47 +39,18 @@ def built(small_cad_library, tmp_path_factory):
     clip = generate_clip(tmp / "bench", CLIP, 21, rows, lib.root, SPEC)
     shutil.copytree(lib.root, tmp / "wh")
     wh = Warehouse(tmp / "wh")
-    cams = parse_camera_file(clip.cameras_path)
-    media = wh.root / "media" / "frames" / CLIP / "test"
-    media.mkdir(parents=True)
-    paths = []
-    for ts, f in zip(cams.timestamps_us.tolist(), decode_at(clip.video_path, cams.timestamps_us)):
-        path = media / f"{ts:013d}.jpg"
-        Image.fromarray(f.rgb).save(path)
-        paths.append(wh.relative(path))
-    wh.write("frames", CLIP, frames_table(CLIP, cams, paths, SPEC.width, SPEC.height, cams.timestamps_us))
-    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "url": cams.url, "width": SPEC.width,
-                                                  "height": SPEC.height}]))
+    cams = write_frames(wh, CLIP, clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
     gt = read_objects(clip.objects_path).objects
     ranked = sorted(gt, key=lambda o: -len(o.track))
     big, second, third = ranked[0], ranked[1], ranked[2]
     half = len(big.track) // 2
-    tracks = {0: (big, big.track[:half]), 1: (big, big.track[half:]), 2: (second, second.track)}
+    write_tracks(wh, CLIP, cams, {0: (big, big.track[:half]), 1: (big, big.track[half:]), 2: (second, second.track)})
     index = {ts: i for i, ts in enumerate(cams.timestamps_us.tolist())}
-    dets, members, track_rows = [], [], []
-    for tid, (o, entries) in tracks.items():
-        track_rows.append({"clip": CLIP, "track_id": tid, "label": "chair"})
-        for e in entries:
-            det = index[e.timestamp] * 10000 + tid
-            dets.append({"clip": CLIP, "det_id": det, "timestamp_us": e.timestamp, "frame_index": index[e.timestamp],
-                         "box": list(e.box), "label": "chair"})
-            members.append({"clip": CLIP, "track_id": tid, "det_id": det, "frame_index": index[e.timestamp],
-                            "timestamp_us": e.timestamp})
-    wh.write("detections", CLIP, table_rows("detections", dets))
-    wh.write("track_detections", CLIP, table_rows("track_detections", members))
-    wh.write("tracks", CLIP, table_rows("tracks", track_rows))
     manual = MANUAL_TRACK_BASE + 7
     wh.write("manual_tracks", CLIP, table_rows("manual_tracks", [
         {"clip": CLIP, "track_id": manual, "label": "couch", "timestamp_us": e.timestamp,
          "frame_index": index[e.timestamp], "box": list(e.box), "vector": [0.0]} for e in third.track]))
-    posed = {0: big, 1: big, 2: second, manual: third}
-    keyframes = {0: 2, 1: 1, 2: 2, manual: 2}
-    wh.write("verified_poses", CLIP, table_rows("verified_poses", [
-        {"clip": CLIP, "track_id": str(t), "cad_id": o.cad_id, "class": "x", "accepted": True,
-         "translation": list(o.translation), "rotation": list(o.rotation), "scale": list(o.scale),
-         "is_mirrored": o.is_mirrored, "comment": None} for t, o in posed.items()]))
-    wh.write("poses", CLIP, table_rows("poses", [{"clip": CLIP, "track_id": str(t), "num_keyframes": keyframes[t]}
-                                                 for t in posed]))
+    write_accepted(wh, CLIP, {0: big, 1: big, 2: second, manual: third}, {0: 2, 1: 1, 2: 2, manual: 2})
     wh.write("correspondences", CLIP, table_rows("correspondences", _clicks(wh, rows, cams, {2: second})))
     return wh, clip, {0: big.track_id, 2: second.track_id, manual: third.track_id}
 

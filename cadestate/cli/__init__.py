@@ -11,7 +11,7 @@ import sys
 
 from rich.markup import escape
 
-from cadestate.cli import bench, cad, labels, pipeline  # noqa: F401  (register the commands)
+from cadestate.cli import bench, cad, export, labels, pipeline  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import CliError, app, err
 from cadestate.config import ConfigError
