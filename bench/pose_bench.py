@@ -107,8 +107,8 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    solved = score_all(_predictions([r for r in rows if r["status"] == "ok"]), gt, symmetries, truth)
-    accepted = score_all(_predictions([r for r in verdicts if r["accepted"]]), gt, symmetries, truth) if verdicts else None
+    solved = score_all(_predictions([r for r in rows if r["status"] == "ok"]), gt, truth, symmetries)
+    accepted = score_all(_predictions([r for r in verdicts if r["accepted"]]), gt, truth, symmetries) if verdicts else None
     annotated = {truth[(r["clip"], r["track_id"])] for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,

@@ -43,7 +43,11 @@ def official_clip_name(ds: ClipDataset) -> str:
         check_clip_name(ds.clip, ds.url, first, f"clip {ds.clip}'s camera file")
         return ds.clip
     except ClipNameError:
+        pass
+    try:
         return derive_clip_name(ds.url, first, f"clip {ds.clip}'s camera file")
+    except ClipNameError as e:
+        raise ExportError(str(e)) from None
 
 
 def frames_file(ds: ClipDataset, name: str) -> FramesFile:
