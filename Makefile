@@ -16,7 +16,7 @@ FIND_LINKS ?= $(or $(PIP_FIND_LINKS),/opt/wheels)
 UV_VERSION := 0.13.9
 DEMO_DIR ?= data/demo
 DEMO_SEED ?= 7
-DEMO_CLIP := bench_$(DEMO_SEED)_00
+DEMO_CLIP := bench-$(DEMO_SEED)-00_0
 WAREHOUSE ?= data/warehouse
 export CADESTATE_WAREHOUSE ?= $(WAREHOUSE)
 # The embedded CAD library: Debian's sweethome3d-furniture, fetched (not installed) and unpacked

@@ -23,7 +23,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from bench.noise import DEFAULT_NOISE, AnnotatorNoise
-from cadestate.geometry import intrinsics_matrix, project, quaternion_to_matrix
+from cadestate.geometry import pixel_intrinsics_matrix, project, quaternion_to_matrix
 from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import Correspondence, Frame, FramesFile, ObjectAnnotation, TrackEntry
 from tasks.cad_symmetry import rotation_y
@@ -122,8 +122,9 @@ def as_trimesh(mesh: trimesh.Trimesh | trimesh.Scene) -> trimesh.Trimesh:
 
 
 def frame_camera(frame: Frame, width: int, height: int, near: float = 0.01, far: float = 1000.0) -> Camera:
-    """The pixel camera of a frame (normalised intrinsics -> K; world->camera R, t)."""
-    return Camera(intrinsics_matrix(np.asarray(frame.intrinsics), width, height),
+    """The pixel camera of a frame (its pixel intrinsics -> K; world->camera R, t) of a
+    ``width`` x ``height`` image."""
+    return Camera(pixel_intrinsics_matrix(np.asarray(frame.intrinsics)),
                   quaternion_to_matrix(np.asarray(frame.rotation)), np.asarray(frame.translation, np.float64),
                   width, height, near, far)
 

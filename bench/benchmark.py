@@ -2,7 +2,8 @@
 
 A benchmark folder holds ``manifest.json`` (seed, clip names, the CAD library it was drawn from),
 and per clip ``<name>.mp4``, ``<name>.txt`` and ``<name>/{frames,objects,visibility}.json``
-(:mod:`bench.walkthrough`). Clip ``i`` of seed ``S`` is generated from seed ``S * 1000 + i``, so
+(:mod:`bench.walkthrough`), named ``bench-<S>-<i:02d>_<start_us>`` (:func:`clip_name`). Clip ``i``
+of seed ``S`` is generated from seed ``S * 1000 + i``, so
 the default benchmark (:data:`DEFAULT_SEED`, :data:`DEFAULT_CLIPS`) is the same everywhere the
 same CAD library is. Splits are not stored: clip ``i`` is ``val`` when ``i % VAL_EVERY`` is
 ``VAL_EVERY - 1`` (:func:`clip_split`), so every benchmark, old manifests included, has them.
@@ -27,8 +28,9 @@ from cadestate.lineage import digest
 from cadestate.progress import progress
 from schemas.official import ObjectAnnotation, TrackEntry, read_frames, read_objects
 from tasks.cad_classes import CLASSES
+from tasks.clip_names import derive_clip_name
 from tasks.ingest import ClipSource
-from tasks.video import decode_at
+from tasks.video import decode_at, frame_timestamp_us
 from warehouse import Warehouse
 
 DEFAULT_SEED = 20261123
@@ -73,7 +75,7 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     """Generate the clips that are missing; returns the manifest and the seconds each new clip took."""
     bench_dir = Path(bench_dir)
     models = library_models(wh)
-    manifest = Manifest(seed, tuple(f"bench_{seed}_{i:02d}" for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
+    manifest = Manifest(seed, tuple(clip_name(seed, i, spec) for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
     if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
         raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
     todo = [(i, name) for i, name in enumerate(manifest.clips) if not (bench_dir / name / "objects.json").is_file()]
@@ -82,6 +84,14 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
         seconds.append(generate_clip(bench_dir, name, seed * 1000 + i, models, wh.root, spec).timings["total"])
     (bench_dir / MANIFEST).write_text(json.dumps(manifest.to_json(), indent=1))
     return manifest, seconds
+
+
+def clip_name(seed: int, index: int, spec: WalkthroughSpec = WalkthroughSpec()) -> str:
+    """The benchmark's clip ``index`` named as the official CAD-Estate convention wants,
+    ``<video_id>_<start_us>``: video id ``bench-<seed>-<index:02d>`` (one video per clip: no two
+    clips share a video id, so none shares frame files in the official layout), start = its first
+    camera timestamp."""
+    return derive_clip_name(f"synthetic://walkthrough/bench-{seed}-{index:02d}", frame_timestamp_us(0, spec.fps))
 
 
 def clip_split(index: int) -> str:

@@ -6,9 +6,10 @@ every video frame with :class:`cadestate.render.Renderer` (Lambert + ambient, te
 supersampled RGB) and writes, each file atomically:
 
 - ``<out>/<name>.mp4``: H.264, frame ``i`` at pts ``i`` in time base ``1/fps`` (exact times);
-- ``<out>/<name>.txt``: RealEstate10K camera file of every ``sample_every``-th video frame;
+- ``<out>/<name>.txt``: RealEstate10K camera file of every ``sample_every``-th video frame (line 1:
+  ``synthetic://walkthrough/<video id>``, the video id of ``name``, :func:`tasks.clip_names.video_id_of`);
 - ``<out>/<name>/frames.json``, ``<out>/<name>/objects.json``: the official CAD-Estate format
-  (:mod:`schemas.official`), one frame per camera line, one object per placed model, track boxes
+  (:mod:`schemas.official`; intrinsics in pixels, the camera file's normalised), one frame per camera line, one object per placed model, track boxes
   = bounding boxes of the object's visible pixels in the instance-id mask;
 - ``<out>/<name>/visibility.json``: per camera line and object, visible pixels, visible fraction
   (visible / rendered alone) and truncated fraction (share of the object, rendered alone in a
@@ -31,11 +32,12 @@ import numpy as np
 import trimesh
 
 from bench.scene import Scene, generate_scene
-from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at, matrix_to_quaternion, project
+from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at, matrix_to_quaternion, pixel_intrinsics, project
 from cadestate.render import Camera, Instance, Lighting, Renderer, RenderMesh
 from schemas.official import Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json, \
     objects_to_json, write_json
 from tasks.cameras import CameraTrack, write_camera_file
+from tasks.clip_names import video_id_of
 from tasks.video import frame_timestamp_us, write_video
 
 ROOM_INSTANCE_ID = 0
@@ -255,14 +257,14 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
 
     t2 = time.perf_counter()
     timestamps = np.array([frame_timestamp_us(int(i), spec.fps) for i in frame_indices], dtype=np.int64)
-    track = CameraTrack(url=f"synthetic://walkthrough/{name}", timestamps_us=timestamps,
+    track = CameraTrack(url=f"synthetic://walkthrough/{video_id_of(name)}", timestamps_us=timestamps,
                         intrinsics=np.tile(normalised, (len(frame_indices), 1)),
                         world_to_camera=np.ascontiguousarray(poses[frame_indices]))
     cameras_path = out_dir / f"{name}.txt"
     write_camera_file(cameras_path, track)
 
     frames_file = FramesFile(name, (H, W), tuple(
-        Frame(int(ts), False, tuple(float(v) for v in normalised), tuple(float(v) for v in poses[i, :, 3]),
+        Frame(int(ts), False, tuple(float(v) for v in pixel_intrinsics(K)), tuple(float(v) for v in poses[i, :, 3]),
               tuple(float(v) for v in matrix_to_quaternion(poses[i, :, :3])))
         for i, ts in zip(frame_indices.tolist(), timestamps.tolist())))
     objects = []

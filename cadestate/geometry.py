@@ -51,6 +51,17 @@ def intrinsics_matrix(normalised: np.ndarray, width: int, height: int) -> np.nda
     return K
 
 
+def pixel_intrinsics_matrix(pixels: np.ndarray) -> np.ndarray:
+    """Pixel intrinsics ``(fx, fy, cx, cy)`` float[..., 4] (as the official CAD-Estate ``frames.json``
+    stores them) to ``K`` float64[..., 3, 3] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
+    return intrinsics_matrix(pixels, 1, 1)
+
+
+def pixel_intrinsics(K: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`pixel_intrinsics_matrix`: float[..., 3, 3] -> float64[..., 4] (fx, fy, cx, cy) in pixels."""
+    return normalised_intrinsics(K, 1, 1)
+
+
 def normalised_intrinsics(K: np.ndarray, width: int, height: int) -> np.ndarray:
     """Inverse of :func:`intrinsics_matrix`: float[..., 3, 3] -> float[..., 4] (fx, fy, cx, cy)."""
     K = np.asarray(K, dtype=np.float64)

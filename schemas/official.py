@@ -5,8 +5,11 @@ Conventions (google-research/cad-estate, ``input_file_structures.py``, ``frames.
 - ``frames.json``: ``clip_name``; ``image_size`` = (height, width) or null; ``frames``: one entry per
   frame with ``timestamp`` (int µs), ``key_frame`` (bool), ``intrinsics`` (fx, fy, cx, cy),
   ``extrinsics`` {``translation``: (x, y, z), ``rotation``: (w, x, y, z)}: the camera matrix is
-  ``translate(t) · R(q)``, **world->view**. Our cameras are OpenCV; intrinsics are stored
-  normalised like RealEstate10K's (fx, cx by width; fy, cy by height).
+  ``translate(t) · R(q)``, **world->view**. Our cameras are OpenCV (x right, y down, z forward).
+  Intrinsics are in **pixels** (unlike RealEstate10K's normalised ones): the official loader passes
+  them with ``image_size`` to ``gl_projection_matrix_from_intrinsics(w, h, fx, fy, cx, cy)``, which
+  divides fx, cx by the width and fy, cy by the height. A file whose principal point lies within
+  one pixel of the top-left corner (normalised values) is refused by :func:`frames_from_json`.
 - ``objects.json``: ``clip_name``; ``objects``: one entry per object with ``track_id`` (str),
   ``is_track_automatic``, ``class`` (class id: ShapeNet synset or cadestate-<name>), optional
   ``cad_id``, optional pose ``translation``, ``rotation`` (w, x, y, z), ``scale`` (absent when the
@@ -33,7 +36,7 @@ class OfficialFormatError(ValueError):
 
 @dataclass(frozen=True)
 class Frame:
-    """One frame: ``timestamp`` µs; ``intrinsics`` (fx, fy, cx, cy) normalised; world->camera
+    """One frame: ``timestamp`` µs; ``intrinsics`` (fx, fy, cx, cy) in pixels; world->camera
     ``translation`` (x, y, z) and ``rotation`` (w, x, y, z) quaternion (OpenCV camera axes)."""
 
     timestamp: int
@@ -45,6 +48,8 @@ class Frame:
 
 @dataclass(frozen=True)
 class FramesFile:
+    """A clip's frames; ``image_size`` (height, width) in pixels, the size the intrinsics refer to."""
+
     clip_name: str
     image_size: tuple[int, int] | None  # (height, width)
     frames: tuple[Frame, ...]
@@ -115,9 +120,19 @@ def frames_from_json(data: dict, source: str = "frames.json") -> FramesFile:
                   _tuple(f"{source}: frames[{i}].extrinsics.rotation", fr["extrinsics"]["rotation"], 4))
             for i, fr in enumerate(data["frames"]))
         size = data.get("image_size")
+        _check_pixel_intrinsics(frames, source)
         return FramesFile(str(data["clip_name"]), _tuple(f"{source}: image_size", size, 2, int) if size else None, frames)
     except KeyError as e:
         raise OfficialFormatError(f"{source}: missing field {e.args[0]!r}") from None
+
+
+def _check_pixel_intrinsics(frames: tuple[Frame, ...], source: str) -> None:
+    """Refuse normalised intrinsics (an old file): a principal point within one pixel of the
+    top-left corner is what (fx, fy, cx, cy) divided by the image size look like."""
+    for i, fr in enumerate(frames):
+        if fr.intrinsics[2] <= 1.0 and fr.intrinsics[3] <= 1.0:
+            raise OfficialFormatError(f"{source}: frames[{i}].intrinsics: {list(fr.intrinsics)} look normalised; the "
+                                      "official format stores (fx, fy, cx, cy) in pixels (regenerate the file)")
 
 
 def objects_to_json(f: ObjectsFile) -> dict:

@@ -30,7 +30,7 @@ def make_frames(n: int = 24, radius: float = 3.2, sweep: float = 70.0, height: f
     for i, a in enumerate(np.radians(np.linspace(-sweep / 2, sweep / 2, n))):
         eye = CENTRE + np.array([radius * np.sin(a), height - CENTRE[1], radius * np.cos(a)])
         R, t = look_at(eye, CENTRE)
-        frames.append(Frame(i * 100_000, False, (F_PX / W, F_PX / H, 0.5, 0.5), tuple(t.tolist()),
+        frames.append(Frame(i * 100_000, False, (F_PX, F_PX, W / 2, H / 2), tuple(t.tolist()),
                             tuple(matrix_to_quaternion(R).tolist())))
     return FramesFile("synthetic", (H, W), tuple(frames))
 
@@ -148,7 +148,7 @@ def test_depth_test_removes_hidden_back_face(renderer):
     samples = replace(SurfaceSamples.from_mesh(box, 3000, seed=0), two_sided=True)
     back = samples.points[:, 2] < -0.3 + 1e-9
     R, t = look_at(CENTRE + [0.0, 0.0, 3.0], CENTRE)  # straight at the +Z face
-    cam = frame_camera(Frame(0, True, (F_PX / W, F_PX / H, 0.5, 0.5), tuple(t), tuple(matrix_to_quaternion(R))), W, H)
+    cam = frame_camera(Frame(0, True, (F_PX, F_PX, W / 2, H / 2), tuple(t), tuple(matrix_to_quaternion(R))), W, H)
     ok, _ = visible_mask(samples, M, cam, EXACT)
     assert ok[back].sum() > 50  # without a render, the back face projects inside the image
     view = renderer.render([Instance(RenderMesh.from_trimesh(box), M, 0)], cam)

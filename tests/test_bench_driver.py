@@ -26,11 +26,11 @@ def benchmark(small_cad_library, tmp_path_factory):
 
 def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
     folder, manifest, made = benchmark
-    assert len(made) == 2 and manifest.clips == ("bench_5_00", "bench_5_01")
-    before = (folder / "bench_5_00" / "objects.json").read_bytes()
+    assert len(made) == 2 and manifest.clips == ("bench-5-00_0", "bench-5-01_0")
+    before = (folder / "bench-5-00_0" / "objects.json").read_bytes()
     again, made_again = generate(folder, 5, 2, small_cad_library[0], SPEC, show_progress=False)
     assert made_again == [] and again == manifest == read_manifest(folder)
-    assert (folder / "bench_5_00" / "objects.json").read_bytes() == before
+    assert (folder / "bench-5-00_0" / "objects.json").read_bytes() == before
 
 
 def test_ignore_rule_uses_visibility_and_class(benchmark):

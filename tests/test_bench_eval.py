@@ -283,7 +283,7 @@ def test_retrieval_recall():
 # ---------------------------------------------------------------- statistics
 
 def _frames(name, n):
-    return FramesFile(name, (192, 320), tuple(Frame(1000 * i, i == 0, (1, 1, .5, .5), (0, 0, 0), ID)
+    return FramesFile(name, (192, 320), tuple(Frame(1000 * i, i == 0, (300, 300, 160, 96), (0, 0, 0), ID)
                                              for i in range(n)))
 
 

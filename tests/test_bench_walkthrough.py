@@ -19,7 +19,7 @@ from bench.scene import EXCLUDED_CLASSES, FOOTPRINT_MARGIN_M, generate_scene
 from bench.walkthrough import (
     CAMERA_CLEARANCE_M, ROOM_INSTANCE_ID, WalkthroughSpec, camera_path, generate_clip,
 )
-from cadestate.geometry import camera_to_world, intrinsics_matrix, project, quaternion_to_matrix
+from cadestate.geometry import camera_to_world, pixel_intrinsics_matrix, project, quaternion_to_matrix
 from cadestate.render import Camera, Instance, Renderer, object_to_world
 from schemas.official import read_frames, read_objects
 from tasks.cameras import parse_camera_file
@@ -132,7 +132,7 @@ def test_boxes_are_projections_of_fully_visible_objects(library, clip):
     checked = 0
     for fr, vis in zip(frames.frames, visibility["frames"]):
         assert vis["timestamp"] == fr.timestamp
-        K = intrinsics_matrix(np.array(fr.intrinsics), W, H)
+        K = pixel_intrinsics_matrix(np.array(fr.intrinsics))
         R, t = quaternion_to_matrix(np.array(fr.rotation)), np.array(fr.translation)
         for obj, v in zip(objects.objects, vis["objects"]):
             assert 0 <= v["visible_fraction"] <= 1 and 0 <= v["truncated_fraction"] <= 1
@@ -169,7 +169,7 @@ def test_official_round_trip(library, clip):
             R, t = quaternion_to_matrix(np.array(fr.rotation)), np.array(fr.translation)
             np.testing.assert_allclose(R, R_file, atol=1e-9)
             np.testing.assert_allclose(t, track.t[n], atol=1e-12)
-            K = intrinsics_matrix(np.array(fr.intrinsics), W, H)
+            K = pixel_intrinsics_matrix(np.array(fr.intrinsics))
             if n % 5:
                 continue
             # Re-render from the JSON alone: instance-mask boxes equal the exported boxes.

@@ -12,8 +12,8 @@ from schemas.official import (
 
 def sample_files():
     frames = FramesFile("abc_123", (360, 640), (
-        Frame(0, True, (0.8, 1.4, 0.5, 0.5), (0.1, -1.5, 2.0), (1.0, 0.0, 0.0, 0.0)),
-        Frame(33333, False, (0.8, 1.4, 0.5, 0.5), (0.2, -1.5, 2.0), (0.99, 0.0, 0.141, 0.0)),
+        Frame(0, True, (512.0, 504.0, 320.0, 180.0), (0.1, -1.5, 2.0), (1.0, 0.0, 0.0, 0.0)),
+        Frame(33333, False, (512.0, 504.0, 320.0, 180.0), (0.2, -1.5, 2.0), (0.99, 0.0, 0.141, 0.0)),
     ))
     posed = ObjectAnnotation("0", "03001627", True, True, (
         TrackEntry(0, (0.1, 0.2, 0.5, 0.6), (Correspondence((0.3, 0.4), (0.1, 0.2, -0.3)),)),
@@ -56,3 +56,13 @@ def test_malformed_files_name_the_field(tmp_path):
     with pytest.raises(OfficialFormatError, match="bad.json: not valid JSON"):
         read_frames(tmp_path / "bad.json")
     json.dumps(data)  # still plain JSON
+
+
+def test_normalised_intrinsics_are_refused(tmp_path):
+    """Intrinsics are pixels in the official format; normalised ones (an old file) name the frame."""
+    frames, _ = sample_files()
+    data = frames_to_json(frames)
+    data["frames"][1]["intrinsics"] = [0.8, 1.4, 0.5, 0.5]
+    write_json(tmp_path / "frames.json", data)
+    with pytest.raises(OfficialFormatError, match=r"frames.json: frames\[1\].intrinsics: .* look normalised"):
+        read_frames(tmp_path / "frames.json")

@@ -12,7 +12,7 @@ import sys
 
 from rich.markup import escape
 
-from cadestate.cli import bench, cad, labels, pipeline, server  # noqa: F401  (register the commands)
+from cadestate.cli import bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import app, err
 
@@ -28,6 +28,8 @@ INPUT_ERRORS = {
     "tasks.cad_export": "ExportError",
     "bench.benchmark": "BenchmarkError",
     "tasks.labels": "LabelError",
+    "tasks.clip_names": "ClipNameError",
+    "schemas.official": "OfficialFormatError",
     "builtins": "FileNotFoundError",
 }
 """Exception types that mean bad input (module -> class): shown as one line, exit status 2."""

@@ -1,0 +1,156 @@
+"""Scoring modes of ``bench report``: what "correct" means, each named for what it is.
+
+Every mode scores *every* prediction it is given (each accepted track of the pipeline; a clip
+may have several tracks on one object) against the posed ground-truth objects of the same clip,
+with the Scan2CAD thresholds (translation <= 0.20 m, rotation <= 20 degrees, scale <= 20 %; world
+frame, metres; rotations (w, x, y, z) CAD -> world; scales along the CAD axes). A ground-truth
+object is credited at most once; accuracy = credited objects / all posed ground-truth objects
+(instance mean) and the mean over classes of the per-class accuracy (class mean).
+
+``pose``
+    The pose alone. Each prediction belongs to the ground-truth object its track follows (a map
+    from the 2D track match, :func:`bench.retrieval_bench.track_truth`); the object is credited
+    when *any* of its tracks is correct by :func:`bench.eval_pose.is_correct` (mirror flags
+    equal; 4-way models turned by 90 degrees compare x/z-swapped scales). Further tracks on an
+    object are ``duplicates``; tracks on no object are ``false_positives``. Neither the class
+    nor the CAD model is checked.
+``scan2cad-class``
+    The Scan2CAD benchmark as its paper states it: a prediction counts only against ground-truth
+    objects of its class, in 3D (no track map): in prediction order, each takes the first
+    not-yet-credited object of its class that it aligns within the thresholds. Symmetry: the
+    ground-truth model's order (rotation error minimised over ``q_gt · R_y(2πi/m)``); scales are
+    compared as they are (no swap); the mirror flag is not looked at.
+``scan2cad-exact``
+    Scan2CAD's evaluation script (``Routines/Script/EvaluateBenchmark.py``): as
+    ``scan2cad-class``, but a prediction whose CAD model (a mirrored model is a CAD model of its
+    own: :func:`tasks.export_scan2cad.scan2cad_cad_id`) does not appear among the clip's ground-truth
+    objects is dropped, and each model is used by at most as many predictions as the ground truth
+    has objects of it; the symmetry is the predicted model's (as the script reads it).
+
+In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
+``duplicate``, any other unmatched one a ``false_positive``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.eval_pose import (MAX_ROTATION_DEG, MAX_SCALE_PCT, MAX_TRANSLATION_M, PosedObject, is_correct,
+                             rotation_error_deg, scale_error_pct, translation_error)
+from tasks.export_scan2cad import scan2cad_cad_id
+
+MODES = ("pose", "scan2cad-class", "scan2cad-exact")
+
+
+@dataclass(frozen=True)
+class ModeResult:
+    """One mode's score. Accuracies in [0, 1] (nan without ground truth); ``per_class`` maps a
+    class to (ground-truth objects, credited objects)."""
+
+    mode: str
+    num_gt: int
+    num_predictions: int
+    num_correct: int
+    duplicates: int
+    false_positives: int
+    per_class: dict[str, tuple[int, int]]
+
+    @property
+    def instance_accuracy(self) -> float:
+        return self.num_correct / self.num_gt if self.num_gt else float("nan")
+
+    @property
+    def class_accuracy(self) -> float:
+        return float(np.mean([c / n for n, c in self.per_class.values()])) if self.per_class else float("nan")
+
+    def as_dict(self) -> dict:
+        pct = lambda v: None if v != v else round(100 * v, 1)  # noqa: E731
+        return {"ground_truth": self.num_gt, "predictions": self.num_predictions, "correct": self.num_correct,
+                "instance_accuracy_pct": pct(self.instance_accuracy), "class_accuracy_pct": pct(self.class_accuracy),
+                "duplicates": self.duplicates, "false_positives": self.false_positives}
+
+
+def _result(mode: str, gts: list[PosedObject], credited: set[tuple[str, str]], predictions: int, duplicates: int,
+            false_positives: int) -> ModeResult:
+    per_class: dict[str, tuple[int, int]] = {}
+    for g in gts:
+        n, c = per_class.get(g.cls, (0, 0))
+        per_class[g.cls] = (n + 1, c + (g.key in credited))
+    return ModeResult(mode, len(gts), predictions, len(credited), duplicates, false_positives, dict(sorted(per_class.items())))
+
+
+def _symmetry(symmetries: Mapping[str, int], cad_id: str | None) -> int:
+    return int(symmetries.get(cad_id, 1)) if cad_id is not None else 1
+
+
+def score_pose(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], truth: Mapping[tuple[str, str], str],
+               symmetries: Mapping[str, int]) -> ModeResult:
+    """Mode ``pose``. ``truth``: (clip, predicted track id) -> ground-truth track id of that clip."""
+    preds, gts = list(predictions), list(ground_truth)
+    by_key = {g.key: g for g in gts}
+    credited: set[tuple[str, str]] = set()
+    on_object: Counter[tuple[str, str]] = Counter()
+    false_positives = 0
+    for p in preds:
+        g = by_key.get((p.clip, truth.get(p.key, "")))
+        if g is None:
+            false_positives += 1
+            continue
+        on_object[g.key] += 1
+        if is_correct(p.translation, p.rotation, p.scale, g.translation, g.rotation, g.scale,
+                      _symmetry(symmetries, g.cad_id), mirrored=p.is_mirrored, mirrored_gt=g.is_mirrored):
+            credited.add(g.key)
+    duplicates = sum(n - 1 for n in on_object.values())
+    return _result("pose", gts, credited, len(preds), duplicates, false_positives)
+
+
+def _aligns(p: PosedObject, g: PosedObject, symmetry: int) -> bool:
+    """Scan2CAD's test: translation, symmetric rotation and unswapped scale errors within thresholds."""
+    return (translation_error(p.translation, g.translation) <= MAX_TRANSLATION_M
+            and rotation_error_deg(p.rotation, g.rotation, symmetry) <= MAX_ROTATION_DEG
+            and scale_error_pct(p.scale, g.scale) <= MAX_SCALE_PCT)
+
+
+def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], symmetries: Mapping[str, int],
+                   exact: bool) -> ModeResult:
+    """Mode ``scan2cad-exact`` (``exact``) or ``scan2cad-class``; predictions in the order given."""
+    preds, gts = list(predictions), list(ground_truth)
+    open_gt: dict[tuple[str, str], list[PosedObject]] = {}
+    for g in gts:
+        open_gt.setdefault((g.clip, g.cls), []).append(g)
+    allowed = Counter((g.clip, g.cls, scan2cad_cad_id(g.cad_id or "", g.is_mirrored)) for g in gts)
+    used: Counter[tuple[str, str, str]] = Counter()
+    credited_objects: list[PosedObject] = []
+    unmatched: list[PosedObject] = []
+    for p in preds:
+        model = (p.clip, p.cls, scan2cad_cad_id(p.cad_id or "", p.is_mirrored))
+        if exact:
+            if used[model] >= allowed[model]:
+                unmatched.append(p)
+                continue
+            used[model] += 1
+        candidates = open_gt.get((p.clip, p.cls), [])
+        hit = next((g for g in candidates
+                    if _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id))), None)
+        if hit is None:
+            unmatched.append(p)
+            continue
+        candidates.remove(hit)
+        credited_objects.append(hit)
+    duplicates = sum(any(g.clip == p.clip and g.cls == p.cls and _aligns(p, g, _symmetry(symmetries, g.cad_id))
+                         for g in credited_objects) for p in unmatched)
+    return _result("scan2cad-exact" if exact else "scan2cad-class", gts, {g.key for g in credited_objects}, len(preds),
+                   duplicates, len(unmatched) - duplicates)
+
+
+def score_all(predictions: list[PosedObject], ground_truth: list[PosedObject], truth: Mapping[tuple[str, str], str],
+              symmetries: Mapping[str, int]) -> dict[str, ModeResult]:
+    """Every mode of :data:`MODES` on the same predictions (ordered by clip, then track id)."""
+    ordered = sorted(predictions, key=lambda p: (p.clip, int(p.track_id) if p.track_id.isdigit() else 0, p.track_id))
+    return {"pose": score_pose(ordered, ground_truth, truth, symmetries),
+            "scan2cad-class": score_scan2cad(ordered, ground_truth, symmetries, exact=False),
+            "scan2cad-exact": score_scan2cad(ordered, ground_truth, symmetries, exact=True)}

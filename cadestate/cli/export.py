@@ -1,0 +1,82 @@
+"""``cadestate export`` (the dataset in the official CAD-Estate layout, or as Scan2CAD files) and
+``cadestate stats`` (the dataset's figures and cost, for any warehouse)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cadestate.cli.common import app, out
+
+export_app = typer.Typer(help="Write the dataset out: the official CAD-Estate layout, or Scan2CAD files.", no_args_is_help=True)
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("official")
+def export_official(
+    ctx: typer.Context,
+    out_dir: Annotated[Path, typer.Argument(help="New (or empty) folder to write.")],
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all).")] = None,
+    cad: Annotated[bool, typer.Option(help="Also write the CAD root (cad/, as `cadestate cad export-official`).")] = True,
+    progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+) -> None:
+    """Write annotations/<clip>/{frames,objects}.json (pixel intrinsics; one object per physical object,
+    poses only where accepted in verification), frames/<video_id>/<video_id>_<timestamp>.jpg, the CAD
+    root cad/ and scene_list.txt: what the official cad_estate dataset classes read."""
+    from tasks.export_official import export_dataset
+
+    counts = export_dataset(ctx.obj.open_warehouse(), out_dir, clips, cad, progress)
+    out.print(f"wrote {out_dir}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
+              f"({counts['posed_objects']} posed), {counts['cad_models']} CAD models")
+
+
+@export_app.command("scan2cad")
+def export_scan2cad(
+    ctx: typer.Context,
+    out_dir: Annotated[Path, typer.Argument(help="Folder to write (files of the same names are replaced).")],
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all).")] = None,
+) -> None:
+    """Write the accepted poses as Scan2CAD files: <clip>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
+    (no header), full_annotations.json and cad_appearances.json; a mirrored model is the CAD id <cad_id>_mirrored."""
+    from tasks.export_scan2cad import export_scan2cad as write
+
+    counts = write(ctx.obj.open_warehouse(), out_dir, clips)
+    out.print(f"wrote {out_dir}: {counts['scans']} scans, {counts['alignments']} alignments")
+
+
+@app.command("stats")
+def stats(
+    ctx: typer.Context,
+    where: Annotated[str, typer.Option(help="SQL condition on the clips table, e.g. \"split = 'val'\".")] = "true",
+    html: Annotated[Optional[Path], typer.Option("--html", help="Also write an HTML report into this folder.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+) -> None:
+    """The dataset's figures (the paper's Table 2 and section 4: scenes, posed objects, classes, objects
+    per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
+    and its cost (compute seconds per stage, human items answered)."""
+    import duckdb
+
+    from cadestate.cli.common import CliError
+    from tasks.stats import dataset_tables, select_clips, statistics, statistics_lines
+
+    wh = ctx.obj.open_warehouse()
+    try:
+        clips = select_clips(wh, where)
+    except duckdb.Error as e:
+        raise CliError(f"--where {where!r}: {str(e).splitlines()[0]}") from None
+    tables = dataset_tables(wh, clips)
+    figures = statistics(tables)
+    if as_json:
+        out.print_json(json.dumps(figures))
+    else:
+        for label, value in statistics_lines(figures):
+            out.print(f"{label}: {value}", highlight=False)
+        out.print(f"compute seconds per stage: {figures['compute_s_per_stage']}", highlight=False)
+        out.print(f"human items answered: {figures['human_items']}", highlight=False)
+    if html is not None:
+        from tasks.stats_report import write_report
+
+        out.print(f"wrote {write_report(wh, tables, figures, html)}")

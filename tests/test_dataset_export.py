@@ -1,0 +1,175 @@
+"""`cadestate export official` / `export scan2cad` of a generated clip, read back by a loader written
+from the official format description (tests/official_loader.py).
+
+The warehouse is built by hand from a generated clip's ground truth (no pipeline run): the clip's
+frames, automatic tracks from its ground-truth boxes (the biggest object cut into two fragments,
+both posed: one physical object), a manual track, accepted poses = the ground truth, and exact
+correspondences on two key-frames. Needs the Sweet Home 3D furniture (tests/conftest.py).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from bench.walkthrough import WalkthroughSpec, generate_clip
+from cadestate.render import object_to_world
+from conftest import table_rows
+from dataset_fixture import write_accepted, write_frames, write_tracks
+from official_loader import image_path, load_frames, load_objects, to_pixels
+from schemas.official import read_objects
+from schemas.tracking import MANUAL_TRACK_BASE
+from tasks.cameras import parse_camera_file
+from tasks.export_official import export_dataset
+from tasks.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
+from warehouse import Warehouse
+
+SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=0.5)
+CLIP = "bench-9-00_0"
+
+
+@pytest.fixture(scope="module")
+def built(small_cad_library, tmp_path_factory):
+    """(warehouse, generated clip, {track id: ground-truth track id}) of the hand-built warehouse."""
+    lib, rows = small_cad_library
+    tmp = tmp_path_factory.mktemp("export")
+    clip = generate_clip(tmp / "bench", CLIP, 21, rows, lib.root, SPEC)
+    shutil.copytree(lib.root, tmp / "wh")
+    wh = Warehouse(tmp / "wh")
+    cams = write_frames(wh, CLIP, clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
+    gt = read_objects(clip.objects_path).objects
+    ranked = sorted(gt, key=lambda o: -len(o.track))
+    big, second, third = ranked[0], ranked[1], ranked[2]
+    half = len(big.track) // 2
+    write_tracks(wh, CLIP, cams, {0: (big, big.track[:half]), 1: (big, big.track[half:]), 2: (second, second.track)})
+    index = {ts: i for i, ts in enumerate(cams.timestamps_us.tolist())}
+    manual = MANUAL_TRACK_BASE + 7
+    wh.write("manual_tracks", CLIP, table_rows("manual_tracks", [
+        {"clip": CLIP, "track_id": manual, "label": "couch", "timestamp_us": e.timestamp,
+         "frame_index": index[e.timestamp], "box": list(e.box), "vector": [0.0]} for e in third.track]))
+    write_accepted(wh, CLIP, {0: big, 1: big, 2: second, manual: third}, {0: 2, 1: 1, 2: 2, manual: 2})
+    wh.write("correspondences", CLIP, table_rows("correspondences", _clicks(wh, rows, cams, {2: second})))
+    return wh, clip, {0: big.track_id, 2: second.track_id, manual: third.track_id}
+
+
+def _clicks(wh, rows, cams, posed) -> list[dict]:
+    """Exact clicks: 5 mesh vertices per key-frame (first and last box of each track), projected."""
+    import trimesh
+
+    from cadestate.geometry import intrinsics_matrix, project
+
+    mesh_of = {r["cad_id"]: r["mesh_path"] for r in rows}
+    index = {ts: i for i, ts in enumerate(cams.timestamps_us.tolist())}
+    out = []
+    for tid, o in posed.items():
+        verts = np.asarray(trimesh.load(wh.root / mesh_of[o.cad_id], force="scene").to_geometry().vertices)[::97][:5]
+        M = object_to_world(o.translation, o.rotation, o.scale, o.is_mirrored)
+        for e in (o.track[0], o.track[-1]):
+            i = index[e.timestamp]
+            K = intrinsics_matrix(cams.intrinsics[i], SPEC.width, SPEC.height)
+            uv, _ = project(K, cams.R[i], cams.t[i], verts @ M[:3, :3].T + M[:3, 3])
+            for k, (p2, p3) in enumerate(zip(uv / [SPEC.width, SPEC.height], verts)):
+                out.append({"clip": CLIP, "track_id": str(tid), "timestamp_us": e.timestamp, "point_index": k,
+                            "cad_id": o.cad_id, "point_2d": p2.tolist(), "point_3d": p3.tolist(),
+                            "is_mirrored": o.is_mirrored})
+    return out
+
+
+def test_official_export_reads_back(built, tmp_path):
+    wh, clip, truth = built
+    out = tmp_path / "dataset"
+    counts = export_dataset(wh, out, show_progress=False)
+    assert counts["clips"] == 1 and counts["objects"] == 3 and counts["posed_objects"] == 3
+    assert (out / "scene_list.txt").read_text() == f"{CLIP}\n"
+    frames = load_frames(out / "annotations" / CLIP / "frames.json")
+    objects = load_objects(out / "annotations" / CLIP / "objects.json", out / "cad")
+    assert frames.clip_name == CLIP and frames.image_size == (SPEC.height, SPEC.width) and not frames.key_frames.any()
+    for ts in frames.timestamps:  # the official frame layout, no collision
+        assert image_path(out / "frames", CLIP, int(ts)).is_file()
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["bench-9-00"]
+    gt = {o.track_id: o for o in read_objects(clip.objects_path).objects}
+    visibility = json.loads(clip.visibility_path.read_text())
+    whole = {(f["timestamp"], v["track_id"]): v["visible_fraction"] > 0.999 and v["truncated_fraction"] == 0
+             for f in visibility["frames"] for v in f["objects"]}
+    by_track = {o.track_id: o for o in objects}
+    assert set(by_track) == {"0", "2", str(MANUAL_TRACK_BASE + 7)}  # track 1 is a fragment of track 0's object
+    assert not by_track[str(MANUAL_TRACK_BASE + 7)].automatic and by_track["0"].automatic
+    assert set(by_track["0"].boxes) == {e.timestamp for e in gt[truth[0]].track}  # both fragments' boxes
+    for tid, o in by_track.items():
+        g = gt[truth[int(tid)]]
+        assert o.class_id == g.cls and o.cad_id == g.cad_id
+        np.testing.assert_allclose(o.object_to_world, object_to_world(g.translation, g.rotation, g.scale, g.is_mirrored),
+                                   atol=1e-6)
+        # Projected with the official math, the triangles' extent is the ground-truth box where wholly in view.
+        checked = 0
+        for i, ts in enumerate(frames.timestamps.tolist()):
+            box = o.boxes.get(ts) if whole.get((ts, g.track_id)) else None
+            px, depth = to_pixels(frames, i, o.triangles.reshape(-1, 3))
+            if box is None or np.any(depth <= 0) or px.min() < 2 or px[:, 0].max() > SPEC.width - 2 \
+                    or px[:, 1].max() > SPEC.height - 2:
+                continue
+            np.testing.assert_allclose(np.array(box) * ([SPEC.height, SPEC.width] * 2),
+                                       [px[:, 1].min(), px[:, 0].min(), px[:, 1].max(), px[:, 0].max()], atol=1.5)
+            checked += 1
+        assert checked >= 1, tid
+    clicks = by_track["2"].correspondences
+    assert len(clicks) == 2 and all(len(c) == 5 for c in clicks.values())
+    for ts, pairs in clicks.items():
+        i = frames.timestamps.tolist().index(ts)
+        M = by_track["2"].object_to_world
+        xyz = np.array([p3 for _, p3 in pairs])
+        px, _ = to_pixels(frames, i, xyz @ M[:3, :3].T + M[:3, 3])
+        np.testing.assert_allclose(np.array([p2 for p2, _ in pairs]) * [SPEC.width, SPEC.height], px, atol=1e-3)
+    assert by_track["0"].correspondences == {}
+
+
+def test_official_export_refuses_a_full_folder_and_unknown_clips(built, tmp_path):
+    from tasks.cad_export import ExportError
+
+    wh, _, _ = built
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    with pytest.raises(ExportError, match="full: exists and is not empty"):
+        export_dataset(wh, tmp_path / "full", show_progress=False)
+    with pytest.raises(ExportError, match="clip 'nope' has no frames"):
+        export_dataset(wh, tmp_path / "new", ["nope"], show_progress=False)
+    assert not (tmp_path / "new").exists()
+
+
+def test_scan2cad_round_trip(built, tmp_path):
+    wh, clip, truth = built
+    counts = export_scan2cad(wh, tmp_path / "s2c")
+    assert counts == {"scans": 1, "alignments": 3}
+    rows = read_csv(tmp_path / "s2c" / f"{CLIP}.csv")
+    gt = {o.track_id: o for o in read_objects(clip.objects_path).objects}
+    assert len(rows) == 3
+    for row, tid in zip(rows, sorted(truth)):
+        g = gt[truth[tid]]
+        cad_id, mirrored = split_cad_id(row.id_cad)
+        assert (row.catid, cad_id, mirrored) == (g.cls, g.cad_id, g.is_mirrored)
+        assert row.translation == g.translation and row.rotation == g.rotation and row.scale == g.scale  # exact floats
+    assert read_csv_text(csv_text(rows), tmp_path) == rows
+    annotations = json.loads((tmp_path / "s2c" / "full_annotations.json").read_text())
+    assert annotations[0]["id_scan"] == CLIP and annotations[0]["n_aligned_models"] == 3
+    assert {m["id_cad"] for m in annotations[0]["aligned_models"]} == {r.id_cad for r in rows}
+    appearances = json.loads((tmp_path / "s2c" / "cad_appearances.json").read_text())
+    assert sum(appearances[CLIP].values()) == 3
+
+
+def read_csv_text(text: str, tmp_path) -> list[Alignment]:
+    (tmp_path / "again.csv").write_text(text)
+    return read_csv(tmp_path / "again.csv")
+
+
+def test_scan2cad_csv_errors_name_the_line(tmp_path):
+    from tasks.cad_export import ExportError
+
+    (tmp_path / "bad.csv").write_text("03001627,a,0,0,0,1,0,0,0,1,1,1\n03001627,b,0,0\n")
+    with pytest.raises(ExportError, match=r"bad.csv:2: expected 12 columns"):
+        read_csv(tmp_path / "bad.csv")
+    mirrored = Alignment("03001627", "sh3d.chair_mirrored", (0.5, 0.0, -1.0), (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    assert split_cad_id(mirrored.id_cad) == ("sh3d.chair", True)
+    assert read_csv_text(csv_text([mirrored]), tmp_path) == [mirrored]

@@ -1,0 +1,114 @@
+"""`cadestate stats` on a hand-built 3-clip benchmark warehouse, against numbers computed by hand
+from the clips' ground truth; the HTML report (its pages and pictures; Chromium renders it where
+installed). Needs the Sweet Home 3D furniture (tests/conftest.py)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.benchmark import clip_name
+from bench.walkthrough import WalkthroughSpec, generate_clip
+from conftest import table_rows
+from dataset_fixture import write_accepted, write_frames, write_tracks
+from schemas.official import read_objects
+from tasks.cad_classes import CLASSES
+from tasks.cameras import parse_camera_file
+from tasks.stats import dataset_tables, select_clips, statistics
+from warehouse import Warehouse
+
+SPEC = WalkthroughSpec(width=256, height=144, num_video_frames=24, sample_every=3, alone_scale=0.5)
+NAME = {c.id: c.name for c in CLASSES}
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+@pytest.fixture(scope="module")
+def bench3(small_cad_library, tmp_path_factory):
+    """(warehouse, [(clip name, generated clip, posed ground-truth objects)]): 3 clips, every other
+    ground-truth object posed (accepted), one track per object."""
+    lib, rows = small_cad_library
+    tmp = tmp_path_factory.mktemp("stats")
+    shutil.copytree(lib.root, tmp / "wh")
+    wh = Warehouse(tmp / "wh")
+    clips = []
+    for i in range(3):
+        name = clip_name(31, i, SPEC)
+        clip = generate_clip(tmp / "bench", name, 31000 + i, rows, lib.root, SPEC)
+        cams = write_frames(wh, name, clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
+        gt = [o for o in read_objects(clip.objects_path).objects if o.track]
+        write_tracks(wh, name, cams, {k: (o, o.track) for k, o in enumerate(gt)})
+        posed = {k: o for k, o in enumerate(gt) if k % 2 == 0}
+        write_accepted(wh, name, posed)
+        wh.write("runs", name, table_rows("runs", [{"clip": name, "run_id": f"r{i}{s}", "stage": s, "duration_s": d}
+                                                   for s, d in (("frames", 2.5), ("detect", 4.0), ("pose", 1.0))]))
+        clips.append((name, clip, list(posed.values()), len(gt)))
+    return wh, clips
+
+
+def test_statistics_match_a_hand_count(bench3):
+    wh, clips = bench3
+    assert select_clips(wh) == sorted(c[0] for c in clips)
+    assert select_clips(wh, f"clip = '{clips[1][0]}'") == [clips[1][0]]
+    s = statistics(dataset_tables(wh, select_clips(wh)))
+    frames = sum(len(parse_camera_file(c.cameras_path).timestamps_us) for _, c, _, _ in clips)
+    posed = [o for _, _, p, _ in clips for o in p]
+    boxes = sum(len(o.track) for o in posed)
+    classes = {NAME[o.cls] for o in posed}
+    ratios = []
+    for _, clip, objs, _ in clips:
+        cams = parse_camera_file(clip.cameras_path)
+        for i, ts in enumerate(cams.timestamps_us.tolist()):
+            centre = -cams.R[i].T @ cams.t[i]
+            d = [np.linalg.norm(np.array(o.translation) - centre) for o in objs if any(e.timestamp == ts for e in o.track)]
+            if len(d) >= 2:
+                ratios.append(min(d) / max(d))
+    assert s["scenes"] == 3 and s["frames"] == frames and s["frames_per_scene"] == pytest.approx(frames / 3)
+    assert s["objects"] == sum(n for *_, n in clips) and s["posed_objects"] == len(posed)
+    assert s["classes"] == len(classes) and s["classes_over_100"] == 0 and s["classes_over_1000"] == 0
+    assert s["objects_per_scene"] == pytest.approx(len(posed) / 3)
+    assert s["objects_per_frame"] == pytest.approx(boxes / frames)
+    assert s["cad_models"] == len({o.cad_id for o in posed})
+    assert s["frames_with_two_posed"] == len(ratios) and s["near_far_ratio_median"] == pytest.approx(np.median(ratios))
+    assert 0 <= s["truncated_share"] <= 1
+    assert s["compute_s_per_stage"] == {"detect": 12.0, "frames": 7.5, "pose": 3.0}
+    assert s["human_items"] == {} and s["answer_elapsed_s_per_posed_object"] is None
+
+
+def test_html_report_pages_and_pictures(bench3, tmp_path):
+    from tasks.stats_report import write_report
+
+    wh, clips = bench3
+    tables = dataset_tables(wh, select_clips(wh))
+    index = write_report(wh, tables, statistics(tables), tmp_path / "report")
+    text = index.read_text()
+    assert "#Posed objects" in text and "Cost of the dataset" in text
+    for name, _, posed, _ in clips:
+        assert f'href="clips/{name}.html"' in text
+        page = (tmp_path / "report" / "clips" / f"{name}.html").read_text()
+        images = re.findall(r'src="([^"]+)"', page)
+        assert images and all((tmp_path / "report" / "clips" / src).resolve().is_file() for src in images)
+        for cls in {o.cls for o in posed}:
+            assert f"<td>{NAME[cls]}</td>" in page
+    for src in re.findall(r'src="([^"]+)"', text):
+        assert (tmp_path / "report" / src).is_file()
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
+def test_html_report_renders_in_chromium(bench3, tmp_path):
+    from tasks.stats_report import write_report
+
+    wh, _ = bench3
+    tables = dataset_tables(wh, select_clips(wh))
+    index = write_report(wh, tables, statistics(tables), tmp_path / "report")
+    shot = tmp_path / "shot.png"
+    subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", f"--screenshot={shot}",
+                    "--window-size=1200,1600", index.as_uri()], check=True, timeout=120, capture_output=True)
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(shot).convert("L"))
+    assert pixels.std() > 5  # not a blank page
