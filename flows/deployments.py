@@ -5,8 +5,8 @@
   ``Suspended`` in the UI, for at most ``[schedule] suspend_timeout_s``); a label ingest that
   answers the clip resumes it through the API and it goes on from its cached stages.
 - ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
-  (``<name>.mp4`` + ``<name>.txt``) not ingested yet with the same bytes gets an ``annotate_clip``
-  run. Files still being copied wait: a pair is taken once neither file changed for
+  (``<name>.mp4`` + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
+  ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
   ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
 - ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
   ``[schedule] labels_inbox`` and resumes the clips they answer.
@@ -36,7 +36,9 @@ from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
 from flows.reports import StageReport
 from flows.runtime import run_tags, warehouse_results
-from tasks.ingest import ClipSource
+from tasks.cameras import CameraFileError, parse_camera_file
+from tasks.clip_names import ClipNameError
+from tasks.ingest import ClipSource, official_clip_name
 from warehouse import Warehouse
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
@@ -64,6 +66,18 @@ def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float |
         if done or all(now - p.stat().st_mtime >= stable_s for p in (video, cameras)):
             ready.append(ClipSource(video.stem, video, cameras, split))
     return ready
+
+
+def official_names(pairs: list[ClipSource]) -> list[ClipSource]:
+    """``pairs`` named ``<video_id>_<start_us>`` from their camera files (as `cadestate ingest` names
+    them); a pair whose camera file is bad is left out with a warning naming the file and line."""
+    named = []
+    for p in pairs:
+        try:
+            named.append(dataclasses.replace(p, clip=official_clip_name(parse_camera_file(p.cameras), p.cameras)))
+        except (CameraFileError, ClipNameError) as e:
+            get_run_logger().warning("left out of the inbox: %s", e)
+    return named
 
 
 def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
@@ -136,8 +150,8 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
     """Start an annotate_clip run for every completely copied clip of ``[schedule] inbox`` that
     needs one (:func:`pairs_to_run`) and has no run under way; returns the clips started."""
     cfg = served_config(warehouse, config_path)
-    pairs = pairs_to_run(Warehouse(warehouse), ready_pairs(Path(cfg.schedule.inbox), cfg.schedule.stable_s,
-                                                       cfg.schedule.inbox_split))
+    pairs = pairs_to_run(Warehouse(warehouse), official_names(ready_pairs(Path(cfg.schedule.inbox), cfg.schedule.stable_s,
+                                                                          cfg.schedule.inbox_split)))
     started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
     for p in pairs:
         if p.clip in started:

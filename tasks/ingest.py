@@ -23,6 +23,7 @@ from cadestate.config import IngestConfig
 from cadestate.lineage import digest
 from schemas.core import DEFAULT_SPLIT
 from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file
+from tasks.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids
 from tasks.stage import StageOutput
 from tasks.video import VideoInfo, probe_video
 from warehouse import Warehouse, WarehouseError, check_name
@@ -221,3 +222,25 @@ def registered_source(wh: Warehouse, clip: str) -> ClipSource:
     ``cadestate run`` and label ingest rerun: the same clip, so cached)."""
     video, cameras, row = clip_inputs(wh, clip)
     return ClipSource(clip, video, cameras, clip_split(row))
+
+
+def official_clip_name(track: CameraTrack, cameras: Path, given: str | None = None) -> str:
+    """The clip's name in the official convention, ``<video_id>_<first timestamp µs>``
+    (:mod:`tasks.clip_names`): derived from the camera file (its URL line and first timestamp), or
+    ``given`` once checked against them. Raises :class:`ClipNameError` naming the file."""
+    first = int(track.timestamps_us[0])
+    if given:
+        check_clip_name(given, track.url, first, str(cameras))
+        return given
+    return derive_clip_name(track.url, first, str(cameras))
+
+
+def check_video_ids(wh: Warehouse, new: dict[str, str]) -> None:
+    """Refuse clips ``new`` (name -> URL line) whose video id another clip of the warehouse (or of
+    ``new``) has with a different URL: the official layout keeps a video's frames under its id."""
+    known = {r["clip"]: r["url"] for r in wh.read("clips", columns=["clip", "url"]).to_pylist()}
+    clash = shared_video_ids({**known, **new}.items())
+    if clash:
+        vid, names = next(iter(clash.items()))
+        raise ClipNameError(f"clips {', '.join(names)} come from different videos (line 1 of their camera files) but "
+                            f"share the video id {vid!r}: give one of them its own name with --clip")

@@ -43,22 +43,23 @@ def cli(*args):
 @pytest.mark.slow
 def test_ingest_then_sql_status_tables(tmp_path, small_clip):
     w = str(tmp_path / "w")
-    result = runner.invoke(app, ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path), "--clip", "room_1"])
+    result = runner.invoke(app, ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path),
+                                 "--clip", "small_0"])  # the official <video_id>_<start_us> of its camera file
     assert result.exit_code == 0, result.output
     assert "completed" in result.output
     rows = json.loads(cli("-w", w, "sql", "SELECT clip, count(*) AS n FROM frames GROUP BY clip", "--format", "json").stdout)
-    assert rows == [{"clip": "room_1", "n": 30}]
+    assert rows == [{"clip": "small_0", "n": 30}]
     out = cli("-w", w, "sql", "SELECT stage, status FROM runs ORDER BY started_at", "-f", "csv").stdout
     stages = [s.name for s in stages_of("clip")]
     rows = list(csv.reader(io.StringIO(out)))
     assert rows[0] == ["stage", "status"] and sorted(rows[1:]) == sorted([s, "completed"] for s in stages)
     status = runner.invoke(app, ["-w", w, "status"])
-    assert status.exit_code == 0 and status.output.count("yes") == len(stages) and "room_1" in status.output
+    assert status.exit_code == 0 and status.output.count("yes") == len(stages) and "small_0" in status.output
     tables = runner.invoke(app, ["-w", w, "tables"])
     assert "frames" in tables.output and "30" in tables.output
     again = runner.invoke(app, ["-w", w, "run"])
     assert again.exit_code == 0 and again.output.count("cached") == len(stages)
-    args = ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path), "--clip", "room_1"]
+    args = ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path)]  # named small_0 again
     val = runner.invoke(app, [*args, "--split", "val"])
     assert val.exit_code == 0 and "manual_tracks" in val.output and "paused" in val.output
     kept = runner.invoke(app, args)  # no --split: the registered clip keeps its split
@@ -82,9 +83,9 @@ def test_stage_failures_are_one_clear_line(tmp_path, small_clip):
     shifted = [lines[0]] + [" ".join([str(int(ln.split()[0]) + 15_000), *ln.split()[1:]]) for ln in lines[1:]]
     cams = tmp_path / "c.txt"
     cams.write_text("\n".join(shifted) + "\n")
-    result = cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(cams), "--clip", "v")
+    result = cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(cams))
     assert result.returncode == 1
-    assert "error: clip v, stage frames: " in result.stderr and "camera line 2 asks for 15000 µs" in result.stderr
+    assert "error: clip small_15000, stage frames: " in result.stderr and "camera line 2 asks for 15000 µs" in result.stderr
     assert "Traceback" not in result.stderr
 
 

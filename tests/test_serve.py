@@ -106,29 +106,29 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
     try:
         api = Api(read_server(w).api_url)
         wait_for("the deployments", lambda: api.deployment_id("ingest_labels"))
-        shutil.copy(small_clip.video_path, inbox / "room_1.mp4")
+        shutil.copy(small_clip.video_path, inbox / "room_1.mp4")  # named small_0 from its camera file
         shutil.copy(small_clip.cameras_path, inbox / "room_1.txt")
         (inbox / "room_1.done").touch()
         api.run("build_dataset")
-        run = wait_for("a suspended clip", lambda: (r := api.flow_run("annotate_clip/room_1")) and
+        run = wait_for("a suspended clip", lambda: (r := api.flow_run("annotate_clip/small_0")) and
                        r["state"]["name"] in ("Suspended", "Failed", "Crashed", "Completed") and r or None)
         assert run["state"]["name"] == "Suspended", (tmp_path / "serve.log").read_text()[-3000:]
-        assert {"clip:room_1", "split:val"} <= set(run["tags"])
+        assert {"clip:small_0", "split:val"} <= set(run["tags"])
         wh = Warehouse(w)
-        assert wh.read("frames", partitions=["room_1"]).num_rows == 30
-        [task] = (w / "label_tasks" / "room_1").glob("*.json")
-        (labels / "room_1.json").write_text(json.dumps({
-            "format": "cadestate-label/1", "kind": "manual_track", "clip": "room_1", "task_id": task.stem,
+        assert wh.read("frames", partitions=["small_0"]).num_rows == 30
+        [task] = (w / "label_tasks" / "small_0").glob("*.json")
+        (labels / "small_0.json").write_text(json.dumps({
+            "format": "cadestate-label/1", "kind": "manual_track", "clip": "small_0", "task_id": task.stem,
             "annotator": "test", "created_at": "2026-11-23T00:00:00Z", "answers": []}))
         api.run("ingest_labels")
-        done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/room_1")) and
+        done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/small_0")) and
                         r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
         assert done["id"] == run["id"] and done["state"]["type"] == "COMPLETED"
-        assert wh.read("manual_track_labels", partitions=["room_1"]).num_rows == 0  # "nothing missing" answers it
-        assert {r["stage"]: r["status"] for r in wh.read("runs", partitions=["room_1"]).to_pylist()}["manual_tracks"] == "completed"
+        assert wh.read("manual_track_labels", partitions=["small_0"]).num_rows == 0  # "nothing missing" answers it
+        assert {r["stage"]: r["status"] for r in wh.read("runs", partitions=["small_0"]).to_pylist()}["manual_tracks"] == "completed"
         api.run("build_dataset")  # a clip done costs nothing: no new run for it
         time.sleep(20)
-        assert api.flow_run("annotate_clip/room_1")["id"] == run["id"]
+        assert api.flow_run("annotate_clip/small_0")["id"] == run["id"]
     finally:
         os.killpg(serving.pid, signal.SIGTERM)
         serving.wait(60)

@@ -40,11 +40,11 @@ def test_commands_use_the_server_while_it_is_up_and_fall_back_when_it_is_down(tm
         assert cli("-w", str(w), "server", "status", cwd=tmp_path).returncode == 0
         again = cli("-w", str(w), "server", "start", cwd=tmp_path)  # already up: the same server
         assert again.returncode == 0 and read_server(w).pid == info.pid
-        run = cli("-w", str(w), "ingest", video, cameras, "--clip", "room_1", "--split", "val", "--no-progress", cwd=tmp_path)
+        run = cli("-w", str(w), "ingest", video, cameras, "--split", "val", "--no-progress", cwd=tmp_path)
         assert f"on the Prefect server at {info.api_url}" in run.stderr, run.stderr
         [flow_run] = flow_runs(info.api_url)
-        assert flow_run["name"] == "annotate_clip/room_1"
-        assert {"clip:room_1", "split:val"} <= set(flow_run["tags"])
+        assert flow_run["name"] == "annotate_clip/small_0"  # the clip's official name, from its camera file
+        assert {"clip:small_0", "split:val"} <= set(flow_run["tags"])
     finally:
         stopped = cli("-w", str(w), "server", "stop", cwd=tmp_path)
     assert stopped.returncode == 0 and "stopped the Prefect server" in stopped.stdout

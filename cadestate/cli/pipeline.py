@@ -31,7 +31,9 @@ def main_options(
 def ingest(
     ctx: typer.Context,
     sources: Annotated[list[Path], typer.Argument(help="VIDEO CAMERAS.txt for one clip, or one or more folders of <name>.mp4 + <name>.txt pairs.")],
-    clip: Annotated[Optional[str], typer.Option(help="Clip name (one clip only; default: the video's file name without suffix).")] = None,
+    clip: Annotated[Optional[str], typer.Option(help="Clip name, <video_id>_<start_us> as in CAD-Estate (one clip only; default: "
+                                                     "derived from the camera file: the video id of its URL line, its first "
+                                                     "timestamp).")] = None,
     split: Annotated[Optional[str], typer.Option(
         help="Dataset split of these clips: train, val, test ([manual_tracks] splits, val and test by default, get "
              "the manual-track task). Default: a clip ingested before keeps its split, a new one is train. "
@@ -45,29 +47,40 @@ def ingest(
     Every camera file, video and the [detect] model are checked before anything starts: a bad one
     is refused (naming the file and line, or the config key) and nothing is written.
 
+    Clips are named as in CAD-Estate, <video_id>_<start_us>: the video id of the camera file's URL
+    line (a YouTube id, else the URL's last path segment) and its first timestamp.
+
     \b
     Examples:
-      cadestate ingest room.mp4 room.txt --clip room_01
+      cadestate ingest room.mp4 room.txt                 (clip room_0 when line 1 is file:///videos/room.mp4)
+      cadestate ingest room.mp4 room.txt --clip kitchen_1200000
       cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
       cadestate ingest val_clips/ --split val
     """
     import dataclasses
 
     from tasks.detectors import check_detect_config
-    from tasks.ingest import ClipSource, check_clip_inputs, discover_clips, registered_splits
+    from tasks.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
+                              registered_splits)
 
     if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
-        items = [ClipSource(clip or sources[0].stem, sources[0], sources[1])]
+        pairs = [(sources[0], sources[1])]
     else:
         if clip:
             raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
-        items = [s for folder in sources for s in discover_clips(folder)]
+        pairs = [(s.video, s.cameras) for folder in sources for s in discover_clips(folder)]
     cfg = ctx.obj.config()
-    for item in items:  # the ingest stage checks again; here a bad input stops everything before it starts
-        for warning in check_clip_inputs(item.video, item.cameras).warnings:
+    items, urls = [], {}
+    for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts
+        checked = check_clip_inputs(video, cameras)
+        for warning in checked.warnings:
             err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+        items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras))
+        urls[items[-1].clip] = checked.cameras.url
     check_detect_config(cfg.detect, cfg.source)
-    known = registered_splits(ctx.obj.open_warehouse())
+    wh = ctx.obj.open_warehouse()
+    check_video_ids(wh, urls)
+    known = registered_splits(wh)
     items = [dataclasses.replace(s, split=split or known.get(s.clip, "train")) for s in items]
     run_sources(ctx.obj, items, progress)
 
@@ -80,8 +93,11 @@ def run(
 ) -> None:
     """Rerun the pipeline on ingested clips (each keeps its split): stages whose config, code and inputs are
     unchanged are cached (no work)."""
+    from tasks.detectors import check_detect_config
     from tasks.ingest import registered_source
 
+    cfg = ctx.obj.config()
+    check_detect_config(cfg.detect, cfg.source)  # a bad [detect] stops the run before it starts
     wh = ctx.obj.open_warehouse()
     names = clips or wh.partitions("clips")
     if not names:

@@ -205,7 +205,7 @@ BROKEN = [missing_url, repeated_or_swapped, blank_line, field_count, not_a_numbe
 def test_broken_camera_files_are_refused_up_front(ingested, breakage, data):
     content, line, words = data.draw(breakage(ingested.lines), label="case")
     ingested.cameras.write_bytes(content)
-    result = run_cli("-w", str(ingested.root), "ingest", str(ingested.video), str(ingested.cameras), "--clip", "small")
+    result = run_cli("-w", str(ingested.root), "ingest", str(ingested.video), str(ingested.cameras), "--clip", "small_0")
     error = assert_clean_error(result, mentions=f"error: {ingested.cameras}:{line}: ")
     assert any(w in error for w in words), (error, words)
     assert len(result.stderr.splitlines()) == 1, result.stderr
@@ -218,7 +218,7 @@ def test_broken_camera_files_are_refused_up_front(ingested, breakage, data):
 @given(content=st.binary(min_size=1, max_size=2000))
 def test_random_bytes_are_refused_naming_a_line(ingested, content):
     ingested.cameras.write_bytes(content)
-    result = run_cli("-w", str(ingested.root), "ingest", str(ingested.video), str(ingested.cameras), "--clip", "small")
+    result = run_cli("-w", str(ingested.root), "ingest", str(ingested.video), str(ingested.cameras), "--clip", "small_0")
     error = assert_clean_error(result)
     assert re.match(rf"error: {re.escape(str(ingested.cameras))}:\d+: ", error), error
     assert len(result.stderr.splitlines()) == 1, result.stderr

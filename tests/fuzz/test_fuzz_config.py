@@ -232,7 +232,7 @@ def test_broken_configs_stop_ingest_before_it_starts(small_warehouse, folder, no
     config = folder / "cadestate.toml"
     config.write_text(text)
     w = small_warehouse
-    result = run_cli("-w", str(w.root), "-c", str(config), "ingest", str(w.video), str(w.cameras), "--clip", "small")
+    result = run_cli("-w", str(w.root), "-c", str(config), "ingest", str(w.video), str(w.cameras), "--clip", "small_0")
     assert_clean_error(result, mentions=f"error: {config}: {names}")
     assert len(result.stderr.splitlines()) == 1, result.stderr
     assert warehouse_digest(w.root) == w.digest
