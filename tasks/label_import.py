@@ -240,7 +240,7 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     doc = label_document("manual_track", clip, task_id, answers, annotator=f"import:{source}" if source else None,
                          created_at=created)
     name = f"import of {source or 'tool tracks'}"
-    check_label(parse_label(json.dumps(doc).encode(), name), ClipFacts(wh), name)
+    check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
     return ImportResult(doc, dropped)
 
 

@@ -4,13 +4,18 @@ A stage that needs people calls :func:`write_task` (the task file goes to
 ``<warehouse>/label_tasks/<clip>/<task_id>.json`` and its document to the ``label_tasks`` table)
 and pauses; :func:`validate_label` checks a label file in two steps:
 
-1. the document: JSON (no duplicate keys), every number finite, then the kind's JSON Schema;
+1. the document: at most :data:`MAX_LABEL_BYTES`, UTF-8 JSON (no duplicate keys), every number
+   finite and every string valid Unicode (no lone surrogate: no table could store it), the kind's
+   JSON Schema (integers written as integers: ``0``, not ``0.0``), a ``created_at`` that is a date-time
+   in UTC's range, and the clicks of each key-frame on different 3D points (:func:`check_clicks`);
 2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
    a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
    frames of the clip, boxes have positive size, no track or key-frame is answered twice.
 
-Every failure is a :class:`LabelError` whose message names the file and the field as a JSON path,
-e.g. ``labels/c1.json: $.answers[2].keyframes[0].points[3].x: not a finite number``.
+So everything that could make a row fail to be written is refused here, before ingest writes
+anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
+the field as a JSON path, e.g. ``labels/c1.json: $.answers[2].keyframes[0].points[3].x: not a
+finite number``. Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`).
 Ingest (into the answer tables) is :mod:`tasks.label_ingest`.
 """
 
@@ -21,35 +26,65 @@ import functools
 import hashlib
 import json
 import math
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import jsonschema
+import numpy as np
 import pyarrow as pa
 
 from cadestate.lineage import digest
+from schemas.core import UTC_TS
 from schemas.dataclass_json import from_json, to_json
-from schemas.labels import KINDS, LABEL_CLASSES, LABEL_FORMAT, TASK_CLASSES, TASK_FORMAT, Label, Task, json_schema
+from schemas.labels import (KINDS, LABEL_CLASSES, LABEL_FORMAT, TASK_CLASSES, TASK_FORMAT, CorrespondenceLabel, Label, Task,
+                            json_schema)
 from warehouse import Warehouse, atomic_write_bytes, check_name
 
 TASK_DIR = "label_tasks"
 """Folder of the task files under the warehouse root."""
 
+MAX_LABEL_BYTES = 20_000_000
+"""Largest label file accepted (20 MB; ``cadestate labels ingest/validate --max-mb``). A label
+answers one task of one clip: a few kB, a few MB for the longest clips. Bigger files are refused
+before they are read (a 200 MB file took 4 minutes and 2.8 GB of memory to ingest)."""
+
+SAME_POINT_M = 1e-3
+"""Two clicks of one key-frame whose 3D points are closer than this (1 mm) click the same model point."""
+
+SAME_IMAGE_POINT = 1e-4
+"""Two clicks of one key-frame whose image points are closer than this (normalised) click the same pixel."""
+
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")
+
+
+def one_line(text: str) -> str:
+    """``text`` with control characters, line separators and lone surrogates escaped (``\\n``,
+    ``\\ud800``): it prints as one line on any terminal."""
+    return _UNPRINTABLE.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
+
 
 class LabelError(ValueError):
-    """A task or label file that does not fit its format or the warehouse: names the file and field."""
+    """A task or label file that does not fit its format or the warehouse: one line naming the file
+    and field (whatever the file's names and values hold)."""
+
+    def __init__(self, message: str):
+        super().__init__(one_line(message))
 
 
 @dataclass(frozen=True)
 class LabelFile:
-    """A validated label file: where it came from, its bytes' SHA-256, its text and its content."""
+    """A validated label file: where it came from, its bytes' SHA-256, its text, its content, its
+    ``created_at`` in UTC (None: not given) and warnings on legal but suspicious values."""
 
     path: Path
     sha256: str
     document: str
     label: Label
+    created_at: dt.datetime | None = None
+    warnings: tuple[str, ...] = ()
 
     @property
     def kind(self) -> str:
@@ -82,6 +117,24 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return dict(pairs)
 
 
+def read_limited(path: Path, max_bytes: int = MAX_LABEL_BYTES) -> bytes:
+    """The bytes of the file at ``path``, refused (without reading on) when over ``max_bytes``."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(max_bytes + 1)
+    except OSError as e:
+        raise LabelError(f"{path}: $: cannot read: {e.strerror or e}") from None
+    check_size(data, str(path), max_bytes)
+    return data
+
+
+def check_size(data: bytes, name: str, max_bytes: int = MAX_LABEL_BYTES) -> None:
+    """Refuse a document over ``max_bytes`` (the limit is stated, in MB)."""
+    if len(data) > max_bytes:
+        raise LabelError(f"{name}: $: larger than the limit of {max_bytes / 1e6:g} MB for label files "
+                         f"(--max-mb raises it)")
+
+
 def parse_json(data: bytes, name: str) -> Any:
     """Parse bytes as UTF-8 JSON; errors name the file and line/column."""
     try:
@@ -96,20 +149,44 @@ def parse_json(data: bytes, name: str) -> Any:
         raise LabelError(f"{name}: $: not valid JSON: {e}") from None
 
 
-def nonfinite_path(doc: Any, path: tuple = ()) -> tuple | None:
-    """Path of the first NaN or infinite number in ``doc`` (JSON allows neither), else None."""
+def _unicode_ok(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def unstorable(doc: Any, path: tuple = ()) -> tuple[tuple, str] | None:
+    """Path and reason of the first value in ``doc`` that no table can store, else None: a NaN or
+    infinite number (JSON allows neither; Python's parser reads them), or a key or string with a
+    lone surrogate (a ``\\ud800`` escape: not Unicode text, so not UTF-8 either)."""
     if isinstance(doc, float) and not math.isfinite(doc):
-        return path
+        return path, "not a finite number"
+    if isinstance(doc, str) and not _unicode_ok(doc):
+        return path, "not valid Unicode (a lone surrogate such as \\ud800)"
     items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
     for k, v in items:
-        if (found := nonfinite_path(v, (*path, k))) is not None:
+        if isinstance(k, str) and not _unicode_ok(k):
+            return (*path, k), "not valid Unicode (a lone surrogate such as \\ud800) in a key"
+        if (found := unstorable(v, (*path, k))) is not None:
             return found
     return None
 
 
+def _strict_integer(checker: Any, instance: Any) -> bool:
+    """JSON Schema's ``integer`` accepts ``0.0``; ids and timestamps must be written as integers."""
+    return isinstance(instance, int) and not isinstance(instance, bool)
+
+
+_StrictValidator = jsonschema.validators.extend(
+    jsonschema.Draft202012Validator,
+    type_checker=jsonschema.Draft202012Validator.TYPE_CHECKER.redefine("integer", _strict_integer))
+
+
 @functools.cache
 def _validator(kind: str, which: str) -> jsonschema.Draft202012Validator:
-    return jsonschema.Draft202012Validator(json_schema(kind, which))
+    return _StrictValidator(json_schema(kind, which))
 
 
 def _schema_error(e: jsonschema.ValidationError) -> str:
@@ -132,11 +209,11 @@ def check_document(doc: Any, which: str, name: str) -> str:
     if not isinstance(doc, dict):
         raise LabelError(f"{name}: $: expected a JSON object, not {type(doc).__name__}")
     try:
-        bad = nonfinite_path(doc)
+        bad = unstorable(doc)
     except RecursionError:
         raise LabelError(f"{name}: $: nested too deeply") from None
     if bad is not None:
-        raise LabelError(f"{name}: {json_path(bad)}: not a finite number")
+        raise LabelError(f"{name}: {json_path(bad[0])}: {bad[1]}")
     expected = LABEL_FORMAT if which == "label" else TASK_FORMAT
     fmt = doc.get("format")
     if fmt != expected:
@@ -153,22 +230,62 @@ def check_document(doc: Any, which: str, name: str) -> str:
     return kind
 
 
-def _check_time(value: str | None, field: str, name: str) -> dt.datetime | None:
+def check_time(value: str | None, field: str, name: str) -> dt.datetime | None:
+    """An ISO 8601 date-time in UTC (naive: taken as UTC) that a ``timestamp[us, UTC]`` column can
+    hold; None for None."""
     if value is None:
         return None
     try:
         t = dt.datetime.fromisoformat(value)
     except ValueError:
-        raise LabelError(f"{name}: $.{field}: not an ISO 8601 date-time: {value!r}") from None
-    return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
+        raise LabelError(f"{name}: $.{field}: not an ISO 8601 date-time: {value[:60]!r}") from None
+    try:
+        utc = t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
+        pa.scalar(utc, UTC_TS)
+    except (OverflowError, pa.ArrowException):
+        raise LabelError(f"{name}: $.{field}: {value!r} is out of range in UTC (years 1 to 9999)") from None
+    return utc
 
 
-def parse_label(data: bytes, name: str) -> Label:
-    """A label document's content after the format checks (no warehouse involved)."""
+def parse_label(data: bytes, name: str) -> tuple[Label, dt.datetime | None]:
+    """A label document's content and its ``created_at`` (UTC) after the format checks (no
+    warehouse involved)."""
     doc = parse_json(data, name)
     kind = check_document(doc, "label", name)
-    _check_time(doc.get("created_at"), "created_at", name)
-    return from_json(LABEL_CLASSES[kind], doc)
+    created_at = check_time(doc.get("created_at"), "created_at", name)
+    return from_json(LABEL_CLASSES[kind], doc), created_at
+
+
+def check_clicks(label: Label, name: str) -> list[str]:
+    """The clicks of a correspondences label, key-frame by key-frame; returns warnings.
+
+    Error: two clicks of one key-frame on the same 3D point (within :data:`SAME_POINT_M`). A model
+    point has one image point, so the repeat is a slip or contradicts the first click, and the
+    key-frame is left with fewer than the 4 different points the task asks for (four copies of one
+    point pin a pose no more than one point does). The solver cannot tell such a key-frame from a
+    good one, so it is refused here rather than solved into a wrong pose.
+
+    Warning: two clicks at the same image point (within :data:`SAME_IMAGE_POINT`) on different 3D
+    points. That is legal (two model points on one viewing ray, a near and a far corner lined up)
+    but is most often a slip, so it is reported and kept."""
+    if not isinstance(label, CorrespondenceLabel):
+        return []
+    warnings = []
+    for i, a in enumerate(label.answers):
+        for j, kf in enumerate(a.keyframes):
+            xyz = np.array([p.xyz for p in kf.points], np.float64)
+            xy = np.array([(p.x, p.y) for p in kf.points], np.float64)
+            for k in range(1, len(xyz)):
+                where = ["answers", i, "keyframes", j, "points", k]
+                same = np.flatnonzero(np.linalg.norm(xyz[:k] - xyz[k], axis=1) < SAME_POINT_M)
+                if same.size:
+                    raise _fail(name, [*where, "xyz"], f"the same 3D point as points[{same[0]}]: each click of a key-frame "
+                                                       "must be a different point of the model")
+                pixel = np.flatnonzero(np.linalg.norm(xy[:k] - xy[k], axis=1) < SAME_IMAGE_POINT)
+                if pixel.size:
+                    warnings.append(f"{name}: {json_path(where)}: the same image point as points[{pixel[0]}] for another "
+                                    "3D point (two model points on one viewing ray?)")
+    return warnings
 
 
 def parse_task(data: bytes | str, name: str) -> Task:
@@ -198,7 +315,7 @@ def write_task(wh: Warehouse, task: Task) -> Path:
     doc = to_json(task)
     text = json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n"
     parse_task(text, f"task {task.task_id}")
-    created_at = _check_time(task.created_at, "created_at", f"task {task.task_id}")
+    created_at = check_time(task.created_at, "created_at", f"task {task.task_id}")
     data = text.encode()
     path = wh.root / TASK_DIR / check_name(task.clip) / f"{check_name(task.task_id, 'task id')}.json"
     sha = hashlib.sha256(data).hexdigest()
@@ -316,22 +433,22 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
 
 
 def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
-                   data: bytes | None = None) -> LabelFile:
-    """Validate one label file: its format, and against the warehouse when ``wh`` (or ``facts``) is
-    given. Raises :class:`LabelError` naming the file and the field."""
+                   data: bytes | None = None, max_bytes: int = MAX_LABEL_BYTES) -> LabelFile:
+    """Validate one label file (``data``: its bytes, when read already): its format, and against
+    the warehouse when ``wh`` (or ``facts``) is given. Raises :class:`LabelError` naming the file
+    and the field."""
     path = Path(path)
     name = str(path)
     if data is None:
-        try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise LabelError(f"{name}: $: cannot read: {e.strerror or e}") from None
-    label = parse_label(data, name)
+        data = read_limited(path, max_bytes)
+    check_size(data, name, max_bytes)
+    label, created_at = parse_label(data, name)
+    warnings = check_clicks(label, name)
     if facts is None and wh is not None:
         facts = ClipFacts(wh)
     if facts is not None:
         check_label(label, facts, name)
-    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label)
+    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label, created_at, tuple(warnings))
 
 
 def label_document(kind: str, clip: str, task_id: str, answers: list[dict], **header: Any) -> dict:

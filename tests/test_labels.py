@@ -171,6 +171,16 @@ MALFORMED = [
     ("manual_track", lambda d: d["answers"][0]["boxes"][1].__setitem__("box", [0.5, 0.5, 0.9, -0.1]),
      r"\$\.answers\[0\]\.boxes\[1\]\.box\[3\]: -0.1 is less than the minimum of 0"),
     ("manual_track", lambda d: d["answers"][0].__setitem__("label", "lamp"), r"\$\.answers\[0\]\.label: class 'lamp' is not one of"),
+    # issue 13: values that crashed validation, or passed it and failed (or misled) later
+    ("cad_selection", lambda d: d.__setitem__("created_at", "0001-01-01T00:00:00+14:00"),
+     r"\$\.created_at: '0001-01-01T00:00:00\+14:00' is out of range in UTC"),
+    ("verification", lambda d: d["answers"][1].__setitem__("comment", "a\ud800b"), r"\$\.answers\[1\]\.comment: not valid Unicode"),
+    ("verification", lambda d: d.__setitem__("x\udc00", 1), r"\$\.x\\udc00: not valid Unicode"),
+    ("cad_selection", lambda d: d["answers"][0].__setitem__("track_id", 0.0), r"\$\.answers\[0\]\.track_id: 0\.0 is not of type 'integer'"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"][2]["xyz"].__setitem__(0, 1e308),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points\[2\]\.xyz\[0\]: 1e\+308 is greater than the maximum of 100"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("points", [d["answers"][0]["keyframes"][1]["points"][0]] * 4),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points\[1\]\.xyz: the same 3D point as points\[0\]"),
 ]
 
 
@@ -192,6 +202,32 @@ def test_unreadable_documents(tmp_path, text, message):
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(LabelError, match=message):
         validate_label(path)
+
+
+def test_size_limit_is_checked_before_reading(tmp_path):
+    from tasks.labels import MAX_LABEL_BYTES
+
+    text = json.dumps(good("verification"))
+    path = put(tmp_path, "big.json", text + " " * (MAX_LABEL_BYTES - len(text) + 1))
+    with pytest.raises(LabelError, match=r"big\.json: \$: larger than the limit of 20 MB for label files"):
+        validate_label(path)
+    with pytest.raises(LabelError, match="limit of 0.0001 MB"):
+        validate_label(put(tmp_path, "small.json", text), max_bytes=100)
+
+
+def test_same_image_point_for_two_model_points_is_a_warning(lwh, tmp_path):
+    doc = _edit("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][2].update(x=0.1, y=0.2))
+    lf = validate_label(put(tmp_path, "co.json", doc), lwh)
+    assert lf.warnings == (f"{tmp_path / 'co.json'}: $.answers[0].keyframes[0].points[2]: the same image point as points[0] "
+                           "for another 3D point (two model points on one viewing ray?)",)
+    assert validate_label(put(tmp_path, "ok.json", good("correspondences")), lwh).warnings == ()
+
+
+def test_errors_stay_on_one_line(tmp_path):
+    path = put(tmp_path, "a\nb.json", _edit("verification", lambda d: d.__setitem__("kind", "x\u2028y")))
+    with pytest.raises(LabelError) as e:
+        validate_label(path)
+    assert len(str(e.value).splitlines()) == 1 and "a\\nb.json" in str(e.value)
 
 
 # ------------------------------------------------------------------------------ fuzzing
