@@ -336,6 +336,47 @@ def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
     assert [(r["track_id"], r["cad_id"], r["rank"]) for r in sel] == [(0, "m0b", 2), (1, None, None)]
 
 
+LABEL_TABLES = ("label_files", "manual_track_labels", "cad_selection_labels", "correspondence_labels", "verification_labels")
+
+
+def test_one_bad_file_does_not_abort_the_batch(lwh, tmp_path):
+    """Issue 13: a created_at out of range raised OverflowError and stopped the batch; a lone
+    surrogate passed validation and failed at write time after the answers were written."""
+    d = tmp_path / "labels"
+    put(d, "a.json", _edit("cad_selection", lambda x: x.__setitem__("created_at", "0001-01-01T00:00:00+14:00")))
+    put(d, "b.json", good("verification"))
+    put(d, "c.json", _edit("manual_track", lambda x: x.__setitem__("annotator", "\ud800")))
+    report = ingest_labels(lwh, d)
+    assert report.ingested == [str(d / "b.json")] and report.clips == [CLIP]
+    assert [e.split(": ")[:2] for e in report.errors] == [[str(d / "a.json"), "$.created_at"], [str(d / "c.json"), "$.annotator"]]
+    assert {t: lwh.read(t).num_rows for t in LABEL_TABLES} == {"label_files": 1, "manual_track_labels": 0,
+                                                              "cad_selection_labels": 0, "correspondence_labels": 0,
+                                                              "verification_labels": 2}
+
+
+@pytest.mark.parametrize("failing", ["cad_selection_labels", "label_files"])
+def test_a_failed_write_stops_no_other_file(lwh, tmp_path, monkeypatch, failing):
+    d = tmp_path / "labels"
+    for name, kind in (("a", "cad_selection"), ("b", "verification")):
+        put(d, f"{name}.json", good(kind))
+    put(d, "c.json", _edit("cad_selection", lambda x: x.__setitem__("answers", x["answers"][1:])))
+    doomed = validate_label(d / "a.json").sha256
+    real = Warehouse.write
+
+    def write(self, table, part, data):
+        if table == failing and doomed in data.column("label_sha256").to_pylist():
+            raise OSError(28, "No space left on device")
+        return real(self, table, part, data)
+
+    monkeypatch.setattr(Warehouse, "write", write)
+    report = ingest_labels(lwh, d)
+    assert report.errors == [f"{d / 'a.json'}: $: not ingested, writing failed: No space left on device"]
+    assert sorted(report.ingested) == [str(d / "b.json"), str(d / "c.json")] and report.rows["label_files"] == 2
+    assert doomed not in lwh.read("label_files").column("label_sha256").to_pylist()
+    assert current_answers(lwh, "cad_selection", [CLIP]).to_pylist()[0]["track_id"] == 1  # c.json's only answer
+    assert current_answers(lwh, "cad_selection", [CLIP]).num_rows == 1 and current_answers(lwh, "verification", [CLIP]).num_rows == 2
+
+
 def test_supersession_keeps_history(lwh, tmp_path):
     ingest_labels(lwh, put(tmp_path / "a", "sel.json", good("cad_selection")))
     newer = _edit("cad_selection", lambda d: d.__setitem__("answers", [{"track_id": 0, "cad_id": "m0a"}]))  # partial: track 0 only
