@@ -514,3 +514,30 @@ def test_cli_schema_validate_ingest(lwh, tmp_path):
     result = runner.invoke(app, [*w, "labels", "import-cvat", str(xml), "--clip", CLIP, "--out", str(d), "--skip-source", "file"])
     assert result.exit_code == 0, result.output
     assert validate_label(d / "c1.annotations.cvat.json", lwh).kind == "manual_track"
+
+
+def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
+    from fuzz.harness import run_cli
+
+    d = tmp_path / "labels"
+    put(d, "a.json", _edit("cad_selection", lambda x: x.__setitem__("created_at", "0001-01-01T00:00:00+14:00")))
+    put(d, "b.json", good("verification"))
+    put(d, "c\nd.json", _edit("manual_track", lambda x: x.__setitem__("annotator", "\ud800")))
+    put(d, "e.json", _edit("correspondences", lambda x: x["answers"][0]["keyframes"][0]["points"][2].update(x=0.1, y=0.2)))
+    result = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d))
+    assert result.code == 1
+    lines = result.stderr.splitlines()
+    assert [ln.split(": ", 2)[:2] for ln in lines] == [["warning", str(d / "e.json")], ["error", str(d / "a.json")],
+                                                        ["error", f"{d}/c\\nd.json"]]
+    assert {f"{d / 'b.json'}: ingested", f"{d / 'e.json'}: ingested"} <= set(result.stdout.splitlines())
+    again = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"))
+    assert again.code == 0 and f"{d / 'b.json'}: already ingested" in again.stdout.splitlines()
+    small = run_cli("-w", str(lwh.root), "labels", "validate", "--max-mb", "0.0001", str(d / "b.json"))
+    assert small.code == 1 and small.stderr.startswith(f"error: {d / 'b.json'}: $: larger than the limit of 0.0001 MB")
+
+
+def test_cli_size_limit_default_is_the_named_constant():
+    from cadestate.cli.labels import DEFAULT_MAX_MB
+    from tasks.labels import MAX_LABEL_BYTES
+
+    assert DEFAULT_MAX_MB * 1e6 == MAX_LABEL_BYTES
