@@ -51,6 +51,9 @@ MAX_LABEL_BYTES = 20_000_000
 answers one task of one clip: a few kB, a few MB for the longest clips. Bigger files are refused
 before they are read (a 200 MB file took 4 minutes and 2.8 GB of memory to ingest)."""
 
+LABEL_FILES_WHAT = "label files (--max-mb raises it)"
+"""What :data:`MAX_LABEL_BYTES` limits, as its error says."""
+
 SAME_POINT_M = 1e-3
 """Two clicks of one key-frame whose 3D points are closer than this (1 mm) click the same model point."""
 
@@ -117,22 +120,22 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return dict(pairs)
 
 
-def read_limited(path: Path, max_bytes: int = MAX_LABEL_BYTES) -> bytes:
-    """The bytes of the file at ``path``, refused (without reading on) when over ``max_bytes``."""
+def read_limited(path: Path, max_bytes: int = MAX_LABEL_BYTES, what: str = LABEL_FILES_WHAT, root: str = "$") -> bytes:
+    """The bytes of the file at ``path``, refused (without reading on) when over ``max_bytes``;
+    errors name the file and its ``root`` (``$`` for JSON, ``/`` for XML)."""
     try:
         with open(path, "rb") as f:
             data = f.read(max_bytes + 1)
     except OSError as e:
-        raise LabelError(f"{path}: $: cannot read: {e.strerror or e}") from None
-    check_size(data, str(path), max_bytes)
+        raise LabelError(f"{path}: {root}: cannot read: {e.strerror or e}") from None
+    check_size(data, str(path), max_bytes, what, root)
     return data
 
 
-def check_size(data: bytes, name: str, max_bytes: int = MAX_LABEL_BYTES) -> None:
-    """Refuse a document over ``max_bytes`` (the limit is stated, in MB)."""
+def check_size(data: bytes, name: str, max_bytes: int = MAX_LABEL_BYTES, what: str = LABEL_FILES_WHAT, root: str = "$") -> None:
+    """Refuse a document over ``max_bytes`` (the limit is stated, in MB, with ``what`` it is for)."""
     if len(data) > max_bytes:
-        raise LabelError(f"{name}: $: larger than the limit of {max_bytes / 1e6:g} MB for label files "
-                         f"(--max-mb raises it)")
+        raise LabelError(f"{name}: {root}: larger than the limit of {max_bytes / 1e6:g} MB for {what}")
 
 
 def parse_json(data: bytes, name: str) -> Any:

@@ -151,7 +151,10 @@ def _write_import(result, out_dir: Path, stem: str) -> None:
 
     for d in result.dropped:
         err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
-    path = write_label(result.document, out_dir, stem)
+    try:
+        path = write_label(result.document, out_dir, stem)
+    except OSError as e:
+        raise CliError(f"{out_dir}: cannot write the label file there: {e.strerror or e}") from None
     n = len(result.document["answers"])
     _say(f"{escape(str(path))}: {n} manual track(s) for task {escape(result.document['task_id'])}; "
          f"ingest with `cadestate labels ingest {escape(str(out_dir))}`")
