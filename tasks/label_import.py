@@ -17,7 +17,8 @@ like any label file before it is written; ``cadestate labels ingest`` then inges
 Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
 number an element or field needs must be there and be a finite number (frames: whole numbers),
 every label a non-empty string; a problem is a :class:`tasks.labels.LabelError` of one line naming
-the file and the element (``/annotations/track[2]/box[0]``) or field (``$[0].annotations[1].result[3]``).
+the file and the element or attribute (``/annotations/track[2]/box[0]/@xtl``) or the field
+(``$[0].annotations[1].result[3].value``).
 A file with tracks of which none has a box left on a frame of the clip is refused too: an empty
 label would say that nothing is missing.
 
@@ -127,35 +128,43 @@ def normalised_box(x0: float, y0: float, x1: float, y1: float, width: float, hei
 
 # ------------------------------------------------------------------------------ checked values
 
-def _number(value: object, where: str, what: str) -> float:
-    """A finite number from a JSON number or an XML string."""
+def _number(value: object, where: str) -> float:
+    """A finite number from a JSON number or an XML string; ``where``: the file and the element,
+    attribute (``.../box[0]/@xtl``) or field."""
     try:
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise TypeError
         number = float(value)
     except (TypeError, ValueError, OverflowError):
-        raise LabelError(f"{where}: {what} must be a number, not {repr(value)[:40]}") from None
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}") from None
     if not math.isfinite(number):
-        raise LabelError(f"{where}: {what} must be a finite number, not {repr(value)[:40]}")
+        raise LabelError(f"{where}: must be a finite number, not {repr(value)[:40]}")
     return number
 
 
-def _whole(value: object, where: str, what: str, low: int, high: int = MAX_FRAME) -> int:
+def _json_number(value: object, where: str) -> float:
+    """A finite JSON number (a string that reads as one is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}")
+    return _number(value, where)
+
+
+def _whole(value: object, where: str, low: int, high: int = MAX_FRAME) -> int:
     """A whole number in [low, high) (frames, sizes)."""
-    number = _number(value, where, what)
+    number = _number(value, where)
     if number != int(number) or not low <= number < high:
-        raise LabelError(f"{where}: {what} must be a whole number from {low} to {high - 1}, not {repr(value)[:40]}")
+        raise LabelError(f"{where}: must be a whole number from {low} to {high - 1}, not {repr(value)[:40]}")
     return int(number)
 
 
-def _text(value: object, where: str, what: str) -> str:
+def _text(value: object, where: str) -> str:
     """A non-empty string that is valid Unicode (a label, an id)."""
     if not isinstance(value, str) or not value:
-        raise LabelError(f"{where}: {what} must be a non-empty string, not {repr(value)[:40]}")
+        raise LabelError(f"{where}: must be a non-empty string, not {repr(value)[:40]}")
     try:
         value.encode("utf-8")
     except UnicodeEncodeError:
-        raise LabelError(f"{where}: {what} is not valid Unicode (a lone surrogate such as \\ud800)") from None
+        raise LabelError(f"{where}: not valid Unicode (a lone surrogate such as \\ud800)") from None
     return value
 
 
@@ -185,7 +194,7 @@ def _cvat_size(root: ET.Element, name: str, size: tuple[int, int] | None) -> tup
         original = root.find(f"meta/{owner}/original_size")
         if original is not None:
             where = f"{name}: /annotations/meta/{owner}/original_size"
-            return tuple(_whole(original.findtext(k), f"{where}/{k}", "the text", 1) for k in ("width", "height"))
+            return tuple(_whole(original.findtext(k), f"{where}/{k}", 1) for k in ("width", "height"))
     if not size or min(size) <= 0:
         raise LabelError(f"{name}: /annotations/meta: no original_size and no frame size given")
     return size
@@ -204,13 +213,13 @@ def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_o
         where = f"{name}: /annotations/track[{i}]"
         if el.get("source", "manual") in skip_sources:
             continue
-        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), where, "attribute 'label'"), where=where)
+        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where)
         for j, box in enumerate(el.findall("box")):
             if box.get("outside", "0") == "1" or (keyframes_only and box.get("keyframe", "1") != "1"):
                 continue
             at = f"{where}/box[{j}]"
-            frame = _whole(box.get("frame"), at, "attribute 'frame'", 0)
-            corners = [_number(box.get(a), at, f"attribute {a!r}") for a in ("xtl", "ytl", "xbr", "ybr")]
+            frame = _whole(box.get("frame"), f"{at}/@frame", 0)
+            corners = [_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr")]
             track.boxes.append(ToolBox(frame, None, normalised_box(*corners, width, height)))
         tracks.append(track)
     return tracks
@@ -230,12 +239,12 @@ def _ls_annotation(task: dict, where: str) -> tuple[dict, str]:
 
 def _ls_box(item: object, size: tuple[int, int], where: str) -> ToolBox:
     item = _of_type(item, dict, where)
-    frame = _whole(item.get("frame"), f"{where}.frame", "it", 1)
-    x, y, w, h = (_number(item.get(k), f"{where}.{k}", "it") for k in ("x", "y", "width", "height"))
+    frame = _whole(_json_number(item.get("frame"), f"{where}.frame"), f"{where}.frame", 1)
+    x, y, w, h = (_json_number(item.get(k), f"{where}.{k}") for k in ("x", "y", "width", "height"))
     if max(abs(x), abs(y), abs(w), abs(h)) > MAX_PERCENT:
         raise LabelError(f"{where}: x, y, width and height are percent of the frame, not beyond +-{MAX_PERCENT:g}")
-    rotation = _number(item.get("rotation") or 0.0, f"{where}.rotation", "it")
-    time_s = None if item.get("time") is None else _number(item["time"], f"{where}.time", "it")
+    rotation = _json_number(item.get("rotation") or 0.0, f"{where}.rotation")
+    time_s = None if item.get("time") is None else _json_number(item["time"], f"{where}.time")
     W, H = size
     x, y, w, h = x / 100 * W, y / 100 * H, w / 100 * W, h / 100 * H
     c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
@@ -252,8 +261,7 @@ def _ls_track(result: dict, size: tuple[int, int], where: str, index: int) -> To
     rid = result.get("id", index)
     if isinstance(rid, bool) or not isinstance(rid, (str, int)):
         raise LabelError(f"{where}.id: must be a string or an integer, not {repr(rid)[:40]}")
-    track = ToolTrack(f"labelstudio:{_text(str(rid), f'{where}.id', 'it')}", _text(labels[0], f"{where}.value.labels[0]", "it"),
-                      where=where)
+    track = ToolTrack(f"labelstudio:{_text(str(rid), f'{where}.id')}", _text(labels[0], f"{where}.value.labels[0]"), where=where)
     sequence = _of_type(value.get("sequence"), list, f"{where}.value.sequence")
     track.boxes = [_ls_box(item, size, f"{where}.value.sequence[{j}]") for j, item in enumerate(sequence)]
     return track

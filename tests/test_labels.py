@@ -467,7 +467,7 @@ def test_cvat_import(lwh, tmp_path):
     assert report.ok and lwh.read("manual_track_labels").num_rows == 2
     with pytest.raises(LabelError, match="not a CVAT annotations file"):
         import_cvat(lwh, put(tmp_path, "x.xml", "<root/>"), CLIP)
-    with pytest.raises(LabelError, match=r"box\[0\]: attribute 'xtl' must be a number"):
+    with pytest.raises(LabelError, match=r"box\[0\]/@xtl: must be a number"):
         import_cvat(lwh, put(tmp_path, "y.xml", CVAT.replace('xtl="32"', 'xtl="abc"', 1)), CLIP)
 
 

@@ -15,9 +15,7 @@ Hypothesis runs derandomized (a fixed sequence of cases), without its example da
 from __future__ import annotations
 
 import copy
-import json
 import shutil
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -26,6 +24,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from fuzz.harness import assert_clean_error, count_case, run_cli, warehouse_digest
+from fuzz.json_mutations import BAD_BYTES, WRONG_TYPES, Dup, Raw, at, dumps, nodes, put_at
 from schemas.labels import KINDS
 from tasks.labels import MAX_LABEL_BYTES
 from test_labels import STAMPS, base_wh, good  # noqa: F401  (base_wh: the fixture)
@@ -39,64 +38,8 @@ FUZZ = settings(max_examples=CASES_PER_KIND, derandomize=True, database=None, de
 TASK_TRACKS = {"cad_selection": {0, 1, 2}, "correspondences": {0, 1}, "verification": {0, 1}}
 REQUIRED = {"format", "kind", "task_id", "clip", "answers", "track_id", "cad_id", "verdict", "label", "boxes",
             "timestamp_us", "box", "points", "x", "y", "xyz", "keyframes", "is_mirrored"}
-WRONG_TYPES: dict[type, list] = {dict: ["x", 1, [1], True], list: ["x", 1, {"a": 1}, True], str: [7, True, [], {"a": 1}],
-                                 int: ["0", True, [], {"a": 1}], float: ["0.5", True, [], {"a": 1}],
-                                 bool: ["true", 1, [], {"a": 1}], type(None): [5, True, [], {"a": 1}]}
 BAD_DATES = ["0001-01-01T00:00:00+14:00", "9999-12-31T23:59:59-14:00", "yesterday", "2026-13-01", "", "2026-02-30",
              "2026-01-01T25:00:00", "2026-01-01T00:00:00+25:00"]
-BAD_BYTES = [b"\xed\xa0\x80", b"\xff", b"\xc0\xaf", b"\xe9", b"\x80", b"\xf8\x88\x80\x80\x80"]
-
-
-# ------------------------------------------------------------------------------ documents with odd JSON
-
-@dataclass(frozen=True)
-class Raw:
-    """JSON text written as is: NaN, 1e999, a whole number as 0.0, a 30-digit integer."""
-
-    text: str
-
-
-@dataclass(frozen=True)
-class Dup:
-    """An object written with a key twice."""
-
-    pairs: tuple[tuple[str, Any], ...]
-
-
-def dumps(node: Any) -> str:
-    """JSON text of ``node``, with :class:`Raw` and :class:`Dup` as they say (strings ASCII-escaped,
-    so a lone surrogate is written as ``\\ud800``)."""
-    if isinstance(node, Raw):
-        return node.text
-    if isinstance(node, (dict, Dup)):
-        pairs = node.pairs if isinstance(node, Dup) else node.items()
-        return "{" + ", ".join(f"{json.dumps(k)}: {dumps(v)}" for k, v in pairs) + "}"
-    if isinstance(node, list):
-        return "[" + ", ".join(dumps(v) for v in node) + "]"
-    return json.dumps(node)
-
-
-def nodes(doc: Any, path: tuple = ()) -> list[tuple[tuple, Any]]:
-    """(path, value) of every node under ``doc`` (not ``doc`` itself)."""
-    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
-    out = []
-    for k, v in items:
-        out += [((*path, k), v), *nodes(v, (*path, k))]
-    return out
-
-
-def at(doc: Any, path: tuple) -> Any:
-    for k in path:
-        doc = doc[k]
-    return doc
-
-
-def put_at(doc: Any, path: tuple, value: Any) -> Any:
-    """``doc`` with the node at ``path`` replaced (``path`` empty: ``value`` itself)."""
-    if not path:
-        return value
-    at(doc, path[:-1])[path[-1]] = value
-    return doc
 
 
 def _pick(data: st.DataObject, candidates: list, what: str) -> Any:
