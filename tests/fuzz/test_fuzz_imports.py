@@ -25,7 +25,7 @@ from fuzz.json_mutations import BAD_BYTES, WRONG_TYPES, Raw, at, dumps, put_at
 from test_label_import import LS
 from test_labels import CLIP, CVAT, H, W, base_wh  # noqa: F401  (base_wh: the fixture)
 
-CASES_PER_TOOL = 70
+CASES_PER_TOOL = 60
 """Generated cases per tool (each runs one command, about 0.05 s)."""
 
 FUZZ = settings(max_examples=CASES_PER_TOOL, derandomize=True, database=None, deadline=None,

@@ -29,7 +29,7 @@ from schemas.labels import KINDS
 from tasks.labels import MAX_LABEL_BYTES
 from test_labels import STAMPS, base_wh, good  # noqa: F401  (base_wh: the fixture)
 
-CASES_PER_KIND = 70
+CASES_PER_KIND = 50
 """Generated cases per label kind (each runs two commands, about 0.1 s in all)."""
 
 FUZZ = settings(max_examples=CASES_PER_KIND, derandomize=True, database=None, deadline=None,
