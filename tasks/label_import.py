@@ -16,7 +16,7 @@ like any label file before it is written; ``cadestate labels ingest`` then inges
 
 Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
 number an element or field needs must be there and be a finite number (frames: whole numbers),
-every label a non-empty string; a problem is a :class:`tasks.labels.LabelError` of one line naming
+every label a non-empty string; a problem is a :class:`tasks.label_format.LabelError` of one line naming
 the file and the element or attribute (``/annotations/track[2]/box[0]/@xtl``) or the field
 (``$[0].annotations[1].result[3].value``).
 A file with tracks of which none has a box left on a frame of the clip is refused too: an empty
@@ -41,7 +41,8 @@ from pathlib import Path
 from typing import Literal
 
 from schemas.labels import Task
-from tasks.labels import ClipFacts, LabelError, check_label, label_document, latest_task_of_kind, parse_label, read_limited
+from tasks.label_format import LabelError, parse_label, read_limited
+from tasks.labels import ClipFacts, check_label, label_document, latest_task_of_kind
 from warehouse import Warehouse, atomic_write_bytes
 
 FrameMapMode = Literal["frames", "video"]

@@ -38,7 +38,8 @@ import pyarrow.compute as pc
 from cadestate.lineage import digest, table_digest
 from schemas.labels import ANSWER_TABLES, KINDS, LABEL_FILES
 from schemas.pose import CORRESPONDENCES
-from tasks.labels import MAX_LABEL_BYTES, ClipFacts, LabelError, LabelFile, one_line, read_limited, utc_now, validate_label
+from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
+from tasks.labels import ClipFacts, LabelFile, utc_now, validate_label
 from tasks.pose_checks import coplanar_axis
 from warehouse import Warehouse
 

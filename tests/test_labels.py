@@ -205,7 +205,7 @@ def test_unreadable_documents(tmp_path, text, message):
 
 
 def test_size_limit_is_checked_before_reading(tmp_path):
-    from tasks.labels import MAX_LABEL_BYTES
+    from tasks.label_format import MAX_LABEL_BYTES
 
     text = json.dumps(good("verification"))
     path = put(tmp_path, "big.json", text + " " * (MAX_LABEL_BYTES - len(text) + 1))
@@ -538,6 +538,6 @@ def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
 
 def test_cli_size_limit_default_is_the_named_constant():
     from cadestate.cli.labels import DEFAULT_MAX_MB
-    from tasks.labels import MAX_LABEL_BYTES
+    from tasks.label_format import MAX_LABEL_BYTES
 
     assert DEFAULT_MAX_MB * 1e6 == MAX_LABEL_BYTES

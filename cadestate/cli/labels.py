@@ -29,12 +29,12 @@ class FrameMap(str, Enum):
 
 MaxMbOpt = Annotated[float, typer.Option("--max-mb", min=1e-6, help="Refuse label files larger than this (MB).")]
 DEFAULT_MAX_MB = 20.0
-"""``--max-mb``: tasks.labels.MAX_LABEL_BYTES in MB (a test keeps the two equal)."""
+"""``--max-mb``: tasks.label_format.MAX_LABEL_BYTES in MB (a test keeps the two equal)."""
 
 
 def _problems(errors: list[str], warnings: list[str]) -> None:
     """Print each warning and error on one stderr line of its own (``warning:`` / ``error:``)."""
-    from tasks.labels import one_line
+    from tasks.label_format import one_line
 
     for w in warnings:
         err.print(f"[yellow]warning:[/] {escape(one_line(w))}", highlight=False, emoji=False)
@@ -44,7 +44,7 @@ def _problems(errors: list[str], warnings: list[str]) -> None:
 
 def _say(text: str) -> None:
     """One stdout line (``text``: rich markup), never wrapped: paths are long, lines stay greppable."""
-    from tasks.labels import one_line
+    from tasks.label_format import one_line
 
     out.print(one_line(text), soft_wrap=True, highlight=False, emoji=False)
 
