@@ -44,6 +44,9 @@ BOX = "Box (ymin, xmin, ymax, xmax), normalised by image height (y) and width (x
 IMAGE = "image, normalised [0,1], origin top-left, x right, y down"
 CAD = "canonical CAD (+Y up, front +Z, unmirrored)"
 TRACK_ID = {"minimum": 0, "maximum": 2**31 - 1}  # tracks.track_id is an int32
+CAD_EXTENT_M = 100.0
+"""Bound on |coordinate| of a point on a canonical (bbox-centred, metres) CAD model: no object of a
+room walkthrough reaches 100 m from its centre, so a bigger value is a unit or typing error."""
 FORMAT = "Format and version of the file."
 KIND = "The task kind."
 
@@ -128,7 +131,8 @@ class CorrespondencePoint:
 
     x: float = spec("Image x, normalised by the width.", frame=IMAGE, **UNIT)
     y: float = spec("Image y, normalised by the height.", frame=IMAGE, **UNIT)
-    xyz: tuple[float, float, float] = spec("The point on the CAD model.", unit="m", frame=CAD)
+    xyz: tuple[float, float, float] = spec("The point on the CAD model.", unit="m", frame=CAD,
+                                           items={"minimum": -CAD_EXTENT_M, "maximum": CAD_EXTENT_M})
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -14,6 +14,14 @@ like any label file before it is written; ``cadestate labels ingest`` then inges
   becomes its axis-aligned bounding box (rotation in degrees about its top-left corner). The
   newest annotation that was not cancelled is used.
 
+Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
+number an element or field needs must be there and be a finite number (frames: whole numbers),
+every label a non-empty string; a problem is a :class:`tasks.label_format.LabelError` of one line naming
+the file and the element or attribute (``/annotations/track[2]/box[0]/@xtl``) or the field
+(``$[0].annotations[1].result[3].value``).
+A file with tracks of which none has a box left on a frame of the clip is refused too: an empty
+label would say that nothing is missing.
+
 Frame numbers map to camera timestamps in one of two ways (``frame_map``):
 ``frames`` (default): the tool showed the clip's extracted frames as an image sequence, so tool
 frame n is ``frames.frame_index`` n; ``video``: the tool showed the video, so tool frame n is at
@@ -32,10 +40,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from tasks.labels import ClipFacts, LabelError, check_label, label_document, latest_task_of_kind, parse_label
+from schemas.labels import Task
+from tasks.label_format import LabelError, parse_label, read_limited
+from tasks.labels import ClipFacts, check_label, label_document, latest_task_of_kind
 from warehouse import Warehouse, atomic_write_bytes
 
 FrameMapMode = Literal["frames", "video"]
+
+MAX_IMPORT_BYTES = 200_000_000
+"""Largest tool export read (200 MB): a CVAT file with every interpolated box of a long video stays
+well below; bigger files are refused before they are parsed."""
+
+MAX_FRAME = 10**9
+"""Frame numbers at or above this are refused (no clip has a billion frames)."""
+
+MAX_PERCENT = 1000.0
+"""Label Studio box coordinates (percent of the frame) beyond +-this are refused: not a box of the frame."""
 
 
 @dataclass(frozen=True)
@@ -50,9 +70,12 @@ class ToolBox:
 
 @dataclass
 class ToolTrack:
+    """A track from a tool: its id there, its label, its boxes, and where it is in the file."""
+
     source_id: str
     label: str
     boxes: list[ToolBox] = field(default_factory=list)
+    where: str = ""
 
 
 @dataclass
@@ -104,122 +127,210 @@ def normalised_box(x0: float, y0: float, x1: float, y1: float, width: float, hei
     return (_clip01(min(y0, y1) / height), _clip01(min(x0, x1) / width), _clip01(max(y0, y1) / height), _clip01(max(x0, x1) / width))
 
 
+# ------------------------------------------------------------------------------ checked values
+
+def _number(value: object, where: str) -> float:
+    """A finite number from a JSON number or an XML string; ``where``: the file and the element,
+    attribute (``.../box[0]/@xtl``) or field."""
+    try:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise TypeError
+        number = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}") from None
+    if not math.isfinite(number):
+        raise LabelError(f"{where}: must be a finite number, not {repr(value)[:40]}")
+    return number
+
+
+def _json_number(value: object, where: str) -> float:
+    """A finite JSON number (a string that reads as one is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}")
+    return _number(value, where)
+
+
+def _whole(value: object, where: str, low: int, high: int = MAX_FRAME) -> int:
+    """A whole number in [low, high) (frames, sizes)."""
+    number = _number(value, where)
+    if number != int(number) or not low <= number < high:
+        raise LabelError(f"{where}: must be a whole number from {low} to {high - 1}, not {repr(value)[:40]}")
+    return int(number)
+
+
+def _text(value: object, where: str) -> str:
+    """A non-empty string that is valid Unicode (a label, an id)."""
+    if not isinstance(value, str) or not value:
+        raise LabelError(f"{where}: must be a non-empty string, not {repr(value)[:40]}")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise LabelError(f"{where}: not valid Unicode (a lone surrogate such as \\ud800)") from None
+    return value
+
+
+def _of_type(value: object, kind: type, where: str) -> object:
+    """``value`` if it is a ``kind`` (a JSON list or object), else an error naming ``where``."""
+    if not isinstance(value, kind):
+        raise LabelError(f"{where}: expected {'a list' if kind is list else 'an object'}, not {type(value).__name__}")
+    return value
+
+
 # ------------------------------------------------------------------------------ CVAT
 
-def _xml_number(el: ET.Element, attr: str, where: str) -> float:
-    value = el.get(attr)
+def _parse_xml(path: str | Path) -> ET.Element:
+    name = str(path)
+    data = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "/")
     try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise LabelError(f"{where}: attribute {attr!r} must be a number, not {value!r}") from None
-    if not math.isfinite(number):
-        raise LabelError(f"{where}: attribute {attr!r} is not finite")
-    return number
+        return ET.fromstring(data)
+    except ET.ParseError as e:
+        raise LabelError(f"{name}: not well-formed XML: {e}") from None
+    except (LookupError, ValueError) as e:  # an encoding Python does not know, or that cannot hold the bytes
+        raise LabelError(f"{name}: not a readable XML file: {e}") from None
+
+
+def _cvat_size(root: ET.Element, name: str, size: tuple[int, int] | None) -> tuple[int, int]:
+    """(width, height) of the frames: the file's ``original_size``, else ``size``."""
+    for owner in ("task", "job"):
+        original = root.find(f"meta/{owner}/original_size")
+        if original is not None:
+            where = f"{name}: /annotations/meta/{owner}/original_size"
+            return tuple(_whole(original.findtext(k), f"{where}/{k}", 1) for k in ("width", "height"))
+    if not size or min(size) <= 0:
+        raise LabelError(f"{name}: /annotations/meta: no original_size and no frame size given")
+    return size
 
 
 def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_only: bool = True,
               skip_sources: tuple[str, ...] = ()) -> list[ToolTrack]:
     """Tracks of a CVAT video XML 1.1 file (``size``: (width, height) when the file has none)."""
     name = str(path)
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError) as e:
-        raise LabelError(f"{name}: not a readable XML file: {e}") from None
+    root = _parse_xml(path)
     if root.tag != "annotations":
         raise LabelError(f"{name}: /{root.tag}: not a CVAT annotations file (root element must be <annotations>)")
-    original = root.find("meta/task/original_size")
-    original = original if original is not None else root.find("meta/job/original_size")
-    if original is not None:
-        size = (int(float(original.findtext("width", "0"))), int(float(original.findtext("height", "0"))))
-    if not size or min(size) <= 0:
-        raise LabelError(f"{name}: /annotations/meta: no original_size and no frame size given")
+    width, height = _cvat_size(root, name, size)
     tracks = []
     for i, el in enumerate(root.findall("track")):
-        track = ToolTrack(f"cvat:{el.get('id', i)}", el.get("label") or "")
+        where = f"{name}: /annotations/track[{i}]"
         if el.get("source", "manual") in skip_sources:
             continue
+        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where)
         for j, box in enumerate(el.findall("box")):
-            where = f"{name}: /annotations/track[{i}]/box[{j}]"
             if box.get("outside", "0") == "1" or (keyframes_only and box.get("keyframe", "1") != "1"):
                 continue
-            frame = _xml_number(box, "frame", where)
-            corners = [_xml_number(box, a, where) for a in ("xtl", "ytl", "xbr", "ybr")]
-            track.boxes.append(ToolBox(int(frame), None, normalised_box(*corners, *size)))
+            at = f"{where}/box[{j}]"
+            frame = _whole(box.get("frame"), f"{at}/@frame", 0)
+            corners = [_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr")]
+            track.boxes.append(ToolBox(frame, None, normalised_box(*corners, width, height)))
         tracks.append(track)
     return tracks
 
 
 # ------------------------------------------------------------------------------ Label Studio
 
-def _ls_annotation(task: dict, name: str) -> dict | None:
-    annotations = [a for a in task.get("annotations") or [] if isinstance(a, dict) and not a.get("was_cancelled")]
-    if not annotations:
-        return None
-    return max(annotations, key=lambda a: (str(a.get("updated_at") or a.get("created_at") or ""), str(a.get("id", ""))))
+def _ls_annotation(task: dict, where: str) -> tuple[dict, str]:
+    """The newest annotation that was not cancelled, and where it is."""
+    annotations = _of_type(task.get("annotations", []), list, f"{where}.annotations")
+    kept = [(a, f"{where}.annotations[{k}]") for k, a in enumerate(annotations)
+            if isinstance(a, dict) and not a.get("was_cancelled")]
+    if not kept:
+        raise LabelError(f"{where}.annotations: no annotation that was not cancelled")
+    return max(kept, key=lambda a: (str(a[0].get("updated_at") or a[0].get("created_at") or ""), str(a[0].get("id", ""))))
 
 
-def _ls_box(item: dict, size: tuple[int, int], where: str) -> ToolBox:
-    try:
-        frame, x, y, w, h = (float(item[k]) for k in ("frame", "x", "y", "width", "height"))
-        rotation = float(item.get("rotation") or 0.0)
-        time_s = None if item.get("time") is None else float(item["time"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise LabelError(f"{where}: needs numbers frame, x, y, width, height ({e})") from None
-    if not all(map(math.isfinite, (frame, x, y, w, h, rotation))) or frame < 1:
-        raise LabelError(f"{where}: not a finite box on a frame >= 1")
+def _ls_box(item: object, size: tuple[int, int], where: str) -> ToolBox:
+    item = _of_type(item, dict, where)
+    frame = _whole(_json_number(item.get("frame"), f"{where}.frame"), f"{where}.frame", 1)
+    x, y, w, h = (_json_number(item.get(k), f"{where}.{k}") for k in ("x", "y", "width", "height"))
+    if max(abs(x), abs(y), abs(w), abs(h)) > MAX_PERCENT:
+        raise LabelError(f"{where}: x, y, width and height are percent of the frame, not beyond +-{MAX_PERCENT:g}")
+    rotation = _json_number(item.get("rotation") or 0.0, f"{where}.rotation")
+    time_s = None if item.get("time") is None else _json_number(item["time"], f"{where}.time")
     W, H = size
     x, y, w, h = x / 100 * W, y / 100 * H, w / 100 * W, h / 100 * H
     c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
     xs = [x + dx * c - dy * s for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
     ys = [y + dx * s + dy * c for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
-    return ToolBox(int(frame) - 1, time_s, normalised_box(min(xs), min(ys), max(xs), max(ys), W, H))
+    return ToolBox(frame - 1, time_s, normalised_box(min(xs), min(ys), max(xs), max(ys), W, H))
+
+
+def _ls_track(result: dict, size: tuple[int, int], where: str, index: int) -> ToolTrack:
+    value = _of_type(result.get("value"), dict, f"{where}.value")
+    labels = _of_type(value.get("labels"), list, f"{where}.value.labels")
+    if not labels:
+        raise LabelError(f"{where}.value.labels: no label")
+    rid = result.get("id", index)
+    if isinstance(rid, bool) or not isinstance(rid, (str, int)):
+        raise LabelError(f"{where}.id: must be a string or an integer, not {repr(rid)[:40]}")
+    track = ToolTrack(f"labelstudio:{_text(str(rid), f'{where}.id')}", _text(labels[0], f"{where}.value.labels[0]"), where=where)
+    sequence = _of_type(value.get("sequence"), list, f"{where}.value.sequence")
+    track.boxes = [_ls_box(item, size, f"{where}.value.sequence[{j}]") for j, item in enumerate(sequence)]
+    return track
+
+
+def _ls_task(data: object, name: str, clip: str | None) -> tuple[dict, str]:
+    """The export's one task (with several, the one whose ``data`` mentions ``clip``) and where it is."""
+    tasks = [(t, f"{name}: $[{i}]" if isinstance(data, list) else f"{name}: $")
+             for i, t in enumerate(data if isinstance(data, list) else [data]) if isinstance(t, dict)]
+    if len(tasks) > 1 and clip is not None:
+        tasks = [t for t in tasks if clip in json.dumps(t[0].get("data", {}))]
+    if len(tasks) != 1:
+        raise LabelError(f"{name}: $: expected one Label Studio task (for clip {clip!r}), found {len(tasks)}")
+    return tasks[0]
 
 
 def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None = None) -> list[ToolTrack]:
     """Tracks of a Label Studio JSON export (``size``: (width, height) of the frames). With several
     tasks in the export, the one whose ``data`` mentions ``clip`` is used."""
     name = str(path)
+    raw = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "$")
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise LabelError(f"{name}: not a readable JSON file: {e}") from None
-    tasks = [t for t in (data if isinstance(data, list) else [data]) if isinstance(t, dict)]
-    if len(tasks) > 1 and clip is not None:
-        tasks = [t for t in tasks if clip in json.dumps(t.get("data", {}))]
-    if len(tasks) != 1:
-        raise LabelError(f"{name}: $: expected one Label Studio task (for clip {clip!r}), found {len(tasks)}")
-    annotation = _ls_annotation(tasks[0], name)
+        data = json.loads(raw.decode("utf-8"))
+        task, where = _ls_task(data, name, clip)
+    except UnicodeDecodeError as e:
+        raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
+    except (ValueError, RecursionError) as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e or 'nested too deeply'}") from None
+    annotation, where = _ls_annotation(task, where)
+    results = _of_type(annotation.get("result", []), list, f"{where}.result")
     tracks = []
-    for i, result in enumerate((annotation or {}).get("result") or []):
-        if not isinstance(result, dict) or result.get("type") != "videorectangle":
-            continue
-        where = f"{name}: $.annotations[*].result[{i}]"
-        value = result.get("value") or {}
-        labels = value.get("labels") or []
-        if not isinstance(value.get("sequence"), list):
-            raise LabelError(f"{where}.value.sequence: missing")
-        track = ToolTrack(f"labelstudio:{result.get('id', i)}", str(labels[0]) if labels else "")
-        track.boxes = [_ls_box(item, size, f"{where}.value.sequence[{j}]") for j, item in enumerate(value["sequence"])
-                       if isinstance(item, dict)]
-        tracks.append(track)
+    for i, result in enumerate(results):
+        result = _of_type(result, dict, f"{where}.result[{i}]")
+        if result.get("type") == "videorectangle":
+            tracks.append(_ls_track(result, size, f"{where}.result[{i}]", i))
     return tracks
 
 
 # ------------------------------------------------------------------------------ label files
 
-def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: str | None = None,
-                    frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None,
-                    source: str = "") -> ImportResult:
-    """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
-    clip's newest manual-track task)."""
+def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
+    """The manual_track task an import answers: ``task_id``, else the clip's newest."""
     if task_id is None:
         row = latest_task_of_kind(wh, clip, "manual_track")
         if row is None:
             raise LabelError(f"clip {clip!r}: no manual_track task to answer (give the task id)")
         task_id = row["task_id"]
+    task = ClipFacts(wh).task(clip, task_id)
+    if task is None or task.kind != "manual_track":
+        raise LabelError(f"clip {clip!r}: no manual_track task {task_id!r}")
+    return task
+
+
+def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: str | None = None,
+                    frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None,
+                    source: str = "", name: str = "tool tracks") -> ImportResult:
+    """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
+    clip's newest manual-track task); ``name``: the file, for errors."""
+    task = _answered_task(wh, clip, task_id)
     frames = ClipFrames.of(wh, clip)
     answers, dropped = [], []
     for t in tracks:
+        label = (label_map or {}).get(t.label, t.label)
+        if task.classes and label not in task.classes:
+            raise LabelError(f"{t.where or name}: class {label!r} is not one of the task's: {', '.join(task.classes)} "
+                             "(--map renames a tool label)")
         boxes: dict[int, tuple] = {}
         for b in t.boxes:
             ts = frames.timestamp(b, frame_map)
@@ -233,14 +344,15 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
         if not boxes:
             dropped.append(f"{t.source_id}: no box left, track left out")
             continue
-        label = (label_map or {}).get(t.label, t.label)
         answers.append({"label": label, "boxes": [{"timestamp_us": ts, "box": list(boxes[ts])} for ts in sorted(boxes)],
                         "source_id": t.source_id})
+    if tracks and not answers:
+        raise LabelError(f"{name}: none of its {len(tracks)} track(s) has a box on a frame of clip {clip!r} "
+                         f"(--frame-map {'video' if frame_map == 'frames' else 'frames'}?)")
     created = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    doc = label_document("manual_track", clip, task_id, answers, annotator=f"import:{source}" if source else None,
+    doc = label_document("manual_track", clip, task.task_id, answers, annotator=f"import:{source}" if source else None,
                          created_at=created)
-    name = f"import of {source or 'tool tracks'}"
-    check_label(parse_label(json.dumps(doc).encode(), name), ClipFacts(wh), name)
+    check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
     return ImportResult(doc, dropped)
 
 
@@ -249,7 +361,7 @@ def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None 
     """A ``manual_track`` label document from a CVAT video XML 1.1 file."""
     frames = ClipFrames.of(wh, clip)
     tracks = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources)
-    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}")
+    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}", name=str(path))
 
 
 def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *,
@@ -257,7 +369,8 @@ def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str 
     """A ``manual_track`` label document from a Label Studio video JSON export."""
     frames = ClipFrames.of(wh, clip)
     tracks = read_labelstudio(path, (frames.width, frames.height), clip)
-    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}")
+    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
+                           name=str(path))
 
 
 def write_label(doc: dict, out_dir: str | Path, stem: str) -> Path:

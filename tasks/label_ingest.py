@@ -1,13 +1,16 @@
 """Ingest label files into the warehouse (``cadestate labels ingest DIR``).
 
 :func:`ingest_labels` validates every ``*.json`` under a folder (:func:`tasks.labels.validate_label`)
-and appends the valid ones to the answer tables (``manual_track_labels``, ``cad_selection_labels``,
-``correspondence_labels``, ``verification_labels``) and then to ``label_files``, which is the
-commit record: answer rows whose file has no ``label_files`` row (a crash between the two writes)
-are ignored, and the file is ingested again on the next run. Rules:
+and commits each valid file all or nothing: its rows are built and conformed to their tables in
+memory first (:func:`prepare_file`), then appended to its answer table (``manual_track_labels``,
+``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``) and then to
+``label_files``, which is the commit record: answer rows whose file has no ``label_files`` row (a
+crash or a failed write between the two) are ignored, and the file is ingested again on the next
+run. Rules:
 
 - idempotent: a file whose bytes (SHA-256) were ingested before adds nothing, whatever its name;
-- invalid files are reported (file and field) and skipped; the others are ingested; nothing
+- every file's outcome is reported: ingested, already ingested, or its error (one line naming the
+  file and field); a file that is invalid, or whose write fails, stops none of the others; nothing
   ingested before is touched (every label table is an append-only history);
 - partial labels are fine: a label may answer some of its task's tracks;
 - supersession, computed on read (:func:`current_answers`): per (task, track), the answer of the
@@ -24,7 +27,6 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
-from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,9 +36,10 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from cadestate.lineage import digest, table_digest
-from schemas.labels import ANSWER_TABLES, KINDS
+from schemas.labels import ANSWER_TABLES, KINDS, LABEL_FILES
 from schemas.pose import CORRESPONDENCES
-from tasks.labels import ClipFacts, LabelError, LabelFile, utc_now, validate_label
+from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
+from tasks.labels import ClipFacts, LabelFile, utc_now, validate_label
 from tasks.pose_checks import coplanar_axis
 from warehouse import Warehouse
 
@@ -47,11 +50,14 @@ below this fraction of the largest."""
 
 @dataclass
 class IngestReport:
-    """What :func:`ingest_labels` did. ``clips``: clips with new labels (the ones to resume)."""
+    """What :func:`ingest_labels` did, file by file: ``ingested`` and ``duplicates`` (paths),
+    ``errors`` (one line each, naming the file), ``warnings`` (on files ingested or not);
+    ``clips``: clips with new labels (the ones to resume)."""
 
     ingested: list[str] = field(default_factory=list)
     duplicates: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     clips: list[str] = field(default_factory=list)
     rows: dict[str, int] = field(default_factory=dict)
     coplanar_keyframes: int = 0
@@ -129,25 +135,23 @@ def answer_rows(lf: LabelFile, facts: ClipFacts, ingested_at: dt.datetime, tol: 
 
 
 def file_row(lf: LabelFile, ingested_at: dt.datetime) -> dict:
-    """The ``label_files`` row of one label file."""
-    created = lf.label.created_at
-    created_at = None if created is None else _utc(dt.datetime.fromisoformat(created))
+    """The ``label_files`` row of one label file (a path that is not UTF-8 is kept with its odd
+    bytes escaped, as printed)."""
     return {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind,
-            "source_path": str(lf.path), "annotator": lf.label.annotator, "created_at": created_at,
+            "source_path": one_line(str(lf.path)), "annotator": lf.label.annotator, "created_at": lf.created_at,
             "num_answers": len(lf.label.answers), "document": lf.document}
-
-
-def _utc(t: dt.datetime) -> dt.datetime:
-    return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
 
 
 # ------------------------------------------------------------------------------ ingest
 
 def _order(lf: LabelFile) -> tuple:
-    if lf.label.created_at is not None:
-        when = _utc(dt.datetime.fromisoformat(lf.label.created_at))
+    if lf.created_at is not None:
+        when = lf.created_at
     else:
-        when = dt.datetime.fromtimestamp(lf.path.stat().st_mtime, dt.timezone.utc) if lf.path.exists() else utc_now()
+        try:
+            when = dt.datetime.fromtimestamp(lf.path.stat().st_mtime, dt.timezone.utc)
+        except OSError:
+            when = utc_now()
     return when, str(lf.path)
 
 
@@ -160,56 +164,122 @@ def _ingest_times(wh: Warehouse, n: int, now: dt.datetime | None) -> list[dt.dat
     return [start + dt.timedelta(microseconds=i) for i in range(n)]
 
 
-def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, coplanar_tol: float = DEFAULT_COPLANAR_TOL,
-                  now: dt.datetime | None = None) -> IngestReport:
-    """Validate and ingest the label files of ``source`` (a folder, one file or a list of them); see the module doc."""
-    report = IngestReport()
+WRITE_ERRORS = (OSError, ValueError, pa.ArrowException)
+"""What a failed write raises (the disk; data that does not fit its table): reported per file."""
+
+
+@dataclass(frozen=True)
+class PreparedFile:
+    """One label file's rows, conformed to their tables and ready to write: ``answers`` (rows of
+    its kind's answer table) and ``record`` (its ``label_files`` row, the commit record)."""
+
+    lf: LabelFile
+    answers: pa.Table
+    record: pa.Table
+
+
+def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: ClipFacts,
+                 tol: float = DEFAULT_COPLANAR_TOL) -> PreparedFile:
+    """Build and conform a file's rows in memory: data that does not fit fails here, before anything is written."""
+    spec = ANSWER_TABLES[lf.kind]
+    answers = pa.Table.from_pylist(answer_rows(lf, facts, ingested_at, tol), schema=spec.schema)
+    record = pa.Table.from_pylist([file_row(lf, ingested_at)], schema=LABEL_FILES.schema)
+    return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record))
+
+
+def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
+    """The valid files of ``paths`` that were not ingested before; the others go to ``report``."""
     known = set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
-    facts = ClipFacts(wh)
     accepted: list[LabelFile] = []
-    for path in label_paths(source):
+    for path in paths:
         try:
-            data = path.read_bytes()
-        except OSError as e:
-            report.errors.append(f"{path}: $: cannot read: {e.strerror or e}")
-            continue
-        if hashlib.sha256(data).hexdigest() in known:
-            report.duplicates.append(str(path))
-            continue
-        try:
-            lf = validate_label(path, facts=facts, data=data)
+            data = read_limited(path, max_bytes)
+            if hashlib.sha256(data).hexdigest() in known:
+                report.duplicates.append(str(path))
+                continue
+            lf = validate_label(path, facts=facts, data=data, max_bytes=max_bytes)
         except LabelError as e:
             report.errors.append(str(e))
             continue
+        report.warnings += lf.warnings
         known.add(lf.sha256)
         accepted.append(lf)
-    accepted.sort(key=_order)
-    times = dict(zip((lf.sha256 for lf in accepted), _ingest_times(wh, len(accepted), now)))
-    by_clip: dict[str, list[LabelFile]] = defaultdict(list)
-    for lf in accepted:
-        by_clip[lf.clip].append(lf)
-    for clip, files in sorted(by_clip.items()):
-        _ingest_clip(wh, clip, files, times, facts, coplanar_tol, report)
-        report.ingested += [str(lf.path) for lf in files]
-    report.clips = sorted(by_clip)
-    return report
+    return accepted
 
 
-def _ingest_clip(wh: Warehouse, clip: str, files: list[LabelFile], times: dict[str, dt.datetime], facts: ClipFacts,
-                 tol: float, report: IngestReport) -> None:
-    """Answers first, then ``label_files`` (the commit record), then ``correspondences``."""
+def _failed(report: IngestReport, lf: LabelFile, e: Exception) -> None:
+    report.errors.append(one_line(f"{lf.path}: $: not ingested, writing failed: {getattr(e, 'strerror', None) or e}"))
+
+
+def _write_each(wh: Warehouse, table: str, clip: str, parts: list[tuple[PreparedFile, pa.Table]],
+                report: IngestReport) -> list[PreparedFile]:
+    """Append the rows of several files to ``table`` in one write; if that fails, one write per
+    file, so that a file whose write fails stops none of the others. Returns the files written."""
+    try:
+        if parts:
+            wh.write(table, clip, pa.concat_tables([t for _, t in parts]))
+        return [f for f, _ in parts]
+    except WRITE_ERRORS as e:
+        if len(parts) == 1:
+            _failed(report, parts[0][0].lf, e)
+            return []
+    written = []
+    for f, t in parts:
+        try:
+            wh.write(table, clip, t)
+            written.append(f)
+        except WRITE_ERRORS as e:
+            _failed(report, f.lf, e)
+    return written
+
+
+def _commit_clip(wh: Warehouse, clip: str, files: list[PreparedFile], report: IngestReport) -> list[PreparedFile]:
+    """Commit the files of one clip: their answers (one write per answer table), then the
+    ``label_files`` rows of the files whose answers were written. Returns the files committed."""
+    answered = [f for f in files if not f.answers.num_rows]
     for kind in KINDS:
-        rows = [r for lf in files if lf.kind == kind for r in answer_rows(lf, facts, times[lf.sha256], tol)]
-        if not rows:
-            continue
-        spec = ANSWER_TABLES[kind]
-        report.rows[spec.name] = report.rows.get(spec.name, 0) + wh.write(spec.name, clip, pa.Table.from_pylist(rows, schema=spec.schema))
-        if kind == "correspondences":
-            report.coplanar_keyframes += len({(r["label_sha256"], r["track_id"], r["timestamp_us"]) for r in rows if r["keyframe_coplanar"]})
-    rows = [file_row(lf, times[lf.sha256]) for lf in files]
-    report.rows["label_files"] = report.rows.get("label_files", 0) + wh.write("label_files", clip, pa.Table.from_pylist(rows))
-    if any(lf.kind == "correspondences" for lf in files):
-        report.rows["correspondences"] = report.rows.get("correspondences", 0) + sync_correspondences(wh, clip)
+        parts = [(f, f.answers) for f in files if f.lf.kind == kind and f.answers.num_rows]
+        answered += _write_each(wh, ANSWER_TABLES[kind].name, clip, parts, report)
+    answered.sort(key=files.index)
+    return _write_each(wh, LABEL_FILES.name, clip, [(f, f.record) for f in answered], report)
+
+
+def _count(report: IngestReport, f: PreparedFile) -> None:
+    """Add one committed file to ``report``: its path, rows and co-planar key-frames."""
+    report.ingested.append(str(f.lf.path))
+    for name, table in ((ANSWER_TABLES[f.lf.kind].name, f.answers), (LABEL_FILES.name, f.record)):
+        if table.num_rows:
+            report.rows[name] = report.rows.get(name, 0) + table.num_rows
+    if f.lf.kind == "correspondences":
+        flags = f.answers.select(["track_id", "timestamp_us", "keyframe_coplanar"]).to_pylist()
+        report.coplanar_keyframes += len({(r["track_id"], r["timestamp_us"]) for r in flags if r["keyframe_coplanar"]})
+
+
+def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, coplanar_tol: float = DEFAULT_COPLANAR_TOL,
+                  now: dt.datetime | None = None, max_bytes: int = MAX_LABEL_BYTES) -> IngestReport:
+    """Validate and ingest the label files of ``source`` (a folder, one file or a list of them),
+    each file all or nothing; see the module doc. Writes are batched per clip and table (each
+    write rebuilds the catalog), falling back to one write per file when a batch fails."""
+    report = IngestReport()
+    facts = ClipFacts(wh)
+    accepted = sorted(_validated(wh, label_paths(source), facts, max_bytes, report), key=_order)
+    by_clip: dict[str, list[PreparedFile]] = {}
+    for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now)):
+        try:
+            by_clip.setdefault(lf.clip, []).append(prepare_file(wh, lf, at, facts, coplanar_tol))
+        except WRITE_ERRORS as e:
+            _failed(report, lf, e)
+    for clip, files in sorted(by_clip.items()):
+        committed = _commit_clip(wh, clip, files, report)
+        for f in committed:
+            _count(report, f)
+        report.clips += [clip] if committed else []
+        if any(f.lf.kind == "correspondences" for f in committed):
+            try:
+                report.rows["correspondences"] = report.rows.get("correspondences", 0) + sync_correspondences(wh, clip)
+            except WRITE_ERRORS as e:
+                report.errors.append(one_line(f"clip {clip}: the correspondences table was not updated: {e}"))
+    return report
 
 
 # ------------------------------------------------------------------------------ reading

@@ -4,14 +4,17 @@ A stage that needs people calls :func:`write_task` (the task file goes to
 ``<warehouse>/label_tasks/<clip>/<task_id>.json`` and its document to the ``label_tasks`` table)
 and pauses; :func:`validate_label` checks a label file in two steps:
 
-1. the document: JSON (no duplicate keys), every number finite, then the kind's JSON Schema;
+1. the document (:mod:`tasks.label_format`): size, UTF-8 JSON, finite numbers, valid Unicode,
+   the kind's JSON Schema, ``created_at``, different 3D points per key-frame;
 2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
    a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
    frames of the clip, boxes have positive size, no track or key-frame is answered twice.
 
-Every failure is a :class:`LabelError` whose message names the file and the field as a JSON path,
-e.g. ``labels/c1.json: $.answers[2].keyframes[0].points[3].x: not a finite number``.
-Ingest (into the answer tables) is :mod:`tasks.label_ingest`.
+So everything that could make a row fail to be written is refused here, before ingest writes
+anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
+the field as a JSON path, e.g. ``labels/c1.json: $.answers[0].track_id: unknown track 7``.
+Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`). Ingest (into
+the answer tables) is :mod:`tasks.label_ingest`.
 """
 
 from __future__ import annotations
@@ -20,36 +23,34 @@ import datetime as dt
 import functools
 import hashlib
 import json
-import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import jsonschema
 import pyarrow as pa
 
 from cadestate.lineage import digest
-from schemas.dataclass_json import from_json, to_json
-from schemas.labels import KINDS, LABEL_CLASSES, LABEL_FORMAT, TASK_CLASSES, TASK_FORMAT, Label, Task, json_schema
+from schemas.dataclass_json import to_json
+from schemas.labels import LABEL_FORMAT, Label, Task
+from tasks.label_format import (MAX_LABEL_BYTES, LabelError, check_clicks, check_size, check_time, json_path, parse_label,
+                                parse_task, read_limited)
 from warehouse import Warehouse, atomic_write_bytes, check_name
 
 TASK_DIR = "label_tasks"
 """Folder of the task files under the warehouse root."""
 
 
-class LabelError(ValueError):
-    """A task or label file that does not fit its format or the warehouse: names the file and field."""
-
-
 @dataclass(frozen=True)
 class LabelFile:
-    """A validated label file: where it came from, its bytes' SHA-256, its text and its content."""
+    """A validated label file: where it came from, its bytes' SHA-256, its text, its content, its
+    ``created_at`` in UTC (None: not given) and warnings on legal but suspicious values."""
 
     path: Path
     sha256: str
     document: str
     label: Label
+    created_at: dt.datetime | None = None
+    warnings: tuple[str, ...] = ()
 
     @property
     def kind(self) -> str:
@@ -62,120 +63,6 @@ class LabelFile:
     @property
     def task_id(self) -> str:
         return self.label.task_id
-
-
-# ------------------------------------------------------------------------------ documents
-
-def json_path(parts: Iterator[Any] | list[Any]) -> str:
-    """``$.answers[2].x`` from path elements (strings are keys, integers are indices)."""
-    out = "$"
-    for p in parts:
-        out += f"[{p}]" if isinstance(p, int) else f".{p}"
-    return out
-
-
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
-    keys = [k for k, _ in pairs]
-    dup = sorted({k for k in keys if keys.count(k) > 1})
-    if dup:
-        raise ValueError(f"duplicate key {dup[0]!r}")
-    return dict(pairs)
-
-
-def parse_json(data: bytes, name: str) -> Any:
-    """Parse bytes as UTF-8 JSON; errors name the file and line/column."""
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
-    try:
-        return json.loads(text, object_pairs_hook=_no_duplicates)
-    except json.JSONDecodeError as e:
-        raise LabelError(f"{name}: $: not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
-    except (ValueError, RecursionError) as e:
-        raise LabelError(f"{name}: $: not valid JSON: {e}") from None
-
-
-def nonfinite_path(doc: Any, path: tuple = ()) -> tuple | None:
-    """Path of the first NaN or infinite number in ``doc`` (JSON allows neither), else None."""
-    if isinstance(doc, float) and not math.isfinite(doc):
-        return path
-    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
-    for k, v in items:
-        if (found := nonfinite_path(v, (*path, k))) is not None:
-            return found
-    return None
-
-
-@functools.cache
-def _validator(kind: str, which: str) -> jsonschema.Draft202012Validator:
-    return jsonschema.Draft202012Validator(json_schema(kind, which))
-
-
-def _schema_error(e: jsonschema.ValidationError) -> str:
-    if e.validator == "additionalProperties":
-        extra = sorted(set(e.instance) - set(e.schema.get("properties", {})))
-        return f"unknown field(s) {', '.join(map(repr, extra))}"
-    if e.validator == "required":
-        return e.message.replace("is a required property", "is missing")
-    if e.validator == "const":
-        return f"must be {e.validator_value!r}, not {e.instance!r}"
-    if e.validator == "anyOf":  # a nullable field: say which types fit
-        kinds = [repr(b["type"]) if "type" in b else b.get("$ref", "?").rsplit("/", 1)[-1] for b in e.validator_value]
-        return f"{e.instance!r} is not of type {' or '.join(kinds)}"[:200]
-    message = e.message
-    return message if len(message) <= 200 else message[:197] + "..."
-
-
-def check_document(doc: Any, which: str, name: str) -> str:
-    """Check ``doc`` against the JSON Schema of its kind; returns the kind."""
-    if not isinstance(doc, dict):
-        raise LabelError(f"{name}: $: expected a JSON object, not {type(doc).__name__}")
-    try:
-        bad = nonfinite_path(doc)
-    except RecursionError:
-        raise LabelError(f"{name}: $: nested too deeply") from None
-    if bad is not None:
-        raise LabelError(f"{name}: {json_path(bad)}: not a finite number")
-    expected = LABEL_FORMAT if which == "label" else TASK_FORMAT
-    fmt = doc.get("format")
-    if fmt != expected:
-        other = {LABEL_FORMAT: " (a label file)", TASK_FORMAT: " (a task file)"}.get(fmt, "") if isinstance(fmt, str) else ""
-        raise LabelError(f"{name}: $.format: must be {expected!r}, not {repr(fmt)[:60]}{other}")
-    kind = doc.get("kind")
-    if kind not in KINDS:
-        raise LabelError(f"{name}: $.kind: must be one of {', '.join(KINDS)}, not {kind!r}")
-    errors = list(_validator(kind, which).iter_errors(doc))
-    if errors:
-        e = jsonschema.exceptions.best_match(errors)
-        more = f" (and {len(errors) - 1} more error(s))" if len(errors) > 1 else ""
-        raise LabelError(f"{name}: {json_path(e.absolute_path)}: {_schema_error(e)}{more}")
-    return kind
-
-
-def _check_time(value: str | None, field: str, name: str) -> dt.datetime | None:
-    if value is None:
-        return None
-    try:
-        t = dt.datetime.fromisoformat(value)
-    except ValueError:
-        raise LabelError(f"{name}: $.{field}: not an ISO 8601 date-time: {value!r}") from None
-    return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
-
-
-def parse_label(data: bytes, name: str) -> Label:
-    """A label document's content after the format checks (no warehouse involved)."""
-    doc = parse_json(data, name)
-    kind = check_document(doc, "label", name)
-    _check_time(doc.get("created_at"), "created_at", name)
-    return from_json(LABEL_CLASSES[kind], doc)
-
-
-def parse_task(data: bytes | str, name: str) -> Task:
-    """A task document's content after the format checks."""
-    doc = parse_json(data.encode() if isinstance(data, str) else data, name)
-    kind = check_document(doc, "task", name)
-    return from_json(TASK_CLASSES[kind], doc)
 
 
 # ------------------------------------------------------------------------------ task files
@@ -198,7 +85,7 @@ def write_task(wh: Warehouse, task: Task) -> Path:
     doc = to_json(task)
     text = json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n"
     parse_task(text, f"task {task.task_id}")
-    created_at = _check_time(task.created_at, "created_at", f"task {task.task_id}")
+    created_at = check_time(task.created_at, "created_at", f"task {task.task_id}")
     data = text.encode()
     path = wh.root / TASK_DIR / check_name(task.clip) / f"{check_name(task.task_id, 'task id')}.json"
     sha = hashlib.sha256(data).hexdigest()
@@ -316,22 +203,22 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
 
 
 def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
-                   data: bytes | None = None) -> LabelFile:
-    """Validate one label file: its format, and against the warehouse when ``wh`` (or ``facts``) is
-    given. Raises :class:`LabelError` naming the file and the field."""
+                   data: bytes | None = None, max_bytes: int = MAX_LABEL_BYTES) -> LabelFile:
+    """Validate one label file (``data``: its bytes, when read already): its format, and against
+    the warehouse when ``wh`` (or ``facts``) is given. Raises :class:`LabelError` naming the file
+    and the field."""
     path = Path(path)
     name = str(path)
     if data is None:
-        try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise LabelError(f"{name}: $: cannot read: {e.strerror or e}") from None
-    label = parse_label(data, name)
+        data = read_limited(path, max_bytes)
+    check_size(data, name, max_bytes)
+    label, created_at = parse_label(data, name)
+    warnings = check_clicks(label, name)
     if facts is None and wh is not None:
         facts = ClipFacts(wh)
     if facts is not None:
         check_label(label, facts, name)
-    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label)
+    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label, created_at, tuple(warnings))
 
 
 def label_document(kind: str, clip: str, task_id: str, answers: list[dict], **header: Any) -> dict:

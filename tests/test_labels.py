@@ -171,6 +171,16 @@ MALFORMED = [
     ("manual_track", lambda d: d["answers"][0]["boxes"][1].__setitem__("box", [0.5, 0.5, 0.9, -0.1]),
      r"\$\.answers\[0\]\.boxes\[1\]\.box\[3\]: -0.1 is less than the minimum of 0"),
     ("manual_track", lambda d: d["answers"][0].__setitem__("label", "lamp"), r"\$\.answers\[0\]\.label: class 'lamp' is not one of"),
+    # issue 13: values that crashed validation, or passed it and failed (or misled) later
+    ("cad_selection", lambda d: d.__setitem__("created_at", "0001-01-01T00:00:00+14:00"),
+     r"\$\.created_at: '0001-01-01T00:00:00\+14:00' is out of range in UTC"),
+    ("verification", lambda d: d["answers"][1].__setitem__("comment", "a\ud800b"), r"\$\.answers\[1\]\.comment: not valid Unicode"),
+    ("verification", lambda d: d.__setitem__("x\udc00", 1), r"\$\.x\\udc00: not valid Unicode"),
+    ("cad_selection", lambda d: d["answers"][0].__setitem__("track_id", 0.0), r"\$\.answers\[0\]\.track_id: 0\.0 is not of type 'integer'"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"][2]["xyz"].__setitem__(0, 1e308),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points\[2\]\.xyz\[0\]: 1e\+308 is greater than the maximum of 100"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("points", [d["answers"][0]["keyframes"][1]["points"][0]] * 4),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points\[1\]\.xyz: the same 3D point as points\[0\]"),
 ]
 
 
@@ -192,6 +202,32 @@ def test_unreadable_documents(tmp_path, text, message):
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(LabelError, match=message):
         validate_label(path)
+
+
+def test_size_limit_is_checked_before_reading(tmp_path):
+    from tasks.label_format import MAX_LABEL_BYTES
+
+    text = json.dumps(good("verification"))
+    path = put(tmp_path, "big.json", text + " " * (MAX_LABEL_BYTES - len(text) + 1))
+    with pytest.raises(LabelError, match=r"big\.json: \$: larger than the limit of 20 MB for label files"):
+        validate_label(path)
+    with pytest.raises(LabelError, match="limit of 0.0001 MB"):
+        validate_label(put(tmp_path, "small.json", text), max_bytes=100)
+
+
+def test_same_image_point_for_two_model_points_is_a_warning(lwh, tmp_path):
+    doc = _edit("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][2].update(x=0.1, y=0.2))
+    lf = validate_label(put(tmp_path, "co.json", doc), lwh)
+    assert lf.warnings == (f"{tmp_path / 'co.json'}: $.answers[0].keyframes[0].points[2]: the same image point as points[0] "
+                           "for another 3D point (two model points on one viewing ray?)",)
+    assert validate_label(put(tmp_path, "ok.json", good("correspondences")), lwh).warnings == ()
+
+
+def test_errors_stay_on_one_line(tmp_path):
+    path = put(tmp_path, "a\nb.json", _edit("verification", lambda d: d.__setitem__("kind", "x\u2028y")))
+    with pytest.raises(LabelError) as e:
+        validate_label(path)
+    assert len(str(e.value).splitlines()) == 1 and "a\\nb.json" in str(e.value)
 
 
 # ------------------------------------------------------------------------------ fuzzing
@@ -300,6 +336,47 @@ def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
     assert [(r["track_id"], r["cad_id"], r["rank"]) for r in sel] == [(0, "m0b", 2), (1, None, None)]
 
 
+LABEL_TABLES = ("label_files", "manual_track_labels", "cad_selection_labels", "correspondence_labels", "verification_labels")
+
+
+def test_one_bad_file_does_not_abort_the_batch(lwh, tmp_path):
+    """Issue 13: a created_at out of range raised OverflowError and stopped the batch; a lone
+    surrogate passed validation and failed at write time after the answers were written."""
+    d = tmp_path / "labels"
+    put(d, "a.json", _edit("cad_selection", lambda x: x.__setitem__("created_at", "0001-01-01T00:00:00+14:00")))
+    put(d, "b.json", good("verification"))
+    put(d, "c.json", _edit("manual_track", lambda x: x.__setitem__("annotator", "\ud800")))
+    report = ingest_labels(lwh, d)
+    assert report.ingested == [str(d / "b.json")] and report.clips == [CLIP]
+    assert [e.split(": ")[:2] for e in report.errors] == [[str(d / "a.json"), "$.created_at"], [str(d / "c.json"), "$.annotator"]]
+    assert {t: lwh.read(t).num_rows for t in LABEL_TABLES} == {"label_files": 1, "manual_track_labels": 0,
+                                                              "cad_selection_labels": 0, "correspondence_labels": 0,
+                                                              "verification_labels": 2}
+
+
+@pytest.mark.parametrize("failing", ["cad_selection_labels", "label_files"])
+def test_a_failed_write_stops_no_other_file(lwh, tmp_path, monkeypatch, failing):
+    d = tmp_path / "labels"
+    for name, kind in (("a", "cad_selection"), ("b", "verification")):
+        put(d, f"{name}.json", good(kind))
+    put(d, "c.json", _edit("cad_selection", lambda x: x.__setitem__("answers", x["answers"][1:])))
+    doomed = validate_label(d / "a.json").sha256
+    real = Warehouse.write
+
+    def write(self, table, part, data):
+        if table == failing and doomed in data.column("label_sha256").to_pylist():
+            raise OSError(28, "No space left on device")
+        return real(self, table, part, data)
+
+    monkeypatch.setattr(Warehouse, "write", write)
+    report = ingest_labels(lwh, d)
+    assert report.errors == [f"{d / 'a.json'}: $: not ingested, writing failed: No space left on device"]
+    assert sorted(report.ingested) == [str(d / "b.json"), str(d / "c.json")] and report.rows["label_files"] == 2
+    assert doomed not in lwh.read("label_files").column("label_sha256").to_pylist()
+    assert current_answers(lwh, "cad_selection", [CLIP]).to_pylist()[0]["track_id"] == 1  # c.json's only answer
+    assert current_answers(lwh, "cad_selection", [CLIP]).num_rows == 1 and current_answers(lwh, "verification", [CLIP]).num_rows == 2
+
+
 def test_supersession_keeps_history(lwh, tmp_path):
     ingest_labels(lwh, put(tmp_path / "a", "sel.json", good("cad_selection")))
     newer = _edit("cad_selection", lambda d: d.__setitem__("answers", [{"track_id": 0, "cad_id": "m0a"}]))  # partial: track 0 only
@@ -390,7 +467,7 @@ def test_cvat_import(lwh, tmp_path):
     assert report.ok and lwh.read("manual_track_labels").num_rows == 2
     with pytest.raises(LabelError, match="not a CVAT annotations file"):
         import_cvat(lwh, put(tmp_path, "x.xml", "<root/>"), CLIP)
-    with pytest.raises(LabelError, match=r"box\[0\]: attribute 'xtl' must be a number"):
+    with pytest.raises(LabelError, match=r"box\[0\]/@xtl: must be a number"):
         import_cvat(lwh, put(tmp_path, "y.xml", CVAT.replace('xtl="32"', 'xtl="abc"', 1)), CLIP)
 
 
@@ -437,3 +514,30 @@ def test_cli_schema_validate_ingest(lwh, tmp_path):
     result = runner.invoke(app, [*w, "labels", "import-cvat", str(xml), "--clip", CLIP, "--out", str(d), "--skip-source", "file"])
     assert result.exit_code == 0, result.output
     assert validate_label(d / "c1.annotations.cvat.json", lwh).kind == "manual_track"
+
+
+def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
+    from fuzz.harness import run_cli
+
+    d = tmp_path / "labels"
+    put(d, "a.json", _edit("cad_selection", lambda x: x.__setitem__("created_at", "0001-01-01T00:00:00+14:00")))
+    put(d, "b.json", good("verification"))
+    put(d, "c\nd.json", _edit("manual_track", lambda x: x.__setitem__("annotator", "\ud800")))
+    put(d, "e.json", _edit("correspondences", lambda x: x["answers"][0]["keyframes"][0]["points"][2].update(x=0.1, y=0.2)))
+    result = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d))
+    assert result.code == 1
+    lines = result.stderr.splitlines()
+    assert [ln.split(": ", 2)[:2] for ln in lines] == [["warning", str(d / "e.json")], ["error", str(d / "a.json")],
+                                                        ["error", f"{d}/c\\nd.json"]]
+    assert {f"{d / 'b.json'}: ingested", f"{d / 'e.json'}: ingested"} <= set(result.stdout.splitlines())
+    again = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"))
+    assert again.code == 0 and f"{d / 'b.json'}: already ingested" in again.stdout.splitlines()
+    small = run_cli("-w", str(lwh.root), "labels", "validate", "--max-mb", "0.0001", str(d / "b.json"))
+    assert small.code == 1 and small.stderr.startswith(f"error: {d / 'b.json'}: $: larger than the limit of 0.0001 MB")
+
+
+def test_cli_size_limit_default_is_the_named_constant():
+    from cadestate.cli.labels import DEFAULT_MAX_MB
+    from tasks.label_format import MAX_LABEL_BYTES
+
+    assert DEFAULT_MAX_MB * 1e6 == MAX_LABEL_BYTES

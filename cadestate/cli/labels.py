@@ -27,33 +27,60 @@ class FrameMap(str, Enum):
     video = "video"
 
 
+MaxMbOpt = Annotated[float, typer.Option("--max-mb", min=1e-6, help="Refuse label files larger than this (MB).")]
+DEFAULT_MAX_MB = 20.0
+"""``--max-mb``: tasks.label_format.MAX_LABEL_BYTES in MB (a test keeps the two equal)."""
+
+
+def _problems(errors: list[str], warnings: list[str]) -> None:
+    """Print each warning and error on one stderr line of its own (``warning:`` / ``error:``)."""
+    from tasks.label_format import one_line
+
+    for w in warnings:
+        err.print(f"[yellow]warning:[/] {escape(one_line(w))}", highlight=False, emoji=False)
+    for e in errors:
+        err.print(f"[red]error:[/] {escape(one_line(e))}", highlight=False, emoji=False)
+
+
+def _say(text: str) -> None:
+    """One stdout line (``text``: rich markup), never wrapped: paths are long, lines stay greppable."""
+    from tasks.label_format import one_line
+
+    out.print(one_line(text), soft_wrap=True, highlight=False, emoji=False)
+
+
 @labels_app.command("ingest")
 def labels_ingest(
     ctx: typer.Context,
     source: Annotated[Path, typer.Argument(help="Folder of label files (every *.json below it), or one file.")],
     resume: Annotated[bool, typer.Option(help="Rerun the flow of every clip with new labels (cached stages do no work).")] = True,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
+    max_mb: MaxMbOpt = DEFAULT_MAX_MB,
 ) -> None:
     """Validate label files, append the valid ones to the label tables (idempotent) and resume the
     clips they answer.
 
-    Invalid files are listed (file and field) and skipped; files ingested before are skipped. The
-    clips with new labels are rerun (the stages their labels made stale, e.g. cad_selection, and
-    what follows; everything upstream is cached). Exit status 1 when any file was invalid or a
-    resumed stage failed.
+    Each file is ingested on its own, all or nothing, and its outcome printed: ingested, already
+    ingested, or an `error:` line (file and field); a bad file stops no other. The clips with new
+    labels are rerun (the stages their labels made stale, e.g. cad_selection, and what follows;
+    everything upstream is cached). Exit status 1 when any file was not ingested or a resumed
+    stage failed.
     """
     from tasks.label_ingest import ingest_labels
 
     cfg = ctx.obj.config()
-    report = ingest_labels(ctx.obj.open_warehouse(), source, coplanar_tol=cfg.pose.coplanar_tol)
-    out.print(f"{len(report.ingested)} label file(s) ingested, {len(report.duplicates)} already ingested, "
-              f"{len(report.errors)} invalid; {report.coplanar_keyframes} co-planar key-frame(s)")
+    report = ingest_labels(ctx.obj.open_warehouse(), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
+    for path in report.ingested:
+        _say(f"{escape(path)}: ingested")
+    for path in report.duplicates:
+        _say(f"{escape(path)}: already ingested")
+    _say(f"{len(report.ingested)} label file(s) ingested, {len(report.duplicates)} already ingested, "
+         f"{len(report.errors)} not ingested; {report.coplanar_keyframes} co-planar key-frame(s)")
     for table, rows in sorted(report.rows.items()):
-        out.print(f"  {table}: {rows} row(s)")
+        _say(f"  {table}: {rows} row(s)")
     if report.clips:
-        out.print(f"clips with new labels: {escape(', '.join(report.clips))}")
-    for e in report.errors:
-        err.print(f"[red]error:[/] {escape(e)}", highlight=False)
+        _say(f"clips with new labels: {escape(', '.join(report.clips))}")
+    _problems(report.errors, report.warnings)
     code = 0 if report.ok else 1
     if resume and report.clips:
         from cadestate.cli.common import run_sources
@@ -70,19 +97,23 @@ def labels_validate(
     ctx: typer.Context,
     files: Annotated[list[Path], typer.Argument(help="Label files to check.")],
     offline: Annotated[bool, typer.Option(help="Check the format only, not against the warehouse.")] = False,
+    max_mb: MaxMbOpt = DEFAULT_MAX_MB,
 ) -> None:
-    """Check label files without ingesting them (format, then the warehouse: clip, task, tracks, frames)."""
+    """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
+    frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file."""
     from tasks.labels import ClipFacts, LabelError, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse())
     bad = 0
     for f in files:
         try:
-            lf = validate_label(f, facts=facts)
-            out.print(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
+            lf = validate_label(f, facts=facts, max_bytes=round(max_mb * 1e6))
         except LabelError as e:
             bad += 1
-            err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
+            _problems([str(e)], [])
+            continue
+        _say(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
+        _problems([], list(lf.warnings))
     raise typer.Exit(1 if bad else 0)
 
 
@@ -119,11 +150,14 @@ def _write_import(result, out_dir: Path, stem: str) -> None:
     from tasks.label_import import write_label
 
     for d in result.dropped:
-        err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False)
-    path = write_label(result.document, out_dir, stem)
+        err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
+    try:
+        path = write_label(result.document, out_dir, stem)
+    except OSError as e:
+        raise CliError(f"{out_dir}: cannot write the label file there: {e.strerror or e}") from None
     n = len(result.document["answers"])
-    out.print(f"{escape(str(path))}: {n} manual track(s) for task {escape(result.document['task_id'])}; "
-              f"ingest with `cadestate labels ingest {escape(str(out_dir))}`")
+    _say(f"{escape(str(path))}: {n} manual track(s) for task {escape(result.document['task_id'])}; "
+         f"ingest with `cadestate labels ingest {escape(str(out_dir))}`")
 
 
 ClipOpt = Annotated[str, typer.Option("--clip", help="The clip the annotations are for.")]
