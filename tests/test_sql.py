@@ -114,6 +114,7 @@ def test_errors_are_one_short_line(w):
     line = refused(sql(w, "SELECT '" + "x" * 100_000 + "' + nope FROM clips"))
     assert len(line) < 1000
     refused(sql(w, "SELECT * FROM clips WHERE\n\n"), mentions="SQL error")
+    refused(sql(w, "SELECT '\udcff'"), mentions="UTF-8")  # an argument that is not UTF-8 (surrogate-escaped)
 
 
 def test_a_copied_warehouse_answers_from_itself(w, tmp_path):

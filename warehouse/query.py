@@ -72,6 +72,11 @@ def session(wh: Warehouse) -> Iterator[duckdb.DuckDBPyConnection]:
 
 
 def _parse(con: duckdb.DuckDBPyConnection, sql: str) -> list[duckdb.Statement]:
+    """The statements of ``sql``; a :class:`QueryError` when it does not parse."""
+    try:
+        sql.encode("utf-8")
+    except UnicodeEncodeError as e:  # bytes of an argument that were not UTF-8 (surrogate-escaped)
+        raise QueryError(f"SQL error: the statement is not UTF-8 text (character {e.start + 1})") from None
     try:
         return con.extract_statements(sql)
     except duckdb.Error as e:
