@@ -6,14 +6,17 @@ broken catalog file does not matter), then locked down before the statement runs
 
 - one statement, of a read-only kind: SELECT and its forms (WITH, FROM, VALUES, TABLE, DESCRIBE,
   SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
-  INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, CHECKPOINT, ...) is refused before anything runs;
+  INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, CHECKPOINT, ...) is refused, before the warehouse is
+  even read;
 - files: only the warehouse's ``tables/`` and ``_schemas/`` folders can be read
   (``enable_external_access = false`` with ``allowed_directories``): no other file, no network, no
   extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
 - the configuration is locked, and intermediate results that spill go to a private temporary
-  folder, removed with the session.
+  folder, removed with the session. Nothing is written to the warehouse (but, as for the catalog,
+  an empty table's schema file in ``_schemas/`` when it is missing or outdated).
 
-Results come in batches of rows (:func:`run`), so output starts at once and memory stays bounded.
+Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
+bounded.
 """
 
 from __future__ import annotations
@@ -49,58 +52,43 @@ def _error(e: duckdb.Error) -> QueryError:
     return QueryError(f"SQL error: {one_line(_LINE_CONTEXT.sub('', str(e)))}")
 
 
-@contextlib.contextmanager
-def session(wh: Warehouse) -> Iterator[duckdb.DuckDBPyConnection]:
-    """A locked-down, in-memory DuckDB connection with a view per table of ``wh``."""
-    with tempfile.TemporaryDirectory(prefix="cadestate-sql-") as spill:
-        config = {"temp_directory": spill, "autoinstall_known_extensions": False,
-                  "autoload_known_extensions": False, "allow_community_extensions": False,
-                  "allow_unsigned_extensions": False}
-        con = duckdb.connect(":memory:", config=config)
-        try:
-            try:
-                create_views(con, wh)
-            except (OSError, duckdb.Error) as e:
-                raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
-            readable = [f"{(wh.root / sub).as_posix()}/" for sub in ("tables", "_schemas")]
-            con.execute("SET allowed_directories = ?", [readable])
-            con.execute("SET enable_external_access = false")
-            con.execute("SET lock_configuration = true")
-            yield con
-        finally:
-            con.close()
-
-
-def _parse(con: duckdb.DuckDBPyConnection, sql: str) -> list[duckdb.Statement]:
+def _parse(parser: duckdb.DuckDBPyConnection, sql: str) -> list[duckdb.Statement]:
     """The statements of ``sql``; a :class:`QueryError` when it does not parse."""
     try:
         sql.encode("utf-8")
     except UnicodeEncodeError as e:  # bytes of an argument that were not UTF-8 (surrogate-escaped)
         raise QueryError(f"SQL error: the statement is not UTF-8 text (character {e.start + 1})") from None
     try:
-        return con.extract_statements(sql)
+        return parser.extract_statements(sql)
     except duckdb.Error as e:
         raise _error(e) from None
-    except ValueError:  # a statement kind the Python client does not know
-        raise QueryError(f"SQL error: not a read-only statement: `cadestate sql` is read-only ({READ_ONLY_KINDS})") from None
 
 
-def read_only_statement(con: duckdb.DuckDBPyConnection, sql: str) -> duckdb.Statement:
-    """The one statement of ``sql`` if it only reads (see the module); a :class:`QueryError` otherwise."""
-    statements = _parse(con, sql)
+def _kind(statement: duckdb.Statement) -> str:
+    """The statement's kind (SELECT, COPY, ...); OTHER for one the Python client has no name for."""
+    try:
+        return statement.type.name
+    except ValueError:  # UPDATE EXTENSIONS, say
+        return "OTHER"
+
+
+def read_only_statement(parser: duckdb.DuckDBPyConnection, sql: str) -> duckdb.Statement:
+    """The one statement of ``sql`` if it only reads (see the module); a :class:`QueryError`
+    otherwise. Only parsed (by ``parser``): nothing runs."""
+    statements = _parse(parser, sql)
     if len(statements) != 1:
         raise QueryError(f"SQL error: {'no statement' if not statements else f'{len(statements)} statements'}: "
                          "give one statement")
     statement = checked = statements[0]
-    if statement.type == duckdb.StatementType.EXPLAIN and _EXPLAIN.match(statement.query):
-        inner = _parse(con, _EXPLAIN.sub("", statement.query, count=1))
+    if _kind(statement) == "EXPLAIN" and _EXPLAIN.match(statement.query):
+        inner = _parse(parser, _EXPLAIN.sub("", statement.query, count=1))
         checked = inner[0] if len(inner) == 1 else statement
-    kind = checked.type.name
+    kind = _kind(checked)
     if kind != "SELECT":
         word = _WORD.match(checked.query)
         said = word.group(1).upper() if word else kind
         hint = " (DESCRIBE <table> shows its columns)" if kind == "PRAGMA" else ""
-        raise QueryError(f"SQL error: {said} is not allowed{'' if said == kind else f' (a {kind} statement)'}: "
+        raise QueryError(f"SQL error: {said} is not allowed{f' (a {kind} statement)' if kind not in (said, 'OTHER') else ''}: "
                          f"`cadestate sql` is read-only ({READ_ONLY_KINDS}){hint}")
     return statement
 
@@ -113,25 +101,49 @@ class Result:
     batches: Iterator[list[tuple]]
 
 
-def run(con: duckdb.DuckDBPyConnection, sql: str, limit: int | None = None, batch_rows: int = BATCH_ROWS) -> Result:
-    """Run ``sql`` (checked by :func:`read_only_statement`) and stream its rows (at most ``limit``)."""
-    statement = read_only_statement(con, sql)
+def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
+    """Give ``con`` the views of ``wh``, then allow reading its ``tables/`` and ``_schemas/`` only
+    and lock the configuration."""
     try:
-        cursor = con.execute(statement)
-    except duckdb.Error as e:
-        raise _error(e) from None
+        create_views(con, wh)
+    except (OSError, duckdb.Error) as e:
+        raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
+    readable = [f"{(wh.root / sub).as_posix()}/" for sub in ("tables", "_schemas")]
+    con.execute("SET allowed_directories = ?", [readable])
+    con.execute("SET enable_external_access = false")
+    con.execute("SET lock_configuration = true")
 
-    def batches() -> Iterator[list[tuple]]:
-        while True:
+
+def _batches(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> Iterator[list[tuple]]:
+    while True:
+        try:
+            rows = cursor.fetchmany(batch_rows)
+        except duckdb.Error as e:
+            raise _error(e) from None
+        if not rows:
+            return
+        yield rows
+
+
+@contextlib.contextmanager
+def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int = BATCH_ROWS) -> Iterator[Result]:
+    """Run ``sql`` over ``wh`` in a locked-down session (see the module) and stream its rows (at
+    most ``limit``). The statement is checked before the warehouse is read."""
+    with tempfile.TemporaryDirectory(prefix="cadestate-sql-") as spill:
+        config = {"temp_directory": spill, "autoinstall_known_extensions": False,
+                  "autoload_known_extensions": False, "allow_community_extensions": False,
+                  "allow_unsigned_extensions": False}
+        con = duckdb.connect(":memory:", config=config)
+        try:
+            statement = read_only_statement(con, sql)
+            _lock_down(con, wh)
             try:
-                rows = cursor.fetchmany(batch_rows)
+                cursor = con.execute(statement)
             except duckdb.Error as e:
                 raise _error(e) from None
-            if not rows:
-                return
-            yield rows
-
-    return Result([d[0] for d in cursor.description], head(batches(), limit))
+            yield Result([d[0] for d in cursor.description], head(_batches(cursor, batch_rows), limit))
+        finally:
+            con.close()
 
 
 def head(batches: Iterator[list[tuple]], limit: int | None) -> Iterator[list[tuple]]:

@@ -131,10 +131,9 @@ def sql(
 
     Example:  cadestate sql "SELECT clip, count(*) FROM frames GROUP BY clip" --format csv
     """
-    from warehouse.query import run, session, split, write_csv, write_json
+    from warehouse.query import run_query, split, write_csv, write_json
 
-    with session(ctx.obj.open_warehouse()) as con:
-        result = run(con, query, limit=None if format is Format.table else limit)
+    with run_query(ctx.obj.open_warehouse(), query, limit=None if format is Format.table else limit) as result:
         if format is Format.json:
             write_json(result, sys.stdout)
         elif format is Format.csv:
