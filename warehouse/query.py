@@ -115,6 +115,7 @@ def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
 
 
 def _batches(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> Iterator[list[tuple]]:
+    """The rows of the open result of ``cursor``, ``batch_rows`` at a time; errors as one line."""
     while True:
         try:
             rows = cursor.fetchmany(batch_rows)
