@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import multiprocessing as mp
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,8 +17,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from schemas import TableSpec
-from warehouse import Warehouse, WarehouseError, check_name, connect
-from warehouse.catalog import CATALOG_FILE
+from warehouse import Warehouse, WarehouseError, check_name, connect, refresh_catalog
+from warehouse.catalog import CATALOG_FILE, ROOT_MACRO, view_sql
 
 
 def run_rows(clip: str, n: int, stage: str = "ingest") -> pa.Table:
@@ -177,3 +178,49 @@ def test_catalog_opens_in_a_plain_duckdb_client(wh):
     )
     out = subprocess.run([sys.executable, "-c", code, str(wh.root / CATALOG_FILE)], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "3"
+
+
+def test_catalog_leaves_current_schema_files_alone(wh):
+    refresh_catalog(wh)
+    schemas = {p: p.stat().st_mtime_ns for p in (wh.root / "_schemas").iterdir()}
+    assert len(schemas) == len(wh.tables)
+    time.sleep(0.01)
+    refresh_catalog(wh)
+    assert {p: p.stat().st_mtime_ns for p in (wh.root / "_schemas").iterdir()} == schemas
+    (wh.root / "_schemas" / "runs.parquet").write_bytes(b"broken")  # an unreadable one is rewritten
+    refresh_catalog(wh)
+    assert pq.read_schema(wh.root / "_schemas" / "runs.parquet").names == wh.spec("runs").schema.names
+
+
+def test_a_copied_warehouse_gets_its_own_catalog(wh, tmp_path):
+    wh.write("runs", "a", run_rows("a", 3))
+    copy = Warehouse(tmp_path / "copy")
+    shutil.copytree(wh.root, copy.root)
+    wh.write("runs", "a", run_rows("a", 5))
+    con = connect(copy)
+    assert con.execute(f"SELECT count(*), {ROOT_MACRO}() FROM runs").fetchone() == (3, str(copy.root))
+    con.close()
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "old"])
+def test_a_broken_or_old_catalog_is_rebuilt(wh, damage):
+    wh.write("runs", "a", run_rows("a", 3))
+    catalog = wh.root / CATALOG_FILE
+    if damage == "old":  # a catalog from before warehouse_root(): its views, nothing else
+        catalog.unlink()
+        con = duckdb.connect(str(catalog))
+        con.execute(view_sql(wh, "runs"))
+        con.close()
+    else:
+        catalog.write_bytes(b"not a database" if damage == "garbage" else catalog.read_bytes()[:5000])
+    con = connect(wh)
+    assert con.execute(f"SELECT count(*), {ROOT_MACRO}() FROM runs").fetchone() == (3, str(wh.root))
+    con.close()
+
+
+def test_a_catalog_that_cannot_be_rebuilt_is_named_in_one_line(wh):
+    wh.root.mkdir(parents=True)
+    (wh.root / CATALOG_FILE).mkdir()
+    with pytest.raises(WarehouseError, match=f"cannot rebuild the catalog {wh.root / CATALOG_FILE}: ") as e:
+        connect(wh)
+    assert "\n" not in str(e.value)

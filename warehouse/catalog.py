@@ -4,38 +4,58 @@ Any DuckDB client can open it (``duckdb data/warehouse/catalog.duckdb``) and que
 A view reads its table's Parquet files through a glob, so new partitions show up without a
 refresh; the catalog is rebuilt (atomically) after each write so new tables and new columns do
 too. A table with no data yet is a view over an empty Parquet file holding just its schema
-(``_schemas/<table>.parquet``), so every table is always queryable. Paths in the views are
-absolute: after moving a warehouse, run ``cadestate catalog`` to rebuild them.
+(``_schemas/<table>.parquet``), so every table is always queryable.
+
+Paths in the views are absolute, so the catalog also records the root it was built for (the macro
+``warehouse_root()``). :func:`connect` rebuilds a catalog built for another root (a moved or
+copied warehouse), one that is not a readable DuckDB database, or one from before that macro;
+``cadestate catalog`` rebuilds it by hand. The catalog is derived data: rebuilding loses nothing.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import uuid
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import duckdb
+import pyarrow as pa
 import pyarrow.parquet as pq
 
-if TYPE_CHECKING:
-    from warehouse.store import Warehouse
+from warehouse.store import Warehouse, WarehouseError
 
 CATALOG_FILE = "catalog.duckdb"
+ROOT_MACRO = "warehouse_root"
+SCHEMA_DIGEST = b"cadestate.schema_sha256"
+
+
+class CatalogError(WarehouseError):
+    """The catalog file can be neither read nor rebuilt."""
 
 
 def _sql_str(value: str) -> str:
     return "'" + value.replace("'", "''") + "'"
 
 
+def _schema_digest(path: Path) -> bytes | None:
+    """The schema digest stored in the schema file ``path`` (None: missing or unreadable)."""
+    try:
+        return (pq.read_schema(path).metadata or {}).get(SCHEMA_DIGEST)
+    except (OSError, pa.ArrowException):
+        return None
+
+
 def _schema_file(wh: Warehouse, table: str) -> Path:
-    """An empty Parquet file with the table's schema (rewritten when the schema changes)."""
+    """An empty Parquet file with the table's schema, rewritten only when the schema changes (a
+    Parquet round trip renames list items, so the file records the digest of the schema it holds)."""
     path = wh.root / "_schemas" / f"{table}.parquet"
     schema = wh.spec(table).schema
-    if not path.exists() or not pq.read_schema(path).equals(schema, check_metadata=True):
+    digest = hashlib.sha256(schema.serialize()).hexdigest().encode()
+    if _schema_digest(path) != digest:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-        pq.write_table(schema.empty_table(), tmp)
+        pq.write_table(schema.with_metadata({**(schema.metadata or {}), SCHEMA_DIGEST: digest}).empty_table(), tmp)
         os.replace(tmp, path)
     return path
 
@@ -49,6 +69,15 @@ def view_sql(wh: Warehouse, table: str) -> str:
     return f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet({_sql_str(source)}, union_by_name = true)"
 
 
+def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
+    """Create in ``con`` a view per table of ``wh`` (commented with its description) and the macro
+    ``warehouse_root()`` naming the root the views read."""
+    for name, spec in sorted(wh.tables.items()):
+        con.execute(view_sql(wh, name))
+        con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(spec.description)}")
+    con.execute(f"CREATE OR REPLACE MACRO {ROOT_MACRO}() AS {_sql_str(str(wh.root))}")
+
+
 def refresh_catalog(wh: Warehouse) -> Path:
     """(Re)build the catalog file with a view per table; atomic (built aside, then renamed)."""
     wh.root.mkdir(parents=True, exist_ok=True)
@@ -57,9 +86,7 @@ def refresh_catalog(wh: Warehouse) -> Path:
     try:
         con = duckdb.connect(str(tmp))
         try:
-            for name, spec in sorted(wh.tables.items()):
-                con.execute(view_sql(wh, name))
-                con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(spec.description)}")
+            create_views(con, wh)
             con.execute("CHECKPOINT")
         finally:
             con.close()
@@ -70,9 +97,46 @@ def refresh_catalog(wh: Warehouse) -> Path:
     return final
 
 
+def rebuild_catalog(wh: Warehouse) -> Path:
+    """:func:`refresh_catalog`, with a catalog that cannot be written reported as a
+    :class:`CatalogError` naming it."""
+    try:
+        return refresh_catalog(wh)
+    except (OSError, duckdb.Error) as e:
+        raise CatalogError(f"cannot rebuild the catalog {wh.root / CATALOG_FILE}: {one_line(str(e))}") from None
+
+
+def built_for(path: Path) -> str | None:
+    """The warehouse root the catalog file ``path`` was built for; None when it is missing, not a
+    readable DuckDB database, or older than the ``warehouse_root()`` macro."""
+    if not path.is_file():
+        return None
+    try:
+        con = duckdb.connect(str(path), read_only=True)
+    except duckdb.Error:
+        return None
+    try:
+        return con.execute(f"SELECT {ROOT_MACRO}()").fetchone()[0]
+    except duckdb.Error:
+        return None
+    finally:
+        con.close()
+
+
 def connect(wh: Warehouse, read_only: bool = True) -> duckdb.DuckDBPyConnection:
-    """Open the catalog (built first if missing). Read-only by default."""
+    """Open the catalog, (re)built first when it is missing, unreadable or built for another root
+    (a moved or copied warehouse). Read-only by default."""
     path = wh.root / CATALOG_FILE
-    if not path.exists():
-        refresh_catalog(wh)
-    return duckdb.connect(str(path), read_only=read_only)
+    if built_for(path) != str(wh.root):
+        rebuild_catalog(wh)
+    try:
+        return duckdb.connect(str(path), read_only=read_only)
+    except duckdb.Error as e:
+        raise CatalogError(f"cannot open the catalog {path}: {one_line(str(e))}") from None
+
+
+def one_line(message: str, limit: int = 500) -> str:
+    """``message`` as one line (whitespace runs, line breaks included, become one space), cut to
+    about ``limit`` characters."""
+    text = " ".join(message.split())
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text) - limit} more characters)"

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import json
 import sys
 from enum import Enum
 from pathlib import Path
@@ -135,6 +133,10 @@ def status(
             out.print(f"[yellow]note:[/] {escape(note)}")
 
 
+TABLE_ROWS = 1000
+"""Rows that `cadestate sql` shows in the table format unless --limit says otherwise."""
+
+
 class Format(str, Enum):
     table = "table"
     csv = "csv"
@@ -144,37 +146,35 @@ class Format(str, Enum):
 @app.command()
 def sql(
     ctx: typer.Context,
-    query: Annotated[str, typer.Argument(help="SQL over the warehouse views (see `cadestate tables`).")],
-    format: Annotated[Format, typer.Option("--format", "-f", help="Output format.")] = Format.table,
+    query: Annotated[str, typer.Argument(help="One read-only SQL statement over the warehouse views (see `cadestate tables`).")],
+    format: Annotated[Format, typer.Option("--format", "-f", help="Output format: table, or csv / json (streamed).")] = Format.table,
+    limit: Annotated[Optional[int], typer.Option(min=0, help=f"Print at most this many rows (default: {TABLE_ROWS} for table, all for csv and json).")] = None,
 ) -> None:
-    """Run a SQL query on the catalog (read-only) and print the result.
+    """Run one read-only SQL statement over the warehouse's tables and print the result.
+
+    Read-only: one SELECT (or WITH, FROM, VALUES, TABLE, DESCRIBE, SHOW, SUMMARIZE), or EXPLAIN of
+    one. Any other statement (COPY, EXPORT, ATTACH, INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, ...)
+    is refused, and only the warehouse's table files can be read: no other file, no network, no
+    extension. The table format shows the first rows (--limit) and counts the others; csv and json
+    stream every row as it comes (json: an array, one row a line).
 
     Example:  cadestate sql "SELECT clip, count(*) FROM frames GROUP BY clip" --format csv
     """
-    import duckdb
+    from warehouse.query import run_query, split, write_csv, write_json
 
-    from warehouse import connect
-
-    con = connect(ctx.obj.open_warehouse(), read_only=True)
-    try:
-        cur = con.execute(query)
-        names = [d[0] for d in cur.description] if cur.description else []
-        rows = cur.fetchall() if names else []
-    except duckdb.Error as e:
-        raise CliError(f"SQL error: {e}") from None
-    finally:
-        con.close()
-    if format is Format.json:
-        print(json.dumps([dict(zip(names, r)) for r in rows], default=str, indent=1))
-    elif format is Format.csv:
-        writer = csv.writer(sys.stdout)
-        writer.writerow(names)
-        writer.writerows(rows)
-    else:
-        table = Table(*names)
-        for r in rows:
-            table.add_row(*("NULL" if v is None else escape(str(v)) for v in r))
-        out.print(table)
+    with run_query(ctx.obj.open_warehouse(), query, limit=None if format is Format.table else limit) as result:
+        if format is Format.json:
+            write_json(result, sys.stdout)
+        elif format is Format.csv:
+            write_csv(result, sys.stdout)
+        else:
+            rows, rest = split(result.batches, TABLE_ROWS if limit is None else limit)
+            table = Table(*map(escape, result.names))
+            for r in rows:
+                table.add_row(*("NULL" if v is None else escape(str(v)) for v in r))
+            out.print(table)
+            if rest:
+                out.print(f"{rest:,} more rows not shown (--limit N, or --format csv or json for every row)")
 
 
 @app.command()
@@ -204,10 +204,14 @@ def tables(
 
 @app.command()
 def catalog(ctx: typer.Context) -> None:
-    """Rebuild <warehouse>/catalog.duckdb (after moving a warehouse, say)."""
-    from warehouse import refresh_catalog
+    """Rebuild <warehouse>/catalog.duckdb, the views for DuckDB clients (derived data: nothing is lost).
 
-    out.print(f"catalog: {refresh_catalog(ctx.obj.open_warehouse())}")
+    Opening it through cadestate rebuilds it anyway when it is broken or was built for another
+    folder (a moved or copied warehouse).
+    """
+    from warehouse.catalog import rebuild_catalog
+
+    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse())}")
 
 
 @config_app.command("show")

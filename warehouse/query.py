@@ -1,0 +1,203 @@
+"""Read-only SQL over a warehouse (``cadestate sql``): its tables and nothing else.
+
+A query runs in a session of its own: an in-memory DuckDB database holding the catalog's views,
+built from the warehouse it is given (so a moved or copied warehouse answers from itself, and a
+broken catalog file does not matter), then locked down before the statement runs:
+
+- one statement, of a read-only kind: SELECT and its forms (WITH, FROM, VALUES, TABLE, DESCRIBE,
+  SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
+  INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, CHECKPOINT, ...) is refused, before the warehouse is
+  even read;
+- files: only the warehouse's ``tables/`` and ``_schemas/`` folders can be read
+  (``enable_external_access = false`` with ``allowed_directories``): no other file, no network, no
+  extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
+- the configuration is locked, and intermediate results that spill go to a private temporary
+  folder, removed with the session. Nothing is written to the warehouse (but, as for the catalog,
+  an empty table's schema file in ``_schemas/`` when it is missing or outdated).
+
+Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
+bounded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import math
+import re
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+import duckdb
+
+from warehouse.catalog import create_views, one_line
+from warehouse.store import Warehouse, WarehouseError
+
+BATCH_ROWS = 10_000
+READ_ONLY_KINDS = "SELECT (or WITH, FROM, VALUES, TABLE, DESCRIBE, SHOW, SUMMARIZE) or EXPLAIN of one"
+_EXPLAIN = re.compile(r"^\s*EXPLAIN\s+(ANALYZE\s+)?", re.IGNORECASE)
+_WORD = re.compile(r"[\s(]*([A-Za-z_]+)")
+_LINE_CONTEXT = re.compile(r"\n\s*LINE \d+:.*", re.DOTALL)
+
+
+class QueryError(WarehouseError):
+    """A statement refused or failed (one line)."""
+
+
+def _error(e: duckdb.Error) -> QueryError:
+    """A DuckDB error as one line, without the echo of the statement (``LINE 1: ...``)."""
+    return QueryError(f"SQL error: {one_line(_LINE_CONTEXT.sub('', str(e)))}")
+
+
+def _parse(parser: duckdb.DuckDBPyConnection, sql: str) -> list[duckdb.Statement]:
+    """The statements of ``sql``; a :class:`QueryError` when it does not parse."""
+    try:
+        sql.encode("utf-8")
+    except UnicodeEncodeError as e:  # bytes of an argument that were not UTF-8 (surrogate-escaped)
+        raise QueryError(f"SQL error: the statement is not UTF-8 text (character {e.start + 1})") from None
+    try:
+        return parser.extract_statements(sql)
+    except duckdb.Error as e:
+        raise _error(e) from None
+
+
+def _kind(statement: duckdb.Statement) -> str:
+    """The statement's kind (SELECT, COPY, ...); OTHER for one the Python client has no name for."""
+    try:
+        return statement.type.name
+    except ValueError:  # UPDATE EXTENSIONS, say
+        return "OTHER"
+
+
+def read_only_statement(parser: duckdb.DuckDBPyConnection, sql: str) -> duckdb.Statement:
+    """The one statement of ``sql`` if it only reads (see the module); a :class:`QueryError`
+    otherwise. Only parsed (by ``parser``): nothing runs."""
+    statements = _parse(parser, sql)
+    if len(statements) != 1:
+        raise QueryError(f"SQL error: {'no statement' if not statements else f'{len(statements)} statements'}: "
+                         "give one statement")
+    statement = checked = statements[0]
+    if _kind(statement) == "EXPLAIN" and _EXPLAIN.match(statement.query):
+        inner = _parse(parser, _EXPLAIN.sub("", statement.query, count=1))
+        checked = inner[0] if len(inner) == 1 else statement
+    kind = _kind(checked)
+    if kind != "SELECT":
+        word = _WORD.match(checked.query)
+        said = word.group(1).upper() if word else kind
+        hint = " (DESCRIBE <table> shows its columns)" if kind == "PRAGMA" else ""
+        raise QueryError(f"SQL error: {said} is not allowed{f' (a {kind} statement)' if kind not in (said, 'OTHER') else ''}: "
+                         f"`cadestate sql` is read-only ({READ_ONLY_KINDS}){hint}")
+    return statement
+
+
+@dataclass
+class Result:
+    """Column names and the rows, in batches (a batch is a list of tuples)."""
+
+    names: list[str]
+    batches: Iterator[list[tuple]]
+
+
+def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
+    """Give ``con`` the views of ``wh``, then allow reading its ``tables/`` and ``_schemas/`` only
+    and lock the configuration."""
+    try:
+        create_views(con, wh)
+    except (OSError, duckdb.Error) as e:
+        raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
+    readable = [f"{(wh.root / sub).as_posix()}/" for sub in ("tables", "_schemas")]
+    con.execute("SET allowed_directories = ?", [readable])
+    con.execute("SET enable_external_access = false")
+    con.execute("SET lock_configuration = true")
+
+
+def _batches(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> Iterator[list[tuple]]:
+    """The rows of the open result of ``cursor``, ``batch_rows`` at a time; errors as one line."""
+    while True:
+        try:
+            rows = cursor.fetchmany(batch_rows)
+        except duckdb.Error as e:
+            raise _error(e) from None
+        if not rows:
+            return
+        yield rows
+
+
+@contextlib.contextmanager
+def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int = BATCH_ROWS) -> Iterator[Result]:
+    """Run ``sql`` over ``wh`` in a locked-down session (see the module) and stream its rows (at
+    most ``limit``). The statement is checked before the warehouse is read."""
+    with tempfile.TemporaryDirectory(prefix="cadestate-sql-") as spill:
+        config = {"temp_directory": spill, "autoinstall_known_extensions": False,
+                  "autoload_known_extensions": False, "allow_community_extensions": False,
+                  "allow_unsigned_extensions": False}
+        con = duckdb.connect(":memory:", config=config)
+        try:
+            statement = read_only_statement(con, sql)
+            _lock_down(con, wh)
+            try:
+                cursor = con.execute(statement)
+            except duckdb.Error as e:
+                raise _error(e) from None
+            yield Result([d[0] for d in cursor.description], head(_batches(cursor, batch_rows), limit))
+        finally:
+            con.close()
+
+
+def head(batches: Iterator[list[tuple]], limit: int | None) -> Iterator[list[tuple]]:
+    """The batches cut after ``limit`` rows in all (all of them when None)."""
+    if limit is None:
+        yield from batches
+        return
+    for rows in batches:
+        if limit <= 0:
+            return
+        yield rows[:limit]
+        limit -= len(rows)
+
+
+def split(batches: Iterator[list[tuple]], limit: int) -> tuple[list[tuple], int]:
+    """The first ``limit`` rows, and how many rows follow them (counted, not kept)."""
+    first: list[tuple] = []
+    rest = 0
+    for rows in batches:
+        take = rows[: max(0, limit - len(first))]
+        first += take
+        rest += len(rows) - len(take)
+    return first, rest
+
+
+def json_value(value: Any) -> Any:
+    """``value`` as JSON can hold it: non-finite floats become null, map keys strings, and what
+    JSON has no type for (dates, decimals, UUIDs, bytes) its text."""
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_value(v) for v in value]
+    return str(value)
+
+
+def write_json(result: Result, out: TextIO) -> None:
+    """A JSON array of one object per row, one row a line, written as the rows come."""
+    out.write("[")
+    sep = "\n"
+    for rows in result.batches:
+        for row in rows:
+            out.write(sep + json.dumps({n: json_value(v) for n, v in zip(result.names, row)}, allow_nan=False))
+            sep = ",\n"
+    out.write("\n]\n" if sep != "\n" else "]\n")
+
+
+def write_csv(result: Result, out: TextIO) -> None:
+    """CSV with a header line, written as the rows come."""
+    writer = csv.writer(out)
+    writer.writerow(result.names)
+    for rows in result.batches:
+        writer.writerows(rows)
