@@ -45,13 +45,10 @@ class DatasetTables:
 
 def select_clips(wh: Warehouse, where: str = "true") -> list[str]:
     """Clip names of the ``clips`` table matching the SQL condition ``where`` (sorted)."""
-    from warehouse import connect
+    from warehouse.query import run_query
 
-    con = connect(wh)
-    try:
-        return [r[0] for r in con.execute(f"SELECT clip FROM clips WHERE ({where}) ORDER BY clip").fetchall()]
-    finally:
-        con.close()
+    with run_query(wh, f"SELECT clip FROM clips WHERE ({where}) ORDER BY clip") as result:  # read-only: the user's SQL
+        return [row[0] for batch in result.batches for row in batch]
 
 
 def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:

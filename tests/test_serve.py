@@ -1,5 +1,6 @@
 """`cadestate serve`: deployments on a real Prefect server build a dataset from an inbox on a schedule;
-a clip waiting for people is a suspended flow run, resumed through the API when labels answer it."""
+a clip waiting for people is a suspended flow run, resumed through the API when `labels ingest`
+answers it."""
 
 from __future__ import annotations
 
@@ -120,14 +121,18 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         (labels / "small_0.json").write_text(json.dumps({
             "format": "cadestate-label/1", "kind": "manual_track", "clip": "small_0", "task_id": task.stem,
             "annotator": "test", "created_at": "2026-11-23T00:00:00Z", "answers": []}))
-        api.run("ingest_labels")
+        answered = cli(*common, "labels", "ingest", str(labels), cwd=tmp_path)  # through the API, not a local run
+        assert answered.returncode == 0 and "resumed the suspended run of small_0" in answered.stdout, answered.stderr
+        assert "Prefect's local API starts first" not in answered.stderr
         done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/small_0")) and
                         r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
         assert done["id"] == run["id"] and done["state"]["type"] == "COMPLETED"
         assert wh.read("manual_track_labels", partitions=["small_0"]).num_rows == 0  # "nothing missing" answers it
         assert {r["stage"]: r["status"] for r in wh.read("runs", partitions=["small_0"]).to_pylist()}["manual_tracks"] == "completed"
         api.run("build_dataset")  # a clip done costs nothing: no new run for it
-        time.sleep(20)
+        api.run("ingest_labels")  # its labels were ingested before: nothing to resume
+        wait_for("the labels inbox", lambda: (r := api.flow_run("ingest_labels/inbox")) and
+                 r["state"]["type"] == "COMPLETED" and r or None)
         assert api.flow_run("annotate_clip/small_0")["id"] == run["id"]
     finally:
         os.killpg(serving.pid, signal.SIGTERM)

@@ -57,16 +57,15 @@ def stats(
     """The dataset's figures (the paper's Table 2 and section 4: scenes, posed objects, classes, objects
     per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
     and its cost (compute seconds per stage, human items answered)."""
-    import duckdb
-
     from cadestate.cli.common import CliError
     from tasks.stats import dataset_tables, select_clips, statistics, statistics_lines
+    from warehouse.query import QueryError
 
     wh = ctx.obj.open_warehouse()
     try:
         clips = select_clips(wh, where)
-    except duckdb.Error as e:
-        raise CliError(f"--where {where!r}: {str(e).splitlines()[0]}") from None
+    except QueryError as e:
+        raise CliError(f"--where {where!r}: {e}") from None
     tables = dataset_tables(wh, clips)
     figures = statistics(tables)
     if as_json:

@@ -87,9 +87,27 @@ def labels_ingest(
         from tasks.ingest import registered_source
 
         wh = ctx.obj.open_warehouse()
-        sources = [registered_source(wh, c) for c in report.clips]
-        code = max(code, run_sources(ctx.obj, sources, progress, exit=False))
+        clips = [c for c in report.clips if c not in resume_served(ctx, wh.root, report.clips)]
+        if clips:
+            code = max(code, run_sources(ctx.obj, [registered_source(wh, c) for c in clips], progress, exit=False))
     raise typer.Exit(code)
+
+
+def resume_served(ctx: typer.Context, root: Path, clips: list[str]) -> list[str]:
+    """Resume, through the Prefect server's API, the suspended runs of ``clips`` (clips run by
+    `cadestate serve`); returns the clips resumed. Without a server up, none is."""
+    from flows.runtime import prepare_prefect_environment
+    from flows.server import running_server
+
+    if running_server(root) is None:
+        return []
+    prepare_prefect_environment(root, ctx.obj.verbose)
+    from flows.deployments import resume_clips
+
+    resumed = resume_clips(clips)
+    for clip in resumed:
+        out.print(f"resumed the suspended run of {escape(clip)} on the Prefect server")
+    return resumed
 
 
 @labels_app.command("validate")

@@ -11,7 +11,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from cadestate.cli.common import CliError, State, run_sources, app, config_app, demo_app, err, out
+from cadestate.cli.common import State, run_sources, app, config_app, demo_app, err, out
 from cadestate.config import describe_defaults, load_config, to_toml
 
 
