@@ -89,6 +89,8 @@ class ScheduleConfig:
     labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).")
     stable_s: float = _opt(10.0, "A clip's files are taken once their sizes have not changed for this long "
                                  "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
+    report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).")
+    report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).")
     suspend_timeout_s: int = _opt(7 * 86400, "A served clip waiting for people is suspended this long at most before it fails.",
                                   lo=60, hi=365 * 86400)
 

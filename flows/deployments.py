@@ -10,6 +10,8 @@
   ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
 - ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
   ``[schedule] labels_inbox`` and resumes the clips they answer.
+- ``dataset_report`` (cron ``[schedule] report_cron``): the dataset's statistics (``cadestate
+  stats``) as ``stats.json`` and an HTML report in ``[schedule] report``.
 
 Parameters are plain strings (the warehouse root and the config file), so the Prefect UI can start
 a run by hand. Served runs keep their results under the warehouse, as every run does.
@@ -183,8 +185,27 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     return report.clips
 
 
+@flow(name="dataset_report", flow_run_name="dataset_report", log_prints=True)
+def dataset_report(warehouse: str, config_path: str = "") -> str:
+    """The dataset's statistics (`cadestate stats`) as ``stats.json`` and an HTML report in
+    ``[schedule] report``; returns the report's path."""
+    import json
+
+    from tasks.stats import dataset_tables, select_clips, statistics
+    from tasks.stats_report import write_report
+    from warehouse.store import atomic_write_bytes
+
+    cfg = served_config(warehouse, config_path)
+    wh = Warehouse(warehouse)
+    tables = dataset_tables(wh, select_clips(wh))
+    figures = statistics(tables)
+    out = Path(cfg.schedule.report)
+    atomic_write_bytes(out / "stats.json", json.dumps(figures, indent=1, default=str).encode())
+    return str(write_report(wh, tables, figures, out))
+
+
 def deployments(config: Config, config_path: str) -> list:
-    """The three deployments for this warehouse and config, with their schedules. Served runs use
+    """The four deployments for this warehouse and config, with their schedules. Served runs use
     the local thread runner (the serving process imports the flows by module path)."""
     root = str(Path(config.warehouse.root).expanduser().resolve())
     params = {"warehouse": root, "config_path": str(Path(config_path).resolve()) if config_path else ""}
@@ -199,4 +220,7 @@ def deployments(config: Config, config_path: str) -> list:
         ingest_labels_inbox.to_deployment(
             name="ingest_labels", cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Ingest the label files of {config.schedule.labels_inbox} and resume their clips."),
+        dataset_report.to_deployment(
+            name="dataset_report", cron=config.schedule.report_cron, parameters=params, entrypoint_type=module,
+            tags=["cadestate"], description=f"Write the dataset's statistics and HTML report to {config.schedule.report}."),
     ]

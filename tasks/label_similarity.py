@@ -81,3 +81,8 @@ def label_similarity(wh: Warehouse, cfg: LabelSimilarityConfig, detect_cfg: Dete
     }, schema=wh.spec("label_similarity").schema)
     written = wh.write("label_similarity", library, table)
     return StageOutput(written, table_digest(table), f"{len(labels)} detector labels x {len(classes)} classes")
+
+
+def similarity_labels(wh: Warehouse) -> tuple[str, ...]:
+    """The detector labels the CAD libraries' ``label_similarity`` scores (sorted; empty before any library)."""
+    return tuple(sorted(set(wh.read("label_similarity", columns=["detector_label"]).column("detector_label").to_pylist())))

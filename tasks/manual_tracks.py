@@ -40,6 +40,7 @@ from tasks.embed import embed_frame_boxes, vectors_array
 from tasks.human_tasks import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
 from tasks.ingest import clip_inputs, clip_split
 from tasks.label_ingest import answered_tasks, current_answers
+from tasks.label_similarity import similarity_labels
 from tasks.labels import new_task_id, utc_now
 from tasks.models.embedder import load_embedder
 from tasks.stage import StageOutput
@@ -58,11 +59,6 @@ def regular_keyframes(timestamps: list[int], k: int) -> list[int]:
     t = np.asarray(timestamps, np.float64)
     pick = sorted({int(np.argmin(np.abs(t - target))) for target in np.linspace(t[0], t[-1], k)})
     return pick if len(pick) == k else evenly_spaced(n, k)
-
-
-def similarity_labels(wh: Warehouse) -> tuple[str, ...]:
-    """The detector labels the CAD libraries' ``label_similarity`` scores (sorted; empty before any library)."""
-    return tuple(sorted(set(wh.read("label_similarity", columns=["detector_label"]).column("detector_label").to_pylist())))
 
 
 def task_classes(wh: Warehouse, detector_labels: tuple[str, ...]) -> tuple[str, ...]:

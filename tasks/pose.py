@@ -1,7 +1,7 @@
 """Stage ``pose``: a 9-DoF pose per annotated track from its 3D<->2D correspondences (section 3.4).
 
 Reads: the clip's ``correspondences`` partition (normalised clicks, CAD-frame points, mirror
-flag) of the tracks whose chosen model they use (:func:`answered_correspondences`), its
+flag) of the tracks whose chosen model they use (:func:`tasks.pose_inputs.answered_correspondences`), its
 ``frames`` (the key-frames' cameras: K in pixels, world->camera R, t) and ``cad_models`` (class,
 symmetry and bounding box of each model). Writes: the clip's ``poses`` partition, one
 row per track, with a status (only ``ok`` poses are fit for use; see :mod:`tasks.pose_checks`).
@@ -19,7 +19,8 @@ import numpy as np
 import pyarrow as pa
 
 from cadestate.config import PoseConfig, section_hash
-from cadestate.lineage import digest, table_digest
+from cadestate.lineage import table_digest
+from tasks.pose_inputs import MODEL_FACTS, answered_correspondences
 from tasks.pose_support import solve_with_support
 from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions
 from tasks.stage import StageOutput
@@ -31,31 +32,6 @@ SOLVER_FIELDS = {f.name for f in dataclasses.fields(SolverOptions)}
 def solver_options(cfg: PoseConfig) -> SolverOptions:
     """The solver knobs of a ``[pose]`` section."""
     return SolverOptions(**{k: v for k, v in dataclasses.asdict(cfg).items() if k in SOLVER_FIELDS})
-
-
-def input_digests(wh: Warehouse, clip: str) -> list[str]:
-    """The stage's inputs besides ``frames``, from one read: the digest of the clip's
-    :func:`answered_correspondences` (new clicks, or a changed choice of model, re-solve the clip)
-    and :func:`cad_models_digest` of the models they use."""
-    corr = answered_correspondences(wh, clip)
-    return [table_digest(corr), cad_models_digest(wh, corr)]
-
-
-MODEL_FACTS = ("cad_id", "class", "symmetry", "extent")
-"""The ``cad_models`` columns the stage reads."""
-
-
-def cad_models_digest(wh: Warehouse, corr: pa.Table) -> str:
-    """Digest of the ``cad_models`` facts (:data:`MODEL_FACTS`) of the models that the
-    correspondences ``corr`` reference (a re-ingested library that changes a model's class,
-    symmetry or bounding box re-solves the clips that use it, and only those). A referenced model
-    missing from ``cad_models`` leaves a row with nulls (it turns into ``unknown_cad``)."""
-    needed = sorted(set(corr.column("cad_id").to_pylist()))
-    if not needed:
-        return digest("no models")
-    facts = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist() if r["cad_id"] in needed}
-    rows = [facts.get(c, {"cad_id": c, "class": None, "symmetry": None, "extent": None}) for c in needed]
-    return digest(*(f"{r['cad_id']}\t{r['class']}\t{r['symmetry']}\t{r['extent']}" for r in rows))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,22 +143,6 @@ def solve_tracks(tracks: list[TrackInput], opts: SolverOptions, clips: list[str]
     todo = [(t.problem, c) for t, c in zip(tracks, clips) if t.problem is not None]
     solved = iter(solve_with_support([p for p, _ in todo], [c for _, c in todo], opts))
     return [next(solved) if t.problem is not None else PoseResult(t.status, t.message) for t in tracks]
-
-
-def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
-    """The clip's ``correspondences`` that answer its current tasks. When they came from label
-    files, only the tracks whose clicks use the model chosen for them now
-    (:func:`tasks.human_tasks.selected_models`): a track whose choice changed, or that no longer
-    exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
-    directly (``bench run --gt-tracks``) are all kept."""
-    corr = wh.read("correspondences", [clip])
-    if clip not in wh.partitions("correspondence_labels"):
-        return corr
-    from tasks.human_tasks import selected_models
-
-    chosen = {str(t): c for t, c in selected_models(wh, clip).items() if c is not None}
-    keep = [chosen.get(t) == c for t, c in zip(corr.column("track_id").to_pylist(), corr.column("cad_id").to_pylist())]
-    return corr.filter(pa.array(keep, pa.bool_()))
 
 
 def solve_clip(wh: Warehouse, cfg: PoseConfig, clip: str, run_id: str) -> StageOutput:

@@ -47,7 +47,7 @@ STAGES: dict[str, StageDef] = {
                  ("tasks.tracking", "tasks.track_affinity", "tasks.track_partition", "tasks.track_calibration"),
                  "associate detections into tracks by clique partitioning"),
         StageDef("manual_tracks", "clip", ("ingest", "frames", "tracking"), ("manual_tracks", "label_tasks"),
-                 ("tasks.manual_tracks", "tasks.clip_tracks", "tasks.human_tasks", "tasks.ingest", "tasks.labels",
+                 ("tasks.manual_tracks", "tasks.label_similarity", "tasks.clip_tracks", "tasks.human_tasks", "tasks.ingest", "tasks.labels",
                   "tasks.label_format", "tasks.label_ingest", "tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
                  "human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
                  extra_sections=("embed",)),
@@ -62,7 +62,7 @@ STAGES: dict[str, StageDef] = {
                  "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
                  ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm",
-                  "tasks.pose_batch", "tasks.pose_support", "tasks.human_tasks"),
+                  "tasks.pose_batch", "tasks.pose_support", "tasks.pose_inputs", "tasks.human_tasks"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
         StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
                  ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
@@ -131,12 +131,12 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
 
         answers = [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
         if stage == "manual_tracks":
-            from tasks.manual_tracks import similarity_labels
+            from tasks.label_similarity import similarity_labels
 
             return [digest(*similarity_labels(wh)), *answers]
         return answers
     if stage == "pose":
-        from tasks.pose import input_digests
+        from tasks.pose_inputs import input_digests
 
         return input_digests(wh, clip)
     return []

@@ -13,7 +13,8 @@ from schemas.cad import CAD_MODELS
 from schemas.core import FRAMES
 from schemas.pose import CORRESPONDENCES
 from cadestate.lineage import table_digest
-from tasks.pose import answered_correspondences, cad_models_digest, solve_clip, solver_options
+from tasks.pose import solve_clip, solver_options
+from tasks.pose_inputs import answered_correspondences, cad_models_digest
 from tasks.registry import STAGES, clip_inputs
 from tests.test_pose_solver import K, make_object
 

@@ -98,7 +98,8 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
     labels.mkdir()
     config = tmp_path / "c.toml"
     config.write_text(f'[schedule]\ninbox = "{inbox}"\nlabels_inbox = "{labels}"\ninbox_split = "val"\n'
-                      f'inbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\n')  # runs are triggered by the test
+                      f'report = "{tmp_path / "report"}"\ninbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\n'
+                      f'report_cron = "0 0 1 1 *"\n')  # runs are triggered by the test
     common = ["-c", str(config), "-w", str(w)]
     assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
@@ -134,6 +135,10 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         wait_for("the labels inbox", lambda: (r := api.flow_run("ingest_labels/inbox")) and
                  r["state"]["type"] == "COMPLETED" and r or None)
         assert api.flow_run("annotate_clip/small_0")["id"] == run["id"]
+        api.run("dataset_report")
+        report = wait_for("the dataset report", lambda: (r := api.flow_run("dataset_report")) and
+                          r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
+        assert report["state"]["type"] == "COMPLETED" and json.loads((tmp_path / "report" / "stats.json").read_text())
     finally:
         os.killpg(serving.pid, signal.SIGTERM)
         serving.wait(60)

@@ -75,6 +75,7 @@ def serve(ctx: typer.Context) -> None:
       ingest_labels   on [schedule] labels_cron: the label files of [schedule] labels_inbox are ingested
                       and the clips they answer resumed
       annotate_clip   one run per clip, suspended while people answer its tasks
+      dataset_report  on [schedule] report_cron: statistics and an HTML report in [schedule] report
 
     Start the server first (`cadestate server start`); its UI shows the runs, and a run can be
     started by hand there or with `prefect deployment run build_dataset_inbox/build_dataset`.

@@ -1,0 +1,117 @@
+"""Seconds per command (``make bench``): each CLI command's wall time as a ratio to a bare
+``python -c "import duckdb"`` measured in the same run, and the share of a label round (ingest the
+answer, resume the clip) spent outside stage work, with Prefect's ephemeral API and with
+`cadestate server start`.
+
+Budgets (issue "Seconds per command"): ``--help`` and ``labels schema`` within 1.5x of the bare
+baseline; ``sql``, ``tables`` and ``status`` on the demo warehouse within 3x; a label round with the
+server up spends under 20 % of its wall time outside stage work.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from statistics import median
+
+from warehouse import Warehouse
+
+REPEATS = 5
+BUDGETS = {"--help": 1.5, "labels schema correspondences": 1.5, "config show": 3.0,
+           "sql 'SELECT count(*) FROM frames'": 3.0, "tables": 3.0, "status": 3.0}
+"""Command -> the largest ratio to the bare baseline it may take."""
+
+
+def _env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+
+
+def wall_s(args: list[str], repeats: int = REPEATS) -> float:
+    """Median wall time of running ``args`` ``repeats`` times (output discarded)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), check=False)
+        times.append(time.perf_counter() - t0)
+    return median(times)
+
+
+def command_ratios(warehouse: Path) -> dict:
+    """Wall time of each command of :data:`BUDGETS` on ``warehouse`` next to the bare baseline."""
+    import shlex
+
+    baseline = wall_s([sys.executable, "-c", "import duckdb"])
+    rows = {}
+    for command, budget in BUDGETS.items():
+        seconds = wall_s([sys.executable, "-m", "cadestate", "-w", str(warehouse), *shlex.split(command)])
+        rows[command] = {"s": round(seconds, 3), "ratio": round(seconds / baseline, 2), "budget": budget,
+                         "ok": seconds / baseline <= budget}
+    return {"baseline_import_duckdb_s": round(baseline, 3), "commands": rows}
+
+
+def _manual_label(task: Path, answers: list) -> dict:
+    doc = json.loads(task.read_text())
+    return {"format": "cadestate-label/1", "kind": "manual_track", "clip": doc["clip"], "task_id": doc["task_id"],
+            "annotator": "bench", "created_at": dt.datetime.now(dt.timezone.utc).isoformat(), "answers": answers}
+
+
+def _round(cli: list[str], wh: Warehouse, label: dict, folder: Path) -> dict:
+    """Ingest one label file (resuming its clip) and split the wall time into stage work and the rest."""
+    path = folder / f"round-{time.time_ns()}.json"
+    path.write_text(json.dumps(label))
+    start = dt.datetime.now(dt.timezone.utc)
+    t0 = time.perf_counter()
+    done = subprocess.run([*cli, "labels", "ingest", str(path), "--no-progress"], capture_output=True, text=True, env=_env())
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        return {"error": done.stderr.strip().splitlines()[-1:] or ["failed"]}
+    runs = [r for r in wh.read("runs").to_pylist() if r["started_at"] >= start]
+    stage = sum(float(r["duration_s"] or 0.0) for r in runs)
+    return {"wall_s": round(wall, 2), "stage_s": round(stage, 2), "stage_runs": len(runs),
+            "outside_share": round(1 - stage / wall, 3)}
+
+
+def label_rounds(video: Path, cameras: Path) -> dict:
+    """One label round on a val clip in ephemeral mode, then one with the server up (each round
+    gives the manual-track task a different answer, so its stage and what follows rerun)."""
+    with tempfile.TemporaryDirectory(prefix="cadestate-bench-") as tmp:
+        root = Path(tmp) / "w"
+        cli = [sys.executable, "-m", "cadestate", "-w", str(root)]
+        subprocess.run([*cli, "ingest", str(video), str(cameras), "--split", "val", "--no-progress"],
+                       capture_output=True, env=_env(), check=True)
+        wh = Warehouse(root)
+        [task] = sorted((root / "label_tasks").rglob("*.manual_track.*.json"))
+        frame = json.loads(task.read_text())["keyframes"][0]["timestamp_us"]
+        classes = json.loads(task.read_text())["classes"] or ["chair"]
+        drawn = [{"label": classes[0],
+                  "boxes": [{"timestamp_us": frame, "box": [0.4, 0.4, 0.6, 0.6]}]}]
+        ephemeral = _round(cli, wh, _manual_label(task, []), Path(tmp))
+        subprocess.run([*cli, "server", "start", "--port", "0"], capture_output=True, env=_env(), check=True)
+        try:
+            served = _round(cli, wh, _manual_label(task, drawn), Path(tmp))
+        finally:
+            subprocess.run([*cli, "server", "stop"], capture_output=True, env=_env())
+    return {"ephemeral": ephemeral, "server": served,
+            "server_ok": "outside_share" in served and served["outside_share"] < 0.2}
+
+
+def run(warehouse: Path = Path("data/warehouse")) -> dict:
+    """The command ratios on ``warehouse`` (the demo's of `make run`) and the label rounds on a
+    generated clip of the demo's size (138 camera lines, 640x360)."""
+    from bench.demo_clip import DemoClipSpec, make_demo_clip
+
+    out = {"commands": command_ratios(warehouse)}
+    with tempfile.TemporaryDirectory(prefix="cadestate-bench-clip-") as tmp:
+        clip = make_demo_clip(Path(tmp), DemoClipSpec(name="round", num_video_frames=276, seed=3))
+        out["label_round"] = label_rounds(clip.video_path, clip.cameras_path)
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=2))
