@@ -30,7 +30,6 @@ from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from schemas import TABLES, TableSpec
@@ -194,6 +193,8 @@ class Warehouse:
             return empty.select(list(columns)) if columns else empty
         if isinstance(filters, list):
             filters = pq.filters_to_expression(filters)
+        import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
+
         dataset = ds.dataset(files, schema=spec.schema, format="parquet")
         result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
         keys = [(k, "ascending") for k in spec.key if not columns or k in columns]
