@@ -205,17 +205,25 @@ def test_cad_selection_page(s):
     assert all(a.seconds is not None for lf in files for a in lf.label.answers)
 
 
+VIEWS = [(0.6, 0.5, 0.8), (-0.6, 0.5, 0.8), (0.6, 0.5, -0.8), (-0.6, 0.5, -0.8), (0, 1, 0.05), (0, 0.3, 1), (0, 0.3, -1),
+         (1, 0.3, 0), (-1, 0.3, 0), (0.7, -0.3, 0.7), (-0.7, -0.3, 0.7), (0.7, -0.3, -0.7), (-0.7, -0.3, -0.7), (0, -1, 0.05)]
+"""Camera directions (world, from the model's centre) the test orbits through to see a point."""
+
+
 def _click_pairs(s: Served, kf_index: int, points: list[dict]) -> int:
     page = s.page
     page.locator("#strip .thumb").nth(kf_index).click()
     page.wait_for_function("() => document.querySelector('#image-canvas') && document.querySelector('#image-canvas').width > 0")
     clicked = 0
     for q in points:
-        page.evaluate("xyz => viewer.viewFrom(xyz)", q["xyz"])
-        sx, sy = page.evaluate("xyz => viewer.screenOf(xyz)", q["xyz"])
-        hit = page.evaluate("([x, y]) => viewer.pick(x, y)", [sx, sy])
-        if hit is None or np.linalg.norm(np.subtract(hit, q["xyz"])) > 0.02:
-            continue  # hidden from every side the camera takes: a person would click another point
+        for d in VIEWS:  # orbit until the point is in sight, as a person would
+            page.evaluate("dir => viewer.viewDirection(dir)", d)
+            sx, sy = page.evaluate("xyz => viewer.screenOf(xyz)", q["xyz"])
+            hit = page.evaluate("([x, y]) => viewer.pick(x, y)", [sx, sy])
+            if hit is not None and np.linalg.norm(np.subtract(hit, q["xyz"])) < 0.01:
+                break
+        else:
+            continue  # hidden from every side: a person would click another point
         page.mouse.click(sx, sy)
         r = page.locator("#image-canvas").bounding_box()
         page.mouse.click(r["x"] + q["x"] * r["width"], r["y"] + q["y"] * r["height"])

@@ -57,12 +57,10 @@ export class Viewer {
     this.loadMs = performance.now() - started;
     return this;
   }
-  // Turn the camera (keeping its distance) to look at the model's centre from the side of CAD point xyz.
-  viewFrom(xyz) {
-    const c = this.controls.target, p = this.group.localToWorld(new THREE.Vector3(...xyz));
-    const dir = p.clone().sub(c); if (dir.length() < 1e-6) dir.set(0, 0.5, 1);
-    dir.normalize(); dir.y = Math.max(dir.y, 0.25); dir.normalize();
-    this.camera.position.copy(c).addScaledVector(dir, this.camera.position.distanceTo(c)); this.controls.update(); this.render();
+  // Orbit the camera (keeping its distance) to look at the model's centre from world direction dir.
+  viewDirection(dir) {
+    const c = this.controls.target, d = new THREE.Vector3(...dir).normalize(), dist = this.camera.position.distanceTo(c);
+    this.camera.position.copy(c).addScaledVector(d, dist); this.controls.update(); this.render();
   }
   setMirrored(on) { this.mirrored = on; this.group.scale.x = on ? -1 : 1; this.group.updateMatrixWorld(true); this.render(); }
   // The CAD-frame point under client pixel (cx, cy), or null.
