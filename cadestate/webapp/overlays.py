@@ -33,7 +33,8 @@ def _outline(instance: np.ndarray, depth: np.ndarray, width: int = 2) -> np.ndar
     for axis in (0, 1):
         a, b = np.take(z, range(z.shape[axis] - 1), axis), np.take(z, range(1, z.shape[axis]), axis)
         both = np.isfinite(a) & np.isfinite(b)
-        jump = (np.isfinite(a) != np.isfinite(b)) | (both & (np.abs(a - b) > 0.05 * np.minimum(a, b)))
+        gap = np.abs(np.where(both, a, 0.0) - np.where(both, b, 0.0))
+        jump = (np.isfinite(a) != np.isfinite(b)) | (both & (gap > 0.05 * np.where(both, np.minimum(a, b), 0.0)))
         pad = [(0, 0), (0, 0)]
         pad[axis] = (0, 1)
         edges |= np.pad(jump, pad)
