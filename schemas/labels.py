@@ -117,7 +117,8 @@ class ManualTrackAnswer:
     boxes: tuple[TimedBox, ...] = spec("Boxes on the frames where the object is visible (one per frame).", minItems=1)
     source_id: str | None = spec("The object's id in the annotation tool (e.g. 'cvat:3'), for tracing.", default=None)
     same_as_track: int | None = spec("'This is track N': the drawn boxes show existing track N of the task (filling its "
-                                     "gaps), not a new object; no new track is made of them. Null: a new object.",
+                                     "gaps), not a new object (kept in track_relations; until tracks are merged "
+                                     "downstream the boxes still make a manual track). Null: a new object.",
                                      default=None, **TRACK_ID)
 
 
@@ -289,7 +290,8 @@ class ManualTrackLabel(LabelHeader):
     kind: str = fixed(KIND, "manual_track")
     answers: tuple[ManualTrackAnswer, ...] = spec("The missing objects.")
     not_objects: tuple[int, ...] = spec("'Track N is not an object': existing tracks of the task that show no object "
-                                        "(false detections); they get no CAD selection item.", default=(), items=TRACK_ID)
+                                        "(false detections); kept in track_relations (downstream stages do not drop them yet).",
+                                        default=(), items=TRACK_ID)
     seconds: float | None = spec("Time the annotator spent on the task (its one item).", unit="s", default=None, **SECONDS)
 
 
@@ -442,9 +444,10 @@ LABEL_EFFORT = _answer_table(
 
 TRACK_RELATIONS = _answer_table(
     "track_relations", "What annotators said about tracks besides answering them (history): `not_object` (manual_track "
-    "`not_objects`: track_id shows no object; it gets no CAD selection item), `same_object` (cad_selection "
+    "`not_objects`: track_id shows no object), `same_object` (cad_selection "
     "`same_as_track`: track_id is a fragment of other_track_id; manual_track `same_as_track`: the drawn object "
-    "object_index of the label is existing track track_id, and is not made a new track).", ("statement_index",), [
+    "object_index of the label is existing track track_id). Stages do not act on them yet, but for a fragment's null "
+    "cad_id.", ("statement_index",), [
         column("statement_index", pa.int32(), "0-based index of the statement within its label file."),
         column("kind", pa.string(), "The label's kind (manual_track | cad_selection)."),
         column("relation", pa.string(), "not_object | same_object."),
