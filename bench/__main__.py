@@ -7,8 +7,8 @@ import os
 import platform
 from pathlib import Path
 
-from bench import (cad_throughput, cli_bench, detect_throughput, frames_throughput, pose_bench, retrieval_bench,
-                   stage_times, track_bench)
+from bench import (annotate_bench, cad_throughput, cli_bench, detect_throughput, frames_throughput, pose_bench,
+                   retrieval_bench, stage_times, track_bench)
 
 RESULTS = Path("bench/results")
 
@@ -25,6 +25,7 @@ def main() -> None:
         "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True) if track_bench.BENCH_DIR.is_dir() else "no benchmark",
         "end_to_end": stage_times.run(),
         "commands": cli_bench.run(),
+        "annotation_app": annotate_bench.run(),
     }
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))

@@ -47,6 +47,8 @@ TRACK_ID = {"minimum": 0, "maximum": 2**31 - 1}  # tracks.track_id is an int32
 CAD_EXTENT_M = 100.0
 """Bound on |coordinate| of a point on a canonical (bbox-centred, metres) CAD model: no object of a
 room walkthrough reaches 100 m from its centre, so a bigger value is a unit or typing error."""
+SECONDS = {"minimum": 0.0, "maximum": 86400.0}
+"""Bound on the seconds an annotator spends on one item (a day: more is a clock error)."""
 FORMAT = "Format and version of the file."
 KIND = "The task kind."
 
@@ -114,6 +116,10 @@ class ManualTrackAnswer:
     label: str = spec("Class of the object.", minLength=1)
     boxes: tuple[TimedBox, ...] = spec("Boxes on the frames where the object is visible (one per frame).", minItems=1)
     source_id: str | None = spec("The object's id in the annotation tool (e.g. 'cvat:3'), for tracing.", default=None)
+    same_as_track: int | None = spec("'This is track N': the drawn boxes show existing track N of the task (filling its "
+                                     "gaps), not a new object (kept in track_relations; until tracks are merged "
+                                     "downstream the boxes still make a manual track). Null: a new object.",
+                                     default=None, **TRACK_ID)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -123,6 +129,10 @@ class CadSelectionAnswer:
     track_id: int = spec("tracks.track_id.", **TRACK_ID)
     cad_id: str | None = spec("The chosen candidate's cad_id; null: none of the candidates is similar enough "
                               "(the track leaves the pipeline).", minLength=1)
+    same_as_track: int | None = spec("'Same object as track N': this track is a fragment of track N of the task; "
+                                     "cad_id must then be null (the object is posed through track N).",
+                                     default=None, **TRACK_ID)
+    seconds: float | None = spec("Time the annotator spent on this item.", unit="s", default=None, **SECONDS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -151,6 +161,7 @@ class CorrespondenceAnswer:
     cad_id: str = spec("The CAD model clicked on (the task's cad_id for the track).", minLength=1)
     is_mirrored: bool = spec("The annotator mirrored the model (x -> -x); 3D points stay unmirrored.")
     keyframes: tuple[CorrespondenceKeyframe, ...] = spec("Key-frames annotated (one entry per timestamp).", minItems=1)
+    seconds: float | None = spec("Time the annotator spent on this item.", unit="s", default=None, **SECONDS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -160,6 +171,7 @@ class VerificationAnswer:
     track_id: int = spec("tracks.track_id.", **TRACK_ID)
     verdict: Literal["accept", "reject"] = spec("accept: aligned on all key-frames; reject: otherwise.")
     comment: str | None = spec("Free text.", default=None)
+    seconds: float | None = spec("Time the annotator spent on this item.", unit="s", default=None, **SECONDS)
 
 
 # ------------------------------------------------------------------------------ task items
@@ -277,6 +289,10 @@ class ManualTrackLabel(LabelHeader):
     format: str = fixed(FORMAT, LABEL_FORMAT)
     kind: str = fixed(KIND, "manual_track")
     answers: tuple[ManualTrackAnswer, ...] = spec("The missing objects.")
+    not_objects: tuple[int, ...] = spec("'Track N is not an object': existing tracks of the task that show no object "
+                                        "(false detections); kept in track_relations (downstream stages do not drop them yet).",
+                                        default=(), items=TRACK_ID)
+    seconds: float | None = spec("Time the annotator spent on the task (its one item).", unit="s", default=None, **SECONDS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -417,9 +433,35 @@ VERIFICATION_LABELS = _answer_table(
         column("comment", pa.string(), "Free text.", nullable=True),
     ])
 
+LABEL_EFFORT = _answer_table(
+    "label_effort", "Seconds annotators spent per answered item, from the label files' `seconds` (what annotation costs "
+    "per object, as the paper reports; answers without `seconds` have no row; history).", ("kind", "track_id"), [
+        column("kind", pa.string(), "manual_track | cad_selection | correspondences | verification."),
+        column("track_id", pa.int32(), "The track answered; -1: a manual_track task (answered whole, one item)."),
+        column("annotator", pa.string(), "Who answered (label_files.annotator).", nullable=True),
+        column("seconds", pa.float64(), "Time spent on the item.", unit="s"),
+    ])
+
+TRACK_RELATIONS = _answer_table(
+    "track_relations", "What annotators said about tracks besides answering them (history): `not_object` (manual_track "
+    "`not_objects`: track_id shows no object), `same_object` (cad_selection "
+    "`same_as_track`: track_id is a fragment of other_track_id; manual_track `same_as_track`: the drawn object "
+    "object_index of the label is existing track track_id). Stages do not act on them yet, but for a fragment's null "
+    "cad_id.", ("statement_index",), [
+        column("statement_index", pa.int32(), "0-based index of the statement within its label file."),
+        column("kind", pa.string(), "The label's kind (manual_track | cad_selection)."),
+        column("relation", pa.string(), "not_object | same_object."),
+        column("track_id", pa.int32(), "The track the statement is about."),
+        column("other_track_id", pa.int32(), "same_object from cad_selection: the track it is a fragment of.", nullable=True),
+        column("object_index", pa.int32(), "same_object from manual_track: the drawn object (manual_track_labels.object_index).",
+               nullable=True),
+    ])
+
 ANSWER_TABLES = {"manual_track": MANUAL_TRACK_LABELS, "cad_selection": CAD_SELECTION_LABELS,
                  "correspondences": CORRESPONDENCE_LABELS, "verification": VERIFICATION_LABELS}
-LABEL_TABLES = (LABEL_TASKS, LABEL_FILES, *ANSWER_TABLES.values())
+LABEL_TABLES = (LABEL_TASKS, LABEL_FILES, *ANSWER_TABLES.values(), LABEL_EFFORT, TRACK_RELATIONS)
+SIDE_TABLES = (LABEL_EFFORT, TRACK_RELATIONS)
+"""Tables filled at ingest beside a file's answer table (written before its commit record)."""
 
 
 

@@ -3,7 +3,8 @@
 :func:`ingest_labels` validates every ``*.json`` under a folder (:func:`tasks.labels.validate_label`)
 and commits each valid file all or nothing: its rows are built and conformed to their tables in
 memory first (:func:`prepare_file`), then appended to its answer table (``manual_track_labels``,
-``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``) and then to
+``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``), to ``label_effort``
+(the ``seconds`` given per item) and ``track_relations`` (``not_objects``, ``same_as_track``), and then to
 ``label_files``, which is the commit record: answer rows whose file has no ``label_files`` row (a
 crash or a failed write between the two) are ignored, and the file is ingested again on the next
 run. Rules:
@@ -36,7 +37,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from cadestate.lineage import digest, table_digest
-from schemas.labels import ANSWER_TABLES, KINDS, LABEL_FILES
+from schemas.labels import ANSWER_TABLES, KINDS, LABEL_EFFORT, LABEL_FILES, SIDE_TABLES, TRACK_RELATIONS
 from schemas.pose import CORRESPONDENCES
 from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
 from tasks.labels import ClipFacts, LabelFile, utc_now, validate_label
@@ -134,6 +135,30 @@ def answer_rows(lf: LabelFile, facts: ClipFacts, ingested_at: dt.datetime, tol: 
     return [{**head, **r} for r in ROWS[lf.kind](lf, facts, tol)]
 
 
+def effort_rows(lf: LabelFile, ingested_at: dt.datetime) -> list[dict]:
+    """``label_effort`` rows: the seconds given per item (a manual_track label is one item, track -1)."""
+    head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind,
+            "annotator": lf.label.annotator}
+    if lf.kind == "manual_track":
+        return [] if lf.label.seconds is None else [{**head, "track_id": -1, "seconds": lf.label.seconds}]
+    return [{**head, "track_id": a.track_id, "seconds": a.seconds} for a in lf.label.answers if a.seconds is not None]
+
+
+def relation_rows(lf: LabelFile, ingested_at: dt.datetime) -> list[dict]:
+    """``track_relations`` rows: "track N is not an object", "this is track N", "same object as track N"."""
+    said: list[dict] = []
+    if lf.kind == "manual_track":
+        said += [{"relation": "not_object", "track_id": t, "other_track_id": None, "object_index": None}
+                 for t in lf.label.not_objects]
+        said += [{"relation": "same_object", "track_id": a.same_as_track, "other_track_id": None, "object_index": i}
+                 for i, a in enumerate(lf.label.answers) if a.same_as_track is not None]
+    elif lf.kind == "cad_selection":
+        said += [{"relation": "same_object", "track_id": a.track_id, "other_track_id": a.same_as_track, "object_index": None}
+                 for a in lf.label.answers if a.same_as_track is not None]
+    head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind}
+    return [{**head, "statement_index": k, **r} for k, r in enumerate(said)]
+
+
 def file_row(lf: LabelFile, ingested_at: dt.datetime) -> dict:
     """The ``label_files`` row of one label file (a path that is not UTF-8 is kept with its odd
     bytes escaped, as printed)."""
@@ -171,11 +196,13 @@ WRITE_ERRORS = (OSError, ValueError, pa.ArrowException)
 @dataclass(frozen=True)
 class PreparedFile:
     """One label file's rows, conformed to their tables and ready to write: ``answers`` (rows of
-    its kind's answer table) and ``record`` (its ``label_files`` row, the commit record)."""
+    its kind's answer table), ``sides`` (rows of ``label_effort`` and ``track_relations``, by table
+    name) and ``record`` (its ``label_files`` row, the commit record)."""
 
     lf: LabelFile
     answers: pa.Table
     record: pa.Table
+    sides: dict[str, pa.Table] = field(default_factory=dict)
 
 
 def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: ClipFacts,
@@ -184,7 +211,11 @@ def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: 
     spec = ANSWER_TABLES[lf.kind]
     answers = pa.Table.from_pylist(answer_rows(lf, facts, ingested_at, tol), schema=spec.schema)
     record = pa.Table.from_pylist([file_row(lf, ingested_at)], schema=LABEL_FILES.schema)
-    return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record))
+    sides = {}
+    for side, rows in ((LABEL_EFFORT, effort_rows(lf, ingested_at)), (TRACK_RELATIONS, relation_rows(lf, ingested_at))):
+        if rows:
+            sides[side.name] = wh.conform(side.name, lf.clip, pa.Table.from_pylist(rows, schema=side.schema))
+    return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
 
 
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
@@ -241,13 +272,17 @@ def _commit_clip(wh: Warehouse, clip: str, files: list[PreparedFile], report: In
         parts = [(f, f.answers) for f in files if f.lf.kind == kind and f.answers.num_rows]
         answered += _write_each(wh, ANSWER_TABLES[kind].name, clip, parts, report)
     answered.sort(key=files.index)
+    for side in SIDE_TABLES:  # effort and relations: a file whose rows fail here is not committed either
+        parts = [(f, f.sides[side.name]) for f in answered if side.name in f.sides]
+        written = _write_each(wh, side.name, clip, parts, report)
+        answered = [f for f in answered if side.name not in f.sides or f in written]
     return _write_each(wh, LABEL_FILES.name, clip, [(f, f.record) for f in answered], report)
 
 
 def _count(report: IngestReport, f: PreparedFile) -> None:
     """Add one committed file to ``report``: its path, rows and co-planar key-frames."""
     report.ingested.append(str(f.lf.path))
-    for name, table in ((ANSWER_TABLES[f.lf.kind].name, f.answers), (LABEL_FILES.name, f.record)):
+    for name, table in ((ANSWER_TABLES[f.lf.kind].name, f.answers), *f.sides.items(), (LABEL_FILES.name, f.record)):
         if table.num_rows:
             report.rows[name] = report.rows.get(name, 0) + table.num_rows
     if f.lf.kind == "correspondences":

@@ -8,7 +8,8 @@ and pauses; :func:`validate_label` checks a label file in two steps:
    the kind's JSON Schema, ``created_at``, different 3D points per key-frame;
 2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
    a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
-   frames of the clip, boxes have positive size, no track or key-frame is answered twice.
+   frames of the clip, boxes have positive size, no track or key-frame is answered twice, and the
+   tracks named by ``same_as_track`` / ``not_objects`` are the task's (a fragment's ``cad_id`` is null).
 
 So everything that could make a row fail to be written is refused here, before ingest writes
 anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
@@ -179,16 +180,31 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         raise _fail(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
     stamps = facts.timestamps(label.clip)
     if label.kind == "manual_track":
+        existing = {t.track_id for t in task.existing_tracks}
         for i, a in enumerate(label.answers):
             if task.classes and a.label not in task.classes:
                 raise _fail(name, ["answers", i, "label"], f"class {a.label!r} is not one of the task's: {', '.join(task.classes)}")
             _check_boxes(a.boxes, stamps, name, ["answers", i, "boxes"])
+            if a.same_as_track is not None and a.same_as_track not in existing:
+                raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is not an existing track of task {task.task_id}")
+        for i, t in enumerate(label.not_objects):
+            if t not in existing:
+                raise _fail(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")
+            if t in label.not_objects[:i]:
+                raise _fail(name, ["not_objects", i], f"track {t} is listed twice")
         return
     items = _items(task, name, label)
     for i, a in enumerate(label.answers):
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
             raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
+        if label.kind == "cad_selection" and a.same_as_track is not None:
+            if a.same_as_track not in items or a.same_as_track == a.track_id:
+                raise _fail(name, ["answers", i, "same_as_track"],
+                            f"track {a.same_as_track} is not another track of task {task.task_id}")
+            if a.cad_id is not None:
+                raise _fail(name, ["answers", i, "cad_id"], f"must be null when same_as_track is given (track {a.track_id} "
+                                                            f"is a fragment of track {a.same_as_track})")
         if label.kind == "correspondences":
             if a.cad_id != item.cad_id:
                 raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")

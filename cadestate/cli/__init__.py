@@ -12,7 +12,7 @@ import sys
 
 from rich.markup import escape
 
-from cadestate.cli import bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
+from cadestate.cli import annotate, bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
 from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import app, err
 

@@ -1,0 +1,37 @@
+"""``cadestate annotate``: the human tasks in a browser (:mod:`cadestate.webapp`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cadestate.cli.common import app, err
+
+
+@app.command("annotate")
+def annotate(
+    ctx: typer.Context,
+    host: Annotated[str, typer.Option(help="Address to listen on (127.0.0.1: this machine only).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Port to listen on.")] = 8765,
+    annotator: Annotated[Optional[str], typer.Option(help="Name recorded in every label file (default: the user name).")] = None,
+) -> None:
+    """Open the annotation app: the clips' waiting human tasks (manual tracks, CAD selection,
+    correspondences, verification) as web pages. Each answer is validated as `labels ingest`
+    validates a file, written to <warehouse>/labels/<clip>/, ingested, and its clip resumed in the
+    background."""
+    from flows.runtime import prepare_prefect_environment
+
+    cfg = ctx.obj.config()
+    root = Path(cfg.warehouse.root).resolve()
+    prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s)  # before Prefect is imported
+    import uvicorn
+
+    from cadestate.webapp.app import create_app, three_dir
+
+    if not three_dir().is_dir():
+        err.print(f"[yellow]warning:[/] three.js not found at {three_dir()} (run `make web-vendor`): "
+                  "the correspondences page cannot show models", highlight=False)
+    err.print(f"annotation app for {root}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
+    uvicorn.run(create_app(cfg, annotator), host=host, port=port, log_level="warning")

@@ -1,0 +1,157 @@
+"""The HTTP side of ``cadestate annotate``: pages, the warehouse's media, and a small JSON API.
+
+Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
+``/annotate/<kind>?clip=C&task=T[&track=N]`` for the four kinds. API (JSON):
+
+- ``GET /api/clips``: every clip with its tasks (items, waiting), its last stage runs, its resume state;
+- ``GET /api/next[?clip=C]``: the next waiting item (null: none);
+- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, the clip's resume state;
+- ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers;
+- ``POST /api/answers``: a label document without ``format``/``created_at`` (see
+  :mod:`cadestate.webapp.answers`): 200 with the label file written and ingested and the clip
+  queued for resume; 422 naming the field when it does not validate (nothing written); 500 when
+  it was written but not ingested (it is ingested at the next start).
+
+``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
+overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).
+"""
+
+from __future__ import annotations
+
+import getpass
+import os
+import threading
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import Body, FastAPI, HTTPException
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from cadestate.config import Config
+from cadestate.webapp import queue
+from cadestate.webapp.answers import IngestFailed, ingest_pending, submit
+from cadestate.webapp.resume import Resumer
+from schemas.labels import KINDS
+from tasks.label_format import LabelError
+from warehouse import Warehouse
+
+STATIC = Path(__file__).parent / "static"
+THREE_VERSION = "0.187.0"
+"""The three.js release the viewer uses (``make web-vendor`` fetches it from npm, sha256-checked)."""
+
+
+def vendor_dir() -> Path:
+    """Where ``make web-vendor`` unpacks three.js: ``$CADESTATE_WEB_VENDOR`` or ``~/.cache/cadestate/web``."""
+    return Path(os.environ.get("CADESTATE_WEB_VENDOR", Path.home() / ".cache" / "cadestate" / "web")).expanduser()
+
+
+def three_dir() -> Path:
+    return vendor_dir() / f"three-{THREE_VERSION}" / "package"
+
+
+def _stage_runs(wh: Warehouse, clip: str) -> list[dict]:
+    """The last run of each stage of ``clip`` (stage, status, message), in the order they started."""
+    if clip not in wh.partitions("runs"):
+        return []
+    last: dict[str, dict] = {}
+    for r in wh.read("runs", [clip], columns=["stage", "status", "started_at", "message"]).sort_by("started_at").to_pylist():
+        last[r["stage"]] = {"stage": r["stage"], "status": r["status"], "message": r["message"] or ""}
+    return list(last.values())
+
+
+def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
+    """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
+    ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
+    wh = Warehouse(config.warehouse.root)
+    lock = threading.Lock()
+    worker = resumer or Resumer(config)
+    who = annotator if annotator is not None else getpass.getuser()
+    tol = config.pose.coplanar_tol
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        worker.start()
+        report = ingest_pending(wh, lock, coplanar_tol=tol)  # answers a crash left un-ingested
+        for clip in report.clips if report else []:
+            worker.request(clip)
+        yield
+        worker.stop()
+
+    app = FastAPI(title="cadestate annotate", lifespan=lifespan)
+    app.state.warehouse, app.state.resumer, app.state.lock = wh, worker, lock
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    if three_dir().is_dir():
+        app.mount("/vendor/three", StaticFiles(directory=three_dir()), name="three")
+
+    @app.get("/")
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    @app.get("/annotate/{kind}")
+    def page(kind: str) -> FileResponse:
+        if kind not in KINDS:
+            raise HTTPException(404, f"no page for {kind!r} (kinds: {', '.join(KINDS)})")
+        return FileResponse(STATIC / f"{kind}.html")
+
+    @app.get("/media/{path:path}")
+    def media(path: str) -> FileResponse:
+        media_root = (wh.root / "media").resolve()
+        target = (media_root / path).resolve()
+        if not target.is_relative_to(media_root) or not target.is_file():
+            raise HTTPException(404, f"media/{path}: no such file")
+        return FileResponse(target, headers={"Cache-Control": "max-age=3600"})
+
+    def clip_view(clip: str) -> dict:
+        tasks = [t.as_dict() for t in queue.clip_tasks(wh, clip)]
+        return {"clip": clip, "tasks": tasks, "waiting": sum(t["waiting"] for t in tasks), "runs": _stage_runs(wh, clip),
+                "resume": worker.status(clip), "next": queue.next_item(wh, clip)}
+
+    @app.get("/api/clips")
+    def clips() -> dict:
+        views = [clip_view(c) for c in queue.clips(wh)]
+        nxt = next((v["next"] for v in views if v["next"]), None)
+        return {"annotator": who, "clips": views, "next": nxt}
+
+    @app.get("/api/clips/{clip}")
+    def one_clip(clip: str) -> dict:
+        if clip not in wh.partitions("clips"):
+            raise HTTPException(404, f"unknown clip {clip!r}")
+        return clip_view(clip)
+
+    @app.get("/api/next")
+    def next_item(clip: str | None = None) -> JSONResponse:
+        return JSONResponse(queue.next_item(wh, clip))
+
+    @app.get("/api/tasks/{clip}/{task_id}")
+    def task(clip: str, task_id: str) -> dict:
+        doc = queue.task_document(wh, clip, task_id)
+        if doc is None:
+            raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
+        return {**doc, "annotator": who, "resume": worker.status(clip)}
+
+    @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")
+    def layers(clip: str, task_id: str, track_id: int) -> list[dict]:
+        from cadestate.webapp.overlays import verification_layers
+
+        doc = queue.task_document(wh, clip, task_id)
+        if doc is None or doc["task"]["kind"] != "verification":
+            raise HTTPException(404, f"no verification task {task_id!r} for clip {clip!r}")
+        item = next((it for it in doc["task"]["items"] if it["track_id"] == track_id), None)
+        if item is None:
+            raise HTTPException(404, f"track {track_id} is not an item of task {task_id}")
+        return verification_layers(wh, clip, task_id, item)
+
+    @app.post("/api/answers")
+    def answer(payload: object = Body(...)) -> dict:
+        try:
+            done = submit(wh, payload, annotator=who, lock=lock, coplanar_tol=tol)
+        except LabelError as e:
+            raise HTTPException(422, str(e)) from None
+        except IngestFailed as e:
+            raise HTTPException(500, str(e)) from None
+        worker.request(done.clip)
+        return {"path": done.path, "clip": done.clip, "kind": done.kind, "task_id": done.task_id, "warnings": done.warnings,
+                "rows": done.rows, "resume": worker.status(done.clip)}
+
+    return app

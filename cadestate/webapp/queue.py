@@ -1,0 +1,90 @@
+"""What waits for people: the open tasks of every clip, their items, and the next item to do.
+
+A clip's open task of a kind is its newest task file of that kind (``label_tasks``) with items
+that no answer in force covers (:func:`tasks.label_ingest.current_answers`); a manual-track task
+is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
+correspondences, verification).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+from schemas.labels import KINDS
+from tasks.label_ingest import answered_tasks, current_answers
+from tasks.labels import latest_task_of_kind
+from warehouse import Warehouse
+
+
+@dataclass
+class OpenTask:
+    """One task of a clip: its id, kind, item track ids (manual_track: ``[-1]``, the whole task)
+    and those still unanswered."""
+
+    clip: str
+    kind: str
+    task_id: str
+    items: list[int]
+    waiting: list[int] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"clip": self.clip, "kind": self.kind, "task_id": self.task_id, "items": len(self.items),
+                "waiting": len(self.waiting), "waiting_tracks": self.waiting,
+                "url": f"/annotate/{self.kind}?clip={self.clip}&task={self.task_id}"}
+
+
+def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
+    """The newest task of each kind of ``clip`` (answered or not), in pipeline order."""
+    out = []
+    for kind in KINDS:
+        row = latest_task_of_kind(wh, clip, kind)
+        if row is None:
+            continue
+        doc = json.loads(row["document"])
+        if kind == "manual_track":
+            items = [-1]
+            waiting = [] if doc["task_id"] in answered_tasks(wh, kind, clip) else [-1]
+        else:
+            items = [int(it["track_id"]) for it in doc["items"]]
+            done = set(current_answers(wh, kind, [clip], doc["task_id"]).column("track_id").to_pylist())
+            waiting = [t for t in items if t not in done]
+        out.append(OpenTask(clip, kind, doc["task_id"], items, waiting))
+    return out
+
+
+def clips(wh: Warehouse) -> list[str]:
+    """Every registered clip, sorted."""
+    return sorted(wh.partitions("clips"))
+
+
+def next_item(wh: Warehouse, clip: str | None = None) -> dict | None:
+    """The first waiting item (of ``clip``, else of any clip): clip, kind, task id, track id (-1:
+    a manual-track task) and the page's URL; None when nothing waits."""
+    for c in [clip] if clip else clips(wh):
+        for t in clip_tasks(wh, c):
+            if t.waiting:
+                track = t.waiting[0]
+                url = t.as_dict()["url"] + ("" if track < 0 else f"&track={track}")
+                return {"clip": c, "kind": t.kind, "task_id": t.task_id, "track_id": track, "url": url}
+    return None
+
+
+def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
+    """The newest document of a task (as stored in ``label_tasks``), with ``answered``: the track
+    ids whose answer is in force (manual_track: ``[-1]`` once answered) and ``answers``: those answers
+    (rows of the kind's answer table, JSON-ready)."""
+    from tasks.labels import latest_task
+
+    if clip not in wh.partitions("clips"):
+        return None
+    row = latest_task(wh, clip, task_id)
+    if row is None:
+        return None
+    doc = json.loads(row["document"])
+    if doc["kind"] == "manual_track":
+        answered = [-1] if task_id in answered_tasks(wh, "manual_track", clip) else []
+    else:
+        rows = current_answers(wh, doc["kind"], [clip], task_id).column("track_id").to_pylist()
+        answered = sorted(set(rows))
+    return {"task": doc, "answered": answered}

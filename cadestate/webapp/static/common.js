@@ -1,0 +1,141 @@
+// Shared helpers of the annotation pages. Coordinates sent to the API are the label format's:
+// boxes (ymin, xmin, ymax, xmax) and points (x, y) normalised to [0, 1] by the image size.
+export const $ = (sel, root = document) => root.querySelector(sel);
+export const el = (tag, attrs = {}, ...kids) => {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") e.className = v; else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else if (v !== null && v !== undefined && v !== false) e.setAttribute(k, v === true ? "" : v);
+  }
+  for (const k of kids.flat()) if (k !== null && k !== undefined) e.append(k.nodeType ? k : document.createTextNode(k));
+  return e;
+};
+export const media = (path) => "/" + path;   // warehouse-relative media paths start with "media/"
+export const params = () => Object.fromEntries(new URLSearchParams(location.search));
+
+export async function api(path, body) {
+  const r = await fetch(path, body === undefined ? {} : {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(body)});
+  const data = await r.json().catch(() => null);
+  if (!r.ok) throw new Error((data && (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail))) || r.statusText);
+  return data;
+}
+
+export function toast(text, kind = "") {
+  const box = $("#status") || document.body.appendChild(el("div", {id: "status"}));
+  const t = el("div", {class: "toast " + kind}, text);
+  box.append(t);
+  setTimeout(() => t.remove(), kind === "error" ? 12000 : 5000);
+  return t;
+}
+
+// Seconds spent on the item shown: counts only while the page is visible.
+export function timer() {
+  let total = 0, since = performance.now();
+  document.addEventListener("visibilitychange", () => {
+    if (document.hidden) { total += performance.now() - since; since = null; } else since = performance.now();
+  });
+  return () => Math.round(((total + (since === null ? 0 : performance.now() - since)) / 1000) * 10) / 10;
+}
+
+// Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field.
+export function shortcuts(map) {
+  document.addEventListener("keydown", (ev) => {
+    const tag = (ev.target.tagName || "").toLowerCase();
+    if ((tag === "input" && ev.target.type !== "range") || tag === "textarea" || tag === "select") {
+      if (ev.key === "Escape") ev.target.blur();
+      return;
+    }
+    if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = map["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
+    const f = map[ev.key];
+    if (f) { ev.preventDefault(); f(ev); }
+  });
+}
+
+export function header(title, clip, task) {
+  const h = el("header", {},
+    el("a", {href: "/"}, "◀ queue"),
+    el("h1", {}, title),
+    el("span", {class: "dim"}, clip ? `clip ${clip}` : ""),
+    el("span", {class: "grow"}),
+    el("span", {id: "progress", class: "dim"}),
+    el("span", {id: "who", class: "dim"}));
+  document.body.prepend(h);
+  return h;
+}
+
+// The task and its answered tracks; the item to show: ?track=N, else the first waiting one.
+export async function loadTask() {
+  const p = params();
+  const data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
+  $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
+  const items = data.task.items || [];
+  const waiting = items.filter((it) => !data.answered.includes(it.track_id));
+  let item = items.find((it) => String(it.track_id) === p.track) || waiting[0] || items[0];
+  $("#progress").textContent = items.length ? `${items.length - waiting.length} of ${items.length} answered` : "";
+  return {...data, item, waiting, p};
+}
+
+// After an answer: the next waiting item of the same task, else wait (polling) until the clip's
+// resume has run and show (and offer with Enter) its next task.
+export async function afterAnswer(clip, taskId, kind, res) {
+  toast(`saved ${res.path}`, "ok");
+  const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
+  const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
+  if (waiting.length) { location.href = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`; return; }
+  showWaiting(clip);
+}
+
+export function showWaiting(clip) {
+  const started = performance.now();
+  const panel = el("div", {id: "pipeline", class: "panel"}, el("b", {}, "Task done. "), el("span", {id: "pipeline-state"}, "the pipeline resumes the clip…"));
+  $("main").replaceChildren(panel);
+  const poll = async () => {
+    const c = await api(`/api/clips/${encodeURIComponent(clip)}`);
+    const busy = c.resume.state === "queued" || c.resume.state === "running";
+    const s = $("#pipeline-state");
+    if (busy) { s.textContent = `the pipeline is ${c.resume.state} (${Math.round((performance.now() - started) / 1000)} s)…`; setTimeout(poll, 700); return; }
+    if (c.resume.state === "failed") s.textContent = `the resume failed: ${c.resume.message}`;
+    if (c.next) {
+      s.replaceChildren(el("span", {id: "next-ready"}, `next task ready: ${c.next.kind} `), el("a", {href: c.next.url, id: "next-link"}, "open (Enter)"));
+      shortcuts({Enter: () => (location.href = c.next.url)});
+    } else {
+      s.replaceChildren(el("span", {id: "next-ready"}, `nothing waits for people on ${clip}: ${c.resume.message || "done"}. `), el("a", {href: "/"}, "back to the queue"));
+    }
+  };
+  poll();
+}
+
+// Draw boxes (normalised ymin, xmin, ymax, xmax) with labels on a canvas over an image.
+export function drawBoxes(canvas, boxes) {
+  const ctx = canvas.getContext("2d"), W = canvas.width, H = canvas.height;
+  ctx.clearRect(0, 0, W, H);
+  ctx.font = "bold 13px system-ui"; ctx.lineWidth = 2;
+  for (const b of boxes) {
+    const [y0, x0, y1, x1] = b.box;
+    ctx.strokeStyle = b.color || "#4da3ff"; ctx.setLineDash(b.dash ? [6, 4] : []);
+    ctx.strokeRect(x0 * W, y0 * H, (x1 - x0) * W, (y1 - y0) * H);
+    if (b.text) {
+      const w = ctx.measureText(b.text).width + 8;
+      ctx.fillStyle = b.color || "#4da3ff"; ctx.fillRect(x0 * W, Math.max(0, y0 * H - 18), w, 18);
+      ctx.fillStyle = "#000"; ctx.fillText(b.text, x0 * W + 4, Math.max(13, y0 * H - 5));
+    }
+  }
+  ctx.setLineDash([]);
+}
+
+// A frame image with an overlay canvas at the image's pixel size.
+export function frameView(src, onload) {
+  const img = el("img", {src, draggable: "false"});
+  const canvas = el("canvas", {class: "over"});
+  const wrap = el("div", {class: "frame"}, img, canvas);
+  img.addEventListener("load", () => { canvas.width = img.naturalWidth; canvas.height = img.naturalHeight; onload && onload(); });
+  return {wrap, img, canvas};
+}
+
+// Normalised (x, y) of a mouse event over an element.
+export function normXY(ev, elem) {
+  const r = elem.getBoundingClientRect();
+  return [Math.min(1, Math.max(0, (ev.clientX - r.left) / r.width)), Math.min(1, Math.max(0, (ev.clientY - r.top) / r.height))];
+}
+
+export const COLORS = ["#4da3ff", "#ffb84d", "#3ccf7a", "#ff6b9a", "#b48cff", "#4dd9e6", "#e6d94d", "#ff8a4d"];

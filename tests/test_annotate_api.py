@@ -1,0 +1,168 @@
+"""The annotation app's API (``cadestate annotate``, :mod:`cadestate.webapp`): answers in, label files out.
+
+On the synthetic tasks of tests/test_labels.py: bad payloads get a 4xx naming the field and write
+nothing; a good one is written as a label file that validates, ingested (with its seconds and
+track relations) and its clip queued for resume; concurrent answers to one task all land, the
+newest in force; a file a crash left un-ingested is ingested when the app starts.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+from fastapi.testclient import TestClient
+
+from cadestate.config import Config, WarehouseConfig
+from cadestate.webapp.app import create_app
+from cadestate.webapp.resume import Resumer
+from tasks.label_ingest import current_answers
+from tasks.labels import validate_label
+from test_labels import CLIP, base_wh, good, lwh  # noqa: F401  (fixtures)
+from warehouse import Warehouse
+
+
+class Requests:
+    """A resume that records the clips asked for instead of running them."""
+
+    def __init__(self):
+        self.clips: list[str] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, clip: str) -> str:
+        with self.lock:
+            self.clips.append(clip)
+        return "ok"
+
+
+def _client(wh: Warehouse, runs: Requests) -> TestClient:
+    config = Config(warehouse=WarehouseConfig(root=str(wh.root)))
+    return TestClient(create_app(config, annotator="tester", resumer=Resumer(config, run=runs)))
+
+
+def payload(kind: str) -> dict:
+    doc = good(kind)
+    for k in ("format", "created_at", "annotator"):
+        doc.pop(k)
+    return doc
+
+
+def _label_files(wh: Warehouse) -> list:
+    return sorted((wh.root / "labels").rglob("*.json")) if (wh.root / "labels").exists() else []
+
+
+BAD = [  # (kind, change, the field the error names)
+    ("cad_selection", lambda d: d["answers"][0].update(track_id=7), "$.answers[0].track_id"),
+    ("cad_selection", lambda d: d["answers"][0].update(cad_id="nope"), "$.answers[0].cad_id"),
+    ("cad_selection", lambda d: d["answers"][0].update(seconds=-1), "$.answers[0].seconds"),
+    ("cad_selection", lambda d: d["answers"][0].update(same_as_track=1), "$.answers[0].cad_id"),
+    ("cad_selection", lambda d: d["answers"][1].update(same_as_track=9), "$.answers[1].same_as_track"),
+    ("cad_selection", lambda d: d.update(task_id="c1.nope"), "$.task_id"),
+    ("cad_selection", lambda d: d.update(extra=1), "$"),
+    ("manual_track", lambda d: d["answers"][0]["boxes"][0].update(box=[0.5, 0.5, 0.4, 0.8]), "$.answers[0].boxes[0].box"),
+    ("manual_track", lambda d: d["answers"][0].update(label="giraffe"), "$.answers[0].label"),
+    ("manual_track", lambda d: d.update(not_objects=[5]), "$.not_objects[0]"),
+    ("manual_track", lambda d: d["answers"][0].update(same_as_track=3), "$.answers[0].same_as_track"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][0].update(x=1.5), "$.answers[0].keyframes[0].points[0].x"),
+    ("verification", lambda d: d["answers"][0].update(verdict="maybe"), "$.answers[0].verdict"),
+    ("verification", lambda d: d.pop("answers"), "$"),
+]
+
+
+@pytest.mark.parametrize("kind,change,field", BAD, ids=[f"{k}:{f}" for k, _, f in BAD])
+def test_bad_payload_is_refused_naming_the_field_and_nothing_is_written(lwh, kind, change, field):
+    runs = Requests()
+    doc = payload(kind)
+    change(doc)
+    with _client(lwh, runs) as client:
+        r = client.post("/api/answers", json=doc)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith(f"answer: {field}"), r.json()["detail"]
+    assert _label_files(lwh) == [] and lwh.read("label_files").num_rows == 0 and runs.clips == []
+
+
+def test_not_an_object_is_refused(lwh):
+    with _client(lwh, Requests()) as client:
+        assert client.post("/api/answers", json=[1, 2]).status_code == 422
+        assert client.post("/api/answers", content=b"{not json", headers={"Content-Type": "application/json"}).status_code == 422
+    assert _label_files(lwh) == []
+
+
+def test_an_answer_is_written_validated_ingested_and_its_clip_resumed(lwh):
+    runs = Requests()
+    doc = payload("cad_selection")
+    doc["answers"][0]["seconds"] = 12.5
+    with _client(lwh, runs) as client:
+        r = client.post("/api/answers", json=doc)
+        assert r.status_code == 200, r.text
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+        state = client.get(f"/api/clips/{CLIP}").json()
+    path = lwh.root / r.json()["path"]
+    lf = validate_label(path, lwh)  # the file is a valid label file of the existing format
+    assert lf.label.annotator == "tester" and lf.kind == "cad_selection"
+    assert lwh.read("label_files").column("label_sha256").to_pylist() == [lf.sha256]
+    assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 1: None}
+    effort = lwh.read("label_effort").to_pylist()
+    assert [(e["track_id"], e["seconds"], e["annotator"]) for e in effort] == [(0, 12.5, "tester")]
+    assert runs.clips == [CLIP] and state["resume"]["state"] == "idle" and state["resume"]["runs"] == 1
+    waiting = {t["kind"]: t["waiting"] for t in state["tasks"]}
+    assert waiting["cad_selection"] == 1  # track 2 still waits
+
+
+def test_relations_and_the_task_seconds_of_a_manual_track_answer_are_kept(lwh):
+    doc = payload("manual_track")
+    doc.update(not_objects=[0], seconds=40.0)
+    doc["answers"].append({"label": "chair", "boxes": [{"timestamp_us": 200_000, "box": [0.1, 0.1, 0.3, 0.3]}], "same_as_track": 0})
+    with _client(lwh, Requests()) as client:
+        assert client.post("/api/answers", json=doc).status_code == 200
+    rel = sorted((r["relation"], r["track_id"], r["object_index"]) for r in lwh.read("track_relations").to_pylist())
+    assert rel == [("not_object", 0, None), ("same_object", 0, 1)]
+    assert [(e["track_id"], e["seconds"]) for e in lwh.read("label_effort").to_pylist()] == [(-1, 40.0)]
+
+
+def test_concurrent_answers_to_one_task_all_land_and_the_newest_is_in_force(lwh):
+    runs = Requests()
+    choices = ["m0a", "m0b", None] * 3
+    with _client(lwh, runs) as client:
+        def send(cad_id):
+            return client.post("/api/answers", json={**payload("cad_selection"), "answers": [{"track_id": 0, "cad_id": cad_id}]})
+
+        with ThreadPoolExecutor(6) as pool:
+            replies = list(pool.map(send, choices))
+        assert [r.status_code for r in replies] == [200] * len(choices), [r.text for r in replies]
+        assert client.app.state.resumer.wait_idle(CLIP, 20)
+    files = lwh.read("label_files").to_pylist()
+    assert len(_label_files(lwh)) == len(files) == len(choices) and len({f["ingested_at"] for f in files}) == len(choices)
+    newest = max(files, key=lambda f: f["ingested_at"])
+    in_force = current_answers(lwh, "cad_selection", [CLIP]).to_pylist()
+    assert [(a["track_id"], a["cad_id"], a["label_sha256"]) for a in in_force] == \
+        [(0, json.loads(newest["document"])["answers"][0]["cad_id"], newest["label_sha256"])]
+    assert 1 <= len(runs.clips) <= len(choices)  # requests while queued coalesce
+
+
+def test_a_file_left_by_a_crash_is_ingested_when_the_app_starts(lwh):
+    folder = lwh.root / "labels" / CLIP
+    folder.mkdir(parents=True)
+    (folder / "c1.ve.left.json").write_text(json.dumps(good("verification")))
+    runs = Requests()
+    with _client(lwh, runs) as client:
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+    assert lwh.read("label_files").num_rows == 1 and runs.clips == [CLIP]
+
+
+def test_start_page_data_and_next_item(lwh):
+    with _client(lwh, Requests()) as client:
+        clips = client.get("/api/clips").json()
+        assert clips["annotator"] == "tester"
+        (c,) = clips["clips"]
+        assert [(t["kind"], t["items"], t["waiting"]) for t in c["tasks"]] == [
+            ("manual_track", 1, 1), ("cad_selection", 3, 3), ("correspondences", 2, 2), ("verification", 2, 2)]
+        assert clips["next"]["kind"] == "manual_track" and client.get("/api/next").json() == clips["next"]
+        task = client.get(f"/api/tasks/{CLIP}/c1.cs").json()
+        assert task["task"]["kind"] == "cad_selection" and task["answered"] == []
+        assert client.get(f"/api/tasks/{CLIP}/nope").status_code == 404
+        assert client.get("/media/../catalog.duckdb").status_code == 404
+        for page in ("/", "/annotate/manual_track", "/annotate/cad_selection", "/annotate/correspondences", "/annotate/verification"):
+            assert client.get(page).status_code == 200, page

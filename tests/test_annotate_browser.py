@@ -1,0 +1,307 @@
+"""A fresh benchmark clip from ingest to verified poses, answered only in the browser (issue 15).
+
+The annotation app (``cadestate annotate``) serves a warehouse whose val clip (a rendered
+walkthrough, real small CAD library) has just paused at its manual-track task. Debian's Chromium,
+driven by Playwright, answers the four pages in pipeline order by clicking and typing; what it
+enters comes from the benchmark's simulated annotators (``bench.simulated_labels.answer_tasks``:
+ground truth plus their noise), so the clicks on the 3D model and the image are at positions
+computed from the ground truth. Each test checks that the label file the app wrote validates, is
+ingested, and that the background resume took the clip to its next stage; each saves a screenshot
+(``$CADESTATE_SCREENSHOTS``, else the test's temporary folder). The tests run in order and share
+the clip: a later one skips when an earlier one failed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.benchmark import clip_sources, generate
+from bench.simulated_labels import answer_tasks
+from bench.walkthrough import WalkthroughSpec
+from browser import chromium_path, launch
+from conftest import warehouse_copy
+from tasks.labels import validate_label
+from warehouse import Warehouse
+
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(chromium_path() is None, reason="chromium not installed (make browser)")]
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+SPEC = WalkthroughSpec(width=480, height=270, num_video_frames=60, sample_every=2, alone_scale=0.5)
+SEED = 3
+RESUME_S = 400  # a resume runs the clip's flow on 2 shared cores (Prefect's local API starts first)
+
+
+@dataclasses.dataclass
+class Served:
+    wh: Warehouse
+    bench: Path
+    clip: str
+    url: str
+    page: object
+    shots: Path
+    failed: list = dataclasses.field(default_factory=list)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def served(small_library_warehouse, tmp_path_factory):
+    import uvicorn
+
+    from cadestate.webapp.app import create_app
+    from flows.annotate_clip import run_clips
+
+    tmp = tmp_path_factory.mktemp("annotate")
+    folder = tmp / "bench"
+    manifest, _ = generate(folder, SEED, 1, Warehouse(small_library_warehouse.warehouse.root), SPEC, show_progress=False)
+    clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")
+    config = warehouse_copy(small_library_warehouse, tmp / "wh")
+    reports = run_clips([source], config, show_progress=False)
+    assert {r.stage for r in reports if r.state == "paused"} == {"manual_tracks"}
+
+    port = _free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(config, annotator="browser-test"), host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.05)
+    shots = Path(os.environ.get("CADESTATE_SCREENSHOTS") or tmp / "screens")
+    shots.mkdir(parents=True, exist_ok=True)
+    with playwright_api.sync_playwright() as p:
+        browser = launch(p)
+        page = browser.new_page(viewport={"width": 1400, "height": 860})
+        page.set_default_timeout(30_000)
+        yield Served(Warehouse(config.warehouse.root), folder, clip, f"http://127.0.0.1:{port}", page, shots)
+        browser.close()
+    server.should_exit = True
+    thread.join(30)
+
+
+@pytest.fixture
+def s(served, request):
+    """The shared clip; skips when an earlier page failed (the clip did not reach this task)."""
+    if served.failed:
+        pytest.skip(f"an earlier page failed: {served.failed[0]}")
+    failed_before = request.session.testsfailed
+    yield served
+    if request.session.testsfailed > failed_before:  # the call phase is reported before teardown
+        served.failed.append(request.node.name)
+
+
+def simulated(s: Served, kind: str) -> dict:
+    """The simulated annotators' answers to the clip's open ``kind`` task (their files removed: the
+    browser is the only way in)."""
+    docs = []
+    for path in answer_tasks(s.bench, s.wh, s.clip):
+        docs.append(json.loads(path.read_text()))
+        path.unlink()
+    found = [d for d in docs if d["kind"] == kind]
+    assert found, f"no open {kind} task (open: {[d['kind'] for d in docs]})"
+    return found[0]
+
+
+def open_next(s: Served, kind: str) -> None:
+    nxt = json.loads(s.page.context.request.get(f"{s.url}/api/next?clip={s.clip}").text())
+    assert nxt and nxt["kind"] == kind, nxt
+    s.page.goto(s.url + nxt["url"])
+
+
+def wait_for_pipeline(s: Served) -> str:
+    """Wait for the page's 'next task ready' line (after the last item of a task); returns it."""
+    s.page.wait_for_selector("#next-ready", timeout=RESUME_S * 1000)
+    return s.page.inner_text("#next-ready")
+
+
+def track_shown(s: Served) -> int:
+    return int(re.match(r"Track (\d+)", s.page.inner_text("#track-title")).group(1))
+
+
+def new_label_files(s: Served, kind: str, seen: set) -> list:
+    """The app's label files of ``kind`` not seen before, each validated against the warehouse and ingested."""
+    ingested = set(s.wh.read("label_files").column("label_sha256").to_pylist())
+    out = []
+    for path in sorted((s.wh.root / "labels" / s.clip).glob("*.json")):
+        if path in seen:
+            continue
+        seen.add(path)
+        lf = validate_label(path, s.wh)
+        if lf.kind == kind:
+            assert lf.sha256 in ingested and lf.label.annotator == "browser-test"
+            out.append(lf)
+    return out
+
+
+SEEN: set = set()
+
+
+def test_manual_tracks_page(s):
+    answer = simulated(s, "manual_track")
+    open_next(s, "manual_track")
+    page = s.page
+    stamps = [int(t) for t in page.evaluate("""async () => { const p = new URLSearchParams(location.search);
+        const r = await fetch(`/api/tasks/${p.get('clip')}/${p.get('task')}`); return (await r.json()).task.keyframes.map(k => k.timestamp_us); }""")]
+    for i, obj in enumerate(answer["answers"]):
+        page.keyboard.press("n")
+        page.locator("input.cls").nth(i).fill(obj["label"])
+        page.locator("input.cls").nth(i).dispatch_event("change")
+        page.locator("input.cls").nth(i).blur()
+        for b in obj["boxes"]:
+            page.locator("#strip .thumb").nth(stamps.index(b["timestamp_us"])).click()
+            page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+            r = page.locator("#draw").bounding_box()
+            y0, x0, y1, x1 = b["box"]
+            page.mouse.move(r["x"] + x0 * r["width"], r["y"] + y0 * r["height"])
+            page.mouse.down()
+            page.mouse.move(r["x"] + x1 * r["width"], r["y"] + y1 * r["height"], steps=4)
+            page.mouse.up()
+    page.screenshot(path=s.shots / "manual_track.png")
+    page.keyboard.press("Enter")
+    ready = wait_for_pipeline(s)
+    (lf,) = new_label_files(s, "manual_track", SEEN)
+    drawn, expected = lf.label.answers, answer["answers"]
+    assert [a.label for a in drawn] == [o["label"] for o in expected]
+    for a, o in zip(drawn, expected):
+        assert [b.timestamp_us for b in a.boxes] == [b["timestamp_us"] for b in o["boxes"]]
+        assert np.allclose([b.box for b in a.boxes], [b["box"] for b in o["boxes"]], atol=0.01)
+    assert lf.label.seconds is not None and lf.label.seconds > 0
+    assert "cad_selection" in ready, ready
+
+
+def test_cad_selection_page(s):
+    answer = {a["track_id"]: a["cad_id"] for a in simulated(s, "cad_selection")["answers"]}
+    open_next(s, "cad_selection")
+    page, done = s.page, []
+    while True:
+        page.wait_for_selector("#track-title:not(:empty)")
+        track = track_shown(s)
+        choice = answer[track]
+        page.click(f'.cand[data-cad="{choice}"]' if choice else "#none")
+        if not done:
+            page.screenshot(path=s.shots / "cad_selection.png")
+        page.click("#submit")
+        done.append(track)
+        if len(done) == len(answer):
+            break
+        page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
+    wait_for_pipeline(s)
+    files = new_label_files(s, "cad_selection", SEEN)
+    got = {a.track_id: a.cad_id for lf in files for a in lf.label.answers}
+    assert got == answer and sorted(done) == sorted(answer)
+    assert all(a.seconds is not None for lf in files for a in lf.label.answers)
+
+
+VIEWS = [(0.6, 0.5, 0.8), (-0.6, 0.5, 0.8), (0.6, 0.5, -0.8), (-0.6, 0.5, -0.8), (0, 1, 0.05), (0, 0.3, 1), (0, 0.3, -1),
+         (1, 0.3, 0), (-1, 0.3, 0), (0.7, -0.3, 0.7), (-0.7, -0.3, 0.7), (0.7, -0.3, -0.7), (-0.7, -0.3, -0.7), (0, -1, 0.05)]
+"""Camera directions (world, from the model's centre) the test orbits through to see a point."""
+
+
+def _click_pairs(s: Served, kf_index: int, points: list[dict]) -> int:
+    page = s.page
+    page.locator("#strip .thumb").nth(kf_index).click()
+    page.wait_for_function("() => document.querySelector('#image-canvas') && document.querySelector('#image-canvas').width > 0")
+    clicked = 0
+    for q in points:
+        for d in VIEWS:  # orbit until the point is in sight, as a person would
+            page.evaluate("dir => viewer.viewDirection(dir)", d)
+            sx, sy = page.evaluate("xyz => viewer.screenOf(xyz)", q["xyz"])
+            hit = page.evaluate("([x, y]) => viewer.pick(x, y)", [sx, sy])
+            if hit is not None and np.linalg.norm(np.subtract(hit, q["xyz"])) < 0.01:
+                break
+        else:
+            continue  # hidden from every side: a person would click another point
+        page.mouse.click(sx, sy)
+        r = page.locator("#image-canvas").bounding_box()
+        page.mouse.click(r["x"] + q["x"] * r["width"], r["y"] + q["y"] * r["height"])
+        clicked += 1
+    return clicked
+
+
+def test_correspondences_page(s):
+    sim = simulated(s, "correspondences")
+    answer = {a["track_id"]: a for a in sim["answers"]}
+    open_next(s, "correspondences")
+    page, done = s.page, []
+    task = json.loads(page.context.request.get(f"{s.url}/api/tasks/{s.clip}/{sim['task_id']}").text())["task"]
+    assert set(answer) == {it["track_id"] for it in task["items"]}, "the simulated annotators gave up on no track"
+    while True:
+        page.wait_for_selector("#viewer[data-ready='1']", timeout=60_000)
+        track = track_shown(s)
+        a = answer[track]
+        stamps = [k["timestamp_us"] for k in next(it for it in task["items"] if it["track_id"] == track)["keyframes"]]
+        if a["is_mirrored"]:
+            page.keyboard.press("m")
+        for kf in a["keyframes"]:
+            n = _click_pairs(s, stamps.index(kf["timestamp_us"]), kf["points"])
+            if 0 < n < 4:
+                for _ in range(n):
+                    page.keyboard.press("u")  # undo: too few visible points on this key-frame
+        if not done:
+            page.screenshot(path=s.shots / "correspondences.png")
+        assert page.is_enabled("#submit"), page.inner_text("#summary")
+        page.click("#submit")
+        done.append(track)
+        if len(done) == len(answer):
+            break
+        page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
+    ready = wait_for_pipeline(s)
+    files = new_label_files(s, "correspondences", SEEN)
+    for lf in files:
+        for got in lf.label.answers:
+            want = {k["timestamp_us"]: k for k in answer[got.track_id]["keyframes"]}
+            assert got.is_mirrored == answer[got.track_id]["is_mirrored"]
+            for kf in got.keyframes:
+                assert 4 <= len(kf.points) <= 6
+                for p in kf.points:  # each pair is one of the ground-truth pairs, as clicked
+                    d = [np.linalg.norm(np.subtract(p.xyz, q["xyz"])) + abs(p.x - q["x"]) + abs(p.y - q["y"]) for q in want[kf.timestamp_us]["points"]]
+                    assert min(d) < 0.03, (got.track_id, kf.timestamp_us, min(d))
+    assert s.wh.read("poses", [s.clip]).num_rows >= 1, "the resume solved poses"
+    assert "verification" in ready, ready
+
+
+def test_verification_page(s):
+    answer = {a["track_id"]: a["verdict"] for a in simulated(s, "verification")["answers"]}
+    open_next(s, "verification")
+    page, done = s.page, []
+    while True:
+        page.wait_for_selector("#stack[data-ready='1']", timeout=60_000)
+        track = track_shown(s)
+        page.keyboard.press("o")  # outline
+        page.keyboard.press("-")
+        assert page.locator("#outline-layer").is_visible()
+        page.keyboard.press("b")  # bare frame, and back
+        assert not page.locator("#outline-layer").is_visible()
+        page.keyboard.press("b")
+        page.keyboard.press("ArrowRight")
+        if not done:
+            page.screenshot(path=s.shots / "verification.png")
+        page.keyboard.press("a" if answer[track] == "accept" else "r")
+        done.append(track)
+        if len(done) == len(answer):
+            break
+        page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
+    ready = wait_for_pipeline(s)
+    files = new_label_files(s, "verification", SEEN)
+    assert {a.track_id: a.verdict for lf in files for a in lf.label.answers} == answer
+    verified = s.wh.read("verified_poses", [s.clip]).to_pylist()
+    assert {int(v["track_id"]): v["accepted"] for v in verified} == {t: v == "accept" for t, v in answer.items()}
+    assert "nothing waits" in ready, ready
+    page.goto(s.url + "/")
+    page.wait_for_selector("tr[data-clip] td")
+    page.screenshot(path=s.shots / "start.png")
+    effort = s.wh.read("label_effort", [s.clip]).column("kind").to_pylist()
+    assert {"manual_track", "cad_selection", "correspondences", "verification"} <= set(effort)
