@@ -119,6 +119,9 @@ run: setup cad-library models
 	@echo "== $(DEMO_DIR)/report.md: accuracy against the demo's ground truth, with pictures ($(DEMO_DIR)/report/)"
 	$(BIN)/cadestate cad sheet data/cad_sheet.png --where "cad_id IN (SELECT cad_id FROM verified_poses WHERE accepted) \
 	  OR class IN ('chair', 'sofa', 'bed', 'table')" --limit 32
+	@echo "== the dataset in the official CAD-Estate layout (data/demo_export) and its statistics (data/demo_stats/index.html)"
+	rm -rf data/demo_export && $(BIN)/cadestate export official data/demo_export
+	$(BIN)/cadestate stats --html data/demo_stats
 	$(BIN)/cadestate status
 	@echo "== answer the human tasks in a browser (the demo warehouse; open the address it prints):"
 	@echo "   $(BIN)/cadestate annotate"
