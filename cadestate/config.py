@@ -117,6 +117,8 @@ class CamerasConfig:
     min_registered_fraction: float = _opt(0.8, "Fail when SfM registers fewer of the sampled frames than this fraction; "
                                           "the rest are interpolated between registered neighbours and flagged.",
                                           lo=0.0, hi=1.0)
+    init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the mapper's initial pair (COLMAP's "
+                                         "default 16; lower it for videos with very little parallax).", lo=0.5, hi=60.0)
     threads: int = _opt(2, "Threads for extraction, matching and mapping.", lo=1, hi=256)
     seed: int = _opt(0, "Random seed of the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)
 

@@ -126,8 +126,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_extra_params = False
     mapping.mapper.abs_pose_refine_focal_length = not intrinsics
-    mapping.mapper.init_min_tri_angle = 4.0  # walkthroughs move slowly: little parallax between frames
-    mapping.mapper.init_min_num_inliers = 50
+    mapping.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
     return reader, extraction, matching, pairing, mapping
 
 
@@ -145,6 +144,20 @@ def _interpolate(times: np.ndarray, registered: np.ndarray, R: np.ndarray, c: np
     c_all = np.stack([np.interp(clamped, t[idx], c[idx, k]) for k in range(3)], axis=1)
     R_all[idx], c_all[idx] = R[idx], c[idx]
     return R_all, c_all
+
+
+def check_registered(video: Path | str, registered: np.ndarray, cfg: CamerasConfig, models: list[int]) -> str:
+    """Raise :class:`SfmError` when fewer than ``cfg.min_registered_fraction`` of the frames
+    (bool[N] ``registered``) are registered; ``models``: registered frames per model, the kept one
+    first. Returns the note on the dropped models ("" when there is one model)."""
+    others = "" if len(models) <= 1 else (f"; {len(models) - 1} other disconnected model(s) of "
+                                          f"{', '.join(map(str, models[1:]))} frames dropped")
+    fraction = float(np.mean(registered))
+    if fraction < cfg.min_registered_fraction:
+        raise SfmError(f"{video}: SfM registered {int(np.sum(registered))} of {len(registered)} sampled frames "
+                       f"({fraction:.0%}), fewer than [cameras] min_registered_fraction = {cfg.min_registered_fraction:g}"
+                       f"{others}")
+    return others
 
 
 def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, float, float] | None = None,
@@ -194,12 +207,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         R[i] = pose.rotation.matrix()
         c[i] = camera_to_world(R[i], np.asarray(pose.translation))[1]
         registered[i] = True
-    fraction = registered.mean()
-    others = "" if len(ranked) == 1 else (f"; {len(ranked) - 1} other disconnected model(s) of "
-                                          f"{', '.join(str(m.num_reg_images()) for m in ranked[1:])} frames dropped")
-    if fraction < cfg.min_registered_fraction:
-        raise SfmError(f"{video}: SfM registered {int(registered.sum())} of {n} sampled frames ({fraction:.0%}), fewer than "
-                       f"[cameras] min_registered_fraction = {cfg.min_registered_fraction:g}{others}")
+    check_registered(video, registered, cfg, [m.num_reg_images() for m in ranked])
     R, c = _interpolate(frames.times_us, registered, R, c)
     R_wc, t_wc = world_to_camera(np.swapaxes(R, -1, -2), c)
     camera = best.cameras[next(iter(best.cameras))]
