@@ -11,7 +11,7 @@ does (:mod:`tasks.world_up`), the SfM poses mapped into the true world by the sa
 A second row turns each clip's true world by a random rotation before ingest: the pose accuracy
 must equal that of the original world (the up estimate undoes it).
 
-``python -m bench.sfm_bench [BENCH_DIR] [N_CLIPS]``; ``python -m bench`` runs it on the first
+``python -m bench.sfm_bench [BENCH_DIR] [N_CLIPS] [WAREHOUSE]``; ``python -m bench`` runs it on the first
 :data:`DEFAULT_CLIPS` clips of the default benchmark.
 """
 
@@ -152,5 +152,5 @@ def _unturn(preds: list[PosedObject], seed: int) -> list[PosedObject]:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    print(json.dumps(run(Path(args[0]) if args else DEFAULT_BENCH, clips=int(args[1]) if len(args) > 1 else DEFAULT_CLIPS),
-                     indent=1))
+    print(json.dumps(run(Path(args[0]) if args else DEFAULT_BENCH, Warehouse(args[2]) if len(args) > 2 else None,
+                         int(args[1]) if len(args) > 1 else DEFAULT_CLIPS), indent=1))

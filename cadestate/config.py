@@ -113,7 +113,7 @@ class CamerasConfig:
     max_image_size: int = _opt(1024, "Longest image side fed to feature extraction (larger frames are downscaled).",
                                lo=64, hi=8192)
     max_features: int = _opt(4096, "SIFT features per frame.", lo=64, hi=65536)
-    overlap: int = _opt(10, "Sequential matching: each frame is matched with this many following frames.", lo=1, hi=1000)
+    overlap: int = _opt(20, "Sequential matching: each frame is matched with this many following frames.", lo=1, hi=1000)
     min_registered_fraction: float = _opt(0.8, "Fail when SfM registers fewer of the sampled frames than this fraction; "
                                           "the rest are interpolated between registered neighbours and flagged.",
                                           lo=0.0, hi=1.0)

@@ -111,7 +111,7 @@ def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split:
 
 def ingest_source_digest(video_sha256: str, split: str, time_offset_us: int) -> str:
     """What ingest reads besides the ``cameras`` stage's output: the video, the split, the offset."""
-    return digest("ingest-source", video_sha256, split, int(time_offset_us))
+    return digest("ingest-source", video_sha256, split, str(int(time_offset_us)))
 
 
 def registered_inputs_digest(wh: Warehouse, clip: str) -> str:

@@ -115,3 +115,12 @@ def test_forced_up_is_kept_and_noted_in_clips(wh, small_clip):
     row = wh.read("clips").to_pylist()[0]
     assert row["up_source"] == "+y"
     np.testing.assert_array_equal(stored_rotation(row["up_rotation"]), np.eye(3))
+
+
+def test_status_notes_an_unreliable_up():
+    from tasks.status import StageStatus, clip_notes
+
+    note = estimate_up(walk(pan=0.01)).note
+    rows = [StageStatus("room_0", "ingest", "completed", "", 1, (), f"world up: {note}"),
+            StageStatus("hall_0", "ingest", "completed", "", 1, (), "")]
+    assert clip_notes(rows) == [f"room_0: world up unreliable: {note}"]
