@@ -124,3 +124,26 @@ def test_status_notes_an_unreliable_up():
     rows = [StageStatus("room_0", "ingest", "completed", "", 1, (), f"world up: {note}"),
             StageStatus("hall_0", "ingest", "completed", "", 1, (), "")]
     assert clip_notes(rows) == [f"room_0: world up unreliable: {note}"]
+
+
+def test_export_world_projects_the_same_pixels():
+    """ClipDataset.in_input_world (what `export official` writes): frames and poses in the camera
+    file's world, where each posed corner projects to the pixel it did in the aligned world."""
+    from cadestate.geometry import project
+    from tasks.dataset_objects import ClipDataset, DatasetFrame, DatasetObject, Pose
+
+    Q = Rotation.random(random_state=5).as_matrix()
+    K = np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]])
+    R, t = look_at(np.array([0, 1.5, -3.0]), np.zeros(3))
+    pose = Pose((0.2, 0.4, 0.1), tuple(matrix_to_quaternion(Rotation.from_euler("y", 30, degrees=True).as_matrix())),
+                (1.0, 0.8, 0.5), True)
+    ds = ClipDataset("c_0", "file:///c.mp4", (360, 640), (DatasetFrame(0, K, R, t, "x.jpg", False),),
+                     (DatasetObject(1, True, "chair", "03001627", {}, True, "m", pose),), Q)
+    out = ds.in_input_world()
+    corners = np.array([[x, y, z, 1.0] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * [0.5, 0.5, 0.5, 1]
+    before = project(K, R, t, (corners @ pose.matrix().T)[:, :3])[0]
+    f, p = out.frames[0], out.objects[0].pose
+    after = project(f.K, f.R, f.t, (corners @ p.matrix().T)[:, :3])[0]
+    np.testing.assert_allclose(after, before, atol=1e-9)
+    np.testing.assert_allclose(f.R, R @ Q)
+    np.testing.assert_array_equal(out.up_rotation, np.eye(3))
