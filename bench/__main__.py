@@ -8,7 +8,7 @@ import platform
 from pathlib import Path
 
 from bench import (annotate_bench, cad_throughput, cli_bench, detect_throughput, frames_throughput, pose_bench,
-                   retrieval_bench, stage_times, track_bench)
+                   retrieval_bench, sfm_bench, stage_times, track_bench)
 
 RESULTS = Path("bench/results")
 
@@ -21,6 +21,7 @@ def main() -> None:
         "cad": cad_throughput.run(),
         "detection": detect_throughput.run(Path("data/bench/perf")),
         "pose": pose_bench.run(),
+        "sfm": sfm_bench.run(),
         "retrieval": retrieval_bench.run(),
         "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True) if track_bench.BENCH_DIR.is_dir() else "no benchmark",
         "end_to_end": stage_times.run(),

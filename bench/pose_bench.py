@@ -40,6 +40,7 @@ from schemas.pose import CORRESPONDENCES
 from tasks.cad_classes import BY_NAME
 from tasks.cad_symmetry import rotation_y
 from tasks.pose import MODEL_FACTS, TrackInput, solve_tracks, solver_options, track_inputs
+from tasks.world_up import clip_up_rotation, pose_to_input_world
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -107,8 +108,9 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    solved = score_all(_predictions([r for r in rows if r["status"] == "ok"]), gt, truth, symmetries)
-    accepted = score_all(_predictions([r for r in verdicts if r["accepted"]]), gt, truth, symmetries) if verdicts else None
+    solved = score_all(in_input_world(_predictions([r for r in rows if r["status"] == "ok"]), wh), gt, truth, symmetries)
+    accepted = (score_all(in_input_world(_predictions([r for r in verdicts if r["accepted"]]), wh), gt, truth, symmetries)
+                if verdicts else None)
     annotated = {truth[(r["clip"], r["track_id"])] for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,
@@ -217,13 +219,29 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
     return tracks, gt, {k: int(m["symmetry"]) for k, m in models.items()}
 
 
-def evaluate(tracks, gt, symmetries, cfg: PoseConfig) -> dict:
-    """Solve ``tracks`` with ``cfg`` and score them; adds the seconds the solve took."""
+def in_input_world(preds: list[PosedObject], wh: Warehouse | None) -> list[PosedObject]:
+    """Predicted poses (the aligned world of the warehouse's frames, +Y up) in the world of each
+    clip's camera file, where the ground truth is (``clips.up_rotation``, :mod:`tasks.world_up`)."""
+    if wh is None:
+        return preds
+    rotations: dict[str, np.ndarray] = {}
+    out = []
+    for p in preds:
+        Q = rotations.setdefault(p.clip, clip_up_rotation(wh, p.clip))
+        T, q = pose_to_input_world(p.translation, p.rotation, Q)
+        out.append(dataclasses.replace(p, translation=T, rotation=q))
+    return out
+
+
+def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = None) -> dict:
+    """Solve ``tracks`` with ``cfg`` and score them (in the camera files' worlds, with ``wh``'s up
+    rotations); adds the seconds the solve took."""
     t0 = time.perf_counter()
     results = solve_tracks([t for _, t in tracks], solver_options(cfg), [c for c, _ in tracks])
     seconds = time.perf_counter() - t0
     preds = [PosedObject(t.track_id, t.cls, tuple(r.translation), tuple(r.rotation), tuple(r.scale), t.mirrored, t.cad_id, c)
              for (c, t), r in zip(tracks, results) if r.status == "ok"]
+    preds = in_input_world(preds, wh)
     statuses: dict[str, int] = {}
     for r in results:
         statuses[r.status] = statuses.get(r.status, 0) + 1
@@ -260,7 +278,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
     out: dict = {"bench": str(bench_dir), "objects_with_correspondences": len(tracks3), "accuracy": {}}
     for sigma in (0.0, 3.0, 6.0):
         tracks = tracks3 if sigma == 3.0 else bench_tracks(bench_dir, wh, cfg, sigma)[0]
-        out["accuracy"][f"{sigma:g}px"] = evaluate(tracks, gt, sym, cfg)
+        out["accuracy"][f"{sigma:g}px"] = evaluate(tracks, gt, sym, cfg, wh)
     ablation = {"base": dataclasses.replace(cfg, coplanar=False, symmetry=False, alpha=0.0),
                 "+coplanar": dataclasses.replace(cfg, symmetry=False, alpha=0.0),
                 "+symmetry": dataclasses.replace(cfg, alpha=0.0),
@@ -269,12 +287,12 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
                 "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0),
                 "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0),
                 "full, floor only (no host supports)": dataclasses.replace(cfg, host_supports=False)}
-    out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c) for name, c in ablation.items()}
+    out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c, wh) for name, c in ablation.items()}
     # The floor prior as it was before host supports: floor classes only (every upright class in
     # wall_classes, so none but the floor classes rests), the floor only.
     floor_only = dataclasses.replace(cfg, host_supports=False, wall_classes=cfg.upright_classes)
     out["ablation_3px"]["full, floor prior for floor classes only"] = evaluate(
-        bench_tracks(bench_dir, wh, floor_only)[0], gt, sym, floor_only)
+        bench_tracks(bench_dir, wh, floor_only)[0], gt, sym, floor_only, wh)
     out["ablation_3px"]["+up-axis (full)"] = out["accuracy"]["3px"]
     out["timing"] = timing(tracks3, cfg, batch=batch)
     return out

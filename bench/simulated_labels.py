@@ -48,6 +48,7 @@ from schemas.official import FramesFile, read_frames, read_objects
 from tasks.cad_classes import BY_NAME
 from tasks.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
+from tasks.world_up import clip_up_rotation, pose_to_input_world
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
@@ -68,6 +69,7 @@ class _Clip:
         self.frames = read_frames(Path(bench_dir) / clip / "frames.json")
         self.objects = {o.track_id: o for o in read_objects(Path(bench_dir) / clip / "objects.json").objects}
         self.truth = track_truth(bench_dir, wh, clip)
+        self.up_rotation = clip_up_rotation(wh, clip)
         self.index = {f.timestamp: i for i, f in enumerate(self.frames.frames)}
         self.models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "mesh_path", "symmetry"]).to_pylist()}
         self._meshes: dict[str, trimesh.Scene] = {}
@@ -177,8 +179,9 @@ def _verify(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict:
     o = c.gt(item.track_id)
     ok = False
     if o is not None and item.cad_id in c.models:
-        p = item.pose
-        ok = verify_pose(c.frames, o, Pose(tuple(p.translation), tuple(p.rotation), tuple(p.scale), bool(p.is_mirrored)),
+        p = item.pose  # in the aligned world of the warehouse's frames; the ground truth is in the camera file's
+        T, q = pose_to_input_world(p.translation, p.rotation, c.up_rotation)
+        ok = verify_pose(c.frames, o, Pose(T, q, tuple(p.scale), bool(p.is_mirrored)),
                          c.mesh(item.cad_id), c.keyframes(item.keyframes), noise=noise, gt_mesh=c.mesh(o.cad_id),
                          renderer=renderer)
     return {"track_id": item.track_id, "verdict": "accept" if ok else "reject",

@@ -100,6 +100,29 @@ class IngestConfig:
     """Stage ``ingest``: validate a clip's video and camera file and register it."""
 
     link_inputs: bool = _opt(True, "Hard-link inputs into the warehouse when possible instead of copying them.")
+    up: str = _opt("auto", "The camera file's world up: 'auto' estimates it from the cameras (level, upright phones; "
+                   "tasks/world_up.py), or force an axis of that world ('+y' for worlds built +Y up, '-y' for "
+                   "ORB-SLAM worlds whose first camera is level). The world is turned to +Y up at ingest.",
+                   choices=("auto", "+x", "-x", "+y", "-y", "+z", "-z"))
+
+
+@dataclass(frozen=True)
+class CamerasConfig:
+    """Stage ``cameras``: structure from motion (pycolmap) for a video ingested without a camera file."""
+
+    sample_fps: float = _opt(15.0, "Frames per second sampled from the video (RealEstate10K: every 2nd frame of 30 fps); "
+                             "each sampled frame gets a camera line.", lo=0.1, hi=240.0)
+    max_image_size: int = _opt(1024, "Longest image side fed to feature extraction (larger frames are downscaled).",
+                               lo=64, hi=8192)
+    max_features: int = _opt(4096, "SIFT features per frame.", lo=64, hi=65536)
+    overlap: int = _opt(20, "Sequential matching: each frame is matched with this many following frames.", lo=1, hi=1000)
+    min_registered_fraction: float = _opt(0.8, "Fail when SfM registers fewer of the sampled frames than this fraction; "
+                                          "the rest are interpolated between registered neighbours and flagged.",
+                                          lo=0.0, hi=1.0)
+    init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the mapper's initial pair (COLMAP's "
+                                         "default 16; lower it for videos with very little parallax).", lo=0.5, hi=60.0)
+    threads: int = _opt(2, "Threads for extraction, matching and mapping.", lo=1, hi=256)
+    seed: int = _opt(0, "Random seed of the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)
 
 
 @dataclass(frozen=True)
@@ -282,6 +305,7 @@ class Config:
     warehouse: WarehouseConfig = field(default_factory=WarehouseConfig)
     prefect: PrefectConfig = field(default_factory=PrefectConfig)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
     ingest: IngestConfig = field(default_factory=IngestConfig)
     frames: FramesConfig = field(default_factory=FramesConfig)
     cad_ingest: CadIngestConfig = field(default_factory=CadIngestConfig)
@@ -314,6 +338,7 @@ SECTIONS: dict[str, type] = {
     "warehouse": WarehouseConfig,
     "prefect": PrefectConfig,
     "schedule": ScheduleConfig,
+    "cameras": CamerasConfig,
     "ingest": IngestConfig,
     "frames": FramesConfig,
     "cad_ingest": CadIngestConfig,

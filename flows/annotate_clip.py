@@ -1,6 +1,6 @@
 """Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner).
 
-Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: ingest -> frames -> detect ->
+Per clip the clip stages of :data:`tasks.registry.STAGES` are chained: cameras -> ingest -> frames -> detect ->
 embed -> tracking -> manual_tracks -> retrieval -> cad_selection -> correspondence_task, and
 frames -> pose -> verification. A failing clip does not stop the others: each stage run is
 reported as completed, cached (no work: unchanged inputs, config and code), failed, skipped (an upstream stage failed),
@@ -23,7 +23,7 @@ from flows.reports import StageReport, finish
 from flows.runtime import run_flow, run_tags
 from tasks.ingest import ClipSource
 from tasks.label_similarity import detector_labels
-from tasks.prefect_tasks import (cad_selection_task, correspondence_task_task, detect_task, embed_task, frames_task,
+from tasks.prefect_tasks import (cad_selection_task, cameras_task, correspondence_task_task, detect_task, embed_task, frames_task,
                                  ingest_task, manual_tracks_task, pose_task, retrieval_task, tracking_task,
                                  verification_task)
 from tasks.registry import STAGES, clip_inputs, extra_inputs
@@ -35,9 +35,12 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     """Submit the stage tasks of one clip, each fed by its upstream's future (runs of it that a killed
     process left unrecorded are recorded as interrupted first)."""
     settle_interrupted(Warehouse(root), source.clip)
-    video_sha, cameras_sha = file_sha256(source.video), file_sha256(source.cameras)
-    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras_sha, source.split,
-                                STAGES["ingest"].code_hash)
+    video_sha = file_sha256(source.video)
+    cameras_sha = file_sha256(source.cameras) if source.cameras is not None else None
+    cameras = cameras_task.submit(root, source.clip, source, config.cameras, video_sha, cameras_sha, source.intrinsics,
+                                  STAGES["cameras"].code_hash)
+    ingest = ingest_task.submit(root, source.clip, source, config.ingest, video_sha, cameras, source.split,
+                                source.time_offset_us, STAGES["ingest"].code_hash)
     frames = frames_task.submit(root, source.clip, config.frames, ingest, STAGES["frames"].code_hash, show_progress)
     wh = Warehouse(root)
 
@@ -59,7 +62,7 @@ def _submit_clip(root: str, source: ClipSource, config: Config, show_progress: b
     pose = pose_task.submit(root, source.clip, config.pose, frames, more("pose"), STAGES["pose"].code_hash)
     verify = verification_task.submit(root, source.clip, config.verification, pose, more("verification"),
                                       STAGES["verification"].code_hash)
-    return [("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
+    return [("cameras", cameras), ("ingest", ingest), ("frames", frames), ("detect", detect), ("embed", embed), ("tracking", tracking),
             ("manual_tracks", manual), ("retrieval", retrieval), ("cad_selection", selection),
             ("correspondence_task", clicks), ("pose", pose), ("verification", verify)]
 

@@ -13,6 +13,10 @@ What the pipeline keeps per track becomes one :class:`DatasetObject` per physica
   rotation (w, x, y, z) CAD -> world, scale along the CAD axes, mirror flag; object->world is
   mirror => scale => rotation => translation.
 
+World: :func:`clip_dataset` gives frames and poses in the warehouse's aligned world (+Y up);
+:meth:`ClipDataset.in_input_world` maps them to the world of the clip's camera file (undoing
+``clips.up_rotation``, :mod:`tasks.world_up`), as the exports write them.
+
 **Fragments and duplicates.** A tracker may cut one object into several tracks, and several of
 them may be posed. Each accepted pose, in order of more key-frames, then lower track id, claims every other track whose boxes the projection of its posed CAD bounding
 box covers: mean box IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist. Claimed tracks
@@ -22,12 +26,13 @@ own poses and correspondences are dropped. Tracks no pose claims stay objects of
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from cadestate.geometry import camera_to_world, project
 from cadestate.render import object_to_world
+from tasks.world_up import pose_to_input_world, stored_rotation, unalign_extrinsics
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.cad_classes import CLASSES
 from tasks.cad_export import ExportError
@@ -100,6 +105,23 @@ class ClipDataset:
     image_size: tuple[int, int]
     frames: tuple[DatasetFrame, ...]
     objects: tuple[DatasetObject, ...]
+    up_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """float64[3, 3] Q of ``clips.up_rotation``: X_aligned = Q X_input; identity once in the input world."""
+
+    def in_input_world(self) -> "ClipDataset":
+        """The same clip with frames (world->camera ``R Q``, ``t``) and poses (``Q^T T``, ``Q^T R``)
+        in the world of its camera file; ``up_rotation`` becomes the identity."""
+        Q = self.up_rotation
+        if np.array_equal(Q, np.eye(3)):
+            return self
+        frames = tuple(replace(f, R=unalign_extrinsics(f.R, f.t, Q)[0]) for f in self.frames)
+        objects = []
+        for o in self.objects:
+            if o.pose is not None:
+                T, q = pose_to_input_world(o.pose.translation, o.pose.rotation, Q)
+                o = replace(o, pose=replace(o.pose, translation=T, rotation=q))
+            objects.append(o)
+        return replace(self, frames=frames, objects=tuple(objects), up_rotation=np.eye(3))
 
 
 _BY_COCO = {label: c for c in reversed(CLASSES) for label in c.coco}
@@ -202,7 +224,7 @@ def clip_dataset(wh: Warehouse, clip: str) -> ClipDataset:
     from tasks.human_tasks import selected_models
 
     frames = clip_frames(wh, clip)
-    info = wh.read("clips", [clip], columns=["url", "width", "height"]).to_pylist()
+    info = wh.read("clips", [clip], columns=["url", "width", "height", "up_rotation"]).to_pylist()
     if not info:
         raise ExportError(f"clip {clip!r} is not in the clips table of {wh.root} (cadestate ingest)")
     image_size = (int(info[0]["height"]), int(info[0]["width"]))
@@ -235,7 +257,8 @@ def clip_dataset(wh: Warehouse, clip: str) -> ClipDataset:
             correspondences={ts: tuple(c) for ts, c in corr.items()},
             extent=tuple(model["extent"]) if model else None, symmetry=int(model["symmetry"]) if model else 1,
             keyframes=int(solved.get(tid, {}).get("num_keyframes") or 0)))
-    return ClipDataset(clip, info[0]["url"], image_size, frames, tuple(merge_objects(objects, frames, image_size)))
+    return ClipDataset(clip, info[0]["url"], image_size, frames, tuple(merge_objects(objects, frames, image_size)),
+                       stored_rotation(info[0]["up_rotation"]))
 
 
 def camera_centres(frames: tuple[DatasetFrame, ...]) -> np.ndarray:

@@ -12,6 +12,10 @@ Layout (what the official ``cad_estate`` dataset classes read)::
     cad/                              the CAD root of ``cadestate cad export-official``
     scene_list.txt                    the exported clip names, one a line (a split file)
 
+World: frames and poses are written in the world of the clip's camera file (the rotation to +Y up
+that ingest applied, ``clips.up_rotation``, is undone: :meth:`ClipDataset.in_input_world`), so the
+exported extrinsics are the camera file's own.
+
 Clip names are ``<video_id>_<start_us>`` (:mod:`tasks.clip_names`): a warehouse clip whose name
 is not that of its camera file is exported under the derived name. Two clips of different source
 videos that share a video id are refused (their frames would overwrite each other). Written into a
@@ -98,7 +102,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
         raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
     if not clips:
         raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
-    datasets = [clip_dataset(wh, c) for c in clips]
+    datasets = [clip_dataset(wh, c).in_input_world() for c in clips]
     names = [official_clip_name(ds) for ds in datasets]
     shared = shared_video_ids(zip(names, (ds.url for ds in datasets)))
     if shared:

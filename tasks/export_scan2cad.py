@@ -1,7 +1,8 @@
 """``cadestate export scan2cad``: the dataset's accepted poses as Scan2CAD files (skanti/Scan2CAD).
 
-Each clip is a "scan" (``id_scan`` = the clip name); the world is the clip's (metres, +Y up), so
-every scan's own transform is the identity. Written into ``out``:
+Each clip is a "scan" (``id_scan`` = the clip name); the world is the clip's aligned world (metres,
++Y up: the camera file's world turned by ``clips.up_rotation``, :mod:`tasks.world_up`), so every
+scan's own transform is the identity. Written into ``out``:
 
 - ``<clip>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
   no header (``EvaluateBenchmark.py`` reads every row as an alignment): the class id, the CAD id,

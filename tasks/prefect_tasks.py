@@ -15,18 +15,20 @@ from prefect import task
 from prefect.cache_policies import TASK_SOURCE, CacheKeyFnPolicy
 from prefect.utilities.hashing import hash_objects
 
-from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadSelectionConfig, CadViewsConfig, CorrespondenceTaskConfig,
+from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadSelectionConfig, CadViewsConfig, CamerasConfig, CorrespondenceTaskConfig,
                               DetectConfig, EmbedConfig, FramesConfig, IngestConfig, LabelSimilarityConfig,
                               ManualTracksConfig, PoseConfig, RetrievalConfig, TrackingConfig, VerificationConfig,
                               section_hash)
+from cadestate.lineage import digest, file_sha256
 from tasks.cad_embed import embed_library
 from tasks.cad_ingest import ingest_library
 from tasks.cad_sources import CadItem
 from tasks.cad_views import render_library
+from tasks.camera_stage import cameras_stage
 from tasks.detect import detect_clip
 from tasks.embed import embed_clip
 from tasks.frames import extract_frames
-from tasks.ingest import ClipSource, ingest_clip, ingest_inputs_hash
+from tasks.ingest import ClipSource, cameras_file, ingest_clip, ingest_source_digest
 from tasks.label_similarity import label_similarity
 from tasks.manual_tracks import manual_tracks_stage
 from tasks.pose import solve_clip
@@ -50,15 +52,28 @@ def _cache_key(context: Any, parameters: dict[str, Any]) -> str | None:
 CACHE_POLICY = TASK_SOURCE + CacheKeyFnPolicy(cache_key_fn=_cache_key)
 
 
+@task(name="cameras", cache_policy=CACHE_POLICY, persist_result=True)
+def cameras_task(root: str, clip: str, source: ClipSource, cfg: CamerasConfig, video_sha256: str,
+                 cameras_sha256: str | None, intrinsics: tuple[float, ...] | None, code_hash: str) -> StageRun:
+    """``cameras_sha256``: the given camera file's (None: SfM); ``intrinsics`` is ``source.intrinsics``,
+    given apart because ``source`` is not in the cache key."""
+    wh = Warehouse(root)
+    return run_stage(
+        wh, clip, "cameras", config_hash=section_hash("cameras", cfg), code_hash=code_hash,
+        inputs_hash=digest("cameras-inputs", video_sha256, cameras_sha256 or "sfm", str(intrinsics)),
+        body=lambda run_id: cameras_stage(wh, cfg, source, cameras_sha256, run_id),
+    )
+
+
 @task(name="ingest", cache_policy=CACHE_POLICY, persist_result=True)
 def ingest_task(root: str, clip: str, source: ClipSource, cfg: IngestConfig, video_sha256: str,
-                cameras_sha256: str, split: str, code_hash: str) -> StageRun:
-    """``split`` is ``source.split``, given apart because ``source`` is not in the cache key."""
+                cameras: StageRun, split: str, time_offset_us: int, code_hash: str) -> StageRun:
+    """``split`` and ``time_offset_us`` are ``source``'s, given apart because ``source`` is not in the cache key."""
     wh = Warehouse(root)
     return run_stage(
         wh, clip, "ingest", config_hash=section_hash("ingest", cfg), code_hash=code_hash,
-        inputs_hash=ingest_inputs_hash(clip, video_sha256, cameras_sha256, split),
-        body=lambda run_id: ingest_clip(wh, cfg, source, video_sha256, cameras_sha256, run_id),
+        inputs_hash=upstream_inputs_hash([cameras.output_hash, ingest_source_digest(video_sha256, split, time_offset_us)]),
+        body=lambda run_id: ingest_clip(wh, cfg, source, video_sha256, file_sha256(cameras_file(wh, source)), run_id),
     )
 
 
@@ -222,7 +237,7 @@ def verification_task(root: str, clip: str, cfg: VerificationConfig, pose: Stage
     return _human_task(root, clip, "verification", cfg, pose, more_inputs, code_hash, verification_stage)
 
 
-STAGE_TASKS = {"ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
+STAGE_TASKS = {"cameras": cameras_task, "ingest": ingest_task, "frames": frames_task, "detect": detect_task, "embed": embed_task,
                "tracking": tracking_task, "manual_tracks": manual_tracks_task, "retrieval": retrieval_task,
                "cad_selection": cad_selection_task, "correspondence_task": correspondence_task_task, "pose": pose_task, "verification": verification_task,
                "cad_ingest": cad_ingest_task, "cad_views": cad_views_task, "cad_embed": cad_embed_task,

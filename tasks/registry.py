@@ -35,8 +35,10 @@ class StageDef:
 STAGES: dict[str, StageDef] = {
     s.name: s
     for s in (
-        StageDef("ingest", "clip", (), ("clips",), ("tasks.ingest", "tasks.cameras", "tasks.video"),
-                 "validate the video and camera file, keep them, register the clip"),
+        StageDef("cameras", "clip", (), (), ("tasks.camera_stage", "tasks.sfm", "tasks.cameras", "tasks.video"),
+                 "the clip's camera file: the given one, else structure from motion on the video (pycolmap)"),
+        StageDef("ingest", "clip", ("cameras",), ("clips",), ("tasks.ingest", "tasks.cameras", "tasks.video", "tasks.world_up"),
+                 "validate the video and camera file, find the world's up, keep them, register the clip"),
         StageDef("frames", "clip", ("ingest",), ("frames",), ("tasks.frames", "tasks.cameras", "tasks.video"),
                  "extract the frame at every camera timestamp"),
         StageDef("detect", "clip", ("frames",), ("detections",), ("tasks.detect", "tasks.detectors", "tasks.models.nanodet"),
@@ -122,6 +124,10 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
     classes); for the human-task stages, the answers in force of their label kind (ingesting labels
     makes them stale: a rerun resumes them)."""
+    if stage == "ingest":
+        from tasks.ingest import registered_inputs_digest
+
+        return [registered_inputs_digest(wh, clip)]
     if stage == "retrieval":
         from tasks.retrieval import library_digest
 

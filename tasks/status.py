@@ -83,9 +83,13 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
 def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     """What a user should know about each clip beyond its stages' states, one line per note:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
-    threshold or class filter) runs every later stage on nothing."""
+    threshold or class filter) runs every later stage on nothing; a clip whose world up was
+    estimated unreliably (:mod:`tasks.world_up`) may have every object pulled the wrong way."""
     notes = []
     for r in rows:
+        if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:
+            up = r.message[r.message.index("world up: ") + len("world up: "):]
+            notes.append(f"{r.clip}: world up unreliable: {up}")
         if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")

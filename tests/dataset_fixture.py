@@ -24,7 +24,8 @@ def write_frames(wh: Warehouse, clip: str, video: Path, cameras: Path, width: in
         Image.fromarray(f.rgb).save(media / f"{ts:013d}.jpg")
         paths.append(wh.relative(media / f"{ts:013d}.jpg"))
     wh.write("frames", clip, frames_table(clip, cams, paths, width, height, cams.timestamps_us))
-    wh.write("clips", clip, table_rows("clips", [{"clip": clip, "url": cams.url, "width": width, "height": height}]))
+    wh.write("clips", clip, table_rows("clips", [{"clip": clip, "url": cams.url, "width": width, "height": height,
+                                                 "up_rotation": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]}]))  # a +Y-up world
     return cams
 
 

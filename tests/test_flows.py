@@ -69,7 +69,7 @@ def test_changed_stage_config_reruns_that_stage_only(config, source):
     wh = Warehouse(config.warehouse.root)
     changed = dataclasses.replace(config, frames=FramesConfig(seek_threshold_us=0))  # seeks, same frames
     status = {r.stage: r.stale_reasons for r in pipeline_status(wh, changed)}
-    assert status == {s: ("config changed",) if s == "frames" else ("upstream stale",) if s != "ingest" else ()
+    assert status == {s: ("config changed",) if s == "frames" else ("upstream stale",) if s not in ("cameras", "ingest") else ()
                       for s in CLIP_STAGES}
     reports = run_clips([source], changed, show_progress=False)
     # frames reran and wrote the same frames: nothing downstream reruns
@@ -96,12 +96,14 @@ def test_a_bad_clip_does_not_stop_the_others(config, source, tmp_path):
     shutil.copy(source.cameras, bad_dir / "broken.txt")
     broken = ClipSource("broken", bad_dir / "broken.mp4", bad_dir / "broken.txt")
     reports = run_clips([broken, source], config, show_progress=False)
-    assert states(reports) == expect("broken", ingest="failed", rest="skipped") + expect("small", rest="completed")
-    assert "broken.mp4: cannot open video" in reports[0].message
+    # the cameras stage passes a given camera file on; ingest is the first to read the video
+    assert states(reports) == (expect("broken", cameras="completed", ingest="failed", rest="skipped")
+                               + expect("small", rest="completed"))
+    assert "broken.mp4: cannot open video" in reports[1].message
     wh = Warehouse(config.warehouse.root)
     failed = wh.read("runs", partitions=["broken"]).to_pylist()
-    assert [(r["stage"], r["status"]) for r in failed] == [("ingest", "failed")]
-    assert "cannot open video" in failed[0]["message"]
+    assert [(r["stage"], r["status"]) for r in failed] == [("cameras", "completed"), ("ingest", "failed")]
+    assert "cannot open video" in failed[1]["message"]
     assert wh.partitions("frames") == ["small"]
 
 

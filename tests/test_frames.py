@@ -21,7 +21,9 @@ from warehouse import WarehouseError, connect
 
 
 def ingest(wh, video: Path, cameras: Path, clip: str = "small"):
-    return ingest_clip(wh, IngestConfig(), ClipSource(clip, video, cameras), file_sha256(video), file_sha256(cameras), "r0")
+    # up forced to +Y: the demo world is built +Y up, and these tests compare the frames with the camera file exactly
+    return ingest_clip(wh, IngestConfig(up="+y"), ClipSource(clip, video, cameras), file_sha256(video), file_sha256(cameras),
+                       "r0")
 
 
 def test_extracted_frames_are_exactly_the_camera_frames(wh, small_clip):

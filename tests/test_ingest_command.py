@@ -46,3 +46,36 @@ def test_suspicious_intrinsics_are_a_warning(tmp_path, small_clip, started):
     assert result.code == 0 and len(started) == 1
     assert result.stderr.startswith(f"warning: {cams}:4: fy/fx = 1.75 fits frames of aspect 1.75 (width/height) but ")
     assert "(differ by 5.0%: non-square pixels or a cropped video?)" in result.stderr
+
+
+def test_a_video_alone_is_an_sfm_clip_named_after_its_file(tmp_path, small_clip, started):
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), "--intrinsics", "250,250,160,96")
+    assert result.code == 0, result.stderr
+    (item,) = started[0]
+    assert (item.clip, item.cameras, item.intrinsics, item.time_offset_us) == ("small_0", None, (250.0, 250.0, 160.0, 96.0), 0)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--intrinsics", "250,250,160"], "--intrinsics must be fx,fy,cx,cy in pixels"),
+    (["--intrinsics", "250,250,900,96"], "--intrinsics: principal point (900, 96) px is outside the 320x192 frame"),
+    (["--time-offset-us", "5"], "--time-offset-us and --align-start need a camera file"),
+])
+def test_sfm_options_are_checked(tmp_path, small_clip, started, args, message):
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), *args)
+    assert result.code == 2 and message in result.stderr and started == []
+
+
+def test_align_start_prints_the_offset_and_hands_it_on(tmp_path, small_clip, started):
+    import dataclasses
+
+    from tasks.cameras import parse_camera_file, write_camera_file
+
+    cams = parse_camera_file(small_clip.cameras_path)
+    shifted = tmp_path / "c.txt"
+    write_camera_file(shifted, dataclasses.replace(cams, timestamps_us=cams.timestamps_us + 65_233_333))
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(shifted), "--align-start")
+    assert result.code == 0, result.stderr
+    assert f"{shifted}: --align-start: time offset 65233333 µs" in result.stderr
+    assert started[0][0].time_offset_us == 65_233_333
+    refused = run_cli("-w", str(tmp_path / "w2"), "ingest", str(small_clip.video_path), str(shifted))
+    assert refused.code == 2 and "--time-offset-us N, or --align-start" in refused.stderr

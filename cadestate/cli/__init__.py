@@ -23,6 +23,7 @@ INPUT_ERRORS = {
     "cadestate.config": "ConfigError",
     "tasks.cameras": "CameraFileError",
     "tasks.video": "VideoError",
+    "tasks.sfm": "SfmError",
     "warehouse.store": "WarehouseError",
     "tasks.cad_sources": "CadSourceError",
     "tasks.cad_export": "ExportError",

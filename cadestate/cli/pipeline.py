@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from enum import Enum
 from pathlib import Path
@@ -36,6 +37,15 @@ def ingest(
         help="Dataset split of these clips: train, val, test ([manual_tracks] splits, val and test by default, get "
              "the manual-track task). Default: a clip ingested before keeps its split, a new one is train. "
              "Changing it reruns what depends on it.")] = None,
+    time_offset_us: Annotated[int, typer.Option("--time-offset-us", min=0, help=(
+        "Subtract N µs from every camera timestamp to find its frame in the video (RealEstate10K counts from the "
+        "start of the full YouTube video; a clip cut from it starts at 0). Kept in `clips`; timestamps stay as written."))] = 0,
+    align_start: Annotated[bool, typer.Option("--align-start", help=(
+        "Map the first camera timestamp to the video's first frame; allowed only when every timestamp lies past the "
+        "video's end. The offset chosen is printed."))] = False,
+    intrinsics: Annotated[Optional[str], typer.Option(help=(
+        "Without a camera file: the camera's fx,fy,cx,cy in pixels for SfM (default: the focal length is "
+        "estimated, the principal point at the image centre)."))] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).
@@ -48,9 +58,15 @@ def ingest(
     Clips are named as in CAD-Estate, <video_id>_<start_us>: the video id of the camera file's URL
     line (a YouTube id, else the URL's last path segment) and its first timestamp.
 
+    A video alone (no camera file) gets its cameras by structure from motion (the `cameras` stage,
+    pycolmap; [cameras] in the config) and is named <video file stem>_0. Every clip's world is
+    turned to +Y up at ingest ([ingest] up).
+
     \b
     Examples:
       cadestate ingest room.mp4 room.txt                 (clip room_0 when line 1 is file:///videos/room.mp4)
+      cadestate ingest room.mp4                          (cameras by SfM: clip room_0)
+      cadestate ingest clip.mp4 clip.txt --align-start   (a RealEstate10K camera file of a clip cut from its video)
       cadestate ingest room.mp4 room.txt --clip kitchen_1200000
       cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
       cadestate ingest val_clips/ --split val
@@ -59,28 +75,58 @@ def ingest(
 
     from tasks.detectors import check_detect_config
     from tasks.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
-                              registered_splits)
+                              registered_splits, sfm_source)
 
-    if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
-        pairs = [(sources[0], sources[1])]
+    sfm_intrinsics = _parse_intrinsics(intrinsics)
+    if align_start and time_offset_us:
+        raise typer.BadParameter("--align-start and --time-offset-us exclude each other")
+    if len(sources) == 1 and sources[0].is_file():
+        if time_offset_us or align_start:
+            raise typer.BadParameter("--time-offset-us and --align-start need a camera file (SfM cameras are in video time)")
+        cfg = ctx.obj.config()
+        item = sfm_source(sources[0], clip, sfm_intrinsics)
+        items, urls = [item], {item.clip: item.video.resolve().as_uri()}
     else:
-        if clip:
-            raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt, not folders")
-        pairs = [(s.video, s.cameras) for folder in sources for s in discover_clips(folder)]
-    cfg = ctx.obj.config()
-    items, urls = [], {}
-    for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts
-        checked = check_clip_inputs(video, cameras)
-        for warning in checked.warnings:
-            err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
-        items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras))
-        urls[items[-1].clip] = checked.cameras.url
+        if sfm_intrinsics:
+            raise typer.BadParameter("--intrinsics is for a video without a camera file")
+        if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
+            pairs = [(sources[0], sources[1])]
+        else:
+            if clip:
+                raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt (or VIDEO alone), not folders")
+            pairs = [(s.video, s.cameras) for folder in sources for s in discover_clips(folder)]
+        cfg = ctx.obj.config()
+        items, urls = [], {}
+        for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts
+            checked = check_clip_inputs(video, cameras, time_offset_us, align_start)
+            for warning in checked.warnings:
+                err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+            if align_start:
+                err.print(f"{escape(str(cameras))}: --align-start: time offset {checked.time_offset_us} µs (the first "
+                          "timestamp is the video's first frame)", highlight=False)
+            items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
+                                    time_offset_us=checked.time_offset_us))
+            urls[items[-1].clip] = checked.cameras.url
     check_detect_config(cfg.detect, cfg.source)
     wh = ctx.obj.open_warehouse()
     check_video_ids(wh, urls)
     known = registered_splits(wh)
     items = [dataclasses.replace(s, split=split or known.get(s.clip, "train")) for s in items]
     run_sources(ctx.obj, items, progress)
+
+
+def _parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | None:
+    """``--intrinsics fx,fy,cx,cy`` (pixels, positive focal lengths) as floats."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(map(math.isfinite, values)) or values[0] <= 0 or values[1] <= 0:
+        raise typer.BadParameter(f"--intrinsics must be fx,fy,cx,cy in pixels (four finite numbers, fx and fy > 0), "
+                                 f"got {text!r}")
+    return values  # type: ignore[return-value]
 
 
 @app.command()

@@ -1,0 +1,164 @@
+"""The world's up direction of a clip, found from its cameras, and the rotation that makes it +Y.
+
+Two world frames (see :mod:`cadestate.geometry`):
+
+- the **input world**: the frame of the clip's camera file (RealEstate10K: ORB-SLAM's, whose up is
+  arbitrary, roughly the first camera's -y; SfM: COLMAP's, arbitrary too; our renderer: +Y up);
+- the **aligned world**: the input world turned by the rotation ``Q`` (float64[3, 3]) found at
+  ingest, ``X_aligned = Q @ X_input``, so that gravity points along -Y. Every stage after ingest
+  (``frames`` and everything that reads it) works in the aligned world; ``clips.up_rotation`` keeps
+  ``Q`` and the exports map results back to the input world with ``Q.T``.
+
+Estimating gravity. People hold phones upright and level: a camera's x axis (right) is nearly
+horizontal (little roll) and its y axis (down) nearly along gravity, tilted by the pitch, which
+is often biased (phones point a little down). So the down direction ``g`` (unit, input world)
+minimises ``sum_i (x_i . g)^2 + MU * sum_i (1 - (y_i . g)^2)``: the x axes decide it whenever the
+camera pans (they span the horizontal plane), the y axes break the tie about the viewing direction
+when it does not. ``Q`` is the smallest rotation taking ``-g`` to +Y (an input world that is +Y up
+already is left almost unchanged).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from warehouse import Warehouse
+
+MU = 0.01
+"""Weight of the y axes (down) against the x axes (level) in the gravity objective."""
+MAX_ROLL_RMS_DEG = 10.0
+"""An estimate whose cameras lean further than this from level (RMS roll) is unreliable."""
+MIN_PAN_DEG = 10.0
+"""Below this spread of the cameras' right axes (RMS, degrees) only the down axes fix the tilt
+about the viewing direction, and the pitch of the phone biases it: the estimate is unreliable."""
+AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+        "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
+"""``[ingest] up`` values that force the input world's up axis (``auto`` estimates it)."""
+
+
+@dataclass(frozen=True)
+class UpEstimate:
+    """The input world's up direction and the rotation to the aligned world.
+
+    Attributes:
+      up: float64[3] unit up direction (against gravity), input world.
+      rotation: float64[3, 3] ``Q``, ``X_aligned = Q @ X_input``, ``Q @ up = (0, 1, 0)``.
+      source: ``auto`` (estimated from the cameras) or the forced axis (``+y``, ...).
+      roll_rms_deg: RMS angle of the cameras' x axes from the horizontal plane of ``up``.
+      pan_deg: RMS spread of the cameras' x axes about their mean, degrees (how much the camera pans).
+      tilt_deg: angle between ``up`` and the input world's +Y, degrees.
+      note: why the estimate is unreliable ("" when it is not, or when it was forced).
+    """
+
+    up: np.ndarray
+    rotation: np.ndarray
+    source: str
+    roll_rms_deg: float
+    pan_deg: float
+    tilt_deg: float
+    note: str = ""
+
+    @property
+    def reliable(self) -> bool:
+        return not self.note
+
+
+def rotation_to_y(up: np.ndarray) -> np.ndarray:
+    """The smallest rotation float64[3, 3] taking the unit vector ``up`` (float[3]) to +Y
+    (about the x axis when ``up`` is -Y)."""
+    u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    y = np.array([0.0, 1.0, 0.0])
+    axis = np.cross(u, y)
+    s, c = np.linalg.norm(axis), float(u @ y)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * (K @ K)
+
+
+def _deg(radians: float) -> float:
+    return math.degrees(radians)
+
+
+def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto") -> UpEstimate:
+    """Up of the input world from the cameras' world->camera rotations float[N, 3, 3] (OpenCV
+    axes: row 0 of R is the camera's x (right), row 1 its y (down), in input-world coordinates);
+    ``forced``: ``auto`` or a key of :data:`AXES`."""
+    R = np.asarray(world_to_camera_R, dtype=np.float64)
+    x, y = R[:, 0, :], R[:, 1, :]
+    if forced != "auto":
+        if forced not in AXES:
+            raise ValueError(f"up must be 'auto' or one of {', '.join(AXES)}, got {forced!r}")
+        up = np.array(AXES[forced])
+    else:
+        n = len(R)
+        A = x.T @ x + MU * (n * np.eye(3) - y.T @ y)
+        _, vectors = np.linalg.eigh(A)
+        down = vectors[:, 0]
+        if float((y @ down).sum()) < 0:
+            down = -down
+        up = -down
+    roll = np.arcsin(np.clip(np.abs(x @ up), 0, 1))
+    mean_x = x.mean(axis=0)
+    mean_x /= max(np.linalg.norm(mean_x), 1e-12)
+    pan = np.arccos(np.clip(x @ mean_x, -1, 1))
+    roll_rms, pan_rms = _deg(float(np.sqrt((roll ** 2).mean()))), _deg(float(np.sqrt((pan ** 2).mean())))
+    tilt = _deg(float(np.arccos(np.clip(up[1], -1, 1))))
+    note = ""
+    if forced == "auto":
+        if roll_rms > MAX_ROLL_RMS_DEG:
+            note = (f"the cameras lean {roll_rms:.1f}° from level (RMS roll, more than {MAX_ROLL_RMS_DEG:g}°): "
+                    "the world's up may be wrong; set [ingest] up to force it")
+        elif pan_rms < MIN_PAN_DEG:
+            note = (f"the camera barely pans ({pan_rms:.1f}° RMS, less than {MIN_PAN_DEG:g}°): the up direction rests on "
+                    "the phone being held level in pitch; set [ingest] up to force it")
+    return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note)
+
+
+def align_extrinsics(R: np.ndarray, t: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World->camera ``(R, t)`` (float[..., 3, 3], float[..., 3]) of the input world to the aligned
+    world ``X_aligned = Q @ X_input``: ``(R @ Q.T, t)``; :func:`unalign_extrinsics` undoes it."""
+    return np.asarray(R, dtype=np.float64) @ np.asarray(Q).T, np.asarray(t, dtype=np.float64)
+
+
+def unalign_extrinsics(R: np.ndarray, t: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World->camera of the aligned world back to the input world: ``(R @ Q, t)``."""
+    return np.asarray(R, dtype=np.float64) @ np.asarray(Q), np.asarray(t, dtype=np.float64)
+
+
+def unalign_pose(translation: np.ndarray, rotation: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An object-to-world pose's translation float[3] and rotation matrix float[3, 3] in the aligned
+    world to the input world (scale and mirror are unchanged): ``(Q.T @ T, Q.T @ R)``."""
+    Qt = np.asarray(Q, dtype=np.float64).T
+    return Qt @ np.asarray(translation, dtype=np.float64), Qt @ np.asarray(rotation, dtype=np.float64)
+
+
+def stored_rotation(values: object) -> np.ndarray:
+    """``clips.up_rotation`` (9 floats, row-major; null for clips ingested before it existed:
+    identity) as float64[3, 3]."""
+    if values is None:
+        return np.eye(3)
+    return np.asarray(values, dtype=np.float64).reshape(3, 3)
+
+
+def clip_up_rotation(wh: "Warehouse", clip: str) -> np.ndarray:
+    """``Q`` float64[3, 3] of a registered clip (identity when it is not registered or older)."""
+    rows = wh.read("clips", partitions=[clip], columns=["up_rotation"]).to_pylist() if clip in wh.partitions("clips") else []
+    return stored_rotation(rows[0]["up_rotation"] if rows else None)
+
+
+def pose_to_input_world(translation: Sequence[float], rotation_wxyz: Sequence[float],
+                        Q: np.ndarray) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """An object-to-world pose (translation float[3], quaternion (w, x, y, z)) of the aligned world
+    in the camera file's world, as tuples (scale and mirror are unchanged)."""
+    from cadestate.geometry import matrix_to_quaternion, quaternion_to_matrix
+
+    T, R = unalign_pose(np.asarray(translation), quaternion_to_matrix(np.asarray(rotation_wxyz)), Q)
+    return tuple(float(v) for v in T), tuple(float(v) for v in matrix_to_quaternion(R))

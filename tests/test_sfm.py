@@ -1,0 +1,65 @@
+"""SfM cameras (tasks/sfm.py) and the ``cameras`` stage: interpolation, clear failures, a real run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.sfm_eval import align, camera_errors, umeyama
+from cadestate.config import CamerasConfig
+from cadestate.geometry import camera_to_world
+from tasks.cameras import parse_camera_file
+from tasks.sfm import SfmError, _interpolate, check_registered, run_sfm, sample_frames
+
+
+def test_interpolation_fills_gaps_and_holds_the_ends():
+    times = np.arange(6) * 100
+    registered = np.array([False, True, False, False, True, False])
+    R = np.tile(np.eye(3), (6, 1, 1))
+    R[4] = Rotation.from_euler("y", 30, degrees=True).as_matrix()
+    c = np.zeros((6, 3))
+    c[4] = [3.0, 0, 0]
+    R_all, c_all = _interpolate(times, registered, R, c)
+    np.testing.assert_allclose(c_all[:, 0], [0, 0, 1, 2, 3, 3])
+    angles = Rotation.from_matrix(R_all).as_euler("xyz", degrees=True)[:, 1]
+    np.testing.assert_allclose(angles, [0, 0, 10, 20, 30, 30], atol=1e-9)
+
+
+def test_similarity_alignment_recovers_a_turned_scaled_world():
+    rng = np.random.default_rng(0)
+    R_true = Rotation.random(20, random_state=1).as_matrix()
+    c_true = np.cumsum(rng.normal(size=(20, 3)) * 0.1, axis=0)
+    A = Rotation.random(random_state=2).as_matrix()
+    R_sfm, c_sfm = R_true @ A, 0.25 * (c_true - 1.0) @ A  # X_sfm = 0.25 A^T (X_true - 1)
+    errors = camera_errors(R_true, c_true, R_sfm, c_sfm)
+    assert errors.rotation_deg.max() < 1e-4 and errors.trajectory_pct.max() < 1e-6
+    assert align(R_true, c_true, R_sfm, c_sfm).scale == pytest.approx(4.0)
+    assert umeyama(c_sfm, c_true).scale == pytest.approx(4.0)
+
+
+def test_too_few_registered_frames_and_dropped_models_are_named():
+    registered = np.array([True] * 7 + [False] * 3)
+    with pytest.raises(SfmError, match=r"v.mp4: SfM registered 7 of 10 sampled frames \(70%\), fewer than \[cameras\] "
+                                       r"min_registered_fraction = 0.8; 2 other disconnected model\(s\) of 2, 1 frames dropped"):
+        check_registered("v.mp4", registered, CamerasConfig(), [7, 2, 1])
+    assert check_registered("v.mp4", registered, CamerasConfig(min_registered_fraction=0.7), [7]) == ""
+
+
+def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
+    with pytest.raises(SfmError, match=r"small.mp4: 1 frame\(s\) sampled at 0.1 fps; SfM needs at least 2"):
+        sample_frames(small_clip.video_path, 0.1, tmp_path)
+
+
+@pytest.mark.slow
+def test_sfm_on_a_rendered_walkthrough(small_clip):
+    """A real pycolmap run on the small demo clip (30 frames sampled at 10 fps): every frame
+    registered, cameras close to the true ones after a similarity alignment, or a clear error."""
+    cfg = CamerasConfig(sample_fps=10.0)
+    result = run_sfm(small_clip.video_path, cfg)
+    truth = parse_camera_file(small_clip.cameras_path)
+    assert result.track.timestamps_us.tolist() == truth.timestamps_us.tolist()  # the same sampled frames
+    assert result.registered_fraction >= 0.9
+    errors = camera_errors(truth.R, camera_to_world(truth.R, truth.t)[1], result.track.R,
+                           camera_to_world(result.track.R, result.track.t)[1])
+    assert np.median(errors.rotation_deg) < 5.0
