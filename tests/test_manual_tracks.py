@@ -202,7 +202,7 @@ def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
     new = _task(mwh, again.message)
     assert again.status == "paused" and new["task_id"] != task["task_id"]
     assert [t["track_id"] for t in new["existing_tracks"]] == [0]
-    assert new["previous"] == [{"label": "couch", "boxes": COUCH, "source_id": "s"}]
+    assert new["previous"] == [{"label": "couch", "boxes": COUCH, "source_id": "s", "same_as_track": None}]
     assert mwh.read("manual_tracks", [CLIP]).num_rows == 0  # the old answer does not answer the new task
 
 
