@@ -127,10 +127,10 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
             if get("category").lower() in SH3D_EXCLUDED_CATEGORIES:
                 continue
             rotation = tuple(float(v) for v in get("modelRotation").split()) or None
-            name = get("name")
+            name, item = get("name"), get("id").split("#", 1)[-1]
             yield CadItem(
-                library=library, item=get("id").split("#", 1)[-1], name=name, category=get("category"),
-                cls=classify(name, get("category")), source="sweethome3d",
+                library=library, item=item, name=name, category=get("category"),
+                cls=classify(name, get("category"), f"{library}.{slug(item)}"), source="sweethome3d",
                 path=f"{archive}!{get('model').lstrip('/')}", licence=licence, creator=get("creator") or props.get("provider", ""),
                 size_m=tuple(float(get(k, "0")) / 100.0 for k in ("width", "height", "depth")),
                 unit_m=0.01, rotation=rotation,

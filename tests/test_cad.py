@@ -134,9 +134,32 @@ def test_java_properties():
     ("Coffee table", "", "table"), ("Desk lamp", "", "lamp"), ("Desk", "", "table"), ("Tablet", "", "other"), ("Table fan", "", "other"), ("Washbasin", "", "sink"), ("Toilets unit", "", "toilet"),
     ("Toilet paper dispenser", "", "other"), ("Wall flat TV", "", "display"), ("Ficus", "", "plant"),
     ("Bookcase", "", "bookshelf"), ("Concept Sedan 01", "Vehicles", "vehicle"), ("Spoon", "Kitchen", "other"),
+    ("Winchester armchair", "Living room", "chair"), ("Winchester sofa", "", "sofa"), ("Chest", "", "cabinet"),
+    ("Chest freezer", "", "refrigerator"), ("Island", "Kitchen", "cabinet"), ("Island bath", "", "bathtub"),
+    ("Indoor bike", "", "other"), ("Doormat", "", "other"), ("Screen door", "", "door"), ("Seat Leon", "Vehicles", "vehicle"),
+    ("Range hood", "", "other"), ("TV remote control", "", "other"), ("Elevator", "Doors and windows", "other"),
+    ("Elevator door", "", "door"), ("Double-hung window", "Doors and windows", "window"), ("Motorbike", "", "vehicle"),
 ])
 def test_classify(name, category, expected):
     assert classify(name, category) == expected
+
+
+AUDIT = Path(__file__).parent / "data" / "cad_class_audit.tsv"
+
+
+@needs_sh3d
+def test_every_model_of_the_embedded_library_has_its_audited_class():
+    """tests/data/cad_class_audit.tsv: every model of the embedded Sweet Home 3D library with its
+    catalogue category, name and the class a person checked it against; a rule change that moves
+    any model, or a library that gains or loses one, shows here."""
+    lines = AUDIT.read_text(encoding="utf-8").splitlines()
+    assert lines[0].split("\t") == ["cad_id", "category", "name", "class"]
+    audited = {cad_id: (category, name, cls) for cad_id, category, name, cls in (line.split("\t") for line in lines[1:])}
+    found = {it.cad_id: (it.category, it.name, it.cls) for it in sweethome3d_items(SH3D)}
+    assert set(found) == set(audited)
+    moved = {k: (audited[k], found[k]) for k in found if found[k] != audited[k]}
+    assert not moved, f"{len(moved)} models differ from the audit: {dict(list(moved.items())[:5])}"
+    assert {cls for _, _, cls in audited.values()} <= set(BY_NAME)
 
 
 def test_class_vocabulary_is_consistent():
