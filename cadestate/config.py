@@ -87,7 +87,7 @@ class ScheduleConfig:
     inbox_split: str = _opt("train", "Dataset split of the inbox's clips (val and test clips get the manual-track task).")
     labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.")
     labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).")
-    stable_s: float = _opt(10.0, "A clip's files are taken once their sizes have not changed for this long "
+    stable_s: float = _opt(10.0, "A clip's files are taken once neither was modified (mtime) for this long "
                                  "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
     report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).")
     report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).")

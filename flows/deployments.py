@@ -82,6 +82,20 @@ def official_names(pairs: list[ClipSource]) -> list[ClipSource]:
     return named
 
 
+_SHA256: dict[tuple[str, int, int], str] = {}
+"""(path, size, mtime_ns) -> sha256 of the inbox files this serving process has read."""
+
+
+def inbox_sha256(path: Path) -> str:
+    """sha256 of an inbox file, read again only when its size or mtime changed: a served
+    ``build_dataset`` looks at every clip of the inbox on every tick, and done clips cost nothing."""
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _SHA256:
+        _SHA256[key] = file_sha256(path)
+    return _SHA256[key]
+
+
 def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
     """The pairs that need a run: not ingested yet with these exact bytes (a changed file counts as
     new), or whose last run of some stage failed or was interrupted. Clips done cost nothing."""
@@ -89,7 +103,7 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
              for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
     todo = []
     for p in pairs:
-        if (p.clip, file_sha256(p.video), file_sha256(p.cameras)) not in known:
+        if (p.clip, inbox_sha256(p.video), inbox_sha256(p.cameras)) not in known:
             todo.append(p)
             continue
         last = {r["stage"]: r["status"] for r in wh.read("runs", partitions=[p.clip], columns=["stage", "status", "started_at"])

@@ -53,6 +53,18 @@ def test_clips_done_are_not_run_again(tmp_path, small_clip):
     assert pairs_to_run(wh, [pair]) == [pair]  # its last detect run failed: it runs again
 
 
+def test_inbox_files_are_hashed_once_until_they_change(tmp_path):
+    from flows.deployments import _SHA256, inbox_sha256
+
+    f = tmp_path / "clip.txt"
+    f.write_text("a")
+    first = inbox_sha256(f)
+    assert first == inbox_sha256(f) and sum(k[0] == str(f.resolve()) for k in _SHA256) == 1  # read once
+    f.write_text("b")  # same size, new bytes (and mtime)
+    os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 1_000_000))
+    assert inbox_sha256(f) != first
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
