@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from uuid import uuid4
 
 from prefect import flow, get_run_logger
 from prefect.client.orchestration import get_client
@@ -157,7 +158,10 @@ def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str
     waits = sorted(f"{r.stage}: {r.message}" for r in reports if r.state == "paused")
     if waits:
         get_run_logger().info("clip %s waits for people (%s); suspended until labels answer it", clip, "; ".join(waits))
-        suspend_flow_run(timeout=cfg.schedule.suspend_timeout_s, key=digest(*waits))
+        # A key of its own per suspension: a resumed run starts again from its (cached) stages, and
+        # Prefect skips a suspend whose key it has seen, so a clip resumed while the same task still
+        # waits (a label that answered another clip's task) would end Completed, not Suspended.
+        suspend_flow_run(timeout=cfg.schedule.suspend_timeout_s, key=f"{digest(*waits)}:{uuid4().hex}")
     return reports
 
 
