@@ -120,6 +120,10 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
     try:
         api = Api(read_server(w).api_url)
         wait_for("the deployments", lambda: api.deployment_id("ingest_labels"))
+        crons = {d["name"]: [(x["schedule"].get("cron"), x["active"]) for x in d["schedules"]]
+                 for d in api.post("/deployments/filter", {"limit": 10})}
+        assert crons["build_dataset"] == crons["ingest_labels"] == crons["dataset_report"] == [("0 0 1 1 *", True)]
+        assert crons["annotate_clip"] == []  # run on demand, per clip
         shutil.copy(small_clip.video_path, inbox / "room_1.mp4")  # named small_0 from its camera file
         shutil.copy(small_clip.cameras_path, inbox / "room_1.txt")
         (inbox / "room_1.done").touch()
