@@ -47,7 +47,23 @@ def bench3(small_cad_library, tmp_path_factory):
         wh.write("runs", name, table_rows("runs", [{"clip": name, "run_id": f"r{i}{s}", "stage": s, "duration_s": d}
                                                    for s, d in (("frames", 2.5), ("detect", 4.0), ("pose", 1.0))]))
         clips.append((name, clip, list(posed.values()), len(gt)))
+    write_labels(wh, clips[0][0], [("verification", 3, [12.5, 7.5]), ("manual_track", 4, [30.0]),
+                                   ("cad_selection", 2, [])])
+    write_labels(wh, clips[2][0], [("correspondences", 1, [40.0])])
     return wh, clips
+
+
+def write_labels(wh: Warehouse, clip: str, files: list[tuple[str, int, list[float]]]) -> None:
+    """``label_files`` rows (kind, answers in the file) and the ``label_effort`` rows of the seconds
+    each gave (one per item: a manual_track label is track -1)."""
+    effort = []
+    for k, (kind, answers, seconds) in enumerate(files):
+        effort += [{"clip": clip, "label_sha256": f"l{k}", "kind": kind, "track_id": -1 if kind == "manual_track" else t,
+                    "seconds": sec} for t, sec in enumerate(seconds)]
+    wh.write("label_files", clip, table_rows("label_files", [
+        {"clip": clip, "label_sha256": f"l{k}", "task_id": f"t{k}", "kind": kind, "num_answers": n}
+        for k, (kind, n, _) in enumerate(files)]))
+    wh.write("label_effort", clip, table_rows("label_effort", effort))
 
 
 def test_statistics_match_a_hand_count(bench3):
@@ -76,7 +92,16 @@ def test_statistics_match_a_hand_count(bench3):
     assert s["frames_with_two_posed"] == len(ratios) and s["near_far_ratio_median"] == pytest.approx(np.median(ratios))
     assert 0 <= s["truncated_share"] <= 1
     assert s["compute_s_per_stage"] == {"detect": 12.0, "frames": 7.5, "pose": 3.0}
-    assert s["human_items"] == {} and s["answer_elapsed_s_per_posed_object"] is None
+    assert s["human_items"] == {"cad_selection": 2, "correspondences": 1, "manual_track": 4, "verification": 3}
+    assert s["annotation_s_per_kind"] == {"cad_selection": 0.0, "correspondences": 40.0, "manual_track": 30.0,
+                                          "verification": 20.0}
+    assert s["annotation_s"] == 90.0 and s["annotation_s_per_posed_object"] == pytest.approx(90.0 / len(posed))
+    assert s["items_without_seconds"] == 3  # one verification track, both cad_selection tracks
+    one = statistics(dataset_tables(wh, [clips[2][0]]))
+    assert one["annotation_s"] == 40.0 and one["items_without_seconds"] == 0
+    assert one["annotation_s_per_posed_object"] == pytest.approx(40.0 / len(clips[2][2]))
+    none = statistics(dataset_tables(wh, [clips[1][0]]))
+    assert none["human_items"] == {} and none["annotation_s_per_posed_object"] is None
 
 
 def test_html_report_pages_and_pictures(bench3, tmp_path):
@@ -87,6 +112,9 @@ def test_html_report_pages_and_pictures(bench3, tmp_path):
     index = write_report(wh, tables, statistics(tables), tmp_path / "report")
     text = index.read_text()
     assert "#Posed objects" in text and "Cost of the dataset" in text
+    per_object = f"{90.0 / sum(len(p) for _, _, p, _ in clips):.1f}"
+    assert f"<td>annotation s per posed object</td><td>{per_object}</td>" in text
+    assert "<td>answered items with no seconds recorded (missing from the sums)</td><td>3</td>" in text
     for name, _, posed, _ in clips:
         assert f'href="clips/{name}.html"' in text
         page = (tmp_path / "report" / "clips" / f"{name}.html").read_text()
