@@ -8,10 +8,14 @@ from pathlib import Path
 from PIL import Image
 
 from conftest import table_rows
+from tasks.cad_classes import CLASSES
 from tasks.cameras import CameraTrack, parse_camera_file
 from tasks.frames import frames_table
 from tasks.video import decode_at
 from warehouse import Warehouse
+
+CLASS_NAME = {c.id: c.name for c in CLASSES}
+"""Class id (what objects.json holds) -> class name (what the warehouse's tables hold)."""
 
 
 def write_frames(wh: Warehouse, clip: str, video: Path, cameras: Path, width: int, height: int) -> CameraTrack:
@@ -52,7 +56,7 @@ def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None
     ``rejected`` {track id: object}: poses refused in verification (``verified_poses`` only)."""
     verdicts = [(t, o, True) for t, o in posed.items()] + [(t, o, False) for t, o in (rejected or {}).items()]
     wh.write("verified_poses", clip, table_rows("verified_poses", [
-        {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": "x", "accepted": ok,
+        {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": CLASS_NAME[o.cls], "accepted": ok,
          "translation": list(o.translation), "rotation": list(o.rotation), "scale": list(o.scale),
          "is_mirrored": o.is_mirrored, "comment": None} for t, o, ok in verdicts]))
     wh.write("poses", clip, table_rows("poses", [{"clip": clip, "track_id": str(t),
