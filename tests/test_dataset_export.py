@@ -197,6 +197,33 @@ def test_scan2cad_round_trip(built, tmp_path):
     assert sum(appearances[CLIP].values()) == 3 and appearances[CLIP][f"{truth[MANUAL].cls}_{truth[MANUAL].cad_id}_mirrored"] >= 1
 
 
+def test_export_commands(built, tmp_path):
+    """`cadestate export official OUT` and `export scan2cad OUT` through the command line write what
+    the functions write; an unknown clip or a full folder is one error line and writes nothing."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, _, _ = built
+    w = ("-w", str(wh.root))
+    official = run_cli(*w, "export", "official", str(tmp_path / "o"), "--no-cad", "--no-progress")
+    assert official.code == 0, official.stderr
+    frames = len(wh.read("frames", [CLIP]))
+    assert official.stdout.strip() == f"wrote {tmp_path / 'o'}: 1 clips, {frames} frames, 5 objects (3 posed), 0 CAD models"
+    export_dataset(wh, tmp_path / "direct", cad=False, show_progress=False)
+    for name in ("frames.json", "objects.json"):
+        assert (tmp_path / "o" / "annotations" / CLIP / name).read_bytes() == \
+            (tmp_path / "direct" / "annotations" / CLIP / name).read_bytes()
+    assert not (tmp_path / "o" / "cad").exists()
+    scan2cad = run_cli(*w, "export", "scan2cad", str(tmp_path / "s"), "--clips", CLIP)
+    assert scan2cad.code == 0 and scan2cad.stdout.strip() == f"wrote {tmp_path / 's'}: 1 scans, 3 alignments"
+    assert len(read_csv(tmp_path / "s" / f"{CLIP}.csv")) == 3
+    for args, message in (((str(tmp_path / "o"),), f"{tmp_path / 'o'}: exists and is not empty"),
+                          ((str(tmp_path / "new"), "--clips", "nope"), "clip 'nope' has no frames")):
+        assert_clean_error(run_cli(*w, "export", "official", *args, "--no-progress"), mentions=message)
+    assert_clean_error(run_cli(*w, "export", "scan2cad", str(tmp_path / "new"), "--clips", "nope"),
+                       mentions="clip 'nope' has no frames")
+    assert not (tmp_path / "new").exists()
+
+
 def read_csv_text(text: str, tmp_path) -> list[Alignment]:
     (tmp_path / "again.csv").write_text(text)
     return read_csv(tmp_path / "again.csv")

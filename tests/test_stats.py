@@ -168,6 +168,28 @@ def test_bench_report_scores_the_poses_in_every_mode(bench3):
     assert (bench / "report.md").read_text().strip() == result.stdout.strip()
 
 
+def test_stats_command(bench3, tmp_path):
+    """`cadestate stats --where ... --html OUT --json`: the figures of the chosen clips as one JSON
+    document on stdout, the report written; a bad --where is one error line and writes nothing."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, clips = bench3
+    name = clips[1][0]
+    result = run_cli("-w", str(wh.root), "stats", "--where", f"clip = '{name}'", "--html", str(tmp_path / "r"), "--json")
+    assert result.code == 0, result.stderr
+    figures = json.loads(result.stdout)
+    assert figures == json.loads(json.dumps(statistics(dataset_tables(wh, [name]))))
+    assert figures["scenes"] == 1 and figures["posed_objects"] == len(clips[1][2])
+    assert result.stderr.strip() == f"wrote {tmp_path / 'r' / 'index.html'}"
+    assert re.findall(r'href="clips/([^"]+)\.html"', (tmp_path / "r" / "index.html").read_text()) == [name]
+    text = run_cli("-w", str(wh.root), "stats")
+    assert text.code == 0 and "#Scenes (clips): 3" in text.stdout
+    assert f"annotation s per posed object: {90.0 / sum(len(p) for _, _, p, _ in clips):.1f}" in text.stdout
+    bad = run_cli("-w", str(wh.root), "stats", "--where", "no_such_column = 1", "--html", str(tmp_path / "bad"), "--json")
+    assert_clean_error(bad, mentions="error: --where 'no_such_column = 1': SQL error: ")
+    assert bad.stdout == "" and not (tmp_path / "bad").exists()
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
 def test_html_report_renders_in_chromium(bench3, tmp_path):
     from tasks.stats_report import write_report

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import app, out
+from cadestate.cli.common import app, err, out
 
 export_app = typer.Typer(help="Write the dataset out: the official CAD-Estate layout, or Scan2CAD files.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
@@ -81,4 +81,5 @@ def stats(
     if html is not None:
         from tasks.stats_report import write_report
 
-        out.print(f"wrote {write_report(wh, tables, figures, html)}")
+        index = write_report(wh, tables, figures, html)
+        (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document
