@@ -111,7 +111,7 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     solved = score_all(in_input_world(_predictions([r for r in rows if r["status"] == "ok"]), wh), gt, truth, symmetries)
     accepted = (score_all(in_input_world(_predictions([r for r in verdicts if r["accepted"]]), wh), gt, truth, symmetries)
                 if verdicts else None)
-    annotated = {truth[(r["clip"], r["track_id"])] for r in rows if (r["clip"], r["track_id"]) in truth}
+    annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,
             "solved": {m: v.as_dict() for m, v in solved.items()},

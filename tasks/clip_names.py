@@ -12,6 +12,11 @@ camera file (its URL):
   ``-``.
 
 The start timestamp is the first camera line's timestamp (µs since the start of the video).
+
+A name given by the user (``--clip``) must start at that first timestamp. Its video id must be the
+URL's for a YouTube URL (the official convention: frames live under the YouTube id); for any other
+URL it may be any id of ``[A-Za-z0-9_-]`` characters, so two local files both called ``room.mp4``
+can be told apart.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from urllib.parse import parse_qs, urlsplit
 
 _CLIP = re.compile(r"^(?P<video>.+)_(?P<start>\d+)$")
 _YOUTUBE_ID = re.compile(r"^[A-Za-z0-9_-]{11}$")
+_SAFE_VIDEO_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 _YOUTUBE_HOSTS = {"youtube.com", "www.youtube.com", "m.youtube.com", "music.youtube.com", "youtube-nocookie.com",
                   "www.youtube-nocookie.com"}
 
@@ -55,6 +61,12 @@ def video_id_of(name: str) -> str:
     return parsed.video_id if parsed else name
 
 
+def is_youtube_url(url: str) -> bool:
+    """Whether ``url`` is on a YouTube host (``youtube.com``, ``youtu.be`` and their variants)."""
+    host = urlsplit(url.strip()).netloc.lower()
+    return host in _YOUTUBE_HOSTS or host in ("youtu.be", "www.youtu.be")
+
+
 def video_id_from_url(url: str) -> str:
     """The video id of a camera file's URL line (module docstring); "" when it names none."""
     url = url.strip()
@@ -67,7 +79,7 @@ def video_id_from_url(url: str) -> str:
             segments = [s for s in parts.path.split("/") if s]
             vid = segments[1] if len(segments) >= 2 and segments[0] in ("embed", "shorts", "live", "v") else ""
         return vid if _YOUTUBE_ID.match(vid) else ""
-    if host in ("youtu.be", "www.youtu.be"):
+    if is_youtube_url(url):
         vid = parts.path.strip("/")
         return vid if _YOUTUBE_ID.match(vid) else ""
     last = PurePosixPath(parts.path or url).name
@@ -88,7 +100,8 @@ def derive_clip_name(url: str, first_timestamp_us: int, source: str = "camera fi
 
 def check_clip_name(name: str, url: str, first_timestamp_us: int, source: str = "camera file") -> None:
     """Raise :class:`ClipNameError` unless ``name`` is ``<video_id>_<start_us>`` with the camera
-    file's first timestamp and (when its URL names one) its video id."""
+    file's first timestamp and a video id of ``[A-Za-z0-9_-]``, which for a YouTube URL must be
+    the URL's own id (any other URL, e.g. ``file://``, leaves the video id to the user)."""
     parsed = parse_clip_name(name)
     if parsed is None:
         raise ClipNameError(f"clip name {name!r} is not <video_id>_<start_us> (the official CAD-Estate convention); "
@@ -96,10 +109,13 @@ def check_clip_name(name: str, url: str, first_timestamp_us: int, source: str = 
     if parsed.start_us != first_timestamp_us:
         raise ClipNameError(f"clip name {name!r}: start {parsed.start_us} µs is not the first timestamp of {source} "
                             f"({first_timestamp_us} µs)")
+    if not _SAFE_VIDEO_ID.match(parsed.video_id):
+        raise ClipNameError(f"clip name {name!r}: video id {parsed.video_id!r} has characters outside "
+                            "[A-Za-z0-9_-] (it names the clip's frame folder)")
     vid = video_id_from_url(url)
-    if vid and parsed.video_id != vid:
-        raise ClipNameError(f"clip name {name!r}: video id {parsed.video_id!r} is not the one line 1 of {source} "
-                            f"names ({vid!r})")
+    if vid and is_youtube_url(url) and parsed.video_id != vid:
+        raise ClipNameError(f"clip name {name!r}: video id {parsed.video_id!r} is not the YouTube id line 1 of "
+                            f"{source} names ({vid!r})")
 
 
 def _suggest(url: str, first_timestamp_us: int, source: str) -> str:

@@ -17,6 +17,7 @@ import math
 import os
 import shutil
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from cadestate.config import IngestConfig
 from cadestate.lineage import digest
 from schemas.core import DEFAULT_SPLIT
 from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file
-from tasks.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids
+from tasks.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.stage import StageOutput
 from tasks.video import VideoInfo, probe_video
 from tasks.world_up import estimate_up
@@ -346,12 +347,15 @@ def official_clip_name(track: CameraTrack, cameras: Path, given: str | None = No
     return derive_clip_name(track.url, first, str(cameras))
 
 
-def check_video_ids(wh: Warehouse, new: dict[str, str]) -> None:
-    """Refuse clips ``new`` (name -> URL line) whose video id another clip of the warehouse (or of
-    ``new``) has with a different URL: the official layout keeps a video's frames under its id."""
-    known = {r["clip"]: r["url"] for r in wh.read("clips", columns=["clip", "url"]).to_pylist()}
-    clash = shared_video_ids({**known, **new}.items())
+def check_video_ids(wh: Warehouse, new: Sequence[tuple[str, str]]) -> None:
+    """Refuse clips ``new`` (clip name, URL line) whose video id another clip of the warehouse (or of
+    ``new``, or a registered clip of the same name) has with a different URL: the official layout
+    keeps a video's frames under its id, so two videos under one id would mix."""
+    known = [(r["clip"], r["url"]) for r in wh.read("clips", columns=["clip", "url"]).to_pylist()]
+    clash = shared_video_ids([*known, *new])
     if clash:
-        vid, names = next(iter(clash.items()))
-        raise ClipNameError(f"clips {', '.join(names)} come from different videos (line 1 of their camera files) but "
-                            f"share the video id {vid!r}: give one of them its own name with --clip")
+        vid = next(iter(clash))
+        pairs = sorted({(n, u.strip()) for n, u in [*known, *new] if video_id_of(n) == vid})
+        listed = ", ".join(f"{n} ({u or 'no URL'})" for n, u in pairs)
+        raise ClipNameError(f"clips {listed} come from different videos (line 1 of their camera files) but share the "
+                            f"video id {vid!r}: give one of them its own name with --clip")

@@ -12,8 +12,11 @@ objects and those with > 100 and > 1,000, posed objects per scene, posed objects
 nearest to the farthest object distance (camera centre to object translation, world metres); per
 visible posed object and frame, the truncation: the share of its projected CAD bounding box (the
 box of the 8 posed corners, pixels) outside the image. Cost: compute seconds per stage (``runs``),
-human items answered per task kind (``label_files.num_answers``), and elapsed seconds from each task
-file to its answer per posed object (label files carry no effort time: an upper bound).
+human items answered per task kind (``label_files.num_answers``), and annotation seconds: the
+``seconds`` label files give per item (``label_effort``; a manual_track label is one item, any other
+one item per track answered), summed over every ingested label file (a superseded answer cost time
+too), per kind and per posed object, with the count of items that gave no ``seconds`` (their time
+is missing from the sum).
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ class DatasetTables:
     physical object); ``visible``: clip, timestamp_us, track_id, class, distance_m, truncated (one
     row per posed object and frame it has a box on; distance and truncation NaN when a corner of
     its box is behind the camera); ``frames``: clip, timestamp_us; ``runs``: stage, duration_s;
-    ``labels``: kind, num_answers, elapsed_s."""
+    ``labels`` (one row per ingested label file): kind, num_answers, items (answered items: 1 for
+    manual_track, else num_answers), timed_items (items with ``seconds``), seconds (their sum)."""
 
     clips: list[str]
     objects: object
@@ -93,9 +97,11 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
         frames_df = con.execute("SELECT clip, timestamp_us FROM frames WHERE list_contains(?, clip)", params).df()
         runs_df = con.execute("SELECT stage, duration_s FROM runs WHERE list_contains(?, clip)", params).df()
         labels_df = con.execute(
-            "SELECT f.kind, f.num_answers, epoch(f.created_at) - epoch(t.created_at) AS elapsed_s FROM label_files f "
-            "LEFT JOIN (SELECT clip, task_id, min(created_at) AS created_at FROM label_tasks GROUP BY ALL) t "
-            "USING (clip, task_id) WHERE list_contains(?, f.clip)", params).df()
+            "SELECT f.kind, any_value(f.num_answers) AS num_answers, "
+            "CASE WHEN f.kind = 'manual_track' THEN 1 ELSE any_value(f.num_answers) END AS items, "
+            "count(e.seconds) AS timed_items, coalesce(sum(e.seconds), 0.0) AS seconds FROM label_files f "
+            "LEFT JOIN label_effort e USING (clip, label_sha256, ingested_at) WHERE list_contains(?, f.clip) "
+            "GROUP BY f.clip, f.label_sha256, f.ingested_at, f.kind", params).df()
     finally:
         con.close()
     columns = {"objects": ["clip", "track_id", "class", "cad_id", "posed", "automatic"],
@@ -112,7 +118,8 @@ def statistics(t: DatasetTables) -> dict:
     per_frame = t.visible.dropna(subset=["distance_m"]).groupby(["clip", "timestamp_us"])["distance_m"]
     ratios = (per_frame.min() / per_frame.max())[per_frame.count() >= 2]
     truncated = t.visible["truncated"].dropna()
-    seconds = t.labels["elapsed_s"].dropna().clip(lower=0)
+    timed = int(t.labels["timed_items"].sum())
+    seconds = float(t.labels["seconds"].sum())
     return {
         "scenes": n_clips, "frames": n_frames, "frames_per_scene": n_frames / n_clips if n_clips else 0.0,
         "objects": len(t.objects), "posed_objects": len(posed), "classes": int(per_class.size),
@@ -128,7 +135,10 @@ def statistics(t: DatasetTables) -> dict:
         "per_class": {k: int(v) for k, v in per_class.sort_index().items()},
         "compute_s_per_stage": {k: round(float(v), 2) for k, v in t.runs.groupby("stage")["duration_s"].sum().items()},
         "human_items": {k: int(v) for k, v in t.labels.groupby("kind")["num_answers"].sum().items()},
-        "answer_elapsed_s_per_posed_object": float(seconds.sum() / len(posed)) if len(posed) and len(seconds) else None,
+        "annotation_s": round(seconds, 3),
+        "annotation_s_per_kind": {k: round(float(v), 3) for k, v in t.labels.groupby("kind")["seconds"].sum().items()},
+        "items_without_seconds": int(t.labels["items"].sum()) - timed,
+        "annotation_s_per_posed_object": seconds / len(posed) if len(posed) and timed else None,
     }
 
 
@@ -144,3 +154,12 @@ def statistics_lines(stats: dict) -> list[tuple[str, str]]:
     """(label, value) rows of Table 2 and section 4, values formatted."""
     fmt = lambda v: "-" if v is None else f"{v:.2f}" if isinstance(v, float) else str(v)  # noqa: E731
     return [(label, fmt(stats[key])) for key, label in TABLE_ROWS]
+
+
+def annotation_cost_lines(stats: dict) -> list[tuple[str, str]]:
+    """(label, value) rows of the annotation time the label files record (``label_effort``)."""
+    per_object = stats["annotation_s_per_posed_object"]
+    rows = [(f"annotation s: {k}", f"{v:.1f}") for k, v in stats["annotation_s_per_kind"].items()]
+    rows.append(("annotation s per posed object", "-" if per_object is None else f"{per_object:.1f}"))
+    rows.append(("answered items with no seconds recorded (missing from the sums)", str(stats["items_without_seconds"])))
+    return rows

@@ -16,7 +16,7 @@ import numpy as np
 
 from tasks.dataset_objects import ClipDataset, clip_dataset
 from tasks.human_tasks import evenly_spaced
-from tasks.stats import DatasetTables, statistics_lines
+from tasks.stats import DatasetTables, annotation_cost_lines, statistics_lines
 from warehouse import Warehouse
 
 KEYFRAMES = 6
@@ -120,9 +120,7 @@ def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -
             figures.append("truncation.png")
     cost = [(f"compute s: {k}", v) for k, v in stats["compute_s_per_stage"].items()]
     cost += [(f"human items answered: {k}", v) for k, v in stats["human_items"].items()]
-    elapsed = stats["answer_elapsed_s_per_posed_object"]
-    cost.append(("elapsed s from task to answer per posed object (no effort time is recorded: an upper bound)",
-                 "-" if elapsed is None else f"{elapsed:.1f}"))
+    cost += annotation_cost_lines(stats)
     links = []
     for clip in tables.clips:
         ds = clip_dataset(wh, clip)

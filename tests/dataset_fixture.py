@@ -8,10 +8,14 @@ from pathlib import Path
 from PIL import Image
 
 from conftest import table_rows
+from tasks.cad_classes import CLASSES
 from tasks.cameras import CameraTrack, parse_camera_file
 from tasks.frames import frames_table
 from tasks.video import decode_at
 from warehouse import Warehouse
+
+CLASS_NAME = {c.id: c.name for c in CLASSES}
+"""Class id (what objects.json holds) -> class name (what the warehouse's tables hold)."""
 
 
 def write_frames(wh: Warehouse, clip: str, video: Path, cameras: Path, width: int, height: int) -> CameraTrack:
@@ -46,11 +50,40 @@ def write_tracks(wh: Warehouse, clip: str, cams: CameraTrack, tracks: dict) -> N
     wh.write("tracks", clip, table_rows("tracks", rows))
 
 
-def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None = None) -> None:
-    """``verified_poses`` (accepted, the ground-truth pose) and ``poses`` rows of ``{track id: object}``."""
+def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None = None,
+                   rejected: dict | None = None) -> None:
+    """``verified_poses`` (accepted, the ground-truth pose) and ``poses`` rows of ``{track id: object}``;
+    ``rejected`` {track id: object}: poses refused in verification (``verified_poses`` only)."""
+    verdicts = [(t, o, True) for t, o in posed.items()] + [(t, o, False) for t, o in (rejected or {}).items()]
     wh.write("verified_poses", clip, table_rows("verified_poses", [
-        {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": "x", "accepted": True,
+        {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": CLASS_NAME[o.cls], "accepted": ok,
          "translation": list(o.translation), "rotation": list(o.rotation), "scale": list(o.scale),
-         "is_mirrored": o.is_mirrored, "comment": None} for t, o in posed.items()]))
+         "is_mirrored": o.is_mirrored, "comment": None} for t, o, ok in verdicts]))
     wh.write("poses", clip, table_rows("poses", [{"clip": clip, "track_id": str(t),
                                                   "num_keyframes": (keyframes or {}).get(t, 2)} for t in posed]))
+
+
+def write_selection(wh: Warehouse, clip: str, chosen: dict[int, str | None]) -> None:
+    """A cad_selection task answered: ``cad_candidates`` (the chosen model, rank 1, per track) and
+    the label file choosing ``{track id: cad_id or None}`` (what :func:`tasks.human_tasks.selected_models` reads)."""
+    from tasks.human_tasks import cad_selection_task_id
+
+    wh.write("cad_candidates", clip, table_rows("cad_candidates", [
+        {"clip": clip, "track_id": t, "rank": 1, "cad_id": c or "none"} for t, c in chosen.items()]))
+    task = cad_selection_task_id(wh, clip)
+    head = {"clip": clip, "label_sha256": "sel", "task_id": task}
+    wh.write("label_files", clip, table_rows("label_files", [{**head, "kind": "cad_selection", "num_answers": len(chosen)}]))
+    wh.write("cad_selection_labels", clip, table_rows("cad_selection_labels", [
+        {**head, "track_id": t, "cad_id": c, "rank": 1 if c else None} for t, c in chosen.items()]))
+
+
+def write_manual_track_task(wh: Warehouse, clip: str, keyframes: list[int]) -> None:
+    """A manual_track task on the key-frames ``keyframes`` (µs) and a label file answering it."""
+    import json
+
+    head = {"clip": clip, "task_id": f"{clip}.manual_track.t"}
+    wh.write("label_tasks", clip, table_rows("label_tasks", [
+        {**head, "kind": "manual_track", "num_items": len(keyframes),
+         "document": json.dumps({"keyframes": [{"timestamp_us": ts} for ts in keyframes]})}]))
+    wh.write("label_files", clip, table_rows("label_files", [
+        {**head, "label_sha256": "mt", "kind": "manual_track", "num_answers": 1}]))

@@ -43,9 +43,23 @@ def test_check_clip_name_names_the_problem():
         check_clip_name("room_01", url, 500, "a.txt")
     with pytest.raises(ClipNameError, match=r"not <video_id>_<start_us>.*gives '0gBW3RDqyMc_500'"):
         check_clip_name("room", url, 500)
-    with pytest.raises(ClipNameError, match=r"video id 'other' is not the one line 1 of camera file names"):
+    with pytest.raises(ClipNameError, match=r"video id 'other' is not the YouTube id line 1 of camera file names"):
         check_clip_name("other_500", url, 500)
     check_clip_name("mine_7", "", 7)  # a URL line naming no video: any video id
+
+
+def test_a_local_video_may_get_any_safe_video_id():
+    check_clip_name("room2_0", "file:///b/room.mp4", 0)  # two files called room.mp4 told apart
+    check_clip_name("kitchen_1200000", "file:///videos/room.mp4", 1200000)  # the `cadestate ingest --help` example
+    check_clip_name("walk-2_0", "synthetic://walkthrough/bench-7-00", 0)
+    with pytest.raises(ClipNameError, match=r"'kitchen_5': start 5 µs is not the first timestamp of r.txt \(0 µs\)"):
+        check_clip_name("kitchen_5", "file:///videos/room.mp4", 0, "r.txt")
+    with pytest.raises(ClipNameError, match=r"'my room_0': video id 'my room' has characters outside \[A-Za-z0-9_-\]"):
+        check_clip_name("my room_0", "file:///videos/room.mp4", 0)
+    with pytest.raises(ClipNameError, match="video id '../up' has characters outside"):
+        check_clip_name("../up_0", "file:///videos/room.mp4", 0)
+    with pytest.raises(ClipNameError, match="is not the YouTube id"):
+        check_clip_name("room2_0", "https://youtu.be/ZxUv_7CnPBE", 0)  # YouTube stays strict
 
 
 def test_shared_video_ids():

@@ -3,12 +3,14 @@ from the official format description (tests/official_loader.py).
 
 The warehouse is built by hand from a generated clip's ground truth (no pipeline run): the clip's
 frames, automatic tracks from its ground-truth boxes (the biggest object cut into two fragments,
-both posed: one physical object), a manual track, accepted poses = the ground truth, and exact
-correspondences on two key-frames. Needs the Sweet Home 3D furniture (tests/conftest.py).
+both posed: one physical object), a manual track posed mirrored, accepted poses = the ground truth,
+a rejected pose, a track with no model chosen, an answered manual-track task (its key-frames), and
+exact correspondences on two key-frames. Needs the Sweet Home 3D furniture (tests/conftest.py).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -18,9 +20,9 @@ import pytest
 from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.render import object_to_world
 from conftest import table_rows
-from dataset_fixture import write_accepted, write_frames, write_tracks
+from dataset_fixture import write_accepted, write_frames, write_manual_track_task, write_selection, write_tracks
 from official_loader import image_path, load_frames, load_objects, to_pixels
-from schemas.official import read_objects
+from schemas.official import TrackEntry, read_objects
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.cameras import parse_camera_file
 from tasks.export_official import export_dataset
@@ -31,9 +33,19 @@ SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=
 CLIP = "bench-9-00_0"
 
 
+MANUAL = MANUAL_TRACK_BASE + 7
+KEYFRAMES = (0, 9, 19)
+"""Indices of the frames that are key-frames of the answered manual-track task."""
+CORNER_FRAMES = 6
+"""Frames (the first ones) with a box of tracks 3 and 4."""
+
+
 @pytest.fixture(scope="module")
 def built(small_cad_library, tmp_path_factory):
-    """(warehouse, generated clip, {track id: ground-truth track id}) of the hand-built warehouse."""
+    """(warehouse, generated clip, {track id: the object its accepted pose is}): tracks 0 and 1 are
+    fragments of the biggest object, 2 the second, MANUAL a manual track of the third, posed
+    mirrored; 3 and 4 are tracks of small boxes in two image corners (no posed model covers them),
+    3 with the second's model chosen and a rejected pose, 4 with no model chosen ("none fits")."""
     lib, rows = small_cad_library
     tmp = tmp_path_factory.mktemp("export")
     clip = generate_clip(tmp / "bench", CLIP, 21, rows, lib.root, SPEC)
@@ -42,17 +54,23 @@ def built(small_cad_library, tmp_path_factory):
     cams = write_frames(wh, CLIP, clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
     gt = read_objects(clip.objects_path).objects
     ranked = sorted(gt, key=lambda o: -len(o.track))
-    big, second, third = ranked[0], ranked[1], ranked[2]
+    big, second, third = ranked[:3]
     half = len(big.track) // 2
-    write_tracks(wh, CLIP, cams, {0: (big, big.track[:half]), 1: (big, big.track[half:]), 2: (second, second.track)})
+    stamps = cams.timestamps_us.tolist()[:CORNER_FRAMES]
+    write_tracks(wh, CLIP, cams, {0: (big, big.track[:half]), 1: (big, big.track[half:]), 2: (second, second.track),
+                                  3: (None, [TrackEntry(ts, (0.0, 0.0, 0.06, 0.06), None) for ts in stamps]),
+                                  4: (None, [TrackEntry(ts, (0.94, 0.94, 1.0, 1.0), None) for ts in stamps])})
     index = {ts: i for i, ts in enumerate(cams.timestamps_us.tolist())}
-    manual = MANUAL_TRACK_BASE + 7
     wh.write("manual_tracks", CLIP, table_rows("manual_tracks", [
-        {"clip": CLIP, "track_id": manual, "label": "couch", "timestamp_us": e.timestamp,
+        {"clip": CLIP, "track_id": MANUAL, "label": "couch", "timestamp_us": e.timestamp,
          "frame_index": index[e.timestamp], "box": list(e.box), "vector": [0.0]} for e in third.track]))
-    write_accepted(wh, CLIP, {0: big, 1: big, 2: second, manual: third}, {0: 2, 1: 1, 2: 2, manual: 2})
+    mirrored = dataclasses.replace(third, is_mirrored=True)  # a mirrored pose, whatever the generator drew
+    write_accepted(wh, CLIP, {0: big, 1: big, 2: second, MANUAL: mirrored}, {0: 2, 1: 1, 2: 2, MANUAL: 2},
+                   rejected={3: dataclasses.replace(second, is_mirrored=True)})
+    write_selection(wh, CLIP, {3: second.cad_id, 4: None})
+    write_manual_track_task(wh, CLIP, [int(cams.timestamps_us[i]) for i in KEYFRAMES])
     wh.write("correspondences", CLIP, table_rows("correspondences", _clicks(wh, rows, cams, {2: second})))
-    return wh, clip, {0: big.track_id, 2: second.track_id, manual: third.track_id}
+    return wh, clip, {0: big, 2: second, MANUAL: mirrored}
 
 
 def _clicks(wh, rows, cams, posed) -> list[dict]:
@@ -82,11 +100,12 @@ def test_official_export_reads_back(built, tmp_path):
     wh, clip, truth = built
     out = tmp_path / "dataset"
     counts = export_dataset(wh, out, show_progress=False)
-    assert counts["clips"] == 1 and counts["objects"] == 3 and counts["posed_objects"] == 3
+    assert counts["clips"] == 1 and counts["objects"] == 5 and counts["posed_objects"] == 3
     assert (out / "scene_list.txt").read_text() == f"{CLIP}\n"
     frames = load_frames(out / "annotations" / CLIP / "frames.json")
     objects = load_objects(out / "annotations" / CLIP / "objects.json", out / "cad")
-    assert frames.clip_name == CLIP and frames.image_size == (SPEC.height, SPEC.width) and not frames.key_frames.any()
+    assert frames.clip_name == CLIP and frames.image_size == (SPEC.height, SPEC.width)
+    assert np.flatnonzero(frames.key_frames).tolist() == list(KEYFRAMES)  # the answered manual-track task's
     for ts in frames.timestamps:  # the official frame layout, no collision
         assert image_path(out / "frames", CLIP, int(ts)).is_file()
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["bench-9-00"]
@@ -95,14 +114,16 @@ def test_official_export_reads_back(built, tmp_path):
     whole = {(f["timestamp"], v["track_id"]): v["visible_fraction"] > 0.999 and v["truncated_fraction"] == 0
              for f in visibility["frames"] for v in f["objects"]}
     by_track = {o.track_id: o for o in objects}
-    assert set(by_track) == {"0", "2", str(MANUAL_TRACK_BASE + 7)}  # track 1 is a fragment of track 0's object
-    assert not by_track[str(MANUAL_TRACK_BASE + 7)].automatic and by_track["0"].automatic
-    assert set(by_track["0"].boxes) == {e.timestamp for e in gt[truth[0]].track}  # both fragments' boxes
-    for tid, o in by_track.items():
-        g = gt[truth[int(tid)]]
+    assert set(by_track) == {"0", "2", "3", "4", str(MANUAL)}  # track 1 is a fragment of track 0's object
+    assert not by_track[str(MANUAL)].automatic and by_track["0"].automatic and by_track["3"].automatic
+    assert set(by_track["0"].boxes) == {e.timestamp for e in truth[0].track}  # both fragments' boxes
+    for tid in map(int, sorted(by_track.keys() - {"3", "4"})):
+        o, g = by_track[str(tid)], truth[tid]
         assert o.class_id == g.cls and o.cad_id == g.cad_id
         np.testing.assert_allclose(o.object_to_world, object_to_world(g.translation, g.rotation, g.scale, g.is_mirrored),
                                    atol=1e-6)
+        if g != gt[g.track_id]:
+            continue  # posed unlike the ground truth (mirrored): its boxes are not the model's
         # Projected with the official math, the triangles' extent is the ground-truth box where wholly in view.
         checked = 0
         for i, ts in enumerate(frames.timestamps.tolist()):
@@ -139,24 +160,68 @@ def test_official_export_refuses_a_full_folder_and_unknown_clips(built, tmp_path
     assert not (tmp_path / "new").exists()
 
 
+def test_unposed_objects_carry_no_pose(built, tmp_path):
+    """objects.json as written: a manual track is not automatic; a rejected pose keeps its chosen
+    model but no translation, rotation, scale or mirror flag; a track with no model has neither."""
+    wh, clip, truth = built
+    export_dataset(wh, tmp_path / "dataset", cad=False, show_progress=False)
+    entries = {o["track_id"]: o for o in json.loads((tmp_path / "dataset" / "annotations" / CLIP / "objects.json").read_text())["objects"]}
+    pose_keys = {"translation", "rotation", "scale", "is_mirrored"}
+    second = truth[2]
+    assert entries["3"]["cad_id"] == second.cad_id and not pose_keys & entries["3"].keys()
+    assert entries["3"]["class"] == second.cls and entries["3"]["is_track_automatic"] is True
+    assert "cad_id" not in entries["4"] and not pose_keys & entries["4"].keys()
+    assert len(entries["3"]["track"]) == len(entries["4"]["track"]) == CORNER_FRAMES
+    manual = entries[str(MANUAL)]
+    assert manual["is_track_automatic"] is False and manual["is_mirrored"] is True and pose_keys <= manual.keys()
+    assert entries["0"]["is_track_automatic"] is True and pose_keys <= entries["0"].keys()
+
+
 def test_scan2cad_round_trip(built, tmp_path):
     wh, clip, truth = built
     counts = export_scan2cad(wh, tmp_path / "s2c")
-    assert counts == {"scans": 1, "alignments": 3}
+    assert counts == {"scans": 1, "alignments": 3}  # accepted poses only: not the rejected one, not the unposed track
     rows = read_csv(tmp_path / "s2c" / f"{CLIP}.csv")
-    gt = {o.track_id: o for o in read_objects(clip.objects_path).objects}
     assert len(rows) == 3
     for row, tid in zip(rows, sorted(truth)):
-        g = gt[truth[tid]]
+        g = truth[tid]
         cad_id, mirrored = split_cad_id(row.id_cad)
         assert (row.catid, cad_id, mirrored) == (g.cls, g.cad_id, g.is_mirrored)
         assert row.translation == g.translation and row.rotation == g.rotation and row.scale == g.scale  # exact floats
+    assert rows[-1].id_cad == f"{truth[MANUAL].cad_id}_mirrored"  # the mirrored model is a CAD model of its own
     assert read_csv_text(csv_text(rows), tmp_path) == rows
     annotations = json.loads((tmp_path / "s2c" / "full_annotations.json").read_text())
     assert annotations[0]["id_scan"] == CLIP and annotations[0]["n_aligned_models"] == 3
     assert {m["id_cad"] for m in annotations[0]["aligned_models"]} == {r.id_cad for r in rows}
     appearances = json.loads((tmp_path / "s2c" / "cad_appearances.json").read_text())
-    assert sum(appearances[CLIP].values()) == 3
+    assert sum(appearances[CLIP].values()) == 3 and appearances[CLIP][f"{truth[MANUAL].cls}_{truth[MANUAL].cad_id}_mirrored"] >= 1
+
+
+def test_export_commands(built, tmp_path):
+    """`cadestate export official OUT` and `export scan2cad OUT` through the command line write what
+    the functions write; an unknown clip or a full folder is one error line and writes nothing."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, _, _ = built
+    w = ("-w", str(wh.root))
+    official = run_cli(*w, "export", "official", str(tmp_path / "o"), "--no-cad", "--no-progress")
+    assert official.code == 0, official.stderr
+    frames = len(wh.read("frames", [CLIP]))
+    assert official.stdout.strip() == f"wrote {tmp_path / 'o'}: 1 clips, {frames} frames, 5 objects (3 posed), 0 CAD models"
+    export_dataset(wh, tmp_path / "direct", cad=False, show_progress=False)
+    for name in ("frames.json", "objects.json"):
+        assert (tmp_path / "o" / "annotations" / CLIP / name).read_bytes() == \
+            (tmp_path / "direct" / "annotations" / CLIP / name).read_bytes()
+    assert not (tmp_path / "o" / "cad").exists()
+    scan2cad = run_cli(*w, "export", "scan2cad", str(tmp_path / "s"), "--clips", CLIP)
+    assert scan2cad.code == 0 and scan2cad.stdout.strip() == f"wrote {tmp_path / 's'}: 1 scans, 3 alignments"
+    assert len(read_csv(tmp_path / "s" / f"{CLIP}.csv")) == 3
+    for args, message in (((str(tmp_path / "o"),), f"{tmp_path / 'o'}: exists and is not empty"),
+                          ((str(tmp_path / "new"), "--clips", "nope"), "clip 'nope' has no frames")):
+        assert_clean_error(run_cli(*w, "export", "official", *args, "--no-progress"), mentions=message)
+    assert_clean_error(run_cli(*w, "export", "scan2cad", str(tmp_path / "new"), "--clips", "nope"),
+                       mentions="clip 'nope' has no frames")
+    assert not (tmp_path / "new").exists()
 
 
 def read_csv_text(text: str, tmp_path) -> list[Alignment]:

@@ -79,3 +79,54 @@ def test_align_start_prints_the_offset_and_hands_it_on(tmp_path, small_clip, sta
     assert started[0][0].time_offset_us == 65_233_333
     refused = run_cli("-w", str(tmp_path / "w2"), "ingest", str(small_clip.video_path), str(shifted))
     assert refused.code == 2 and "--time-offset-us N, or --align-start" in refused.stderr
+
+
+def _room_pair(folder, small_clip):
+    """``folder``/room.mp4 and room.txt: the small clip's video and cameras, line 1 the ``file://``
+    URL of that room.mp4 (so its derived clip name is room_0)."""
+    import shutil
+
+    folder.mkdir()
+    video = folder / "room.mp4"
+    shutil.copyfile(small_clip.video_path, video)
+    lines = small_clip.cameras_path.read_text().splitlines()
+    cams = folder / "room.txt"
+    cams.write_text("\n".join([video.resolve().as_uri(), *lines[1:]]) + "\n")
+    return video, cams
+
+
+@pytest.mark.parametrize("name, message", [
+    ("room_5", "clip name 'room_5': start 5 µs is not the first timestamp of {cams} (0 µs)"),
+    ("my room_0", "clip name 'my room_0': video id 'my room' has characters outside [A-Za-z0-9_-]"),
+    ("room", "clip name 'room' is not <video_id>_<start_us>"),
+])
+def test_a_bad_clip_name_is_refused(tmp_path, small_clip, started, name, message):
+    video, cams = _room_pair(tmp_path / "a", small_clip)
+    w = tmp_path / "w"
+    result = run_cli("-w", str(w), "ingest", str(video), str(cams), "--clip", name)
+    assert_clean_error(result, mentions=message.format(cams=cams))
+    assert started == [] and warehouse_digest(w) == {}
+
+
+def test_a_video_id_clash_is_resolved_with_clip(tmp_path, small_clip, started):
+    from conftest import table_rows
+    from warehouse import Warehouse
+
+    video_a, cams_a = _room_pair(tmp_path / "a", small_clip)
+    video_b, cams_b = _room_pair(tmp_path / "b", small_clip)
+    w = tmp_path / "w"
+    both = run_cli("-w", str(w), "ingest", str(tmp_path / "a"), str(tmp_path / "b"))  # both derive room_0
+    a_url, b_url = video_a.resolve().as_uri(), video_b.resolve().as_uri()
+    assert_clean_error(both, mentions=f"clips room_0 ({a_url}), room_0 ({b_url}) come from different videos (line 1 of "
+                                      "their camera files) but share the video id 'room': give one of them its own name "
+                                      "with --clip")
+    assert started == []
+    Warehouse(w).write("clips", "room_0", table_rows("clips", [{"clip": "room_0", "url": a_url}]))
+    clash = run_cli("-w", str(w), "ingest", str(video_b), str(cams_b))  # room_0 of a is registered already
+    assert_clean_error(clash, mentions="share the video id 'room': give one of them its own name with --clip")
+    resolved = run_cli("-w", str(w), "ingest", str(video_b), str(cams_b), "--clip", "room2_0")
+    assert resolved.code == 0, resolved.stderr
+    assert [(s.clip, s.video, s.cameras) for s in started[0]] == [("room2_0", video_b, cams_b)]
+    help_example = run_cli("-w", str(tmp_path / "w2"), "ingest", str(video_b), str(cams_b), "--clip", "kitchen_0")
+    assert help_example.code == 0, help_example.stderr
+    assert started[1][0].clip == "kitchen_0"

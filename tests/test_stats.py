@@ -4,6 +4,7 @@ installed). Needs the Sweet Home 3D furniture (tests/conftest.py)."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -15,22 +16,23 @@ import pytest
 from bench.benchmark import clip_name
 from bench.walkthrough import WalkthroughSpec, generate_clip
 from conftest import table_rows
-from dataset_fixture import write_accepted, write_frames, write_tracks
+from dataset_fixture import CLASS_NAME, write_accepted, write_frames, write_tracks
 from schemas.official import read_objects
-from tasks.cad_classes import CLASSES
 from tasks.cameras import parse_camera_file
 from tasks.stats import dataset_tables, select_clips, statistics
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=256, height=144, num_video_frames=24, sample_every=3, alone_scale=0.5)
-NAME = {c.id: c.name for c in CLASSES}
 CHROMIUM = Path("/usr/bin/chromium")
 
 
 @pytest.fixture(scope="module")
 def bench3(small_cad_library, tmp_path_factory):
-    """(warehouse, [(clip name, generated clip, posed ground-truth objects)]): 3 clips, every other
-    ground-truth object posed (accepted), one track per object."""
+    """(warehouse, [(clip name, generated clip, posed ground-truth objects, objects with a track)]):
+    a 3-clip benchmark folder (``tmp/bench``, its manifest written), one track per ground-truth
+    object that has boxes (the track id is the object's), every other one posed (accepted); the
+    solver's ``poses`` are the ground truth for every tracked object, but for the first unaccepted
+    object of clip 0, solved with the mirror flag wrong."""
     lib, rows = small_cad_library
     tmp = tmp_path_factory.mktemp("stats")
     shutil.copytree(lib.root, tmp / "wh")
@@ -41,13 +43,40 @@ def bench3(small_cad_library, tmp_path_factory):
         clip = generate_clip(tmp / "bench", name, 31000 + i, rows, lib.root, SPEC)
         cams = write_frames(wh, name, clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
         gt = [o for o in read_objects(clip.objects_path).objects if o.track]
-        write_tracks(wh, name, cams, {k: (o, o.track) for k, o in enumerate(gt)})
-        posed = {k: o for k, o in enumerate(gt) if k % 2 == 0}
+        write_tracks(wh, name, cams, {int(o.track_id): (o, o.track) for o in gt})
+        posed = {int(o.track_id): o for k, o in enumerate(gt) if k % 2 == 0}
         write_accepted(wh, name, posed)
+        write_solved(wh, name, {int(o.track_id): o for o in gt}, wrong_mirror=gt[1].track_id if i == 0 else None)
         wh.write("runs", name, table_rows("runs", [{"clip": name, "run_id": f"r{i}{s}", "stage": s, "duration_s": d}
                                                    for s, d in (("frames", 2.5), ("detect", 4.0), ("pose", 1.0))]))
         clips.append((name, clip, list(posed.values()), len(gt)))
+    (tmp / "bench" / "manifest.json").write_text(json.dumps({"seed": 31, "clips": [c[0] for c in clips], "library": "x"}))
+    write_labels(wh, clips[0][0], [("verification", 3, [12.5, 7.5]), ("manual_track", 4, [30.0]),
+                                   ("cad_selection", 2, [])])
+    write_labels(wh, clips[2][0], [("correspondences", 1, [40.0])])
     return wh, clips
+
+
+def write_solved(wh: Warehouse, clip: str, solved: dict, wrong_mirror: str | None) -> None:
+    """``poses`` of the solver (status ok): ``{track id: object}`` posed as the object is, the
+    object of track id ``wrong_mirror`` with its mirror flag flipped."""
+    wh.write("poses", clip, table_rows("poses", [
+        {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": CLASS_NAME[o.cls], "status": "ok",
+         "translation": list(o.translation), "rotation": list(o.rotation), "scale": list(o.scale),
+         "is_mirrored": o.is_mirrored != (o.track_id == wrong_mirror), "num_keyframes": 2} for t, o in solved.items()]))
+
+
+def write_labels(wh: Warehouse, clip: str, files: list[tuple[str, int, list[float]]]) -> None:
+    """``label_files`` rows (kind, answers in the file) and the ``label_effort`` rows of the seconds
+    each gave (one per item: a manual_track label is track -1)."""
+    effort = []
+    for k, (kind, answers, seconds) in enumerate(files):
+        effort += [{"clip": clip, "label_sha256": f"l{k}", "kind": kind, "track_id": -1 if kind == "manual_track" else t,
+                    "seconds": sec} for t, sec in enumerate(seconds)]
+    wh.write("label_files", clip, table_rows("label_files", [
+        {"clip": clip, "label_sha256": f"l{k}", "task_id": f"t{k}", "kind": kind, "num_answers": n}
+        for k, (kind, n, _) in enumerate(files)]))
+    wh.write("label_effort", clip, table_rows("label_effort", effort))
 
 
 def test_statistics_match_a_hand_count(bench3):
@@ -58,7 +87,7 @@ def test_statistics_match_a_hand_count(bench3):
     frames = sum(len(parse_camera_file(c.cameras_path).timestamps_us) for _, c, _, _ in clips)
     posed = [o for _, _, p, _ in clips for o in p]
     boxes = sum(len(o.track) for o in posed)
-    classes = {NAME[o.cls] for o in posed}
+    classes = {CLASS_NAME[o.cls] for o in posed}
     ratios = []
     for _, clip, objs, _ in clips:
         cams = parse_camera_file(clip.cameras_path)
@@ -76,7 +105,16 @@ def test_statistics_match_a_hand_count(bench3):
     assert s["frames_with_two_posed"] == len(ratios) and s["near_far_ratio_median"] == pytest.approx(np.median(ratios))
     assert 0 <= s["truncated_share"] <= 1
     assert s["compute_s_per_stage"] == {"detect": 12.0, "frames": 7.5, "pose": 3.0}
-    assert s["human_items"] == {} and s["answer_elapsed_s_per_posed_object"] is None
+    assert s["human_items"] == {"cad_selection": 2, "correspondences": 1, "manual_track": 4, "verification": 3}
+    assert s["annotation_s_per_kind"] == {"cad_selection": 0.0, "correspondences": 40.0, "manual_track": 30.0,
+                                          "verification": 20.0}
+    assert s["annotation_s"] == 90.0 and s["annotation_s_per_posed_object"] == pytest.approx(90.0 / len(posed))
+    assert s["items_without_seconds"] == 3  # one verification track, both cad_selection tracks
+    one = statistics(dataset_tables(wh, [clips[2][0]]))
+    assert one["annotation_s"] == 40.0 and one["items_without_seconds"] == 0
+    assert one["annotation_s_per_posed_object"] == pytest.approx(40.0 / len(clips[2][2]))
+    none = statistics(dataset_tables(wh, [clips[1][0]]))
+    assert none["human_items"] == {} and none["annotation_s_per_posed_object"] is None
 
 
 def test_html_report_pages_and_pictures(bench3, tmp_path):
@@ -87,15 +125,69 @@ def test_html_report_pages_and_pictures(bench3, tmp_path):
     index = write_report(wh, tables, statistics(tables), tmp_path / "report")
     text = index.read_text()
     assert "#Posed objects" in text and "Cost of the dataset" in text
+    per_object = f"{90.0 / sum(len(p) for _, _, p, _ in clips):.1f}"
+    assert f"<td>annotation s per posed object</td><td>{per_object}</td>" in text
+    assert "<td>answered items with no seconds recorded (missing from the sums)</td><td>3</td>" in text
     for name, _, posed, _ in clips:
         assert f'href="clips/{name}.html"' in text
         page = (tmp_path / "report" / "clips" / f"{name}.html").read_text()
         images = re.findall(r'src="([^"]+)"', page)
         assert images and all((tmp_path / "report" / "clips" / src).resolve().is_file() for src in images)
         for cls in {o.cls for o in posed}:
-            assert f"<td>{NAME[cls]}</td>" in page
+            assert f"<td>{CLASS_NAME[cls]}</td>" in page
     for src in re.findall(r'src="([^"]+)"', text):
         assert (tmp_path / "report" / src).is_file()
+
+
+def test_bench_report_scores_the_poses_in_every_mode(bench3):
+    """`cadestate bench report` on the benchmark folder and its warehouse: the accepted poses (the
+    ground truth) are correct in every mode; of the solved ones, the mirrored-wrong pose fails
+    `pose` (mirror flags differ) and `scan2cad-exact` (its mirrored model is no ground-truth
+    model: a false positive) but not `scan2cad-class` (the mirror flag is not looked at)."""
+    from fuzz.harness import run_cli
+
+    wh, clips = bench3
+    bench = clips[0][1].objects_path.parent.parent
+    objects = sum(len(read_objects(c.objects_path).objects) for _, c, _, _ in clips)  # every one is posed
+    accepted, tracked = sum(len(p) for _, _, p, _ in clips), sum(n for *_, n in clips)
+    result = run_cli("-w", str(wh.root), "bench", "report", str(bench))
+    assert result.code == 0, result.stderr
+    rows = {line.split(" | ")[0] + " | " + line.split(" | ")[1]: line for line in result.stdout.splitlines()
+            if line.startswith("| `")}
+    expected = {("accepted in verification", accepted): {"pose": (accepted, 0), "scan2cad-class": (accepted, 0),
+                                                          "scan2cad-exact": (accepted, 0)},
+                ("solved (status ok)", tracked): {"pose": (tracked - 1, 0), "scan2cad-class": (tracked, 0),
+                                                  "scan2cad-exact": (tracked - 1, 1)}}
+    for (label, n), modes in expected.items():
+        for mode, (correct, false_positives) in modes.items():
+            row = rows[f"| `{mode}` | {label}: {n}"]
+            pct = f"{round(100 * correct / objects, 1)} %"
+            assert row.startswith(f"| `{mode}` | {label}: {n} | {correct} of {objects} | {pct} | "), row
+            assert row.endswith(f" | 0 | {false_positives} |"), row
+    assert f"3 clips, {objects} posed ground-truth objects, {tracked} with correspondences)" in result.stdout
+    assert (bench / "report.md").read_text().strip() == result.stdout.strip()
+
+
+def test_stats_command(bench3, tmp_path):
+    """`cadestate stats --where ... --html OUT --json`: the figures of the chosen clips as one JSON
+    document on stdout, the report written; a bad --where is one error line and writes nothing."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, clips = bench3
+    name = clips[1][0]
+    result = run_cli("-w", str(wh.root), "stats", "--where", f"clip = '{name}'", "--html", str(tmp_path / "r"), "--json")
+    assert result.code == 0, result.stderr
+    figures = json.loads(result.stdout)
+    assert figures == json.loads(json.dumps(statistics(dataset_tables(wh, [name]))))
+    assert figures["scenes"] == 1 and figures["posed_objects"] == len(clips[1][2])
+    assert result.stderr.strip() == f"wrote {tmp_path / 'r' / 'index.html'}"
+    assert re.findall(r'href="clips/([^"]+)\.html"', (tmp_path / "r" / "index.html").read_text()) == [name]
+    text = run_cli("-w", str(wh.root), "stats")
+    assert text.code == 0 and "#Scenes (clips): 3" in text.stdout
+    assert f"annotation s per posed object: {90.0 / sum(len(p) for _, _, p, _ in clips):.1f}" in text.stdout
+    bad = run_cli("-w", str(wh.root), "stats", "--where", "no_such_column = 1", "--html", str(tmp_path / "bad"), "--json")
+    assert_clean_error(bad, mentions="error: --where 'no_such_column = 1': SQL error: ")
+    assert bad.stdout == "" and not (tmp_path / "bad").exists()
 
 
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")

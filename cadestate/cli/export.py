@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import app, out
+from cadestate.cli.common import app, err, out
 
 export_app = typer.Typer(help="Write the dataset out: the official CAD-Estate layout, or Scan2CAD files.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
@@ -56,9 +56,10 @@ def stats(
 ) -> None:
     """The dataset's figures (the paper's Table 2 and section 4: scenes, posed objects, classes, objects
     per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
-    and its cost (compute seconds per stage, human items answered)."""
+    and its cost (compute seconds per stage, human items answered, annotation seconds the label files
+    record per kind and per posed object, and how many answered items recorded none)."""
     from cadestate.cli.common import CliError
-    from tasks.stats import dataset_tables, select_clips, statistics, statistics_lines
+    from tasks.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
     wh = ctx.obj.open_warehouse()
@@ -75,7 +76,10 @@ def stats(
             out.print(f"{label}: {value}", highlight=False)
         out.print(f"compute seconds per stage: {figures['compute_s_per_stage']}", highlight=False)
         out.print(f"human items answered: {figures['human_items']}", highlight=False)
+        for label, value in annotation_cost_lines(figures):
+            out.print(f"{label}: {value}", highlight=False)
     if html is not None:
         from tasks.stats_report import write_report
 
-        out.print(f"wrote {write_report(wh, tables, figures, html)}")
+        index = write_report(wh, tables, figures, html)
+        (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document

@@ -67,7 +67,8 @@ def ingest(
       cadestate ingest room.mp4 room.txt                 (clip room_0 when line 1 is file:///videos/room.mp4)
       cadestate ingest room.mp4                          (cameras by SfM: clip room_0)
       cadestate ingest clip.mp4 clip.txt --align-start   (a RealEstate10K camera file of a clip cut from its video)
-      cadestate ingest room.mp4 room.txt --clip kitchen_1200000
+      cadestate ingest room.mp4 room.txt --clip kitchen_1200000   (any id for a non-YouTube video; the start
+                                                                   must be its first timestamp, here 1200000 µs)
       cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
       cadestate ingest val_clips/ --split val
     """
@@ -85,7 +86,7 @@ def ingest(
             raise typer.BadParameter("--time-offset-us and --align-start need a camera file (SfM cameras are in video time)")
         cfg = ctx.obj.config()
         item = sfm_source(sources[0], clip, sfm_intrinsics)
-        items, urls = [item], {item.clip: item.video.resolve().as_uri()}
+        items, urls = [item], [(item.clip, item.video.resolve().as_uri())]
     else:
         if sfm_intrinsics:
             raise typer.BadParameter("--intrinsics is for a video without a camera file")
@@ -96,7 +97,7 @@ def ingest(
                 raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt (or VIDEO alone), not folders")
             pairs = [(s.video, s.cameras) for folder in sources for s in discover_clips(folder)]
         cfg = ctx.obj.config()
-        items, urls = [], {}
+        items, urls = [], []
         for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts
             checked = check_clip_inputs(video, cameras, time_offset_us, align_start)
             for warning in checked.warnings:
@@ -106,7 +107,7 @@ def ingest(
                           "timestamp is the video's first frame)", highlight=False)
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
-            urls[items[-1].clip] = checked.cameras.url
+            urls.append((items[-1].clip, checked.cameras.url))
     check_detect_config(cfg.detect, cfg.source)
     wh = ctx.obj.open_warehouse()
     check_video_ids(wh, urls)
