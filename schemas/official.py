@@ -12,9 +12,8 @@ Conventions (google-research/cad-estate, ``input_file_structures.py``, ``frames.
   one pixel of the top-left corner (normalised values) is refused by :func:`frames_from_json`.
 - ``objects.json``: ``clip_name``; ``objects``: one entry per object with ``track_id`` (str),
   ``is_track_automatic``, ``class`` (class id: ShapeNet synset or cadestate-<name>), optional
-  ``cad_id``, optional pose ``translation``, ``rotation`` (w, x, y, z), ``scale``, ``is_mirrored``
-  (all four absent when the pose failed verification; the official loader reads ``is_mirrored``
-  only with a pose), and ``track``: per-frame entries with ``timestamp``,
+  ``cad_id``, optional pose ``translation``, ``rotation`` (w, x, y, z), ``scale`` (absent when the
+  pose failed verification), ``is_mirrored``, and ``track``: per-frame entries with ``timestamp``,
   ``box`` (ymin, xmin, ymax, xmax) normalised to [0, 1] and ``correspondences`` (list of
   ``{"2d": (x, y) normalised, "3d": (x, y, z) object space}``) or null.
 - Object-to-world: mirror => scale => rotation => translation (``cadestate.render.object_to_world``).
@@ -75,9 +74,7 @@ class TrackEntry:
 
 @dataclass(frozen=True)
 class ObjectAnnotation:
-    """One object. The pose (translation, rotation (w, x, y, z), scale) is None when absent; then
-    ``is_mirrored`` is not written either (the official loader reads it only with a pose) and reads
-    back False."""
+    """One object. The pose (translation, rotation (w, x, y, z), scale) is None when absent."""
 
     track_id: str
     cls: str
@@ -144,9 +141,9 @@ def objects_to_json(f: ObjectsFile) -> dict:
         entry: dict[str, Any] = {"track_id": o.track_id, "is_track_automatic": o.is_track_automatic, "class": o.cls}
         if o.cad_id is not None:
             entry["cad_id"] = o.cad_id
-        if o.translation is not None:  # the pose, mirror flag included, only where it passed verification
-            entry.update(translation=list(o.translation), rotation=list(o.rotation), scale=list(o.scale),
-                         is_mirrored=o.is_mirrored)
+        if o.translation is not None:
+            entry.update(translation=list(o.translation), rotation=list(o.rotation), scale=list(o.scale))
+        entry["is_mirrored"] = o.is_mirrored
         entry["track"] = [{"timestamp": t.timestamp, "box": list(t.box),
                            "correspondences": None if t.correspondences is None else
                            [{"2d": list(c.xy), "3d": list(c.xyz)} for c in t.correspondences]}

@@ -63,14 +63,13 @@ def frames_file(ds: ClipDataset, name: str) -> FramesFile:
 
 
 def object_annotation(o: DatasetObject) -> ObjectAnnotation:
-    """One ``objects.json`` entry: the pose (and mirror flag) only when accepted, the CAD id when a
-    model was chosen, correspondences on annotated key-frames."""
+    """One ``objects.json`` entry: the pose only when accepted, correspondences on annotated key-frames."""
     track = tuple(TrackEntry(ts, box, tuple(Correspondence(tuple(xy), tuple(xyz)) for xy, xyz in o.correspondences[ts])
                              if ts in o.correspondences else None)
                   for ts, box in sorted(o.boxes.items()))
     p = o.pose
     return ObjectAnnotation(track_id=str(o.track_id), cls=o.class_id, is_track_automatic=o.automatic,
-                            is_mirrored=bool(p and p.is_mirrored), track=track, cad_id=o.cad_id,
+                            is_mirrored=o.is_mirrored, track=track, cad_id=o.cad_id,
                             translation=p and tuple(float(v) for v in p.translation),
                             rotation=p and tuple(float(v) for v in p.rotation),
                             scale=p and tuple(float(v) for v in p.scale))

@@ -162,15 +162,17 @@ def test_official_export_refuses_a_full_folder_and_unknown_clips(built, tmp_path
 
 def test_unposed_objects_carry_no_pose(built, tmp_path):
     """objects.json as written: a manual track is not automatic; a rejected pose keeps its chosen
-    model but no translation, rotation, scale or mirror flag; a track with no model has neither."""
+    model but no translation, rotation or scale (the format always holds is_mirrored); a track with
+    no model has neither a model nor a pose."""
     wh, clip, truth = built
     export_dataset(wh, tmp_path / "dataset", cad=False, show_progress=False)
     entries = {o["track_id"]: o for o in json.loads((tmp_path / "dataset" / "annotations" / CLIP / "objects.json").read_text())["objects"]}
-    pose_keys = {"translation", "rotation", "scale", "is_mirrored"}
+    pose_keys = {"translation", "rotation", "scale"}
     second = truth[2]
     assert entries["3"]["cad_id"] == second.cad_id and not pose_keys & entries["3"].keys()
     assert entries["3"]["class"] == second.cls and entries["3"]["is_track_automatic"] is True
-    assert "cad_id" not in entries["4"] and not pose_keys & entries["4"].keys()
+    assert isinstance(entries["3"]["is_mirrored"], bool)
+    assert "cad_id" not in entries["4"] and not pose_keys & entries["4"].keys() and entries["4"]["is_mirrored"] is False
     assert len(entries["3"]["track"]) == len(entries["4"]["track"]) == CORNER_FRAMES
     manual = entries[str(MANUAL)]
     assert manual["is_track_automatic"] is False and manual["is_mirrored"] is True and pose_keys <= manual.keys()
