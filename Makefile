@@ -123,8 +123,9 @@ run: setup cad-library models
 	rm -rf data/demo_export && $(BIN)/cadestate export official data/demo_export
 	$(BIN)/cadestate stats --html data/demo_stats
 	$(BIN)/cadestate status
-	@echo "== answer the human tasks in a browser (the demo warehouse; open the address it prints):"
-	@echo "   $(BIN)/cadestate annotate"
+	@echo "== human tasks in a browser: the demo clip's were all answered by simulated annotators; for a clip with open tasks:"
+	@echo "   $(BIN)/cadestate bench generate --out data/demo_open --seed 8 --clips 1 && $(BIN)/cadestate ingest data/demo_open/bench-8-00_0.mp4 data/demo_open/bench-8-00_0.txt --split val"
+	@echo "   $(BIN)/cadestate annotate   (open the address it prints: the clip waits at its manual-track task)"
 
 test: setup cad-library models
 	$(BIN)/python -m pytest

@@ -6,9 +6,10 @@ On a synthetic warehouse (one clip, 640x360 frames, no pipeline run):
 - ``model_30k_triangles_ms``: open the correspondences page until a 30k-triangle model is shown
   in the WebGL viewer (software rendering: SwiftShader), and the viewer's own load time;
 - ``next_item_ms``: submit a CAD selection answer in the page until the next item of that clip is
-  shown (validation, label file, ingest, next page; median of 5). The next *task* of a clip needs
-  its flow to run (a resume of its cached stages; seconds to a minute on 2 cores): the browser
-  tests (tests/test_annotate_browser.py) wait for that.
+  shown (validation, label file, ingest, next page; median of 5);
+- ``answer_to_next_task_median_s``: on a real pipeline clip, from posting the last answer of a
+  task until the clip's next task is ready (the app's background resume of the clip's flow;
+  :mod:`bench.annotate_resume`), median over its tasks, with each task's time.
 """
 
 from __future__ import annotations
@@ -127,7 +128,18 @@ def run() -> dict:
             browser.close()
         server.should_exit = True
         thread.join(10)
+        out.update(_next_task(Path(tmp) / "resume"))
     return out
+
+
+def _next_task(tmp: Path) -> dict:
+    """:func:`bench.annotate_resume.run`, its failure as one line (the other timings stand)."""
+    from bench import annotate_resume
+
+    try:
+        return annotate_resume.run(tmp)
+    except Exception as e:  # noqa: BLE001
+        return {"answer_to_next_task": f"failed: {type(e).__name__}: {e}".splitlines()[0]}
 
 
 if __name__ == "__main__":

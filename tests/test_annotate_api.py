@@ -166,3 +166,40 @@ def test_start_page_data_and_next_item(lwh):
         assert client.get("/media/../catalog.duckdb").status_code == 404
         for page in ("/", "/annotate/manual_track", "/annotate/cad_selection", "/annotate/correspondences", "/annotate/verification"):
             assert client.get(page).status_code == 200, page
+
+
+FAULTS = [("write", "cad_selection_labels"), ("write", "label_effort"), ("write", "label_files"), ("read", "label_files")]
+
+
+@pytest.mark.parametrize("method,table", FAULTS, ids=[f"{m}:{t}" for m, t in FAULTS])
+def test_a_warehouse_failing_mid_ingest_answers_5xx_keeps_the_file_and_the_next_start_ingests_it(lwh, monkeypatch, method, table):
+    """Fault injection: the warehouse's own ``write`` (or ``read``) raises OSError for one table during the POST."""
+    real = getattr(Warehouse, method)
+
+    def failing(self, name, *args, **kwargs):
+        if name == table:
+            raise OSError(28, "No space left on device")
+        return real(self, name, *args, **kwargs)
+
+    doc = payload("cad_selection")
+    doc["answers"][0]["seconds"] = 3.0  # a label_effort row too
+    runs = Requests()
+    monkeypatch.setattr(Warehouse, method, failing)
+    with _client(lwh, runs) as client:
+        r = client.post("/api/answers", json=doc)
+    monkeypatch.setattr(Warehouse, method, real)  # the disk is back
+    assert 500 <= r.status_code < 600, r.text
+    detail = r.json()["detail"]
+    assert "\n" not in detail and "written but not ingested" in detail and "No space left on device" in detail, detail
+    (path,) = _label_files(lwh)
+    assert str(path) in detail and validate_label(path, lwh).kind == "cad_selection"
+    assert lwh.read("label_files").num_rows == 0 and current_answers(lwh, "cad_selection", [CLIP]).num_rows == 0
+    assert runs.clips == []
+
+    with _client(lwh, runs) as client:
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+    assert lwh.read("label_files").column("label_sha256").to_pylist() == [validate_label(path, lwh).sha256]
+    assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 1: None}
+    committed = {(f["label_sha256"], f["ingested_at"]) for f in lwh.read("label_files").to_pylist()}
+    effort = [e["seconds"] for e in lwh.read("label_effort").to_pylist() if (e["label_sha256"], e["ingested_at"]) in committed]
+    assert effort == [3.0] and runs.clips == [CLIP]  # rows of the failed attempt have no commit record

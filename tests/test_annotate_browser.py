@@ -115,10 +115,12 @@ def simulated(s: Served, kind: str) -> dict:
     return found[0]
 
 
-def open_next(s: Served, kind: str) -> None:
+def open_next(s: Served, kind: str) -> dict:
+    """Open the clip's next waiting item (of ``kind``); returns the queue's entry for it."""
     nxt = json.loads(s.page.context.request.get(f"{s.url}/api/next?clip={s.clip}").text())
     assert nxt and nxt["kind"] == kind, nxt
     s.page.goto(s.url + nxt["url"])
+    return nxt
 
 
 def wait_for_pipeline(s: Served) -> str:
@@ -146,6 +148,12 @@ def new_label_files(s: Served, kind: str, seen: set) -> list:
     return out
 
 
+def relations(s: Served, kind: str) -> set[tuple]:
+    """The clip's ``track_relations`` rows of ``kind``: (relation, track_id, other_track_id, object_index)."""
+    rows = s.wh.read("track_relations", [s.clip]).to_pylist() if s.clip in s.wh.partitions("track_relations") else []
+    return {(r["relation"], r["track_id"], r["other_track_id"], r["object_index"]) for r in rows if r["kind"] == kind}
+
+
 SEEN: set = set()
 
 
@@ -153,8 +161,12 @@ def test_manual_tracks_page(s):
     answer = simulated(s, "manual_track")
     open_next(s, "manual_track")
     page = s.page
-    stamps = [int(t) for t in page.evaluate("""async () => { const p = new URLSearchParams(location.search);
-        const r = await fetch(`/api/tasks/${p.get('clip')}/${p.get('task')}`); return (await r.json()).task.keyframes.map(k => k.timestamp_us); }""")]
+    task = page.evaluate("""async () => { const p = new URLSearchParams(location.search);
+        const r = await fetch(`/api/tasks/${p.get('clip')}/${p.get('task')}`); return (await r.json()).task; }""")
+    stamps = [int(k["timestamp_us"]) for k in task["keyframes"]]
+    existing = [t["track_id"] for t in task["existing_tracks"]]
+    assert answer["answers"] and all(o["boxes"] for o in answer["answers"]), "the simulated annotators drew no object"
+    assert existing, "the clip has no track to relate the drawn objects to"
     for i, obj in enumerate(answer["answers"]):
         page.keyboard.press("n")
         page.locator("input.cls").nth(i).fill(obj["label"])
@@ -169,6 +181,9 @@ def test_manual_tracks_page(s):
             page.mouse.down()
             page.mouse.move(r["x"] + x1 * r["width"], r["y"] + y1 * r["height"], steps=4)
             page.mouse.up()
+    same, not_object = existing[0], existing[-1]  # "this is track N" on the first object; "track M is not an object"
+    page.locator("select.same").nth(0).select_option(str(same))
+    page.locator(f'input.not-object[data-track="{not_object}"]').check()
     page.screenshot(path=s.shots / "manual_track.png")
     page.keyboard.press("Enter")
     ready = wait_for_pipeline(s)
@@ -179,13 +194,25 @@ def test_manual_tracks_page(s):
         assert [b.timestamp_us for b in a.boxes] == [b["timestamp_us"] for b in o["boxes"]]
         assert np.allclose([b.box for b in a.boxes], [b["box"] for b in o["boxes"]], atol=0.01)
     assert lf.label.seconds is not None and lf.label.seconds > 0
+    assert [a.same_as_track for a in drawn] == [same] + [None] * (len(drawn) - 1) and list(lf.label.not_objects) == [not_object]
+    assert relations(s, "manual_track") == {("same_object", same, None, 0), ("not_object", not_object, None, None)}
     assert "cad_selection" in ready, ready
 
 
 def test_cad_selection_page(s):
     answer = {a["track_id"]: a["cad_id"] for a in simulated(s, "cad_selection")["answers"]}
-    open_next(s, "cad_selection")
+    nxt = open_next(s, "cad_selection")
     page, done = s.page, []
+    page.wait_for_selector("#track-title:not(:empty)")
+    first = track_shown(s)
+    other = next((t for t in answer if t != first), None)
+    assert other is not None, f"a one-item task ({first}): no track to call it a fragment of"
+    page.select_option("#same", str(other))  # "same object as track N" (a fragment), then answered again for real
+    page.click("#same-btn")
+    assert page.inner_text("#choice") == f"fragment of track {other}"
+    page.click("#submit")
+    page.wait_for_url(re.compile(rf"track=(?!{first}\b)\d+"))
+    page.goto(f"{s.url}/annotate/cad_selection?clip={s.clip}&task={nxt['task_id']}&track={first}")
     while True:
         page.wait_for_selector("#track-title:not(:empty)")
         track = track_shown(s)
@@ -198,10 +225,15 @@ def test_cad_selection_page(s):
         if len(done) == len(answer):
             break
         page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
-    wait_for_pipeline(s)
+    ready = wait_for_pipeline(s)
     files = new_label_files(s, "cad_selection", SEEN)
-    got = {a.track_id: a.cad_id for lf in files for a in lf.label.answers}
+    assert len(files) == len(answer) + 1, [lf.path.name for lf in files]
+    fragment = files[0].label.answers  # the files sort by time: the fragment answer came first
+    assert [(a.track_id, a.cad_id, a.same_as_track) for a in fragment] == [(first, None, other)]
+    got = {a.track_id: a.cad_id for lf in files[1:] for a in lf.label.answers}
     assert got == answer and sorted(done) == sorted(answer)
+    assert relations(s, "cad_selection") == {("same_object", first, other, None)}
+    assert "correspondences" in ready, ready
     assert all(a.seconds is not None for lf in files for a in lf.label.answers)
 
 
@@ -260,6 +292,7 @@ def test_correspondences_page(s):
         page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
     ready = wait_for_pipeline(s)
     files = new_label_files(s, "correspondences", SEEN)
+    assert files and sorted(a.track_id for lf in files for a in lf.label.answers) == sorted(done)
     for lf in files:
         for got in lf.label.answers:
             want = {k["timestamp_us"]: k for k in answer[got.track_id]["keyframes"]}
@@ -271,6 +304,41 @@ def test_correspondences_page(s):
                     assert min(d) < 0.03, (got.track_id, kf.timestamp_us, min(d))
     assert s.wh.read("poses", [s.clip]).num_rows >= 1, "the resume solved poses"
     assert "verification" in ready, ready
+
+
+COUNT_OPAQUE = """async () => { const img = document.querySelector('#model-layer'); await img.decode();
+    const c = document.createElement('canvas'); c.width = img.naturalWidth; c.height = img.naturalHeight;
+    const ctx = c.getContext('2d'); ctx.drawImage(img, 0, 0); const d = ctx.getImageData(0, 0, c.width, c.height).data;
+    let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; return n; }"""
+"""Opaque pixels of the model layer shown (the posed model's RGBA render)."""
+
+
+def _stack_pixels(s: Served) -> np.ndarray:
+    from io import BytesIO
+
+    from PIL import Image
+
+    return np.asarray(Image.open(BytesIO(s.page.locator("#stack").screenshot())).convert("RGB"), dtype=np.int16)
+
+
+def _assert_model_drawn(s: Served, track: int) -> None:
+    """On the first key-frame where the model layer has opaque pixels: the page with the layer
+    differs from the bare frame (b). Fails when no key-frame of the track shows the model."""
+    page = s.page
+    for i in range(page.locator("#strip .thumb").count()):
+        page.locator("#strip .thumb").nth(i).click()
+        if page.evaluate(COUNT_OPAQUE) > 0:
+            break
+    else:
+        raise AssertionError(f"track {track}: the model layer is empty on every key-frame")
+    assert float(page.evaluate("getComputedStyle(document.querySelector('#model-layer')).opacity")) > 0
+    if page.locator("#outline-layer").is_visible():
+        page.keyboard.press("o")  # the outline off: only the model layer tells the two apart
+    shown = _stack_pixels(s)
+    page.keyboard.press("b")
+    bare = _stack_pixels(s)
+    page.keyboard.press("b")
+    assert shown.shape == bare.shape and np.abs(shown - bare).max() > 30, f"track {track}: the model layer changes no pixel"
 
 
 def test_verification_page(s):
@@ -286,7 +354,7 @@ def test_verification_page(s):
         page.keyboard.press("b")  # bare frame, and back
         assert not page.locator("#outline-layer").is_visible()
         page.keyboard.press("b")
-        page.keyboard.press("ArrowRight")
+        _assert_model_drawn(s, track)
         if not done:
             page.screenshot(path=s.shots / "verification.png")
         page.keyboard.press("a" if answer[track] == "accept" else "r")
@@ -296,6 +364,7 @@ def test_verification_page(s):
         page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
     ready = wait_for_pipeline(s)
     files = new_label_files(s, "verification", SEEN)
+    assert files, "no verification label file"
     assert {a.track_id: a.verdict for lf in files for a in lf.label.answers} == answer
     verified = s.wh.read("verified_poses", [s.clip]).to_pylist()
     assert {int(v["track_id"]): v["accepted"] for v in verified} == {t: v == "accept" for t, v in answer.items()}

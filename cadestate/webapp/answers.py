@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas.labels import LABEL_FORMAT
-from tasks.label_format import MAX_LABEL_BYTES, LabelError
+from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line
 from tasks.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels
 from tasks.labels import ClipFacts, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
@@ -68,6 +68,12 @@ def _free_path(folder: Path, task_id: str) -> Path:
     return folder / f"{task_id}.{stamp}.{n}.json"
 
 
+def _not_ingested(path: Path, errors: list[str]) -> str:
+    """The one-line message of :class:`IngestFailed` for ``path``."""
+    why = one_line("; ".join(errors) or "unknown reason")
+    return f"{path}: written but not ingested ({why}); it is ingested when the app starts next"
+
+
 def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threading.Lock,
            labels_dir: Path | None = None, coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> Submitted:
     """Validate, write and ingest one answer (module docstring). Raises LabelError (bad payload,
@@ -78,10 +84,12 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
         lf = validate_label("answer", facts=ClipFacts(wh), data=data, max_bytes=MAX_LABEL_BYTES)
         path = _free_path(folder_root / lf.clip, lf.task_id)
         atomic_write_bytes(path, data)
-        report = ingest_labels(wh, [path], coplanar_tol=coplanar_tol)
+        try:
+            report = ingest_labels(wh, [path], coplanar_tol=coplanar_tol)
+        except Exception as e:  # noqa: BLE001  (any failure past the write: the file waits for the next start)
+            raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
     if report.errors or not report.ingested:
-        raise IngestFailed(f"{path}: written but not ingested ({'; '.join(report.errors) or 'unknown reason'}); it is "
-                           "ingested when the app starts next")
+        raise IngestFailed(_not_ingested(path, report.errors))
     return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, list(lf.warnings), dict(report.rows))
 
 

@@ -40,8 +40,8 @@ export function timer() {
 // Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field.
 export function shortcuts(map) {
   document.addEventListener("keydown", (ev) => {
-    const tag = (ev.target.tagName || "").toLowerCase();
-    if ((tag === "input" && ev.target.type !== "range") || tag === "textarea" || tag === "select") {
+    const tag = (ev.target.tagName || "").toLowerCase();  // typing in a field: no shortcuts (a tick box or slider is no field)
+    if ((tag === "input" && !["range", "checkbox", "radio"].includes(ev.target.type)) || tag === "textarea" || tag === "select") {
       if (ev.key === "Escape") ev.target.blur();
       return;
     }

@@ -1,0 +1,140 @@
+"""Annotation app: from the last answer of a task to the clip's NEXT TASK being ready (issue 15).
+
+A real pipeline clip: the tests' small CAD library (``tests/conftest.py``: SMALL_LIBRARY, every
+library stage run by its flow) and one rendered walkthrough (the browser tests' size), run until it
+pauses at its manual-track task. ``cadestate annotate``'s app (its real :class:`Resumer`: the
+worker thread resuming the clip's flow) then gets the simulated annotators' answers
+(:func:`bench.simulated_labels.answer_tasks`) over HTTP, task after task. Timed per task: from
+posting its last answer (validation, label file, ingest included) until ``/api/next?clip=``
+serves the next task's first item, i.e. until the background resume paused the clip at its
+next human task; the last task's resume (to the end of the flow) is reported apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import threading
+import time
+from pathlib import Path
+
+SEED = 3
+RESUME_TIMEOUT_S = 900.0
+
+
+def _library_config(root: Path):
+    """A Config over ``root`` holding the small CAD library, every library stage run."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from conftest import small_library_items
+
+    from cadestate.config import CadIngestConfig, CadViewsConfig, Config, WarehouseConfig
+    from flows.cad_library import run_cad_library
+
+    config = Config(warehouse=WarehouseConfig(root=str(root)), cad_ingest=CadIngestConfig(samples=512, workers=1),
+                    cad_views=CadViewsConfig(views=4, size=96))
+    reports = run_cad_library(small_library_items(), config, show_progress=False)
+    failed = [r.message for r in reports if r.state != "completed"]
+    if failed:
+        raise RuntimeError(f"the small CAD library did not build: {failed[0]}")
+    return config
+
+
+def _paused_clip(config, bench_dir: Path) -> str:
+    """Generate one walkthrough clip and run it until its manual-track task; returns its name."""
+    from bench.benchmark import clip_sources, generate
+    from bench.walkthrough import WalkthroughSpec
+    from flows.annotate_clip import run_clips
+    from warehouse import Warehouse
+
+    spec = WalkthroughSpec(width=480, height=270, num_video_frames=60, sample_every=2, alone_scale=0.5)
+    manifest, _ = generate(bench_dir, SEED, 1, Warehouse(config.warehouse.root), spec, show_progress=False)
+    source = dataclasses.replace(clip_sources(bench_dir)[0], split="val")
+    paused = {r.stage for r in run_clips([source], config, show_progress=False) if r.state == "paused"}
+    if paused != {"manual_tracks"}:
+        raise RuntimeError(f"the clip did not pause at its manual-track task (paused: {sorted(paused)})")
+    return manifest.clips[0]
+
+
+def _answers(bench_dir: Path, wh, clip: str) -> list[dict]:
+    """The simulated annotators' answers to the clip's open tasks, as a page posts them."""
+    from bench.simulated_labels import answer_tasks
+
+    docs = []
+    for path in answer_tasks(bench_dir, wh, clip):
+        doc = json.loads(path.read_text())
+        path.unlink()
+        docs.append({k: v for k, v in doc.items() if k not in ("format", "created_at", "annotator")})
+    return docs
+
+
+def _wait_next(client, clip: str, task_id: str, timeout_s: float) -> dict | None:
+    """Poll until the clip's resume is idle and its next item is not of ``task_id``; returns it (None: nothing waits)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        view = client.get(f"/api/clips/{clip}").json()
+        if view["resume"]["state"] == "failed":
+            raise RuntimeError(f"the resume of {clip} failed: {view['resume']['message']}")
+        if view["resume"]["state"] not in ("queued", "running") and (view["next"] or {}).get("task_id") != task_id:
+            return view["next"]
+        time.sleep(0.1)
+    raise TimeoutError(f"{clip}: no next task {timeout_s:.0f} s after answering {task_id}")
+
+
+def _serve(config):
+    """The app (real Resumer) on a free local port, in a thread; returns (server, base URL)."""
+    import socket
+
+    import uvicorn
+
+    from cadestate.webapp.app import create_app
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(config, "bench"), host="127.0.0.1", port=port, log_level="warning"))
+    threading.Thread(target=server.run, daemon=True).start()
+    while not server.started:
+        time.sleep(0.05)
+    return server, f"http://127.0.0.1:{port}"
+
+
+def run(tmp: Path) -> dict:
+    """The timings (module docstring), built under the folder ``tmp``."""
+    import httpx
+
+    from flows.runtime import prepare_prefect_environment
+    from warehouse import Warehouse
+
+    from tasks.cad_sources import default_source
+
+    if not default_source().is_dir():
+        return {"skipped": f"Sweet Home 3D furniture not found at {default_source()} (make cad-library)"}
+    tmp.mkdir(parents=True, exist_ok=True)
+    prepare_prefect_environment(tmp / "wh")
+    config = _library_config(tmp / "wh")
+    clip = _paused_clip(config, tmp / "bench")
+    wh = Warehouse(config.warehouse.root)
+    server, base = _serve(config)
+    per_task: dict[str, float] = {}
+    try:
+        with httpx.Client(base_url=base, timeout=600) as client:
+            nxt = client.get(f"/api/next?clip={clip}").json()
+            while nxt:
+                docs = _answers(tmp / "bench", wh, clip)
+                if not docs:
+                    raise RuntimeError(f"the simulated annotators did not answer {nxt['task_id']}")
+                for doc in docs:
+                    t0 = time.perf_counter()  # the last answer's post starts the clock
+                    r = client.post("/api/answers", json=doc)
+                    r.raise_for_status()
+                after = _wait_next(client, clip, nxt["task_id"], RESUME_TIMEOUT_S)
+                per_task[f"{nxt['kind']} -> {after['kind'] if after else 'done'}"] = round(time.perf_counter() - t0, 2)
+                nxt = after
+    finally:
+        server.should_exit = True
+    to_next = [s for k, s in per_task.items() if not k.endswith("done")]
+    return {"answer_to_next_task_median_s": round(statistics.median(to_next), 2) if to_next else None,
+            "answer_to_next_task_s": per_task}
