@@ -20,8 +20,6 @@ import uuid
 from pathlib import Path
 
 import duckdb
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from warehouse.store import Warehouse, WarehouseError
 
@@ -40,6 +38,9 @@ def _sql_str(value: str) -> str:
 
 def _schema_digest(path: Path) -> bytes | None:
     """The schema digest stored in the schema file ``path`` (None: missing or unreadable)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     try:
         return (pq.read_schema(path).metadata or {}).get(SCHEMA_DIGEST)
     except (OSError, pa.ArrowException):
@@ -53,6 +54,8 @@ def _schema_file(wh: Warehouse, table: str) -> Path:
     schema = wh.spec(table).schema
     digest = hashlib.sha256(schema.serialize()).hexdigest().encode()
     if _schema_digest(path) != digest:
+        import pyarrow.parquet as pq
+
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
         pq.write_table(schema.with_metadata({**(schema.metadata or {}), SCHEMA_DIGEST: digest}).empty_table(), tmp)

@@ -27,12 +27,13 @@ import time
 import uuid
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
+if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
+    import pyarrow as pa
+    import pyarrow.compute as pc
 
-from schemas import TABLES, TableSpec
+    from schemas import TableSpec
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
@@ -80,9 +81,18 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 class Warehouse:
     """A warehouse rooted at a local directory."""
 
-    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] = TABLES):
+    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] | None = None):
         self.root = Path(root).expanduser().resolve()
-        self.tables = tables
+        self._tables = tables
+
+    @property
+    def tables(self) -> dict[str, TableSpec]:
+        """The table specs (default: every table of :data:`schemas.TABLES`, imported on first use)."""
+        if self._tables is None:
+            from schemas import TABLES
+
+            self._tables = TABLES
+        return self._tables
 
     def __repr__(self) -> str:
         return f"Warehouse({str(self.root)!r})"
@@ -121,6 +131,9 @@ class Warehouse:
     # -- writing -----------------------------------------------------------------------------
     def conform(self, table: str, part: str, data: pa.Table) -> pa.Table:
         """Check ``data`` against the table's schema and return it cast to that schema exactly."""
+        import pyarrow as pa
+        import pyarrow.compute as pc
+
         spec = self.spec(table)
         names = set(data.column_names)
         missing = [n for n in spec.schema.names if n not in names]
@@ -160,6 +173,8 @@ class Warehouse:
         else:
             final = folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
         tmp = folder / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
+        import pyarrow.parquet as pq
+
         try:
             pq.write_table(data, tmp, compression="zstd")
             with open(tmp, "rb+") as f:
@@ -192,6 +207,8 @@ class Warehouse:
             empty = spec.schema.empty_table()
             return empty.select(list(columns)) if columns else empty
         if isinstance(filters, list):
+            import pyarrow.parquet as pq
+
             filters = pq.filters_to_expression(filters)
         import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
 
