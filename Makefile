@@ -51,6 +51,7 @@ $(VENV)/.installed: pyproject.toml requirements.lock
 	$(BIN)/python -m pip install -q --disable-pip-version-check uv==$(UV_VERSION)
 	$(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python --find-links $(FIND_LINKS) -r requirements.lock
 	$(BIN)/uv pip install -q --python $(BIN)/python --no-deps --config-settings editable_mode=compat -e .
+	$(BIN)/python -m compileall -q cadestate flows tasks schemas warehouse bench
 	touch $@
 
 cad-library: $(SH3D_ROOT)/.unpacked

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import sys
 from pathlib import Path
 
 from bench import (annotate_bench, cad_throughput, cli_bench, detect_throughput, frames_throughput, pose_bench,
@@ -13,7 +14,7 @@ from bench import (annotate_bench, cad_throughput, cli_bench, detect_throughput,
 RESULTS = Path("bench/results")
 
 
-def main() -> None:
+def main() -> int:
     RESULTS.mkdir(parents=True, exist_ok=True)
     results = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
@@ -28,10 +29,16 @@ def main() -> None:
         "commands": cli_bench.run(),
         "annotation_app": annotate_bench.run(),
     }
+    results["budgets_ok"] = results["commands"]["commands"]["budgets_ok"]
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
     print(f"saved {RESULTS / 'latest.json'}")
+    print("\n".join(cli_bench.ratio_lines(results["commands"]["commands"])))
+    if not results["budgets_ok"]:
+        print("budgets_ok: false (a command is over its budget, above)")
+        return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

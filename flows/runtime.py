@@ -54,15 +54,55 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     prepare_prefect_environment(root, startup_timeout_s=config.prefect.startup_timeout_s)
     from prefect import tags as prefect_tags
 
+    api = os.environ.get("PREFECT_API_URL", "")
     try:
         with warehouse_results(root), prefect_tags(*tags):
             state = flow.with_options(task_runner=task_runner(config.prefect), flow_run_name=run_name)(*args, return_state=True)
-    except RuntimeError as e:
-        if "Prefect API" not in str(e):
+    except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
+        cause = api_failure(e)
+        if cause is None:
             raise
-        raise ServerError(f"Prefect's API could not be reached ({e}): start a server once with `cadestate server start` "
-                          "(commands then reuse it), or give it longer with [prefect] startup_timeout_s") from None
+        raise ServerError(api_error_line(api, cause)) from None
     return state.result(raise_on_failure=False)
+
+
+API_FAILURES = ("Prefect API", "Failed to reach API")
+"""Words of the RuntimeErrors Prefect raises when its API (ephemeral or a server) does not start or answer."""
+
+
+def _chain(e: BaseException) -> Iterator[BaseException]:
+    """``e`` and the exceptions it was raised from or while handling, outermost first."""
+    seen: set[int] = set()
+    current: BaseException | None = e
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        yield current
+        current = current.__cause__ or current.__context__
+
+
+def api_failure(e: BaseException) -> str | None:
+    """What went wrong, in one line, when ``e`` means Prefect's API did not start or could not be
+    reached (a connection refused or timed out, an HTTP error from the API, Prefect's own "Failed to
+    reach API" / "Prefect API" errors); None for any other exception."""
+    import httpx
+
+    causes = [c for c in _chain(e) if isinstance(c, (httpx.TransportError, httpx.HTTPStatusError, ConnectionError,
+                                                     TimeoutError))]
+    prefect_says = isinstance(e, RuntimeError) and any(w in str(e) for w in API_FAILURES)
+    if not causes and not prefect_says:
+        return None
+    parts = ([str(e)] if prefect_says else []) + [f"{type(c).__name__}: {c}" for c in causes[-1:]]
+    return " ".join(": ".join(dict.fromkeys(p.rstrip(":. ") for p in parts if p)).split())
+
+
+def api_error_line(api: str, cause: str) -> str:
+    """The one line for Prefect's API failing: the cause, and the fix for the API in use (``api``:
+    ``$PREFECT_API_URL`` or the warehouse's server; '' for the ephemeral API)."""
+    if api:
+        return (f"Prefect's API at {api} could not be reached ({cause}): start that server, or unset "
+                "PREFECT_API_URL (then `cadestate server start` runs one for this warehouse)")
+    return (f"Prefect's API could not be reached ({cause}): start a server once with `cadestate server start` "
+            "(commands then reuse it), or give it longer with [prefect] startup_timeout_s")
 
 
 def run_tags(root: Path, clips: dict[str, str]) -> list[str]:

@@ -118,6 +118,7 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
     prefect_home(root).mkdir(parents=True, exist_ok=True)
     port = port or free_port(host)
     log = prefect_dir(root) / LOG_FILE
+    offset = log.stat().st_size if log.exists() else 0
     prefect = Path(sys.executable).with_name("prefect")
     command = [str(prefect), "server", "start", "--host", host, "--port", str(port)]
     with open(log, "ab") as out:
@@ -130,13 +131,40 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise ServerError(f"the Prefect server exited with status {process.returncode} while starting: see {log}")
+            forget_server(root)
+            raise ServerError(f"the Prefect server exited with status {process.returncode} while starting: "
+                              f"{log_cause(log, offset) or 'it said nothing'} (log: {log})")
         if healthy(info.api_url, timeout_s=1.0):
             return info
         time.sleep(0.5)
     _terminate(info)
+    forget_server(root)
     raise ServerError(f"the Prefect server did not answer within {timeout_s:.0f} s (see {log}); "
                       "a busy machine may need a longer [prefect] startup_timeout_s")
+
+
+def forget_server(root: Path) -> None:
+    """Remove the warehouse's server record (its server is not running)."""
+    (prefect_dir(root) / SERVER_FILE).unlink(missing_ok=True)
+
+
+def log_cause(log: Path, offset: int = 0, limit: int = 300) -> str:
+    """Why the server stopped, in one line: the last paragraph the log got after ``offset`` (for a
+    traceback, its last line, the exception), at most about ``limit`` characters; '' when none."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(offset)
+            text = f.read().decode("utf-8", errors="replace")
+    except OSError:
+        return ""
+    paragraphs = [p.strip() for p in text.replace("\r", "").split("\n\n") if p.strip()]
+    if not paragraphs:
+        return ""
+    last = paragraphs[-1]
+    if "Traceback (most recent call last)" in last:
+        last = last.splitlines()[-1]
+    line = " ".join(last.split())
+    return line if len(line) <= limit else line[:limit] + "..."
 
 
 def _terminate(info: ServerInfo, timeout_s: float = 20.0) -> None:
@@ -162,5 +190,5 @@ def stop_server(root: Path) -> ServerInfo | None:
     info = read_server(root)
     if info is not None:
         _terminate(info)
-        (prefect_dir(root) / SERVER_FILE).unlink(missing_ok=True)
+        forget_server(root)
     return info

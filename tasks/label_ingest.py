@@ -37,7 +37,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from cadestate.lineage import digest, table_digest
-from schemas.labels import ANSWER_TABLES, KINDS, LABEL_EFFORT, LABEL_FILES, SIDE_TABLES, TRACK_RELATIONS
+from schemas.label_tables import ANSWER_TABLES, LABEL_EFFORT, LABEL_FILES, SIDE_TABLES, TRACK_RELATIONS
+from schemas.labels import KINDS
 from schemas.pose import CORRESPONDENCES
 from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
 from tasks.labels import ClipFacts, LabelFile, utc_now, validate_label

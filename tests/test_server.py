@@ -4,6 +4,7 @@ named and tagged flow runs, fallback to ephemeral mode, and Prefect failing to s
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 
@@ -63,3 +64,36 @@ def test_prefect_failing_to_start_is_one_line(tmp_path, small_clip):
     assert result.returncode == 1 and "Traceback" not in result.stderr
     errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "cadestate server start" in errors[0] and "[prefect] startup_timeout_s" in errors[0]
+
+
+def closed_port() -> int:
+    """A loopback port nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_dead_prefect_api_url_is_one_line(tmp_path, small_clip):
+    api = f"http://127.0.0.1:{closed_port()}/api"
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}, "PREFECT_API_URL": api}
+    result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "ingest",
+                             str(small_clip.video_path), str(small_clip.cameras_path), "--no-progress"],
+                            capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1, result.stderr
+    assert f"Prefect's API at {api} could not be reached" in errors[0] and "Connection refused" in errors[0]
+    assert "PREFECT_API_URL" in errors[0] and "cadestate server start" in errors[0]
+
+
+def test_server_start_on_a_port_in_use_says_so_and_forgets_the_server(tmp_path):
+    w = tmp_path / "w"
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = cli("-w", str(w), "server", "start", "--host", "127.0.0.1", "--port", str(port), cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and f"Port {port} is already in use" in errors[0], result.stderr
+    assert not (w / "_prefect" / "server.json").exists() and read_server(w) is None

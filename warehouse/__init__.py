@@ -1,6 +1,29 @@
-"""Parquet storage with atomic partition writes, and the DuckDB catalog over it."""
+"""Parquet storage with atomic partition writes, and the DuckDB catalog over it.
 
-from warehouse.catalog import connect, refresh_catalog
-from warehouse.store import Warehouse, WarehouseError, atomic_write_bytes, check_name
+The names below are imported on first use (a module ``__getattr__``), so ``from warehouse import
+Warehouse`` does not import DuckDB, and nothing here imports pyarrow before a table is read or written.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from warehouse.catalog import connect, refresh_catalog
+    from warehouse.store import Warehouse, WarehouseError, atomic_write_bytes, check_name
 
 __all__ = ["Warehouse", "WarehouseError", "atomic_write_bytes", "check_name", "connect", "refresh_catalog"]
+
+_FROM = {"Warehouse": "warehouse.store", "WarehouseError": "warehouse.store", "atomic_write_bytes": "warehouse.store",
+         "check_name": "warehouse.store", "connect": "warehouse.catalog", "refresh_catalog": "warehouse.catalog"}
+
+
+def __getattr__(name: str) -> Any:
+    """The names of :data:`__all__`, from :mod:`warehouse.store` and :mod:`warehouse.catalog`."""
+    import importlib
+
+    if name not in _FROM:
+        raise AttributeError(f"module 'warehouse' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_FROM[name]), name)
+    globals()[name] = value
+    return value

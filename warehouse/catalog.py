@@ -20,8 +20,6 @@ import uuid
 from pathlib import Path
 
 import duckdb
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from warehouse.store import Warehouse, WarehouseError
 
@@ -38,43 +36,64 @@ def _sql_str(value: str) -> str:
     return "'" + value.replace("'", "''") + "'"
 
 
-def _schema_digest(path: Path) -> bytes | None:
-    """The schema digest stored in the schema file ``path`` (None: missing or unreadable)."""
+def _schema_digest(con: duckdb.DuckDBPyConnection, path: Path) -> str | None:
+    """The schema digest stored in the schema file ``path`` (None: missing or unreadable), read by
+    DuckDB (the file's key-value metadata), so that a current file costs no pyarrow."""
     try:
-        return (pq.read_schema(path).metadata or {}).get(SCHEMA_DIGEST)
-    except (OSError, pa.ArrowException):
+        rows = con.execute("SELECT decode(value) FROM parquet_kv_metadata(?) WHERE decode(key) = ?",
+                           [str(path), SCHEMA_DIGEST.decode()]).fetchall()
+    except (duckdb.Error, UnicodeDecodeError):
         return None
+    return rows[0][0] if rows else None
 
 
-def _schema_file(wh: Warehouse, table: str) -> Path:
+def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> Path:
     """An empty Parquet file with the table's schema, rewritten only when the schema changes (a
     Parquet round trip renames list items, so the file records the digest of the schema it holds)."""
     path = wh.root / "_schemas" / f"{table}.parquet"
-    schema = wh.spec(table).schema
-    digest = hashlib.sha256(schema.serialize()).hexdigest().encode()
-    if _schema_digest(path) != digest:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-        pq.write_table(schema.with_metadata({**(schema.metadata or {}), SCHEMA_DIGEST: digest}).empty_table(), tmp)
-        os.replace(tmp, path)
+    if not path.is_file() or _schema_digest(con, path) != wh.info[table].schema_sha256:
+        import pyarrow.parquet as pq
+
+        schema = wh.spec(table).schema
+        digest = hashlib.sha256(schema.serialize()).hexdigest()
+        if _schema_digest(con, path) != digest:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+            meta = {**(schema.metadata or {}), SCHEMA_DIGEST: digest.encode()}
+            pq.write_table(schema.with_metadata(meta).empty_table(), tmp)
+            os.replace(tmp, path)
     return path
 
 
-def view_sql(wh: Warehouse, table: str) -> str:
-    """The CREATE VIEW statement of one table."""
+def view_sql(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection | None = None) -> str:
+    """The CREATE VIEW statement of one table (``con`` reads the digests of the schema files)."""
     if wh.files(table):
         source = (wh.table_dir(table) / "*" / "*.parquet").as_posix()
     else:
-        source = _schema_file(wh, table).as_posix()
+        source = _schema_file(wh, table, con or duckdb.connect()).as_posix()
     return f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet({_sql_str(source)}, union_by_name = true)"
+
+
+def row_counts(wh: Warehouse) -> dict[str, int]:
+    """Rows of each table, from its Parquet files' footers (read by DuckDB)."""
+    files = {name: [str(f) for f in wh.files(name)] for name in wh.info}
+    every = [f for paths in files.values() for f in paths]
+    con = duckdb.connect()
+    try:
+        rows = dict(con.execute("SELECT file_name, num_rows FROM parquet_file_metadata(?)", [every]).fetchall()) if every else {}
+    except duckdb.Error as e:
+        raise WarehouseError(f"cannot read the tables of {wh.root}: {one_line(str(e))}") from None
+    finally:
+        con.close()
+    return {name: sum(rows[f] for f in paths) for name, paths in files.items()}
 
 
 def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
     """Create in ``con`` a view per table of ``wh`` (commented with its description) and the macro
     ``warehouse_root()`` naming the root the views read."""
-    for name, spec in sorted(wh.tables.items()):
-        con.execute(view_sql(wh, name))
-        con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(spec.description)}")
+    for name, info in sorted(wh.info.items()):
+        con.execute(view_sql(wh, name, con))
+        con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(info.description)}")
     con.execute(f"CREATE OR REPLACE MACRO {ROOT_MACRO}() AS {_sql_str(str(wh.root))}")
 
 

@@ -27,12 +27,14 @@ import time
 import uuid
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
+if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
+    import pyarrow as pa
+    import pyarrow.compute as pc
 
-from schemas import TABLES, TableSpec
+    from schemas import TableSpec
+    from schemas.index import TableInfo
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
@@ -80,9 +82,36 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 class Warehouse:
     """A warehouse rooted at a local directory."""
 
-    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] = TABLES):
+    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] | None = None):
         self.root = Path(root).expanduser().resolve()
-        self.tables = tables
+        self._tables = tables
+        self._info: dict[str, TableInfo] | None = None
+
+    @property
+    def tables(self) -> dict[str, TableSpec]:
+        """The table specs (default: every table of :data:`schemas.TABLES`, imported on first use)."""
+        if self._tables is None:
+            from schemas import TABLES
+
+            self._tables = TABLES
+        return self._tables
+
+    @property
+    def info(self) -> dict[str, TableInfo]:
+        """What the layout and the catalog need of each table (no pyarrow schema): from the published
+        index for the default tables (:mod:`schemas.index`), else from the table specs."""
+        if self._info is None:
+            from schemas.index import read_index, table_info
+
+            index = read_index() if self._tables is None else None
+            self._info = index if index is not None else {n: table_info(s) for n, s in self.tables.items()}
+        return self._info
+
+    def _table(self, table: str) -> TableInfo:
+        try:
+            return self.info[table]
+        except KeyError:
+            raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.info))})") from None
 
     def __repr__(self) -> str:
         return f"Warehouse({str(self.root)!r})"
@@ -95,11 +124,11 @@ class Warehouse:
             raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.tables))})") from None
 
     def table_dir(self, table: str) -> Path:
-        return self.root / "tables" / self.spec(table).name
+        return self.root / "tables" / self._table(table).name
 
     def partition_dir(self, table: str, part: str) -> Path:
-        spec = self.spec(table)
-        return self.table_dir(table) / f"{spec.partition}={check_name(part, spec.partition)}"
+        partition = self._table(table).partition
+        return self.table_dir(table) / f"{partition}={check_name(part, partition)}"
 
     def inputs_dir(self, clip: str) -> Path:
         return self.root / "inputs" / check_name(clip)
@@ -108,19 +137,22 @@ class Warehouse:
         """Data files of ``table`` (all partitions, or the named ones), sorted."""
         base = self.table_dir(table)
         if partitions is None:
-            dirs = sorted(base.glob(f"{self.spec(table).partition}=*"))
+            dirs = sorted(base.glob(f"{self._table(table).partition}=*"))
         else:
             dirs = [self.partition_dir(table, p) for p in partitions]
         return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
 
     def partitions(self, table: str) -> list[str]:
         """Partitions (clips, or libraries) that have data in ``table``."""
-        prefix = f"{self.spec(table).partition}="
+        prefix = f"{self._table(table).partition}="
         return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
 
     # -- writing -----------------------------------------------------------------------------
     def conform(self, table: str, part: str, data: pa.Table) -> pa.Table:
         """Check ``data`` against the table's schema and return it cast to that schema exactly."""
+        import pyarrow as pa
+        import pyarrow.compute as pc
+
         spec = self.spec(table)
         names = set(data.column_names)
         missing = [n for n in spec.schema.names if n not in names]
@@ -160,6 +192,8 @@ class Warehouse:
         else:
             final = folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
         tmp = folder / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
+        import pyarrow.parquet as pq
+
         try:
             pq.write_table(data, tmp, compression="zstd")
             with open(tmp, "rb+") as f:
@@ -192,6 +226,8 @@ class Warehouse:
             empty = spec.schema.empty_table()
             return empty.select(list(columns)) if columns else empty
         if isinstance(filters, list):
+            import pyarrow.parquet as pq
+
             filters = pq.filters_to_expression(filters)
         import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
 

@@ -135,6 +135,19 @@ def labels_validate(
     raise typer.Exit(1 if bad else 0)
 
 
+def _schema(kind: str, which: str) -> dict:
+    """The JSON Schema of the ``which`` file of ``kind``: the published one (``schemas/json/``, equal
+    to the generated one), else generated from the dataclasses."""
+    from schemas.label_kinds import published_schema
+
+    doc = published_schema(kind, which)
+    if doc is None:
+        from schemas.labels import json_schema
+
+        doc = json_schema(kind, which)
+    return doc
+
+
 @labels_app.command("schema")
 def labels_schema(
     kind: Annotated[Optional[str], typer.Argument(help="manual_track | cad_selection | correspondences | verification (default: all).")] = None,
@@ -142,15 +155,17 @@ def labels_schema(
     write: Annotated[Optional[Path], typer.Option(help="Write every schema into this folder instead of printing.")] = None,
 ) -> None:
     """Print the JSON Schema (draft 2020-12) of a label or task file."""
-    from schemas.labels import KINDS, json_schema, publish_schemas
+    from schemas.label_kinds import KINDS
 
     if write is not None:
+        from schemas.labels import publish_schemas
+
         for p in publish_schemas(str(write)):
             out.print(p)
         return
     if kind is not None and kind not in KINDS:
         raise CliError(f"unknown kind {kind!r} (kinds: {', '.join(KINDS)})")
-    doc = json_schema(kind, which.value) if kind else {f"{k}.{which.value}": json_schema(k, which.value) for k in KINDS}
+    doc = _schema(kind, which.value) if kind else {f"{k}.{which.value}": _schema(k, which.value) for k in KINDS}
     print(json.dumps(doc, indent=2, ensure_ascii=False))
 
 

@@ -230,8 +230,6 @@ def tables(
     name: Annotated[Optional[str], typer.Argument(help="A table: show its columns with units and frames.")] = None,
 ) -> None:
     """List the warehouse tables (row counts), or one table's columns."""
-    import pyarrow.parquet as pq
-
     wh = ctx.obj.open_warehouse()
     if name:
         spec = wh.spec(name)
@@ -241,11 +239,12 @@ def tables(
         out.print(table)
         out.print(f"key: {', '.join(spec.key)}   mode: {spec.mode}   partitioned by clip")
         return
+    from warehouse.catalog import row_counts
+
     table = Table("table", "rows", "clips", "description")
-    for tname, spec in wh.tables.items():
-        files = wh.files(tname)
-        rows = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
-        table.add_row(tname, str(rows), str(len(wh.partitions(tname))), escape(spec.description))
+    counts = row_counts(wh)
+    for tname, info in wh.info.items():
+        table.add_row(tname, str(counts[tname]), str(len(wh.partitions(tname))), escape(info.description))
     out.print(table)
 
 

@@ -1,0 +1,69 @@
+"""Commands that only read import only what they need (issue "Fast commands"): no Prefect, nothing
+of bench/, no pandas, and no pyarrow for ``--help``, ``labels schema``, ``sql`` and ``tables``.
+Each command runs through the real entry point in a fresh process, which then lists sys.modules."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import table_rows
+from warehouse import Warehouse
+
+RUNNER = """
+import json, sys
+from cadestate.cli import main
+sys.argv = ["cadestate", *json.loads(sys.argv[1])]
+try:
+    main()
+except SystemExit as e:
+    code = e.code or 0
+else:
+    code = 0
+with open({out!r}, "w") as f:
+    json.dump({{"code": code, "modules": sorted(sys.modules)}}, f)
+"""
+
+HEAVY = ("prefect", "bench", "pandas", "pyarrow")
+
+
+def loaded(args: list[str], out: Path) -> tuple[int, set[str]]:
+    """Exit code of the command ``args`` and the top-level packages its process had imported."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    done = subprocess.run([sys.executable, "-c", RUNNER.format(out=str(out)), json.dumps(args)],
+                          capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    return result["code"], {m.split(".")[0] for m in result["modules"]}
+
+
+@pytest.fixture(scope="module")
+def read_wh(tmp_path_factory) -> Path:
+    """A warehouse with a frame and a stage run of one clip."""
+    wh = Warehouse(tmp_path_factory.mktemp("imports") / "w")
+    wh.write("frames", "c", table_rows("frames", [{"clip": "c"}]))
+    wh.write("runs", "c", table_rows("runs", [{"clip": "c", "stage": "cameras", "status": "completed"}]))
+    return wh.root
+
+
+@pytest.mark.parametrize("command, absent, present", [
+    (["--help"], HEAVY, ("typer",)),
+    (["labels", "schema", "correspondences"], HEAVY, ("schemas",)),
+    (["labels", "schema"], HEAVY, ("schemas",)),
+    (["config", "show"], HEAVY, ("cadestate",)),
+    (["sql", "SELECT count(*) FROM frames"], HEAVY, ("duckdb",)),
+    (["sql", "SELECT count(*) FROM poses"], HEAVY, ("duckdb",)),  # an empty table: its schema file is current
+    (["tables"], HEAVY, ("duckdb",)),
+    (["tables", "frames"], ("prefect", "bench", "pandas"), ("pyarrow",)),  # the columns: the pyarrow schema
+    (["status"], ("prefect", "bench"), ("tasks",)),
+])
+def test_read_only_commands_import_only_what_they_need(read_wh, tmp_path, command, absent, present):
+    code, modules = loaded(["-w", str(read_wh), *command], tmp_path / "modules.json")
+    assert code == 0
+    assert sorted(set(absent) & modules) == []
+    assert set(present) <= modules  # the probe sees what the command imported
