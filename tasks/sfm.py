@@ -101,7 +101,7 @@ def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrame
 
 
 def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
-    """pycolmap's reader, extraction, matching, pairing and mapping options for ``cfg``."""
+    """pycolmap's reader, extraction, matching, pairing, two-view verification and mapping options for ``cfg``."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -112,22 +112,25 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
         reader.camera_model = "SIMPLE_PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = cfg.max_image_size
-    extraction.num_threads = cfg.threads
+    extraction.num_threads = 1  # more threads store the images in a varying order: another model each run
     extraction.sift.max_num_features = cfg.max_features
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.threads
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = cfg.overlap
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed  # default -1: seeded from the clock, a different model every run
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = cfg.threads
     mapping.random_seed = cfg.seed
+    mapping.mapper.random_seed = cfg.seed
     mapping.min_model_size = 3
     mapping.ba_refine_focal_length = not intrinsics
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_extra_params = False
     mapping.mapper.abs_pose_refine_focal_length = not intrinsics
     mapping.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
-    return reader, extraction, matching, pairing, mapping
+    return reader, extraction, matching, pairing, verification, mapping
 
 
 def _interpolate(times: np.ndarray, registered: np.ndarray, R: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,14 +181,15 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         (tmp / "images").mkdir()
         frames = sample_frames(video, cfg.sample_fps, tmp / "images")
         seconds["sampling"] = time.perf_counter() - t0
-        reader, extraction, matching, pairing, mapping = _options(cfg, intrinsics)
+        reader, extraction, matching, pairing, verification, mapping = _options(cfg, intrinsics)
         db, names = tmp / "database.db", [p.name for p in frames.paths]
         t = time.perf_counter()
         pycolmap.extract_features(db, tmp / "images", names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         seconds["features"] = time.perf_counter() - t
         t = time.perf_counter()
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
         seconds["matching"] = time.perf_counter() - t
         t = time.perf_counter()
         (tmp / "sparse").mkdir()

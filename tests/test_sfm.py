@@ -1,4 +1,8 @@
-"""SfM cameras (tasks/sfm.py) and the ``cameras`` stage: interpolation, clear failures, a real run."""
+"""SfM cameras (tasks/sfm.py) and the ``cameras`` stage: interpolation, clear failures, real runs.
+
+The real runs need the Sweet Home 3D furniture (``make cad-library``): a benchmark walkthrough of
+the session's small library (``small_cad_library`` in conftest.py).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.sfm_eval import align, camera_errors, umeyama
+from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world
 from tasks.cameras import parse_camera_file
@@ -51,15 +56,41 @@ def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
         sample_frames(small_clip.video_path, 0.1, tmp_path)
 
 
+SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=60, sample_every=2, alone_scale=0.5)
+"""A 2-second benchmark walkthrough (textured room, real CAD furniture): 30 camera lines at 15 fps."""
+SEED = 11
+
+
+@pytest.fixture(scope="module")
+def walkthrough(small_cad_library, tmp_path_factory):
+    """A benchmark walkthrough of the session's small Sweet Home 3D library (tests/conftest.py)."""
+    wh, rows = small_cad_library
+    return generate_clip(tmp_path_factory.mktemp("sfm_walk"), "walk", SEED, rows, wh.root, SPEC)
+
+
 @pytest.mark.slow
-def test_sfm_on_a_rendered_walkthrough(small_clip):
-    """A real pycolmap run on the small demo clip (30 frames sampled at 10 fps): every frame
-    registered, cameras close to the true ones after a similarity alignment, or a clear error."""
-    cfg = CamerasConfig(sample_fps=10.0)
-    result = run_sfm(small_clip.video_path, cfg)
-    truth = parse_camera_file(small_clip.cameras_path)
+def test_sfm_on_a_rendered_walkthrough(walkthrough):
+    """A real pycolmap run on a textured benchmark walkthrough, sampled at its camera lines'
+    15 fps: every frame gets a camera, nearly all registered, cameras close to the true ones
+    after a similarity alignment (issue 20: >= 95 %, median rotation error < 1 degree), and the
+    same cameras on a second run (seeded RANSAC and mapper, single-threaded extraction)."""
+    result = run_sfm(walkthrough.video_path, CamerasConfig(sample_fps=15.0))
+    truth = parse_camera_file(walkthrough.cameras_path)
     assert result.track.timestamps_us.tolist() == truth.timestamps_us.tolist()  # the same sampled frames
-    assert result.registered_fraction >= 0.9
+    assert result.registered_fraction >= 0.95, result.models
     errors = camera_errors(truth.R, camera_to_world(truth.R, truth.t)[1], result.track.R,
                            camera_to_world(result.track.R, result.track.t)[1])
-    assert np.median(errors.rotation_deg) < 5.0
+    summary = errors.summary()
+    assert summary["median_rotation_error_deg"] < 1.0, summary
+    assert summary["median_trajectory_error_pct"] < 5.0, summary  # measured 2.25 % (focal estimated, 320 x 180)
+    again = run_sfm(walkthrough.video_path, CamerasConfig(sample_fps=15.0))
+    np.testing.assert_array_equal(again.track.world_to_camera, result.track.world_to_camera)
+
+
+@pytest.mark.slow
+def test_sfm_on_a_textureless_clip_is_a_clear_error(small_clip):
+    """The demo clip (flat-coloured boxes, almost blank walls: ~100 SIFT features a frame) is no
+    input for SfM: a one-line SfmError naming the video and how many frames were registered."""
+    with pytest.raises(SfmError, match=r"small.mp4: SfM (registered \d+ of 30 sampled frames \(\d+%\), fewer than "
+                                       r"\[cameras\] min_registered_fraction|found no model in 30 sampled frames)"):
+        run_sfm(small_clip.video_path, CamerasConfig(sample_fps=10.0))
