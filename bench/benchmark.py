@@ -161,8 +161,9 @@ def detection_frames(bench_dir: Path, clip: str, wh: Warehouse) -> list[FrameBox
 
 
 def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> dict:
-    """Metrics of what the pipeline can do so far (of the clips in ``wh``), dataset statistics,
-    and example frames."""
+    """The dataset's yield first (:mod:`bench.dataset_yield`), then metrics of what the pipeline
+    can do so far (of the clips in ``wh``), dataset statistics, and example frames."""
+    from bench.dataset_yield import dataset_yield  # imports this module
     from bench.pose_bench import pose_accuracy  # imports this module
     from bench.retrieval_bench import retrieval_accuracy  # imports this module
     from bench.track_bench import tracking_accuracy  # imports this module
@@ -184,6 +185,7 @@ def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> d
     detected = [c for c in manifest.clips if wh is not None and c in wh.partitions("detections")]
     detection = evaluate_detections([f for c in detected for f in detection_frames(bench_dir, c, wh)]) if detected else None
     return {
+        "yield": dataset_yield(bench_dir, wh) if wh is not None else None,
         "benchmark": {"seed": manifest.seed, "clips": len(manifest.clips)},
         "detection": detection and {"clips": len(detected), **detection},
         "tracking": tracking_accuracy(bench_dir, wh) if wh is not None else None,
@@ -198,11 +200,13 @@ def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> d
 
 def report_markdown(result: dict) -> str:
     """The report as markdown (pictures linked relative to the benchmark folder)."""
+    from bench.dataset_yield import yield_markdown  # imports this module
     from bench.pose_bench import pose_markdown  # imports this module
     from bench.retrieval_bench import retrieval_markdown  # imports this module
     from bench.track_bench import tracking_markdown  # imports this module
 
     lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
+             *yield_markdown(result.get("yield")),
              "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
              f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden, cut off, or no COCO class).", "",

@@ -17,9 +17,20 @@ one lies nearby.
 
 Boxes are (ymin, xmin, ymax, xmax), normalised to [0, 1] as in the official ``objects.json``
 (IoU does not change when x and y are scaled independently, so pixels work just as well).
+
+The "in view" rule of the dataset's yield (``bench report``), also defined here only: a box is
+*in view* when it passes the visibility and truncation tests above (:func:`box_in_view`; the class
+is not looked at: a manual track can add an object no detector finds), and a ground-truth object
+is *in view* when at least ``MIN_FRAMES_IN_VIEW`` of its boxes are (:func:`objects_in_view`,
+:func:`clip_objects_in_view`). Only objects in view are expected in the dataset.
 """
 
 from __future__ import annotations
+
+import json
+from collections import Counter
+from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -29,6 +40,12 @@ MIN_VISIBLE_FRACTION = 0.3
 
 MAX_TRUNCATED_FRACTION = 0.5
 """A ground-truth box whose object has more than this share outside the image is ignored."""
+
+MIN_FRAMES_IN_VIEW = 3
+"""Frames with an in-view box an object needs to count as in view (expected in the dataset). Why 3:
+the automatic tracker drops tracks of fewer detections (``TrackingConfig.min_detections`` = 3),
+and an object seen on one or two frames gives its annotators no choice of key-frames and the pose
+solver almost no parallax; such an object is not one the pipeline can be asked to pose."""
 
 IGNORE_IOU = 0.5
 """IoU at which a prediction counts as lying on a (ground-truth or ignore) box."""
@@ -49,8 +66,37 @@ def is_ignored(class_name: str, visible_fraction: float = 1.0, truncated_fractio
     ``visible_fraction``: share of the object's projection not hidden by other objects, in [0, 1];
     ``truncated_fraction``: share of the object's projection outside the image, in [0, 1].
     """
-    return (visible_fraction < min_visible or truncated_fraction > max_truncated
+    return (not box_in_view(visible_fraction, truncated_fraction, min_visible=min_visible, max_truncated=max_truncated)
             or class_name not in coco_classes)
+
+
+def box_in_view(visible_fraction: float, truncated_fraction: float, *, min_visible: float = MIN_VISIBLE_FRACTION,
+                max_truncated: float = MAX_TRUNCATED_FRACTION) -> bool:
+    """Whether one ground-truth box shows its object well enough to annotate: visible fraction
+    at least ``min_visible`` and truncated fraction at most ``max_truncated`` (fractions in [0, 1])."""
+    return visible_fraction >= min_visible and truncated_fraction <= max_truncated
+
+
+def objects_in_view(boxes: Iterable[tuple[str, float, float]], min_frames: int = MIN_FRAMES_IN_VIEW) -> set[str]:
+    """The objects in view among ``boxes``: (object id, visible fraction, truncated fraction), one
+    per frame the object has a ground-truth box on; an object is in view with at least
+    ``min_frames`` boxes in view (:func:`box_in_view`)."""
+    frames: Counter[str] = Counter(obj for obj, visible, truncated in boxes if box_in_view(visible, truncated))
+    return {obj for obj, n in frames.items() if n >= min_frames}
+
+
+def clip_objects_in_view(bench_dir: Path, clip: str, min_frames: int = MIN_FRAMES_IN_VIEW) -> set[str]:
+    """Ground-truth track ids of the benchmark clip's objects in view, from its ``objects.json``
+    (the boxes) and ``visibility.json`` (their fractions; a box missing there is not in view)."""
+    from schemas.official import read_objects
+
+    folder = Path(bench_dir) / clip
+    visibility = json.loads((folder / "visibility.json").read_text())
+    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
+                 for f in visibility["frames"] for o in f["objects"]}
+    boxes = [(obj.track_id, *fractions.get((e.timestamp, obj.track_id), (0.0, 1.0)))
+             for obj in read_objects(folder / "objects.json").objects for e in obj.track]
+    return objects_in_view(boxes, min_frames)
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -90,6 +90,23 @@ def _predictions(rows: list[dict]) -> list[PosedObject]:
                         r["is_mirrored"], r["cad_id"], r["clip"]) for r in rows]
 
 
+def scoring_inputs(bench_dir: Path, wh: Warehouse, clips: list[str]
+                   ) -> tuple[list[PosedObject], dict[tuple[str, str], str], dict[str, int]]:
+    """What :func:`bench.scoring.score_all` scores against, for ``clips``: the posed ground truth
+    (class names), the pipeline track -> ground-truth object map (:func:`_ground_truth_map`) and
+    the symmetry order of every CAD model."""
+    truth = {(c, t): gt for c in clips for t, gt in _ground_truth_map(bench_dir, wh, c).items()}
+    gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
+    symmetries = {r["cad_id"]: r["symmetry"] for r in wh.read("cad_models", columns=["cad_id", "symmetry"]).to_pylist()}
+    return gt, truth, symmetries
+
+
+def accepted_predictions(wh: Warehouse, clips: list[str]) -> list[PosedObject]:
+    """The poses accepted in verification (``verified_poses``) of ``clips``, in the camera files' worlds."""
+    rows = [r for r in wh.read("verified_poses", clips).to_pylist() if r["accepted"]]
+    return in_input_world(_predictions(rows), wh)
+
+
 def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     """The warehouse's poses of the benchmark's clips scored in every mode of :mod:`bench.scoring`
     (None before the pose stage ran): the solver's (``poses``, status ok) and the dataset's (the
@@ -102,15 +119,12 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
         return None
     rows = [r for c in clips for r in wh.read("poses", [c]).to_pylist()]
     verdicts = [r for r in wh.read("verified_poses", clips).to_pylist()]
-    truth = {(c, t): gt for c in clips for t, gt in _ground_truth_map(bench_dir, wh, c).items()}
-    gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
-    symmetries = {r["cad_id"]: r["symmetry"] for r in wh.read("cad_models", columns=["cad_id", "symmetry"]).to_pylist()}
+    gt, truth, symmetries = scoring_inputs(bench_dir, wh, clips)
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
     solved = score_all(in_input_world(_predictions([r for r in rows if r["status"] == "ok"]), wh), gt, truth, symmetries)
-    accepted = (score_all(in_input_world(_predictions([r for r in verdicts if r["accepted"]]), wh), gt, truth, symmetries)
-                if verdicts else None)
+    accepted = score_all(accepted_predictions(wh, clips), gt, truth, symmetries) if verdicts else None
     annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,

@@ -29,6 +29,12 @@ object is credited at most once; accuracy = credited objects / all posed ground-
 
 In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
 ``duplicate``, any other unmatched one a ``false_positive``.
+
+Every mode also says, per prediction, which ground-truth object it is *on* and whether it is
+correct (:class:`Outcome`, the input of the dataset's yield, :mod:`bench.dataset_yield`): in
+``pose`` the object its track follows (correct or not); in the Scan2CAD modes the object it is
+credited with, or for a duplicate the credited object it aligns (both correct); a false positive
+is on no object.
 """
 
 from __future__ import annotations
@@ -45,6 +51,18 @@ from tasks.export_scan2cad import scan2cad_cad_id
 
 MODES = ("pose", "scan2cad-class", "scan2cad-exact")
 
+Key = tuple[str, str]
+"""(clip, track id): a prediction's or a ground-truth object's."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One prediction scored: the ground-truth object it is on (None: none) and whether it is correct."""
+
+    prediction: Key
+    on_object: Key | None
+    correct: bool
+
 
 @dataclass(frozen=True)
 class ModeResult:
@@ -58,6 +76,7 @@ class ModeResult:
     duplicates: int
     false_positives: int
     per_class: dict[str, tuple[int, int]]
+    outcomes: tuple[Outcome, ...] = ()
 
     @property
     def instance_accuracy(self) -> float:
@@ -75,12 +94,13 @@ class ModeResult:
 
 
 def _result(mode: str, gts: list[PosedObject], credited: set[tuple[str, str]], predictions: int, duplicates: int,
-            false_positives: int) -> ModeResult:
+            false_positives: int, outcomes: list[Outcome]) -> ModeResult:
     per_class: dict[str, tuple[int, int]] = {}
     for g in gts:
         n, c = per_class.get(g.cls, (0, 0))
         per_class[g.cls] = (n + 1, c + (g.key in credited))
-    return ModeResult(mode, len(gts), predictions, len(credited), duplicates, false_positives, dict(sorted(per_class.items())))
+    return ModeResult(mode, len(gts), predictions, len(credited), duplicates, false_positives,
+                      dict(sorted(per_class.items())), tuple(outcomes))
 
 
 def _symmetry(symmetries: Mapping[str, int], cad_id: str | None) -> int:
@@ -95,17 +115,21 @@ def score_pose(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedO
     credited: set[tuple[str, str]] = set()
     on_object: Counter[tuple[str, str]] = Counter()
     false_positives = 0
+    outcomes = []
     for p in preds:
         g = by_key.get((p.clip, truth.get(p.key, "")))
         if g is None:
             false_positives += 1
+            outcomes.append(Outcome(p.key, None, False))
             continue
         on_object[g.key] += 1
-        if is_correct(p.translation, p.rotation, p.scale, g.translation, g.rotation, g.scale,
-                      _symmetry(symmetries, g.cad_id), mirrored=p.is_mirrored, mirrored_gt=g.is_mirrored):
+        ok = is_correct(p.translation, p.rotation, p.scale, g.translation, g.rotation, g.scale,
+                        _symmetry(symmetries, g.cad_id), mirrored=p.is_mirrored, mirrored_gt=g.is_mirrored)
+        if ok:
             credited.add(g.key)
+        outcomes.append(Outcome(p.key, g.key, ok))
     duplicates = sum(n - 1 for n in on_object.values())
-    return _result("pose", gts, credited, len(preds), duplicates, false_positives)
+    return _result("pose", gts, credited, len(preds), duplicates, false_positives, outcomes)
 
 
 def _aligns(p: PosedObject, g: PosedObject, symmetry: int) -> bool:
@@ -126,6 +150,7 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
     used: Counter[tuple[str, str, str]] = Counter()
     credited_objects: list[PosedObject] = []
     unmatched: list[PosedObject] = []
+    outcomes = []
     for p in preds:
         model = (p.clip, p.cls, scan2cad_cad_id(p.cad_id or "", p.is_mirrored))
         if exact:
@@ -141,10 +166,15 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
             continue
         candidates.remove(hit)
         credited_objects.append(hit)
-    duplicates = sum(any(g.clip == p.clip and g.cls == p.cls and _aligns(p, g, _symmetry(symmetries, g.cad_id))
-                         for g in credited_objects) for p in unmatched)
+        outcomes.append(Outcome(p.key, hit.key, True))
+    duplicates = 0
+    for p in unmatched:
+        aligned = next((g for g in credited_objects if g.clip == p.clip and g.cls == p.cls
+                        and _aligns(p, g, _symmetry(symmetries, g.cad_id))), None)
+        duplicates += aligned is not None
+        outcomes.append(Outcome(p.key, None if aligned is None else aligned.key, aligned is not None))
     return _result("scan2cad-exact" if exact else "scan2cad-class", gts, {g.key for g in credited_objects}, len(preds),
-                   duplicates, len(unmatched) - duplicates)
+                   duplicates, len(unmatched) - duplicates, outcomes)
 
 
 def score_all(predictions: list[PosedObject], ground_truth: list[PosedObject], truth: Mapping[tuple[str, str], str],

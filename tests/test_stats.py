@@ -204,3 +204,79 @@ def test_html_report_renders_in_chromium(bench3, tmp_path):
 
     pixels = np.asarray(Image.open(shot).convert("L"))
     assert pixels.std() > 5  # not a blank page
+
+
+def _in_view(clip) -> set[str]:
+    """Hand count of the in-view rule: objects with >= 3 boxes visible >= 30 % and truncated <= 50 %."""
+    vis = json.loads((clip.objects_path.parent / "visibility.json").read_text())
+    fr = {(f["timestamp"], o["track_id"]): o for f in vis["frames"] for o in f["objects"]}
+    out = set()
+    for o in read_objects(clip.objects_path).objects:
+        good = [e for e in o.track if (e.timestamp, o.track_id) in fr and fr[(e.timestamp, o.track_id)]["visible_fraction"] >= 0.3
+                and fr[(e.timestamp, o.track_id)]["truncated_fraction"] <= 0.5]
+        if len(good) >= 3:
+            out.add(o.track_id)
+    return out
+
+
+def test_bench_report_leads_with_the_yield(bench3, tmp_path):
+    """The yield line of `cadestate bench report` against a hand count: clip 2 `val`, the others `train`; clip 0
+    gets two more accepted poses, the pose of its first posed object on the track of the next
+    object (a duplicate in 3D for `scan2cad-class`) and one 100 m away on no track (a false
+    annotation); descriptors for the detections, so each track maps to its object; task files."""
+    from fuzz.harness import run_cli
+    from tasks.embed import vectors_array
+
+    wh0, clips = bench3
+    shutil.copytree(wh0.root, tmp_path / "wh")
+    bench = tmp_path / "bench"
+    shutil.copytree(clips[0][1].objects_path.parent.parent, bench)
+    wh = Warehouse(tmp_path / "wh")
+    names = [c[0] for c in clips]
+    for name, split in zip(names, ("train", "train", "val")):
+        wh.write("clips", name, table_rows("clips", [{**wh.read("clips", [name]).to_pylist()[0], "split": split}]))
+    for name in names:
+        det = wh.read("detections", [name], columns=["det_id"]).column("det_id").to_pylist()
+        wh.write("embeddings", name, table_rows("embeddings", [
+            {"clip": name, "owner": "detection", "owner_id": d, "model_sha256": "x"} for d in det]).set_column(
+            3, "vector", vectors_array(np.tile([1.0, 0.0], (len(det), 1)))))
+    gt0 = [o for o in read_objects(clips[0][1].objects_path).objects if o.track]
+    first, other = gt0[0], gt0[1]  # posed (accepted) and not
+    far = dict(first.__dict__, translation=(first.translation[0] + 100.0, *first.translation[1:]), track_id="999")
+    write_accepted(wh, names[0], {**{int(o.track_id): o for o in clips[0][2]}, int(other.track_id): first,
+                                  999: type(first)(**far)})
+    doc = lambda *ids: json.dumps({"items": [{"track_id": t} for t in ids]})  # noqa: E731
+    wh.write("label_tasks", names[0], table_rows("label_tasks", [
+        {"clip": names[0], "task_id": "s", "kind": "cad_selection", "document": doc(1, 2, 3)},
+        {"clip": names[0], "task_id": "v", "kind": "verification", "document": doc(1)}]))
+    wh.write("label_tasks", names[2], table_rows("label_tasks", [
+        {"clip": names[2], "task_id": "m", "kind": "manual_track", "document": "{}"},
+        {"clip": names[2], "task_id": "c", "kind": "correspondences", "document": doc(5, 6)}]))
+
+    result = run_cli("-w", str(wh.root), "bench", "report", str(bench))
+    assert result.code == 0, result.stderr
+    in_view = [_in_view(c) for _, c, _, _ in clips]
+    posed = [{o.track_id for o in p} & v for (_, _, p, _), v in zip(clips, in_view)]
+    train_view, train_accepted = len(in_view[0]) + len(in_view[1]), len(clips[0][2]) + len(clips[1][2]) + 2
+    # scan2cad-class: the first object has two poses (not yielded, 1 duplicate); the far pose is false
+    train_yield = len(posed[0] - {first.track_id}) + len(posed[1])
+    assert first.track_id in in_view[0] and train_yield
+    pct = lambda n, d: round(100 * n / d, 1)  # noqa: E731
+    lines = result.stdout.splitlines()
+    assert lines[2] == "## Dataset yield (accepted poses, `scan2cad-class`)"
+    train = next(line for line in lines if line.startswith("**train**"))
+    assert train == (f"**train** (2 clips): yield **{pct(train_yield, train_view)} %** (target 60 %): {train_yield} of "
+                     f"{train_view} objects in view have exactly one accepted, correct pose; 1 duplicates "
+                     f"({pct(1, train_accepted)} % of {train_accepted} accepted poses); 1 false annotations; 1.0 tracks "
+                     f"per object ({train_view} objects found by a track); {round(4 / train_yield, 2)} human items per "
+                     f"posed object (4 asked).")
+    val = next(line for line in lines if line.startswith("**val**"))
+    assert val.startswith(f"**val** (1 clips): yield **{pct(len(posed[2]), len(in_view[2]))} %** (target 80 %): "
+                          f"{len(posed[2])} of {len(in_view[2])} objects in view")
+    assert val.endswith(f"{round(3 / len(posed[2]), 2)} human items per posed object (3 asked).")
+    # `pose` (the track map): the borrowed pose is wrong on the unposed object's track, no duplicate
+    pose_row = next(line for line in lines if line.startswith("| train | `pose` |"))
+    assert pose_row.startswith(f"| train | `pose` | {train_accepted} | {len(posed[0]) + len(posed[1])} of {train_view} ")
+    assert pose_row.split(" | ")[4:6] == ["0", "1"]
+    assert lines.index(train) < lines.index("## Dataset statistics (as in the paper's Table 2)")
+    assert (bench / "report.md").read_text().strip() == result.stdout.strip()

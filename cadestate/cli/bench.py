@@ -83,8 +83,10 @@ def bench_report(
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown.")] = False,
 ) -> None:
-    """Report the benchmark: metrics of the stages that exist, dataset statistics, example frames with
-    ground-truth boxes (written to <bench>/report/ and <bench>/report.md)."""
+    """Report the benchmark, leading with the dataset's yield (objects in view with exactly one accepted,
+    correct pose; duplicates; false annotations; tracks per object; human items per posed object; per
+    split), then metrics of the stages that exist, dataset statistics, example frames with ground-truth
+    boxes (written to <bench>/report/ and <bench>/report.md)."""
     from bench.benchmark import report, report_markdown
 
     result = report(bench_dir, wh=ctx.obj.open_warehouse())

@@ -1,0 +1,92 @@
+"""The dataset's yield (bench/dataset_yield.py) on small hand-made cases: the in-view rule
+(bench/ignore.py), the exactly-one rule, duplicates, false annotations, objects out of view and
+classes the library lacks left out, tracks per object and human items."""
+
+from __future__ import annotations
+
+import json
+
+from bench.dataset_yield import expected_objects, human_items, pose_yield, tracks_per_object
+from bench.eval_pose import PosedObject
+from bench.ignore import MIN_FRAMES_IN_VIEW, box_in_view, objects_in_view
+from bench.scoring import Outcome, score_all
+
+CHAIR, SOFA = "03001627", "04256520"
+NAMES = {CHAIR: "chair", SOFA: "sofa"}
+
+
+def test_in_view_needs_enough_well_visible_frames():
+    assert MIN_FRAMES_IN_VIEW == 3
+    assert box_in_view(0.3, 0.5) and not box_in_view(0.29, 0.0) and not box_in_view(1.0, 0.51)
+    good, hidden, cut = ("a", 0.9, 0.0), ("a", 0.1, 0.0), ("a", 0.9, 0.8)
+    assert objects_in_view([good, good, hidden, cut]) == set()  # 2 frames in view of 4
+    assert objects_in_view([good, good, good, hidden]) == {"a"}
+    assert objects_in_view([good, good, ("b", 1.0, 0.0)], min_frames=1) == {"a", "b"}
+
+
+def _o(clip: str, obj: str | None, correct: bool, pose: str = "p") -> Outcome:
+    return Outcome((clip, pose), None if obj is None else (clip, obj), correct)
+
+
+def test_exactly_one_correct_pose_yields():
+    expected = {("c", "1"), ("c", "2"), ("c", "3"), ("c", "4")}
+    outcomes = [_o("c", "1", True, "a"),                             # yields
+                _o("c", "2", False, "b"),                            # one pose, wrong: no
+                _o("c", "3", True, "c"), _o("c", "3", False, "d"),   # two poses: no, 1 duplicate
+                _o("c", "9", True, "e"),                             # on an object not expected (out of view)
+                _o("c", None, False, "f"), _o("c", None, False, "g")]  # false annotations
+    y = pose_yield(outcomes, expected)
+    assert (y.expected, y.accepted, y.yielded, y.duplicates, y.false_annotations, y.on_other_objects) == (4, 7, 1, 1, 2, 1)
+    d = y.as_dict(human_items=5)
+    assert d["yield_pct"] == 25.0 and d["duplicates_pct_of_accepted"] == round(100 / 7, 1)
+    assert d["human_items_per_posed_object"] == 5.0
+    empty = pose_yield([], expected).as_dict(3)
+    assert empty["yield_pct"] == 0.0 and empty["human_items_per_posed_object"] is None
+
+
+def _posed(track: str, cls: str, x: float, clip: str = "c") -> PosedObject:
+    return PosedObject(track, cls, (x, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, f"m.{cls}", clip)
+
+
+def test_scored_modes_feed_the_yield():
+    """Real scoring: two poses aligning object 1 (one on its track, one on object 2's), a far pose."""
+    gt = [_posed("1", "chair", 0.0), _posed("2", "chair", 5.0)]
+    preds = [_posed("1", "chair", 0.05), _posed("2", "chair", 0.0), _posed("3", "chair", 50.0)]
+    truth = {("c", "1"): "1", ("c", "2"): "2"}
+    modes = score_all(preds, gt, truth, {})
+    expected = {("c", "1"), ("c", "2")}
+    pose = pose_yield(modes["pose"].outcomes, expected)  # track map: pose 2 is on object 2, wrong
+    assert (pose.yielded, pose.duplicates, pose.false_annotations) == (1, 0, 1)
+    s2c = pose_yield(modes["scan2cad-class"].outcomes, expected)  # in 3D: pose 2 duplicates object 1
+    assert (s2c.yielded, s2c.duplicates, s2c.false_annotations) == (0, 1, 1)
+
+
+def test_out_of_view_objects_and_missing_classes_are_not_expected(tmp_path):
+    clip = "c"
+    (tmp_path / clip).mkdir()
+    track = [{"timestamp": t, "box": [0.1, 0.1, 0.5, 0.5]} for t in range(4)]
+    objects = [{"track_id": i, "class": cls, "is_track_automatic": True, "track": track}
+               for i, cls in (("1", CHAIR), ("2", CHAIR), ("3", SOFA), ("4", CHAIR))]
+    objects[3]["track"] = track[:2]  # two frames only
+    fractions = {"1": (0.9, 0.0), "2": (0.2, 0.0), "3": (0.9, 0.0), "4": (0.9, 0.0)}
+    (tmp_path / clip / "objects.json").write_text(json.dumps({"clip_name": clip, "objects": objects}))
+    (tmp_path / clip / "visibility.json").write_text(json.dumps({"frames": [
+        {"timestamp": t, "objects": [{"track_id": i, "visible_fraction": v, "truncated_fraction": tr}
+                                     for i, (v, tr) in fractions.items()]} for t in range(4)]}))
+    assert expected_objects(tmp_path, clip, {"chair", "sofa"}, NAMES) == {(clip, "1"), (clip, "3")}
+    assert expected_objects(tmp_path, clip, {"chair"}, NAMES) == {(clip, "1")}  # no sofa in the library
+
+
+def test_tracks_per_object_and_human_items():
+    expected = {("c", "1"), ("c", "2"), ("c", "3")}
+    tracks = {("c", "10"): ("c", "1"), ("c", "11"): ("c", "1"), ("c", "12"): ("c", "2"), ("c", "13"): ("c", "9")}
+    assert tracks_per_object(tracks, expected) == {"tracks_on_expected_objects": 3, "expected_objects_found": 2,
+                                                   "tracks_per_object": 1.5}
+    doc = lambda *ids: json.dumps({"items": [{"track_id": t} for t in ids]})  # noqa: E731
+    tasks = [{"clip": "c", "task_id": "s1", "kind": "cad_selection", "document": doc(1, 2, 3)},
+             {"clip": "c", "task_id": "s1", "kind": "cad_selection", "document": doc(1, 2, 3)},  # rewritten: once
+             {"clip": "c", "task_id": "s2", "kind": "cad_selection", "document": doc(1, 4)},     # a new task asks again
+             {"clip": "c", "task_id": "m1", "kind": "manual_track", "document": json.dumps({"keyframes": [1, 2, 3]})},
+             {"clip": "d", "task_id": "m1", "kind": "manual_track", "document": "{}"},
+             {"clip": "c", "task_id": "v1", "kind": "verification", "document": doc(7)}]
+    assert human_items(tasks) == {"cad_selection": 5, "manual_track": 2, "verification": 1}
