@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig, EmbedConfig, ManualTracksConfig
+from cadestate.config import (CadSelectionConfig, CorrespondenceTaskConfig, EmbedConfig, ManualTracksConfig,
+                              VerificationConfig)
 from conftest import table_rows
 from tasks.dataset_objects import clip_dataset
-from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models
+from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
 from tasks.label_ingest import ingest_labels
 from tasks.labels import label_document
 from tasks.manual_tracks import manual_tracks_stage
@@ -133,6 +134,13 @@ def test_not_objects_and_fragments_act_downstream_while_in_force(rwh, tmp_path):
     run, task = _cad_task(rwh)
     assert task["task_id"] == first["task_id"] and [it["track_id"] for it in task["items"]] == [0, 1]
     assert run.status == "paused" and "1 left out" in run.message and "2 of 2 tracks unanswered" in run.message
+    # a pose solved for it before is not shown for verification (nothing to render, nothing to ask)
+    rwh.write("poses", CLIP, table_rows("poses", [{"clip": CLIP, "track_id": "2", "cad_id": "lib.table_a", "class": "table",
+                                                   "status": "ok", "translation": [0.0, 0, 4], "rotation": [1.0, 0, 0, 0],
+                                                   "scale": [1.0, 1, 1], "is_mirrored": False,
+                                                   "keyframe_timestamps_us": STAMPS[5:8]}]))
+    verified = _run(rwh, "verification", lambda rid: verification_stage(rwh, VerificationConfig(), CLIP, rid))
+    assert verified.status == "completed" and "no solved pose to verify" in verified.message
 
     # "track 1 is the same object as track 0": it gets no model, so no correspondences are asked about it
     _ingest(rwh, _label(tmp_path / "c1", "cad_selection", task["task_id"], [
