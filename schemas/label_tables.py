@@ -110,8 +110,9 @@ TRACK_RELATIONS = _answer_table(
     "track_relations", "What annotators said about tracks besides answering them (history): `not_object` (manual_track "
     "`not_objects`: track_id shows no object), `same_object` (cad_selection "
     "`same_as_track`: track_id is a fragment of other_track_id; manual_track `same_as_track`: the drawn object "
-    "object_index of the label is existing track track_id). Stages do not act on them yet, but for a fragment's null "
-    "cad_id.", ("statement_index",), [
+    "object_index of the label is existing track track_id). Only the statements of the answers in force count "
+    "(tasks.track_relations): the dataset export drops not-objects and merges fragments into their root's object; the "
+    "later human tasks leave out the tracks a manual_track answer says are no object or an existing track.", ("statement_index",), [
         column("statement_index", pa.int32(), "0-based index of the statement within its label file."),
         column("kind", pa.string(), "The label's kind (manual_track | cad_selection)."),
         column("relation", pa.string(), "not_object | same_object."),

@@ -111,8 +111,8 @@ class ManualTrackAnswer:
     boxes: tuple[TimedBox, ...] = spec("Boxes on the frames where the object is visible (one per frame).", minItems=1)
     source_id: str | None = spec("The object's id in the annotation tool (e.g. 'cvat:3'), for tracing.", default=None)
     same_as_track: int | None = spec("'This is track N': the drawn boxes show existing track N of the task (filling its "
-                                     "gaps), not a new object (kept in track_relations; until tracks are merged "
-                                     "downstream the boxes still make a manual track). Null: a new object.",
+                                     "gaps), not a new object (kept in track_relations: the boxes make a manual track that "
+                                     "the later tasks skip and the export merges into track N). Null: a new object.",
                                      default=None, **TRACK_ID)
 
 
@@ -284,7 +284,8 @@ class ManualTrackLabel(LabelHeader):
     kind: str = fixed(KIND, "manual_track")
     answers: tuple[ManualTrackAnswer, ...] = spec("The missing objects.")
     not_objects: tuple[int, ...] = spec("'Track N is not an object': existing tracks of the task that show no object "
-                                        "(false detections); kept in track_relations (downstream stages do not drop them yet).",
+                                        "(false detections); kept in track_relations: the later tasks skip them, the export "
+                                        "drops them.",
                                         default=(), items=TRACK_ID)
     seconds: float | None = spec("Time the annotator spent on the task (its one item).", unit="s", default=None, **SECONDS)
 

@@ -17,11 +17,19 @@ World: :func:`clip_dataset` gives frames and poses in the warehouse's aligned wo
 :meth:`ClipDataset.in_input_world` maps them to the world of the clip's camera file (undoing
 ``clips.up_rotation``, :mod:`tasks.world_up`), as the exports write them.
 
-**Fragments and duplicates.** A tracker may cut one object into several tracks, and several of
-them may be posed. Each accepted pose, in order of more key-frames, then lower track id, claims every other track whose boxes the projection of its posed CAD bounding
-box covers: mean box IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist. Claimed tracks
-(posed or not) join its object: their boxes fill the frames the claiming track has none on; their
-own poses and correspondences are dropped. Tracks no pose claims stay objects of their own.
+**What people said first** (:func:`tasks.track_relations.relations_in_force`, the statements of
+the answers in force). A track said to be no object ("track N is not an object", or a fragment of
+such a track) is not exported. A fragment ("same object as track N", or a drawn object that "is
+track N"; chains followed to their root) joins its root's object, as a claimed track does below:
+its boxes fill the frames the root has none on, its id is listed in the object's ``merged``, its
+own pose and correspondences are dropped. A fragment whose root has no track stays an object of its own.
+
+**Fragments and duplicates nobody named.** A tracker may cut one object into several tracks, and
+several of them may be posed. Each accepted pose, in order of more key-frames, then lower track id,
+claims every other track whose boxes the projection of its posed CAD bounding box covers: mean box
+IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist. Claimed tracks (posed or not) join
+its object the same way (with the tracks already joined to them). Tracks no pose claims stay
+objects of their own.
 """
 
 from __future__ import annotations
@@ -36,6 +44,7 @@ from tasks.world_up import pose_to_input_world, stored_rotation, unalign_extrins
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.cad_classes import CLASSES
 from tasks.cad_export import ExportError
+from tasks.track_relations import TrackRelations, relations_in_force
 from warehouse import Warehouse
 
 SAME_OBJECT_IOU = 0.5
@@ -191,9 +200,36 @@ def _covers(claimer: DatasetObject, other: DatasetObject, frames: dict[int, Data
     return bool(ious) and float(np.mean(ious)) >= SAME_OBJECT_IOU
 
 
-def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...],
-                  image_size: tuple[int, int]) -> list[DatasetObject]:
-    """One object per physical object (the module docstring's rule), in track id order."""
+def join(root: DatasetObject, parts: list[DatasetObject]) -> DatasetObject:
+    """``root``'s object with ``parts`` joined: their boxes fill the frames ``root`` has none on
+    (in ``parts`` order); their ids, and the tracks joined to them before, go to ``merged``."""
+    boxes = dict(root.boxes)
+    for x in parts:
+        for ts, b in x.boxes.items():
+            boxes.setdefault(ts, b)
+    merged = set(root.merged) | {x.track_id for x in parts} | {m for x in parts for m in x.merged}
+    return replace(root, boxes=dict(sorted(boxes.items())), merged=tuple(sorted(merged)))
+
+
+def declared_objects(objects: list[DatasetObject], relations: TrackRelations) -> list[DatasetObject]:
+    """``objects`` as people said (module docstring): none for the tracks that are no object, each
+    fragment joined to its root's object; in track id order."""
+    kept = {o.track_id: o for o in sorted(objects, key=lambda o: o.track_id) if relations.is_object(o.track_id)}
+    parts: dict[int, list[DatasetObject]] = {}
+    for t, o in kept.items():
+        root = relations.root(t)
+        if root != t and root in kept:
+            parts.setdefault(root, []).append(o)
+    joined = {x.track_id for ps in parts.values() for x in ps}
+    return [join(o, parts.get(t, [])) for t, o in kept.items() if t not in joined]
+
+
+def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...], image_size: tuple[int, int],
+                  relations: TrackRelations | None = None) -> list[DatasetObject]:
+    """One object per physical object (the module docstring's rules: ``relations`` first, then
+    the accepted poses' claims), in track id order."""
+    if relations is not None:
+        objects = declared_objects(objects, relations)
     by_ts = {f.timestamp_us: f for f in frames}
     posed = sorted((o for o in objects if o.pose is not None and o.extent is not None),
                    key=lambda o: (-o.keyframes, o.track_id))
@@ -204,13 +240,8 @@ def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...]
             continue
         joined = [x for x in objects if x.track_id != o.track_id and x.track_id not in claimed
                   and x.track_id not in result and _covers(o, x, by_ts, image_size)]
-        boxes = dict(o.boxes)
-        for x in joined:
-            for ts, b in x.boxes.items():
-                boxes.setdefault(ts, b)
-            claimed.add(x.track_id)
-        result[o.track_id] = DatasetObject(**{**o.__dict__, "boxes": dict(sorted(boxes.items())),
-                                              "merged": tuple(sorted(x.track_id for x in joined))})
+        claimed |= {x.track_id for x in joined}
+        result[o.track_id] = join(o, joined)
         claimed.add(o.track_id)
     for o in objects:
         if o.track_id not in claimed:
@@ -257,8 +288,8 @@ def clip_dataset(wh: Warehouse, clip: str) -> ClipDataset:
             correspondences={ts: tuple(c) for ts, c in corr.items()},
             extent=tuple(model["extent"]) if model else None, symmetry=int(model["symmetry"]) if model else 1,
             keyframes=int(solved.get(tid, {}).get("num_keyframes") or 0)))
-    return ClipDataset(clip, info[0]["url"], image_size, frames, tuple(merge_objects(objects, frames, image_size)),
-                       stored_rotation(info[0]["up_rotation"]))
+    merged = merge_objects(objects, frames, image_size, relations_in_force(wh, clip))
+    return ClipDataset(clip, info[0]["url"], image_size, frames, tuple(merged), stored_rotation(info[0]["up_rotation"]))
 
 
 def camera_centres(frames: tuple[DatasetFrame, ...]) -> np.ndarray:

@@ -8,11 +8,18 @@ items wait, and what is answered already goes on (partial labels advance). The a
 (:func:`tasks.label_ingest.answers_digest`) are part of each stage's inputs, so ingesting labels
 makes the stage stale and a rerun resumes it, reusing every cached upstream stage.
 
-Tracks are the clip's automatic and manual ones alike (:func:`tasks.clip_tracks.clip_tracks`).
+Tracks are the clip's automatic and manual ones alike (:func:`tasks.clip_tracks.clip_tracks`),
+but for those the manual-track answer in force says are no object, or are an existing track
+(:func:`tasks.track_relations.left_out_tracks`): no task asks about them, and
+:func:`selected_models` leaves them out, so no correspondences or pose follow from an earlier
+choice. The task ids stay digests of what upstream gives (the candidates, the chosen models, the
+solved poses), so the answers to the other tracks stay in force; the left-out tracks are part of
+these stages' inputs (:func:`tasks.registry.clip_inputs`).
 
 - ``cad_selection`` (after ``retrieval``): per track, its candidates (renders from ``cad_views``,
   meshes from ``cad_models``) on evenly spaced key-frames of the track with its boxes. Output:
   the chosen model per answered track (:func:`selected_models`, from ``cad_selection_labels``).
+  A track answered "same object as track N" has no model (it is posed through N).
 - ``correspondence_task`` (after ``cad_selection``): per track with a chosen model, the model's
   mesh and key-frames to click on. The answers go to ``correspondences`` at ingest (the ``pose``
   stage's input); a track counts as answered when its newest correspondences use the chosen model.
@@ -40,6 +47,7 @@ from tasks.clip_tracks import ClipTrack, clip_tracks
 from tasks.label_ingest import answers_digest, current_answers
 from tasks.labels import latest_task, new_task_id, parse_task, utc_now, write_task
 from tasks.stage import StageOutput
+from tasks.track_relations import left_out_tracks
 from warehouse import Warehouse
 
 INSTRUCTIONS = {
@@ -123,12 +131,14 @@ def cad_selection_task_id(wh: Warehouse, clip: str, cands: pa.Table | None = Non
 
 def selected_models(wh: Warehouse, clip: str) -> dict[int, str | None]:
     """The answers in force of the current cad_selection task: track -> chosen cad_id (None: no
-    candidate fits). Tracks without an answer are absent."""
+    candidate fits, or a fragment of another track). Tracks without an answer are absent, and so
+    are the tracks left out (:func:`tasks.track_relations.left_out_tracks`)."""
     task_id = cad_selection_task_id(wh, clip)
     if task_id is None:
         return {}
     rows = current_answers(wh, "cad_selection", [clip], task_id).to_pylist()
-    return {int(r["track_id"]): r["cad_id"] for r in rows}
+    left_out = left_out_tracks(wh, clip)
+    return {int(r["track_id"]): r["cad_id"] for r in rows if int(r["track_id"]) not in left_out}
 
 
 def _model_facts(wh: Warehouse, cad_ids: set[str]) -> tuple[dict[str, dict], dict[str, tuple[str, ...]]]:
@@ -152,7 +162,11 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     by_track: dict[int, list[dict]] = defaultdict(list)
     for r in rows:
         by_track[int(r["track_id"])].append(r)
-    track_ids = sorted(by_track)
+    left_out = left_out_tracks(wh, clip)
+    track_ids = sorted(t for t in by_track if t not in left_out)
+    if not track_ids:
+        return StageOutput(0, digest("cad_selection", task_id, "all left out"),
+                           f"all {len(by_track)} tracks are said to be no object or another track: nothing to choose")
     tracks = clip_tracks(wh, clip)
     labels = {t: track.label for t, track in tracks.items()}
     models, renders = _model_facts(wh, {r["cad_id"] for r in rows})
@@ -173,6 +187,8 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     output = digest("cad_selection", task_id, *(f"{t}\t{answers[t]}" for t in answered))
     waiting = len(track_ids) - len(answered)
     summary = f"{len(chosen)} of {len(track_ids)} tracks have a CAD model, {len(answered) - len(chosen)} none"
+    if len(by_track) > len(track_ids):
+        summary += f" ({len(by_track) - len(track_ids)} left out: no object, or another track)"
     return task_output(len(chosen), output, summary, "cad_selection", path, waiting, len(track_ids))
 
 
@@ -283,6 +299,8 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     from schemas.pose import VERIFIED_POSES
 
     poses = ok_poses(wh, clip)
+    left_out = left_out_tracks(wh, clip)
+    poses = poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
     if poses.num_rows == 0:
         empty = VERIFIED_POSES.schema.empty_table()
         wh.write("verified_poses", clip, empty)

@@ -10,10 +10,13 @@ answer in force (a newer one replaces it whole); an empty answer ("nothing is mi
 completes the stage with no manual track.
 
 Each drawn object becomes a track with an id from ``MANUAL_TRACK_BASE`` on, a digest of the
-object (:func:`manual_track_ids`; :data:`schemas.tracking.MANUAL_TRACK_BASE`), one
+object (:func:`tasks.track_relations.manual_track_ids`; :data:`schemas.tracking.MANUAL_TRACK_BASE`), one
 ``manual_tracks`` row per box, each box embedded exactly as the ``embed`` stage embeds
 detections (:func:`tasks.embed.embed_frame_boxes` with ``[embed]``), so retrieval and the later human tasks take it as any track
-(:mod:`tasks.clip_tracks`). The task id is a digest of what the task asks (key-frame timestamps,
+(:mod:`tasks.clip_tracks`). A drawn object said to be existing track N ("this is track N") still
+becomes a manual track, a fragment of N: the later human tasks leave it out and the export merges
+it into N's object, as they leave out and drop the tracks said to be no object
+(:mod:`tasks.track_relations`). The task id is a digest of what the task asks (key-frame timestamps,
 the tracks' boxes on them, the classes), not of image paths, so labels keep answering it when the
 frames are extracted again.
 
@@ -24,7 +27,6 @@ labels. Writes: ``manual_tracks``, the task file and its ``label_tasks`` row.
 from __future__ import annotations
 
 import json
-import zlib
 from collections import defaultdict
 
 import numpy as np
@@ -34,7 +36,7 @@ from cadestate.config import EmbedConfig, ManualTracksConfig
 from cadestate.lineage import digest, table_digest
 from schemas.dataclass_json import to_json
 from schemas.labels import ExistingTrack, KeyframeView, ManualTrackAnswer, ManualTrackTask, TimedBox
-from schemas.tracking import MANUAL_TRACK_BASE, MANUAL_TRACKS
+from schemas.tracking import MANUAL_TRACKS
 from tasks.clip_tracks import clip_tracks
 from tasks.embed import embed_frame_boxes, vectors_array
 from tasks.human_tasks import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
@@ -42,6 +44,7 @@ from tasks.ingest import clip_inputs, clip_split
 from tasks.label_ingest import answered_tasks, current_answers
 from tasks.label_similarity import similarity_labels
 from tasks.labels import new_task_id, utc_now
+from tasks.track_relations import manual_track_ids
 from tasks.models.embedder import load_embedder
 from tasks.stage import StageOutput
 from warehouse import Warehouse
@@ -91,26 +94,6 @@ def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[M
         newest = max(r["ingested_at"] for r in rows)
         return _answers([r for r in rows if r["ingested_at"] == newest])
     return _answers([r for r in rows if r["task_id"] == task_id])
-
-
-def manual_track_ids(rows: list[dict]) -> dict[int, int]:
-    """object_index -> track id of the drawn objects (``manual_track_labels`` rows of one label):
-    ``MANUAL_TRACK_BASE`` + a digest of the object's ``source_id`` (its id in the annotation tool),
-    else of its class and boxes, so a revised answer that drops or reorders objects keeps every
-    other object's id (and the clicks given on it). Clashes take the next free id, in object order."""
-    objects: dict[int, list[dict]] = {}
-    for r in sorted(rows, key=lambda r: (r["object_index"], r["timestamp_us"])):
-        objects.setdefault(r["object_index"], []).append(r)
-    span = 2**31 - 1 - MANUAL_TRACK_BASE
-    ids: dict[int, int] = {}
-    for index, boxes in objects.items():
-        key = boxes[0]["source_id"] or "\n".join([boxes[0]["label"]] + [f"{b['timestamp_us']} {[round(v, 6) for v in b['box']]}"
-                                                                         for b in boxes])
-        offset = zlib.crc32(key.encode()) % span
-        while MANUAL_TRACK_BASE + offset in ids.values():
-            offset = (offset + 1) % span
-        ids[index] = MANUAL_TRACK_BASE + offset
-    return ids
 
 
 def manual_track_table(wh: Warehouse, embed_cfg: EmbedConfig, clip: str, task_id: str, rows: list[dict]) -> pa.Table:

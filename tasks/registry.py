@@ -50,6 +50,7 @@ STAGES: dict[str, StageDef] = {
                  "associate detections into tracks by clique partitioning"),
         StageDef("manual_tracks", "clip", ("ingest", "frames", "tracking"), ("manual_tracks", "label_tasks"),
                  ("tasks.manual_tracks", "tasks.label_similarity", "tasks.clip_tracks", "tasks.human_tasks", "tasks.ingest", "tasks.labels",
+                  "tasks.track_relations",
                   "tasks.label_format", "tasks.label_ingest", "tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
                  "human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
                  extra_sections=("embed",)),
@@ -57,18 +58,20 @@ STAGES: dict[str, StageDef] = {
                  ("tasks.retrieval", "tasks.whitening", "tasks.clip_tracks"),
                  "top CAD models of every track, automatic and manual (appearance x class-label similarity)"),
         StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",),
-                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest"),
+                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
+                  "tasks.track_relations"),
                  "human task (3.2): people choose each track's CAD model among its candidates; pauses until answered"),
         StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",),
-                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest"),
+                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
+                  "tasks.track_relations"),
                  "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
                  ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm",
-                  "tasks.pose_batch", "tasks.pose_support", "tasks.pose_inputs", "tasks.human_tasks"),
+                  "tasks.pose_batch", "tasks.pose_support", "tasks.pose_inputs", "tasks.human_tasks", "tasks.track_relations"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
         StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
                  ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
-                  "cadestate.render"),
+                  "tasks.track_relations", "cadestate.render"),
                  "human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered"),
         StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
                  ("tasks.cad_ingest", "tasks.cad_sources", "tasks.cad_classes", "tasks.cad_symmetry"),
@@ -123,7 +126,8 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     use) and the ``cad_models`` facts (class, symmetry, bounding box) of their models for ``pose``, the CAD libraries' descriptors and label
     similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
     classes); for the human-task stages, the answers in force of their label kind (ingesting labels
-    makes them stale: a rerun resumes them)."""
+    makes them stale: a rerun resumes them) and, after ``manual_tracks``, the tracks its answer
+    leaves out (:func:`tasks.track_relations.left_out_digest`: said to be no object, or another track)."""
     if stage == "ingest":
         from tasks.ingest import registered_inputs_digest
 
@@ -140,7 +144,9 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
             from tasks.label_similarity import similarity_labels
 
             return [digest(*similarity_labels(wh)), *answers]
-        return answers
+        from tasks.track_relations import left_out_digest
+
+        return [*answers, left_out_digest(wh, clip)]
     if stage == "pose":
         from tasks.pose_inputs import input_digests
 
