@@ -115,7 +115,7 @@ def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -
             figures.append("near_far.png")
         truncated = tables.visible["truncated"].dropna()
         if len(truncated):
-            _histogram(truncated, "Truncation (share of the projected box outside the image)", "share",
+            _histogram(truncated, "Truncation per visible object", "share of its projected box outside the image",
                        out / "img" / "truncation.png")
             figures.append("truncation.png")
     cost = [(f"compute s: {k}", v) for k, v in stats["compute_s_per_stage"].items()]
