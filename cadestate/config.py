@@ -121,8 +121,8 @@ class CamerasConfig:
                                           lo=0.0, hi=1.0)
     init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the mapper's initial pair (COLMAP's "
                                          "default 16; lower it for videos with very little parallax).", lo=0.5, hi=60.0)
-    threads: int = _opt(2, "Threads for matching and mapping (feature extraction runs on one: more store the frames in a "
-                   "varying order, and SfM gives other cameras each run).", lo=1, hi=256)
+    threads: int = _opt(2, "Threads for mapping (feature extraction and matching run on one: more store frames and "
+                   "verified pairs in a varying order, and SfM gives other cameras each run).", lo=1, hi=256)
     seed: int = _opt(0, "Random seed of two-view verification and the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)
 
 

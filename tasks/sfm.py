@@ -115,7 +115,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     extraction.num_threads = 1  # more threads store the images in a varying order: another model each run
     extraction.sift.max_num_features = cfg.max_features
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = cfg.threads
+    matching.num_threads = 1  # more threads write the verified pairs in a varying order: another model each run
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = cfg.overlap
     verification = pycolmap.TwoViewGeometryOptions()
