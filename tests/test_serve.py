@@ -119,9 +119,10 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
                                stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
     try:
         api = Api(read_server(w).api_url)
-        wait_for("the deployments", lambda: api.deployment_id("ingest_labels"))
-        crons = {d["name"]: [(x["schedule"].get("cron"), x["active"]) for x in d["schedules"]]
-                 for d in api.post("/deployments/filter", {"limit": 10})}
+        names = {"annotate_clip", "build_dataset", "ingest_labels", "dataset_report"}
+        deployments = wait_for("the four deployments", lambda: (found := api.post("/deployments/filter", {"limit": 10}))
+                               and names <= {d["name"] for d in found} and found or None)
+        crons = {d["name"]: [(x["schedule"].get("cron"), x["active"]) for x in d["schedules"]] for d in deployments}
         assert crons["build_dataset"] == crons["ingest_labels"] == crons["dataset_report"] == [("0 0 1 1 *", True)]
         assert crons["annotate_clip"] == []  # run on demand, per clip
         shutil.copy(small_clip.video_path, inbox / "room_1.mp4")  # named small_0 from its camera file
