@@ -14,7 +14,6 @@ copied warehouse), one that is not a readable DuckDB database, or one from befor
 
 from __future__ import annotations
 
-import hashlib
 import os
 import uuid
 from pathlib import Path
@@ -51,17 +50,16 @@ def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> P
     """An empty Parquet file with the table's schema, rewritten only when the schema changes (a
     Parquet round trip renames list items, so the file records the digest of the schema it holds)."""
     path = wh.root / "_schemas" / f"{table}.parquet"
-    if not path.is_file() or _schema_digest(con, path) != wh.info[table].schema_sha256:
+    digest = wh.info[table].schema_sha256  # the schema's (schemas.index.schema_sha256)
+    if _schema_digest(con, path) != digest:
         import pyarrow.parquet as pq
 
         schema = wh.spec(table).schema
-        digest = hashlib.sha256(schema.serialize()).hexdigest()
-        if _schema_digest(con, path) != digest:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-            meta = {**(schema.metadata or {}), SCHEMA_DIGEST: digest.encode()}
-            pq.write_table(schema.with_metadata(meta).empty_table(), tmp)
-            os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+        meta = {**(schema.metadata or {}), SCHEMA_DIGEST: digest.encode()}
+        pq.write_table(schema.with_metadata(meta).empty_table(), tmp)
+        os.replace(tmp, path)
     return path
 
 
