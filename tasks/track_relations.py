@@ -76,15 +76,6 @@ class TrackRelations:
         """False when the track, or the track it is a fragment of, is said to be no object."""
         return track_id not in self.not_objects and self.root(track_id) not in self.not_objects
 
-    def left_out(self) -> frozenset[int]:
-        """Tracks the later human tasks do not ask about: no object, or drawn as an existing track."""
-        return self.not_objects | self.drawn
-
-    def digest(self) -> str:
-        """A digest of what the relations say (not of where they came from)."""
-        return digest("track_relations", *(f"x{t}" for t in sorted(self.not_objects)),
-                      *(f"{a}>{b}" for a, b in sorted(self.fragments.items())), *(f"d{t}" for t in sorted(self.drawn)))
-
 
 def resolve_fragments(edges: Mapping[int, int]) -> tuple[dict[int, int], list[str]]:
     """fragment -> root from the statements ``edges`` (track -> the track it is a fragment of):
@@ -138,9 +129,9 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
     same = [r for r in said if r["relation"] == "same_object"]
     if not same:
         return not_objects, {}
-    drawn = [r for r in wh.read("manual_track_labels", [clip]).to_pylist()
-             if (r["label_sha256"], r["ingested_at"]) == (newest["label_sha256"], newest["ingested_at"])]
-    ids = manual_track_ids(drawn)
+    from tasks.label_ingest import current_answers
+
+    ids = manual_track_ids(current_answers(wh, "manual_track", [clip], task["task_id"]).to_pylist())
     return not_objects, {ids[r["object_index"]]: int(r["track_id"]) for r in same if r["object_index"] in ids}
 
 
