@@ -32,6 +32,7 @@ _YOUTUBE_ID = re.compile(r"^[A-Za-z0-9_-]{11}$")
 _SAFE_VIDEO_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 _YOUTUBE_HOSTS = {"youtube.com", "www.youtube.com", "m.youtube.com", "music.youtube.com", "youtube-nocookie.com",
                   "www.youtube-nocookie.com"}
+_YOUTU_BE_HOSTS = {"youtu.be", "www.youtu.be"}
 
 
 class ClipNameError(ValueError):
@@ -63,8 +64,7 @@ def video_id_of(name: str) -> str:
 
 def is_youtube_url(url: str) -> bool:
     """Whether ``url`` is on a YouTube host (``youtube.com``, ``youtu.be`` and their variants)."""
-    host = urlsplit(url.strip()).netloc.lower()
-    return host in _YOUTUBE_HOSTS or host in ("youtu.be", "www.youtu.be")
+    return urlsplit(url.strip()).netloc.lower() in _YOUTUBE_HOSTS | _YOUTU_BE_HOSTS
 
 
 def video_id_from_url(url: str) -> str:
@@ -79,7 +79,7 @@ def video_id_from_url(url: str) -> str:
             segments = [s for s in parts.path.split("/") if s]
             vid = segments[1] if len(segments) >= 2 and segments[0] in ("embed", "shorts", "live", "v") else ""
         return vid if _YOUTUBE_ID.match(vid) else ""
-    if is_youtube_url(url):
+    if host in _YOUTU_BE_HOSTS:
         vid = parts.path.strip("/")
         return vid if _YOUTUBE_ID.match(vid) else ""
     last = PurePosixPath(parts.path or url).name
