@@ -28,7 +28,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.ignore import MIN_FRAMES_IN_VIEW, clip_objects_in_view
+from bench.ignore import MAX_TRUNCATED_FRACTION, MIN_FRAMES_IN_VIEW, MIN_VISIBLE_FRACTION, clip_objects_in_view
 from bench.scoring import MODES, Key, Outcome
 from schemas.core import DEFAULT_SPLIT
 from schemas.official import read_objects
@@ -161,7 +161,8 @@ def yield_markdown(result: dict | None) -> list[str]:
                      f"object ({s['expected_objects_found']} objects found by a track); "
                      f"{m['human_items_per_posed_object']} human items per posed object ({s['human_items_total']} asked).")
         lines.append("")
-    lines += [f"In view: ground-truth boxes visible >= 30 % and truncated <= 50 % on at least {result['min_frames_in_view']} "
+    lines += [f"In view: ground-truth boxes visible >= {100 * MIN_VISIBLE_FRACTION:.0f} % and truncated <= "
+              f"{100 * MAX_TRUNCATED_FRACTION:.0f} % on at least {result['min_frames_in_view']} "
               "frames (`bench/ignore.py`), of classes the CAD library has. Yield: exactly one accepted pose on the object, "
               "and it is correct; duplicates: accepted poses beyond the first on one object; false annotations: accepted "
               "poses on no object; tracks per object: automatic and manual tracks following an object in view (the "
