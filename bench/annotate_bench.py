@@ -71,6 +71,27 @@ def _warehouse(root: Path):
     return wh, len(mesh.faces)
 
 
+def serve_app(config, resumer=None) -> tuple:
+    """``cadestate annotate``'s app over ``config`` (``resumer``: its default, the real one, when
+    None) on a free local port, in a thread; returns (server, thread, base URL) once it serves."""
+    import socket
+
+    import uvicorn
+
+    from cadestate.webapp.app import create_app
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(config, "bench", resumer), host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.05)
+    return server, thread, f"http://127.0.0.1:{port}"
+
+
 def run() -> dict:
     """The timings (module docstring); a reason string when Chromium or Playwright is missing."""
     try:
@@ -82,22 +103,13 @@ def run() -> dict:
 
     if chromium_path() is None:
         return {"skipped": "chromium not installed (make browser)"}
-    import uvicorn
-
     from cadestate.config import Config, WarehouseConfig
-    from cadestate.webapp.app import create_app
     from cadestate.webapp.resume import Resumer
 
     with tempfile.TemporaryDirectory() as tmp:
         wh, triangles = _warehouse(Path(tmp) / "wh")
         config = Config(warehouse=WarehouseConfig(root=str(wh.root)))
-        server = uvicorn.Server(uvicorn.Config(create_app(config, "bench", Resumer(config, run=lambda clip: "not run")),
-                                               host="127.0.0.1", port=8799, log_level="warning"))
-        thread = threading.Thread(target=server.run, daemon=True)
-        thread.start()
-        while not server.started:
-            time.sleep(0.05)
-        base = "http://127.0.0.1:8799"
+        server, thread, base = serve_app(config, Resumer(config, run=lambda clip: "not run"))
         out: dict = {"model_triangles": triangles}
         with sync_playwright() as p:
             browser = launch(p)

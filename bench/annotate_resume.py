@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import statistics
-import threading
 import time
 from pathlib import Path
 
@@ -83,28 +82,11 @@ def _wait_next(client, clip: str, task_id: str, timeout_s: float) -> dict | None
     raise TimeoutError(f"{clip}: no next task {timeout_s:.0f} s after answering {task_id}")
 
 
-def _serve(config):
-    """The app (real Resumer) on a free local port, in a thread; returns (server, base URL)."""
-    import socket
-
-    import uvicorn
-
-    from cadestate.webapp.app import create_app
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(config, "bench"), host="127.0.0.1", port=port, log_level="warning"))
-    threading.Thread(target=server.run, daemon=True).start()
-    while not server.started:
-        time.sleep(0.05)
-    return server, f"http://127.0.0.1:{port}"
-
-
 def run(tmp: Path) -> dict:
     """The timings (module docstring), built under the folder ``tmp``."""
     import httpx
 
+    from bench.annotate_bench import serve_app
     from flows.runtime import prepare_prefect_environment
     from warehouse import Warehouse
 
@@ -117,7 +99,7 @@ def run(tmp: Path) -> dict:
     config = _library_config(tmp / "wh")
     clip = _paused_clip(config, tmp / "bench")
     wh = Warehouse(config.warehouse.root)
-    server, base = _serve(config)
+    server, _, base = serve_app(config)
     per_task: dict[str, float] = {}
     try:
         with httpx.Client(base_url=base, timeout=600) as client:
