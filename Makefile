@@ -85,7 +85,7 @@ browser:
 models: $(NANODET)
 
 $(NANODET): | setup
-	$(BIN)/python -m tasks.models.nanodet $(CADESTATE_MODELS)
+	$(BIN)/python -m tasks.detection.models.nanodet $(CADESTATE_MODELS)
 
 run: export COLUMNS = 180
 run: setup cad-library models

@@ -36,7 +36,7 @@ def _warehouse(root: Path):
     from conftest import table_rows
     from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
                                 ExistingTrack, KeyframeView, ManualTrackTask, TimedBox)
-    from tasks.labels import write_task
+    from tasks.human.labels import write_task
     from warehouse import Warehouse
 
     wh = Warehouse(root)

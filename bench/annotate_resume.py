@@ -90,7 +90,7 @@ def run(tmp: Path) -> dict:
     from flows.runtime import prepare_prefect_environment
     from warehouse import Warehouse
 
-    from tasks.cad_sources import default_source
+    from tasks.cad.sources import default_source
 
     if not default_source().is_dir():
         return {"skipped": f"Sweet Home 3D furniture not found at {default_source()} (make cad-library)"}

@@ -26,7 +26,7 @@ from bench.noise import DEFAULT_NOISE, AnnotatorNoise
 from cadestate.geometry import pixel_intrinsics_matrix, project, quaternion_to_matrix
 from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import Correspondence, Frame, FramesFile, ObjectAnnotation, TrackEntry
-from tasks.cad_symmetry import rotation_y
+from tasks.cad.symmetry import rotation_y
 
 OWN_ID = 0  # instance id of the annotated object in visibility renders; occluders get 1, 2, ...
 
@@ -253,7 +253,7 @@ def annotate_correspondences(frames: FramesFile, obj: ObjectAnnotation, mesh: tr
         rng: default ``noise.rng(frames.clip_name, obj.track_id)``.
         renderer: a :class:`Renderer` of the image size for the depth test (one is made if None).
         samples: candidate surface points (default: ``noise.surface_samples`` on ``mesh``).
-        symmetry_order: the model's order about +Y (1, 2, 4, 36; :mod:`tasks.cad_symmetry`).
+        symmetry_order: the model's order about +Y (1, 2, 4, 36; :mod:`tasks.cad.symmetry`).
         keyframes: frame indices to annotate (default :func:`choose_keyframes`).
         occluders: other posed objects that may hide this one (their ids are ignored).
     Returns one record per key-frame with at least ``points_per_keyframe[0]`` clickable points (on
@@ -417,7 +417,7 @@ def draw_manual_track(frames: FramesFile | None, gt_obj: ObjectAnnotation, noise
     stamps = {f.timestamp for f in frames.frames} if frames is not None else None
     entries = sorted((e for e in gt_obj.track if e.box[2] > e.box[0] and e.box[3] > e.box[1]
                       and (stamps is None or e.timestamp in stamps)), key=lambda e: e.timestamp)
-    from tasks.manual_tracks import regular_keyframes  # the manual-track task's own spacing
+    from tasks.human.manual_tracks import regular_keyframes  # the manual-track task's own spacing
 
     entries = [entries[i] for i in regular_keyframes([e.timestamp for e in entries], noise.track_keyframes)]
     out = []

@@ -19,9 +19,9 @@ import trimesh
 from cadestate.config import CadIngestConfig, CadViewsConfig
 from cadestate.geometry import intrinsics_matrix, look_at
 from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
-from tasks.cad_ingest import ingest_library
-from tasks.cad_sources import default_source, sweethome3d_items
-from tasks.cad_views import render_library
+from tasks.cad.ingest import ingest_library
+from tasks.cad.sources import default_source, sweethome3d_items
+from tasks.cad.views import render_library
 from warehouse import Warehouse
 
 SCENE_CLASSES = ("chair", "sofa", "table", "bed", "cabinet", "lamp", "plant", "bookshelf", "display", "toilet")

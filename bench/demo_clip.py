@@ -22,8 +22,8 @@ import numpy as np
 from PIL import Image
 
 from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at
-from tasks.cameras import CameraTrack, write_camera_file
-from tasks.video import frame_timestamp_us
+from tasks.video.camera_file import CameraTrack, write_camera_file
+from tasks.video.decode import frame_timestamp_us
 
 BAND_HEIGHT = 32
 """Rows at the top of every frame that hold the frame-index barcode."""

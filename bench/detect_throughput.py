@@ -17,10 +17,10 @@ import numpy as np
 from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
-from tasks.cameras import parse_camera_file
-from tasks.detectors import load_detector
-from tasks.models.embedder import load_embedder
-from tasks.video import decode_at
+from tasks.video.camera_file import parse_camera_file
+from tasks.detection.detectors import load_detector
+from tasks.detection.models.embedder import load_embedder
+from tasks.video.decode import decode_at
 
 
 def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:

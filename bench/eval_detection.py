@@ -1,7 +1,7 @@
 """Per-class detection recall and precision at IoU 0.5 on the synthetic benchmark.
 
 Detector labels are COCO names; ground-truth classes are the CAD vocabulary
-(:mod:`tasks.cad_classes`), whose ``coco`` fields say which COCO name stands for which class
+(:mod:`tasks.cad.classes`), whose ``coco`` fields say which COCO name stands for which class
 (``DETECTOR_TO_CLASS``; the classes of :data:`bench.ignore.COCO_CLASSES`). Per frame:
 
 1. predictions on ignore regions are dropped (:func:`bench.ignore.predictions_to_drop`, the one
@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from bench.ignore import IGNORE_IOU, box_iou, predictions_to_drop
-from tasks.cad_classes import CLASSES
+from tasks.cad.classes import CLASSES
 
 DETECTOR_TO_CLASS: dict[str, str] = {label: c.name for c in CLASSES for label in c.coco if label != "laptop" or c.name == "laptop"}
 """COCO label -> class ("laptop" is a class of its own, not a display)."""

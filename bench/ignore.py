@@ -54,7 +54,7 @@ COCO_CLASSES = frozenset({
     "chair", "sofa", "bed", "table", "display", "plant", "toilet", "sink", "microwave", "stove",
     "refrigerator", "clock", "jar", "laptop", "bench", "vehicle",
 })
-"""Class names (tasks/cad_classes.py vocabulary) that a COCO detector can find."""
+"""Class names (tasks/cad/classes.py vocabulary) that a COCO detector can find."""
 
 
 def is_ignored(class_name: str, visible_fraction: float = 1.0, truncated_fraction: float = 0.0, *,

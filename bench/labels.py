@@ -24,7 +24,7 @@ from cadestate.geometry import project
 from cadestate.progress import progress
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import read_frames, read_objects
-from tasks.cad_symmetry import rotation_y
+from tasks.cad.symmetry import rotation_y
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"

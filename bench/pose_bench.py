@@ -7,7 +7,7 @@
 - :func:`run` (``python -m bench``, ``make bench``): the solver on the ground-truth tracks of the
   default benchmark at click noise 0, 3 and 6 px (the default ``[pose]`` config), the paper's
   ablation (base, + co-planar, + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as
-  fallback) vs Adam alone, with vs without the support prior of :mod:`tasks.pose_support` (off;
+  fallback) vs Adam alone, with vs without the support prior of :mod:`tasks.pose.support` (off;
   the floor only, no host tops; the floor prior for floor classes only, as before host supports;
   every other row keeps the default prior on), and time per object and for 1,000 objects in one
   batch. Tracks are solved with their clip, so each clip gets its floor and its hosts.
@@ -37,10 +37,10 @@ from cadestate.geometry import project
 from cadestate.render import object_to_world
 from schemas.official import read_frames, read_objects
 from schemas.pose import CORRESPONDENCES
-from tasks.cad_classes import BY_NAME
-from tasks.cad_symmetry import rotation_y
-from tasks.pose import MODEL_FACTS, TrackInput, solve_tracks, solver_options, track_inputs
-from tasks.world_up import clip_up_rotation, pose_to_input_world
+from tasks.cad.classes import BY_NAME
+from tasks.cad.symmetry import rotation_y
+from tasks.pose.pose import MODEL_FACTS, TrackInput, solve_tracks, solver_options, track_inputs
+from tasks.video.world_up import clip_up_rotation, pose_to_input_world
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -77,7 +77,7 @@ def _ground_truth_map(bench_dir: Path, wh: Warehouse, clip: str) -> dict[str, st
     (``bench run --gt-tracks``) are keyed by ground-truth ids already: the identity."""
     from bench.retrieval_bench import track_truth
     from cadestate.lineage import table_digest
-    from tasks.label_ingest import correspondence_table
+    from tasks.human.label_ingest import correspondence_table
 
     from_labels = table_digest(correspondence_table(wh, clip)) == table_digest(wh.read("correspondences", [clip]))
     if clip not in wh.partitions("correspondence_labels") or not from_labels:
@@ -235,7 +235,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
 
 def in_input_world(preds: list[PosedObject], wh: Warehouse | None) -> list[PosedObject]:
     """Predicted poses (the aligned world of the warehouse's frames, +Y up) in the world of each
-    clip's camera file, where the ground truth is (``clips.up_rotation``, :mod:`tasks.world_up`)."""
+    clip's camera file, where the ground truth is (``clips.up_rotation``, :mod:`tasks.video.world_up`)."""
     if wh is None:
         return preds
     rotations: dict[str, np.ndarray] = {}

@@ -25,11 +25,11 @@ import pyarrow as pa
 from bench.eval_retrieval import retrieval_recall
 from cadestate.config import RetrievalConfig
 from schemas.official import read_objects
-from tasks.cad_classes import CLASSES
-from tasks.cad_embed import model_embeddings
-from tasks.embed import vectors_array
-from tasks.retrieval import retrieve_clip
-from tasks.whitening import fit_whitening, whitening_table
+from tasks.cad.classes import CLASSES
+from tasks.cad.embed import model_embeddings
+from tasks.detection.embed import vectors_array
+from tasks.retrieval.retrieval import retrieve_clip
+from tasks.retrieval.whitening import fit_whitening, whitening_table
 from warehouse import Warehouse
 
 D = 768
@@ -99,11 +99,11 @@ def run(models: int = 12_000, views: int = 10, tracks: int = 30, per_track: int 
 
 def track_truth(bench_dir: Path, wh: Warehouse, clip: str) -> dict[int, str]:
     """Pipeline track id -> ground-truth track id, for tracks (automatic and manual,
-    :func:`tasks.clip_tracks.clip_tracks`) whose boxes mostly (> half) match (IoU >= 0.5) boxes of
+    :func:`tasks.tracking.clip_tracks.clip_tracks`) whose boxes mostly (> half) match (IoU >= 0.5) boxes of
     one ground-truth object, matched as :func:`bench.track_bench.match_truth` matches boxes
     (detections through :func:`bench.track_bench.detector_clip`)."""
     from bench.track_bench import detector_clip, gt_clip, match_truth
-    from tasks.clip_tracks import clip_tracks
+    from tasks.tracking.clip_tracks import clip_tracks
 
     tracks = clip_tracks(wh, clip)
     cb = detector_clip(wh, bench_dir, clip)

@@ -23,7 +23,7 @@ object is credited at most once; accuracy = credited objects / all posed ground-
 ``scan2cad-exact``
     Scan2CAD's evaluation script (``Routines/Script/EvaluateBenchmark.py``): as
     ``scan2cad-class``, but a prediction whose CAD model (a mirrored model is a CAD model of its
-    own: :func:`tasks.export_scan2cad.scan2cad_cad_id`) does not appear among the clip's ground-truth
+    own: :func:`tasks.dataset.export_scan2cad.scan2cad_cad_id`) does not appear among the clip's ground-truth
     objects is dropped, and each model is used by at most as many predictions as the ground truth
     has objects of it; the symmetry is the predicted model's (as the script reads it).
 
@@ -47,7 +47,7 @@ import numpy as np
 
 from bench.eval_pose import (MAX_ROTATION_DEG, MAX_SCALE_PCT, MAX_TRANSLATION_M, PosedObject, is_correct,
                              rotation_error_deg, scale_error_pct, translation_error)
-from tasks.export_scan2cad import scan2cad_cad_id
+from tasks.dataset.export_scan2cad import scan2cad_cad_id
 
 MODES = ("pose", "scan2cad-class", "scan2cad-exact")
 

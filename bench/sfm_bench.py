@@ -1,11 +1,11 @@
-"""SfM cameras (the ``cameras`` stage, :mod:`tasks.sfm`) on benchmark clips whose camera files are withheld.
+"""SfM cameras (the ``cameras`` stage, :mod:`tasks.video.sfm`) on benchmark clips whose camera files are withheld.
 
 Per clip: the registered fraction of the sampled frames, the median rotation error and the
 trajectory error (% of the path length) after a similarity alignment to the true cameras
 (:mod:`bench.sfm_eval`), SfM's wall time; then the pose accuracy downstream: the simulated
 annotators' clicks on the ground-truth tracks (``<bench>/labels/<clip>.json``, written by ``cadestate
 bench run``) solved with the SfM cameras and with the true cameras, each turned to +Y up as ingest
-does (:mod:`tasks.world_up`), the SfM poses mapped into the true world by the same similarity
+does (:mod:`tasks.video.world_up`), the SfM poses mapped into the true world by the same similarity
 (translation and scale scaled), scored as :mod:`bench.pose_bench` scores (Scan2CAD criterion).
 
 A second row turns each clip's true world by a random rotation before ingest: the pose accuracy
@@ -35,11 +35,11 @@ from bench.sfm_eval import Similarity, align, camera_errors
 from cadestate.config import CamerasConfig, PoseConfig
 from cadestate.geometry import camera_to_world, matrix_to_quaternion, quaternion_to_matrix
 from schemas.pose import CORRESPONDENCES
-from tasks.cameras import CameraTrack, parse_camera_file
-from tasks.frames import frames_table
-from tasks.pose import MODEL_FACTS, solve_tracks, solver_options, track_inputs
-from tasks.video import probe_video
-from tasks.world_up import align_extrinsics, estimate_up, pose_to_input_world
+from tasks.video.camera_file import CameraTrack, parse_camera_file
+from tasks.video.frames import frames_table
+from tasks.pose.pose import MODEL_FACTS, solve_tracks, solver_options, track_inputs
+from tasks.video.decode import probe_video
+from tasks.video.world_up import align_extrinsics, estimate_up, pose_to_input_world
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -84,7 +84,7 @@ def _turned(track: CameraTrack, seed: int) -> CameraTrack:
 def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int = DEFAULT_CLIPS,
         cfg: CamerasConfig = CamerasConfig()) -> dict:
     """Every number of the module docstring, per clip and overall."""
-    from tasks.sfm import SfmError, run_sfm
+    from tasks.video.sfm import SfmError, run_sfm
 
     wh = wh or Warehouse("data/warehouse")
     bench_dir = Path(bench_dir)

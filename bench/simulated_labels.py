@@ -3,13 +3,13 @@
 :func:`answer_tasks` reads a clip's open task files (the newest ``label_tasks`` row of each kind,
 items without an answer in force), answers them as the simulated annotators of
 :mod:`bench.annotators` would, with the noise model :class:`bench.noise.AnnotatorNoise`, and writes
-label files (validated by :func:`tasks.labels.validate_label`) to ``<bench>/labels/<clip>/``:
+label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench>/labels/<clip>/``:
 
 - ``manual_track`` (val/test clips): the ground-truth objects that no automatic track of the task
   matches (:func:`bench.retrieval_bench.track_truth`), drawn with
   :func:`bench.annotators.draw_manual_track` on the task's key-frames where they are not an
   ignore region (mostly hidden or cut off), as the task's class that corresponds to the object's
-  (its class's COCO labels, :mod:`tasks.cad_classes`); objects of no such class are left out.
+  (its class's COCO labels, :mod:`tasks.cad.classes`); objects of no such class are left out.
   ``source_id``: ``gt:<ground-truth track id>``. Nothing missing: an empty answer.
 - ``cad_selection``: a track matched to a ground-truth object (:func:`bench.retrieval_bench.track_truth`; a manual
   track too, by its boxes) gets :func:`bench.annotators.select_cad` of the object's true model among the track's candidates
@@ -25,7 +25,7 @@ label files (validated by :func:`tasks.labels.validate_label`) to ``<bench>/labe
   against the true model at the true pose, on the task's key-frames; unmatched tracks: reject.
 
 :func:`annotate_until_done` is the ``cadestate bench run`` loop (the default; ``--gt-tracks`` skips it): run the clips,
-answer their open tasks, ingest the labels (:func:`tasks.label_ingest.ingest_labels`), rerun the
+answer their open tasks, ingest the labels (:func:`tasks.human.label_ingest.ingest_labels`), rerun the
 clips that got labels, until no clip waits or ``max_rounds``.
 """
 
@@ -45,10 +45,10 @@ from bench.noise import DEFAULT_NOISE, AnnotatorNoise
 from bench.retrieval_bench import track_truth
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import FramesFile, read_frames, read_objects
-from tasks.cad_classes import BY_NAME
-from tasks.label_ingest import answered_tasks, current_answers, ingest_labels
-from tasks.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
-from tasks.world_up import clip_up_rotation, pose_to_input_world
+from tasks.cad.classes import BY_NAME
+from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
+from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
+from tasks.video.world_up import clip_up_rotation, pose_to_input_world
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
@@ -122,7 +122,7 @@ def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
 
 def task_label(cls: str, classes: tuple[str, ...]) -> str | None:
     """The first of the task's ``classes`` that names ground-truth class ``cls`` (a class id; its
-    class's COCO labels, :data:`tasks.cad_classes.CLASSES`), or None."""
+    class's COCO labels, :data:`tasks.cad.classes.CLASSES`), or None."""
     known = BY_NAME.get(CLASS_NAMES.get(cls, ""))
     return next((label for label in (known.coco if known else ()) if label in classes), None)
 

@@ -7,7 +7,7 @@ supersampled RGB) and writes, each file atomically:
 
 - ``<out>/<name>.mp4``: H.264, frame ``i`` at pts ``i`` in time base ``1/fps`` (exact times);
 - ``<out>/<name>.txt``: RealEstate10K camera file of every ``sample_every``-th video frame (line 1:
-  ``synthetic://walkthrough/<video id>``, the video id of ``name``, :func:`tasks.clip_names.video_id_of`);
+  ``synthetic://walkthrough/<video id>``, the video id of ``name``, :func:`tasks.video.clip_names.video_id_of`);
 - ``<out>/<name>/frames.json``, ``<out>/<name>/objects.json``: the official CAD-Estate format
   (:mod:`schemas.official`; intrinsics in pixels, the camera file's normalised), one frame per camera line, one object per placed model, track boxes
   = bounding boxes of the object's visible pixels in the instance-id mask;
@@ -36,9 +36,9 @@ from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at, matr
 from cadestate.render import Camera, Instance, Lighting, Renderer, RenderMesh
 from schemas.official import Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json, \
     objects_to_json, write_json
-from tasks.cameras import CameraTrack, write_camera_file
-from tasks.clip_names import video_id_of
-from tasks.video import frame_timestamp_us, write_video
+from tasks.video.camera_file import CameraTrack, write_camera_file
+from tasks.video.clip_names import video_id_of
+from tasks.video.decode import frame_timestamp_us, write_video
 
 ROOM_INSTANCE_ID = 0
 """Instance id of the room (walls, floor, ...); object ``k`` of the scene gets id ``k + 1``."""

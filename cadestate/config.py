@@ -4,7 +4,7 @@ Every key has a default, so an empty file (or none) is a valid configuration. Un
 unknown keys, wrong types, out-of-range values (nan and inf included; integers must fit in 64 bits)
 and keys that contradict each other are errors that name the file, the section and the key.
 Checks that need a file the configuration names (the detector model) are
-:func:`tasks.detectors.check_detect_config`'s, run by ``cadestate config check`` and before a run. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
+:func:`tasks.detection.detectors.check_detect_config`'s, run by ``cadestate config check`` and before a run. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
 knows which stages a config change made stale (see :mod:`cadestate.lineage`).
 
 Sections ``warehouse`` and ``prefect`` say *where* and *how* to run; they do not change any
@@ -31,7 +31,7 @@ ENV_WAREHOUSE = "CADESTATE_WAREHOUSE"
 INT_RANGE = (-(2**63), 2**63 - 1)
 """Integer values must fit in int64 (the warehouse's and numpy's integers)."""
 DESCRIPTOR_DIM = 768
-"""Size of the appearance descriptors (tasks/models/embedder.py DIM): the most [cad_embed] whitening_dims keeps."""
+"""Size of the appearance descriptors (tasks/detection/models/embedder.py DIM): the most [cad_embed] whitening_dims keeps."""
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
 
@@ -101,7 +101,7 @@ class IngestConfig:
 
     link_inputs: bool = _opt(True, "Hard-link inputs into the warehouse when possible instead of copying them.")
     up: str = _opt("auto", "The camera file's world up: 'auto' estimates it from the cameras (level, upright phones; "
-                   "tasks/world_up.py), or force an axis of that world ('+y' for worlds built +Y up, '-y' for "
+                   "tasks/video/world_up.py), or force an axis of that world ('+y' for worlds built +Y up, '-y' for "
                    "ORB-SLAM worlds whose first camera is level). The world is turned to +Y up at ingest.",
                    choices=("auto", "+x", "-x", "+y", "-y", "+z", "-z"))
 
@@ -163,7 +163,7 @@ class CadViewsConfig:
 class DetectConfig:
     """Stage ``detect``: run an ONNX object detector on every frame of a clip."""
 
-    adapter: str = _opt("nanodet", "Output layout of the ONNX model (see tasks/detectors.py): 'nanodet' or 'yolov8'.", choices=("nanodet", "yolov8"))
+    adapter: str = _opt("nanodet", "Output layout of the ONNX model (see tasks/detection/detectors.py): 'nanodet' or 'yolov8'.", choices=("nanodet", "yolov8"))
     model: str = _opt("", "ONNX detector file; empty = the NanoDet-m built by `make models`.")
     labels: tuple = _opt((), "Label map: class names in the model's output order; empty = COCO-80 (the default model's).")
     input_size: int = _opt(416, "Side of the square letterboxed network input (416 for NanoDet-m, usually 640 for YOLOv8).", lo=32, hi=4096)
@@ -199,8 +199,8 @@ class CadEmbedConfig:
 @dataclass(frozen=True)
 class TrackingConfig:
     """Stage ``tracking``: associate a clip's detections into tracks by clique partitioning of the
-    graph of pairwise log-odds (cues and their fitted calibration: tasks/track_affinity.py,
-    tasks/track_calibration.py)."""
+    graph of pairwise log-odds (cues and their fitted calibration: tasks/tracking/affinity.py,
+    tasks/tracking/calibration.py)."""
 
     window: int = _opt(8, "Detections at most this many frames apart get an edge (farther pairs weigh 0).", lo=1, hi=1000)
     min_score: float = _opt(0.0, "Detections scoring below this are left out of tracking.", lo=0.0, hi=1.0)
@@ -226,7 +226,7 @@ class ManualTracksConfig:
 
 @dataclass(frozen=True)
 class PoseConfig:
-    """Stage ``pose``: 9-DoF pose of every annotated track from its correspondences (paper 3.4; tasks/pose_solver.py)."""
+    """Stage ``pose``: 9-DoF pose of every annotated track from its correspondences (paper 3.4; tasks/pose/solver.py)."""
 
     alpha: float = _opt(100.0, "Weight of the up-axis term |R e_y - e_y|_1 (px per unit); 0 switches it off.", lo=0.0)
     beta: float = _opt(1000.0, "Weight of the front-of-camera term (px per metre of depth below min_depth).", lo=0.0)
@@ -235,7 +235,7 @@ class PoseConfig:
         ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "lamp", "display", "bin", "plant", "bathtub", "toilet",
          "sink", "bench", "piano", "stove", "microwave", "washer", "refrigerator", "radiator", "jar", "clock",
          "loudspeaker", "door", "window", "vehicle"),
-        "Classes that stand upright: the up-axis term applies to them (default: the upright classes of tasks/cad_classes.py).")
+        "Classes that stand upright: the up-axis term applies to them (default: the upright classes of tasks/cad/classes.py).")
     iterations: int = _opt(400, "Adam iterations (the fallback for objects the LM leaves unusable; all objects when lm_iterations = 0).", lo=1, hi=100_000)
     lr: float = _opt(0.02, "Initial Adam learning rate (rotation 6D, log-scale, translation in units of camera distance).", lo=1e-6, hi=1.0)
     lr_final: float = _opt(1e-5, "Learning rate at the last iteration (exponential decay; at most lr).", lo=1e-9, hi=1.0)
@@ -249,7 +249,7 @@ class PoseConfig:
     min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)
     threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
     huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
-    floor_prior: float = _opt(30.0, "Support prior (tasks/pose_support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (the inverse-variance weighted mean of its solved floor objects' bottoms within floor_max_gap of their weighted median) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
+    floor_prior: float = _opt(30.0, "Support prior (tasks/pose/support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (the inverse-variance weighted mean of its solved floor objects' bottoms within floor_max_gap of their weighted median) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
     floor_classes: tuple = _opt(
         ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "bin", "bathtub", "toilet", "bench", "piano", "stove",
          "washer", "refrigerator"),

@@ -21,8 +21,8 @@ from cadestate.config import Config
 from cadestate.lineage import file_sha256
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow, run_tags
-from tasks.ingest import ClipSource
-from tasks.label_similarity import detector_labels
+from tasks.video.ingest import ClipSource
+from tasks.retrieval.label_similarity import detector_labels
 from tasks.prefect_tasks import (cad_selection_task, cameras_task, correspondence_task_task, detect_task, embed_task, frames_task,
                                  ingest_task, manual_tracks_task, pose_task, retrieval_task, tracking_task,
                                  verification_task)

@@ -18,7 +18,7 @@ from prefect.states import State
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
-from tasks.cad_sources import CadItem, items_digest
+from tasks.cad.sources import CadItem, items_digest
 from tasks.prefect_tasks import cad_embed_task, cad_ingest_task, cad_views_task, label_similarity_task
 from tasks.registry import STAGES, extra_inputs
 from tasks.stage import settle_interrupted

@@ -39,9 +39,9 @@ from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
 from flows.reports import StageReport
 from flows.runtime import run_tags, warehouse_results
-from tasks.cameras import CameraFileError, parse_camera_file
-from tasks.clip_names import ClipNameError
-from tasks.ingest import ClipSource, official_clip_name
+from tasks.video.camera_file import CameraFileError, parse_camera_file
+from tasks.video.clip_names import ClipNameError
+from tasks.video.ingest import ClipSource, official_clip_name
 from warehouse import Warehouse
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
@@ -184,8 +184,8 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
 def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     """Ingest the label files of ``[schedule] labels_inbox`` (files ingested before are skipped) and
     resume the clips they answer: a suspended run is resumed, a clip with none gets a new run."""
-    from tasks.ingest import registered_source
-    from tasks.label_ingest import ingest_labels
+    from tasks.video.ingest import registered_source
+    from tasks.human.label_ingest import ingest_labels
 
     cfg = served_config(warehouse, config_path)
     inbox = Path(cfg.schedule.labels_inbox)
@@ -209,8 +209,8 @@ def dataset_report(warehouse: str, config_path: str = "") -> str:
     ``[schedule] report``; returns the report's path."""
     import json
 
-    from tasks.stats import dataset_tables, select_clips, statistics
-    from tasks.stats_report import write_report
+    from tasks.dataset.stats import dataset_tables, select_clips, statistics
+    from tasks.dataset.stats_report import write_report
     from warehouse.store import atomic_write_bytes
 
     cfg = served_config(warehouse, config_path)

@@ -21,7 +21,7 @@ CAD_MODELS = TableSpec(
     schema=pa.schema([
         LIBRARY,
         CAD_ID,
-        column("class", pa.string(), "Class of the vocabulary (tasks/cad_classes.py)."),
+        column("class", pa.string(), "Class of the vocabulary (tasks/cad/classes.py)."),
         column("class_id", pa.string(), "Class id: ShapeNet synset, or cadestate-<class> for classes ShapeNet lacks."),
         column("name", pa.string(), "Item name in its source."),
         column("source_category", pa.string(), "Category in its source (kept as given)."),

@@ -4,7 +4,7 @@ Frames follow :mod:`cadestate.geometry`: world->camera ``R, t`` with ``X_cam = R
 OpenCV camera axes (x right, y down, z forward), metres (RealEstate10K worlds have an arbitrary
 per-clip scale), matrices flattened row-major. The world of ``frames`` (and of every table after
 it) is the **aligned world**, +Y up: the camera file's world turned by ``clips.up_rotation``
-(``X_aligned = Q X_input``, :mod:`tasks.world_up`). Timestamps are the camera file's; with
+(``X_aligned = Q X_input``, :mod:`tasks.video.world_up`). Timestamps are the camera file's; with
 ``clips.time_offset_us`` the video is read at ``timestamp_us - time_offset_us``.
 """
 

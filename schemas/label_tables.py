@@ -82,7 +82,7 @@ CORRESPONDENCE_LABELS = _answer_table(
         column("point_2d", vector(2), "Image point (x, y), normalised.", frame=IMAGE),
         column("point_3d", vector(3), "Point on the CAD model.", unit="m", frame=CAD),
         column("is_mirrored", pa.bool_(), "The annotator mirrored the model for this track."),
-        column("keyframe_coplanar", pa.bool_(), "The key-frame's 3D points lie on one plane (tasks.pose_checks, "
+        column("keyframe_coplanar", pa.bool_(), "The key-frame's 3D points lie on one plane (tasks.pose.checks, "
                                                 "[pose] coplanar_tol)."),
         column("keyframe_coplanar_axis", pa.int32(), "CAD axis (0 x, 1 y, 2 z) nearest the normal of that plane; -1 none."),
         column("track_coplanar_axis", pa.int32(), "The same for all of the answer's points (symmetry-aware, as the "
@@ -111,7 +111,7 @@ TRACK_RELATIONS = _answer_table(
     "`not_objects`: track_id shows no object), `same_object` (cad_selection "
     "`same_as_track`: track_id is a fragment of other_track_id; manual_track `same_as_track`: the drawn object "
     "object_index of the label is existing track track_id). Only the statements of the answers in force count "
-    "(tasks.track_relations): the dataset export drops not-objects and merges fragments into their root's object; the "
+    "(tasks.tracking.relations): the dataset export drops not-objects and merges fragments into their root's object; the "
     "later human tasks leave out the tracks a manual_track answer says are no object or an existing track.", ("statement_index",), [
         column("statement_index", pa.int32(), "0-based index of the statement within its label file."),
         column("kind", pa.string(), "The label's kind (manual_track | cad_selection)."),

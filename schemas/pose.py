@@ -50,7 +50,7 @@ POSES = TableSpec(
         column("cad_id", pa.string(), "CAD model posed."),
         column("class", pa.string(), "Class of the CAD model."),
         column("status", pa.string(), "ok | invalid_input | too_few_points | single_keyframe | collinear_points | "
-                                      "behind_camera | high_residual | low_parallax | unknown_cad | missing_camera (tasks/pose_checks.py)."),
+                                      "behind_camera | high_residual | low_parallax | unknown_cad | missing_camera (tasks/pose/checks.py)."),
         column("message", pa.string(), "Why the status is what it is, in words."),
         column("translation", _maybe(3), "T of the object-to-world T·R·S·mirror (null: not solved).", unit="m",
                frame="world (+Y up)", nullable=True),
@@ -76,7 +76,7 @@ POSES = TableSpec(
         column("loss_floor", pa.float64(), "Final L_floor, the support term: [pose] floor_prior · |bottom - support_height| / "
                                            "object height (0 unless floor_prior is 'used' or 'host'; null: not solved).",
                unit="px", nullable=True),
-        column("floor_prior", pa.string(), "The support prior (tasks/pose_support.py): none (off, a class that does not rest "
+        column("floor_prior", pa.string(), "The support prior (tasks/pose/support.py): none (off, a class that does not rest "
                                            "on a support, no bounding box or no pose) | no_floor (the clip has no floor "
                                            "estimate) | off_floor (no support within [pose] floor_max_gap heights of its "
                                            "bottom: own pose kept) | rejected (the reprojection loss grew more than [pose] "

@@ -4,7 +4,7 @@ per CAD library, ``cad_candidates`` per clip.
 A track's score for a CAD model is the mean, over every (detection of the track, view of the model)
 pair, of ``class_similarity(detection label, model class) x appearance(detection, view)``, with
 ``class_similarity`` the cosine of the two label names in a sentence encoder's space (clipped at
-0) and ``appearance = (1 + cosine) / 2`` of the whitened descriptors (:mod:`tasks.whitening`).
+0) and ``appearance = (1 + cosine) / 2`` of the whitened descriptors (:mod:`tasks.retrieval.whitening`).
 """
 
 from __future__ import annotations

@@ -20,23 +20,23 @@ from cadestate.config import (CadEmbedConfig, CadIngestConfig, CadSelectionConfi
                               ManualTracksConfig, PoseConfig, RetrievalConfig, TrackingConfig, VerificationConfig,
                               section_hash)
 from cadestate.lineage import digest, file_sha256
-from tasks.cad_embed import embed_library
-from tasks.cad_ingest import ingest_library
-from tasks.cad_sources import CadItem
-from tasks.cad_views import render_library
-from tasks.camera_stage import cameras_stage
-from tasks.detect import detect_clip
-from tasks.embed import embed_clip
-from tasks.frames import extract_frames
-from tasks.ingest import ClipSource, cameras_file, ingest_clip, ingest_source_digest
-from tasks.label_similarity import label_similarity
-from tasks.manual_tracks import manual_tracks_stage
-from tasks.pose import solve_clip
+from tasks.cad.embed import embed_library
+from tasks.cad.ingest import ingest_library
+from tasks.cad.sources import CadItem
+from tasks.cad.views import render_library
+from tasks.video.cameras import cameras_stage
+from tasks.detection.detect import detect_clip
+from tasks.detection.embed import embed_clip
+from tasks.video.frames import extract_frames
+from tasks.video.ingest import ClipSource, cameras_file, ingest_clip, ingest_source_digest
+from tasks.retrieval.label_similarity import label_similarity
+from tasks.human.manual_tracks import manual_tracks_stage
+from tasks.pose.pose import solve_clip
 from tasks.registry import config_hash, upstream_inputs_hash
-from tasks.retrieval import retrieve_clip
-from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, verification_stage
+from tasks.retrieval.retrieval import retrieve_clip
+from tasks.human.human_tasks import cad_selection_stage, correspondence_task_stage, verification_stage
 from tasks.stage import StageRun, run_stage, waiting_run
-from tasks.tracking import track_clip
+from tasks.tracking.tracking import track_clip
 from warehouse import Warehouse
 
 NOT_IN_KEY = ("source", "items", "show_progress")

@@ -35,53 +35,53 @@ class StageDef:
 STAGES: dict[str, StageDef] = {
     s.name: s
     for s in (
-        StageDef("cameras", "clip", (), (), ("tasks.camera_stage", "tasks.sfm", "tasks.cameras", "tasks.video"),
+        StageDef("cameras", "clip", (), (), ("tasks.video.cameras", "tasks.video.sfm", "tasks.video.camera_file", "tasks.video.decode"),
                  "the clip's camera file: the given one, else structure from motion on the video (pycolmap)"),
-        StageDef("ingest", "clip", ("cameras",), ("clips",), ("tasks.ingest", "tasks.cameras", "tasks.video", "tasks.world_up"),
+        StageDef("ingest", "clip", ("cameras",), ("clips",), ("tasks.video.ingest", "tasks.video.camera_file", "tasks.video.decode", "tasks.video.world_up"),
                  "validate the video and camera file, find the world's up, keep them, register the clip"),
-        StageDef("frames", "clip", ("ingest",), ("frames",), ("tasks.frames", "tasks.cameras", "tasks.video"),
+        StageDef("frames", "clip", ("ingest",), ("frames",), ("tasks.video.frames", "tasks.video.camera_file", "tasks.video.decode"),
                  "extract the frame at every camera timestamp"),
-        StageDef("detect", "clip", ("frames",), ("detections",), ("tasks.detect", "tasks.detectors", "tasks.models.nanodet"),
+        StageDef("detect", "clip", ("frames",), ("detections",), ("tasks.detection.detect", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
                  "detect objects in every frame (ONNX detector)"),
-        StageDef("embed", "clip", ("detect",), ("embeddings",), ("tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+        StageDef("embed", "clip", ("detect",), ("embeddings",), ("tasks.detection.embed", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
                  "one appearance descriptor per detection"),
         StageDef("tracking", "clip", ("frames", "detect", "embed"), ("tracks", "track_detections", "track_appearance"),
-                 ("tasks.tracking", "tasks.track_affinity", "tasks.track_partition", "tasks.track_calibration"),
+                 ("tasks.tracking.tracking", "tasks.tracking.affinity", "tasks.tracking.partition", "tasks.tracking.calibration"),
                  "associate detections into tracks by clique partitioning"),
         StageDef("manual_tracks", "clip", ("ingest", "frames", "tracking"), ("manual_tracks", "label_tasks"),
-                 ("tasks.manual_tracks", "tasks.label_similarity", "tasks.clip_tracks", "tasks.human_tasks", "tasks.ingest", "tasks.labels",
-                  "tasks.track_relations",
-                  "tasks.label_format", "tasks.label_ingest", "tasks.embed", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+                 ("tasks.human.manual_tracks", "tasks.retrieval.label_similarity", "tasks.tracking.clip_tracks", "tasks.human.human_tasks", "tasks.video.ingest", "tasks.human.labels",
+                  "tasks.tracking.relations",
+                  "tasks.human.label_format", "tasks.human.label_ingest", "tasks.detection.embed", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
                  "human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
                  extra_sections=("embed",)),
         StageDef("retrieval", "clip", ("tracking", "manual_tracks"), ("cad_candidates",),
-                 ("tasks.retrieval", "tasks.whitening", "tasks.clip_tracks"),
+                 ("tasks.retrieval.retrieval", "tasks.retrieval.whitening", "tasks.tracking.clip_tracks"),
                  "top CAD models of every track, automatic and manual (appearance x class-label similarity)"),
         StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",),
-                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
-                  "tasks.track_relations"),
+                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
+                  "tasks.tracking.relations"),
                  "human task (3.2): people choose each track's CAD model among its candidates; pauses until answered"),
         StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",),
-                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
-                  "tasks.track_relations"),
+                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
+                  "tasks.tracking.relations"),
                  "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
         StageDef("pose", "clip", ("frames",), ("poses",),
-                 ("tasks.pose", "tasks.pose_solver", "tasks.pose_init", "tasks.pose_checks", "tasks.pose_lm",
-                  "tasks.pose_batch", "tasks.pose_support", "tasks.pose_inputs", "tasks.human_tasks", "tasks.track_relations"),
+                 ("tasks.pose.pose", "tasks.pose.solver", "tasks.pose.initial", "tasks.pose.checks", "tasks.pose.lm",
+                  "tasks.pose.batch", "tasks.pose.support", "tasks.pose.inputs", "tasks.human.human_tasks", "tasks.tracking.relations"),
                  "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
         StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
-                 ("tasks.human_tasks", "tasks.clip_tracks", "tasks.labels", "tasks.label_format", "tasks.label_ingest",
-                  "tasks.track_relations", "cadestate.render"),
+                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
+                  "tasks.tracking.relations", "cadestate.render"),
                  "human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered"),
         StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
-                 ("tasks.cad_ingest", "tasks.cad_sources", "tasks.cad_classes", "tasks.cad_symmetry"),
+                 ("tasks.cad.ingest", "tasks.cad.sources", "tasks.cad.classes", "tasks.cad.symmetry"),
                  "canonicalise a CAD library, detect symmetries, sample surfaces"),
-        StageDef("cad_views", "library", ("cad_ingest",), ("cad_views",), ("tasks.cad_views", "cadestate.render"),
+        StageDef("cad_views", "library", ("cad_ingest",), ("cad_views",), ("tasks.cad.views", "cadestate.render"),
                  "render every CAD model from random viewpoints"),
         StageDef("cad_embed", "library", ("cad_views",), ("cad_embeddings", "embedding_whitening"),
-                 ("tasks.cad_embed", "tasks.embed", "tasks.whitening", "tasks.models.embedder", "tasks.detectors", "tasks.models.nanodet"),
+                 ("tasks.cad.embed", "tasks.detection.embed", "tasks.retrieval.whitening", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
                  "embed every CAD view, fit the descriptor whitening", extra_sections=("embed",)),
-        StageDef("label_similarity", "library", ("cad_ingest",), ("label_similarity",), ("tasks.label_similarity",),
+        StageDef("label_similarity", "library", ("cad_ingest",), ("label_similarity",), ("tasks.retrieval.label_similarity",),
                  "similarity of every detector label and CAD class (sentence encoder)"),
     )
 }
@@ -105,11 +105,11 @@ def extra_inputs(stage: str, config: Any) -> list[str]:
     :class:`cadestate.config.Config`): the detector's model file for ``detect``, the detector's
     label map for ``label_similarity`` and ``manual_tracks`` (its classes without a CAD library)."""
     if stage == "detect":
-        from tasks.detect import model_fingerprint
+        from tasks.detection.detect import model_fingerprint
 
         return [model_fingerprint(config.detect)]
     if stage in ("label_similarity", "manual_tracks"):
-        from tasks.label_similarity import labels_digest
+        from tasks.retrieval.label_similarity import labels_digest
 
         return [labels_digest(config.detect)]
     return []
@@ -127,28 +127,28 @@ def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
     similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
     classes); for the human-task stages, the answers in force of their label kind (ingesting labels
     makes them stale: a rerun resumes them) and, after ``manual_tracks``, the tracks its answer
-    leaves out (:func:`tasks.track_relations.left_out_digest`: said to be no object, or another track)."""
+    leaves out (:func:`tasks.tracking.relations.left_out_digest`: said to be no object, or another track)."""
     if stage == "ingest":
-        from tasks.ingest import registered_inputs_digest
+        from tasks.video.ingest import registered_inputs_digest
 
         return [registered_inputs_digest(wh, clip)]
     if stage == "retrieval":
-        from tasks.retrieval import library_digest
+        from tasks.retrieval.retrieval import library_digest
 
         return [library_digest(wh)]
     if stage in HUMAN_TASK_KINDS:
-        from tasks.label_ingest import answers_digest
+        from tasks.human.label_ingest import answers_digest
 
         answers = [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
         if stage == "manual_tracks":
-            from tasks.label_similarity import similarity_labels
+            from tasks.retrieval.label_similarity import similarity_labels
 
             return [digest(*similarity_labels(wh)), *answers]
-        from tasks.track_relations import left_out_digest
+        from tasks.tracking.relations import left_out_digest
 
         return [*answers, left_out_digest(wh, clip)]
     if stage == "pose":
-        from tasks.pose_inputs import input_digests
+        from tasks.pose.inputs import input_digests
 
         return input_digests(wh, clip)
     return []

@@ -84,7 +84,7 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     """What a user should know about each clip beyond its stages' states, one line per note:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
     threshold or class filter) runs every later stage on nothing; a clip whose world up was
-    estimated unreliably (:mod:`tasks.world_up`) may have every object pulled the wrong way."""
+    estimated unreliably (:mod:`tasks.video.world_up`) may have every object pulled the wrong way."""
     notes = []
     for r in rows:
         if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:

@@ -50,7 +50,7 @@ SMALL_LIBRARY = {  # class -> Sweet Home 3D models (cad_id); others of the class
 def small_library_items() -> list:
     """The Sweet Home 3D items of SMALL_LIBRARY (about 15 models of 8 classes). Skips the test when
     the library is not fetched (`make cad-library`, which `make test` runs)."""
-    from tasks.cad_sources import default_source, sweethome3d_items
+    from tasks.cad.sources import default_source, sweethome3d_items
 
     source = default_source()
     if not source.is_dir():
@@ -68,7 +68,7 @@ def small_library_items() -> list:
 def small_cad_library(tmp_path_factory):
     """(warehouse, cad_models rows): SMALL_LIBRARY canonicalised (cad_ingest only), once per session."""
     from cadestate.config import CadIngestConfig
-    from tasks.cad_ingest import ingest_library
+    from tasks.cad.ingest import ingest_library
 
     pick = small_library_items()
     wh = Warehouse(tmp_path_factory.mktemp("small_cad_wh"))

@@ -8,10 +8,10 @@ from pathlib import Path
 from PIL import Image
 
 from conftest import table_rows
-from tasks.cad_classes import CLASSES
-from tasks.cameras import CameraTrack, parse_camera_file
-from tasks.frames import frames_table
-from tasks.video import decode_at
+from tasks.cad.classes import CLASSES
+from tasks.video.camera_file import CameraTrack, parse_camera_file
+from tasks.video.frames import frames_table
+from tasks.video.decode import decode_at
 from warehouse import Warehouse
 
 CLASS_NAME = {c.id: c.name for c in CLASSES}
@@ -65,8 +65,8 @@ def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None
 
 def write_selection(wh: Warehouse, clip: str, chosen: dict[int, str | None]) -> None:
     """A cad_selection task answered: ``cad_candidates`` (the chosen model, rank 1, per track) and
-    the label file choosing ``{track id: cad_id or None}`` (what :func:`tasks.human_tasks.selected_models` reads)."""
-    from tasks.human_tasks import cad_selection_task_id
+    the label file choosing ``{track id: cad_id or None}`` (what :func:`tasks.human.human_tasks.selected_models` reads)."""
+    from tasks.human.human_tasks import cad_selection_task_id
 
     wh.write("cad_candidates", clip, table_rows("cad_candidates", [
         {"clip": clip, "track_id": t, "rank": 1, "cad_id": c or "none"} for t, c in chosen.items()]))

@@ -30,7 +30,7 @@ from bench.simulated_labels import answer_tasks
 from bench.walkthrough import WalkthroughSpec
 from browser import chromium_path, launch
 from conftest import warehouse_copy
-from tasks.labels import validate_label
+from tasks.human.labels import validate_label
 from warehouse import Warehouse
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(chromium_path() is None, reason="chromium not installed (make browser)")]

@@ -17,7 +17,7 @@ from bench.noise import AnnotatorNoise
 from cadestate.geometry import look_at, matrix_to_quaternion, project, quaternion_to_matrix
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import Frame, FramesFile, ObjectAnnotation, TrackEntry
-from tasks.cad_symmetry import rotation_y
+from tasks.cad.symmetry import rotation_y
 
 W, H = 320, 180
 F_PX = 250.0

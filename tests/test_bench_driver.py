@@ -112,7 +112,7 @@ def test_simulated_annotators_answer_through_label_files(benchmark, small_cad_li
 
     from bench.simulated_labels import annotate_until_done, label_dir, open_tasks
     from flows.annotate_clip import run_clips
-    from tasks.labels import validate_label
+    from tasks.human.labels import validate_label
     from warehouse import Warehouse
 
     folder, manifest, _ = benchmark
@@ -146,9 +146,9 @@ def _answer_each_task_kind(folder, wh, clip):
     from bench.simulated_labels import answer_tasks, label_dir, open_tasks
     from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig, PoseConfig, VerificationConfig
     from schemas.official import read_objects
-    from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
-    from tasks.label_ingest import ingest_labels
-    from tasks.pose import solve_clip
+    from tasks.human.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.pose.pose import solve_clip
 
     truth = track_truth(folder, wh, clip)
     objects = {o.track_id: o for o in read_objects(folder / clip / "objects.json").objects}
@@ -181,8 +181,8 @@ def _answer_each_task_kind(folder, wh, clip):
     assert wh.read("verified_poses", [clip]).num_rows >= 1
     assert open_tasks(wh, clip) == []
     # taking a model back (a newer cad_selection label: none fits) takes the track's pose back too
-    from tasks.human_tasks import cad_selection_task_id
-    from tasks.labels import label_document
+    from tasks.human.human_tasks import cad_selection_task_id
+    from tasks.human.labels import label_document
     from tasks.registry import clip_inputs
 
     posed = sorted(int(t) for t in wh.read("poses", [clip]).column("track_id").to_pylist())
@@ -206,9 +206,9 @@ def _draw_missing_objects(folder, wh, clip):
     from bench.simulated_labels import answer_tasks, label_dir
     from cadestate.config import DetectConfig, EmbedConfig, ManualTracksConfig
     from schemas.tracking import MANUAL_TRACK_BASE
-    from tasks.label_ingest import ingest_labels
-    from tasks.label_similarity import detector_labels
-    from tasks.manual_tracks import manual_tracks_stage
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.retrieval.label_similarity import detector_labels
+    from tasks.human.manual_tracks import manual_tracks_stage
 
     members = wh.read("track_detections", [clip]).to_pylist()
     truth = track_truth(folder, wh, clip)

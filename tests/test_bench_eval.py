@@ -166,7 +166,7 @@ def test_ignore_rule():
 
 
 def test_coco_classes_exist_in_the_vocabulary():
-    from tasks.cad_classes import BY_NAME
+    from tasks.cad.classes import BY_NAME
 
     assert all(name in BY_NAME and BY_NAME[name].coco for name in COCO_CLASSES)
 
@@ -316,7 +316,7 @@ def test_stats_on_two_clips():
 # ---- detection -------------------------------------------------------------------------------------
 def test_detection_mapping_covers_the_detectable_classes():
     from bench.eval_detection import DETECTOR_TO_CLASS
-    from tasks.models.nanodet import COCO_LABELS
+    from tasks.detection.models.nanodet import COCO_LABELS
 
     assert set(DETECTOR_TO_CLASS.values()) == set(COCO_CLASSES) and set(DETECTOR_TO_CLASS) <= set(COCO_LABELS)
 
@@ -348,7 +348,7 @@ def test_four_way_symmetric_pose_turned_by_90_degrees_swaps_sx_and_sz():
     """A 4-way model posed R_gt·R_y(90) with (sz, sy, sx) is the same object as R_gt with (sx, sy, sz)."""
     from bench.eval_pose import symmetric_rotation_error, symmetric_scale
     from cadestate.geometry import matrix_to_quaternion
-    from tasks.cad_symmetry import rotation_y
+    from tasks.cad.symmetry import rotation_y
 
     q_gt = matrix_to_quaternion(rotation_y(30.0))
     s_gt = (0.5, 0.7, 1.5)

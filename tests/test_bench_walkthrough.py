@@ -22,8 +22,8 @@ from bench.walkthrough import (
 from cadestate.geometry import camera_to_world, pixel_intrinsics_matrix, project, quaternion_to_matrix
 from cadestate.render import Camera, Instance, Renderer, object_to_world
 from schemas.official import read_frames, read_objects
-from tasks.cameras import parse_camera_file
-from tasks.video import frame_timestamp_us
+from tasks.video.camera_file import parse_camera_file
+from tasks.video.decode import frame_timestamp_us
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=1.0)
 SEED = 7

@@ -13,14 +13,14 @@ import trimesh
 from cadestate.config import CadIngestConfig, CadViewsConfig
 from cadestate.geometry import project
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
-from tasks.cad_classes import BY_NAME, CLASSES, classify
-from tasks.cad_export import ExportError, export_official, triangle_soup
-from tasks.cad_ingest import ingest_library
-from tasks.cad_sources import (
+from tasks.cad.classes import BY_NAME, CLASSES, classify
+from tasks.cad.export import ExportError, export_official, triangle_soup
+from tasks.cad.ingest import ingest_library
+from tasks.cad.sources import (
     CadSourceError, default_source, folder_items, guess_kind, items_digest, load_item, read_java_properties, shapenet_items,
     sweethome3d_items,
 )
-from tasks.cad_views import render_library, view_camera, viewpoints
+from tasks.cad.views import render_library, view_camera, viewpoints
 
 SH3D = default_source()
 needs_sh3d = pytest.mark.skipif(not SH3D.is_dir(), reason="Sweet Home 3D library not fetched (make cad-library)")
@@ -239,6 +239,6 @@ def test_sweet_home_3d_models_take_their_catalogue_size(tmp_path):
 
 
 def test_config_default_is_the_calibrated_symmetry_tolerance():
-    from tasks.cad_symmetry import DEFAULT_TOLERANCE
+    from tasks.cad.symmetry import DEFAULT_TOLERANCE
 
     assert CadIngestConfig().symmetry_tolerance == DEFAULT_TOLERANCE

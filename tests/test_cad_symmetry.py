@@ -1,4 +1,4 @@
-"""Tests of :mod:`tasks.cad_symmetry`: programmatic meshes with known answers, and a list of
+"""Tests of :mod:`tasks.cad.symmetry`: programmatic meshes with known answers, and a list of
 Sweet Home 3D models whose symmetry was decided by looking at them (``data/sh3d_symmetry.csv``)."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from tasks.cad_ingest import canonicalise
-from tasks.cad_sources import CadItem, default_source, load_item, slug, sweethome3d_items
-from tasks.cad_symmetry import (
+from tasks.cad.ingest import canonicalise
+from tasks.cad.sources import CadItem, default_source, load_item, slug, sweethome3d_items
+from tasks.cad.symmetry import (
     DEFAULT_TOLERANCE,
     SYMMETRY_ORDERS,
     SymmetryResult,

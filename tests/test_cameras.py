@@ -1,4 +1,4 @@
-"""Tests of tasks.cameras: RealEstate10K camera files."""
+"""Tests of tasks.video.camera_file: RealEstate10K camera files."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cadestate.geometry import look_at, quaternion_to_matrix, rotation_error
-from tasks import cameras
-from tasks.cameras import (
+from tasks.video import camera_file as cameras
+from tasks.video.camera_file import (
     FOCAL_RANGE,
     PRINCIPAL_POINT_MARGIN,
     ROTATION_TOLERANCE,

@@ -1,11 +1,11 @@
-"""tasks.clip_names: clip names <video_id>_<start_us> derived from, and checked against, camera files."""
+"""tasks.video.clip_names: clip names <video_id>_<start_us> derived from, and checked against, camera files."""
 
 from __future__ import annotations
 
 import pytest
 
 from bench.benchmark import clip_name
-from tasks.clip_names import (
+from tasks.video.clip_names import (
     ClipName, ClipNameError, check_clip_name, derive_clip_name, parse_clip_name, shared_video_ids, video_id_from_url,
     video_id_of,
 )

@@ -88,7 +88,7 @@ def test_load_file_env_and_errors(tmp_path, monkeypatch):
 
 
 def test_whitening_dims_bound_is_the_descriptor_size():
-    from tasks.models.embedder import DIM
+    from tasks.detection.models.embedder import DIM
 
     assert DESCRIPTOR_DIM == DIM
 

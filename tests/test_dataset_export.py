@@ -24,9 +24,9 @@ from dataset_fixture import write_accepted, write_frames, write_manual_track_tas
 from official_loader import image_path, load_frames, load_objects, to_pixels
 from schemas.official import TrackEntry, read_objects
 from schemas.tracking import MANUAL_TRACK_BASE
-from tasks.cameras import parse_camera_file
-from tasks.export_official import export_dataset
-from tasks.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
+from tasks.video.camera_file import parse_camera_file
+from tasks.dataset.export_official import export_dataset
+from tasks.dataset.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=0.5)
@@ -148,7 +148,7 @@ def test_official_export_reads_back(built, tmp_path):
 
 
 def test_official_export_refuses_a_full_folder_and_unknown_clips(built, tmp_path):
-    from tasks.cad_export import ExportError
+    from tasks.cad.export import ExportError
 
     wh, _, _ = built
     (tmp_path / "full").mkdir()
@@ -232,7 +232,7 @@ def read_csv_text(text: str, tmp_path) -> list[Alignment]:
 
 
 def test_scan2cad_csv_errors_name_the_line(tmp_path):
-    from tasks.cad_export import ExportError
+    from tasks.cad.export import ExportError
 
     (tmp_path / "bad.csv").write_text("03001627,a,0,0,0,1,0,0,0,1,1,1\n03001627,b,0,0\n")
     with pytest.raises(ExportError, match=r"bad.csv:2: expected 12 columns"):

@@ -24,8 +24,8 @@ from bench.demo_clip import (
     make_demo_clip,
 )
 from cadestate.geometry import camera_to_world, intrinsics_matrix, project, rotation_error
-from tasks.cameras import parse_camera_file
-from tasks.video import frame_timestamp_us
+from tasks.video.camera_file import parse_camera_file
+from tasks.video.decode import frame_timestamp_us
 
 SPEC = DemoClipSpec(name="small", width=320, height=192, num_video_frames=60, sample_every=3, seed=7)
 

@@ -11,10 +11,10 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from cadestate.config import ConfigError, DetectConfig, config_from_dict  # noqa: E402
-from tasks.detectors import (  # noqa: E402
+from tasks.detection.detectors import (  # noqa: E402
     Detector, Letterbox, check_detect_config, letterbox, load_detector, nms, output_problem,
 )
-from tasks.models import nanodet as nd  # noqa: E402
+from tasks.detection.models import nanodet as nd  # noqa: E402
 
 
 class FixedOutputs(torch.nn.Module):
@@ -226,7 +226,7 @@ def test_check_detect_config_label_map(tmp_path):
 
 
 def test_check_detect_config_on_the_default_model(tmp_path):
-    from tasks.detectors import detector_path
+    from tasks.detection.detectors import detector_path
 
     if not detector_path(DetectConfig()).is_file():
         pytest.skip("the default detector is not built (`make models`)")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from cadestate.config import CadEmbedConfig, DetectConfig, EmbedConfig, FramesConfig, IngestConfig
-from tasks.models import nanodet as nd
-from tasks.whitening import fit_whitening, read_whitening, whitening_table
+from tasks.detection.models import nanodet as nd
+from tasks.retrieval.whitening import fit_whitening, read_whitening, whitening_table
 
 pytestmark = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
                                 reason="the NanoDet-m model is not built (`make models`, which `make test` runs)")
@@ -15,7 +15,7 @@ pytestmark = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
 
 @pytest.fixture(scope="module")
 def embedder():
-    from tasks.models.embedder import load_embedder
+    from tasks.detection.models.embedder import load_embedder
 
     return load_embedder(EmbedConfig())
 
@@ -27,7 +27,7 @@ def photos():
 
 
 def test_embedder_is_deterministic_and_unit_norm(embedder):
-    from tasks.models.embedder import load_embedder
+    from tasks.detection.models.embedder import load_embedder
 
     cat, moto = photos()
     boxes = np.array([[0, 0, 420, 300], [100, 50, 300, 250], [10, 10, 60, 40]], np.float64)
@@ -49,7 +49,7 @@ def test_embedder_sees_the_object_not_the_frame(embedder):
 
 
 def test_crops_are_clipped_and_size_checked(embedder):
-    from tasks.models.embedder import Embedder, crop_boxes
+    from tasks.detection.models.embedder import Embedder, crop_boxes
 
     np.testing.assert_array_equal(crop_boxes(np.array([[10, 10, 20, 30]]), (40, 50), 0.5),
                                   [[5, 0, 25, 40]])  # grown 5 / 10 px per side, clipped to the image
@@ -81,10 +81,10 @@ def test_whitening_centres_and_whitens():
 # ---- stages ------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def detected(small_clip, tmp_path_factory):
-    from tasks.detect import detect_clip
-    from tasks.embed import embed_clip
-    from tasks.frames import extract_frames
-    from tasks.ingest import ClipSource, ingest_clip
+    from tasks.detection.detect import detect_clip
+    from tasks.detection.embed import embed_clip
+    from tasks.video.frames import extract_frames
+    from tasks.video.ingest import ClipSource, ingest_clip
     from cadestate.lineage import file_sha256
     from warehouse import Warehouse
 
@@ -99,8 +99,8 @@ def detected(small_clip, tmp_path_factory):
 
 
 def test_detect_and_embed_stages(detected):
-    from tasks.detect import DET_ID_STRIDE, detect_clip
-    from tasks.embed import embed_clip
+    from tasks.detection.detect import DET_ID_STRIDE, detect_clip
+    from tasks.detection.embed import embed_clip
 
     wh, cfg, out, emb = detected
     dets = wh.read("detections").to_pylist()
@@ -129,7 +129,7 @@ def test_detect_and_embed_stages(detected):
 
 
 def test_detect_needs_frames(wh):
-    from tasks.detect import detect_clip
+    from tasks.detection.detect import detect_clip
 
     with pytest.raises(LookupError, match="clip nope has no frames"):
         detect_clip(wh, DetectConfig(), "nope", "r", show_progress=False)
@@ -137,8 +137,8 @@ def test_detect_needs_frames(wh):
 
 def test_cad_embed_stage(small_cad_library):
     from cadestate.config import CadViewsConfig
-    from tasks.cad_embed import embed_library, object_box
-    from tasks.cad_views import render_library
+    from tasks.cad.embed import embed_library, object_box
+    from tasks.cad.views import render_library
 
     wh, models = small_cad_library
     render_library(wh, CadViewsConfig(views=2, size=96), "sh3d-small", "v1", show_progress=False)

@@ -10,7 +10,7 @@ import pytest
 
 from cadestate.config import Config, EmbedConfig, FramesConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
-from tasks.ingest import ClipSource, clip_inputs
+from tasks.video.ingest import ClipSource, clip_inputs
 from tasks.prefect_tasks import STAGE_TASKS
 from tasks.registry import STAGES, stages_of
 from tasks.status import pipeline_status
@@ -112,7 +112,7 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
 
     from cadestate.config import CadViewsConfig
     from flows.cad_library import run_cad_library
-    from tasks.cad_sources import folder_items
+    from tasks.cad.sources import folder_items
 
     folder = tmp_path / "meshes"
     folder.mkdir()
@@ -144,9 +144,9 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     import json
 
     from conftest import warehouse_copy
-    from tasks.human_tasks import selected_models
-    from tasks.label_ingest import ingest_labels
-    from tasks.labels import label_document
+    from tasks.human.human_tasks import selected_models
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.human.labels import label_document
 
     config = warehouse_copy(small_library_warehouse, tmp_path / "warehouse")
     first = run_clips([source], config, show_progress=False)
@@ -198,9 +198,9 @@ def test_a_val_clip_waits_for_its_manual_tracks(config, source, tmp_path):
     which pauses; what follows waits; an empty answer ("nothing missing") resumes the clip."""
     import json
 
-    from tasks.ingest import registered_source
-    from tasks.label_ingest import ingest_labels
-    from tasks.labels import label_document
+    from tasks.video.ingest import registered_source
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.human.labels import label_document
 
     assert states(run_clips([source], config, show_progress=False)) == expect("small", rest="completed")  # train
     val = dataclasses.replace(source, split="val")

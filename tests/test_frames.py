@@ -13,10 +13,10 @@ from bench.demo_clip import DemoClipSpec, decode_index, make_demo_clip
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import project, quaternion_to_matrix
 from cadestate.lineage import file_sha256
-from tasks.cameras import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
-from tasks.frames import extract_frames
-from tasks.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip
-from tasks.video import VideoError, decode_at, probe_video, write_video
+from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
+from tasks.video.frames import extract_frames
+from tasks.video.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip
+from tasks.video.decode import VideoError, decode_at, probe_video, write_video
 from warehouse import WarehouseError, connect
 
 

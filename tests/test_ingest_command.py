@@ -68,7 +68,7 @@ def test_sfm_options_are_checked(tmp_path, small_clip, started, args, message):
 def test_align_start_prints_the_offset_and_hands_it_on(tmp_path, small_clip, started):
     import dataclasses
 
-    from tasks.cameras import parse_camera_file, write_camera_file
+    from tasks.video.camera_file import parse_camera_file, write_camera_file
 
     cams = parse_camera_file(small_clip.cameras_path)
     shifted = tmp_path / "c.txt"

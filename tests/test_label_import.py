@@ -9,8 +9,8 @@ import json
 import pytest
 
 from fuzz.harness import assert_clean_error, run_cli
-from tasks.label_import import import_cvat, import_labelstudio
-from tasks.labels import LabelError
+from tasks.human.label_import import import_cvat, import_labelstudio
+from tasks.human.labels import LabelError
 from test_labels import CLIP, CVAT, base_wh, lwh, put  # noqa: F401  (fixtures)
 
 LS = [{"id": 1, "data": {"video": f"/data/upload/{CLIP}.mp4"}, "annotations": [

@@ -19,9 +19,9 @@ from schemas import TABLES
 from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
                             ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
                             json_schema, schema_file_name)
-from tasks.label_import import import_cvat, import_labelstudio, write_label
-from tasks.label_ingest import answers_digest, current_answers, ingest_labels, label_history
-from tasks.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
+from tasks.human.label_import import import_cvat, import_labelstudio, write_label
+from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, label_history
+from tasks.human.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
 from conftest import table_rows
 from warehouse import Warehouse
 
@@ -205,7 +205,7 @@ def test_unreadable_documents(tmp_path, text, message):
 
 
 def test_size_limit_is_checked_before_reading(tmp_path):
-    from tasks.label_format import MAX_LABEL_BYTES
+    from tasks.human.label_format import MAX_LABEL_BYTES
 
     text = json.dumps(good("verification"))
     path = put(tmp_path, "big.json", text + " " * (MAX_LABEL_BYTES - len(text) + 1))
@@ -423,7 +423,7 @@ def test_same_batch_is_ordered_by_created_at(lwh, tmp_path):
 def test_answers_without_a_commit_record_are_ignored(lwh, tmp_path):
     path = put(tmp_path, "v.json", good("verification"))
     lf = validate_label(path, lwh)
-    from tasks.label_ingest import answer_rows
+    from tasks.human.label_ingest import answer_rows
 
     orphan = answer_rows(lf, ClipFacts(lwh), dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc))  # a crash before label_files
     lwh.write("verification_labels", CLIP, pa.Table.from_pylist(orphan, schema=TABLES["verification_labels"].schema))
@@ -538,6 +538,6 @@ def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
 
 def test_cli_size_limit_default_is_the_named_constant():
     from cadestate.cli.labels import DEFAULT_MAX_MB
-    from tasks.label_format import MAX_LABEL_BYTES
+    from tasks.human.label_format import MAX_LABEL_BYTES
 
     assert DEFAULT_MAX_MB * 1e6 == MAX_LABEL_BYTES

@@ -10,9 +10,9 @@ import pytest
 
 from cadestate.config import CadSelectionConfig, EmbedConfig, ManualTracksConfig, RetrievalConfig
 from schemas.tracking import MANUAL_TRACK_BASE
-from tasks.label_ingest import ingest_labels
-from tasks.manual_tracks import manual_tracks_stage, regular_keyframes
-from tasks.models import nanodet as nd
+from tasks.human.label_ingest import ingest_labels
+from tasks.human.manual_tracks import manual_tracks_stage, regular_keyframes
+from tasks.detection.models import nanodet as nd
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
 from conftest import table_rows
@@ -87,9 +87,9 @@ def test_train_clip_completes_without_a_task(mwh):
 
 @needs_embedder
 def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
-    from tasks.embed import embed_clip
-    from tasks.human_tasks import cad_selection_stage
-    from tasks.retrieval import retrieve_clip
+    from tasks.detection.embed import embed_clip
+    from tasks.human.human_tasks import cad_selection_stage
+    from tasks.retrieval.retrieval import retrieve_clip
 
     first = _run(mwh)
     assert first.status == "paused" and first.rows_written == 0
@@ -144,7 +144,7 @@ def _library(wh: Warehouse) -> None:
     """A 3-model library (no whitening) whose label similarities make a couch a sofa."""
     import pyarrow as pa
 
-    from tasks.whitening import fit_whitening, whitening_table
+    from tasks.retrieval.whitening import fit_whitening, whitening_table
 
     def write(name, rows):
         wh.write(name, "lib", pa.Table.from_pylist(rows, schema=wh.spec(name).schema))
@@ -208,7 +208,7 @@ def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
 
 @needs_embedder
 def test_a_cvat_import_answers_the_task(mwh, tmp_path):
-    from tasks.label_import import import_cvat, write_label
+    from tasks.human.label_import import import_cvat, write_label
 
     task = _task(mwh, _run(mwh).message)
     xml = tmp_path / "annotations.xml"

@@ -1,4 +1,4 @@
-"""tasks.models: the TF.js -> ONNX converter, NanoDet letterbox/decoding, and the real model build."""
+"""tasks.detection.models: the TF.js -> ONNX converter, NanoDet letterbox/decoding, and the real model build."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ import pytest
 
 ort = pytest.importorskip("onnxruntime")
 
-from tasks.models import nanodet as nd  # noqa: E402
+from tasks.detection.models import nanodet as nd  # noqa: E402
 from cadestate.lineage import file_sha256  # noqa: E402
-from tasks.detectors import Detector  # noqa: E402
-from tasks.models.tfjs_to_onnx import UnsupportedOpError, convert, serialize  # noqa: E402
+from tasks.detection.detectors import Detector  # noqa: E402
+from tasks.detection.models.tfjs_to_onnx import UnsupportedOpError, convert, serialize  # noqa: E402
 
 # Boxes drawn by hand (x1, y1, x2, y2 in pixels) around the objects of scikit-image's photos.
 CAT_BOX = (0, 0, 420, 300)  # chelsea(), 451 x 300: the cat fills it but for the background on the right

@@ -15,8 +15,8 @@ from cadestate.geometry import intrinsics_matrix
 from cadestate.render import Camera, Instance, Renderer, object_to_world
 from official_loader import load_frames, silhouette, to_pixels
 from schemas.official import read_objects
-from tasks.cad_export import triangle_soup
-from tasks.cameras import parse_camera_file
+from tasks.cad.export import triangle_soup
+from tasks.video.camera_file import parse_camera_file
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=24, sample_every=4, alone_scale=0.5)
 

@@ -1,4 +1,4 @@
-"""The 9-DoF pose solver (tasks/pose_solver.py) on small synthetic problems built here."""
+"""The 9-DoF pose solver (tasks/pose/solver.py) on small synthetic problems built here."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import torch
 from bench.eval_pose import rotation_error_deg
 from cadestate.geometry import look_at, matrix_to_quaternion, quaternion_to_matrix
 from cadestate.render import object_to_world
-from tasks.cad_symmetry import rotation_y
-from tasks.pose_checks import coplanar_axis
-from tasks.pose_init import symmetry_offsets, tie_scales
-from tasks.pose_solver import ObjectCorrespondences, SolverOptions, evaluate, make_batch, solve_poses
+from tasks.cad.symmetry import rotation_y
+from tasks.pose.checks import coplanar_axis
+from tasks.pose.initial import symmetry_offsets, tie_scales
+from tasks.pose.solver import ObjectCorrespondences, SolverOptions, evaluate, make_batch, solve_poses
 
 K = np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]])
 
@@ -213,9 +213,9 @@ def test_batching_and_determinism():
 
 
 def test_lm_jacobian_matches_finite_differences():
-    """The analytic Jacobian of tasks/pose_lm.py (rotation increment, translation step, log-scales,
+    """The analytic Jacobian of tasks/pose/lm.py (rotation increment, translation step, log-scales,
     36-way per-key-frame rotations) against central differences of its own residuals."""
-    from tasks.pose_lm import Problem, residuals_jacobian, scale_ties, so3_exp
+    from tasks.pose.lm import Problem, residuals_jacobian, scale_ties, so3_exp
 
     problem, (T, q, s) = make_object(4, symmetry=36, swap=True, mirrored=True, keyframes=3, points=4)
     opts = SolverOptions(min_depth=2.9)  # some points inside min_depth: the front term is active
@@ -266,7 +266,7 @@ def _walkthrough_object(seed: int, symmetry: int, keyframes: int = 5, points: in
 def test_linear_start_tries_every_symmetric_assignment_under_little_parallax(symmetry):
     """With exact clicks the linear start finds each key-frame's symmetric rotation (all assignments
     are tried; coordinate descent alone stopped in wrong ones on the benchmark's walkthroughs)."""
-    from tasks.pose_init import linear_init
+    from tasks.pose.initial import linear_init
 
     opts = SolverOptions()
     objects = [_walkthrough_object(seed, symmetry, keyframes=4, points=4) for seed in range(40)]  # descent: 1 wrong

@@ -1,4 +1,4 @@
-"""The ``pose`` stage (tasks/pose.py): warehouse in, ``poses`` out; wiring into registry, config, bench."""
+"""The ``pose`` stage (tasks/pose/pose.py): warehouse in, ``poses`` out; wiring into registry, config, bench."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from schemas.cad import CAD_MODELS
 from schemas.core import FRAMES
 from schemas.pose import CORRESPONDENCES
 from cadestate.lineage import table_digest
-from tasks.pose import solve_clip, solver_options
-from tasks.pose_inputs import answered_correspondences, cad_models_digest
+from tasks.pose.pose import solve_clip, solver_options
+from tasks.pose.inputs import answered_correspondences, cad_models_digest
 from tasks.registry import STAGES, clip_inputs
 from tests.test_pose_solver import K, make_object
 
@@ -109,7 +109,7 @@ def test_changed_model_facts_change_the_inputs_hash(posed_clip):
 
 
 def test_registry_and_config():
-    from tasks.cad_classes import CLASSES
+    from tasks.cad.classes import CLASSES
     from tasks.prefect_tasks import STAGE_TASKS
 
     assert STAGES["pose"].upstream == ("frames",) and STAGES["pose"].tables == ("poses",) and "pose" in STAGE_TASKS

@@ -1,4 +1,4 @@
-"""The support prior (tasks/pose_support.py: the floor and host tops) on small synthetic clips built here."""
+"""The support prior (tasks/pose/support.py: the floor and host tops) on small synthetic clips built here."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import torch
 
 from cadestate.geometry import look_at, matrix_to_quaternion
 from cadestate.render import object_to_world
-from tasks.cad_symmetry import rotation_y
-from tasks.pose_support import (FLOOR, allowed_loss, bottoms, estimate_floors, nearest_support, over_footprint,
+from tasks.cad.symmetry import rotation_y
+from tasks.pose.support import (FLOOR, allowed_loss, bottoms, estimate_floors, nearest_support, over_footprint,
                                 slid_centre, solve_with_support, supported_status, weighted_median)
-from tasks.pose_init import symmetry_offsets
-from tasks.pose_solver import ObjectCorrespondences, PoseResult, SolverOptions, evaluate, make_batch, solve_poses
+from tasks.pose.initial import symmetry_offsets
+from tasks.pose.solver import ObjectCorrespondences, PoseResult, SolverOptions, evaluate, make_batch, solve_poses
 from tests.test_pose_solver import K
 
 
@@ -169,7 +169,7 @@ def test_floor_term_matches_hand_computation():
 
 
 def test_lm_floor_jacobian_matches_finite_differences():
-    from tasks.pose_lm import Problem, residuals_jacobian, scale_ties, so3_exp
+    from tasks.pose.lm import Problem, residuals_jacobian, scale_ties, so3_exp
 
     objects, _ = clip_objects(6, [0.0])
     o = dataclasses.replace(objects[0], floor_height=0.2, floor_weight=5.0, upright=False)
@@ -305,7 +305,7 @@ def test_allowed_loss_growth_has_a_one_pixel_floor():
 def test_poses_table_names_the_host_track():
     """``PoseResult.support`` indexes the solved tracks; the ``poses`` row names the host by its
     track id (a track without a problem before them does not shift it)."""
-    from tasks.pose import TrackInput, poses_table, solve_tracks
+    from tasks.pose.pose import TrackInput, poses_table, solve_tracks
 
     objects, _ = table_clip(21)
     base = dict(cad_id="m", cls="x", symmetry=1, upright=True, on_floor=False, mirrored=False, timestamps=(0, 1, 2, 3))

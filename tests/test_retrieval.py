@@ -8,8 +8,8 @@ import pyarrow as pa
 import pytest
 
 from cadestate.config import RetrievalConfig
-from tasks.retrieval import LibraryIndex, RetrievalError, TrackGroups, retrieve_clip, score_tracks
-from tasks.whitening import fit_whitening, whitening_table
+from tasks.retrieval.retrieval import LibraryIndex, RetrievalError, TrackGroups, retrieve_clip, score_tracks
+from tasks.retrieval.whitening import fit_whitening, whitening_table
 
 
 def unit(x: np.ndarray) -> np.ndarray:
@@ -101,7 +101,7 @@ def test_retrieval_names_what_is_missing(wh, clip_and_library):
 
 @pytest.mark.slow
 def test_label_similarity_uses_the_packaged_sentence_encoder():
-    from tasks.label_similarity import similarity
+    from tasks.retrieval.label_similarity import similarity
 
     s = similarity(["couch", "tv", "chair", "potted plant"], ["sofa", "display", "chair", "bed", "plant"])
     assert s[0, 0] == pytest.approx(0.86, abs=0.02)  # measured with sentence-transformers (project notes)

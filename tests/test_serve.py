@@ -18,7 +18,7 @@ import pytest
 
 from flows.deployments import pairs_to_run, ready_pairs
 from flows.server import read_server
-from tasks.ingest import ClipSource
+from tasks.video.ingest import ClipSource
 from warehouse import Warehouse
 
 

@@ -1,4 +1,4 @@
-"""SfM cameras (tasks/sfm.py) and the ``cameras`` stage: interpolation, clear failures, real runs.
+"""SfM cameras (tasks/video/sfm.py) and the ``cameras`` stage: interpolation, clear failures, real runs.
 
 The real runs need the Sweet Home 3D furniture (``make cad-library``): a benchmark walkthrough of
 the session's small library (``small_cad_library`` in conftest.py).
@@ -14,8 +14,8 @@ from bench.sfm_eval import align, camera_errors, umeyama
 from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world
-from tasks.cameras import parse_camera_file
-from tasks.sfm import SfmError, _interpolate, check_registered, run_sfm, sample_frames
+from tasks.video.camera_file import parse_camera_file
+from tasks.video.sfm import SfmError, _interpolate, check_registered, run_sfm, sample_frames
 
 
 def test_interpolation_fills_gaps_and_holds_the_ends():

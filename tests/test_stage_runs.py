@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from cadestate.cli import app
 from cadestate.config import Config, DetectConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
-from tasks.ingest import ClipSource
+from tasks.video.ingest import ClipSource
 from tasks.registry import stages_of
 from tasks.stage import StageOutput, run_markers, run_stage, settle_interrupted
 from tasks.status import pipeline_status

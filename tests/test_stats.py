@@ -18,8 +18,8 @@ from bench.walkthrough import WalkthroughSpec, generate_clip
 from conftest import table_rows
 from dataset_fixture import CLASS_NAME, write_accepted, write_frames, write_tracks
 from schemas.official import read_objects
-from tasks.cameras import parse_camera_file
-from tasks.stats import dataset_tables, select_clips, statistics
+from tasks.video.camera_file import parse_camera_file
+from tasks.dataset.stats import dataset_tables, select_clips, statistics
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=256, height=144, num_video_frames=24, sample_every=3, alone_scale=0.5)
@@ -118,7 +118,7 @@ def test_statistics_match_a_hand_count(bench3):
 
 
 def test_html_report_pages_and_pictures(bench3, tmp_path):
-    from tasks.stats_report import write_report
+    from tasks.dataset.stats_report import write_report
 
     wh, clips = bench3
     tables = dataset_tables(wh, select_clips(wh))
@@ -192,7 +192,7 @@ def test_stats_command(bench3, tmp_path):
 
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
 def test_html_report_renders_in_chromium(bench3, tmp_path):
-    from tasks.stats_report import write_report
+    from tasks.dataset.stats_report import write_report
 
     wh, _ = bench3
     tables = dataset_tables(wh, select_clips(wh))
@@ -225,7 +225,7 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path):
     object (a duplicate in 3D for `scan2cad-class`) and one 100 m away on no track (a false
     annotation); descriptors for the detections, so each track maps to its object; task files."""
     from fuzz.harness import run_cli
-    from tasks.embed import vectors_array
+    from tasks.detection.embed import vectors_array
 
     wh0, clips = bench3
     shutil.copytree(wh0.root, tmp_path / "wh")

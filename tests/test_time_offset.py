@@ -11,9 +11,9 @@ from PIL import Image
 from bench.demo_clip import decode_index
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.lineage import file_sha256
-from tasks.cameras import CameraFileError, parse_camera_file, write_camera_file
-from tasks.frames import extract_frames
-from tasks.ingest import ClipSource, check_clip_inputs, ingest_clip, ingest_inputs_hash
+from tasks.video.camera_file import CameraFileError, parse_camera_file, write_camera_file
+from tasks.video.frames import extract_frames
+from tasks.video.ingest import ClipSource, check_clip_inputs, ingest_clip, ingest_inputs_hash
 
 OFFSET = 65_233_333
 

@@ -1,12 +1,12 @@
-"""Clique partitioning solvers (tasks/track_partition.py): optimality, order independence, cannot-links."""
+"""Clique partitioning solvers (tasks/tracking/partition.py): optimality, order independence, cannot-links."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tasks.track_affinity import candidate_pairs
-from tasks.track_partition import (ExactSolverError, canonical_labels, feasible, gaec, make_graph, objective, refine,
+from tasks.tracking.affinity import candidate_pairs
+from tasks.tracking.partition import (ExactSolverError, canonical_labels, feasible, gaec, make_graph, objective, refine,
                                    solve, solve_exact)
 
 

@@ -16,15 +16,15 @@ import pytest
 from cadestate.config import (CadSelectionConfig, CorrespondenceTaskConfig, EmbedConfig, ManualTracksConfig,
                               VerificationConfig)
 from conftest import table_rows
-from tasks.dataset_objects import clip_dataset
-from tasks.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
-from tasks.label_ingest import ingest_labels
-from tasks.labels import label_document
-from tasks.manual_tracks import manual_tracks_stage
-from tasks.models import nanodet as nd
+from tasks.dataset.objects import clip_dataset
+from tasks.human.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
+from tasks.human.label_ingest import ingest_labels
+from tasks.human.labels import label_document
+from tasks.human.manual_tracks import manual_tracks_stage
+from tasks.detection.models import nanodet as nd
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
-from tasks.track_relations import TrackRelations, relations_in_force, resolve_fragments
+from tasks.tracking.relations import TrackRelations, relations_in_force, resolve_fragments
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -183,7 +183,7 @@ def test_chains_resolve_and_cycles_are_ignored(rwh, tmp_path, caplog):
     _ingest(rwh, _label(tmp_path / "b", "cad_selection", task["task_id"], [
         {"track_id": 0, "cad_id": None, "same_as_track": 1}, {"track_id": 1, "cad_id": None, "same_as_track": 0}],
         "2026-01-02T00:00:00+00:00"))
-    with caplog.at_level(logging.WARNING, logger="tasks.track_relations"):
+    with caplog.at_level(logging.WARNING, logger="tasks.tracking.relations"):
         rel = relations_in_force(rwh, CLIP)
     assert rel.fragments == {2: 1} and "tracks 0 -> 1 -> 0" in caplog.text and len(rel.warnings) == 1
     assert _objects(rwh) == {0: (), 1: (2,)}

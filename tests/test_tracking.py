@@ -1,12 +1,12 @@
-"""Tracking stage logic (tasks/tracking.py, tasks/track_affinity.py) on synthetic detections."""
+"""Tracking stage logic (tasks/tracking/tracking.py, tasks/tracking/affinity.py) on synthetic detections."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from cadestate.config import TrackingConfig
-from tasks.track_affinity import candidate_pairs, rotation_warp, Cameras
-from tasks.tracking import track_detections, vote
+from tasks.tracking.affinity import candidate_pairs, rotation_warp, Cameras
+from tasks.tracking.tracking import track_detections, vote
 
 
 def synthetic_clip(seed: int = 0, frames: int = 40, objects: int = 4):

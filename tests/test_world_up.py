@@ -11,10 +11,10 @@ from scipy.spatial.transform import Rotation
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import look_at, matrix_to_quaternion, quaternion_to_matrix
 from cadestate.lineage import file_sha256
-from tasks.cameras import CameraTrack, parse_camera_file, write_camera_file
-from tasks.frames import extract_frames
-from tasks.ingest import ClipSource, ingest_clip
-from tasks.world_up import (align_extrinsics, estimate_up, pose_to_input_world, rotation_to_y, stored_rotation,
+from tasks.video.camera_file import CameraTrack, parse_camera_file, write_camera_file
+from tasks.video.frames import extract_frames
+from tasks.video.ingest import ClipSource, ingest_clip
+from tasks.video.world_up import (align_extrinsics, estimate_up, pose_to_input_world, rotation_to_y, stored_rotation,
                             unalign_extrinsics)
 
 
@@ -130,7 +130,7 @@ def test_export_world_projects_the_same_pixels():
     """ClipDataset.in_input_world (what `export official` writes): frames and poses in the camera
     file's world, where each posed corner projects to the pixel it did in the aligned world."""
     from cadestate.geometry import project
-    from tasks.dataset_objects import ClipDataset, DatasetFrame, DatasetObject, Pose
+    from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, Pose
 
     Q = Rotation.random(random_state=5).as_matrix()
     K = np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]])

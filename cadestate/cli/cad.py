@@ -36,7 +36,7 @@ def cad_ingest(
     Unreadable, empty or degenerate models are skipped and listed in the cad_issues table.
     """
     from flows.runtime import prepare_prefect_environment
-    from tasks.cad_sources import default_source, guess_kind, source_items
+    from tasks.cad.sources import default_source, guess_kind, source_items
 
     cfg = ctx.obj.config()
     path = source or (Path(cfg.cad_ingest.source) if cfg.cad_ingest.source else default_source())
@@ -60,7 +60,7 @@ def cad_export_official(
 ) -> None:
     """Write the library in the official CAD-Estate layout (shapenet_classes.json, symmetry_dict.json,
     <class>/<cad_id>.npz with float32[T,3,3] vertices), loadable by the official cad_estate code."""
-    from tasks.cad_export import export_official
+    from tasks.cad.export import export_official
 
     count = export_official(ctx.obj.open_warehouse(), out_dir, library)
     out.print(f"wrote {count} models to {out_dir}")
@@ -74,7 +74,7 @@ def cad_sheet(
     limit: Annotated[int, typer.Option(help="At most this many models.")] = 48,
 ) -> None:
     """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
-    from tasks.cad_sheet import contact_sheet
+    from tasks.cad.sheet import contact_sheet
 
     count = contact_sheet(ctx.obj.open_warehouse(), out_file, where, limit)
     out.print(f"wrote {out_file} ({count} models)")

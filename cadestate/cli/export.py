@@ -26,7 +26,7 @@ def export_official(
     """Write annotations/<clip>/{frames,objects}.json (pixel intrinsics; one object per physical object,
     poses only where accepted in verification), frames/<video_id>/<video_id>_<timestamp>.jpg, the CAD
     root cad/ and scene_list.txt: what the official cad_estate dataset classes read."""
-    from tasks.export_official import export_dataset
+    from tasks.dataset.export_official import export_dataset
 
     counts = export_dataset(ctx.obj.open_warehouse(), out_dir, clips, cad, progress)
     out.print(f"wrote {out_dir}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
@@ -41,7 +41,7 @@ def export_scan2cad(
 ) -> None:
     """Write the accepted poses as Scan2CAD files: <clip>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
     (no header), full_annotations.json and cad_appearances.json; a mirrored model is the CAD id <cad_id>_mirrored."""
-    from tasks.export_scan2cad import export_scan2cad as write
+    from tasks.dataset.export_scan2cad import export_scan2cad as write
 
     counts = write(ctx.obj.open_warehouse(), out_dir, clips)
     out.print(f"wrote {out_dir}: {counts['scans']} scans, {counts['alignments']} alignments")
@@ -59,7 +59,7 @@ def stats(
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
     record per kind and per posed object, and how many answered items recorded none)."""
     from cadestate.cli.common import CliError
-    from tasks.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
+    from tasks.dataset.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
     wh = ctx.obj.open_warehouse()
@@ -79,7 +79,7 @@ def stats(
         for label, value in annotation_cost_lines(figures):
             out.print(f"{label}: {value}", highlight=False)
     if html is not None:
-        from tasks.stats_report import write_report
+        from tasks.dataset.stats_report import write_report
 
         index = write_report(wh, tables, figures, html)
         (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document

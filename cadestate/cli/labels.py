@@ -29,12 +29,12 @@ class FrameMap(str, Enum):
 
 MaxMbOpt = Annotated[float, typer.Option("--max-mb", min=1e-6, help="Refuse label files larger than this (MB).")]
 DEFAULT_MAX_MB = 20.0
-"""``--max-mb``: tasks.label_format.MAX_LABEL_BYTES in MB (a test keeps the two equal)."""
+"""``--max-mb``: tasks.human.label_format.MAX_LABEL_BYTES in MB (a test keeps the two equal)."""
 
 
 def _problems(errors: list[str], warnings: list[str]) -> None:
     """Print each warning and error on one stderr line of its own (``warning:`` / ``error:``)."""
-    from tasks.label_format import one_line
+    from tasks.human.label_format import one_line
 
     for w in warnings:
         err.print(f"[yellow]warning:[/] {escape(one_line(w))}", highlight=False, emoji=False)
@@ -44,7 +44,7 @@ def _problems(errors: list[str], warnings: list[str]) -> None:
 
 def _say(text: str) -> None:
     """One stdout line (``text``: rich markup), never wrapped: paths are long, lines stay greppable."""
-    from tasks.label_format import one_line
+    from tasks.human.label_format import one_line
 
     out.print(one_line(text), soft_wrap=True, highlight=False, emoji=False)
 
@@ -66,7 +66,7 @@ def labels_ingest(
     everything upstream is cached). Exit status 1 when any file was not ingested or a resumed
     stage failed.
     """
-    from tasks.label_ingest import ingest_labels
+    from tasks.human.label_ingest import ingest_labels
 
     cfg = ctx.obj.config()
     report = ingest_labels(ctx.obj.open_warehouse(), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
@@ -84,7 +84,7 @@ def labels_ingest(
     code = 0 if report.ok else 1
     if resume and report.clips:
         from cadestate.cli.common import run_sources
-        from tasks.ingest import registered_source
+        from tasks.video.ingest import registered_source
 
         wh = ctx.obj.open_warehouse()
         clips = [c for c in report.clips if c not in resume_served(ctx, wh.root, report.clips)]
@@ -119,7 +119,7 @@ def labels_validate(
 ) -> None:
     """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file."""
-    from tasks.labels import ClipFacts, LabelError, validate_label
+    from tasks.human.labels import ClipFacts, LabelError, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse())
     bad = 0
@@ -180,7 +180,7 @@ def _label_map(pairs: list[str] | None) -> dict[str, str]:
 
 
 def _write_import(result, out_dir: Path, stem: str) -> None:
-    from tasks.label_import import write_label
+    from tasks.human.label_import import write_label
 
     for d in result.dropped:
         err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
@@ -214,7 +214,7 @@ def labels_import_cvat(
     label_map: MapOpt = None,
 ) -> None:
     """Make a manual_track label file from CVAT video XML (boxes in pixels, 0-based frames)."""
-    from tasks.label_import import import_cvat
+    from tasks.human.label_import import import_cvat
 
     result = import_cvat(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
                          skip_sources=tuple(skip_source or ()), label_map=_label_map(label_map))
@@ -232,7 +232,7 @@ def labels_import_labelstudio(
     label_map: MapOpt = None,
 ) -> None:
     """Make a manual_track label file from a Label Studio video export (percent boxes, 1-based frames)."""
-    from tasks.label_import import import_labelstudio
+    from tasks.human.label_import import import_labelstudio
 
     result = import_labelstudio(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value,
                                 label_map=_label_map(label_map))

@@ -74,8 +74,8 @@ def ingest(
     """
     import dataclasses
 
-    from tasks.detectors import check_detect_config
-    from tasks.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
+    from tasks.detection.detectors import check_detect_config
+    from tasks.video.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
                               registered_splits, sfm_source)
 
     sfm_intrinsics = _parse_intrinsics(intrinsics)
@@ -138,8 +138,8 @@ def run(
 ) -> None:
     """Rerun the pipeline on ingested clips (each keeps its split): stages whose config, code and inputs are
     unchanged are cached (no work)."""
-    from tasks.detectors import check_detect_config
-    from tasks.ingest import registered_source
+    from tasks.detection.detectors import check_detect_config
+    from tasks.video.ingest import registered_source
 
     cfg = ctx.obj.config()
     check_detect_config(cfg.detect, cfg.source)  # a bad [detect] stops the run before it starts
@@ -274,7 +274,7 @@ def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to valid
     """Validate a config file: unknown sections or keys, bad values (nan and inf included), keys that
     contradict each other and a [detect] model that does not fit its adapter and labels are errors
     naming the key."""
-    from tasks.detectors import check_detect_config
+    from tasks.detection.detectors import check_detect_config
 
     config = load_config(path)
     check_detect_config(config.detect, config.source)

@@ -2,8 +2,8 @@
 
 A local FastAPI app over a warehouse, one client of the label-file contract (as CVAT import is
 another): every answer is validated exactly as ``cadestate labels ingest`` validates a file
-(:func:`tasks.labels.validate_label`), written as a label file under ``<warehouse>/labels/<clip>/``
-before the response returns, ingested (:func:`tasks.label_ingest.ingest_labels`), and the clip is
+(:func:`tasks.human.labels.validate_label`), written as a label file under ``<warehouse>/labels/<clip>/``
+before the response returns, ingested (:func:`tasks.human.label_ingest.ingest_labels`), and the clip is
 resumed in the background by one worker (:mod:`cadestate.webapp.resume`).
 
 - :mod:`cadestate.webapp.queue`: the open tasks and items of each clip (what waits for people);

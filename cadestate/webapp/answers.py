@@ -1,11 +1,11 @@
 """An answer from a page in, a label file out, ingested: the same contract as ``cadestate labels ingest``.
 
 :func:`submit` takes the JSON a page posts (a label document without ``format``/``created_at``;
-``annotator`` is the app's), adds the header, validates it with :func:`tasks.labels.validate_label`
+``annotator`` is the app's), adds the header, validates it with :func:`tasks.human.labels.validate_label`
 (the JSON Schema of its kind, then the warehouse rules), writes it atomically as
 ``<labels_dir>/<clip>/<task_id>.<UTC time>.json`` and ingests that file
-(:func:`tasks.label_ingest.ingest_labels`). A payload that fails validation raises
-:class:`tasks.label_format.LabelError` naming the field, and nothing is written. The file is on
+(:func:`tasks.human.label_ingest.ingest_labels`). A payload that fails validation raises
+:class:`tasks.human.label_format.LabelError` naming the field, and nothing is written. The file is on
 disk before ingest starts, so a crash mid-ingest loses nothing: :func:`ingest_pending` (run when the
 app starts) ingests every file of the folder not ingested yet (ingest is idempotent by content).
 """
@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from schemas.labels import LABEL_FORMAT
-from tasks.label_format import MAX_LABEL_BYTES, LabelError, one_line
-from tasks.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels
-from tasks.labels import ClipFacts, utc_now, validate_label
+from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line
+from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels
+from tasks.human.labels import ClipFacts, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS_DIR = "labels"

@@ -33,7 +33,7 @@ from cadestate.webapp import queue
 from cadestate.webapp.answers import IngestFailed, ingest_pending, submit
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
-from tasks.label_format import LabelError
+from tasks.human.label_format import LabelError
 from warehouse import Warehouse
 
 STATIC = Path(__file__).parent / "static"

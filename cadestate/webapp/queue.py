@@ -1,7 +1,7 @@
 """What waits for people: the open tasks of every clip, their items, and the next item to do.
 
 A clip's open task of a kind is its newest task file of that kind (``label_tasks``) with items
-that no answer in force covers (:func:`tasks.label_ingest.current_answers`); a manual-track task
+that no answer in force covers (:func:`tasks.human.label_ingest.current_answers`); a manual-track task
 is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 """
@@ -12,8 +12,8 @@ import json
 from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
-from tasks.label_ingest import answered_tasks, current_answers
-from tasks.labels import latest_task_of_kind
+from tasks.human.label_ingest import answered_tasks, current_answers
+from tasks.human.labels import latest_task_of_kind
 from warehouse import Warehouse
 
 
@@ -74,7 +74,7 @@ def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     """The newest document of a task (as stored in ``label_tasks``), with ``answered``: the track
     ids whose answer is in force (manual_track: ``[-1]`` once answered) and ``answers``: those answers
     (rows of the kind's answer table, JSON-ready)."""
-    from tasks.labels import latest_task
+    from tasks.human.labels import latest_task
 
     if clip not in wh.partitions("clips"):
         return None

@@ -40,7 +40,7 @@ def resume_clip(config: Config, clip: str) -> str:
     from pathlib import Path
 
     from flows.server import running_server
-    from tasks.ingest import registered_source
+    from tasks.video.ingest import registered_source
     from warehouse import Warehouse
 
     root = Path(config.warehouse.root).resolve()

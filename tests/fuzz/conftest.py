@@ -11,7 +11,7 @@ import pytest
 from cadestate.config import IngestConfig
 from cadestate.lineage import file_sha256
 from fuzz.harness import warehouse_digest
-from tasks.ingest import ClipSource, ingest_clip
+from tasks.video.ingest import ClipSource, ingest_clip
 from warehouse import Warehouse
 
 

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fuzz.harness import assert_clean_error, count_case, run_cli, warehouse_digest
-from tasks.cameras import COLUMNS
+from tasks.video.camera_file import COLUMNS
 
 SUITE = "cameras"
 END_US = 3_100_000  # the 3 s clip's end plus END_TOLERANCE_US: a later camera is past the end

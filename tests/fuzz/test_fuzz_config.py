@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from cadestate.config import DESCRIPTOR_DIM, INT_RANGE, SECTIONS
 from cadestate.config import DetectConfig
 from fuzz.harness import assert_clean_error, count_case, run_cli, warehouse_digest
-from tasks.detectors import detector_path
+from tasks.detection.detectors import detector_path
 
 SUITE = "config"
 FIELDS = {(name, f.name): f for name, cls in SECTIONS.items() for f in dataclasses.fields(cls)}

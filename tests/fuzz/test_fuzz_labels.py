@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from fuzz.harness import assert_clean_error, count_case, run_cli, warehouse_digest
 from fuzz.json_mutations import BAD_BYTES, WRONG_TYPES, Dup, Raw, at, dumps, nodes, put_at
 from schemas.labels import KINDS
-from tasks.label_format import MAX_LABEL_BYTES
+from tasks.human.label_format import MAX_LABEL_BYTES
 from test_labels import STAMPS, base_wh, good  # noqa: F401  (base_wh: the fixture)
 
 CASES_PER_KIND = 50

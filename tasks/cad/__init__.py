@@ -1,0 +1,1 @@
+"""The CAD library: sources, canonical ingest, symmetry, classes, rendered views and their descriptors."""

@@ -1,0 +1,68 @@
+"""``cadestate cad export-official``: the CAD library in the official CAD-Estate layout.
+
+Layout (what ``cad_estate.objects.load_shapenet_metadata`` / ``load_objects`` read)::
+
+    shapenet_classes.json      [{"id": <class id>, "human_readable": <class name>}, ...] (every class
+                               of the vocabulary, in vocabulary order, so label indices are stable)
+    symmetry_dict.json         {"<class id>_<cad_id>": K, ...}
+    <class id>/<cad_id>.npz    vertices: float32[T, 3, 3] triangle soup in the canonical CAD frame;
+                               label: the class id; mesh_id: the cad_id
+
+Class ids are ShapeNet synsets where ShapeNet has the class (``cadestate-<name>`` otherwise), so
+objects annotated on our library load with the official code. Written into a temporary folder
+beside ``out`` and renamed into place at the end: an interrupted export leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import uuid
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cadestate.progress import progress
+from tasks.cad.classes import CLASSES
+from warehouse import Warehouse
+
+
+class ExportError(ValueError):
+    """The export cannot be written (the destination holds files, or the library is empty)."""
+
+
+def triangle_soup(mesh_file: Path) -> np.ndarray:
+    """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied)."""
+    scene = trimesh.load(mesh_file, force="scene")
+    parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
+    return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
+
+
+def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:
+    """Write the official layout of ``libraries`` (default: all) to ``out``; returns the model count."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ExportError(f"{out}: exists and is not empty; choose a new folder")
+    models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path"]).to_pylist()
+    if not models:
+        raise ExportError("no CAD model in the warehouse (run `cadestate cad ingest` first)")
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        tmp.mkdir(parents=True)
+        classes = [{"id": c.id, "human_readable": c.name} for c in CLASSES]
+        (tmp / "shapenet_classes.json").write_text(json.dumps(classes, indent=1))
+        symmetry = {f"{m['class_id']}_{m['cad_id']}": m["symmetry"] for m in models}
+        (tmp / "symmetry_dict.json").write_text(json.dumps(symmetry, indent=1, sort_keys=True))
+        for m in progress(models, total=len(models), description="export", enabled=show_progress):
+            folder = tmp / m["class_id"]
+            folder.mkdir(exist_ok=True)
+            np.savez_compressed(folder / f"{m['cad_id']}.npz", vertices=triangle_soup(wh.root / m["mesh_path"]),
+                                label=m["class_id"], mesh_id=m["cad_id"])
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return len(models)

@@ -1,0 +1,173 @@
+"""Stage ``cad_ingest``: canonicalise one CAD library, detect symmetries, sample surfaces.
+
+Reads: the items of one library (:mod:`tasks.cad.sources`). Writes: ``cad_models``,
+``cad_samples`` and ``cad_issues`` for that library, and one canonical GLB per model under
+``media/cad/<library>/<run_id>/``.
+
+Canonical CAD frame: metres, +Y up, front +Z, origin at the centre of the axis-aligned bounding
+box. A source's mesh gets, in order: its pre-rotation (Sweet Home 3D ``modelRotation``), then a
+per-axis scale to the catalogue size (Sweet Home 3D) or a uniform unit scale, then the
+translation that centres its bounding box. An item that cannot be read, is empty, or is
+degenerate is skipped and listed in ``cad_issues``; the stage never stops halfway.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from itertools import repeat
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import trimesh
+
+from cadestate.config import CadIngestConfig
+from cadestate.lineage import table_digest
+from cadestate.progress import progress
+from tasks.cad.classes import BY_NAME
+from tasks.cad.sources import CadItem, load_item, rotation_matrix
+from tasks.cad.symmetry import detect_symmetry, sample_surface
+from tasks.stage import StageOutput
+from warehouse import Warehouse
+
+MEDIA_KIND = "cad"
+MIN_EXTENT_M = 1e-3
+"""A model whose largest extent is below this is degenerate."""
+
+
+class CadItemError(ValueError):
+    """An item that cannot be ingested (recorded in ``cad_issues``, then skipped)."""
+
+
+@dataclass(frozen=True)
+class CanonicalModel:
+    """A model in the canonical CAD frame.
+
+    Attributes:
+        scene: trimesh.Scene of the model's parts, transforms baked in (canonical frame).
+        mesh: trimesh.Trimesh, all parts concatenated (geometry only).
+        extent: float64[3] bounding-box size in metres (x, y, z).
+    """
+
+    scene: trimesh.Scene
+    mesh: trimesh.Trimesh
+    extent: np.ndarray
+
+
+def canonical_transform(bounds: np.ndarray, item: CadItem) -> np.ndarray:
+    """float64[4,4] from the source frame (after pre-rotation) to the canonical frame.
+
+    Args:
+        bounds: float64[2,3] bounding box of the pre-rotated mesh, in source units.
+        item: gives the catalogue size (per-axis scale) or the unit (uniform scale).
+    """
+    extent = bounds[1] - bounds[0]
+    scale = np.full(3, item.unit_m)
+    if item.size_m is not None:
+        size = np.asarray(item.size_m)
+        usable = (extent > 1e-9) & (size > 0)  # flat axes (a rug's height) keep the unit scale
+        scale[usable] = size[usable] / extent[usable]
+    centre = (bounds[0] + bounds[1]) / 2 * scale
+    T = np.diag([*scale, 1.0])
+    T[:3, 3] = -centre
+    return T
+
+
+def canonicalise(scene: trimesh.Scene, item: CadItem) -> CanonicalModel:
+    """The item's scene in the canonical frame (see module docstring)."""
+    parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    if not parts:
+        raise CadItemError("no triangles in the mesh")
+    if not all(np.isfinite(p.vertices).all() for p in parts):
+        raise CadItemError("non-finite vertex coordinates")
+    R = np.eye(4)
+    R[:3, :3] = rotation_matrix(item)
+    for p in parts:
+        p.apply_transform(R)
+    bounds = np.array([np.min([p.bounds[0] for p in parts], 0), np.max([p.bounds[1] for p in parts], 0)])
+    T = canonical_transform(bounds, item)
+    for p in parts:
+        p.apply_transform(T)
+    mesh = trimesh.util.concatenate([trimesh.Trimesh(p.vertices, p.faces, process=False) for p in parts])
+    extent = mesh.bounds[1] - mesh.bounds[0]
+    if extent.max() < MIN_EXTENT_M:
+        raise CadItemError(f"degenerate: largest extent {extent.max():.2g} m")
+    if mesh.area <= 0:
+        raise CadItemError("degenerate: zero surface area")
+    return CanonicalModel(trimesh.Scene(parts), mesh, extent)
+
+
+def _is_textured(scene: trimesh.Scene) -> bool:
+    for g in scene.geometry.values():
+        material = getattr(g.visual, "material", None)
+        if getattr(material, "image", None) is not None or getattr(material, "baseColorTexture", None) is not None:
+            return True
+    return False
+
+
+@dataclass(frozen=True)
+class ItemResult:
+    """What ingesting one item produced: its ``cad_models`` row (None when skipped), its surface
+    samples float32[N, 3] (canonical frame), and its ``cad_issues`` rows."""
+
+    model: dict | None
+    points: np.ndarray | None
+    issues: list[dict]
+
+
+def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResult:
+    """Canonicalise one item, write ``out_dir/<cad_id>.glb``; never raises for a bad item."""
+    issue = {"library": item.library, "item": item.item, "source_path": item.path}
+    try:
+        scene, missing = load_item(item)
+        model = canonicalise(scene, item)
+    except Exception as e:  # any unreadable item is reported and skipped
+        return ItemResult(None, None, [{**issue, "severity": "skipped", "problem": f"{type(e).__name__}: {e}"}])
+    points = sample_surface(model.mesh, cfg.samples, seed=0)
+    symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
+    (out_dir / f"{item.cad_id}.glb").write_bytes(model.scene.export(file_type="glb"))
+    issues = [{**issue, "severity": "warning", "problem": f"missing files (rendered without them): {', '.join(missing)}"}] if missing else []
+    row = {
+        "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id, "name": item.name,
+        "source_category": item.category, "source": item.source, "source_path": item.path, "licence": item.licence,
+        "creator": item.creator, "extent": model.extent.tolist(), "symmetry": symmetry.order,
+        "symmetry_errors": [symmetry.errors[k] for k in (2, 4, 36)], "num_vertices": len(model.mesh.vertices),
+        "num_faces": len(model.mesh.faces), "textured": _is_textured(model.scene),
+    }
+    return ItemResult(row, points.astype(np.float32), issues)
+
+
+def _map_items(items: list[CadItem], cfg: CadIngestConfig, out_dir: Path) -> Iterator[ItemResult]:
+    """ingest_item over ``items`` in order, on ``cfg.workers`` processes (spawned: safe beside threads)."""
+    if cfg.workers == 1 or len(items) < 2:
+        yield from (ingest_item(item, cfg, out_dir) for item in items)
+        return
+    with ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield from pool.map(ingest_item, items, repeat(cfg), repeat(out_dir), chunksize=4)
+
+
+def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: list[CadItem], run_id: str,
+                   show_progress: bool = True) -> StageOutput:
+    """Ingest every item of ``library`` (see module docstring); returns rows written to ``cad_models``."""
+    models, samples, issues = [], [], []
+    with wh.staging() as staged:
+        results = _map_items(items, cfg, staged)
+        for result in progress(results, total=len(items), description=f"cad {library}", enabled=show_progress):
+            issues += [{**i, "library": library} for i in result.issues]
+            if result.model is None:
+                continue
+            cad_id = result.model["cad_id"]
+            models.append({**result.model, "library": library, "mesh_path": f"media/{MEDIA_KIND}/{library}/{run_id}/{cad_id}.glb"})
+            samples.append({"library": library, "cad_id": cad_id, "points": result.points.tolist()})
+        wh.publish_media(MEDIA_KIND, library, staged, run_id)
+    wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
+    wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
+    table = pa.Table.from_pylist(models, schema=wh.spec("cad_models").schema)
+    rows = wh.write("cad_models", library, table)
+    wh.prune_media(MEDIA_KIND, library, keep=run_id)
+    skipped = sum(i["severity"] == "skipped" for i in issues)
+    return StageOutput(rows, table_digest(table.drop_columns(["mesh_path"])),
+                       message=f"{skipped} item(s) skipped, see cad_issues" if skipped else "")

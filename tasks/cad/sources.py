@@ -1,0 +1,271 @@
+"""CAD sources: the Sweet Home 3D furniture library (our default), ShapeNetCore v2, any folder of meshes.
+
+Each source lists :class:`CadItem` records (metadata only) and loads an item's mesh on demand with
+:func:`load_item`, as the source stores it (its own units and orientation; the ingest stage
+canonicalises). Sources:
+
+- Sweet Home 3D: a folder of ``*.sh3f`` catalogues (zip files: ``PluginFurnitureCatalog.properties``
+  plus OBJ/MTL/texture files), as Debian's ``sweethome3d-furniture`` installs them under
+  ``usr/share/sweethome3d/furniture``. One library per catalogue; people (the Reallusion set and
+  the "Characters" category) are left out. Meshes are in centimetres, +Y up, front +Z;
+  ``modelRotation`` (a 3x3 matrix) applies first; the catalogue's width/height/depth is the size.
+- ShapeNetCore v2: ``<root>/<synset>/<model_id>/models/model_normalized.obj`` (+Y up; ShapeNet's
+  normalised units are kept, as CAD-Estate's own ShapeNet poses assume).
+- A folder: meshes (OBJ/GLB/GLTF/PLY/OFF/STL) with ``models.csv``: columns ``id,class`` and
+  optionally ``file`` (default: the one ``<id>.*`` mesh), ``licence``, ``creator``, ``unit_m``
+  (metres per mesh unit, default 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import posixpath
+import re
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cadestate.lineage import digest
+from tasks.cad.classes import BY_NAME, classify
+
+MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".off", ".stl")
+SH3D_EXCLUDED_SETS = ("reallusion",)
+SH3D_EXCLUDED_CATEGORIES = ("characters",)
+SH3D_LICENCES = {  # catalogue header licence -> SPDX identifier
+    "public domain": "CC0-1.0",
+    "creative commons attribution 3.0 united states": "CC-BY-3.0-US",
+    "creative commons attribution 3.0": "CC-BY-3.0",
+}
+SHAPENET_MESH = Path("models") / "model_normalized.obj"
+SH3D_SUBDIR = "sweethome3d-furniture_1.8-1/usr/share/sweethome3d/furniture"
+"""Where ``make cad-library`` unpacks Debian's sweethome3d-furniture 1.8-1, under the cache folder."""
+
+
+class CadSourceError(ValueError):
+    """A CAD source that cannot be read at all (a single bad item is an issue, not an error)."""
+
+
+@dataclass(frozen=True)
+class CadItem:
+    """One model of a source, before canonicalisation.
+
+    ``size_m`` is the catalogue size (x, y, z) in metres when the source states one (Sweet Home 3D),
+    ``unit_m`` the metres per mesh unit otherwise; ``rotation`` a 3x3 row-major matrix applied
+    to the mesh first (Sweet Home 3D ``modelRotation``), or None.
+    """
+
+    library: str
+    item: str
+    name: str
+    category: str
+    cls: str
+    source: str
+    path: str  # file, or "archive.sh3f!member"
+    licence: str
+    creator: str
+    size_m: tuple[float, float, float] | None = None
+    unit_m: float = 1.0
+    rotation: tuple[float, ...] | None = None
+
+    @property
+    def cad_id(self) -> str:
+        return f"{self.library}.{slug(self.item)}"
+
+
+def slug(text: str) -> str:
+    """A file-name-safe id: lower case letters, digits, '-'."""
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "item"
+
+
+def read_java_properties(data: bytes) -> dict[str, str]:
+    """Parse a Java .properties file (ISO-8859-1, ``\\uXXXX`` escapes, continuation lines)."""
+    text = data.decode("latin-1")
+    props: dict[str, str] = {}
+    logical = ""
+    for raw in text.splitlines():
+        line = raw.lstrip() if not logical else raw.lstrip()
+        if not logical and (not line or line[0] in "#!"):
+            continue
+        if re.search(r"(?<!\\)(\\\\)*\\$", line):  # odd number of trailing backslashes: continues
+            logical += line[:-1]
+            continue
+        logical += line
+        match = re.match(r"((?:\\.|[^=:\s\\])+)\s*[=:\s]\s*(.*)", logical)
+        if match:
+            key, value = (re.sub(r"\\u([0-9a-fA-F]{4})", lambda m: chr(int(m.group(1), 16)), part) for part in match.groups())
+            props[key.replace("\\", "")] = re.sub(r"\\(.)", r"\1", value)
+        logical = ""
+    return props
+
+
+def _sh3d_licence(header: str) -> str:
+    lowered = header.lower()
+    return next((spdx for text, spdx in SH3D_LICENCES.items() if lowered.startswith(text)), header.strip() or "unknown")
+
+
+def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
+    """Items of every ``*.sh3f`` catalogue in ``folder`` (people excluded)."""
+    catalogues = sorted(Path(folder).glob("*.sh3f"))
+    if not catalogues:
+        raise CadSourceError(f"{folder}: no Sweet Home 3D catalogues (*.sh3f); run `make cad-library`")
+    for archive in catalogues:
+        if archive.stem.lower() in SH3D_EXCLUDED_SETS:
+            continue
+        library = "sh3d-" + slug(archive.stem)
+        with zipfile.ZipFile(archive) as z:
+            props = read_java_properties(z.read("PluginFurnitureCatalog.properties"))
+        licence = _sh3d_licence(props.get("license", ""))
+        indices = sorted(int(k.split("#")[1]) for k in props if k.startswith("id#"))
+        for i in indices:
+            get = lambda key, default="": props.get(f"{key}#{i}", default)  # noqa: E731
+            if get("category").lower() in SH3D_EXCLUDED_CATEGORIES:
+                continue
+            rotation = tuple(float(v) for v in get("modelRotation").split()) or None
+            name, item = get("name"), get("id").split("#", 1)[-1]
+            yield CadItem(
+                library=library, item=item, name=name, category=get("category"),
+                cls=classify(name, get("category"), f"{library}.{slug(item)}"), source="sweethome3d",
+                path=f"{archive}!{get('model').lstrip('/')}", licence=licence, creator=get("creator") or props.get("provider", ""),
+                size_m=tuple(float(get(k, "0")) / 100.0 for k in ("width", "height", "depth")),
+                unit_m=0.01, rotation=rotation,
+            )
+
+
+def shapenet_items(root: Path, library: str = "shapenet") -> Iterator[CadItem]:
+    """Items of a ShapeNetCore v2 folder (``<synset>/<model_id>/models/model_normalized.obj``)."""
+    by_id = {c.id: c.name for c in BY_NAME.values()}
+    meshes = sorted(Path(root).glob(f"*/*/{SHAPENET_MESH.as_posix()}"))
+    if not meshes:
+        raise CadSourceError(f"{root}: no <synset>/<model_id>/{SHAPENET_MESH} files")
+    for mesh in meshes:
+        synset, model_id = mesh.parts[-4], mesh.parts[-3]
+        yield CadItem(library=library, item=model_id, name=model_id, category=synset, cls=by_id.get(synset, "other"),
+                      source="shapenet", path=str(mesh), licence="ShapeNet terms of use", creator="ShapeNet")
+
+
+def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
+    """Items of a folder of meshes described by ``models.csv`` (see module docstring)."""
+    folder = Path(folder)
+    table = folder / "models.csv"
+    if not table.is_file():
+        raise CadSourceError(f"{folder}: no models.csv (columns: id,class[,file,licence,creator,unit_m])")
+    with open(table, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not {"id", "class"} <= set(rows[0]):
+        raise CadSourceError(f"{table}: needs a header with columns id and class")
+    library = library or slug(folder.name)
+    for line, row in enumerate(rows, start=2):
+        name = row["id"].strip()
+        if row.get("file"):
+            path = folder / row["file"]
+        else:
+            candidates = [p for p in folder.glob(f"{name}.*") if p.suffix.lower() in MESH_SUFFIXES]
+            path = candidates[0] if len(candidates) == 1 else folder / f"{name}.<mesh>"
+        cls = row["class"].strip().lower()
+        try:
+            unit = float(row.get("unit_m") or 1.0)
+        except ValueError:
+            raise CadSourceError(f"{table}:{line}: unit_m is not a number: {row['unit_m']!r}") from None
+        yield CadItem(library=library, item=name, name=name, category=row["class"].strip(),
+                      cls=cls if cls in BY_NAME else classify(cls), source="folder", path=str(path),
+                      licence=row.get("licence") or "unknown", creator=row.get("creator") or "unknown", unit_m=unit)
+
+
+class _FolderResolver(trimesh.resolvers.ZipResolver):
+    """Resolves an OBJ's MTL and textures among the files of its folder in the catalogue zip,
+    remembering the names it could not find (missing textures are reported, not fatal)."""
+
+    def __init__(self, archive: zipfile.ZipFile, folder: str):
+        prefix = folder.rstrip("/") + "/" if folder else ""
+        super().__init__({n[len(prefix):]: archive.read(n) for n in archive.namelist()
+                          if n.startswith(prefix) and not n.endswith("/")})
+        self.missing: list[str] = []
+
+    def get(self, name: str) -> bytes:
+        try:
+            return super().get(name)
+        except KeyError:
+            self.missing.append(name)
+            raise
+
+
+def load_item(item: CadItem) -> tuple[trimesh.Scene, list[str]]:
+    """The item's mesh as its source stores it, and the names of files it refers to that are missing."""
+    if "!" in item.path:
+        archive_path, member = item.path.split("!", 1)
+        with zipfile.ZipFile(archive_path) as archive:
+            resolver = _FolderResolver(archive, posixpath.dirname(member))
+            loaded = trimesh.load(io.BytesIO(archive.read(member)), file_type=Path(member).suffix[1:].lower(),
+                                  resolver=resolver, force="scene")
+        return loaded, sorted(set(resolver.missing))
+    path = Path(item.path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{item.path}: mesh file not found")
+    resolver = _LocalResolver(path.parent)
+    loaded = trimesh.load(str(path), resolver=resolver, force="scene")
+    return loaded, sorted(set(resolver.missing))
+
+
+class _LocalResolver(trimesh.resolvers.FilePathResolver):
+    """A file-system resolver that remembers the names it could not find."""
+
+    def __init__(self, folder: Path):
+        super().__init__(str(folder))
+        self.missing: list[str] = []
+
+    def get(self, name: str) -> bytes:
+        try:
+            return super().get(name)
+        except (OSError, KeyError):
+            self.missing.append(name)
+            raise
+
+
+def source_items(kind: str, path: Path, library: str | None = None) -> list[CadItem]:
+    """Items of a source of kind ``sweethome3d``, ``shapenet`` or ``folder``."""
+    if kind == "sweethome3d":
+        return list(sweethome3d_items(path))
+    if kind == "shapenet":
+        return list(shapenet_items(path, library or "shapenet"))
+    if kind == "folder":
+        return list(folder_items(path, library))
+    raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
+
+
+def guess_kind(path: Path) -> str:
+    """The kind of source at ``path``: .sh3f catalogues, a models.csv folder, or ShapeNet's layout."""
+    path = Path(path)
+    if any(path.glob("*.sh3f")):
+        return "sweethome3d"
+    if (path / "models.csv").is_file():
+        return "folder"
+    if any(path.glob(f"*/*/{SHAPENET_MESH.as_posix()}")):
+        return "shapenet"
+    raise CadSourceError(f"{path}: not a CAD source (no *.sh3f catalogues, no models.csv, no ShapeNet layout)")
+
+
+def rotation_matrix(item: CadItem) -> np.ndarray:
+    """The item's 3x3 pre-rotation (identity when none)."""
+    return np.eye(3) if item.rotation is None else np.asarray(item.rotation, dtype=np.float64).reshape(3, 3)
+
+
+def items_digest(items: list[CadItem]) -> str:
+    """Lineage digest of a library's items: their metadata and their source files' size and mtime
+    (content hashes of whole CAD collections would cost more than ingesting them)."""
+    parts = []
+    for f in sorted({item.path.split("!", 1)[0] for item in items}):
+        stat = Path(f).stat() if Path(f).exists() else None
+        parts.append(f"{f}:{stat.st_size}:{stat.st_mtime_ns}" if stat else f"{f}:missing")
+    return digest(*(repr(item) for item in items), *parts)
+
+
+def default_source() -> Path:
+    """The embedded default: Sweet Home 3D's furniture as ``make cad-library`` unpacks it
+    (``$CADESTATE_SH3D_DIR``, else under ``~/.cache/cadestate``)."""
+    return Path(os.environ.get("CADESTATE_SH3D_DIR", Path.home() / ".cache" / "cadestate" / SH3D_SUBDIR)).expanduser()

@@ -1,0 +1,1 @@
+"""The dataset that comes out: objects per clip, official and Scan2CAD exports, statistics."""

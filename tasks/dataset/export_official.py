@@ -1,0 +1,137 @@
+"""``cadestate export official``: the dataset in the layout of the official CAD-Estate release.
+
+Layout (what the official ``cad_estate`` dataset classes read)::
+
+    annotations/<clip>/frames.json    image_size (H, W); per frame timestamp (µs), key_frame (a
+                                      key-frame of the manual-track task), intrinsics (fx, fy, cx, cy)
+                                      in pixels, extrinsics world->camera {translation, rotation (w,x,y,z)}
+    annotations/<clip>/objects.json   one object per physical object (tasks.dataset.objects)
+    frames/<video_id>/<video_id>_<timestamp>.jpg   the frame images (the official code's own path:
+                                      ``frames.load_images`` joins the video id and
+                                      ``f"{video_id}_{timestamp}.jpg"``)
+    cad/                              the CAD root of ``cadestate cad export-official``
+    scene_list.txt                    the exported clip names, one a line (a split file)
+
+World: frames and poses are written in the world of the clip's camera file (the rotation to +Y up
+that ingest applied, ``clips.up_rotation``, is undone: :meth:`ClipDataset.in_input_world`), so the
+exported extrinsics are the camera file's own.
+
+Clip names are ``<video_id>_<start_us>`` (:mod:`tasks.video.clip_names`): a warehouse clip whose name
+is not that of its camera file is exported under the derived name. Two clips of different source
+videos that share a video id are refused (their frames would overwrite each other). Written into a
+temporary folder beside ``out`` and renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from collections.abc import Sequence
+from pathlib import Path
+
+from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
+from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
+                              objects_to_json, write_json)
+from tasks.cad.export import ExportError, export_official as export_cad_root
+from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
+from tasks.dataset.objects import ClipDataset, DatasetObject, clip_dataset
+from warehouse import Warehouse
+
+
+def official_clip_name(ds: ClipDataset) -> str:
+    """The clip's name in the export: its own when it is ``<video_id>_<start_us>`` of its camera
+    file, else the name derived from the camera file (URL line, first timestamp)."""
+    first = ds.frames[0].timestamp_us if ds.frames else 0
+    try:
+        check_clip_name(ds.clip, ds.url, first, f"clip {ds.clip}'s camera file")
+        return ds.clip
+    except ClipNameError:
+        pass
+    try:
+        return derive_clip_name(ds.url, first, f"clip {ds.clip}'s camera file")
+    except ClipNameError as e:
+        raise ExportError(str(e)) from None
+
+
+def frames_file(ds: ClipDataset, name: str) -> FramesFile:
+    """The clip's ``frames.json`` content (pixel intrinsics, world->camera extrinsics)."""
+    return FramesFile(name, ds.image_size, tuple(
+        Frame(f.timestamp_us, f.key_frame, tuple(float(v) for v in pixel_intrinsics(f.K)),
+              tuple(float(v) for v in f.t), tuple(float(v) for v in matrix_to_quaternion(f.R)))
+        for f in ds.frames))
+
+
+def object_annotation(o: DatasetObject) -> ObjectAnnotation:
+    """One ``objects.json`` entry: the pose only when accepted, correspondences on annotated key-frames."""
+    track = tuple(TrackEntry(ts, box, tuple(Correspondence(tuple(xy), tuple(xyz)) for xy, xyz in o.correspondences[ts])
+                             if ts in o.correspondences else None)
+                  for ts, box in sorted(o.boxes.items()))
+    p = o.pose
+    return ObjectAnnotation(track_id=str(o.track_id), cls=o.class_id, is_track_automatic=o.automatic,
+                            is_mirrored=o.is_mirrored, track=track, cad_id=o.cad_id,
+                            translation=p and tuple(float(v) for v in p.translation),
+                            rotation=p and tuple(float(v) for v in p.rotation),
+                            scale=p and tuple(float(v) for v in p.scale))
+
+
+def _put_jpeg(src: Path, dst: Path) -> None:
+    """``dst`` as a JPEG of the frame image ``src``: hard-linked (or copied) when it is one, else converted."""
+    if src.suffix.lower() not in (".jpg", ".jpeg"):
+        from PIL import Image
+
+        Image.open(src).convert("RGB").save(dst, quality=95)
+        return
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None, cad: bool = True,
+                   show_progress: bool = True) -> dict[str, int]:
+    """Write the official layout of ``clips`` (default: every clip with frames) to ``out`` (new
+    or empty); returns counts (clips, frames, objects, posed objects, CAD models)."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ExportError(f"{out}: exists and is not empty; choose a new folder")
+    known = wh.partitions("frames")
+    clips = list(clips) if clips else known
+    missing = [c for c in clips if c not in known]
+    if missing:
+        raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
+    if not clips:
+        raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
+    datasets = [clip_dataset(wh, c).in_input_world() for c in clips]
+    names = [official_clip_name(ds) for ds in datasets]
+    shared = shared_video_ids(zip(names, (ds.url for ds in datasets)))
+    if shared:
+        vid, which = next(iter(shared.items()))
+        raise ExportError(f"clips {', '.join(which)} come from different videos but share the video id {vid!r}; "
+                          "their frames would overwrite each other in frames/<video_id>/")
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0}
+    try:
+        tmp.mkdir(parents=True)
+        for ds, name in zip(datasets, names):
+            folder = tmp / "annotations" / name
+            folder.mkdir(parents=True)
+            write_json(folder / "frames.json", frames_to_json(frames_file(ds, name)))
+            objects = [object_annotation(o) for o in ds.objects]
+            write_json(folder / "objects.json", objects_to_json(ObjectsFile(name, tuple(objects))))
+            vid = video_id_of(name)
+            (tmp / "frames" / vid).mkdir(parents=True, exist_ok=True)
+            for f in ds.frames:
+                _put_jpeg(wh.root / f.image_path, tmp / "frames" / vid / f"{vid}_{f.timestamp_us}.jpg")
+            counts["frames"] += len(ds.frames)
+            counts["objects"] += len(objects)
+            counts["posed_objects"] += sum(o.translation is not None for o in objects)
+        (tmp / "scene_list.txt").write_text("".join(f"{n}\n" for n in sorted(names)))
+        if cad:
+            counts["cad_models"] = export_cad_root(wh, tmp / "cad", show_progress=show_progress)
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return counts

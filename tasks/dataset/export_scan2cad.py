@@ -1,0 +1,130 @@
+"""``cadestate export scan2cad``: the dataset's accepted poses as Scan2CAD files (skanti/Scan2CAD).
+
+Each clip is a "scan" (``id_scan`` = the clip name); the world is the clip's aligned world (metres,
++Y up: the camera file's world turned by ``clips.up_rotation``, :mod:`tasks.video.world_up`), so every
+scan's own transform is the identity. Written into ``out``:
+
+- ``<clip>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
+  no header (``EvaluateBenchmark.py`` reads every row as an alignment): the class id, the CAD id,
+  translation (m, world), rotation (w, x, y, z) CAD -> world, scale along the CAD axes;
+- ``full_annotations.json``: the same objects as Scan2CAD annotations, a list of
+  ``{id_scan, trs, n_aligned_models, aligned_models: [{id_cad, catid_cad, sym, trs: {translation,
+  rotation, scale}, center, bbox}]}``; ``sym`` is the model's tag (``__SYM_NONE``,
+  ``__SYM_ROTATE_UP_2``, ``_4``, ``_INF``); ``center`` = (0, 0, 0) (our CAD frame is centred on
+  the model's bounding box) and ``bbox`` its half size (m, CAD frame);
+- ``cad_appearances.json``: ``{id_scan: {"<catid>_<id_cad>": count}}``, how often each model
+  appears in each scan (the evaluation script caps predictions per model with it).
+
+Scan2CAD has no mirror flag: a mirrored model is a CAD model of its own, ``<cad_id>`` +
+:data:`MIRRORED_SUFFIX` (its geometry is the model with x -> -x).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from tasks.cad.export import ExportError
+from tasks.dataset.objects import ClipDataset, clip_dataset
+from warehouse import Warehouse
+from warehouse.store import atomic_write_bytes
+
+MIRRORED_SUFFIX = "_mirrored"
+SYMMETRY_TAGS = {1: "__SYM_NONE", 2: "__SYM_ROTATE_UP_2", 4: "__SYM_ROTATE_UP_4", 36: "__SYM_ROTATE_UP_INF"}
+CSV_COLUMNS = ("catid", "id_cad", "tx", "ty", "tz", "qw", "qx", "qy", "qz", "sx", "sy", "sz")
+
+
+def scan2cad_cad_id(cad_id: str, mirrored: bool) -> str:
+    """The Scan2CAD CAD id of a (possibly mirrored) model: the mirrored model is its own id."""
+    return cad_id + MIRRORED_SUFFIX if mirrored else cad_id
+
+
+def split_cad_id(id_cad: str) -> tuple[str, bool]:
+    """Inverse of :func:`scan2cad_cad_id`: (cad_id, mirrored)."""
+    return (id_cad[: -len(MIRRORED_SUFFIX)], True) if id_cad.endswith(MIRRORED_SUFFIX) else (id_cad, False)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """One CSV row: ``catid`` class id, ``id_cad``, ``translation`` (m, world), ``rotation``
+    (w, x, y, z) CAD -> world, ``scale`` along the CAD axes."""
+
+    catid: str
+    id_cad: str
+    translation: tuple[float, float, float]
+    rotation: tuple[float, float, float, float]
+    scale: tuple[float, float, float]
+
+    def row(self) -> list[str]:
+        return [self.catid, self.id_cad, *(repr(float(v)) for v in (*self.translation, *self.rotation, *self.scale))]
+
+
+def alignments(ds: ClipDataset) -> list[Alignment]:
+    """The clip's posed objects as Scan2CAD alignments (track id order)."""
+    return [Alignment(o.class_id, scan2cad_cad_id(o.cad_id, o.pose.is_mirrored), o.pose.translation, o.pose.rotation,
+                      o.pose.scale) for o in ds.objects if o.pose is not None and o.cad_id is not None]
+
+
+def csv_text(rows: Sequence[Alignment]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows(a.row() for a in rows)
+    return buf.getvalue()
+
+
+def read_csv(path: Path) -> list[Alignment]:
+    """A Scan2CAD per-scan CSV back into alignments; a bad row names the file and line."""
+    out = []
+    with open(path, newline="") as f:
+        for i, row in enumerate(csv.reader(f), 1):
+            if len(row) != len(CSV_COLUMNS):
+                raise ExportError(f"{path}:{i}: expected {len(CSV_COLUMNS)} columns ({','.join(CSV_COLUMNS)}), got {len(row)}")
+            try:
+                v = [float(x) for x in row[2:]]
+            except ValueError:
+                raise ExportError(f"{path}:{i}: columns tx..sz must be numbers") from None
+            out.append(Alignment(row[0], row[1], tuple(v[0:3]), tuple(v[3:7]), tuple(v[7:10])))
+    return out
+
+
+def annotation(ds: ClipDataset) -> dict:
+    """The clip's Scan2CAD annotation entry (identity scan transform)."""
+    models = []
+    for o in ds.objects:
+        if o.pose is None or o.cad_id is None:
+            continue
+        models.append({"id_cad": scan2cad_cad_id(o.cad_id, o.pose.is_mirrored), "catid_cad": o.class_id,
+                       "sym": SYMMETRY_TAGS.get(o.symmetry, "__SYM_NONE"),
+                       "trs": {"translation": list(o.pose.translation), "rotation": list(o.pose.rotation),
+                               "scale": list(o.pose.scale)},
+                       "center": [0.0, 0.0, 0.0], "bbox": [e / 2 for e in (o.extent or (0.0, 0.0, 0.0))]})
+    return {"id_scan": ds.clip, "trs": {"translation": [0.0, 0.0, 0.0], "rotation": [1.0, 0.0, 0.0, 0.0],
+                                        "scale": [1.0, 1.0, 1.0]},
+            "n_aligned_models": len(models), "aligned_models": models}
+
+
+def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None) -> dict[str, int]:
+    """Write the Scan2CAD files of ``clips`` (default: every clip with frames) into ``out``;
+    returns counts (scans, alignments)."""
+    out = Path(out)
+    known = wh.partitions("frames")
+    clips = list(clips) if clips else known
+    missing = [c for c in clips if c not in known]
+    if missing:
+        raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
+    out.mkdir(parents=True, exist_ok=True)
+    annotations, appearances, total = [], {}, 0
+    for clip in clips:
+        ds = clip_dataset(wh, clip)
+        rows = alignments(ds)
+        atomic_write_bytes(out / f"{clip}.csv", csv_text(rows).encode())
+        annotations.append(annotation(ds))
+        appearances[clip] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
+        total += len(rows)
+    atomic_write_bytes(out / "full_annotations.json", json.dumps(annotations, indent=1).encode())
+    atomic_write_bytes(out / "cad_appearances.json", json.dumps(appearances, indent=1).encode())
+    return {"scans": len(clips), "alignments": total}

@@ -1,0 +1,142 @@
+"""``cadestate stats --html OUT``: the statistics as an HTML report.
+
+``OUT/index.html``: Table 2 and section 4 figures, histograms (matplotlib, PNG), the cost of the
+dataset, and a link per clip; ``OUT/clips/<clip>.html``: the clip's key-frames with its accepted
+poses drawn over them (the posed CAD models rendered with the frame's camera, blended at 50 %, a
+colour per object, its class and track id at its box) and its per-class counts. Images under
+``OUT/img/``; every path in the pages is relative, so the folder can be moved or served as is.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+
+from tasks.dataset.objects import ClipDataset, clip_dataset
+from tasks.human.human_tasks import evenly_spaced
+from tasks.dataset.stats import DatasetTables, annotation_cost_lines, statistics_lines
+from warehouse import Warehouse
+
+KEYFRAMES = 6
+PALETTE = ((230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+           (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212))
+STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em} table{border-collapse:collapse} "
+         "td,th{border:1px solid #ccc;padding:.2em .6em;text-align:right} td:first-child{text-align:left} "
+         "img{max-width:100%;margin:.3em 0}")
+
+
+def _page(title: str, body: list[str]) -> str:
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
+            f"<style>{STYLE}</style></head><body>\n<h1>{html.escape(title)}</h1>\n" + "\n".join(body) + "\n</body></html>\n")
+
+
+def _table(rows: list[tuple[str, object]], head: tuple[str, str] = ("", "")) -> str:
+    cells = "".join(f"<tr><td>{html.escape(str(a))}</td><td>{html.escape(str(b))}</td></tr>" for a, b in rows)
+    return f"<table><tr><th>{html.escape(head[0])}</th><th>{html.escape(head[1])}</th></tr>{cells}</table>"
+
+
+def _histogram(values, title: str, xlabel: str, path: Path, bins=20) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3), dpi=100)
+    ax.hist(np.asarray(values, np.float64), bins=bins, color="#3070b0")
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("count")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def keyframe_stamps(ds: ClipDataset) -> list[int]:
+    """The clip's key-frames: those its posed objects were clicked on (else the manual-track
+    key-frames, else all frames), at most :data:`KEYFRAMES`, evenly spread."""
+    stamps = sorted({ts for o in ds.objects if o.pose is not None for ts in o.correspondences})
+    stamps = stamps or [f.timestamp_us for f in ds.frames if f.key_frame] or [f.timestamp_us for f in ds.frames]
+    return [stamps[i] for i in evenly_spaced(len(stamps), KEYFRAMES)]
+
+
+def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
+    """Write the clip's key-frames with its accepted poses drawn over them; returns the image paths."""
+    import trimesh
+    from PIL import Image, ImageDraw
+
+    from cadestate.render import Camera, Instance, Renderer, RenderMesh
+
+    meshes = {r["cad_id"]: r["mesh_path"] for r in wh.read("cad_models", columns=["cad_id", "mesh_path"]).to_pylist()}
+    posed = [o for o in ds.objects if o.pose is not None and o.cad_id in meshes]
+    loaded = {c: RenderMesh.from_trimesh(trimesh.load(wh.root / meshes[c], force="scene")) for c in {o.cad_id for o in posed}}
+    frames = {f.timestamp_us: f for f in ds.frames}
+    h, w = ds.image_size
+    paths = []
+    with Renderer(w, h) as renderer:
+        for ts in keyframe_stamps(ds):
+            f = frames[ts]
+            image = np.asarray(Image.open(wh.root / f.image_path).convert("RGB").resize((w, h)), np.float32)
+            if posed:
+                ids = renderer.render([Instance(loaded[o.cad_id], o.pose.matrix(), k + 1) for k, o in enumerate(posed)],
+                                      Camera(f.K, f.R, f.t, w, h, 0.01, 1000.0)).instance_id
+                for k in range(len(posed)):
+                    mask = (ids == k + 1)[..., None]
+                    image = np.where(mask, 0.5 * image + 0.5 * np.array(PALETTE[k % len(PALETTE)], np.float32), image)
+            picture = Image.fromarray(np.clip(image, 0, 255).astype(np.uint8))
+            draw = ImageDraw.Draw(picture)
+            for k, o in enumerate(posed):
+                if ts in o.boxes:
+                    y0, x0, _, _ = o.boxes[ts]
+                    draw.text((x0 * w + 2, y0 * h + 1), f"{o.class_name} {o.track_id}", fill=PALETTE[k % len(PALETTE)])
+            path = folder / f"{ds.clip}_{ts}.jpg"
+            picture.save(path, quality=88)
+            paths.append(path)
+    return paths
+
+
+def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> Path:
+    """Write the report (module docstring) into ``out``; returns ``out/index.html``."""
+    out = Path(out)
+    (out / "img").mkdir(parents=True, exist_ok=True)
+    (out / "clips").mkdir(exist_ok=True)
+    figures = []
+    if len(tables.visible):
+        per_frame = tables.visible.groupby(["clip", "timestamp_us"]).size().reindex(
+            list(map(tuple, tables.frames[["clip", "timestamp_us"]].to_numpy())), fill_value=0)
+        _histogram(per_frame, "Posed objects visible per frame", "objects", out / "img" / "objects_per_frame.png",
+                   bins=np.arange(per_frame.max() + 2) - 0.5)
+        figures.append("objects_per_frame.png")
+        d = tables.visible.dropna(subset=["distance_m"]).groupby(["clip", "timestamp_us"])["distance_m"]
+        ratios = (d.min() / d.max())[d.count() >= 2]
+        if len(ratios):
+            _histogram(ratios, "Nearest / farthest object distance per frame", "ratio", out / "img" / "near_far.png")
+            figures.append("near_far.png")
+        truncated = tables.visible["truncated"].dropna()
+        if len(truncated):
+            _histogram(truncated, "Truncation per visible object", "share of its projected box outside the image",
+                       out / "img" / "truncation.png")
+            figures.append("truncation.png")
+    cost = [(f"compute s: {k}", v) for k, v in stats["compute_s_per_stage"].items()]
+    cost += [(f"human items answered: {k}", v) for k, v in stats["human_items"].items()]
+    cost += annotation_cost_lines(stats)
+    links = []
+    for clip in tables.clips:
+        ds = clip_dataset(wh, clip)
+        pictures = overlays(wh, ds, out / "img")
+        counts = tables.objects[(tables.objects["clip"] == clip) & tables.objects["posed"]]["class"].value_counts().sort_index()
+        body = [f"<p><a href=\"../index.html\">all clips</a> · {len(ds.frames)} frames · {len(ds.objects)} objects, "
+                f"{int(counts.sum())} posed</p>", "<h2>Posed objects per class</h2>",
+                _table([(k, int(v)) for k, v in counts.items()], ("class", "posed objects")),
+                "<h2>Key-frames with the accepted poses</h2>"]
+        body += [f"<img src=\"../img/{html.escape(p.name)}\" alt=\"{html.escape(p.stem)}\">" for p in pictures]
+        (out / "clips" / f"{clip}.html").write_text(_page(f"Clip {clip}", body), encoding="utf-8")
+        links.append(f"<li><a href=\"clips/{html.escape(clip)}.html\">{html.escape(clip)}</a> ({int(counts.sum())} posed)</li>")
+    body = ["<h2>Dataset (the paper's Table 2 and section 4)</h2>", _table(statistics_lines(stats), ("", "value")),
+            "<h2>Posed objects per class</h2>", _table(list(stats["per_class"].items()), ("class", "posed objects")),
+            *[f"<img src=\"img/{f}\" alt=\"{f}\">" for f in figures],
+            "<h2>Cost of the dataset</h2>", _table(cost, ("", "")), "<h2>Clips</h2>", "<ul>", *links, "</ul>"]
+    index = out / "index.html"
+    index.write_text(_page("cadestate dataset statistics", body), encoding="utf-8")
+    return index

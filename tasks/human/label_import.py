@@ -1,0 +1,380 @@
+"""Manual tracks from the annotation tools teams already use: CVAT video XML and Label Studio video JSON.
+
+Both become a ``manual_track`` label file (:mod:`schemas.labels`) for a task of the clip, checked
+like any label file before it is written; ``cadestate labels ingest`` then ingests it.
+
+- CVAT for video 1.1 (``annotations.xml``): ``<track id label source>`` holding
+  ``<box frame xtl ytl xbr ybr outside occluded keyframe>`` in pixels (normalised by
+  ``meta/*/original_size``, else the clip's frame size). Boxes with ``outside="1"`` are dropped;
+  by default only ``keyframe="1"`` boxes (the ones drawn, not interpolated) are kept. ``frame``
+  is 0-based.
+- Label Studio video (JSON export): results of type ``videorectangle`` with
+  ``value.sequence[{frame, enabled, x, y, width, height, rotation, time}]`` in percent (0-100) and
+  ``value.labels``; ``frame`` is 1-based, every sequence entry is a key-frame; a rotated box
+  becomes its axis-aligned bounding box (rotation in degrees about its top-left corner). The
+  newest annotation that was not cancelled is used.
+
+Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
+number an element or field needs must be there and be a finite number (frames: whole numbers),
+every label a non-empty string; a problem is a :class:`tasks.human.label_format.LabelError` of one line naming
+the file and the element or attribute (``/annotations/track[2]/box[0]/@xtl``) or the field
+(``$[0].annotations[1].result[3].value``).
+A file with tracks of which none has a box left on a frame of the clip is refused too: an empty
+label would say that nothing is missing.
+
+Frame numbers map to camera timestamps in one of two ways (``frame_map``):
+``frames`` (default): the tool showed the clip's extracted frames as an image sequence, so tool
+frame n is ``frames.frame_index`` n; ``video``: the tool showed the video, so tool frame n is at
+n / fps seconds (Label Studio: its ``time``) and maps to the camera frame whose decoded video
+frame is nearest, within half a video frame (boxes between camera frames are dropped).
+"""
+
+from __future__ import annotations
+
+import bisect
+import datetime as dt
+import json
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from schemas.labels import Task
+from tasks.human.label_format import LabelError, parse_label, read_limited
+from tasks.human.labels import ClipFacts, check_label, label_document, latest_task_of_kind
+from warehouse import Warehouse, atomic_write_bytes
+
+FrameMapMode = Literal["frames", "video"]
+
+MAX_IMPORT_BYTES = 200_000_000
+"""Largest tool export read (200 MB): a CVAT file with every interpolated box of a long video stays
+well below; bigger files are refused before they are parsed."""
+
+MAX_FRAME = 10**9
+"""Frame numbers at or above this are refused (no clip has a billion frames)."""
+
+MAX_PERCENT = 1000.0
+"""Label Studio box coordinates (percent of the frame) beyond +-this are refused: not a box of the frame."""
+
+
+@dataclass(frozen=True)
+class ToolBox:
+    """A box from a tool: its frame (``index``: 0-based frame number, ``time_s`` when the tool gives it)
+    and (ymin, xmin, ymax, xmax) normalised."""
+
+    index: int
+    time_s: float | None
+    box: tuple[float, float, float, float]
+
+
+@dataclass
+class ToolTrack:
+    """A track from a tool: its id there, its label, its boxes, and where it is in the file."""
+
+    source_id: str
+    label: str
+    boxes: list[ToolBox] = field(default_factory=list)
+    where: str = ""
+
+
+@dataclass
+class ImportResult:
+    """The label document made, and what was left out (in words)."""
+
+    document: dict
+    dropped: list[str]
+
+
+# ------------------------------------------------------------------------------ frames
+
+@dataclass(frozen=True)
+class ClipFrames:
+    by_index: dict[int, int]
+    video_times: list[int]
+    timestamps: list[int]
+    fps: float
+    width: int
+    height: int
+
+    @staticmethod
+    def of(wh: Warehouse, clip: str) -> ClipFrames:
+        rows = wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "video_time_us", "width", "height"]).to_pylist()
+        if not rows:
+            raise LabelError(f"clip {clip!r}: no frames in the warehouse")
+        clips = wh.read("clips", [clip], columns=["fps"]).column("fps").to_pylist()
+        rows.sort(key=lambda r: r["video_time_us"])
+        return ClipFrames({r["frame_index"]: r["timestamp_us"] for r in rows}, [r["video_time_us"] for r in rows],
+                          [r["timestamp_us"] for r in rows], float(clips[0]) if clips and clips[0] else 30.0,
+                          rows[0]["width"], rows[0]["height"])
+
+    def timestamp(self, b: ToolBox, mode: FrameMapMode) -> int | None:
+        """The camera timestamp of a tool box's frame, or None when no camera frame matches."""
+        if mode == "frames":
+            return self.by_index.get(b.index)
+        t = (b.time_s if b.time_s is not None else b.index / self.fps) * 1e6
+        i = bisect.bisect_left(self.video_times, t)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(self.video_times)), key=lambda j: abs(self.video_times[j] - t))
+        return self.timestamps[best] if abs(self.video_times[best] - t) <= 0.5e6 / self.fps else None
+
+
+def _clip01(v: float) -> float:
+    return min(max(v, 0.0), 1.0)
+
+
+def normalised_box(x0: float, y0: float, x1: float, y1: float, width: float, height: float) -> tuple[float, float, float, float]:
+    """(ymin, xmin, ymax, xmax) in [0, 1] from pixel corners."""
+    return (_clip01(min(y0, y1) / height), _clip01(min(x0, x1) / width), _clip01(max(y0, y1) / height), _clip01(max(x0, x1) / width))
+
+
+# ------------------------------------------------------------------------------ checked values
+
+def _number(value: object, where: str) -> float:
+    """A finite number from a JSON number or an XML string; ``where``: the file and the element,
+    attribute (``.../box[0]/@xtl``) or field."""
+    try:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise TypeError
+        number = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}") from None
+    if not math.isfinite(number):
+        raise LabelError(f"{where}: must be a finite number, not {repr(value)[:40]}")
+    return number
+
+
+def _json_number(value: object, where: str) -> float:
+    """A finite JSON number (a string that reads as one is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise LabelError(f"{where}: must be a number, not {repr(value)[:40]}")
+    return _number(value, where)
+
+
+def _whole(value: object, where: str, low: int, high: int = MAX_FRAME) -> int:
+    """A whole number in [low, high) (frames, sizes)."""
+    number = _number(value, where)
+    if number != int(number) or not low <= number < high:
+        raise LabelError(f"{where}: must be a whole number from {low} to {high - 1}, not {repr(value)[:40]}")
+    return int(number)
+
+
+def _text(value: object, where: str) -> str:
+    """A non-empty string that is valid Unicode (a label, an id)."""
+    if not isinstance(value, str) or not value:
+        raise LabelError(f"{where}: must be a non-empty string, not {repr(value)[:40]}")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise LabelError(f"{where}: not valid Unicode (a lone surrogate such as \\ud800)") from None
+    return value
+
+
+def _of_type(value: object, kind: type, where: str) -> object:
+    """``value`` if it is a ``kind`` (a JSON list or object), else an error naming ``where``."""
+    if not isinstance(value, kind):
+        raise LabelError(f"{where}: expected {'a list' if kind is list else 'an object'}, not {type(value).__name__}")
+    return value
+
+
+# ------------------------------------------------------------------------------ CVAT
+
+def _parse_xml(path: str | Path) -> ET.Element:
+    name = str(path)
+    data = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "/")
+    try:
+        return ET.fromstring(data)
+    except ET.ParseError as e:
+        raise LabelError(f"{name}: not well-formed XML: {e}") from None
+    except (LookupError, ValueError) as e:  # an encoding Python does not know, or that cannot hold the bytes
+        raise LabelError(f"{name}: not a readable XML file: {e}") from None
+
+
+def _cvat_size(root: ET.Element, name: str, size: tuple[int, int] | None) -> tuple[int, int]:
+    """(width, height) of the frames: the file's ``original_size``, else ``size``."""
+    for owner in ("task", "job"):
+        original = root.find(f"meta/{owner}/original_size")
+        if original is not None:
+            where = f"{name}: /annotations/meta/{owner}/original_size"
+            return tuple(_whole(original.findtext(k), f"{where}/{k}", 1) for k in ("width", "height"))
+    if not size or min(size) <= 0:
+        raise LabelError(f"{name}: /annotations/meta: no original_size and no frame size given")
+    return size
+
+
+def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_only: bool = True,
+              skip_sources: tuple[str, ...] = ()) -> list[ToolTrack]:
+    """Tracks of a CVAT video XML 1.1 file (``size``: (width, height) when the file has none)."""
+    name = str(path)
+    root = _parse_xml(path)
+    if root.tag != "annotations":
+        raise LabelError(f"{name}: /{root.tag}: not a CVAT annotations file (root element must be <annotations>)")
+    width, height = _cvat_size(root, name, size)
+    tracks = []
+    for i, el in enumerate(root.findall("track")):
+        where = f"{name}: /annotations/track[{i}]"
+        if el.get("source", "manual") in skip_sources:
+            continue
+        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where)
+        for j, box in enumerate(el.findall("box")):
+            if box.get("outside", "0") == "1" or (keyframes_only and box.get("keyframe", "1") != "1"):
+                continue
+            at = f"{where}/box[{j}]"
+            frame = _whole(box.get("frame"), f"{at}/@frame", 0)
+            corners = [_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr")]
+            track.boxes.append(ToolBox(frame, None, normalised_box(*corners, width, height)))
+        tracks.append(track)
+    return tracks
+
+
+# ------------------------------------------------------------------------------ Label Studio
+
+def _ls_annotation(task: dict, where: str) -> tuple[dict, str]:
+    """The newest annotation that was not cancelled, and where it is."""
+    annotations = _of_type(task.get("annotations", []), list, f"{where}.annotations")
+    kept = [(a, f"{where}.annotations[{k}]") for k, a in enumerate(annotations)
+            if isinstance(a, dict) and not a.get("was_cancelled")]
+    if not kept:
+        raise LabelError(f"{where}.annotations: no annotation that was not cancelled")
+    return max(kept, key=lambda a: (str(a[0].get("updated_at") or a[0].get("created_at") or ""), str(a[0].get("id", ""))))
+
+
+def _ls_box(item: object, size: tuple[int, int], where: str) -> ToolBox:
+    item = _of_type(item, dict, where)
+    frame = _whole(_json_number(item.get("frame"), f"{where}.frame"), f"{where}.frame", 1)
+    x, y, w, h = (_json_number(item.get(k), f"{where}.{k}") for k in ("x", "y", "width", "height"))
+    if max(abs(x), abs(y), abs(w), abs(h)) > MAX_PERCENT:
+        raise LabelError(f"{where}: x, y, width and height are percent of the frame, not beyond +-{MAX_PERCENT:g}")
+    rotation = _json_number(item.get("rotation") or 0.0, f"{where}.rotation")
+    time_s = None if item.get("time") is None else _json_number(item["time"], f"{where}.time")
+    W, H = size
+    x, y, w, h = x / 100 * W, y / 100 * H, w / 100 * W, h / 100 * H
+    c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
+    xs = [x + dx * c - dy * s for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
+    ys = [y + dx * s + dy * c for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
+    return ToolBox(frame - 1, time_s, normalised_box(min(xs), min(ys), max(xs), max(ys), W, H))
+
+
+def _ls_track(result: dict, size: tuple[int, int], where: str, index: int) -> ToolTrack:
+    value = _of_type(result.get("value"), dict, f"{where}.value")
+    labels = _of_type(value.get("labels"), list, f"{where}.value.labels")
+    if not labels:
+        raise LabelError(f"{where}.value.labels: no label")
+    rid = result.get("id", index)
+    if isinstance(rid, bool) or not isinstance(rid, (str, int)):
+        raise LabelError(f"{where}.id: must be a string or an integer, not {repr(rid)[:40]}")
+    track = ToolTrack(f"labelstudio:{_text(str(rid), f'{where}.id')}", _text(labels[0], f"{where}.value.labels[0]"), where=where)
+    sequence = _of_type(value.get("sequence"), list, f"{where}.value.sequence")
+    track.boxes = [_ls_box(item, size, f"{where}.value.sequence[{j}]") for j, item in enumerate(sequence)]
+    return track
+
+
+def _ls_task(data: object, name: str, clip: str | None) -> tuple[dict, str]:
+    """The export's one task (with several, the one whose ``data`` mentions ``clip``) and where it is."""
+    tasks = [(t, f"{name}: $[{i}]" if isinstance(data, list) else f"{name}: $")
+             for i, t in enumerate(data if isinstance(data, list) else [data]) if isinstance(t, dict)]
+    if len(tasks) > 1 and clip is not None:
+        tasks = [t for t in tasks if clip in json.dumps(t[0].get("data", {}))]
+    if len(tasks) != 1:
+        raise LabelError(f"{name}: $: expected one Label Studio task (for clip {clip!r}), found {len(tasks)}")
+    return tasks[0]
+
+
+def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None = None) -> list[ToolTrack]:
+    """Tracks of a Label Studio JSON export (``size``: (width, height) of the frames). With several
+    tasks in the export, the one whose ``data`` mentions ``clip`` is used."""
+    name = str(path)
+    raw = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "$")
+    try:
+        data = json.loads(raw.decode("utf-8"))
+        task, where = _ls_task(data, name, clip)
+    except UnicodeDecodeError as e:
+        raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
+    except (ValueError, RecursionError) as e:
+        raise LabelError(f"{name}: $: not valid JSON: {e or 'nested too deeply'}") from None
+    annotation, where = _ls_annotation(task, where)
+    results = _of_type(annotation.get("result", []), list, f"{where}.result")
+    tracks = []
+    for i, result in enumerate(results):
+        result = _of_type(result, dict, f"{where}.result[{i}]")
+        if result.get("type") == "videorectangle":
+            tracks.append(_ls_track(result, size, f"{where}.result[{i}]", i))
+    return tracks
+
+
+# ------------------------------------------------------------------------------ label files
+
+def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
+    """The manual_track task an import answers: ``task_id``, else the clip's newest."""
+    if task_id is None:
+        row = latest_task_of_kind(wh, clip, "manual_track")
+        if row is None:
+            raise LabelError(f"clip {clip!r}: no manual_track task to answer (give the task id)")
+        task_id = row["task_id"]
+    task = ClipFacts(wh).task(clip, task_id)
+    if task is None or task.kind != "manual_track":
+        raise LabelError(f"clip {clip!r}: no manual_track task {task_id!r}")
+    return task
+
+
+def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: str | None = None,
+                    frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None,
+                    source: str = "", name: str = "tool tracks") -> ImportResult:
+    """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
+    clip's newest manual-track task); ``name``: the file, for errors."""
+    task = _answered_task(wh, clip, task_id)
+    frames = ClipFrames.of(wh, clip)
+    answers, dropped = [], []
+    for t in tracks:
+        label = (label_map or {}).get(t.label, t.label)
+        if task.classes and label not in task.classes:
+            raise LabelError(f"{t.where or name}: class {label!r} is not one of the task's: {', '.join(task.classes)} "
+                             "(--map renames a tool label)")
+        boxes: dict[int, tuple] = {}
+        for b in t.boxes:
+            ts = frames.timestamp(b, frame_map)
+            if ts is None:
+                dropped.append(f"{t.source_id}: frame {b.index + (1 if t.source_id.startswith('labelstudio') else 0)} "
+                               f"is not a camera frame of the clip")
+            elif b.box[0] < b.box[2] and b.box[1] < b.box[3]:
+                boxes.setdefault(ts, b.box)
+            else:
+                dropped.append(f"{t.source_id}: empty box on frame {ts} µs")
+        if not boxes:
+            dropped.append(f"{t.source_id}: no box left, track left out")
+            continue
+        answers.append({"label": label, "boxes": [{"timestamp_us": ts, "box": list(boxes[ts])} for ts in sorted(boxes)],
+                        "source_id": t.source_id})
+    if tracks and not answers:
+        raise LabelError(f"{name}: none of its {len(tracks)} track(s) has a box on a frame of clip {clip!r} "
+                         f"(--frame-map {'video' if frame_map == 'frames' else 'frames'}?)")
+    created = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    doc = label_document("manual_track", clip, task.task_id, answers, annotator=f"import:{source}" if source else None,
+                         created_at=created)
+    check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
+    return ImportResult(doc, dropped)
+
+
+def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *, frame_map: FrameMapMode = "frames",
+                keyframes_only: bool = True, skip_sources: tuple[str, ...] = (), label_map: dict[str, str] | None = None) -> ImportResult:
+    """A ``manual_track`` label document from a CVAT video XML 1.1 file."""
+    frames = ClipFrames.of(wh, clip)
+    tracks = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources)
+    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}", name=str(path))
+
+
+def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *,
+                       frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None) -> ImportResult:
+    """A ``manual_track`` label document from a Label Studio video JSON export."""
+    frames = ClipFrames.of(wh, clip)
+    tracks = read_labelstudio(path, (frames.width, frames.height), clip)
+    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
+                           name=str(path))
+
+
+def write_label(doc: dict, out_dir: str | Path, stem: str) -> Path:
+    """Write a label document as ``<out_dir>/<stem>.json`` (atomically); returns the path."""
+    path = Path(out_dir) / f"{stem}.json"
+    atomic_write_bytes(path, (json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n").encode())
+    return path

@@ -1,0 +1,411 @@
+"""Ingest label files into the warehouse (``cadestate labels ingest DIR``).
+
+:func:`ingest_labels` validates every ``*.json`` under a folder (:func:`tasks.human.labels.validate_label`)
+and commits each valid file all or nothing: its rows are built and conformed to their tables in
+memory first (:func:`prepare_file`), then appended to its answer table (``manual_track_labels``,
+``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``), to ``label_effort``
+(the ``seconds`` given per item) and ``track_relations`` (``not_objects``, ``same_as_track``), and then to
+``label_files``, which is the commit record: answer rows whose file has no ``label_files`` row (a
+crash or a failed write between the two) are ignored, and the file is ingested again on the next
+run. Rules:
+
+- idempotent: a file whose bytes (SHA-256) were ingested before adds nothing, whatever its name;
+- every file's outcome is reported: ingested, already ingested, or its error (one line naming the
+  file and field); a file that is invalid, or whose write fails, stops none of the others; nothing
+  ingested before is touched (every label table is an append-only history);
+- partial labels are fine: a label may answer some of its task's tracks;
+- supersession, computed on read (:func:`current_answers`): per (task, track), the answer of the
+  newest file wins, older ones stay in the history; a manual-track label replaces the whole answer
+  of its task. "Newer" is ingested later; files ingested together are ordered by their
+  ``created_at`` (else their modification time), then by path;
+- co-planarity of the 3D points of each key-frame (and of each track's answer) is detected at
+  ingest with the pose solver's own test (:func:`tasks.pose.checks.coplanar_axis`) and stored;
+- the newest correspondences of every track of a touched clip are written to the
+  ``correspondences`` table (the pose stage's input) when they changed.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from cadestate.lineage import digest, table_digest
+from schemas.label_tables import ANSWER_TABLES, LABEL_EFFORT, LABEL_FILES, SIDE_TABLES, TRACK_RELATIONS
+from schemas.labels import KINDS
+from schemas.pose import CORRESPONDENCES
+from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
+from tasks.human.labels import ClipFacts, LabelFile, utc_now, validate_label
+from tasks.pose.checks import coplanar_axis
+from warehouse import Warehouse
+
+DEFAULT_COPLANAR_TOL = 0.02
+"""As ``[pose] coplanar_tol``: co-planar when the smallest singular value of the centred points is
+below this fraction of the largest."""
+
+
+@dataclass
+class IngestReport:
+    """What :func:`ingest_labels` did, file by file: ``ingested`` and ``duplicates`` (paths),
+    ``errors`` (one line each, naming the file), ``warnings`` (on files ingested or not);
+    ``clips``: clips with new labels (the ones to resume)."""
+
+    ingested: list[str] = field(default_factory=list)
+    duplicates: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    clips: list[str] = field(default_factory=list)
+    rows: dict[str, int] = field(default_factory=dict)
+    coplanar_keyframes: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+def label_paths(source: str | Path | Sequence[str | Path]) -> list[Path]:
+    """The label files of ``source``: the file itself, every ``*.json`` below the folder (hidden
+    files and folders skipped), or the files of a list; sorted."""
+    if isinstance(source, (list, tuple)):
+        return sorted(p for item in source for p in label_paths(item))
+    source = Path(source)
+    if source.is_file():
+        return [source]
+    if not source.is_dir():
+        raise FileNotFoundError(f"{source}: no such label file or folder")
+    return sorted(p for p in source.rglob("*.json")
+                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(source).parts))
+
+
+# ------------------------------------------------------------------------------ rows
+
+def _manual_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[dict]:
+    return [{"object_index": i, "label": a.label, "source_id": a.source_id, "timestamp_us": b.timestamp_us, "box": list(b.box)}
+            for i, a in enumerate(lf.label.answers) for b in a.boxes]
+
+
+def _cad_selection_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[dict]:
+    items = {it.track_id: it for it in facts.task(lf.clip, lf.task_id).items}
+    rows = []
+    for a in lf.label.answers:
+        ranks = {c.cad_id: c.rank for c in items[a.track_id].candidates}
+        rows.append({"track_id": a.track_id, "cad_id": a.cad_id, "rank": ranks.get(a.cad_id)})
+    return rows
+
+
+def keyframe_coplanar_axis(xyz: np.ndarray, tol: float) -> int:
+    """CAD axis nearest the normal of one key-frame's 3D points if they are co-planar, else -1."""
+    return coplanar_axis(xyz, np.zeros(len(xyz), np.int64), 1, tol)
+
+
+def _correspondence_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[dict]:
+    items = {it.track_id: it for it in facts.task(lf.clip, lf.task_id).items}
+    rows = []
+    for a in lf.label.answers:
+        xyz = np.array([p.xyz for kf in a.keyframes for p in kf.points], np.float64)
+        kf_index = np.array([j for j, kf in enumerate(a.keyframes) for _ in kf.points], np.int64)
+        track_axis = coplanar_axis(xyz, kf_index, items[a.track_id].symmetry, tol)
+        for kf in a.keyframes:
+            axis = keyframe_coplanar_axis(np.array([p.xyz for p in kf.points], np.float64), tol)
+            rows += [{"track_id": a.track_id, "timestamp_us": kf.timestamp_us, "point_index": k, "cad_id": a.cad_id,
+                      "point_2d": [p.x, p.y], "point_3d": list(p.xyz), "is_mirrored": a.is_mirrored,
+                      "keyframe_coplanar": axis >= 0, "keyframe_coplanar_axis": axis, "track_coplanar_axis": track_axis}
+                     for k, p in enumerate(kf.points)]
+    return rows
+
+
+def _verification_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[dict]:
+    items = {it.track_id: it for it in facts.task(lf.clip, lf.task_id).items}
+    return [{"track_id": a.track_id, "cad_id": items[a.track_id].cad_id, "accepted": a.verdict == "accept",
+             "comment": a.comment} for a in lf.label.answers]
+
+
+ROWS = {"manual_track": _manual_rows, "cad_selection": _cad_selection_rows,
+        "correspondences": _correspondence_rows, "verification": _verification_rows}
+
+
+def answer_rows(lf: LabelFile, facts: ClipFacts, ingested_at: dt.datetime, tol: float = DEFAULT_COPLANAR_TOL) -> list[dict]:
+    """Rows of the kind's answer table for one validated label file."""
+    head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id}
+    return [{**head, **r} for r in ROWS[lf.kind](lf, facts, tol)]
+
+
+def effort_rows(lf: LabelFile, ingested_at: dt.datetime) -> list[dict]:
+    """``label_effort`` rows: the seconds given per item (a manual_track label is one item, track -1)."""
+    head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind,
+            "annotator": lf.label.annotator}
+    if lf.kind == "manual_track":
+        return [] if lf.label.seconds is None else [{**head, "track_id": -1, "seconds": lf.label.seconds}]
+    return [{**head, "track_id": a.track_id, "seconds": a.seconds} for a in lf.label.answers if a.seconds is not None]
+
+
+def relation_rows(lf: LabelFile, ingested_at: dt.datetime) -> list[dict]:
+    """``track_relations`` rows: "track N is not an object", "this is track N", "same object as track N"."""
+    said: list[dict] = []
+    if lf.kind == "manual_track":
+        said += [{"relation": "not_object", "track_id": t, "other_track_id": None, "object_index": None}
+                 for t in lf.label.not_objects]
+        said += [{"relation": "same_object", "track_id": a.same_as_track, "other_track_id": None, "object_index": i}
+                 for i, a in enumerate(lf.label.answers) if a.same_as_track is not None]
+    elif lf.kind == "cad_selection":
+        said += [{"relation": "same_object", "track_id": a.track_id, "other_track_id": a.same_as_track, "object_index": None}
+                 for a in lf.label.answers if a.same_as_track is not None]
+    head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind}
+    return [{**head, "statement_index": k, **r} for k, r in enumerate(said)]
+
+
+def file_row(lf: LabelFile, ingested_at: dt.datetime) -> dict:
+    """The ``label_files`` row of one label file (a path that is not UTF-8 is kept with its odd
+    bytes escaped, as printed)."""
+    return {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind,
+            "source_path": one_line(str(lf.path)), "annotator": lf.label.annotator, "created_at": lf.created_at,
+            "num_answers": len(lf.label.answers), "document": lf.document}
+
+
+# ------------------------------------------------------------------------------ ingest
+
+def _order(lf: LabelFile) -> tuple:
+    if lf.created_at is not None:
+        when = lf.created_at
+    else:
+        try:
+            when = dt.datetime.fromtimestamp(lf.path.stat().st_mtime, dt.timezone.utc)
+        except OSError:
+            when = utc_now()
+    return when, str(lf.path)
+
+
+def _ingest_times(wh: Warehouse, n: int, now: dt.datetime | None) -> list[dt.datetime]:
+    """``n`` strictly increasing times, all after every ``label_files.ingested_at`` so far."""
+    start = now or utc_now()
+    seen = wh.read("label_files", columns=["ingested_at"]).column("ingested_at").to_pylist()
+    if seen and max(seen) >= start:
+        start = max(seen) + dt.timedelta(microseconds=1)
+    return [start + dt.timedelta(microseconds=i) for i in range(n)]
+
+
+WRITE_ERRORS = (OSError, ValueError, pa.ArrowException)
+"""What a failed write raises (the disk; data that does not fit its table): reported per file."""
+
+
+@dataclass(frozen=True)
+class PreparedFile:
+    """One label file's rows, conformed to their tables and ready to write: ``answers`` (rows of
+    its kind's answer table), ``sides`` (rows of ``label_effort`` and ``track_relations``, by table
+    name) and ``record`` (its ``label_files`` row, the commit record)."""
+
+    lf: LabelFile
+    answers: pa.Table
+    record: pa.Table
+    sides: dict[str, pa.Table] = field(default_factory=dict)
+
+
+def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: ClipFacts,
+                 tol: float = DEFAULT_COPLANAR_TOL) -> PreparedFile:
+    """Build and conform a file's rows in memory: data that does not fit fails here, before anything is written."""
+    spec = ANSWER_TABLES[lf.kind]
+    answers = pa.Table.from_pylist(answer_rows(lf, facts, ingested_at, tol), schema=spec.schema)
+    record = pa.Table.from_pylist([file_row(lf, ingested_at)], schema=LABEL_FILES.schema)
+    sides = {}
+    for side, rows in ((LABEL_EFFORT, effort_rows(lf, ingested_at)), (TRACK_RELATIONS, relation_rows(lf, ingested_at))):
+        if rows:
+            sides[side.name] = wh.conform(side.name, lf.clip, pa.Table.from_pylist(rows, schema=side.schema))
+    return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
+
+
+def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
+    """The valid files of ``paths`` that were not ingested before; the others go to ``report``."""
+    known = set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
+    accepted: list[LabelFile] = []
+    for path in paths:
+        try:
+            data = read_limited(path, max_bytes)
+            if hashlib.sha256(data).hexdigest() in known:
+                report.duplicates.append(str(path))
+                continue
+            lf = validate_label(path, facts=facts, data=data, max_bytes=max_bytes)
+        except LabelError as e:
+            report.errors.append(str(e))
+            continue
+        report.warnings += lf.warnings
+        known.add(lf.sha256)
+        accepted.append(lf)
+    return accepted
+
+
+def _failed(report: IngestReport, lf: LabelFile, e: Exception) -> None:
+    report.errors.append(one_line(f"{lf.path}: $: not ingested, writing failed: {getattr(e, 'strerror', None) or e}"))
+
+
+def _write_each(wh: Warehouse, table: str, clip: str, parts: list[tuple[PreparedFile, pa.Table]],
+                report: IngestReport) -> list[PreparedFile]:
+    """Append the rows of several files to ``table`` in one write; if that fails, one write per
+    file, so that a file whose write fails stops none of the others. Returns the files written."""
+    try:
+        if parts:
+            wh.write(table, clip, pa.concat_tables([t for _, t in parts]))
+        return [f for f, _ in parts]
+    except WRITE_ERRORS as e:
+        if len(parts) == 1:
+            _failed(report, parts[0][0].lf, e)
+            return []
+    written = []
+    for f, t in parts:
+        try:
+            wh.write(table, clip, t)
+            written.append(f)
+        except WRITE_ERRORS as e:
+            _failed(report, f.lf, e)
+    return written
+
+
+def _commit_clip(wh: Warehouse, clip: str, files: list[PreparedFile], report: IngestReport) -> list[PreparedFile]:
+    """Commit the files of one clip: their answers (one write per answer table), then the
+    ``label_files`` rows of the files whose answers were written. Returns the files committed."""
+    answered = [f for f in files if not f.answers.num_rows]
+    for kind in KINDS:
+        parts = [(f, f.answers) for f in files if f.lf.kind == kind and f.answers.num_rows]
+        answered += _write_each(wh, ANSWER_TABLES[kind].name, clip, parts, report)
+    answered.sort(key=files.index)
+    for side in SIDE_TABLES:  # effort and relations: a file whose rows fail here is not committed either
+        parts = [(f, f.sides[side.name]) for f in answered if side.name in f.sides]
+        written = _write_each(wh, side.name, clip, parts, report)
+        answered = [f for f in answered if side.name not in f.sides or f in written]
+    return _write_each(wh, LABEL_FILES.name, clip, [(f, f.record) for f in answered], report)
+
+
+def _count(report: IngestReport, f: PreparedFile) -> None:
+    """Add one committed file to ``report``: its path, rows and co-planar key-frames."""
+    report.ingested.append(str(f.lf.path))
+    for name, table in ((ANSWER_TABLES[f.lf.kind].name, f.answers), *f.sides.items(), (LABEL_FILES.name, f.record)):
+        if table.num_rows:
+            report.rows[name] = report.rows.get(name, 0) + table.num_rows
+    if f.lf.kind == "correspondences":
+        flags = f.answers.select(["track_id", "timestamp_us", "keyframe_coplanar"]).to_pylist()
+        report.coplanar_keyframes += len({(r["track_id"], r["timestamp_us"]) for r in flags if r["keyframe_coplanar"]})
+
+
+def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, coplanar_tol: float = DEFAULT_COPLANAR_TOL,
+                  now: dt.datetime | None = None, max_bytes: int = MAX_LABEL_BYTES) -> IngestReport:
+    """Validate and ingest the label files of ``source`` (a folder, one file or a list of them),
+    each file all or nothing; see the module doc. Writes are batched per clip and table (each
+    write rebuilds the catalog), falling back to one write per file when a batch fails."""
+    report = IngestReport()
+    facts = ClipFacts(wh)
+    accepted = sorted(_validated(wh, label_paths(source), facts, max_bytes, report), key=_order)
+    by_clip: dict[str, list[PreparedFile]] = {}
+    for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now)):
+        try:
+            by_clip.setdefault(lf.clip, []).append(prepare_file(wh, lf, at, facts, coplanar_tol))
+        except WRITE_ERRORS as e:
+            _failed(report, lf, e)
+    for clip, files in sorted(by_clip.items()):
+        committed = _commit_clip(wh, clip, files, report)
+        for f in committed:
+            _count(report, f)
+        report.clips += [clip] if committed else []
+        if any(f.lf.kind == "correspondences" for f in committed):
+            try:
+                report.rows["correspondences"] = report.rows.get("correspondences", 0) + sync_correspondences(wh, clip)
+            except WRITE_ERRORS as e:
+                report.errors.append(one_line(f"clip {clip}: the correspondences table was not updated: {e}"))
+    return report
+
+
+# ------------------------------------------------------------------------------ reading
+
+def _newest(keys: list[tuple], times: list) -> list[bool]:
+    """For each row, whether its time is the newest among the rows with the same key."""
+    best: dict[tuple, object] = {}
+    for k, t in zip(keys, times):
+        if k not in best or t > best[k]:
+            best[k] = t
+    return [best[k] == t for k, t in zip(keys, times)]
+
+
+def _committed_files(wh: Warehouse, kind: str, clips: list[str] | None) -> pa.Table:
+    files = wh.read("label_files", clips, columns=["clip", "label_sha256", "ingested_at", "task_id", "kind"])
+    return files.filter(pc.equal(files.column("kind"), kind))
+
+
+def current_answers(wh: Warehouse, kind: str, clips: list[str] | None = None, task_id: str | None = None) -> pa.Table:
+    """The answers in force (rows of the kind's answer table): per (clip, task, track) those of the
+    newest label file that answers it; for ``manual_track``, per (clip, task) the newest file's."""
+    spec = ANSWER_TABLES[kind]
+    clips = None if clips is None else [c for c in clips if c in wh.partitions(spec.name)]
+    if clips == []:
+        return spec.schema.empty_table()
+    files = _committed_files(wh, kind, clips).to_pylist()
+    rows = wh.read(spec.name, clips)
+    committed = {(f["label_sha256"], f["ingested_at"]) for f in files}
+    if kind == "manual_track":
+        newest = _newest([(f["clip"], f["task_id"]) for f in files], [f["ingested_at"] for f in files])
+        committed = {(f["label_sha256"], f["ingested_at"]) for f, keep in zip(files, newest) if keep}
+    key = list(zip(rows.column("label_sha256").to_pylist(), rows.column("ingested_at").to_pylist()))
+    rows = rows.filter(pa.array([k in committed for k in key], pa.bool_()))
+    if kind != "manual_track":
+        units = list(zip(*(rows.column(c).to_pylist() for c in ("clip", "task_id", "track_id"))))
+        rows = rows.filter(pa.array(_newest(units, rows.column("ingested_at").to_pylist()), pa.bool_()))
+    if task_id is not None:
+        rows = rows.filter(pc.equal(rows.column("task_id"), task_id))
+    return rows
+
+
+def answered_tasks(wh: Warehouse, kind: str, clip: str) -> set[str]:
+    """Ids of the clip's tasks of ``kind`` that some ingested label file answers (for
+    ``manual_track`` an empty answer, "nothing is missing", answers its task too)."""
+    return set(_committed_files(wh, kind, [clip]).column("task_id").to_pylist())
+
+
+def answers_digest(wh: Warehouse, kind: str, clip: str, task_id: str | None = None) -> str:
+    """Digest of the answers in force (without where they came from): part of the inputs hash of a
+    stage that consumes labels, so it reruns when its answers change and stays cached otherwise.
+    For ``manual_track`` the answered tasks count too (an empty answer has no rows)."""
+    rows = current_answers(wh, kind, [clip], task_id).drop_columns(["label_sha256", "ingested_at"])
+    keys = ["task_id"] + [k for k in ANSWER_TABLES[kind].key if k in rows.column_names]
+    rows_digest = table_digest(rows.sort_by([(k, "ascending") for k in keys]))
+    if kind != "manual_track":
+        return rows_digest
+    answered = sorted(t for t in answered_tasks(wh, kind, clip) if task_id is None or t == task_id)
+    return digest(rows_digest, *answered)
+
+
+def correspondence_table(wh: Warehouse, clip: str) -> pa.Table:
+    """The clip's ``correspondences`` from its labels: per track, the newest answer over all tasks."""
+    rows = current_answers(wh, "correspondences", [clip])
+    newest = _newest([(t,) for t in rows.column("track_id").to_pylist()], rows.column("ingested_at").to_pylist())
+    rows = rows.filter(pa.array(newest, pa.bool_())).to_pylist()
+    out = [{"clip": clip, "track_id": str(r["track_id"]), "timestamp_us": r["timestamp_us"], "point_index": r["point_index"],
+            "cad_id": r["cad_id"], "point_2d": r["point_2d"], "point_3d": r["point_3d"], "is_mirrored": r["is_mirrored"]}
+           for r in rows]
+    table = pa.Table.from_pylist(out, schema=CORRESPONDENCES.schema)
+    return table.sort_by([(k, "ascending") for k in CORRESPONDENCES.key])
+
+
+def sync_correspondences(wh: Warehouse, clip: str) -> int:
+    """Rewrite the clip's ``correspondences`` partition from its labels if it changed; returns rows written."""
+    table = correspondence_table(wh, clip)
+    if table_digest(table) == table_digest(wh.read("correspondences", [clip])):
+        return 0
+    return wh.write("correspondences", clip, table)
+
+
+def label_history(wh: Warehouse, clips: list[str] | None = None) -> pa.Table:
+    """``label_files`` (without the documents) with ``superseded``: none of the file's answers is in force."""
+    files = wh.read("label_files", clips).drop_columns(["document"])
+    in_force: set[str] = set()
+    for kind in KINDS:
+        if kind == "manual_track":
+            f = _committed_files(wh, kind, clips).to_pylist()
+            newest = _newest([(r["clip"], r["task_id"]) for r in f], [r["ingested_at"] for r in f])
+            in_force |= {r["label_sha256"] for r, keep in zip(f, newest) if keep}
+        else:
+            in_force |= set(current_answers(wh, kind, clips).column("label_sha256").to_pylist())
+    superseded = [sha not in in_force for sha in files.column("label_sha256").to_pylist()]
+    return files.append_column("superseded", pa.array(superseded, pa.bool_()))

@@ -1,0 +1,242 @@
+"""Task files out, label files in: writing tasks and validating labels (see :mod:`schemas.labels`).
+
+A stage that needs people calls :func:`write_task` (the task file goes to
+``<warehouse>/label_tasks/<clip>/<task_id>.json`` and its document to the ``label_tasks`` table)
+and pauses; :func:`validate_label` checks a label file in two steps:
+
+1. the document (:mod:`tasks.human.label_format`): size, UTF-8 JSON, finite numbers, valid Unicode,
+   the kind's JSON Schema, ``created_at``, different 3D points per key-frame;
+2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
+   a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
+   frames of the clip, boxes have positive size, no track or key-frame is answered twice, and the
+   tracks named by ``same_as_track`` / ``not_objects`` are the task's (a fragment's ``cad_id`` is null).
+
+So everything that could make a row fail to be written is refused here, before ingest writes
+anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
+the field as a JSON path, e.g. ``labels/c1.json: $.answers[0].track_id: unknown track 7``.
+Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`). Ingest (into
+the answer tables) is :mod:`tasks.human.label_ingest`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+
+from cadestate.lineage import digest
+from schemas.dataclass_json import to_json
+from schemas.labels import LABEL_FORMAT, Label, Task
+from tasks.human.label_format import (MAX_LABEL_BYTES, LabelError, check_clicks, check_size, check_time, json_path, parse_label,
+                                parse_task, read_limited)
+from warehouse import Warehouse, atomic_write_bytes, check_name
+
+TASK_DIR = "label_tasks"
+"""Folder of the task files under the warehouse root."""
+
+
+@dataclass(frozen=True)
+class LabelFile:
+    """A validated label file: where it came from, its bytes' SHA-256, its text, its content, its
+    ``created_at`` in UTC (None: not given) and warnings on legal but suspicious values."""
+
+    path: Path
+    sha256: str
+    document: str
+    label: Label
+    created_at: dt.datetime | None = None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def kind(self) -> str:
+        return self.label.kind
+
+    @property
+    def clip(self) -> str:
+        return self.label.clip
+
+    @property
+    def task_id(self) -> str:
+        return self.label.task_id
+
+
+# ------------------------------------------------------------------------------ task files
+
+def new_task_id(kind: str, clip: str, *parts: str) -> str:
+    """A task id that is the same whenever the task's inputs are (``parts``: digests of what the
+    task shows), so a rerun with unchanged upstream work finds the labels of the earlier run."""
+    return f"{check_name(clip)}.{kind}.{digest(kind, clip, *parts)[:12]}"
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+def write_task(wh: Warehouse, task: Task) -> Path:
+    """Write the task file (atomically) and register it in ``label_tasks``; returns its path.
+
+    Checks the task against its own schema first (a stage bug must not reach people). Writing the
+    same task again (same id and bytes) leaves everything as it is."""
+    doc = to_json(task)
+    text = json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n"
+    parse_task(text, f"task {task.task_id}")
+    created_at = check_time(task.created_at, "created_at", f"task {task.task_id}")
+    data = text.encode()
+    path = wh.root / TASK_DIR / check_name(task.clip) / f"{check_name(task.task_id, 'task id')}.json"
+    sha = hashlib.sha256(data).hexdigest()
+    known = wh.read("label_tasks", [task.clip], filters=[("task_id", "=", task.task_id)], columns=["task_sha256"])
+    if path.is_file() and path.read_bytes() == data and sha in known.column("task_sha256").to_pylist():
+        return path
+    atomic_write_bytes(path, data)
+    items = getattr(task, "items", None)
+    row = {"clip": task.clip, "task_id": task.task_id, "kind": task.kind, "path": wh.relative(path),
+           "task_sha256": sha, "num_items": len(items if items is not None else task.keyframes),
+           "created_at": created_at, "document": text}
+    wh.write("label_tasks", task.clip, pa.Table.from_pylist([row]))
+    return path
+
+
+def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
+    """The newest ``label_tasks`` row of a task (its document is what labels are checked against)."""
+    rows = wh.read("label_tasks", [clip], filters=[("task_id", "=", task_id)]).to_pylist() if clip in wh.partitions("label_tasks") else []
+    return max(rows, key=lambda r: r["created_at"]) if rows else None
+
+
+def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
+    """The newest ``label_tasks`` row of ``kind`` for ``clip`` (e.g. the task an import answers)."""
+    if clip not in wh.partitions("label_tasks"):
+        return None
+    rows = wh.read("label_tasks", [clip], filters=[("kind", "=", kind)]).to_pylist()
+    return max(rows, key=lambda r: r["created_at"]) if rows else None
+
+
+# ------------------------------------------------------------------------------ warehouse checks
+
+class ClipFacts:
+    """What label checks need from the warehouse, read once per clip (ingest reuses one instance)."""
+
+    def __init__(self, wh: Warehouse):
+        self.wh = wh
+        self._clips = set(wh.partitions("clips"))
+
+    def has_clip(self, clip: str) -> bool:
+        return clip in self._clips
+
+    @functools.cache
+    def timestamps(self, clip: str) -> frozenset[int]:
+        return frozenset(self.wh.read("frames", [clip], columns=["timestamp_us"]).column("timestamp_us").to_pylist())
+
+    @functools.cache
+    def task(self, clip: str, task_id: str) -> Task | None:
+        row = latest_task(self.wh, clip, task_id)
+        return None if row is None else parse_task(row["document"], f"task {task_id}")
+
+
+def _fail(name: str, path: list, message: str) -> LabelError:
+    return LabelError(f"{name}: {json_path(path)}: {message}")
+
+
+def _check_boxes(boxes, stamps: frozenset[int], name: str, path: list) -> None:
+    seen = set()
+    for j, b in enumerate(boxes):
+        if b.timestamp_us not in stamps:
+            raise _fail(name, [*path, j, "timestamp_us"], f"{b.timestamp_us} is not a frame of the clip")
+        if b.timestamp_us in seen:
+            raise _fail(name, [*path, j, "timestamp_us"], f"a second box on frame {b.timestamp_us}")
+        seen.add(b.timestamp_us)
+        ymin, xmin, ymax, xmax = b.box
+        if not (ymin < ymax and xmin < xmax):
+            raise _fail(name, [*path, j, "box"], f"empty box {list(b.box)}: need ymin < ymax and xmin < xmax")
+
+
+def _items(task: Task, name: str, label: Label) -> dict[int, Any]:
+    """The task's items by track id, and a check that each answered track is one of them, once."""
+    items = {it.track_id: it for it in task.items}
+    seen = set()
+    for i, a in enumerate(label.answers):
+        if a.track_id not in items:
+            raise _fail(name, ["answers", i, "track_id"],
+                        f"unknown track {a.track_id} (task {task.task_id} has tracks {', '.join(map(str, sorted(items)))})")
+        if a.track_id in seen:
+            raise _fail(name, ["answers", i, "track_id"], f"track {a.track_id} is answered twice")
+        seen.add(a.track_id)
+    return items
+
+
+def check_label(label: Label, facts: ClipFacts, name: str) -> None:
+    """The warehouse checks of a parsed label (see the module docstring)."""
+    if not facts.has_clip(label.clip):
+        raise _fail(name, ["clip"], f"unknown clip {label.clip!r}")
+    task = facts.task(label.clip, label.task_id)
+    if task is None:
+        raise _fail(name, ["task_id"], f"unknown task {label.task_id!r} for clip {label.clip!r}")
+    if task.kind != label.kind:
+        raise _fail(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
+    stamps = facts.timestamps(label.clip)
+    if label.kind == "manual_track":
+        existing = {t.track_id for t in task.existing_tracks}
+        for i, a in enumerate(label.answers):
+            if task.classes and a.label not in task.classes:
+                raise _fail(name, ["answers", i, "label"], f"class {a.label!r} is not one of the task's: {', '.join(task.classes)}")
+            _check_boxes(a.boxes, stamps, name, ["answers", i, "boxes"])
+            if a.same_as_track is not None and a.same_as_track not in existing:
+                raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is not an existing track of task {task.task_id}")
+        for i, t in enumerate(label.not_objects):
+            if t not in existing:
+                raise _fail(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")
+            if t in label.not_objects[:i]:
+                raise _fail(name, ["not_objects", i], f"track {t} is listed twice")
+        return
+    items = _items(task, name, label)
+    for i, a in enumerate(label.answers):
+        item = items[a.track_id]
+        if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
+            raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
+        if label.kind == "cad_selection" and a.same_as_track is not None:
+            if a.same_as_track not in items or a.same_as_track == a.track_id:
+                raise _fail(name, ["answers", i, "same_as_track"],
+                            f"track {a.same_as_track} is not another track of task {task.task_id}")
+            if a.cad_id is not None:
+                raise _fail(name, ["answers", i, "cad_id"], f"must be null when same_as_track is given (track {a.track_id} "
+                                                            f"is a fragment of track {a.same_as_track})")
+        if label.kind == "correspondences":
+            if a.cad_id != item.cad_id:
+                raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")
+            seen = set()
+            for j, kf in enumerate(a.keyframes):
+                where = ["answers", i, "keyframes", j, "timestamp_us"]
+                if kf.timestamp_us not in stamps:
+                    raise _fail(name, where, f"{kf.timestamp_us} is not a frame of the clip")
+                if kf.timestamp_us in seen:
+                    raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
+                seen.add(kf.timestamp_us)
+
+
+def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
+                   data: bytes | None = None, max_bytes: int = MAX_LABEL_BYTES) -> LabelFile:
+    """Validate one label file (``data``: its bytes, when read already): its format, and against
+    the warehouse when ``wh`` (or ``facts``) is given. Raises :class:`LabelError` naming the file
+    and the field."""
+    path = Path(path)
+    name = str(path)
+    if data is None:
+        data = read_limited(path, max_bytes)
+    check_size(data, name, max_bytes)
+    label, created_at = parse_label(data, name)
+    warnings = check_clicks(label, name)
+    if facts is None and wh is not None:
+        facts = ClipFacts(wh)
+    if facts is not None:
+        check_label(label, facts, name)
+    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label, created_at, tuple(warnings))
+
+
+def label_document(kind: str, clip: str, task_id: str, answers: list[dict], **header: Any) -> dict:
+    """A label document (plain JSON data) for ``kind``: what importers and simulated annotators write."""
+    return {"format": LABEL_FORMAT, "kind": kind, "task_id": task_id, "clip": clip, **header, "answers": answers}

@@ -1,0 +1,93 @@
+"""Input checks, co-planarity detection and the final verdict of the pose solver (:mod:`tasks.pose.solver`).
+
+Every object gets a status; only ``ok`` poses are fit for use. Before solving:
+
+- ``invalid_input``: a non-finite click, 3D point or camera value, or a key-frame index that
+  names no camera (the object is not solved: no silent repair);
+- ``too_few_points``: fewer than ``min_points`` clicks (9 unknowns, 2 equations per click);
+- ``single_keyframe``: every click on one key-frame: one view cannot tell the depth, hence the
+  size, of the object (scaling it about the camera centre leaves every projection unchanged);
+- ``collinear_points``: the 3D points lie on a line (the rotation about it is not observed).
+
+After solving (the pose is kept, for inspection, but must not be used):
+
+- ``behind_camera``: a point lies at depth <= 0 in a camera that clicked it;
+- ``high_residual``: mean reprojection error above ``max_reprojection_px``;
+- ``low_parallax``: the key-frame cameras see the object under less than ``min_parallax_deg``
+  of angle, so its depth is unobservable (unless the support prior of :mod:`tasks.pose.support`
+  rests it on a support that observes its depth: then ``ok``, and its message says so).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _normal(points: np.ndarray, tol: float) -> np.ndarray | None:
+    """Unit normal of float[N, 3] points if they are co-planar (smallest singular value of the
+    centred points <= tol x the largest), else None."""
+    sv, vt = np.linalg.svd(points - points.mean(0), full_matrices=False)[1:]
+    if len(sv) < 3 or sv[0] <= 0:
+        return None
+    return vt[2] if sv[2] <= tol * sv[0] else None
+
+
+def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: float) -> int:
+    """The CAD axis (0 x, 1 y, 2 z) perpendicular to co-planar annotated points, or -1.
+
+    Co-planar: all points (at least 4) lie on one plane within ``tol`` (relative to their spread);
+    the axis is the CAD axis nearest its normal. A symmetric model's key-frames may carry different
+    symmetric rotations of the same face, so there it is enough that every key-frame with 4 or
+    more points is co-planar with the same nearest axis, and that axis is unchanged by the
+    symmetry (any axis for order 2, only +Y for 4 and 36).
+    """
+    xyz = np.asarray(xyz, np.float64)
+    if len(xyz) >= 4 and (n := _normal(xyz, tol)) is not None:
+        return int(np.argmax(np.abs(n)))
+    if symmetry > 1:
+        axes = []
+        for f in np.unique(keyframe):
+            p = xyz[keyframe == f]
+            if len(p) < 4:
+                continue
+            if (n := _normal(p, tol)) is None:
+                return -1
+            axes.append(int(np.argmax(np.abs(n))))
+        if axes and len(set(axes)) == 1 and (symmetry == 2 or axes[0] == 1):
+            return axes[0]
+    return -1
+
+
+def check_object(o, opts) -> tuple[str, str] | None:
+    """(status, message) when the object cannot be solved, else None (``o``: ObjectCorrespondences)."""
+    xy, xyz, kf = np.asarray(o.xy, float), np.asarray(o.xyz, float), np.asarray(o.keyframe)
+    F = len(o.K)
+    if xy.ndim != 2 or xy.shape[1:] != (2,) or xyz.shape != (len(xy), 3) or kf.shape != (len(xy),):
+        return "invalid_input", f"shapes do not match: xy {xy.shape}, xyz {xyz.shape}, keyframe {kf.shape}"
+    for name, a in (("2D click", xy), ("3D point", xyz), ("camera K", o.K), ("camera R", o.R), ("camera t", o.t)):
+        if not np.isfinite(np.asarray(a, float)).all():
+            return "invalid_input", f"non-finite {name} value(s)"
+    if len(kf) and (kf.min() < 0 or kf.max() >= F):
+        return "invalid_input", f"key-frame index outside 0..{F - 1}"
+    if len(xy) < opts.min_points:
+        return "too_few_points", f"{len(xy)} correspondence(s), at least {opts.min_points} needed"
+    if len(np.unique(kf)) < 2:
+        return "single_keyframe", "all correspondences are on one key-frame: depth and size are not observable"
+    sv = np.linalg.svd(xyz - xyz.mean(0), compute_uv=False)
+    if sv[0] <= 0 or sv[1] <= opts.coplanar_tol * sv[0]:
+        return "collinear_points", "the 3D points are collinear (or all equal): the pose is not observable"
+    return None
+
+
+def final_status(depth: np.ndarray, kf_px: np.ndarray, parallax_deg: float, opts) -> tuple[str, str]:
+    """(status, message) of a solved object from its points' depths float[N] (m), per-key-frame
+    errors float[F] (px) and parallax (degrees)."""
+    if not (np.isfinite(depth).all() and np.isfinite(kf_px).all()):
+        return "high_residual", "the solution is not finite"
+    if (depth <= 0).any():
+        return "behind_camera", f"{int((depth <= 0).sum())} point(s) behind the camera that clicked them"
+    if kf_px.mean() > opts.max_reprojection_px:
+        return "high_residual", f"mean reprojection error {kf_px.mean():.1f} px > {opts.max_reprojection_px} px"
+    if parallax_deg < opts.min_parallax_deg:
+        return "low_parallax", f"key-frames see the object under {parallax_deg:.2f} deg < {opts.min_parallax_deg} deg"
+    return "ok", f"mean reprojection error {kf_px.mean():.2f} px"

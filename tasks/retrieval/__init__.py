@@ -1,0 +1,1 @@
+"""Ranking CAD models for each track: appearance descriptors, whitening, class-label similarity."""

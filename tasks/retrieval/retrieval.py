@@ -1,0 +1,146 @@
+"""Stage ``retrieval``: the top CAD models of every track (paper, Sec. 3.2).
+
+For a track with detections f (label l_f, whitened unit descriptor w_f) and a CAD model m (class
+k_m, whitened unit view descriptors b_mv, V views), the score is the mean over all F x V
+(detection, view) pairs of ``c(l_f, k_m) * (1 + w_f . b_mv) / 2``, where ``c`` is the label
+similarity of :mod:`tasks.retrieval.label_similarity` clipped at 0 (a soft class filter) and the second
+factor maps the cosine to [0, 1]. Because the product is linear in b_mv, the mean over views is
+exactly ``c(l_f, k_m) * (1 + w_f . mean_v b_mv) / 2``, and grouping the track's detections by
+label gives ``sum_l c(l, k_m) * (n_l + (sum_{f in l} w_f) . b_m) / (2F)``: one small matrix
+product per library however many views it has (``cad_model_embeddings`` holds b_m).
+
+Reads: the clip's tracks, automatic and manual (:mod:`tasks.tracking.clip_tracks`: ``tracks``,
+``track_detections``, ``detections``, ``embeddings``, ``manual_tracks``); every
+library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similarity``. Writes:
+the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries; none while
+the warehouse has no CAD library). Each library's descriptors are compared after that library's
+own whitening.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+
+from cadestate.config import RetrievalConfig
+from cadestate.lineage import digest, table_digest
+from tasks.tracking.clip_tracks import MissingDescriptor, clip_tracks
+from tasks.stage import StageOutput
+from tasks.retrieval.whitening import Whitening, read_whitening
+from warehouse import Warehouse
+
+
+class RetrievalError(LookupError):
+    """A CAD library or a label the retrieval needs is missing."""
+
+
+@dataclass(frozen=True)
+class LibraryIndex:
+    """One library as retrieval sees it: cad_ids [M], classes [M], vectors float32[M,k] (mean
+    whitened view descriptors), its whitening, and label -> clipped class similarity float32[M]."""
+
+    library: str
+    cad_ids: np.ndarray
+    classes: np.ndarray
+    vectors: np.ndarray
+    whitening: Whitening
+    class_sim: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class TrackGroups:
+    """One track's detections grouped by label: labels [G], counts int[G], sums of raw descriptors float32[G,D]."""
+
+    labels: list[str]
+    counts: np.ndarray
+    raw: list[np.ndarray]  # per group: raw unit descriptors [n_l, D]
+
+
+def load_index(wh: Warehouse, library: str) -> LibraryIndex:
+    """The retrieval index of ``library`` (its cad_embed and label_similarity stages must have run)."""
+    models = wh.read("cad_model_embeddings", partitions=[library]).to_pylist()
+    if not models:
+        raise RetrievalError(f"CAD library {library!r} has no model descriptors: run its cad_embed stage (`cadestate cad ingest`)")
+    classes = np.array([m["class"] for m in models], dtype=object)
+    sims = wh.read("label_similarity", partitions=[library]).to_pylist()
+    table: dict[str, dict[str, float]] = {}
+    for r in sims:
+        table.setdefault(r["detector_label"], {})[r["cad_class"]] = max(float(r["similarity"]), 0.0)
+    class_sim = {label: np.array([by_class.get(c, 0.0) for c in classes], np.float32) for label, by_class in table.items()}
+    return LibraryIndex(library, np.array([m["cad_id"] for m in models], dtype=object), classes,
+                        np.asarray([m["vector"] for m in models], np.float32), read_whitening(wh, library), class_sim)
+
+
+def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(score, appearance, class similarity), each float32[T, M], of every track against every model."""
+    T, M = len(tracks), len(index.cad_ids)
+    score, appearance, cls = (np.zeros((T, M), np.float32) for _ in range(3))
+    for t, track in enumerate(tracks):
+        F = float(track.counts.sum())
+        for label, n, raw in zip(track.labels, track.counts, track.raw):
+            if label not in index.class_sim:
+                raise RetrievalError(f"detector label {label!r} has no class similarity in CAD library {index.library!r}: "
+                                     "rerun `cadestate cad ingest` after changing [detect] labels")
+            dots = index.whitening.apply(raw).sum(0) @ index.vectors.T  # sum over the group's detections
+            part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
+            c = index.class_sim[label]
+            score[t] += c * part / F
+            appearance[t] += part / F
+            cls[t] += c * n / F
+    return score, appearance, cls
+
+
+def library_digest(wh: Warehouse) -> str:
+    """Digest of the latest completed outputs of every library's cad_embed and label_similarity
+    (an input of the retrieval of every clip)."""
+    runs = wh.read("runs", filters=[("stage", "in", ["cad_embed", "label_similarity"]), ("status", "==", "completed")],
+                   columns=["clip", "stage", "output_hash", "started_at"]).sort_by("started_at").to_pylist()
+    latest = {(r["clip"], r["stage"]): r["output_hash"] for r in runs}
+    return digest(*(f"{k[0]}/{k[1]}={v}" for k, v in sorted(latest.items())))
+
+
+def track_groups(wh: Warehouse, clip: str) -> tuple[list[int], list[TrackGroups]]:
+    """The clip's track ids (automatic and manual, :func:`tasks.tracking.clip_tracks.clip_tracks`) and their
+    boxes grouped by label, with raw descriptors."""
+    try:
+        tracks = clip_tracks(wh, clip, vectors=True)
+    except MissingDescriptor as e:
+        raise RetrievalError(str(e)) from None
+    ids, groups = [], []
+    for t, track in tracks.items():
+        by_label: dict[str, list[np.ndarray]] = {}
+        for b in track.boxes:
+            by_label.setdefault(b.label, []).append(b.vector)
+        labels = sorted(by_label)
+        ids.append(t)
+        groups.append(TrackGroups(labels, np.array([len(by_label[l]) for l in labels]),
+                                  [np.asarray(by_label[l], np.float32) for l in labels]))
+    return ids, groups
+
+
+def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -> StageOutput:
+    """Write the clip's ``cad_candidates`` (see module docstring)."""
+    libraries = wh.partitions("cad_model_embeddings")
+    if not libraries:  # nothing to rank against yet; adding a library makes this stage stale
+        empty = pa.Table.from_pylist([], schema=wh.spec("cad_candidates").schema)
+        wh.write("cad_candidates", clip, empty)
+        return StageOutput(0, table_digest(empty), "no CAD library in the warehouse yet: run `cadestate cad ingest`")
+    track_ids, groups = track_groups(wh, clip)
+    parts = [(index, *score_tracks(groups, index)) for index in (load_index(wh, lib) for lib in libraries)]
+    score = np.concatenate([p[1] for p in parts], 1) if parts else np.zeros((len(groups), 0))
+    appearance = np.concatenate([p[2] for p in parts], 1)
+    cls = np.concatenate([p[3] for p in parts], 1)
+    library = np.concatenate([np.full(len(p[0].cad_ids), p[0].library, dtype=object) for p in parts])
+    cad_ids = np.concatenate([p[0].cad_ids for p in parts])
+    classes = np.concatenate([p[0].classes for p in parts])
+    rows = []
+    for t, track_id in enumerate(track_ids):
+        order = np.lexsort((cad_ids, -score[t]))[: cfg.top_k]  # ties by cad_id: deterministic
+        rows += [{"clip": clip, "track_id": track_id, "rank": r + 1, "library": library[m], "cad_id": cad_ids[m],
+                  "cad_class": classes[m], "score": float(score[t, m]), "appearance": float(appearance[t, m]),
+                  "class_similarity": float(cls[t, m])} for r, m in enumerate(order)]
+    table = pa.Table.from_pylist(rows, schema=wh.spec("cad_candidates").schema)
+    written = wh.write("cad_candidates", clip, table)
+    return StageOutput(written, table_digest(table), f"top {cfg.top_k} of {len(cad_ids)} models for {len(track_ids)} tracks")

@@ -1,0 +1,1 @@
+"""Associating detections into tracks (clique partitioning) and the relations people state between tracks."""

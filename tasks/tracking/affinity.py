@@ -1,0 +1,215 @@
+"""Pairwise affinities of detections for ``tracking``: signed log-odds that two detections are one object.
+
+Candidate pairs: every two detections at most ``[tracking] window`` frames apart (same-frame pairs
+are never one object: the solver gets them as cannot-links, see :mod:`tasks.tracking.partition`).
+Cues of a pair (a earlier, b later), each turned into a log-likelihood ratio
+``log p(cue | same object) / p(cue | different objects)`` by a binned table fitted on the
+synthetic benchmark's true and false pairs (:mod:`tasks.tracking.calibration`, refit with
+``python -m bench.track_bench fit``):
+
+- appearance: cosine of the two descriptors after centring them on the clip's mean descriptor
+  (raw descriptors of one backbone all point roughly the same way; centring on the clip makes
+  the cosine discriminative without depending on any other stage's output);
+- label: whether the two labels agree;
+- motion: IoU of box b with box a carried into frame b by the camera rotation between the two
+  frames (infinite homography ``K_b R_b R_a^T K_a^-1``: what a static object's box does when the
+  camera turns; the remaining translation parallax is small over a few frames), per frame-gap
+  bucket (the same IoU means less after 8 frames than after 1);
+- prior: the log-odds of a pair at that gap being one object, before looking at it.
+
+Edge weight = prior(gap) + appearance_weight * L_app + label_weight * L_label
++ motion_weight * L_motion + bias. Boxes are normalised (ymin, xmin, ymax, xmax).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+LLR_CLIP = 10.0
+"""Largest |log-likelihood ratio| of one bin (empty bins of a small fitting set stay finite)."""
+
+SMOOTHING = 2.0
+"""Pseudo-pairs (of the smaller class) added when fitting, spread like the pooled histogram."""
+
+LABEL_CLIP_GT = 3.0
+"""|log-likelihood ratio| cap of the label cue when fitted on ground-truth boxes: their labels never
+disagree within an object, a detector's do (chair / couch flips), so the fit alone would forbid it."""
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """Per frame (indexed by ``frame_index``): pixel intrinsics K float[F,3,3], world->camera
+    rotation R float[F,3,3], and the image size in pixels."""
+
+    K: np.ndarray
+    R: np.ndarray
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class PairFeatures:
+    """Cue values of the candidate pairs (indices ``a`` < ``b`` in time) of one clip."""
+
+    a: np.ndarray  # int64[P] detection index (earlier frame)
+    b: np.ndarray  # int64[P] detection index (later frame)
+    gap: np.ndarray  # int64[P] frame difference >= 1
+    cosine: np.ndarray | None  # float64[P], None without descriptors
+    same_label: np.ndarray  # bool[P]
+    iou: np.ndarray  # float64[P] IoU after camera-rotation compensation (plain IoU without cameras)
+
+
+def candidate_pairs(frame_index: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """All (a, b) with 1 <= frame[b] - frame[a] <= window, ordered by (a, b) in the frame-sorted order."""
+    f = np.asarray(frame_index, dtype=np.int64)
+    order = np.argsort(f, kind="stable")
+    fs = f[order]
+    start = np.searchsorted(fs, fs + 1, side="left")
+    end = np.searchsorted(fs, fs + window, side="right")
+    cnt = end - start
+    a_sorted = np.repeat(np.arange(len(fs)), cnt)
+    offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    b_sorted = np.repeat(start, cnt) + offs
+    return order[a_sorted], order[b_sorted]
+
+
+def box_iou_pairs(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Row-wise IoU of boxes float[P,4] and float[P,4] (ymin, xmin, ymax, xmax)."""
+    y0 = np.maximum(p[:, 0], q[:, 0])
+    x0 = np.maximum(p[:, 1], q[:, 1])
+    y1 = np.minimum(p[:, 2], q[:, 2])
+    x1 = np.minimum(p[:, 3], q[:, 3])
+    inter = np.clip(y1 - y0, 0, None) * np.clip(x1 - x0, 0, None)
+    area = lambda r: np.clip(r[:, 2] - r[:, 0], 0, None) * np.clip(r[:, 3] - r[:, 1], 0, None)  # noqa: E731
+    union = area(p) + area(q) - inter
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(union > 0, inter / union, 0.0)
+
+
+def rotation_warp(boxes: np.ndarray, fa: np.ndarray, fb: np.ndarray, cams: Cameras) -> np.ndarray:
+    """Boxes float[P,4] of frames ``fa`` carried into frames ``fb`` by the camera rotation alone
+    (bounding box of the four warped corners). Corners that land behind camera b keep the box as is."""
+    W, H = cams.width, cams.height
+    Ka, Kb = cams.K[fa], cams.K[fb]
+    Hm = Kb @ cams.R[fb] @ np.swapaxes(cams.R[fa], 1, 2) @ np.linalg.inv(Ka)  # [P,3,3]
+    ys = boxes[:, [0, 0, 2, 2]] * H
+    xs = boxes[:, [1, 3, 1, 3]] * W
+    pts = np.stack([xs, ys, np.ones_like(xs)], axis=2)  # [P,4,3]
+    q = np.einsum("pij,pkj->pki", Hm, pts)
+    ok = np.all(q[:, :, 2] > 1e-9, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = q[:, :, 0] / q[:, :, 2] / W
+        v = q[:, :, 1] / q[:, :, 2] / H
+    warped = np.stack([v.min(1), u.min(1), v.max(1), u.max(1)], axis=1)
+    return np.where(ok[:, None], warped, boxes)
+
+
+def centred(vectors: np.ndarray) -> np.ndarray:
+    """Descriptors centred on their mean and renormalised (float32[N,D])."""
+    v = np.asarray(vectors, np.float64)
+    v = v - v.mean(0, keepdims=True)
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return (v / np.where(n > 0, n, 1)).astype(np.float32)
+
+
+def pair_features(frame_index: np.ndarray, boxes: np.ndarray, labels: np.ndarray, vectors: np.ndarray | None,
+                  cameras: Cameras | None, window: int) -> PairFeatures:
+    """Cues of every candidate pair of one clip's detections (see module docstring).
+
+    ``vectors``: descriptors float[N,D] (raw; centred here on the clip), or None."""
+    f = np.asarray(frame_index, dtype=np.int64)
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    labels = np.asarray(labels)
+    a, b = candidate_pairs(f, window)
+    ba = boxes[a]
+    if cameras is not None and len(a):
+        ba = rotation_warp(ba, f[a], f[b], cameras)
+    iou = box_iou_pairs(ba, boxes[b])
+    cos = None
+    if vectors is not None:
+        v = centred(vectors)
+        cos = np.einsum("pd,pd->p", v[a], v[b]).astype(np.float64) if len(a) else np.zeros(0)
+    return PairFeatures(a, b, f[b] - f[a], cos, labels[a] == labels[b], iou)
+
+
+# ------------------------------------------------------------------------------------- calibration
+
+def _llr(hist_true: np.ndarray, hist_false: np.ndarray) -> np.ndarray:
+    """Smoothed, clipped log-likelihood ratio per bin (last axis = bins).
+
+    Each class gets pseudo-counts in proportion to its size (``SMOOTHING`` pairs for the smaller
+    class), spread like the pooled histogram: a bin seldom seen in either class tends to 0."""
+    nt = hist_true.sum(-1, keepdims=True)
+    nf = hist_false.sum(-1, keepdims=True)
+    pooled = hist_true + hist_false + 1e-3
+    pooled = pooled / pooled.sum(-1, keepdims=True)
+    beta = SMOOTHING / np.maximum(np.minimum(nt, nf), 1.0)
+    t = (hist_true + beta * nt * pooled) / np.maximum(nt * (1 + beta), 1e-12)
+    f = (hist_false + beta * nf * pooled) / np.maximum(nf * (1 + beta), 1e-12)
+    return np.clip(np.log(np.maximum(t, 1e-300)) - np.log(np.maximum(f, 1e-300)), -LLR_CLIP, LLR_CLIP)
+
+
+def gap_bucket(gap: np.ndarray, edges) -> np.ndarray:
+    """Index of each gap's bucket: bucket k holds gaps in [edges[k], edges[k+1]) (last one open)."""
+    return np.clip(np.searchsorted(np.asarray(edges), gap, side="right") - 1, 0, len(edges) - 1)
+
+
+def _bin(x: np.ndarray, edges) -> np.ndarray:
+    return np.clip(np.searchsorted(np.asarray(edges), x, side="right") - 1, 0, len(edges) - 2)
+
+
+DEFAULT_GAP_EDGES = (1, 2, 3, 5, 9, 17)
+DEFAULT_IOU_EDGES = (0.0, 1e-6, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0 + 1e-9)
+DEFAULT_COS_EDGES = tuple(np.round(np.linspace(-1.0, 1.0, 21), 6).tolist()[:-1] + [1.0 + 1e-9])
+
+
+def fit_calibration(features: list[PairFeatures], truth: list[np.ndarray], *, gap_edges=DEFAULT_GAP_EDGES,
+                    iou_edges=DEFAULT_IOU_EDGES, cos_edges=DEFAULT_COS_EDGES, label_clip: float | None = None) -> dict:
+    """Binned log-likelihood tables and per-gap prior log-odds from pairs with known truth
+    (``truth[k]``: bool per pair of ``features[k]``, True = one object). Returns the dict that
+    :mod:`tasks.tracking.calibration` stores."""
+    gap = np.concatenate([p.gap for p in features])
+    y = np.concatenate(truth).astype(bool)
+    iou = np.concatenate([p.iou for p in features])
+    same = np.concatenate([p.same_label for p in features])
+    gb = gap_bucket(gap, gap_edges)
+    ng, ni = len(gap_edges), len(iou_edges) - 1
+    ib = _bin(iou, iou_edges)
+    ht = np.zeros((ng, ni))
+    hf = np.zeros((ng, ni))
+    np.add.at(ht, (gb[y], ib[y]), 1)
+    np.add.at(hf, (gb[~y], ib[~y]), 1)
+    prior = np.log((ht.sum(1) + 1.0) / (hf.sum(1) + 1.0))
+    lab = _llr(np.array([np.sum(y & ~same), np.sum(y & same)], float),
+               np.array([np.sum(~y & ~same), np.sum(~y & same)], float))
+    if label_clip is not None:
+        lab = np.clip(lab, -label_clip, label_clip)
+    out = {
+        "gap_edges": list(gap_edges), "prior": prior.round(4).tolist(),
+        "iou_edges": list(iou_edges), "motion": _llr(ht, hf).round(4).tolist(),
+        "label": {"different": round(float(lab[0]), 4), "same": round(float(lab[1]), 4)},
+        "cos_edges": list(cos_edges), "appearance": None,
+        "pairs": {"true": int(y.sum()), "false": int((~y).sum())},
+    }
+    if all(p.cosine is not None for p in features):
+        cos = np.concatenate([p.cosine for p in features])
+        cb = _bin(cos, cos_edges)
+        nc = len(cos_edges) - 1
+        out["appearance"] = _llr(np.bincount(cb[y], minlength=nc).astype(float),
+                                 np.bincount(cb[~y], minlength=nc).astype(float)).round(4).tolist()
+    return out
+
+
+def affinities(p: PairFeatures, calibration: dict, *, appearance_weight: float = 1.0, label_weight: float = 1.0,
+               motion_weight: float = 1.0, bias: float = 0.0) -> np.ndarray:
+    """Edge weight (signed log-odds) per pair, from the cues and a calibration (see module docstring)."""
+    gb = gap_bucket(p.gap, calibration["gap_edges"])
+    w = np.asarray(calibration["prior"])[gb] + bias
+    w = w + motion_weight * np.asarray(calibration["motion"])[gb, _bin(p.iou, calibration["iou_edges"])]
+    lab = calibration["label"]
+    w = w + label_weight * np.where(p.same_label, lab["same"], lab["different"])
+    if p.cosine is not None and calibration.get("appearance") is not None:
+        w = w + appearance_weight * np.asarray(calibration["appearance"])[_bin(p.cosine, calibration["cos_edges"])]
+    return w

@@ -1,0 +1,169 @@
+"""Stage ``tracking``: associate a clip's detections into tracks, one per physical object (paper, Sec. 3.1).
+
+Reads: the clip's ``detections``, ``embeddings`` (owner 'detection') and ``frames`` (cameras).
+Writes: its ``tracks``, ``track_detections`` and ``track_appearance`` partitions.
+
+Every two detections at most ``window`` frames apart get an edge whose weight is the log-odds
+that they show one object (:mod:`tasks.tracking.affinity`: appearance, label agreement, box
+continuity after compensating the camera rotation, calibrated on the synthetic benchmark);
+detections of one frame can never share a track (cannot-links). The graph is partitioned into
+cliques maximising the summed log-odds inside them (:func:`tasks.tracking.partition.solve`). Tracks
+with fewer than ``min_detections`` detections are dropped. Track ids are ranks by first
+detection id, so a rerun with unchanged inputs gives the same ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+
+from cadestate.config import TrackingConfig
+from cadestate.lineage import digest, table_digest
+from tasks.tracking.affinity import Cameras, PairFeatures, affinities, pair_features
+from tasks.tracking.partition import solve
+from warehouse import Warehouse
+
+
+class TrackingError(ValueError):
+    """Inputs the tracker cannot use (no calibration, descriptors missing for some detections)."""
+
+
+def default_calibration() -> dict:
+    from tasks.tracking.calibration import CALIBRATION
+
+    if CALIBRATION is None:
+        raise TrackingError("tasks/tracking/calibration.py holds no calibration: run `python -m bench.track_bench fit`")
+    return CALIBRATION
+
+
+@dataclass(frozen=True)
+class Tracking:
+    """Result on N detections: ``track`` int64[N] (track id, -1 = left out), the graph it solved."""
+
+    track: np.ndarray
+    pairs: PairFeatures
+    weights: np.ndarray
+
+
+def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndarray, labels: np.ndarray,
+                     vectors: np.ndarray | None, cameras: Cameras | None, cfg: TrackingConfig,
+                     scores: np.ndarray | None = None, calibration: dict | None = None) -> Tracking:
+    """Tracks of one clip's detections (arrays of length N; ``det_id`` unique).
+
+    Returns track ids 0..T-1 ordered by each track's smallest det_id, -1 for detections left
+    out (score below ``min_score``, or in a track shorter than ``min_detections``)."""
+    det_id = np.asarray(det_id, dtype=np.int64)
+    n = len(det_id)
+    if len(np.unique(det_id)) != n:
+        raise TrackingError("det_id must be unique")
+    calibration = calibration or default_calibration()
+    keep = np.ones(n, dtype=bool) if scores is None else np.asarray(scores) >= cfg.min_score
+    idx = np.flatnonzero(keep)
+    f = np.asarray(frame_index, dtype=np.int64)[idx]
+    vec = None if (vectors is None or cfg.appearance_weight == 0) else np.asarray(vectors)[idx]
+    feats = pair_features(f, np.asarray(boxes, dtype=np.float64).reshape(-1, 4)[idx], np.asarray(labels)[idx], vec,
+                          cameras if cfg.use_cameras else None, cfg.window)
+    w = affinities(feats, calibration, appearance_weight=cfg.appearance_weight, label_weight=cfg.label_weight,
+                   motion_weight=cfg.motion_weight, bias=cfg.bias)
+    lab = solve(len(idx), feats.a, feats.b, w, groups=f, keys=det_id[idx], refine_result=cfg.refine)
+    sizes = np.bincount(lab, minlength=len(idx))
+    long_enough = sizes[lab] >= cfg.min_detections
+    # track ids: kept clusters ranked by their smallest det_id (labels are already in that order)
+    kept_labels = np.unique(lab[long_enough])
+    new_id = np.full(len(sizes), -1, dtype=np.int64)
+    new_id[kept_labels] = np.arange(len(kept_labels))
+    track = np.full(n, -1, dtype=np.int64)
+    track[idx] = new_id[lab]
+    pairs = PairFeatures(idx[feats.a], idx[feats.b], feats.gap, feats.cosine, feats.same_label, feats.iou)
+    return Tracking(track, pairs, w)
+
+
+def vote(labels: list[str], weights: list[float]) -> tuple[str, float]:
+    """Label with the largest summed weight (ties: first in name order) and its share of the votes."""
+    tot: dict[str, float] = {}
+    for lab, x in zip(labels, weights):
+        tot[lab] = tot.get(lab, 0.0) + max(float(x), 1e-6)
+    best = min(tot, key=lambda k: (-tot[k], k))
+    return best, tot[best] / sum(tot.values())
+
+
+def read_cameras(wh: Warehouse, clip: str) -> Cameras:
+    """The clip's cameras from ``frames``, indexed by frame_index."""
+    t = wh.read("frames", partitions=[clip], columns=["frame_index", "K", "world_to_camera_R", "width", "height"]).to_pydict()
+    order = np.argsort(t["frame_index"])
+    fi = np.asarray(t["frame_index"])[order]
+    if not np.array_equal(fi, np.arange(len(fi))):
+        raise TrackingError(f"clip {clip}: frame_index is not 0..{len(fi) - 1}")
+    K = np.asarray(t["K"], dtype=np.float64)[order].reshape(-1, 3, 3)
+    R = np.asarray(t["world_to_camera_R"], dtype=np.float64)[order].reshape(-1, 3, 3)
+    return Cameras(K, R, int(t["width"][0]), int(t["height"][0]))
+
+
+def track_tables(clip: str, dets: dict, vectors: np.ndarray | None, model_sha: str, result: Tracking
+                 ) -> tuple[pa.Table, pa.Table, pa.Table]:
+    """Rows of ``tracks``, ``track_detections`` and ``track_appearance`` (``dets``: column arrays)."""
+    track = result.track
+    ids = np.asarray(dets["det_id"], dtype=np.int64)
+    frames = np.asarray(dets["frame_index"], dtype=np.int64)
+    ts = np.asarray(dets["timestamp_us"], dtype=np.int64)
+    scores = np.asarray(dets["score"], dtype=np.float64)
+    labels = list(dets["label"])
+    pa_, pb = result.pairs.a, result.pairs.b
+    inside = (track[pa_] == track[pb]) & (track[pa_] >= 0)
+    n_tracks = int(track.max()) + 1 if len(track) and track.max() >= 0 else 0
+    coh_sum = np.bincount(track[pa_][inside], weights=result.weights[inside], minlength=n_tracks)
+    coh_cnt = np.bincount(track[pa_][inside], minlength=n_tracks)
+    rows, members, looks = [], [], []
+    for t in range(n_tracks):
+        m = np.flatnonzero(track == t)
+        m = m[np.lexsort((ids[m], frames[m]))]
+        label, share = vote([labels[k] for k in m], scores[m].tolist())
+        rows.append({"clip": clip, "track_id": t, "label": label, "label_votes": share,
+                     "first_timestamp_us": int(ts[m[0]]), "last_timestamp_us": int(ts[m[-1]]),
+                     "first_frame_index": int(frames[m[0]]), "last_frame_index": int(frames[m[-1]]),
+                     "num_detections": len(m), "mean_score": float(scores[m].mean()),
+                     "cohesion": float(coh_sum[t] / coh_cnt[t]) if coh_cnt[t] else 0.0})
+        members += [{"clip": clip, "track_id": t, "det_id": int(ids[k]), "frame_index": int(frames[k]),
+                     "timestamp_us": int(ts[k])} for k in m]
+        if vectors is not None:
+            v = np.asarray(vectors[m], dtype=np.float64)
+            mean = v.mean(0)
+            mean /= max(np.linalg.norm(mean), 1e-12)
+            sims = v @ mean
+            medoid = m[np.lexsort((ids[m], -sims))[0]]
+            looks.append({"clip": clip, "track_id": t, "vector": mean.astype(np.float32).tolist(),
+                          "num_vectors": len(m), "medoid_det_id": int(ids[medoid]), "model_sha256": model_sha})
+    from schemas.tracking import TRACK_APPEARANCE, TRACK_DETECTIONS, TRACKS
+
+    return (pa.Table.from_pylist(rows, schema=TRACKS.schema), pa.Table.from_pylist(members, schema=TRACK_DETECTIONS.schema),
+            pa.Table.from_pylist(looks, schema=TRACK_APPEARANCE.schema))
+
+
+def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str):
+    """Track the clip's detections and write its three tracking partitions (see module docstring)."""
+    from tasks.stage import StageOutput
+
+    dets = wh.read("detections", partitions=[clip],
+                   columns=["det_id", "timestamp_us", "frame_index", "box", "label", "score"]).to_pydict()
+    order = np.argsort(np.asarray(dets["det_id"], dtype=np.int64), kind="stable")
+    dets = {k: [v[i] for i in order.tolist()] for k, v in dets.items()}
+    emb = wh.read("embeddings", partitions=[clip], columns=["owner", "owner_id", "vector", "model_sha256"]).to_pydict()
+    by_id = {oid: (vec, sha) for owner, oid, vec, sha in zip(emb["owner"], emb["owner_id"], emb["vector"], emb["model_sha256"])
+             if owner == "detection"}
+    vectors, model_sha = None, ""
+    if dets["det_id"]:
+        missing = [d for d in dets["det_id"] if d not in by_id]
+        if missing:
+            raise TrackingError(f"clip {clip}: {len(missing)} detections have no descriptor (e.g. det_id {missing[0]}): "
+                                "rerun its embed stage")
+        vectors = np.asarray([by_id[d][0] for d in dets["det_id"]], dtype=np.float32)
+        model_sha = by_id[dets["det_id"][0]][1]
+    cameras = read_cameras(wh, clip)
+    result = track_detections(np.asarray(dets["det_id"]), np.asarray(dets["frame_index"]), np.asarray(dets["box"]).reshape(-1, 4),
+                              np.asarray(dets["label"], dtype=object), vectors, cameras, cfg, scores=np.asarray(dets["score"]))
+    tracks, members, looks = track_tables(clip, dets, vectors, model_sha, result)
+    written = wh.write("tracks", clip, tracks) + wh.write("track_detections", clip, members) + wh.write("track_appearance", clip, looks)
+    out = digest(table_digest(tracks), table_digest(members), table_digest(looks))
+    return StageOutput(written, out, f"{tracks.num_rows} tracks from {len(dets['det_id'])} detections")

@@ -1,0 +1,232 @@
+"""Cameras of a video by structure from motion (pycolmap, CPU): the ``cameras`` stage's logic.
+
+Steps: sample the video's frames at ``[cameras] sample_fps`` (each sampled frame keeps its exact
+decoded time, µs since the video's start), SIFT features, sequential matching, incremental
+mapping with one camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with its focal length
+estimated and the principal point at the image centre, or ``PINHOLE`` fixed to the given
+``intrinsics``), then one camera line per sampled frame: SfM's own pose when the frame was
+registered, else interpolated between its registered neighbours (slerp of the rotation, linear
+camera centre; the nearest one's pose at the ends) and flagged.
+
+Frames: COLMAP's ``cam_from_world`` is world->camera with OpenCV camera axes, as RealEstate10K
+(:mod:`cadestate.geometry`); the world is SfM's, of arbitrary scale, origin and up (the ``ingest``
+stage finds up). Several disconnected models: the largest is kept, the others are reported.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import av
+import numpy as np
+from PIL import Image
+from scipy.spatial.transform import Rotation, Slerp
+
+from cadestate.config import CamerasConfig
+from cadestate.geometry import camera_to_world, world_to_camera
+from tasks.video.camera_file import CameraTrack
+from tasks.video.decode import VideoError
+
+
+class SfmError(ValueError):
+    """Structure from motion failed for a video (one line naming the video and what went wrong)."""
+
+
+@dataclass(frozen=True)
+class SampledFrames:
+    """Frames sampled from a video: ``times_us`` int64[N] decoded presentation times (µs since the
+    stream's start), ``paths`` the N image files (PNG, full resolution), ``width``/``height`` px."""
+
+    times_us: np.ndarray
+    paths: list[Path]
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class SfmResult:
+    """What SfM made of a video.
+
+    Attributes:
+      track: one camera line per sampled frame (world->camera, OpenCV axes, SfM's world).
+      registered: bool[N], True where the camera is SfM's own (False: interpolated).
+      models: registered frames of every model found, largest first (the first one is kept).
+      seconds: {step: wall seconds} (sampling, features, matching, mapping, total).
+    """
+
+    track: CameraTrack
+    registered: np.ndarray
+    models: list[int] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def registered_fraction(self) -> float:
+        return float(self.registered.mean())
+
+
+def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrames:
+    """Decode ``video`` and keep every k-th frame, k = max(1, round(fps / sample_fps)), as PNGs in ``out_dir``."""
+    try:
+        container = av.open(str(video))
+    except (av.error.FFmpegError, OSError) as e:
+        raise VideoError(f"{video}: cannot open video: {e}") from None
+    with container:
+        if not container.streams.video:
+            raise VideoError(f"{video}: no video stream")
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        fps = float(stream.average_rate) if stream.average_rate else sample_fps
+        every = max(1, round(fps / sample_fps))
+        start, base = stream.start_time or 0, stream.time_base
+        times, paths, size = [], [], (0, 0)
+        try:
+            for i, frame in enumerate(container.decode(stream)):
+                if i % every or frame.pts is None:
+                    continue
+                path = out_dir / f"{len(paths):06d}.png"
+                image = frame.to_image()
+                image.save(path, compress_level=1)
+                size = image.size
+                times.append(int(round((frame.pts - start) * base * 1_000_000)))
+                paths.append(path)
+        except av.error.FFmpegError as e:
+            raise VideoError(f"{video}: decoding failed (corrupt or truncated video?): {e}") from None
+    if len(paths) < 2:
+        raise SfmError(f"{video}: {len(paths)} frame(s) sampled at {sample_fps:g} fps; SfM needs at least 2")
+    return SampledFrames(np.asarray(times, dtype=np.int64), paths, size[0], size[1])
+
+
+def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
+    """pycolmap's reader, extraction, matching, pairing, two-view verification and mapping options for ``cfg``."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    if intrinsics:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(repr(float(v)) for v in intrinsics)
+    else:
+        reader.camera_model = "SIMPLE_PINHOLE"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = cfg.max_image_size
+    extraction.num_threads = 1  # more threads store the images in a varying order: another model each run
+    extraction.sift.max_num_features = cfg.max_features
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1  # more threads write the verified pairs in a varying order: another model each run
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = cfg.overlap
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed  # default -1: seeded from the clock, a different model every run
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = cfg.threads
+    mapping.random_seed = cfg.seed
+    mapping.mapper.random_seed = cfg.seed
+    mapping.min_model_size = 3
+    mapping.ba_refine_focal_length = not intrinsics
+    mapping.ba_refine_principal_point = False
+    mapping.ba_refine_extra_params = False
+    mapping.mapper.abs_pose_refine_focal_length = not intrinsics
+    mapping.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
+    return reader, extraction, matching, pairing, verification, mapping
+
+
+def _interpolate(times: np.ndarray, registered: np.ndarray, R: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the unregistered rows of world->camera rotations ``R`` float[N, 3, 3] and camera
+    centres ``c`` float[N, 3] from the registered ones, by time (slerp; linear centre; the
+    nearest registered pose outside their span)."""
+    idx = np.flatnonzero(registered)
+    t = times.astype(np.float64)
+    clamped = np.clip(t, t[idx[0]], t[idx[-1]])
+    if len(idx) == 1:
+        return np.repeat(R[idx], len(t), 0), np.repeat(c[idx], len(t), 0)
+    slerp = Slerp(t[idx], Rotation.from_matrix(R[idx]))
+    R_all = slerp(clamped).as_matrix()
+    c_all = np.stack([np.interp(clamped, t[idx], c[idx, k]) for k in range(3)], axis=1)
+    R_all[idx], c_all[idx] = R[idx], c[idx]
+    return R_all, c_all
+
+
+def check_registered(video: Path | str, registered: np.ndarray, cfg: CamerasConfig, models: list[int]) -> str:
+    """Raise :class:`SfmError` when fewer than ``cfg.min_registered_fraction`` of the frames
+    (bool[N] ``registered``) are registered; ``models``: registered frames per model, the kept one
+    first. Returns the note on the dropped models ("" when there is one model)."""
+    others = "" if len(models) <= 1 else (f"; {len(models) - 1} other disconnected model(s) of "
+                                          f"{', '.join(map(str, models[1:]))} frames dropped")
+    fraction = float(np.mean(registered))
+    if fraction < cfg.min_registered_fraction:
+        raise SfmError(f"{video}: SfM registered {int(np.sum(registered))} of {len(registered)} sampled frames "
+                       f"({fraction:.0%}), fewer than [cameras] min_registered_fraction = {cfg.min_registered_fraction:g}"
+                       f"{others}")
+    return others
+
+
+def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, float, float] | None = None,
+            url: str | None = None, work_dir: Path | None = None) -> SfmResult:
+    """Cameras of ``video`` by SfM (module docstring); ``url`` is the camera file's line 1
+    (default: the video's ``file://`` URI); ``intrinsics`` (fx, fy, cx, cy) px fix the camera.
+
+    Raises:
+      SfmError: no model, or fewer than ``cfg.min_registered_fraction`` of the frames registered.
+      VideoError: an unreadable video.
+    """
+    import pycolmap
+
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(dir=work_dir, prefix="sfm-") as tmp:
+        tmp = Path(tmp)
+        (tmp / "images").mkdir()
+        frames = sample_frames(video, cfg.sample_fps, tmp / "images")
+        seconds["sampling"] = time.perf_counter() - t0
+        reader, extraction, matching, pairing, verification, mapping = _options(cfg, intrinsics)
+        db, names = tmp / "database.db", [p.name for p in frames.paths]
+        t = time.perf_counter()
+        pycolmap.extract_features(db, tmp / "images", names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        seconds["features"] = time.perf_counter() - t
+        t = time.perf_counter()
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+        seconds["matching"] = time.perf_counter() - t
+        t = time.perf_counter()
+        (tmp / "sparse").mkdir()
+        models = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", mapping)
+        seconds["mapping"] = time.perf_counter() - t
+    n = len(frames.paths)
+    if not models:
+        raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
+    ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
+    best = ranked[0]
+    index = {name: i for i, name in enumerate(names)}
+    registered = np.zeros(n, dtype=bool)
+    R, c = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+    for image in best.images.values():
+        if not image.has_pose:
+            continue
+        i = index[image.name]
+        pose = image.cam_from_world()
+        R[i] = pose.rotation.matrix()
+        c[i] = camera_to_world(R[i], np.asarray(pose.translation))[1]
+        registered[i] = True
+    check_registered(video, registered, cfg, [m.num_reg_images() for m in ranked])
+    R, c = _interpolate(frames.times_us, registered, R, c)
+    R_wc, t_wc = world_to_camera(np.swapaxes(R, -1, -2), c)
+    camera = best.cameras[next(iter(best.cameras))]
+    fx, fy = camera.focal_length_x, camera.focal_length_y
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    w, h = camera.width, camera.height
+    normalised = np.tile([fx / w, fy / h, cx / w, cy / h], (n, 1)).astype(np.float64)
+    track = CameraTrack(url or Path(video).resolve().as_uri(), frames.times_us, normalised,
+                        np.concatenate([R_wc, t_wc[:, :, None]], axis=2))
+    seconds["total"] = time.perf_counter() - t0
+    return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()})
+
+
+def sfm_report(result: SfmResult) -> dict:
+    """The JSON report kept beside the SfM camera file (``interpolated`` per camera line)."""
+    return {"registered_fraction": round(result.registered_fraction, 4),
+            "interpolated": [bool(not r) for r in result.registered],
+            "models": result.models, "seconds": result.seconds}
