@@ -1,8 +1,9 @@
 """Flow ``build_cad_library``: ingest a CAD source, one library at a time (in parallel on the task runner).
 
-Per library: cad_ingest (canonical meshes, symmetry, surface samples) -> cad_views (renders) ->
-cad_embed (view descriptors and their whitening); cad_ingest -> label_similarity (detector labels x
-the library's classes).
+Per library the library stages of :data:`tasks.registry.STAGES`, chained as their ``upstream`` says:
+cad_ingest (canonical meshes, symmetry, surface samples) -> cad_views (renders) -> cad_embed (view
+descriptors and their whitening); cad_ingest -> label_similarity (detector labels x the library's
+classes).
 Reports like the clip flows: completed, cached, failed or skipped per stage and library.
 """
 
@@ -18,11 +19,8 @@ from prefect.states import State
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
-from tasks.cad.sources import CadItem, items_digest
-from tasks.prefect_tasks import cad_embed_task, cad_ingest_task, cad_views_task, label_similarity_task
-from tasks.registry import STAGES, extra_inputs
-from tasks.stage import settle_interrupted
-from warehouse import Warehouse
+from flows.stage_tasks import submit_stages
+from tasks.cad.sources import CadItem
 
 
 @flow(name="build_cad_library", log_prints=True)
@@ -31,17 +29,8 @@ def build_cad_library(root: str, items: list[CadItem], config: Config, show_prog
     submitted: list[tuple[str, str, PrefectFuture]] = []
     by_library = groupby(sorted(items, key=lambda i: i.library), key=lambda i: i.library)
     for library, group in by_library:
-        group = list(group)
-        settle_interrupted(Warehouse(root), library)
-        ingest = cad_ingest_task.submit(root, library, group, items_digest(group), config.cad_ingest,
-                                        STAGES["cad_ingest"].code_hash, show_progress)
-        views = cad_views_task.submit(root, library, config.cad_views, ingest, STAGES["cad_views"].code_hash, show_progress)
-        embed = cad_embed_task.submit(root, library, config.embed, config.cad_embed, views,
-                                      STAGES["cad_embed"].code_hash, show_progress)
-        labels = label_similarity_task.submit(root, library, config.label_similarity, config.detect, ingest,
-                                              extra_inputs("label_similarity", config), STAGES["label_similarity"].code_hash)
-        submitted += [(library, "cad_ingest", ingest), (library, "cad_views", views), (library, "cad_embed", embed),
-                      (library, "label_similarity", labels)]
+        submitted += [(library, stage, fut) for stage, fut in
+                      submit_stages(root, "library", library, config, list(group), show_progress)]
     return finish(submitted, [], f"{len({i.library for i in items})} CAD librar(y/ies)")
 
 

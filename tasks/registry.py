@@ -1,159 +1,243 @@
-"""The stages of the pipeline, in order: what each reads (upstream stages) and writes (tables).
+"""The stages of the pipeline, found where they are declared, and their graph.
 
-A stage's name is also its config section and its ``runs.stage`` value. ``scope`` says what one
-run of it covers: a clip, or a CAD library (its runs use the library name as ``runs.clip``).
-``modules`` are the source files of its logic; their digest is the stage's ``code_hash``.
+Every module under ``tasks/`` that assigns ``STAGE = StageDef(...)`` (:class:`tasks.stage.StageDef`)
+declares a stage; adding a stage is writing such a module. The declarations are read from the
+source, not imported, so that commands which only read (``cadestate status``) do not import every
+stage's dependencies; a stage's functions are imported when they are called.
+
+A stage's ``code_hash`` (``runs.code_hash``) is the digest of its module and of every module of the
+project's logic that it imports, directly or through others, as the source says (imports inside
+functions count). The project's logic is ``tasks`` and the foundation (``cadestate``: geometry,
+rendering) less what does not decide a stage's results (:data:`NOT_LOGIC`): the stage framework,
+the parsing and digesting of the config (whose values count through the config hash), the digests
+themselves and progress display. Storage (``warehouse``) and table definitions (``schemas``) are
+not logic either.
 """
 
 from __future__ import annotations
 
+import ast
+import importlib
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import cached_property
-from typing import Any, Literal
+from functools import cache, cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from cadestate.config import section_hash
-from cadestate.lineage import code_digest, digest
+from cadestate.lineage import digest
+
+if TYPE_CHECKING:
+    from cadestate.config import Config
+    from tasks.stage import StageContext, StageDef, StageOutput
+    from warehouse import Warehouse
+
+ROOT = Path(__file__).resolve().parent.parent
+"""The project root: module ``a.b`` is ``ROOT/a/b.py`` (or ``ROOT/a/b/__init__.py``)."""
+LOGIC_PACKAGES = ("tasks", "cadestate")
+NOT_LOGIC = frozenset({"tasks.registry", "tasks.stage", "tasks.status", "cadestate.config", "cadestate.lineage",
+                       "cadestate.progress"})
+FUNCTION_FIELDS = ("run", "config_inputs", "clip_inputs", "source_inputs")
+
+_DECLARATION = re.compile(r"^STAGE = StageDef\(", re.M)
+_IMPORT = re.compile(r"^[ \t]*(?:from[ \t]+([\w.]+)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)|import[ \t]+([^\n#;]*))", re.M)
+
+
+class RegistryError(ValueError):
+    """A stage declaration that cannot be read, or a stage graph that does not hold together."""
 
 
 @dataclass(frozen=True)
-class StageDef:
+class Stage:
+    """A declared stage as the registry reads it: the values of its :class:`tasks.stage.StageDef`,
+    its module, and the names of its functions (``functions``: field -> module-level name)."""
+
     name: str
-    scope: Literal["clip", "library"]
+    scope: str
     upstream: tuple[str, ...]
     tables: tuple[str, ...]
-    modules: tuple[str, ...]
     description: str
-    extra_sections: tuple[str, ...] = ()  # config sections it reads besides its own
-
+    extra_sections: tuple[str, ...]
+    after: tuple[str, ...]
+    module: str
+    functions: tuple[tuple[str, str], ...]
 
     @cached_property
     def code_hash(self) -> str:
-        return code_digest(*self.modules)
+        """Digest of the source of the stage's module and the logic it imports (module docstring)."""
+        return digest(*(f"{m}\n{_source(m)}" for m in sorted(logic_imports(self.module))))
+
+    @cached_property
+    def definition(self) -> StageDef:
+        """The declaration itself (imports the stage's module)."""
+        return importlib.import_module(self.module).STAGE
+
+    def has(self, function: str) -> bool:
+        return function in dict(self.functions)
+
+    def run(self, ctx: StageContext) -> StageOutput:
+        return self.definition.run(ctx)
+
+    def config_inputs(self, config: Config) -> list[str]:
+        return self.definition.config_inputs(config) if self.has("config_inputs") else []
+
+    def clip_inputs(self, wh: Warehouse, unit: str) -> list[str]:
+        return self.definition.clip_inputs(wh, unit) if self.has("clip_inputs") else []
+
+    def submitted_inputs(self, wh: Warehouse, unit: str, config: Config, source: Any) -> list[str]:
+        """Digests of what a run on ``source`` reads besides its upstream outputs (what a flow submits)."""
+        if self.has("source_inputs"):
+            return self.definition.source_inputs(source) + self.config_inputs(config)
+        return self.config_inputs(config) + self.clip_inputs(wh, unit)
+
+    def registered_inputs(self, wh: Warehouse, unit: str, config: Config) -> list[str]:
+        """The same from what the warehouse holds (what ``cadestate status`` compares)."""
+        return self.config_inputs(config) + self.clip_inputs(wh, unit)
 
 
-STAGES: dict[str, StageDef] = {
-    s.name: s
-    for s in (
-        StageDef("cameras", "clip", (), (), ("tasks.video.cameras", "tasks.video.sfm", "tasks.video.camera_file", "tasks.video.decode"),
-                 "the clip's camera file: the given one, else structure from motion on the video (pycolmap)"),
-        StageDef("ingest", "clip", ("cameras",), ("clips",), ("tasks.video.ingest", "tasks.video.camera_file", "tasks.video.decode", "tasks.video.world_up"),
-                 "validate the video and camera file, find the world's up, keep them, register the clip"),
-        StageDef("frames", "clip", ("ingest",), ("frames",), ("tasks.video.frames", "tasks.video.camera_file", "tasks.video.decode"),
-                 "extract the frame at every camera timestamp"),
-        StageDef("detect", "clip", ("frames",), ("detections",), ("tasks.detection.detect", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
-                 "detect objects in every frame (ONNX detector)"),
-        StageDef("embed", "clip", ("detect",), ("embeddings",), ("tasks.detection.embed", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
-                 "one appearance descriptor per detection"),
-        StageDef("tracking", "clip", ("frames", "detect", "embed"), ("tracks", "track_detections", "track_appearance"),
-                 ("tasks.tracking.tracking", "tasks.tracking.affinity", "tasks.tracking.partition", "tasks.tracking.calibration"),
-                 "associate detections into tracks by clique partitioning"),
-        StageDef("manual_tracks", "clip", ("ingest", "frames", "tracking"), ("manual_tracks", "label_tasks"),
-                 ("tasks.human.manual_tracks", "tasks.retrieval.label_similarity", "tasks.tracking.clip_tracks", "tasks.human.human_tasks", "tasks.video.ingest", "tasks.human.labels",
-                  "tasks.tracking.relations",
-                  "tasks.human.label_format", "tasks.human.label_ingest", "tasks.detection.embed", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
-                 "human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
-                 extra_sections=("embed",)),
-        StageDef("retrieval", "clip", ("tracking", "manual_tracks"), ("cad_candidates",),
-                 ("tasks.retrieval.retrieval", "tasks.retrieval.whitening", "tasks.tracking.clip_tracks"),
-                 "top CAD models of every track, automatic and manual (appearance x class-label similarity)"),
-        StageDef("cad_selection", "clip", ("retrieval",), ("label_tasks",),
-                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
-                  "tasks.tracking.relations"),
-                 "human task (3.2): people choose each track's CAD model among its candidates; pauses until answered"),
-        StageDef("correspondence_task", "clip", ("cad_selection",), ("label_tasks",),
-                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
-                  "tasks.tracking.relations"),
-                 "human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered"),
-        StageDef("pose", "clip", ("frames",), ("poses",),
-                 ("tasks.pose.pose", "tasks.pose.solver", "tasks.pose.initial", "tasks.pose.checks", "tasks.pose.lm",
-                  "tasks.pose.batch", "tasks.pose.support", "tasks.pose.inputs", "tasks.human.human_tasks", "tasks.tracking.relations"),
-                 "9-DoF pose of every annotated track from its 3D<->2D correspondences"),
-        StageDef("verification", "clip", ("pose",), ("label_tasks", "verified_poses"),
-                 ("tasks.human.human_tasks", "tasks.tracking.clip_tracks", "tasks.human.labels", "tasks.human.label_format", "tasks.human.label_ingest",
-                  "tasks.tracking.relations", "cadestate.render"),
-                 "human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered"),
-        StageDef("cad_ingest", "library", (), ("cad_models", "cad_samples", "cad_issues"),
-                 ("tasks.cad.ingest", "tasks.cad.sources", "tasks.cad.classes", "tasks.cad.symmetry"),
-                 "canonicalise a CAD library, detect symmetries, sample surfaces"),
-        StageDef("cad_views", "library", ("cad_ingest",), ("cad_views",), ("tasks.cad.views", "cadestate.render"),
-                 "render every CAD model from random viewpoints"),
-        StageDef("cad_embed", "library", ("cad_views",), ("cad_embeddings", "embedding_whitening"),
-                 ("tasks.cad.embed", "tasks.detection.embed", "tasks.retrieval.whitening", "tasks.detection.models.embedder", "tasks.detection.detectors", "tasks.detection.models.nanodet"),
-                 "embed every CAD view, fit the descriptor whitening", extra_sections=("embed",)),
-        StageDef("label_similarity", "library", ("cad_ingest",), ("label_similarity",), ("tasks.retrieval.label_similarity",),
-                 "similarity of every detector label and CAD class (sentence encoder)"),
-    )
-}
+def _module_file(name: str) -> Path | None:
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
 
 
-def stages_of(scope: str) -> list[StageDef]:
+@cache
+def _source(name: str) -> str:
+    return _module_file(name).read_text(encoding="utf-8")
+
+
+@cache
+def _direct_imports(name: str) -> frozenset[str]:
+    """Project modules that module ``name``'s source imports (anywhere in it)."""
+    found = set()
+    for m in _IMPORT.finditer(_source(name)):
+        if m.group(1):
+            found.add(m.group(1))
+            names = m.group(2).strip("() \n").replace("\n", " ")
+            found.update(f"{m.group(1)}.{n.split()[0]}" for n in names.split(",") if n.strip())
+        else:
+            found.update(part.split()[0] for part in m.group(3).split(",") if part.strip())
+    return frozenset(f for f in found if f.split(".")[0] in LOGIC_PACKAGES and _module_file(f) is not None)
+
+
+def logic_imports(module: str) -> set[str]:
+    """``module`` and the logic modules it imports, directly or not (see the module docstring)."""
+    seen, todo = set(), [module]
+    while todo:
+        name = todo.pop()
+        if name in seen or (name in NOT_LOGIC and name != module):
+            continue
+        seen.add(name)
+        todo.extend(_direct_imports(name))
+    return {m for m in seen if not _module_file(m).name == "__init__.py" or m == module}
+
+
+def _declaration(text: str, module: str) -> ast.Call | None:
+    """The ``StageDef(...)`` call of a module's ``STAGE =`` line, parsed alone."""
+    found = _DECLARATION.search(text)
+    if found is None:
+        return None
+    start, end = found.start() + len("STAGE = "), found.end()
+    while (end := text.find(")", end)) != -1:
+        end += 1
+        try:
+            return ast.parse(text[start:end], mode="eval").body
+        except SyntaxError:
+            continue
+    raise RegistryError(f"{module}: the STAGE = StageDef(...) declaration does not parse")
+
+
+def _read_stage(module: str) -> Stage | None:
+    call = _declaration(_source(module), module)
+    if call is None:
+        return None
+    if call.args:
+        raise RegistryError(f"{module}: declare STAGE = StageDef(...) with keywords only")
+    values: dict[str, Any] = {"extra_sections": (), "after": ()}
+    functions = []
+    for kw in call.keywords:
+        if kw.arg in FUNCTION_FIELDS:
+            if not isinstance(kw.value, ast.Name):
+                raise RegistryError(f"{module}: StageDef {kw.arg}= must name a module-level function")
+            functions.append((kw.arg, kw.value.id))
+            continue
+        try:
+            values[kw.arg] = ast.literal_eval(kw.value)
+        except ValueError:
+            raise RegistryError(f"{module}: StageDef {kw.arg}= must be a literal") from None
+    try:
+        return Stage(**values, module=module, functions=tuple(sorted(functions, key=lambda f: FUNCTION_FIELDS.index(f[0]))))
+    except TypeError as e:
+        raise RegistryError(f"{module}: StageDef: {e}") from None
+
+
+def _pipeline_order(stages: dict[str, Stage]) -> list[Stage]:
+    """Topological order over ``upstream`` and ``after``, clip stages first; among the stages ready,
+    first those that follow the stage placed last (a chain stays together), then by name."""
+    order: list[Stage] = []
+    placed: set[str] = set()
+    while len(order) < len(stages):
+        ready = [s for s in stages.values() if s.name not in placed and set(s.upstream + s.after) <= placed]
+        if not ready:
+            raise RegistryError(f"stages in a cycle: {sorted(set(stages) - placed)}")
+        last = order[-1].name if order else ""
+        nxt = min(ready, key=lambda s: (s.scope != "clip", last not in s.upstream + s.after, s.name))
+        order.append(nxt)
+        placed.add(nxt.name)
+    return order
+
+
+def _discover() -> dict[str, Stage]:
+    found: dict[str, Stage] = {}
+    for path in sorted((ROOT / "tasks").rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        stage = _read_stage(module)
+        if stage is None:
+            continue
+        if stage.name in found:
+            raise RegistryError(f"stage {stage.name!r} declared twice: {found[stage.name].module} and {module}")
+        found[stage.name] = stage
+    for s in found.values():
+        for u in s.upstream + s.after:
+            if u not in found or found[u].scope != s.scope:
+                raise RegistryError(f"{s.module}: stage {s.name!r} names {u!r}, not a {s.scope} stage")
+    return {s.name: s for s in _pipeline_order(found)}
+
+
+STAGES: dict[str, Stage] = _discover()
+"""Every stage by name, in pipeline order."""
+
+
+def stages_of(scope: str) -> list[Stage]:
     """The stages of one scope, in pipeline order."""
     return [s for s in STAGES.values() if s.scope == scope]
 
 
-def config_hash(stage: str, sections: Mapping[str, Any]) -> str:
+def config_hash(stage: str, config: Config | Mapping[str, Any]) -> str:
     """``runs.config_hash`` of ``stage``: its section's digest, combined with the digests of its
-    ``extra_sections``; ``sections`` maps section names to their dataclasses."""
-    own = section_hash(stage, sections[stage])
+    ``extra_sections``; ``config``: a :class:`cadestate.config.Config` or a mapping of section
+    names to their dataclasses."""
+    section = config.__getitem__ if isinstance(config, Mapping) else config.section
+    own = section_hash(stage, section(stage))
     extra = STAGES[stage].extra_sections
-    return digest(own, *(section_hash(n, sections[n]) for n in extra)) if extra else own
+    return digest(own, *(section_hash(n, section(n)) for n in extra)) if extra else own
 
 
-def extra_inputs(stage: str, config: Any) -> list[str]:
-    """Digests of what ``stage`` reads besides its upstream stages' outputs (``config``: a
-    :class:`cadestate.config.Config`): the detector's model file for ``detect``, the detector's
-    label map for ``label_similarity`` and ``manual_tracks`` (its classes without a CAD library)."""
-    if stage == "detect":
-        from tasks.detection.detect import model_fingerprint
-
-        return [model_fingerprint(config.detect)]
-    if stage in ("label_similarity", "manual_tracks"):
-        from tasks.retrieval.label_similarity import labels_digest
-
-        return [labels_digest(config.detect)]
-    return []
+def extra_inputs(stage: str, config: Config) -> list[str]:
+    """Digests of the files the config names that ``stage`` reads (its ``config_inputs``)."""
+    return STAGES[stage].config_inputs(config)
 
 
-HUMAN_TASK_KINDS = {"manual_tracks": "manual_track", "cad_selection": "cad_selection",
-                    "correspondence_task": "correspondences", "verification": "verification"}
-"""Stages that wait for people -> the label kind that answers them."""
-
-
-def clip_inputs(stage: str, wh: Any, clip: str) -> list[str]:
-    """Digests of the warehouse data of one clip that ``stage`` reads besides its upstream stages'
-    outputs: the clip's ``correspondences`` (human labels, of the tracks whose chosen model they
-    use) and the ``cad_models`` facts (class, symmetry, bounding box) of their models for ``pose``, the CAD libraries' descriptors and label
-    similarities for ``retrieval``, the detector labels they score for ``manual_tracks`` (its
-    classes); for the human-task stages, the answers in force of their label kind (ingesting labels
-    makes them stale: a rerun resumes them) and, after ``manual_tracks``, the tracks its answer
-    leaves out (:func:`tasks.tracking.relations.left_out_digest`: said to be no object, or another track)."""
-    if stage == "ingest":
-        from tasks.video.ingest import registered_inputs_digest
-
-        return [registered_inputs_digest(wh, clip)]
-    if stage == "retrieval":
-        from tasks.retrieval.retrieval import library_digest
-
-        return [library_digest(wh)]
-    if stage in HUMAN_TASK_KINDS:
-        from tasks.human.label_ingest import answers_digest
-
-        answers = [answers_digest(wh, HUMAN_TASK_KINDS[stage], clip)]
-        if stage == "manual_tracks":
-            from tasks.retrieval.label_similarity import similarity_labels
-
-            return [digest(*similarity_labels(wh)), *answers]
-        from tasks.tracking.relations import left_out_digest
-
-        return [*answers, left_out_digest(wh, clip)]
-    if stage == "pose":
-        from tasks.pose.inputs import input_digests
-
-        return input_digests(wh, clip)
-    return []
+def clip_inputs(stage: str, wh: Warehouse, clip: str) -> list[str]:
+    """Digests of the warehouse data of ``clip`` that ``stage`` reads besides its upstream outputs
+    (its ``clip_inputs``)."""
+    return STAGES[stage].clip_inputs(wh, clip)
 
 
 def upstream_inputs_hash(output_hashes: list[str]) -> str:
-    """``inputs_hash`` of a stage from its upstream stages' output hashes (in ``upstream`` order)."""
+    """``inputs_hash`` of a stage from its upstream stages' output hashes (in ``upstream`` order)
+    followed by the digests of what else it reads."""
     return digest(*output_hashes)

@@ -1,6 +1,12 @@
-"""Running one stage for one clip and recording it in the ``runs`` table.
+"""A stage's declaration, and running one stage for one clip and recording it in the ``runs`` table.
 
-Every stage function has the form ``body(run_id) -> StageOutput`` and is wrapped by
+A stage is declared once, beside its logic: its module (anywhere under ``tasks/``) assigns
+``STAGE = StageDef(...)`` at module level, naming the function that does the work and the
+functions that digest what it reads besides its upstream stages' outputs. :mod:`tasks.registry`
+finds the declarations and derives the stage graph and code digests; :mod:`flows.stage_tasks`
+makes a Prefect task of each; the flows wire them from the graph.
+
+A run's body has the form ``body(run_id) -> StageOutput`` and is wrapped by
 :func:`run_stage`, which times it, writes a ``runs`` row (completed or failed, with the lineage
 digests; ``paused`` when the body says it waits for people) and returns a small picklable :class:`StageRun` (the Prefect task result).
 
@@ -21,11 +27,15 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
 
 import psutil
 import pyarrow as pa
 
 from warehouse import Warehouse, atomic_write_bytes, check_name
+
+if TYPE_CHECKING:
+    from cadestate.config import Config
 
 RUNNING_DIR = "_running"
 """Folder of the markers of runs in progress, under the warehouse root."""
@@ -41,6 +51,63 @@ class StageOutput:
     output_hash: str
     message: str = ""
     paused: bool = False
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """What one run of stage ``stage`` works with. ``unit``: the clip (clip stages) or the CAD library
+    (library stages); ``config``: the whole configuration (a stage's ``config_hash`` covers its own
+    section and its ``extra_sections``: anything else it reads must enter through its
+    ``config_inputs``); ``source``: what the flow was given for the unit, a
+    :class:`tasks.video.ingest.ClipSource` for a clip, the library's list of
+    :class:`tasks.cad.sources.CadItem` for a library."""
+
+    wh: Warehouse
+    stage: str
+    unit: str
+    run_id: str
+    config: Config
+    source: Any = None
+    show_progress: bool = True
+
+    @property
+    def cfg(self) -> Any:
+        """The stage's own config section."""
+        return self.config.section(self.stage)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StageDef:
+    """A stage, declared in its module as ``STAGE = StageDef(...)`` with literal values and names of
+    module-level functions (:mod:`tasks.registry` reads the declaration from the source without
+    importing the module's dependencies).
+
+    ``name`` is also its config section and its ``runs.stage`` value. ``scope``: what one run covers,
+    a ``clip`` or a CAD ``library`` (whose runs use the library name as ``runs.clip``). ``upstream``:
+    the stages whose outputs it reads (their output digests make its ``inputs_hash``; it does not run,
+    and is ``waiting``, while one of them waits for people with nothing answered). ``tables``: what
+    it writes. ``extra_sections``: config sections it reads besides its own (part of its config hash).
+    ``after``: stages it is listed after without reading their output (pose reads the answers of the
+    correspondence task from the warehouse).
+
+    ``run(ctx: StageContext) -> StageOutput`` does the work. What it reads besides its upstream
+    outputs is digested by ``config_inputs(config) -> list[str]`` (files the config names, such as
+    the detector's model), ``clip_inputs(wh, unit) -> list[str]`` (warehouse data, such as people's
+    answers) and, for the stages that read the given source (``cameras``, ``ingest``, ``cad_ingest``),
+    ``source_inputs(source) -> list[str]``: the flow then uses it in place of ``clip_inputs``, which
+    says what the registered source was (what ``cadestate status`` compares)."""
+
+    name: str
+    scope: Literal["clip", "library"]
+    upstream: tuple[str, ...]
+    tables: tuple[str, ...]
+    description: str
+    run: Callable[[StageContext], StageOutput]
+    extra_sections: tuple[str, ...] = ()
+    after: tuple[str, ...] = ()
+    config_inputs: Callable[[Config], list[str]] | None = None
+    clip_inputs: Callable[[Warehouse, str], list[str]] | None = None
+    source_inputs: Callable[[Any], list[str]] | None = None
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
-from tasks.registry import clip_inputs, config_hash, extra_inputs, stages_of, upstream_inputs_hash
+from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
 from warehouse import Warehouse
 
@@ -57,13 +57,13 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             if ok is None:
                 reasons.append("never completed")
             else:
-                if ok["config_hash"] != config_hash(stage.name, {n: config.section(n) for n in (stage.name, *stage.extra_sections)}):
+                if ok["config_hash"] != config_hash(stage.name, config):
                     reasons.append("config changed")
                 if ok["code_hash"] != stage.code_hash:
                     reasons.append("code changed")
                 ups = [last_ok.get((clip, u)) for u in stage.upstream]
                 if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash(
-                        [u["output_hash"] for u in ups] + extra_inputs(stage.name, config) + clip_inputs(stage.name, wh, clip)):
+                        [u["output_hash"] for u in ups] + stage.registered_inputs(wh, clip, config)):
                     reasons.append("inputs changed")
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")

@@ -65,8 +65,8 @@ def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None
 
 def write_selection(wh: Warehouse, clip: str, chosen: dict[int, str | None]) -> None:
     """A cad_selection task answered: ``cad_candidates`` (the chosen model, rank 1, per track) and
-    the label file choosing ``{track id: cad_id or None}`` (what :func:`tasks.human.human_tasks.selected_models` reads)."""
-    from tasks.human.human_tasks import cad_selection_task_id
+    the label file choosing ``{track id: cad_id or None}`` (what :func:`tasks.human.cad_selection.selected_models` reads)."""
+    from tasks.human.cad_selection import cad_selection_task_id
 
     wh.write("cad_candidates", clip, table_rows("cad_candidates", [
         {"clip": clip, "track_id": t, "rank": 1, "cad_id": c or "none"} for t, c in chosen.items()]))

@@ -146,7 +146,9 @@ def _answer_each_task_kind(folder, wh, clip):
     from bench.simulated_labels import answer_tasks, label_dir, open_tasks
     from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig, PoseConfig, VerificationConfig
     from schemas.official import read_objects
-    from tasks.human.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
+    from tasks.human.cad_selection import cad_selection_stage, selected_models
+    from tasks.human.correspondence_task import correspondence_task_stage
+    from tasks.human.verification import verification_stage
     from tasks.human.label_ingest import ingest_labels
     from tasks.pose.pose import solve_clip
 
@@ -181,7 +183,7 @@ def _answer_each_task_kind(folder, wh, clip):
     assert wh.read("verified_poses", [clip]).num_rows >= 1
     assert open_tasks(wh, clip) == []
     # taking a model back (a newer cad_selection label: none fits) takes the track's pose back too
-    from tasks.human.human_tasks import cad_selection_task_id
+    from tasks.human.cad_selection import cad_selection_task_id
     from tasks.human.labels import label_document
     from tasks.registry import clip_inputs
 

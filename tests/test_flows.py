@@ -11,7 +11,7 @@ import pytest
 from cadestate.config import Config, EmbedConfig, FramesConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
 from tasks.video.ingest import ClipSource, clip_inputs
-from tasks.prefect_tasks import STAGE_TASKS
+from flows.stage_tasks import STAGE_TASKS
 from tasks.registry import STAGES, stages_of
 from tasks.status import pipeline_status
 from warehouse import Warehouse
@@ -144,7 +144,7 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     import json
 
     from conftest import warehouse_copy
-    from tasks.human.human_tasks import selected_models
+    from tasks.human.cad_selection import selected_models
     from tasks.human.label_ingest import ingest_labels
     from tasks.human.labels import label_document
 

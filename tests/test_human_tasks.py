@@ -11,8 +11,9 @@ import pytest
 
 from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig
 from schemas import TABLES
-from tasks.human.human_tasks import (cad_selection_stage, cad_selection_task_id, correspondence_task_stage, evenly_spaced,
-                               selected_models)
+from tasks.human.cad_selection import cad_selection_stage, cad_selection_task_id, selected_models
+from tasks.human.correspondence_task import correspondence_task_stage
+from tasks.human.shared import evenly_spaced
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import label_document
 from tasks.registry import clip_inputs
@@ -149,7 +150,7 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     from PIL import Image
 
     from cadestate.config import VerificationConfig
-    from tasks.human.human_tasks import verification_stage
+    from tasks.human.verification import verification_stage
 
     mesh = hwh.root / "media/cad/lib/lib.chair_a.glb"
     mesh.parent.mkdir(parents=True, exist_ok=True)

@@ -88,7 +88,7 @@ def test_train_clip_completes_without_a_task(mwh):
 @needs_embedder
 def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
     from tasks.detection.embed import embed_clip
-    from tasks.human.human_tasks import cad_selection_stage
+    from tasks.human.cad_selection import cad_selection_stage
     from tasks.retrieval.retrieval import retrieve_clip
 
     first = _run(mwh)

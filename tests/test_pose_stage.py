@@ -110,7 +110,7 @@ def test_changed_model_facts_change_the_inputs_hash(posed_clip):
 
 def test_registry_and_config():
     from tasks.cad.classes import CLASSES
-    from tasks.prefect_tasks import STAGE_TASKS
+    from flows.stage_tasks import STAGE_TASKS
 
     assert STAGES["pose"].upstream == ("frames",) and STAGES["pose"].tables == ("poses",) and "pose" in STAGE_TASKS
     assert set(PoseConfig().upright_classes) == {c.name for c in CLASSES if c.upright}

@@ -17,7 +17,9 @@ from cadestate.config import (CadSelectionConfig, CorrespondenceTaskConfig, Embe
                               VerificationConfig)
 from conftest import table_rows
 from tasks.dataset.objects import clip_dataset
-from tasks.human.human_tasks import cad_selection_stage, correspondence_task_stage, selected_models, verification_stage
+from tasks.human.cad_selection import cad_selection_stage, selected_models
+from tasks.human.correspondence_task import correspondence_task_stage
+from tasks.human.verification import verification_stage
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import label_document
 from tasks.human.manual_tracks import manual_tracks_stage

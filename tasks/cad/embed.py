@@ -21,7 +21,7 @@ from tasks.cad.views import BACKGROUND
 from tasks.detection.detect import load_rgb, prefetch
 from tasks.detection.embed import vectors_array
 from tasks.detection.models.embedder import load_embedder
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.retrieval.whitening import fit_whitening, whitening_table
 from warehouse import Warehouse
 
@@ -81,3 +81,14 @@ def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, li
                + wh.write("cad_model_embeddings", library, per_model))
     return StageOutput(written, digest(table_digest(table), table_digest(whitening), table_digest(per_model)),
                        f"{len(views)} view descriptors, whitening '{whitening['method'][0].as_py()}'")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return embed_library(ctx.wh, ctx.config.embed, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
+
+
+STAGE = StageDef(
+    name="cad_embed", scope="library", upstream=("cad_views",), tables=("cad_embeddings", "embedding_whitening"),
+    description="embed every CAD view, fit the descriptor whitening",
+    extra_sections=("embed",), run=_run,
+)

@@ -28,9 +28,9 @@ from cadestate.config import CadIngestConfig
 from cadestate.lineage import table_digest
 from cadestate.progress import progress
 from tasks.cad.classes import BY_NAME
-from tasks.cad.sources import CadItem, load_item, rotation_matrix
+from tasks.cad.sources import CadItem, items_digest, load_item, rotation_matrix
 from tasks.cad.symmetry import detect_symmetry, sample_surface
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 MEDIA_KIND = "cad"
@@ -171,3 +171,18 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
     skipped = sum(i["severity"] == "skipped" for i in issues)
     return StageOutput(rows, table_digest(table.drop_columns(["mesh_path"])),
                        message=f"{skipped} item(s) skipped, see cad_issues" if skipped else "")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return ingest_library(ctx.wh, ctx.cfg, ctx.unit, ctx.source, ctx.run_id, ctx.show_progress)
+
+
+def _source_inputs(items: list[CadItem]) -> list[str]:
+    return [items_digest(items)]
+
+
+STAGE = StageDef(
+    name="cad_ingest", scope="library", upstream=(), tables=("cad_models", "cad_samples", "cad_issues"),
+    description="canonicalise a CAD library, detect symmetries, sample surfaces",
+    run=_run, source_inputs=_source_inputs,
+)

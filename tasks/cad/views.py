@@ -23,7 +23,7 @@ from cadestate.geometry import look_at
 from cadestate.lineage import table_digest
 from cadestate.progress import progress
 from cadestate.render import Camera, Instance, Renderer, RenderMesh
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 MEDIA_KIND = "cad_views"
@@ -77,3 +77,14 @@ def render_library(wh: Warehouse, cfg: CadViewsConfig, library: str, run_id: str
     written = wh.write("cad_views", library, table)
     wh.prune_media(MEDIA_KIND, library, keep=run_id)
     return StageOutput(written, table_digest(table.drop_columns(["image_path"])))
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return render_library(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
+
+
+STAGE = StageDef(
+    name="cad_views", scope="library", upstream=("cad_ingest",), tables=("cad_views",),
+    description="render every CAD model from random viewpoints",
+    run=_run,
+)

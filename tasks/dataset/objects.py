@@ -252,7 +252,7 @@ def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...]
 def clip_dataset(wh: Warehouse, clip: str) -> ClipDataset:
     """The clip's frames and physical objects (module docstring)."""
     from tasks.tracking.clip_tracks import clip_tracks
-    from tasks.human.human_tasks import selected_models
+    from tasks.human.cad_selection import selected_models
 
     frames = clip_frames(wh, clip)
     info = wh.read("clips", [clip], columns=["url", "width", "height", "up_rotation"]).to_pylist()

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from tasks.dataset.objects import ClipDataset, clip_dataset
-from tasks.human.human_tasks import evenly_spaced
+from tasks.human.shared import evenly_spaced
 from tasks.dataset.stats import DatasetTables, annotation_cost_lines, statistics_lines
 from warehouse import Warehouse
 

@@ -18,11 +18,11 @@ import numpy as np
 import pyarrow as pa
 from PIL import Image
 
-from cadestate.config import DetectConfig
+from cadestate.config import Config, DetectConfig
 from cadestate.lineage import file_sha256, table_digest
 from cadestate.progress import progress
 from tasks.detection.detectors import Detections, detector_path, load_detector
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 T, U = TypeVar("T"), TypeVar("U")
@@ -90,3 +90,19 @@ def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_p
     labels = sorted({r["label"] for r in rows})
     shown = f" ({', '.join(labels[:8])}{'…' if len(labels) > 8 else ''})" if labels else ""
     return StageOutput(written, table_digest(table), f"{written} boxes in {len(frames)} frames{shown}")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return detect_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
+
+
+def _config_inputs(config: Config) -> list[str]:
+    """The detector's model file."""
+    return [model_fingerprint(config.detect)]
+
+
+STAGE = StageDef(
+    name="detect", scope="clip", upstream=("frames",), tables=("detections",),
+    description="detect objects in every frame (ONNX detector)",
+    run=_run, config_inputs=_config_inputs,
+)

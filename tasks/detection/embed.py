@@ -15,7 +15,7 @@ from cadestate.lineage import table_digest
 from cadestate.progress import progress
 from tasks.detection.detect import load_rgb, prefetch
 from tasks.detection.models.embedder import Embedder, load_embedder
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 
@@ -77,3 +77,14 @@ def embed_clip(wh: Warehouse, cfg: EmbedConfig, clip: str, run_id: str, show_pro
     }, schema=wh.spec("embeddings").schema)
     written = wh.write("embeddings", clip, table)
     return StageOutput(written, table_digest(table), f"{written} descriptors")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return embed_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
+
+
+STAGE = StageDef(
+    name="embed", scope="clip", upstream=("detect",), tables=("embeddings",),
+    description="one appearance descriptor per detection",
+    run=_run,
+)

@@ -32,21 +32,21 @@ from collections import defaultdict
 import numpy as np
 import pyarrow as pa
 
-from cadestate.config import EmbedConfig, ManualTracksConfig
+from cadestate.config import Config, EmbedConfig, ManualTracksConfig
 from cadestate.lineage import digest, table_digest
 from schemas.dataclass_json import to_json
 from schemas.labels import ExistingTrack, KeyframeView, ManualTrackAnswer, ManualTrackTask, TimedBox
 from schemas.tracking import MANUAL_TRACKS
 from tasks.tracking.clip_tracks import clip_tracks
 from tasks.detection.embed import embed_frame_boxes, vectors_array
-from tasks.human.human_tasks import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
 from tasks.video.ingest import clip_inputs, clip_split
-from tasks.human.label_ingest import answered_tasks, current_answers
-from tasks.retrieval.label_similarity import similarity_labels
+from tasks.human.label_ingest import answered_tasks, answers_digest, current_answers
+from tasks.retrieval.label_similarity import detector_labels, labels_digest, similarity_labels
 from tasks.human.labels import new_task_id, utc_now
 from tasks.tracking.relations import manual_track_ids
 from tasks.detection.models.embedder import load_embedder
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 KIND = "manual_track"
@@ -159,3 +159,24 @@ def manual_tracks_stage(wh: Warehouse, cfg: ManualTracksConfig, embed_cfg: Embed
     objects = len(set(table.column("track_id").to_pylist()))
     summary = f"{objects} manual tracks ({written} boxes) drawn" if objects else "nothing missing: no manual track"
     return StageOutput(written, table_digest(table), f"{summary} in task {task_id}")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return manual_tracks_stage(ctx.wh, ctx.cfg, ctx.config.embed, detector_labels(ctx.config.detect), ctx.unit, ctx.run_id)
+
+
+def _config_inputs(config: Config) -> list[str]:
+    """The detector's label map (the classes people may draw besides the CAD library's)."""
+    return [labels_digest(config.detect)]
+
+
+def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
+    """The classes of the label similarities, and the answers in force."""
+    return [digest(*similarity_labels(wh)), answers_digest(wh, "manual_track", clip)]
+
+
+STAGE = StageDef(
+    name="manual_tracks", scope="clip", upstream=("ingest", "frames", "tracking"), tables=("manual_tracks", "label_tasks"),
+    description="human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
+    extra_sections=("embed",), run=_run, config_inputs=_config_inputs, clip_inputs=_clip_inputs,
+)

@@ -40,13 +40,13 @@ def cad_models_digest(wh: Warehouse, corr: pa.Table) -> str:
 def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
     """The clip's ``correspondences`` that answer its current tasks. When they came from label
     files, only the tracks whose clicks use the model chosen for them now
-    (:func:`tasks.human.human_tasks.selected_models`): a track whose choice changed, or that no longer
+    (:func:`tasks.human.cad_selection.selected_models`): a track whose choice changed, or that no longer
     exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
     directly (``bench run --gt-tracks``) are all kept."""
     corr = wh.read("correspondences", [clip])
     if clip not in wh.partitions("correspondence_labels"):
         return corr
-    from tasks.human.human_tasks import selected_models
+    from tasks.human.cad_selection import selected_models
 
     chosen = {str(t): c for t, c in selected_models(wh, clip).items() if c is not None}
     keep = [chosen.get(t) == c for t, c in zip(corr.column("track_id").to_pylist(), corr.column("cad_id").to_pylist())]

@@ -20,10 +20,10 @@ import pyarrow as pa
 
 from cadestate.config import PoseConfig, section_hash
 from cadestate.lineage import table_digest
-from tasks.pose.inputs import MODEL_FACTS, answered_correspondences
+from tasks.pose.inputs import MODEL_FACTS, answered_correspondences, input_digests
 from tasks.pose.support import solve_with_support
 from tasks.pose.solver import ObjectCorrespondences, PoseResult, SolverOptions
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 SOLVER_FIELDS = {f.name for f in dataclasses.fields(SolverOptions)}
@@ -161,3 +161,18 @@ def solve_clip(wh: Warehouse, cfg: PoseConfig, clip: str, run_id: str) -> StageO
     rows = wh.write("poses", clip, table)
     ok = sum(r.status == "ok" for r in results)
     return StageOutput(rows, table_digest(table), f"{ok} of {len(results)} track(s) posed (status ok)")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return solve_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+
+
+def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
+    return input_digests(wh, clip)
+
+
+STAGE = StageDef(
+    name="pose", scope="clip", upstream=("frames",), tables=("poses",), after=("correspondence_task",),
+    description="9-DoF pose of every annotated track from its 3D<->2D correspondences",
+    run=_run, clip_inputs=_clip_inputs,
+)

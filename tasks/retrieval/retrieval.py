@@ -27,7 +27,7 @@ import pyarrow as pa
 from cadestate.config import RetrievalConfig
 from cadestate.lineage import digest, table_digest
 from tasks.tracking.clip_tracks import MissingDescriptor, clip_tracks
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.retrieval.whitening import Whitening, read_whitening
 from warehouse import Warehouse
 
@@ -144,3 +144,19 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
     table = pa.Table.from_pylist(rows, schema=wh.spec("cad_candidates").schema)
     written = wh.write("cad_candidates", clip, table)
     return StageOutput(written, table_digest(table), f"top {cfg.top_k} of {len(cad_ids)} models for {len(track_ids)} tracks")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return retrieve_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+
+
+def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
+    """The CAD libraries' descriptors and label similarities."""
+    return [library_digest(wh)]
+
+
+STAGE = StageDef(
+    name="retrieval", scope="clip", upstream=("tracking", "manual_tracks"), tables=("cad_candidates",),
+    description="top CAD models of every track, automatic and manual (appearance x class-label similarity)",
+    run=_run, clip_inputs=_clip_inputs,
+)

@@ -138,7 +138,7 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
 def cad_selection_statements(wh: Warehouse, clip: str) -> dict[int, int]:
     """{track: the track it is a fragment of} from the answers in force of the clip's current
     CAD-selection task."""
-    from tasks.human.human_tasks import cad_selection_task_id
+    from tasks.human.cad_selection import cad_selection_task_id
     from tasks.human.label_ingest import current_answers
 
     task_id = cad_selection_task_id(wh, clip)

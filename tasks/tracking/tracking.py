@@ -23,6 +23,7 @@ from cadestate.config import TrackingConfig
 from cadestate.lineage import digest, table_digest
 from tasks.tracking.affinity import Cameras, PairFeatures, affinities, pair_features
 from tasks.tracking.partition import solve
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 
@@ -141,9 +142,8 @@ def track_tables(clip: str, dets: dict, vectors: np.ndarray | None, model_sha: s
             pa.Table.from_pylist(looks, schema=TRACK_APPEARANCE.schema))
 
 
-def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str):
+def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str) -> StageOutput:
     """Track the clip's detections and write its three tracking partitions (see module docstring)."""
-    from tasks.stage import StageOutput
 
     dets = wh.read("detections", partitions=[clip],
                    columns=["det_id", "timestamp_us", "frame_index", "box", "label", "score"]).to_pydict()
@@ -167,3 +167,15 @@ def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str):
     written = wh.write("tracks", clip, tracks) + wh.write("track_detections", clip, members) + wh.write("track_appearance", clip, looks)
     out = digest(table_digest(tracks), table_digest(members), table_digest(looks))
     return StageOutput(written, out, f"{tracks.num_rows} tracks from {len(dets['det_id'])} detections")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return track_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+
+
+STAGE = StageDef(
+    name="tracking", scope="clip", upstream=("frames", "detect", "embed"),
+    tables=("tracks", "track_detections", "track_appearance"),
+    description="associate detections into tracks by clique partitioning",
+    run=_run,
+)

@@ -16,7 +16,7 @@ from cadestate.config import CamerasConfig
 from cadestate.lineage import digest, file_sha256
 from tasks.video.camera_file import write_camera_file
 from tasks.video.ingest import SFM_REPORT_FILE, ClipSource, sfm_cameras_path
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse, atomic_write_bytes
 
 
@@ -46,3 +46,20 @@ def cameras_stage(wh: Warehouse, cfg: CamerasConfig, source: ClipSource, cameras
     message = (f"SfM: {int(result.registered.sum())} of {len(result.registered)} frames registered "
                f"({result.registered_fraction:.1%}), {interpolated} interpolated{dropped}, {result.seconds['total']:.0f} s")
     return StageOutput(len(result.registered), cameras_output_hash("sfm", file_sha256(path)), message=message)
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return cameras_stage(ctx.wh, ctx.cfg, ctx.source, None, ctx.run_id)
+
+
+def _source_inputs(source: ClipSource) -> list[str]:
+    """The video, the given camera file (else "sfm") and the given intrinsics."""
+    cameras = file_sha256(source.cameras) if source.cameras is not None else "sfm"
+    return ["cameras-inputs", source.video_sha256, cameras, str(source.intrinsics)]
+
+
+STAGE = StageDef(
+    name="cameras", scope="clip", upstream=(), tables=(),
+    description="the clip's camera file: the given one, else structure from motion on the video (pycolmap)",
+    run=_run, source_inputs=_source_inputs,
+)

@@ -26,7 +26,7 @@ from cadestate.lineage import digest, file_sha256, table_digest
 from cadestate.progress import progress
 from tasks.video.camera_file import CameraTrack, parse_camera_file
 from tasks.video.ingest import SFM_REPORT_FILE, clip_inputs
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.decode import VideoError, decode_at
 from tasks.video.world_up import align_extrinsics, stored_rotation
 from warehouse import Warehouse
@@ -126,3 +126,14 @@ def extract_frames(wh: Warehouse, cfg: FramesConfig, clip: str, run_id: str, sho
     wh.prune_media(MEDIA_KIND, clip, keep=run_id)
     # The output digest covers the cameras, decoded times and image bytes, not the run-specific image folder.
     return StageOutput(rows, digest(table_digest(table.drop_columns(["image_path"])), images_digest))
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return extract_frames(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
+
+
+STAGE = StageDef(
+    name="frames", scope="clip", upstream=("ingest",), tables=("frames",),
+    description="extract the frame at every camera timestamp",
+    run=_run,
+)

@@ -19,17 +19,18 @@ import shutil
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 
 from cadestate.config import IngestConfig
-from cadestate.lineage import digest
+from cadestate.lineage import digest, file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
-from tasks.stage import StageOutput
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.decode import VideoInfo, probe_video
 from tasks.video.world_up import estimate_up
 from warehouse import Warehouse, WarehouseError, check_name
@@ -68,6 +69,11 @@ class ClipSource:
     def __post_init__(self) -> None:
         check_name(self.clip)
         check_name(self.split, "split")
+
+    @cached_property
+    def video_sha256(self) -> str:
+        """SHA-256 of the video file, read once per source."""
+        return file_sha256(self.video)
 
 
 def sfm_cameras_path(wh: Warehouse, clip: str) -> Path:
@@ -359,3 +365,23 @@ def check_video_ids(wh: Warehouse, new: Sequence[tuple[str, str]]) -> None:
         listed = ", ".join(f"{n} ({u or 'no URL'})" for n, u in pairs)
         raise ClipNameError(f"clips {listed} come from different videos (line 1 of their camera files) but share the "
                             f"video id {vid!r}: give one of them its own name with --clip")
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    source = ctx.source
+    return ingest_clip(ctx.wh, ctx.cfg, source, source.video_sha256, file_sha256(cameras_file(ctx.wh, source)), ctx.run_id)
+
+
+def _source_inputs(source: ClipSource) -> list[str]:
+    return [ingest_source_digest(source.video_sha256, source.split, source.time_offset_us)]
+
+
+def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
+    return [registered_inputs_digest(wh, clip)]
+
+
+STAGE = StageDef(
+    name="ingest", scope="clip", upstream=("cameras",), tables=("clips",),
+    description="validate the video and camera file, find the world's up, keep them, register the clip",
+    run=_run, source_inputs=_source_inputs, clip_inputs=_clip_inputs,
+)

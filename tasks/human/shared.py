@@ -1,0 +1,80 @@
+"""What the human-task stages share: the instructions people read, key-frames of a track, writing a task
+file once, and a stage's result (completed, or paused while items wait).
+"""
+
+from __future__ import annotations
+import dataclasses
+import json
+from pathlib import Path
+import numpy as np
+from schemas.dataclass_json import to_json
+from schemas.labels import KeyframeView
+from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
+from tasks.human.labels import latest_task, parse_task, write_task
+from tasks.stage import StageOutput
+from warehouse import Warehouse
+
+
+INSTRUCTIONS = {
+    "manual_track": "Draw every object that none of the existing tracks covers: its class and a box on each key-frame "
+                    "where it is visible. Answer with no object if nothing is missing.",
+    "cad_selection": "For every track, choose the CAD candidate whose shape is closest to the object; "
+                     "cad_id null if none is similar enough.",
+    "correspondences": "For every track, on each key-frame you annotate, click 4-6 points on the CAD model and the "
+                       "same points in the image; mirror the model if it is the mirror image of the object.",
+    "verification": "For every track, accept only if the rendered CAD model aligns with the object on every key-frame.",
+}
+
+
+def evenly_spaced(n: int, k: int) -> list[int]:
+    """``min(n, k)`` indices of ``range(n)`` spread evenly, first and last included."""
+    if n <= 0:
+        return []
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(n, k))})
+
+
+def image_size(wh: Warehouse, clip: str) -> tuple[int, int]:
+    frames = wh.read("frames", [clip], columns=["width", "height"])
+    if frames.num_rows == 0:
+        return (1, 1)
+    return int(frames.column("height")[0].as_py()), int(frames.column("width")[0].as_py())
+
+
+def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], track_ids: list[int],
+                    k: int) -> dict[int, tuple[KeyframeView, ...]]:
+    """Per track of ``track_ids`` (automatic or manual, from ``tracks``: :func:`clip_tracks`),
+    ``k`` evenly spaced frames of its boxes with its box there."""
+    frames = {f["frame_index"]: f for f in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
+    out = {}
+    for t in track_ids:
+        boxes = tracks[t].boxes if t in tracks else ()
+        views = []
+        for i in evenly_spaced(len(boxes), k):
+            frame = frames.get(boxes[i].frame_index)
+            if frame is not None:
+                views.append(KeyframeView(timestamp_us=int(frame["timestamp_us"]), frame_index=int(frame["frame_index"]),
+                                          image_path=frame["image_path"], box=tuple(float(v) for v in boxes[i].box)))
+        out[t] = tuple(views)
+    return out
+
+
+def write_task_once(wh: Warehouse, task) -> Path:
+    """Write ``task``; if the newest version of the same task id says the same (but for
+    ``created_at``), keep that version (no new file or ``label_tasks`` row)."""
+    row = latest_task(wh, task.clip, task.task_id)
+    if row is not None:
+        old = parse_task(row["document"], f"task {task.task_id}")
+        same = dataclasses.replace(task, created_at=old.created_at)
+        if to_json(same) == json.loads(row["document"]):
+            return write_task(wh, same)
+    return write_task(wh, task)
+
+
+def task_output(rows: int, output_hash: str, summary: str, kind: str, path: str, waiting: int, total: int,
+                what: str = "tracks") -> StageOutput:
+    """A human-task stage's result: completed, or paused while ``waiting`` of ``total`` items of
+    its ``kind`` task at ``path`` are unanswered (the message names the task file)."""
+    if not waiting:
+        return StageOutput(rows, output_hash, summary)
+    return StageOutput(rows, output_hash, f"waits for labels: {waiting} of {total} {what} unanswered in {kind} task {path}; "
+                                          f"{summary}", paused=True)

@@ -1,0 +1,149 @@
+"""Stage ``verification`` (paper 3.5), after ``pose``: per solved (``ok``) pose, the posed CAD rendered over its
+  key-frames; verdicts go to ``verified_poses``.
+
+
+How it waits for people: :mod:`tasks.human.cad_selection`.
+"""
+
+from __future__ import annotations
+import numpy as np
+import pyarrow as pa
+from cadestate.config import VerificationConfig
+from cadestate.lineage import table_digest
+from schemas.labels import KeyframeView, Pose, VerificationAnswer, VerificationItem, VerificationTask
+from tasks.human.label_ingest import answers_digest, current_answers
+from tasks.human.labels import new_task_id, utc_now
+from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.tracking.relations import left_out_digest, left_out_tracks
+from warehouse import Warehouse
+from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+
+
+POSE_COLUMNS = ["track_id", "cad_id", "class", "translation", "rotation", "scale", "is_mirrored", "keyframe_timestamps_us"]
+
+
+def ok_poses(wh: Warehouse, clip: str) -> pa.Table:
+    poses = wh.read("poses", [clip])
+    mask = pa.array([s == "ok" for s in poses.column("status").to_pylist()], pa.bool_())
+    return poses.filter(mask).select(POSE_COLUMNS).sort_by([("track_id", "ascending")])
+
+
+def verification_task_id(clip: str, poses: pa.Table) -> str:
+    return new_task_id("verification", clip, table_digest(poses))
+
+
+def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k: int, alpha: float) -> dict[str, list[tuple[int, str]]]:
+    """Per track (poses.track_id), up to ``k`` of its key-frames with the posed CAD drawn over the
+    frame: (timestamp_us, overlay path relative to the warehouse root). Existing overlays are kept."""
+    from PIL import Image
+
+    from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
+
+    frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path", "width",
+                                                                            "height", "K", "world_to_camera_R",
+                                                                            "world_to_camera_t"]).to_pylist()}
+    meshes = {r["cad_id"]: r["mesh_path"] for r in wh.read("cad_models", columns=["cad_id", "mesh_path"]).to_pylist()}
+    folder = wh.root / "media" / "verification" / clip / task_id
+    out: dict[str, list[tuple[int, str]]] = {}
+    todo = []
+    for p in poses:
+        stamps = [t for t in p["keyframe_timestamps_us"] if t in frames]
+        stamps = [stamps[i] for i in evenly_spaced(len(stamps), k)]
+        out[p["track_id"]] = [(t, wh.relative(folder / f"{p['track_id']}_{t}.jpg")) for t in stamps]
+        todo += [(p, t, folder / f"{p['track_id']}_{t}.jpg") for t in stamps if not (folder / f"{p['track_id']}_{t}.jpg").is_file()]
+    if not todo:
+        return out
+    import trimesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    W, H = int(frames[todo[0][1]]["width"]), int(frames[todo[0][1]]["height"])
+    loaded: dict[str, RenderMesh] = {}
+    with Renderer(W, H) as renderer:
+        for p, t, path in todo:
+            if p["cad_id"] not in loaded:
+                loaded[p["cad_id"]] = RenderMesh.from_trimesh(trimesh.load(wh.root / meshes[p["cad_id"]], force="scene"))
+            f = frames[t]
+            camera = Camera(np.array(f["K"]).reshape(3, 3), np.array(f["world_to_camera_R"]).reshape(3, 3),
+                            np.array(f["world_to_camera_t"]), W, H, 0.01, 1000.0)
+            M = object_to_world(p["translation"], p["rotation"], p["scale"], p["is_mirrored"])
+            result = renderer.render([Instance(loaded[p["cad_id"]], M, 1)], camera)
+            image = np.asarray(Image.open(wh.root / f["image_path"]).convert("RGB").resize((W, H)), np.float32)
+            mask = (result.instance_id == 1)[..., None] * alpha
+            blended = image * (1 - mask) + result.rgb.astype(np.float32) * mask
+            tmp = path.with_suffix(".tmp.jpg")
+            Image.fromarray(np.clip(blended, 0, 255).astype(np.uint8)).save(tmp, quality=90)
+            tmp.replace(path)
+    return out
+
+
+def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id: str) -> StageOutput:
+    """Write the verification task of the clip's solved poses; paused until each has a verdict.
+    Writes ``verified_poses`` (the answered tracks)."""
+    from schemas.pose import VERIFIED_POSES
+
+    poses = ok_poses(wh, clip)
+    left_out = left_out_tracks(wh, clip)
+    poses = poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
+    if poses.num_rows == 0:
+        empty = VERIFIED_POSES.schema.empty_table()
+        wh.write("verified_poses", clip, empty)
+        return StageOutput(0, table_digest(empty), "no solved pose to verify")
+    task_id = verification_task_id(clip, poses)
+    rows = poses.to_pylist()
+    answers = {int(r["track_id"]): r for r in current_answers(wh, "verification", [clip], task_id).to_pylist()}
+    overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
+    frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
+    items = []
+    for p in rows:
+        t = int(p["track_id"])
+        kfs = tuple(KeyframeView(timestamp_us=ts, frame_index=int(frames[ts]["frame_index"]), image_path=frames[ts]["image_path"],
+                                 overlay_path=path) for ts, path in overlays[p["track_id"]])
+        if not kfs:
+            continue
+        a = answers.get(t)
+        previous = VerificationAnswer(track_id=t, verdict="accept" if a["accepted"] else "reject", comment=a["comment"]) if a else None
+        items.append(VerificationItem(
+            track_id=t, label=p["class"] or "", cad_id=p["cad_id"], mesh_path=_mesh_path(wh, p["cad_id"]),
+            pose=Pose(translation=tuple(p["translation"]), rotation=tuple(p["rotation"]), scale=tuple(p["scale"]),
+                      is_mirrored=bool(p["is_mirrored"])),
+            keyframes=kfs, previous=previous))
+    if not items:
+        empty = VERIFIED_POSES.schema.empty_table()
+        wh.write("verified_poses", clip, empty)
+        return StageOutput(0, table_digest(empty), "no solved pose on a frame of the clip")
+    task = VerificationTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),
+                            instructions=INSTRUCTIONS["verification"], items=tuple(items))
+    path = wh.relative(write_task_once(wh, task))
+    verified = [{"clip": clip, "track_id": p["track_id"], "cad_id": p["cad_id"], "class": p["class"],
+                 "accepted": bool(answers[int(p["track_id"])]["accepted"]), "translation": p["translation"],
+                 "rotation": p["rotation"], "scale": p["scale"], "is_mirrored": p["is_mirrored"], "task_id": task_id,
+                 "comment": answers[int(p["track_id"])]["comment"]}
+                for p in rows if int(p["track_id"]) in answers and p["track_id"] in {str(it.track_id) for it in items}]
+    table = pa.Table.from_pylist(verified, schema=VERIFIED_POSES.schema)
+    wh.write("verified_poses", clip, table)
+    waiting = len(items) - len(verified)
+    accepted = sum(r["accepted"] for r in verified)
+    summary = f"{accepted} of {len(items)} poses accepted, {len(verified) - accepted} rejected"
+    return task_output(len(verified), table_digest(table), summary, "verification", path, waiting, len(items), "poses")
+
+
+def _mesh_path(wh: Warehouse, cad_id: str) -> str:
+    rows = wh.read("cad_models", filters=[("cad_id", "=", cad_id)], columns=["mesh_path"]).to_pylist()
+    return rows[0]["mesh_path"] if rows else ""
+
+
+def _run(ctx: StageContext) -> StageOutput:
+    return verification_stage(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+
+
+def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
+    """The answers in force, and the tracks the manual-track answer leaves out (said to be no object,
+    or another track): ingesting labels makes the stage stale, and a rerun resumes it."""
+    return [answers_digest(wh, "verification", clip), left_out_digest(wh, clip)]
+
+
+STAGE = StageDef(
+    name="verification", scope="clip", upstream=("pose",), tables=("label_tasks", "verified_poses"),
+    description="human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered",
+    run=_run, clip_inputs=_clip_inputs,
+)
