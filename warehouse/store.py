@@ -25,7 +25,7 @@ import re
 import shutil
 import time
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,6 +40,10 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
+
+AFTER_WRITE: list[Callable[[Warehouse], object]] = []
+"""Called with the warehouse after each partition write. The package (``warehouse/__init__.py``) adds
+the DuckDB catalog's refresh, so this module knows nothing of the catalog, which is built on it."""
 
 
 class WarehouseError(ValueError):
@@ -179,9 +183,8 @@ class Warehouse:
         finally:
             tmp.unlink(missing_ok=True)
         fsync_dir(folder)
-        from warehouse.catalog import refresh_catalog  # the catalog's views follow the tables
-
-        refresh_catalog(self)
+        for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
+            hook(self)
         return data.num_rows
 
     # -- reading -----------------------------------------------------------------------------
