@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from warehouse.store import atomic_write_bytes
+from cadestate.atomic import atomic_write_bytes
 
 
 class OfficialFormatError(ValueError):

@@ -99,7 +99,7 @@ def test_cli_defaults_are_the_default_benchmark():
     import inspect
 
     from bench.benchmark import DEFAULT_CLIPS, DEFAULT_SEED
-    from cadestate.cli import bench_generate
+    from cadestate.cli.bench import bench_generate
 
     params = inspect.signature(bench_generate).parameters
     assert params["seed"].default == DEFAULT_SEED and params["clips"].default == DEFAULT_CLIPS

@@ -2,11 +2,15 @@
 
 The names below are imported on first use (a module ``__getattr__``), so ``from warehouse import
 Warehouse`` does not import DuckDB, and nothing here imports pyarrow before a table is read or written.
+Importing the package registers the catalog's refresh as the store's after-write hook
+(:data:`warehouse.store.AFTER_WRITE`).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
+
+from warehouse import store as _store
 
 if TYPE_CHECKING:
     from warehouse.catalog import connect, refresh_catalog
@@ -16,6 +20,18 @@ __all__ = ["Warehouse", "WarehouseError", "atomic_write_bytes", "check_name", "c
 
 _FROM = {"Warehouse": "warehouse.store", "WarehouseError": "warehouse.store", "atomic_write_bytes": "warehouse.store",
          "check_name": "warehouse.store", "connect": "warehouse.catalog", "refresh_catalog": "warehouse.catalog"}
+
+
+def _refresh_catalog(wh: Warehouse) -> None:
+    """After each write, the catalog's views follow the tables (:func:`warehouse.catalog.refresh_catalog`;
+    DuckDB is imported on the first write). Wired here, above both modules, so that the store does not
+    import the catalog that imports it."""
+    from warehouse.catalog import refresh_catalog
+
+    refresh_catalog(wh)
+
+
+_store.AFTER_WRITE.append(_refresh_catalog)
 
 
 def __getattr__(name: str) -> Any:

@@ -25,9 +25,11 @@ import re
 import shutil
 import time
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from cadestate.atomic import TMP_SUFFIX, atomic_write_bytes, fsync_dir  # noqa: F401  (atomic_write_bytes: also warehouse's)
 
 if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
     import pyarrow as pa
@@ -38,7 +40,10 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
-TMP_SUFFIX = ".tmp"
+
+AFTER_WRITE: list[Callable[[Warehouse], object]] = []
+"""Called with the warehouse after each partition write. The package (``warehouse/__init__.py``) adds
+the DuckDB catalog's refresh, so this module knows nothing of the catalog, which is built on it."""
 
 
 class WarehouseError(ValueError):
@@ -53,30 +58,6 @@ def check_name(name: str, what: str = "clip") -> str:
             f"invalid {what} name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
         )
     return name
-
-
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, fsync, rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    _fsync_dir(path.parent)
 
 
 class Warehouse:
@@ -201,10 +182,9 @@ class Warehouse:
             os.replace(tmp, final)
         finally:
             tmp.unlink(missing_ok=True)
-        _fsync_dir(folder)
-        from warehouse.catalog import refresh_catalog  # the catalog's views follow the tables
-
-        refresh_catalog(self)
+        fsync_dir(folder)
+        for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
+            hook(self)
         return data.num_rows
 
     # -- reading -----------------------------------------------------------------------------
@@ -257,7 +237,7 @@ class Warehouse:
             raise WarehouseError(f"media version {final} exists already")
         final.parent.mkdir(parents=True, exist_ok=True)
         os.replace(staged, final)
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)
         return final
 
     def prune_media(self, kind: str, part: str, keep: str) -> None:

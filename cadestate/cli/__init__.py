@@ -3,7 +3,8 @@
 Modules: :mod:`cadestate.cli.common` (apps, state, output), :mod:`cadestate.cli.pipeline` (clips,
 warehouse, configuration), :mod:`cadestate.cli.labels` (label files), :mod:`cadestate.cli.cad` (the
 CAD library), :mod:`cadestate.cli.bench` (the synthetic benchmark). Importing them registers their
-commands; each command imports what it needs when it runs, so a command pays only for itself.
+commands; each command imports what it needs when it runs, so a command pays only for itself (nothing
+of ``bench/`` is imported unless ``bench ...`` or ``demo make`` runs: ``tests/test_layers.py``).
 """
 
 from __future__ import annotations
@@ -13,10 +14,9 @@ import sys
 from rich.markup import escape
 
 from cadestate.cli import annotate, bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
-from cadestate.cli.bench import bench_generate
 from cadestate.cli.common import app, err
 
-__all__ = ["app", "bench_generate", "main"]
+__all__ = ["app", "main"]
 
 INPUT_ERRORS = {
     "cadestate.cli.common": "CliError",
