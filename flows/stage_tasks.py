@@ -52,7 +52,7 @@ def run_declared_stage(root: str, unit: str, stage: str, config_hash: str, code_
     return run_stage(
         wh, unit, stage, config_hash=config_hash, code_hash=code_hash,
         inputs_hash=upstream_inputs_hash([u.output_hash for u in upstream] + inputs),
-        body=lambda run_id: declared.run(StageContext(wh, stage, unit, run_id, config, source, show_progress)),
+        body=lambda run_id: declared.run(StageContext(wh, stage, declared.section, unit, run_id, config, source, show_progress)),
     )
 
 

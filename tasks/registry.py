@@ -54,6 +54,7 @@ class Stage:
     its module, and the names of its functions (``functions``: field -> module-level name)."""
 
     name: str
+    section: str | None
     scope: str
     upstream: tuple[str, ...]
     tables: tuple[str, ...]
@@ -221,7 +222,8 @@ def config_hash(stage: str, config: Config | Mapping[str, Any]) -> str:
     ``extra_sections``; ``config``: a :class:`cadestate.config.Config` or a mapping of section
     names to their dataclasses."""
     section = config.__getitem__ if isinstance(config, Mapping) else config.section
-    own = section_hash(stage, section(stage))
+    name = STAGES[stage].section
+    own = section_hash(name, section(name)) if name is not None else digest("no config section")
     extra = STAGES[stage].extra_sections
     return digest(own, *(section_hash(n, section(n)) for n in extra)) if extra else own
 
@@ -235,6 +237,19 @@ def clip_inputs(stage: str, wh: Warehouse, clip: str) -> list[str]:
     """Digests of the warehouse data of ``clip`` that ``stage`` reads besides its upstream outputs
     (its ``clip_inputs``)."""
     return STAGES[stage].clip_inputs(wh, clip)
+
+
+def stages_markdown(scope: str) -> str:
+    """The Markdown table of the stages of ``scope`` (the README's, which a test keeps equal)."""
+    rows = ["| stage | after | writes | config | module | what it does |", "|---|---|---|---|---|---|"]
+    for s in stages_of(scope):
+        after = ", ".join(f"`{u}`" for u in s.upstream + s.after) or "(the source)"
+        writes = ", ".join(f"`{t}`" for t in s.tables) or "(files)"
+        config = f"`[{s.section}]`" if s.section else ""
+        config += "".join(f", `[{e}]`" for e in s.extra_sections)
+        module = "tasks/" + "/".join(s.module.split(".")[1:]) + ".py"
+        rows.append(f"| `{s.name}` | {after} | {writes} | {config} | `{module}` | {s.description} |")
+    return "\n".join(rows)
 
 
 def upstream_inputs_hash(output_hashes: list[str]) -> str:

@@ -55,7 +55,7 @@ class StageOutput:
 
 @dataclass(frozen=True)
 class StageContext:
-    """What one run of stage ``stage`` works with. ``unit``: the clip (clip stages) or the CAD library
+    """What one run of stage ``stage`` (whose config section is ``section``) works with. ``unit``: the clip (clip stages) or the CAD library
     (library stages); ``config``: the whole configuration (a stage's ``config_hash`` covers its own
     section and its ``extra_sections``: anything else it reads must enter through its
     ``config_inputs``); ``source``: what the flow was given for the unit, a
@@ -64,6 +64,7 @@ class StageContext:
 
     wh: Warehouse
     stage: str
+    section: str | None
     unit: str
     run_id: str
     config: Config
@@ -73,7 +74,9 @@ class StageContext:
     @property
     def cfg(self) -> Any:
         """The stage's own config section."""
-        return self.config.section(self.stage)
+        if self.section is None:
+            raise KeyError(f"stage {self.stage!r} has no config section")
+        return self.config.section(self.section)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -82,7 +85,8 @@ class StageDef:
     module-level functions (:mod:`tasks.registry` reads the declaration from the source without
     importing the module's dependencies).
 
-    ``name`` is also its config section and its ``runs.stage`` value. ``scope``: what one run covers,
+    ``name`` is its ``runs.stage`` value; ``section`` its config section (a dataclass of
+    :mod:`cadestate.config`, usually named like the stage; None: it has no settings). ``scope``: what one run covers,
     a ``clip`` or a CAD ``library`` (whose runs use the library name as ``runs.clip``). ``upstream``:
     the stages whose outputs it reads (their output digests make its ``inputs_hash``; it does not run,
     and is ``waiting``, while one of them waits for people with nothing answered). ``tables``: what
@@ -98,6 +102,7 @@ class StageDef:
     says what the registered source was (what ``cadestate status`` compares)."""
 
     name: str
+    section: str | None
     scope: Literal["clip", "library"]
     upstream: tuple[str, ...]
     tables: tuple[str, ...]

@@ -24,11 +24,6 @@ FOUNDATION = frozenset({"cadestate", "cadestate.atomic", "cadestate.config", "ca
                         "cadestate.progress", "cadestate.render"})
 """Modules that import no other project module but each other."""
 
-BENCH_IMPORTS_ALLOWED = {
-    "cadestate.cli.pipeline": {"demo_make"},  # `cadestate demo make`: the demo clip generator is bench/demo_clip.py
-}
-"""Functions of ``cadestate.cli`` modules outside ``cadestate.cli.bench`` that may import ``bench`` when they run."""
-
 
 @dataclass(frozen=True)
 class Import:
@@ -149,11 +144,10 @@ def test_a_layer_imports_nothing_above_it(layer, forbidden):
 
 def test_the_cli_imports_bench_only_in_bench_commands():
     """Nothing of bench/ at module level of any CLI module; inside functions only in the ``bench``
-    commands (``cadestate.cli.bench``) and the few named in :data:`BENCH_IMPORTS_ALLOWED`."""
+    commands (``cadestate.cli.bench``)."""
     bad = [str(i) for i in all_imports()
-           if under(i.importer, "cadestate.cli") and under(i.module, "bench") and not (
-               i.function and (i.importer == "cadestate.cli.bench"
-                               or i.function.split(".")[0] in BENCH_IMPORTS_ALLOWED.get(i.importer, ())))]
+           if under(i.importer, "cadestate.cli") and under(i.module, "bench")
+           and not (i.function and i.importer == "cadestate.cli.bench")]
     assert bad == []
 
 

@@ -4,7 +4,7 @@ Modules: :mod:`cadestate.cli.common` (apps, state, output), :mod:`cadestate.cli.
 warehouse, configuration), :mod:`cadestate.cli.labels` (label files), :mod:`cadestate.cli.cad` (the
 CAD library), :mod:`cadestate.cli.bench` (the synthetic benchmark). Importing them registers their
 commands; each command imports what it needs when it runs, so a command pays only for itself (nothing
-of ``bench/`` is imported unless ``bench ...`` or ``demo make`` runs: ``tests/test_layers.py``).
+of ``bench/`` is imported unless a ``bench`` command runs: ``tests/test_layers.py``).
 """
 
 from __future__ import annotations

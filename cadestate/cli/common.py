@@ -27,10 +27,8 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 config_app = typer.Typer(help="Show or check the configuration (one TOML file, a section per stage).", no_args_is_help=True)
-demo_app = typer.Typer(help="Synthetic demo clips (video + RealEstate10K camera file).", no_args_is_help=True)
 cad_app = typer.Typer(help="The CAD library: ingest CAD collections, render them, export them in the official layout.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
-app.add_typer(demo_app, name="demo")
 bench_app = typer.Typer(help="The synthetic benchmark: rendered walkthroughs with exact ground truth, evaluators.", no_args_is_help=True)
 app.add_typer(cad_app, name="cad")
 app.add_typer(bench_app, name="bench")

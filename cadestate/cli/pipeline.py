@@ -12,7 +12,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from cadestate.cli.common import State, run_sources, app, config_app, demo_app, err, out
+from cadestate.cli.common import State, run_sources, app, config_app, err, out
 from cadestate.config import describe_defaults, load_config, to_toml
 
 
@@ -180,6 +180,26 @@ def status(
             out.print(f"[yellow]note:[/] {escape(note)}")
 
 
+@app.command()
+def stages(
+    markdown: Annotated[bool, typer.Option("--markdown", help="Print Markdown tables (as in the README).")] = False,
+) -> None:
+    """The pipeline's stages, in order: what each runs after, the tables it writes, its config
+    section, its module and what it does. A stage is declared in its module (``STAGE = StageDef(...)``);
+    adding one is writing such a module."""
+    from tasks.registry import stages_markdown, stages_of
+
+    for scope, title in (("clip", "per clip"), ("library", "per CAD library")):
+        if markdown:
+            out.print(f"{title}:\n\n{stages_markdown(scope)}\n", markup=False, highlight=False)
+            continue
+        table = Table("stage", "after", "writes", "config", "module", "what it does", title=f"stages {title}")
+        for st in stages_of(scope):
+            table.add_row(st.name, ", ".join(st.upstream + st.after), ", ".join(st.tables),
+                          ", ".join(filter(None, (st.section, *st.extra_sections))), st.module, escape(st.description))
+        out.print(table)
+
+
 TABLE_ROWS = 1000
 """Rows that `cadestate sql` shows in the table format unless --limit says otherwise."""
 
@@ -279,17 +299,3 @@ def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to valid
     config = load_config(path)
     check_detect_config(config.detect, config.source)
     out.print(f"{path}: ok")
-
-
-@demo_app.command("make")
-def demo_make(
-    out_dir: Annotated[Path, typer.Argument(help="Folder for <name>.mp4 and <name>.txt.")],
-    name: Annotated[str, typer.Option(help="Clip name.")] = "demo_0000",
-    seed: Annotated[int, typer.Option(help="Random seed (same seed, same clip).")] = 0,
-    frames: Annotated[int, typer.Option(help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
-) -> None:
-    """Generate a synthetic walkthrough clip with exact cameras (138 camera lines by default)."""
-    from bench.demo_clip import DemoClipSpec, make_demo_clip
-
-    clip = make_demo_clip(out_dir, DemoClipSpec(name=name, seed=seed, num_video_frames=frames))
-    out.print(f"wrote {clip.video_path} and {clip.cameras_path} ({len(clip.frame_indices)} cameras)")

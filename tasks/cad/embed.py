@@ -88,7 +88,8 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="cad_embed", scope="library", upstream=("cad_views",), tables=("cad_embeddings", "embedding_whitening"),
+    name="cad_embed", section="cad_embed", scope="library", upstream=("cad_views",),
+    tables=("cad_embeddings", "embedding_whitening", "cad_model_embeddings"),
     description="embed every CAD view, fit the descriptor whitening",
     extra_sections=("embed",), run=_run,
 )

@@ -182,7 +182,7 @@ def _source_inputs(items: list[CadItem]) -> list[str]:
 
 
 STAGE = StageDef(
-    name="cad_ingest", scope="library", upstream=(), tables=("cad_models", "cad_samples", "cad_issues"),
+    name="cad_ingest", section="cad_ingest", scope="library", upstream=(), tables=("cad_models", "cad_samples", "cad_issues"),
     description="canonicalise a CAD library, detect symmetries, sample surfaces",
     run=_run, source_inputs=_source_inputs,
 )

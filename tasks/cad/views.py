@@ -84,7 +84,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="cad_views", scope="library", upstream=("cad_ingest",), tables=("cad_views",),
+    name="cad_views", section="cad_views", scope="library", upstream=("cad_ingest",), tables=("cad_views",),
     description="render every CAD model from random viewpoints",
     run=_run,
 )

@@ -102,7 +102,7 @@ def _config_inputs(config: Config) -> list[str]:
 
 
 STAGE = StageDef(
-    name="detect", scope="clip", upstream=("frames",), tables=("detections",),
+    name="detect", section="detect", scope="clip", upstream=("frames",), tables=("detections",),
     description="detect objects in every frame (ONNX detector)",
     run=_run, config_inputs=_config_inputs,
 )

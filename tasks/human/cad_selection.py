@@ -122,7 +122,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="cad_selection", scope="clip", upstream=("retrieval",), tables=("label_tasks",),
+    name="cad_selection", section="cad_selection", scope="clip", upstream=("retrieval",), tables=("label_tasks",),
     description="human task (3.2): people choose each track's CAD model among its candidates; pauses until answered",
     run=_run, clip_inputs=_clip_inputs,
 )

@@ -176,7 +176,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="manual_tracks", scope="clip", upstream=("ingest", "frames", "tracking"), tables=("manual_tracks", "label_tasks"),
+    name="manual_tracks", section="manual_tracks", scope="clip", upstream=("ingest", "frames", "tracking"), tables=("manual_tracks", "label_tasks"),
     description="human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
     extra_sections=("embed",), run=_run, config_inputs=_config_inputs, clip_inputs=_clip_inputs,
 )

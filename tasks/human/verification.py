@@ -143,7 +143,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="verification", scope="clip", upstream=("pose",), tables=("label_tasks", "verified_poses"),
+    name="verification", section="verification", scope="clip", upstream=("pose",), tables=("label_tasks", "verified_poses"),
     description="human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered",
     run=_run, clip_inputs=_clip_inputs,
 )

@@ -172,7 +172,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="pose", scope="clip", upstream=("frames",), tables=("poses",), after=("correspondence_task",),
+    name="pose", section="pose", scope="clip", upstream=("frames",), tables=("poses",), after=("correspondence_task",),
     description="9-DoF pose of every annotated track from its 3D<->2D correspondences",
     run=_run, clip_inputs=_clip_inputs,
 )

@@ -98,7 +98,7 @@ def _config_inputs(config: Config) -> list[str]:
 
 
 STAGE = StageDef(
-    name="label_similarity", scope="library", upstream=("cad_ingest",), tables=("label_similarity",),
+    name="label_similarity", section="label_similarity", scope="library", upstream=("cad_ingest",), tables=("label_similarity",),
     description="similarity of every detector label and CAD class (sentence encoder)",
     run=_run, config_inputs=_config_inputs,
 )

@@ -156,7 +156,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="retrieval", scope="clip", upstream=("tracking", "manual_tracks"), tables=("cad_candidates",),
+    name="retrieval", section="retrieval", scope="clip", upstream=("tracking", "manual_tracks"), tables=("cad_candidates",),
     description="top CAD models of every track, automatic and manual (appearance x class-label similarity)",
     run=_run, clip_inputs=_clip_inputs,
 )

@@ -174,7 +174,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="tracking", scope="clip", upstream=("frames", "detect", "embed"),
+    name="tracking", section="tracking", scope="clip", upstream=("frames", "detect", "embed"),
     tables=("tracks", "track_detections", "track_appearance"),
     description="associate detections into tracks by clique partitioning",
     run=_run,

@@ -59,7 +59,7 @@ def _source_inputs(source: ClipSource) -> list[str]:
 
 
 STAGE = StageDef(
-    name="cameras", scope="clip", upstream=(), tables=(),
+    name="cameras", section="cameras", scope="clip", upstream=(), tables=(),
     description="the clip's camera file: the given one, else structure from motion on the video (pycolmap)",
     run=_run, source_inputs=_source_inputs,
 )

@@ -133,7 +133,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="frames", scope="clip", upstream=("ingest",), tables=("frames",),
+    name="frames", section="frames", scope="clip", upstream=("ingest",), tables=("frames",),
     description="extract the frame at every camera timestamp",
     run=_run,
 )

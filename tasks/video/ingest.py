@@ -381,7 +381,7 @@ def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
 
 
 STAGE = StageDef(
-    name="ingest", scope="clip", upstream=("cameras",), tables=("clips",),
+    name="ingest", section="ingest", scope="clip", upstream=("cameras",), tables=("clips",),
     description="validate the video and camera file, find the world's up, keep them, register the clip",
     run=_run, source_inputs=_source_inputs, clip_inputs=_clip_inputs,
 )
