@@ -29,8 +29,8 @@ from cadestate.progress import progress
 from schemas.official import ObjectAnnotation, TrackEntry, read_frames, read_objects
 from tasks.cad.classes import CLASSES
 from tasks.video.clip_names import derive_clip_name
-from tasks.video.ingest import ClipSource
 from tasks.video.decode import decode_at, frame_timestamp_us
+from tasks.video.ingest import ClipSource
 from warehouse import Warehouse
 
 DEFAULT_SEED = 20261123

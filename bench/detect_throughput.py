@@ -17,9 +17,9 @@ import numpy as np
 from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
-from tasks.video.camera_file import parse_camera_file
 from tasks.detection.detectors import load_detector
 from tasks.detection.models.embedder import load_embedder
+from tasks.video.camera_file import parse_camera_file
 from tasks.video.decode import decode_at
 
 

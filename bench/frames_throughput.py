@@ -15,9 +15,9 @@ from bench.demo_clip import DemoClipSpec, make_demo_clip
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.lineage import file_sha256
 from tasks.video.camera_file import parse_camera_file
+from tasks.video.decode import decode_at
 from tasks.video.frames import extract_frames
 from tasks.video.ingest import ClipSource, ingest_clip
-from tasks.video.decode import decode_at
 from warehouse import Warehouse
 
 SPEC = DemoClipSpec(name="bench_138", width=640, height=360, fps=30, num_video_frames=276, sample_every=2, seed=7)

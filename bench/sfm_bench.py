@@ -35,10 +35,10 @@ from bench.sfm_eval import Similarity, align, camera_errors
 from cadestate.config import CamerasConfig, PoseConfig
 from cadestate.geometry import camera_to_world, matrix_to_quaternion, quaternion_to_matrix
 from schemas.pose import CORRESPONDENCES
-from tasks.video.camera_file import CameraTrack, parse_camera_file
-from tasks.video.frames import frames_table
 from tasks.pose.pose import MODEL_FACTS, solve_tracks, solver_options, track_inputs
+from tasks.video.camera_file import CameraTrack, parse_camera_file
 from tasks.video.decode import probe_video
+from tasks.video.frames import frames_table
 from tasks.video.world_up import align_extrinsics, estimate_up, pose_to_input_world
 from warehouse import Warehouse
 

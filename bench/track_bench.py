@@ -45,10 +45,10 @@ from bench.benchmark import ignore_rule, read_manifest
 from bench.eval_tracking import TrackBox, boxes_from_objects, evaluate_tracking_clips
 from cadestate.config import EmbedConfig, TrackingConfig
 from schemas.official import read_objects
-from tasks.video.camera_file import parse_camera_file
 from tasks.tracking.affinity import LABEL_CLIP_GT, Cameras, PairFeatures, affinities, fit_calibration, pair_features
 from tasks.tracking.partition import ExactSolverError, objective, solve, solve_exact
 from tasks.tracking.tracking import track_detections
+from tasks.video.camera_file import parse_camera_file
 
 BENCH_DIR = Path("data/bench/default")
 CACHE = Path("data/bench/track_cache")

@@ -10,8 +10,8 @@ from PIL import Image
 from conftest import table_rows
 from tasks.cad.classes import CLASSES
 from tasks.video.camera_file import CameraTrack, parse_camera_file
-from tasks.video.frames import frames_table
 from tasks.video.decode import decode_at
+from tasks.video.frames import frames_table
 from warehouse import Warehouse
 
 CLASS_NAME = {c.id: c.name for c in CLASSES}

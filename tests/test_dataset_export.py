@@ -24,9 +24,9 @@ from dataset_fixture import write_accepted, write_frames, write_manual_track_tas
 from official_loader import image_path, load_frames, load_objects, to_pixels
 from schemas.official import TrackEntry, read_objects
 from schemas.tracking import MANUAL_TRACK_BASE
-from tasks.video.camera_file import parse_camera_file
 from tasks.dataset.export_official import export_dataset
 from tasks.dataset.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
+from tasks.video.camera_file import parse_camera_file
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=0.5)

@@ -10,10 +10,10 @@ import pytest
 
 from cadestate.config import Config, EmbedConfig, FramesConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
-from tasks.video.ingest import ClipSource, clip_inputs
 from flows.stage_tasks import STAGE_TASKS
 from tasks.registry import STAGES, stages_of
 from tasks.status import pipeline_status
+from tasks.video.ingest import ClipSource, clip_inputs
 from warehouse import Warehouse
 
 pytestmark = pytest.mark.slow

@@ -14,9 +14,9 @@ from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import project, quaternion_to_matrix
 from cadestate.lineage import file_sha256
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
+from tasks.video.decode import VideoError, decode_at, probe_video, write_video
 from tasks.video.frames import extract_frames
 from tasks.video.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip
-from tasks.video.decode import VideoError, decode_at, probe_video, write_video
 from warehouse import WarehouseError, connect
 
 

@@ -10,15 +10,15 @@ import pyarrow as pa
 import pytest
 
 from cadestate.config import CadSelectionConfig, CorrespondenceTaskConfig
+from conftest import table_rows
 from schemas import TABLES
 from tasks.human.cad_selection import cad_selection_stage, cad_selection_task_id, selected_models
 from tasks.human.correspondence_task import correspondence_task_stage
-from tasks.human.shared import evenly_spaced
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import label_document
+from tasks.human.shared import evenly_spaced
 from tasks.registry import clip_inputs
 from tasks.stage import StageOutput, run_stage, waiting_run
-from conftest import table_rows
 from warehouse import Warehouse
 
 CLIP = "c1"

@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cadestate.cli import app
+from conftest import table_rows
 from schemas import TABLES
 from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
                             ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
@@ -22,7 +23,6 @@ from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionT
 from tasks.human.label_import import import_cvat, import_labelstudio, write_label
 from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, label_history
 from tasks.human.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
-from conftest import table_rows
 from warehouse import Warehouse
 
 CLIP = "c1"

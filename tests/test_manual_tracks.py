@@ -9,13 +9,13 @@ import pyarrow.compute as pc
 import pytest
 
 from cadestate.config import CadSelectionConfig, EmbedConfig, ManualTracksConfig, RetrievalConfig
+from conftest import table_rows
 from schemas.tracking import MANUAL_TRACK_BASE
+from tasks.detection.models import nanodet as nd
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.manual_tracks import manual_tracks_stage, regular_keyframes
-from tasks.detection.models import nanodet as nd
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
-from conftest import table_rows
 from test_human_tasks import _label, _task
 from warehouse import Warehouse
 

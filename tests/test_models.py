@@ -13,9 +13,9 @@ import pytest
 
 ort = pytest.importorskip("onnxruntime")
 
-from tasks.detection.models import nanodet as nd  # noqa: E402
 from cadestate.lineage import file_sha256  # noqa: E402
 from tasks.detection.detectors import Detector  # noqa: E402
+from tasks.detection.models import nanodet as nd  # noqa: E402
 from tasks.detection.models.tfjs_to_onnx import UnsupportedOpError, convert, serialize  # noqa: E402
 
 # Boxes drawn by hand (x1, y1, x2, y2 in pixels) around the objects of scikit-image's photos.

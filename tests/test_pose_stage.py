@@ -9,12 +9,12 @@ import pytest
 from bench.labels import correspondence_rows
 from cadestate.config import Config, PoseConfig, config_from_dict, section_hash
 from cadestate.geometry import camera_to_world
+from cadestate.lineage import table_digest
 from schemas.cad import CAD_MODELS
 from schemas.core import FRAMES
 from schemas.pose import CORRESPONDENCES
-from cadestate.lineage import table_digest
-from tasks.pose.pose import solve_clip, solver_options
 from tasks.pose.inputs import answered_correspondences, cad_models_digest
+from tasks.pose.pose import solve_clip, solver_options
 from tasks.registry import STAGES, clip_inputs
 from tests.test_pose_solver import K, make_object
 

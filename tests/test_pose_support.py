@@ -11,10 +11,10 @@ import torch
 from cadestate.geometry import look_at, matrix_to_quaternion
 from cadestate.render import object_to_world
 from tasks.cad.symmetry import rotation_y
-from tasks.pose.support import (FLOOR, allowed_loss, bottoms, estimate_floors, nearest_support, over_footprint,
-                                slid_centre, solve_with_support, supported_status, weighted_median)
 from tasks.pose.initial import symmetry_offsets
 from tasks.pose.solver import ObjectCorrespondences, PoseResult, SolverOptions, evaluate, make_batch, solve_poses
+from tasks.pose.support import (FLOOR, allowed_loss, bottoms, estimate_floors, nearest_support, over_footprint,
+                                slid_centre, solve_with_support, supported_status, weighted_median)
 from tests.test_pose_solver import K
 
 

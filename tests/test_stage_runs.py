@@ -13,10 +13,10 @@ from typer.testing import CliRunner
 from cadestate.cli import app
 from cadestate.config import Config, DetectConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
-from tasks.video.ingest import ClipSource
 from tasks.registry import stages_of
 from tasks.stage import StageOutput, run_markers, run_stage, settle_interrupted
 from tasks.status import pipeline_status
+from tasks.video.ingest import ClipSource
 from warehouse import Warehouse
 
 HASHES = dict(config_hash="c", inputs_hash="i", code_hash="k")

@@ -18,8 +18,8 @@ from bench.walkthrough import WalkthroughSpec, generate_clip
 from conftest import table_rows
 from dataset_fixture import CLASS_NAME, write_accepted, write_frames, write_tracks
 from schemas.official import read_objects
-from tasks.video.camera_file import parse_camera_file
 from tasks.dataset.stats import dataset_tables, select_clips, statistics
+from tasks.video.camera_file import parse_camera_file
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=256, height=144, num_video_frames=24, sample_every=3, alone_scale=0.5)

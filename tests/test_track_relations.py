@@ -17,13 +17,13 @@ from cadestate.config import (CadSelectionConfig, CorrespondenceTaskConfig, Embe
                               VerificationConfig)
 from conftest import table_rows
 from tasks.dataset.objects import clip_dataset
+from tasks.detection.models import nanodet as nd
 from tasks.human.cad_selection import cad_selection_stage, selected_models
 from tasks.human.correspondence_task import correspondence_task_stage
-from tasks.human.verification import verification_stage
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import label_document
 from tasks.human.manual_tracks import manual_tracks_stage
-from tasks.detection.models import nanodet as nd
+from tasks.human.verification import verification_stage
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
 from tasks.tracking.relations import TrackRelations, relations_in_force, resolve_fragments

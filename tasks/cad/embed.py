@@ -21,8 +21,8 @@ from tasks.cad.views import BACKGROUND
 from tasks.detection.detect import load_rgb, prefetch
 from tasks.detection.embed import vectors_array
 from tasks.detection.models.embedder import load_embedder
-from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.retrieval.whitening import fit_whitening, whitening_table
+from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 BACKGROUND_TOLERANCE = 4  # 0-255: a pixel further than this from the background colour is the model

@@ -34,8 +34,8 @@ from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
 from tasks.cad.export import ExportError, export_official as export_cad_root
-from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.dataset.objects import ClipDataset, DatasetObject, clip_dataset
+from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
 
 

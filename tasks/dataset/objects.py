@@ -40,11 +40,11 @@ import numpy as np
 
 from cadestate.geometry import camera_to_world, project
 from cadestate.render import object_to_world
-from tasks.video.world_up import pose_to_input_world, stored_rotation, unalign_extrinsics
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.cad.classes import CLASSES
 from tasks.cad.export import ExportError
 from tasks.tracking.relations import TrackRelations, relations_in_force
+from tasks.video.world_up import pose_to_input_world, stored_rotation, unalign_extrinsics
 from warehouse import Warehouse
 
 SAME_OBJECT_IOU = 0.5

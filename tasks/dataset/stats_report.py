@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from tasks.dataset.objects import ClipDataset, clip_dataset
-from tasks.human.shared import evenly_spaced
 from tasks.dataset.stats import DatasetTables, annotation_cost_lines, statistics_lines
+from tasks.human.shared import evenly_spaced
 from warehouse import Warehouse
 
 KEYFRAMES = 6

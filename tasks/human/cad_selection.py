@@ -24,18 +24,21 @@ these stages' inputs (:func:`tasks.registry.clip_inputs`).
 """
 
 from __future__ import annotations
+
 from collections import defaultdict
+
 import pyarrow as pa
+
 from cadestate.config import CadSelectionConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CadCandidate, CadSelectionAnswer, CadSelectionItem, CadSelectionTask
-from tasks.tracking.clip_tracks import clip_tracks
 from tasks.human.label_ingest import answers_digest, current_answers
 from tasks.human.labels import new_task_id, utc_now
+from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.tracking.clip_tracks import clip_tracks
 from tasks.tracking.relations import left_out_digest, left_out_tracks
 from warehouse import Warehouse
-from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
 
 
 def candidates(wh: Warehouse, clip: str) -> pa.Table:

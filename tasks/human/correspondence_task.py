@@ -6,17 +6,18 @@ How it waits for people: :mod:`tasks.human.cad_selection`.
 """
 
 from __future__ import annotations
+
 from cadestate.config import CorrespondenceTaskConfig
 from cadestate.lineage import digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
-from tasks.tracking.clip_tracks import clip_tracks
+from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.label_ingest import answers_digest, current_answers
 from tasks.human.labels import new_task_id, utc_now
-from tasks.tracking.relations import left_out_digest
-from tasks.stage import StageContext, StageDef, StageOutput
-from warehouse import Warehouse
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
-from tasks.human.cad_selection import selected_models, model_facts
+from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.tracking.clip_tracks import clip_tracks
+from tasks.tracking.relations import left_out_digest
+from warehouse import Warehouse
 
 
 def newest_correspondence_models(wh: Warehouse, clip: str) -> dict[int, str]:

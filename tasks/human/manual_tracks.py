@@ -37,16 +37,16 @@ from cadestate.lineage import digest, table_digest
 from schemas.dataclass_json import to_json
 from schemas.labels import ExistingTrack, KeyframeView, ManualTrackAnswer, ManualTrackTask, TimedBox
 from schemas.tracking import MANUAL_TRACKS
-from tasks.tracking.clip_tracks import clip_tracks
 from tasks.detection.embed import embed_frame_boxes, vectors_array
-from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
-from tasks.video.ingest import clip_inputs, clip_split
-from tasks.human.label_ingest import answered_tasks, answers_digest, current_answers
-from tasks.retrieval.label_similarity import detector_labels, labels_digest, similarity_labels
-from tasks.human.labels import new_task_id, utc_now
-from tasks.tracking.relations import manual_track_ids
 from tasks.detection.models.embedder import load_embedder
+from tasks.human.label_ingest import answered_tasks, answers_digest, current_answers
+from tasks.human.labels import new_task_id, utc_now
+from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+from tasks.retrieval.label_similarity import detector_labels, labels_digest, similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.tracking.clip_tracks import clip_tracks
+from tasks.tracking.relations import manual_track_ids
+from tasks.video.ingest import clip_inputs, clip_split
 from warehouse import Warehouse
 
 KIND = "manual_track"

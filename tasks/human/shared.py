@@ -3,15 +3,18 @@ file once, and a stage's result (completed, or paused while items wait).
 """
 
 from __future__ import annotations
+
 import dataclasses
 import json
 from pathlib import Path
+
 import numpy as np
+
 from schemas.dataclass_json import to_json
 from schemas.labels import KeyframeView
-from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
 from tasks.human.labels import latest_task, parse_task, write_task
 from tasks.stage import StageOutput
+from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
 from warehouse import Warehouse
 
 

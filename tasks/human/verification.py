@@ -6,17 +6,19 @@ How it waits for people: :mod:`tasks.human.cad_selection`.
 """
 
 from __future__ import annotations
+
 import numpy as np
 import pyarrow as pa
+
 from cadestate.config import VerificationConfig
 from cadestate.lineage import table_digest
 from schemas.labels import KeyframeView, Pose, VerificationAnswer, VerificationItem, VerificationTask
 from tasks.human.label_ingest import answers_digest, current_answers
 from tasks.human.labels import new_task_id, utc_now
+from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.relations import left_out_digest, left_out_tracks
 from warehouse import Warehouse
-from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
 
 
 POSE_COLUMNS = ["track_id", "cad_id", "class", "translation", "rotation", "scale", "is_mirrored", "keyframe_timestamps_us"]

@@ -21,8 +21,8 @@ import pyarrow as pa
 from cadestate.config import PoseConfig, section_hash
 from cadestate.lineage import table_digest
 from tasks.pose.inputs import MODEL_FACTS, answered_correspondences, input_digests
-from tasks.pose.support import solve_with_support
 from tasks.pose.solver import ObjectCorrespondences, PoseResult, SolverOptions
+from tasks.pose.support import solve_with_support
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 

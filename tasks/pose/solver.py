@@ -53,8 +53,8 @@ import torch
 
 from cadestate.geometry import matrix_to_quaternion
 from tasks.pose.batch import Batch
-from tasks.pose.initial import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose.checks import check_object, coplanar_axis, final_status
+from tasks.pose.initial import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose.lm import Problem, bottom_sd, floor_residual, lm_solve, robust, scale_ties
 
 

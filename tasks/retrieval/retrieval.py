@@ -26,9 +26,9 @@ import pyarrow as pa
 
 from cadestate.config import RetrievalConfig
 from cadestate.lineage import digest, table_digest
-from tasks.tracking.clip_tracks import MissingDescriptor, clip_tracks
-from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.retrieval.whitening import Whitening, read_whitening
+from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.tracking.clip_tracks import MissingDescriptor, clip_tracks
 from warehouse import Warehouse
 
 

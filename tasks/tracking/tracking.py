@@ -21,9 +21,9 @@ import pyarrow as pa
 
 from cadestate.config import TrackingConfig
 from cadestate.lineage import digest, table_digest
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.affinity import Cameras, PairFeatures, affinities, pair_features
 from tasks.tracking.partition import solve
-from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 

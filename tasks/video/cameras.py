@@ -14,9 +14,9 @@ import json
 
 from cadestate.config import CamerasConfig
 from cadestate.lineage import digest, file_sha256
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import write_camera_file
 from tasks.video.ingest import SFM_REPORT_FILE, ClipSource, sfm_cameras_path
-from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse, atomic_write_bytes
 
 

@@ -24,10 +24,10 @@ from cadestate.config import FramesConfig
 from cadestate.geometry import camera_to_world, intrinsics_matrix
 from cadestate.lineage import digest, file_sha256, table_digest
 from cadestate.progress import progress
-from tasks.video.camera_file import CameraTrack, parse_camera_file
-from tasks.video.ingest import SFM_REPORT_FILE, clip_inputs
 from tasks.stage import StageContext, StageDef, StageOutput
+from tasks.video.camera_file import CameraTrack, parse_camera_file
 from tasks.video.decode import VideoError, decode_at
+from tasks.video.ingest import SFM_REPORT_FILE, clip_inputs
 from tasks.video.world_up import align_extrinsics, stored_rotation
 from warehouse import Warehouse
 

@@ -28,9 +28,9 @@ import pyarrow as pa
 from cadestate.config import IngestConfig
 from cadestate.lineage import digest, file_sha256
 from schemas.core import DEFAULT_SPLIT
+from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
-from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.decode import VideoInfo, probe_video
 from tasks.video.world_up import estimate_up
 from warehouse import Warehouse, WarehouseError, check_name
