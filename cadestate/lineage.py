@@ -1,7 +1,7 @@
 """Digests that tie every stage run to what it read and what it wrote.
 
 A stage run records ``config_hash`` (its config section), ``inputs_hash`` (its input files or its
-upstream stages' output hashes), ``code_hash`` (its source) and ``output_hash`` (what it wrote).
+upstream stages' output hashes), ``code_hash`` (its source: :mod:`tasks.registry`) and ``output_hash`` (what it wrote).
 A stage is stale when any of the first three differs from what it would be now
 (:mod:`tasks.status`). Digests are 16 hex characters of SHA-256.
 """
@@ -9,9 +9,7 @@ A stage is stale when any of the first three differs from what it would be now
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import os
-from pathlib import Path
 
 import pyarrow as pa
 
@@ -42,9 +40,3 @@ def table_digest(table: pa.Table) -> str:
         writer.write_table(table)
     return hashlib.sha256(sink.getvalue().to_pybytes()).hexdigest()[:16]
 
-
-def code_digest(*modules: str) -> str:
-    """Digest of the source of the named modules (a stage's logic), read from their files without
-    importing them (the same text ``inspect.getsource`` gives), so that commands which only read,
-    such as ``cadestate status``, do not import every stage's dependencies."""
-    return digest(*(Path(importlib.util.find_spec(m).origin).read_text(encoding="utf-8") for m in modules))
