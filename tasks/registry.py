@@ -5,6 +5,11 @@ declares a stage; adding a stage is writing such a module. The declarations are 
 source, not imported, so that commands which only read (``cadestate status``) do not import every
 stage's dependencies; a stage's functions are imported when they are called.
 
+A function a declaration names is imported from where the stage's module imports it (``from X
+import f`` at the top of the module), else from the stage's module: a heavy stage keeps the
+functions that digest its inputs in a light module, so that ``cadestate status``, which calls them
+for every clip, does not import the stage's dependencies.
+
 A stage's ``code_hash`` (``runs.code_hash``) is the digest of its module and of every module of the
 project's logic that it imports, directly or through others, as the source says (imports inside
 functions count). The project's logic is ``tasks`` and the foundation (``cadestate``: geometry,
@@ -77,19 +82,26 @@ class Stage:
     def has(self, function: str) -> bool:
         return function in dict(self.functions)
 
+    def function(self, field: str) -> Any:
+        """The function the declaration names for ``field``, imported from where the stage's module
+        imports it, else from the stage's module (module docstring)."""
+        name = dict(self.functions)[field]
+        origin = _imported_from(self.module, name)
+        return getattr(importlib.import_module(origin), name) if origin else getattr(self.definition, field)
+
     def run(self, ctx: StageContext) -> StageOutput:
         return self.definition.run(ctx)
 
     def config_inputs(self, config: Config) -> list[str]:
-        return self.definition.config_inputs(config) if self.has("config_inputs") else []
+        return self.function("config_inputs")(config) if self.has("config_inputs") else []
 
     def clip_inputs(self, wh: Warehouse, unit: str) -> list[str]:
-        return self.definition.clip_inputs(wh, unit) if self.has("clip_inputs") else []
+        return self.function("clip_inputs")(wh, unit) if self.has("clip_inputs") else []
 
     def submitted_inputs(self, wh: Warehouse, unit: str, config: Config, source: Any) -> list[str]:
         """Digests of what a run on ``source`` reads besides its upstream outputs (what a flow submits)."""
         if self.has("source_inputs"):
-            return self.definition.source_inputs(source) + self.config_inputs(config)
+            return self.function("source_inputs")(source) + self.config_inputs(config)
         return self.config_inputs(config) + self.clip_inputs(wh, unit)
 
     def registered_inputs(self, wh: Warehouse, unit: str, config: Config) -> list[str]:
@@ -122,6 +134,16 @@ def _direct_imports(name: str) -> frozenset[str]:
         else:
             found.update(part.split()[0] for part in m.group(3).split(",") if part.strip())
     return frozenset(f for f in found if f.split(".")[0] in LOGIC_PACKAGES and _module_file(f) is not None)
+
+
+def _imported_from(module: str, name: str) -> str | None:
+    """The project module from which ``module``'s top-level ``from X import ...`` takes ``name``."""
+    for m in _IMPORT.finditer(_source(module)):
+        if m.group(1) and not m.group(0).startswith((" ", "\t")) and m.group(1).split(".")[0] in LOGIC_PACKAGES:
+            names = [n.split() for n in m.group(2).strip("() \n").replace("\n", " ").split(",") if n.strip()]
+            if any(n[0] == name and len(n) == 1 for n in names):
+                return m.group(1)
+    return None
 
 
 def logic_imports(module: str) -> set[str]:

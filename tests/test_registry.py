@@ -135,3 +135,16 @@ def test_malformed_declarations_are_named(tmp_path, monkeypatch):
         read('STAGE = StageDef(name="a", upstream=UP)\n')
     with pytest.raises(RegistryError, match="tasks.example: StageDef"):
         read('STAGE = StageDef(name="a")\n')  # fields missing
+
+
+def test_status_inputs_import_none_of_the_stages_heavy_dependencies(tmp_path):
+    """``cadestate status`` digests every stage's inputs: the functions it calls come from light
+    modules (a declared function is imported from where the stage's module imports it)."""
+    code = ("import sys; from cadestate.config import Config; from tasks.registry import STAGES; from warehouse import Warehouse\n"
+            f"wh = Warehouse({str(tmp_path / 'w')!r})\n"
+            "for s in STAGES.values(): s.registered_inputs(wh, 'c', Config())\n"
+            "print(sorted(m for m in ('torch', 'onnxruntime', 'moderngl', 'pycolmap', 'trimesh') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+    assert STAGES["pose"].function("clip_inputs").__module__ == "tasks.pose.inputs"

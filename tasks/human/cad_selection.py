@@ -32,12 +32,13 @@ import pyarrow as pa
 from cadestate.config import CadSelectionConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CadCandidate, CadSelectionAnswer, CadSelectionItem, CadSelectionTask
-from tasks.human.label_ingest import answers_digest, current_answers
+from tasks.human.label_ingest import current_answers
+from tasks.human.inputs import cad_selection_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
-from tasks.tracking.relations import left_out_digest, left_out_tracks
+from tasks.tracking.relations import left_out_tracks
 from warehouse import Warehouse
 
 
@@ -118,14 +119,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return cad_selection_stage(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
 
 
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The answers in force, and the tracks the manual-track answer leaves out (said to be no object,
-    or another track): ingesting labels makes the stage stale, and a rerun resumes it."""
-    return [answers_digest(wh, "cad_selection", clip), left_out_digest(wh, clip)]
-
-
 STAGE = StageDef(
     name="cad_selection", section="cad_selection", scope="clip", upstream=("retrieval",), tables=("label_tasks",),
     description="human task (3.2): people choose each track's CAD model among its candidates; pauses until answered",
-    run=_run, clip_inputs=_clip_inputs,
+    run=_run, clip_inputs=cad_selection_inputs,
 )

@@ -11,12 +11,12 @@ from cadestate.config import CorrespondenceTaskConfig
 from cadestate.lineage import digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
 from tasks.human.cad_selection import selected_models, model_facts
-from tasks.human.label_ingest import answers_digest, current_answers
+from tasks.human.label_ingest import current_answers
+from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
-from tasks.tracking.relations import left_out_digest
 from warehouse import Warehouse
 
 
@@ -64,14 +64,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return correspondence_task_stage(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
 
 
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The answers in force, and the tracks the manual-track answer leaves out (said to be no object,
-    or another track): ingesting labels makes the stage stale, and a rerun resumes it."""
-    return [answers_digest(wh, "correspondences", clip), left_out_digest(wh, clip)]
-
-
 STAGE = StageDef(
     name="correspondence_task", section="correspondence_task", scope="clip", upstream=("cad_selection",), tables=("label_tasks",),
     description="human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered",
-    run=_run, clip_inputs=_clip_inputs,
+    run=_run, clip_inputs=correspondence_inputs,
 )

@@ -39,10 +39,11 @@ from schemas.labels import ExistingTrack, KeyframeView, ManualTrackAnswer, Manua
 from schemas.tracking import MANUAL_TRACKS
 from tasks.detection.embed import embed_frame_boxes, vectors_array
 from tasks.detection.models.embedder import load_embedder
-from tasks.human.label_ingest import answered_tasks, answers_digest, current_answers
+from tasks.human.inputs import manual_track_config_inputs, manual_track_inputs
+from tasks.human.label_ingest import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
-from tasks.retrieval.label_similarity import detector_labels, labels_digest, similarity_labels
+from tasks.retrieval.label_similarity import detector_labels, similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from tasks.tracking.relations import manual_track_ids
@@ -165,18 +166,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return manual_tracks_stage(ctx.wh, ctx.cfg, ctx.config.embed, detector_labels(ctx.config.detect), ctx.unit, ctx.run_id)
 
 
-def _config_inputs(config: Config) -> list[str]:
-    """The detector's label map (the classes people may draw besides the CAD library's)."""
-    return [labels_digest(config.detect)]
-
-
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The classes of the label similarities, and the answers in force."""
-    return [digest(*similarity_labels(wh)), answers_digest(wh, "manual_track", clip)]
-
-
 STAGE = StageDef(
     name="manual_tracks", section="manual_tracks", scope="clip", upstream=("ingest", "frames", "tracking"), tables=("manual_tracks", "label_tasks"),
     description="human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
-    extra_sections=("embed",), run=_run, config_inputs=_config_inputs, clip_inputs=_clip_inputs,
+    extra_sections=("embed",), run=_run, config_inputs=manual_track_config_inputs, clip_inputs=manual_track_inputs,
 )

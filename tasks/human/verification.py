@@ -13,11 +13,12 @@ import pyarrow as pa
 from cadestate.config import VerificationConfig
 from cadestate.lineage import table_digest
 from schemas.labels import KeyframeView, Pose, VerificationAnswer, VerificationItem, VerificationTask
-from tasks.human.label_ingest import answers_digest, current_answers
+from tasks.human.label_ingest import current_answers
+from tasks.human.inputs import verification_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
-from tasks.tracking.relations import left_out_digest, left_out_tracks
+from tasks.tracking.relations import left_out_tracks
 from warehouse import Warehouse
 
 
@@ -138,14 +139,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return verification_stage(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
 
 
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The answers in force, and the tracks the manual-track answer leaves out (said to be no object,
-    or another track): ingesting labels makes the stage stale, and a rerun resumes it."""
-    return [answers_digest(wh, "verification", clip), left_out_digest(wh, clip)]
-
-
 STAGE = StageDef(
     name="verification", section="verification", scope="clip", upstream=("pose",), tables=("label_tasks", "verified_poses"),
     description="human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered",
-    run=_run, clip_inputs=_clip_inputs,
+    run=_run, clip_inputs=verification_inputs,
 )

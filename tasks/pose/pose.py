@@ -167,12 +167,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return solve_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
 
 
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    return input_digests(wh, clip)
-
-
 STAGE = StageDef(
     name="pose", section="pose", scope="clip", upstream=("frames",), tables=("poses",), after=("correspondence_task",),
     description="9-DoF pose of every annotated track from its 3D<->2D correspondences",
-    run=_run, clip_inputs=_clip_inputs,
+    run=_run, clip_inputs=input_digests,
 )
