@@ -78,7 +78,13 @@ class Api:
         self.url = url
 
     def post(self, path: str, body: dict) -> object:
-        response = httpx.post(f"{self.url}{path}", json=body, timeout=30)
+        """POST, retrying while the server answers 503: Prefect's server sends it for errors it calls retryable
+        (its SQLite database busy or timing out under load, as on CI), and its own client retries the same way."""
+        for attempt in range(10):
+            response = httpx.post(f"{self.url}{path}", json=body, timeout=30)
+            if response.status_code != 503 or attempt == 9:
+                break
+            time.sleep(float(response.headers.get("Retry-After") or 2))
         response.raise_for_status()
         return response.json()
 
