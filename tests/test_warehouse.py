@@ -18,7 +18,7 @@ import pytest
 
 from schemas import TableSpec
 from warehouse import Warehouse, WarehouseError, check_name, connect, refresh_catalog
-from warehouse.catalog import CATALOG_FILE, ROOT_MACRO, view_sql
+from warehouse.catalog import CATALOG_FILE, ROOT_MACRO, VIEWS_MACRO, schema_path, view_sql
 
 
 def run_rows(clip: str, n: int, stage: str = "ingest") -> pa.Table:
@@ -184,14 +184,14 @@ def test_catalog_opens_in_a_plain_duckdb_client(wh):
 
 def test_catalog_leaves_current_schema_files_alone(wh):
     refresh_catalog(wh)
-    schemas = {p: p.stat().st_mtime_ns for p in (wh.root / "_schemas").iterdir()}
-    assert len(schemas) == len(wh.tables)
+    schemas = {schema_path(wh, t): schema_path(wh, t).stat().st_mtime_ns for t in wh.tables}
     time.sleep(0.01)
     refresh_catalog(wh)
-    assert {p: p.stat().st_mtime_ns for p in (wh.root / "_schemas").iterdir()} == schemas
-    (wh.root / "_schemas" / "runs.parquet").write_bytes(b"broken")  # an unreadable one is rewritten
+    assert {p: p.stat().st_mtime_ns for p in schemas} == schemas
+    schema_path(wh, "runs").write_bytes(b"broken")  # an unreadable one is rewritten
     refresh_catalog(wh)
-    assert pq.read_schema(wh.root / "_schemas" / "runs.parquet").names == wh.spec("runs").schema.names
+    assert pq.read_schema(schema_path(wh, "runs")).names == wh.spec("runs").schema.names
+    assert wh.partitions("runs") == [] and wh.read("runs").num_rows == 0  # the schema file is no data
 
 
 def test_a_copied_warehouse_gets_its_own_catalog(wh, tmp_path):

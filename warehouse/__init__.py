@@ -2,7 +2,8 @@
 
 The names below are imported on first use (a module ``__getattr__``), so ``from warehouse import
 Warehouse`` does not import DuckDB, and nothing here imports pyarrow before a table is read or written.
-Importing the package registers the catalog's refresh as the store's after-write hook
+Importing the package registers the catalog's check (:func:`warehouse.catalog.after_write`: once
+per process, the catalog is made current) as the store's after-write hook
 (:data:`warehouse.store.AFTER_WRITE`).
 """
 
@@ -22,16 +23,16 @@ _FROM = {"Warehouse": "warehouse.store", "WarehouseError": "warehouse.store", "a
          "check_name": "warehouse.store", "connect": "warehouse.catalog", "refresh_catalog": "warehouse.catalog"}
 
 
-def _refresh_catalog(wh: Warehouse) -> None:
-    """After each write, the catalog's views follow the tables (:func:`warehouse.catalog.refresh_catalog`;
-    DuckDB is imported on the first write). Wired here, above both modules, so that the store does not
-    import the catalog that imports it."""
-    from warehouse.catalog import refresh_catalog
+def _after_write(wh: Warehouse) -> None:
+    """After a write, the catalog exists and is current (:func:`warehouse.catalog.after_write`,
+    checked once per process; DuckDB is imported on the first write). Wired here, above both
+    modules, so that the store does not import the catalog that imports it."""
+    from warehouse.catalog import after_write
 
-    refresh_catalog(wh)
+    after_write(wh)
 
 
-_store.AFTER_WRITE.append(_refresh_catalog)
+_store.AFTER_WRITE.append(_after_write)
 
 
 def __getattr__(name: str) -> Any:

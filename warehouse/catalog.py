@@ -1,21 +1,35 @@
 """The DuckDB catalog: ``<root>/catalog.duckdb`` holds one view per warehouse table.
 
 Any DuckDB client can open it (``duckdb data/warehouse/catalog.duckdb``) and query every table.
-A view reads its table's Parquet files through a glob, so new partitions show up without a
-refresh; the catalog is rebuilt (atomically) after each write so new tables and new columns do
-too. A table with no data yet is a view over an empty Parquet file holding just its schema
-(``_schemas/<table>.parquet``), so every table is always queryable.
+Views are created once; a write never touches the catalog. Each view reads, at query time,
+``read_parquet([<schema file>, 'tables/<table>/**/*.parquet'])``: the schema file
+(``tables/<table>/_schema.parquet``, no rows, the table's current schema) comes first, so DuckDB
+takes the columns from it, and lies inside the glob, so the glob always matches something: an empty
+table is queryable, its first rows and every new partition or file show up with no refresh. Having
+no rows, the schema file adds none, though the list names it twice.
 
-Paths in the views are absolute, so the catalog also records the root it was built for (the macro
-``warehouse_root()``). :func:`connect` rebuilds a catalog built for another root (a moved or
-copied warehouse), one that is not a readable DuckDB database, or one from before that macro;
-``cadestate catalog`` rebuilds it by hand. The catalog is derived data: rebuilding loses nothing.
+Schema changes: without ``union_by_name`` DuckDB reads only the first file's schema when it binds
+(cheap), but then every file must have its columns. So the catalog records, per table, the schema
+digest its view was made for and whether every data file then had that schema (``uniform``). A
+table with files of an older schema (a column added since they were written) is read with
+``union_by_name = true`` (those files read the new column as null), which reads every file's footer
+per query, until the catalog is rebuilt after its files were rewritten (``cadestate compact``
+rewrites append-mode partitions; ``cadestate catalog`` checks again).
+
+The catalog is rebuilt (atomically: built aside, then renamed) only when it is missing, unreadable,
+of an older layout, built for another root (paths in the views are absolute: a moved or copied
+warehouse), or when a table was added or removed or its schema or description changed:
+:func:`ensure_catalog`, which :func:`connect` calls, and the store calls after a process's first
+write. Files are checked (footers read) only for the tables whose schema changed. The catalog is
+derived data: rebuilding loses nothing.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import uuid
+from collections.abc import Collection
 from pathlib import Path
 
 import duckdb
@@ -23,8 +37,15 @@ import duckdb
 from warehouse.store import Warehouse, WarehouseError
 
 CATALOG_FILE = "catalog.duckdb"
+SCHEMA_FILE = "_schema.parquet"
 ROOT_MACRO = "warehouse_root"
+VIEWS_MACRO = "catalog_views"
+LAYOUT = 2
+"""Version of how views are made; a catalog of another layout is rebuilt."""
 SCHEMA_DIGEST = b"cadestate.schema_sha256"
+
+_ENSURED: set[Path] = set()
+"""Roots whose catalog this process has made sure of (after a write, checked once per process)."""
 
 
 class CatalogError(WarehouseError):
@@ -33,6 +54,11 @@ class CatalogError(WarehouseError):
 
 def _sql_str(value: str) -> str:
     return "'" + value.replace("'", "''") + "'"
+
+
+def schema_path(wh: Warehouse, table: str) -> Path:
+    """The table's schema file: empty, inside its view's glob."""
+    return wh.table_dir(table) / SCHEMA_FILE
 
 
 def _schema_digest(con: duckdb.DuckDBPyConnection, path: Path) -> str | None:
@@ -47,9 +73,9 @@ def _schema_digest(con: duckdb.DuckDBPyConnection, path: Path) -> str | None:
 
 
 def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> Path:
-    """An empty Parquet file with the table's schema, rewritten only when the schema changes (a
-    Parquet round trip renames list items, so the file records the digest of the schema it holds)."""
-    path = wh.root / "_schemas" / f"{table}.parquet"
+    """Write the table's schema file unless it holds the current schema already (a Parquet round
+    trip renames list items, so the file records the digest of the schema it holds)."""
+    path = schema_path(wh, table)
     digest = wh.info[table].schema_sha256  # the schema's (schemas.index.schema_sha256)
     if _schema_digest(con, path) != digest:
         import pyarrow.parquet as pq
@@ -63,13 +89,68 @@ def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> P
     return path
 
 
-def view_sql(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection | None = None) -> str:
-    """The CREATE VIEW statement of one table (``con`` reads the digests of the schema files)."""
-    if wh.files(table):
-        source = (wh.table_dir(table) / "*" / "*.parquet").as_posix()
-    else:
-        source = _schema_file(wh, table, con or duckdb.connect()).as_posix()
-    return f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet({_sql_str(source)}, union_by_name = true)"
+def uniform(wh: Warehouse, table: str) -> bool:
+    """Whether every data file of ``table`` has its current schema (every footer is read)."""
+    import pyarrow.parquet as pq
+
+    expected = pq.read_schema(_schema_file(wh, table, duckdb.connect()))
+    for f in wh.files(table):
+        try:
+            if not pq.read_schema(f).equals(expected, check_metadata=False):
+                return False
+        except FileNotFoundError:  # compacted or replaced meanwhile: its successor has the current schema
+            continue
+    return True
+
+
+def view_sql(wh: Warehouse, table: str, uniform: bool = True) -> str:
+    """The CREATE VIEW statement of one table (``union_by_name`` unless its files are ``uniform``)."""
+    schema = schema_path(wh, table).as_posix()
+    glob = (wh.table_dir(table) / "**" / "*.parquet").as_posix()
+    union = "" if uniform else ", union_by_name = true"
+    return f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet([{_sql_str(schema)}, {_sql_str(glob)}]{union})"
+
+
+def expected_views(wh: Warehouse) -> dict:
+    """What a current catalog of ``wh`` records, less each table's ``uniform``."""
+    return {"layout": LAYOUT, "root": str(wh.root),
+            "tables": {name: {"schema": info.schema_sha256, "description": info.description}
+                       for name, info in sorted(wh.info.items())}}
+
+
+def _plain(record: dict) -> dict:
+    return {**record, "tables": {n: {k: v for k, v in t.items() if k != "uniform"} for n, t in record["tables"].items()}}
+
+
+def recorded_views(path: Path) -> dict | None:
+    """What the catalog file ``path`` records of its views; None when it is missing, not a readable
+    DuckDB database, or of an older layout."""
+    if not path.is_file():
+        return None
+    try:
+        con = duckdb.connect(str(path), read_only=True)
+    except duckdb.Error:
+        return None
+    try:
+        record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
+        return record if isinstance(record, dict) and record.get("layout") == LAYOUT else None
+    except (duckdb.Error, ValueError, TypeError):
+        return None
+    finally:
+        con.close()
+
+
+def plan_views(wh: Warehouse, previous: dict | None = None, recheck: Collection[str] = ()) -> dict:
+    """The record of the views to make: :func:`expected_views` with each table's ``uniform``, kept
+    from ``previous`` (a recorded catalog, of any root) where the table's schema is the same and it
+    is not in ``recheck``, else checked (:func:`uniform`)."""
+    plan = expected_views(wh)
+    before = (previous or {}).get("tables", {})
+    for name, table in plan["tables"].items():
+        old = before.get(name, {})
+        same = old.get("schema") == table["schema"] and isinstance(old.get("uniform"), bool) and name not in recheck
+        table["uniform"] = old["uniform"] if same else uniform(wh, name)
+    return plan
 
 
 def row_counts(wh: Warehouse) -> dict[str, int]:
@@ -86,24 +167,33 @@ def row_counts(wh: Warehouse) -> dict[str, int]:
     return {name: sum(rows[f] for f in paths) for name, paths in files.items()}
 
 
-def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
-    """Create in ``con`` a view per table of ``wh`` (commented with its description) and the macro
-    ``warehouse_root()`` naming the root the views read."""
-    for name, info in sorted(wh.info.items()):
-        con.execute(view_sql(wh, name, con))
-        con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(info.description)}")
+def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict | None = None) -> dict:
+    """Create in ``con`` a view per table of ``wh`` (commented with its description), the macro
+    ``warehouse_root()`` naming the root the views read and ``catalog_views()`` recording ``plan``
+    (default: :func:`plan_views` from the catalog file when it is current). Returns the plan."""
+    if plan is None:
+        plan = plan_views(wh, recorded_views(wh.root / CATALOG_FILE))
+    for name, table in plan["tables"].items():
+        _schema_file(wh, name, con)
+        con.execute(view_sql(wh, name, table["uniform"]))
+        con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(table['description'])}")
     con.execute(f"CREATE OR REPLACE MACRO {ROOT_MACRO}() AS {_sql_str(str(wh.root))}")
+    con.execute(f"CREATE OR REPLACE MACRO {VIEWS_MACRO}() AS {_sql_str(json.dumps(plan, sort_keys=True))}")
+    return plan
 
 
-def refresh_catalog(wh: Warehouse) -> Path:
-    """(Re)build the catalog file with a view per table; atomic (built aside, then renamed)."""
+def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:
+    """(Re)build the catalog file; atomic (built aside, then renamed). Whether each table's files
+    all have its schema is kept from the current catalog where the schema did not change, unless
+    ``recheck`` (True: every table; else the tables named)."""
     wh.root.mkdir(parents=True, exist_ok=True)
     final = wh.root / CATALOG_FILE
+    plan = plan_views(wh, None if recheck is True else recorded_views(final), () if recheck is False else recheck)
     tmp = wh.root / f".{CATALOG_FILE}.{uuid.uuid4().hex}.tmp"
     try:
         con = duckdb.connect(str(tmp))
         try:
-            create_views(con, wh)
+            create_views(con, wh, plan)
             con.execute("CHECKPOINT")
         finally:
             con.close()
@@ -111,41 +201,52 @@ def refresh_catalog(wh: Warehouse) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
         Path(f"{tmp}.wal").unlink(missing_ok=True)
+    _ENSURED.add(wh.root)
     return final
 
 
-def rebuild_catalog(wh: Warehouse) -> Path:
+def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:
     """:func:`refresh_catalog`, with a catalog that cannot be written reported as a
     :class:`CatalogError` naming it."""
     try:
-        return refresh_catalog(wh)
+        return refresh_catalog(wh, recheck)
     except (OSError, duckdb.Error) as e:
         raise CatalogError(f"cannot rebuild the catalog {wh.root / CATALOG_FILE}: {one_line(str(e))}") from None
 
 
-def built_for(path: Path) -> str | None:
-    """The warehouse root the catalog file ``path`` was built for; None when it is missing, not a
-    readable DuckDB database, or older than the ``warehouse_root()`` macro."""
-    if not path.is_file():
-        return None
-    try:
-        con = duckdb.connect(str(path), read_only=True)
-    except duckdb.Error:
-        return None
-    try:
-        return con.execute(f"SELECT {ROOT_MACRO}()").fetchone()[0]
-    except duckdb.Error:
-        return None
-    finally:
-        con.close()
+def ensure_catalog(wh: Warehouse) -> Path:
+    """The catalog file, rebuilt first unless it is current (see the module) and every schema file
+    is there."""
+    path = wh.root / CATALOG_FILE
+    record = recorded_views(path)
+    current = record is not None and _plain(record) == expected_views(wh)
+    if not current or not all(schema_path(wh, name).is_file() for name in wh.info):
+        rebuild_catalog(wh)
+    _ENSURED.add(wh.root)
+    return path
+
+
+def compacted_tables_checked(wh: Warehouse, tables: Collection[str]) -> None:
+    """After ``tables`` were compacted: rebuild the catalog, checking those of them that it reads
+    by name (files of an older schema), so that a table whose files now all have its schema gets
+    its fast view back; nothing when none of them is read by name."""
+    ensure_catalog(wh)
+    recorded = (recorded_views(wh.root / CATALOG_FILE) or {"tables": {}})["tables"]
+    mixed = [t for t in tables if not recorded.get(t, {}).get("uniform", True)]
+    if mixed:
+        rebuild_catalog(wh, recheck=mixed)
+
+
+def after_write(wh: Warehouse) -> None:
+    """The store's after-write hook: :func:`ensure_catalog`, once per process and root (so a
+    warehouse has a catalog from its first write, and new code's schemas reach it)."""
+    if wh.root not in _ENSURED:
+        ensure_catalog(wh)
 
 
 def connect(wh: Warehouse, read_only: bool = True) -> duckdb.DuckDBPyConnection:
-    """Open the catalog, (re)built first when it is missing, unreadable or built for another root
-    (a moved or copied warehouse). Read-only by default."""
-    path = wh.root / CATALOG_FILE
-    if built_for(path) != str(wh.root):
-        rebuild_catalog(wh)
+    """Open the catalog (:func:`ensure_catalog` first). Read-only by default."""
+    path = ensure_catalog(wh)
     try:
         return duckdb.connect(str(path), read_only=read_only)
     except duckdb.Error as e:

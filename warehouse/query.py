@@ -8,12 +8,12 @@ broken catalog file does not matter), then locked down before the statement runs
   SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
   INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, CHECKPOINT, ...) is refused, before the warehouse is
   even read;
-- files: only the warehouse's ``tables/`` and ``_schemas/`` folders can be read
+- files: only the warehouse's ``tables/`` folder can be read
   (``enable_external_access = false`` with ``allowed_directories``): no other file, no network, no
   extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
 - the configuration is locked, and intermediate results that spill go to a private temporary
   folder, removed with the session. Nothing is written to the warehouse (but, as for the catalog,
-  an empty table's schema file in ``_schemas/`` when it is missing or outdated).
+  a table's schema file, ``tables/<table>/_schema.parquet``, when it is missing or outdated).
 
 Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
 bounded.
@@ -102,13 +102,13 @@ class Result:
 
 
 def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
-    """Give ``con`` the views of ``wh``, then allow reading its ``tables/`` and ``_schemas/`` only
-    and lock the configuration."""
+    """Give ``con`` the views of ``wh``, then allow reading its ``tables/`` only and lock the
+    configuration."""
     try:
         create_views(con, wh)
     except (OSError, duckdb.Error) as e:
         raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
-    readable = [f"{(wh.root / sub).as_posix()}/" for sub in ("tables", "_schemas")]
+    readable = [f"{(wh.root / 'tables').as_posix()}/"]
     con.execute("SET allowed_directories = ?", [readable])
     con.execute("SET enable_external_access = false")
     con.execute("SET lock_configuration = true")
