@@ -65,6 +65,8 @@ class WarehouseConfig:
 
     root: str = _opt("data/warehouse", "Warehouse root directory; env CADESTATE_WAREHOUSE and --warehouse override it.",
                      check=_non_empty)
+    compact_after_files: int = _opt(64, "Files an append-mode partition (runs, label_files, label_tasks) may hold before "
+                                    "a write compacts it into one (`cadestate compact` compacts by hand).", lo=2, hi=1_000_000)
 
 
 @dataclass(frozen=True)
@@ -460,7 +462,7 @@ def load_config(path: str | os.PathLike | None = None) -> Config:
     else:
         config = Config()
     if os.environ.get(ENV_WAREHOUSE):
-        config = dataclasses.replace(config, warehouse=WarehouseConfig(root=os.environ[ENV_WAREHOUSE]))
+        config = dataclasses.replace(config, warehouse=dataclasses.replace(config.warehouse, root=os.environ[ENV_WAREHOUSE]))
     return config
 
 

@@ -34,7 +34,7 @@ from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
 
-from cadestate.config import Config, WarehouseConfig, load_config
+from cadestate.config import Config, load_config
 from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
 from flows.reports import StageReport
@@ -53,7 +53,7 @@ ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.P
 def served_config(warehouse: str, config_path: str) -> Config:
     """The config of a served run: the file (or the defaults), with the warehouse given."""
     cfg = load_config(Path(config_path) if config_path else None)
-    return dataclasses.replace(cfg, warehouse=WarehouseConfig(root=warehouse))
+    return dataclasses.replace(cfg, warehouse=dataclasses.replace(cfg.warehouse, root=warehouse))
 
 
 def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float | None = None) -> list[ClipSource]:

@@ -5,31 +5,50 @@ Layout under the warehouse root::
     tables/<table>/clip=<clip>/part.parquet        replace-mode tables (one file, swapped whole)
     tables/<table>/clip=<clip>/<time>-<id>.parquet append-mode tables (one file per write)
     tables/<table>/library=<library>/...           CAD-library tables, partitioned by library
+    tables/<table>/_schema.parquet                 the table's schema, no rows (warehouse.catalog)
     media/<kind>/<partition>/<version>/...         images and other files that rows point to
     inputs/<clip>/...                              the clip's video and camera file
     catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
     _prefect/                                      Prefect's local state and cached task results
+    _locks/<table>/<partition>.lock                locks of append-mode partitions (compaction)
 
 Atomicity: every Parquet file is written under a temporary name in its final folder, flushed to
 disk and renamed into place (``os.replace``), so a reader or a crash sees the old file or the
 new one, never half of one. Media are written to a fresh version folder that no row points to
 yet; rows start pointing to it only when their table partition is swapped in, and superseded
 versions are removed afterwards (:meth:`Warehouse.publish_media`).
+
+Compaction: an append-mode partition gains a file per write, and readers pay per file, so a write
+that leaves more than ``compact_after`` files in one (or ``cadestate compact``) merges them into
+one file of the table's current schema (rows in write order; files of an older schema read a newer
+column as null). The merged file is written into a fresh folder under ``_staging/`` (outside every
+table, so no glob sees it) and flushed; then that folder and the partition folder swap names in one
+step (:func:`cadestate.atomic.exchange`), and the old files, now in the staging folder, are
+removed. A reader listing the partition sees all the old files or the merged one (under a new
+name), never both (rows twice) nor neither (rows missing); one that listed the old files and opens
+one after the swap finds it gone and fails rather than answer wrong (:meth:`Warehouse.read` lists
+again; a DuckDB query reports the missing file, and run again answers). Interrupted at any point, a
+compaction leaves the partition as it was or compacted, plus a staging folder nothing reads. Writes
+to an append-mode partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`),
+so no write lands in a folder being swapped out.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import os
 import re
 import shutil
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cadestate.atomic import TMP_SUFFIX, atomic_write_bytes, fsync_dir  # noqa: F401  (atomic_write_bytes: also warehouse's)
+from cadestate.atomic import TMP_SUFFIX, atomic_write_bytes, exchange, fsync_dir  # noqa: F401  (atomic_write_bytes: also warehouse's)
 
 if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
     import pyarrow as pa
@@ -40,10 +59,19 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 REPLACE_FILE = "part.parquet"
+COMPACT_AFTER = 64
+"""Default of :attr:`Warehouse.compact_after` (config ``[warehouse] compact_after_files``)."""
+READ_RETRIES = 5
+"""Times :meth:`Warehouse.read` lists the files again when one vanished (compacted) while it read."""
 
 AFTER_WRITE: list[Callable[[Warehouse], object]] = []
 """Called with the warehouse after each partition write. The package (``warehouse/__init__.py``) adds
 the DuckDB catalog's refresh, so this module knows nothing of the catalog, which is built on it."""
+
+
+def _vanished(e: OSError) -> bool:
+    """Whether ``e`` says a file is not there (pyarrow raises some as plain OSError, errno unset)."""
+    return isinstance(e, FileNotFoundError) or e.errno == errno.ENOENT or "No such file" in str(e)
 
 
 class WarehouseError(ValueError):
@@ -60,13 +88,26 @@ def check_name(name: str, what: str = "clip") -> str:
     return name
 
 
-class Warehouse:
-    """A warehouse rooted at a local directory."""
+@dataclass(frozen=True)
+class Compacted:
+    """One partition compacted: ``files`` merged into one file of ``rows`` rows."""
 
-    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] | None = None):
+    table: str
+    partition: str
+    files: int
+    rows: int
+
+
+class Warehouse:
+    """A warehouse rooted at a local directory. A write to an append-mode table that leaves more
+    than ``compact_after`` files in its partition compacts the partition."""
+
+    def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] | None = None,
+                 compact_after: int = COMPACT_AFTER):
         self.root = Path(root).expanduser().resolve()
         self._tables = tables
         self._info: dict[str, TableInfo] | None = None
+        self.compact_after = compact_after
 
     @property
     def tables(self) -> dict[str, TableSpec]:
@@ -129,6 +170,19 @@ class Warehouse:
         return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
 
     # -- writing -----------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def locked(self, table: str, part: str) -> Iterator[None]:
+        """Hold the lock of one partition (``_locks/``, an exclusive ``flock``): appends to it and its
+        compaction take it, so none happens while another is under way."""
+        path = self.root / "_locks" / self._table(table).name / f"{self.partition_dir(table, part).name}.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
     def conform(self, table: str, part: str, data: pa.Table) -> pa.Table:
         """Check ``data`` against the table's schema and return it cast to that schema exactly."""
         import pyarrow as pa
@@ -162,19 +216,30 @@ class Warehouse:
         """Write one partition atomically; returns the rows written.
 
         ``replace`` tables: the partition becomes exactly ``data`` (rewriting identical data is a
-        no-op in effect: idempotent). ``append`` tables: ``data`` is added as a new file.
+        no-op in effect: idempotent). ``append`` tables: ``data`` is added as a new file, under the
+        partition's lock, and the partition is compacted when it has more than ``compact_after`` files.
         """
         spec = self.spec(table)
         data = self.conform(table, part, data)
         folder = self.partition_dir(table, part)
         folder.mkdir(parents=True, exist_ok=True)
         if spec.mode == "replace":
-            final = folder / REPLACE_FILE
+            self._write_file(data, folder / REPLACE_FILE)
         else:
-            final = folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet"
-        tmp = folder / f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}"
+            with self.locked(table, part):
+                self._write_file(data, folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet")
+                if len(list(folder.glob("*.parquet"))) > self.compact_after:
+                    self._compact_locked(table, part, 2)
+        for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
+            hook(self)
+        return data.num_rows
+
+    @staticmethod
+    def _write_file(data: pa.Table, final: Path) -> None:
+        """Write ``data`` to ``final`` atomically (a flushed temporary file renamed into place)."""
         import pyarrow.parquet as pq
 
+        tmp = final.with_name(f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
         try:
             pq.write_table(data, tmp, compression="zstd")
             with open(tmp, "rb+") as f:
@@ -182,10 +247,44 @@ class Warehouse:
             os.replace(tmp, final)
         finally:
             tmp.unlink(missing_ok=True)
-        fsync_dir(folder)
-        for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
-            hook(self)
-        return data.num_rows
+        fsync_dir(final.parent)
+
+    def compact(self, table: str, part: str, min_files: int = 2) -> Compacted | None:
+        """Merge the files of one partition of an append-mode table into one (see the module), under
+        the partition's lock; None when it has fewer than ``min_files`` files."""
+        if self.spec(table).mode != "append":
+            raise WarehouseError(f"table {table} is not append-mode (one file per partition): nothing to compact")
+        with self.locked(table, part):
+            return self._compact_locked(table, part, min_files)
+
+    def compact_tables(self, tables: Sequence[str] | None = None, min_files: int = 2) -> list[Compacted]:
+        """:meth:`compact` every partition of the append-mode ``tables`` (default: all of them)."""
+        names = list(tables) if tables is not None else [n for n, i in self.info.items() if i.mode == "append"]
+        for name in names:
+            if self.spec(name).mode != "append":
+                raise WarehouseError(f"table {name} is not append-mode (one file per partition): nothing to compact")
+        done = [self.compact(name, part, min_files) for name in names for part in self.partitions(name)]
+        return [c for c in done if c is not None]
+
+    def _compact_locked(self, table: str, part: str, min_files: int) -> Compacted | None:
+        import pyarrow as pa
+        import pyarrow.dataset as ds
+
+        folder = self.partition_dir(table, part)
+        files = sorted(folder.glob("*.parquet"))
+        if len(files) < max(min_files, 1):
+            return None
+        schema = self.spec(table).schema
+        merged = pa.concat_tables([ds.dataset([str(f)], schema=schema, format="parquet").to_table() for f in files])
+        stage = self.root / "_staging" / f"compact-{uuid.uuid4().hex}"
+        stage.mkdir(parents=True)
+        try:  # the merged file sorts where the last one did, under a name no reader has listed
+            self._write_file(merged, stage / f"{files[-1].name.split('-')[0]}-{uuid.uuid4().hex[:8]}.parquet")
+            exchange(stage, folder)  # the partition now holds the merged file, the staging folder the old ones
+            fsync_dir(folder.parent)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+        return Compacted(table, part, len(files), merged.num_rows)
 
     # -- reading -----------------------------------------------------------------------------
     def read(
@@ -199,20 +298,27 @@ class Warehouse:
 
         ``filters`` is a pyarrow expression or DNF tuples as in ``pyarrow.parquet``
         (``[("timestamp_us", ">=", 10)]``). Files written before a column was added read it as null.
+        A file that vanishes while it is read (its partition compacted) makes it list the files again.
         """
         spec = self.spec(table)
-        files = [str(f) for f in self.files(table, partitions)]
-        if not files:
-            empty = spec.schema.empty_table()
-            return empty.select(list(columns)) if columns else empty
-        if isinstance(filters, list):
-            import pyarrow.parquet as pq
+        for attempt in range(READ_RETRIES):
+            files = [str(f) for f in self.files(table, partitions)]
+            if not files:
+                empty = spec.schema.empty_table()
+                return empty.select(list(columns)) if columns else empty
+            if isinstance(filters, list):
+                import pyarrow.parquet as pq
 
-            filters = pq.filters_to_expression(filters)
-        import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
+                filters = pq.filters_to_expression(filters)
+            import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
 
-        dataset = ds.dataset(files, schema=spec.schema, format="parquet")
-        result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
+            try:
+                dataset = ds.dataset(files, schema=spec.schema, format="parquet")
+                result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
+                break
+            except OSError as e:
+                if not _vanished(e) or attempt == READ_RETRIES - 1:
+                    raise
         keys = [(k, "ascending") for k in spec.key if not columns or k in columns]
         return result.sort_by(keys) if keys else result
 

@@ -15,7 +15,7 @@ from rich.console import Console, ConsoleDimensions
 from rich.markup import escape
 from rich.table import Table
 
-from cadestate.config import Config, WarehouseConfig, load_config
+from cadestate.config import Config, load_config
 
 app = typer.Typer(
     help="CAD-Estate annotation pipeline: RGB walkthrough videos -> CAD models with 9-DoF poses.\n\n"
@@ -64,13 +64,14 @@ class State:
     def config(self) -> Config:
         cfg = load_config(self.config_path)
         if self.warehouse:
-            cfg = dataclasses.replace(cfg, warehouse=WarehouseConfig(root=str(self.warehouse)))
+            cfg = dataclasses.replace(cfg, warehouse=dataclasses.replace(cfg.warehouse, root=str(self.warehouse)))
         return cfg
 
     def open_warehouse(self):
         from warehouse import Warehouse
 
-        return Warehouse(self.config().warehouse.root)
+        settings = self.config().warehouse
+        return Warehouse(settings.root, compact_after=settings.compact_after_files)
 
 
 class CliError(Exception):

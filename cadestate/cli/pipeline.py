@@ -1,4 +1,4 @@
-"""Commands over clips, the warehouse and the configuration: ingest, run, status, sql, tables, catalog, config, demo."""
+"""Commands over clips, the warehouse and the configuration: ingest, run, status, sql, tables, catalog, compact, config, demo."""
 
 from __future__ import annotations
 
@@ -270,14 +270,43 @@ def tables(
 
 @app.command()
 def catalog(ctx: typer.Context) -> None:
-    """Rebuild <warehouse>/catalog.duckdb, the views for DuckDB clients (derived data: nothing is lost).
+    """Rebuild <warehouse>/catalog.duckdb, the views for DuckDB clients (derived data: nothing is lost),
+    checking every table's files anew.
 
-    Opening it through cadestate rebuilds it anyway when it is broken or was built for another
-    folder (a moved or copied warehouse).
+    Views are made once and read the table files at query time, so writes need no rebuild. Opening
+    the catalog through cadestate rebuilds it anyway when it is broken, was built for another folder
+    (a moved or copied warehouse) or a table's schema changed. A table with files of an older schema
+    is read by name (slower); once its files are rewritten (`cadestate compact`), this command makes
+    its view fast again.
     """
     from warehouse.catalog import rebuild_catalog
 
-    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse())}")
+    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse(), recheck=True)}")
+
+
+@app.command()
+def compact(
+    ctx: typer.Context,
+    tables: Annotated[Optional[list[str]], typer.Argument(help="Append-mode tables to compact (default: runs, label_files, label_tasks).")] = None,
+    min_files: Annotated[int, typer.Option("--min-files", min=2, help="Compact a partition only if it has at least this many files.")] = 2,
+) -> None:
+    """Merge each partition of the append-mode tables (one file per write) into one file.
+
+    Safe while the pipeline runs and while others read: a partition's old files and its merged
+    file are swapped in one step, so a reader sees either, never both; a query that had listed the
+    old files fails (`cadestate sql`: rerun it) rather than answer wrong. Writes compact a partition
+    by themselves past [warehouse] compact_after_files files. Prints one line per partition compacted.
+
+    Example:  cadestate compact runs --min-files 10
+    """
+    from warehouse.catalog import compacted_tables_checked
+
+    wh = ctx.obj.open_warehouse()
+    done = wh.compact_tables(tables, min_files)
+    for c in done:
+        out.print(f"{c.table} {c.partition}: {c.files} files -> 1 ({c.rows} rows)", markup=False, highlight=False)
+    compacted_tables_checked(wh, sorted({c.table for c in done}))
+    out.print(f"compacted {len(done)} partition(s)")
 
 
 @config_app.command("show")

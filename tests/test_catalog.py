@@ -1,0 +1,200 @@
+"""The DuckDB catalog's views are made once (writes never rebuild them), follow a table from empty
+to full and across a schema change; append-mode partitions are compacted atomically."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import threading
+
+import duckdb
+import pyarrow as pa
+import pytest
+
+from conftest import table_rows
+from fuzz.harness import run_cli
+from schemas import TableSpec
+from warehouse import Warehouse, WarehouseError, connect
+from warehouse.catalog import CATALOG_FILE, VIEWS_MACRO, recorded_views, refresh_catalog, schema_path
+
+
+def runs(clip: str, *ids: str) -> pa.Table:
+    return table_rows("runs", [{"clip": clip, "run_id": i, "stage": "ingest"} for i in ids])
+
+
+def catalog_state(wh: Warehouse) -> tuple[int, int]:
+    st = (wh.root / CATALOG_FILE).stat()
+    return st.st_ino, st.st_mtime_ns
+
+
+def test_writes_leave_the_catalog_alone_and_its_views_follow_them(wh):
+    wh.write("runs", "a", runs("a", "r1"))
+    before = catalog_state(wh)
+    held = connect(wh)  # opened before the writes: views read the files at query time
+    assert held.execute("SELECT count(*) FROM clips").fetchone() == (0,)
+    wh.write("runs", "a", runs("a", "r2"))
+    wh.write("runs", "b", runs("b", "r3"))
+    wh.write("clips", "a", table_rows("clips", [{"clip": "a", "num_cameras": 4}]))  # a table's first rows
+    assert catalog_state(wh) == before
+    assert held.execute("SELECT count(*) FROM runs").fetchone() == (3,)
+    assert held.execute("SELECT clip, num_cameras FROM clips").fetchall() == [("a", 4)]
+    held.close()
+    con = connect(wh)
+    assert catalog_state(wh) == before
+    sql = con.execute("SELECT sql FROM duckdb_views() WHERE view_name = 'runs'").fetchone()[0]
+    assert "union_by_name" not in sql and "_schema.parquet" in sql
+    con.close()
+
+
+def test_schema_files_are_not_partitions_and_add_no_rows(wh):
+    wh.write("runs", "a", runs("a", "r1"))
+    assert schema_path(wh, "runs").is_file() and wh.partitions("runs") == ["a"]
+    con = connect(wh)
+    assert con.execute("SELECT count(*) FROM runs").fetchone() == (1,)
+    con.close()
+
+
+V1 = TableSpec(name="numbers", mode="append", key=("clip", "i"), description="test table",
+               schema=pa.schema([pa.field("clip", pa.string(), False), pa.field("i", pa.int64(), False)]))
+V2 = TableSpec(name="numbers", mode="append", key=("clip", "i"), description="test table",
+               schema=V1.schema.append(pa.field("note", pa.string())))
+
+
+def test_a_column_added_to_a_table_with_data(tmp_path):
+    old = Warehouse(tmp_path / "w", {"numbers": V1})
+    old.write("numbers", "a", pa.table({"clip": ["a"], "i": [1]}))
+    old.write("numbers", "a", pa.table({"clip": ["a"], "i": [2]}))
+    assert recorded_views(old.root / CATALOG_FILE)["tables"]["numbers"]["uniform"]
+    new = Warehouse(tmp_path / "w", {"numbers": V2})  # the code now has the column
+    new.write("numbers", "b", pa.table({"clip": ["b"], "i": [3], "note": ["x"]}))
+    con = connect(new)
+    assert con.execute("SELECT clip, i, note FROM numbers ORDER BY i").fetchall() == [("a", 1, None), ("a", 2, None), ("b", 3, "x")]
+    con.close()
+    assert recorded_views(new.root / CATALOG_FILE)["tables"]["numbers"]["uniform"] is False  # read by name
+    assert [c.files for c in new.compact_tables(["numbers"])] == [2]  # rewritten with the column
+    refresh_catalog(new, recheck=["numbers"])
+    assert recorded_views(new.root / CATALOG_FILE)["tables"]["numbers"]["uniform"]
+    con = connect(new)
+    assert con.execute("SELECT clip, i, note FROM numbers ORDER BY i").fetchall() == [("a", 1, None), ("a", 2, None), ("b", 3, "x")]
+    con.close()
+
+
+def test_a_copied_warehouse_keeps_what_its_catalog_knew_of_its_files(wh, tmp_path, monkeypatch):
+    import shutil
+
+    import warehouse.catalog as catalog
+
+    wh.write("runs", "a", runs("a", "r1"))
+    shutil.copytree(wh.root, tmp_path / "copy")
+    monkeypatch.setattr(catalog, "uniform", lambda *a: pytest.fail("files read again"))
+    con = connect(Warehouse(tmp_path / "copy"))  # rebuilt for the new root, no footer read
+    assert con.execute("SELECT count(*), warehouse_root() FROM runs").fetchone() == (1, str(tmp_path / "copy"))
+    con.close()
+
+
+def test_an_append_partition_is_compacted_past_the_configured_count(tmp_path):
+    wh = Warehouse(tmp_path / "w", compact_after=3)
+    for i in range(3):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+    assert len(wh.files("runs", ["a"])) == 3
+    wh.write("runs", "a", runs("a", "r3"))
+    assert len(wh.files("runs", ["a"])) == 1
+    assert sorted(wh.read("runs").column("run_id").to_pylist()) == ["r0", "r1", "r2", "r3"]
+    wh.write("runs", "a", runs("a", "r4"))  # later writes sort after the merged file
+    assert wh.files("runs", ["a"])[-1].stat().st_size and len(wh.files("runs", ["a"])) == 2
+    assert not list((wh.root / "_staging").iterdir())
+
+
+def test_compact_command(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    for i in range(3):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+    wh.write("runs", "b", runs("b", "r9"))
+    result = run_cli("-w", str(wh.root), "compact")
+    assert result.code == 0, result.stderr
+    assert result.stdout.splitlines() == ["runs a: 3 files -> 1 (3 rows)", "compacted 1 partition(s)"]
+    assert run_cli("-w", str(wh.root), "compact", "runs").stdout.splitlines() == ["compacted 0 partition(s)"]
+    refused = run_cli("-w", str(wh.root), "compact", "clips")
+    assert refused.code == 2 and "not append-mode" in refused.stderr and "Traceback" not in refused.stderr
+    assert "--min-files" in run_cli("compact", "--help").stdout
+
+
+def test_an_interrupted_compaction_leaves_the_partition_whole(wh, monkeypatch):
+    import warehouse.store as store
+
+    for i in range(3):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+    before = sorted(p.name for p in wh.files("runs", ["a"]))
+
+    def crash(a, b):
+        raise OSError("killed (injected)")
+
+    monkeypatch.setattr(store, "exchange", crash)
+    with pytest.raises(OSError, match="injected"):
+        wh.compact("runs", "a")
+    assert sorted(p.name for p in wh.files("runs", ["a"])) == before
+    assert not list((wh.root / "_staging").iterdir())
+    monkeypatch.undo()
+    assert wh.compact("runs", "a").rows == 3 and wh.read("runs").num_rows == 3
+
+
+def test_compaction_never_shows_a_reader_rows_twice_or_missing(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    for i in range(6):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+    seen, errors, stop = [], [], threading.Event()
+
+    def read_forever():
+        reader = Warehouse(wh.root)
+        con = duckdb.connect()
+        glob = (wh.table_dir("runs") / "clip=a" / "*.parquet").as_posix()
+        while not stop.is_set():
+            seen.append(reader.read("runs", ["a"]).num_rows)
+            try:
+                seen.append(con.execute(f"SELECT count(*) FROM read_parquet('{glob}')").fetchone()[0])
+            except duckdb.Error as e:  # a file listed, then compacted away: an error, never a wrong count
+                errors.append(str(e))
+
+    threads = [threading.Thread(target=read_forever) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for i in range(6, 30):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+        wh.compact("runs", "a")
+    stop.set()
+    for t in threads:
+        t.join()
+    assert seen and all(6 <= n <= 30 for n in seen)
+    assert all("No files found" in e or "No such file" in e or "Cannot open" in e or "could not" in e.lower() for e in errors), errors[:3]
+    assert wh.read("runs").num_rows == 30
+
+
+def _append_many(root: str, clip: str, n: int) -> None:
+    wh = Warehouse(root, compact_after=4)
+    for i in range(n):
+        wh.write("runs", clip, runs(clip, f"{clip}{i}"))
+
+
+def test_concurrent_writers_and_compaction_lose_no_row(tmp_path):
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_append_many, args=(str(tmp_path / "w"), "a", 15)) for _ in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+    assert all(p.exitcode == 0 for p in procs)
+    assert Warehouse(tmp_path / "w").read("runs").num_rows == 45
+
+
+def test_a_catalog_records_its_views(wh):
+    wh.write("runs", "a", runs("a", "r1"))
+    con = duckdb.connect(str(wh.root / CATALOG_FILE), read_only=True)
+    record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
+    con.close()
+    assert record["root"] == str(wh.root) and set(record["tables"]) == set(wh.info)
+
+
+def test_compacting_a_replace_table_is_refused(wh):
+    wh.write("clips", "a", table_rows("clips", [{"clip": "a"}]))
+    with pytest.raises(WarehouseError, match="not append-mode"):
+        wh.compact("clips", "a")
