@@ -2,14 +2,17 @@
 the submission of a unit's (a clip's or a CAD library's) stages wired from the stage graph.
 
 Caching: a task's cache key is its source (``TASK_SOURCE``) plus its inputs, where an upstream
-:class:`StageRun` counts only by its ``output_hash`` and the stage's code digest, config digest and
-input digests are inputs. So an unchanged rerun does no work, a config change reruns the stages
-whose section changed, and a stage downstream of a rerun stage reruns only if that stage's output
-changed. Results persist under ``<warehouse>/_prefect/results`` (see :mod:`flows.runtime`).
+:class:`StageRun` counts only by its ``output_hash``, the stage's code digest, config digest and
+input digests are inputs, and the warehouse counts by its identity (:mod:`warehouse.identity`), not
+its path. So an unchanged rerun does no work, a config change reruns the stages whose section
+changed, a stage downstream of a rerun stage reruns only if that stage's output changed, a copied
+or moved warehouse reruns nothing, and two warehouses never share a result. Results persist under
+``<warehouse>/_prefect/results`` (see :mod:`flows.runtime`).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from prefect import Task, task
@@ -21,15 +24,17 @@ from cadestate.config import Config
 from tasks.registry import STAGES, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
 from warehouse import Warehouse
+from warehouse.identity import warehouse_id
 
-NOT_IN_KEY = ("config", "source", "show_progress")
-"""Parameters that do not change a task's result given the others: the config (the stage's
-sections count through ``config_hash``, the files it names through ``inputs``), the source (its
-files count through ``inputs``), display."""
+NOT_IN_KEY = ("root", "config", "source", "show_progress")
+"""Parameters that do not change a task's result given the others: the root (the warehouse counts
+by its identity instead), the config (the stage's sections count through ``config_hash``, the files
+it names through ``inputs``), the source (its files count through ``inputs``), display."""
 
 
 def _cache_key(context: Any, parameters: dict[str, Any]) -> str | None:
     key = {k: v for k, v in parameters.items() if k not in NOT_IN_KEY}
+    key["warehouse"] = warehouse_id(Path(parameters["root"]))
     key["upstream"] = [u.output_hash for u in parameters["upstream"]]
     return hash_objects(key)
 
@@ -47,7 +52,7 @@ def run_declared_stage(root: str, unit: str, stage: str, config_hash: str, code_
     waiting = waiting_run(unit, stage, upstream)
     if waiting is not None:
         return waiting
-    wh = Warehouse(root)
+    wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
     declared = STAGES[stage]
     return run_stage(
         wh, unit, stage, config_hash=config_hash, code_hash=code_hash,

@@ -64,6 +64,33 @@ def test_unchanged_rerun_does_nothing(config, source):
     assert {r.state for r in run_clips([ClipSource("small", video, cameras)], config, show_progress=False)} == {"cached"}
 
 
+def test_a_copied_or_moved_warehouse_reruns_nothing(config, source, tmp_path):
+    run_clips([source], config, show_progress=False)
+    copy = tmp_path / "elsewhere" / "copied"
+    shutil.copytree(config.warehouse.root, copy)
+    moved = dataclasses.replace(config, warehouse=WarehouseConfig(root=str(copy)))
+    wh = Warehouse(copy)
+    before, runs_before = snapshot(copy), wh.read("runs").num_rows
+    assert states(run_clips([source], moved, show_progress=False)) == expect("small", rest="cached")
+    assert snapshot(copy) == before and wh.read("runs").num_rows == runs_before
+    assert all(r.status == "completed" and not r.stale_reasons for r in pipeline_status(wh, moved))
+
+
+def test_cache_keys_follow_the_warehouse_identity_not_its_path(tmp_path):
+    from flows.stage_tasks import _cache_key
+    from warehouse.identity import ID_FILE, warehouse_id
+
+    def key(root: Path) -> str:
+        return _cache_key(None, {"root": str(root), "unit": "c", "stage": "frames", "config_hash": "h", "code_hash": "k",
+                                 "inputs": ["i"], "upstream": [], "config": None, "source": None, "show_progress": False})
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert key(a) != key(b)  # two warehouses: two ids
+    assert (a / ID_FILE).is_file() and warehouse_id(a) == warehouse_id(a)
+    shutil.copytree(a, tmp_path / "c")
+    assert key(tmp_path / "c") == key(a)  # a copy keeps the id
+
+
 def test_changed_stage_config_reruns_that_stage_only(config, source):
     run_clips([source], config, show_progress=False)
     wh = Warehouse(config.warehouse.root)
