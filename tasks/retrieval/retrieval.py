@@ -94,8 +94,11 @@ def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.nda
 
 def library_digest(wh: Warehouse) -> str:
     """Digest of the latest completed outputs of every library's cad_embed and label_similarity
-    (an input of the retrieval of every clip)."""
-    runs = wh.read("runs", filters=[("stage", "in", ["cad_embed", "label_similarity"]), ("status", "==", "completed")],
+    (an input of the retrieval of every clip). Reads the ``runs`` partitions of libraries only (a
+    library's runs use its name as ``runs.clip``): every one but those of clips that are no library."""
+    clips_only = set(wh.partitions("clips")) - set(wh.partitions("cad_models"))
+    libraries = [p for p in wh.partitions("runs") if p not in clips_only]
+    runs = wh.read("runs", libraries, filters=[("stage", "in", ["cad_embed", "label_similarity"]), ("status", "==", "completed")],
                    columns=["clip", "stage", "output_hash", "started_at"]).sort_by("started_at").to_pylist()
     latest = {(r["clip"], r["stage"]): r["output_hash"] for r in runs}
     return digest(*(f"{k[0]}/{k[1]}={v}" for k, v in sorted(latest.items())))
