@@ -31,15 +31,26 @@ MEDIA_VERSION = re.compile(r"(media/[^/]+/[^/]+/)[^/]+/")
 """A media path's version folder is fresh on every write (warehouse.store); it is replaced by ``*``."""
 
 
+STRIP: list[str] = []
+"""Path prefixes replaced by ``<root>`` (``--strip``): two warehouses built in different folders."""
+
+
 def _normalise(value: object) -> object:
     if isinstance(value, str):
+        if value.startswith("{"):  # a JSON document (a task or label file): its volatile keys left out too
+            try:
+                return _normalise(json.loads(value))
+            except ValueError:
+                pass
+        for prefix in STRIP:
+            value = value.replace(prefix, "<root>")
         return MEDIA_VERSION.sub(r"\1*/", value)
     if isinstance(value, float):
         return round(value, 9)
     if isinstance(value, list):
         return [_normalise(v) for v in value]
     if isinstance(value, dict):
-        return {k: _normalise(v) for k, v in value.items()}
+        return {k: _normalise(v) for k, v in value.items() if not VOLATILE.search(k)}
     return value
 
 
@@ -88,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clip", required=True)
     parser.add_argument("--json", type=Path, help="write the digests here")
     parser.add_argument("--compare", type=Path, help="digests written earlier with --json: print what differs")
+    parser.add_argument("--strip", action="append", default=[], metavar="PREFIX",
+                        help="a path prefix to replace by <root> in every string (repeatable)")
     args = parser.parse_args(argv)
+    STRIP[:] = args.strip
     digests = table_digests(args.warehouse, args.clip)
     if args.json:
         args.json.write_text(json.dumps(digests, indent=1, sort_keys=True))
