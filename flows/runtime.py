@@ -32,8 +32,12 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(int(startup_timeout_s)))
     os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
     # Stage failures are reported by the caller (one line each); Prefect's own logs, tracebacks
-    # included, show with --verbose.
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO" if verbose else "CRITICAL")
+    # included, show with --verbose. The ephemeral API runs in this process and logs under its own
+    # level: without it, its shutdown on a busy machine printed ~150 lines of "Error flushing events"
+    # tracebacks (run history it had not yet recorded) after a run that had succeeded.
+    level = "INFO" if verbose else "CRITICAL"
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", level)
+    os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", level)
     return os.environ.get("PREFECT_API_URL", "")
 
 

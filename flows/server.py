@@ -102,7 +102,7 @@ def server_environment(root: Path, database_url: str = "") -> dict[str, str]:
     database URL when one is given (e.g. ``postgresql+asyncpg://user:pw@host/db``)."""
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_HOME")}
     env.update(PREFECT_HOME=str(prefect_home(root)), PREFECT_SERVER_ANALYTICS_ENABLED="false",
-               PREFECT_LOGGING_LEVEL="WARNING")
+               PREFECT_LOGGING_LEVEL="WARNING", PREFECT_SERVER_LOGGING_LEVEL="WARNING")
     if database_url:
         env["PREFECT_SERVER_DATABASE_CONNECTION_URL"] = database_url
     return env

@@ -97,3 +97,16 @@ def test_server_start_on_a_port_in_use_says_so_and_forgets_the_server(tmp_path):
     errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and f"Port {port} is already in use" in errors[0], result.stderr
     assert not (w / "_prefect" / "server.json").exists() and read_server(w) is None
+
+
+@pytest.mark.parametrize("verbose, level", [(False, "CRITICAL"), (True, "INFO")])
+def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, verbose, level):
+    """The ephemeral API runs in the command's process with a log level of its own: left at Prefect's
+    default, its shutdown on a busy machine printed pages of tracebacks after a successful run."""
+    from flows.runtime import prepare_prefect_environment
+
+    for name in ("PREFECT_HOME", "PREFECT_API_URL", "PREFECT_LOGGING_LEVEL", "PREFECT_SERVER_LOGGING_LEVEL"):
+        monkeypatch.setenv(name, "")  # so that the test's end restores what was there (or its absence)
+        monkeypatch.delenv(name)
+    assert prepare_prefect_environment(tmp_path, verbose=verbose) == ""
+    assert os.environ["PREFECT_LOGGING_LEVEL"] == os.environ["PREFECT_SERVER_LOGGING_LEVEL"] == level
