@@ -23,7 +23,7 @@ def main() -> int:
         "detection": detect_throughput.run(Path("data/bench/perf")),
         "pose": pose_bench.run(),
         "sfm": sfm_bench.run(),
-        "retrieval": retrieval_bench.run(),
+        "retrieval": retrieval_bench.sizes(),
         "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True) if track_bench.BENCH_DIR.is_dir() else "no benchmark",
         "end_to_end": stage_times.run(),
         "commands": cli_bench.run(),

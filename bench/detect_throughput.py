@@ -1,23 +1,30 @@
 """Detection and embedding throughput on the paper's average clip (138 frames, 640x360).
 
 Detection: the ``[detect]`` default detector over the 138 frames of :mod:`bench.frames_throughput`'s
-clip, batched as the stage runs it (ms per frame, median of ``repeats``). Embedding: crops of
-every detected box, tiled to ``crops`` crops, through the ``[embed]`` default embedder
-(descriptors per second, crop preparation included).
+clip, batched as the stage runs it (ms per frame, median of ``repeats``), beside, in the same
+rounds on the same frames, a bare onnxruntime session with onnxruntime's default options on the
+network inputs the detector makes of them (prepared beforehand, outside the timing) and the
+detector's own session on those inputs: ``ratio_to_bare_session`` is detection against the bare
+session, ``ratio_to_own_session`` against the network alone with the pipeline's options (what
+letterbox, input preparation, decoding and NMS add). Embedding: crops of every detected box,
+tiled to ``crops`` crops, through the ``[embed]`` default embedder (descriptors per second, crop
+preparation included).
 """
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
+import onnxruntime
 
 from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
-from tasks.detection.detectors import load_detector
+from tasks.detection.detectors import detector_path, letterbox, load_detector
 from tasks.detection.models.embedder import load_embedder
 from tasks.video.camera_file import parse_camera_file
 from tasks.video.decode import decode_at
@@ -29,11 +36,22 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
         make_demo_clip(cache_dir, SPEC)
     images = [f.rgb for f in decode_at(video, parse_camera_file(cameras).timestamps_us)]
     detector, cfg = load_detector(DetectConfig()), DetectConfig()
-    seconds, detections = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        detections = detector.detect(images)
-        seconds.append(time.perf_counter() - t0)
+    bare = onnxruntime.InferenceSession(str(detector_path(cfg)), providers=["CPUExecutionProvider"])
+    name = bare.get_inputs()[0].name
+    inputs = [np.stack([detector.layout.prepare(letterbox(im, detector.size, detector.layout.fill)[0])
+                        for im in images[i:i + detector.batch_size]]) for i in range(0, len(images), detector.batch_size)]
+    timed = {"detect": lambda: detector.detect(images),
+             "bare": lambda: [bare.run(None, {name: x}) for x in inputs],
+             "own": lambda: [detector.session.run(None, {name: x}) for x in inputs]}
+    seconds: dict[str, list[float]] = {k: [] for k in timed}
+    results = {}
+    for _ in range(repeats):  # interleaved: the three see the same load of the machine
+        for key, call in timed.items():
+            t0 = time.perf_counter()
+            results[key] = call()
+            seconds[key].append(time.perf_counter() - t0)
+    detections = results["detect"]
+    ms = {k: 1000 * statistics.median(v) / len(images) for k, v in seconds.items()}
     embedder = load_embedder(EmbedConfig())
     pairs = [(im, box) for im, det in zip(images, detections) for box in det.boxes]
     if not pairs:  # nothing detected: time crops of the central quarter instead
@@ -46,7 +64,13 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
     embed_s = time.perf_counter() - t0
     return {
         "frames": len(images), "size": f"{SPEC.width}x{SPEC.height}", "detector_threads": cfg.threads,
-        "detect_ms_per_frame": round(1000 * statistics.median(seconds) / len(images), 1),
+        "detect_ms_per_frame": round(ms["detect"], 1), "bare_session_ms_per_frame": round(ms["bare"], 1),
+        "own_session_ms_per_frame": round(ms["own"], 1), "ratio_to_bare_session": round(ms["detect"] / ms["bare"], 3),
+        "ratio_to_own_session": round(ms["detect"] / ms["own"], 3),
         "boxes_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
         "embeddings_per_s": round(crops / embed_s, 1), "crop_size": EmbedConfig().crop_size,
     }
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(Path("data/bench/perf")), indent=2))

@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 from cadestate.config import ConfigError, DetectConfig, config_from_dict  # noqa: E402
 from tasks.detection.detectors import (  # noqa: E402
-    Detector, Letterbox, check_detect_config, letterbox, load_detector, nms, output_problem,
+    Detector, Letterbox, check_detect_config, letterbox, load_detector, nms, output_problem, resize_bilinear,
 )
 from tasks.detection.models import nanodet as nd  # noqa: E402
 
@@ -162,6 +162,48 @@ def test_letterbox_geometry_and_round_trip():
     np.testing.assert_allclose(x[:, lb.pad[1] + 5, 10], (np.array([0, 0, 255], np.float32) - nd.MEAN) / nd.STD, atol=1e-4)
     boxes = np.array([[10, 20, 200, 290], [0, 0, 451, 300]], np.float32)
     np.testing.assert_allclose(lb.to_image(lb.to_canvas(boxes)), boxes, atol=1e-3)
+
+
+def four_neighbour_resize(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
+    """The previous resize_bilinear: every output pixel blends its four source neighbours at once."""
+    h, w = rgb.shape[:2]
+    ys = np.clip((np.arange(nh) + 0.5) * (h / nh) - 0.5, 0, h - 1)
+    xs = np.clip((np.arange(nw) + 0.5) * (w / nw) - 0.5, 0, w - 1)
+    y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    fy, fx = (ys - y0)[:, None, None].astype(np.float32), (xs - x0)[None, :, None].astype(np.float32)
+    im = rgb.astype(np.float32)
+    top = im[y0][:, x0] * (1 - fx) + im[y0][:, x1] * fx
+    bot = im[y1][:, x0] * (1 - fx) + im[y1][:, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+@pytest.mark.parametrize("shape,out", [((360, 640), (234, 416)), ((1080, 1920), (234, 416)), ((50, 37), (416, 308)),
+                                       ((13, 200), (27, 416)), ((1, 1), (4, 4)), ((300, 451), (277, 416))])
+def test_separable_resize_equals_the_four_neighbour_blend(shape, out):
+    rng = np.random.default_rng(sum(shape))
+    img = rng.integers(0, 256, (*shape, 3), np.uint8)
+    got = resize_bilinear(img, *out)
+    assert got.dtype == np.float32 and np.array_equal(got, four_neighbour_resize(img, *out))
+    crop = rng.integers(0, 256, (100, 200, 3), np.uint8)[10:60, 20:90]  # a crop: a strided view, as the embedder cuts
+    assert np.array_equal(resize_bilinear(crop, 128, 90), four_neighbour_resize(crop, 128, 90))
+    floats = img.astype(np.float64) + 0.25
+    assert np.array_equal(resize_bilinear(floats, *out), four_neighbour_resize(floats, *out))
+
+
+def test_prepare_equals_the_transposed_normalisation():
+    canvas, _ = letterbox(np.random.default_rng(0).integers(0, 256, (300, 451, 3), np.uint8), 416)
+    expected = np.ascontiguousarray(((canvas[..., ::-1] - nd.MEAN) / nd.STD).transpose(2, 0, 1), dtype=np.float32)
+    got = nd.prepare(canvas)
+    assert got.flags.c_contiguous and got.dtype == np.float32 and np.array_equal(got, expected)
+
+
+def test_session_threads_sleep_between_operators(tmp_path):
+    path = tmp_path / "yolo.onnx"
+    export(FixedOutputs([yolo_outputs()]), path, 64, dynamic_batch=True, n_outputs=1)
+    options = Detector(path, "yolov8", LABELS, 64).session.get_session_options()
+    assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    assert options.intra_op_num_threads == 2
 
 
 def test_class_aware_nms():

@@ -11,7 +11,8 @@ product per library however many views it has (``cad_model_embeddings`` holds b_
 
 Reads: the clip's tracks, automatic and manual (:mod:`tasks.tracking.clip_tracks`: ``tracks``,
 ``track_detections``, ``detections``, ``embeddings``, ``manual_tracks``); every
-library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similarity``. Writes:
+library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similarity``, as an index
+built once per library content per process (:mod:`tasks.retrieval.index`). Writes:
 the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries; none while
 the warehouse has no CAD library). Each library's descriptors are compared after that library's
 own whitening.
@@ -23,30 +24,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
+from threadpoolctl import threadpool_limits
 
 from cadestate.config import RetrievalConfig
 from cadestate.lineage import digest, table_digest
-from tasks.retrieval.whitening import Whitening, read_whitening
+from tasks.retrieval.index import LibraryIndex, RetrievalError, load_index
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import MissingDescriptor, clip_tracks
 from warehouse import Warehouse
-
-
-class RetrievalError(LookupError):
-    """A CAD library or a label the retrieval needs is missing."""
-
-
-@dataclass(frozen=True)
-class LibraryIndex:
-    """One library as retrieval sees it: cad_ids [M], classes [M], vectors float32[M,k] (mean
-    whitened view descriptors), its whitening, and label -> clipped class similarity float32[M]."""
-
-    library: str
-    cad_ids: np.ndarray
-    classes: np.ndarray
-    vectors: np.ndarray
-    whitening: Whitening
-    class_sim: dict[str, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -58,38 +43,45 @@ class TrackGroups:
     raw: list[np.ndarray]  # per group: raw unit descriptors [n_l, D]
 
 
-def load_index(wh: Warehouse, library: str) -> LibraryIndex:
-    """The retrieval index of ``library`` (its cad_embed and label_similarity stages must have run)."""
-    models = wh.read("cad_model_embeddings", partitions=[library]).to_pylist()
-    if not models:
-        raise RetrievalError(f"CAD library {library!r} has no model descriptors: run its cad_embed stage (`cadestate cad ingest`)")
-    classes = np.array([m["class"] for m in models], dtype=object)
-    sims = wh.read("label_similarity", partitions=[library]).to_pylist()
-    table: dict[str, dict[str, float]] = {}
-    for r in sims:
-        table.setdefault(r["detector_label"], {})[r["cad_class"]] = max(float(r["similarity"]), 0.0)
-    class_sim = {label: np.array([by_class.get(c, 0.0) for c in classes], np.float32) for label, by_class in table.items()}
-    return LibraryIndex(library, np.array([m["cad_id"] for m in models], dtype=object), classes,
-                        np.asarray([m["vector"] for m in models], np.float32), read_whitening(wh, library), class_sim)
-
-
 def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(score, appearance, class similarity), each float32[T, M], of every track against every model."""
+    """(score, appearance, class similarity), each float32[T, M], of every track against every model.
+
+    Every detection is whitened in one call, the G (track, label) groups' sums float32[G,k] meet the
+    models' vectors in one matrix product float32[G,M], both on one BLAS thread: at M = 120,000 the
+    product takes about 0.03 s on one core, while OpenBLAS's threads, spinning for a worker that
+    2 busy cores did not schedule, burnt up to 0.8 s of CPU per clip (``python -m bench.retrieval_bench``)."""
     T, M = len(tracks), len(index.cad_ids)
     score, appearance, cls = (np.zeros((T, M), np.float32) for _ in range(3))
-    for t, track in enumerate(tracks):
-        F = float(track.counts.sum())
-        for label, n, raw in zip(track.labels, track.counts, track.raw):
-            if label not in index.class_sim:
-                raise RetrievalError(f"detector label {label!r} has no class similarity in CAD library {index.library!r}: "
-                                     "rerun `cadestate cad ingest` after changing [detect] labels")
-            dots = index.whitening.apply(raw).sum(0) @ index.vectors.T  # sum over the group's detections
-            part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
-            c = index.class_sim[label]
-            score[t] += c * part / F
-            appearance[t] += part / F
-            cls[t] += c * n / F
+    groups = [(t, label, n) for t, track in enumerate(tracks) for label, n in zip(track.labels, track.counts)]
+    for _, label, _ in groups:
+        if label not in index.class_sim:
+            raise RetrievalError(f"detector label {label!r} has no class similarity in CAD library {index.library!r}: "
+                                 "rerun `cadestate cad ingest` after changing [detect] labels")
+    if not groups:
+        return score, appearance, cls
+    raw = [r for track in tracks for r in track.raw]
+    with threadpool_limits(1, user_api="blas"):
+        whitened = index.whitening.apply(np.concatenate(raw))
+        starts = np.cumsum([0] + [len(r) for r in raw[:-1]])
+        dots_all = np.add.reduceat(whitened, starts, axis=0) @ index.vectors.T  # sums over each group's detections
+    for (t, label, n), dots in zip(groups, dots_all):
+        F = float(tracks[t].counts.sum())
+        part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
+        c = index.class_sim[label]
+        score[t] += c * part / F
+        appearance[t] += part / F
+        cls[t] += c * n / F
     return score, appearance, cls
+
+
+def top_order(score: np.ndarray, cad_ids: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` best of M models for one track (scores float[M], cad_ids [M]): by score
+    descending, ties by cad_id (deterministic). Equal to ``np.lexsort((cad_ids, -score))[:k]``, but
+    only the models scoring at least the k-th best score are sorted."""
+    candidates = np.arange(len(score))
+    if 0 < k < len(score):
+        candidates = np.flatnonzero(score >= np.partition(score, len(score) - k)[len(score) - k])
+    return candidates[np.lexsort((cad_ids[candidates], -score[candidates]))[:k]]
 
 
 def library_digest(wh: Warehouse) -> str:
@@ -140,7 +132,7 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
     classes = np.concatenate([p[0].classes for p in parts])
     rows = []
     for t, track_id in enumerate(track_ids):
-        order = np.lexsort((cad_ids, -score[t]))[: cfg.top_k]  # ties by cad_id: deterministic
+        order = top_order(score[t], cad_ids, cfg.top_k)
         rows += [{"clip": clip, "track_id": track_id, "rank": r + 1, "library": library[m], "cad_id": cad_ids[m],
                   "cad_class": classes[m], "score": float(score[t, m]), "appearance": float(appearance[t, m]),
                   "class_similarity": float(cls[t, m])} for r, m in enumerate(order)]
