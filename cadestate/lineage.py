@@ -33,10 +33,8 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 
 
 def table_digest(table: pa.Table) -> str:
-    """Digest of a table's content: Arrow IPC bytes of its columns, with the schema's and the columns'
-    metadata left out (a column's description names modules: moving one must not make every stage
-    downstream of a table stale)."""
-    table = table.cast(pa.schema([f.remove_metadata() for f in table.schema]))
+    """Digest of a table's content (Arrow IPC bytes of its columns, schema metadata excluded)."""
+    table = table.replace_schema_metadata(None)
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:
         writer.write_table(table)
