@@ -46,31 +46,27 @@ class TrackGroups:
 def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(score, appearance, class similarity), each float32[T, M], of every track against every model.
 
-    Every detection is whitened in one call, the G (track, label) groups' sums float32[G,k] meet the
-    models' vectors in one matrix product float32[G,M], both on one BLAS thread: at M = 120,000 the
-    product takes about 0.03 s on one core, while OpenBLAS's threads, spinning for a worker that
-    2 busy cores did not schedule, burnt up to 0.8 s of CPU per clip (``python -m bench.retrieval_bench``)."""
+    One (track, label) group at a time: its detections whitened and summed, one matrix-vector product
+    with the models' vectors float32[M,k]. Batching the groups into one matrix product changed scores
+    in their last bit (another summation order), enough to change a CAD-selection task's content and
+    leave its answers unmatched, so it stays per group. The products run on one BLAS thread: at
+    M = 120,000, OpenBLAS's threads, spinning for a worker that 2 busy cores did not schedule, burnt
+    up to 0.8 s of CPU per clip (``python -m bench.retrieval_bench``)."""
     T, M = len(tracks), len(index.cad_ids)
     score, appearance, cls = (np.zeros((T, M), np.float32) for _ in range(3))
-    groups = [(t, label, n) for t, track in enumerate(tracks) for label, n in zip(track.labels, track.counts)]
-    for _, label, _ in groups:
-        if label not in index.class_sim:
-            raise RetrievalError(f"detector label {label!r} has no class similarity in CAD library {index.library!r}: "
-                                 "rerun `cadestate cad ingest` after changing [detect] labels")
-    if not groups:
-        return score, appearance, cls
-    raw = [r for track in tracks for r in track.raw]
     with threadpool_limits(1, user_api="blas"):
-        whitened = index.whitening.apply(np.concatenate(raw))
-        starts = np.cumsum([0] + [len(r) for r in raw[:-1]])
-        dots_all = np.add.reduceat(whitened, starts, axis=0) @ index.vectors.T  # sums over each group's detections
-    for (t, label, n), dots in zip(groups, dots_all):
-        F = float(tracks[t].counts.sum())
-        part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
-        c = index.class_sim[label]
-        score[t] += c * part / F
-        appearance[t] += part / F
-        cls[t] += c * n / F
+        for t, track in enumerate(tracks):
+            F = float(track.counts.sum())
+            for label, n, raw in zip(track.labels, track.counts, track.raw):
+                if label not in index.class_sim:
+                    raise RetrievalError(f"detector label {label!r} has no class similarity in CAD library "
+                                         f"{index.library!r}: rerun `cadestate cad ingest` after changing [detect] labels")
+                dots = index.whitening.apply(raw).sum(0) @ index.vectors.T  # sum over the group's detections
+                part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
+                c = index.class_sim[label]
+                score[t] += c * part / F
+                appearance[t] += part / F
+                cls[t] += c * n / F
     return score, appearance, cls
 
 
