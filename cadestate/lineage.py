@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+from typing import TYPE_CHECKING
 
-import pyarrow as pa
+if TYPE_CHECKING:  # pyarrow is imported by table_digest alone: `cadestate status` digests without it where it can
+    import pyarrow as pa
 
 
 def digest(*parts: str) -> str:
@@ -36,6 +38,8 @@ def table_digest(table: pa.Table) -> str:
     """Digest of a table's content: Arrow IPC bytes of its columns, with the schema's and the columns'
     metadata left out (a column's description names modules: moving one must not make every stage
     downstream of a table stale)."""
+    import pyarrow as pa
+
     table = table.cast(pa.schema([f.remove_metadata() for f in table.schema]))
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:
