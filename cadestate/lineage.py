@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+from typing import TYPE_CHECKING
 
-import pyarrow as pa
+if TYPE_CHECKING:  # pyarrow is imported by table_digest alone: `cadestate status` digests without it where it can
+    import pyarrow as pa
 
 
 def digest(*parts: str) -> str:
@@ -33,7 +35,11 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 
 
 def table_digest(table: pa.Table) -> str:
-    """Digest of a table's content (Arrow IPC bytes of its columns, schema metadata excluded)."""
+    """Digest of a table's content (Arrow IPC bytes of its columns, schema metadata excluded; the
+    columns' own metadata, their descriptions, counts: the ids of the tasks people answer are such
+    digests, so changing what they count would leave the answers of existing warehouses unmatched)."""
+    import pyarrow as pa
+
     table = table.replace_schema_metadata(None)
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:

@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import psutil
-import pyarrow as pa
 
 from warehouse import Warehouse, atomic_write_bytes, check_name
 
@@ -150,6 +149,8 @@ def record_run(wh: Warehouse, run: StageRun, started_at: dt.datetime) -> None:
         "rows_written": run.rows_written,
         "message": run.message,
     }
+    import pyarrow as pa  # here: `cadestate status` reads markers and runs without pyarrow
+
     wh.write("runs", run.clip, pa.Table.from_pylist([row]))
 
 

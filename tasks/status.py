@@ -17,6 +17,11 @@ from cadestate.config import Config
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
 from warehouse import Warehouse
+from warehouse.query import read_rows
+
+RUN_COLUMNS = ("clip", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash", "started_at",
+               "rows_written", "message")
+"""The columns of ``runs`` that the status reads."""
 
 
 @dataclass(frozen=True)
@@ -34,7 +39,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                     scope: str = "clip") -> list[StageStatus]:
     """One :class:`StageStatus` per (clip or library, stage), names sorted, stages in pipeline order."""
     stages = stages_of(scope)
-    runs = [r for r in wh.read("runs", partitions=names).sort_by("started_at").to_pylist()
+    runs = [r for r in sorted(read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",)),
+                              key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
             if r["stage"] in {s.name for s in stages}]
     known = set(wh.partitions("clips" if scope == "clip" else "cad_models")) | {r["clip"] for r in runs}
     names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here

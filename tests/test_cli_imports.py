@@ -67,3 +67,26 @@ def test_read_only_commands_import_only_what_they_need(read_wh, tmp_path, comman
     assert code == 0
     assert sorted(set(absent) & modules) == []
     assert set(present) <= modules  # the probe sees what the command imported
+
+
+HEAVIER = ("pandas", "av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "pyarrow", "pydantic")
+
+
+@pytest.mark.parametrize("command", [
+    ["--help"], ["labels", "schema", "correspondences"], ["config", "show"], ["sql", "SELECT count(*) FROM frames"],
+    ["tables"],
+])
+def test_budgeted_commands_import_no_heavy_module(read_wh, tmp_path, command):
+    """The commands with a time budget (bench/cli_bench.py) import none of the heavy modules, nor
+    Pydantic, which Typer's conversion of values would import (cadestate.cli.params)."""
+    code, modules = loaded(["-w", str(read_wh), *command], tmp_path / "modules.json")
+    assert code == 0
+    assert sorted(set(HEAVIER) & modules) == []
+
+
+def test_status_reads_runs_without_pyarrow_dataset(read_wh, tmp_path):
+    """`status` of a warehouse whose stages need no input digest reads its runs through DuckDB:
+    no pyarrow.dataset (which imports pandas), no PyAV, no model runtime."""
+    code, modules = loaded(["-w", str(read_wh), "status"], tmp_path / "modules.json")
+    assert code == 0
+    assert sorted({"pandas", "av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "pydantic"} & modules) == []

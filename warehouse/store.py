@@ -74,6 +74,25 @@ def _vanished(e: OSError) -> bool:
     return isinstance(e, FileNotFoundError) or e.errno == errno.ENOENT or "No such file" in str(e)
 
 
+def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] | None) -> pa.Table:
+    """The rows of ``files`` in order, as ``pyarrow.dataset.dataset(files, schema=schema).to_table(columns)``
+    gives them (a column a file lacks reads as null, every column cast to ``schema``), without
+    importing pyarrow.dataset."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    target = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata) if columns else schema
+    parts = []
+    for f in files:
+        pf = pq.ParquetFile(f)
+        present = set(pf.schema_arrow.names)
+        table = pf.read(columns=[n for n in target.names if n in present])
+        parts.append(pa.Table.from_arrays(
+            [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
+             for fl in target], schema=target))
+    return pa.concat_tables(parts)
+
+
 class WarehouseError(ValueError):
     """Data that does not fit its table, or an unknown table or partition."""
 
@@ -306,13 +325,16 @@ class Warehouse:
             if not files:
                 empty = spec.schema.empty_table()
                 return empty.select(list(columns)) if columns else empty
-            if isinstance(filters, list):
-                import pyarrow.parquet as pq
-
-                filters = pq.filters_to_expression(filters)
-            import pyarrow.dataset as ds  # here, not at the top: it imports pandas (~1 s), which `sql` never needs
-
             try:
+                if filters is None:  # file by file: pyarrow.dataset imports pandas (~0.3 s), which `status` never needs
+                    result = _read_files(files, spec.schema, columns)
+                    break
+                if isinstance(filters, list):
+                    import pyarrow.parquet as pq
+
+                    filters = pq.filters_to_expression(filters)
+                import pyarrow.dataset as ds  # here, not at the top: it imports pandas
+
                 dataset = ds.dataset(files, schema=spec.schema, format="parquet")
                 result = dataset.to_table(columns=list(columns) if columns else None, filter=filters)
                 break

@@ -15,7 +15,10 @@ from rich.console import Console, ConsoleDimensions
 from rich.markup import escape
 from rich.table import Table
 
+from cadestate.cli.params import install as _install_plain_params
 from cadestate.config import Config, load_config
+
+_install_plain_params()  # plain values (-w DIR, a SQL statement) are converted without Pydantic
 
 app = typer.Typer(
     help="CAD-Estate annotation pipeline: RGB walkthrough videos -> CAD models with 9-DoF poses.\n\n"
