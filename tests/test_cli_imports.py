@@ -90,3 +90,16 @@ def test_status_reads_runs_without_pyarrow_dataset(read_wh, tmp_path):
     code, modules = loaded(["-w", str(read_wh), "status"], tmp_path / "modules.json")
     assert code == 0
     assert sorted({"pandas", "av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "pydantic"} & modules) == []
+
+
+def test_status_of_a_registered_clip_imports_no_stage_dependencies(tmp_path):
+    """With a clip in ``clips``, `status` computes every stage's input digests: they live in light
+    modules (tasks/video/inputs.py, tasks/human/inputs.py, tasks/pose/inputs.py), so no PyAV, no
+    model runtime, no mesh library, no Prefect."""
+    wh = Warehouse(tmp_path / "w")
+    wh.write("clips", "c", table_rows("clips", [{"clip": "c", "video_sha256": "ab", "split": "val"}]))
+    wh.write("runs", "c", table_rows("runs", [{"clip": "c", "stage": stage, "status": "completed"}
+                                              for stage in ("cameras", "ingest", "frames", "tracking", "manual_tracks")]))
+    code, modules = loaded(["-w", str(wh.root), "status"], tmp_path / "modules.json")
+    assert code == 0
+    assert sorted({"av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "cv2", "PIL"} & modules) == []

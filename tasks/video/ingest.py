@@ -32,6 +32,7 @@ from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.video.decode import VideoInfo, probe_video
+from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
 from tasks.video.world_up import estimate_up
 from warehouse import Warehouse, WarehouseError, check_name
 
@@ -114,22 +115,6 @@ def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split:
     if time_offset_us:
         return digest("ingest", clip, video_sha256, cameras_sha256, split, f"offset={int(time_offset_us)}")
     return digest("ingest", clip, video_sha256, cameras_sha256, split)
-
-
-def ingest_source_digest(video_sha256: str, split: str, time_offset_us: int) -> str:
-    """What ingest reads besides the ``cameras`` stage's output: the video, the split, the offset."""
-    return digest("ingest-source", video_sha256, split, str(int(time_offset_us)))
-
-
-def registered_inputs_digest(wh: Warehouse, clip: str) -> str:
-    """:func:`ingest_source_digest` of a registered clip (what ``cadestate status`` compares)."""
-    rows = wh.read("clips", partitions=[clip]).to_pylist() if clip in wh.partitions("clips") else []
-    if not rows:
-        return ""
-    row = rows[0]
-    return ingest_source_digest(row["video_sha256"], clip_split(row), int(row.get("time_offset_us") or 0))
-
-
 def _place(src: Path, dst: Path, link: bool) -> None:
     """Put a copy of ``src`` at ``dst`` atomically (hard link when allowed and possible)."""
     if dst.exists() and os.path.samefile(src, dst):
@@ -302,12 +287,6 @@ def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:
     row = rows[0]
     return wh.root / row["video_path"], wh.root / row["cameras_path"], row
 
-
-def clip_split(row: dict) -> str:
-    """The split of a ``clips`` row (``train`` for clips ingested before splits existed)."""
-    return row.get("split") or DEFAULT_SPLIT
-
-
 def registered_splits(wh: Warehouse) -> dict[str, str]:
     """clip -> split of every registered clip (what a re-ingest keeps unless told otherwise)."""
     return {r["clip"]: clip_split(r) for r in wh.read("clips").to_pylist()}
@@ -376,12 +355,8 @@ def _source_inputs(source: ClipSource) -> list[str]:
     return [ingest_source_digest(source.video_sha256, source.split, source.time_offset_us)]
 
 
-def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
-    return [registered_inputs_digest(wh, clip)]
-
-
 STAGE = StageDef(
     name="ingest", section="ingest", scope="clip", upstream=("cameras",), tables=("clips",),
     description="validate the video and camera file, find the world's up, keep them, register the clip",
-    run=_run, source_inputs=_source_inputs, clip_inputs=_clip_inputs,
+    run=_run, source_inputs=_source_inputs, clip_inputs=registered_inputs,
 )
