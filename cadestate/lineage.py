@@ -8,8 +8,11 @@ A stage is stale when any of the first three differs from what it would be now
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+from collections.abc import Iterator
+from contextvars import ContextVar
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # pyarrow is imported by table_digest alone: `cadestate status` digests without it where it can
@@ -23,6 +26,31 @@ def digest(*parts: str) -> str:
         h.update(p.encode())
         h.update(b"\0")
     return h.hexdigest()[:16]
+
+
+_READS: ContextVar[list[tuple[str, ...]] | None] = ContextVar("cadestate_reads", default=None)
+
+
+def note_read(*what: str) -> None:
+    """Tell the :func:`recording_reads` block in force, if any, that something was read: the
+    warehouse notes its listings (``"files", table, partitions`` and ``"partitions", table``), and a
+    stage's ``config_inputs`` notes a file outside the warehouse that it digests (``"file", path``)."""
+    reads = _READS.get()
+    if reads is not None:
+        reads.append(what)
+
+
+@contextlib.contextmanager
+def recording_reads() -> Iterator[list[tuple[str, ...]]]:
+    """The list of what :func:`note_read` is told inside the block (in this thread or task), in order.
+    ``cadestate status`` keeps a stage's input digests with what they read, and digests again only
+    when that changed (:mod:`tasks.inputs_memo`)."""
+    reads: list[tuple[str, ...]] = []
+    token = _READS.set(reads)
+    try:
+        yield reads
+    finally:
+        _READS.reset(token)
 
 
 def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

@@ -21,6 +21,7 @@ from prefect.futures import PrefectFuture
 from prefect.utilities.hashing import hash_objects
 
 from cadestate.config import Config
+from tasks.inputs_memo import InputsMemo
 from tasks.registry import STAGES, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
 from warehouse import Warehouse
@@ -48,7 +49,7 @@ def run_declared_stage(root: str, unit: str, stage: str, config_hash: str, code_
     """Run ``stage`` on ``unit`` (a clip or a CAD library): ``waiting`` (not run) while an upstream
     run waits for people with nothing answered, else run and recorded (completed, paused or failed).
     ``upstream``: the runs of its upstream stages in declaration order; ``inputs``: the digests of
-    what else it reads (:meth:`tasks.registry.Stage.submitted_inputs`)."""
+    what else it reads (see :func:`submit_stages`)."""
     waiting = waiting_run(unit, stage, upstream)
     if waiting is not None:
         return waiting
@@ -75,10 +76,13 @@ def submit_stages(root: str, scope: str, unit: str, config: Config, source: Any,
     ``cadestate status`` sees them."""
     wh = Warehouse(root)
     settle_interrupted(wh, unit)
+    memo = InputsMemo(wh, unit)  # status finds the digests taken here (tasks.inputs_memo)
     futures: dict[str, PrefectFuture] = {}
     for stage in stages_of(scope):
+        inputs = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
+                  else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
         futures[stage.name] = STAGE_TASKS[stage.name].submit(
             root, unit, stage.name, config_hash(stage.name, config), stage.code_hash,
-            stage.submitted_inputs(wh, unit, config, source), [futures[u] for u in stage.upstream], config, source,
-            show_progress)
+            inputs, [futures[u] for u in stage.upstream], config, source, show_progress)
+    memo.save()
     return list(futures.items())

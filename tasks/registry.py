@@ -98,17 +98,14 @@ class Stage:
     def clip_inputs(self, wh: Warehouse, unit: str) -> list[str]:
         return self.function("clip_inputs")(wh, unit) if self.has("clip_inputs") else []
 
-    def submitted_inputs(self, wh: Warehouse, unit: str, config: Config, source: Any) -> list[str]:
-        """Digests of what a run on ``source`` reads besides its upstream outputs (what a flow submits)."""
-        if self.has("source_inputs"):
-            return self.function("source_inputs")(source) + self.config_inputs(config)
-        return self.config_inputs(config) + self.clip_inputs(wh, unit)
-
-    def registered_inputs(self, wh: Warehouse, unit: str, config: Config) -> list[str]:
-        """The same from what the warehouse holds (what ``cadestate status`` compares)."""
-        return self.config_inputs(config) + self.clip_inputs(wh, unit)
+    def submitted_inputs(self, config: Config, source: Any) -> list[str]:
+        """Digests of what a run on ``source`` reads besides its upstream outputs, for a stage that
+        declares ``source_inputs`` (what a flow submits; the others submit their
+        ``config_inputs`` and ``clip_inputs``, see :mod:`tasks.inputs_memo`)."""
+        return self.function("source_inputs")(source) + self.config_inputs(config)
 
 
+@cache
 def _module_file(name: str) -> Path | None:
     base = ROOT.joinpath(*name.split("."))
     for path in (base.with_suffix(".py"), base / "__init__.py"):

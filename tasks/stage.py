@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-import psutil
 
 from warehouse import Warehouse, atomic_write_bytes, check_name
 
@@ -173,6 +172,8 @@ class RunMarker:
         """Whether the run's process still runs (a run on another host is taken as running)."""
         if self.host != socket.gethostname():
             return True
+        import psutil  # here: `cadestate status` imports this module and seldom finds a marker
+
         try:
             return abs(psutil.Process(self.pid).create_time() - self.process_start) < 1.0
         except psutil.Error:
@@ -185,6 +186,8 @@ def _marker_dir(wh: Warehouse, clip: str) -> Path:
 
 def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at: dt.datetime) -> Path:
     """Write the marker of a run that starts now; returns its path."""
+    import psutil
+
     me = psutil.Process()
     doc = {"clip": clip, "stage": stage, "run_id": run_id, "pid": me.pid, "host": socket.gethostname(),
            "process_start": me.create_time(), "started_at": started_at.isoformat()}

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
+from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
 from warehouse import Warehouse
@@ -35,13 +36,18 @@ class StageStatus:
     message: str = ""  # the last run's message (for a paused run: the task file and what it waits for)
 
 
+def read_runs(wh: Warehouse, names: Sequence[str] | None = None) -> list[dict]:
+    """The :data:`RUN_COLUMNS` of the runs of ``names`` (clips or libraries; default: all), oldest first."""
+    rows = read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
+    return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
+
+
 def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None = None,
-                    scope: str = "clip") -> list[StageStatus]:
-    """One :class:`StageStatus` per (clip or library, stage), names sorted, stages in pipeline order."""
+                    scope: str = "clip", runs: list[dict] | None = None) -> list[StageStatus]:
+    """One :class:`StageStatus` per (clip or library, stage), names sorted, stages in pipeline order;
+    ``runs``: :func:`read_runs` of ``names``, when the caller has read them already."""
     stages = stages_of(scope)
-    runs = [r for r in sorted(read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",)),
-                              key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
-            if r["stage"] in {s.name for s in stages}]
+    runs = [r for r in (read_runs(wh, names) if runs is None else runs) if r["stage"] in {s.name for s in stages}]
     known = set(wh.partitions("clips" if scope == "clip" else "cad_models")) | {r["clip"] for r in runs}
     names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here
     last: dict[tuple[str, str], dict] = {}
@@ -53,6 +59,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     result = []
     for clip in names:
         stale_stages: set[str] = set()
+        memo = InputsMemo(wh, clip)
         for m in run_markers(wh, clip):  # runs not recorded yet: in progress, or their process was killed
             last[(clip, m.stage)] = {"status": "running" if m.alive else "interrupted", "started_at": m.started_at,
                                      "message": f"process {m.pid} on {m.host}" + ("" if m.alive else
@@ -69,7 +76,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                     reasons.append("code changed")
                 ups = [last_ok.get((clip, u)) for u in stage.upstream]
                 if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash(
-                        [u["output_hash"] for u in ups] + stage.registered_inputs(wh, clip, config)):
+                        [u["output_hash"] for u in ups] + stage.config_inputs(config) + memo.clip_inputs(stage)):
                     reasons.append("inputs changed")
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")
@@ -83,6 +90,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                 tuple(reasons),
                 latest["message"] if latest else "",
             ))
+        memo.save()
     return result
 
 

@@ -142,7 +142,7 @@ def test_status_inputs_import_none_of_the_stages_heavy_dependencies(tmp_path):
     modules (a declared function is imported from where the stage's module imports it)."""
     code = ("import sys; from cadestate.config import Config; from tasks.registry import STAGES; from warehouse import Warehouse\n"
             f"wh = Warehouse({str(tmp_path / 'w')!r})\n"
-            "for s in STAGES.values(): s.registered_inputs(wh, 'c', Config())\n"
+            "for s in STAGES.values(): s.config_inputs(Config()) + s.clip_inputs(wh, 'c')\n"
             "print(sorted(m for m in ('torch', 'onnxruntime', 'moderngl', 'pycolmap', 'trimesh') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

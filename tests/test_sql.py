@@ -12,6 +12,7 @@ import sys
 import tracemalloc
 from pathlib import Path
 
+import duckdb
 import pytest
 
 from conftest import table_rows
@@ -199,3 +200,26 @@ def test_csv_streams_in_bounded_memory(w, monkeypatch):
         tracemalloc.stop()
     assert end.value.code == 0 and sink.chars > 200_000 * 4
     assert peak < 8 * 2**20, f"{peak / 2**20:.0f} MiB of Python objects at once for 200,000 rows"
+
+
+def test_a_current_catalog_is_attached_else_views_are_made_in_memory(w, tmp_path):
+    """The catalog file is attached (read-only) when it is current for the warehouse; a copied
+    warehouse's (views of the original's paths), or one another client holds open for writing,
+    is not: the session makes its own views, and answers from its own files alike."""
+    def database(where: Path) -> str:
+        result = sql(where, "SELECT current_database() AS db", "-f", "csv")
+        assert result.code == 0, result.stderr
+        return result.stdout.split()[-1]
+
+    assert database(w) == "warehouse"
+    copy = tmp_path / "copy"
+    shutil.copytree(w, copy)
+    assert database(copy) == "memory"
+    assert cameras(copy)[1] == {"clip": "b", "num_cameras": 2}
+    writer = duckdb.connect(str(w / "catalog.duckdb"))
+    try:
+        assert database(w) == "memory"
+        assert cameras(w)[1] == {"clip": "b", "num_cameras": 2}
+    finally:
+        writer.close()
+    assert database(w) == "warehouse"

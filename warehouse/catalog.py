@@ -182,6 +182,27 @@ def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict | Non
     return plan
 
 
+def attach_views(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
+    """Give ``con`` (a fresh in-memory session) the views of ``wh``: the catalog file's, attached
+    read-only as ``warehouse`` and made the default, when it is current for ``wh`` (it records
+    :func:`expected_views` and every schema file is there; a few milliseconds); else made in ``con``
+    (:func:`create_views`: every schema file checked, every view created), as for a moved, broken or
+    busy catalog."""
+    path = wh.root / CATALOG_FILE
+    if path.is_file():
+        try:
+            con.execute(f"ATTACH {_sql_str(str(path))} AS warehouse (READ_ONLY)")
+            con.execute("USE warehouse")
+            record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
+            if _plain(record) == expected_views(wh) and all(schema_path(wh, name).is_file() for name in wh.info):
+                return
+        except (duckdb.Error, ValueError, TypeError, KeyError, AttributeError):
+            pass
+        con.execute("USE memory")
+        con.execute("DETACH DATABASE IF EXISTS warehouse")
+    create_views(con, wh)
+
+
 def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:
     """(Re)build the catalog file; atomic (built aside, then renamed). Whether each table's files
     all have its schema is kept from the current catalog where the schema did not change, unless

@@ -1,8 +1,9 @@
 """Read-only SQL over a warehouse (``cadestate sql``): its tables and nothing else.
 
-A query runs in a session of its own: an in-memory DuckDB database holding the catalog's views,
-built from the warehouse it is given (so a moved or copied warehouse answers from itself, and a
-broken catalog file does not matter), then locked down before the statement runs:
+A query runs in a session of its own: an in-memory DuckDB database holding the catalog's views
+(the catalog file attached read-only when it is current for this warehouse, else views made from
+the warehouse it is given, so a moved or copied warehouse answers from itself, and a broken catalog
+file does not matter), then locked down before the statement runs:
 
 - one statement, of a read-only kind: SELECT and its forms (WITH, FROM, VALUES, TABLE, DESCRIBE,
   SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
@@ -35,7 +36,7 @@ from typing import Any, TextIO
 
 import duckdb
 
-from warehouse.catalog import create_views, one_line
+from warehouse.catalog import attach_views, one_line
 from warehouse.store import READ_RETRIES, Warehouse, WarehouseError
 
 BATCH_ROWS = 10_000
@@ -104,10 +105,10 @@ class Result:
 
 
 def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
-    """Give ``con`` the views of ``wh``, then allow reading its ``tables/`` only and lock the
-    configuration."""
+    """Give ``con`` the views of ``wh`` (:func:`warehouse.catalog.attach_views`), then allow reading
+    its ``tables/`` only and lock the configuration."""
     try:
-        create_views(con, wh)
+        attach_views(con, wh)
     except (OSError, duckdb.Error) as e:
         raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
     readable = [f"{(wh.root / 'tables').as_posix()}/"]
@@ -165,15 +166,14 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
         files = [str(f) for f in wh.files(table, partitions)]
         if not files:
             return []
-        key = wh.info[table].key
         con = duckdb.connect()
         try:
-            source = "read_parquet(?, union_by_name = true)"
-            present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [files]).fetchall()}
-            select = [("epoch_us" + f"({_ident(c)})" if c in timestamps else _ident(c)) if c in present else "NULL"
-                      for c in columns]
-            order = "".join(f"{', ' if i else ' ORDER BY '}{_ident(k)}" for i, k in enumerate(k for k in key if k in present))
-            rows = con.execute(f"SELECT {', '.join(select)} FROM {source}{order}", [files]).fetchall()
+            try:  # every column in some file (the common case): one pass
+                rows = _select(con, files, columns, timestamps, wh.info[table].key, set(columns) | set(wh.info[table].key))
+            except duckdb.BinderException:  # a column that no file has (an older schema) reads as None
+                source = "read_parquet(?, union_by_name = true)"
+                present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [files]).fetchall()}
+                rows = _select(con, files, columns, timestamps, wh.info[table].key, present)
             break
         except duckdb.IOException:
             if all(Path(f).exists() for f in files) or attempt == READ_RETRIES - 1:
@@ -186,6 +186,15 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
             if r[c] is not None:
                 r[c] = EPOCH + dt.timedelta(microseconds=r[c])
     return out
+
+
+def _select(con: duckdb.DuckDBPyConnection, files: list[str], columns: Sequence[str], timestamps: Sequence[str],
+            key: Sequence[str], present: set[str]) -> list[tuple]:
+    """:func:`read_rows`'s query over ``files``, reading as NULL the columns not ``present``."""
+    select = [("epoch_us" + f"({_ident(c)})" if c in timestamps else _ident(c)) if c in present else "NULL"
+              for c in columns]
+    order = "".join(f"{', ' if i else ' ORDER BY '}{_ident(k)}" for i, k in enumerate(k for k in key if k in present))
+    return con.execute(f"SELECT {', '.join(select)} FROM read_parquet(?, union_by_name = true){order}", [files]).fetchall()
 
 
 def _ident(name: str) -> str:

@@ -11,6 +11,7 @@ Layout under the warehouse root::
     catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
     _prefect/                                      Prefect's local state and cached task results
     _locks/<table>/<partition>.lock                locks of append-mode partitions (compaction)
+    _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
 
 Atomicity: every Parquet file is written under a temporary name in its final folder, flushed to
 disk and renamed into place (``os.replace``), so a reader or a crash sees the old file or the
@@ -49,6 +50,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cadestate.atomic import TMP_SUFFIX, atomic_write_bytes, exchange, fsync_dir  # noqa: F401  (atomic_write_bytes: also warehouse's)
+from cadestate.lineage import note_read
 
 if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
     import pyarrow as pa
@@ -176,6 +178,7 @@ class Warehouse:
 
     def files(self, table: str, partitions: Sequence[str] | None = None) -> list[Path]:
         """Data files of ``table`` (all partitions, or the named ones), sorted."""
+        note_read("files", table, *(["*"] if partitions is None else partitions))
         base = self.table_dir(table)
         if partitions is None:
             dirs = sorted(base.glob(f"{self._table(table).partition}=*"))
@@ -185,6 +188,7 @@ class Warehouse:
 
     def partitions(self, table: str) -> list[str]:
         """Partitions (clips, or libraries) that have data in ``table``."""
+        note_read("partitions", table)
         prefix = f"{self._table(table).partition}="
         return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
 

@@ -159,11 +159,12 @@ def status(
 ) -> None:
     """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed
     since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered)."""
-    from tasks.status import clip_notes, pipeline_status
+    from tasks.status import clip_notes, pipeline_status, read_runs
 
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
+    runs = read_runs(wh, clips)  # clips' and libraries' alike
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
-        rows = pipeline_status(wh, cfg, clips, scope)
+        rows = pipeline_status(wh, cfg, clips, scope, runs)
         table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
                       Column("fresh", min_width=5), title=f"{title} (times UTC)")
         for r in rows:

