@@ -174,3 +174,25 @@ def test_chunked_cues_equal_the_materialised_ones_to_the_bit():
         assert np.array_equal(pair_cosines(centred(vectors), a, b, chunk=chunk), cos)
     for chunk in (7, 1000, len(a) + 5):
         assert np.array_equal(pair_ious(boxes, frame, a, b, cams, chunk=chunk), iou)
+
+
+def test_detection_vectors_read_from_arrow_as_the_row_by_row_read():
+    import pyarrow as pa
+    import pytest
+
+    from schemas.detection import EMBEDDINGS
+    from tasks.tracking.tracking import TrackingError, detection_vectors
+
+    rng = np.random.default_rng(3)
+    det_id = np.array([5, 11, 12, 40])
+    rows = [{"clip": "c", "owner": "detection", "owner_id": int(d), "vector": rng.normal(0, 1, 8).astype(np.float32).tolist(),
+             "model_sha256": "m"} for d in det_id[::-1]]  # stored out of order
+    rows.insert(2, {"clip": "c", "owner": "manual", "owner_id": 11, "vector": [9.0] * 8, "model_sha256": "x"})
+    table = pa.Table.from_pylist(rows, schema=EMBEDDINGS.schema)
+    table = pa.concat_tables([table.slice(0, 2), table.slice(2)])  # several chunks
+    by_id = {r["owner_id"]: r["vector"] for r in rows if r["owner"] == "detection"}
+    vectors, sha = detection_vectors(table.select(["owner", "owner_id", "vector", "model_sha256"]), det_id, "c")
+    assert vectors.dtype == np.float32 and sha == "m"
+    assert np.array_equal(vectors, np.asarray([by_id[d] for d in det_id.tolist()], dtype=np.float32))
+    with pytest.raises(TrackingError, match="det_id 13"):
+        detection_vectors(table, np.array([5, 13]), "c")
