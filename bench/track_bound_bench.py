@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from tasks.tracking.partition import objective, positive_components, make_graph, solve
+from tasks.tracking.partition import make_graph, objective, positive_components, solve
 from tasks.tracking.partition_bound import upper_bound
 
 TIME_LIMIT = 120.0

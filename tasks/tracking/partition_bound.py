@@ -47,7 +47,7 @@ DROP_SLACK = 0.5
 SOURCES_PER_BATCH = 256
 """Shortest-path searches run at once (memory: this many float[n] distance rows)."""
 PATH_LENGTH_FLOOR = 1e-9
-"""Added to every path length: Dijkstra's sparse input drops zero-length edges otherwise."""
+"""Added to every path length, so that edges with x = 0 stay edges (scipy.sparse may drop explicit zeros)."""
 
 
 @dataclass(frozen=True)
