@@ -12,6 +12,11 @@ Parts:
   on real instances (windows of the benchmark clips' graphs built from ground-truth boxes);
 - ``timing``: heuristic solve time against the number of detections, 100..5,000 (real graphs: the
   benchmark clips' graphs, concatenated in time to reach the size; and random tracking-like ones);
+- ``scale``: time and peak memory of the whole tracking computation (cues, weights, solver) on
+  synthetic clips of 5k, 20k and 35k detections, each in its own process (``bench.track_scale``);
+- ``bound``: the heuristic's objective on every benchmark clip's whole graph (and on a synthetic
+  clip's and a random instance's) against an upper bound on the optimum, the cycle LP relaxation (``bench.track_bound_bench``):
+  objective / bound is at most objective / optimum, shown where the exact MILP cannot go;
 - ``tracking``: HOTA/MOTA/IDF1/ID switches (``bench.eval_tracking``, ignore rule of
   ``bench.ignore``) on the default benchmark from ground-truth boxes (appearance from the embedder
   on those boxes, labels = ground-truth classes) and, when the clips' ``detect`` and ``embed``
@@ -281,7 +286,8 @@ def _window_pairs(frames: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarr
 
 
 def real_graph(cb: ClipBoxes, cfg: TrackingConfig = TrackingConfig()):
-    """The graph the tracker solves for a clip: (n, i, j, w, groups)."""
+    """The graph the tracker solves for a clip: (n, i, j, w, groups). ``cb``: a :class:`ClipBoxes`, or
+    anything with its detection fields (``bench.track_scale.SyntheticClip``)."""
     from tasks.tracking.tracking import default_calibration
 
     p = pair_features(cb.frame_index, cb.boxes, cb.labels, cb.vectors, cb.cameras, cfg.window)
@@ -444,22 +450,35 @@ def tracking_markdown(tracking: dict | None) -> list[str]:
 
 def run(bench_dir: Path = BENCH_DIR, quick: bool = False, wh=None) -> dict:
     """All parts (see module docstring); ``wh``: the warehouse with the pipeline's tables (default:
-    the configured one)."""
-    wh = open_warehouse() if wh is None else wh
-    names = read_manifest(bench_dir).clips
-    clips = [gt_clip(bench_dir, c) for c in names]
-    out: dict = {"config": TrackingConfig().__dict__, "warehouse": _shown(wh.root)}
-    out["tracking_from_gt_boxes"] = tracking_bench(bench_dir, clips)
-    out["tracking_from_gt_boxes_no_appearance"] = tracking_bench(bench_dir, clips, replace(TrackingConfig(), appearance_weight=0.0))
-    det = detector_clips(wh, bench_dir, names)
-    if det:
-        out["tracking_from_detector_boxes"] = tracking_bench(bench_dir, det)
-        out["tracking_from_detector_boxes_no_appearance"] = tracking_bench(bench_dir, det, replace(TrackingConfig(), appearance_weight=0.0))
+    the configured one). Without a benchmark in ``bench_dir`` the parts on its clips are left out
+    (said so in ``benchmark``) and the others run on synthetic and random instances alone."""
+    from bench import track_bound_bench, track_scale
+
+    out: dict = {"config": TrackingConfig().__dict__}
+    clips: list[ClipBoxes] = []
+    if not (Path(bench_dir) / "manifest.json").is_file():
+        out["benchmark"] = f"not measured: no benchmark in {_shown(Path(bench_dir))}"
     else:
-        out["tracking_from_detector_boxes"] = f"not measured: the benchmark clips have no detect/embed output in {_shown(wh.root)}"
-    out["pipeline_tracks"] = tracking_accuracy(bench_dir, wh) or f"not measured: no tracking output in {_shown(wh.root)}"
+        wh = open_warehouse() if wh is None else wh
+        names = read_manifest(bench_dir).clips
+        clips = [gt_clip(bench_dir, c) for c in names]
+        out["warehouse"] = _shown(wh.root)
+        out["tracking_from_gt_boxes"] = tracking_bench(bench_dir, clips)
+        out["tracking_from_gt_boxes_no_appearance"] = tracking_bench(bench_dir, clips, replace(TrackingConfig(), appearance_weight=0.0))
+        det = detector_clips(wh, bench_dir, names)
+        if det:
+            out["tracking_from_detector_boxes"] = tracking_bench(bench_dir, det)
+            out["tracking_from_detector_boxes_no_appearance"] = tracking_bench(bench_dir, det, replace(TrackingConfig(), appearance_weight=0.0))
+        else:
+            out["tracking_from_detector_boxes"] = f"not measured: the benchmark clips have no detect/embed output in {_shown(wh.root)}"
+        out["pipeline_tracks"] = tracking_accuracy(bench_dir, wh) or f"not measured: no tracking output in {_shown(wh.root)}"
+    out["scale"] = track_scale.run()
     out["timing"] = timing_bench(clips, sizes=(100, 500, 1000, 5000) if quick else (100, 200, 500, 1000, 2000, 5000))
     out["objective"] = objective_bench(clips[:4] if quick else clips, per_size=2 if quick else 5)
+    out["bound"] = track_bound_bench.run(  # every benchmark clip; a synthetic clip (easy) and a random graph (hard)
+        [(f"{cb.clip} whole clip", real_graph(cb)) for cb in clips]
+        + [("synthetic clip n=5000", real_graph(track_scale.synthetic_clip(5000))),
+           ("random n=200", random_instance(200, np.random.default_rng(0), per_frame=8, window=8, noise=0.6))])
     return out
 
 
@@ -484,8 +503,9 @@ def main(argv: list[str]) -> None:
     result = run(args.bench_dir, quick=args.quick, wh=wh)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "tracking.json").write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps({k: v for k, v in result.items() if k != "objective"}, indent=1))
+    print(json.dumps({k: v for k, v in result.items() if k not in ("objective", "bound")}, indent=1))
     print(json.dumps({k: v for k, v in result["objective"].items() if k.endswith("summary")}, indent=1))
+    print(json.dumps(result["bound"], indent=1))
     print(f"saved {RESULTS / 'tracking.json'}")
 
 

@@ -127,3 +127,72 @@ def test_tracking_accuracy_of_warehouse_tracks(tmp_path):
     assert r["ignored_gt_boxes"] == 3 and r["dropped_pred_boxes"] == 3
     assert r["mota"] == pytest.approx(5 / 6, abs=1e-4)
     assert any("| HOTA |" in line for line in tracking_markdown(r))
+
+
+def _reference_cues(frame, boxes, labels, vectors, cams, window):
+    """The cues as computed before issue 21 (every pair's descriptors and homography materialised at once):
+    the chunked computation must reproduce them to the bit (track ids depend on them)."""
+    from tasks.tracking.affinity import box_iou_pairs, centred
+
+    a, b = candidate_pairs(frame, window)
+    fa, fb = frame[a], frame[b]
+    W, H = cams.width, cams.height
+    Hm = cams.K[fb] @ cams.R[fb] @ np.swapaxes(cams.R[fa], 1, 2) @ np.linalg.inv(cams.K[fa])
+    ys, xs = boxes[a][:, [0, 0, 2, 2]] * H, boxes[a][:, [1, 3, 1, 3]] * W
+    q = np.einsum("pij,pkj->pki", Hm, np.stack([xs, ys, np.ones_like(xs)], axis=2))
+    ok = np.all(q[:, :, 2] > 1e-9, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = q[:, :, 0] / q[:, :, 2] / W, q[:, :, 1] / q[:, :, 2] / H
+    warped = np.where(ok[:, None], np.stack([v.min(1), u.min(1), v.max(1), u.max(1)], axis=1), boxes[a])
+    c = centred(vectors)
+    return a, b, np.einsum("pd,pd->p", c[a], c[b]).astype(np.float64), labels[a] == labels[b], box_iou_pairs(warped, boxes[b])
+
+
+def test_chunked_cues_equal_the_materialised_ones_to_the_bit():
+    from scipy.spatial.transform import Rotation
+
+    from tasks.tracking.affinity import box_iou_pairs, centred, pair_cosines, pair_features, pair_ious
+
+    rng = np.random.default_rng(7)
+    n, frames = 700, 60
+    frame = rng.integers(0, frames, n)
+    y, x = rng.uniform(0, 0.7, n), rng.uniform(0, 0.7, n)
+    boxes = np.stack([y, x, y + rng.uniform(0.05, 0.3, n), x + rng.uniform(0.05, 0.3, n)], axis=1)
+    labels = rng.choice(np.array(["chair", "couch", "table"], dtype=object), n)
+    vectors = rng.normal(0, 1, (n, 768)).astype(np.float32)
+    K = np.tile(np.array([[500.0, 0, 320], [0, 500, 180], [0, 0, 1]]), (frames, 1, 1))
+    K[:, 0, 0] += rng.uniform(-20, 20, frames)  # a zoom: intrinsics differ per frame
+    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (frames, 3)), axis=0)).as_matrix()
+    cams = Cameras(K, R, 640, 360)
+    a, b, cos, same, iou = _reference_cues(frame, boxes, labels, vectors, cams, 6)
+    p = pair_features(frame, boxes, labels, vectors, cams, 6)
+    assert len(a) > 3 * 8192  # several chunks of PAIR_CHUNK
+    assert np.array_equal(p.a, a) and np.array_equal(p.b, b) and np.array_equal(p.same_label, same)
+    assert np.array_equal(p.cosine, cos) and np.array_equal(p.iou, iou)
+    assert not np.array_equal(iou, box_iou_pairs(boxes[a], boxes[b]))  # the warp does move boxes here
+    for chunk in (1, 7, 1000, len(a) + 5):  # any chunk size, partial last chunk included
+        assert np.array_equal(pair_cosines(centred(vectors), a, b, chunk=chunk), cos)
+    for chunk in (7, 1000, len(a) + 5):
+        assert np.array_equal(pair_ious(boxes, frame, a, b, cams, chunk=chunk), iou)
+
+
+def test_detection_vectors_read_from_arrow_as_the_row_by_row_read():
+    import pyarrow as pa
+    import pytest
+
+    from schemas.detection import EMBEDDINGS
+    from tasks.tracking.tracking import TrackingError, detection_vectors
+
+    rng = np.random.default_rng(3)
+    det_id = np.array([5, 11, 12, 40])
+    rows = [{"clip": "c", "owner": "detection", "owner_id": int(d), "vector": rng.normal(0, 1, 8).astype(np.float32).tolist(),
+             "model_sha256": "m"} for d in det_id[::-1]]  # stored out of order
+    rows.insert(2, {"clip": "c", "owner": "manual", "owner_id": 11, "vector": [9.0] * 8, "model_sha256": "x"})
+    table = pa.Table.from_pylist(rows, schema=EMBEDDINGS.schema)
+    table = pa.concat_tables([table.slice(0, 2), table.slice(2)])  # several chunks
+    by_id = {r["owner_id"]: r["vector"] for r in rows if r["owner"] == "detection"}
+    vectors, sha = detection_vectors(table.select(["owner", "owner_id", "vector", "model_sha256"]), det_id, "c")
+    assert vectors.dtype == np.float32 and sha == "m"
+    assert np.array_equal(vectors, np.asarray([by_id[d] for d in det_id.tolist()], dtype=np.float32))
+    with pytest.raises(TrackingError, match="det_id 13"):
+        detection_vectors(table, np.array([5, 13]), "c")

@@ -33,6 +33,10 @@ LLR_CLIP = 10.0
 SMOOTHING = 2.0
 """Pseudo-pairs (of the smaller class) added when fitting, spread like the pooled histogram."""
 
+PAIR_CHUNK = 8192
+"""Candidate pairs whose cues are computed at once: bounds the memory of the appearance cue to two
+gathered float32[PAIR_CHUNK, D] buffers (2 x 8192 x 768 x 4 B = 50 MB) whatever the clip's length."""
+
 LABEL_CLIP_GT = 3.0
 """|log-likelihood ratio| cap of the label cue when fitted on ground-truth boxes: their labels never
 disagree within an object, a detector's do (chair / couch flips), so the fit alone would forbid it."""
@@ -88,12 +92,22 @@ def box_iou_pairs(p: np.ndarray, q: np.ndarray) -> np.ndarray:
         return np.where(union > 0, inter / union, 0.0)
 
 
+def homographies(fa: np.ndarray, fb: np.ndarray, cams: Cameras) -> np.ndarray:
+    """Infinite homographies float[P,3,3] ``K_b R_b R_a^T K_a^-1`` of the frame pairs (fa[p], fb[p]),
+    computed once per distinct frame pair (a clip's pairs share a few per frame) and gathered:
+    each matrix is the same product of the same stacked operations, so the same values to the bit."""
+    key = np.stack([np.asarray(fa, np.int64), np.asarray(fb, np.int64)], axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    ua, ub = uniq[:, 0], uniq[:, 1]
+    Hm = cams.K[ub] @ cams.R[ub] @ np.swapaxes(cams.R[ua], 1, 2) @ np.linalg.inv(cams.K[ua])
+    return Hm[inv.ravel()]
+
+
 def rotation_warp(boxes: np.ndarray, fa: np.ndarray, fb: np.ndarray, cams: Cameras) -> np.ndarray:
     """Boxes float[P,4] of frames ``fa`` carried into frames ``fb`` by the camera rotation alone
     (bounding box of the four warped corners). Corners that land behind camera b keep the box as is."""
     W, H = cams.width, cams.height
-    Ka, Kb = cams.K[fa], cams.K[fb]
-    Hm = Kb @ cams.R[fb] @ np.swapaxes(cams.R[fa], 1, 2) @ np.linalg.inv(Ka)  # [P,3,3]
+    Hm = homographies(fa, fb, cams)  # [P,3,3]
     ys = boxes[:, [0, 0, 2, 2]] * H
     xs = boxes[:, [1, 3, 1, 3]] * W
     pts = np.stack([xs, ys, np.ones_like(xs)], axis=2)  # [P,4,3]
@@ -114,24 +128,53 @@ def centred(vectors: np.ndarray) -> np.ndarray:
     return (v / np.where(n > 0, n, 1)).astype(np.float32)
 
 
+def pair_cosines(v: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = PAIR_CHUNK) -> np.ndarray:
+    """Dot products float64[P] of rows ``a`` and ``b`` (int[P]) of ``v`` float32[N,D] (centred, unit
+    descriptors: the cosines), ``chunk`` pairs at a time gathered into two reused float32[chunk,D]
+    buffers: memory O(chunk x D), not O(P x D). Each value is the einsum of the one pair's rows,
+    as on whole arrays, so the result is the same to the bit whatever ``chunk``."""
+    out = np.empty(len(a), dtype=np.float64)
+    m = min(chunk, len(a))
+    va, vb = np.empty((m, v.shape[1]), v.dtype), np.empty((m, v.shape[1]), v.dtype)
+    for s in range(0, len(a), chunk):
+        k = min(chunk, len(a) - s)
+        np.take(v, a[s:s + k], axis=0, out=va[:k], mode="clip")  # indices are valid: "clip" skips take's buffering
+        np.take(v, b[s:s + k], axis=0, out=vb[:k], mode="clip")
+        out[s:s + k] = np.einsum("pd,pd->p", va[:k], vb[:k])
+    return out
+
+
+def pair_ious(boxes: np.ndarray, f: np.ndarray, a: np.ndarray, b: np.ndarray, cameras: Cameras | None,
+              chunk: int = PAIR_CHUNK) -> np.ndarray:
+    """IoU float64[P] of box b with box a of each pair (a, b: int[P] into ``boxes`` float[N,4] and
+    frames ``f`` int[N]), box a carried into b's frame by the camera rotation when ``cameras``;
+    ``chunk`` pairs at a time (the warp's per-pair temporaries are ~1 KB a pair)."""
+    out = np.empty(len(a), dtype=np.float64)
+    for s in range(0, len(a), chunk):
+        ca, cb = a[s:s + chunk], b[s:s + chunk]
+        ba = boxes[ca]
+        if cameras is not None:
+            ba = rotation_warp(ba, f[ca], f[cb], cameras)
+        out[s:s + len(ca)] = box_iou_pairs(ba, boxes[cb])
+    return out
+
+
 def pair_features(frame_index: np.ndarray, boxes: np.ndarray, labels: np.ndarray, vectors: np.ndarray | None,
                   cameras: Cameras | None, window: int) -> PairFeatures:
-    """Cues of every candidate pair of one clip's detections (see module docstring).
+    """Cues of every candidate pair of one clip's detections (see module docstring), computed
+    ``PAIR_CHUNK`` pairs at a time: memory O(P) for the cues, not O(P x D).
 
     ``vectors``: descriptors float[N,D] (raw; centred here on the clip), or None."""
     f = np.asarray(frame_index, dtype=np.int64)
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    labels = np.asarray(labels)
+    _, label_code = np.unique(np.asarray(labels), return_inverse=True)
+    label_code = label_code.ravel()
     a, b = candidate_pairs(f, window)
-    ba = boxes[a]
-    if cameras is not None and len(a):
-        ba = rotation_warp(ba, f[a], f[b], cameras)
-    iou = box_iou_pairs(ba, boxes[b])
+    iou = pair_ious(boxes, f, a, b, cameras)
     cos = None
     if vectors is not None:
-        v = centred(vectors)
-        cos = np.einsum("pd,pd->p", v[a], v[b]).astype(np.float64) if len(a) else np.zeros(0)
-    return PairFeatures(a, b, f[b] - f[a], cos, labels[a] == labels[b], iou)
+        cos = pair_cosines(centred(vectors), a, b)
+    return PairFeatures(a, b, f[b] - f[a], cos, label_code[a] == label_code[b], iou)
 
 
 # ------------------------------------------------------------------------------------- calibration

@@ -30,7 +30,8 @@ key of each cluster.
 Modules: :mod:`tasks.tracking.partition_graph` (the canonical graph, objective, labels, positive
 components), :mod:`tasks.tracking.partition_gaec` (GAEC), :mod:`tasks.tracking.partition_local_search`
 (:func:`refine`), :mod:`tasks.tracking.partition_exact` (the MILP); this one holds :func:`solve`, its
-restarts, and every public name of the four.
+restarts, and every public name of the four. :mod:`tasks.tracking.partition_bound` bounds the optimum
+from above (the cycle LP relaxation), for whole clips where the MILP cannot go.
 """
 
 from __future__ import annotations

@@ -102,6 +102,32 @@ def read_cameras(wh: Warehouse, clip: str) -> Cameras:
     return Cameras(K, R, int(t["width"][0]), int(t["height"][0]))
 
 
+def detection_vectors(emb: pa.Table, det_id: np.ndarray, clip: str) -> tuple[np.ndarray, str]:
+    """(descriptors float32[N,D] of the detections ``det_id`` int64[N], in that order; the model
+    sha256 of the first) from the clip's ``embeddings`` rows (owner 'detection'), read as Arrow
+    buffers: no Python object per value (a 35k-detection clip holds 27M of them)."""
+    import pyarrow.compute as pc
+
+    emb = emb.filter(pc.equal(emb["owner"], "detection"))
+    ids = emb["owner_id"].to_numpy()
+    order = np.argsort(ids, kind="stable")
+    pos = np.searchsorted(ids, det_id, sorter=order)
+    found = pos < len(ids)
+    found[found] = ids[order[pos[found]]] == det_id[found]
+    if not found.all():
+        missing = det_id[~found]
+        raise TrackingError(f"clip {clip}: {len(missing)} detections have no descriptor (e.g. det_id {missing[0]}): "
+                            "rerun its embed stage")
+    rows = order[pos]
+    col = emb["vector"].combine_chunks()
+    lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
+    if len(lengths) and (lengths != lengths[0]).any():
+        raise TrackingError(f"clip {clip}: descriptors of different lengths ({lengths.min()} to {lengths.max()})")
+    flat = col.flatten().to_numpy(zero_copy_only=False).astype(np.float32, copy=False)
+    vectors = flat.reshape(len(ids), int(lengths[0]) if len(lengths) else 0)[rows]
+    return vectors, str(emb["model_sha256"][int(rows[0])])
+
+
 def track_tables(clip: str, dets: dict, vectors: np.ndarray | None, model_sha: str, result: Tracking
                  ) -> tuple[pa.Table, pa.Table, pa.Table]:
     """Rows of ``tracks``, ``track_detections`` and ``track_appearance`` (``dets``: column arrays)."""
@@ -149,17 +175,9 @@ def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str) -> St
                    columns=["det_id", "timestamp_us", "frame_index", "box", "label", "score"]).to_pydict()
     order = np.argsort(np.asarray(dets["det_id"], dtype=np.int64), kind="stable")
     dets = {k: [v[i] for i in order.tolist()] for k, v in dets.items()}
-    emb = wh.read("embeddings", partitions=[clip], columns=["owner", "owner_id", "vector", "model_sha256"]).to_pydict()
-    by_id = {oid: (vec, sha) for owner, oid, vec, sha in zip(emb["owner"], emb["owner_id"], emb["vector"], emb["model_sha256"])
-             if owner == "detection"}
-    vectors, model_sha = None, ""
-    if dets["det_id"]:
-        missing = [d for d in dets["det_id"] if d not in by_id]
-        if missing:
-            raise TrackingError(f"clip {clip}: {len(missing)} detections have no descriptor (e.g. det_id {missing[0]}): "
-                                "rerun its embed stage")
-        vectors = np.asarray([by_id[d][0] for d in dets["det_id"]], dtype=np.float32)
-        model_sha = by_id[dets["det_id"][0]][1]
+    emb = wh.read("embeddings", partitions=[clip], columns=["owner", "owner_id", "vector", "model_sha256"])
+    vectors, model_sha = (detection_vectors(emb, np.asarray(dets["det_id"], dtype=np.int64), clip)
+                          if dets["det_id"] else (None, ""))
     cameras = read_cameras(wh, clip)
     result = track_detections(np.asarray(dets["det_id"]), np.asarray(dets["frame_index"]), np.asarray(dets["box"]).reshape(-1, 4),
                               np.asarray(dets["label"], dtype=object), vectors, cameras, cfg, scores=np.asarray(dets["score"]))
