@@ -183,6 +183,10 @@ class Warehouse:
             dirs = [self.partition_dir(table, p) for p in partitions]
         return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
 
+    def has_partition(self, table: str, part: str) -> bool:
+        """Whether ``table`` has data in partition ``part`` (one folder looked at, not every partition)."""
+        return any(self.partition_dir(table, part).glob("*.parquet"))
+
     def partitions(self, table: str) -> list[str]:
         """Partitions (clips, or libraries) that have data in ``table``."""
         prefix = f"{self._table(table).partition}="

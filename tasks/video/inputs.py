@@ -26,7 +26,7 @@ def ingest_source_digest(video_sha256: str, split: str, time_offset_us: int) -> 
 
 def registered_inputs_digest(wh: Warehouse, clip: str) -> str:
     """:func:`ingest_source_digest` of a registered clip (what ``cadestate status`` compares)."""
-    rows = wh.read("clips", partitions=[clip], columns=REGISTERED).to_pylist() if clip in wh.partitions("clips") else []
+    rows = wh.read("clips", partitions=[clip], columns=REGISTERED).to_pylist() if wh.has_partition("clips", clip) else []
     if not rows:
         return ""
     row = rows[0]
