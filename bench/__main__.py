@@ -8,8 +8,8 @@ import platform
 import sys
 from pathlib import Path
 
-from bench import (annotate_bench, cad_throughput, cli_bench, detect_throughput, frames_throughput, pose_bench,
-                   retrieval_bench, sfm_bench, stage_times, track_bench)
+from bench import (annotate_bench, cad_throughput, cli_bench, cluster_throughput, detect_throughput, frames_throughput,
+                   pose_bench, retrieval_bench, sfm_bench, stage_times, track_bench, warehouse_scale)
 
 RESULTS = Path("bench/results")
 
@@ -28,6 +28,8 @@ def main() -> int:
         "end_to_end": stage_times.run(),
         "commands": cli_bench.run(),
         "annotation_app": annotate_bench.run(),
+        "warehouse_scale": warehouse_scale.run((1000, 10_000)),
+        "clips_per_hour": cluster_throughput.run(clips=20),
     }
     results["budgets_ok"] = results["commands"]["commands"]["budgets_ok"]
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")

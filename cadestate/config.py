@@ -73,9 +73,9 @@ class WarehouseConfig:
 class PrefectConfig:
     """How flows run (not part of lineage)."""
 
-    task_runner: str = _opt("threads", "Task runner: 'threads' (local threads) or 'dask' (a Dask cluster).", choices=("threads", "dask"))
-    max_workers: int = _opt(2, "Worker threads for the 'threads' runner.", lo=1, hi=256)
-    dask_address: str = _opt("", "Address of a running Dask scheduler; empty starts a local cluster.")
+    task_runner: str = _opt("threads", "Task runner: 'threads' (local threads) or 'dask' (a Dask cluster: each worker runs whole clips).", choices=("threads", "dask"))
+    max_workers: int = _opt(2, "Worker threads for the 'threads' runner; worker processes (one thread each) of the local Dask cluster.", lo=1, hi=256)
+    dask_address: str = _opt("", "Address of a running Dask scheduler (its workers see the warehouse at the same path); empty starts a local cluster.")
     startup_timeout_s: float = _opt(180.0, "Seconds to wait for Prefect's API to start (ephemeral mode, or `cadestate server start`).",
                                     lo=1, hi=3600)
 

@@ -1,4 +1,5 @@
-"""Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner).
+"""Flows over clips: ``annotate_clip`` for one clip, ``build_dataset`` for many (parallel on the task runner;
+on Dask, one ``annotate_clip`` per clip on the workers: :mod:`flows.dask_clips`).
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained as their ``upstream`` says
 (:func:`flows.stage_tasks.submit_stages`; ``cadestate stages`` lists them). A failing clip does not
@@ -48,7 +49,12 @@ def build_dataset(root: str, sources: list[ClipSource], config: Config, show_pro
 
 
 def run_clips(sources: list[ClipSource], config: Config, show_progress: bool = True) -> list[StageReport]:
-    """Run the pipeline on ``sources`` with ``config`` and return one report per stage run."""
+    """Run the pipeline on ``sources`` with ``config`` and return one report per stage run. With
+    ``[prefect] task_runner = "dask"`` each clip runs whole on a Dask worker (:mod:`flows.dask_clips`)."""
+    if config.prefect.task_runner == "dask":
+        from flows.dask_clips import run_clips_on_dask
+
+        return [r for outcome in run_clips_on_dask(sources, config) for r in outcome.reports]
     root = str(Path(config.warehouse.root).expanduser().resolve())
     tags = run_tags(Path(root), {s.clip: s.split for s in sources})
     if len(sources) == 1:

@@ -186,6 +186,10 @@ class Warehouse:
             dirs = [self.partition_dir(table, p) for p in partitions]
         return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
 
+    def has_partition(self, table: str, part: str) -> bool:
+        """Whether ``table`` has data in partition ``part`` (one folder looked at, not every partition)."""
+        return bool(self.files(table, [part]))
+
     def partitions(self, table: str) -> list[str]:
         """Partitions (clips, or libraries) that have data in ``table``."""
         note_read("partitions", table)

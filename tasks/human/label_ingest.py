@@ -338,7 +338,7 @@ def current_answers(wh: Warehouse, kind: str, clips: list[str] | None = None, ta
     """The answers in force (rows of the kind's answer table): per (clip, task, track) those of the
     newest label file that answers it; for ``manual_track``, per (clip, task) the newest file's."""
     spec = ANSWER_TABLES[kind]
-    clips = None if clips is None else [c for c in clips if wh.files(spec.name, [c])]  # one folder each, not the table's
+    clips = None if clips is None else [c for c in clips if wh.has_partition(spec.name, c)]
     if clips == []:
         return spec.schema.empty_table()
     files = _committed_files(wh, kind, clips).to_pylist()

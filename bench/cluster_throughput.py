@@ -1,0 +1,90 @@
+"""Clips per hour of a batch, with the thread runner and with a local Dask cluster (issue 21, ``make bench``).
+
+A batch of ``--clips`` small generated clips (320x192, 30 camera lines, no CAD library: every stage
+runs, retrieval and what follows on nothing) is ingested by one real ``cadestate ingest FOLDER``
+process into a fresh warehouse, once per runner: ``[prefect] task_runner = "threads"`` and
+``"dask"`` (no address: a local cluster), both with ``max_workers = WORKERS``. Per runner:
+
+- ``wall_s``: the command's wall time (Prefect's start, the cluster's, every clip), and ``clips_per_hour``;
+- ``cpu_s``: CPU seconds of the command and every process it started (user + system);
+- ``stage_s``: the seconds of its stage runs, summed from ``runs.duration_s``;
+- ``orchestration_share``: what the batch took beyond its stage work spread over the workers,
+  ``(wall_s - stage_s / WORKERS) / (stage_s / WORKERS)`` (0: no time outside stages).
+
+    python -m bench.cluster_throughput --clips 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+WORKERS = 2
+RUNNERS = ("threads", "dask")
+
+
+def make_batch(folder: Path, clips: int) -> Path:
+    """``clips`` small clips (``<name>.mp4`` + ``<name>.txt``) in ``folder``."""
+    from bench.demo_clip import DemoClipSpec, make_demo_clip
+
+    spec = DemoClipSpec(width=320, height=192, num_video_frames=90, sample_every=3)
+    for i in range(clips):
+        make_demo_clip(folder, dataclasses.replace(spec, name=f"batch{i:03d}", seed=100 + i))
+    return folder
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_batch(runner: str, batch: Path, workdir: Path) -> dict:
+    """Ingest every clip of ``batch`` into a fresh warehouse with ``runner``; its numbers."""
+    from warehouse import Warehouse
+
+    config = workdir / f"{runner}.toml"
+    config.write_text(f'[prefect]\ntask_runner = "{runner}"\nmax_workers = {WORKERS}\n')
+    root = workdir / f"w-{runner}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    cpu0, t0 = _children_cpu_s(), time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "cadestate", "-c", str(config), "-w", str(root), "ingest", str(batch),
+                           "--no-progress"], capture_output=True, text=True, env=env, cwd=workdir)
+    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    if done.returncode != 0:
+        return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
+    runs = Warehouse(root).read("runs", columns=["clip", "stage", "status", "duration_s"]).to_pylist()
+    stage = sum(float(r["duration_s"] or 0.0) for r in runs)
+    clips = len({r["clip"] for r in runs})
+    return {"clips": clips, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stage_s": round(stage, 1),
+            "clips_per_hour": round(3600 * clips / wall), "orchestration_share": round((wall - stage / WORKERS) / (stage / WORKERS), 3)}
+
+
+def run(clips: int = 20, runners: tuple[str, ...] = RUNNERS) -> dict:
+    """The numbers of each runner on one batch of ``clips`` clips."""
+    with tempfile.TemporaryDirectory(prefix="cadestate-throughput-") as tmp:
+        batch = make_batch(Path(tmp) / "batch", clips)
+        return {"workers": WORKERS, "batch_clips": clips,
+                **{runner: run_batch(runner, batch, Path(tmp)) for runner in runners}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--clips", type=int, default=20, help="clips in the batch (default 20, as make bench)")
+    parser.add_argument("--runner", choices=RUNNERS, action="append", help="only this runner (repeatable; default both)")
+    args = parser.parse_args(argv)
+    if args.clips < 1:
+        parser.error("--clips must be at least 1")
+    print(json.dumps(run(args.clips, tuple(args.runner or RUNNERS)), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,186 @@
+"""Clips on a Dask cluster (``[prefect] task_runner = "dask"``): one Dask task per clip, each running
+that clip's whole ``annotate_clip`` flow inside a worker process.
+
+Shipping every stage to Dask as a Prefect task cost 2.9x the CPU of threads (issue 21): each stage
+paid a round trip and a Prefect task run in a fresh worker context. Here a worker takes a whole clip
+and runs its stage chain there with Prefect's thread runner (as ``task_runner = "threads"`` runs
+it), so a clip's stages stay in one process and the per-process caches (the detector session, the
+retrieval index) serve every stage of every clip the worker takes.
+
+What the workers share: the warehouse, at the same absolute path on every worker (a shared file
+system: partition files are swapped in by atomic renames and append-mode partitions are locked with
+``flock``, so several processes write it safely), and the clips' input files. The CAD library is
+built beforehand (``cadestate cad ingest``): clip stages only read it.
+
+Prefect in the workers: every worker process talks to one Prefect API, handed to it with the clip.
+That is the warehouse's server or ``$PREFECT_API_URL`` when one is in use; otherwise the ephemeral
+API that this process starts (as the thread runner does), which listens on 127.0.0.1: workers on
+this machine (a local cluster, or one on loopback) reach it, workers on other machines need a
+server they can reach (``PREFECT_API_URL``). So flow runs, their names and tags, and the task cache
+(persisted results under ``<warehouse>/_prefect/results``, keyed as :mod:`flows.stage_tasks` says)
+are the same as with threads: an unchanged rerun on Dask is cached, a clip waiting for people ends
+``paused``. A worker must not import Prefect before its first clip (Prefect reads its settings
+when imported): :func:`annotate_clip_here` sets them first.
+
+A clip whose task fails as a whole (its worker lost three times, its code not importable there,
+Prefect's API unreachable) is one ``failed`` report of stage ``annotate_clip``; the other clips go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from cadestate.config import Config, PrefectConfig
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from flows.reports import StageReport
+    from tasks.video.ingest import ClipSource
+
+WHOLE_CLIP = "annotate_clip"
+"""The stage name of the report of a clip whose Dask task failed as a whole."""
+
+_WORKER_API: list[str] = []
+"""The Prefect API this worker process was set up for (at most one entry)."""
+
+
+@dataclass(frozen=True)
+class ClipOutcome:
+    """One clip's Dask task: its stage reports and where it ran (``worker``: the Dask worker's
+    address; ``pid``: its process)."""
+
+    clip: str
+    reports: list[StageReport]
+    worker: str
+    pid: int
+
+
+def _prepare_worker(root: str, api_url: str) -> None:
+    """Point this worker process's Prefect at ``api_url`` (before Prefect is imported here; a later
+    clip for another API is refused: Prefect's settings are read once per process)."""
+    if _WORKER_API:
+        if _WORKER_API[0] != api_url:
+            raise RuntimeError(f"this Dask worker talks to Prefect's API at {_WORKER_API[0]}, not {api_url}: "
+                               "restart the workers to change the API")
+        return
+    if "prefect" in sys.modules and os.environ.get("PREFECT_API_URL") != api_url:
+        raise RuntimeError(f"Prefect was imported in this Dask worker before cadestate set its API ({api_url}): "
+                           "start the workers without preloading Prefect, or with PREFECT_API_URL set to it")
+    os.environ["PREFECT_API_URL"] = api_url
+    from flows.runtime import prepare_prefect_environment
+
+    prepare_prefect_environment(Path(root))
+    _WORKER_API.append(api_url)
+
+
+def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str) -> ClipOutcome:
+    """Run in a Dask worker: the whole ``annotate_clip`` flow of ``source`` with Prefect's thread
+    runner (as many threads as the worker has), against the Prefect API at ``api_url``."""
+    from distributed import get_worker
+
+    worker = get_worker()
+    _prepare_worker(root, api_url)
+    from flows.annotate_clip import annotate_clip
+    from flows.runtime import run_flow, run_tags
+
+    here = dataclasses.replace(config, prefect=dataclasses.replace(
+        config.prefect, task_runner="threads", max_workers=max(1, worker.state.nthreads)))
+    reports = run_flow(annotate_clip, here, root, source, here, False, run_name=f"annotate_clip/{source.clip}",
+                       tags=run_tags(Path(root), {source.clip: source.split}))
+    return ClipOutcome(source.clip, reports, worker.address, os.getpid())
+
+
+@contextlib.contextmanager
+def _environ(name: str, value: str) -> Iterator[None]:
+    """``$name`` is ``value`` within the block, as it was after."""
+    before = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = before
+
+
+@contextlib.contextmanager
+def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
+    """A client of the scheduler at ``[prefect] dask_address``; without one, of a local cluster of
+    ``max_workers`` worker processes with one thread each, closed after the block. The local workers
+    are spawned with ``$PREFECT_API_URL`` = ``api_url``: a spawned process imports the parent's main
+    module again, and when that imports Prefect, Prefect reads its settings there, before any clip."""
+    from distributed import Client, LocalCluster
+
+    if cfg.dask_address:
+        with Client(cfg.dask_address, timeout=cfg.startup_timeout_s) as client:
+            yield client
+        return
+    with _environ("PREFECT_API_URL", api_url):
+        cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    with cluster, Client(cluster) as client:
+        yield client
+
+
+def prefect_api_url(config: Config) -> str:
+    """The Prefect API the workers talk to: the one in use (the warehouse's server or
+    ``$PREFECT_API_URL``), else this process's ephemeral API, started now."""
+    from flows.runtime import prepare_prefect_environment
+
+    root = Path(config.warehouse.root).expanduser().resolve()
+    api = prepare_prefect_environment(root, startup_timeout_s=config.prefect.startup_timeout_s)
+    if api:
+        return api
+    from prefect.client.orchestration import get_client
+
+    with get_client(sync_client=True) as client:
+        return str(client.api_url).rstrip("/")
+
+
+def _failed(clip: str, e: BaseException) -> ClipOutcome:
+    from flows.reports import StageReport
+    from warehouse.catalog import one_line
+
+    return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(f"{type(e).__name__}: {e}"))], "", 0)
+
+
+def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOutcome]:
+    """Run every clip of ``sources`` as one Dask task on the cluster of ``config.prefect``, in
+    ``sources`` order; a clip whose task fails is a failed outcome, the others go on."""
+    from distributed import as_completed
+
+    from flows.runtime import ServerError, api_error_line, api_failure
+    from warehouse import Warehouse
+    from warehouse.catalog import ensure_catalog
+    from warehouse.identity import warehouse_id
+
+    root = str(Path(config.warehouse.root).expanduser().resolve())
+    config = dataclasses.replace(config, warehouse=dataclasses.replace(config.warehouse, root=root))
+    warehouse_id(Path(root))  # made here once, not raced for by the workers
+    ensure_catalog(Warehouse(root))
+    try:
+        api_url = prefect_api_url(config)
+    except Exception as e:
+        cause = api_failure(e)
+        if cause is None:
+            raise
+        raise ServerError(api_error_line(os.environ.get("PREFECT_API_URL", ""), cause)) from None
+    outcomes: dict[str, ClipOutcome] = {}
+    with dask_client(config.prefect, api_url) as client:
+        futures = {client.submit(annotate_clip_here, root, s, config, api_url, pure=False,
+                                 key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): s.clip for s in sources}
+        for future in as_completed(futures):
+            try:
+                outcomes[futures[future]] = future.result()
+            except Exception as e:  # the clip's task as a whole: report it, go on with the others
+                outcomes[futures[future]] = _failed(futures[future], e)
+    return [outcomes[s.clip] for s in sources]

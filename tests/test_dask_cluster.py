@@ -1,0 +1,118 @@
+"""Clips on a real Dask cluster (``[prefect] task_runner = "dask"``, issue 21 part 6): a ``dask
+scheduler`` and two ``dask worker`` processes on loopback, each worker running whole clips against
+the one warehouse, with real Prefect (this session's ephemeral API, handed to the workers)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from bench.demo_clip import make_demo_clip
+from cadestate.config import Config, PrefectConfig, WarehouseConfig
+from flows.annotate_clip import run_clips
+from tasks.registry import stages_of
+from tasks.video.ingest import ClipSource
+from tests.conftest import SMALL_CLIP
+from warehouse import Warehouse, connect
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+DASK = Path(sys.executable).with_name("dask")
+CLIP_STAGES = [s.name for s in stages_of("clip")]
+
+
+def _start(args: list[str], log: Path) -> subprocess.Popen:
+    """A ``dask`` command in its own process group (so that its worker process goes with it), its
+    output to ``log``, importing this checkout."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env.pop("PREFECT_API_URL", None)
+    with open(log, "wb") as out:
+        return subprocess.Popen([str(DASK), *args], stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End the process group of ``proc`` (one this test started): SIGTERM, then SIGKILL after 30 s."""
+    if proc.poll() is not None:
+        return
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+@pytest.fixture
+def cluster(tmp_path) -> Iterator[str]:
+    """The address of a scheduler on 127.0.0.1 (a free port, read from its scheduler file) with two
+    single-threaded workers connected."""
+    from distributed import Client
+
+    scheduler_file = tmp_path / "scheduler.json"
+    procs = [_start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
+                     str(scheduler_file)], tmp_path / "scheduler.log")]
+    try:
+        deadline = time.monotonic() + 120
+        while not scheduler_file.is_file() and time.monotonic() < deadline and procs[0].poll() is None:
+            time.sleep(0.2)
+        assert scheduler_file.is_file(), (tmp_path / "scheduler.log").read_text()
+        address = json.loads(scheduler_file.read_text())["address"]
+        procs += [_start(["worker", address, "--nthreads", "1", "--host", "127.0.0.1", "--no-dashboard",
+                          "--name", f"w{i}"], tmp_path / f"worker{i}.log") for i in range(2)]
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=180)
+        yield address
+    finally:
+        for proc in reversed(procs):
+            _stop(proc)
+
+
+def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
+    from distributed import Client
+
+    clips = [make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name=f"d{i}", seed=10 + i)) for i in range(4)]
+    sources = [ClipSource(f"d{i}", c.video_path, c.cameras_path, split="val" if i == 3 else "train")
+               for i, c in enumerate(clips)]
+    broken = ClipSource("gone", tmp_path / "missing.mp4", clips[0].cameras_path)
+    config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "warehouse")),
+                    prefect=PrefectConfig(task_runner="dask", dask_address=cluster))
+    with Client(cluster) as client:
+        client.get_task_stream()  # the scheduler records the task stream from now on
+        reports = run_clips([*sources, broken], config, show_progress=False)
+        stream = client.get_task_stream()
+
+    states = {(r.clip, r.stage): r.state for r in reports}
+    for clip in ("d0", "d1", "d2"):
+        assert [states[(clip, s)] for s in CLIP_STAGES] == ["completed"] * len(CLIP_STAGES), reports
+    assert states[("d3", "manual_tracks")] == "paused"  # a val clip waits for its manual tracks, as with threads
+    assert states[("d3", "retrieval")] == "waiting"
+    assert [(r.stage, r.state) for r in reports if r.clip == "gone"] == [("ingest", "failed")]  # one clip, one line
+
+    ran = [t for t in stream if str(t["key"]).startswith("annotate_clip-")]
+    assert len(ran) == 5 and len({t["worker"] for t in ran}) == 2  # one task per clip, spread over both workers
+
+    wh = Warehouse(config.warehouse.root)
+    assert sorted(wh.partitions("clips")) == ["d0", "d1", "d2", "d3"]
+    con = connect(wh)
+    try:
+        frames = dict(con.execute("SELECT clip, count(*) FROM frames GROUP BY clip").fetchall())
+        runs = dict(con.execute("SELECT clip, count(DISTINCT stage) FROM runs WHERE status IN ('completed', 'paused') "
+                                "GROUP BY clip").fetchall())
+    finally:
+        con.close()
+    assert frames == {f"d{i}": 30 for i in range(4)}
+    assert runs == {c: sum(r.clip == c and r.state in ("completed", "paused") for r in reports) for c in frames}
+    assert not list((wh.root / "_running").rglob("*.json"))  # no run left in progress
+
+    again = run_clips(sources[:3], config, show_progress=False)  # the cache is shared: workers find each other's results
+    assert {r.state for r in again} == {"cached"}
