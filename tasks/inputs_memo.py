@@ -51,6 +51,8 @@ def _state(wh: Warehouse, read: Sequence[str]) -> tuple[str, int]:
             parts = None if list(read[2:]) == ["*"] else list(read[2:])
             paths = wh.files(read[1], parts)
         elif read[0] == "partitions":
+            if not wh.table_dir(read[1]).is_dir():
+                return digest(*read, "no table folder"), 0
             paths = [wh.table_dir(read[1])] + [wh.partition_dir(read[1], p) for p in wh.partitions(read[1])]
         else:
             return f"unknown read {read[0]!r}", time.time_ns()

@@ -104,13 +104,13 @@ def write_task(wh: Warehouse, task: Task) -> Path:
 
 def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     """The newest ``label_tasks`` row of a task (its document is what labels are checked against)."""
-    rows = wh.read("label_tasks", [clip], filters=[("task_id", "=", task_id)]).to_pylist() if clip in wh.partitions("label_tasks") else []
+    rows = wh.read("label_tasks", [clip], filters=[("task_id", "=", task_id)]).to_pylist() if wh.has_partition("label_tasks", clip) else []
     return max(rows, key=lambda r: r["created_at"]) if rows else None
 
 
 def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
     """The newest ``label_tasks`` row of ``kind`` for ``clip`` (e.g. the task an import answers)."""
-    if clip not in wh.partitions("label_tasks"):
+    if not wh.has_partition("label_tasks", clip):
         return None
     rows = wh.read("label_tasks", [clip], filters=[("kind", "=", kind)]).to_pylist()
     return max(rows, key=lambda r: r["created_at"]) if rows else None

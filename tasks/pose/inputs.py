@@ -44,7 +44,7 @@ def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
     exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
     directly (``bench run --gt-tracks``) are all kept."""
     corr = wh.read("correspondences", [clip])
-    if clip not in wh.partitions("correspondence_labels"):
+    if not wh.has_partition("correspondence_labels", clip):
         return corr
     from tasks.human.cad_selection import selected_models
 

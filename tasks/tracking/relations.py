@@ -105,7 +105,7 @@ def resolve_fragments(edges: Mapping[int, int]) -> tuple[dict[int, int], list[st
 
 def _statements(wh: Warehouse, clip: str, kind: str, files: set[tuple]) -> list[dict]:
     """``track_relations`` rows of ``kind`` from the label files ``files`` ((label_sha256, ingested_at))."""
-    if not files or clip not in wh.partitions("track_relations"):
+    if not files or not wh.has_partition("track_relations", clip):
         return []
     rows = wh.read("track_relations", [clip]).to_pylist()
     return [r for r in rows if r["kind"] == kind and (r["label_sha256"], r["ingested_at"]) in files]

@@ -150,7 +150,7 @@ def stored_rotation(values: object) -> np.ndarray:
 
 def clip_up_rotation(wh: "Warehouse", clip: str) -> np.ndarray:
     """``Q`` float64[3, 3] of a registered clip (identity when it is not registered or older)."""
-    rows = wh.read("clips", partitions=[clip], columns=["up_rotation"]).to_pylist() if clip in wh.partitions("clips") else []
+    rows = wh.read("clips", partitions=[clip], columns=["up_rotation"]).to_pylist() if wh.has_partition("clips", clip) else []
     return stored_rotation(rows[0]["up_rotation"] if rows else None)
 
 
