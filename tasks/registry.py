@@ -22,7 +22,11 @@ not logic either.
 from __future__ import annotations
 
 import ast
+import contextlib
+import dataclasses
 import importlib
+import json
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -30,6 +34,7 @@ from functools import cache, cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from cadestate.atomic import atomic_write_bytes
 from cadestate.config import section_hash
 from cadestate.lineage import digest
 
@@ -227,7 +232,47 @@ def _discover() -> dict[str, Stage]:
     return {s.name: s for s in _pipeline_order(found)}
 
 
-STAGES: dict[str, Stage] = _discover()
+KEPT = ROOT / "tasks" / "__pycache__" / "stage-registry.json"
+"""The stages and their code digests as last read (what every command would read again), with the
+state of the sources they were read from: used while no module of ``tasks`` or ``cadestate``
+was added, removed or changed (size or modification time), else read again and rewritten. Not
+kept where it cannot be written."""
+
+
+def _sources_state() -> str:
+    """Digest of the path, size and modification time of every module of :data:`LOGIC_PACKAGES`."""
+    lines = []
+    for package in LOGIC_PACKAGES:
+        for folder, dirs, files in os.walk(ROOT / package):
+            dirs[:] = [d for d in dirs if d != "__pycache__"]
+            for name in files:
+                if name.endswith(".py"):
+                    st = os.stat(os.path.join(folder, name))
+                    lines.append(f"{os.path.relpath(os.path.join(folder, name), ROOT)} {st.st_size} {st.st_mtime_ns}")
+    return digest(*sorted(lines))
+
+
+def _kept_stages() -> dict[str, Stage]:
+    """:func:`_discover`, with each stage's ``code_hash``, from :data:`KEPT` when it holds."""
+    state = _sources_state()
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        kept = json.loads(KEPT.read_text(encoding="utf-8"))
+        if kept["state"] == state:
+            stages = {}
+            for record in kept["stages"]:
+                stage = Stage(**{k: tuple(map(tuple, v)) if k == "functions" else tuple(v) if isinstance(v, list) else v
+                                 for k, v in record.items() if k != "code_hash"})
+                stage.__dict__["code_hash"] = record["code_hash"]  # the cached_property, filled in
+                stages[stage.name] = stage
+            return stages
+    stages = _discover()
+    records = [{**dataclasses.asdict(s), "code_hash": s.code_hash} for s in stages.values()]
+    with contextlib.suppress(OSError):
+        atomic_write_bytes(KEPT, json.dumps({"state": state, "stages": records}).encode())
+    return stages
+
+
+STAGES: dict[str, Stage] = _kept_stages()
 """Every stage by name, in pipeline order."""
 
 

@@ -148,3 +148,23 @@ def test_status_inputs_import_none_of_the_stages_heavy_dependencies(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
     assert STAGES["pose"].function("clip_inputs").__module__ == "tasks.pose.inputs"
+
+
+def test_stages_are_kept_until_a_source_changes(tmp_path):
+    """The registry keeps what it read (tasks/__pycache__/stage-registry.json) and serves it while
+    no module of tasks/ or cadestate/ changed; a change reads the sources again."""
+    root = _project_copy(tmp_path)
+    first = _stages_there(root)
+    kept = root / "tasks" / "__pycache__" / "stage-registry.json"
+    doc = json.loads(kept.read_text())
+    [record] = [r for r in doc["stages"] if r["name"] == "pose"]
+    record["code_hash"] = "kept"
+    kept.write_text(json.dumps(doc))
+    assert _stages_there(root)["pose"]["code"] == "kept"  # served from what was kept
+    checks = root / "tasks/pose/checks.py"
+    checks.write_text(checks.read_text() + "\n")
+    again = _stages_there(root)
+    assert again["pose"]["code"] != first["pose"]["code"] and again["tracking"]["code"] == first["tracking"]["code"]
+    (root / "cadestate" / "extra.py").write_text("")  # a module added anywhere in the logic packages
+    kept.write_text(kept.read_text().replace(again["tracking"]["code"], "kept"))
+    assert _stages_there(root)["tracking"]["code"] == again["tracking"]["code"]
