@@ -11,7 +11,9 @@ detector`` takes them), one object or two. Scored on the ``--test`` folders' pai
 - ``binned_refit``: the same tables refitted on the ``--train`` folders (``fit_calibration``);
 - ``logistic``: scikit-learn's LogisticRegression on :func:`cue_matrix`, fitted on the ``--train`` folders.
 
-Each as log-loss (of sigmoid(log-odds)) and ROC AUC. Nothing is written.
+Each as log-loss (of sigmoid(log-odds)) and ROC AUC on the matched pairs, and as tracks: the clips'
+detections (all of them) partitioned with each model's edge log-odds (no 3D joining), counted as
+:func:`bench.merge_bench.tracking_counts` counts them. Nothing is written.
 """
 
 from __future__ import annotations
@@ -33,6 +35,30 @@ def cue_matrix(p: PairFeatures) -> np.ndarray:
     """float[P,8]: cosine, cosine^2, same label, IoU, IoU^2, log gap, IoU x log gap, cosine x IoU."""
     lg = np.log(p.gap.astype(float))
     return np.stack([p.cosine, p.cosine**2, p.same_label.astype(float), p.iou, p.iou**2, lg, p.iou * lg, p.cosine * p.iou], 1)
+
+
+def partition_counts(wh, bench_dirs: list[Path], edge_log_odds) -> dict:
+    """Tracks of every clip partitioned with ``edge_log_odds(PairFeatures) -> float[P]`` (window and
+    min_detections of ``[tracking]``), counted against ground truth."""
+    from collections import Counter
+
+    from bench.ignore import clip_objects_in_view
+    from bench.merge_bench import tracking_counts
+    from tasks.tracking.affinity import pair_features
+    from tasks.tracking.partition import solve
+    from tasks.tracking.tracking import Tracking
+
+    cfg, total = TrackingConfig(), Counter()
+    for d in bench_dirs:
+        for clip in read_manifest(d).clips:
+            cb = detector_clip(wh, d, clip)
+            p = pair_features(cb.frame_index, cb.boxes, cb.labels, cb.vectors, cb.cameras, cfg.window)
+            w = edge_log_odds(p)
+            lab = solve(len(cb.det_id), p.a, p.b, w, groups=cb.frame_index, keys=cb.det_id, refine_result=cfg.refine)
+            kept = np.bincount(lab)[lab] >= cfg.min_detections
+            track = np.where(kept, np.unique(lab, return_inverse=True)[1], -1)
+            total += tracking_counts(Tracking(track, p, w), cb, clip_objects_in_view(d, clip))
+    return {**dict(total), "tracks_per_object": round(total["on_objects"] / max(total["objects_found"], 1), 3)}
 
 
 def folder_pairs(wh, bench_dirs: list[Path]) -> tuple[list[PairFeatures], list[np.ndarray]]:
@@ -70,11 +96,12 @@ def compare(wh, train: list[Path], test: list[Path]) -> dict:
     test_p = cat(te_f)
     lr = make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=2000))
     lr.fit(cue_matrix(cat(tr_f)), np.concatenate(tr_y))
+    refit = fit_calibration(tr_f, tr_y)
+    models = {"binned": lambda p: affinities(p, CALIBRATION), "binned_refit": lambda p: affinities(p, refit),
+              "logistic": lambda p: lr.decision_function(cue_matrix(p))}
     return {"train_seeds": [read_manifest(d).seed for d in train], "test_seeds": [read_manifest(d).seed for d in test],
             "test_pairs": len(y), "test_one_object": int(y.sum()),
-            "binned": _scores(y, affinities(test_p, CALIBRATION)),
-            "binned_refit": _scores(y, affinities(test_p, fit_calibration(tr_f, tr_y))),
-            "logistic": _scores(y, lr.decision_function(cue_matrix(test_p)))}
+            **{name: {**_scores(y, f(test_p)), "tracks": partition_counts(wh, test, f)} for name, f in models.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
