@@ -117,11 +117,9 @@ def pair_cues(a: Fragment, b: Fragment) -> np.ndarray:
     na, nb = len(a.members), len(b.members)
     size_a = object_size(a.rays, joint.depth[:na])
     size_b = object_size(b.rays, joint.depth[na:])
-    na_, nb_ = np.linalg.norm(a.look), np.linalg.norm(b.look)
-    cos = float(a.look @ b.look / (na_ * nb_)) if na_ > 0 and nb_ > 0 else 0.0
-    fa, fb = np.sort(a.frames), np.sort(b.frames)
-    pos = np.clip(np.searchsorted(fb, fa), 1, max(len(fb) - 1, 1))
-    gap = int(np.min(np.minimum(np.abs(fb[pos - 1] - fa), np.abs(fb[np.minimum(pos, len(fb) - 1)] - fa))))
+    norms = np.linalg.norm(a.look) * np.linalg.norm(b.look)
+    cos = float(a.look @ b.look / norms) if norms > 0 else 0.0
+    gap = int(np.abs(a.frames[:, None] - b.frames[None, :]).min())
     return np.array([misfit, cos, float(a.label == b.label), np.log1p(gap),
                      abs(np.log(max(size_a, 1e-3) / max(size_b, 1e-3))), np.log(min(na, nb))])
 
