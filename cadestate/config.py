@@ -213,6 +213,11 @@ class TrackingConfig:
     bias: float = _opt(0.0, "Added to every edge's log-odds (negative: fewer, purer merges).", lo=-100.0, hi=100.0)
     refine: bool = _opt(True, "Refine the greedy contraction by Kernighan-Lin moves and joins.")
     min_detections: int = _opt(3, "Tracks with fewer detections are dropped (1 keeps singletons).", lo=1, hi=1_000_000)
+    merge: bool = _opt(True, "Join the fragments of one object in 3D after the partition (tasks/tracking/merge.py).")
+    merge_min_probability: float = _opt(0.5, "Fragments are joined when the merge model (tasks/tracking/merge_calibration.py) "
+                                             "gives them at least this probability of being one object.", lo=0.0, hi=1.0)
+    thin_detections: int = _opt(6, "Tracks with fewer detections and no box on a manual-track key-frame ([manual_tracks] "
+                                   "keyframes) are too thin to annotate: dropped (1 keeps them).", lo=1, hi=1_000_000)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ results (nothing detected, so every later stage ran on nothing).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -106,12 +107,17 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     """What a user should know about each clip beyond its stages' states, one line per note:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
     threshold or class filter) runs every later stage on nothing; a clip whose world up was
-    estimated unreliably (:mod:`tasks.video.world_up`) may have every object pulled the wrong way."""
+    estimated unreliably (:mod:`tasks.video.world_up`) may have every object pulled the wrong way; the
+    tracks too thin to annotate that tracking dropped (:mod:`tasks.tracking.merge`) are counted."""
     notes = []
     for r in rows:
         if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:
             up = r.message[r.message.index("world up: ") + len("world up: "):]
             notes.append(f"{r.clip}: world up unreliable: {up}")
+        thin = re.search(r"(\d+) thin tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
+        if thin and thin.group(1) != "0":
+            notes.append(f"{r.clip}: {thin.group(1)} tracks too thin to annotate were dropped (fewer than [tracking] "
+                         "thin_detections detections, none on a manual-track key-frame)")
         if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")

@@ -43,7 +43,8 @@ from tasks.detection.models.embedder import load_embedder
 from tasks.human.inputs import manual_track_inputs
 from tasks.human.label_ingest import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+from tasks.human.keyframes import evenly_spaced, regular_keyframes
+from tasks.human.shared import INSTRUCTIONS, image_size, task_output, write_task_once
 from tasks.retrieval.label_similarity import similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
@@ -52,18 +53,6 @@ from tasks.video.ingest import clip_inputs, clip_split
 from warehouse import Warehouse
 
 KIND = "manual_track"
-
-
-def regular_keyframes(timestamps: list[int], k: int) -> list[int]:
-    """Indices of ``min(len, k)`` frames regularly spaced in time: for each of ``k`` times evenly
-    spread from the first to the last timestamp (ascending), the nearest frame; evenly spaced
-    indices instead when two times share a frame (irregular timestamps)."""
-    n = len(timestamps)
-    if n <= k:
-        return list(range(n))
-    t = np.asarray(timestamps, np.float64)
-    pick = sorted({int(np.argmin(np.abs(t - target))) for target in np.linspace(t[0], t[-1], k)})
-    return pick if len(pick) == k else evenly_spaced(n, k)
 
 
 def task_classes(wh: Warehouse, detector_labels: tuple[str, ...]) -> tuple[str, ...]:

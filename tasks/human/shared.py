@@ -12,6 +12,7 @@ import numpy as np
 
 from schemas.dataclass_json import to_json
 from schemas.labels import KeyframeView
+from tasks.human.keyframes import evenly_spaced
 from tasks.human.labels import latest_task, parse_task, write_task
 from tasks.stage import StageOutput
 from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
@@ -27,13 +28,6 @@ INSTRUCTIONS = {
                        "same points in the image; mirror the model if it is the mirror image of the object.",
     "verification": "For every track, accept only if the rendered CAD model aligns with the object on every key-frame.",
 }
-
-
-def evenly_spaced(n: int, k: int) -> list[int]:
-    """``min(n, k)`` indices of ``range(n)`` spread evenly, first and last included."""
-    if n <= 0:
-        return []
-    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(n, k))})
 
 
 def image_size(wh: Warehouse, clip: str) -> tuple[int, int]:

@@ -7,9 +7,11 @@ Every two detections at most ``window`` frames apart get an edge whose weight is
 that they show one object (:mod:`tasks.tracking.affinity`: appearance, label agreement, box
 continuity after compensating the camera rotation, calibrated on the synthetic benchmark);
 detections of one frame can never share a track (cannot-links). The graph is partitioned into
-cliques maximising the summed log-odds inside them (:func:`tasks.tracking.partition.solve`). Tracks
-with fewer than ``min_detections`` detections are dropped. Track ids are ranks by first
-detection id, so a rerun with unchanged inputs gives the same ids.
+cliques maximising the summed log-odds inside them (:func:`tasks.tracking.partition.solve`). The
+cliques that are fragments of one object are then joined in 3D (:mod:`tasks.tracking.merge`, with
+``merge``); tracks with fewer than ``min_detections`` detections are dropped, and so are the tracks
+too thin to annotate (fewer than ``thin_detections``, none on a ``[manual_tracks]`` key-frame).
+Track ids are ranks by first detection id, so a rerun with unchanged inputs gives the same ids.
 """
 
 from __future__ import annotations
@@ -21,9 +23,12 @@ import pyarrow as pa
 
 from cadestate.config import TrackingConfig
 from cadestate.lineage import digest, table_digest
+from tasks.human.keyframes import regular_keyframes
 from tasks.stage import StageContext, StageDef, StageOutput
-from tasks.tracking.affinity import Cameras, PairFeatures, affinities, pair_features
+from tasks.tracking.affinity import Cameras, PairFeatures, affinities, centred, pair_features
+from tasks.tracking.merge import MergeModel, merge_step
 from tasks.tracking.partition import solve
+from tasks.tracking.track3d import Rays, box_rays
 from warehouse import Warehouse
 
 
@@ -39,22 +44,45 @@ def default_calibration() -> dict:
     return CALIBRATION
 
 
+def default_merge_model() -> MergeModel:
+    from tasks.tracking.merge_calibration import MERGE_CALIBRATION
+
+    if MERGE_CALIBRATION is None:
+        raise TrackingError("tasks/tracking/merge_calibration.py holds no model: run `python -m bench.merge_bench fit`")
+    return MergeModel.from_dict(MERGE_CALIBRATION)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What joining fragments in 3D needs of a clip of N detections: ``rays`` through the box
+    centres (aligned world) and the manual-track ``keyframes`` (frame indices int[K])."""
+
+    rays: Rays
+    keyframes: np.ndarray
+
+
 @dataclass(frozen=True)
 class Tracking:
-    """Result on N detections: ``track`` int64[N] (track id, -1 = left out), the graph it solved."""
+    """Result on N detections: ``track`` int64[N] (track id, -1 = left out), the graph it solved,
+    the fragments ``joined`` in 3D and the ``thin`` tracks dropped."""
 
     track: np.ndarray
     pairs: PairFeatures
     weights: np.ndarray
+    joined: int = 0
+    thin: int = 0
 
 
 def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndarray, labels: np.ndarray,
                      vectors: np.ndarray | None, cameras: Cameras | None, cfg: TrackingConfig,
-                     scores: np.ndarray | None = None, calibration: dict | None = None) -> Tracking:
+                     scores: np.ndarray | None = None, calibration: dict | None = None,
+                     geometry: Geometry | None = None, merge_model: MergeModel | None = None) -> Tracking:
     """Tracks of one clip's detections (arrays of length N; ``det_id`` unique).
 
     Returns track ids 0..T-1 ordered by each track's smallest det_id, -1 for detections left
-    out (score below ``min_score``, or in a track shorter than ``min_detections``)."""
+    out (score below ``min_score``, in a track shorter than ``min_detections``, or too thin). With
+    ``geometry`` the partition's fragments are joined in 3D (``cfg.merge``; ``merge_model``:
+    default the stored one) and thin tracks dropped; without it neither happens."""
     det_id = np.asarray(det_id, dtype=np.int64)
     n = len(det_id)
     if len(np.unique(det_id)) != n:
@@ -69,16 +97,24 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
     w = affinities(feats, calibration, appearance_weight=cfg.appearance_weight, label_weight=cfg.label_weight,
                    motion_weight=cfg.motion_weight, bias=cfg.bias)
     lab = solve(len(idx), feats.a, feats.b, w, groups=f, keys=det_id[idx], refine_result=cfg.refine)
-    sizes = np.bincount(lab, minlength=len(idx))
-    long_enough = sizes[lab] >= cfg.min_detections
-    # track ids: kept clusters ranked by their smallest det_id (labels are already in that order)
-    kept_labels = np.unique(lab[long_enough])
-    new_id = np.full(len(sizes), -1, dtype=np.int64)
-    new_id[kept_labels] = np.arange(len(kept_labels))
+    groups = [g for g in np.split(np.argsort(lab, kind="stable"), np.cumsum(np.bincount(lab))[:-1]) if len(g)]
+    joined = thin = 0
+    if geometry is None:
+        groups = [g for g in groups if len(g) >= cfg.min_detections]
+    else:
+        model = (merge_model or default_merge_model()) if cfg.merge else None
+        sc = np.ones(len(idx)) if scores is None else np.asarray(scores, np.float64)[idx]
+        merged = merge_step(groups, f, np.asarray(labels)[idx], sc, None if vec is None else centred(vec),
+                            geometry.rays.subset(idx), geometry.keyframes, model, cfg.merge_min_probability,
+                            cfg.min_detections, cfg.thin_detections)
+        groups, joined, thin = merged.groups, merged.joins, merged.thin
+    # track ids: kept groups ranked by their smallest det_id
+    groups.sort(key=lambda g: det_id[idx[g]].min())
     track = np.full(n, -1, dtype=np.int64)
-    track[idx] = new_id[lab]
+    for t, g in enumerate(groups):
+        track[idx[g]] = t
     pairs = PairFeatures(idx[feats.a], idx[feats.b], feats.gap, feats.cosine, feats.same_label, feats.iou)
-    return Tracking(track, pairs, w)
+    return Tracking(track, pairs, w, joined, thin)
 
 
 def vote(labels: list[str], weights: list[float]) -> tuple[str, float]:
@@ -128,6 +164,19 @@ def detection_vectors(emb: pa.Table, det_id: np.ndarray, clip: str) -> tuple[np.
     return vectors, str(emb["model_sha256"][int(rows[0])])
 
 
+def read_geometry(wh: Warehouse, clip: str, cameras: Cameras, frame_index: np.ndarray, boxes: np.ndarray,
+                  keyframes: int) -> Geometry:
+    """Rays through the centres of ``boxes`` float[N,4] seen on frames ``frame_index`` int[N], and the
+    clip's ``keyframes`` manual-track key-frames (:func:`tasks.human.keyframes.regular_keyframes`)."""
+    t = wh.read("frames", partitions=[clip], columns=["frame_index", "timestamp_us", "world_to_camera_t"]).to_pydict()
+    order = np.argsort(t["frame_index"])
+    trans = np.asarray(t["world_to_camera_t"], dtype=np.float64)[order].reshape(-1, 3)
+    stamps = np.asarray(t["timestamp_us"], dtype=np.int64)[order].tolist()
+    f = np.asarray(frame_index, dtype=np.int64)
+    rays = box_rays(boxes, cameras.K[f], cameras.R[f], trans[f], cameras.width, cameras.height)
+    return Geometry(rays, np.asarray(regular_keyframes(stamps, keyframes), dtype=np.int64))
+
+
 def track_tables(clip: str, dets: dict, vectors: np.ndarray | None, model_sha: str, result: Tracking
                  ) -> tuple[pa.Table, pa.Table, pa.Table]:
     """Rows of ``tracks``, ``track_detections`` and ``track_appearance`` (``dets``: column arrays)."""
@@ -168,7 +217,7 @@ def track_tables(clip: str, dets: dict, vectors: np.ndarray | None, model_sha: s
             pa.Table.from_pylist(looks, schema=TRACK_APPEARANCE.schema))
 
 
-def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str) -> StageOutput:
+def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str, keyframes: int = 6) -> StageOutput:
     """Track the clip's detections and write its three tracking partitions (see module docstring)."""
 
     dets = wh.read("detections", partitions=[clip],
@@ -179,21 +228,25 @@ def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str) -> St
     vectors, model_sha = (detection_vectors(emb, np.asarray(dets["det_id"], dtype=np.int64), clip)
                           if dets["det_id"] else (None, ""))
     cameras = read_cameras(wh, clip)
-    result = track_detections(np.asarray(dets["det_id"]), np.asarray(dets["frame_index"]), np.asarray(dets["box"]).reshape(-1, 4),
-                              np.asarray(dets["label"], dtype=object), vectors, cameras, cfg, scores=np.asarray(dets["score"]))
+    boxes = np.asarray(dets["box"], dtype=np.float64).reshape(-1, 4)
+    geometry = read_geometry(wh, clip, cameras, np.asarray(dets["frame_index"]), boxes, keyframes)
+    result = track_detections(np.asarray(dets["det_id"]), np.asarray(dets["frame_index"]), boxes,
+                              np.asarray(dets["label"], dtype=object), vectors, cameras, cfg, scores=np.asarray(dets["score"]),
+                              geometry=geometry)
     tracks, members, looks = track_tables(clip, dets, vectors, model_sha, result)
     written = wh.write("tracks", clip, tracks) + wh.write("track_detections", clip, members) + wh.write("track_appearance", clip, looks)
     out = digest(table_digest(tracks), table_digest(members), table_digest(looks))
-    return StageOutput(written, out, f"{tracks.num_rows} tracks from {len(dets['det_id'])} detections")
+    return StageOutput(written, out, f"{tracks.num_rows} tracks from {len(dets['det_id'])} detections "
+                                     f"({result.joined} fragments joined in 3D, {result.thin} thin tracks dropped)")
 
 
 def _run(ctx: StageContext) -> StageOutput:
-    return track_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+    return track_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id, ctx.config.section("manual_tracks").keyframes)
 
 
 STAGE = StageDef(
     name="tracking", section="tracking", scope="clip", upstream=("frames", "detect", "embed"),
     tables=("tracks", "track_detections", "track_appearance"),
-    description="associate detections into tracks by clique partitioning",
-    run=_run,
+    description="associate detections into tracks by clique partitioning, join fragments in 3D",
+    extra_sections=("manual_tracks",), run=_run,
 )
