@@ -46,7 +46,7 @@ def warehouse_results(root: Path) -> Iterator[None]:
     """Within the block, persisted task results (the cache) go to ``<root>/_prefect/results``."""
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
-    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / "_prefect" / "results")}):
+    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / "_prefect" / "results")}):  # stage_tasks.RESULTS
         yield
 
 

@@ -91,6 +91,24 @@ def test_cache_keys_follow_the_warehouse_identity_not_its_path(tmp_path):
     assert key(tmp_path / "c") == key(a)  # a copy keeps the id
 
 
+def test_back_to_an_earlier_config_reruns_what_a_later_one_overwrote(config, source):
+    """Config A, then B (tracking writes other tracks), then A again: A's cached tracking result
+    would name tracks the table no longer holds, so tracking runs again and the table is A's."""
+    from cadestate.config import TrackingConfig
+
+    run_clips([source], config, show_progress=False)
+    wh = Warehouse(config.warehouse.root)
+    first = wh.read("tracks", ["small"])
+    assert first.num_rows
+    other = dataclasses.replace(config, tracking=TrackingConfig(min_detections=1_000_000))  # drops every track
+    assert {r.stage: r.state for r in run_clips([source], other, show_progress=False)}["tracking"] == "completed"
+    assert wh.read("tracks", ["small"]).num_rows == 0
+    back = {r.stage: r.state for r in run_clips([source], config, show_progress=False)}
+    assert back["tracking"] == "completed"
+    assert wh.read("tracks", ["small"]).equals(first)
+    assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached"}
+
+
 def test_changed_stage_config_reruns_that_stage_only(config, source):
     run_clips([source], config, show_progress=False)
     wh = Warehouse(config.warehouse.root)
