@@ -24,7 +24,7 @@ from tasks.human.correspondence_task import correspondence_task_stage
 from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import label_document
 from tasks.human.manual_tracks import manual_tracks_stage
-from tasks.human.verification import current_task_id, verification_stage
+from tasks.human.verification import verification_stage
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
 from tasks.tracking.relations import TrackRelations, relations_in_force, resolve_fragments
@@ -217,9 +217,8 @@ def test_a_drawn_object_said_to_be_a_track_joins_it(rwh, tmp_path):
 def _verification(wh: Warehouse, cfg: VerificationConfig = VerificationConfig(keyframes=2)) -> tuple[object, dict]:
     """The verification run and its task document (the newest version of its file)."""
     out = _run(wh, "verification", lambda rid: verification_stage(wh, cfg, CLIP, rid))
-    task_id = current_task_id(wh, CLIP)
-    return out, json.loads(wh.read("label_tasks", [CLIP]).filter(pc.equal(pc.field("task_id"), task_id))
-                           .sort_by([("created_at", "descending")]).column("document")[0].as_py())
+    tasks = wh.read("label_tasks", [CLIP]).filter(pc.equal(pc.field("kind"), "verification"))
+    return out, json.loads(tasks.sort_by([("created_at", "descending")]).column("document")[0].as_py())
 
 
 def test_duplicate_poses_are_flagged_in_verification_and_join_the_track_named(rwh, tmp_path):

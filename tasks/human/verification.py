@@ -49,12 +49,6 @@ def poses_to_verify(wh: Warehouse, clip: str) -> pa.Table:
     return poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
 
 
-def current_task_id(wh: Warehouse, clip: str) -> str | None:
-    """The id of the clip's verification task for its current poses (None: no pose to verify)."""
-    poses = poses_to_verify(wh, clip)
-    return verification_task_id(clip, poses) if poses.num_rows else None
-
-
 def flagged_duplicates(wh: Warehouse, poses: list[dict], threshold: float) -> dict[int, tuple[int, ...]]:
     """Per track of ``poses`` (rows of :func:`poses_to_verify`), the other tracks whose posed CAD
     box overlaps its own by at least ``threshold`` (:func:`tasks.pose.duplicates.duplicate_candidates`);

@@ -10,9 +10,9 @@ The table is history; only the statements of each task's answer in force count:
   (:func:`manual_track_ids`) is then a fragment of N;
 - ``cad_selection``: per track of the current CAD-selection task, the statement of its answer in
   force (``same_as_track``: the track is a fragment of track N);
-- ``verification``: per track of the current verification task (the one of the clip's current
-  poses), the statement of its answer in force (``same_as_track``: its pose shows the object of
-  track N, a duplicate: the track joins N's object and only N's pose is kept).
+- ``verification``: per track of the verification task whose verdicts ``verified_poses`` holds, the
+  statement of its answer in force (``same_as_track``: its pose shows the object of track N, a
+  duplicate: the track joins N's object and only N's pose is kept).
 
 :func:`relations_in_force` resolves chains (A -> B -> C: A and B belong to C); statements that
 form a cycle are ignored with a warning (the tracks on it stay objects of their own). A fragment
@@ -166,11 +166,13 @@ def cad_selection_statements(wh: Warehouse, clip: str) -> dict[int, int]:
 
 
 def verification_statements(wh: Warehouse, clip: str) -> dict[int, int]:
-    """{track: the track whose object its pose shows} from the answers in force of the clip's
-    current verification task (the duplicates people named there)."""
-    from tasks.human.verification import current_task_id
-
-    return same_as_statements(wh, clip, "verification", current_task_id(wh, clip))
+    """{track: the track whose object its pose shows} (the duplicates people named) from the answers
+    in force of the verification task whose verdicts ``verified_poses`` holds: the poses the export
+    reads and the statements about them come from one task."""
+    if clip not in wh.partitions("verified_poses"):
+        return {}
+    tasks = sorted(set(wh.read("verified_poses", [clip], columns=["task_id"]).column("task_id").to_pylist()))
+    return {t: other for task_id in tasks for t, other in same_as_statements(wh, clip, "verification", task_id).items()}
 
 
 def relations_in_force(wh: Warehouse, clip: str) -> TrackRelations:
