@@ -102,8 +102,14 @@ def scoring_inputs(bench_dir: Path, wh: Warehouse, clips: list[str]
 
 
 def accepted_predictions(wh: Warehouse, clips: list[str]) -> list[PosedObject]:
-    """The poses accepted in verification (``verified_poses``) of ``clips``, in the camera files' worlds."""
+    """The poses the dataset publishes for ``clips``, in the camera files' worlds: those accepted in
+    verification (``verified_poses``) but of the tracks people said are no object or another
+    track's object (:func:`tasks.tracking.relations.relations_in_force`: the export keeps the root's pose only)."""
+    from tasks.tracking.relations import relations_in_force
+
     rows = [r for r in wh.read("verified_poses", clips).to_pylist() if r["accepted"]]
+    said = {c: relations_in_force(wh, c) for c in {r["clip"] for r in rows}}
+    rows = [r for r in rows if said[r["clip"]].speaks_for_itself(int(r["track_id"]))]
     return in_input_world(_predictions(rows), wh)
 
 

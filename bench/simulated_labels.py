@@ -23,6 +23,9 @@ label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench
   cad_selection answer null (the annotator gives up on the model), so nothing waits forever.
 - ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model
   against the true model at the true pose, on the task's key-frames; unmatched tracks: reject.
+  Duplicates flagged by the task (``maybe_same_as``) are resolved from the ground truth
+  (:func:`same_as_answers`): of the tracks on one ground-truth object linked by flags, one keeps its
+  pose (an accepted one first, then the lowest track id) and the others answer ``same_as_track`` it.
 
 :func:`annotate_until_done` is the ``cadestate bench run`` loop (the default; ``--gt-tracks`` skips it): run the clips,
 answer their open tasks, ingest the labels (:func:`tasks.human.label_ingest.ingest_labels`), rerun the
@@ -75,8 +78,12 @@ class _Clip:
         self._meshes: dict[str, trimesh.Scene] = {}
         self._distances: dict[tuple[str, str], float] = {}
 
+    def gt_id(self, track_id: int) -> str | None:
+        """The ground-truth object the track follows (:func:`bench.retrieval_bench.track_truth`), or None."""
+        return self.truth.get(track_id) or self.truth.get(str(track_id))
+
     def gt(self, track_id: int):
-        o = self.objects.get(self.truth.get(track_id) or self.truth.get(str(track_id)) or "")
+        o = self.objects.get(self.gt_id(track_id) or "")
         return o if o is not None and o.translation is not None and o.cad_id in self.models else None
 
     def mesh(self, cad_id: str):
@@ -188,6 +195,26 @@ def _verify(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict:
             "comment": None if o is not None else "no ground-truth object"}
 
 
+def same_as_answers(task, truth: Callable[[int], object], verdicts: dict[int, str]) -> dict[int, int]:
+    """track -> the track it is the same object as, for the items of verification ``task``:
+    the tracks linked by the task's flags (``maybe_same_as``) that ``truth`` (track id -> its
+    ground-truth object id, None: none) puts on one object form a group; each group's keeper is
+    the track accepted (``verdicts``: track -> verdict, absent: not answered) with the lowest id,
+    else its lowest id, and the others are the same as it."""
+    group = {it.track_id: {it.track_id} for it in task.items}
+    for it in task.items:
+        for other in it.maybe_same_as:
+            if other in group and truth(it.track_id) is not None and truth(it.track_id) == truth(other):
+                merged = group[it.track_id] | group[other]
+                for t in merged:
+                    group[t] = merged
+    out = {}
+    for members in {frozenset(g) for g in group.values() if len(g) > 1}:
+        keeper = min(members, key=lambda t: (verdicts.get(t) != "accept", t))
+        out |= {t: keeper for t in sorted(members) if t != keeper}
+    return out
+
+
 def _write(wh: Warehouse, folder: Path, kind: str, clip: str, task_id: str, answers: list[dict]) -> Path:
     """Validate the label document, then write it as ``<task_id>.<n>.json`` (n: next free)."""
     doc = label_document(kind, clip, task_id, answers, annotator=ANNOTATOR, created_at=utc_now().isoformat())
@@ -234,6 +261,10 @@ def answer_tasks(bench_dir: Path, wh: Warehouse, clip: str, noise: AnnotatorNois
                             written.append(_write(wh, folder, "cad_selection", clip, sel_task.task_id, none))
             else:
                 answers = [_verify(c, it, noise, renderer) for it in items]
+                verdicts = {it.track_id: it.previous.verdict for it in task.items if it.previous is not None}
+                verdicts |= {a["track_id"]: a["verdict"] for a in answers}
+                same = same_as_answers(task, c.gt_id, verdicts)
+                answers = [{**a, "same_as_track": same[a["track_id"]]} if a["track_id"] in same else a for a in answers]
             if answers:
                 written.append(_write(wh, folder, task.kind, clip, task.task_id, answers))
     return written

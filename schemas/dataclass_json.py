@@ -22,10 +22,13 @@ SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 
 def spec(description: str, *, unit: str | None = None, frame: str | None = None, default: Any = dataclasses.MISSING,
-         items: dict | None = None, **keywords: Any) -> Any:
+         items: dict | None = None, omit_default: bool = False, **keywords: Any) -> Any:
     """A dataclass field with its meaning (``description``, ``unit``, ``frame``) and JSON Schema
-    ``keywords`` (``minimum``, ``maxItems``, ...); ``items``: keywords for array elements."""
-    meta = {"description": description, "unit": unit, "frame": frame, "keywords": keywords, "items": items or {}}
+    ``keywords`` (``minimum``, ``maxItems``, ...); ``items``: keywords for array elements.
+    ``omit_default``: :func:`to_json` leaves the field out while it holds its default (a field
+    added to a record that files already hold, so those files stay byte for byte the same)."""
+    meta = {"description": description, "unit": unit, "frame": frame, "keywords": keywords, "items": items or {},
+            "omit_default": omit_default}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -141,9 +144,11 @@ def from_json(tp: Any, value: Any) -> Any:
 
 
 def to_json(obj: Any) -> Any:
-    """A dataclass (or value) as plain JSON data: tuples become lists; every field is written."""
+    """A dataclass (or value) as plain JSON data: tuples become lists; every field is written but
+    those made with ``omit_default`` that hold their default."""
     if dataclasses.is_dataclass(obj):
-        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                if not (f.metadata.get("omit_default") and getattr(obj, f.name) == f.default)}
     if isinstance(obj, (tuple, list)):
         return [to_json(v) for v in obj]
     return obj

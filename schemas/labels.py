@@ -13,7 +13,9 @@ Kinds (``kind``):
 - ``cad_selection`` (3.2): per track, pick the best of (up to) 10 CAD candidates, or none.
 - ``correspondences`` (3.3): per track, 4-6 clicks per key-frame pairing a point on the CAD model
   with an image point; the annotator may mirror the model.
-- ``verification`` (3.5): per track, the posed CAD rendered over its key-frames: accept or reject.
+- ``verification`` (3.5): per track, the posed CAD rendered over its key-frames: accept or reject;
+  poses whose boxes overlap are flagged ("may be the same object as track N") and the annotator
+  may say so (``same_as_track``: the export keeps track N's pose only).
 
 Conventions (as in the official CAD-Estate files, :mod:`schemas.official`): timestamps are camera
 timestamps in µs (rows of ``frames``); boxes are (ymin, xmin, ymax, xmax) normalised to [0, 1];
@@ -164,6 +166,10 @@ class VerificationAnswer:
 
     track_id: int = spec("tracks.track_id.", **TRACK_ID)
     verdict: Literal["accept", "reject"] = spec("accept: aligned on all key-frames; reject: otherwise.")
+    same_as_track: int | None = spec("'Same object as track N': this pose shows the object of track N of the task (a "
+                                     "duplicate, e.g. one the item's maybe_same_as flags); the export keeps N's pose only and "
+                                     "lists this track in N's object's merged tracks. Allowed with either verdict. Null (or "
+                                     "absent): an object of its own.", default=None, omit_default=True, **TRACK_ID)
     comment: str | None = spec("Free text.", default=None)
     seconds: float | None = spec("Time the annotator spent on this item.", unit="s", default=None, **SECONDS)
 
@@ -206,6 +212,11 @@ class VerificationItem:
     mesh_path: str = spec("Its canonical mesh, relative to the warehouse root.")
     pose: Pose = spec("The solved pose that was rendered.")
     keyframes: tuple[KeyframeView, ...] = spec("Key-frames with overlays.", minItems=1)
+    maybe_same_as: tuple[int, ...] = spec("'May be the same object as track N': the other tracks of the task whose posed "
+                                          "CAD box overlaps this one's by at least [verification] duplicate_overlap of the "
+                                          "smaller box's volume (tasks.pose.duplicates), ascending; absent when none. The "
+                                          "annotator says so with the answer's same_as_track.",
+                                          default=(), omit_default=True, items=TRACK_ID)
     previous: VerificationAnswer | None = spec("The verdict given before, if any.", default=None)
 
 

@@ -67,6 +67,8 @@ BAD = [  # (kind, change, the field the error names)
     ("manual_track", lambda d: d["answers"][0].update(same_as_track=3), "$.answers[0].same_as_track"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][0].update(x=1.5), "$.answers[0].keyframes[0].points[0].x"),
     ("verification", lambda d: d["answers"][0].update(verdict="maybe"), "$.answers[0].verdict"),
+    ("verification", lambda d: d["answers"][1].update(same_as_track=1), "$.answers[1].same_as_track"),  # itself
+    ("verification", lambda d: d["answers"][0].update(same_as_track=9), "$.answers[0].same_as_track"),  # not the task's
     ("verification", lambda d: d.pop("answers"), "$"),
 ]
 

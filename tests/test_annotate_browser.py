@@ -31,6 +31,7 @@ from bench.walkthrough import WalkthroughSpec
 from browser import chromium_path, launch
 from conftest import warehouse_copy
 from tasks.human.labels import validate_label
+from tasks.tracking.relations import verification_statements
 from warehouse import Warehouse
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(chromium_path() is None, reason="chromium not installed (make browser)")]
@@ -70,6 +71,8 @@ def served(small_library_warehouse, tmp_path_factory):
     manifest, _ = generate(folder, SEED, 1, Warehouse(small_library_warehouse.warehouse.root), SPEC, show_progress=False)
     clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")
     config = warehouse_copy(small_library_warehouse, tmp / "wh")
+    # every pair of poses flagged as maybe one object, so the verification page shows its flag on this small clip
+    config = dataclasses.replace(config, verification=dataclasses.replace(config.verification, duplicate_overlap=0.0))
     reports = run_clips([source], config, show_progress=False)
     assert {r.stage for r in reports if r.state == "paused"} == {"manual_tracks"}
 
@@ -342,10 +345,24 @@ def _assert_model_drawn(s: Served, track: int) -> None:
 
 
 def test_verification_page(s):
-    answer = {a["track_id"]: a["verdict"] for a in simulated(s, "verification")["answers"]}
-    open_next(s, "verification")
+    sim = simulated(s, "verification")["answers"]
+    answer = {a["track_id"]: a["verdict"] for a in sim}
+    same = {a["track_id"]: a["same_as_track"] for a in sim if "same_as_track" in a}
+    nxt = open_next(s, "verification")
     page, done = s.page, []
-    while True:
+    page.wait_for_selector("#stack[data-ready='1']", timeout=60_000)
+    first = track_shown(s)
+    others = sorted(t for t in answer if t != first)
+    assert others, f"a one-item task ({first}): no pose to call it a duplicate of"
+    # the flag names every other track (duplicate_overlap 0); s picks the first, sent as same_as_track with the verdict
+    assert page.locator("#dup").is_visible() and page.inner_text("#dup-tracks").startswith(f"track {others[0]} (")
+    assert page.locator("#dup-tracks a").count() == len(others)
+    page.keyboard.press("s")
+    assert page.input_value("#same") == str(others[0])
+    page.click("#accept" if answer[first] == "accept" else "#reject")
+    page.wait_for_url(re.compile(rf"track=(?!{first}\b)\d+"))
+    page.goto(f"{s.url}/annotate/verification?clip={s.clip}&task={nxt['task_id']}&track={first}")
+    while True:  # every track answered as simulated, the first one again: its newer answer is in force
         page.wait_for_selector("#stack[data-ready='1']", timeout=60_000)
         track = track_shown(s)
         page.keyboard.press("o")  # outline
@@ -357,15 +374,20 @@ def test_verification_page(s):
         _assert_model_drawn(s, track)
         if not done:
             page.screenshot(path=s.shots / "verification.png")
-        page.keyboard.press("a" if answer[track] == "accept" else "r")
+        page.select_option("#same", str(same.get(track, "")))  # after the keys: the select keeps the focus
+        page.click("#accept" if answer[track] == "accept" else "#reject")
         done.append(track)
         if len(done) == len(answer):
             break
         page.wait_for_url(re.compile(rf"track=(?!{track}\b)\d+"))
     ready = wait_for_pipeline(s)
     files = new_label_files(s, "verification", SEEN)
-    assert files, "no verification label file"
-    assert {a.track_id: a.verdict for lf in files for a in lf.label.answers} == answer
+    assert len(files) == len(answer) + 1, [lf.path.name for lf in files]
+    assert [(a.track_id, a.same_as_track) for a in files[0].label.answers] == [(first, others[0])]  # the files sort by time
+    assert {a.track_id: a.verdict for lf in files[1:] for a in lf.label.answers} == answer
+    assert {a.track_id: a.same_as_track for lf in files[1:] for a in lf.label.answers if a.same_as_track is not None} == same
+    assert ("same_object", first, others[0], None) in relations(s, "verification")
+    assert verification_statements(s.wh, s.clip) == same  # the newer answer for the first track is in force
     verified = s.wh.read("verified_poses", [s.clip]).to_pylist()
     assert {int(v["track_id"]): v["accepted"] for v in verified} == {t: v == "accept" for t, v in answer.items()}
     assert "nothing waits" in ready, ready

@@ -426,3 +426,19 @@ def test_stage_seconds_sums_the_runs_of_the_current_output(tmp_path):
     wh.write("runs", "a", pa.Table.from_pylist([{f.name: r.get(f.name) for f in schema} for r in rows], schema=schema))
     # the last completed run and the pauses it resumed; older history left out; a stage never completed: all
     assert stage_seconds(wh, ["a", "b"]) == {"a": {"detect": 2.0, "cad_selection": 0.75, "pose": 1.0}}
+
+
+def test_simulated_verifier_names_the_flagged_duplicates_of_one_object():
+    from types import SimpleNamespace as NS
+
+    from bench.simulated_labels import same_as_answers
+
+    items = [NS(track_id=1, maybe_same_as=(3, 5)), NS(track_id=3, maybe_same_as=(1,)), NS(track_id=5, maybe_same_as=(1,)),
+             NS(track_id=7, maybe_same_as=(8,)), NS(track_id=8, maybe_same_as=(7,)), NS(track_id=9, maybe_same_as=()),
+             NS(track_id=10, maybe_same_as=(11,)), NS(track_id=11, maybe_same_as=(10,))]
+    truth = {1: "a", 3: "a", 5: "b", 7: "c", 8: "c", 9: "a"}.get  # 10 and 11 follow no object
+    # 1 and 3 on object a (5 is flagged but another object; 9 is on a but not flagged): the accepted 3 keeps its pose;
+    # 7 and 8 both accepted: the lower id keeps it
+    verdicts = {1: "reject", 3: "accept", 7: "accept", 8: "accept", 10: "accept", 11: "accept"}
+    assert same_as_answers(NS(items=items), truth, verdicts) == {1: 3, 8: 7}
+    assert same_as_answers(NS(items=items), truth, {}) == {3: 1, 8: 7}  # nothing answered: the lowest id

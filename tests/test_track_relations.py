@@ -1,5 +1,5 @@
 """What people said about tracks acts downstream: "track N is not an object" (manual_track
-``not_objects``) and "same object as track N" (cad_selection and manual_track ``same_as_track``),
+``not_objects``) and "same object as track N" (cad_selection, verification and manual_track ``same_as_track``),
 through real label files and the real ingest, on a hand-built val clip: only the answers in force
 count, the later human tasks leave those tracks out, and the dataset export has one object per
 physical object."""
@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import pyarrow.compute as pc
 import pytest
 
 from cadestate.config import (CadSelectionConfig, CorrespondenceTaskConfig, EmbedConfig, ManualTracksConfig,
@@ -211,3 +212,61 @@ def test_a_drawn_object_said_to_be_a_track_joins_it(rwh, tmp_path):
     objects = {o.track_id: o for o in clip_dataset(rwh, CLIP).objects}
     assert sorted(objects) == [0, 2] and objects[0].merged == (1, drawn)
     assert sorted(objects[0].boxes) == [STAMPS[f] for f in (*range(16), 19)]  # 0's, then 1's, then the drawn boxes
+
+
+def _verification(wh: Warehouse, cfg: VerificationConfig = VerificationConfig(keyframes=2)) -> tuple[object, dict]:
+    """The verification run and its task document (the newest version of its file)."""
+    out = _run(wh, "verification", lambda rid: verification_stage(wh, cfg, CLIP, rid))
+    tasks = wh.read("label_tasks", [CLIP]).filter(pc.equal(pc.field("kind"), "verification"))
+    return out, json.loads(tasks.sort_by([("created_at", "descending")]).column("document")[0].as_py())
+
+
+def test_duplicate_poses_are_flagged_in_verification_and_join_the_track_named(rwh, tmp_path):
+    import trimesh
+
+    from bench.pose_bench import accepted_predictions
+
+    for m in MODELS:
+        (rwh.root / f"media/cad/lib/{m}.glb").parent.mkdir(parents=True, exist_ok=True)
+        trimesh.creation.box(extents=(1, 1, 1)).export(rwh.root / f"media/cad/lib/{m}.glb")
+    pose = {"clip": CLIP, "status": "ok", "rotation": [1.0, 0, 0, 0], "scale": [1.0, 1, 1], "is_mirrored": False,
+            "keyframe_timestamps_us": STAMPS[5:9]}
+    rwh.write("poses", CLIP, table_rows("poses", [  # tracks 0 and 1: one chair posed twice, 4 cm apart; 2 a table
+        {**pose, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair", "translation": [0.0, 0, 4]},
+        {**pose, "track_id": "1", "cad_id": "lib.chair_b", "class": "chair", "translation": [0.03, 0, 4.02]},
+        {**pose, "track_id": "2", "cad_id": "lib.table_a", "class": "table", "translation": [2.5, 0, 6]}]))
+
+    # no pair reaches the threshold: the items are written as before the flags existed
+    _, plain = _verification(rwh, VerificationConfig(keyframes=2, duplicate_overlap=1.0))
+    assert [it["track_id"] for it in plain["items"]] == [0, 1, 2] and all("maybe_same_as" not in it for it in plain["items"])
+    run, task = _verification(rwh)
+    assert run.status == "paused" and task["task_id"] == plain["task_id"]  # the task id digests the poses only
+    assert {it["track_id"]: it.get("maybe_same_as") for it in task["items"]} == {0: [1], 1: [0], 2: None}
+    assert _objects(rwh) == {0: (), 1: (), 2: ()}  # nothing accepted yet
+
+    # "track 1's pose shows the object of track 0" (both poses good): the export keeps track 0's pose only
+    _ingest(rwh, _label(tmp_path / "v1", "verification", task["task_id"], [
+        {"track_id": 0, "verdict": "accept"}, {"track_id": 1, "verdict": "accept", "same_as_track": 0},
+        {"track_id": 2, "verdict": "reject"}], "2026-01-01T00:00:00+00:00"))
+    assert relations(rwh) == {("same_object", 1, 0)}
+    done, again = _verification(rwh)
+    assert done.status == "completed" and "2 of 3 poses accepted" in done.message
+    assert {it["track_id"]: it["previous"].get("same_as_track") for it in again["items"]} == {0: None, 1: 0, 2: None}
+    assert "same_as_track" not in again["items"][0]["previous"]
+    assert relations_in_force(rwh, CLIP).fragments == {1: 0}
+    objects = {o.track_id: o for o in clip_dataset(rwh, CLIP).objects}
+    assert {t: o.merged for t, o in objects.items()} == {0: (1,), 2: ()}
+    assert objects[0].pose.translation == (0.0, 0.0, 4.0) and objects[0].cad_id == "lib.chair_a" and objects[2].pose is None
+    assert [p.track_id for p in accepted_predictions(rwh, [CLIP])] == ["0"]  # what bench report scores
+
+    # a newer answer for track 1 says it is an object of its own: both poses are exported again
+    _ingest(rwh, _label(tmp_path / "v2", "verification", task["task_id"], [{"track_id": 1, "verdict": "accept"}],
+                        "2026-01-02T00:00:00+00:00"))
+    assert relations_in_force(rwh, CLIP).fragments == {} and _objects(rwh) == {0: (), 1: (), 2: ()}
+    assert sorted(p.track_id for p in accepted_predictions(rwh, [CLIP])) == ["0", "1"]
+
+
+def relations(wh: Warehouse) -> set[tuple]:
+    """The clip's verification statements in ``track_relations``: (relation, track_id, other_track_id)."""
+    return {(r["relation"], r["track_id"], r["other_track_id"]) for r in wh.read("track_relations", [CLIP]).to_pylist()
+            if r["kind"] == "verification"}

@@ -19,8 +19,8 @@ World: :func:`clip_dataset` gives frames and poses in the warehouse's aligned wo
 
 **What people said first** (:func:`tasks.tracking.relations.relations_in_force`, the statements of
 the answers in force). A track said to be no object ("track N is not an object", or a fragment of
-such a track) is not exported. A fragment ("same object as track N", or a drawn object that "is
-track N"; chains followed to their root) joins its root's object, as a claimed track does below:
+such a track) is not exported. A fragment ("same object as track N" in CAD selection or
+verification, or a drawn object that "is track N"; chains followed to their root) joins its root's object, as a claimed track does below:
 its boxes fill the frames the root has none on, its id is listed in the object's ``merged``, its
 own pose and correspondences are dropped. A fragment whose root has no track stays an object of its own.
 

@@ -4,7 +4,7 @@
 and commits each valid file all or nothing: its rows are built and conformed to their tables in
 memory first (:func:`prepare_file`), then appended to its answer table (``manual_track_labels``,
 ``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``), to ``label_effort``
-(the ``seconds`` given per item) and ``track_relations`` (``not_objects``, ``same_as_track``), and then to
+(the ``seconds`` given per item) and ``track_relations`` (``not_objects``, every kind's ``same_as_track``), and then to
 ``label_files``, which is the commit record: answer rows whose file has no ``label_files`` row (a
 crash or a failed write between the two) are ignored, and the file is ingested again on the next
 run. Rules:
@@ -123,7 +123,7 @@ def _correspondence_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[di
 def _verification_rows(lf: LabelFile, facts: ClipFacts, tol: float) -> list[dict]:
     items = {it.track_id: it for it in facts.task(lf.clip, lf.task_id).items}
     return [{"track_id": a.track_id, "cad_id": items[a.track_id].cad_id, "accepted": a.verdict == "accept",
-             "comment": a.comment} for a in lf.label.answers]
+             "comment": a.comment, "same_as_track": a.same_as_track} for a in lf.label.answers]
 
 
 ROWS = {"manual_track": _manual_rows, "cad_selection": _cad_selection_rows,
@@ -153,7 +153,7 @@ def relation_rows(lf: LabelFile, ingested_at: dt.datetime) -> list[dict]:
                  for t in lf.label.not_objects]
         said += [{"relation": "same_object", "track_id": a.same_as_track, "other_track_id": None, "object_index": i}
                  for i, a in enumerate(lf.label.answers) if a.same_as_track is not None]
-    elif lf.kind == "cad_selection":
+    elif lf.kind in ("cad_selection", "verification"):
         said += [{"relation": "same_object", "track_id": a.track_id, "other_track_id": a.same_as_track, "object_index": None}
                  for a in lf.label.answers if a.same_as_track is not None]
     head = {"clip": lf.clip, "label_sha256": lf.sha256, "ingested_at": ingested_at, "task_id": lf.task_id, "kind": lf.kind}

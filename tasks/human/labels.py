@@ -9,7 +9,8 @@ and pauses; :func:`validate_label` checks a label file in two steps:
 2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
    a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
    frames of the clip, boxes have positive size, no track or key-frame is answered twice, and the
-   tracks named by ``same_as_track`` / ``not_objects`` are the task's (a fragment's ``cad_id`` is null).
+   tracks named by ``same_as_track`` / ``not_objects`` are the task's (another track than the one
+   answered; a CAD-selection fragment's ``cad_id`` is null).
 
 So everything that could make a row fail to be written is refused here, before ingest writes
 anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
@@ -198,11 +199,11 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
             raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
-        if label.kind == "cad_selection" and a.same_as_track is not None:
+        if label.kind in ("cad_selection", "verification") and a.same_as_track is not None:
             if a.same_as_track not in items or a.same_as_track == a.track_id:
                 raise _fail(name, ["answers", i, "same_as_track"],
                             f"track {a.same_as_track} is not another track of task {task.task_id}")
-            if a.cad_id is not None:
+            if label.kind == "cad_selection" and a.cad_id is not None:
                 raise _fail(name, ["answers", i, "cad_id"], f"must be null when same_as_track is given (track {a.track_id} "
                                                             f"is a fragment of track {a.same_as_track})")
         if label.kind == "correspondences":

@@ -1,6 +1,12 @@
 """Stage ``verification`` (paper 3.5), after ``pose``: per solved (``ok``) pose, the posed CAD rendered over its
   key-frames; verdicts go to ``verified_poses``.
 
+Duplicates caught after pose: an item lists in ``maybe_same_as`` the other tracks whose posed CAD
+box overlaps its own by at least ``[verification] duplicate_overlap`` (:mod:`tasks.pose.duplicates`),
+and the annotator may answer ``same_as_track`` (:mod:`tasks.tracking.relations`: the export keeps
+the pose of the track named, so each physical object is exported once). The task id digests the
+poses only; an item without flags is written as before the flags existed.
+
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
 """
@@ -33,6 +39,26 @@ def ok_poses(wh: Warehouse, clip: str) -> pa.Table:
 
 def verification_task_id(clip: str, poses: pa.Table) -> str:
     return new_task_id("verification", clip, table_digest(poses))
+
+
+def poses_to_verify(wh: Warehouse, clip: str) -> pa.Table:
+    """The clip's solved poses (:func:`ok_poses`) but those of the tracks left out
+    (:func:`tasks.tracking.relations.left_out_tracks`): the verification task's tracks."""
+    poses = ok_poses(wh, clip)
+    left_out = left_out_tracks(wh, clip)
+    return poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
+
+
+def flagged_duplicates(wh: Warehouse, poses: list[dict], threshold: float) -> dict[int, tuple[int, ...]]:
+    """Per track of ``poses`` (rows of :func:`poses_to_verify`), the other tracks whose posed CAD
+    box overlaps its own by at least ``threshold`` (:func:`tasks.pose.duplicates.duplicate_candidates`);
+    poses whose model has no extent are left out."""
+    from tasks.pose.duplicates import duplicate_candidates, posed_box
+
+    extents = {r["cad_id"]: r["extent"] for r in wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist()}
+    boxes = {int(p["track_id"]): posed_box(extents[p["cad_id"]], p["translation"], p["rotation"], p["scale"], p["is_mirrored"])
+             for p in poses if extents.get(p["cad_id"]) is not None}
+    return duplicate_candidates(boxes, threshold)
 
 
 def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k: int, alpha: float) -> dict[str, list[tuple[int, str]]]:
@@ -84,9 +110,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     Writes ``verified_poses`` (the answered tracks)."""
     from schemas.pose import VERIFIED_POSES
 
-    poses = ok_poses(wh, clip)
-    left_out = left_out_tracks(wh, clip)
-    poses = poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
+    poses = poses_to_verify(wh, clip)
     if poses.num_rows == 0:
         empty = VERIFIED_POSES.schema.empty_table()
         wh.write("verified_poses", clip, empty)
@@ -96,20 +120,21 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     answers = {int(r["track_id"]): r for r in current_answers(wh, "verification", [clip], task_id).to_pylist()}
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
     frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
+    rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
+    flagged = flagged_duplicates(wh, rows, cfg.duplicate_overlap)
     items = []
     for p in rows:
         t = int(p["track_id"])
         kfs = tuple(KeyframeView(timestamp_us=ts, frame_index=int(frames[ts]["frame_index"]), image_path=frames[ts]["image_path"],
                                  overlay_path=path) for ts, path in overlays[p["track_id"]])
-        if not kfs:
-            continue
         a = answers.get(t)
-        previous = VerificationAnswer(track_id=t, verdict="accept" if a["accepted"] else "reject", comment=a["comment"]) if a else None
+        previous = VerificationAnswer(track_id=t, verdict="accept" if a["accepted"] else "reject", comment=a["comment"],
+                                      same_as_track=a.get("same_as_track")) if a else None
         items.append(VerificationItem(
             track_id=t, label=p["class"] or "", cad_id=p["cad_id"], mesh_path=_mesh_path(wh, p["cad_id"]),
             pose=Pose(translation=tuple(p["translation"]), rotation=tuple(p["rotation"]), scale=tuple(p["scale"]),
                       is_mirrored=bool(p["is_mirrored"])),
-            keyframes=kfs, previous=previous))
+            keyframes=kfs, maybe_same_as=flagged.get(t, ()), previous=previous))
     if not items:
         empty = VERIFIED_POSES.schema.empty_table()
         wh.write("verified_poses", clip, empty)
@@ -121,7 +146,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
                  "accepted": bool(answers[int(p["track_id"])]["accepted"]), "translation": p["translation"],
                  "rotation": p["rotation"], "scale": p["scale"], "is_mirrored": p["is_mirrored"], "task_id": task_id,
                  "comment": answers[int(p["track_id"])]["comment"]}
-                for p in rows if int(p["track_id"]) in answers and p["track_id"] in {str(it.track_id) for it in items}]
+                for p in rows if int(p["track_id"]) in answers]
     table = pa.Table.from_pylist(verified, schema=VERIFIED_POSES.schema)
     wh.write("verified_poses", clip, table)
     waiting = len(items) - len(verified)

@@ -9,12 +9,16 @@ The table is history; only the statements of each task's answer in force count:
   ``not_objects``, and each drawn object said to be existing track N, whose manual track
   (:func:`manual_track_ids`) is then a fragment of N;
 - ``cad_selection``: per track of the current CAD-selection task, the statement of its answer in
-  force (``same_as_track``: the track is a fragment of track N).
+  force (``same_as_track``: the track is a fragment of track N);
+- ``verification``: per track of the verification task whose verdicts ``verified_poses`` holds, the
+  statement of its answer in force (``same_as_track``: its pose shows the object of track N, a
+  duplicate: the track joins N's object and only N's pose is kept).
 
 :func:`relations_in_force` resolves chains (A -> B -> C: A and B belong to C); statements that
 form a cycle are ignored with a warning (the tracks on it stay objects of their own). A fragment
-of a track that is not an object is no object either; when a drawn object and a CAD-selection
-answer say different things about the same track, the drawn object's statement wins.
+of a track that is not an object is no object either; when statements of several kinds say
+different things about the same track, a drawn object's wins over a CAD-selection answer's, which
+wins over a verification answer's (the task asked first).
 
 Who acts on them: the dataset export (:mod:`tasks.dataset.objects`: no object for a not-object
 track, fragments join their root's object) and the later human tasks (:func:`left_out_tracks`:
@@ -76,6 +80,10 @@ class TrackRelations:
         """False when the track, or the track it is a fragment of, is said to be no object."""
         return track_id not in self.not_objects and self.root(track_id) not in self.not_objects
 
+    def speaks_for_itself(self, track_id: int) -> bool:
+        """An object that is no other track's fragment: its own pose is the one the export keeps."""
+        return self.is_object(track_id) and self.root(track_id) == track_id
+
 
 def resolve_fragments(edges: Mapping[int, int]) -> tuple[dict[int, int], list[str]]:
     """fragment -> root from the statements ``edges`` (track -> the track it is a fragment of):
@@ -135,26 +143,42 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
     return not_objects, {ids[r["object_index"]]: int(r["track_id"]) for r in same if r["object_index"] in ids}
 
 
+def same_as_statements(wh: Warehouse, clip: str, kind: str, task_id: str | None) -> dict[int, int]:
+    """{track: the track it is the same object as} from the answers in force of the clip's task
+    ``task_id`` of ``kind`` (cad_selection or verification; None: no such task)."""
+    from tasks.human.label_ingest import current_answers
+
+    if task_id is None:
+        return {}
+    answers = current_answers(wh, kind, [clip], task_id).to_pylist()
+    in_force = {(int(r["track_id"]), r["label_sha256"], r["ingested_at"]) for r in answers}
+    said = _statements(wh, clip, kind, {(sha, at) for _, sha, at in in_force})
+    return {int(r["track_id"]): int(r["other_track_id"]) for r in said
+            if r["relation"] == "same_object" and (int(r["track_id"]), r["label_sha256"], r["ingested_at"]) in in_force}
+
+
 def cad_selection_statements(wh: Warehouse, clip: str) -> dict[int, int]:
     """{track: the track it is a fragment of} from the answers in force of the clip's current
     CAD-selection task."""
     from tasks.human.cad_selection import cad_selection_task_id
-    from tasks.human.label_ingest import current_answers
 
-    task_id = cad_selection_task_id(wh, clip)
-    if task_id is None:
+    return same_as_statements(wh, clip, "cad_selection", cad_selection_task_id(wh, clip))
+
+
+def verification_statements(wh: Warehouse, clip: str) -> dict[int, int]:
+    """{track: the track whose object its pose shows} (the duplicates people named) from the answers
+    in force of the verification task whose verdicts ``verified_poses`` holds: the poses the export
+    reads and the statements about them come from one task."""
+    if clip not in wh.partitions("verified_poses"):
         return {}
-    answers = current_answers(wh, "cad_selection", [clip], task_id).to_pylist()
-    in_force = {(int(r["track_id"]), r["label_sha256"], r["ingested_at"]) for r in answers}
-    said = _statements(wh, clip, "cad_selection", {(sha, at) for _, sha, at in in_force})
-    return {int(r["track_id"]): int(r["other_track_id"]) for r in said
-            if r["relation"] == "same_object" and (int(r["track_id"]), r["label_sha256"], r["ingested_at"]) in in_force}
+    tasks = sorted(set(wh.read("verified_poses", [clip], columns=["task_id"]).column("task_id").to_pylist()))
+    return {t: other for task_id in tasks for t, other in same_as_statements(wh, clip, "verification", task_id).items()}
 
 
 def relations_in_force(wh: Warehouse, clip: str) -> TrackRelations:
     """The clip's relations in force (module docstring); cycles are logged as warnings."""
     not_objects, drawn = manual_statements(wh, clip)
-    edges = {**cad_selection_statements(wh, clip), **drawn}
+    edges = {**verification_statements(wh, clip), **cad_selection_statements(wh, clip), **drawn}
     fragments, warnings = resolve_fragments(edges)
     for w in warnings:
         log.warning("clip %s: %s", clip, w)
