@@ -202,10 +202,11 @@ def test_csv_streams_in_bounded_memory(w, monkeypatch):
     assert peak < 8 * 2**20, f"{peak / 2**20:.0f} MiB of Python objects at once for 200,000 rows"
 
 
-def test_a_current_catalog_is_attached_else_views_are_made_in_memory(w, tmp_path):
-    """The catalog file is attached (read-only) when it is current for the warehouse; a copied
-    warehouse's (views of the original's paths), or one another client holds open for writing,
-    is not: the session makes its own views, and answers from its own files alike."""
+def test_a_current_catalog_is_attached_else_rebuilt_else_views_are_made_in_memory(w, tmp_path):
+    """The catalog file is attached (read-only) when it is current for the warehouse. A copied
+    warehouse's (views of the original's paths) is rebuilt for the copy first; one that cannot be
+    rebuilt (a folder in its place) leaves the session to make its own views. Each answers from its
+    own files."""
     def database(where: Path) -> str:
         result = sql(where, "SELECT current_database() AS db", "-f", "csv")
         assert result.code == 0, result.stderr
@@ -214,12 +215,16 @@ def test_a_current_catalog_is_attached_else_views_are_made_in_memory(w, tmp_path
     assert database(w) == "warehouse"
     copy = tmp_path / "copy"
     shutil.copytree(w, copy)
+    Warehouse(w).write("clips", "b", clips("b", 7))
+    assert database(copy) == "warehouse"
+    assert cameras(copy)[1] == {"clip": "b", "num_cameras": 2}
+    assert cameras(w)[1] == {"clip": "b", "num_cameras": 7}
+    (copy / "catalog.duckdb").unlink()
+    (copy / "catalog.duckdb").mkdir()
     assert database(copy) == "memory"
     assert cameras(copy)[1] == {"clip": "b", "num_cameras": 2}
-    writer = duckdb.connect(str(w / "catalog.duckdb"))
+    writer = duckdb.connect(str(w / "catalog.duckdb"))  # another client holds the catalog open for writing
     try:
-        assert database(w) == "memory"
-        assert cameras(w)[1] == {"clip": "b", "num_cameras": 2}
+        assert cameras(w)[1] == {"clip": "b", "num_cameras": 7}
     finally:
         writer.close()
-    assert database(w) == "warehouse"

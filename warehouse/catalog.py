@@ -26,6 +26,7 @@ derived data: rebuilding loses nothing.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import uuid
@@ -185,22 +186,36 @@ def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict | Non
 def attach_views(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
     """Give ``con`` (a fresh in-memory session) the views of ``wh``: the catalog file's, attached
     read-only as ``warehouse`` and made the default, when it is current for ``wh`` (it records
-    :func:`expected_views` and every schema file is there; a few milliseconds); else made in ``con``
-    (:func:`create_views`: every schema file checked, every view created), as for a moved, broken or
-    busy catalog."""
-    path = wh.root / CATALOG_FILE
-    if path.is_file():
-        try:
-            con.execute(f"ATTACH {_sql_str(str(path))} AS warehouse (READ_ONLY)")
-            con.execute("USE warehouse")
-            record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
-            if _plain(record) == expected_views(wh) and all(schema_path(wh, name).is_file() for name in wh.info):
-                return
-        except (duckdb.Error, ValueError, TypeError, KeyError, AttributeError):
-            pass
-        con.execute("USE memory")
-        con.execute("DETACH DATABASE IF EXISTS warehouse")
+    :func:`expected_views` and every schema file is there; a few milliseconds). A catalog that is
+    not (moved, damaged, of older schemas) is rebuilt first, as any command that opens the catalog
+    does; where that fails (another client holds it open, a read-only warehouse), the views are
+    made in ``con`` (:func:`create_views`: every schema file checked, every view created)."""
+    if _attach_current(con, wh):
+        return
+    with contextlib.suppress(CatalogError):
+        rebuild_catalog(wh)
+        if _attach_current(con, wh):
+            return
     create_views(con, wh)
+
+
+def _attach_current(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> bool:
+    """Attach the catalog file to ``con`` as ``warehouse`` and use it, if it is current for ``wh``;
+    else leave ``con`` as it was and say False."""
+    path = wh.root / CATALOG_FILE
+    if not path.is_file():
+        return False
+    try:
+        con.execute(f"ATTACH {_sql_str(str(path))} AS warehouse (READ_ONLY)")
+        con.execute("USE warehouse")
+        record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
+        if _plain(record) == expected_views(wh) and all(schema_path(wh, name).is_file() for name in wh.info):
+            return True
+    except (duckdb.Error, ValueError, TypeError, KeyError, AttributeError):
+        pass
+    con.execute("USE memory")
+    con.execute("DETACH DATABASE IF EXISTS warehouse")
+    return False
 
 
 def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:

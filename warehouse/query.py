@@ -1,9 +1,9 @@
 """Read-only SQL over a warehouse (``cadestate sql``): its tables and nothing else.
 
 A query runs in a session of its own: an in-memory DuckDB database holding the catalog's views
-(the catalog file attached read-only when it is current for this warehouse, else views made from
-the warehouse it is given, so a moved or copied warehouse answers from itself, and a broken catalog
-file does not matter), then locked down before the statement runs:
+(the catalog file attached read-only when it is current for this warehouse, after a rebuild when
+it is not; else views made from the warehouse it is given: a moved or copied warehouse answers
+from itself, and a broken catalog file does not matter), then locked down before the statement runs:
 
 - one statement, of a read-only kind: SELECT and its forms (WITH, FROM, VALUES, TABLE, DESCRIBE,
   SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
@@ -13,8 +13,9 @@ file does not matter), then locked down before the statement runs:
   (``enable_external_access = false`` with ``allowed_directories``): no other file, no network, no
   extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
 - the configuration is locked, and intermediate results that spill go to a private temporary
-  folder, removed with the session. Nothing is written to the warehouse (but, as for the catalog,
-  a table's schema file, ``tables/<table>/_schema.parquet``, when it is missing or outdated).
+  folder, removed with the session. Nothing is written to the warehouse but derived files, as any
+  command that opens the catalog writes them: the catalog file and a table's schema file
+  (``tables/<table>/_schema.parquet``) when missing or outdated.
 
 Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
 bounded.
