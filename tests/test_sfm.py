@@ -16,6 +16,7 @@ from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world
 from tasks.video.camera_file import parse_camera_file
 from tasks.video.sfm import SfmError, _interpolate, check_registered, run_sfm, sample_frames
+from tasks.video.sfm_focal import best_focal, focal_hypotheses
 
 
 def test_interpolation_fills_gaps_and_holds_the_ends():
@@ -49,6 +50,23 @@ def test_too_few_registered_frames_and_dropped_models_are_named():
                                        r"min_registered_fraction = 0.8; 2 other disconnected model\(s\) of 2, 1 frames dropped"):
         check_registered("v.mp4", registered, CamerasConfig(), [7, 2, 1])
     assert check_registered("v.mp4", registered, CamerasConfig(min_registered_fraction=0.7), [7]) == ""
+
+
+def test_focal_hypotheses_span_the_field_of_view_range_evenly_in_log_focal():
+    f = focal_hypotheses(640, CamerasConfig(fov_min_deg=40.0, fov_max_deg=100.0, fov_hypotheses=6))
+    fov = np.degrees(2 * np.arctan(320 / f))
+    np.testing.assert_allclose(fov[[0, -1]], [100.0, 40.0])
+    np.testing.assert_allclose(np.diff(np.log(f)), np.log(f[1] / f[0]))
+
+
+def test_best_focal_is_the_parabola_minimum_in_log_focal():
+    f = np.geomspace(300.0, 900.0, 6)
+    errors = (np.log(f) - np.log(500.0)) ** 2 + 0.4  # a parabola in log focal, lowest at 500 px
+    assert best_focal(f, errors) == pytest.approx(500.0)
+    errors[3] = np.inf  # a neighbour that registered too few frames: the best hypothesis itself
+    assert best_focal(f, errors) == f[np.argmin(errors)]
+    assert best_focal(f, np.array([0.3, 0.4, 0.5, 0.6, 0.7, 0.8])) == 300.0  # at an end of the range
+    assert best_focal(f, np.full(6, np.inf)) == pytest.approx(np.sqrt(300.0 * 900.0))  # none: the middle
 
 
 def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
