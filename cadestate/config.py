@@ -128,7 +128,8 @@ class CamerasConfig:
                               "are given (tasks/video/sfm_focal.py).", lo=5.0, hi=170.0)
     fov_max_deg: float = _opt(100.0, "Widest horizontal field of view SfM tries when no intrinsics are given.", lo=5.0, hi=170.0)
     fov_hypotheses: int = _opt(6, "Focal lengths tried between fov_max_deg and fov_min_deg (even in log focal), each "
-                               "mapped with the focal held fixed; the best mean reprojection error wins.", lo=3, hi=50)
+                               "mapped with the focal held fixed, then bundle-adjusted with it free; the adjusted "
+                               "focal of the lowest mean reprojection error wins.", lo=2, hi=50)
     focal_frames: int = _opt(35, "The focal hypotheses each map about this many of the sampled frames, evenly spaced "
                              "(every k-th, k = round(frames / focal_frames), at least 1).", lo=3, hi=10000)
     max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "

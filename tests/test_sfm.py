@@ -59,14 +59,14 @@ def test_focal_hypotheses_span_the_field_of_view_range_evenly_in_log_focal():
     np.testing.assert_allclose(np.diff(np.log(f)), np.log(f[1] / f[0]))
 
 
-def test_best_focal_is_the_parabola_minimum_in_log_focal():
+def test_best_focal_is_the_adjusted_focal_of_the_lowest_error_clipped_to_the_range():
     f = np.geomspace(300.0, 900.0, 6)
-    errors = (np.log(f) - np.log(500.0)) ** 2 + 0.4  # a parabola in log focal, lowest at 500 px
-    assert best_focal(f, errors) == pytest.approx(500.0)
-    errors[3] = np.inf  # a neighbour that registered too few frames: the best hypothesis itself
-    assert best_focal(f, errors) == f[np.argmin(errors)]
-    assert best_focal(f, np.array([0.3, 0.4, 0.5, 0.6, 0.7, 0.8])) == 300.0  # at an end of the range
-    assert best_focal(f, np.full(6, np.inf)) == pytest.approx(np.sqrt(300.0 * 900.0))  # none: the middle
+    adjusted = np.array([250.0, 480.0, 510.0, np.nan, 800.0, 1000.0])
+    errors = np.array([0.9, 0.7, 0.6, np.inf, 0.8, 0.5])
+    assert best_focal(f, adjusted, errors) == 900.0  # the lowest error's adjusted focal, clipped
+    errors[5] = np.inf
+    assert best_focal(f, adjusted, errors) == 510.0
+    assert best_focal(f, adjusted, np.full(6, np.inf)) == pytest.approx(np.sqrt(300.0 * 900.0))  # none: the middle
 
 
 def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):

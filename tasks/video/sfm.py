@@ -252,12 +252,14 @@ def sfm_report(result: SfmResult) -> dict:
 
 def focal_report(result: SfmResult) -> dict:
     """The focal length found, as a fraction of the image width (``fx / w``): the kept one, the
-    hypotheses' estimate, whether the last bundle adjustment was kept, and each hypothesis with its
-    mean reprojection error (px; None: too few frames registered). Empty with given intrinsics."""
+    hypotheses' estimate, whether the last bundle adjustment was kept, and per hypothesis [start,
+    adjusted (None: no model), mean reprojection error px (None: too few frames registered)].
+    Empty with given intrinsics."""
     f = result.focal
     if f is None:
         return {}
     return {"focal_fx_over_width": round(float(result.track.intrinsics[0, 0]), 4),
             "focal_estimate_fx_over_width": round(f.focal_px / f.width, 4), "focal_refined": result.focal_refined,
-            "focal_hypotheses": [[round(h / f.width, 4), round(float(e), 3) if np.isfinite(e) else None]
-                                 for h, e in zip(f.hypotheses_px, f.errors_px)]}
+            "focal_hypotheses": [[round(h / f.width, 4), round(a / f.width, 4) if np.isfinite(a) else None,
+                                  round(float(e), 3) if np.isfinite(e) else None]
+                                 for h, a, e in zip(f.hypotheses_px, f.adjusted_px, f.errors_px)]}

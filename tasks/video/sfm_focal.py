@@ -7,11 +7,11 @@ Instead, before mapping every frame:
 1. ``[cameras] fov_hypotheses`` focal lengths, evenly spaced in log focal between the horizontal
    fields of view ``fov_max_deg`` and ``fov_min_deg`` (of the image width);
 2. for each, incremental mapping of about ``focal_frames`` of the sampled frames, evenly spaced,
-   with the focal length held fixed; its score is the model's mean reprojection error (px), infinite when it
-   registers fewer than half of those frames;
-3. the estimate is the minimum of a parabola through the best hypothesis and its two neighbours
-   (in log focal; the best one itself when it lies at an end of the range; the middle of the
-   range when none registered enough frames, and the full mapping decides).
+   with the focal length held fixed (a start that does not drift), then a bundle adjustment of
+   that model with the focal length free; its score is the adjusted model's mean reprojection
+   error (px), infinite when it registers fewer than half of those frames;
+3. the estimate is the adjusted focal length of the best-scoring hypothesis, clipped to the range
+   (the middle of the range when none registered enough frames, and the full mapping decides).
 
 The full mapping then holds the estimate fixed; a last bundle adjustment frees the focal length
 and keeps its result only when the focal length moves by less than ``max_focal_change``.
@@ -31,13 +31,15 @@ from cadestate.config import CamerasConfig
 
 @dataclass(frozen=True)
 class FocalEstimate:
-    """``focal_px`` the estimate (px) for images ``width`` px wide; ``hypotheses_px`` float[H] the
-    focal lengths tried and ``errors_px`` float[H] their mean reprojection errors (inf: too few
-    frames registered)."""
+    """``focal_px`` the estimate (px) for images ``width`` px wide; per hypothesis (float[H] each):
+    ``hypotheses_px`` the focal length it started from, ``adjusted_px`` its focal length after the
+    bundle adjustment (nan: no model) and ``errors_px`` the adjusted model's mean reprojection
+    error (inf: too few frames registered)."""
 
     focal_px: float
     width: int
     hypotheses_px: np.ndarray
+    adjusted_px: np.ndarray
     errors_px: np.ndarray
 
 
@@ -48,21 +50,13 @@ def focal_hypotheses(width: int, cfg: CamerasConfig) -> np.ndarray:
     return np.geomspace(f[0], f[1], cfg.fov_hypotheses)
 
 
-def best_focal(hypotheses: np.ndarray, errors: np.ndarray) -> float:
-    """The focal length (px) minimising the parabola through the lowest of ``errors`` float[H]
-    and its neighbours, in log ``hypotheses`` float[H] (ascending); the best hypothesis itself at
-    an end of the range or when the parabola opens downwards; their geometric mean when none is
-    finite (the full mapping then fails with its own error, or succeeds)."""
+def best_focal(hypotheses: np.ndarray, adjusted: np.ndarray, errors: np.ndarray) -> float:
+    """The adjusted focal length (``adjusted`` float[H], px) of the lowest of ``errors`` float[H],
+    clipped to the range of ``hypotheses`` float[H]; their geometric mean when no error is finite."""
+    lo, hi = float(hypotheses.min()), float(hypotheses.max())
     if not np.any(np.isfinite(errors)):
-        return float(np.exp(np.log(hypotheses).mean()))
-    k = int(np.argmin(errors))
-    if k == 0 or k == len(errors) - 1 or not np.all(np.isfinite(errors[k - 1:k + 2])):
-        return float(hypotheses[k])
-    x, y = np.log(hypotheses[k - 1:k + 2]), errors[k - 1:k + 2]
-    a, b, _ = np.polyfit(x, y, 2)
-    if a <= 0:
-        return float(hypotheses[k])
-    return float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
+        return math.sqrt(lo * hi)
+    return float(np.clip(adjusted[int(np.argmin(errors))], lo, hi))
 
 
 def set_focal(db_path: Path, focal_px: float) -> None:
@@ -80,10 +74,12 @@ def set_focal(db_path: Path, focal_px: float) -> None:
         db.close()
 
 
-def hypothesis_error(db_path: Path, image_dir: Path, names: list[str], focal_px: float, mapping, out_dir: Path) -> float:
-    """Mean reprojection error (px) of mapping the frames ``names`` with the focal length held at
-    ``focal_px`` (``mapping``: pycolmap options, focal refinement off); inf when the largest model
-    registers fewer than half of them."""
+def hypothesis_error(db_path: Path, image_dir: Path, names: list[str], focal_px: float, mapping, threads: int,
+                     out_dir: Path) -> tuple[float, float]:
+    """(mean reprojection error px, focal length px) of mapping the frames ``names`` with the focal
+    length held at ``focal_px`` (``mapping``: pycolmap options, focal refinement off), then bundle
+    adjusting the largest model with it free; (inf, its focal length or nan) when that model
+    registers fewer than half of the frames."""
     import pycolmap
 
     set_focal(db_path, focal_px)
@@ -92,9 +88,13 @@ def hypothesis_error(db_path: Path, image_dir: Path, names: list[str], focal_px:
     out_dir.mkdir()
     models = pycolmap.incremental_mapping(db_path, image_dir, out_dir, mapping)
     best = max(models.values(), key=lambda m: m.num_reg_images(), default=None)
-    if best is None or 2 * best.num_reg_images() < len(names):
-        return math.inf
-    return float(best.compute_mean_reprojection_error())
+    if best is None:
+        return math.inf, math.nan
+    pycolmap.bundle_adjustment(best, _focal_ba_options(threads))
+    focal = float(best.cameras[next(iter(best.cameras))].focal_length)
+    if 2 * best.num_reg_images() < len(names):
+        return math.inf, focal
+    return float(best.compute_mean_reprojection_error()), focal
 
 
 def estimate_focal(db_path: Path, image_dir: Path, names: list[str], width: int, cfg: CamerasConfig, mapping,
@@ -103,9 +103,23 @@ def estimate_focal(db_path: Path, image_dir: Path, names: list[str], width: int,
     ``width`` px; ``mapping``: the pycolmap mapping options with focal refinement off."""
     hypotheses = focal_hypotheses(width, cfg)
     subset = names[::max(1, round(len(names) / cfg.focal_frames))]
-    errors = np.array([hypothesis_error(db_path, image_dir, subset, f, mapping, work_dir / f"focal-{i}")
-                       for i, f in enumerate(hypotheses)])
-    return FocalEstimate(best_focal(hypotheses, errors), width, hypotheses, errors)
+    runs = np.array([hypothesis_error(db_path, image_dir, subset, f, mapping, cfg.threads, work_dir / f"focal-{i}")
+                     for i, f in enumerate(hypotheses)])
+    errors, adjusted = runs[:, 0], runs[:, 1]
+    return FocalEstimate(best_focal(hypotheses, adjusted, errors), width, hypotheses, adjusted, errors)
+
+
+def _focal_ba_options(threads: int):
+    """pycolmap bundle adjustment options: poses, points and the focal length free (principal point fixed)."""
+    import pycolmap
+
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = True
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.print_summary = False
+    options.ceres.solver_options.num_threads = threads
+    return options
 
 
 def refine_focal(reconstruction, max_change: float, threads: int):
@@ -115,13 +129,7 @@ def refine_focal(reconstruction, max_change: float, threads: int):
     import pycolmap
 
     refined = pycolmap.Reconstruction(reconstruction)
-    options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = True
-    options.refine_principal_point = False
-    options.refine_extra_params = False
-    options.print_summary = False
-    options.ceres.solver_options.num_threads = threads
-    pycolmap.bundle_adjustment(refined, options)
+    pycolmap.bundle_adjustment(refined, _focal_ba_options(threads))
     camera_id = next(iter(reconstruction.cameras))
     change = refined.cameras[camera_id].focal_length / reconstruction.cameras[camera_id].focal_length - 1
     return (refined, True) if abs(change) < max_change else (reconstruction, False)
