@@ -2,8 +2,9 @@
 
 Per clip: the registered fraction of the sampled frames, the median rotation error and the
 trajectory error (% of the path length) after a similarity alignment to the true cameras
-(:mod:`bench.sfm_eval`), SfM's wall time; then the pose accuracy downstream: the simulated
-annotators' clicks on the ground-truth tracks (``<bench>/labels/<clip>.json``, written by ``cadestate
+(:mod:`bench.sfm_eval`), SfM's wall time and focal length (``fx / width``: the true one, SfM's, its
+error in %, the field-of-view hypotheses' estimate, :func:`tasks.video.sfm.focal_report`); then the
+pose accuracy downstream: the simulated annotators' clicks on the ground-truth tracks (``<bench>/labels/<clip>.json``, written by ``cadestate
 bench run``) solved with the SfM cameras and with the true cameras, each turned to +Y up as ingest
 does (:mod:`tasks.video.world_up`), the SfM poses mapped into the true world by the same similarity
 (translation and scale scaled), scored as :mod:`bench.pose_bench` scores (Scan2CAD criterion).
@@ -84,7 +85,7 @@ def _turned(track: CameraTrack, seed: int) -> CameraTrack:
 def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int = DEFAULT_CLIPS,
         cfg: CamerasConfig = CamerasConfig()) -> dict:
     """Every number of the module docstring, per clip and overall."""
-    from tasks.video.sfm import SfmError, run_sfm
+    from tasks.video.sfm import SfmError, focal_report, run_sfm
 
     wh = wh or Warehouse("data/warehouse")
     bench_dir = Path(bench_dir)
@@ -110,9 +111,12 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
         a, b = np.searchsorted(truth.timestamps_us, common), np.searchsorted(sfm.timestamps_us, common)
         errors = camera_errors(truth.R[a], _centres(truth)[a], sfm.R[b], _centres(sfm)[b])
         sim = align(truth.R[a], _centres(truth)[a], sfm.R[b], _centres(sfm)[b])
+        focal = focal_report(result)
         rows.append({"clip": clip, "frames": len(sfm), "registered_pct": round(100 * result.registered_fraction, 1),
                      **errors.summary(), "sfm_s": round(seconds, 1), "sfm_steps_s": result.seconds,
-                     "models": result.models})
+                     "true_fx_over_width": round(float(truth.intrinsics[0, 0]), 4),
+                     "focal_error_pct": round(100 * (float(sfm.intrinsics[0, 0] / truth.intrinsics[0, 0]) - 1), 2),
+                     **focal, "models": result.models})
         label_file = bench_dir / LABELS / f"{clip}.json"
         if not label_file.is_file():
             continue
@@ -130,6 +134,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
         summary |= {"registered_pct": round(float(np.mean([r["registered_pct"] for r in ok])), 1),
                     "median_rotation_error_deg": round(float(np.median([r["median_rotation_error_deg"] for r in ok])), 3),
                     "median_trajectory_error_pct": round(float(np.median([r["median_trajectory_error_pct"] for r in ok])), 3),
+                    "max_abs_focal_error_pct": round(float(np.max([abs(r["focal_error_pct"]) for r in ok])), 2),
                     "sfm_s_per_clip": round(float(np.mean([r["sfm_s"] for r in ok])), 1)}
     return {"bench": str(bench_dir), "config": dataclasses.asdict(cfg), "summary": summary,
             "pose_accuracy_pct": {"true cameras": accuracy["true"], "SfM cameras": accuracy["sfm"],

@@ -117,12 +117,23 @@ class CamerasConfig:
     max_image_size: int = _opt(1024, "Longest image side fed to feature extraction (larger frames are downscaled).",
                                lo=64, hi=8192)
     max_features: int = _opt(4096, "SIFT features per frame.", lo=64, hi=65536)
-    overlap: int = _opt(20, "Sequential matching: each frame is matched with this many following frames.", lo=1, hi=1000)
+    overlap: int = _opt(20, "Sequential matching: each frame is matched with the frames 1, 2, 4, 8, ... ahead, up to this "
+                        "many (pycolmap 4's quadratic overlap; not every frame in between).", lo=1, hi=1000)
     min_registered_fraction: float = _opt(0.8, "Fail when SfM registers fewer of the sampled frames than this fraction; "
                                           "the rest are interpolated between registered neighbours and flagged.",
                                           lo=0.0, hi=1.0)
     init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the mapper's initial pair (COLMAP's "
                                          "default 16; lower it for videos with very little parallax).", lo=0.5, hi=60.0)
+    fov_min_deg: float = _opt(40.0, "Narrowest horizontal field of view (of the image width) SfM tries when no intrinsics "
+                              "are given (tasks/video/sfm_focal.py).", lo=5.0, hi=170.0)
+    fov_max_deg: float = _opt(100.0, "Widest horizontal field of view SfM tries when no intrinsics are given.", lo=5.0, hi=170.0)
+    fov_hypotheses: int = _opt(6, "Focal lengths tried between fov_max_deg and fov_min_deg (even in log focal), each "
+                               "mapped with the focal held fixed, then bundle-adjusted with it free; the adjusted "
+                               "focal of the lowest mean reprojection error wins.", lo=2, hi=50)
+    focal_frames: int = _opt(35, "The focal hypotheses each map about this many of the sampled frames, evenly spaced "
+                             "(every k-th, k = round(frames / focal_frames), at least 1).", lo=3, hi=10000)
+    max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "
+                                   "estimate by less than this fraction.", lo=0.0, hi=1.0)
     threads: int = _opt(2, "Threads for mapping (feature extraction and matching run on one: more store frames and "
                    "verified pairs in a varying order, and SfM gives other cameras each run).", lo=1, hi=256)
     seed: int = _opt(0, "Random seed of two-view verification and the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)

@@ -3,8 +3,8 @@
 Reads: the clip's video (and its camera file when one was given). Writes, for a video ingested
 without a camera file: ``inputs/<clip>/cameras.sfm.txt`` (one camera line per frame sampled at
 ``[cameras] sample_fps``, timestamps = the frames' video times, SfM's world, :mod:`tasks.video.sfm`) and
-``inputs/<clip>/cameras.sfm.json`` (which lines were interpolated, the models found, timings),
-each atomically; the ``ingest`` stage then takes that file as the clip's camera file. A given camera
+``inputs/<clip>/cameras.sfm.json`` (which lines were interpolated, the models found, timings, the
+focal length found), each atomically; the ``ingest`` stage then takes that file as the clip's camera file. A given camera
 file is passed on untouched. The output digest is that of the camera file in force.
 """
 

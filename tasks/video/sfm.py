@@ -2,9 +2,10 @@
 
 Steps: sample the video's frames at ``[cameras] sample_fps`` (each sampled frame keeps its exact
 decoded time, µs since the video's start), SIFT features, sequential matching, incremental
-mapping with one camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with its focal length
-estimated and the principal point at the image centre, or ``PINHOLE`` fixed to the given
-``intrinsics``), then one camera line per sampled frame: SfM's own pose when the frame was
+mapping with one camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with the principal point
+at the image centre and its focal length estimated from field-of-view hypotheses, held fixed while
+mapping, freed in a last bundle adjustment (:mod:`tasks.video.sfm_focal`), or ``PINHOLE`` fixed to
+the given ``intrinsics``), then one camera line per sampled frame: SfM's own pose when the frame was
 registered, else interpolated between its registered neighbours (slerp of the rotation, linear
 camera centre; the nearest one's pose at the ends) and flagged.
 
@@ -30,6 +31,7 @@ from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world, world_to_camera
 from tasks.video.camera_file import CameraTrack
 from tasks.video.decode import VideoError
+from tasks.video.sfm_focal import FocalEstimate, estimate_focal, refine_focal, set_focal
 
 
 class SfmError(ValueError):
@@ -55,13 +57,17 @@ class SfmResult:
       track: one camera line per sampled frame (world->camera, OpenCV axes, SfM's world).
       registered: bool[N], True where the camera is SfM's own (False: interpolated).
       models: registered frames of every model found, largest first (the first one is kept).
-      seconds: {step: wall seconds} (sampling, features, matching, mapping, total).
+      seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, total).
+      focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
+        whether the last bundle adjustment's was kept.
     """
 
     track: CameraTrack
     registered: np.ndarray
     models: list[int] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    focal: FocalEstimate | None = None
+    focal_refined: bool = False
 
     @property
     def registered_fraction(self) -> float:
@@ -125,10 +131,10 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     mapping.random_seed = cfg.seed
     mapping.mapper.random_seed = cfg.seed
     mapping.min_model_size = 3
-    mapping.ba_refine_focal_length = not intrinsics
+    mapping.ba_refine_focal_length = False  # fixed: the given one, or estimated first (tasks/video/sfm_focal.py)
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_extra_params = False
-    mapping.mapper.abs_pose_refine_focal_length = not intrinsics
+    mapping.mapper.abs_pose_refine_focal_length = False
     mapping.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
     return reader, extraction, matching, pairing, verification, mapping
 
@@ -191,15 +197,26 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, verification_options=verification,
                                   device=pycolmap.Device.cpu)
         seconds["matching"] = time.perf_counter() - t
+        focal = None
+        if not intrinsics:
+            t = time.perf_counter()
+            focal = estimate_focal(db, tmp / "images", names, frames.width, cfg, mapping, tmp)
+            seconds["focal"] = time.perf_counter() - t
         t = time.perf_counter()
         (tmp / "sparse").mkdir()
+        if focal:
+            set_focal(db, focal.focal_px)
         models = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", mapping)
         seconds["mapping"] = time.perf_counter() - t
     n = len(frames.paths)
     if not models:
         raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
     ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
-    best = ranked[0]
+    best, refined = ranked[0], False
+    if focal:
+        t = time.perf_counter()
+        best, refined = refine_focal(best, cfg.max_focal_change, cfg.threads)
+        seconds["refine"] = time.perf_counter() - t
     index = {name: i for i, name in enumerate(names)}
     registered = np.zeros(n, dtype=bool)
     R, c = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -222,11 +239,27 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
     track = CameraTrack(url or Path(video).resolve().as_uri(), frames.times_us, normalised,
                         np.concatenate([R_wc, t_wc[:, :, None]], axis=2))
     seconds["total"] = time.perf_counter() - t0
-    return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()})
+    return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()},
+                     focal, refined)
 
 
 def sfm_report(result: SfmResult) -> dict:
     """The JSON report kept beside the SfM camera file (``interpolated`` per camera line)."""
     return {"registered_fraction": round(result.registered_fraction, 4),
             "interpolated": [bool(not r) for r in result.registered],
-            "models": result.models, "seconds": result.seconds}
+            "models": result.models, "seconds": result.seconds, **focal_report(result)}
+
+
+def focal_report(result: SfmResult) -> dict:
+    """The focal length found, as a fraction of the image width (``fx / w``): the kept one, the
+    hypotheses' estimate, whether the last bundle adjustment was kept, and per hypothesis [start,
+    adjusted (None: no model), mean reprojection error px (None: too few frames registered)].
+    Empty with given intrinsics."""
+    f = result.focal
+    if f is None:
+        return {}
+    return {"focal_fx_over_width": round(float(result.track.intrinsics[0, 0]), 4),
+            "focal_estimate_fx_over_width": round(f.focal_px / f.width, 4), "focal_refined": result.focal_refined,
+            "focal_hypotheses": [[round(h / f.width, 4), round(a / f.width, 4) if np.isfinite(a) else None,
+                                  round(float(e), 3) if np.isfinite(e) else None]
+                                 for h, a, e in zip(f.hypotheses_px, f.adjusted_px, f.errors_px)]}
