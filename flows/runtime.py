@@ -41,12 +41,16 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     return os.environ.get("PREFECT_API_URL", "")
 
 
+RESULTS = Path("_prefect") / "results"
+"""Where the persisted task results (the cache) lie under the warehouse, one file per cache key."""
+
+
 @contextlib.contextmanager
 def warehouse_results(root: Path) -> Iterator[None]:
     """Within the block, persisted task results (the cache) go to ``<root>/_prefect/results``."""
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
-    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / "_prefect" / "results")}):  # stage_tasks.RESULTS
+    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / RESULTS)}):
         yield
 
 

@@ -26,6 +26,7 @@ from prefect.utilities.hashing import hash_objects
 
 from cadestate.config import Config
 from cadestate.lineage import digest
+from flows.runtime import RESULTS
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import STAGES, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
@@ -72,8 +73,6 @@ def _tables_moved_on(parameters: dict[str, Any]) -> bool:
 
 
 RUN_SIGNATURE = ("stage", "status", "config_hash", "code_hash", "inputs_hash", "output_hash", "started_at")
-RESULTS = Path("_prefect") / "results"
-"""Where the cached results lie under the warehouse (:func:`flows.runtime.warehouse_results`), by key."""
 CACHE_POLICY = CacheKeyFnPolicy(cache_key_fn=_cache_key)
 
 

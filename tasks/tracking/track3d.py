@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cadestate.geometry import camera_to_world
+
 SIGMA0 = 0.01
 """Angular noise floor of a box centre (radians)."""
 SIGMA_BOX = 0.25
@@ -80,10 +82,9 @@ def box_rays(boxes: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, wid
     cam = np.einsum("nij,nj->ni", Kinv, pix)
     corner = np.einsum("nij,nj->ni", Kinv, np.stack([boxes[:, 3] * width, boxes[:, 2] * height, np.ones_like(u)], axis=1))
     half = np.arctan2(np.linalg.norm(np.cross(cam, corner), axis=1), np.einsum("ni,ni->n", cam, corner))
-    Rt = np.swapaxes(R, 1, 2)
-    d = np.einsum("nij,nj->ni", Rt, cam)
+    R_cw, origin = camera_to_world(R, t)
+    d = np.einsum("nij,nj->ni", R_cw, cam)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    origin = -np.einsum("nij,nj->ni", Rt, t)
     return Rays(origin, d, SIGMA0 + SIGMA_BOX * half, half)
 
 
