@@ -8,10 +8,12 @@ import platform
 import sys
 from pathlib import Path
 
-from bench import (annotate_bench, cad_throughput, cli_bench, cluster_throughput, detect_throughput, frames_throughput,
-                   pose_bench, retrieval_bench, sfm_bench, stage_times, track_bench, warehouse_scale)
+from bench import (annotate_bench, cad_throughput, cli_bench, cluster_throughput, descriptor_eval, detect_throughput,
+                   frames_throughput, pose_bench, retrieval_bench, sfm_bench, stage_times, track_bench, warehouse_scale)
 
 RESULTS = Path("bench/results")
+BENCHMARKS = [Path(os.environ.get("BENCH_DIR", "data/bench/default")), Path(os.environ.get("FRESH_DIR", "data/bench/fresh-60606"))]
+"""The default benchmark and one of a seed never used while training or tuning (``make bench`` runs both)."""
 
 
 def main() -> int:
@@ -24,6 +26,7 @@ def main() -> int:
         "pose": pose_bench.run(),
         "sfm": sfm_bench.run(),
         "retrieval": retrieval_bench.sizes(),
+        "retrieval_descriptor": descriptor_eval.run([b for b in BENCHMARKS if b.is_dir()], track_bench.open_warehouse(), tracks=True),
         "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True),  # without a benchmark: its synthetic parts
         "end_to_end": stage_times.run(),
         "commands": cli_bench.run(),

@@ -204,7 +204,10 @@ class CadEmbedConfig:
     """Stage ``cad_embed``: embed every CAD view (with the ``[embed]`` settings) and fit the
     centring or whitening that every descriptor goes through before it is compared."""
 
-    whitening: str = _opt("whiten", "Transform fitted on the CAD view descriptors: 'none', 'centre' or 'whiten' (PCA whitening).", choices=("none", "centre", "whiten"))
+    whitening: str = _opt("learned", "Transform of the descriptors before they are compared: 'learned' (the projection `make models` "
+                                     "trains on rooms rendered from the CAD library, centred on each library), or fitted on the "
+                                     "library's views: 'none', 'centre', 'whiten' (PCA whitening).",
+                          choices=("none", "centre", "whiten", "learned"))
     whitening_dims: int = _opt(128, f"Dimensions kept by 'whiten' (at most the descriptor size, {DESCRIPTOR_DIM}).",
                                lo=1, hi=DESCRIPTOR_DIM)
 
@@ -293,6 +296,8 @@ class RetrievalConfig:
     """Stage ``retrieval``: the top CAD models of every track (appearance x class-label similarity)."""
 
     top_k: int = _opt(10, "Candidates kept per track (the paper shows annotators 10).", lo=1, hi=1000)
+    class_exponent: float = _opt(1.0, "The class-label similarity enters the score raised to this power: 1 is the paper's "
+                                      "product; below 1 the soft class filter weighs less against appearance.", lo=0.0, hi=10.0)
 
 
 @dataclass(frozen=True)

@@ -70,11 +70,11 @@ EMBEDDING_WHITENING = TableSpec(
     name="embedding_whitening",
     mode="replace",
     key=("library",),
-    description="The centring/whitening fitted on a library's view descriptors: w = normalise(P (v - mean)).",
+    description="The transform a library's descriptors go through before they are compared: w = normalise(P (v - mean)).",
     schema=pa.schema(
         [
             LIBRARY,
-            column("method", pa.string(), "none | centre | whiten."),
+            column("method", pa.string(), "none | centre | whiten (fitted on the views) | learned (P trained by `make models`)."),
             column("mean", pa.list_(pa.field("item", pa.float32(), nullable=False)), "Mean descriptor [D] (zeros for 'none')."),
             column("projection", pa.list_(pa.field("item", pa.float32(), nullable=False)), "P, [k, D] row-major (identity for 'none' and 'centre')."),
             column("dims", pa.int32(), "k, rows of P."),

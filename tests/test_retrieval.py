@@ -40,6 +40,29 @@ def test_grouped_score_equals_the_mean_over_all_pairs():
         score_tracks([TrackGroups(["tv"], np.array([1]), [dets[:1]])], index)
 
 
+def test_class_exponent_tempers_the_class_filter():
+    """x = 1 is the paper's product to the bit; x = 0 ranks by appearance alone; in between, each
+    detection's appearance is weighed by c ** x."""
+    rng = np.random.default_rng(4)
+    D, M = 16, 5
+    views = unit(rng.normal(size=(M, D)))
+    white = fit_whitening(views, "centre", 8)
+    sim = {"chair": np.array([1.0, 0.2, 0.5, 0.0, 0.8], np.float32)}
+    index = LibraryIndex("lib", np.array([f"m{i}" for i in range(M)], dtype=object),
+                         np.array(["chair", "bed", "sofa", "tv", "chair"], dtype=object), white.apply(views), white, sim)
+    dets = unit(views[[1, 1, 3]] + 0.05 * rng.normal(size=(3, D)))  # look like the bed and the tv
+    track = TrackGroups(["chair"], np.array([3]), [dets])
+    paper, appearance, cls = score_tracks([track], index)
+    np.testing.assert_array_equal(score_tracks([track], index, 1.0)[0], paper)
+    off = score_tracks([track], index, 0.0)
+    np.testing.assert_allclose(off[0], appearance, atol=1e-6)
+    np.testing.assert_array_equal(off[2], cls)  # the reported class similarity stays the plain one
+    half = score_tracks([track], index, 0.5)[0]
+    np.testing.assert_allclose(half[0], np.sqrt(sim["chair"]) * appearance[0], atol=1e-6)
+    quarter = score_tracks([track], index, 0.25)[0]
+    assert np.argmax(paper[0]) == 0 and np.argmax(quarter[0]) == 1  # the bed wins once the filter is tempered enough
+
+
 def write(wh, name: str, part: str, rows: list[dict]) -> None:
     wh.write(name, part, pa.Table.from_pylist(rows, schema=wh.spec(name).schema))
 

@@ -6,6 +6,8 @@ embedded exactly like a detection crop (``[embed]`` crop size and context, :mod:
 Writes: ``cad_embeddings`` (raw unit-norm descriptors), ``embedding_whitening`` (the
 ``[cad_embed] whitening`` fitted on them, :mod:`tasks.retrieval.whitening`) and ``cad_model_embeddings``
 (per model, the mean of its whitened view descriptors: what retrieval compares tracks with).
+With ``whitening = "learned"`` the whitening is the projection `make models` trained
+(:mod:`tasks.retrieval.descriptor`), centred on this library's mean view descriptor.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from tasks.cad.views import BACKGROUND
 from tasks.detection.detect import load_rgb, prefetch
 from tasks.detection.embed import vectors_array
 from tasks.detection.models.embedder import load_embedder
+from tasks.retrieval.descriptor import descriptor_inputs, load_descriptor
 from tasks.retrieval.whitening import fit_whitening, whitening_table
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
@@ -73,7 +76,8 @@ def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, li
         "view": pa.array([v["view"] for v in views], pa.int32()), "vector": vectors_array(vectors),
         "model_sha256": [embedder.sha256] * len(views),
     }, schema=wh.spec("cad_embeddings").schema)
-    fitted = fit_whitening(vectors, cfg.whitening, cfg.whitening_dims)
+    learned = load_descriptor()[0] if cfg.whitening == "learned" else None
+    fitted = fit_whitening(vectors, cfg.whitening, cfg.whitening_dims, learned)
     whitening = whitening_table(library, fitted, len(views)).cast(wh.spec("embedding_whitening").schema)
     classes = {r["cad_id"]: r["class"] for r in wh.read("cad_models", partitions=[library], columns=["cad_id", "class"]).to_pylist()}
     per_model = model_embeddings(library, classes, [v["cad_id"] for v in views], fitted.apply(vectors))
@@ -91,5 +95,5 @@ STAGE = StageDef(
     name="cad_embed", section="cad_embed", scope="library", upstream=("cad_views",),
     tables=("cad_embeddings", "embedding_whitening", "cad_model_embeddings"),
     description="embed every CAD view, fit the descriptor whitening",
-    extra_sections=("embed",), run=_run,
+    extra_sections=("embed",), run=_run, config_inputs=descriptor_inputs,
 )

@@ -26,10 +26,10 @@ def model_fingerprint(cfg: DetectConfig) -> str:
     path = detector_path(cfg).resolve()
     if not path.is_file():
         return ""
-    return _sha256_of(path)
+    return cached_sha256(path)
 
 
-def _sha256_of(path: Path) -> str:
+def cached_sha256(path: Path) -> str:
     """``file_sha256(path)``, kept in ``<models cache>/.digests/`` with the file's inode, size,
     modification and change times: hashed again only when one of them differs (15 MB cost
     ``cadestate status`` about 20 ms per call). Not kept where the cache cannot be written."""

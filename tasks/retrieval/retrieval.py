@@ -43,8 +43,10 @@ class TrackGroups:
     raw: list[np.ndarray]  # per group: raw unit descriptors [n_l, D]
 
 
-def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(score, appearance, class similarity), each float32[T, M], of every track against every model.
+def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(score, appearance, class similarity), each float32[T, M], of every track against every model;
+    the score weighs each detection's appearance by its class similarity raised to ``class_exponent``
+    (1: the paper's product; the class similarity returned is the plain one).
 
     One (track, label) group at a time: its detections whitened and summed, one matrix-vector product
     with the models' vectors float32[M,k]. Batching the groups into one matrix product changed scores
@@ -64,7 +66,7 @@ def score_tracks(tracks: list[TrackGroups], index: LibraryIndex) -> tuple[np.nda
                 dots = index.whitening.apply(raw).sum(0) @ index.vectors.T  # sum over the group's detections
                 part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
                 c = index.class_sim[label]
-                score[t] += c * part / F
+                score[t] += (c if class_exponent == 1.0 else c ** np.float32(class_exponent)) * part / F
                 appearance[t] += part / F
                 cls[t] += c * n / F
     return score, appearance, cls
@@ -118,7 +120,7 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
         wh.write("cad_candidates", clip, empty)
         return StageOutput(0, table_digest(empty), "no CAD library in the warehouse yet: run `cadestate cad ingest`")
     track_ids, groups = track_groups(wh, clip)
-    parts = [(index, *score_tracks(groups, index)) for index in (load_index(wh, lib) for lib in libraries)]
+    parts = [(index, *score_tracks(groups, index, cfg.class_exponent)) for index in (load_index(wh, lib) for lib in libraries)]
     score = np.concatenate([p[1] for p in parts], 1) if parts else np.zeros((len(groups), 0))
     appearance = np.concatenate([p[2] for p in parts], 1)
     cls = np.concatenate([p[3] for p in parts], 1)

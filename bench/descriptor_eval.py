@@ -1,0 +1,164 @@
+"""What the learned descriptor buys in CAD retrieval, next to the PCA whitening it replaces.
+
+Two measures, each for every ``[cad_embed] whitening`` of :data:`METHODS`, on benchmark folders
+(:mod:`bench.benchmark`) whose clips were never training rooms (:mod:`bench.descriptor_data`):
+
+- **ground-truth boxes, appearance alone** (the descriptor alone): each ground-truth object in
+  view (:func:`bench.ignore.clip_objects_in_view`) is a track of its in-view boxes
+  (:func:`bench.ignore.box_in_view`), embedded from the clip's video; models are ranked by the
+  appearance term of retrieval, ``mean_f (1 + w_f . b_m) / 2`` (no class filter);
+- **the pipeline's tracks** (needs ``cadestate bench run``): the retrieval stage's score
+  (appearance x class-label similarity, :func:`tasks.retrieval.retrieval.score_tracks`) of the
+  warehouse's tracks against the library whitened each way, scored as ``bench report`` scores
+  ``cad_candidates`` (:func:`bench.retrieval_bench.track_truth`).
+
+Both report the true CAD model and the true class among the first 1 and 10 candidates.
+
+    python -m bench.descriptor_eval BENCH_DIR [BENCH_DIR ...] [--warehouse W] [--tracks]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from bench.eval_retrieval import retrieval_recall
+from tasks.retrieval.descriptor import load_descriptor
+from tasks.retrieval.index import LibraryIndex, build_index, list_matrix
+from tasks.retrieval.retrieval import score_tracks, top_order
+from tasks.retrieval.whitening import fit_whitening
+from warehouse import Warehouse
+
+METHODS = ("whiten", "learned")
+TOP_K = 10
+
+
+def whitened_index(wh: Warehouse, library: str, method: str, dims: int = 128) -> LibraryIndex:
+    """``library``'s retrieval index with its views whitened by ``method`` (fitted now on the raw
+    view descriptors of ``cad_embeddings``, as ``cad_embed`` would)."""
+    from tasks.cad.embed import model_embeddings
+
+    base = build_index(wh, library)
+    views = wh.read("cad_embeddings", partitions=[library], columns=["cad_id", "vector"])
+    raw = list_matrix(views.column("vector"))
+    fitted = fit_whitening(raw, method, dims, load_descriptor()[0] if method == "learned" else None)
+    per_model = model_embeddings(library, dict(zip(base.cad_ids.tolist(), base.classes.tolist())),
+                                 views.column("cad_id").to_pylist(), fitted.apply(raw))
+    assert per_model.column("cad_id").to_pylist() == base.cad_ids.tolist()
+    return dataclasses.replace(base, vectors=list_matrix(per_model.column("vector")), whitening=fitted)
+
+
+def gt_tracks(bench_dir: Path, clip: str) -> list[tuple[str, str, np.ndarray]]:
+    """(cad_id, class name, raw descriptors float32[n, D] of its in-view boxes) of every object in view."""
+    from bench.benchmark import CLASS_NAMES
+    from bench.ignore import box_in_view, clip_objects_in_view
+    from bench.track_bench import gt_clip
+    from schemas.official import read_objects
+
+    cb = gt_clip(bench_dir, clip, embed=True)
+    visibility = json.loads((bench_dir / clip / "visibility.json").read_text())
+    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
+                 for f in visibility["frames"] for o in f["objects"]}
+    good = np.array([box_in_view(*fractions.get((int(t), str(o)), (0.0, 1.0))) for t, o in zip(cb.timestamp_us, cb.truth)], bool)
+    objects = {o.track_id: o for o in read_objects(bench_dir / clip / "objects.json").objects}
+    return [(objects[o].cad_id, CLASS_NAMES.get(objects[o].cls, "other"), cb.vectors[good & (cb.truth == o)])
+            for o in sorted(clip_objects_in_view(bench_dir, clip))]
+
+
+def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]) -> dict[str, dict]:
+    """Per method: recall@1/@10 of the true model and class, appearance alone, ground-truth boxes."""
+    from bench.benchmark import read_manifest
+
+    tracks = [(d.name, clip, *t) for d in bench_dirs for clip in read_manifest(d).clips for t in gt_tracks(d, clip)]
+    out = {}
+    for method, libs in indexes.items():
+        ranked, truth = {}, {}
+        for k, (_, _, cad_id, cls, raw) in enumerate(tracks):
+            truth[k] = (cad_id, cls)
+            if not len(raw):
+                continue
+            parts = [(lib, (len(raw) + lib.whitening.apply(raw).sum(0) @ lib.vectors.T) / (2 * len(raw))) for lib in libs]
+            score = np.concatenate([p for _, p in parts])
+            cad_ids = np.concatenate([lib.cad_ids for lib, _ in parts])
+            classes = np.concatenate([lib.classes for lib, _ in parts])
+            ranked[k] = [(cad_ids[m], classes[m]) for m in top_order(score, cad_ids, TOP_K)]
+        out[method] = retrieval_recall(ranked, truth).as_dict()
+    return out
+
+
+def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[LibraryIndex]],
+                    class_exponents: tuple[float, ...] = (1.0,)) -> dict[str, dict]:
+    """Per method and ``[retrieval] class_exponent``: recall@1/@10 of the warehouse's tracks of
+    ``bench_dir``'s clips, scored as the retrieval stage scores (class-label similarity included);
+    keyed by the method, with ``c^x`` after it for an exponent x other than 1."""
+    from bench.benchmark import CLASS_NAMES, read_manifest
+    from bench.retrieval_bench import track_truth
+    from schemas.official import read_objects
+    from tasks.retrieval.retrieval import track_groups
+
+    clips = [c for c in read_manifest(bench_dir).clips if c in wh.partitions("tracks")]
+    per_clip = []
+    for clip in clips:
+        objects = {o.track_id: o for o in read_objects(bench_dir / clip / "objects.json").objects}
+        truth = {(clip, t): (objects[g].cad_id, CLASS_NAMES.get(objects[g].cls, "other")) for t, g in track_truth(bench_dir, wh, clip).items()}
+        per_clip.append((clip, *track_groups(wh, clip), truth))
+    out = {}
+    for (method, libs), x in ((m, x) for m in indexes.items() for x in class_exponents):
+        ranked, truth = {}, {}
+        for clip, ids, groups, clip_truth in per_clip:
+            truth.update(clip_truth)
+            parts = [(lib, score_tracks(groups, lib, x)[0]) for lib in libs]
+            score = np.concatenate([p for _, p in parts], 1)
+            cad_ids = np.concatenate([lib.cad_ids for lib, _ in parts])
+            classes = np.concatenate([lib.classes for lib, _ in parts])
+            for t, track_id in enumerate(ids):
+                ranked[(clip, track_id)] = [(cad_ids[m], classes[m]) for m in top_order(score[t], cad_ids, TOP_K)]
+        out[method if x == 1.0 else f"{method} c^{x:g}"] = {"clips": len(clips), **retrieval_recall(ranked, truth).as_dict()} if truth else None
+    return out
+
+
+def run(bench_dirs: list[Path], wh: Warehouse, tracks: bool, class_exponents: tuple[float, ...] = (1.0,)) -> dict:
+    libraries = wh.partitions("cad_embeddings")
+    indexes = {m: [whitened_index(wh, lib, m) for lib in libraries] for m in METHODS}
+    result = {"benchmarks": {d.name: {"gt_boxes": gt_box_recall([d], indexes)} for d in bench_dirs}}
+    if tracks:
+        for d in bench_dirs:
+            result["benchmarks"][d.name]["pipeline_tracks"] = pipeline_recall(d, wh, indexes, class_exponents)
+    result["descriptor"] = load_descriptor()[1]
+    return result
+
+
+def markdown(result: dict) -> list[str]:
+    lines = ["| benchmark | tracks | whitening | model @1 | model @10 | class @1 | class @10 |", "|---|---|---|---:|---:|---:|---:|"]
+    for name, parts in result["benchmarks"].items():
+        for kind, by_method in parts.items():
+            for method, r in by_method.items():
+                if r:
+                    lines.append(f"| {name} | {kind} ({r['num_tracks']}) | {method} | {r['cad_recall@1']:.3f} | {r['cad_recall@10']:.3f} "
+                                 f"| {r['class_recall@1']:.3f} | {r['class_recall@10']:.3f} |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench.track_bench import open_warehouse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("bench_dirs", type=Path, nargs="+")
+    parser.add_argument("--warehouse", type=Path, default=None, help="the warehouse the benchmarks ran in (default: configured)")
+    parser.add_argument("--tracks", action="store_true", help="also score the pipeline's tracks (after `cadestate bench run`)")
+    parser.add_argument("--class-exponents", default="1", help="comma-separated [retrieval] class_exponent values to score the tracks with")
+    args = parser.parse_args(argv)
+    exponents = tuple(float(x) for x in args.class_exponents.split(","))
+    result = run(args.bench_dirs, open_warehouse(args.warehouse), args.tracks, exponents)
+    print(json.dumps(result, indent=1))
+    print("\n".join(markdown(result)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

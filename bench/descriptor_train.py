@@ -1,0 +1,259 @@
+"""Train the retrieval descriptor: a linear projection of the backbone descriptor, learned so that
+an object's crops in rendered rooms rank its own CAD model first (``make models``).
+
+Model. With raw unit descriptors x float[768] (:mod:`tasks.detection.models.embedder`), the
+library's mean view descriptor mu and the learned matrix W float32[k, 768], a descriptor is
+``z(x) = normalise(W (x - mu))`` and a CAD model m with views v_m1..v_mV is
+``p_m = mean_j z(v_mj)``: exactly what ``[cad_embed] whitening = "learned"`` computes
+(:mod:`tasks.retrieval.descriptor`), and what retrieval compares a track's detections with.
+W starts as the library's PCA whitening (``whitening = "whiten"``, k = 128) and is trained with
+the cross-entropy of ``z(x) . p_m / TAU`` over all models of the library against the crop's own
+model (contrastive: every other model is a negative), Adam, on one thread (reproducible).
+
+Data: the crops of :mod:`bench.descriptor_data` (training rooms only, seeds disjoint from any
+benchmark's); the CAD views' raw descriptors from a warehouse where the library is ingested.
+Rooms are split by index into training and held-out rooms; the held-out top-1/top-10 are
+reported, and the number of steps is fixed (not chosen on any benchmark).
+
+The training warehouse gets the embedded CAD library when it has none (the library flow with
+``whitening = "whiten"``: the learned one does not exist yet). The file's ``meta.recipe`` digests
+what made it (the spec, this code and the room generator's, the embedder, the library): a run
+whose recipe equals the file's returns at once, so ``make models`` retrains only when one changed.
+
+    python -m bench.descriptor_train --warehouse W --out MODELS_DIR [--seed 1] [--rooms 240]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.descriptor_data import CropSet, room_crops
+from cadestate.lineage import digest, file_sha256
+from cadestate.progress import progress
+from tasks.retrieval.descriptor import DESCRIPTOR_NAME, save_descriptor
+from tasks.retrieval.index import list_matrix
+from tasks.retrieval.whitening import fit_whitening
+from warehouse import Warehouse
+
+TAU = 0.05
+"""Softmax temperature of the contrastive loss (cosines are in [-1, 1])."""
+
+
+@dataclass(frozen=True)
+class TrainSpec:
+    """What to train: ``rooms`` rendered rooms (every ``holdout_every``-th held out), ``frames``
+    frames each, ``dims`` output dimensions, ``steps`` Adam steps of ``batch`` crops at ``lr``."""
+
+    seed: int = 1
+    rooms: int = 240
+    frames: int = 8
+    holdout_every: int = 6
+    dims: int = 128
+    steps: int = 1500
+    batch: int = 256
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+
+
+@dataclass(frozen=True)
+class LibraryViews:
+    """The library's raw view descriptors: ``vectors`` float32[V, D], ``model`` int64[V] (index into
+    ``cad_ids``), ``cad_ids`` object[M] sorted."""
+
+    vectors: np.ndarray
+    model: np.ndarray
+    cad_ids: np.ndarray
+
+
+def library_views(wh: Warehouse) -> LibraryViews:
+    """Every ingested library's raw view descriptors (``cad_embeddings``)."""
+    table = wh.read("cad_embeddings", columns=["cad_id", "view", "vector"]).sort_by([("cad_id", "ascending"), ("view", "ascending")])
+    if not table.num_rows:
+        raise SystemExit(f"{wh.root}: no CAD view descriptors; run `cadestate cad ingest` on it first")
+    ids = np.asarray(table.column("cad_id").to_pylist(), dtype=object)
+    cad_ids, model = np.unique(ids, return_inverse=True)
+    return LibraryViews(list_matrix(table.column("vector")), model.astype(np.int64), cad_ids)
+
+
+def render_crops(wh: Warehouse, spec: TrainSpec, show_progress: bool = True) -> CropSet:
+    """The crops of every training room (:func:`bench.descriptor_data.room_crops`)."""
+    from cadestate.config import EmbedConfig
+    from cadestate.render import Renderer
+    from tasks.detection.models.embedder import load_embedder
+
+    models = wh.read("cad_models").to_pylist()
+    embedder = load_embedder(EmbedConfig())
+    parts = []
+    with Renderer(640, 360, 2) as renderer:
+        for r in progress(range(spec.rooms), total=spec.rooms, description="training rooms", enabled=show_progress):
+            parts.append(room_crops(spec.seed, r, models, wh.root, embedder, renderer, spec.frames))
+    return CropSet.concatenate(parts)
+
+
+def _ranks(z: np.ndarray, prototypes: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rank (0 = first) of each crop's own model among all models."""
+    scores = z @ prototypes.T
+    own = scores[np.arange(len(z)), target]
+    return (scores > own[:, None]).sum(1)
+
+
+def evaluate(W: np.ndarray, mu: np.ndarray, views: LibraryViews, crops: CropSet) -> dict:
+    """Top-1 and top-10 accuracy of crops against the library with projection W."""
+    def z(x: np.ndarray) -> np.ndarray:
+        y = (x - mu) @ W.T
+        return y / np.maximum(np.linalg.norm(y, axis=1, keepdims=True), 1e-12)
+
+    sums = np.zeros((len(views.cad_ids), W.shape[0]))
+    np.add.at(sums, views.model, z(views.vectors))
+    prototypes = sums / np.bincount(views.model, minlength=len(views.cad_ids))[:, None]
+    target = np.searchsorted(views.cad_ids, crops.cad_ids)
+    ranks = _ranks(z(crops.vectors), prototypes, target)
+    return {"crops": int(len(ranks)), "top1": round(float(np.mean(ranks < 1)), 4), "top10": round(float(np.mean(ranks < 10)), 4)}
+
+
+def train(views: LibraryViews, crops: CropSet, spec: TrainSpec, show_progress: bool = True) -> tuple[np.ndarray, dict]:
+    """The projection float32[dims, D] trained on ``crops`` of the non-held-out rooms, and a
+    report: held-out and training top-1/top-10 before and after. Runs torch on one thread with
+    deterministic algorithms (restored afterwards), so the same inputs give the same bytes."""
+    import torch
+
+    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    try:
+        return _train(torch, views, crops, spec, show_progress)
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(deterministic)
+
+
+def _train(torch, views: LibraryViews, crops: CropSet, spec: TrainSpec, show_progress: bool) -> tuple[np.ndarray, dict]:
+    torch.manual_seed(spec.seed)
+    mu = views.vectors.mean(0)
+    W0 = fit_whitening(views.vectors, "whiten", spec.dims).projection
+    known = np.isin(crops.cad_ids, views.cad_ids)
+    held = (crops.rooms % spec.holdout_every) == spec.holdout_every - 1
+    train_set, held_set = crops.take(known & ~held), crops.take(known & held)
+
+    W = torch.nn.Parameter(torch.tensor(W0, dtype=torch.float32))
+    V = torch.tensor(views.vectors - mu, dtype=torch.float32)
+    counts = torch.tensor(np.bincount(views.model, minlength=len(views.cad_ids)), dtype=torch.float32)
+    view_model = torch.tensor(views.model)
+    X = torch.tensor(train_set.vectors - mu, dtype=torch.float32)
+    Y = torch.tensor(np.searchsorted(views.cad_ids, train_set.cad_ids))
+    optimiser = torch.optim.AdamW([W], lr=spec.lr, weight_decay=spec.weight_decay)
+    generator = torch.Generator().manual_seed(spec.seed)
+    losses = []
+    for _ in progress(range(spec.steps), total=spec.steps, description="training", enabled=show_progress):
+        pick = torch.randint(len(X), (spec.batch,), generator=generator)
+        z = torch.nn.functional.normalize(X[pick] @ W.T, dim=1)
+        zv = torch.nn.functional.normalize(V @ W.T, dim=1)
+        prototypes = torch.zeros(len(counts), W.shape[0]).index_add(0, view_model, zv) / counts[:, None]
+        loss = torch.nn.functional.cross_entropy(z @ prototypes.T / TAU, Y[pick])
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(float(loss.detach()))
+    trained = W.detach().numpy().astype(np.float32)
+    report = {"train_crops": int(len(train_set.vectors)), "heldout_crops": int(len(held_set.vectors)),
+              "heldout_before": evaluate(W0, mu, views, held_set), "heldout_after": evaluate(trained, mu, views, held_set),
+              "train_after": evaluate(trained, mu, views, train_set),
+              "loss_first_100": round(float(np.mean(losses[:100])), 4), "loss_last_100": round(float(np.mean(losses[-100:])), 4)}
+    return trained, report
+
+
+RECIPE_SOURCES = ("bench/descriptor_data.py", "bench/descriptor_train.py", "bench/scene.py", "bench/room.py",
+                  "bench/textures.py", "bench/walkthrough.py", "cadestate/render.py", "tasks/detection/models/embedder.py")
+"""The code whose bytes enter the recipe digest (relative to the repository root)."""
+
+
+def recipe(spec: TrainSpec, library: str) -> str:
+    """Digest of what makes the descriptor: the spec, :data:`RECIPE_SOURCES`, the embedder
+    graph's SHA-256 and the library's digest."""
+    from cadestate.config import EmbedConfig
+    from tasks.detection.models.embedder import load_embedder
+
+    root = Path(__file__).resolve().parents[1]
+    return digest(json.dumps(asdict(spec), sort_keys=True), *(file_sha256(root / f) for f in RECIPE_SOURCES),
+                  load_embedder(EmbedConfig()).sha256, library, str(TAU))
+
+
+def ensure_library(wh: Warehouse, show_progress: bool = True) -> None:
+    """Ingest the embedded CAD library into ``wh`` unless it holds view descriptors already."""
+    if wh.partitions("cad_embeddings"):
+        return
+    from cadestate.config import CadEmbedConfig, Config, WarehouseConfig
+    from flows.runtime import prepare_prefect_environment
+
+    prepare_prefect_environment(wh.root)  # before Prefect is imported: the warehouse's Prefect home, quiet logs
+    from flows.cad_library import run_cad_library
+    from tasks.cad.sources import default_source, source_items
+
+    config = Config(warehouse=WarehouseConfig(root=str(wh.root)), cad_embed=CadEmbedConfig(whitening="whiten"))
+    reports = run_cad_library(source_items("sweethome3d", default_source()), config, show_progress)
+    failed = [f"{r.stage} {r.clip}: {r.message}" for r in reports if r.state == "failed"]
+    if failed:
+        raise SystemExit(f"the training library did not build: {'; '.join(failed)}")
+
+
+def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = True) -> Path:
+    """Render the training crops (kept beside the output, per spec and library), train, write the
+    descriptor file into ``out_dir``; returns its path. Returns at once when the file there was
+    made by the same recipe (:func:`recipe`)."""
+    from tasks.retrieval.descriptor import DescriptorMissing, load_descriptor
+
+    views = library_views(wh)
+    library = digest(*views.cad_ids.tolist())
+    made_by = recipe(spec, library)
+    try:
+        if load_descriptor(out_dir / DESCRIPTOR_NAME)[1].get("recipe") == made_by:
+            return out_dir / DESCRIPTOR_NAME
+    except DescriptorMissing:
+        pass
+    crops_file = out_dir / f"descriptor-crops-{digest(library, str(spec.seed), str(spec.rooms), str(spec.frames))[:16]}.npz"
+    t0 = time.perf_counter()
+    if crops_file.is_file():
+        crops = CropSet.load(crops_file)
+    else:
+        crops = render_crops(wh, spec, show_progress)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = crops_file.with_suffix(".tmp.npz")
+        crops.save(tmp)
+        tmp.replace(crops_file)
+    t1 = time.perf_counter()
+    W, report = train(views, crops, spec, show_progress)
+    meta = {"spec": asdict(spec), "recipe": made_by, "library_digest": library, "models": int(len(views.cad_ids)), "tau": TAU,
+            "crops_sha256": hashlib.sha256(crops.vectors.tobytes()).hexdigest(), **report}
+    path = save_descriptor(out_dir / DESCRIPTOR_NAME, W, meta)
+    timings = {"render_s": round(t1 - t0, 1), "train_s": round(time.perf_counter() - t1, 1)}
+    (out_dir / "descriptor-report.json").write_text(json.dumps({**meta, **timings, "sha256": file_sha256(path)}, indent=1))
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--warehouse", type=Path, required=True, help="the training warehouse (gets the embedded CAD library if it has none)")
+    parser.add_argument("--out", type=Path, required=True, help="models folder (the descriptor file is written there)")
+    defaults = TrainSpec()
+    for name in ("seed", "rooms", "frames", "steps"):
+        parser.add_argument(f"--{name}", type=int, default=getattr(defaults, name))
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    spec = TrainSpec(seed=args.seed, rooms=args.rooms, frames=args.frames, steps=args.steps)
+    wh = Warehouse(args.warehouse)
+    ensure_library(wh, not args.no_progress)
+    path = build(wh, args.out, spec, not args.no_progress)
+    print(f"{path} sha256 {file_sha256(path)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

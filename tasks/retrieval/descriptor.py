@@ -1,0 +1,72 @@
+"""The learned retrieval descriptor: a linear projection of the backbone descriptor, trained by
+``make models`` (:mod:`bench.descriptor_train`) on crops of rendered rooms against the CAD
+library's own views.
+
+File: ``<models cache>/descriptor-projection.npz`` (``$CADESTATE_MODELS``, as the detector), with
+``projection`` float32[k, D] (D = the embedder's 768) and ``meta`` (a JSON string: the training
+spec and seed, the library it was trained on, held-out accuracy). Its SHA-256 versions it: the
+``cad_embed`` stage digests the file as an input (:func:`descriptor_inputs`), so a retrained
+projection re-embeds the libraries and reruns retrieval.
+
+``[cad_embed] whitening = "learned"`` applies it as a :class:`tasks.retrieval.whitening.Whitening`
+whose mean is the library's mean view descriptor and whose projection is the file's matrix:
+``w = normalise(P (v - mean))``, the same map the training optimised.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from cadestate.atomic import atomic_write_bytes
+from cadestate.config import Config
+from tasks.detection.model_inputs import cached_sha256
+from tasks.detection.models.nanodet_files import default_cache_dir
+
+DESCRIPTOR_NAME = "descriptor-projection.npz"
+
+
+class DescriptorMissing(FileNotFoundError):
+    """The learned descriptor file is not there (``make models`` builds it)."""
+
+
+def descriptor_path() -> Path:
+    """Where `make models` writes the learned projection."""
+    return default_cache_dir() / DESCRIPTOR_NAME
+
+
+def save_descriptor(path: Path, projection: np.ndarray, meta: dict) -> Path:
+    """Write ``projection`` float32[k, D] and ``meta`` to ``path`` atomically; the bytes depend on
+    the values only (numpy's archive entries carry a fixed date)."""
+    buf = io.BytesIO()
+    np.savez(buf, projection=np.ascontiguousarray(projection, np.float32), meta=np.array(json.dumps(meta, sort_keys=True)))
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict]:
+    """(projection float32[k, D], meta) of the descriptor file (default :func:`descriptor_path`)."""
+    path = path or descriptor_path()
+    if not path.is_file():
+        raise DescriptorMissing(f"{path}: no learned descriptor; run `make models` (or set [cad_embed] whitening "
+                                f"to 'whiten')")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            projection, meta = f["projection"], json.loads(str(f["meta"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise DescriptorMissing(f"{path}: not a descriptor file ({e}); run `make models` again") from None
+    if projection.ndim != 2 or projection.dtype != np.float32:
+        raise DescriptorMissing(f"{path}: projection must be float32[k, D], got {projection.dtype}{list(projection.shape)}")
+    return projection, meta
+
+
+def descriptor_inputs(config: Config) -> list[str]:
+    """``config_inputs`` of ``cad_embed``: the descriptor file's SHA-256 when the whitening is
+    'learned' (empty when the file is missing: the stage then fails clearly)."""
+    if config.cad_embed.whitening != "learned":
+        return []
+    path = descriptor_path()
+    return [cached_sha256(path) if path.is_file() else ""]
