@@ -103,3 +103,16 @@ def test_status_of_a_registered_clip_imports_no_stage_dependencies(tmp_path):
     code, modules = loaded(["-w", str(wh.root), "status"], tmp_path / "modules.json")
     assert code == 0
     assert sorted({"av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "cv2", "PIL"} & modules) == []
+
+
+def test_status_of_a_cad_library_digests_the_learned_descriptor_without_numpy(tmp_path):
+    """A library's ``cad_embed`` reads the learned descriptor's file (its SHA-256 is an input):
+    `status` digests it through a light module, as the detector's (no numpy)."""
+    wh = Warehouse(tmp_path / "w")
+    wh.write("cad_models", "lib", table_rows("cad_models", [{"library": "lib", "cad_id": "lib.a"}]))
+    wh.write("runs", "lib", table_rows("runs", [{"clip": "lib", "stage": stage, "status": "completed"}
+                                                for stage in ("cad_ingest", "cad_views", "cad_embed", "label_similarity")]))
+    code, modules = loaded(["-w", str(wh.root), "status"], tmp_path / "modules.json")
+    assert code == 0
+    assert "tasks.retrieval.descriptor" in json.loads((tmp_path / "modules.json").read_text())["modules"]
+    assert sorted({"numpy", "torch", "onnxruntime", "prefect", "trimesh"} & modules) == []

@@ -11,6 +11,9 @@ projection re-embeds the libraries and reruns retrieval.
 ``[cad_embed] whitening = "learned"`` applies it as a :class:`tasks.retrieval.whitening.Whitening`
 whose mean is the library's mean view descriptor and whose projection is the file's matrix:
 ``w = normalise(P (v - mean))``, the same map the training optimised.
+
+Light on purpose (numpy only inside the functions that read or write the file): ``cadestate
+status`` digests the file through :func:`descriptor_inputs`.
 """
 
 from __future__ import annotations
@@ -18,13 +21,15 @@ from __future__ import annotations
 import io
 import json
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from cadestate.atomic import atomic_write_bytes
 from cadestate.config import Config
 from tasks.detection.model_inputs import cached_sha256
 from tasks.detection.models.nanodet_files import default_cache_dir
+
+if TYPE_CHECKING:
+    import numpy as np
 
 DESCRIPTOR_NAME = "descriptor-projection.npz"
 
@@ -41,6 +46,8 @@ def descriptor_path() -> Path:
 def save_descriptor(path: Path, projection: np.ndarray, meta: dict) -> Path:
     """Write ``projection`` float32[k, D] and ``meta`` to ``path`` atomically; the bytes depend on
     the values only (numpy's archive entries carry a fixed date)."""
+    import numpy as np
+
     buf = io.BytesIO()
     np.savez(buf, projection=np.ascontiguousarray(projection, np.float32), meta=np.array(json.dumps(meta, sort_keys=True)))
     atomic_write_bytes(path, buf.getvalue())
@@ -49,6 +56,8 @@ def save_descriptor(path: Path, projection: np.ndarray, meta: dict) -> Path:
 
 def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict]:
     """(projection float32[k, D], meta) of the descriptor file (default :func:`descriptor_path`)."""
+    import numpy as np
+
     path = path or descriptor_path()
     if not path.is_file():
         raise DescriptorMissing(f"{path}: no learned descriptor; run `make models` (or set [cad_embed] whitening "
