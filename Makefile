@@ -90,7 +90,7 @@ browser:
 
 models: $(NANODET) cad-library
 	$(BIN)/python -m bench.descriptor_train --warehouse $(DESCRIPTOR_WAREHOUSE) --out $(CADESTATE_MODELS) \
-	  --seed $(DESCRIPTOR_SEED) --no-progress
+	  --seed $(DESCRIPTOR_SEED)
 
 $(NANODET): | setup
 	$(BIN)/python -m tasks.detection.models.nanodet $(CADESTATE_MODELS)

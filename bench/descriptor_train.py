@@ -190,6 +190,8 @@ def ensure_library(wh: Warehouse, show_progress: bool = True) -> None:
     """Ingest the embedded CAD library into ``wh`` unless it holds view descriptors already."""
     if wh.partitions("cad_embeddings"):
         return
+    print(f"descriptor: ingesting the embedded CAD library into the training warehouse {wh.root} (about 4 minutes)",
+          file=sys.stderr, flush=True)
     from cadestate.config import CadEmbedConfig, Config, WarehouseConfig
     from flows.runtime import prepare_prefect_environment
 
@@ -223,12 +225,16 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     if crops_file.is_file():
         crops = CropSet.load(crops_file)
     else:
+        print(f"descriptor: rendering {spec.rooms} training rooms, {spec.frames} frames each (about 10 minutes on 2 cores; "
+              f"kept in {crops_file.name})", file=sys.stderr, flush=True)
         crops = render_crops(wh, spec, show_progress)
         out_dir.mkdir(parents=True, exist_ok=True)
         tmp = crops_file.with_suffix(".tmp.npz")
         crops.save(tmp)
         tmp.replace(crops_file)
     t1 = time.perf_counter()
+    print(f"descriptor: training on {len(crops.vectors)} crops (every {spec.holdout_every}th room's held out), {spec.steps} steps "
+          f"(about 2 minutes)", file=sys.stderr, flush=True)
     W, report = train(views, crops, spec, show_progress)
     meta = {"spec": asdict(spec), "recipe": made_by, "library_digest": library, "models": int(len(views.cad_ids)), "tau": TAU,
             "crops_sha256": hashlib.sha256(crops.vectors.tobytes()).hexdigest(), **report}
