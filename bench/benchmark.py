@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from bench.eval_detection import FrameBoxes, evaluate_detections
-from bench.ignore import is_ignored
+from bench.ignore import box_fractions, is_ignored
 from bench.labels import label_statistics
 from bench.stats import dataset_statistics, statistics_markdown
 from bench.walkthrough import WalkthroughSpec, generate_clip
@@ -110,9 +110,7 @@ def clip_sources(bench_dir: Path) -> list[ClipSource]:
 
 def ignore_rule(bench_dir: Path, clip: str) -> Callable[[ObjectAnnotation, TrackEntry], bool]:
     """``gt_ignore(object, entry)`` for one clip, from its visibility file and the class vocabulary."""
-    visibility = json.loads((Path(bench_dir) / clip / "visibility.json").read_text())
-    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
-                 for f in visibility["frames"] for o in f["objects"]}
+    fractions = box_fractions(bench_dir, clip)
 
     def gt_ignore(obj: ObjectAnnotation, entry: TrackEntry) -> bool:
         visible, truncated = fractions.get((entry.timestamp, obj.track_id), (0.0, 1.0))

@@ -26,6 +26,7 @@ from PIL import Image
 
 from bench.scene import generate_scene
 from bench.walkthrough import ROOM_INSTANCE_ID, WalkthroughSpec, camera_path, load_mesh, random_lighting
+from cadestate.atomic import atomic_write_bytes
 from cadestate.geometry import hfov_intrinsics, intrinsics_matrix
 from cadestate.render import Camera, Instance, Renderer
 from tasks.detection.models.embedder import Embedder
@@ -76,7 +77,10 @@ class CropSet:
         return CropSet(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("vectors", "cad_ids", "rooms", "visible_px")))
 
     def save(self, path: Path) -> None:
-        np.savez(path, vectors=self.vectors, cad_ids=self.cad_ids.astype(str), rooms=self.rooms, visible_px=self.visible_px)
+        """Write the set to ``path`` atomically (folders made as needed)."""
+        buf = io.BytesIO()
+        np.savez(buf, vectors=self.vectors, cad_ids=self.cad_ids.astype(str), rooms=self.rooms, visible_px=self.visible_px)
+        atomic_write_bytes(path, buf.getvalue())
 
     @staticmethod
     def load(path: Path) -> CropSet:

@@ -31,22 +31,23 @@ from bench.eval_retrieval import retrieval_recall
 from tasks.retrieval.descriptor import load_descriptor
 from tasks.retrieval.index import LibraryIndex, build_index, list_matrix
 from tasks.retrieval.retrieval import score_tracks, top_order
-from tasks.retrieval.whitening import fit_whitening
 from warehouse import Warehouse
 
 METHODS = ("whiten", "learned")
 TOP_K = 10
 
 
-def whitened_index(wh: Warehouse, library: str, method: str, dims: int = 128) -> LibraryIndex:
+def whitened_index(wh: Warehouse, library: str, method: str) -> LibraryIndex:
     """``library``'s retrieval index with its views whitened by ``method`` (fitted now on the raw
-    view descriptors of ``cad_embeddings``, as ``cad_embed`` would)."""
-    from tasks.cad.embed import model_embeddings
+    view descriptors of ``cad_embeddings``, as ``cad_embed`` fits it with the default
+    ``[cad_embed]`` otherwise)."""
+    from cadestate.config import CadEmbedConfig
+    from tasks.cad.embed import library_whitening, model_embeddings
 
     base = build_index(wh, library)
     views = wh.read("cad_embeddings", partitions=[library], columns=["cad_id", "vector"])
     raw = list_matrix(views.column("vector"))
-    fitted = fit_whitening(raw, method, dims, load_descriptor()[0] if method == "learned" else None)
+    fitted = library_whitening(raw, CadEmbedConfig(whitening=method))
     per_model = model_embeddings(library, dict(zip(base.cad_ids.tolist(), base.classes.tolist())),
                                  views.column("cad_id").to_pylist(), fitted.apply(raw))
     assert per_model.column("cad_id").to_pylist() == base.cad_ids.tolist()
@@ -56,18 +57,25 @@ def whitened_index(wh: Warehouse, library: str, method: str, dims: int = 128) ->
 def gt_tracks(bench_dir: Path, clip: str) -> list[tuple[str, str, np.ndarray]]:
     """(cad_id, class name, raw descriptors float32[n, D] of its in-view boxes) of every object in view."""
     from bench.benchmark import CLASS_NAMES
-    from bench.ignore import box_in_view, clip_objects_in_view
+    from bench.ignore import box_fractions, box_in_view, clip_objects_in_view
     from bench.track_bench import gt_clip
     from schemas.official import read_objects
 
     cb = gt_clip(bench_dir, clip, embed=True)
-    visibility = json.loads((bench_dir / clip / "visibility.json").read_text())
-    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
-                 for f in visibility["frames"] for o in f["objects"]}
+    fractions = box_fractions(bench_dir, clip)
     good = np.array([box_in_view(*fractions.get((int(t), str(o)), (0.0, 1.0))) for t, o in zip(cb.timestamp_us, cb.truth)], bool)
     objects = {o.track_id: o for o in read_objects(bench_dir / clip / "objects.json").objects}
     return [(objects[o].cad_id, CLASS_NAMES.get(objects[o].cls, "other"), cb.vectors[good & (cb.truth == o)])
             for o in sorted(clip_objects_in_view(bench_dir, clip))]
+
+
+def ranked(libs: list[LibraryIndex], scores: list[np.ndarray]) -> list[tuple[str, str]]:
+    """The first :data:`TOP_K` (cad_id, class) over all libraries, given each library's scores
+    float[M_l] of one track, ordered as the retrieval stage orders them."""
+    score = np.concatenate(scores)
+    cad_ids = np.concatenate([lib.cad_ids for lib in libs])
+    classes = np.concatenate([lib.classes for lib in libs])
+    return [(cad_ids[m], classes[m]) for m in top_order(score, cad_ids, TOP_K)]
 
 
 def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]) -> dict[str, dict]:
@@ -77,17 +85,13 @@ def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]
     tracks = [(d.name, clip, *t) for d in bench_dirs for clip in read_manifest(d).clips for t in gt_tracks(d, clip)]
     out = {}
     for method, libs in indexes.items():
-        ranked, truth = {}, {}
+        ranks, truth = {}, {}
         for k, (_, _, cad_id, cls, raw) in enumerate(tracks):
             truth[k] = (cad_id, cls)
             if not len(raw):
                 continue
-            parts = [(lib, (len(raw) + lib.whitening.apply(raw).sum(0) @ lib.vectors.T) / (2 * len(raw))) for lib in libs]
-            score = np.concatenate([p for _, p in parts])
-            cad_ids = np.concatenate([lib.cad_ids for lib, _ in parts])
-            classes = np.concatenate([lib.classes for lib, _ in parts])
-            ranked[k] = [(cad_ids[m], classes[m]) for m in top_order(score, cad_ids, TOP_K)]
-        out[method] = retrieval_recall(ranked, truth).as_dict()
+            ranks[k] = ranked(libs, [(len(raw) + lib.whitening.apply(raw).sum(0) @ lib.vectors.T) / (2 * len(raw)) for lib in libs])
+        out[method] = retrieval_recall(ranks, truth).as_dict()
     return out
 
 
@@ -109,16 +113,13 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
         per_clip.append((clip, *track_groups(wh, clip), truth))
     out = {}
     for (method, libs), x in ((m, x) for m in indexes.items() for x in class_exponents):
-        ranked, truth = {}, {}
+        ranks, truth = {}, {}
         for clip, ids, groups, clip_truth in per_clip:
             truth.update(clip_truth)
-            parts = [(lib, score_tracks(groups, lib, x)[0]) for lib in libs]
-            score = np.concatenate([p for _, p in parts], 1)
-            cad_ids = np.concatenate([lib.cad_ids for lib, _ in parts])
-            classes = np.concatenate([lib.classes for lib, _ in parts])
+            scores = [score_tracks(groups, lib, x)[0] for lib in libs]
             for t, track_id in enumerate(ids):
-                ranked[(clip, track_id)] = [(cad_ids[m], classes[m]) for m in top_order(score[t], cad_ids, TOP_K)]
-        out[method if x == 1.0 else f"{method} c^{x:g}"] = {"clips": len(clips), **retrieval_recall(ranked, truth).as_dict()} if truth else None
+                ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores])
+        out[method if x == 1.0 else f"{method} c^{x:g}"] = {"clips": len(clips), **retrieval_recall(ranks, truth).as_dict()} if truth else None
     return out
 
 

@@ -36,8 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from bench.descriptor_data import CropSet, room_crops
+from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest, file_sha256
 from cadestate.progress import progress
+from tasks.detection.models.embedder import Embedder
 from tasks.retrieval.descriptor import DESCRIPTOR_NAME, save_descriptor
 from tasks.retrieval.index import list_matrix
 from tasks.retrieval.whitening import fit_whitening
@@ -83,14 +85,11 @@ def library_views(wh: Warehouse) -> LibraryViews:
     return LibraryViews(list_matrix(table.column("vector")), model.astype(np.int64), cad_ids)
 
 
-def render_crops(wh: Warehouse, spec: TrainSpec, show_progress: bool = True) -> CropSet:
+def render_crops(wh: Warehouse, spec: TrainSpec, embedder: Embedder, show_progress: bool = True) -> CropSet:
     """The crops of every training room (:func:`bench.descriptor_data.room_crops`)."""
-    from cadestate.config import EmbedConfig
     from cadestate.render import Renderer
-    from tasks.detection.models.embedder import load_embedder
 
     models = wh.read("cad_models").to_pylist()
-    embedder = load_embedder(EmbedConfig())
     parts = []
     with Renderer(640, 360, 2) as renderer:
         for r in progress(range(spec.rooms), total=spec.rooms, description="training rooms", enabled=show_progress):
@@ -175,15 +174,12 @@ RECIPE_SOURCES = ("bench/descriptor_data.py", "bench/descriptor_train.py", "benc
 """The code whose bytes enter the recipe digest (relative to the repository root)."""
 
 
-def recipe(spec: TrainSpec, library: str) -> str:
+def recipe(spec: TrainSpec, library: str, embedder_sha256: str) -> str:
     """Digest of what makes the descriptor: the spec, :data:`RECIPE_SOURCES`, the embedder
     graph's SHA-256 and the library's digest."""
-    from cadestate.config import EmbedConfig
-    from tasks.detection.models.embedder import load_embedder
-
     root = Path(__file__).resolve().parents[1]
     return digest(json.dumps(asdict(spec), sort_keys=True), *(file_sha256(root / f) for f in RECIPE_SOURCES),
-                  load_embedder(EmbedConfig()).sha256, library, str(TAU))
+                  embedder_sha256, library, str(TAU))
 
 
 def ensure_library(wh: Warehouse, show_progress: bool = True) -> None:
@@ -210,11 +206,14 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     """Render the training crops (kept beside the output, per spec and library), train, write the
     descriptor file into ``out_dir``; returns its path. Returns at once when the file there was
     made by the same recipe (:func:`recipe`)."""
+    from cadestate.config import EmbedConfig
+    from tasks.detection.models.embedder import load_embedder
     from tasks.retrieval.descriptor import DescriptorMissing, load_descriptor
 
     views = library_views(wh)
     library = digest(*views.cad_ids.tolist())
-    made_by = recipe(spec, library)
+    embedder = load_embedder(EmbedConfig())
+    made_by = recipe(spec, library, embedder.sha256)
     try:
         if load_descriptor(out_dir / DESCRIPTOR_NAME)[1].get("recipe") == made_by:
             return out_dir / DESCRIPTOR_NAME
@@ -227,11 +226,8 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     else:
         print(f"descriptor: rendering {spec.rooms} training rooms, {spec.frames} frames each (about 10 minutes on 2 cores; "
               f"kept in {crops_file.name})", file=sys.stderr, flush=True)
-        crops = render_crops(wh, spec, show_progress)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        tmp = crops_file.with_suffix(".tmp.npz")
-        crops.save(tmp)
-        tmp.replace(crops_file)
+        crops = render_crops(wh, spec, embedder, show_progress)
+        crops.save(crops_file)
     t1 = time.perf_counter()
     print(f"descriptor: training on {len(crops.vectors)} crops (every {spec.holdout_every}th room's held out), {spec.steps} steps "
           f"(about 2 minutes)", file=sys.stderr, flush=True)
@@ -240,7 +236,7 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
             "crops_sha256": hashlib.sha256(crops.vectors.tobytes()).hexdigest(), **report}
     path = save_descriptor(out_dir / DESCRIPTOR_NAME, W, meta)
     timings = {"render_s": round(t1 - t0, 1), "train_s": round(time.perf_counter() - t1, 1)}
-    (out_dir / "descriptor-report.json").write_text(json.dumps({**meta, **timings, "sha256": file_sha256(path)}, indent=1))
+    atomic_write_bytes(out_dir / "descriptor-report.json", json.dumps({**meta, **timings, "sha256": file_sha256(path)}, indent=1).encode())
     return path
 
 

@@ -85,17 +85,23 @@ def objects_in_view(boxes: Iterable[tuple[str, float, float]], min_frames: int =
     return {obj for obj, n in frames.items() if n >= min_frames}
 
 
+def box_fractions(bench_dir: Path, clip: str) -> dict[tuple[int, str], tuple[float, float]]:
+    """(camera timestamp, ground-truth track id) -> (visible fraction, truncated fraction) of every
+    box of the benchmark clip, from its ``visibility.json``. A box missing there is neither visible
+    nor in the image: look it up with ``.get(key, (0.0, 1.0))``."""
+    visibility = json.loads((Path(bench_dir) / clip / "visibility.json").read_text())
+    return {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
+            for f in visibility["frames"] for o in f["objects"]}
+
+
 def clip_objects_in_view(bench_dir: Path, clip: str, min_frames: int = MIN_FRAMES_IN_VIEW) -> set[str]:
     """Ground-truth track ids of the benchmark clip's objects in view, from its ``objects.json``
-    (the boxes) and ``visibility.json`` (their fractions; a box missing there is not in view)."""
+    (the boxes) and ``visibility.json`` (their fractions, :func:`box_fractions`)."""
     from schemas.official import read_objects
 
-    folder = Path(bench_dir) / clip
-    visibility = json.loads((folder / "visibility.json").read_text())
-    fractions = {(f["timestamp"], o["track_id"]): (o["visible_fraction"], o["truncated_fraction"])
-                 for f in visibility["frames"] for o in f["objects"]}
+    fractions = box_fractions(bench_dir, clip)
     boxes = [(obj.track_id, *fractions.get((e.timestamp, obj.track_id), (0.0, 1.0)))
-             for obj in read_objects(folder / "objects.json").objects for e in obj.track]
+             for obj in read_objects(Path(bench_dir) / clip / "objects.json").objects for e in obj.track]
     return objects_in_view(boxes, min_frames)
 
 

@@ -24,7 +24,7 @@ from tasks.detection.detect import load_rgb, prefetch
 from tasks.detection.embed import vectors_array
 from tasks.detection.models.embedder import load_embedder
 from tasks.retrieval.descriptor import descriptor_inputs, load_descriptor
-from tasks.retrieval.whitening import fit_whitening, whitening_table
+from tasks.retrieval.whitening import Whitening, fit_whitening, whitening_table
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
@@ -55,6 +55,13 @@ def model_embeddings(library: str, classes: dict[str, str], cad_ids: list[str], 
     }, schema=CAD_MODEL_EMBEDDINGS.schema)
 
 
+def library_whitening(vectors: np.ndarray, cfg: CadEmbedConfig) -> Whitening:
+    """The ``[cad_embed] whitening`` of a library whose raw view descriptors are ``vectors``
+    float[N, D]: fitted on them, or for 'learned' the trained projection centred on them."""
+    learned = load_descriptor()[0] if cfg.whitening == "learned" else None
+    return fit_whitening(vectors, cfg.whitening, cfg.whitening_dims, learned)
+
+
 def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, library: str, run_id: str,
                   show_progress: bool = True) -> StageOutput:
     """Embed every view of ``library``, fit the whitening, write both tables."""
@@ -76,8 +83,7 @@ def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, li
         "view": pa.array([v["view"] for v in views], pa.int32()), "vector": vectors_array(vectors),
         "model_sha256": [embedder.sha256] * len(views),
     }, schema=wh.spec("cad_embeddings").schema)
-    learned = load_descriptor()[0] if cfg.whitening == "learned" else None
-    fitted = fit_whitening(vectors, cfg.whitening, cfg.whitening_dims, learned)
+    fitted = library_whitening(vectors, cfg)
     whitening = whitening_table(library, fitted, len(views)).cast(wh.spec("embedding_whitening").schema)
     classes = {r["cad_id"]: r["class"] for r in wh.read("cad_models", partitions=[library], columns=["cad_id", "class"]).to_pylist()}
     per_model = model_embeddings(library, classes, [v["cad_id"] for v in views], fitted.apply(vectors))

@@ -55,6 +55,8 @@ def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent:
     M = 120,000, OpenBLAS's threads, spinning for a worker that 2 busy cores did not schedule, burnt
     up to 0.8 s of CPU per clip (``python -m bench.retrieval_bench``)."""
     T, M = len(tracks), len(index.cad_ids)
+    weight = index.class_sim if class_exponent == 1.0 else {
+        label: c ** np.float32(class_exponent) for label, c in index.class_sim.items()}  # per label, once per call
     score, appearance, cls = (np.zeros((T, M), np.float32) for _ in range(3))
     with threadpool_limits(1, user_api="blas"):
         for t, track in enumerate(tracks):
@@ -66,7 +68,7 @@ def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent:
                 dots = index.whitening.apply(raw).sum(0) @ index.vectors.T  # sum over the group's detections
                 part = (n + dots) / 2  # sum over detections of (1 + cos) / 2, per model
                 c = index.class_sim[label]
-                score[t] += (c if class_exponent == 1.0 else c ** np.float32(class_exponent)) * part / F
+                score[t] += weight[label] * part / F
                 appearance[t] += part / F
                 cls[t] += c * n / F
     return score, appearance, cls
