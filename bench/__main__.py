@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from bench import (annotate_bench, cad_throughput, cli_bench, cluster_throughput, descriptor_eval, detect_throughput,
-                   frames_throughput, pose_bench, retrieval_bench, sfm_bench, stage_times, track_bench, warehouse_scale)
+                   detector_eval, frames_throughput, pose_bench, retrieval_bench, sfm_bench, stage_times, track_bench, warehouse_scale)
 
 RESULTS = Path("bench/results")
 BENCHMARKS = [Path(os.environ.get("BENCH_DIR", "data/bench/default")), Path(os.environ.get("FRESH_DIR", "data/bench/fresh-60606"))]
@@ -26,6 +26,7 @@ def main() -> int:
         "pose": pose_bench.run(),
         "sfm": sfm_bench.run(),
         "retrieval": retrieval_bench.sizes(),
+        "detectors": detector_eval.run([b for b in BENCHMARKS if b.is_dir()]),
         "retrieval_descriptor": descriptor_eval.run([b for b in BENCHMARKS if b.is_dir()], track_bench.open_warehouse(), tracks=True),
         "tracking": track_bench.run(track_bench.BENCH_DIR, quick=True),  # without a benchmark: its synthetic parts
         "end_to_end": stage_times.run(),

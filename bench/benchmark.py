@@ -207,7 +207,7 @@ def report_markdown(result: dict) -> str:
              *yield_markdown(result.get("yield")),
              "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
-             f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden, cut off, or no COCO class).", "",
+             f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden or cut off, or of a class no detector is asked to find).", "",
              "## Simulated annotators (label files of `cadestate bench run`)", "",
              "| | |", "|---|---:|", *[f"| {k.replace('_', ' ')} | {v} |" for k, v in result["simulated_labels"].items()], "",
              *detection_markdown(result.get("detection")),

@@ -25,7 +25,6 @@ whose recipe equals the file's returns at once, so ``make models`` retrains only
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import sys
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.descriptor_data import CropSet, room_crops
+from bench.training_cli import training_main
 from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest, file_sha256
 from cadestate.progress import progress
@@ -182,26 +182,6 @@ def recipe(spec: TrainSpec, library: str, embedder_sha256: str) -> str:
                   embedder_sha256, library, str(TAU))
 
 
-def ensure_library(wh: Warehouse, show_progress: bool = True) -> None:
-    """Ingest the embedded CAD library into ``wh`` unless it holds view descriptors already."""
-    if wh.partitions("cad_embeddings"):
-        return
-    print(f"descriptor: ingesting the embedded CAD library into the training warehouse {wh.root} (about 4 minutes)",
-          file=sys.stderr, flush=True)
-    from cadestate.config import CadEmbedConfig, Config, WarehouseConfig
-    from flows.runtime import prepare_prefect_environment
-
-    prepare_prefect_environment(wh.root)  # before Prefect is imported: the warehouse's Prefect home, quiet logs
-    from flows.cad_library import run_cad_library
-    from tasks.cad.sources import default_source, source_items
-
-    config = Config(warehouse=WarehouseConfig(root=str(wh.root)), cad_embed=CadEmbedConfig(whitening="whiten"))
-    reports = run_cad_library(source_items("sweethome3d", default_source()), config, show_progress)
-    failed = [f"{r.stage} {r.clip}: {r.message}" for r in reports if r.state == "failed"]
-    if failed:
-        raise SystemExit(f"the training library did not build: {'; '.join(failed)}")
-
-
 def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = True) -> Path:
     """Render the training crops (kept beside the output, per spec and library), train, write the
     descriptor file into ``out_dir``; returns its path. Returns at once when the file there was
@@ -241,20 +221,7 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--warehouse", type=Path, required=True, help="the training warehouse (gets the embedded CAD library if it has none)")
-    parser.add_argument("--out", type=Path, required=True, help="models folder (the descriptor file is written there)")
-    defaults = TrainSpec()
-    for name in ("seed", "rooms", "frames", "steps"):
-        parser.add_argument(f"--{name}", type=int, default=getattr(defaults, name))
-    parser.add_argument("--no-progress", action="store_true")
-    args = parser.parse_args(argv)
-    spec = TrainSpec(seed=args.seed, rooms=args.rooms, frames=args.frames, steps=args.steps)
-    wh = Warehouse(args.warehouse)
-    ensure_library(wh, not args.no_progress)
-    path = build(wh, args.out, spec, not args.no_progress)
-    print(f"{path} sha256 {file_sha256(path)}")
-    return 0
+    return training_main(__doc__, TrainSpec, build, "the descriptor file", argv)
 
 
 if __name__ == "__main__":

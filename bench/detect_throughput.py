@@ -8,7 +8,8 @@ detector's own session on those inputs: ``ratio_to_bare_session`` is detection a
 session, ``ratio_to_own_session`` against the network alone with the pipeline's options (what
 letterbox, input preparation, decoding and NMS add). Embedding: crops of every detected box,
 tiled to ``crops`` crops, through the ``[embed]`` default embedder (descriptors per second, crop
-preparation included).
+preparation included). ``coco_detect_ms_per_frame``: the COCO NanoDet-m (``[detect] model = "coco"``)
+in the same rounds, so ``ratio_to_coco`` says what the default furniture detector costs against it.
 """
 
 from __future__ import annotations
@@ -36,16 +37,17 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
         make_demo_clip(cache_dir, SPEC)
     images = [f.rgb for f in decode_at(video, parse_camera_file(cameras).timestamps_us)]
     detector, cfg = load_detector(DetectConfig()), DetectConfig()
+    coco = load_detector(DetectConfig(model="coco"))
     bare = onnxruntime.InferenceSession(str(detector_path(cfg)), providers=["CPUExecutionProvider"])
     name = bare.get_inputs()[0].name
     inputs = [np.stack([detector.layout.prepare(letterbox(im, detector.size, detector.layout.fill)[0])
                         for im in images[i:i + detector.batch_size]]) for i in range(0, len(images), detector.batch_size)]
-    timed = {"detect": lambda: detector.detect(images),
+    timed = {"detect": lambda: detector.detect(images), "coco": lambda: coco.detect(images),
              "bare": lambda: [bare.run(None, {name: x}) for x in inputs],
              "own": lambda: [detector.session.run(None, {name: x}) for x in inputs]}
     seconds: dict[str, list[float]] = {k: [] for k in timed}
     results = {}
-    for _ in range(repeats):  # interleaved: the three see the same load of the machine
+    for _ in range(repeats):  # interleaved: all see the same load of the machine
         for key, call in timed.items():
             t0 = time.perf_counter()
             results[key] = call()
@@ -67,6 +69,7 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
         "detect_ms_per_frame": round(ms["detect"], 1), "bare_session_ms_per_frame": round(ms["bare"], 1),
         "own_session_ms_per_frame": round(ms["own"], 1), "ratio_to_bare_session": round(ms["detect"] / ms["bare"], 3),
         "ratio_to_own_session": round(ms["detect"] / ms["own"], 3),
+        "coco_detect_ms_per_frame": round(ms["coco"], 1), "ratio_to_coco": round(ms["detect"] / ms["coco"], 3),
         "boxes_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
         "embeddings_per_s": round(crops / embed_s, 1), "crop_size": EmbedConfig().crop_size,
     }

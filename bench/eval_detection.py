@@ -1,8 +1,8 @@
 """Per-class detection recall and precision at IoU 0.5 on the synthetic benchmark.
 
-Detector labels are COCO names; ground-truth classes are the CAD vocabulary
-(:mod:`tasks.cad.classes`), whose ``coco`` fields say which COCO name stands for which class
-(``DETECTOR_TO_CLASS``; the classes of :data:`bench.ignore.COCO_CLASSES`). Per frame:
+Detector labels are the furniture detector's class names or COCO names; ground-truth classes are
+the CAD vocabulary (:mod:`tasks.cad.classes`); :func:`tasks.cad.classes.class_of_label` says which
+label stands for which class. Per frame:
 
 1. predictions on ignore regions are dropped (:func:`bench.ignore.predictions_to_drop`, the one
    ignore rule);
@@ -25,10 +25,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from bench.ignore import IGNORE_IOU, box_iou, predictions_to_drop
-from tasks.cad.classes import CLASSES
+from tasks.cad.classes import class_of_label
 
-DETECTOR_TO_CLASS: dict[str, str] = {label: c.name for c in CLASSES for label in c.coco if label != "laptop" or c.name == "laptop"}
-"""COCO label -> class ("laptop" is a class of its own, not a display)."""
 OTHER = "(other label)"
 
 
@@ -59,7 +57,7 @@ def evaluate_detections(frames: Iterable[FrameBoxes]) -> dict:
     for f in frames:
         keep = ~predictions_to_drop(f.pred_boxes, f.gt_boxes, f.gt_ignore)
         pred_boxes = np.asarray(f.pred_boxes, np.float64).reshape(-1, 4)[keep]
-        pred_cls = np.array([DETECTOR_TO_CLASS.get(label, OTHER) for label in f.pred_labels], dtype=object)[keep]
+        pred_cls = np.array([class_of_label(label) or OTHER for label in f.pred_labels], dtype=object)[keep]
         valid = ~np.asarray(f.gt_ignore, bool)
         gt_boxes = np.asarray(f.gt_boxes, np.float64).reshape(-1, 4)[valid]
         gt_cls = np.array(list(f.gt_classes), dtype=object)[valid]

@@ -18,12 +18,12 @@ from bench.eval_pose import (PosedObject, PoseReport, is_correct, match_and_scor
 from bench.eval_retrieval import RetrievalReport, retrieval_recall
 from bench.eval_tracking import (TrackBox, TrackingReport, apply_ignore, boxes_from_objects, evaluate_tracking,
                                  evaluate_tracking_clips)
-from bench.ignore import COCO_CLASSES, box_iou, is_ignored, predictions_to_drop
+from bench.ignore import DETECTABLE_CLASSES, box_iou, is_ignored, predictions_to_drop
 from bench.stats import dataset_statistics, statistics_markdown
 from schemas.official import ObjectAnnotation, ObjectsFile, TrackEntry
 
 __all__ = [
-    "COCO_CLASSES", "PoseReport", "PosedObject", "RetrievalReport", "TrackBox", "TrackingReport", "apply_ignore",
+    "DETECTABLE_CLASSES", "PoseReport", "PosedObject", "RetrievalReport", "TrackBox", "TrackingReport", "apply_ignore",
     "box_iou", "boxes_from_objects", "dataset_statistics", "evaluate_clips", "evaluate_tracking",
     "evaluate_tracking_clips", "is_correct", "is_ignored", "match_and_score", "posed_objects",
     "predictions_to_drop", "retrieval_recall", "rotation_error_deg", "scale_error_pct", "statistics_markdown",

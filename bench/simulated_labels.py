@@ -9,7 +9,7 @@ label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench
   matches (:func:`bench.retrieval_bench.track_truth`), drawn with
   :func:`bench.annotators.draw_manual_track` on the task's key-frames where they are not an
   ignore region (mostly hidden or cut off), as the task's class that corresponds to the object's
-  (its class's COCO labels, :mod:`tasks.cad.classes`); objects of no such class are left out.
+  (:func:`tasks.cad.classes.class_of_label`); objects of no such class are left out.
   ``source_id``: ``gt:<ground-truth track id>``. Nothing missing: an empty answer.
 - ``cad_selection``: a track matched to a ground-truth object (:func:`bench.retrieval_bench.track_truth`; a manual
   track too, by its boxes) gets :func:`bench.annotators.select_cad` of the object's true model among the track's candidates
@@ -48,7 +48,7 @@ from bench.noise import DEFAULT_NOISE, AnnotatorNoise
 from bench.retrieval_bench import track_truth
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import FramesFile, read_frames, read_objects
-from tasks.cad.classes import BY_NAME
+from tasks.cad.classes import class_of_label
 from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from tasks.video.world_up import clip_up_rotation, pose_to_input_world
@@ -128,10 +128,10 @@ def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
 
 
 def task_label(cls: str, classes: tuple[str, ...]) -> str | None:
-    """The first of the task's ``classes`` that names ground-truth class ``cls`` (a class id; its
-    class's COCO labels, :data:`tasks.cad.classes.CLASSES`), or None."""
-    known = BY_NAME.get(CLASS_NAMES.get(cls, ""))
-    return next((label for label in (known.coco if known else ()) if label in classes), None)
+    """The first of the task's ``classes`` that stands for ground-truth class ``cls`` (a class id;
+    :func:`tasks.cad.classes.class_of_label`), or None."""
+    name = CLASS_NAMES.get(cls)
+    return next((label for label in classes if name and class_of_label(label) == name), None)
 
 
 def _draw_missing(c: _Clip, bench_dir: Path, task, noise: AnnotatorNoise) -> list[dict]:

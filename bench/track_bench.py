@@ -58,7 +58,7 @@ from tasks.video.camera_file import parse_camera_file
 BENCH_DIR = Path("data/bench/default")
 CACHE = Path("data/bench/track_cache")
 RESULTS = Path("bench/results")
-CALIBRATION_FILE = Path(__file__).resolve().parent.parent / "tasks" / "track_calibration.py"
+CALIBRATION_FILE = Path(__file__).resolve().parent.parent / "tasks" / "tracking" / "calibration.py"
 
 
 @dataclass

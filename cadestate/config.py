@@ -177,11 +177,14 @@ class DetectConfig:
     """Stage ``detect``: run an ONNX object detector on every frame of a clip."""
 
     adapter: str = _opt("nanodet", "Output layout of the ONNX model (see tasks/detection/detectors.py): 'nanodet' or 'yolov8'.", choices=("nanodet", "yolov8"))
-    model: str = _opt("", "ONNX detector file; empty = the NanoDet-m built by `make models`.")
-    labels: tuple = _opt((), "Label map: class names in the model's output order; empty = COCO-80 (the default model's).")
+    model: str = _opt("furniture", "Detector: 'furniture' (NanoDet-m with class rows for the CAD classes, trained by `make models` on "
+                                   "rooms rendered from the CAD library), 'coco' (NanoDet-m, COCO-80), or an ONNX file.")
+    labels: tuple = _opt((), "Label map: class names in the model's output order; empty = the built-in model's (COCO-80 for a file).")
     input_size: int = _opt(416, "Side of the square letterboxed network input (416 for NanoDet-m, usually 640 for YOLOv8).", lo=32, hi=4096)
     score_threshold: float = _opt(0.35, "Lowest detection score kept.", lo=0.0, hi=1.0)
-    nms_iou: float = _opt(0.6, "Class-aware NMS: a box overlapping a better one of its class above this IoU is dropped.", lo=0.0, hi=1.0)
+    nms_iou: float = _opt(0.45, "Class-aware NMS: a box overlapping a better one of its class above this IoU is dropped.", lo=0.0, hi=1.0)
+    nms_containment: float = _opt(0.8, "Class-aware NMS: a box with more than this share of its area inside a better one of its class "
+                                       "is dropped (a part of an object boxed again); 1 = never.", lo=0.0, hi=1.0)
     max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
     classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
     batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)

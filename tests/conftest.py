@@ -4,6 +4,7 @@ one temporary PREFECT_HOME for the whole session (its ephemeral API starts once,
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -139,3 +140,21 @@ def pytest_terminal_summary(terminalreporter):
     if CASES:
         per = ", ".join(f"{k} {v}" for k, v in sorted(CASES.items()))
         terminalreporter.write_line(f"fuzz: {sum(CASES.values())} generated cases ran ({per})")
+
+
+@pytest.fixture
+def models_dir(tmp_path, monkeypatch):
+    """A models folder holding the verified NanoDet-m of `make models` (linked) and nothing else,
+    set as $CADESTATE_MODELS for the test."""
+    from tasks.detection.models import nanodet
+
+    source = nanodet.default_cache_dir()
+    if not nanodet.is_built(source):
+        pytest.skip("the NanoDet-m model is not built (run `make models`)")
+    out = tmp_path / "models"
+    out.mkdir()
+    for name in (nanodet.ONNX_NAME, nanodet.NOTICE_NAME, nanodet.LICENSE_NAME):
+        f = source / name
+        os.link(f, out / name) if f.stat().st_dev == out.stat().st_dev else shutil.copy2(f, out / name)
+    monkeypatch.setenv("CADESTATE_MODELS", str(out))
+    return out

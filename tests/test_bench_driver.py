@@ -35,7 +35,7 @@ def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
 
 def test_ignore_rule_uses_visibility_and_class(benchmark):
     from bench.benchmark import CLASS_NAMES
-    from bench.ignore import COCO_CLASSES, MAX_TRUNCATED_FRACTION, MIN_VISIBLE_FRACTION
+    from bench.ignore import DETECTABLE_CLASSES, MAX_TRUNCATED_FRACTION, MIN_VISIBLE_FRACTION
 
     folder, manifest, _ = benchmark
     seen = set()
@@ -45,13 +45,31 @@ def test_ignore_rule_uses_visibility_and_class(benchmark):
                      for f in visibility["frames"] for o in f["objects"]}
         gt_ignore = ignore_rule(folder, clip)
         for obj in read_objects(folder / clip / "objects.json").objects:
-            coco = CLASS_NAMES[obj.cls] in COCO_CLASSES
+            coco = CLASS_NAMES[obj.cls] in DETECTABLE_CLASSES
             for entry in obj.track:
                 visible, truncated = fractions[(entry.timestamp, obj.track_id)]
                 expected = not coco or visible < MIN_VISIBLE_FRACTION or truncated > MAX_TRUNCATED_FRACTION
                 assert gt_ignore(obj, entry) == expected
                 seen.add((coco, expected))
-    assert {(True, False), (True, True)} <= seen  # both outcomes occur for COCO classes
+    assert {(True, False), (True, True)} <= seen  # both outcomes occur for detectable classes
+
+
+def test_detector_eval_scores_both_built_in_detectors_on_the_same_ground_truth(benchmark):
+    from bench.detector_eval import markdown, run
+    from tasks.detection.models import furniture_files, nanodet
+
+    if not furniture_files.is_built(nanodet.default_cache_dir()):
+        pytest.skip("the furniture detector is not built (run `make models`)")
+    folder, manifest, _ = benchmark
+    result = run([folder])[str(folder)]
+    assert set(result) == {"coco", "furniture"}
+    assert result["coco"]["per_class"].keys() - {"(other label)"} <= result["furniture"]["per_class"].keys() | {"laptop", "clock"}
+    truth = {c: v["ground_truth"] for c, v in result["coco"]["per_class"].items() if v["ground_truth"]}
+    assert truth and truth == {c: v["ground_truth"] for c, v in result["furniture"]["per_class"].items() if v["ground_truth"]}
+    for r in result.values():
+        assert 0 <= (r["recall"] or 0) <= r["class_agnostic_recall"] <= 1
+    table = "\n".join(markdown({str(folder): result}))
+    assert "| coco |" in table and "| furniture |" in table
 
 
 def test_report_has_statistics_and_pictures(benchmark):

@@ -12,7 +12,7 @@ import pytest
 from bench.eval_pose import (PosedObject, is_correct, match_and_score, rotation_error_deg, scale_error_pct,
                              symmetry_order, translation_error)
 from bench.eval_retrieval import retrieval_recall
-from bench.ignore import COCO_CLASSES, box_iou, is_ignored, predictions_to_drop
+from bench.ignore import DETECTABLE_CLASSES, box_iou, is_ignored, predictions_to_drop
 from bench.stats import dataset_statistics, statistics_markdown
 from schemas.official import Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry
 
@@ -155,8 +155,9 @@ def test_ignore_rule():
     assert not is_ignored("chair", 0.3, 0.5)
     assert is_ignored("chair", 0.29, 0.0)
     assert is_ignored("chair", 1.0, 0.51)
-    assert is_ignored("lamp", 1.0, 0.0)
-    assert not is_ignored("lamp", coco_classes={"lamp"})
+    assert not is_ignored("lamp", 1.0, 0.0)
+    assert is_ignored("lamp", 1.0, 0.0, detectable={"chair"})
+    assert is_ignored("door", 1.0, 0.0)
     assert box_iou([[0, 0, 1, 1]], [[0, 0, 1, 0.5], [2, 2, 3, 3]]) == pytest.approx(np.array([[0.5, 0.0]]))
     # prediction 0 is on the ignore box; prediction 1 covers a real object also overlapping the ignore box
     gt = np.array([[0, 0, 0.2, 0.2], [0.5, 0.5, 0.7, 0.7], [0.5, 0.5, 0.69, 0.69]])
@@ -165,10 +166,11 @@ def test_ignore_rule():
     assert predictions_to_drop(pred, gt, ignore).tolist() == [True, False, False]
 
 
-def test_coco_classes_exist_in_the_vocabulary():
+def test_detectable_classes_are_every_class_the_rooms_hold():
+    from bench.scene import EXCLUDED_CLASSES
     from tasks.cad.classes import BY_NAME
 
-    assert all(name in BY_NAME and BY_NAME[name].coco for name in COCO_CLASSES)
+    assert DETECTABLE_CLASSES == set(BY_NAME) - EXCLUDED_CLASSES
 
 
 # ---------------------------------------------------------------- tracking
@@ -314,11 +316,16 @@ def test_stats_on_two_clips():
 
 
 # ---- detection -------------------------------------------------------------------------------------
-def test_detection_mapping_covers_the_detectable_classes():
-    from bench.eval_detection import DETECTOR_TO_CLASS
+def test_detector_labels_stand_for_classes():
+    from tasks.cad.classes import class_of_label
+    from tasks.detection.models.furniture_files import FURNITURE_CLASSES, FURNITURE_LABELS
     from tasks.detection.models.nanodet import COCO_LABELS
 
-    assert set(DETECTOR_TO_CLASS.values()) == set(COCO_CLASSES) and set(DETECTOR_TO_CLASS) <= set(COCO_LABELS)
+    assert {class_of_label(label) for label in FURNITURE_LABELS} - {None} == set(FURNITURE_CLASSES) | {"laptop", "clock", "vehicle"}
+    assert [class_of_label(label) for label in ("couch", "dining table", "tv", "laptop", "vase", "oven", "cat", "other")] == [
+        "sofa", "table", "display", "laptop", "jar", "stove", None, None]
+    coco_found = {class_of_label(label) for label in COCO_LABELS} - {None}
+    assert coco_found < DETECTABLE_CLASSES | {"laptop", "clock", "vehicle"} and "cabinet" not in coco_found
 
 
 def test_detection_recall_precision_by_hand():

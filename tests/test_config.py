@@ -107,9 +107,9 @@ def test_unreadable_and_odd_files(tmp_path, monkeypatch):
 
 def test_config_check_checks_the_detect_model(tmp_path):
     f = tmp_path / "c.toml"
-    f.write_text('[detect]\nclasses = ["sofa"]\n')  # COCO-80 says "couch"
+    f.write_text('[detect]\nmodel = "coco"\nclasses = ["sofa"]\n')  # COCO-80 says "couch"
     assert_clean_error(run_cli("config", "check", str(f)),
-                       mentions=f"{f}: [detect] classes: 'sofa' not in the default COCO-80 label map")
+                       mentions=f"{f}: [detect] classes: 'sofa' not in the label map of [detect] model = 'coco'")
     (tmp_path / "m.onnx").write_bytes(b"not a model")
     f.write_text(f'[detect]\nmodel = "{tmp_path / "m.onnx"}"\n')
     assert_clean_error(run_cli("config", "check", str(f)), mentions=f"{f}: [detect] model: {tmp_path / 'm.onnx'}: not an ONNX model")

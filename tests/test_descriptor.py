@@ -5,8 +5,6 @@ a benchmark, the training crops, the file and its digest, the 'learned' whitenin
 from __future__ import annotations
 
 import dataclasses
-import os
-import shutil
 
 import numpy as np
 import pytest
@@ -116,24 +114,6 @@ def test_training_learns_what_whitening_cannot_and_the_same_seed_gives_the_same_
     assert a.read_bytes() == b.read_bytes()
     other, _ = train(lib, crops, dataclasses.replace(spec, seed=2), show_progress=False)
     assert not np.array_equal(other, W)
-
-
-@pytest.fixture
-def models_dir(tmp_path, monkeypatch):
-    """A models folder holding the verified detector of `make models` (linked) and nothing else,
-    set as $CADESTATE_MODELS for the test."""
-    from tasks.detection.models import nanodet
-
-    source = nanodet.default_cache_dir()
-    if not nanodet.is_built(source):
-        pytest.skip("the NanoDet-m model is not built (run `make models`)")
-    out = tmp_path / "models"
-    out.mkdir()
-    for f in source.iterdir():
-        if f.is_file():
-            os.link(f, out / f.name) if f.stat().st_dev == out.stat().st_dev else shutil.copy2(f, out / f.name)
-    monkeypatch.setenv("CADESTATE_MODELS", str(out))
-    return out
 
 
 @pytest.mark.slow

@@ -261,7 +261,8 @@ def test_check_detect_config_reads_the_model_file(tmp_path):
 
 
 def test_check_detect_config_label_map(tmp_path):
-    assert check(tmp_path, classes=("sofa",)) == "classes: 'sofa' not in the default COCO-80 label map"
+    assert check(tmp_path, model="coco", classes=("sofa",)) == "classes: 'sofa' not in the label map of [detect] model = 'coco'"
+    assert check(tmp_path, classes=("couch",)) == "classes: 'couch' not in the label map of [detect] model = 'furniture'"
     assert check(tmp_path, labels=("a", "b"), classes=("b", "c")) == "classes: 'c' not in [detect] labels"
     assert check(tmp_path, labels=("a", " ")) == "labels: label 2 is blank"
     assert check(tmp_path, labels=("a", "b", "a")) == "labels: 'a' appears more than once"
@@ -270,8 +271,22 @@ def test_check_detect_config_label_map(tmp_path):
 def test_check_detect_config_on_the_default_model(tmp_path):
     from tasks.detection.detectors import detector_path
 
-    if not detector_path(DetectConfig()).is_file():
-        pytest.skip("the default detector is not built (`make models`)")
-    check_detect_config(DetectConfig(), None)  # COCO-80 fits NanoDet-m
-    assert check(tmp_path, labels=("chair", "sofa")) == "labels: the model scores 80 classes but [detect] labels has 2 names"
-    assert check(tmp_path, adapter="yolov8").startswith("adapter: the model's outputs [1, 2704, 80], ")
+    for model, classes in (("coco", 80), ("furniture", 89)):
+        if not detector_path(DetectConfig(model=model)).is_file():
+            pytest.skip(f"the {model} detector is not built (`make models`)")
+        check_detect_config(DetectConfig(model=model), None)  # its label map fits it
+        assert check(tmp_path, model=model, labels=("chair", "sofa")) == (
+            f"labels: the model scores {classes} classes but [detect] labels has 2 names")
+        assert check(tmp_path, model=model, adapter="yolov8").startswith(f"adapter: the model's outputs [1, 2704, {classes}], ")
+
+
+def test_nms_drops_a_part_boxed_again_inside_a_better_box_of_its_class():
+    whole = [0.0, 0.0, 100.0, 100.0]
+    seat = [10.0, 50.0, 90.0, 100.0]  # IoU 0.4 with the whole, all of it inside
+    shelf = [60.0, 60.0, 140.0, 140.0]  # a quarter of it inside the whole
+    boxes = np.array([whole, seat, shelf, seat])
+    scores, labels = np.array([0.9, 0.8, 0.7, 0.6]), np.array([0, 0, 0, 1])
+    assert nms(boxes, scores, labels, 0.45).tolist() == [0, 1, 2, 3]  # IoU alone keeps the part
+    assert nms(boxes, scores, labels, 0.45, containment=0.8).tolist() == [0, 2, 3]  # another class's part stays
+    assert nms(boxes, scores, labels, 0.45, containment=1.0).tolist() == [0, 1, 2, 3]
+    assert nms(boxes, scores, labels, 0.45, containment=0.2).tolist() == [0, 3]

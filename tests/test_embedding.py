@@ -102,6 +102,8 @@ def test_detect_and_embed_stages(detected):
     from tasks.detection.detect import DET_ID_STRIDE, detect_clip
     from tasks.detection.embed import embed_clip
 
+    from tasks.detection.model_inputs import detector_labels, model_fingerprint
+
     wh, cfg, out, emb = detected
     dets = wh.read("detections").to_pylist()
     assert out.rows_written == len(dets) > 0
@@ -110,8 +112,8 @@ def test_detect_and_embed_stages(detected):
         ymin, xmin, ymax, xmax = d["box"]
         assert 0 <= ymin < ymax <= 1 and 0 <= xmin < xmax <= 1
         assert d["timestamp_us"] == frames[d["frame_index"]] and d["det_id"] // DET_ID_STRIDE == d["frame_index"]
-        assert d["score"] >= cfg.score_threshold and d["label"] == nd.COCO_LABELS[d["label_id"]]
-        assert d["model_sha256"] == nd.ONNX_SHA256
+        assert d["score"] >= cfg.score_threshold and d["label"] == detector_labels(cfg)[d["label_id"]]
+        assert d["model_sha256"] == model_fingerprint(cfg)
     per_frame = {}
     for d in sorted(dets, key=lambda d: d["det_id"]):
         per_frame.setdefault(d["frame_index"], []).append(d["score"])

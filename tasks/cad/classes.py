@@ -59,6 +59,14 @@ CLASSES: tuple[CadClass, ...] = (
     CadClass("other", "cadestate-other", upright=False),
 )
 BY_NAME: dict[str, CadClass] = {c.name: c for c in CLASSES}
+_BY_COCO: dict[str, str] = {label: c.name for c in CLASSES for label in c.coco if label != "laptop" or c.name == "laptop"}
+
+
+def class_of_label(label: str) -> str | None:
+    """The class a detector label stands for: the class of that name (the furniture detector's
+    labels), else the class whose COCO labels hold it ("couch" -> sofa; "laptop" is a class of its
+    own, not a display), else None."""
+    return label if label in BY_NAME and label != "other" else _BY_COCO.get(label)
 
 # Ordered rules: the first pattern found in the lower-cased item name decides. Specific phrases
 # come before the general words they contain ("bedside table" before "bed", "sofa bed" ...), and

@@ -4,8 +4,8 @@ What the pipeline keeps per track becomes one :class:`DatasetObject` per physica
 
 - tracks: :func:`tasks.tracking.clip_tracks.clip_tracks` (automatic, then manual: ``is_track_automatic``
   false); boxes (ymin, xmin, ymax, xmax) normalised to [0, 1] (image frame, origin top-left);
-- class: the chosen CAD model's class; without one, the class whose COCO labels hold the
-  track's detector label (``other`` when none does);
+- class: the chosen CAD model's class; without one, the class the track's detector label stands
+  for (:func:`tasks.cad.classes.class_of_label`; ``other`` when none);
 - model: the answer in force of the CAD-selection task (absent: none chosen or not answered);
 - correspondences: the ``correspondences`` rows of the track on the chosen model: 2D normalised
   (x, y), 3D in the model's canonical CAD frame (unmirrored: the official "object space");
@@ -41,7 +41,8 @@ import numpy as np
 from cadestate.geometry import camera_to_world, project
 from cadestate.render import object_to_world
 from schemas.tracking import MANUAL_TRACK_BASE
-from tasks.cad.classes import CLASSES
+from tasks.cad import classes
+from tasks.cad.classes import BY_NAME
 from tasks.cad.export import ExportError
 from tasks.tracking.relations import TrackRelations, relations_in_force
 from tasks.video.world_up import pose_to_input_world, stored_rotation, unalign_extrinsics
@@ -133,13 +134,10 @@ class ClipDataset:
         return replace(self, frames=frames, objects=tuple(objects), up_rotation=np.eye(3))
 
 
-_BY_COCO = {label: c for c in reversed(CLASSES) for label in c.coco}
-_BY_NAME = {c.name: c for c in CLASSES}
-
-
 def class_of_label(label: str) -> tuple[str, str]:
-    """(class name, class id) of a detector label (``other`` when no class lists it)."""
-    c = _BY_COCO.get(label) or _BY_NAME.get(label) or _BY_NAME["other"]
+    """(class name, class id) of a detector label (:func:`tasks.cad.classes.class_of_label`;
+    ``other`` when it stands for no class)."""
+    c = BY_NAME[classes.class_of_label(label) or "other"]
     return c.name, c.id
 
 

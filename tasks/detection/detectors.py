@@ -34,8 +34,8 @@ import numpy as np
 
 from cadestate.config import ConfigError, DetectConfig
 from cadestate.lineage import file_sha256
-from tasks.detection.model_inputs import detector_path
-from tasks.detection.models import nanodet
+from tasks.detection.model_inputs import built_in, detector_labels, detector_path
+from tasks.detection.models import furniture_files, nanodet
 
 Shape = tuple[int | None, ...]
 """A tensor shape as a model declares it: None for a dimension it leaves open (named or unknown)."""
@@ -109,8 +109,10 @@ def letterbox(rgb: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray
     return canvas, lb
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float) -> np.ndarray:
-    """Class-aware greedy NMS; returns kept indices int64[K] by decreasing score."""
+def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float, containment: float = 1.0) -> np.ndarray:
+    """Class-aware greedy NMS; returns kept indices int64[K] by decreasing score. A box is dropped
+    when it overlaps a kept box of its class above ``iou`` (IoU), or when more than ``containment``
+    of its own area lies inside that box (a part of an object boxed again; 1.0: never)."""
     off = boxes + labels[:, None] * (np.abs(boxes).max(initial=0) + 1) * 2  # classes never overlap
     area = (off[:, 2] - off[:, 0]) * (off[:, 3] - off[:, 1])
     order = np.argsort(-scores, kind="stable")
@@ -120,7 +122,9 @@ def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float) -
         keep.append(int(i))
         wh = np.clip(np.minimum(off[i, 2:], off[rest, 2:]) - np.maximum(off[i, :2], off[rest, :2]), 0, None)
         inter = wh[:, 0] * wh[:, 1]
-        order = rest[inter / np.maximum(area[i] + area[rest] - inter, 1e-9) <= iou]
+        overlap = inter / np.maximum(area[i] + area[rest] - inter, 1e-9) <= iou
+        inside = inter / np.maximum(area[rest], 1e-9) <= containment
+        order = rest[overlap & inside]
     return np.array(keep, np.int64)
 
 
@@ -241,7 +245,7 @@ def onnx_shapes(path: Path) -> tuple[list[Shape], list[Shape]]:
 
 def _label_map_problem(cfg: DetectConfig) -> tuple[str, str] | None:
     """(key, what is wrong) with ``[detect] labels`` and ``classes`` on their own, or None."""
-    labels = cfg.labels or nanodet.COCO_LABELS
+    labels = detector_labels(cfg)
     blank = [i for i, name in enumerate(labels, start=1) if not name.strip()]
     if blank:
         return "labels", f"label {blank[0]} is blank"
@@ -250,7 +254,7 @@ def _label_map_problem(cfg: DetectConfig) -> tuple[str, str] | None:
         return "labels", f"{twice[0]!r} appears more than once"
     unknown = sorted(set(cfg.classes) - set(labels))
     if unknown:
-        which = "[detect] labels" if cfg.labels else "the default COCO-80 label map"
+        which = "[detect] labels" if cfg.labels else f"the label map of [detect] model = {cfg.model!r}"
         return "classes", f"{', '.join(map(repr, unknown))} not in {which}"
     return None
 
@@ -267,7 +271,7 @@ def check_detect_config(cfg: DetectConfig, source: str | None) -> None:
     where = source or "built-in defaults"
     problem = _label_map_problem(cfg)
     path = detector_path(cfg)
-    if problem is None and (cfg.model or path.is_file()):
+    if problem is None and (not built_in(cfg) or path.is_file()):
         if not path.is_file():
             problem = "model", f"{path}: no such file"
         else:
@@ -277,7 +281,7 @@ def check_detect_config(cfg: DetectConfig, source: str | None) -> None:
                 problem = "model", str(e)
             else:
                 problem = _input_problem(inputs[0], cfg.input_size) or output_problem(
-                    cfg.adapter, outputs, len(cfg.labels or nanodet.COCO_LABELS))
+                    cfg.adapter, outputs, len(detector_labels(cfg)))
     if problem:
         raise ConfigError(f"{where}: [detect] {problem[0]}: {problem[1]}")
 
@@ -319,7 +323,7 @@ class Detector:
     """An ONNX detector with its layout and label map; :meth:`detect` takes RGB uint8 images."""
 
     def __init__(self, model_path: Path, adapter: str, labels: Sequence[str], input_size: int, *,
-                 score_threshold: float = 0.35, nms_iou: float = 0.6, max_detections: int = 100,
+                 score_threshold: float = 0.35, nms_iou: float = 0.45, nms_containment: float = 0.8, max_detections: int = 100,
                  batch_size: int = 8, threads: int = 2) -> None:
         if adapter not in LAYOUTS:
             raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
@@ -327,6 +331,7 @@ class Detector:
             raise FileNotFoundError(f"detector model {model_path} not found (the default is built by `make models`)")
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
+        self.nms_containment = nms_containment
         self.session = load_session(Path(model_path), threads)
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
@@ -353,21 +358,24 @@ class Detector:
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
         """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""
         boxes, scores, labels = self.layout.candidates(outputs, self.size, len(self.labels), self.score_threshold)
-        k = nms(boxes, scores, labels, self.nms_iou)[: self.max_detections]
+        k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment)[: self.max_detections]
         return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
                           tuple(self.labels[i] for i in labels[k]))
 
 
 def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
     """The detector ``[detect]`` describes: its model (:func:`detector_path`), adapter and label
-    map (default: COCO-80)."""
+    map (:func:`detector_labels`). A built-in model must be the one `make models` built and checked
+    (NanoDet-m against its pinned SHA-256, the furniture detector against its JSON file's)."""
     model = detector_path(cfg)
-    if not cfg.model and not nanodet.is_built(model.parent):
-        raise FileNotFoundError(f"the default detector {model} is missing or not verified: run `make models`")
+    name = built_in(cfg)
+    verified = {"coco": nanodet.is_built, "furniture": furniture_files.is_built}
+    if name and not verified[name](model.parent):
+        raise FileNotFoundError(f"the {name} detector {model} is missing or not verified: run `make models`")
     problem = _label_map_problem(cfg)
     if problem:
         raise ValueError(f"[detect] {problem[0]}: {problem[1]}")
-    labels = cfg.labels or nanodet.COCO_LABELS
+    labels = detector_labels(cfg)
     return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
-                    nms_iou=cfg.nms_iou, max_detections=cfg.max_detections, batch_size=cfg.batch_size,
+                    nms_iou=cfg.nms_iou, nms_containment=cfg.nms_containment, max_detections=cfg.max_detections, batch_size=cfg.batch_size,
                     threads=cfg.threads)

@@ -13,12 +13,26 @@ from pathlib import Path
 from cadestate.atomic import atomic_write_bytes
 from cadestate.config import Config, DetectConfig
 from cadestate.lineage import digest, file_sha256
-from tasks.detection.models.nanodet_files import COCO_LABELS, ONNX_NAME, default_cache_dir
+from tasks.detection.models import furniture_files, nanodet_files
+from tasks.detection.models.nanodet_files import COCO_LABELS, default_cache_dir
+
+BUILT_IN: dict[str, tuple[str, tuple[str, ...]]] = {
+    "furniture": (furniture_files.ONNX_NAME, furniture_files.FURNITURE_LABELS),
+    "coco": (nanodet_files.ONNX_NAME, COCO_LABELS),
+}
+"""``[detect] model`` names of the detectors `make models` builds -> (file name in the models cache, label map)."""
+
+
+def built_in(cfg: DetectConfig) -> str | None:
+    """The built-in detector ``[detect] model`` names ('furniture' when empty), or None for a file."""
+    name = cfg.model or "furniture"
+    return name if name in BUILT_IN else None
 
 
 def detector_path(cfg: DetectConfig) -> Path:
-    """The ONNX file ``[detect] model`` names; empty: the NanoDet-m of `make models`."""
-    return Path(cfg.model).expanduser() if cfg.model else default_cache_dir() / ONNX_NAME
+    """The ONNX file ``[detect] model`` names: a built-in one in the models cache, or the file."""
+    name = built_in(cfg)
+    return default_cache_dir() / BUILT_IN[name][0] if name else Path(cfg.model).expanduser()
 
 
 def model_fingerprint(cfg: DetectConfig) -> str:
@@ -47,8 +61,9 @@ def cached_sha256(path: Path) -> str:
 
 
 def detector_labels(cfg: DetectConfig) -> tuple[str, ...]:
-    """The detector's label map: ``[detect] labels``, or COCO-80 for the default model."""
-    return tuple(cfg.labels) or COCO_LABELS
+    """The detector's label map: ``[detect] labels``, else the built-in model's, else COCO-80."""
+    name = built_in(cfg)
+    return tuple(cfg.labels) or (BUILT_IN[name][1] if name else COCO_LABELS)
 
 
 def labels_digest(cfg: DetectConfig) -> str:
