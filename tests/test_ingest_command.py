@@ -28,10 +28,10 @@ def test_bad_camera_file_is_refused_before_the_run(tmp_path, small_clip, started
 
 def test_bad_detect_config_is_refused_before_the_run(tmp_path, small_clip, started):
     config = tmp_path / "c.toml"
-    config.write_text('[detect]\nclasses = ["sofa"]\n')
+    config.write_text('[detect]\nclasses = ["couch"]\n')  # COCO's name; the default detector says "sofa"
     result = run_cli("-c", str(config), "-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path),
                      str(small_clip.cameras_path))
-    assert_clean_error(result, mentions=f"{config}: [detect] classes: 'sofa' not in the default COCO-80 label map")
+    assert_clean_error(result, mentions=f"{config}: [detect] classes: 'couch' not in the label map of [detect] model = 'furniture'")
     assert started == []
 
 

@@ -22,6 +22,7 @@ from cadestate.config import DESCRIPTOR_DIM, INT_RANGE, SECTIONS
 from cadestate.config import DetectConfig
 from fuzz.harness import assert_clean_error, count_case, run_cli, warehouse_digest
 from tasks.detection.detectors import detector_path
+from tasks.detection.model_inputs import detector_labels
 
 SUITE = "config"
 FIELDS = {(name, f.name): f for name, cls in SECTIONS.items() for f in dataclasses.fields(cls)}
@@ -155,9 +156,10 @@ def contradiction(draw, base: Entries) -> Case:
 def bad_model(draw, base: Entries, folder: Path) -> Case:
     kinds = ["junk", "missing", "folder"] + (["labels"] if detector_path(DetectConfig()).is_file() else [])
     kind = draw(st.sampled_from(kinds))
-    if kind == "labels":  # the default NanoDet-m scores the 80 COCO classes
-        labels = draw(st.lists(NAME, min_size=1, max_size=100, unique=True).filter(lambda ls: len(ls) != 80))
-        return render(with_entry(base, "detect", "labels", literal(labels))), "[detect] labels: the model scores 80 classes"
+    if kind == "labels":  # the default detector scores as many classes as its label map names
+        scored = len(detector_labels(DetectConfig()))
+        labels = draw(st.lists(NAME, min_size=1, max_size=100, unique=True).filter(lambda ls: len(ls) != scored))
+        return render(with_entry(base, "detect", "labels", literal(labels))), f"[detect] labels: the model scores {scored} classes"
     path = {"junk": folder / "model.onnx", "missing": folder / "absent.onnx", "folder": folder}[kind]
     if kind == "junk":
         path.write_bytes(draw(st.sampled_from([b"", b"not a model", b"\x08\x07"]) | st.binary(max_size=64)))
