@@ -2,18 +2,21 @@
 status`` of one clip, and typical SQL through the catalog.
 
 A synthetic warehouse of N clips is written in the project's layout (:mod:`warehouse.store`:
-``tables/<table>/clip=<clip>/part.parquet``, ``runs`` as one history file per clip, the CAD library
-under ``library=<name>``) straight with pyarrow, not through the pipeline: a few hundred thousand
+``tables/<table>/clip=<clip>/<time>-<id>.parquet``, ``runs`` as one history file per clip, the CAD
+library under ``library=<name>``) straight with pyarrow, not through the pipeline: a few hundred thousand
 Parquet files in minutes. Rows are plausible and typed by the real schemas (:data:`schemas.TABLES`):
 per clip its ``clips`` row, ``FRAMES`` frames, three detections a frame, six tracks, five poses of
 library models, and the twelve stage runs of ``runs``; one library of ``MODELS`` CAD models.
 Clips take their rows from one of a few generated templates (only names and times differ), which is
 what keeps writing 10,000 clips fast.
 
-Measured on it (medians of ``REPEATS``): ``Warehouse.write`` of one ``runs`` row (append) and of a
-clip's ``tracks`` (replace), ``cadestate status <clip>`` as a fresh process (wall; beside it
-``python -c "import duckdb"``, what every command pays before it starts), and three queries
-through :func:`warehouse.catalog.connect` (a fresh connection each):
+Measured on it (medians of ``REPEATS``): the three queries below over the files alone
+(``files_only``), then the snapshot ``cadestate compact`` takes (:mod:`warehouse.snapshot`; once,
+reading every file: ``snapshot_build_s``), then ``Warehouse.write`` of one ``runs`` row (append)
+and of a clip's ``tracks`` (replace), which leave files newer than the snapshot, ``cadestate status
+<clip>`` as a fresh process (wall; beside it ``python -c "import duckdb"``, what every command
+pays before it starts), and the three queries through :func:`warehouse.catalog.connect` (a fresh
+connection each):
 
 - objects per class: ``poses`` grouped by class;
 - poses joined with ``cad_models``: accepted models per licence and class;
@@ -170,7 +173,7 @@ def build(root: Path, clips: int, seed: int = 0) -> float:
     library = cad_models(rng)
     folder = wh.partition_dir("cad_models", LIBRARY)
     folder.mkdir(parents=True)
-    pq.write_table(library, folder / "part.parquet")
+    pq.write_table(library, folder / f"{0:020d}-00000000.parquet")
     models, classes = library.column("cad_id").to_pylist(), library.column("class").to_pylist()
     templates = [template(rng, "t", models, classes) for _ in range(TEMPLATES)]
     for i in range(clips):
@@ -178,8 +181,7 @@ def build(root: Path, clips: int, seed: int = 0) -> float:
         for table, rows in templates[i % TEMPLATES].items():
             folder = wh.partition_dir(table, clip)
             folder.mkdir(parents=True)
-            name = f"{i:020d}-00000000.parquet" if wh.info[table].mode == "append" else "part.parquet"
-            pq.write_table(_with_clip(rows, clip, 60.0 * i), folder / name)
+            pq.write_table(_with_clip(rows, clip, 60.0 * i), folder / f"{i + 1:020d}-00000000.parquet")
     return time.perf_counter() - t0
 
 
@@ -193,23 +195,14 @@ def _median_s(fn: Callable[[], object], repeats: int = REPEATS) -> float:
 
 
 def measure(root: Path, clips: int) -> dict:
-    """The rows of one size: per-write cost, ``status`` of one clip, the three queries (seconds)."""
+    """The rows of one size: the queries over the files alone, the snapshot's build, per-write
+    cost, ``status`` of one clip, the three queries (seconds)."""
     from warehouse import Warehouse, connect
+    from warehouse.catalog import snapshot_lock, take_snapshots
 
     wh = Warehouse(root)
     one = clip_name(clips // 2)
     connect(wh).close()  # the catalog is made once (its first build reads every schema file): not timed
-    run = _with_clip(template(np.random.default_rng(1), one, ["m"] * 5, ["chair"] * 5)["runs"].slice(0, 1), one, 0)
-    tracks = wh.read("tracks", [one])
-    wh.write("runs", one, run)  # imports and the after-write check, once per process: not timed
-    out: dict[str, float | int] = {"clips": clips}
-    out["write_runs_append_s"] = _median_s(lambda: wh.write("runs", one, run))
-    out["write_tracks_replace_s"] = _median_s(lambda: wh.write("tracks", one, tracks))
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    status = [sys.executable, "-m", "cadestate", "-w", str(root), "status", one]
-    out["status_one_clip_s"] = _median_s(lambda: subprocess.run(status, env=env, capture_output=True, check=True), 3)
-    bare = [sys.executable, "-c", "import duckdb"]  # what any command pays first: not a row of its own
-    out["baseline_import_duckdb"] = _median_s(lambda: subprocess.run(bare, env=env, check=True), 3)
 
     def query(sql: str) -> None:
         con = connect(wh)
@@ -218,6 +211,22 @@ def measure(root: Path, clips: int) -> dict:
         finally:
             con.close()
 
+    files_only = {name: _median_s(lambda: query(sql), 3) for name, sql in QUERIES.items()}
+    t0 = time.perf_counter()
+    with snapshot_lock(wh):
+        take_snapshots(wh)
+    snapshot_build_s = round(time.perf_counter() - t0, 2)
+    run = _with_clip(template(np.random.default_rng(1), one, ["m"] * 5, ["chair"] * 5)["runs"].slice(0, 1), one, 0)
+    tracks = wh.read("tracks", [one])
+    wh.write("runs", one, run)  # imports and the after-write check, once per process: not timed
+    out: dict[str, object] = {"clips": clips, "files_only": files_only, "snapshot_build_s": snapshot_build_s}
+    out["write_runs_append_s"] = _median_s(lambda: wh.write("runs", one, run))
+    out["write_tracks_replace_s"] = _median_s(lambda: wh.write("tracks", one, tracks))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    status = [sys.executable, "-m", "cadestate", "-w", str(root), "status", one]
+    out["status_one_clip_s"] = _median_s(lambda: subprocess.run(status, env=env, capture_output=True, check=True), 3)
+    bare = [sys.executable, "-c", "import duckdb"]  # what any command pays first: not a row of its own
+    out["baseline_import_duckdb"] = _median_s(lambda: subprocess.run(bare, env=env, check=True), 3)
     for name, sql in QUERIES.items():
         out[f"sql_{name}_s"] = _median_s(lambda: query(sql), 3)
     return out
@@ -231,7 +240,7 @@ def run(sizes: tuple[int, ...] = (1000, 10_000), workdir: Path | None = None) ->
             root = Path(tmp) / f"w{n}"
             built = build(root, n)
             rows.append({**measure(root, n), "build_s": round(built, 1)})
-    timed = [k for k in rows[-1] if k.endswith("_s") and k != "build_s"]  # not the baseline
+    timed = [k for k in rows[-1] if k.endswith("_s") and k not in ("build_s", "snapshot_build_s")]  # not the baseline
     growth = {k: round(rows[-1][k] / rows[0][k], 2) for k in timed} if len(rows) > 1 else {}
     ok = all(rows[-1][k] < 1.0 for k in timed) and all(g < rows[-1]["clips"] / rows[0]["clips"] for g in growth.values())
     return {"sizes": rows, "growth": growth, "ok": ok}

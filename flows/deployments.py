@@ -10,8 +10,10 @@
   ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
 - ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
   ``[schedule] labels_inbox`` and resumes the clips they answer.
-- ``dataset_report`` (cron ``[schedule] report_cron``): the dataset's statistics (``cadestate
-  stats``) as ``stats.json`` and an HTML report in ``[schedule] report``.
+- ``dataset_report`` (cron ``[schedule] report_cron``): first what ``cadestate compact`` does
+  (append-mode partitions merged, a new snapshot of the tables in the catalog, so SQL stays fast as
+  clips pile up), then the dataset's statistics (``cadestate stats``) as ``stats.json`` and an
+  HTML report in ``[schedule] report``.
 
 Parameters are plain strings (the warehouse root and the config file), so the Prefect UI can start
 a run by hand. Served runs keep their results under the warehouse, as every run does.
@@ -205,16 +207,19 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
 
 @flow(name="dataset_report", flow_run_name="dataset_report", log_prints=True)
 def dataset_report(warehouse: str, config_path: str = "") -> str:
-    """The dataset's statistics (`cadestate stats`) as ``stats.json`` and an HTML report in
-    ``[schedule] report``; returns the report's path."""
+    """`cadestate compact`, then the dataset's statistics (`cadestate stats`) as ``stats.json`` and
+    an HTML report in ``[schedule] report``; returns the report's path."""
     import json
 
     from tasks.dataset.stats import dataset_tables, select_clips, statistics
     from tasks.dataset.stats_report import write_report
+    from warehouse.catalog import compact_warehouse
     from warehouse.store import atomic_write_bytes
 
     cfg = served_config(warehouse, config_path)
     wh = Warehouse(warehouse)
+    done = compact_warehouse(wh)
+    get_run_logger().info("compacted %d partition(s); snapshot of %d table(s)", len(done.compacted), len(done.snapshotted))
     tables = dataset_tables(wh, select_clips(wh))
     figures = statistics(tables)
     out = Path(cfg.schedule.report)

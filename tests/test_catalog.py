@@ -112,8 +112,9 @@ def test_compact_command(tmp_path):
     wh.write("runs", "b", runs("b", "r9"))
     result = run_cli("-w", str(wh.root), "compact")
     assert result.code == 0, result.stderr
-    assert result.stdout.splitlines() == ["runs a: 3 files -> 1 (3 rows)", "compacted 1 partition(s)"]
-    assert run_cli("-w", str(wh.root), "compact", "runs").stdout.splitlines() == ["compacted 0 partition(s)"]
+    snapshot = f"snapshot of 22 table(s) in {wh.root / 'catalog.duckdb'}"
+    assert result.stdout.splitlines() == ["runs a: 3 files -> 1 (3 rows)", "compacted 1 partition(s)", snapshot]
+    assert run_cli("-w", str(wh.root), "compact", "runs").stdout.splitlines() == ["compacted 0 partition(s)", snapshot]
     refused = run_cli("-w", str(wh.root), "compact", "clips")
     assert refused.code == 2 and "not append-mode" in refused.stderr and "Traceback" not in refused.stderr
     assert "--min-files" in run_cli("compact", "--help").stdout

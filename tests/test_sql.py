@@ -52,7 +52,7 @@ def cameras(w: Path) -> list[dict]:
 
 
 def test_copy_cannot_replace_a_table_partition(w):
-    part = w / "tables" / "clips" / "clip=a" / "part.parquet"
+    part = next((w / "tables" / "clips" / "clip=a").glob("*.parquet"))
     before = warehouse_digest(w)
     refused(sql(w, f"COPY (SELECT 'x' AS clip) TO '{part}' (FORMAT parquet)"), mentions="COPY")
     assert warehouse_digest(w) == before
@@ -88,7 +88,7 @@ def test_extensions_are_neither_installed_nor_loaded(w):
 
 
 def test_one_statement_of_a_read_only_kind(w):
-    part = w / "tables" / "clips" / "clip=a" / "part.parquet"
+    part = next((w / "tables" / "clips" / "clip=a").glob("*.parquet"))
     before = warehouse_digest(w)
     refused(sql(w, "SELECT 1; SELECT 2"), mentions="one statement")
     refused(sql(w, f"SELECT 1; COPY (SELECT 'x' AS clip) TO '{part}' (FORMAT parquet)"))

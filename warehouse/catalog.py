@@ -2,11 +2,14 @@
 
 Any DuckDB client can open it (``duckdb data/warehouse/catalog.duckdb``) and query every table.
 Views are created once; a write never touches the catalog. Each view reads, at query time,
-``read_parquet([<schema file>, 'tables/<table>/**/*.parquet'])``: the schema file
-(``tables/<table>/_schema.parquet``, no rows, the table's current schema) comes first, so DuckDB
-takes the columns from it, and lies inside the glob, so the glob always matches something: an empty
+``read_parquet([<schema file>, 'tables/<table>/*/*.parquet'])``: the schema file
+(``tables/<table>/_schema/_schema.parquet``, no rows, the table's current schema) comes first, so
+DuckDB takes the columns from it, and lies inside the glob (one folder down, as every partition's
+files: a shallow glob lists faster than ``**``), so the glob always matches something: an empty
 table is queryable, its first rows and every new partition or file show up with no refresh. Having
-no rows, the schema file adds none, though the list names it twice.
+no rows, the schema file adds none, though the list names it twice. ``cadestate compact`` also
+keeps a snapshot of most tables' rows in the catalog (:mod:`warehouse.snapshot`); such a table's
+view reads its snapshot and only the files written since.
 
 Schema changes: without ``union_by_name`` DuckDB reads only the first file's schema when it binds
 (cheap), but then every file must have its columns. So the catalog records, per table, the schema
@@ -27,21 +30,24 @@ derived data: rebuilding loses nothing.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import uuid
-from collections.abc import Collection
+from collections.abc import Collection, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import duckdb
 
-from warehouse.store import Warehouse, WarehouseError
+from warehouse import snapshot
+from warehouse.store import Compacted, Warehouse, WarehouseError
 
 CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
 ROOT_MACRO = "warehouse_root"
 VIEWS_MACRO = "catalog_views"
-LAYOUT = 2
+LAYOUT = 3
 """Version of how views are made; a catalog of another layout is rebuilt."""
 SCHEMA_DIGEST = b"cadestate.schema_sha256"
 
@@ -59,7 +65,7 @@ def _sql_str(value: str) -> str:
 
 def schema_path(wh: Warehouse, table: str) -> Path:
     """The table's schema file: empty, inside its view's glob."""
-    return wh.table_dir(table) / SCHEMA_FILE
+    return wh.table_dir(table) / "_schema" / SCHEMA_FILE
 
 
 def _schema_digest(con: duckdb.DuckDBPyConnection, path: Path) -> str | None:
@@ -104,12 +110,10 @@ def uniform(wh: Warehouse, table: str) -> bool:
     return True
 
 
-def view_sql(wh: Warehouse, table: str, uniform: bool = True) -> str:
-    """The CREATE VIEW statement of one table (``union_by_name`` unless its files are ``uniform``)."""
-    schema = schema_path(wh, table).as_posix()
-    glob = (wh.table_dir(table) / "**" / "*.parquet").as_posix()
-    union = "" if uniform else ", union_by_name = true"
-    return f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet([{_sql_str(schema)}, {_sql_str(glob)}]{union})"
+def view_sql(wh: Warehouse, table: str, uniform: bool = True, mark: str | None = None) -> str:
+    """The CREATE VIEW statement of one table (``union_by_name`` unless its files are ``uniform``;
+    over its snapshot taken at ``mark`` and the newer files, when it has one)."""
+    return snapshot.view_sql(wh, table, schema_path(wh, table), uniform, mark)
 
 
 def expected_views(wh: Warehouse) -> dict:
@@ -120,7 +124,9 @@ def expected_views(wh: Warehouse) -> dict:
 
 
 def _plain(record: dict) -> dict:
-    return {**record, "tables": {n: {k: v for k, v in t.items() if k != "uniform"} for n, t in record["tables"].items()}}
+    """``record`` less what a rebuild works out (each table's ``uniform`` and ``snapshot``)."""
+    return {**record, "tables": {n: {k: v for k, v in t.items() if k not in ("uniform", "snapshot")}
+                                 for n, t in record["tables"].items()}}
 
 
 def recorded_views(path: Path) -> dict | None:
@@ -171,12 +177,13 @@ def row_counts(wh: Warehouse) -> dict[str, int]:
 def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict | None = None) -> dict:
     """Create in ``con`` a view per table of ``wh`` (commented with its description), the macro
     ``warehouse_root()`` naming the root the views read and ``catalog_views()`` recording ``plan``
-    (default: :func:`plan_views` from the catalog file when it is current). Returns the plan."""
+    (default: :func:`plan_views` from the catalog file when it is current: no snapshot, which
+    ``con`` would lack). A table whose plan names a ``snapshot`` reads it from ``con``. Returns the plan."""
     if plan is None:
         plan = plan_views(wh, recorded_views(wh.root / CATALOG_FILE))
     for name, table in plan["tables"].items():
         _schema_file(wh, name, con)
-        con.execute(view_sql(wh, name, table["uniform"]))
+        con.execute(view_sql(wh, name, table["uniform"], table.get("snapshot")))
         con.execute(f"COMMENT ON VIEW {name} IS {_sql_str(table['description'])}")
     con.execute(f"CREATE OR REPLACE MACRO {ROOT_MACRO}() AS {_sql_str(str(wh.root))}")
     con.execute(f"CREATE OR REPLACE MACRO {VIEWS_MACRO}() AS {_sql_str(json.dumps(plan, sort_keys=True))}")
@@ -218,17 +225,23 @@ def _attach_current(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> bool:
     return False
 
 
-def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:
+def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
+                    snapshots: Collection[str] = (), whole: Collection[str] = ()) -> Path:
     """(Re)build the catalog file; atomic (built aside, then renamed). Whether each table's files
     all have its schema is kept from the current catalog where the schema did not change, unless
-    ``recheck`` (True: every table; else the tables named)."""
+    ``recheck`` (True: every table; else the tables named). The tables in ``snapshots`` get a new
+    snapshot (:func:`warehouse.snapshot.carry`; read whole for those in ``whole``), the others keep
+    theirs where their schema did not change."""
     wh.root.mkdir(parents=True, exist_ok=True)
     final = wh.root / CATALOG_FILE
-    plan = plan_views(wh, None if recheck is True else recorded_views(final), () if recheck is False else recheck)
+    recorded = recorded_views(final)
+    plan = plan_views(wh, None if recheck is True else recorded, () if recheck is False else recheck)
     tmp = wh.root / f".{CATALOG_FILE}.{uuid.uuid4().hex}.tmp"
     try:
         con = duckdb.connect(str(tmp))
         try:
+            schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
+            snapshot.carry(con, wh, plan, recorded, final, schema_files.__getitem__, snapshots, whole)
             create_views(con, wh, plan)
             con.execute("CHECKPOINT")
         finally:
@@ -241,11 +254,12 @@ def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> P
     return final
 
 
-def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False) -> Path:
+def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
+                    snapshots: Collection[str] = (), whole: Collection[str] = ()) -> Path:
     """:func:`refresh_catalog`, with a catalog that cannot be written reported as a
     :class:`CatalogError` naming it."""
     try:
-        return refresh_catalog(wh, recheck)
+        return refresh_catalog(wh, recheck, snapshots, whole)
     except (OSError, duckdb.Error) as e:
         raise CatalogError(f"cannot rebuild the catalog {wh.root / CATALOG_FILE}: {one_line(str(e))}") from None
 
@@ -262,15 +276,52 @@ def ensure_catalog(wh: Warehouse) -> Path:
     return path
 
 
-def compacted_tables_checked(wh: Warehouse, tables: Collection[str]) -> None:
-    """After ``tables`` were compacted: rebuild the catalog, checking those of them that it reads
-    by name (files of an older schema), so that a table whose files now all have its schema gets
-    its fast view back; nothing when none of them is read by name."""
+@contextlib.contextmanager
+def snapshot_lock(wh: Warehouse) -> Iterator[None]:
+    """Hold the warehouse's snapshot lock (``_locks/catalog.lock``): one compaction and snapshot at a time."""
+    path = wh.root / "_locks" / "catalog.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Collection[str] = ()) -> list[str]:
+    """Rebuild the catalog with a new snapshot of every table that keeps one
+    (:func:`warehouse.snapshot.kept`), read whole for the tables whose files were ``renamed``
+    (:meth:`Warehouse.rename_legacy`), and with the files of the ``compacted`` tables that it reads
+    by name (files of an older schema) checked again, so that a table whose files now all have its
+    schema gets its fast view back. Call it under :func:`snapshot_lock`. Returns the tables
+    snapshotted."""
     ensure_catalog(wh)
     recorded = (recorded_views(wh.root / CATALOG_FILE) or {"tables": {}})["tables"]
-    mixed = [t for t in tables if not recorded.get(t, {}).get("uniform", True)]
-    if mixed:
-        rebuild_catalog(wh, recheck=mixed)
+    mixed = [t for t in compacted if not recorded.get(t, {}).get("uniform", True)]
+    tables = [name for name in wh.info if snapshot.kept(wh.spec(name))]
+    rebuild_catalog(wh, recheck=mixed, snapshots=tables, whole=renamed)
+    return tables
+
+
+@dataclass(frozen=True)
+class Compaction:
+    """What :func:`compact_warehouse` did: files renamed per table, partitions merged, tables snapshotted."""
+
+    renamed: dict[str, int]
+    compacted: list[Compacted]
+    snapshotted: list[str]
+
+
+def compact_warehouse(wh: Warehouse, tables: Collection[str] | None = None, min_files: int = 2) -> Compaction:
+    """What ``cadestate compact`` does, under :func:`snapshot_lock`: files of an older layout renamed
+    (:meth:`Warehouse.rename_legacy`), the partitions of the append-mode ``tables`` (default: all)
+    with at least ``min_files`` files merged, then a new snapshot (:func:`take_snapshots`)."""
+    with snapshot_lock(wh):
+        renamed = wh.rename_legacy()
+        done = wh.compact_tables(None if tables is None else list(tables), min_files)
+        kept = take_snapshots(wh, sorted({c.table for c in done}), sorted(renamed))
+    return Compaction(renamed, done, kept)
 
 
 def after_write(wh: Warehouse) -> None:

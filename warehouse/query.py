@@ -15,7 +15,7 @@ from itself, and a broken catalog file does not matter), then locked down before
 - the configuration is locked, and intermediate results that spill go to a private temporary
   folder, removed with the session. Nothing is written to the warehouse but derived files, as any
   command that opens the catalog writes them: the catalog file and a table's schema file
-  (``tables/<table>/_schema.parquet``) when missing or outdated.
+  (``tables/<table>/_schema/_schema.parquet``) when missing or outdated.
 
 Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
 bounded.

@@ -2,10 +2,10 @@
 
 Layout under the warehouse root::
 
-    tables/<table>/clip=<clip>/part.parquet        replace-mode tables (one file, swapped whole)
-    tables/<table>/clip=<clip>/<time>-<id>.parquet append-mode tables (one file per write)
+    tables/<table>/clip=<clip>/<time>-<id>.parquet replace-mode tables: one file, swapped whole
+                                                   append-mode tables: one file per write
     tables/<table>/library=<library>/...           CAD-library tables, partitioned by library
-    tables/<table>/_schema.parquet                 the table's schema, no rows (warehouse.catalog)
+    tables/<table>/_schema/_schema.parquet         the table's schema, no rows (warehouse.catalog)
     media/<kind>/<partition>/<version>/...         images and other files that rows point to
     inputs/<clip>/...                              the clip's video and camera file
     catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
@@ -13,25 +13,35 @@ Layout under the warehouse root::
     _locks/<table>/<partition>.lock                locks of append-mode partitions (compaction)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
 
-Atomicity: every Parquet file is written under a temporary name in its final folder, flushed to
-disk and renamed into place (``os.replace``), so a reader or a crash sees the old file or the
-new one, never half of one. Media are written to a fresh version folder that no row points to
+File names: ``<time>-<id>.parquet``, ``<time>`` the 20-digit nanoseconds since the epoch at which
+the file was published (taken just before it becomes visible), ``<id>`` random. Every write makes a
+new name, so a name stands for one content, and names sort in write order: the catalog's snapshot
+(:mod:`warehouse.snapshot`) holds the rows of the files named before its watermark and reads only
+the newer ones at query time. (Older warehouses named a replace-mode file ``part.parquet``; such a
+name sorts after every time, so it is always read as a new file; ``cadestate compact`` renames it.)
+
+Atomicity: every Parquet file is written under a temporary name, flushed to disk and renamed into
+place, so a reader or a crash sees the old file or the new one, never half of one. A replace-mode
+partition is swapped whole: its new file is written into a fresh folder under ``_staging/``, which
+then takes the partition folder's name in one step (:func:`cadestate.atomic.exchange`; a plain
+rename for a new partition), under the partition's lock. Media are written to a fresh version folder that no row points to
 yet; rows start pointing to it only when their table partition is swapped in, and superseded
 versions are removed afterwards (:meth:`Warehouse.publish_media`).
 
 Compaction: an append-mode partition gains a file per write, and readers pay per file, so a write
 that leaves more than ``compact_after`` files in one (or ``cadestate compact``) merges them into
 one file of the table's current schema (rows in write order; files of an older schema read a newer
-column as null). The merged file is written into a fresh folder under ``_staging/`` (outside every
-table, so no glob sees it) and flushed; then that folder and the partition folder swap names in one
+column as null). The merged file (named at the time of the merge, so it sorts after every file it
+replaces) is written into a fresh folder under ``_staging/`` (outside every table, so no glob sees
+it) and flushed; then that folder and the partition folder swap names in one
 step (:func:`cadestate.atomic.exchange`), and the old files, now in the staging folder, are
 removed. A reader listing the partition sees all the old files or the merged one (under a new
 name), never both (rows twice) nor neither (rows missing); one that listed the old files and opens
 one after the swap finds it gone and fails rather than answer wrong (:meth:`Warehouse.read` lists
 again; a DuckDB query reports the missing file, and run again answers). Interrupted at any point, a
 compaction leaves the partition as it was or compacted, plus a staging folder nothing reads. Writes
-to an append-mode partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`),
-so no write lands in a folder being swapped out.
+to a partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`), so no
+write lands in a folder being swapped out.
 """
 
 from __future__ import annotations
@@ -60,7 +70,8 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
     from schemas.index import TableInfo
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
-REPLACE_FILE = "part.parquet"
+LEGACY_FILE = "part.parquet"
+"""Name of a replace-mode file in warehouses written before file names held their time."""
 COMPACT_AFTER = 64
 """Default of :attr:`Warehouse.compact_after` (config ``[warehouse] compact_after_files``)."""
 READ_RETRIES = 5
@@ -93,6 +104,11 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
             [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
              for fl in target], schema=target))
     return pa.concat_tables(parts)
+
+
+def file_name(time_ns: int | None = None) -> str:
+    """A data file's name: ``<time>-<id>.parquet`` (see the module), at ``time_ns`` (default now)."""
+    return f"{time.time_ns() if time_ns is None else time_ns:020d}-{uuid.uuid4().hex[:8]}.parquet"
 
 
 class WarehouseError(ValueError):
@@ -199,7 +215,7 @@ class Warehouse:
     # -- writing -----------------------------------------------------------------------------
     @contextlib.contextmanager
     def locked(self, table: str, part: str) -> Iterator[None]:
-        """Hold the lock of one partition (``_locks/``, an exclusive ``flock``): appends to it and its
+        """Hold the lock of one partition (``_locks/``, an exclusive ``flock``): writes to it and its
         compaction take it, so none happens while another is under way."""
         path = self.root / "_locks" / self._table(table).name / f"{self.partition_dir(table, part).name}.lock"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -242,19 +258,20 @@ class Warehouse:
     def write(self, table: str, part: str, data: pa.Table) -> int:
         """Write one partition atomically; returns the rows written.
 
-        ``replace`` tables: the partition becomes exactly ``data`` (rewriting identical data is a
-        no-op in effect: idempotent). ``append`` tables: ``data`` is added as a new file, under the
-        partition's lock, and the partition is compacted when it has more than ``compact_after`` files.
+        ``replace`` tables: the partition becomes exactly ``data``, swapped whole (rewriting
+        identical data is a no-op in effect: idempotent). ``append`` tables: ``data`` is added as a
+        new file, and the partition is compacted when it has more than ``compact_after`` files.
+        Both under the partition's lock.
         """
         spec = self.spec(table)
         data = self.conform(table, part, data)
         folder = self.partition_dir(table, part)
-        folder.mkdir(parents=True, exist_ok=True)
-        if spec.mode == "replace":
-            self._write_file(data, folder / REPLACE_FILE)
-        else:
-            with self.locked(table, part):
-                self._write_file(data, folder / f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}.parquet")
+        with self.locked(table, part):
+            if spec.mode == "replace":
+                self._swap_in(folder, data)
+            else:
+                folder.mkdir(parents=True, exist_ok=True)
+                self._write_file(data, folder)
                 if len(list(folder.glob("*.parquet"))) > self.compact_after:
                     self._compact_locked(table, part, 2)
         for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
@@ -262,19 +279,53 @@ class Warehouse:
         return data.num_rows
 
     @staticmethod
-    def _write_file(data: pa.Table, final: Path) -> None:
-        """Write ``data`` to ``final`` atomically (a flushed temporary file renamed into place)."""
+    def _write_file(data: pa.Table, folder: Path) -> Path:
+        """Write ``data`` into ``folder`` atomically (a flushed temporary file renamed into place),
+        named (:func:`file_name`) once written, just before it shows; returns its path."""
         import pyarrow.parquet as pq
 
-        tmp = final.with_name(f".{final.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
+        tmp = folder / f".{uuid.uuid4().hex}{TMP_SUFFIX}"
         try:
             pq.write_table(data, tmp, compression="zstd")
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
+            final = folder / file_name()
             os.replace(tmp, final)
         finally:
             tmp.unlink(missing_ok=True)
-        fsync_dir(final.parent)
+        fsync_dir(folder)
+        return final
+
+    def _swap_in(self, folder: Path, data: pa.Table) -> None:
+        """Make ``data`` the only file of the partition ``folder`` in one step (see the module)."""
+        stage = self.root / "_staging" / f"replace-{uuid.uuid4().hex}"
+        stage.mkdir(parents=True)
+        try:
+            self._write_file(data, stage)
+            if folder.is_dir():
+                exchange(stage, folder)  # the partition now holds the new file, the staging folder the old one
+            else:
+                folder.parent.mkdir(parents=True, exist_ok=True)
+                os.rename(stage, folder)
+            fsync_dir(folder.parent)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+
+    def rename_legacy(self) -> dict[str, int]:
+        """Give every replace-mode file still named ``part.parquet`` (an older warehouse) a name of
+        this layout, from its modification time, under its partition's lock; returns the files
+        renamed per table."""
+        renamed: dict[str, int] = {}
+        for name, info in self.info.items():
+            if info.mode != "replace":
+                continue
+            for old in sorted(self.table_dir(name).glob(f"{info.partition}=*/{LEGACY_FILE}")):
+                with self.locked(name, old.parent.name.split("=", 1)[1]):
+                    with contextlib.suppress(FileNotFoundError):  # rewritten meanwhile: the write renamed it
+                        os.rename(old, old.parent / file_name(old.stat().st_mtime_ns))
+                        fsync_dir(old.parent)
+                        renamed[name] = renamed.get(name, 0) + 1
+        return renamed
 
     def compact(self, table: str, part: str, min_files: int = 2) -> Compacted | None:
         """Merge the files of one partition of an append-mode table into one (see the module), under
@@ -305,8 +356,8 @@ class Warehouse:
         merged = pa.concat_tables([ds.dataset([str(f)], schema=schema, format="parquet").to_table() for f in files])
         stage = self.root / "_staging" / f"compact-{uuid.uuid4().hex}"
         stage.mkdir(parents=True)
-        try:  # the merged file sorts where the last one did, under a name no reader has listed
-            self._write_file(merged, stage / f"{files[-1].name.split('-')[0]}-{uuid.uuid4().hex[:8]}.parquet")
+        try:  # named now: after every file it merges, under a name no reader has listed
+            self._write_file(merged, stage)
             exchange(stage, folder)  # the partition now holds the merged file, the staging folder the old ones
             fsync_dir(folder.parent)
         finally:

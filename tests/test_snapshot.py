@@ -1,0 +1,154 @@
+"""The catalog's snapshot (warehouse.snapshot): a view over its snapshot and the newer files answers
+exactly as the files alone, through replaced, emptied, new and compacted partitions, a schema
+change, a moved warehouse, older file names, and `cadestate sql`'s locked-down session."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+
+import duckdb
+import pyarrow as pa
+import pytest
+
+from conftest import table_rows
+from fuzz.harness import run_cli
+from warehouse import Warehouse, connect
+from warehouse import snapshot as snap
+from warehouse.catalog import CATALOG_FILE, VIEWS_MACRO, snapshot_lock, take_snapshots
+from warehouse.store import LEGACY_FILE
+
+
+@pytest.fixture(autouse=True)
+def no_margin(monkeypatch):
+    """Files written a moment ago count as settled (the default margin is a minute)."""
+    monkeypatch.setattr(snap, "MARGIN_NS", 0)
+
+
+def tracks(clip: str, n: int, label: str = "chair") -> pa.Table:
+    return table_rows("tracks", [{"clip": clip, "track_id": i, "label": label} for i in range(n)])
+
+
+def runs(clip: str, *ids: str) -> pa.Table:
+    return table_rows("runs", [{"clip": clip, "run_id": i, "stage": "ingest"} for i in ids])
+
+
+def through_view(wh: Warehouse, sql: str) -> list[tuple]:
+    con = connect(wh)
+    try:
+        return con.execute(sql).fetchall()
+    finally:
+        con.close()
+
+
+def through_files(wh: Warehouse, table: str, sql: str) -> list[tuple]:
+    """``sql`` over a view of ``table``'s files alone (no snapshot): what the catalog must answer."""
+    con = duckdb.connect()
+    files = [str(f) for f in wh.files(table)]
+    con.execute(f"CREATE VIEW {table} AS SELECT * FROM read_parquet({files!r})" if files else
+                f"CREATE VIEW {table} AS SELECT * FROM read_parquet('{wh.table_dir(table)}/_schema/_schema.parquet')")
+    return con.execute(sql).fetchall()
+
+
+def snapshot(wh: Warehouse) -> list[str]:
+    with snapshot_lock(wh):
+        return take_snapshots(wh)
+
+
+def marks(wh: Warehouse) -> dict:
+    con = duckdb.connect(str(wh.root / CATALOG_FILE), read_only=True)
+    try:
+        return {n: t["snapshot"] for n, t in json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])["tables"].items()}
+    finally:
+        con.close()
+
+
+def snapshot_rows(wh: Warehouse, table: str) -> int:
+    con = duckdb.connect(str(wh.root / CATALOG_FILE), read_only=True)
+    try:
+        return con.execute(f"SELECT count(*) FROM snapshot.{table}").fetchone()[0]
+    finally:
+        con.close()
+
+
+TRACKS = "SELECT clip, label, count(*) FROM tracks GROUP BY ALL ORDER BY ALL"
+RUNS = "SELECT clip, run_id FROM runs ORDER BY ALL"
+
+
+def test_a_view_over_its_snapshot_answers_as_the_files_through_every_kind_of_write(wh):
+    wh.write("tracks", "a", tracks("a", 3))
+    wh.write("tracks", "b", tracks("b", 2))
+    for i in range(3):
+        wh.write("runs", "a", runs("a", f"r{i}"))
+    kept = snapshot(wh)
+    assert "tracks" in kept and "runs" in kept and "embeddings" not in kept  # descriptors are not copied
+    assert snapshot_rows(wh, "tracks") == 5 and snapshot_rows(wh, "runs") == 3
+    assert through_view(wh, TRACKS) == through_files(wh, "tracks", TRACKS) == [("a", "chair", 3), ("b", "chair", 2)]
+
+    wh.write("tracks", "a", tracks("a", 1, "sofa"))  # replaced
+    wh.write("tracks", "b", tracks("b", 0))  # emptied
+    wh.write("tracks", "c", tracks("c", 4))  # new
+    wh.write("runs", "a", runs("a", "r3"))  # appended
+    wh.compact("runs", "a")  # merged: the snapshot's files of a are gone, their rows in a newer file
+    assert through_view(wh, TRACKS) == through_files(wh, "tracks", TRACKS) == [("a", "sofa", 1), ("c", "chair", 4)]
+    assert through_view(wh, RUNS) == through_files(wh, "runs", RUNS) == [("a", f"r{i}") for i in range(4)]
+
+    before = marks(wh)["tracks"]
+    time.sleep(0.01)
+    snapshot(wh)  # the next one starts from the last
+    assert marks(wh)["tracks"] > before
+    assert snapshot_rows(wh, "tracks") == 5 and snapshot_rows(wh, "runs") == 4
+    assert through_view(wh, TRACKS) == [("a", "sofa", 1), ("c", "chair", 4)]
+    assert through_view(wh, RUNS) == [("a", f"r{i}") for i in range(4)]
+
+
+def test_files_newer_than_the_watermark_are_read_from_themselves(wh, monkeypatch):
+    wh.write("tracks", "a", tracks("a", 3))
+    monkeypatch.setattr(snap, "MARGIN_NS", 3600 * 10**9)  # an hour: the file is too young to be copied
+    snapshot(wh)
+    assert snapshot_rows(wh, "tracks") == 0
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+
+
+def test_a_schema_change_drops_that_tables_snapshot_only_and_a_moved_warehouse_keeps_them(wh, tmp_path):
+    wh.write("tracks", "a", tracks("a", 3))
+    wh.write("runs", "a", runs("a", "r0"))
+    snapshot(wh)
+    con = duckdb.connect(str(wh.root / CATALOG_FILE))
+    record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
+    record["tables"]["runs"]["schema"] = "an older schema"
+    quoted = json.dumps(record).replace("'", "''")
+    con.execute(f"CREATE OR REPLACE MACRO {VIEWS_MACRO}() AS '{quoted}'")
+    con.close()
+    moved = Warehouse(shutil.copytree(wh.root, tmp_path / "moved"))
+    assert through_view(moved, TRACKS) == [("a", "chair", 3)]  # rebuilt for its new root
+    assert marks(moved)["runs"] is None and marks(moved)["tracks"] is not None
+    assert snapshot_rows(moved, "tracks") == 3
+    assert through_view(moved, RUNS) == [("a", "r0")]
+    moved.write("tracks", "a", tracks("a", 1))
+    assert through_view(moved, TRACKS) == [("a", "chair", 1)] and through_view(wh, TRACKS) == [("a", "chair", 3)]
+
+
+def test_files_of_an_older_layout_are_renamed_and_read_once(wh):
+    wh.write("tracks", "a", tracks("a", 3))
+    (only,) = wh.files("tracks", ["a"])
+    only.rename(only.with_name(LEGACY_FILE))  # as a replace-mode file was named before
+    snapshot(wh)  # before the rename: a legacy name sorts after every watermark, read as a new file
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+    result = run_cli("-w", str(wh.root), "compact")
+    assert result.code == 0, result.stderr
+    assert "tracks: 1 file(s) renamed to this version's layout" in result.stdout.splitlines()
+    assert [f.name for f in wh.files("tracks", ["a"])] != [LEGACY_FILE]
+    assert snapshot_rows(wh, "tracks") == 3 and through_view(wh, TRACKS) == [("a", "chair", 3)]
+
+
+def test_sql_reads_a_snapshot_in_its_locked_down_session(wh):
+    wh.write("tracks", "a", tracks("a", 2))
+    snapshot(wh)
+    wh.write("tracks", "b", tracks("b", 1))
+    result = run_cli("-w", str(wh.root), "sql", TRACKS, "-f", "csv")
+    assert result.code == 0, result.stderr
+    assert result.stdout.splitlines()[1:] == ["a,chair,2", "b,chair,1"]
+    refused = run_cli("-w", str(wh.root), "sql", "SELECT * FROM glob('/etc/*')")
+    assert refused.code != 0 and "passwd" not in refused.stdout
