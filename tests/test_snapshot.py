@@ -136,10 +136,13 @@ def test_files_of_an_older_layout_are_renamed_and_read_once(wh):
     only.rename(only.with_name(LEGACY_FILE))  # as a replace-mode file was named before
     snapshot(wh)  # before the rename: a legacy name sorts after every watermark, read as a new file
     assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+    schema_file = wh.table_dir("tracks") / "_schema" / "_schema.parquet"
+    schema_file.rename(wh.table_dir("tracks") / "_schema.parquet")  # where an older layout kept it
     result = run_cli("-w", str(wh.root), "compact")
     assert result.code == 0, result.stderr
     assert "tracks: 1 file(s) renamed to this version's layout" in result.stdout.splitlines()
     assert [f.name for f in wh.files("tracks", ["a"])] != [LEGACY_FILE]
+    assert schema_file.is_file() and not (wh.table_dir("tracks") / "_schema.parquet").exists()
     assert snapshot_rows(wh, "tracks") == 3 and through_view(wh, TRACKS) == [("a", "chair", 3)]
 
 
@@ -152,3 +155,20 @@ def test_sql_reads_a_snapshot_in_its_locked_down_session(wh):
     assert result.stdout.splitlines()[1:] == ["a,chair,2", "b,chair,1"]
     refused = run_cli("-w", str(wh.root), "sql", "SELECT * FROM glob('/etc/*')")
     assert refused.code != 0 and "passwd" not in refused.stdout
+
+
+def test_every_table_of_a_synthetic_warehouse_answers_the_same_through_its_snapshot(tmp_path):
+    from bench.warehouse_scale import build, clip_name
+
+    wh = Warehouse(tmp_path / "w")
+    build(wh.root, 24)
+    some = wh.info["tracks"]
+    assert some.mode == "replace"
+    snapshot(wh)
+    wh.write("tracks", clip_name(3), wh.read("tracks", [clip_name(3)]).slice(0, 2))  # a partition rewritten
+    wh.write("runs", clip_name(5), wh.read("runs", [clip_name(5)]).slice(0, 1))  # and one appended to
+    for table in wh.info:
+        columns = [c for c in wh.spec(table).schema.names if c not in ("vector", "points", "projection", "mean")]
+        sql = f"SELECT {', '.join(columns)} FROM {table} ORDER BY ALL"
+        assert through_view(wh, sql) == through_files(wh, table, sql), table
+    assert snapshot_rows(wh, "frames") == 24 * 30

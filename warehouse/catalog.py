@@ -93,6 +93,7 @@ def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> P
         meta = {**(schema.metadata or {}), SCHEMA_DIGEST: digest.encode()}
         pq.write_table(schema.with_metadata(meta).empty_table(), tmp)
         os.replace(tmp, path)
+        (wh.table_dir(table) / SCHEMA_FILE).unlink(missing_ok=True)  # where an older layout kept it
     return path
 
 

@@ -15,7 +15,10 @@ table's view then reads:
 
 Every file is named after ``W`` or was there when the snapshot listed the table (a write publishes
 its file within moments of taking its name, and the snapshot waits out a minute of margin), so a
-file is read exactly once: from the snapshot or from itself. The next snapshot starts from the
+file is read exactly once: from the snapshot or from itself. This assumes the clocks of the
+machines that write a shared warehouse (Dask workers) agree within that minute, as NTP keeps them:
+a file named more than a minute in the past when it appears would be missed until a snapshot is
+taken from the files alone (a schema change, or a new catalog). The next snapshot starts from the
 last: it keeps the rows whose files are still there and reads only the files named between the two
 watermarks.
 
