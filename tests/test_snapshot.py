@@ -111,6 +111,33 @@ def test_files_newer_than_the_watermark_are_read_from_themselves(wh, monkeypatch
     assert through_view(wh, TRACKS) == [("a", "chair", 3)]
 
 
+def test_a_file_named_in_the_past_is_caught_by_a_whole_snapshot(wh, monkeypatch):
+    wh.write("tracks", "a", tracks("a", 3))
+    snapshot(wh)
+    (late,) = wh.files("tracks", ["a"])
+    wh.write("tracks", "b", tracks("b", 2))
+    (b,) = wh.files("tracks", ["b"])
+    past = f"{int(late.name[:20]) - 120 * 10**9:020d}"  # named two minutes before: a writer's clock behind
+    b.rename(b.with_name(past + b.name[20:]))
+    snapshot(wh)  # from the last snapshot: the file is older than its watermark, and was not in it
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+    assert run_cli("-w", str(wh.root), "compact").code == 0  # still from the last snapshot (a minute's margin)
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+    result = run_cli("-w", str(wh.root), "compact", "--whole")
+    assert result.code == 0, result.stderr
+    assert through_view(wh, TRACKS) == [("a", "chair", 3), ("b", "chair", 2)]
+
+
+def test_a_watermark_never_goes_back_from_the_last_snapshot(wh, monkeypatch):
+    wh.write("tracks", "a", tracks("a", 3))
+    snapshot(wh)
+    before = marks(wh)["tracks"]
+    monkeypatch.setattr(snap, "MARGIN_NS", 3600 * 10**9)  # as if the clock went back an hour
+    snapshot(wh)
+    assert marks(wh)["tracks"] == before
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]  # not read twice (snapshot and file)
+
+
 def test_a_schema_change_drops_that_tables_snapshot_only_and_a_moved_warehouse_keeps_them(wh, tmp_path):
     wh.write("tracks", "a", tracks("a", 3))
     wh.write("runs", "a", runs("a", "r0"))

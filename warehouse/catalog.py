@@ -290,10 +290,10 @@ def snapshot_lock(wh: Warehouse) -> Iterator[None]:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
-def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Collection[str] = ()) -> list[str]:
+def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Collection[str] | bool = ()) -> list[str]:
     """Rebuild the catalog with a new snapshot of every table that keeps one
     (:func:`warehouse.snapshot.kept`), read whole for the tables whose files were ``renamed``
-    (:meth:`Warehouse.rename_legacy`), and with the files of the ``compacted`` tables that it reads
+    (:meth:`Warehouse.rename_legacy`; True: every table), and with the files of the ``compacted`` tables that it reads
     by name (files of an older schema) checked again, so that a table whose files now all have its
     schema gets its fast view back. Call it under :func:`snapshot_lock`. Returns the tables
     snapshotted."""
@@ -301,7 +301,7 @@ def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Coll
     recorded = (recorded_views(wh.root / CATALOG_FILE) or {"tables": {}})["tables"]
     mixed = [t for t in compacted if not recorded.get(t, {}).get("uniform", True)]
     tables = [name for name in wh.info if snapshot.kept(wh.spec(name))]
-    rebuild_catalog(wh, recheck=mixed, snapshots=tables, whole=renamed)
+    rebuild_catalog(wh, recheck=mixed, snapshots=tables, whole=tables if renamed is True else renamed)
     return tables
 
 
@@ -314,14 +314,16 @@ class Compaction:
     snapshotted: list[str]
 
 
-def compact_warehouse(wh: Warehouse, tables: Collection[str] | None = None, min_files: int = 2) -> Compaction:
+def compact_warehouse(wh: Warehouse, tables: Collection[str] | None = None, min_files: int = 2,
+                      whole: bool = False) -> Compaction:
     """What ``cadestate compact`` does, under :func:`snapshot_lock`: files of an older layout renamed
     (:meth:`Warehouse.rename_legacy`), the partitions of the append-mode ``tables`` (default: all)
-    with at least ``min_files`` files merged, then a new snapshot (:func:`take_snapshots`)."""
+    with at least ``min_files`` files merged, then a new snapshot (:func:`take_snapshots`; from the
+    files alone, not from the last snapshot, when ``whole``)."""
     with snapshot_lock(wh):
         renamed = wh.rename_legacy()
         done = wh.compact_tables(None if tables is None else list(tables), min_files)
-        kept = take_snapshots(wh, sorted({c.table for c in done}), sorted(renamed))
+        kept = take_snapshots(wh, sorted({c.table for c in done}), True if whole else sorted(renamed))
     return Compaction(renamed, done, kept)
 
 

@@ -18,7 +18,7 @@ its file within moments of taking its name, and the snapshot waits out a minute 
 file is read exactly once: from the snapshot or from itself. This assumes the clocks of the
 machines that write a shared warehouse (Dask workers) agree within that minute, as NTP keeps them:
 a file named more than a minute in the past when it appears would be missed until a snapshot is
-taken from the files alone (a schema change, or a new catalog). The next snapshot starts from the
+taken from the files alone (``cadestate compact --whole``, or a schema change). The next snapshot starts from the
 last: it keeps the rows whose files are still there and reads only the files named between the two
 watermarks.
 
@@ -132,8 +132,10 @@ def carry(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict, recorded: d
         old = f'previous.{SCHEMA}."{name}"' if name in usable else None
         if name in fresh:
             since = None if name in whole else old
-            take(con, wh, name, schema_file(name), table["uniform"], mark, since, usable.get(name))
-            table["snapshot"] = mark
+            # from the last snapshot, the watermark never goes back (a clock set back): its files are in it
+            at = mark if since is None else max(mark, usable[name])
+            take(con, wh, name, schema_file(name), table["uniform"], at, since, usable.get(name))
+            table["snapshot"] = at
         elif old is not None:
             con.execute(f'CREATE TABLE {SCHEMA}."{name}" AS SELECT * FROM {old}')
             table["snapshot"] = usable[name]

@@ -290,6 +290,7 @@ def compact(
     ctx: typer.Context,
     tables: Annotated[Optional[list[str]], typer.Argument(help="Append-mode tables to compact (default: runs, label_files, label_tasks).")] = None,
     min_files: Annotated[int, typer.Option("--min-files", min=2, help="Compact a partition only if it has at least this many files.")] = 2,
+    whole: Annotated[bool, typer.Option("--whole", help="Take the snapshot from every file, not from the last snapshot and the files since (after a writer's clock was off by more than a minute).")] = False,
 ) -> None:
     """Merge each partition of the append-mode tables (one file per write) into one file, then take
     a snapshot of the tables in the catalog so that SQL opens only the files written since.
@@ -310,7 +311,7 @@ def compact(
     from warehouse.catalog import CATALOG_FILE, compact_warehouse
 
     wh = ctx.obj.open_warehouse()
-    done = compact_warehouse(wh, tables, min_files)
+    done = compact_warehouse(wh, tables, min_files, whole)
     for table, n in sorted(done.renamed.items()):
         out.print(f"{table}: {n} file(s) renamed to this version's layout", markup=False, highlight=False)
     for c in done.compacted:
