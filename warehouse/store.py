@@ -10,7 +10,8 @@ Layout under the warehouse root::
     inputs/<clip>/...                              the clip's video and camera file
     catalog.duckdb                                 DuckDB views over every table (warehouse.catalog)
     _prefect/                                      Prefect's local state and cached task results
-    _locks/<table>/<partition>.lock                locks of append-mode partitions (compaction)
+    _locks/<table>/<partition>.lock                locks of partitions (writes, compaction)
+    _locks/catalog.lock                            lock of compaction and the snapshot (warehouse.catalog)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
 
 File names: ``<time>-<id>.parquet``, ``<time>`` the 20-digit nanoseconds since the epoch at which
