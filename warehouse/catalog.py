@@ -30,7 +30,6 @@ derived data: rebuilding loses nothing.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import uuid
@@ -41,7 +40,7 @@ from pathlib import Path
 import duckdb
 
 from warehouse import snapshot
-from warehouse.store import Compacted, Warehouse, WarehouseError
+from warehouse.store import Compacted, Warehouse, WarehouseError, file_lock
 
 CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
@@ -280,14 +279,8 @@ def ensure_catalog(wh: Warehouse) -> Path:
 @contextlib.contextmanager
 def snapshot_lock(wh: Warehouse) -> Iterator[None]:
     """Hold the warehouse's snapshot lock (``_locks/catalog.lock``): one compaction and snapshot at a time."""
-    path = wh.root / "_locks" / "catalog.lock"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as f:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    with file_lock(wh.root / "_locks" / "catalog.lock"):
+        yield
 
 
 def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Collection[str] | bool = ()) -> list[str]:

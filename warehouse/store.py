@@ -107,6 +107,18 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
     return pa.concat_tables(parts)
 
 
+@contextlib.contextmanager
+def file_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``path`` (made, with its folder, if missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 def file_name(time_ns: int | None = None) -> str:
     """A data file's name: ``<time>-<id>.parquet`` (see the module), at ``time_ns`` (default now)."""
     return f"{time.time_ns() if time_ns is None else time_ns:020d}-{uuid.uuid4().hex[:8]}.parquet"
@@ -218,14 +230,8 @@ class Warehouse:
     def locked(self, table: str, part: str) -> Iterator[None]:
         """Hold the lock of one partition (``_locks/``, an exclusive ``flock``): writes to it and its
         compaction take it, so none happens while another is under way."""
-        path = self.root / "_locks" / self._table(table).name / f"{self.partition_dir(table, part).name}.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as f:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-            try:
-                yield
-            finally:
-                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+        with file_lock(self.root / "_locks" / self._table(table).name / f"{self.partition_dir(table, part).name}.lock"):
+            yield
 
     def conform(self, table: str, part: str, data: pa.Table) -> pa.Table:
         """Check ``data`` against the table's schema and return it cast to that schema exactly."""
