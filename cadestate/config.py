@@ -67,6 +67,9 @@ class WarehouseConfig:
                      check=_non_empty)
     compact_after_files: int = _opt(64, "Files an append-mode partition (runs, label_files, label_tasks) may hold before "
                                     "a write compacts it into one (`cadestate compact` compacts by hand).", lo=2, hi=1_000_000)
+    snapshot_after_clips: int = _opt(100, "A batch of at least this many clips (`cadestate ingest FOLDER`, `cadestate run`) "
+                                     "ends with what `cadestate compact` does (a new snapshot of the tables in the catalog, so "
+                                     "SQL opens only the files written since); 0: never.", lo=0, hi=1_000_000_000)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,10 @@ def cli(*args):
 
 
 @pytest.mark.slow
-def test_ingest_then_sql_status_tables(tmp_path, small_clip):
+def test_ingest_then_sql_status_tables(tmp_path, small_clip, monkeypatch):
+    from warehouse import snapshot
+
+    monkeypatch.setattr(snapshot, "MARGIN_NS", 0)  # files written a moment ago count as settled (in-process commands)
     w = str(tmp_path / "w")
     result = runner.invoke(app, ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path),
                                  "--clip", "small_0"])  # the official <video_id>_<start_us> of its camera file
@@ -57,8 +60,11 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip):
     assert status.exit_code == 0 and status.output.count("yes") == len(stages) and "small_0" in status.output
     tables = runner.invoke(app, ["-w", w, "tables"])
     assert "frames" in tables.output and "30" in tables.output
-    again = runner.invoke(app, ["-w", w, "run"])
+    (tmp_path / "c.toml").write_text("[warehouse]\nsnapshot_after_clips = 1\n")
+    again = runner.invoke(app, ["-w", w, "-c", str(tmp_path / "c.toml"), "run"])  # a batch big enough for a snapshot
     assert again.exit_code == 0 and again.output.count("cached") == len(stages)
+    in_snapshot = "SELECT count(*) FROM warehouse.snapshot.frames"
+    assert json.loads(cli("-w", w, "sql", in_snapshot.replace("count(*)", "count(*) AS n"), "-f", "json").stdout) == [{"n": 30}]
     args = ["-w", w, "ingest", str(small_clip.video_path), str(small_clip.cameras_path)]  # named small_0 again
     val = runner.invoke(app, [*args, "--split", "val"])
     assert val.exit_code == 0 and "manual_tracks" in val.output and "paused" in val.output

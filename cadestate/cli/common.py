@@ -111,6 +111,14 @@ def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     err.print(f"running {len(items)} clip(s) into {root} " + (f"on the Prefect server at {api}" if api else
               "(Prefect's local API starts first, ~20 s; `cadestate server start` saves it)"))
     code = print_reports(run_clips(items, cfg, show_progress=progress))
+    if 0 < cfg.warehouse.snapshot_after_clips <= len(items):
+        from warehouse import Warehouse
+        from warehouse.catalog import compact_warehouse
+
+        done = compact_warehouse(Warehouse(root, compact_after=cfg.warehouse.compact_after_files))
+        err.print(f"{len(items)} clips ([warehouse] snapshot_after_clips = {cfg.warehouse.snapshot_after_clips}): "
+                  f"compacted {len(done.compacted)} partition(s), snapshot of {len(done.snapshotted)} table(s) in the catalog",
+                  highlight=False)
     if exit:
         raise typer.Exit(code)
     return code
