@@ -241,7 +241,7 @@ def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
         con = duckdb.connect(str(tmp))
         try:
             schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
-            snapshot.carry(con, wh, plan, recorded, final, schema_files.__getitem__, snapshots, whole)
+            snapshot.carry(con, wh, plan, recorded, final, schema_files, snapshots, whole)
             create_views(con, wh, plan)
             con.execute("CHECKPOINT")
         finally:
@@ -290,8 +290,7 @@ def take_snapshots(wh: Warehouse, compacted: Collection[str] = (), renamed: Coll
     by name (files of an older schema) checked again, so that a table whose files now all have its
     schema gets its fast view back. Call it under :func:`snapshot_lock`. Returns the tables
     snapshotted."""
-    ensure_catalog(wh)
-    recorded = (recorded_views(wh.root / CATALOG_FILE) or {"tables": {}})["tables"]
+    recorded = (recorded_views(wh.root / CATALOG_FILE) or {"tables": {}})["tables"]  # none: the rebuild checks every table
     mixed = [t for t in compacted if not recorded.get(t, {}).get("uniform", True)]
     tables = [name for name in wh.info if snapshot.kept(wh.spec(name))]
     rebuild_catalog(wh, recheck=mixed, snapshots=tables, whole=tables if renamed is True else renamed)

@@ -30,7 +30,7 @@ files, and SQL over them is rare. Their views read the files, as before.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -114,12 +114,12 @@ def take(con: duckdb.DuckDBPyConnection, wh: Warehouse, table: str, schema_file:
 
 
 def carry(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict, recorded: dict | None, catalog: Path,
-          schema_file: Callable[[str], Path], fresh: Collection[str] = (), whole: Collection[str] = ()) -> None:
+          schema_files: Mapping[str, Path], fresh: Collection[str] = (), whole: Collection[str] = ()) -> None:
     """Give the catalog being built in ``con`` its snapshots and note each table's watermark in
     ``plan`` (``snapshot``: a watermark or None): a table in ``fresh`` gets a new snapshot (from its
     recorded one where that is of the same schema and the table is not in ``whole``, else from its
     files alone); any other keeps its recorded snapshot (copied from ``catalog``, the current
-    catalog file) where the schema is the same, else has none. ``schema_file`` gives a table's
+    catalog file) where the schema is the same, else has none. ``schema_files``: each table's
     schema file (there already)."""
     before = (recorded or {}).get("tables", {})
     usable = {name: before[name]["snapshot"] for name, table in plan["tables"].items()
@@ -134,7 +134,7 @@ def carry(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict, recorded: d
             since = None if name in whole else old
             # from the last snapshot, the watermark never goes back (a clock set back): its files are in it
             at = mark if since is None else max(mark, usable[name])
-            take(con, wh, name, schema_file(name), table["uniform"], at, since, usable.get(name))
+            take(con, wh, name, schema_files[name], table["uniform"], at, since, usable.get(name))
             table["snapshot"] = at
         elif old is not None:
             con.execute(f'CREATE TABLE {SCHEMA}."{name}" AS SELECT * FROM {old}')

@@ -304,8 +304,9 @@ class Warehouse:
         return final
 
     def _swap_in(self, folder: Path, data: pa.Table) -> None:
-        """Make ``data`` the only file of the partition ``folder`` in one step (see the module)."""
-        stage = self.root / "_staging" / f"replace-{uuid.uuid4().hex}"
+        """Make ``data`` the only file of the partition ``folder`` in one step (see the module): a
+        replace-mode write, or a compaction's merged file."""
+        stage = self.root / "_staging" / f"swap-{uuid.uuid4().hex}"
         stage.mkdir(parents=True)
         try:
             self._write_file(data, stage)
@@ -361,14 +362,7 @@ class Warehouse:
             return None
         schema = self.spec(table).schema
         merged = pa.concat_tables([ds.dataset([str(f)], schema=schema, format="parquet").to_table() for f in files])
-        stage = self.root / "_staging" / f"compact-{uuid.uuid4().hex}"
-        stage.mkdir(parents=True)
-        try:  # named now: after every file it merges, under a name no reader has listed
-            self._write_file(merged, stage)
-            exchange(stage, folder)  # the partition now holds the merged file, the staging folder the old ones
-            fsync_dir(folder.parent)
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)
+        self._swap_in(folder, merged)  # named now: after every file it merges, under a name no reader has listed
         return Compacted(table, part, len(files), merged.num_rows)
 
     # -- reading -----------------------------------------------------------------------------
