@@ -12,7 +12,8 @@ torch = pytest.importorskip("torch")
 
 from cadestate.config import ConfigError, DetectConfig, config_from_dict  # noqa: E402
 from tasks.detection.detectors import (  # noqa: E402
-    Detector, Letterbox, check_detect_config, letterbox, load_detector, nms, output_problem, resize_bilinear,
+    LAYOUTS, Detector, Letterbox, check_detect_config, letterbox, load_detector, network_input, nms, output_problem,
+    resize_bilinear,
 )
 from tasks.detection.models import nanodet as nd  # noqa: E402
 
@@ -117,6 +118,9 @@ def test_nanodet_adapter_on_exported_model(tmp_path):
     assert a.names == ("sofa",) and a.scores[0] == pytest.approx(0.9)
     np.testing.assert_allclose(a.boxes[0], [0, 0, 56, 24], atol=1e-3)  # x1 = -8 clipped
     np.testing.assert_allclose(b.boxes[0], [0, 0, 56, 8], atol=1e-3)  # pad_y 16
+    # a batch of inputs (what the detect stage prefetches) runs one image per call too
+    both = det.detect_inputs(*det.inputs([np.zeros((64, 64, 3), np.uint8), np.zeros((32, 64, 3), np.uint8)]))
+    assert [np.array_equal(x.boxes, y.boxes) for x, y in zip(both, (a, b))] == [True, True]
     with pytest.raises(ValueError, match="input is 64x64"):
         Detector(path, "nanodet", LABELS, 416)
 
@@ -196,6 +200,18 @@ def test_prepare_equals_the_transposed_normalisation():
     expected = np.ascontiguousarray(((canvas[..., ::-1] - nd.MEAN) / nd.STD).transpose(2, 0, 1), dtype=np.float32)
     got = nd.prepare(canvas)
     assert got.flags.c_contiguous and got.dtype == np.float32 and np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("shape", [(360, 640, 3), (640, 360, 3), (416, 416, 3), (17, 900, 3), (1080, 1920, 3)])
+@pytest.mark.parametrize("adapter", sorted(LAYOUTS))
+def test_network_input_is_the_prepared_letterbox_bit_for_bit(shape, adapter):
+    """The detector writes its input without making the canvas (nanodet): the same bits as
+    preparing the letterboxed canvas, padding included, so detections do not move."""
+    image = np.random.default_rng(sum(shape)).integers(0, 256, shape, np.uint8)
+    layout, out = LAYOUTS[adapter], np.full((3, 416, 416), np.nan, np.float32)
+    lb = network_input(image, layout, 416, out)
+    canvas, expected_lb = letterbox(image, 416, layout.fill)
+    assert lb == expected_lb and np.array_equal(out.view(np.uint32), layout.prepare(canvas).view(np.uint32))
 
 
 def test_session_threads_sleep_between_operators(tmp_path):

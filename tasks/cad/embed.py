@@ -20,7 +20,8 @@ from cadestate.lineage import digest, table_digest
 from cadestate.progress import progress
 from schemas.retrieval import CAD_MODEL_EMBEDDINGS
 from tasks.cad.views import BACKGROUND
-from tasks.detection.detect import load_rgb, prefetch
+from cadestate.prefetch import prefetch
+from tasks.detection.detect import load_rgb
 from tasks.detection.embed import vectors_array
 from tasks.detection.models.embedder import load_embedder
 from tasks.retrieval.descriptor import descriptor_inputs, load_descriptor

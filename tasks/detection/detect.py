@@ -8,10 +8,7 @@ Boxes whose label is not in ``[detect] classes`` (when set) are dropped before r
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 import pyarrow as pa
@@ -19,13 +16,13 @@ from PIL import Image
 
 from cadestate.config import DetectConfig
 from cadestate.lineage import table_digest
+from cadestate.prefetch import prefetch
 from cadestate.progress import progress
 from tasks.detection.detectors import Detections, load_detector
 from tasks.detection.model_inputs import model_file_inputs
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse
 
-T, U = TypeVar("T"), TypeVar("U")
 DET_ID_STRIDE = 10_000  # det_id = frame_index * DET_ID_STRIDE + rank
 
 
@@ -33,16 +30,6 @@ def load_rgb(path: Path) -> np.ndarray:
     """An image file as RGB uint8[H,W,3]."""
     with Image.open(path) as im:
         return np.asarray(im.convert("RGB"))
-
-
-def prefetch(items: list[T], load: Callable[[T], U]) -> Iterator[tuple[T, U]]:
-    """(item, load(item)) in order, loading the next item on a thread while the caller works."""
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(load, items[0]) if items else None
-        for i, item in enumerate(items):
-            value = pending.result()
-            pending = pool.submit(load, items[i + 1]) if i + 1 < len(items) else None
-            yield item, value
 
 
 def detection_rows(clip: str, frame: dict, det: Detections, model_sha256: str, classes: tuple[str, ...]) -> list[dict]:
@@ -67,9 +54,10 @@ def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_p
     detector = load_detector(cfg)
     rows: list[dict] = []
     batches = [frames[i:i + cfg.batch_size] for i in range(0, len(frames), cfg.batch_size)]
-    loaded = prefetch(batches, lambda b: [load_rgb(wh.root / f["image_path"]) for f in b])
-    for batch, images in progress(loaded, total=len(batches), description=f"detect {clip}", enabled=show_progress):
-        for frame, det in zip(batch, detector.detect(images)):
+    # decoding and letterboxing the next batch overlap the network's run on this one
+    loaded = prefetch(batches, lambda b: detector.inputs([load_rgb(wh.root / f["image_path"]) for f in b]))
+    for batch, inputs in progress(loaded, total=len(batches), description=f"detect {clip}", enabled=show_progress):
+        for frame, det in zip(batch, detector.detect_inputs(*inputs)):
             rows += detection_rows(clip, frame, det, detector.sha256, cfg.classes)
     table = pa.Table.from_pylist(rows, schema=wh.spec("detections").schema)
     written = wh.write("detections", clip, table)

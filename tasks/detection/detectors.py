@@ -34,6 +34,7 @@ import numpy as np
 
 from cadestate.config import ConfigError, DetectConfig
 from cadestate.lineage import file_sha256
+from cadestate.prefetch import prefetch
 from tasks.detection.model_inputs import built_in, detector_labels, detector_path
 from tasks.detection.models import furniture_files, nanodet
 
@@ -100,13 +101,30 @@ def resize_bilinear(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
 
 def letterbox(rgb: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, Letterbox]:
     """RGB [H,W,3] -> (canvas float32[size,size,3] RGB 0-255, its Letterbox)."""
-    lb = Letterbox.of(rgb.shape[:2], size)
-    h, w = rgb.shape[:2]
-    nh, nw = round(h * lb.scale), round(w * lb.scale)
+    lb, resized = _resized(rgb, size)
     canvas = np.full((size, size, 3), fill, np.float32)
     px, py = lb.pad
-    canvas[py:py + nh, px:px + nw] = resize_bilinear(rgb, nh, nw)
+    canvas[py:py + resized.shape[0], px:px + resized.shape[1]] = resized
     return canvas, lb
+
+
+def _resized(rgb: np.ndarray, size: int) -> tuple[Letterbox, np.ndarray]:
+    """The Letterbox of RGB [H,W,3] on a size x size canvas, and the image resized to it (float32)."""
+    lb = Letterbox.of(rgb.shape[:2], size)
+    h, w = rgb.shape[:2]
+    return lb, resize_bilinear(rgb, round(h * lb.scale), round(w * lb.scale))
+
+
+def network_input(rgb: np.ndarray, layout: Layout, size: int, out: np.ndarray) -> Letterbox:
+    """Write the network input of RGB [H,W,3] (``layout.prepare`` of its letterbox) into ``out``
+    float32[3,size,size]; its Letterbox. With ``layout.prepare_into`` no canvas is made."""
+    if layout.prepare_into is None:
+        canvas, lb = letterbox(rgb, size, layout.fill)
+        out[...] = layout.prepare(canvas)
+        return lb
+    lb, resized = _resized(rgb, size)
+    layout.prepare_into(resized, out, lb.pad, layout.fill)
+    return lb
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float, containment: float = 1.0) -> np.ndarray:
@@ -152,6 +170,9 @@ class Layout:
     fill: float  # canvas padding, 0-255
     prepare: Callable[[np.ndarray], np.ndarray]  # canvas float32[S,S,3] RGB -> input float32[3,S,S]
     candidates: Callable[[list[np.ndarray], int, int, float], Candidates]  # (outputs of one image, S, C, threshold)
+    # (resized image float32[h,w,3] RGB, out float32[3,S,S], pad (x, y), fill) -> None: writes what
+    # prepare makes of the canvas without making it; None: the canvas is made
+    prepare_into: Callable[[np.ndarray, np.ndarray, tuple[int, int], float], None] | None = None
 
 
 def _yolov8_prepare(canvas: np.ndarray) -> np.ndarray:
@@ -176,7 +197,7 @@ def _yolov8_candidates(outputs: list[np.ndarray], size: int, num_labels: int, th
 
 
 LAYOUTS: dict[str, Layout] = {
-    "nanodet": Layout(0.0, nanodet.prepare, nanodet.candidates),
+    "nanodet": Layout(0.0, nanodet.prepare, nanodet.candidates, nanodet.prepare_into),
     "yolov8": Layout(114.0, _yolov8_prepare, _yolov8_candidates),
 }
 
@@ -342,18 +363,28 @@ class Detector:
             raise ValueError(f"{model_path}: {problem[1]} ([detect] {problem[0]})")
 
     def _run(self, batch: np.ndarray) -> list[list[np.ndarray]]:
-        """Network on float32[B,3,S,S] -> per image, its outputs without the batch axis."""
-        outs = self.session.run(None, {self.session.get_inputs()[0].name: batch})
-        return [[o[b] for o in outs] for b in range(len(batch))]
+        """Network on float32[B,3,S,S] (``batch_size`` images per call) -> per image, its outputs
+        without the batch axis."""
+        name, per_image = self.session.get_inputs()[0].name, []
+        for start in range(0, len(batch), self.batch_size):
+            outs = self.session.run(None, {name: batch[start:start + self.batch_size]})
+            per_image += [[o[b] for o in outs] for b in range(len(outs[0]))]
+        return per_image
+
+    def inputs(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, list[Letterbox]]:
+        """The network input float32[B,3,S,S] of B RGB uint8[H,W,3] images, and their letterboxes."""
+        batch = np.empty((len(images), 3, self.size, self.size), np.float32)
+        return batch, [network_input(im, self.layout, self.size, out) for im, out in zip(images, batch)]
+
+    def detect_inputs(self, batch: np.ndarray, boxes: Sequence[Letterbox]) -> list[Detections]:
+        """Detections for each image of an :meth:`inputs` batch."""
+        return [self.finish(outs, lb) for lb, outs in zip(boxes, self._run(batch))]
 
     def detect(self, images: Sequence[np.ndarray]) -> list[Detections]:
-        """Detections for each RGB uint8[H,W,3] image (``batch_size`` images per network call)."""
-        result = []
-        for start in range(0, len(images), self.batch_size):
-            prepared = [letterbox(im, self.size, self.layout.fill) for im in images[start:start + self.batch_size]]
-            batch = np.stack([self.layout.prepare(canvas) for canvas, _ in prepared])
-            result += [self.finish(outs, lb) for (_, lb), outs in zip(prepared, self._run(batch))]
-        return result
+        """Detections for each RGB uint8[H,W,3] image; the next ``batch_size`` images are letterboxed
+        on a thread while the network runs."""
+        chunks = [images[i:i + self.batch_size] for i in range(0, len(images), self.batch_size)]
+        return [d for _, inputs in prefetch(chunks, self.inputs) for d in self.detect_inputs(*inputs)]
 
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
         """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""

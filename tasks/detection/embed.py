@@ -13,7 +13,8 @@ import pyarrow as pa
 from cadestate.config import EmbedConfig
 from cadestate.lineage import table_digest
 from cadestate.progress import progress
-from tasks.detection.detect import load_rgb, prefetch
+from cadestate.prefetch import prefetch
+from tasks.detection.detect import load_rgb
 from tasks.detection.models.embedder import Embedder, load_embedder
 from tasks.stage import StageContext, StageDef, StageOutput
 from warehouse import Warehouse

@@ -149,6 +149,20 @@ def prepare(canvas: np.ndarray) -> np.ndarray:
     return out
 
 
+def prepare_into(resized: np.ndarray, out: np.ndarray, pad: tuple[int, int], fill: float) -> None:
+    """What :func:`prepare` makes of a canvas of ``fill`` holding ``resized`` (RGB float32[h,w,3],
+    0-255) at ``pad`` (x, y), written into ``out`` float32[3,S,S] without the canvas: the same float32
+    operations on every value, so the same bits, for about 1.5 ms less per 416 x 416 input."""
+    px, py = pad
+    h, w = resized.shape[:2]
+    for c in range(3):  # output channel c (BGR) is resized channel 2 - c (RGB)
+        plane = out[c]
+        plane.fill((np.float32(fill) - MEAN[c]) / STD[c])
+        inside = plane[py:py + h, px:px + w]
+        np.subtract(resized[..., 2 - c], MEAN[c], out=inside)
+        inside /= STD[c]
+
+
 def split_outputs(outputs: Sequence[np.ndarray], size: int = SIZE,
                   num_labels: int = len(COCO_LABELS)) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The six raw outputs of one image (any order) -> {stride: (scores float[N,C], dists float[N,44])}."""
