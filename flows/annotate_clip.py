@@ -2,8 +2,8 @@
 on Dask, one ``annotate_clip`` per clip on the workers: :mod:`flows.dask_clips`).
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained as their ``upstream`` says
-(:func:`flows.stage_tasks.submit_stages`; ``cadestate stages`` lists them). A failing clip does not
-stop the others: each stage run is reported as completed, cached (no work: unchanged inputs, config
+(``cadestate stages`` lists them), in one Prefect task per clip (:mod:`flows.stage_chain`, whose
+cache is the ``runs`` table). A failing clip does not stop the others: each stage run is reported as completed, cached (no work: unchanged inputs, config
 and code), failed, skipped (an upstream stage failed), paused (a human task waits for labels; what is answered goes on) or waiting (not run: an upstream
 human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
 named ``Paused`` with a message naming the waiting tasks when a human task waits.
@@ -14,26 +14,18 @@ from __future__ import annotations
 from pathlib import Path
 
 from prefect import flow
-from prefect.futures import PrefectFuture
 from prefect.states import State
 
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow, run_tags
-from flows.stage_tasks import submit_stages
+from flows.stage_chain import unit_stages
 from tasks.video.ingest import ClipSource
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:
-    submitted: list[tuple[str, str, PrefectFuture]] = []
-    reports: list[StageReport] = []
-    for source in sources:
-        try:
-            stages = submit_stages(root, "clip", source.clip, config, source, show_progress)
-            submitted += [(source.clip, stage, fut) for stage, fut in stages]
-        except OSError as e:  # unreadable input files: report the clip, go on with the others
-            reports.append(StageReport(source.clip, "ingest", "failed", message=str(e)))
-    return finish(submitted, reports, f"{len(sources)} clip(s)")
+    submitted = [(s.clip, unit_stages.submit(root, "clip", s.clip, config, s, show_progress)) for s in sources]
+    return finish(submitted, f"{len(sources)} clip(s)")
 
 
 @flow(name="annotate_clip", log_prints=True)

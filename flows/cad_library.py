@@ -13,25 +13,22 @@ from itertools import groupby
 from pathlib import Path
 
 from prefect import flow
-from prefect.futures import PrefectFuture
 from prefect.states import State
 
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
-from flows.stage_tasks import submit_stages
+from flows.stage_chain import unit_stages
 from tasks.cad.sources import CadItem
 
 
 @flow(name="build_cad_library", log_prints=True)
 def build_cad_library(root: str, items: list[CadItem], config: Config, show_progress: bool = True) -> State:
     """Ingest and render every library of ``items``."""
-    submitted: list[tuple[str, str, PrefectFuture]] = []
     by_library = groupby(sorted(items, key=lambda i: i.library), key=lambda i: i.library)
-    for library, group in by_library:
-        submitted += [(library, stage, fut) for stage, fut in
-                      submit_stages(root, "library", library, config, list(group), show_progress)]
-    return finish(submitted, [], f"{len({i.library for i in items})} CAD librar(y/ies)")
+    submitted = [(library, unit_stages.submit(root, "library", library, config, list(group), show_progress))
+                 for library, group in by_library]
+    return finish(submitted, f"{len({i.library for i in items})} CAD librar(y/ies)")
 
 
 def run_cad_library(items: list[CadItem], config: Config, show_progress: bool = True) -> list[StageReport]:

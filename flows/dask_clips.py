@@ -16,9 +16,9 @@ Prefect in the workers: every worker process talks to one Prefect API, handed to
 That is the warehouse's server or ``$PREFECT_API_URL`` when one is in use; otherwise the ephemeral
 API that this process starts (as the thread runner does), which listens on 127.0.0.1: workers on
 this machine (a local cluster, or one on loopback) reach it, workers on other machines need a
-server they can reach (``PREFECT_API_URL``). So flow runs, their names and tags, and the task cache
-(persisted results under ``<warehouse>/_prefect/results``, keyed as :mod:`flows.stage_tasks` says)
-are the same as with threads: an unchanged rerun on Dask is cached, a clip waiting for people ends
+server they can reach (``PREFECT_API_URL``). So flow runs, their names and tags are the same as with
+threads, and so is the cache (the warehouse's ``runs`` table, :mod:`flows.stage_chain`): an
+unchanged rerun on Dask is cached, a clip waiting for people ends
 ``paused``. A worker must not import Prefect before its first clip (Prefect reads its settings
 when imported): :func:`annotate_clip_here` sets them first.
 
@@ -161,11 +161,9 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
     from flows.runtime import ServerError, api_error_line, api_failure
     from warehouse import Warehouse
     from warehouse.catalog import ensure_catalog
-    from warehouse.identity import warehouse_id
 
     root = str(Path(config.warehouse.root).expanduser().resolve())
     config = dataclasses.replace(config, warehouse=dataclasses.replace(config.warehouse, root=root))
-    warehouse_id(Path(root))  # made here once, not raced for by the workers
     ensure_catalog(Warehouse(root))
     try:
         api_url = prefect_api_url(config)

@@ -40,7 +40,7 @@ from cadestate.config import Config, load_config
 from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
 from flows.reports import StageReport
-from flows.runtime import run_tags, warehouse_results
+from flows.runtime import run_tags
 from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
 from tasks.video.ingest import ClipSource, official_clip_name
@@ -154,8 +154,7 @@ def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str
     """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest)."""
     cfg = served_config(warehouse, config_path)
     root = str(Path(warehouse).resolve())
-    with warehouse_results(Path(root)):
-        state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
+    state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
     reports: list[StageReport] = state.result(raise_on_failure=False)
     waits = sorted(f"{r.stage}: {r.message}" for r in reports if r.state == "paused")
     if waits:

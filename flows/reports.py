@@ -7,8 +7,6 @@ from dataclasses import dataclass
 from prefect.futures import PrefectFuture, wait
 from prefect.states import Completed, Failed, State
 
-from tasks.stage import StageRun
-
 
 @dataclass(frozen=True)
 class StageReport:
@@ -22,27 +20,29 @@ class StageReport:
     message: str = ""
 
 
-def report(clip: str, stage: str, future: PrefectFuture) -> StageReport:
-    """The report of a finished task future."""
+WHOLE_UNIT = "stages"
+"""The stage name of the report of a unit whose task failed as a whole (not in one of its stages)."""
+
+
+def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
+    """The reports of a finished unit task (:func:`flows.stage_chain.unit_stages`); a task that
+    failed as a whole is one failed report."""
     state = future.state
     if state.is_completed():
-        run: StageRun = state.result()
-        if run.status in ("paused", "waiting"):
-            return StageReport(clip, stage, run.status, run.rows_written, run.duration_s, run.message)
-        if state.name == "Cached":
-            return StageReport(clip, stage, "cached")
-        return StageReport(clip, stage, "completed", run.rows_written, run.duration_s, run.message)
-    if state.is_failed():
-        error = state.result(raise_on_failure=False)
-        if "upstream" not in str(state.message or "").lower():
-            return StageReport(clip, stage, "failed", message=str(error))
-    return StageReport(clip, stage, "skipped", message="an upstream stage failed")
+        return state.result()
+    error = state.result(raise_on_failure=False)
+    return [StageReport(unit, WHOLE_UNIT, "failed", message=f"{type(error).__name__}: {error}")]
 
 
-def finish(submitted: list[tuple[str, str, PrefectFuture]], reports: list[StageReport], what: str) -> State:
-    """Wait for the submitted tasks; the flow's final state carries every report."""
-    wait([fut for _, _, fut in submitted])
-    reports = reports + [report(clip, stage, fut) for clip, stage, fut in submitted]
+def finish(submitted: list[tuple[str, PrefectFuture]], what: str) -> State:
+    """Wait for the submitted unit tasks (unit, future); the flow's final state carries every report."""
+    wait([fut for _, fut in submitted])
+    return final_state([r for unit, fut in submitted for r in unit_reports(unit, fut)], what)
+
+
+def final_state(reports: list[StageReport], what: str) -> State:
+    """The flow's final state over ``reports``: Failed when a stage failed, else Completed (named
+    Paused, naming what waits, when a human task waits); it carries the reports."""
     failed = [r for r in reports if r.state == "failed"]
     message = f"{what}: {len(reports)} stage runs, {len(failed)} failed"
     if failed:

@@ -3,15 +3,13 @@
 Prefect talks to the warehouse's server when ``cadestate server start`` left one up
 (:mod:`flows.server`), or to ``PREFECT_API_URL`` when the user set it; otherwise it runs in
 ephemeral mode: a temporary local API with its SQLite database under ``<warehouse>/_prefect/home``
-(no server to start, ~20 s per command). Cached task results live under
-``<warehouse>/_prefect/results``, so a warehouse carries its own cache and deleting the warehouse
-deletes it too. Flow runs are named after what they run (``annotate_clip/<clip>``) and tagged with
+(no server to start, ~20 s per command). Prefect caches nothing and persists no result: the cache
+is the warehouse's ``runs`` table (:mod:`flows.stage_chain`). Flow runs are named after what they run (``annotate_clip/<clip>``) and tagged with
 the clips, their splits and the warehouse's CAD libraries, so the Prefect UI finds them.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,7 +28,6 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
         os.environ["PREFECT_API_URL"] = server.api_url
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(int(startup_timeout_s)))
-    os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
     # Stage failures are reported by the caller (one line each); Prefect's own logs, tracebacks
     # included, show with --verbose. The ephemeral API runs in this process and logs under its own
     # level: without it, its shutdown on a busy machine printed ~150 lines of "Error flushing events"
@@ -39,19 +36,6 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", level)
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", level)
     return os.environ.get("PREFECT_API_URL", "")
-
-
-RESULTS = Path("_prefect") / "results"
-"""Where the persisted task results (the cache) lie under the warehouse, one file per cache key."""
-
-
-@contextlib.contextmanager
-def warehouse_results(root: Path) -> Iterator[None]:
-    """Within the block, persisted task results (the cache) go to ``<root>/_prefect/results``."""
-    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
-
-    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: str(Path(root) / RESULTS)}):
-        yield
 
 
 def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
@@ -64,7 +48,7 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
 
     api = os.environ.get("PREFECT_API_URL", "")
     try:
-        with warehouse_results(root), prefect_tags(*tags):
+        with prefect_tags(*tags):
             state = flow.with_options(task_runner=task_runner(config.prefect), flow_run_name=run_name)(*args, return_state=True)
     except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
         cause = api_failure(e)

@@ -3,12 +3,12 @@
 A stage is declared once, beside its logic: its module (anywhere under ``tasks/``) assigns
 ``STAGE = StageDef(...)`` at module level, naming the function that does the work and the
 functions that digest what it reads besides its upstream stages' outputs. :mod:`tasks.registry`
-finds the declarations and derives the stage graph and code digests; :mod:`flows.stage_tasks`
-makes a Prefect task of each; the flows wire them from the graph.
+finds the declarations and derives the stage graph and code digests; :mod:`flows.stage_chain`
+runs a unit's stages in graph order, in one Prefect task, the ``runs`` table as cache.
 
 A run's body has the form ``body(run_id) -> StageOutput`` and is wrapped by
 :func:`run_stage`, which times it, writes a ``runs`` row (completed or failed, with the lineage
-digests; ``paused`` when the body says it waits for people) and returns a small picklable :class:`StageRun` (the Prefect task result).
+digests; ``paused`` when the body says it waits for people) and returns a :class:`StageRun`.
 
 A run in progress is journalled by a marker file, ``<warehouse>/_running/<clip>/<stage>.<run_id>.json``
 (the process, its host and start), written before the body starts and removed once its ``runs`` row

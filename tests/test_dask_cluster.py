@@ -96,7 +96,9 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
         assert [states[(clip, s)] for s in CLIP_STAGES] == ["completed"] * len(CLIP_STAGES), reports
     assert states[("d3", "manual_tracks")] == "paused"  # a val clip waits for its manual tracks, as with threads
     assert states[("d3", "retrieval")] == "waiting"
-    assert [(r.stage, r.state) for r in reports if r.clip == "gone"] == [("ingest", "failed")]  # one clip, one line
+    # one clip, one line: the first stage that reads the missing video
+    [gone] = [r for r in reports if r.clip == "gone"]
+    assert (gone.stage, gone.state) == ("cameras", "failed") and "missing.mp4" in gone.message
 
     ran = [t for t in stream if str(t["key"]).startswith("annotate_clip-")]
     assert len(ran) == 5 and len({t["worker"] for t in ran}) == 2  # one task per clip, spread over both workers
