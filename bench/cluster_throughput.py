@@ -1,9 +1,12 @@
 """Clips per hour of a batch, with the thread runner and with a local Dask cluster (issue 21, ``make bench``).
 
-A batch of ``--clips`` small generated clips (320x192, 30 camera lines, no CAD library: every stage
-runs, retrieval and what follows on nothing) is ingested by one real ``cadestate ingest FOLDER``
-process into a fresh warehouse, once per runner: ``[prefect] task_runner = "threads"`` and
-``"dask"`` (no address: a local cluster), both with ``max_workers = WORKERS``. Per runner:
+A batch of ``--clips`` generated clips (no CAD library: every stage runs, retrieval and what
+follows on nothing) is ingested by one real ``cadestate ingest FOLDER`` process into a fresh
+warehouse, once per runner: ``[prefect] task_runner = "threads"`` and ``"dask"`` (no address: a
+local cluster), both with ``max_workers = WORKERS``. Two clip sizes (``SIZES``): ``paper``, the
+paper's average clip (640x360, 138 camera lines, as :mod:`bench.frames_throughput`), what a dataset
+of RealEstate10K clips holds; ``small`` (320x192, 30 camera lines), where the command's fixed costs
+(Python, Prefect and its API, a Dask cluster) weigh most. Per size and runner:
 
 - ``wall_s``: the command's wall time (Prefect's start, the cluster's, every clip), and ``clips_per_hour``;
 - ``cpu_s``: CPU seconds of the command and every process it started (user + system);
@@ -11,7 +14,7 @@ process into a fresh warehouse, once per runner: ``[prefect] task_runner = "thre
 - ``orchestration_share``: what the batch took beyond its stage work spread over the workers,
   ``(wall_s - stage_s / WORKERS) / (stage_s / WORKERS)`` (0: no time outside stages).
 
-    python -m bench.cluster_throughput --clips 20
+    python -m bench.cluster_throughput --clips 20 [--size paper] [--runner threads]
 """
 
 from __future__ import annotations
@@ -31,11 +34,16 @@ WORKERS = 2
 RUNNERS = ("threads", "dask")
 
 
-def make_batch(folder: Path, clips: int) -> Path:
-    """``clips`` small clips (``<name>.mp4`` + ``<name>.txt``) in ``folder``."""
+SIZES = {"paper": dict(width=640, height=360, num_video_frames=276, sample_every=2),
+         "small": dict(width=320, height=192, num_video_frames=90, sample_every=3)}
+"""The clips of a batch, by size (:class:`bench.demo_clip.DemoClipSpec` fields)."""
+
+
+def make_batch(folder: Path, clips: int, size: str) -> Path:
+    """``clips`` clips of ``size`` (``<name>.mp4`` + ``<name>.txt``) in ``folder``."""
     from bench.demo_clip import DemoClipSpec, make_demo_clip
 
-    spec = DemoClipSpec(width=320, height=192, num_video_frames=90, sample_every=3)
+    spec = DemoClipSpec(**SIZES[size])
     for i in range(clips):
         make_demo_clip(folder, dataclasses.replace(spec, name=f"batch{i:03d}", seed=100 + i))
     return folder
@@ -67,22 +75,25 @@ def run_batch(runner: str, batch: Path, workdir: Path) -> dict:
             "clips_per_hour": round(3600 * clips / wall), "orchestration_share": round((wall - stage / WORKERS) / (stage / WORKERS), 3)}
 
 
-def run(clips: int = 20, runners: tuple[str, ...] = RUNNERS) -> dict:
-    """The numbers of each runner on one batch of ``clips`` clips."""
-    with tempfile.TemporaryDirectory(prefix="cadestate-throughput-") as tmp:
-        batch = make_batch(Path(tmp) / "batch", clips)
-        return {"workers": WORKERS, "batch_clips": clips,
-                **{runner: run_batch(runner, batch, Path(tmp)) for runner in runners}}
+def run(clips: int = 20, runners: tuple[str, ...] = RUNNERS, sizes: tuple[str, ...] = tuple(SIZES)) -> dict:
+    """The numbers of each runner on one batch of ``clips`` clips of each size."""
+    result: dict = {"workers": WORKERS, "batch_clips": clips}
+    for size in sizes:
+        with tempfile.TemporaryDirectory(prefix="cadestate-throughput-") as tmp:
+            batch = make_batch(Path(tmp) / "batch", clips, size)
+            result[size] = {runner: run_batch(runner, batch, Path(tmp)) for runner in runners}
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--clips", type=int, default=20, help="clips in the batch (default 20, as make bench)")
     parser.add_argument("--runner", choices=RUNNERS, action="append", help="only this runner (repeatable; default both)")
+    parser.add_argument("--size", choices=tuple(SIZES), action="append", help="only clips of this size (repeatable; default both)")
     args = parser.parse_args(argv)
     if args.clips < 1:
         parser.error("--clips must be at least 1")
-    print(json.dumps(run(args.clips, tuple(args.runner or RUNNERS)), indent=2))
+    print(json.dumps(run(args.clips, tuple(args.runner or RUNNERS), tuple(args.size or SIZES)), indent=2))
     return 0
 
 
