@@ -12,7 +12,12 @@ of RealEstate10K clips holds; ``small`` (320x192, 30 camera lines), where the co
 - ``cpu_s``: CPU seconds of the command and every process it started (user + system);
 - ``stage_s``: the seconds of its stage runs, summed from ``runs.duration_s``;
 - ``orchestration_share``: what the batch took beyond its stage work spread over the workers,
-  ``(wall_s - stage_s / WORKERS) / (stage_s / WORKERS)`` (0: no time outside stages).
+  ``(wall_s - stage_s / WORKERS) / (stage_s / WORKERS)`` (0: no time outside stages). Stage
+  seconds are wall time with two clips sharing the cores, so contention counts as stage work.
+
+``threads_server_up`` is the thread runner again with a Prefect server up for the warehouse
+(started before, as ``cadestate server start`` leaves one): no ephemeral API to start, its CPU
+during the batch counted in ``cpu_s``.
 
     python -m bench.cluster_throughput --clips 20 [--size paper] [--runner threads]
 """
@@ -54,24 +59,48 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_batch(runner: str, batch: Path, workdir: Path) -> dict:
-    """Ingest every clip of ``batch`` into a fresh warehouse with ``runner``; its numbers."""
+def _server_cpu_s(root: Path) -> float:
+    """CPU seconds (user + system) of the warehouse's Prefect server and its children so far; 0 without one."""
+    import psutil
+
+    from flows.server import running_server
+
+    server = running_server(root)
+    if server is None:
+        return 0.0
+    processes = [psutil.Process(server.pid)] + psutil.Process(server.pid).children(recursive=True)
+    return sum(sum(p.cpu_times()[:2]) for p in processes)
+
+
+def run_batch(runner: str, batch: Path, workdir: Path, server: bool = False) -> dict:
+    """Ingest every clip of ``batch`` into a fresh warehouse with ``runner``; its numbers. With
+    ``server``, a Prefect server is started for the warehouse first (``cadestate server start``; its
+    start is ``server_start_s``, not counted in ``wall_s``; its CPU during the batch is in ``cpu_s``)."""
     from warehouse import Warehouse
 
     config = workdir / f"{runner}.toml"
     config.write_text(f'[prefect]\ntask_runner = "{runner}"\nmax_workers = {WORKERS}\n')
-    root = workdir / f"w-{runner}"
+    root = workdir / f"w-{runner}{'-server' if server else ''}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    cpu0, t0 = _children_cpu_s(), time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "cadestate", "-c", str(config), "-w", str(root), "ingest", str(batch),
-                           "--no-progress"], capture_output=True, text=True, env=env, cwd=workdir)
-    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    cli = [sys.executable, "-m", "cadestate", "-c", str(config), "-w", str(root)]
+    extra: dict = {}
+    if server:
+        t0 = time.perf_counter()
+        subprocess.run([*cli, "server", "start", "--port", "0"], capture_output=True, env=env, cwd=workdir, check=True)
+        extra["server_start_s"] = round(time.perf_counter() - t0, 1)
+    try:
+        server0, cpu0, t0 = _server_cpu_s(root), _children_cpu_s(), time.perf_counter()
+        done = subprocess.run([*cli, "ingest", str(batch), "--no-progress"], capture_output=True, text=True, env=env, cwd=workdir)
+        wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0 + _server_cpu_s(root) - server0
+    finally:
+        if server:
+            subprocess.run([*cli, "server", "stop"], capture_output=True, env=env, cwd=workdir)
     if done.returncode != 0:
         return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
     runs = Warehouse(root).read("runs", columns=["clip", "stage", "status", "duration_s"]).to_pylist()
     stage = sum(float(r["duration_s"] or 0.0) for r in runs)
     clips = len({r["clip"] for r in runs})
-    return {"clips": clips, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stage_s": round(stage, 1),
+    return {"clips": clips, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stage_s": round(stage, 1), **extra,
             "clips_per_hour": round(3600 * clips / wall), "orchestration_share": round((wall - stage / WORKERS) / (stage / WORKERS), 3)}
 
 
@@ -82,6 +111,8 @@ def run(clips: int = 20, runners: tuple[str, ...] = RUNNERS, sizes: tuple[str, .
         with tempfile.TemporaryDirectory(prefix="cadestate-throughput-") as tmp:
             batch = make_batch(Path(tmp) / "batch", clips, size)
             result[size] = {runner: run_batch(runner, batch, Path(tmp)) for runner in runners}
+            if "threads" in runners:  # what a long-lived server (`cadestate server start`) saves each command
+                result[size]["threads_server_up"] = run_batch("threads", batch, Path(tmp), server=True)
     return result
 
 

@@ -19,12 +19,12 @@ from prefect.states import State
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow, run_tags
-from flows.stage_chain import unit_stages
+from flows.stage_chain import submit_unit
 from tasks.video.ingest import ClipSource
 
 
 def _run(root: str, sources: list[ClipSource], config: Config, show_progress: bool) -> State:
-    submitted = [(s.clip, unit_stages.submit(root, "clip", s.clip, config, s, show_progress)) for s in sources]
+    submitted = [(s.clip, submit_unit(root, "clip", s.clip, config, s, show_progress)) for s in sources]
     return finish(submitted, f"{len(sources)} clip(s)")
 
 

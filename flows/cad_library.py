@@ -18,7 +18,7 @@ from prefect.states import State
 from cadestate.config import Config
 from flows.reports import StageReport, finish
 from flows.runtime import run_flow
-from flows.stage_chain import unit_stages
+from flows.stage_chain import submit_unit
 from tasks.cad.sources import CadItem
 
 
@@ -26,7 +26,7 @@ from tasks.cad.sources import CadItem
 def build_cad_library(root: str, items: list[CadItem], config: Config, show_progress: bool = True) -> State:
     """Ingest and render every library of ``items``."""
     by_library = groupby(sorted(items, key=lambda i: i.library), key=lambda i: i.library)
-    submitted = [(library, unit_stages.submit(root, "library", library, config, list(group), show_progress))
+    submitted = [(library, submit_unit(root, "library", library, config, list(group), show_progress))
                  for library, group in by_library]
     return finish(submitted, f"{len({i.library for i in items})} CAD librar(y/ies)")
 

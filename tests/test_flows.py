@@ -37,7 +37,7 @@ def snapshot(root: Path) -> dict[str, int]:
 
 
 def prefect_task_runs(flow_run: str) -> list[str]:
-    """The task run names of the latest flow run named ``flow_run``, read from Prefect's API."""
+    """The task runs (name and tags) of the latest flow run named ``flow_run``, then its tags, read from Prefect's API."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId, FlowRunFilterName
     from prefect.client.schemas.sorting import FlowRunSort, TaskRunSort
@@ -47,7 +47,7 @@ def prefect_task_runs(flow_run: str) -> list[str]:
                                        sort=FlowRunSort.START_TIME_DESC, limit=1)
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[latest[0].id])),
                                       sort=TaskRunSort.EXPECTED_START_TIME_ASC, limit=100)
-    return sorted(t.name for t in tasks)
+    return sorted(f"{t.name} {sorted(t.tags)}" for t in tasks) + [f"flow {sorted(latest[0].tags)}"]
 
 
 @pytest.fixture
@@ -63,7 +63,8 @@ def source(small_clip) -> ClipSource:
 def test_unchanged_rerun_does_nothing(config, source):
     first = run_clips([source], config, show_progress=False)
     assert states(first) == expect("small", rest="completed")
-    assert prefect_task_runs("annotate_clip/small") == ["clip/small"]  # one Prefect task for the clip's stages
+    # one Prefect task for the clip's stages, untagged (no concurrency slots asked for); the flow run is tagged
+    assert prefect_task_runs("annotate_clip/small") == ["clip/small []", "flow ['clip:small', 'split:train']"]
     wh = Warehouse(config.warehouse.root)
     before, runs_before = snapshot(wh.root), wh.read("runs").num_rows
     again = run_clips([source], config, show_progress=False)
