@@ -105,7 +105,7 @@ def sfm_run(request, small_cad_library, tmp_path_factory):
 def test_sfm_registers_rendered_walkthroughs(sfm_run):
     """A real pycolmap run on textured benchmark walkthroughs of several seeds: every frame gets a
     camera, nearly all registered (issue 20: >= 95 %), a focal length within the hypotheses'
-    range; the first seed runs twice: the same cameras (seeded RANSAC and mapper, single-threaded
+    range; the first seed runs twice: the same cameras (seeded RANSAC and mapper, single-threaded mapping and
     extraction, hypotheses one after another)."""
     seed, clip, result = sfm_run
     truth = parse_camera_file(clip.cameras_path)
