@@ -3,9 +3,10 @@ on Dask, one ``annotate_clip`` per clip on the workers: :mod:`flows.dask_clips`)
 
 Per clip the clip stages of :data:`tasks.registry.STAGES` are chained as their ``upstream`` says
 (``cadestate stages`` lists them), in one Prefect task per clip (:mod:`flows.stage_chain`, whose
-cache is the ``runs`` table). A failing clip does not stop the others: each stage run is reported as completed, cached (no work: unchanged inputs, config
-and code), failed, skipped (an upstream stage failed), paused (a human task waits for labels; what is answered goes on) or waiting (not run: an upstream
-human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
+cache is the ``runs`` table). A failing clip does not stop the others: each stage run is reported
+as completed, cached (no work: unchanged inputs, config and code), failed, skipped (an upstream
+stage failed), paused (a human task waits for labels; what is answered goes on) or waiting (not
+run: an upstream human task has nothing answered yet). The flow ends Failed when any stage failed, else Completed,
 named ``Paused`` with a message naming the waiting tasks when a human task waits.
 """
 

@@ -36,13 +36,8 @@ from flows.reports import StageReport
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
+from tasks.status import read_runs
 from warehouse import Warehouse
-from warehouse.query import read_rows
-
-LINEAGE_COLUMNS = ("run_id", "stage", "status", "config_hash", "code_hash", "inputs_hash", "output_hash",
-                   "started_at", "rows_written", "duration_s", "message")
-"""The columns of ``runs`` the cache reads."""
-
 
 @dataclasses.dataclass(frozen=True)
 class Signature:
@@ -58,7 +53,7 @@ def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Sig
     """The recorded run that makes running ``stage`` of ``unit`` with ``signature`` again needless,
     or None.
 
-    ``runs``: the unit's ``runs`` rows (:data:`LINEAGE_COLUMNS`), oldest first. A completed or paused
+    ``runs``: the unit's ``runs`` rows (:func:`tasks.status.read_runs`), oldest first. A completed or paused
     run with the same signature counts while the stage's latest completed or paused run has its
     output: then the tables hold what a run with this signature writes."""
     ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
@@ -101,7 +96,7 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
             log.error("%s %s: %s", unit, stage.name, e)
             return [StageReport(unit, stage.name, "failed", message=str(e))]
     memo.save()
-    runs = sorted(read_rows(wh, "runs", LINEAGE_COLUMNS, [unit], timestamps=("started_at",)), key=lambda r: r["started_at"])
+    runs = read_runs(wh, [unit])
     done: dict[str, StageRun] = {}
     reports = []
     for stage in stages:
