@@ -137,9 +137,12 @@ class CamerasConfig:
                              "(every k-th, k = round(frames / focal_frames), at least 1).", lo=3, hi=10000)
     max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "
                                    "estimate by less than this fraction.", lo=0.0, hi=1.0)
-    threads: int = _opt(1, "Threads for mapping and bundle adjustment (feature extraction and matching run on one: more "
-                   "store frames and verified pairs in a varying order). More than 1 is faster but not reproducible: "
-                   "parallel sums differ run to run, and SfM then gives other cameras, at times another model.", lo=1, hi=256)
+    threads: int = _opt(1, "Threads for mapping and bundle adjustment (matching runs on one: more verify pairs with "
+                   "other random draws). More than 1 is faster but not reproducible: parallel sums differ run to run, "
+                   "and SfM then gives other cameras, at times another model.", lo=1, hi=256)
+    workers: int = _opt(2, "Threads for feature extraction and for the focal hypotheses; the cameras do not depend on it "
+                        "(the frames enter the database in time order before their features, and each hypothesis maps "
+                        "its own copy of the database).", lo=1, hi=256)
     seed: int = _opt(0, "Random seed of two-view verification and the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)
 
 

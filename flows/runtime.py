@@ -19,7 +19,7 @@ from flows.server import ServerError, prefect_home, running_server
 
 
 def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeout_s: float = 180.0) -> str:
-    """Set Prefect's environment defaults. Call before the first ``import prefect``. Returns the API
+    """Set Prefect's environment defaults (and COLMAP's log level). Call before the first ``import prefect``. Returns the API
     Prefect will use: the warehouse's running server, ``$PREFECT_API_URL``, or '' (ephemeral)."""
     home = prefect_home(Path(root))
     home.mkdir(parents=True, exist_ok=True)
@@ -35,6 +35,9 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     level = "INFO" if verbose else "CRITICAL"
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", level)
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", level)
+    # COLMAP (glog, read when pycolmap loads) logs ~2,000 lines per SfM run, and an error line for each
+    # focal hypothesis that maps nothing (an expected outcome); the cameras stage reports what matters.
+    os.environ.setdefault("GLOG_minloglevel", "0" if verbose else "3")
     return os.environ.get("PREFECT_API_URL", "")
 
 

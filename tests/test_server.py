@@ -99,14 +99,17 @@ def test_server_start_on_a_port_in_use_says_so_and_forgets_the_server(tmp_path):
     assert not (w / "_prefect" / "server.json").exists() and read_server(w) is None
 
 
-@pytest.mark.parametrize("verbose, level", [(False, "CRITICAL"), (True, "INFO")])
-def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, verbose, level):
+@pytest.mark.parametrize("verbose, level, glog", [(False, "CRITICAL", "3"), (True, "INFO", "0")])
+def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, verbose, level, glog):
     """The ephemeral API runs in the command's process with a log level of its own: left at Prefect's
-    default, its shutdown on a busy machine printed pages of tracebacks after a successful run."""
+    default, its shutdown on a busy machine printed pages of tracebacks after a successful run.
+    COLMAP's ~2,000 lines per SfM run show only with --verbose."""
     from flows.runtime import prepare_prefect_environment
 
-    for name in ("PREFECT_HOME", "PREFECT_API_URL", "PREFECT_LOGGING_LEVEL", "PREFECT_SERVER_LOGGING_LEVEL"):
+    for name in ("PREFECT_HOME", "PREFECT_API_URL", "PREFECT_LOGGING_LEVEL", "PREFECT_SERVER_LOGGING_LEVEL",
+                 "GLOG_minloglevel"):
         monkeypatch.setenv(name, "")  # so that the test's end restores what was there (or its absence)
         monkeypatch.delenv(name)
     assert prepare_prefect_environment(tmp_path, verbose=verbose) == ""
     assert os.environ["PREFECT_LOGGING_LEVEL"] == os.environ["PREFECT_SERVER_LOGGING_LEVEL"] == level
+    assert os.environ["GLOG_minloglevel"] == glog

@@ -118,7 +118,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
         reader.camera_model = "SIMPLE_PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = cfg.max_image_size
-    extraction.num_threads = 1  # more threads store the images in a varying order: another model each run
+    extraction.num_threads = cfg.workers  # the images are in the database first (run_sfm), so their ids keep time order
     extraction.sift.max_num_features = cfg.max_features
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = 1  # more threads write the verified pairs in a varying order: another model each run
@@ -190,6 +190,9 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         reader, extraction, matching, pairing, verification, mapping = _options(cfg, intrinsics)
         db, names = tmp / "database.db", [p.name for p in frames.paths]
         t = time.perf_counter()
+        pycolmap.Database.open(str(db)).close()
+        # Image ids in time order, whatever order the extraction threads finish in: the mapper's choices follow the ids.
+        pycolmap.import_images(db, tmp / "images", pycolmap.CameraMode.SINGLE, names, reader)
         pycolmap.extract_features(db, tmp / "images", names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         seconds["features"] = time.perf_counter() - t

@@ -15,12 +15,15 @@ Instead, before mapping every frame:
 
 The full mapping then holds the estimate fixed; a last bundle adjustment frees the focal length
 and keeps its result only when the focal length moves by less than ``max_focal_change``.
-Deterministic: the hypotheses run one after another with the seeded mapper.
+Deterministic: each hypothesis runs the seeded mapper on its own copy of the database;
+``[cameras] workers`` of them side by side.
 """
 
 from __future__ import annotations
 
 import math
+import shutil
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,8 +106,19 @@ def estimate_focal(db_path: Path, image_dir: Path, names: list[str], width: int,
     ``width`` px; ``mapping``: the pycolmap mapping options with focal refinement off."""
     hypotheses = focal_hypotheses(width, cfg)
     subset = names[::max(1, round(len(names) / cfg.focal_frames))]
-    runs = np.array([hypothesis_error(db_path, image_dir, subset, f, mapping, cfg.threads, work_dir / f"focal-{i}")
-                     for i, f in enumerate(hypotheses)])
+    lanes = max(1, min(cfg.workers, len(hypotheses)))
+    dbs = [db_path] + [work_dir / f"focal-database-{k}.db" for k in range(1, lanes)]
+    for copy in dbs[1:]:
+        shutil.copyfile(db_path, copy)
+
+    def lane(k: int) -> list[tuple[int, tuple[float, float]]]:
+        """Hypotheses k, k + lanes, ... one after another on database copy k (each sets its focal first)."""
+        return [(i, hypothesis_error(dbs[k], image_dir, subset, hypotheses[i], mapping, cfg.threads, work_dir / f"focal-{i}"))
+                for i in range(k, len(hypotheses), lanes)]
+
+    with ThreadPoolExecutor(lanes) as pool:  # pycolmap releases the GIL while it maps
+        done = dict(pair for pairs in pool.map(lane, range(lanes)) for pair in pairs)
+    runs = np.array([done[i] for i in range(len(hypotheses))])
     errors, adjusted = runs[:, 0], runs[:, 1]
     return FocalEstimate(best_focal(hypotheses, adjusted, errors), width, hypotheses, adjusted, errors)
 
