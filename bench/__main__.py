@@ -24,7 +24,7 @@ def main() -> int:
         "cad": cad_throughput.run(),
         "detection": detect_throughput.run(Path("data/bench/perf")),
         "pose": pose_bench.run(),
-        "sfm": sfm_bench.run(),
+        "sfm": {str(b): sfm_bench.run(b) for b in BENCHMARKS if b.is_dir()},
         "retrieval": retrieval_bench.sizes(),
         "detectors": detector_eval.run([b for b in BENCHMARKS if b.is_dir()]),
         "retrieval_descriptor": descriptor_eval.run([b for b in BENCHMARKS if b.is_dir()], track_bench.open_warehouse(), tracks=True),

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,10 +33,11 @@ from bench.annotators import KeyframeCorrespondences, frame_camera
 from bench.benchmark import read_manifest
 from bench.eval_pose import PosedObject, match_and_score
 from bench.labels import LABELS, correspondence_rows
+from bench.sfm_eval import Similarity, align
 from cadestate.config import PoseConfig
-from cadestate.geometry import project
+from cadestate.geometry import camera_to_world, matrix_to_quaternion, project, quaternion_to_matrix
 from cadestate.render import object_to_world
-from schemas.official import read_frames, read_objects
+from schemas.official import FramesFile, read_frames, read_objects
 from schemas.pose import CORRESPONDENCES
 from tasks.cad.classes import BY_NAME
 from tasks.cad.symmetry import rotation_y
@@ -101,8 +103,8 @@ def scoring_inputs(bench_dir: Path, wh: Warehouse, clips: list[str]
     return gt, truth, symmetries
 
 
-def accepted_predictions(wh: Warehouse, clips: list[str]) -> list[PosedObject]:
-    """The poses the dataset publishes for ``clips``, in the camera files' worlds: those accepted in
+def accepted_predictions(wh: Warehouse, clips: list[str], bench_dir: Path | None = None) -> list[PosedObject]:
+    """The poses the dataset publishes for ``clips``, in the ground truth's worlds (:func:`in_truth_world`): those accepted in
     verification (``verified_poses``) but of the tracks people said are no object or another
     track's object (:func:`tasks.tracking.relations.relations_in_force`: the export keeps the root's pose only)."""
     from tasks.tracking.relations import relations_in_force
@@ -110,7 +112,7 @@ def accepted_predictions(wh: Warehouse, clips: list[str]) -> list[PosedObject]:
     rows = [r for r in wh.read("verified_poses", clips).to_pylist() if r["accepted"]]
     said = {c: relations_in_force(wh, c) for c in {r["clip"] for r in rows}}
     rows = [r for r in rows if said[r["clip"]].speaks_for_itself(int(r["track_id"]))]
-    return in_input_world(_predictions(rows), wh)
+    return in_truth_world(_predictions(rows), wh, bench_dir)
 
 
 def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
@@ -129,8 +131,8 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    solved = score_all(in_input_world(_predictions([r for r in rows if r["status"] == "ok"]), wh), gt, truth, symmetries)
-    accepted = score_all(accepted_predictions(wh, clips), gt, truth, symmetries) if verdicts else None
+    solved = score_all(in_truth_world(_predictions([r for r in rows if r["status"] == "ok"]), wh, bench_dir), gt, truth, symmetries)
+    accepted = score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries) if verdicts else None
     annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,
@@ -239,18 +241,56 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
     return tracks, gt, {k: int(m["symmetry"]) for k, m in models.items()}
 
 
-def in_input_world(preds: list[PosedObject], wh: Warehouse | None) -> list[PosedObject]:
+def in_truth_world(preds: list[PosedObject], wh: Warehouse | None, bench_dir: Path | None = None) -> list[PosedObject]:
     """Predicted poses (the aligned world of the warehouse's frames, +Y up) in the world of each
-    clip's camera file, where the ground truth is (``clips.up_rotation``, :mod:`tasks.video.world_up`)."""
+    clip's ground truth: for a clip of a camera file, that file's world (``clips.up_rotation``
+    undone, :mod:`tasks.video.world_up`); for a clip whose cameras are SfM's (``clips.cameras_source``
+    'sfm': ``bench run --sfm-cameras``), the true world, by the similarity that best maps the clip's
+    cameras onto the true ones of ``<bench_dir>/<clip>/frames.json`` (:func:`bench.sfm_eval.align`;
+    the scale too)."""
     if wh is None:
         return preds
-    rotations: dict[str, np.ndarray] = {}
+    maps: dict[str, Callable[[PosedObject], PosedObject]] = {}
     out = []
     for p in preds:
-        Q = rotations.setdefault(p.clip, clip_up_rotation(wh, p.clip))
-        T, q = pose_to_input_world(p.translation, p.rotation, Q)
-        out.append(dataclasses.replace(p, translation=T, rotation=q))
+        if p.clip not in maps:
+            maps[p.clip] = _to_truth(wh, p.clip, bench_dir)
+        out.append(maps[p.clip](p))
     return out
+
+
+def _to_truth(wh: Warehouse, clip: str, bench_dir: Path | None) -> Callable[[PosedObject], PosedObject]:
+    """The map of :func:`in_truth_world` for one clip."""
+    (source,) = wh.read("clips", [clip], columns=["cameras_source"]).column("cameras_source").to_pylist()
+    if source != "sfm":
+        Q = clip_up_rotation(wh, clip)
+
+        def unturn(p: PosedObject) -> PosedObject:
+            T, q = pose_to_input_world(p.translation, p.rotation, Q)
+            return dataclasses.replace(p, translation=T, rotation=q)
+        return unturn
+    if bench_dir is None:
+        raise ValueError(f"clip {clip}: SfM cameras; its poses are scored in the true world, which needs the benchmark folder")
+    sim = _sfm_to_truth(wh, clip, read_frames(Path(bench_dir) / clip / "frames.json"))
+
+    def move(p: PosedObject) -> PosedObject:
+        R = sim.rotation @ quaternion_to_matrix(np.asarray(p.rotation, np.float64))
+        return dataclasses.replace(p, translation=tuple(map(float, sim.apply(np.asarray(p.translation)[None])[0])),
+                                   rotation=tuple(map(float, matrix_to_quaternion(R))),
+                                   scale=tuple(float(v) * sim.scale for v in p.scale))
+    return move
+
+
+def _sfm_to_truth(wh: Warehouse, clip: str, truth: FramesFile) -> Similarity:
+    """X_true = s A X + b from the clip's cameras (the warehouse's frames) to the true ones, frame for frame by timestamp."""
+    from tasks.dataset.objects import clip_frames
+
+    ours = {f.timestamp_us: f for f in clip_frames(wh, clip)}
+    pairs = [(f, ours[f.timestamp]) for f in truth.frames if f.timestamp in ours]
+    R_true = np.stack([quaternion_to_matrix(np.asarray(f.rotation, np.float64)) for f, _ in pairs])
+    t_true = np.stack([np.asarray(f.translation, np.float64) for f, _ in pairs])
+    R_ours, t_ours = np.stack([g.R for _, g in pairs]), np.stack([g.t for _, g in pairs])
+    return align(R_true, camera_to_world(R_true, t_true)[1], R_ours, camera_to_world(R_ours, t_ours)[1])
 
 
 def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = None) -> dict:
@@ -261,7 +301,7 @@ def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = Non
     seconds = time.perf_counter() - t0
     preds = [PosedObject(t.track_id, t.cls, tuple(r.translation), tuple(r.rotation), tuple(r.scale), t.mirrored, t.cad_id, c)
              for (c, t), r in zip(tracks, results) if r.status == "ok"]
-    preds = in_input_world(preds, wh)
+    preds = in_truth_world(preds, wh)
     statuses: dict[str, int] = {}
     for r in results:
         statuses[r.status] = statuses.get(r.status, 0) + 1

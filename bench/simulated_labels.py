@@ -21,8 +21,10 @@ label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench
   the clicks are where that model would be if it stood in the object's place (what a person
   clicking on the shown model would do). A track with no clickable key-frame gets a new
   cad_selection answer null (the annotator gives up on the model), so nothing waits forever.
-- ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model
-  against the true model at the true pose, on the task's key-frames; unmatched tracks: reject.
+- ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model,
+  seen through the clip's own cameras (the warehouse's ``frames``: the camera file's or SfM's, as
+  the verification page shows it), against the true model at the true pose through the true
+  cameras, on the task's key-frames; unmatched tracks: reject.
   Duplicates flagged by the task (``maybe_same_as``) are resolved from the ground truth
   (:func:`same_as_answers`): of the tracks on one ground-truth object linked by flags, one keeps its
   pose (an accepted one first, then the lowest track id) and the others answer ``same_as_track`` it.
@@ -49,9 +51,10 @@ from bench.retrieval_bench import track_truth
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import FramesFile, read_frames, read_objects
 from tasks.cad.classes import class_of_label
+from tasks.dataset.export_official import official_frames
+from tasks.dataset.objects import clip_frames
 from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
-from tasks.video.world_up import clip_up_rotation, pose_to_input_world
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
@@ -72,7 +75,7 @@ class _Clip:
         self.frames = read_frames(Path(bench_dir) / clip / "frames.json")
         self.objects = {o.track_id: o for o in read_objects(Path(bench_dir) / clip / "objects.json").objects}
         self.truth = track_truth(bench_dir, wh, clip)
-        self.up_rotation = clip_up_rotation(wh, clip)
+        self.shown = shown_frames(wh, clip, self.frames)
         self.index = {f.timestamp: i for i, f in enumerate(self.frames.frames)}
         self.models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "mesh_path", "symmetry"]).to_pylist()}
         self._meshes: dict[str, trimesh.Scene] = {}
@@ -106,6 +109,18 @@ class _Clip:
 
     def keyframes(self, views) -> list[int]:
         return [self.index[v.timestamp_us] for v in views if v.timestamp_us in self.index]
+
+
+def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
+    """The clip's cameras as the pipeline has them (the warehouse's ``frames``, in its +Y-up world:
+    the camera file's turned, or SfM's), frame for frame with the ground truth ``truth`` (the
+    same timestamps)."""
+    by_time = {f.timestamp_us: f for f in clip_frames(wh, clip)}
+    missing = [f.timestamp for f in truth.frames if f.timestamp not in by_time]
+    if missing:
+        raise LabelError(f"clip {clip}: no frame at {missing[0]} µs of its ground truth in the warehouse "
+                         f"({len(missing)} of {len(truth.frames)} missing)")
+    return FramesFile(truth.clip_name, truth.image_size, official_frames([by_time[f.timestamp] for f in truth.frames]))
 
 
 def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
@@ -186,11 +201,10 @@ def _verify(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict:
     o = c.gt(item.track_id)
     ok = False
     if o is not None and item.cad_id in c.models:
-        p = item.pose  # in the aligned world of the warehouse's frames; the ground truth is in the camera file's
-        T, q = pose_to_input_world(p.translation, p.rotation, c.up_rotation)
-        ok = verify_pose(c.frames, o, Pose(T, q, tuple(p.scale), bool(p.is_mirrored)),
+        p = item.pose  # in the world of the warehouse's frames, seen through them; the ground truth through its own
+        ok = verify_pose(c.frames, o, Pose(tuple(p.translation), tuple(p.rotation), tuple(p.scale), bool(p.is_mirrored)),
                          c.mesh(item.cad_id), c.keyframes(item.keyframes), noise=noise, gt_mesh=c.mesh(o.cad_id),
-                         renderer=renderer)
+                         renderer=renderer, pose_frames=c.shown)
     return {"track_id": item.track_id, "verdict": "accept" if ok else "reject",
             "comment": None if o is not None else "no ground-truth object"}
 

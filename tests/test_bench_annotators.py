@@ -301,6 +301,32 @@ def test_verify_pose(renderer):
     assert verify_pose(frames, obj, obj, mesh, kcs, renderer=renderer)
 
 
+def test_verify_pose_sees_the_pose_through_the_cameras_of_its_own_world(renderer):
+    """An SfM clip: its cameras and the solved pose live in a world that is the true one moved by a
+    similarity (X' = s W X + b); the verifier renders the pose through those cameras, frame for
+    frame, and the true object through the true ones."""
+    from scipy.spatial.transform import Rotation
+
+    frames, mesh = make_frames(), chair()
+    obj = make_object(frames, mesh, yaw=20.0, mirrored=True)
+    s, W, b = 0.37, Rotation.from_euler("xyz", (40, -70, 15), degrees=True).as_matrix(), np.array([2.0, -1.0, 0.5])
+    moved = []
+    for f in frames.frames:
+        R = quaternion_to_matrix(np.asarray(f.rotation))
+        t = s * np.asarray(f.translation) - R @ W.T @ b  # X_cam' = s X_cam: the same pixels
+        moved.append(replace(f, translation=tuple(t.tolist()), rotation=tuple(matrix_to_quaternion(R @ W.T).tolist())))
+    sfm_frames = replace(frames, frames=tuple(moved))
+    pose = Pose.of(obj)
+    in_sfm_world = Pose(tuple((s * W @ np.asarray(pose.translation) + b).tolist()),
+                        tuple(matrix_to_quaternion(W @ quaternion_to_matrix(np.asarray(pose.rotation))).tolist()),
+                        tuple(s * np.asarray(pose.scale)), pose.mirrored)
+    keyframes = [0, 8, 16, 23]
+    ious = pose_mask_ious(frames, obj, in_sfm_world, mesh, keyframes, renderer=renderer, pose_frames=sfm_frames)
+    assert min(ious) > 0.98
+    assert verify_pose(frames, obj, in_sfm_world, mesh, keyframes, renderer=renderer, pose_frames=sfm_frames)
+    assert not verify_pose(frames, obj, in_sfm_world, mesh, keyframes, renderer=renderer)  # through the true cameras
+
+
 def test_manual_track():
     frames, mesh = make_frames(n=31), chair()
     obj = make_object(frames, mesh)

@@ -44,20 +44,28 @@ def bench_run(
              "ground-truth tracks go into `correspondences` directly (poses of ground-truth tracks, as "
              "`python -m bench.pose_bench` solves them).")] = True,
     max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs of the clips.")] = 6,
+    sfm_cameras: Annotated[bool, typer.Option(
+        "--sfm-cameras",
+        help="Withhold the camera files: each clip's video alone is ingested under its benchmark name and gets "
+             "its cameras by SfM (the `cameras` stage), as `cadestate ingest VIDEO` does. Use another warehouse "
+             "(-w) than the run with camera files, to compare the two reports.")] = False,
 ) -> None:
     """Run the pipeline on every benchmark clip, the simulated annotators answering its human tasks
     (cached stages do no work). Also writes the simulated annotators' clicks on the ground-truth
     tracks (<bench>/labels/<clip>.json, once), the input of `python -m bench.pose_bench`."""
+    import dataclasses
+
     from bench.benchmark import clip_sources, read_manifest
     from bench.labels import simulate_labels, write_correspondences
 
     clips = list(read_manifest(bench_dir).clips)
+    sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
     made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)
     err.print(f"simulated labels: {made} clip(s) labelled now")
     if not answer_tasks:
         rows = write_correspondences(bench_dir, clips, ctx.obj.open_warehouse())
         err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
-        run_sources(ctx.obj, clip_sources(bench_dir), progress)
+        run_sources(ctx.obj, list(sources.values()), progress)
         return
     from bench.simulated_labels import annotate_until_done, merge_rounds
     from cadestate.cli.common import print_reports
@@ -67,7 +75,6 @@ def bench_run(
     prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
     from flows.annotate_clip import run_clips
 
-    sources = {s.clip: s for s in clip_sources(bench_dir)}
     reports, waiting = annotate_until_done(
         bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
         max_rounds, log=err.print)

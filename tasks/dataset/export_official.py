@@ -34,7 +34,7 @@ from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
 from tasks.cad.export import ExportError, export_official as export_cad_root
-from tasks.dataset.objects import ClipDataset, DatasetObject, clip_dataset
+from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, clip_dataset
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
 
@@ -54,12 +54,16 @@ def official_clip_name(ds: ClipDataset) -> str:
         raise ExportError(str(e)) from None
 
 
+def official_frames(frames: Sequence[DatasetFrame]) -> tuple[Frame, ...]:
+    """``frames.json`` entries of ``frames`` (pixel intrinsics, world->camera translation and quaternion)."""
+    return tuple(Frame(f.timestamp_us, f.key_frame, tuple(float(v) for v in pixel_intrinsics(f.K)),
+                       tuple(float(v) for v in f.t), tuple(float(v) for v in matrix_to_quaternion(f.R)))
+                 for f in frames)
+
+
 def frames_file(ds: ClipDataset, name: str) -> FramesFile:
     """The clip's ``frames.json`` content (pixel intrinsics, world->camera extrinsics)."""
-    return FramesFile(name, ds.image_size, tuple(
-        Frame(f.timestamp_us, f.key_frame, tuple(float(v) for v in pixel_intrinsics(f.K)),
-              tuple(float(v) for v in f.t), tuple(float(v) for v in matrix_to_quaternion(f.R)))
-        for f in ds.frames))
+    return FramesFile(name, ds.image_size, official_frames(ds.frames))
 
 
 def object_annotation(o: DatasetObject) -> ObjectAnnotation:
