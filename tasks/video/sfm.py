@@ -131,6 +131,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     mapping.random_seed = cfg.seed
     mapping.mapper.random_seed = cfg.seed
     mapping.min_model_size = 3
+    mapping.ba_global_frames_ratio = mapping.ba_global_points_ratio = 1 + cfg.global_ba_growth
     mapping.ba_refine_focal_length = False  # fixed: the given one, or estimated first (tasks/video/sfm_focal.py)
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_extra_params = False
