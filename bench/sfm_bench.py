@@ -57,7 +57,7 @@ def _solve(clip: str, track: CameraTrack, size: tuple[int, int], corr: pa.Table,
            to_true: Similarity | None = None) -> list[PosedObject]:
     """Poses of the clip's clicked tracks with cameras ``track`` (turned +Y up as ingest does), in
     ``track``'s world, then mapped by ``to_true`` (a similarity into the true world) when given."""
-    Q = estimate_up(track.R).rotation
+    Q = estimate_up(track.R, centres=_centres(track)).rotation
     frames = frames_table(clip, track, [""] * len(track), size[0], size[1], track.timestamps_us, 0, Q)
     tracks = track_inputs(corr, frames, models, cfg.upright_classes, cfg.floor_classes, cfg.wall_classes)
     results = solve_tracks(tracks, solver_options(cfg), [clip] * len(tracks))

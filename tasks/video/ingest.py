@@ -26,6 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from cadestate.config import IngestConfig
+from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
@@ -237,7 +238,7 @@ def ingest_clip(
     cameras_path = cameras_file(wh, source)
     checked = check_clip_inputs(source.video, cameras_path, source.time_offset_us)
     cameras, info = checked.cameras, checked.video
-    up = estimate_up(cameras.R, cfg.up)
+    up = estimate_up(cameras.R, cfg.up, camera_to_world(cameras.R, cameras.t)[1])
     last = int(cameras.timestamps_us[-1])
     inputs = wh.inputs_dir(source.clip)
     inputs.mkdir(parents=True, exist_ok=True)
