@@ -293,15 +293,15 @@ def _sfm_to_truth(wh: Warehouse, clip: str, truth: FramesFile) -> Similarity:
     return align(R_true, camera_to_world(R_true, t_true)[1], R_ours, camera_to_world(R_ours, t_ours)[1])
 
 
-def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = None) -> dict:
-    """Solve ``tracks`` with ``cfg`` and score them (in the camera files' worlds, with ``wh``'s up
-    rotations); adds the seconds the solve took."""
+def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = None, bench_dir: Path | None = None) -> dict:
+    """Solve ``tracks`` with ``cfg`` and score them in the ground truth's worlds (:func:`in_truth_world`,
+    with ``wh``'s clips); adds the seconds the solve took."""
     t0 = time.perf_counter()
     results = solve_tracks([t for _, t in tracks], solver_options(cfg), [c for c, _ in tracks])
     seconds = time.perf_counter() - t0
     preds = [PosedObject(t.track_id, t.cls, tuple(r.translation), tuple(r.rotation), tuple(r.scale), t.mirrored, t.cad_id, c)
              for (c, t), r in zip(tracks, results) if r.status == "ok"]
-    preds = in_truth_world(preds, wh)
+    preds = in_truth_world(preds, wh, bench_dir)
     statuses: dict[str, int] = {}
     for r in results:
         statuses[r.status] = statuses.get(r.status, 0) + 1
@@ -338,7 +338,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
     out: dict = {"bench": str(bench_dir), "objects_with_correspondences": len(tracks3), "accuracy": {}}
     for sigma in (0.0, 3.0, 6.0):
         tracks = tracks3 if sigma == 3.0 else bench_tracks(bench_dir, wh, cfg, sigma)[0]
-        out["accuracy"][f"{sigma:g}px"] = evaluate(tracks, gt, sym, cfg, wh)
+        out["accuracy"][f"{sigma:g}px"] = evaluate(tracks, gt, sym, cfg, wh, bench_dir)
     ablation = {"base": dataclasses.replace(cfg, coplanar=False, symmetry=False, alpha=0.0),
                 "+coplanar": dataclasses.replace(cfg, symmetry=False, alpha=0.0),
                 "+symmetry": dataclasses.replace(cfg, alpha=0.0),
@@ -347,12 +347,12 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
                 "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0),
                 "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0),
                 "full, floor only (no host supports)": dataclasses.replace(cfg, host_supports=False)}
-    out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c, wh) for name, c in ablation.items()}
+    out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c, wh, bench_dir) for name, c in ablation.items()}
     # The floor prior as it was before host supports: floor classes only (every upright class in
     # wall_classes, so none but the floor classes rests), the floor only.
     floor_only = dataclasses.replace(cfg, host_supports=False, wall_classes=cfg.upright_classes)
     out["ablation_3px"]["full, floor prior for floor classes only"] = evaluate(
-        bench_tracks(bench_dir, wh, floor_only)[0], gt, sym, floor_only, wh)
+        bench_tracks(bench_dir, wh, floor_only)[0], gt, sym, floor_only, wh, bench_dir)
     out["ablation_3px"]["+up-axis (full)"] = out["accuracy"]["3px"]
     out["timing"] = timing(tracks3, cfg, batch=batch)
     return out

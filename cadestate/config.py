@@ -137,9 +137,9 @@ class CamerasConfig:
     focal_frames: int = _opt(35, "The focal hypotheses each map about this many of the sampled frames, evenly spaced "
                              "(every k-th, k = round(frames / focal_frames), at least 1).", lo=3, hi=10000)
     global_ba_growth: float = _opt(0.02, "Mapping adjusts the whole model (global bundle adjustment) each time it grows by "
-                                   "this fraction of frames or points (COLMAP's default 0.1). With 0.1 a forward walk of "
-                                   "little rotation bent: 3.8 degrees and 19 % of the path off, 0.07 and 0.4 % with 0.02.",
-                                   lo=0.001, hi=10.0)
+                                   "this fraction of frames or points (COLMAP's default 0.1). With 0.1 a benchmark clip's "
+                                   "forward walk of little rotation bent: 3.8 degrees and 19 % of the path off; 0.07 and "
+                                   "0.4 % with 0.02.", lo=0.001, hi=10.0)
     max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "
                                    "estimate by less than this fraction.", lo=0.0, hi=1.0)
     threads: int = _opt(1, "Threads for mapping and bundle adjustment (matching runs on one: more verify pairs with "
