@@ -42,7 +42,7 @@ from schemas.pose import CORRESPONDENCES
 from tasks.cad.classes import BY_NAME
 from tasks.cad.symmetry import rotation_y
 from tasks.pose.pose import MODEL_FACTS, TrackInput, solve_tracks, solver_options, track_inputs
-from tasks.video.world_up import clip_up_rotation, pose_to_input_world
+from tasks.video.world_up import pose_to_input_world, stored_rotation
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -260,10 +260,12 @@ def in_truth_world(preds: list[PosedObject], wh: Warehouse | None, bench_dir: Pa
 
 
 def _to_truth(wh: Warehouse, clip: str, bench_dir: Path | None) -> Callable[[PosedObject], PosedObject]:
-    """The map of :func:`in_truth_world` for one clip."""
-    (source,) = wh.read("clips", [clip], columns=["cameras_source"]).column("cameras_source").to_pylist()
-    if source != "sfm":
-        Q = clip_up_rotation(wh, clip)
+    """The map of :func:`in_truth_world` for one clip (an unregistered one: the identity)."""
+    rows = (wh.read("clips", [clip], columns=["cameras_source", "up_rotation"]).to_pylist()
+            if wh.has_partition("clips", clip) else [])
+    row = rows[0] if rows else {"cameras_source": None, "up_rotation": None}
+    if row["cameras_source"] != "sfm":
+        Q = stored_rotation(row["up_rotation"])
 
         def unturn(p: PosedObject) -> PosedObject:
             T, q = pose_to_input_world(p.translation, p.rotation, Q)
@@ -283,14 +285,13 @@ def _to_truth(wh: Warehouse, clip: str, bench_dir: Path | None) -> Callable[[Pos
 
 def _sfm_to_truth(wh: Warehouse, clip: str, truth: FramesFile) -> Similarity:
     """X_true = s A X + b from the clip's cameras (the warehouse's frames) to the true ones, frame for frame by timestamp."""
-    from tasks.dataset.objects import clip_frames
+    from bench.simulated_labels import frames_like_truth
+    from tasks.dataset.objects import camera_centres
 
-    ours = {f.timestamp_us: f for f in clip_frames(wh, clip)}
-    pairs = [(f, ours[f.timestamp]) for f in truth.frames if f.timestamp in ours]
-    R_true = np.stack([quaternion_to_matrix(np.asarray(f.rotation, np.float64)) for f, _ in pairs])
-    t_true = np.stack([np.asarray(f.translation, np.float64) for f, _ in pairs])
-    R_ours, t_ours = np.stack([g.R for _, g in pairs]), np.stack([g.t for _, g in pairs])
-    return align(R_true, camera_to_world(R_true, t_true)[1], R_ours, camera_to_world(R_ours, t_ours)[1])
+    ours = frames_like_truth(wh, clip, truth)
+    R_true = np.stack([quaternion_to_matrix(np.asarray(f.rotation, np.float64)) for f in truth.frames])
+    t_true = np.stack([np.asarray(f.translation, np.float64) for f in truth.frames])
+    return align(R_true, camera_to_world(R_true, t_true)[1], np.stack([f.R for f in ours]), camera_centres(ours))
 
 
 def evaluate(tracks, gt, symmetries, cfg: PoseConfig, wh: Warehouse | None = None, bench_dir: Path | None = None) -> dict:

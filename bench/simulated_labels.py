@@ -52,7 +52,7 @@ from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import FramesFile, read_frames, read_objects
 from tasks.cad.classes import class_of_label
 from tasks.dataset.export_official import official_frames
-from tasks.dataset.objects import clip_frames
+from tasks.dataset.objects import DatasetFrame, clip_frames
 from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
@@ -111,7 +111,7 @@ class _Clip:
         return [self.index[v.timestamp_us] for v in views if v.timestamp_us in self.index]
 
 
-def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
+def frames_like_truth(wh: Warehouse, clip: str, truth: FramesFile) -> tuple[DatasetFrame, ...]:
     """The clip's cameras as the pipeline has them (the warehouse's ``frames``, in its +Y-up world:
     the camera file's turned, or SfM's), frame for frame with the ground truth ``truth`` (the
     same timestamps)."""
@@ -120,7 +120,12 @@ def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
     if missing:
         raise LabelError(f"clip {clip}: no frame at {missing[0]} µs of its ground truth in the warehouse "
                          f"({len(missing)} of {len(truth.frames)} missing)")
-    return FramesFile(truth.clip_name, truth.image_size, official_frames([by_time[f.timestamp] for f in truth.frames]))
+    return tuple(by_time[f.timestamp] for f in truth.frames)
+
+
+def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
+    """:func:`frames_like_truth` as a frames file (what the verification page shows the clip through)."""
+    return FramesFile(truth.clip_name, truth.image_size, official_frames(frames_like_truth(wh, clip, truth)))
 
 
 def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:

@@ -39,6 +39,7 @@ from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, w
 from tasks.status import read_runs
 from warehouse import Warehouse
 
+
 @dataclasses.dataclass(frozen=True)
 class Signature:
     """What a stage run depends on: its config section's digest, its code's digest, and the digest of

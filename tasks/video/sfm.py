@@ -121,7 +121,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     extraction.num_threads = cfg.workers  # the images are in the database first (run_sfm), so their ids keep time order
     extraction.sift.max_num_features = cfg.max_features
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = 1  # more threads write the verified pairs in a varying order: another model each run
+    matching.num_threads = 1  # more threads verify pairs with other random draws: another model each run
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = cfg.overlap
     verification = pycolmap.TwoViewGeometryOptions()

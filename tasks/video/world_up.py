@@ -50,6 +50,7 @@ MIN_WALK_DEG = 30.0
 """A coherent walk (:data:`MIN_WALK_COHERENCE`) at least this far from the cameras' right axis
 fixes the tilt about the viewing direction together with it."""
 MIN_WALK_COHERENCE = 0.5
+"""A walk whose net move is at least this fraction of its path length has a main direction."""
 AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
         "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
 """``[ingest] up`` values that force the input world's up axis (``auto`` estimates it)."""
