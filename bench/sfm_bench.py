@@ -6,7 +6,7 @@ trajectory error (% of the path length) after a similarity alignment to the true
 error in %, the field-of-view hypotheses' estimate, :func:`tasks.video.sfm.focal_report`); then the
 pose accuracy downstream: the simulated annotators' clicks on the ground-truth tracks (``<bench>/labels/<clip>.json``, written by ``cadestate
 bench run``) solved with the SfM cameras and with the true cameras, each turned to +Y up as ingest
-does (:mod:`tasks.video.world_up`), the SfM poses mapped into the true world by the same similarity
+does (:func:`tasks.video.ingest.find_up`: the cameras, refined by the video's vertical lines), the SfM poses mapped into the true world by the same similarity
 (translation and scale scaled), scored as :mod:`bench.pose_bench` scores (Scan2CAD criterion).
 
 A second row turns each clip's true world by a random rotation before ingest: the pose accuracy
@@ -34,14 +34,15 @@ from bench.eval_pose import PosedObject
 from bench.labels import LABELS, correspondence_rows
 from bench.pose_bench import _class_of, _gt, score
 from bench.sfm_eval import Similarity, align, camera_errors
-from cadestate.config import CamerasConfig, PoseConfig
+from cadestate.config import CamerasConfig, IngestConfig, PoseConfig
 from cadestate.geometry import camera_to_world, matrix_to_quaternion, quaternion_to_matrix
 from schemas.pose import CORRESPONDENCES
 from tasks.pose.pose import MODEL_FACTS, solve_tracks, solver_options, track_inputs
 from tasks.video.camera_file import CameraTrack, parse_camera_file
 from tasks.video.decode import probe_video
 from tasks.video.frames import frames_table
-from tasks.video.world_up import align_extrinsics, estimate_up, pose_to_input_world
+from tasks.video.ingest import find_up
+from tasks.video.world_up import align_extrinsics, pose_to_input_world
 from warehouse import Warehouse
 
 DEFAULT_BENCH = Path("data/bench/default")
@@ -53,11 +54,11 @@ def _centres(track: CameraTrack) -> np.ndarray:
     return camera_to_world(track.R, track.t)[1]
 
 
-def _solve(clip: str, track: CameraTrack, size: tuple[int, int], corr: pa.Table, models: dict, cfg: PoseConfig,
-           to_true: Similarity | None = None) -> list[PosedObject]:
-    """Poses of the clip's clicked tracks with cameras ``track`` (turned +Y up as ingest does), in
-    ``track``'s world, then mapped by ``to_true`` (a similarity into the true world) when given."""
-    Q = estimate_up(track.R, centres=_centres(track)).rotation
+def _solve(clip: str, video: Path, track: CameraTrack, size: tuple[int, int], corr: pa.Table, models: dict,
+           cfg: PoseConfig, to_true: Similarity | None = None) -> list[PosedObject]:
+    """Poses of the clip's clicked tracks with cameras ``track`` of ``video`` (turned +Y up as ingest
+    does), in ``track``'s world, then mapped by ``to_true`` (a similarity into the true world) when given."""
+    Q = find_up(video, track, 0, IngestConfig()).rotation
     frames = frames_table(clip, track, [""] * len(track), size[0], size[1], track.timestamps_us, 0, Q)
     tracks = track_inputs(corr, frames, models, cfg.upright_classes, cfg.floor_classes, cfg.wall_classes)
     results = solve_tracks(tracks, solver_options(cfg), [clip] * len(tracks))
@@ -123,9 +124,9 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
             continue
         corr = pa.Table.from_pylist(correspondence_rows(json.loads(label_file.read_text())), schema=CORRESPONDENCES.schema)
         size = (info.width, info.height)
-        preds["true"] += _solve(clip, truth, size, corr, models, pose_cfg)
-        preds["turned"] += _unturn(_solve(clip, _turned(truth, 1000 + i), size, corr, models, pose_cfg), 1000 + i)
-        preds["sfm"] += _solve(clip, sfm, size, corr, models, pose_cfg, sim)
+        preds["true"] += _solve(clip, video, truth, size, corr, models, pose_cfg)
+        preds["turned"] += _unturn(_solve(clip, video, _turned(truth, 1000 + i), size, corr, models, pose_cfg), 1000 + i)
+        preds["sfm"] += _solve(clip, video, sfm, size, corr, models, pose_cfg, sim)
     gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, names)]
     annotated = {(p.clip, p.track_id) for p in preds["true"]}
     accuracy = {k: score(v, gt, symmetries, annotated)["instance_accuracy_pct"] for k, v in preds.items()}

@@ -101,7 +101,7 @@ def template(rng: np.random.Generator, clip: str, models: list[str], classes: li
             "video_sha256": ["0" * 64], "cameras_sha256": ["1" * 64], "num_cameras": [FRAMES], "first_timestamp_us": [0],
             "last_timestamp_us": [int(ts[-1])], "width": [640], "height": [360], "fps": [30.0], "duration_us": [int(ts[-1])],
             "codec": ["h264"], "ingested_at": [starts[0]], "split": ["train"], "time_offset_us": [0], "cameras_source": ["given"],
-            "up_rotation": [np.eye(3).ravel().tolist()], "up_source": ["cameras"], "up_note": [""]}),
+            "up_rotation": [np.eye(3).ravel().tolist()], "up_source": ["auto"], "up_note": [""], "up_line_segments": [0]}),
         "frames": _table("frames", {
             "clip": rows(FRAMES, clip), "timestamp_us": ts, "frame_index": np.arange(FRAMES, dtype=np.int32) * 3,
             "image_path": [f"media/frames/{clip}/r/{k:06d}.jpg" for k in range(FRAMES)], "width": rows(FRAMES, 640),

@@ -109,6 +109,12 @@ class IngestConfig:
                    "tasks/video/world_up.py), or force an axis of that world ('+y' for worlds built +Y up, '-y' for "
                    "ORB-SLAM worlds whose first camera is level). The world is turned to +Y up at ingest.",
                    choices=("auto", "+x", "-x", "+y", "-y", "+z", "-z"))
+    up_line_frames: int = _opt(16, "With up = 'auto': frames (evenly over the clip) searched for vertical lines (wall "
+                               "corners, door and window frames, furniture legs) that refine the up the cameras give "
+                               "(tasks/video/vertical_lines.py); 0 uses the cameras alone.", lo=0, hi=10000)
+    up_line_tolerance_deg: float = _opt(0.5, "How far (degrees) a line segment may lean from the up direction and still "
+                                        "count as vertical; raise it for lens distortion or rolling shutter.",
+                                        lo=0.01, hi=5.0)
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ def clip_rows(clip: str, marker: int = 0, n: int = 1) -> pa.Table:
          "first_timestamp_us": i, "last_timestamp_us": 1, "width": 2, "height": 3, "fps": 30.0,
          "duration_us": 4, "codec": "h264", "ingested_at": dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc), "split": "train",
          "time_offset_us": 0, "cameras_source": "file", "up_rotation": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
-         "up_source": "auto", "up_note": ""}
+         "up_source": "auto", "up_note": "", "up_line_segments": 0}
         for i in range(n)
     ])
 

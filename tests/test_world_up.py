@@ -140,6 +140,7 @@ def test_ingest_turns_a_rotated_world_back_to_y_up(wh, small_clip, tmp_path):
         assert abs(down_a[1] - down_b[1]) < 0.02  # each camera's pitch against +Y is the same
     clip_row = wh.read("clips", ["turned"]).to_pylist()[0]
     assert clip_row["up_source"] == "auto" and clip_row["up_note"] == ""
+    assert clip_row["up_line_segments"] >= 20  # the rendered room's vertical edges refined the cameras' estimate
     Q = stored_rotation(clip_row["up_rotation"])
     R0 = np.reshape(rows["turned"][0]["world_to_camera_R"], (3, 3))
     np.testing.assert_allclose(unalign_extrinsics(R0, np.zeros(3), Q)[0], turned(cams, W).R[0], atol=1e-9)
@@ -149,7 +150,7 @@ def test_forced_up_is_kept_and_noted_in_clips(wh, small_clip):
     ingest_clip(wh, IngestConfig(up="+y"), ClipSource("small", small_clip.video_path, small_clip.cameras_path),
                 file_sha256(small_clip.video_path), file_sha256(small_clip.cameras_path), "r0")
     row = wh.read("clips").to_pylist()[0]
-    assert row["up_source"] == "+y"
+    assert row["up_source"] == "+y" and row["up_line_segments"] is None
     np.testing.assert_array_equal(stored_rotation(row["up_rotation"]), np.eye(3))
 
 

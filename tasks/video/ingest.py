@@ -34,7 +34,8 @@ from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_f
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.video.decode import VideoInfo, probe_video
 from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
-from tasks.video.world_up import estimate_up
+from tasks.video.vertical_lines import video_segment_normals
+from tasks.video.world_up import UpEstimate, estimate_up
 from warehouse import Warehouse, WarehouseError, check_name
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".webm", ".mov", ".avi")
@@ -232,13 +233,13 @@ def ingest_clip(
     wh: Warehouse, cfg: IngestConfig, source: ClipSource, video_sha256: str, cameras_sha256: str, run_id: str
 ) -> StageOutput:
     """Validate ``source`` (:func:`check_clip_inputs`; its warnings become the stage's message),
-    find its world's up (:func:`tasks.video.world_up.estimate_up`, ``cfg.up``; an unreliable estimate is
+    find its world's up (:func:`find_up`, ``cfg.up``; an unreliable estimate is
     noted in the message and ``clips.up_note``) and register it (see module docstring).
     ``cameras_sha256`` is that of :func:`cameras_file`. ``run_id`` is unused by ingest."""
     cameras_path = cameras_file(wh, source)
     checked = check_clip_inputs(source.video, cameras_path, source.time_offset_us)
     cameras, info = checked.cameras, checked.video
-    up = estimate_up(cameras.R, cfg.up, camera_to_world(cameras.R, cameras.t)[1])
+    up = find_up(source.video, cameras, source.time_offset_us, cfg)
     last = int(cameras.timestamps_us[-1])
     inputs = wh.inputs_dir(source.clip)
     inputs.mkdir(parents=True, exist_ok=True)
@@ -273,11 +274,24 @@ def ingest_clip(
         "up_rotation": up.rotation.ravel().tolist(),
         "up_source": up.source,
         "up_note": up.note,
+        "up_line_segments": up.line_segments if up.source == "auto" else None,
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row], schema=wh.spec("clips").schema))
     notes = [*checked.warnings, *([f"world up: {up.note}"] if up.note else [])]
     return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split,
                                                 source.time_offset_us), message="; ".join(notes))
+
+
+def find_up(video: Path, cameras: CameraTrack, time_offset_us: int, cfg: IngestConfig) -> UpEstimate:
+    """The up of the camera file's world as ingest finds it: from the cameras, refined by the
+    vertical lines of ``cfg.up_line_frames`` frames evenly over the clip (camera timestamp -
+    ``time_offset_us`` = video time), or the axis ``cfg.up`` forces (:mod:`tasks.video.world_up`)."""
+    lines = None
+    if cfg.up == "auto" and cfg.up_line_frames > 0:
+        index = np.unique(np.linspace(0, len(cameras) - 1, min(cfg.up_line_frames, len(cameras))).round().astype(int))
+        lines = video_segment_normals(video, cameras.timestamps_us[index] - time_offset_us, cameras.intrinsics[index],
+                                      cameras.R[index])
+    return estimate_up(cameras.R, cfg.up, camera_to_world(cameras.R, cameras.t)[1], lines, cfg.up_line_tolerance_deg)
 
 
 def clip_inputs(wh: Warehouse, clip: str) -> tuple[Path, Path, dict]:

@@ -20,8 +20,9 @@ coherence (net move / path length, 0 for a camera that stands and shakes). The x
 ``g`` when the camera pans (they span the horizontal plane); a walk that is not sideways decides
 it with them when the camera does not pan; the y axes break the tie only when neither does. On
 14 benchmark clips (+Y up, pitched 2-14 degrees down, panning little) the y axes alone had put up
-2-13 degrees off; with the walk, 0.1-2.9. ``Q`` is the smallest rotation taking ``-g`` to +Y (an
-input world that is +Y up already is left almost unchanged).
+2-13 degrees off; with the walk, 0.1-3.1. Vertical lines in the video then refine it when enough
+agree (:mod:`tasks.video.vertical_lines`; ``[ingest] up_line_frames``). ``Q`` is the smallest
+rotation taking ``-g`` to +Y (an input world that is +Y up already is left almost unchanged).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from tasks.video.vertical_lines import SegmentNormals
     from warehouse import Warehouse
 
 MU = 0.01
@@ -70,6 +72,9 @@ class UpEstimate:
         forward or backward, 0: sideways; 0 without camera centres or a coherent walk).
       tilt_deg: angle between ``up`` and the input world's +Y, degrees.
       note: why the estimate is unreliable ("" when it is not, or when it was forced).
+      line_segments: vertical line segments that refined the cameras' estimate (0: too few agreed,
+        or no lines were given; :mod:`tasks.video.vertical_lines`).
+      lines_deg: how far they moved it, degrees.
     """
 
     up: np.ndarray
@@ -80,6 +85,8 @@ class UpEstimate:
     tilt_deg: float
     note: str = ""
     walk_deg: float = 0.0
+    line_segments: int = 0
+    lines_deg: float = 0.0
 
     @property
     def reliable(self) -> bool:
@@ -119,11 +126,14 @@ def walk_term(centres: np.ndarray | None) -> tuple[np.ndarray, float]:
     return d.T @ d / total, min(1.0, float(np.linalg.norm(c[-1] - c[0])) / path)
 
 
-def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np.ndarray | None = None) -> UpEstimate:
+def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np.ndarray | None = None,
+                lines: "SegmentNormals | None" = None, line_tolerance_deg: float = 0.5) -> UpEstimate:
     """Up of the input world from the cameras' world->camera rotations float[N, 3, 3] (OpenCV
     axes: row 0 of R is the camera's x (right), row 1 its y (down), in input-world coordinates)
-    and their centres float[N, 3] in time order (None: the rotations alone); ``forced``: ``auto``
-    or a key of :data:`AXES`."""
+    and their centres float[N, 3] in time order (None: the rotations alone), refined by the line
+    segments ``lines`` of the video when enough of them agree (None: the cameras alone;
+    :func:`tasks.video.vertical_lines.refine_up` with ``line_tolerance_deg``); ``forced``:
+    ``auto`` or a key of :data:`AXES`."""
     R = np.asarray(world_to_camera_R, dtype=np.float64)
     x, y = R[:, 0, :], R[:, 1, :]
     walk, coherence = walk_term(centres)
@@ -139,6 +149,13 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
         if float((y @ down).sum()) < 0:
             down = -down
         up = -down
+    from_lines = None
+    if forced == "auto" and lines is not None:
+        from tasks.video.vertical_lines import refine_up
+
+        from_lines = refine_up(lines, up, line_tolerance_deg)
+        if from_lines is not None:
+            up = from_lines.up
     roll = np.arcsin(np.clip(np.abs(x @ up), 0, 1))
     mean_x = x.mean(axis=0)
     mean_x /= max(np.linalg.norm(mean_x), 1e-12)
@@ -150,7 +167,7 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
         main = np.linalg.eigh(walk)[1][:, -1]
         walk_deg = _deg(float(np.arccos(np.clip(abs(main @ mean_x), 0, 1))))
     note = ""
-    if forced == "auto":
+    if forced == "auto" and from_lines is None:  # vertical lines fix up however the camera was held and moved
         if roll_rms > MAX_ROLL_RMS_DEG:
             note = (f"the cameras lean {roll_rms:.1f}° from level (RMS roll, more than {MAX_ROLL_RMS_DEG:g}°): "
                     "the world's up may be wrong; set [ingest] up to force it")
@@ -158,7 +175,8 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
             note = (f"the camera barely pans ({pan_rms:.1f}° RMS, less than {MIN_PAN_DEG:g}°) and does not walk "
                     f"forward or back (its walk is {walk_deg:.0f}° from sideways, less than {MIN_WALK_DEG:g}°): the up "
                     "direction rests on the phone being held level in pitch; set [ingest] up to force it")
-    return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note, walk_deg)
+    return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note, walk_deg,
+                      from_lines.segments if from_lines else 0, from_lines.moved_deg if from_lines else 0.0)
 
 
 def align_extrinsics(R: np.ndarray, t: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
