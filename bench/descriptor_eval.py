@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.eval_retrieval import retrieval_recall
+from cadestate.config import RetrievalConfig
 from tasks.retrieval.descriptor import load_descriptor
 from tasks.retrieval.index import LibraryIndex, build_index, list_matrix
 from tasks.retrieval.retrieval import score_tracks, top_order
@@ -35,6 +36,8 @@ from warehouse import Warehouse
 
 METHODS = ("whiten", "learned")
 TOP_K = 10
+DEFAULT_EXPONENTS = (1.0, RetrievalConfig().class_exponent)
+"""The paper's product and the configured default, side by side."""
 
 
 def whitened_index(wh: Warehouse, library: str, method: str) -> LibraryIndex:
@@ -123,7 +126,7 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
     return out
 
 
-def run(bench_dirs: list[Path], wh: Warehouse, tracks: bool, class_exponents: tuple[float, ...] = (1.0,)) -> dict:
+def run(bench_dirs: list[Path], wh: Warehouse, tracks: bool, class_exponents: tuple[float, ...] = DEFAULT_EXPONENTS) -> dict:
     libraries = wh.partitions("cad_embeddings")
     indexes = {m: [whitened_index(wh, lib, m) for lib in libraries] for m in METHODS}
     result = {"benchmarks": {d.name: {"gt_boxes": gt_box_recall([d], indexes)} for d in bench_dirs}}
@@ -152,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bench_dirs", type=Path, nargs="+")
     parser.add_argument("--warehouse", type=Path, default=None, help="the warehouse the benchmarks ran in (default: configured)")
     parser.add_argument("--tracks", action="store_true", help="also score the pipeline's tracks (after `cadestate bench run`)")
-    parser.add_argument("--class-exponents", default="1", help="comma-separated [retrieval] class_exponent values to score the tracks with")
+    parser.add_argument("--class-exponents", default=",".join(f"{x:g}" for x in DEFAULT_EXPONENTS),
+                        help="comma-separated [retrieval] class_exponent values to score the tracks with")
     args = parser.parse_args(argv)
     exponents = tuple(float(x) for x in args.class_exponents.split(","))
     result = run(args.bench_dirs, open_warehouse(args.warehouse), args.tracks, exponents)

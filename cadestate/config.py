@@ -317,8 +317,11 @@ class RetrievalConfig:
     """Stage ``retrieval``: the top CAD models of every track (appearance x class-label similarity)."""
 
     top_k: int = _opt(10, "Candidates kept per track (the paper shows annotators 10).", lo=1, hi=1000)
-    class_exponent: float = _opt(1.0, "The class-label similarity enters the score raised to this power: 1 is the paper's "
-                                      "product; below 1 the soft class filter weighs less against appearance.", lo=0.0, hi=10.0)
+    class_exponent: float = _opt(0.1, "The class-label similarity enters the score raised to this power: 1 is the paper's "
+                                      "product, 0 appearance alone; below 1 the soft class filter weighs less against "
+                                      "appearance, for a detector whose labels are often wrong (ours: precision 0.6). 0.1 "
+                                      "was chosen on tuning seeds (true model among 10: 0.85 at 1, 0.90 at 0.1, 0.86 at 0).",
+                                 lo=0.0, hi=10.0)
 
 
 @dataclass(frozen=True)

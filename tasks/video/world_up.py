@@ -74,7 +74,6 @@ class UpEstimate:
       note: why the estimate is unreliable ("" when it is not, or when it was forced).
       line_segments: vertical line segments that refined the cameras' estimate (0: too few agreed,
         or no lines were given; :mod:`tasks.video.vertical_lines`).
-      lines_deg: how far they moved it, degrees.
     """
 
     up: np.ndarray
@@ -86,7 +85,6 @@ class UpEstimate:
     note: str = ""
     walk_deg: float = 0.0
     line_segments: int = 0
-    lines_deg: float = 0.0
 
     @property
     def reliable(self) -> bool:
@@ -176,7 +174,7 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
                     f"forward or back (its walk is {walk_deg:.0f}° from sideways, less than {MIN_WALK_DEG:g}°): the up "
                     "direction rests on the phone being held level in pitch; set [ingest] up to force it")
     return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note, walk_deg,
-                      from_lines.segments if from_lines else 0, from_lines.moved_deg if from_lines else 0.0)
+                      from_lines.segments if from_lines else 0)
 
 
 def align_extrinsics(R: np.ndarray, t: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
