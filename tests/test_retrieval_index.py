@@ -104,7 +104,8 @@ def test_top_order_equals_a_full_sort():
 
 
 def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
-    """Two libraries, three tracks: ranks, ids and scores against a brute-force reference."""
+    """Two libraries, three tracks: ranks, ids and scores against a brute-force reference (the
+    configured class exponent)."""
     rng = np.random.default_rng(4)
     views = {lib: write_library(wh, lib, 30, rng) for lib in ("a", "b")}
     dets = [(t, LABELS[(t + f) % 2 + (t == 2)], unit(rng.normal(size=16))) for t in range(3) for f in range(4)]
@@ -118,7 +119,8 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
         {"clip": "c", "track_id": t, "det_id": i, "frame_index": i, "timestamp_us": i} for i, (t, _, _) in enumerate(dets)],
         schema=wh.spec("track_detections").schema))
     clear_cache()
-    retrieve_clip(wh, RetrievalConfig(top_k=10), "c", "r")
+    cfg = RetrievalConfig(top_k=10)
+    retrieve_clip(wh, cfg, "c", "r")
     got = {(r["track_id"], r["rank"]): r for r in wh.read("cad_candidates", partitions=["c"]).to_pylist()}
     for t in range(3):
         brute = []
@@ -128,7 +130,7 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
                    for r in wh.read("label_similarity", partitions=[lib]).to_pylist()}
             for m in models:
                 b = white.apply(v[int(m["cad_id"].split(".m")[1])])
-                pairs = [sim.get((label, m["class"]), 0.0) * (1 + white.apply(d)[0] @ b[j]) / 2
+                pairs = [sim.get((label, m["class"]), 0.0) ** cfg.class_exponent * (1 + white.apply(d)[0] @ b[j]) / 2
                          for tt, label, d in dets if tt == t for j in range(len(b))]
                 brute.append((-np.mean(pairs), m["cad_id"], lib))
         for rank, (neg, cad_id, lib) in enumerate(sorted(brute)[:10], 1):
