@@ -55,8 +55,8 @@ CLIPS = TableSpec(
                    "[ingest] up forced ('+y', ...).", nullable=True),
             column("up_note", pa.string(), "Why the automatic up estimate is unreliable ('' when it is not).", nullable=True),
             column("up_line_segments", pa.int32(), "With up 'auto': the video's vertical line segments that refined the "
-                   "cameras' up estimate ([ingest] up_line_frames); 0 when too few agreed and the cameras' estimate "
-                   "stands; null when up was forced, or for older clips.", nullable=True),
+                   "cameras' up estimate ([ingest] up_line_frames); 0 when they did not fix it (too few, one line seen one "
+                   "way, or lines off) and the cameras' estimate stands; null when up was forced, or for older clips.", nullable=True),
         ]
     ),
 )

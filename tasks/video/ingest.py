@@ -278,8 +278,10 @@ def ingest_clip(
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row], schema=wh.spec("clips").schema))
     notes = [*checked.warnings, *([f"world up: {up.note}"] if up.note else [])]
-    return StageOutput(rows, ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split,
-                                                source.time_offset_us), message="; ".join(notes))
+    # The output is the registered inputs and the world they are turned into: a new up reruns frames.
+    output = digest(ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split, source.time_offset_us),
+                    up.rotation.tobytes().hex())
+    return StageOutput(rows, output, message="; ".join(notes))
 
 
 def find_up(video: Path, cameras: CameraTrack, time_offset_us: int, cfg: IngestConfig) -> UpEstimate:

@@ -18,9 +18,15 @@ agrees with: the score ``sum_s length_s * max(0, 1 - (r_s / tol)^2)``, ``r_s = a
 searched over directions within :data:`SEARCH_DEG` of the cameras' estimate (coarse to fine,
 :data:`SEARCH_LEVELS`), then polished by least squares with Cauchy weights (the smallest
 eigenvector of ``sum_s w_s n_s n_s^T``). Other straight lines (horizontal edges, slanted chair
-backs) agree with no single direction near up and barely move the peak. Too few agreeing
-segments (fewer than :data:`MIN_SEGMENTS` on :data:`MIN_FRAMES` frames): no estimate, and the
-cameras' stands.
+backs) agree with no single direction near up and barely move the peak.
+
+What is not a line of the room is left out first: a segment found on the same line of the image
+on at least :data:`STATIC_FRACTION` of the other frames (an overlay, a logo, a letterbox edge, or
+a camera that does not move) says nothing about the world. No estimate (the cameras' stands) when
+too few segments agree (fewer than :data:`MIN_SEGMENTS` on :data:`MIN_FRAMES` frames), when they
+are one line seen the same way (their normals spread less than :data:`MIN_SPREAD_DEG` about up:
+up is then any direction in one plane), or when the polish ends farther than :data:`SEARCH_DEG`
+from the start.
 """
 
 from __future__ import annotations
@@ -31,18 +37,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SEARCH_DEG = 10.0
+SEARCH_DEG = 20.0
 """Directions up to this far from the cameras' estimate are searched."""
 SEARCH_LEVELS = ((0.5, SEARCH_DEG), (0.1, 1.0), (0.02, 0.2))
 """(grid step, radius) in degrees of each search level, each centred on the last one's best."""
 MIN_SEGMENT_FRACTION = 0.05
 """Segments shorter than this fraction of the frame's longer side are not used (short ones point poorly)."""
-MIN_SEGMENTS = 20
-"""An estimate needs at least this many segments within the tolerance of it ..."""
+MIN_SEGMENTS = 50
+"""An estimate needs at least this many segments within the tolerance of it (a few vertical lines
+per frame: with 32, a 320x192 test clip's few short edges put up 3.4 degrees off) ..."""
 MIN_FRAMES = 3
 """... on at least this many frames."""
 POLISH_STEPS = 5
 """Reweighted least-squares steps after the search."""
+STATIC_PX = 2.0
+"""Segments of two frames on image lines this close (px, their distances from the origin) ..."""
+STATIC_DEG = 1.0
+"""... and this parallel (degrees), that overlap, are at the same place of the image ..."""
+STATIC_FRACTION = 0.25
+"""... and one found so on at least this fraction of the other frames is left out."""
+MIN_SPREAD_DEG = 5.0
+"""The agreeing normals must spread at least this much (RMS angle, degrees) within the plane
+orthogonal to up: otherwise they are one line seen one way, and up is not fixed."""
 
 
 @dataclass(frozen=True)
@@ -53,11 +69,13 @@ class SegmentNormals:
       normals: float64[S, 3] unit normals, input world.
       lengths: float64[S] segment lengths, px.
       frames: int64[S] index of the sampled frame each segment is on.
+      endpoints: float64[S, 4] (x0, y0, x1, y1) px as OpenCV gives them (pixel centres at integers).
     """
 
     normals: np.ndarray
     lengths: np.ndarray
     frames: np.ndarray
+    endpoints: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -73,16 +91,17 @@ class LineUp:
 
 
 def frame_segment_normals(gray: np.ndarray, intrinsics_px: np.ndarray, world_to_camera_R: np.ndarray,
-                          detector=None) -> tuple[np.ndarray, np.ndarray]:
-    """(unit interpretation-plane normals float64[S, 3] in the world, lengths float64[S] px) of the
-    line segments of one frame ``gray`` uint8[H, W]; ``intrinsics_px`` (fx, fy, cx, cy);
-    ``world_to_camera_R`` float[3, 3]; ``detector``: an OpenCV line segment detector (made when None)."""
+                          detector=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(unit interpretation-plane normals float64[S, 3] in the world, lengths float64[S] px,
+    endpoints float64[S, 4] px) of the line segments of one frame ``gray`` uint8[H, W];
+    ``intrinsics_px`` (fx, fy, cx, cy); ``world_to_camera_R`` float[3, 3]; ``detector``: an OpenCV
+    line segment detector (made when None)."""
     import cv2
 
     detector = detector if detector is not None else cv2.createLineSegmentDetector()
     found = detector.detect(gray)[0]
     if found is None:
-        return np.zeros((0, 3)), np.zeros(0)
+        return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 4))
     seg = found.reshape(-1, 4).astype(np.float64)
     lengths = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
     keep = lengths >= MIN_SEGMENT_FRACTION * max(gray.shape)
@@ -96,7 +115,7 @@ def frame_segment_normals(gray: np.ndarray, intrinsics_px: np.ndarray, world_to_
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 0
     n = n[ok] / norm[ok, None]
-    return n @ np.asarray(world_to_camera_R, dtype=np.float64), lengths[ok]  # rows: R^T n
+    return n @ np.asarray(world_to_camera_R, dtype=np.float64), lengths[ok], seg[ok]  # rows: R^T n
 
 
 def video_segment_normals(video: str | os.PathLike, times_us: np.ndarray, intrinsics: np.ndarray,
@@ -109,17 +128,57 @@ def video_segment_normals(video: str | os.PathLike, times_us: np.ndarray, intrin
     from tasks.video.decode import decode_at
 
     detector = cv2.createLineSegmentDetector()
-    normals, lengths, frames = [], [], []
+    per_frame = []
     for i, frame in enumerate(decode_at(video, np.asarray(times_us, dtype=np.int64))):
         H, W = frame.rgb.shape[:2]
         gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
-        n, length = frame_segment_normals(gray, np.asarray(intrinsics[i]) * [W, H, W, H], world_to_camera_R[i], detector)
-        normals.append(n)
-        lengths.append(length)
-        frames.append(np.full(len(n), i, dtype=np.int64))
-    if not normals:
-        return SegmentNormals(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
-    return SegmentNormals(np.concatenate(normals), np.concatenate(lengths), np.concatenate(frames))
+        per_frame.append(frame_segment_normals(gray, np.asarray(intrinsics[i]) * [W, H, W, H], world_to_camera_R[i],
+                                               detector))
+    return stack_frames(per_frame)
+
+
+def stack_frames(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> SegmentNormals:
+    """One :class:`SegmentNormals` of :func:`frame_segment_normals`' results, frame ``i`` the ``i``-th."""
+    if not per_frame:
+        return SegmentNormals(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 4)))
+    return SegmentNormals(np.concatenate([f[0] for f in per_frame]), np.concatenate([f[1] for f in per_frame]),
+                          np.concatenate([np.full(len(f[0]), i, dtype=np.int64) for i, f in enumerate(per_frame)]),
+                          np.concatenate([f[2] for f in per_frame]))
+
+
+def _image_lines(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of segments ``e`` float[S, 4] px: unit directions float[S, 2] (pointing right or down), offsets
+    float[S] (signed distance of their line from the origin) and extents float[S, 2] along the
+    direction."""
+    d = e[:, 2:] - e[:, :2]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    d = np.where((d[:, :1] < 0) | ((d[:, :1] == 0) & (d[:, 1:] < 0)), -d, d)
+    rho = e[:, 0] * -d[:, 1] + e[:, 1] * d[:, 0]
+    a, b = (e[:, :2] * d).sum(1), (e[:, 2:] * d).sum(1)
+    return d, rho, np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+
+
+def moving_segments(seg: SegmentNormals) -> SegmentNormals:
+    """``seg`` without the segments that lie on the same line of the image (within
+    :data:`STATIC_PX` and :data:`STATIC_DEG`, overlapping) as a segment of at least
+    :data:`STATIC_FRACTION` of the other frames: overlays, and everything a still camera sees."""
+    frames = np.unique(seg.frames)
+    if len(frames) < 2:
+        return seg
+    d, rho, ext = _image_lines(seg.endpoints)
+    repeats = np.zeros(len(rho), dtype=np.int64)
+    cos_tol = math.cos(math.radians(STATIC_DEG))
+    for f in frames:
+        mine = np.flatnonzero(seg.frames == f)
+        for g in frames[frames != f]:
+            theirs = np.flatnonzero(seg.frames == g)
+            if not len(theirs):
+                continue
+            same = ((np.abs(d[mine] @ d[theirs].T) >= cos_tol) & (np.abs(rho[mine, None] - rho[None, theirs]) <= STATIC_PX)
+                    & (ext[mine, None, 0] <= ext[None, theirs, 1]) & (ext[None, theirs, 0] <= ext[mine, None, 1]))
+            repeats[mine] += same.any(axis=1)
+    keep = repeats < STATIC_FRACTION * (len(frames) - 1)
+    return SegmentNormals(seg.normals[keep], seg.lengths[keep], seg.frames[keep], seg.endpoints[keep])
 
 
 def _residual_deg(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -142,6 +201,14 @@ def _directions(centre: np.ndarray, step_deg: float, radius_deg: float) -> np.nd
     inside = np.hypot(X, Y) <= math.radians(radius_deg) + 1e-12
     d = centre[None] + np.tan(X[inside])[:, None] * a + np.tan(Y[inside])[:, None] * b
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _spread_deg(normals: np.ndarray, weights: np.ndarray) -> float:
+    """RMS angle (degrees) by which unit ``normals`` float[S, 3] (weights float[S]) spread about their
+    main direction within their best-fitting plane: atan of sqrt(middle / largest eigenvalue) of
+    the weighted scatter."""
+    e = np.linalg.eigvalsh((normals * weights[:, None]).T @ normals)
+    return math.degrees(math.atan(math.sqrt(max(e[1], 0.0) / e[2]))) if e[2] > 0 else 0.0
 
 
 def _score(seg: SegmentNormals, directions: np.ndarray, tol_deg: float, chunk: int = 512) -> np.ndarray:
@@ -170,6 +237,7 @@ def refine_up(seg: SegmentNormals, start: np.ndarray, tol_deg: float) -> LineUp 
     """Up from the segments ``seg``, searched near ``start`` float[3] (the cameras' estimate, unit,
     input world) with tolerance ``tol_deg`` (module docstring); None when too few segments agree."""
     start = np.asarray(start, dtype=np.float64) / np.linalg.norm(start)
+    seg = moving_segments(seg)
     if len(seg.normals) < MIN_SEGMENTS:
         return None
     best = start
@@ -179,7 +247,8 @@ def refine_up(seg: SegmentNormals, start: np.ndarray, tol_deg: float) -> LineUp 
     up = _polish(seg, best, tol_deg)
     agree = _residual_deg(seg.normals, up[None])[:, 0] <= tol_deg
     frames = len(np.unique(seg.frames[agree]))
-    if agree.sum() < MIN_SEGMENTS or frames < MIN_FRAMES:
-        return None
     moved = math.degrees(math.acos(float(np.clip(up @ start, -1.0, 1.0))))
+    if (agree.sum() < MIN_SEGMENTS or frames < MIN_FRAMES or moved > SEARCH_DEG
+            or _spread_deg(seg.normals[agree], seg.lengths[agree]) < MIN_SPREAD_DEG):
+        return None
     return LineUp(up, int(agree.sum()), frames, moved)
