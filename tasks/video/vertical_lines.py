@@ -168,15 +168,13 @@ def moving_segments(seg: SegmentNormals) -> SegmentNormals:
     d, rho, ext = _image_lines(seg.endpoints)
     repeats = np.zeros(len(rho), dtype=np.int64)
     cos_tol = math.cos(math.radians(STATIC_DEG))
-    for f in frames:
-        mine = np.flatnonzero(seg.frames == f)
-        for g in frames[frames != f]:
-            theirs = np.flatnonzero(seg.frames == g)
-            if not len(theirs):
-                continue
+    members = [np.flatnonzero(seg.frames == f) for f in frames]
+    for i, mine in enumerate(members):
+        for theirs in members[i + 1:]:  # the relation is symmetric: each pair of frames once, counted both ways
             same = ((np.abs(d[mine] @ d[theirs].T) >= cos_tol) & (np.abs(rho[mine, None] - rho[None, theirs]) <= STATIC_PX)
                     & (ext[mine, None, 0] <= ext[None, theirs, 1]) & (ext[None, theirs, 0] <= ext[mine, None, 1]))
             repeats[mine] += same.any(axis=1)
+            repeats[theirs] += same.any(axis=0)
     keep = repeats < STATIC_FRACTION * (len(frames) - 1)
     return SegmentNormals(seg.normals[keep], seg.lengths[keep], seg.frames[keep], seg.endpoints[keep])
 
@@ -203,11 +201,16 @@ def _directions(centre: np.ndarray, step_deg: float, radius_deg: float) -> np.nd
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def _scatter(normals: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """float64[3, 3] ``sum_s w_s n_s n_s^T`` of ``normals`` float[S, 3] and ``weights`` float[S]."""
+    return (normals * weights[:, None]).T @ normals
+
+
 def _spread_deg(normals: np.ndarray, weights: np.ndarray) -> float:
     """RMS angle (degrees) by which unit ``normals`` float[S, 3] (weights float[S]) spread about their
     main direction within their best-fitting plane: atan of sqrt(middle / largest eigenvalue) of
-    the weighted scatter."""
-    e = np.linalg.eigvalsh((normals * weights[:, None]).T @ normals)
+    :func:`_scatter`."""
+    e = np.linalg.eigvalsh(_scatter(normals, weights))
     return math.degrees(math.atan(math.sqrt(max(e[1], 0.0) / e[2]))) if e[2] > 0 else 0.0
 
 
@@ -228,7 +231,7 @@ def _polish(seg: SegmentNormals, up: np.ndarray, tol_deg: float) -> np.ndarray:
         w = seg.lengths / (1.0 + (r / tol_deg) ** 2) * (r < 3 * tol_deg)
         if not w.any():
             break
-        v = np.linalg.eigh((seg.normals * w[:, None]).T @ seg.normals)[1][:, 0]
+        v = np.linalg.eigh(_scatter(seg.normals, w))[1][:, 0]
         up = v if v @ up > 0 else -v
     return up
 

@@ -36,7 +36,6 @@ import numpy as np
 
 if TYPE_CHECKING:
     from tasks.video.vertical_lines import SegmentNormals
-    from warehouse import Warehouse
 
 MU = 0.01
 """Weight of the y axes (down) against the x axes (level) in the gravity objective."""
@@ -201,12 +200,6 @@ def stored_rotation(values: object) -> np.ndarray:
     if values is None:
         return np.eye(3)
     return np.asarray(values, dtype=np.float64).reshape(3, 3)
-
-
-def clip_up_rotation(wh: "Warehouse", clip: str) -> np.ndarray:
-    """``Q`` float64[3, 3] of a registered clip (identity when it is not registered or older)."""
-    rows = wh.read("clips", partitions=[clip], columns=["up_rotation"]).to_pylist() if wh.has_partition("clips", clip) else []
-    return stored_rotation(rows[0]["up_rotation"] if rows else None)
 
 
 def pose_to_input_world(translation: Sequence[float], rotation_wxyz: Sequence[float],
