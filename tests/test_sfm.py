@@ -105,9 +105,10 @@ def sfm_run(request, small_cad_library, tmp_path_factory):
 def test_sfm_registers_rendered_walkthroughs(sfm_run):
     """A real pycolmap run on textured benchmark walkthroughs of several seeds: every frame gets a
     camera, nearly all registered (issue 20: >= 95 %), a focal length within the hypotheses'
-    range; the first seed runs again with one worker instead of two: the same cameras (seeded RANSAC
-    and mapper, single-threaded mapping; the frames in the database before extraction's threads, and
-    each focal hypothesis on its own copy of the database)."""
+    range, the model polished (observations past 2 px dropped); the first seed runs again with one
+    worker instead of two: the same cameras (seeded RANSAC and mapper, single-threaded mapping; the
+    frames in the database before extraction's threads, and each focal hypothesis on its own copy of
+    the database), and once more without the polish: other cameras."""
     seed, clip, result = sfm_run
     truth = parse_camera_file(clip.cameras_path)
     assert result.track.timestamps_us.tolist() == truth.timestamps_us.tolist()  # the same sampled frames
@@ -115,10 +116,16 @@ def test_sfm_registers_rendered_walkthroughs(sfm_run):
     f = result.focal
     assert f.hypotheses_px.min() * (1 - CamerasConfig().max_focal_change) <= result.track.intrinsics[0, 0] * f.width \
         <= f.hypotheses_px.max() * (1 + CamerasConfig().max_focal_change)
+    # the polish dropped the observations past 2 px and adjusted the model again
+    assert result.polished > 0 and "polish" in result.seconds
+    assert 0 < result.reprojection_px < CamerasConfig().polish_reproj_error_px
     if seed == SEEDS[0]:
         again = run_sfm(clip.video_path, CamerasConfig(sample_fps=15.0, workers=1))
         assert CamerasConfig().workers == 2
         np.testing.assert_array_equal(again.track.world_to_camera, result.track.world_to_camera)
+        raw = run_sfm(clip.video_path, CamerasConfig(sample_fps=15.0, polish_reproj_error_px=0))
+        assert raw.polished == 0 and "polish" not in raw.seconds
+        assert not np.array_equal(raw.track.world_to_camera, result.track.world_to_camera)
 
 
 @pytest.mark.slow

@@ -93,7 +93,7 @@ def hypothesis_error(db_path: Path, image_dir: Path, names: list[str], focal_px:
     best = max(models.values(), key=lambda m: m.num_reg_images(), default=None)
     if best is None:
         return math.inf, math.nan
-    pycolmap.bundle_adjustment(best, _focal_ba_options(threads))
+    pycolmap.bundle_adjustment(best, ba_options(threads))
     focal = float(best.cameras[next(iter(best.cameras))].focal_length)
     if 2 * best.num_reg_images() < len(names):
         return math.inf, focal
@@ -123,12 +123,13 @@ def estimate_focal(db_path: Path, image_dir: Path, names: list[str], width: int,
     return FocalEstimate(best_focal(hypotheses, adjusted, errors), width, hypotheses, adjusted, errors)
 
 
-def _focal_ba_options(threads: int):
-    """pycolmap bundle adjustment options: poses, points and the focal length free (principal point fixed)."""
+def ba_options(threads: int, focal: bool = True):
+    """pycolmap bundle adjustment options: poses and points free, the focal length too when ``focal``
+    (the principal point fixed)."""
     import pycolmap
 
     options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = True
+    options.refine_focal_length = focal
     options.refine_principal_point = False
     options.refine_extra_params = False
     options.print_summary = False
@@ -143,7 +144,7 @@ def refine_focal(reconstruction, max_change: float, threads: int):
     import pycolmap
 
     refined = pycolmap.Reconstruction(reconstruction)
-    pycolmap.bundle_adjustment(refined, _focal_ba_options(threads))
+    pycolmap.bundle_adjustment(refined, ba_options(threads))
     camera_id = next(iter(reconstruction.cameras))
     change = refined.cameras[camera_id].focal_length / reconstruction.cameras[camera_id].focal_length - 1
     return (refined, True) if abs(change) < max_change else (reconstruction, False)
