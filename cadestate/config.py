@@ -151,7 +151,7 @@ class CamerasConfig:
                                          "are dropped and the model bundle-adjusted again, three times (mapping "
                                          "itself keeps up to 4 px, COLMAP's default, while the model grows). On a "
                                          "benchmark clip's sideways walk the stray matches had bent the path by "
-                                         "2.2 % and put the focal length 8.6 % low; 1.4 % and 0.3 % polished. "
+                                         "2.2 % and put the focal length 8.6 % low; 1.3 % and 0.4 % polished. "
                                          "0 turns it off.", lo=0.0, hi=100.0)
     max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "
                                    "estimate by less than this fraction.", lo=0.0, hi=1.0)
