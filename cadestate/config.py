@@ -79,7 +79,7 @@ class PrefectConfig:
     task_runner: str = _opt("threads", "Task runner: 'threads' (local threads) or 'dask' (a Dask cluster: each worker runs whole clips).", choices=("threads", "dask"))
     max_workers: int = _opt(2, "Worker threads for the 'threads' runner; worker processes (one thread each) of the local Dask cluster.", lo=1, hi=256)
     dask_address: str = _opt("", "Address of a running Dask scheduler (its workers see the warehouse at the same path); empty starts a local cluster.")
-    startup_timeout_s: float = _opt(180.0, "Seconds to wait for Prefect's API to start (ephemeral mode, or `cadestate server start`).",
+    startup_timeout_s: float = _opt(180.0, "Seconds to wait for Prefect's API to start (`cadestate server start`; ephemeral mode retries once on a new port after a third of them).",
                                     lo=1, hi=3600)
 
 

@@ -134,16 +134,11 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
 def prefect_api_url(config: Config) -> str:
     """The Prefect API the workers talk to: the one in use (the warehouse's server or
     ``$PREFECT_API_URL``), else this process's ephemeral API, started now."""
-    from flows.runtime import prepare_prefect_environment
+    from flows.runtime import prepare_prefect_environment, start_ephemeral_api
 
     root = Path(config.warehouse.root).expanduser().resolve()
     api = prepare_prefect_environment(root, startup_timeout_s=config.prefect.startup_timeout_s)
-    if api:
-        return api
-    from prefect.client.orchestration import get_client
-
-    with get_client(sync_client=True) as client:
-        return str(client.api_url).rstrip("/")
+    return api or start_ephemeral_api(config.prefect.startup_timeout_s)
 
 
 def _failed(clip: str, e: BaseException) -> ClipOutcome:

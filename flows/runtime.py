@@ -51,6 +51,8 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
 
     api = os.environ.get("PREFECT_API_URL", "")
     try:
+        if not api:
+            start_ephemeral_api(config.prefect.startup_timeout_s)
         with prefect_tags(*tags):
             state = flow.with_options(task_runner=task_runner(config.prefect), flow_run_name=run_name)(*args, return_state=True)
     except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
@@ -59,6 +61,29 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
             raise
         raise ServerError(api_error_line(api, cause)) from None
     return state.result(raise_on_failure=False)
+
+
+FIRST_TRY_SHARE = 1 / 3
+"""Share of ``[prefect] startup_timeout_s`` the ephemeral API's first try gets; a retry gets the rest."""
+
+
+def start_ephemeral_api(timeout_s: float) -> str:
+    """Start this process's ephemeral Prefect API (what Prefect starts on first use when no
+    ``PREFECT_API_URL`` is set) and return its URL; started already, return at once. Its server
+    subprocess sometimes starts and never answers (PrefectHQ/prefect#16397, #20247; here once in
+    CI on a 180 s timeout, where a start takes ~15 s): after :data:`FIRST_TRY_SHARE` of
+    ``timeout_s`` the server is killed and another started on a new port, with the rest of the
+    time. Its failing too is Prefect's ``RuntimeError`` (see :func:`api_failure`)."""
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()  # one per process until stopped: get_client() finds this one
+    try:
+        server.start(timeout=timeout_s * FIRST_TRY_SHARE)
+    except RuntimeError:
+        server.stop()  # kills the subprocess and forgets the instance: the next gets a new port
+        server = SubprocessASGIServer()
+        server.start(timeout=timeout_s * (1 - FIRST_TRY_SHARE))
+    return server.api_url
 
 
 API_FAILURES = ("Prefect API", "Failed to reach API")

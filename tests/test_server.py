@@ -113,3 +113,32 @@ def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, ver
     assert prepare_prefect_environment(tmp_path, verbose=verbose) == ""
     assert os.environ["PREFECT_LOGGING_LEVEL"] == os.environ["PREFECT_SERVER_LOGGING_LEVEL"] == level
     assert os.environ["GLOG_minloglevel"] == glog
+
+
+WEDGED_START = """
+import subprocess, sys
+import httpx
+from prefect.server.api.server import SubprocessASGIServer
+from flows.runtime import start_ephemeral_api
+
+real, wedged = SubprocessASGIServer._run_uvicorn_command, []
+def first_never_answers(self):  # Prefect's server process that starts and never answers
+    if wedged:
+        return real(self)
+    wedged.append((self.port, subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])))
+    return wedged[0][1]
+SubprocessASGIServer._run_uvicorn_command = first_never_answers
+url = start_ephemeral_api(float(sys.argv[1]))
+assert httpx.get(url + "/health", timeout=30).status_code == 200
+port, process = wedged[0]
+print(port, process.poll() is not None, url)
+"""
+
+
+@pytest.mark.slow
+def test_a_local_api_that_never_answers_is_replaced_on_a_new_port(tmp_path):
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}, "PREFECT_HOME": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", WEDGED_START, "90"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    wedged_port, wedged_killed, url = done.stdout.split()
+    assert wedged_killed == "True" and f":{wedged_port}/" not in url
