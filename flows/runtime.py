@@ -10,8 +10,10 @@ the clips, their splits and the warehouse's CAD libraries, so the Prefect UI fin
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 from cadestate.config import Config, PrefectConfig
@@ -50,17 +52,56 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     from prefect import tags as prefect_tags
 
     api = os.environ.get("PREFECT_API_URL", "")
+    name = _RUN_NAME.set(run_name)
     try:
         if not api:
             start_ephemeral_api(config.prefect.startup_timeout_s)
-        with prefect_tags(*tags):
-            state = flow.with_options(task_runner=task_runner(config.prefect), flow_run_name=run_name)(*args, return_state=True)
+        with prefect_tags(*tags), without_heartbeats():
+            state = configured(flow, config.prefect)(*args, return_state=True)
     except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
         cause = api_failure(e)
         if cause is None:
             raise
         raise ServerError(api_error_line(api, cause)) from None
+    finally:
+        _RUN_NAME.reset(name)
     return state.result(raise_on_failure=False)
+
+
+_NO_HEARTBEATS: dict[int, tuple[object, object]] = {}
+"""id of Prefect settings -> (those settings, kept so that the id stays theirs; a copy with flow
+heartbeats off)."""
+
+
+def without_heartbeats():
+    """Prefect's settings context with flow run heartbeats off. Their thread's join ended every run
+    with up to a second's wait (0.7 s of a 1.4 s label round in the annotation app); served runs
+    (`cadestate serve`) run in the runner's processes and keep them. The copy of the settings is made
+    once per settings object (``temporary_settings`` rebuilds them: 0.2 s a run)."""
+    from prefect.context import SettingsContext, get_settings_context
+    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY
+
+    context = get_settings_context()
+    if id(context.settings) not in _NO_HEARTBEATS:
+        _NO_HEARTBEATS[id(context.settings)] = (
+            context.settings, context.settings.copy_with_update(updates={PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}))
+    return SettingsContext(profile=context.profile, settings=_NO_HEARTBEATS[id(context.settings)][1])
+
+
+_RUN_NAME: ContextVar[str] = ContextVar("cadestate_flow_run_name", default="")
+"""The name :func:`run_flow` gives the flow run it starts (read by :func:`_run_name`)."""
+
+
+def _run_name() -> str:
+    return _RUN_NAME.get() or "cadestate"
+
+
+@functools.lru_cache(maxsize=32)
+def configured(flow, cfg: PrefectConfig):
+    """``flow`` with the task runner of ``cfg`` and its run named by :func:`run_flow`, built once
+    per process: ``with_options`` rebuilds the flow's parameter schema (0.2 s a call). Prefect
+    starts a copy of the task runner for each run, so runs may share it."""
+    return flow.with_options(task_runner=task_runner(cfg), flow_run_name=_run_name)
 
 
 FIRST_TRY_SHARE = 1 / 3

@@ -142,3 +142,19 @@ def test_a_local_api_that_never_answers_is_replaced_on_a_new_port(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     wedged_port, wedged_killed, url = done.stdout.split()
     assert wedged_killed == "True" and f":{wedged_port}/" not in url
+
+
+def test_in_process_flow_runs_start_no_heartbeat_thread():
+    """A run's heartbeat thread cost its end up to a second (its join); runs here go without."""
+    from prefect.settings import get_current_settings
+
+    from flows.runtime import without_heartbeats
+
+    outside = get_current_settings()
+    assert outside.flows.heartbeat_frequency is not None  # Prefect's default (180 s), which served runs keep
+    for _ in range(2):  # the second time from the kept copy
+        with without_heartbeats():
+            inside = get_current_settings()
+            assert inside.flows.heartbeat_frequency is None
+            assert (inside.home, inside.api.url, inside.logging.level) == (outside.home, outside.api.url, outside.logging.level)
+    assert get_current_settings().flows.heartbeat_frequency == outside.flows.heartbeat_frequency
