@@ -77,7 +77,7 @@ def without_heartbeats():
     """Prefect's settings context with flow run heartbeats off. Their thread's join ended every run
     with up to a second's wait (0.7 s of a 1.4 s label round in the annotation app); served runs
     (`cadestate serve`) run in the runner's processes and keep them. The copy of the settings is made
-    once per settings object (``temporary_settings`` rebuilds them: 0.2 s a run)."""
+    once per settings object (``temporary_settings`` rebuilds them: 43 ms a run here)."""
     from prefect.context import SettingsContext, get_settings_context
     from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY
 
