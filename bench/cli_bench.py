@@ -111,23 +111,21 @@ def _round(cli: list[str], wh: Warehouse, label: dict, folder: Path) -> dict:
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1:] or ["failed"]}
+    return _split(wh, start, wall)
+
+
+def _split(wh: Warehouse, start: dt.datetime, wall: float) -> dict:
+    """A round of ``wall`` seconds that began at ``start``: its stage work (the stage runs started
+    since) and the share of the wall time outside it."""
     runs = [r for r in wh.read("runs").to_pylist() if r["started_at"] >= start]
     stage = sum(float(r["duration_s"] or 0.0) for r in runs)
     return {"wall_s": round(wall, 2), "stage_s": round(stage, 2), "stage_runs": len(runs),
             "outside_share": round(1 - stage / wall, 3)}
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
     """Post one answer to the annotation app at ``url`` and wait until its background resume of
-    the clip is done; the wall time split as :func:`_round` splits it."""
+    the clip is done; the wall time split as :func:`_split` splits it."""
     import httpx
 
     runs_before = httpx.get(f"{url}/api/clips/{label['clip']}", timeout=60).json()["resume"]["runs"]
@@ -139,11 +137,7 @@ def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
     while (resume := httpx.get(f"{url}/api/clips/{label['clip']}", timeout=60).json()["resume"])["runs"] <= runs_before \
             or resume["state"] in ("queued", "running"):
         time.sleep(0.02)
-    wall = time.perf_counter() - t0
-    runs = [r for r in wh.read("runs").to_pylist() if r["started_at"] >= start]
-    stage = sum(float(r["duration_s"] or 0.0) for r in runs)
-    return {"wall_s": round(wall, 2), "stage_s": round(stage, 2), "stage_runs": len(runs),
-            "outside_share": round(1 - stage / wall, 3), "resume": resume["message"]}
+    return {**_split(wh, start, time.perf_counter() - t0), "resume": resume["message"]}
 
 
 def app_rounds(cli: list[str], wh: Warehouse, labels: list[dict]) -> dict:
@@ -152,7 +146,9 @@ def app_rounds(cli: list[str], wh: Warehouse, labels: list[dict]) -> dict:
     stages and starts Prefect's client), the round of the last one is measured."""
     import httpx
 
-    port = _free_port()
+    from flows.server import free_port
+
+    port = free_port("127.0.0.1")
     app = subprocess.Popen([*cli, "annotate", "--port", str(port)], stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL, env=_env())
     url = f"http://127.0.0.1:{port}"
