@@ -138,13 +138,14 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
                     "median_trajectory_error_pct": round(float(np.median([r["median_trajectory_error_pct"] for r in ok])), 3),
                     "worst_clip_trajectory_error_pct": round(float(np.max([r["median_trajectory_error_pct"] for r in ok])), 3),
                     "max_abs_focal_error_pct": round(float(np.max([abs(r["focal_error_pct"]) for r in ok])), 2),
-                    "sfm_s_per_clip": round(float(np.mean([r["sfm_s"] for r in ok])), 1)}
+                    "sfm_s_per_clip": round(float(np.mean([r["sfm_s"] for r in ok])), 1),
+                    "worst_clip_sfm_s": round(float(np.max([r["sfm_s"] for r in ok])), 1)}
     return {"bench": str(bench_dir), "config": dataclasses.asdict(cfg), "summary": summary,
             "pose_accuracy_pct": {"true cameras": accuracy["true"], "SfM cameras": accuracy["sfm"],
                                   "true cameras, world turned at random": accuracy["turned"]},
             "targets": {"registered_pct": ">= 95", "median_rotation_error_deg": "< 1",
                         "median_trajectory_error_pct": "< 2", "pose accuracy, SfM vs true": "within 5 points",
-                        "sfm_s_per_clip": "< 120 (138 frames, 2 cores)"},
+                        "worst_clip_sfm_s": "< 120 (138 frames, 2 cores)"},
             "per_clip": rows}
 
 

@@ -132,8 +132,9 @@ class CamerasConfig:
     min_registered_fraction: float = _opt(0.8, "Fail when SfM registers fewer of the sampled frames than this fraction; "
                                           "the rest are interpolated between registered neighbours and flagged.",
                                           lo=0.0, hi=1.0)
-    init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the mapper's initial pair (COLMAP's "
-                                         "default 16; lower it for videos with very little parallax).", lo=0.5, hi=60.0)
+    init_min_tri_angle_deg: float = _opt(16.0, "Smallest triangulation angle of the incremental mapper's initial pair "
+                                         "(the focal hypotheses, and mapper = 'incremental'; COLMAP's default 16; lower "
+                                         "it for videos with very little parallax).", lo=0.5, hi=60.0)
     fov_min_deg: float = _opt(40.0, "Narrowest horizontal field of view (of the image width) SfM tries when no intrinsics "
                               "are given (tasks/video/sfm_focal.py).", lo=5.0, hi=170.0)
     fov_max_deg: float = _opt(100.0, "Widest horizontal field of view SfM tries when no intrinsics are given.", lo=5.0, hi=170.0)
@@ -142,11 +143,21 @@ class CamerasConfig:
                                "focal of the lowest mean reprojection error wins.", lo=2, hi=50)
     focal_frames: int = _opt(35, "The focal hypotheses each map about this many of the sampled frames, evenly spaced "
                              "(every k-th, k = round(frames / focal_frames), at least 1).", lo=3, hi=10000)
-    global_ba_growth: float = _opt(0.05, "Mapping adjusts the whole model (global bundle adjustment) each time it grows by "
+    global_ba_growth: float = _opt(0.05, "The incremental mapper (the focal hypotheses, and mapper = 'incremental') adjusts "
+                                   "the whole model (global bundle adjustment) each time it grows by "
                                    "this fraction of frames or points (COLMAP's default 0.1). With 0.1 a benchmark clip's "
                                    "forward walk of little rotation bent: 3.8 degrees and 19 % of the path off; 0.07 and "
                                    "0.4 % with 0.02, as with 0.05 and the polish below, which maps in about 4/5 of the "
                                    "time.", lo=0.001, hi=10.0)
+    keyframe_every: int = _opt(2, "The mapper maps every k-th sampled frame; each frame in between is registered to the "
+                               "finished model alone (absolute pose from its matches with the mapped frames, with the "
+                               "incremental mapper's inlier thresholds; tasks/video/sfm_register.py). 1 maps every frame.",
+                               lo=1, hi=100)
+    mapper: str = _opt("global", "How the keyframes are mapped: 'global' (GLOMAP in pycolmap: rotation averaging over "
+                       "the matched pairs, then global positioning and bundle adjustment) or 'incremental' (COLMAP's "
+                       "incremental mapper, frame by frame; on a benchmark forward walk it bent the path by 18 % "
+                       "whenever any of its options moved, global mapping did not).",
+                       choices=("global", "incremental"))
     polish_reproj_error_px: float = _opt(2.0, "After mapping, observations reprojecting farther than this many pixels "
                                          "are dropped and the model bundle-adjusted again, three times (mapping "
                                          "itself keeps up to 4 px, COLMAP's default, while the model grows). On a "

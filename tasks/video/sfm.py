@@ -1,15 +1,18 @@
 """Cameras of a video by structure from motion (pycolmap, CPU): the ``cameras`` stage's logic.
 
 Steps: sample the video's frames at ``[cameras] sample_fps`` (each sampled frame keeps its exact
-decoded time, µs since the video's start), SIFT features, sequential matching, incremental
-mapping with one camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with the principal point
-at the image centre and its focal length estimated from field-of-view hypotheses and held fixed
-while mapping, or ``PINHOLE`` fixed to the given ``intrinsics``), a polish (observations past
+decoded time, µs since the video's start), SIFT features, sequential matching, mapping of every
+``[cameras] keyframe_every``-th frame (``[cameras] mapper``: global SfM, GLOMAP's rotation
+averaging, global positioning and bundle adjustment, or COLMAP's incremental mapper) with one
+camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with the principal point at the image
+centre and its focal length estimated from field-of-view hypotheses and held fixed while mapping,
+or ``PINHOLE`` fixed to the given ``intrinsics``), a polish (observations past
 ``[cameras] polish_reproj_error_px`` dropped and the model adjusted again, :func:`polish`), a last
-bundle adjustment with the estimated focal length free (:mod:`tasks.video.sfm_focal`), then one
-camera line per sampled frame: SfM's own pose when the frame was registered, else interpolated
-between its registered neighbours (slerp of the rotation, linear camera centre; the nearest one's
-pose at the ends) and flagged.
+bundle adjustment with the estimated focal length free (:mod:`tasks.video.sfm_focal`), the frames
+between keyframes registered to that model (:mod:`tasks.video.sfm_register`), then one camera
+line per sampled frame: SfM's own pose when the frame was registered (mapped or registered to the
+model), else interpolated between its registered neighbours (slerp of the rotation, linear camera
+centre; the nearest one's pose at the ends) and flagged.
 
 Frames: COLMAP's ``cam_from_world`` is world->camera with OpenCV camera axes, as RealEstate10K
 (:mod:`cadestate.geometry`); the world is SfM's, of arbitrary scale, origin and up (the ``ingest``
@@ -18,7 +21,6 @@ stage finds up). Several disconnected models: the largest is kept, the others ar
 
 from __future__ import annotations
 
-import os
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -34,6 +36,7 @@ from cadestate.geometry import camera_to_world, world_to_camera
 from tasks.video.camera_file import CameraTrack
 from tasks.video.decode import VideoError
 from tasks.video.sfm_focal import FocalEstimate, ba_options, estimate_focal, refine_focal, set_focal
+from tasks.video.sfm_register import frame_correspondences, register_frames
 
 
 class SfmError(ValueError):
@@ -57,9 +60,11 @@ class SfmResult:
 
     Attributes:
       track: one camera line per sampled frame (world->camera, OpenCV axes, SfM's world).
-      registered: bool[N], True where the camera is SfM's own (False: interpolated).
-      models: registered frames of every model found, largest first (the first one is kept).
-      seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, polish, refine, total).
+      registered: bool[N], True where the camera is SfM's own, mapped or registered to the model
+        (False: interpolated).
+      models: mapped frames (keyframes) of every model found, largest first (the first one is kept).
+      seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, polish, refine,
+        between: registering the frames between keyframes, total).
       focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
         whether the last bundle adjustment's was kept.
       polished: observations the polish dropped (:func:`polish`; 0 when it is off).
@@ -144,6 +149,25 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
     mapping.mapper.abs_pose_refine_focal_length = False
     mapping.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
     return reader, extraction, matching, pairing, verification, mapping
+
+
+def _global_options(cfg: CamerasConfig, names: list[str]):
+    """pycolmap's global mapping (GLOMAP) options for the frames ``names``: seeded, on
+    ``cfg.threads`` threads, the camera held (its focal length is given, or estimated first)."""
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.image_names = names
+    options.min_model_size = 3
+    options.num_threads = options.mapper.num_threads = cfg.threads
+    mapper = options.mapper
+    for part in (options, mapper, mapper.rotation_averaging, mapper.global_positioning, mapper.retriangulation):
+        part.random_seed = cfg.seed
+    mapper.bundle_adjustment.refine_focal_length = False
+    mapper.bundle_adjustment.refine_principal_point = False
+    mapper.bundle_adjustment.refine_extra_params = False
+    mapper.bundle_adjustment.ceres.solver_options.num_threads = cfg.threads
+    return options
 
 
 def _interpolate(times: np.ndarray, registered: np.ndarray, R: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -236,29 +260,40 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         (tmp / "sparse").mkdir()
         if focal:
             set_focal(db, focal.focal_px)
-        models = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", mapping)
+        keyframes = names[::cfg.keyframe_every]
+        if cfg.mapper == "global":
+            models = pycolmap.global_mapping(db, tmp / "images", tmp / "sparse", _global_options(cfg, keyframes))
+        else:
+            if cfg.keyframe_every > 1:
+                mapping.image_names = keyframes
+            models = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", mapping)
         seconds["mapping"] = time.perf_counter() - t
-    n = len(frames.paths)
-    if not models:
-        raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
-    ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
-    best, refined, dropped = ranked[0], False, 0
-    if cfg.polish_reproj_error_px > 0:
-        t = time.perf_counter()
-        best, dropped = polish(best, cfg.polish_reproj_error_px, mapping.mapper.filter_min_tri_angle, cfg.threads)
-        seconds["polish"] = time.perf_counter() - t
-    if focal:
-        t = time.perf_counter()
-        best, refined = refine_focal(best, cfg.max_focal_change, cfg.threads)
-        seconds["refine"] = time.perf_counter() - t
+        n = len(frames.paths)
+        if not models:
+            raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
+        ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
+        best, refined, dropped = ranked[0], False, 0
+        if cfg.polish_reproj_error_px > 0:
+            t = time.perf_counter()
+            best, dropped = polish(best, cfg.polish_reproj_error_px, mapping.mapper.filter_min_tri_angle, cfg.threads)
+            seconds["polish"] = time.perf_counter() - t
+        if focal:
+            t = time.perf_counter()
+            best, refined = refine_focal(best, cfg.max_focal_change, cfg.threads)
+            seconds["refine"] = time.perf_counter() - t
+        between = sorted(set(names) - set(keyframes))
+        if between:
+            t = time.perf_counter()
+            extra = register_frames(best, frame_correspondences(db, best, between), mapping.mapper, cfg.seed)
+            seconds["between"] = time.perf_counter() - t
+        else:
+            extra = {}
     index = {name: i for i, name in enumerate(names)}
     registered = np.zeros(n, dtype=bool)
     R, c = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
-    for image in best.images.values():
-        if not image.has_pose:
-            continue
-        i = index[image.name]
-        pose = image.cam_from_world()
+    poses = {image.name: image.cam_from_world() for image in best.images.values() if image.has_pose} | extra
+    for name, pose in poses.items():
+        i = index[name]
         R[i] = pose.rotation.matrix()
         c[i] = camera_to_world(R[i], np.asarray(pose.translation))[1]
         registered[i] = True
