@@ -13,7 +13,14 @@ of RealEstate10K clips holds; ``small`` (320x192, 30 camera lines), where the co
 - ``stage_s``: the seconds of its stage runs, summed from ``runs.duration_s``;
 - ``orchestration_share``: what the batch took beyond its stage work spread over the workers,
   ``(wall_s - stage_s / WORKERS) / (stage_s / WORKERS)`` (0: no time outside stages). Stage
-  seconds are wall time with two clips sharing the cores, so contention counts as stage work.
+  seconds are wall time with two clips sharing the cores, so contention counts as stage work;
+- ``over_bare``: the batch's wall time against the bare baseline's, minus 1: what orchestration
+  costs, measured rather than derived from stage seconds.
+
+``bare`` is the baseline, run first on the same batch: one Python process without Prefect (never
+imported) that checks the clips as ``cadestate ingest FOLDER`` does and runs each clip's stages
+(:func:`tasks.stage_chain.run_unit`, the chain a flow's task runs) on ``WORKERS`` threads, into a
+fresh warehouse.
 
 ``threads_server_up`` is the thread runner again with a Prefect server up for the warehouse
 (started before, as ``cadestate server start`` leaves one): no ephemeral API to start, its CPU
@@ -72,6 +79,44 @@ def _server_cpu_s(root: Path) -> float:
     return sum(sum(p.cpu_times()[:2]) for p in processes)
 
 
+def bare_batch(batch: Path, root: Path) -> int:
+    """The bare baseline (module docstring): every clip of ``batch`` into the warehouse ``root``
+    with the default config, each clip's stages on one of ``WORKERS`` threads. Returns the number
+    of failed stage runs (each is printed)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from cadestate.config import Config, WarehouseConfig
+    from tasks.stage_chain import run_unit
+    from tasks.video.ingest import ClipSource, check_clip_inputs, discover_clips, official_clip_name
+
+    config = Config(warehouse=WarehouseConfig(root=str(root)))
+    sources = []
+    for found in discover_clips(batch):
+        checked = check_clip_inputs(found.video, found.cameras, 0, False)
+        sources.append(ClipSource(official_clip_name(checked.cameras, found.cameras, None), found.video, found.cameras))
+    with ThreadPoolExecutor(WORKERS) as pool:
+        reports = [r for unit in pool.map(lambda s: run_unit(str(root), "clip", s.clip, config, s, False), sources)
+                   for r in unit]
+    failed = [r for r in reports if r.state == "failed"]
+    for r in failed:
+        print(f"{r.clip} {r.stage}: {r.message}", file=sys.stderr)
+    return len(failed)
+
+
+def _bare(batch: Path, workdir: Path) -> dict:
+    """The bare baseline in its own process (Python's start and imports counted, as the command's are)."""
+    root = workdir / "w-bare"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    cpu0, t0 = _children_cpu_s(), time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "bench.cluster_throughput", "--bare-into", str(root), str(batch)],
+                          capture_output=True, text=True, env=env, cwd=workdir)
+    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    if done.returncode != 0:
+        return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
+    clips = len(list(batch.glob("*.mp4")))
+    return {"clips": clips, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "clips_per_hour": round(3600 * clips / wall)}
+
+
 def run_batch(runner: str, batch: Path, workdir: Path, server: bool = False) -> dict:
     """Ingest every clip of ``batch`` into a fresh warehouse with ``runner``; its numbers. With
     ``server``, a Prefect server is started for the warehouse first (``cadestate server start``; its
@@ -110,9 +155,13 @@ def run(clips: int = 20, runners: tuple[str, ...] = RUNNERS, sizes: tuple[str, .
     for size in sizes:
         with tempfile.TemporaryDirectory(prefix="cadestate-throughput-") as tmp:
             batch = make_batch(Path(tmp) / "batch", clips, size)
-            result[size] = {runner: run_batch(runner, batch, Path(tmp)) for runner in runners}
+            bare = _bare(batch, Path(tmp))
+            result[size] = {"bare": bare} | {runner: run_batch(runner, batch, Path(tmp)) for runner in runners}
             if "threads" in runners:  # what a long-lived server (`cadestate server start`) saves each command
                 result[size]["threads_server_up"] = run_batch("threads", batch, Path(tmp), server=True)
+            for row in result[size].values():
+                if "wall_s" in row and "wall_s" in bare and row is not bare:
+                    row["over_bare"] = round(row["wall_s"] / bare["wall_s"] - 1, 3)
     return result
 
 
@@ -121,7 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clips", type=int, default=20, help="clips in the batch (default 20, as make bench)")
     parser.add_argument("--runner", choices=RUNNERS, action="append", help="only this runner (repeatable; default both)")
     parser.add_argument("--size", choices=tuple(SIZES), action="append", help="only clips of this size (repeatable; default both)")
+    parser.add_argument("--bare-into", nargs=2, metavar=("WAREHOUSE", "BATCH"), type=Path,
+                        help="run only the bare baseline of the folder BATCH into WAREHOUSE (what the bench runs in its own process)")
     args = parser.parse_args(argv)
+    if args.bare_into:
+        return 1 if bare_batch(args.bare_into[1], args.bare_into[0]) else 0
     if args.clips < 1:
         parser.error("--clips must be at least 1")
     print(json.dumps(run(args.clips, tuple(args.runner or RUNNERS), tuple(args.size or SIZES)), indent=2))

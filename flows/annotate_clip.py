@@ -18,9 +18,10 @@ from prefect import flow
 from prefect.states import State
 
 from cadestate.config import Config
-from flows.reports import StageReport, finish
+from flows.reports import finish
 from flows.runtime import run_flow, run_tags
 from flows.stage_chain import submit_unit
+from tasks.stage_chain import StageReport
 from tasks.video.ingest import ClipSource
 
 

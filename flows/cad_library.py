@@ -16,10 +16,11 @@ from prefect import flow
 from prefect.states import State
 
 from cadestate.config import Config
-from flows.reports import StageReport, finish
+from flows.reports import finish
 from flows.runtime import run_flow
 from flows.stage_chain import submit_unit
 from tasks.cad.sources import CadItem
+from tasks.stage_chain import StageReport
 
 
 @flow(name="build_cad_library", log_prints=True)

@@ -17,7 +17,7 @@ That is the warehouse's server or ``$PREFECT_API_URL`` when one is in use; other
 API that this process starts (as the thread runner does), which listens on 127.0.0.1: workers on
 this machine (a local cluster, or one on loopback) reach it, workers on other machines need a
 server they can reach (``PREFECT_API_URL``). So flow runs, their names and tags are the same as with
-threads, and so is the cache (the warehouse's ``runs`` table, :mod:`flows.stage_chain`): an
+threads, and so is the cache (the warehouse's ``runs`` table, :mod:`tasks.stage_chain`): an
 unchanged rerun on Dask is cached, a clip waiting for people ends
 ``paused``. A worker must not import Prefect before its first clip (Prefect reads its settings
 when imported): :func:`annotate_clip_here` sets them first.
@@ -43,7 +43,7 @@ from cadestate.config import Config, PrefectConfig
 if TYPE_CHECKING:
     from distributed import Client
 
-    from flows.reports import StageReport
+    from tasks.stage_chain import StageReport
     from tasks.video.ingest import ClipSource
 
 WHOLE_CLIP = "annotate_clip"
@@ -142,7 +142,7 @@ def prefect_api_url(config: Config) -> str:
 
 
 def _failed(clip: str, e: BaseException) -> ClipOutcome:
-    from flows.reports import StageReport
+    from tasks.stage_chain import StageReport
     from warehouse.catalog import one_line
 
     return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(f"{type(e).__name__}: {e}"))], "", 0)

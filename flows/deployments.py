@@ -39,8 +39,8 @@ from prefect.flow_runs import resume_flow_run, suspend_flow_run
 from cadestate.config import Config, load_config
 from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
-from flows.reports import StageReport
 from flows.runtime import run_tags
+from tasks.stage_chain import StageReport
 from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
 from tasks.video.ingest import ClipSource, official_clip_name

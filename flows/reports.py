@@ -2,22 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from prefect.futures import PrefectFuture, wait
 from prefect.states import Completed, Failed, State
 
-
-@dataclass(frozen=True)
-class StageReport:
-    """Outcome of one stage for one clip (or CAD library) in a flow run."""
-
-    clip: str
-    stage: str
-    state: str  # completed | cached | failed | skipped | paused | waiting
-    rows_written: int = 0
-    duration_s: float = 0.0
-    message: str = ""
+from tasks.stage_chain import StageReport
 
 
 WHOLE_UNIT = "stages"

@@ -4,7 +4,7 @@ Prefect talks to the warehouse's server when ``cadestate server start`` left one
 (:mod:`flows.server`), or to ``PREFECT_API_URL`` when the user set it; otherwise it runs in
 ephemeral mode: a temporary local API with its SQLite database under ``<warehouse>/_prefect/home``
 (no server to start, ~20 s per command). Prefect caches nothing and persists no result: the cache
-is the warehouse's ``runs`` table (:mod:`flows.stage_chain`). Flow runs are named after what they run (``annotate_clip/<clip>``) and tagged with
+is the warehouse's ``runs`` table (:mod:`tasks.stage_chain`). Flow runs are named after what they run (``annotate_clip/<clip>``) and tagged with
 the clips, their splits and the warehouse's CAD libraries, so the Prefect UI finds them.
 """
 

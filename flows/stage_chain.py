@@ -1,29 +1,14 @@
-"""A unit's stages (a clip's, or a CAD library's) run in pipeline order as one Prefect task, with
-the ``runs`` table as the cache.
+"""A unit's stages (a clip's, or a CAD library's) as one Prefect task: :func:`tasks.stage_chain.run_unit`.
 
 One task per unit, not one per stage: Prefect's engine cost about 160 ms per task run (and a dozen
 events on its API), more than most stages of a small clip take (issue 21: a 20-clip batch spent 3.5x
 its stage work outside it). The stages of a unit still show one by one: in ``runs`` and ``cadestate
 status``, in the flow's reports, and as lines of the task's log (at the level of Prefect's logging:
 ``--verbose`` shows them).
-
-The cache is the lineage ``runs`` records (:mod:`tasks.stage`): a stage does not run again when a
-completed or paused run of it in this warehouse had the same config digest, code digest and inputs
-digest (its upstream stages' outputs and what else it reads, taken as ``cadestate status`` takes
-them), and the stage's tables still hold what that run wrote: the output of its latest completed or
-paused run is the same (config A, then B, then A again reruns what B overwrote). So an unchanged
-rerun does no work, a config change reruns the stages whose section changed, a stage downstream of
-a rerun stage reruns only if that stage's output changed, a paused stage with nothing new answered
-stays paused, and a copied or moved warehouse reruns nothing: its runs travel with it.
-
-A stage whose upstream stage failed (or was skipped) is skipped; one whose upstream stage waits for
-people with nothing answered is ``waiting`` (:func:`tasks.stage.waiting_run`); the others still run.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import logging
 from typing import Any
 
 from prefect import get_run_logger, task
@@ -32,108 +17,7 @@ from prefect.context import TagsContext
 from prefect.futures import PrefectFuture
 
 from cadestate.config import Config
-from flows.reports import StageReport
-from tasks.inputs_memo import InputsMemo
-from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
-from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
-from tasks.status import read_runs
-from warehouse import Warehouse
-
-
-@dataclasses.dataclass(frozen=True)
-class Signature:
-    """What a stage run depends on: its config section's digest, its code's digest, and the digest of
-    its inputs (upstream output digests, then the digests of what else it reads)."""
-
-    config_hash: str
-    code_hash: str
-    inputs_hash: str
-
-
-def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Signature) -> StageRun | None:
-    """The recorded run that makes running ``stage`` of ``unit`` with ``signature`` again needless,
-    or None.
-
-    ``runs``: the unit's ``runs`` rows (:func:`tasks.status.read_runs`), oldest first. A completed or paused
-    run with the same signature counts while the stage's latest completed or paused run has its
-    output: then the tables hold what a run with this signature writes."""
-    ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
-    same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == dataclasses.astuple(signature)]
-    if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
-        return None
-    r = same[-1]
-    return StageRun(clip=unit, stage=stage, run_id=r["run_id"], status=r["status"],
-                    config_hash=signature.config_hash, inputs_hash=signature.inputs_hash, output_hash=r["output_hash"],
-                    code_hash=signature.code_hash, rows_written=int(r["rows_written"] or 0),
-                    duration_s=float(r["duration_s"] or 0.0), message=r["message"] or "")
-
-
-def report_of(run: StageRun, cached: bool = False) -> StageReport:
-    """The report of a run (a cached completed run reports ``cached``; a paused or waiting one its status)."""
-    if run.status in ("paused", "waiting"):
-        return StageReport(run.clip, run.stage, run.status, run.rows_written, run.duration_s, run.message)
-    if cached:
-        return StageReport(run.clip, run.stage, "cached")
-    return StageReport(run.clip, run.stage, "completed", run.rows_written, run.duration_s, run.message)
-
-
-def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = None, show_progress: bool = True,
-             log: logging.Logger | logging.LoggerAdapter | None = None) -> list[StageReport]:
-    """Run every stage of ``scope`` for ``unit`` in pipeline order (see the module); one report per
-    stage. Runs of the unit that a killed process left unrecorded are recorded as interrupted first.
-    An input file that cannot be read is one failed report of the stage that reads it, and nothing
-    of the unit runs."""
-    log = log or logging.getLogger(__name__)
-    wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
-    settle_interrupted(wh, unit)
-    stages = stages_of(scope)
-    memo = InputsMemo(wh, unit)  # status finds the digests taken here (tasks.inputs_memo)
-    inputs: dict[str, list[str]] = {}
-    for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
-        try:
-            inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
-                                  else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
-        except OSError as e:  # an unreadable input file
-            log.error("%s %s: %s", unit, stage.name, e)
-            return [StageReport(unit, stage.name, "failed", message=str(e))]
-    memo.save()
-    runs = read_runs(wh, [unit])
-    done: dict[str, StageRun] = {}
-    reports = []
-    for stage in stages:
-        report = _one_stage(wh, stage, unit, config, source, show_progress, inputs[stage.name], done, runs, log)
-        reports.append(report)
-        log.info("%s %s: %s%s", unit, stage.name, report.state, f" ({report.duration_s:.2f} s)" if report.duration_s else "")
-    return reports
-
-
-def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: Any, show_progress: bool,
-               inputs: list[str], done: dict[str, StageRun], runs: list[dict[str, Any]], log: Any) -> StageReport:
-    """Run (or find cached, waiting or skipped) one stage; its run goes into ``done`` and ``runs``."""
-    upstream = [done.get(u) for u in stage.upstream]
-    if any(u is None for u in upstream):
-        return StageReport(unit, stage.name, "skipped", message="an upstream stage failed")
-    ups = [u for u in upstream if u is not None]
-    waiting = waiting_run(unit, stage.name, ups)
-    if waiting is not None:
-        done[stage.name] = waiting
-        return report_of(waiting)
-    signature = Signature(config_hash(stage.name, config), stage.code_hash,
-                          upstream_inputs_hash([u.output_hash for u in ups] + inputs))
-    hit = cached_run(runs, unit, stage.name, signature)
-    if hit is not None:
-        done[stage.name] = hit
-        return report_of(hit, cached=True)
-    try:
-        run = run_stage(wh, unit, stage.name, **dataclasses.asdict(signature),
-                        body=lambda run_id: stage.run(StageContext(wh, stage.name, stage.section, unit, run_id,
-                                                                   config, source, show_progress)))
-    except Exception as e:  # recorded in runs by run_stage; the unit's other stages go on
-        log.error("%s %s failed", unit, stage.name, exc_info=True)
-        return StageReport(unit, stage.name, "failed", message=str(e))
-    done[stage.name] = run
-    runs.append(dataclasses.asdict(run))  # the latest: after every recorded run
-    return report_of(run)
+from tasks.stage_chain import StageReport, run_unit
 
 
 def submit_unit(root: str, scope: str, unit: str, config: Config, source: Any = None,

@@ -17,7 +17,7 @@ An entry is used when its key matches and every read is in the same state: files
 whole, under new names or by an atomic rename (a new inode), so unchanged states mean unchanged
 data. An entry is stored only when nothing it read was modified while it was digested (else the
 states could be newer than what was read), and storing is best effort: a read-only warehouse just
-gets no memo. The flows store the digests they take before running a clip (:mod:`flows.stage_chain`),
+gets no memo. The flows store the digests they take before running a clip (:mod:`tasks.stage_chain`),
 so a ``status`` after a run finds them.
 """
 

@@ -3,7 +3,7 @@
 A stage is declared once, beside its logic: its module (anywhere under ``tasks/``) assigns
 ``STAGE = StageDef(...)`` at module level, naming the function that does the work and the
 functions that digest what it reads besides its upstream stages' outputs. :mod:`tasks.registry`
-finds the declarations and derives the stage graph and code digests; :mod:`flows.stage_chain`
+finds the declarations and derives the stage graph and code digests; :mod:`tasks.stage_chain`
 runs a unit's stages in graph order, in one Prefect task, the ``runs`` table as cache.
 
 A run's body has the form ``body(run_id) -> StageOutput`` and is wrapped by

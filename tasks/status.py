@@ -23,7 +23,7 @@ from warehouse.query import read_rows
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
                "started_at", "rows_written", "duration_s", "message")
-"""The columns of ``runs`` that the status and the stage chain's cache (:mod:`flows.stage_chain`) read."""
+"""The columns of ``runs`` that the status and the stage chain's cache (:mod:`tasks.stage_chain`) read."""
 
 
 @dataclass(frozen=True)

@@ -422,7 +422,7 @@ def test_keyframes_are_evenly_spaced_over_the_whole_visible_track():
 
 def test_merge_rounds_keeps_the_last_work_and_sums_the_time():
     from bench.simulated_labels import merge_rounds
-    from flows.reports import StageReport
+    from tasks.stage_chain import StageReport
 
     runs = [StageReport("c", "detect", "completed", 5, 2.0, "5 boxes"), StageReport("c", "cad_selection", "paused", 0, 0.5, "waits"),
             StageReport("c", "detect", "cached", 0, 0.1), StageReport("c", "cad_selection", "completed", 3, 0.25, "3 chosen"),

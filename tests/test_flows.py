@@ -225,7 +225,8 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
 
 
 def test_flow_state_names_the_paused_tasks():
-    from flows.reports import StageReport, final_state
+    from flows.reports import final_state
+    from tasks.stage_chain import StageReport
 
     state = final_state([StageReport("a", "cad_selection", "paused", message="waits for labels: 2 of 3 tracks"),
                          StageReport("a", "correspondence_task", "waiting")], "1 clip(s)")

@@ -1,12 +1,13 @@
-"""The cache of a unit's stage chain (:mod:`flows.stage_chain`): which recorded run makes a stage's
+"""The cache of a unit's stage chain (:mod:`tasks.stage_chain`): which recorded run makes a stage's
 run needless. The flows' behaviour on real clips is in ``test_flows.py``."""
 
 from __future__ import annotations
 
 import datetime as dt
 
-from flows.stage_chain import Signature, cached_run, report_of
+from tasks.stage_chain import Signature, cached_run, report_of
 from tasks.stage import StageRun
+from warehouse import Warehouse
 
 A, B = Signature("cfgA", "code", "in"), Signature("cfgB", "code", "in")
 
@@ -55,3 +56,34 @@ def test_a_paused_run_is_reused_as_paused():
     assert hit is not None and hit.status == "paused"
     report = report_of(hit, cached=True)
     assert (report.state, report.rows_written, report.message) == ("paused", 3, "run 0")
+
+
+def test_a_batch_runs_without_prefect_and_an_unchanged_rerun_does_no_work(tmp_path, small_clip):
+    """The chain alone (:func:`tasks.stage_chain.run_unit`), as ``bench.cluster_throughput``'s bare
+    baseline runs it: in a process that never imports Prefect, every stage of the clip runs and none
+    fails; the same chain again finds every stage that ran cached."""
+    import shutil
+    import subprocess
+    import sys
+
+    from cadestate.config import Config, WarehouseConfig
+    from tasks.registry import stages_of
+    from tasks.stage_chain import run_unit
+    from tasks.video.ingest import ClipSource, discover_clips
+
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    shutil.copy(small_clip.video_path, batch / "room.mp4")
+    shutil.copy(small_clip.cameras_path, batch / "room.txt")
+    root = tmp_path / "w"
+    script = ("import sys; from pathlib import Path; from bench.cluster_throughput import bare_batch; "
+              f"failed = bare_batch(Path({str(batch)!r}), Path({str(root)!r})); "
+              "assert 'prefect' not in sys.modules, 'Prefect imported'; sys.exit(failed)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    [found] = discover_clips(batch)
+    [clip] = Warehouse(root).read("clips", columns=["clip"]).column("clip").to_pylist()
+    again = run_unit(str(root), "clip", clip, Config(warehouse=WarehouseConfig(root=str(root))),
+                     ClipSource(clip, found.video, found.cameras), show_progress=False)
+    assert [r.stage for r in again] == [s.name for s in stages_of("clip")]
+    assert {r.state for r in again} <= {"cached", "paused", "waiting"} and "cached" in {r.state for r in again}, again
