@@ -159,8 +159,8 @@ class CamerasConfig:
                        "whenever any of its options moved, global mapping did not).",
                        choices=("global", "incremental"))
     polish_reproj_error_px: float = _opt(2.0, "After mapping, observations reprojecting farther than this many pixels "
-                                         "are dropped and the model bundle-adjusted again, three times (mapping "
-                                         "itself keeps up to 4 px, COLMAP's default, while the model grows). On a "
+                                         "are dropped and the model bundle-adjusted again, three times (the mappers "
+                                         "keep looser ones: COLMAP's incremental mapper up to 4 px). On a "
                                          "benchmark clip's sideways walk the stray matches had bent the path by "
                                          "2.2 % and put the focal length 8.6 % low; 1.3 % and 0.4 % polished. "
                                          "0 turns it off.", lo=0.0, hi=100.0)

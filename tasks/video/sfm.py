@@ -194,9 +194,9 @@ def polish(reconstruction, max_error_px: float, min_tri_angle_deg: float, thread
     """A copy of ``reconstruction`` (pycolmap) without its observations that reproject farther than
     ``max_error_px`` or whose point is seen under less than ``min_tri_angle_deg``, bundle-adjusted
     with the camera held; :data:`POLISH_ROUNDS` times (each adjustment moves some observations
-    past the bound). Mapping keeps what reprojects within 4 px (COLMAP's filter) while the model
-    grows; at the end those stray matches are what bends a walk. Returns (the copy, observations
-    dropped)."""
+    past the bound). The mappers keep looser matches (COLMAP's incremental mapper up to 4 px while
+    the model grows); at the end those stray matches are what bends a walk. Returns (the copy,
+    observations dropped)."""
     import pycolmap
 
     polished, dropped = pycolmap.Reconstruction(reconstruction), 0
