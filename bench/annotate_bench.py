@@ -74,15 +74,12 @@ def _warehouse(root: Path):
 def serve_app(config, resumer=None) -> tuple:
     """``cadestate annotate``'s app over ``config`` (``resumer``: its default, the real one, when
     None) on a free local port, in a thread; returns (server, thread, base URL) once it serves."""
-    import socket
-
     import uvicorn
 
     from cadestate.webapp.app import create_app
+    from flows.server import free_port
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port("127.0.0.1")
     server = uvicorn.Server(uvicorn.Config(create_app(config, "bench", resumer), host="127.0.0.1", port=port,
                                            log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)

@@ -32,20 +32,22 @@ BUDGETS = {"--help": 1.5, "labels schema correspondences": 1.5, "config show": 3
 BASELINE = "import duckdb"
 
 
-def _env() -> dict[str, str]:
+def command_env() -> dict[str, str]:
+    """This process's environment without Prefect's settings: each command finds its own Prefect."""
     return {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
 
 
-def _children_cpu_s() -> float:
+def children_cpu_s() -> float:
+    """CPU seconds (user + system) of every child process that has ended so far."""
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
 
 
 def timed(args: list[str]) -> tuple[float, float]:
     """Wall and CPU seconds (user + system, of the child) of one run of ``args`` (output discarded)."""
-    cpu0, t0 = _children_cpu_s(), time.perf_counter()
-    subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), check=False)
-    return time.perf_counter() - t0, _children_cpu_s() - cpu0
+    cpu0, t0 = children_cpu_s(), time.perf_counter()
+    subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=command_env(), check=False)
+    return time.perf_counter() - t0, children_cpu_s() - cpu0
 
 
 def measure(commands: dict[str, list[str]], repeats: int = REPEATS) -> dict[str, dict[str, float]]:
@@ -107,7 +109,7 @@ def _round(cli: list[str], wh: Warehouse, label: dict, folder: Path) -> dict:
     path.write_text(json.dumps(label))
     start = dt.datetime.now(dt.timezone.utc)
     t0 = time.perf_counter()
-    done = subprocess.run([*cli, "labels", "ingest", str(path), "--no-progress"], capture_output=True, text=True, env=_env())
+    done = subprocess.run([*cli, "labels", "ingest", str(path), "--no-progress"], capture_output=True, text=True, env=command_env())
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1:] or ["failed"]}
@@ -150,7 +152,7 @@ def app_rounds(cli: list[str], wh: Warehouse, labels: list[dict]) -> dict:
 
     port = free_port("127.0.0.1")
     app = subprocess.Popen([*cli, "annotate", "--port", str(port)], stdout=subprocess.DEVNULL,
-                           stderr=subprocess.DEVNULL, env=_env())
+                           stderr=subprocess.DEVNULL, env=command_env())
     url = f"http://127.0.0.1:{port}"
     try:
         for _ in range(600):
@@ -176,7 +178,7 @@ def label_rounds(video: Path, cameras: Path) -> dict:
         root = Path(tmp) / "w"
         cli = [sys.executable, "-m", "cadestate", "-w", str(root)]
         subprocess.run([*cli, "ingest", str(video), str(cameras), "--split", "val", "--no-progress"],
-                       capture_output=True, env=_env(), check=True)
+                       capture_output=True, env=command_env(), check=True)
         wh = Warehouse(root)
         [task] = sorted((root / "label_tasks").rglob("*.manual_track.*.json"))
         frame = json.loads(task.read_text())["keyframes"][0]["timestamp_us"]
@@ -185,12 +187,12 @@ def label_rounds(video: Path, cameras: Path) -> dict:
             return [{"label": classes[0], "boxes": [{"timestamp_us": frame, "box": [x, 0.4, x + 0.2, 0.6]}]}]
 
         ephemeral = _round(cli, wh, _manual_label(task, []), Path(tmp))
-        subprocess.run([*cli, "server", "start", "--port", "0"], capture_output=True, env=_env(), check=True)
+        subprocess.run([*cli, "server", "start", "--port", "0"], capture_output=True, env=command_env(), check=True)
         try:
             served = _round(cli, wh, _manual_label(task, drawn(0.4)), Path(tmp))
             app = app_rounds(cli, wh, [_manual_label(task, drawn(x)) for x in (0.3, 0.5)])
         finally:
-            subprocess.run([*cli, "server", "stop"], capture_output=True, env=_env())
+            subprocess.run([*cli, "server", "stop"], capture_output=True, env=command_env())
     return {"ephemeral": ephemeral, "server": served, "app_server": app,
             "server_ok": "outside_share" in served and served["outside_share"] < 0.2,
             "app_server_ok": "outside_share" in app and app["outside_share"] < 0.2}

@@ -35,13 +35,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench.cli_bench import children_cpu_s, command_env
 
 WORKERS = 2
 RUNNERS = ("threads", "dask")
@@ -60,11 +60,6 @@ def make_batch(folder: Path, clips: int, size: str) -> Path:
     for i in range(clips):
         make_demo_clip(folder, dataclasses.replace(spec, name=f"batch{i:03d}", seed=100 + i))
     return folder
-
-
-def _children_cpu_s() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
 
 
 def _server_cpu_s(root: Path) -> float:
@@ -109,11 +104,11 @@ def _bare(batch: Path, workdir: Path) -> dict:
     are), into a warehouse under the new folder ``workdir``."""
     workdir.mkdir()
     root = workdir / "w-bare"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    cpu0, t0 = _children_cpu_s(), time.perf_counter()
+    env = command_env()
+    cpu0, t0 = children_cpu_s(), time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "bench.cluster_throughput", "--bare-into", str(root), str(batch)],
                           capture_output=True, text=True, env=env, cwd=workdir)
-    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if done.returncode != 0:
         return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
     clips = len(list(batch.glob("*.mp4")))
@@ -129,7 +124,7 @@ def run_batch(runner: str, batch: Path, workdir: Path, server: bool = False) -> 
     config = workdir / f"{runner}.toml"
     config.write_text(f'[prefect]\ntask_runner = "{runner}"\nmax_workers = {WORKERS}\n')
     root = workdir / f"w-{runner}{'-server' if server else ''}"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env = command_env()
     cli = [sys.executable, "-m", "cadestate", "-c", str(config), "-w", str(root)]
     extra: dict = {}
     if server:
@@ -137,9 +132,9 @@ def run_batch(runner: str, batch: Path, workdir: Path, server: bool = False) -> 
         subprocess.run([*cli, "server", "start", "--port", "0"], capture_output=True, env=env, cwd=workdir, check=True)
         extra["server_start_s"] = round(time.perf_counter() - t0, 1)
     try:
-        server0, cpu0, t0 = _server_cpu_s(root), _children_cpu_s(), time.perf_counter()
+        server0, cpu0, t0 = _server_cpu_s(root), children_cpu_s(), time.perf_counter()
         done = subprocess.run([*cli, "ingest", str(batch), "--no-progress"], capture_output=True, text=True, env=env, cwd=workdir)
-        wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0 + _server_cpu_s(root) - server0
+        wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0 + _server_cpu_s(root) - server0
     finally:
         if server:
             subprocess.run([*cli, "server", "stop"], capture_output=True, env=env, cwd=workdir)

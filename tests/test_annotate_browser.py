@@ -17,7 +17,6 @@ import dataclasses
 import json
 import os
 import re
-import socket
 import threading
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from bench.simulated_labels import answer_tasks
 from bench.walkthrough import WalkthroughSpec
 from browser import chromium_path, launch
 from conftest import warehouse_copy
+from flows.server import free_port
 from tasks.human.labels import validate_label
 from tasks.tracking.relations import verification_statements
 from warehouse import Warehouse
@@ -53,12 +53,6 @@ class Served:
     failed: list = dataclasses.field(default_factory=list)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def served(small_library_warehouse, tmp_path_factory):
     import uvicorn
@@ -76,7 +70,7 @@ def served(small_library_warehouse, tmp_path_factory):
     reports = run_clips([source], config, show_progress=False)
     assert {r.stage for r in reports if r.state == "paused"} == {"manual_tracks"}
 
-    port = _free_port()
+    port = free_port("127.0.0.1")
     server = uvicorn.Server(uvicorn.Config(create_app(config, annotator="browser-test"), host="127.0.0.1", port=port,
                                            log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)

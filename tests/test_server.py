@@ -11,7 +11,7 @@ import sys
 import httpx
 import pytest
 
-from flows.server import read_server, running_server
+from flows.server import free_port, read_server, running_server
 
 pytestmark = pytest.mark.slow
 
@@ -66,15 +66,8 @@ def test_prefect_failing_to_start_is_one_line(tmp_path, small_clip):
     assert len(errors) == 1 and "cadestate server start" in errors[0] and "[prefect] startup_timeout_s" in errors[0]
 
 
-def closed_port() -> int:
-    """A loopback port nothing listens on (bound, then released)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_a_dead_prefect_api_url_is_one_line(tmp_path, small_clip):
-    api = f"http://127.0.0.1:{closed_port()}/api"
+    api = f"http://127.0.0.1:{free_port('127.0.0.1')}/api"  # bound, then released: nothing listens
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}, "PREFECT_API_URL": api}
     result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "ingest",
                              str(small_clip.video_path), str(small_clip.cameras_path), "--no-progress"],
