@@ -79,7 +79,7 @@ def render_frames(wh: Warehouse, coco_onnx: Path, spec: TrainSpec, show_progress
     import onnx
 
     from cadestate.render import Renderer
-    from tasks.detection.detectors import load_session
+    from tasks.detection.onnx_session import load_session
     from tasks.detection.models.nanodet_head import trunk_model
 
     models = wh.read("cad_models").to_pylist()

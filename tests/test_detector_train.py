@@ -28,7 +28,7 @@ def coco_model():
 
 
 def _run(model, x):
-    from tasks.detection.detectors import load_session
+    from tasks.detection.onnx_session import load_session
 
     session = load_session(model.SerializeToString())
     return session.run(None, {session.get_inputs()[0].name: x})

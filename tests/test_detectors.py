@@ -214,14 +214,6 @@ def test_network_input_is_the_prepared_letterbox_bit_for_bit(shape, adapter):
     assert lb == expected_lb and np.array_equal(out.view(np.uint32), layout.prepare(canvas).view(np.uint32))
 
 
-def test_session_threads_sleep_between_operators(tmp_path):
-    path = tmp_path / "yolo.onnx"
-    export(FixedOutputs([yolo_outputs()]), path, 64, dynamic_batch=True, n_outputs=1)
-    options = Detector(path, "yolov8", LABELS, 64).session.get_session_options()
-    assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
-    assert options.intra_op_num_threads == 2
-
-
 def test_class_aware_nms():
     boxes = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [1, 0, 11, 10], [50, 50, 60, 60]], np.float64)
     scores = np.array([0.9, 0.8, 0.7, 0.6])

@@ -37,6 +37,7 @@ from cadestate.lineage import file_sha256
 from cadestate.prefetch import prefetch
 from tasks.detection.model_inputs import built_in, detector_labels, detector_path
 from tasks.detection.models import furniture_files, nanodet
+from tasks.detection.onnx_session import MeasuredSession
 
 Shape = tuple[int | None, ...]
 """A tensor shape as a model declares it: None for a dimension it leaves open (named or unknown)."""
@@ -315,31 +316,6 @@ def _input_problem(shape: Shape, input_size: int) -> tuple[str, str] | None:
     return None
 
 
-def load_session(model: Path | bytes, threads: int = 2):  # -> onnxruntime.InferenceSession
-    """A CPU onnxruntime session of a model file or serialized model (sequential execution,
-    ``threads`` intra-op threads that sleep instead of spinning between operators).
-
-    Spinning threads cost most where cores are shared. NanoDet-m 416, 1 frame per call, 32 frames of
-    the bench clip, sessions interleaved on the same inputs, on 2 cores another job also used (ms per
-    frame, while it ran / while it paused): onnxruntime's defaults (2 spinning threads) 45-52 / 15;
-    2 threads not spinning 24-33 / 16.6-17.7; 1 thread 27-30 / 27. ``bench/detect_throughput.py``
-    reports the detector beside a session with onnxruntime's defaults.
-    """
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    try:
-        return ort.InferenceSession(model if isinstance(model, bytes) else str(model), opts,
-                                    providers=["CPUExecutionProvider"])
-    except Exception as e:  # onnxruntime raises its own exception types
-        what = "serialized model" if isinstance(model, bytes) else str(model)
-        raise ValueError(f"{what}: not a loadable ONNX model: {e}") from None
-
-
 class Detector:
     """An ONNX detector with its layout and label map; :meth:`detect` takes RGB uint8 images."""
 
@@ -353,7 +329,7 @@ class Detector:
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
         self.nms_containment = nms_containment
-        self.session = load_session(Path(model_path), threads)
+        self.session = MeasuredSession(Path(model_path), threads)
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
         self.batch_size = batch_size if not isinstance(shape[0], int) else shape[0]

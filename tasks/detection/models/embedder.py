@@ -26,9 +26,10 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from tasks.detection.detectors import letterbox, load_session
+from tasks.detection.detectors import letterbox
 from tasks.detection.models import nanodet
 from tasks.detection.models.tfjs_to_onnx import serialize
+from tasks.detection.onnx_session import MeasuredSession
 
 FEATURES = (  # backbone outputs of the pinned NanoDet-m ONNX (those its FPN reads)
     "PartitionedCall/onnx_tf_prefix_Concat_42__193",  # stride 16, 256 channels
@@ -97,7 +98,7 @@ class Embedder:
             raise ValueError(f"[embed] crop_size must be a multiple of 32 (the backbone's stride), got {crop_size}")
         data = serialize(build_graph(detector_onnx))
         self.sha256 = hashlib.sha256(data).hexdigest()
-        self.session = load_session(data, threads)
+        self.session = MeasuredSession(data, threads)
         self.crop_size, self.context, self.batch_size = crop_size, context, batch_size
 
     def crops(self, rgb: np.ndarray, boxes: np.ndarray) -> np.ndarray:

@@ -1,0 +1,77 @@
+"""onnxruntime sessions with their thread option measured (tasks/detection/onnx_session.py)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cadestate.config import DetectConfig
+from tasks.detection.models import nanodet as nd
+from tasks.detection.onnx_session import MeasuredSession
+
+needs_nanodet = pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
+                                   reason="the NanoDet-m model is not built (`make models`, which `make test` runs)")
+
+
+class Slowed:
+    """A real onnxruntime session whose runs take ``extra_s`` longer (a machine where it is slow)."""
+
+    def __init__(self, session, extra_s: float) -> None:
+        self.session, self.extra_s = session, extra_s
+
+    def run(self, names, feeds):
+        time.sleep(self.extra_s)
+        return self.session.run(names, feeds)
+
+
+def detector_session() -> tuple[MeasuredSession, dict]:
+    from tasks.detection.detectors import load_detector
+
+    detector = load_detector(DetectConfig())
+    x = np.random.default_rng(0).normal(0, 1, (detector.batch_size, 3, detector.size, detector.size)).astype(np.float32)
+    return detector.session, {detector.session.get_inputs()[0].name: x}
+
+
+@needs_nanodet
+def test_both_thread_options_give_the_same_bits_and_are_set_as_named():
+    session, feeds = detector_session()
+    options = {arm: s.get_session_options() for arm, s in session.sessions.items()}
+    assert {arm: o.get_session_config_entry("session.intra_op.allow_spinning") for arm, o in options.items()} == \
+        {"sleep": "0", "spin": "1"}
+    assert all(o.intra_op_num_threads == 2 for o in options.values())
+    sleep, spin = (session.sessions[arm].run(None, feeds) for arm in ("sleep", "spin"))
+    assert len(sleep) == len(spin) and all(np.array_equal(a, b) for a, b in zip(sleep, spin))
+
+
+@needs_nanodet
+def test_calls_go_to_the_faster_option_and_follow_a_change_of_load():
+    session, feeds = detector_session()
+    real = dict(session.sessions)
+    session.sessions["spin"] = Slowed(real["spin"], 0.2)  # spinning loses on this "machine"
+    arms = []
+    for _ in range(20):
+        before = {arm: t.calls for arm, t in session.times.items()}
+        session.run(None, feeds)
+        arms.append(next(arm for arm, t in session.times.items() if t.calls > before[arm]))
+    assert arms[:4] == ["sleep", "spin", "sleep", "spin"]  # warm-up, then one timed call each
+    assert session.choice == "sleep"
+    assert arms[4:] == ["spin" if i % 16 == 0 else "sleep" for i in range(4, 20)]  # every 16th call explores
+    session.sessions["spin"], session.sessions["sleep"] = real["spin"], Slowed(real["sleep"], 0.2)  # the load changes
+    for _ in range(24):
+        session.run(None, feeds)
+    assert session.choice == "spin"
+    summary = session.summary()
+    assert summary["choice"] == "spin" and summary["sleep"]["calls"] + summary["spin"]["calls"] == 44
+
+
+@needs_nanodet
+def test_one_thread_has_one_session():
+    from tasks.detection.detectors import detector_path
+
+    session = MeasuredSession(detector_path(DetectConfig()), threads=1)
+    assert list(session.sessions) == ["sleep"]
+    x = np.zeros((1, 3, 416, 416), np.float32)
+    assert session.run(None, {session.get_inputs()[0].name: x})[0].shape[0] == 1
+    assert session.choice == "sleep" and session.summary()["sleep"]["calls"] == 1
