@@ -3,7 +3,8 @@
 Prefect talks to the warehouse's server when ``cadestate server start`` left one up
 (:mod:`flows.server`), or to ``PREFECT_API_URL`` when the user set it; otherwise it runs in
 ephemeral mode: a temporary local API with its SQLite database under ``<warehouse>/_prefect/home``
-(no server to start, ~20 s per command). Prefect caches nothing and persists no result: the cache
+(no server to start; its start, launched early by :mod:`flows.local_api`, costs a
+command ~3 s more than a server that is up). Prefect caches nothing and persists no result: the cache
 is the warehouse's ``runs`` table (:mod:`tasks.stage_chain`). Flow runs are named after what they run (``annotate_clip/<clip>``) and tagged with
 the clips, their splits and the warehouse's CAD libraries, so the Prefect UI finds them.
 """
@@ -20,9 +21,12 @@ from cadestate.config import Config, PrefectConfig
 from flows.server import ServerError, prefect_home, running_server
 
 
-def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeout_s: float = 180.0) -> str:
+def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeout_s: float = 180.0,
+                                start_api: bool = False) -> str:
     """Set Prefect's environment defaults (and COLMAP's log level). Call before the first ``import prefect``. Returns the API
-    Prefect will use: the warehouse's running server, ``$PREFECT_API_URL``, or '' (ephemeral)."""
+    Prefect will use: the warehouse's running server, ``$PREFECT_API_URL``, or '' (ephemeral). With
+    ``start_api`` (a command that will run flows), the ephemeral API is launched now, in the background
+    (:mod:`flows.local_api`)."""
     home = prefect_home(Path(root))
     home.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("PREFECT_HOME", str(home))
@@ -40,7 +44,12 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     # COLMAP (glog, read when pycolmap loads) logs ~2,000 lines per SfM run, and an error line for each
     # focal hypothesis that maps nothing (an expected outcome); the cameras stage reports what matters.
     os.environ.setdefault("GLOG_minloglevel", "0" if verbose else "3")
-    return os.environ.get("PREFECT_API_URL", "")
+    api = os.environ.get("PREFECT_API_URL", "")
+    if start_api and not api:
+        from flows import local_api
+
+        local_api.launch(Path(os.environ["PREFECT_HOME"]))
+    return api
 
 
 def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
@@ -114,12 +123,26 @@ def start_ephemeral_api(timeout_s: float) -> str:
     subprocess sometimes starts and never answers (PrefectHQ/prefect#16397, #20247; here once in
     CI on a 180 s timeout, where a start takes ~15 s): after :data:`FIRST_TRY_SHARE` of
     ``timeout_s`` the server is killed and another started on a new port, with the rest of the
-    time. Its failing too is Prefect's ``RuntimeError`` (see :func:`api_failure`)."""
+    time. Its failing too is Prefect's ``RuntimeError`` (see :func:`api_failure`). The first try is
+    the API :func:`prepare_prefect_environment` launched if it did (:func:`flows.local_api.adopt`);
+    else Prefect starts one, in a home whose new database is copied from a migrated template
+    (:func:`flows.prefect_db.seed_home`)."""
     from prefect.server.api.server import SubprocessASGIServer
 
+    from flows import local_api
+    from flows.prefect_db import seed_home
+
     server = SubprocessASGIServer()  # one per process until stopped: get_client() finds this one
+    if server.running:
+        return server.api_url
+    launched = local_api.take()
     try:
-        server.start(timeout=timeout_s * FIRST_TRY_SHARE)
+        if launched is not None:
+            local_api.adopt(server, launched, timeout_s * FIRST_TRY_SHARE)
+        else:
+            if os.environ.get("PREFECT_HOME"):
+                seed_home(Path(os.environ["PREFECT_HOME"]))
+            server.start(timeout=timeout_s * FIRST_TRY_SHARE)
     except RuntimeError:
         server.stop()  # kills the subprocess and forgets the instance: the next gets a new port
         server = SubprocessASGIServer()

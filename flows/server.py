@@ -1,7 +1,7 @@
 """A real Prefect server per warehouse, run in the background (``cadestate server start|stop|status``).
 
 While it is up, every command of this warehouse talks to it (``PREFECT_API_URL``) instead of starting
-Prefect's ephemeral API (~20 s per command on 2 cores); when it is down, commands fall back to
+Prefect's ephemeral API (~3 s more per command on 2 cores); when it is down, commands fall back to
 ephemeral mode. Its state lives under the warehouse:
 
     _prefect/home/          PREFECT_HOME: the server's SQLite database (unless a database URL is given)
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import psutil
 
+from flows.prefect_db import seed_home
 from warehouse.store import atomic_write_bytes
 
 SERVER_FILE = "server.json"
@@ -116,6 +117,8 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
     if (up := running_server(root)) is not None:
         return up
     prefect_home(root).mkdir(parents=True, exist_ok=True)
+    if not database_url:
+        seed_home(prefect_home(root))  # a new warehouse's database copied, not migrated (flows.prefect_db)
     port = port or free_port(host)
     log = prefect_dir(root) / LOG_FILE
     offset = log.stat().st_size if log.exists() else 0

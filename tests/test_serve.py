@@ -147,7 +147,7 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
             "annotator": "test", "created_at": "2026-11-23T00:00:00Z", "answers": []}))
         answered = cli(*common, "labels", "ingest", str(labels), cwd=tmp_path)  # through the API, not a local run
         assert answered.returncode == 0 and "resumed the suspended run of small_0" in answered.stdout, answered.stderr
-        assert "Prefect's local API starts first" not in answered.stderr
+        assert "Prefect's local API starts alongside" not in answered.stderr
         done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/small_0")) and
                         r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
         assert done["id"] == run["id"] and done["state"]["type"] == "COMPLETED"

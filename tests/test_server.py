@@ -53,7 +53,7 @@ def test_commands_use_the_server_while_it_is_up_and_fall_back_when_it_is_down(tm
     down = cli("-w", str(w), "server", "status", cwd=tmp_path)
     assert down.returncode == 1 and down.stdout.startswith("down")
     rerun = cli("-w", str(w), "run", "--no-progress", cwd=tmp_path)
-    assert rerun.returncode == 0 and "Prefect's local API starts first" in rerun.stderr, rerun.stderr
+    assert rerun.returncode == 0 and "Prefect's local API starts alongside" in rerun.stderr, rerun.stderr
 
 
 def test_prefect_failing_to_start_is_one_line(tmp_path, small_clip):

@@ -25,7 +25,7 @@ def annotate(
 
     cfg = ctx.obj.config()
     root = Path(cfg.warehouse.root).resolve()
-    prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s)  # before Prefect is imported
+    prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     import uvicorn
 
     from cadestate.webapp.app import create_app, three_dir

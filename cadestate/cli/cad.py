@@ -44,11 +44,11 @@ def cad_ingest(
         raise CliError(f"{path}: CAD source folder not found" + ("" if source else " (run `make cad-library`)"))
     items = source_items(guess_kind(path) if kind is SourceKind.auto else kind.value, path, library)
     root = Path(cfg.warehouse.root).resolve()
-    api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s)
+    api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
     from flows.cad_library import run_cad_library
 
     err.print(f"{len(items)} models from {path} into {root} " + (f"on the Prefect server at {api}" if api else
-              "(Prefect's local API starts first, ~20 s; `cadestate server start` saves it)"))
+              "(Prefect's local API starts alongside, ~3 s; `cadestate server start` saves it)"))
     raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress)))
 
 
