@@ -73,7 +73,7 @@ def _wait_next(client, clip: str, task_id: str, timeout_s: float) -> dict | None
     """Poll until the clip's resume is idle and its next item is not of ``task_id``; returns it (None: nothing waits)."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        view = client.get(f"/api/clips/{clip}").json()
+        view = client.get(f"/api/clips/{clip}?wait=30").json()  # answered when the resume ends, as the page waits
         if view["resume"]["state"] == "failed":
             raise RuntimeError(f"the resume of {clip} failed: {view['resume']['message']}")
         if view["resume"]["state"] not in ("queued", "running") and (view["next"] or {}).get("task_id") != task_id:

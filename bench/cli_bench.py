@@ -126,8 +126,8 @@ def _split(wh: Warehouse, start: dt.datetime, wall: float) -> dict:
 
 
 def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
-    """Post one answer to the annotation app at ``url`` and wait until its background resume of
-    the clip is done; the wall time split as :func:`_split` splits it."""
+    """Post one answer to the annotation app at ``url`` and wait, as its page does (``?wait=``),
+    until its background resume of the clip is done; the wall time split as :func:`_split` splits it."""
     import httpx
 
     runs_before = httpx.get(f"{url}/api/clips/{label['clip']}", timeout=60).json()["resume"]["runs"]
@@ -136,9 +136,9 @@ def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
     posted = httpx.post(f"{url}/api/answers", json=label, timeout=60)
     if posted.status_code != 200:
         return {"error": [posted.text[:200]]}
-    while (resume := httpx.get(f"{url}/api/clips/{label['clip']}", timeout=60).json()["resume"])["runs"] <= runs_before \
+    while (resume := httpx.get(f"{url}/api/clips/{label['clip']}?wait=30", timeout=60).json()["resume"])["runs"] <= runs_before \
             or resume["state"] in ("queued", "running"):
-        time.sleep(0.02)
+        pass  # the app answers when the resume has ended (or after 30 s)
     return {**_split(wh, start, time.perf_counter() - t0), "resume": resume["message"]}
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -205,3 +206,30 @@ def test_a_warehouse_failing_mid_ingest_answers_5xx_keeps_the_file_and_the_next_
     committed = {(f["label_sha256"], f["ingested_at"]) for f in lwh.read("label_files").to_pylist()}
     effort = [e["seconds"] for e in lwh.read("label_effort").to_pylist() if (e["label_sha256"], e["ingested_at"]) in committed]
     assert effort == [3.0] and runs.clips == [CLIP]  # rows of the failed attempt have no commit record
+
+
+class Held(Requests):
+    """A resume that runs until the test lets it end."""
+
+    def __init__(self):
+        super().__init__()
+        self.go = threading.Event()
+
+    def __call__(self, clip: str) -> str:
+        self.go.wait(30)
+        return super().__call__(clip)
+
+
+def test_a_page_waiting_for_the_next_task_is_answered_when_the_resume_ends(lwh):
+    held = Held()
+    with _client(lwh, held) as client:
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+        t0 = time.monotonic()
+        busy = client.get(f"/api/clips/{CLIP}?wait=0.3").json()  # the resume is still running: answered after 0.3 s
+        assert busy["resume"]["state"] in ("queued", "running") and time.monotonic() - t0 >= 0.3
+        threading.Timer(0.5, held.go.set).start()
+        t0 = time.monotonic()
+        done = client.get(f"/api/clips/{CLIP}?wait=20").json()  # answered as the resume ends, not after 20 s
+        waited = time.monotonic() - t0
+    assert done["resume"]["state"] == "idle" and done["resume"]["runs"] == 1 and held.clips == [CLIP]
+    assert 0.3 < waited < 10

@@ -4,6 +4,9 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 ``/annotate/<kind>?clip=C&task=T[&track=N]`` for the four kinds. API (JSON):
 
 - ``GET /api/clips``: every clip with its tasks (items, waiting), its last stage runs, its resume state;
+- ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
+  over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
+  the clip's next task learns it the moment the resume ends, without polling;
 - ``GET /api/next[?clip=C]``: the next waiting item (null: none);
 - ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, the clip's resume state;
 - ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers;
@@ -37,6 +40,8 @@ from tasks.human.label_format import LabelError
 from warehouse import Warehouse
 
 STATIC = Path(__file__).parent / "static"
+MAX_WAIT_S = 30.0
+"""The longest ``GET /api/clips/<clip>?wait=`` holds a request."""
 THREE_VERSION = "0.187.0"
 """The three.js release the viewer uses (``make web-vendor`` fetches it from npm, sha256-checked)."""
 
@@ -114,9 +119,11 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         return {"annotator": who, "clips": views, "next": nxt}
 
     @app.get("/api/clips/{clip}")
-    def one_clip(clip: str) -> dict:
+    def one_clip(clip: str, wait: float = 0.0) -> dict:
         if clip not in wh.partitions("clips"):
             raise HTTPException(404, f"unknown clip {clip!r}")
+        if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
+            worker.wait_idle(clip, min(wait, MAX_WAIT_S))
         return clip_view(clip)
 
     @app.get("/api/next")

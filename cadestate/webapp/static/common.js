@@ -75,8 +75,8 @@ export async function loadTask() {
   return {...data, item, waiting, p};
 }
 
-// After an answer: the next waiting item of the same task, else wait (polling) until the clip's
-// resume has run and show (and offer with Enter) its next task.
+// After an answer: the next waiting item of the same task, else wait until the clip's resume has
+// run (the server answers ?wait= requests when it ends) and show (and offer with Enter) its next task.
 export async function afterAnswer(clip, taskId, kind, res) {
   toast(`saved ${res.path}`, "ok");
   const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
@@ -90,10 +90,10 @@ export function showWaiting(clip) {
   const panel = el("div", {id: "pipeline", class: "panel"}, el("b", {}, "Task done. "), el("span", {id: "pipeline-state"}, "the pipeline resumes the clip…"));
   $("main").replaceChildren(panel);
   const poll = async () => {
-    const c = await api(`/api/clips/${encodeURIComponent(clip)}`);
+    const c = await api(`/api/clips/${encodeURIComponent(clip)}?wait=2`);
     const busy = c.resume.state === "queued" || c.resume.state === "running";
     const s = $("#pipeline-state");
-    if (busy) { s.textContent = `the pipeline is ${c.resume.state} (${Math.round((performance.now() - started) / 1000)} s)…`; setTimeout(poll, 700); return; }
+    if (busy) { s.textContent = `the pipeline is ${c.resume.state} (${Math.round((performance.now() - started) / 1000)} s)…`; poll(); return; }
     if (c.resume.state === "failed") s.textContent = `the resume failed: ${c.resume.message}`;
     if (c.next) {
       s.replaceChildren(el("span", {id: "next-ready"}, `next task ready: ${c.next.kind} `), el("a", {href: c.next.url, id: "next-link"}, "open (Enter)"));
