@@ -233,7 +233,9 @@ def measure(root: Path, clips: int) -> dict:
 
 
 def run(sizes: tuple[int, ...] = (1000, 10_000), workdir: Path | None = None) -> dict:
-    """Build and measure a warehouse of each size (in ``workdir``, default a temporary folder)."""
+    """Build and measure a warehouse of each size (in ``workdir``, made if missing; default a temporary folder)."""
+    if workdir is not None:
+        workdir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="cadestate-scale-", dir=workdir) as tmp:
         rows = []
         for n in sizes:
