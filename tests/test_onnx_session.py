@@ -45,25 +45,44 @@ def test_both_thread_options_give_the_same_bits_and_are_set_as_named():
     assert len(sleep) == len(spin) and all(np.array_equal(a, b) for a, b in zip(sleep, spin))
 
 
+def arms_called(session: MeasuredSession, feeds: dict, n: int) -> list[str]:
+    """The option each of ``n`` calls went to."""
+    arms = []
+    for _ in range(n):
+        before = {arm: t.calls for arm, t in session.times.items()}
+        session.run(None, feeds)
+        arms.append(next(arm for arm, t in session.times.items() if t.calls > before[arm]))
+    return arms
+
+
 @needs_nanodet
 def test_calls_go_to_the_faster_option_and_follow_a_change_of_load():
     session, feeds = detector_session()
     real = dict(session.sessions)
-    session.sessions["spin"] = Slowed(real["spin"], 0.2)  # spinning loses on this "machine"
-    arms = []
-    for _ in range(20):
-        before = {arm: t.calls for arm, t in session.times.items()}
-        session.run(None, feeds)
-        arms.append(next(arm for arm, t in session.times.items() if t.calls > before[arm]))
-    assert arms[:4] == ["sleep", "spin", "sleep", "spin"]  # warm-up, then one timed call each
+    session.sessions["spin"] = Slowed(real["spin"], 0.05)  # spinning loses on this "machine"
+    arms = arms_called(session, feeds, 20)
+    assert arms[:8] == ["sleep", "spin"] * 4  # a warm-up, then 3 timed calls each, alternating
     assert session.choice == "sleep"
-    assert arms[4:] == ["spin" if i % 16 == 0 else "sleep" for i in range(4, 20)]  # every 16th call explores
-    session.sessions["spin"], session.sessions["sleep"] = real["spin"], Slowed(real["sleep"], 0.2)  # the load changes
-    for _ in range(24):
-        session.run(None, feeds)
-    assert session.choice == "spin"
+    assert arms[8:] == ["spin" if i % 16 == 0 else "sleep" for i in range(8, 20)]  # every 16th call explores
+    session.sessions["spin"], session.sessions["sleep"] = real["spin"], Slowed(real["sleep"], 0.05)  # the load changes
+    arms = arms_called(session, feeds, 60)
+    assert session.choice == "spin" and arms[-8:] == ["spin"] * 8  # 3 explorations made the fast ones the median
     summary = session.summary()
-    assert summary["choice"] == "spin" and summary["sleep"]["calls"] + summary["spin"]["calls"] == 44
+    assert summary["choice"] == "spin" and summary["sleep"]["calls"] + summary["spin"]["calls"] == 80
+
+
+@needs_nanodet
+def test_one_slow_call_does_not_decide():
+    session, feeds = detector_session()
+    real = dict(session.sessions)
+    session.sessions["spin"] = Slowed(real["spin"], 0.0)
+    session.sessions["sleep"] = Slowed(real["sleep"], 0.05)  # sleeping loses ...
+    assert arms_called(session, feeds, 3) == ["sleep", "spin", "sleep"]  # warm-ups, sleeping's first timed call
+    session.sessions["spin"].extra_s = 0.5  # ... but spinning's first timed call is held up by something else
+    assert arms_called(session, feeds, 1) == ["spin"]
+    session.sessions["spin"].extra_s = 0.0
+    assert arms_called(session, feeds, 4) == ["sleep", "spin"] * 2
+    assert session.choice == "spin"
 
 
 @needs_nanodet

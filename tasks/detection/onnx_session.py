@@ -11,8 +11,10 @@ differ only in how idle threads wait (a test holds this).
 The spinning session stops spinning when a run ends (``session.force_spinning_stop``): threads left
 spinning after a run slowed whatever ran next (the other session's next frame took 31 ms instead
 of 23 ms), which would also bias the measurement. ``bench/detect_throughput.py`` (138 frames, 2 cores,
-3 rounds): quiet, the detector chose spinning and took 1.025x the time of a bare session with
-onnxruntime's defaults; beside one busy process it chose sleeping and took 0.79x of it.
+3 rounds a run): quiet, five runs took 0.93-1.16x the time of a bare session with onnxruntime's
+defaults (median 0.99; the two options are within a few per cent there, and the bare session's
+own time varied from 22.1 to 27.5 ms a frame between runs); beside one busy process, the detector
+chose sleeping threads and took 0.73-0.79x of it.
 """
 
 from __future__ import annotations
@@ -49,27 +51,33 @@ def load_session(model: Path | bytes, threads: int = 2, spin: bool = False):  # 
 
 @dataclass
 class ArmTimes:
-    """What one thread option has cost: calls made, of them timed, smoothed seconds per input row."""
+    """What one thread option has cost: calls made, and the seconds per input row of each timed one."""
 
     calls: int = 0
-    timed: int = 0
-    s_per_row: float = float("inf")
     history: list[float] = field(default_factory=list, repr=False)
+
+    def recent(self, window: int) -> float:
+        """Median seconds per row of the last ``window`` timed calls (inf: none yet)."""
+        return float(np.median(self.history[-window:])) if self.history else float("inf")
 
 
 class MeasuredSession:
     """One model in two sessions, threads sleeping and threads spinning; each call goes to the one
     that has been faster here lately.
 
-    The first call of each session warms it up (memory arenas; not timed); the next call of each
-    is timed, then every call goes to the session with the lower smoothed seconds per input row
-    (exponential smoothing, weight ``smoothing`` on the newest), except every ``explore_every``-th,
-    which goes to the other so that a change in the machine's load is seen. With one thread there
-    is nothing to choose: one session. Calls must come from one thread at a time (as the stages make them).
+    The first call of each session warms it up (memory arenas; not timed). Then the two alternate
+    until each has ``first_samples`` timed calls; afterwards every call goes to the session whose
+    median seconds per input row over its last ``window`` timed calls is lower, except every
+    ``explore_every``-th, which goes to the other so that a change in the machine's load is seen.
+    Medians, not means: one call slowed by something else on the machine must not decide (with a
+    single timed call each and a smoothed mean, 1 round in 3 of the bench chose the slower option on
+    a quiet machine). With one thread there is nothing to choose: one session. Calls must come from
+    one thread at a time (as the stages make them).
     """
 
-    def __init__(self, model: Path | bytes, threads: int = 2, *, explore_every: int = 16, smoothing: float = 0.3):
-        self.threads, self.explore_every, self.smoothing = threads, explore_every, smoothing
+    def __init__(self, model: Path | bytes, threads: int = 2, *, explore_every: int = 16, first_samples: int = 3,
+                 window: int = 5):
+        self.threads, self.explore_every, self.first_samples, self.window = threads, explore_every, first_samples, window
         arms = ARMS if threads > 1 else ARMS[:1]
         self.sessions = {arm: load_session(model, threads, spin=arm == "spin") for arm in arms}
         self.times = {arm: ArmTimes() for arm in arms}
@@ -84,12 +92,12 @@ class MeasuredSession:
     @property
     def choice(self) -> str:
         """The thread option now preferred ('sleep' or 'spin')."""
-        return min(self.times, key=lambda arm: self.times[arm].s_per_row)
+        return min(self.times, key=lambda arm: self.times[arm].recent(self.window))
 
     def _next_arm(self) -> str:
-        untried = [arm for arm in self.times if self.times[arm].timed == 0]
-        if untried:  # warm-ups and the first timed call of each, alternating
-            return min(untried, key=lambda arm: self.times[arm].calls)
+        short = [arm for arm in self.times if len(self.times[arm].history) < self.first_samples]
+        if short:  # warm-ups, then the first timed calls of each, alternating
+            return min(short, key=lambda arm: self.times[arm].calls)
         best = self.choice
         if len(self.times) > 1 and self._calls % self.explore_every == 0:
             return next(arm for arm in self.times if arm != best)
@@ -105,12 +113,7 @@ class MeasuredSession:
         times = self.times[arm]
         times.calls += 1
         if times.calls > 1:  # the first call warmed the session up
-            rows = max(len(next(iter(feeds.values()))), 1)
-            per_row = seconds / rows
-            times.s_per_row = per_row if times.timed == 0 else \
-                self.smoothing * per_row + (1 - self.smoothing) * times.s_per_row
-            times.timed += 1
-            times.history.append(per_row)
+            times.history.append(seconds / max(len(next(iter(feeds.values()))), 1))
         return out
 
     def summary(self) -> dict:
