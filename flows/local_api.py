@@ -21,13 +21,11 @@ import os
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 from flows.prefect_db import seed_home
-from flows.server import free_port
+from flows.server import free_port, healthy
 
 SERVER_ENV = {"PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1"}
 """What Prefect adds to the environment of its ephemeral API (``SubprocessASGIServer._run_uvicorn_command``)."""
@@ -90,12 +88,8 @@ def answers(api_url: str, process: subprocess.Popen, timeout_s: float) -> bool:
     if its process ended)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and process.poll() is None:
-        try:
-            with urllib.request.urlopen(f"{api_url}/health", timeout=2) as response:
-                if response.status == 200:
-                    return True
-        except (urllib.error.URLError, OSError):
-            pass
+        if healthy(api_url):
+            return True
         time.sleep(0.05)
     return False
 

@@ -77,7 +77,7 @@ class MeasuredSession:
 
     def __init__(self, model: Path | bytes, threads: int = 2, *, explore_every: int = 16, first_samples: int = 3,
                  window: int = 5):
-        self.threads, self.explore_every, self.first_samples, self.window = threads, explore_every, first_samples, window
+        self.explore_every, self.first_samples, self.window = explore_every, first_samples, window
         arms = ARMS if threads > 1 else ARMS[:1]
         self.sessions = {arm: load_session(model, threads, spin=arm == "spin") for arm in arms}
         self.times = {arm: ArmTimes() for arm in arms}
