@@ -3,16 +3,20 @@
 A real pipeline clip: the tests' small CAD library (``tests/conftest.py``: SMALL_LIBRARY, every
 library stage run by its flow) and one rendered walkthrough (the browser tests' size), run until it
 pauses at its manual-track task. ``cadestate annotate``'s app (its real :class:`Resumer`: the
-worker thread resuming the clip's flow) then gets the simulated annotators' answers
+worker thread resuming the clip) then gets the simulated annotators' answers
 (:func:`bench.simulated_labels.answer_tasks`) over HTTP, task after task. Timed per task: from
 posting its last answer (validation, label file, ingest included) until ``/api/next?clip=``
 serves the next task's first item, i.e. until the background resume paused the clip at its
-next human task; the last task's resume (to the end of the flow) is reported apart.
+next human task; the last task's resume (to the end of the flow) is reported apart. Each round is
+also split into its stage work (the stage runs it started) and the rest (issue 16's share outside
+stage work), and so are all rounds together; a round starts once the last one's record in Prefect
+is over (:mod:`cadestate.webapp.resume`), as it would at an annotator's pace.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import json
 import statistics
 import time
@@ -87,6 +91,7 @@ def run(tmp: Path) -> dict:
     import httpx
 
     from bench.annotate_bench import serve_app
+    from bench.cli_bench import split_round
     from flows.runtime import prepare_prefect_environment
     from warehouse import Warehouse
 
@@ -108,15 +113,31 @@ def run(tmp: Path) -> dict:
                 docs = _answers(tmp / "bench", wh, clip)
                 if not docs:
                     raise RuntimeError(f"the simulated annotators did not answer {nxt['task_id']}")
+                _settled(client, clip)
                 for doc in docs:
-                    t0 = time.perf_counter()  # the last answer's post starts the clock
+                    start, t0 = dt.datetime.now(dt.timezone.utc), time.perf_counter()  # the last post starts the clock
                     r = client.post("/api/answers", json=doc)
                     r.raise_for_status()
                 after = _wait_next(client, clip, nxt["task_id"], RESUME_TIMEOUT_S)
-                per_task[f"{nxt['kind']} -> {after['kind'] if after else 'done'}"] = round(time.perf_counter() - t0, 2)
+                wall = time.perf_counter() - t0
+                per_task[f"{nxt['kind']} -> {after['kind'] if after else 'done'}"] = split_round(wh, start, wall)
                 nxt = after
+            _settled(client, clip)  # the last record, before the server goes
     finally:
         server.should_exit = True
-    to_next = [s for k, s in per_task.items() if not k.endswith("done")]
+    to_next = [r["wall_s"] for k, r in per_task.items() if not k.endswith("done")]
+    wall, stage = sum(r["wall_s"] for r in per_task.values()), sum(r["stage_s"] for r in per_task.values())
     return {"answer_to_next_task_median_s": round(statistics.median(to_next), 2) if to_next else None,
-            "answer_to_next_task_s": per_task}
+            "answer_to_next_task_s": {k: r["wall_s"] for k, r in per_task.items()}, "rounds": per_task,
+            "all_rounds": {"wall_s": round(wall, 2), "stage_s": round(stage, 2),
+                           "outside_share": round(1 - stage / wall, 3) if wall else None}}
+
+
+def _settled(client, clip: str, timeout_s: float = RESUME_TIMEOUT_S) -> None:
+    """Wait until the clip's last resume has also been recorded in Prefect (not a round's time:
+    an annotator's next answer comes seconds later; here it would come at once)."""
+    end = time.monotonic() + timeout_s
+    while client.get(f"/api/clips/{clip}").json()["resume"]["state"] in ("queued", "running", "recording"):
+        if time.monotonic() > end:
+            raise TimeoutError(f"{clip}: its resume was not recorded in Prefect within {timeout_s:.0f} s")
+        time.sleep(0.05)

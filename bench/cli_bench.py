@@ -113,10 +113,10 @@ def _round(cli: list[str], wh: Warehouse, label: dict, folder: Path) -> dict:
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1:] or ["failed"]}
-    return _split(wh, start, wall)
+    return split_round(wh, start, wall)
 
 
-def _split(wh: Warehouse, start: dt.datetime, wall: float) -> dict:
+def split_round(wh: Warehouse, start: dt.datetime, wall: float) -> dict:
     """A round of ``wall`` seconds that began at ``start``: its stage work (the stage runs started
     since) and the share of the wall time outside it."""
     runs = [r for r in wh.read("runs").to_pylist() if r["started_at"] >= start]
@@ -127,10 +127,15 @@ def _split(wh: Warehouse, start: dt.datetime, wall: float) -> dict:
 
 def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
     """Post one answer to the annotation app at ``url`` and wait, as its page does (``?wait=``),
-    until its background resume of the clip is done; the wall time split as :func:`_split` splits it."""
+    until the clip's stages have run (its next task is ready; the record in Prefect that follows
+    is not the annotator's wait, :mod:`cadestate.webapp.resume`); the wall time split as
+    :func:`split_round` splits it. Starts once the previous round's record is over."""
     import httpx
 
-    runs_before = httpx.get(f"{url}/api/clips/{label['clip']}", timeout=60).json()["resume"]["runs"]
+    while (resume := httpx.get(f"{url}/api/clips/{label['clip']}?wait=30", timeout=60).json()["resume"])["state"] \
+            in ("queued", "running", "recording"):
+        time.sleep(0.05)  # the last round is still being recorded in Prefect: not this round's time
+    runs_before = resume["runs"]
     start = dt.datetime.now(dt.timezone.utc)
     t0 = time.perf_counter()
     posted = httpx.post(f"{url}/api/answers", json=label, timeout=60)
@@ -139,7 +144,7 @@ def _app_round(url: str, wh: Warehouse, label: dict) -> dict:
     while (resume := httpx.get(f"{url}/api/clips/{label['clip']}?wait=30", timeout=60).json()["resume"])["runs"] <= runs_before \
             or resume["state"] in ("queued", "running"):
         pass  # the app answers when the resume has ended (or after 30 s)
-    return {**_split(wh, start, time.perf_counter() - t0), "resume": resume["message"]}
+    return {**split_round(wh, start, time.perf_counter() - t0), "resume": resume["message"]}
 
 
 def app_rounds(cli: list[str], wh: Warehouse, labels: list[dict]) -> dict:

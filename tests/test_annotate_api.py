@@ -233,3 +233,51 @@ def test_a_page_waiting_for_the_next_task_is_answered_when_the_resume_ends(lwh):
         waited = time.monotonic() - t0
     assert done["resume"]["state"] == "idle" and done["resume"]["runs"] == 1 and held.clips == [CLIP]
     assert 0.3 < waited < 10
+
+
+def test_a_page_is_answered_when_the_stages_ran_not_when_prefect_has_recorded_them(lwh):
+    """The resume's two phases (cadestate.webapp.resume): a page waits for the stages only; an answer
+    that comes while the clip is recorded in Prefect queues it at once and runs after the record;
+    a record that fails leaves the clip ready, its error kept."""
+    runs, record = Requests(), Held()
+    config = Config(warehouse=WarehouseConfig(root=str(lwh.root)))
+    resumer = Resumer(config, run=runs, record=record, record_delay_s=0)
+    with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+        t0 = time.monotonic()
+        ready = client.get(f"/api/clips/{CLIP}?wait=20").json()
+        assert time.monotonic() - t0 < 10 and runs.clips == [CLIP] and record.clips == []
+        assert ready["resume"]["state"] == "recording" and ready["resume"]["runs"] == 1
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200  # during the record
+        assert client.get(f"/api/clips/{CLIP}").json()["resume"]["state"] == "queued"  # a page waits again
+        record.go.set()
+        assert resumer.wait_idle(CLIP, 20, settled=True)
+        assert runs.clips == [CLIP, CLIP] and record.clips == [CLIP, CLIP]
+        assert client.get(f"/api/clips/{CLIP}").json()["resume"] == {
+            "state": "idle", "runs": 2, "message": "ok", "finished_at": resumer.status(CLIP)["finished_at"], "prefect": "ok"}
+
+    def broken(clip: str) -> str:
+        raise RuntimeError("Prefect's API did not start\nsecond line")
+
+    resumer = Resumer(config, run=runs, record=broken, record_delay_s=0)
+    with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+        assert resumer.wait_idle(CLIP, 20, settled=True)
+        resume = client.get(f"/api/clips/{CLIP}").json()["resume"]
+    assert resume["state"] == "idle" and resume["message"] == "ok"
+    assert resume["prefect"] == "RuntimeError: Prefect's API did not start"
+
+
+def test_a_clip_answered_again_soon_is_recorded_in_prefect_once_after_its_last_run(lwh):
+    """The record waits RECORD_DELAY_S: answers that come meanwhile run the stages again at once,
+    and only the last run is recorded (the page loads its next task beside no flow run)."""
+    runs, recorded = Requests(), Requests()
+    config = Config(warehouse=WarehouseConfig(root=str(lwh.root)))
+    resumer = Resumer(config, run=runs, record=recorded, record_delay_s=1.5)
+    with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
+        for _ in range(3):
+            assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+            assert client.get(f"/api/clips/{CLIP}?wait=20").json()["resume"]["state"] == "recording"
+        assert recorded.clips == [] and runs.clips == [CLIP] * 3
+        assert resumer.wait_idle(CLIP, 20, settled=True)
+    assert recorded.clips == [CLIP] and resumer.status(CLIP)["runs"] == 3

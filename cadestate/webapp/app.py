@@ -108,9 +108,11 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         return FileResponse(target, headers={"Cache-Control": "max-age=3600"})
 
     def clip_view(clip: str) -> dict:
-        tasks = [t.as_dict() for t in queue.clip_tasks(wh, clip)]
+        resume = worker.status(clip)  # first: when it says ready, the tasks read next are what the resume left
+        open_tasks = queue.clip_tasks(wh, clip)
+        tasks = [t.as_dict() for t in open_tasks]
         return {"clip": clip, "tasks": tasks, "waiting": sum(t["waiting"] for t in tasks), "runs": _stage_runs(wh, clip),
-                "resume": worker.status(clip), "next": queue.next_item(wh, clip)}
+                "resume": resume, "next": queue.first_waiting(open_tasks)}
 
     @app.get("/api/clips")
     def clips() -> dict:

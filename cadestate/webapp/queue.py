@@ -62,11 +62,18 @@ def next_item(wh: Warehouse, clip: str | None = None) -> dict | None:
     """The first waiting item (of ``clip``, else of any clip): clip, kind, task id, track id (-1:
     a manual-track task) and the page's URL; None when nothing waits."""
     for c in [clip] if clip else clips(wh):
-        for t in clip_tasks(wh, c):
-            if t.waiting:
-                track = t.waiting[0]
-                url = t.as_dict()["url"] + ("" if track < 0 else f"&track={track}")
-                return {"clip": c, "kind": t.kind, "task_id": t.task_id, "track_id": track, "url": url}
+        if (item := first_waiting(clip_tasks(wh, c))) is not None:
+            return item
+    return None
+
+
+def first_waiting(tasks: list[OpenTask]) -> dict | None:
+    """The first waiting item of ``tasks`` (one clip's, :func:`clip_tasks`), as :func:`next_item` gives it."""
+    for t in tasks:
+        if t.waiting:
+            track = t.waiting[0]
+            url = t.as_dict()["url"] + ("" if track < 0 else f"&track={track}")
+            return {"clip": t.clip, "kind": t.kind, "task_id": t.task_id, "track_id": track, "url": url}
     return None
 
 

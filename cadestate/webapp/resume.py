@@ -2,9 +2,21 @@
 
 :class:`Resumer` keeps a FIFO of clips. A clip asked for while queued is not queued twice; asked
 for while it runs, it runs once more afterwards (its newest answers came after the run read them).
-A run resumes the clip's suspended flow run on the warehouse's Prefect server if there is one
-(as ``cadestate labels ingest`` does, :func:`cadestate.cli.labels.resume_served`), else reruns the
-clip's flow here (:func:`flows.annotate_clip.run_clips`; cached stages do no work). Prefect's
+
+A resume has two phases, and a page waits only for the first:
+
+1. ``running``: the clip's stages run here, as plain calls (:func:`run_stages`:
+   :func:`tasks.stage_chain.run_unit`, the chain one Prefect task of a flow runs; cached stages do no
+   work). When it ends, the clip's next task is in the warehouse and a waiting page is answered.
+2. ``recording``: Prefect learns of it (:func:`record_in_prefect`, :data:`RECORD_DELAY_S` later): the clip's suspended flow run on
+   the warehouse's Prefect server is resumed through the API (as ``cadestate labels ingest`` does),
+   else the clip's flow runs here (:func:`flows.annotate_clip.run_clips`). Either finds every stage
+   cached, so Prefect's UI shows the clip's run and its state, and no stage runs twice.
+
+A page used to wait for a whole flow run: on a small clip with the server up, 0.35 s of the
+0.53 s from an answer to the next task were Prefect's (flow and task runs, their API calls and
+events) around 0.17 s of stage work. A request that comes while a clip is recorded queues it
+again at once (a page never reads a clip as ready before its newest answers have run). Prefect's
 environment must be prepared (:func:`flows.runtime.prepare_prefect_environment`) before the worker starts.
 """
 
@@ -16,42 +28,38 @@ import traceback
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from cadestate.config import Config
+
+RECORD_DELAY_S = 1.0
+"""How long after its stages ran a clip is recorded in Prefect: the page that was waiting loads the
+next task (its document, frames and models) first, not beside a flow run. A clip asked for again
+meanwhile is recorded after that run instead."""
+BUSY = ("queued", "running")
+"""States in which a clip's next task may not be in the warehouse yet (a page waits)."""
 
 
 @dataclass
 class ClipRun:
-    """The worker's view of one clip: ``state`` idle | queued | running | failed, runs done, the
-    last run's summary (or error) and when it ended (epoch seconds)."""
+    """The worker's view of one clip: ``state`` idle | queued | running | recording | failed, runs
+    of its stages done, the last run's summary (or error) and when it ended (epoch seconds), and
+    what the last record in Prefect said (``prefect``; '' before one)."""
 
     state: str = "idle"
     runs: int = 0
     message: str = ""
     finished_at: float | None = None
+    prefect: str = ""
     again: bool = field(default=False, repr=False)
 
     def as_dict(self) -> dict:
-        return {"state": self.state, "runs": self.runs, "message": self.message, "finished_at": self.finished_at}
+        return {"state": self.state, "runs": self.runs, "message": self.message, "finished_at": self.finished_at,
+                "prefect": self.prefect}
 
 
-def resume_clip(config: Config, clip: str) -> str:
-    """Resume one clip (module docstring); returns a one-line summary of the run."""
-    from pathlib import Path
-
-    from flows.server import running_server
-    from tasks.video.ingest import registered_source
-    from warehouse import Warehouse
-
-    root = Path(config.warehouse.root).resolve()
-    if running_server(root) is not None:
-        from flows.deployments import resume_clips
-
-        if resume_clips([clip]):
-            return "resumed its suspended run on the Prefect server"
-    from flows.annotate_clip import run_clips
-
-    reports = run_clips([registered_source(Warehouse(root), clip)], config, show_progress=False)
+def summary(reports: list) -> str:
+    """One line of stage reports: '2 cached, 1 completed, 1 paused' (failures named)."""
     states: dict[str, int] = {}
     for r in reports:
         states[r.state] = states.get(r.state, 0) + 1
@@ -59,12 +67,48 @@ def resume_clip(config: Config, clip: str) -> str:
     return ", ".join(f"{n} {s}" for s, n in sorted(states.items())) + (f" ({'; '.join(failed)})" if failed else "")
 
 
-class Resumer:
-    """One worker thread resuming queued clips (module docstring). ``run(clip)`` does the work
-    (default :func:`resume_clip` with ``config``); tests may pass another."""
+def run_stages(config: Config, clip: str) -> str:
+    """Phase 1 (module docstring): the clip's stages here, without Prefect; a one-line summary."""
+    from tasks.stage_chain import run_unit
+    from tasks.video.ingest import registered_source
+    from warehouse import Warehouse
 
-    def __init__(self, config: Config, run: Callable[[str], str] | None = None):
-        self._run = run or (lambda clip: resume_clip(config, clip))
+    root = Path(config.warehouse.root).expanduser().resolve()
+    wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
+    return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False))
+
+
+def record_in_prefect(config: Config, clip: str) -> str:
+    """Phase 2 (module docstring): resume the clip's suspended run on the warehouse's server, else
+    run its flow here; a one-line summary."""
+    from flows.server import running_server
+
+    root = Path(config.warehouse.root).expanduser().resolve()
+    if running_server(root) is not None:
+        from flows.deployments import resume_clips
+
+        if resume_clips([clip]):
+            return "its suspended run on the Prefect server resumed"
+    from flows.annotate_clip import run_clips
+    from tasks.video.ingest import registered_source
+    from warehouse import Warehouse
+
+    reports = run_clips([registered_source(Warehouse(root), clip)], config, show_progress=False)
+    return f"flow run annotate_clip/{clip}: {summary(reports)}"
+
+
+class Resumer:
+    """One worker thread resuming queued clips (module docstring). ``run(clip)`` runs the stages and
+    ``record(clip)`` tells Prefect; each returns a one-line summary. Defaults: :func:`run_stages` and
+    :func:`record_in_prefect` with ``config``; a resumer given ``run`` only records nothing (tests)."""
+
+    def __init__(self, config: Config, run: Callable[[str], str] | None = None,
+                 record: Callable[[str], str] | None = None, record_delay_s: float = RECORD_DELAY_S):
+        self.record_delay_s = record_delay_s
+        if run is None:
+            run = lambda clip: run_stages(config, clip)  # noqa: E731
+            record = record or (lambda clip: record_in_prefect(config, clip))
+        self._run, self._record = run, record
         self._queue: deque[str] = deque()
         self._clips: dict[str, ClipRun] = {}
         self._cond = threading.Condition()
@@ -87,7 +131,7 @@ class Resumer:
             run = self._clips.setdefault(clip, ClipRun())
             if run.state == "running":
                 run.again = True
-            elif run.state != "queued":
+            elif run.state != "queued":  # idle, failed, or recording: the worker takes it after the record
                 run.state = "queued"
                 self._queue.append(clip)
                 self._cond.notify_all()
@@ -97,14 +141,15 @@ class Resumer:
             return self._clips.get(clip, ClipRun()).as_dict()
 
     def busy(self, clip: str) -> bool:
-        """Whether ``clip`` is queued or running."""
-        return self.status(clip)["state"] in ("queued", "running")
+        """Whether ``clip``'s next task may not be ready yet (queued, or its stages running)."""
+        return self.status(clip)["state"] in BUSY
 
-    def wait_idle(self, clip: str, timeout: float) -> bool:
-        """Block until ``clip`` is neither queued nor running (tests, benchmarks); False on timeout."""
+    def wait_idle(self, clip: str, timeout: float, settled: bool = False) -> bool:
+        """Block until ``clip`` is not busy (with ``settled``: nor being recorded in Prefect); False on timeout."""
+        states = (*BUSY, "recording") if settled else BUSY
         end = time.monotonic() + timeout
         with self._cond:
-            while self._clips.get(clip, ClipRun()).state in ("queued", "running"):
+            while self._clips.get(clip, ClipRun()).state in states:
                 left = end - time.monotonic()
                 if left <= 0:
                     return False
@@ -121,17 +166,37 @@ class Resumer:
                 clip = self._queue.popleft()
                 run = self._clips[clip]
                 run.state, run.again = "running", False
-            try:
-                message, state = self._run(clip), "idle"
-            except Exception as e:  # a failed run is reported on the page; the worker goes on
-                message, state = f"{type(e).__name__}: {e}".splitlines()[0], "failed"
-                traceback.print_exc()
+            ok, message = self._attempt(self._run, clip)
             with self._cond:
                 run.runs += 1
                 run.message, run.finished_at = message, time.time()
-                if run.again:
+                if run.again:  # newer answers: run again first (that run gets recorded)
                     run.state, run.again = "queued", False
                     self._queue.append(clip)
                 else:
-                    run.state = state
+                    run.state = "recording" if ok and self._record else ("idle" if ok else "failed")
                 self._cond.notify_all()
+                if run.state != "recording":
+                    continue
+                end = time.monotonic() + self.record_delay_s  # the page loads the next task first
+                while run.state == "recording" and not self._stop and (left := end - time.monotonic()) > 0:
+                    self._cond.wait(left)
+                if self._stop:
+                    run.state = "idle"
+                if run.state != "recording":  # asked again (that run is recorded), or stopping
+                    continue
+            _, recorded = self._attempt(self._record, clip)
+            with self._cond:
+                run.prefect = recorded
+                if run.state == "recording":  # else a request queued it meanwhile
+                    run.state = "idle"
+                self._cond.notify_all()
+
+    @staticmethod
+    def _attempt(call: Callable[[str], str], clip: str) -> tuple[bool, str]:
+        """``call(clip)``: (True, its line), or (False, the error's first line); the worker goes on."""
+        try:
+            return True, call(clip)
+        except Exception as e:  # reported on the page
+            traceback.print_exc()
+            return False, f"{type(e).__name__}: {e}".splitlines()[0]
