@@ -90,13 +90,17 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     stages = stages_of(scope)
     memo = InputsMemo(wh, unit)  # status finds the digests taken here (tasks.inputs_memo)
     inputs: dict[str, list[str]] = {}
-    for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
-        try:
-            inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
-                                  else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
-        except OSError as e:  # an unreadable input file
-            log.error("%s %s: %s", unit, stage.name, e)
-            return [StageReport(unit, stage.name, "failed", message=str(e))]
+    wh.cache_reads()  # the stages' digests read the same label tables again and again
+    try:
+        for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
+            try:
+                inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
+                                      else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
+            except OSError as e:  # an unreadable input file
+                log.error("%s %s: %s", unit, stage.name, e)
+                return [StageReport(unit, stage.name, "failed", message=str(e))]
+    finally:
+        wh.cache_reads(0)
     memo.save()
     runs = read_runs(wh, [unit])
     done: dict[str, StageRun] = {}

@@ -71,6 +71,32 @@ def test_read_filters_columns_and_clips(wh):
     assert sorted(wh.read("runs", columns=["stage"]).column("stage").to_pylist()) == ["frames"] * 3 + ["ingest"] * 4
 
 
+def test_cached_reads_follow_every_write_compaction_and_replacement(wh):
+    """Warehouse.cache_reads: a read is given again only while its files are the same files."""
+    from cadestate.lineage import recording_reads
+
+    wh.cache_reads(entries=8)
+    wh.write("runs", "a", run_rows("a", 2))
+    first = wh.read("runs", ["a"])
+    assert wh.read("runs", ["a"]) is first  # kept
+    with recording_reads() as noted:
+        wh.read("runs", ["a"])
+    assert noted == [("files", "runs", "a")]  # a kept read is noted as a read (tasks.inputs_memo)
+    wh.write("runs", "a", run_rows("a", 3))  # appended
+    assert wh.read("runs", ["a"]).num_rows == 5
+    filtered = wh.read("runs", ["a"], filters=[("rows_written", ">=", 2)])
+    assert filtered.num_rows == 1 and wh.read("runs", ["a"], filters=[("rows_written", ">=", 2)]) is filtered
+    assert wh.read("runs", ["a"], filters=[("rows_written", ">=", 1)]).num_rows == 3  # another filter, another read
+    assert wh.compact("runs", "a") is not None
+    assert sorted(wh.read("runs", ["a"]).column("duration_s").to_pylist()) == [0.0, 0.0, 1.0, 1.0, 2.0]
+    wh.write("clips", "a", clip_rows("a", 1))
+    wh.read("clips", ["a"])
+    wh.write("clips", "a", clip_rows("a", 2))  # replaced
+    assert wh.read("clips", ["a"]).column("num_cameras").to_pylist() == [2]
+    wh.cache_reads(0)
+    assert wh.read("clips", ["a"]) is not wh.read("clips", ["a"])  # off: read every time
+
+
 @pytest.mark.parametrize(
     "mutate, message",
     [

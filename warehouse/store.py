@@ -69,6 +69,7 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 
     from schemas import TableSpec
     from schemas.index import TableInfo
+    from warehouse.read_cache import ReadCache
 
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 LEGACY_FILE = "part.parquet"
@@ -158,6 +159,7 @@ class Warehouse:
         self._tables = tables
         self._info: dict[str, TableInfo] | None = None
         self.compact_after = compact_after
+        self._cache: ReadCache | None = None
 
     @property
     def tables(self) -> dict[str, TableSpec]:
@@ -366,6 +368,15 @@ class Warehouse:
         return Compacted(table, part, len(files), merged.num_rows)
 
     # -- reading -----------------------------------------------------------------------------
+    def cache_reads(self, entries: int = 64) -> Warehouse:
+        """From now on, give the results of :meth:`read` (with no filter or with list filters) again while
+        their files are the same files (:class:`warehouse.read_cache.ReadCache`, ``entries`` kept; 0: stop, and
+        drop what was kept). Returns ``self``."""
+        from warehouse.read_cache import ReadCache
+
+        self._cache = ReadCache(entries) if entries > 0 else None
+        return self
+
     def read(
         self,
         table: str,
@@ -379,12 +390,15 @@ class Warehouse:
         (``[("timestamp_us", ">=", 10)]``). Files written before a column was added read it as null.
         A file that vanishes while it is read (its partition compacted) makes it list the files again.
         """
-        spec = self.spec(table)
+        spec, cache = self.spec(table), self._cache
         for attempt in range(READ_RETRIES):
             files = [str(f) for f in self.files(table, partitions)]
             if not files:
                 empty = spec.schema.empty_table()
                 return empty.select(list(columns)) if columns else empty
+            key = cache.key(table, files, columns, filters) if cache is not None else None
+            if key is not None and (kept := cache.get(key)) is not None:
+                return kept
             try:
                 if filters is None:  # file by file: pyarrow.dataset imports pandas (~0.3 s), which `status` never needs
                     result = _read_files(files, spec.schema, columns)
@@ -402,7 +416,10 @@ class Warehouse:
                 if not _vanished(e) or attempt == READ_RETRIES - 1:
                     raise
         keys = [(k, "ascending") for k in spec.key if not columns or k in columns]
-        return result.sort_by(keys) if keys else result
+        result = result.sort_by(keys) if keys else result
+        if key is not None:
+            cache.put(key, result)
+        return result
 
     # -- media -------------------------------------------------------------------------------
     @contextlib.contextmanager

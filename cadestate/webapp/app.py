@@ -68,7 +68,7 @@ def _stage_runs(wh: Warehouse, clip: str) -> list[dict]:
 def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
-    wh = Warehouse(config.warehouse.root)
+    wh = Warehouse(config.warehouse.root).cache_reads()  # each page view reads the clip's task tables again
     lock = threading.Lock()
     worker = resumer or Resumer(config)
     who = annotator if annotator is not None else getpass.getuser()
