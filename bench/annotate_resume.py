@@ -22,7 +22,11 @@ import statistics
 import time
 from pathlib import Path
 
+from bench.walkthrough import WalkthroughSpec
+
 SEED = 3
+DEMO_SEED = 7
+"""``make run``'s demo clip (the Makefile's DEMO_SEED)."""
 RESUME_TIMEOUT_S = 900.0
 
 
@@ -45,19 +49,18 @@ def _library_config(root: Path):
     return config
 
 
-def _paused_clip(config, bench_dir: Path) -> str:
-    """Generate one walkthrough clip and run it until its manual-track task; returns its name."""
+def _paused_clip(config, bench_dir: Path, seed: int, spec: WalkthroughSpec, split: str, first: set[str]) -> str:
+    """Generate one walkthrough clip of ``seed`` and run it (as a ``split`` clip) until it pauses at
+    the human tasks ``first``; returns its name."""
     from bench.benchmark import clip_sources, generate
-    from bench.walkthrough import WalkthroughSpec
     from flows.annotate_clip import run_clips
     from warehouse import Warehouse
 
-    spec = WalkthroughSpec(width=480, height=270, num_video_frames=60, sample_every=2, alone_scale=0.5)
-    manifest, _ = generate(bench_dir, SEED, 1, Warehouse(config.warehouse.root), spec, show_progress=False)
-    source = dataclasses.replace(clip_sources(bench_dir)[0], split="val")
+    manifest, _ = generate(bench_dir, seed, 1, Warehouse(config.warehouse.root), spec, show_progress=False)
+    source = dataclasses.replace(clip_sources(bench_dir)[0], split=split)
     paused = {r.stage for r in run_clips([source], config, show_progress=False) if r.state == "paused"}
-    if paused != {"manual_tracks"}:
-        raise RuntimeError(f"the clip did not pause at its manual-track task (paused: {sorted(paused)})")
+    if paused != first:
+        raise RuntimeError(f"the clip did not pause at {sorted(first)} (paused: {sorted(paused)})")
     return manifest.clips[0]
 
 
@@ -88,13 +91,7 @@ def _wait_next(client, clip: str, task_id: str, timeout_s: float) -> dict | None
 
 def run(tmp: Path) -> dict:
     """The timings (module docstring), built under the folder ``tmp``."""
-    import httpx
-
-    from bench.annotate_bench import serve_app
-    from bench.cli_bench import split_round
     from flows.runtime import prepare_prefect_environment
-    from warehouse import Warehouse
-
     from tasks.cad.sources import default_source
 
     if not default_source().is_dir():
@@ -102,15 +99,47 @@ def run(tmp: Path) -> dict:
     tmp.mkdir(parents=True, exist_ok=True)
     prepare_prefect_environment(tmp / "wh")
     config = _library_config(tmp / "wh")
-    clip = _paused_clip(config, tmp / "bench")
+    spec = WalkthroughSpec(width=480, height=270, num_video_frames=60, sample_every=2, alone_scale=0.5)
+    clip = _paused_clip(config, tmp / "bench", SEED, spec, "val", {"manual_tracks"})
+    return rounds(config, clip, tmp / "bench")
+
+
+def run_demo(tmp: Path, library: Path) -> dict:
+    """The same rounds on ``make run``'s demo clip (seed :data:`DEMO_SEED`, the paper's frame size, a
+    train clip: its tasks are CAD selection, correspondences and verification) over the whole CAD
+    library, taken from the warehouse ``library`` (copied: it is not changed)."""
+    import shutil
+
+    from cadestate.config import Config, WarehouseConfig
+    from flows.runtime import prepare_prefect_environment
+
+    if not (library / "tables" / "cad_models").is_dir():
+        return {"skipped": f"no CAD library in {library} (make run, or cadestate cad ingest)"}
+    tmp.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(library, tmp / "wh", ignore=shutil.ignore_patterns("_prefect", "_running", "_locks", "_staging"))
+    prepare_prefect_environment(tmp / "wh")
+    config = Config(warehouse=WarehouseConfig(root=str(tmp / "wh")))
+    clip = _paused_clip(config, tmp / "bench", DEMO_SEED, WalkthroughSpec(), "train", {"cad_selection"})
+    return rounds(config, clip, tmp / "bench")
+
+
+def rounds(config, clip: str, bench_dir: Path) -> dict:
+    """Answer the paused ``clip``'s tasks through the app (``bench_dir``: its benchmark folder, whose
+    ground truth the simulated annotators use), task after task; the module docstring's timings."""
+    import httpx
+
+    from bench.annotate_bench import serve_app
+    from bench.cli_bench import split_round
+    from warehouse import Warehouse
+
     wh = Warehouse(config.warehouse.root)
     server, _, base = serve_app(config)
-    per_task: dict[str, float] = {}
+    per_task: dict[str, dict] = {}
     try:
         with httpx.Client(base_url=base, timeout=600) as client:
             nxt = client.get(f"/api/next?clip={clip}").json()
             while nxt:
-                docs = _answers(tmp / "bench", wh, clip)
+                docs = _answers(bench_dir, wh, clip)
                 if not docs:
                     raise RuntimeError(f"the simulated annotators did not answer {nxt['task_id']}")
                 _settled(client, clip)
