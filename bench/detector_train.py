@@ -1,6 +1,9 @@
 """Train the furniture detector: NanoDet-m with class rows for the CAD vocabulary (``make models``).
 
-Model. NanoDet-m is frozen up to each stride's hidden map, and its box rows stay as they are (its
+Two phases: class rows on NanoDet-m's frozen hidden maps (below), then every weight fine-tuned from
+there (:mod:`bench.detector_finetune`), which moves the operating point once more.
+
+Rows. NanoDet-m is frozen up to each stride's hidden map, and its box rows stay as they are (its
 boxes already fit furniture: for every object of the training rooms some cell's box has IoU >= 0.5
 with it). Per stride a new 1x1 class row per furniture class (:data:`FURNITURE_CLASSES`) reads the
 hidden map: ``score = sigmoid(w . h + b)``. Rows of classes COCO has start from COCO's row
@@ -11,10 +14,11 @@ with deterministic algorithms, so the same frames give the same bytes.
 
 Export (:func:`tasks.detection.models.nanodet_head.with_class_rows`): the learned rows, then COCO's
 rows for the COCO labels that stand for none of the classes, form the label map
-:data:`FURNITURE_LABELS`; every other weight is NanoDet-m's. The file goes beside NanoDet-m with
-a JSON file: label map, SHA-256 (the detector is checked against it before use), the recipe digest,
-and the held-out report: recall and precision on every sixth room (never trained on), matched as
-the benchmark matches (IoU 0.5; NMS as ``[detect]`` does it).
+:data:`FURNITURE_LABELS`; every other weight is NanoDet-m's until the fine-tuning. The file goes
+beside NanoDet-m with a JSON file: label map, SHA-256 (the detector is checked against it before
+use), the recipe digest, and the held-out reports (rows, then fine-tuned): recall and precision on
+every sixth room (never trained on), matched as the benchmark matches (IoU 0.5; NMS as
+``[detect]`` does it).
 
 Operating point: of :data:`OPERATING_THRESHOLDS`, the lowest score threshold at which the detector
 is at least as precise on the held-out rooms as NanoDet-m's own rows are there at
@@ -26,6 +30,8 @@ Data: frames of :mod:`bench.detector_data`, kept beside the model per (seed, roo
 since they take ~12 minutes to render. A run whose recipe equals the file's returns at once.
 
     python -m bench.detector_train --warehouse W --out MODELS_DIR [--seed 1] [--rooms 400]
+
+Time on 2 cores, the first time: rendering ~12 minutes, rows ~4, fine-tuning ~20.
 """
 
 from __future__ import annotations
@@ -57,7 +63,9 @@ OPERATING_THRESHOLDS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)
 @dataclass(frozen=True)
 class TrainSpec:
     """What to train: ``rooms`` rendered rooms (every ``holdout_every``-th held out) of ``frames``
-    frames, ``steps`` AdamW steps of ``batch`` frames at ``lr``; ``score_threshold``, ``nms_iou``
+    frames, ``steps`` AdamW steps of ``batch`` frames at ``lr`` for the rows, then
+    ``finetune_steps`` of ``finetune_batch`` frames at ``finetune_lr`` for every weight (box
+    distributions held to the start's with weight ``box_distill``); ``score_threshold``, ``nms_iou``
     and ``nms_containment``: the ``[detect]`` defaults the detector is evaluated and calibrated at."""
 
     seed: int = 1
@@ -69,6 +77,10 @@ class TrainSpec:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     beta: float = 2.0
+    finetune_steps: int = 800
+    finetune_batch: int = 8
+    finetune_lr: float = 1e-4
+    box_distill: float = 1.0
     score_threshold: float = 0.35
     nms_iou: float = 0.45
     nms_containment: float = 0.8
@@ -122,32 +134,38 @@ def full_rows(furniture: list[tuple[np.ndarray, np.ndarray]], coco_rows: list[tu
     return [(np.concatenate([fw, cw[rest]]), np.concatenate([fb, cb[rest]])) for (fw, fb), (cw, cb) in zip(furniture, coco_rows)]
 
 
-def detections(frames: FrameSet, rows: list[tuple[np.ndarray, np.ndarray]], threshold: float, nms_iou: float,
-               containment: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per frame, the (boxes float[K,4], label indices int[K]) the detector with ``rows`` (the whole
-    label map) keeps: each cell's best label at or above ``threshold``, class-aware NMS
-    (:func:`tasks.detection.detectors.nms`)."""
+def kept(scores: np.ndarray, boxes: np.ndarray, threshold: float, nms_iou: float, containment: float
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's cells (scores float[3549, L] over the whole label map, boxes float[3549, 4]) ->
+    the (boxes float[K,4], label indices int[K]) the detector keeps: each cell's best label at or
+    above ``threshold``, class-aware NMS (:func:`tasks.detection.detectors.nms`), at most 100."""
     from tasks.detection.detectors import nms
 
+    label = scores.argmax(1)
+    best = scores[np.arange(len(label)), label]
+    keep = np.flatnonzero(best >= threshold)
+    k = keep[nms(boxes[keep].astype(np.float64), best[keep], label[keep], nms_iou, containment)][:100]
+    return boxes[k], label[k]
+
+
+def detections(frames: FrameSet, rows: list[tuple[np.ndarray, np.ndarray]], threshold: float, nms_iou: float,
+               containment: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per frame, what the detector with ``rows`` (the whole label map) on the frozen hidden maps
+    keeps (:func:`kept`)."""
     out = []
     for f in range(len(frames)):
         scores = np.concatenate([1 / (1 + np.exp(-(frames.hidden[f, sl].astype(np.float32) @ w.T + b)))
                                  for sl, (w, b) in zip(stride_slices(), rows)])
-        label = scores.argmax(1)
-        best = scores[np.arange(len(label)), label]
-        keep = np.flatnonzero(best >= threshold)
-        k = keep[nms(frames.boxes[f, keep].astype(np.float64), best[keep], label[keep], nms_iou, containment)][:100]
-        out.append((frames.boxes[f, k], label[k]))
+        out.append(kept(scores, frames.boxes[f], threshold, nms_iou, containment))
     return out
 
 
-def evaluate(frames: FrameSet, rows: list[tuple[np.ndarray, np.ndarray]], threshold: float, nms_iou: float,
-             containment: float) -> dict:
-    """Recall and precision at IoU 0.5 on the furniture classes (the benchmark's matching,
-    :func:`bench.eval_detection.evaluate_detections`; ignore regions: objects seen too little)."""
+def score_found(frames: FrameSet, found: list[tuple[np.ndarray, np.ndarray]]) -> dict:
+    """Recall and precision at IoU 0.5 on the furniture classes of what was ``found`` per frame
+    (:func:`kept`): the benchmark's matching, :func:`bench.eval_detection.evaluate_detections`
+    (ignore regions: objects seen too little)."""
     from bench.eval_detection import FrameBoxes, evaluate_detections
 
-    found = detections(frames, rows, threshold, nms_iou, containment)
     xyxy_to_yxyx = [1, 0, 3, 2]
     boxes = [FrameBoxes(frames.gt_boxes[frames.gt_frame == f][:, xyxy_to_yxyx],
                         [FURNITURE_CLASSES[c] for c in frames.gt_class[frames.gt_frame == f]],
@@ -156,6 +174,12 @@ def evaluate(frames: FrameSet, rows: list[tuple[np.ndarray, np.ndarray]], thresh
     result = evaluate_detections(boxes)
     return {k: result[k] for k in ("recall", "precision", "class_agnostic_recall")} | {
         "per_class_recall": {c: v["recall"] for c, v in result["per_class"].items() if v["recall"] is not None}}
+
+
+def evaluate(frames: FrameSet, rows: list[tuple[np.ndarray, np.ndarray]], threshold: float, nms_iou: float,
+             containment: float) -> dict:
+    """:func:`score_found` of the detector with ``rows`` on the frozen hidden maps."""
+    return score_found(frames, detections(frames, rows, threshold, nms_iou, containment))
 
 
 def train(frames: FrameSet, coco_rows: list[tuple[np.ndarray, np.ndarray]], spec: TrainSpec, show_progress: bool = True
@@ -175,9 +199,14 @@ def train(frames: FrameSet, coco_rows: list[tuple[np.ndarray, np.ndarray]], spec
         torch.use_deterministic_algorithms(deterministic)
 
 
+def held_out(frames: FrameSet, spec: TrainSpec) -> np.ndarray:
+    """bool[F]: the frames of every ``holdout_every``-th room, never trained on."""
+    return (frames.rooms % spec.holdout_every) == spec.holdout_every - 1
+
+
 def _train(torch, frames: FrameSet, coco_rows, spec: TrainSpec, show_progress: bool):
     torch.manual_seed(spec.seed)
-    held = (frames.rooms % spec.holdout_every) == spec.holdout_every - 1
+    held = held_out(frames, spec)
     train_idx, held_idx = np.flatnonzero(~held), np.flatnonzero(held)
     start = initial_rows(coco_rows)
     params = [(torch.nn.Parameter(torch.tensor(w)), torch.nn.Parameter(torch.tensor(b))) for w, b in start]
@@ -238,7 +267,7 @@ DATA_SOURCES = ("bench/detector_data.py", "bench/descriptor_data.py", "bench/sce
                 "bench/walkthrough.py", "cadestate/render.py", "tasks/detection/models/nanodet_head.py",
                 "tasks/detection/models/furniture_files.py")
 """The code that makes the training frames (its bytes key the frames kept beside the model)."""
-RECIPE_SOURCES = (*DATA_SOURCES, "bench/detector_train.py")
+RECIPE_SOURCES = (*DATA_SOURCES, "bench/detector_train.py", "bench/detector_finetune.py", "bench/onnx_torch.py")
 """The code whose bytes enter the recipe digest (relative to the repository root)."""
 
 
@@ -260,6 +289,7 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     names the same recipe and the detector's SHA-256."""
     import onnx
 
+    from bench.detector_finetune import calibrate, finetune
     from tasks.detection.models import furniture_files as furniture
     from tasks.detection.models import nanodet
     from tasks.detection.models.nanodet_head import class_rows, with_class_rows
@@ -288,12 +318,20 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     model = onnx.load(str(coco_onnx))
     coco_rows = class_rows(model)
     rows, report = train(frames, coco_rows, spec, show_progress)
-    data = serialize(with_class_rows(model, full_rows(rows, coco_rows)))
+    report["heldout_rows"] = report.pop("heldout_after")
+    t2 = time.perf_counter()
+    print(f"detector: fine-tuning every weight, {spec.finetune_steps} steps of {spec.finetune_batch} frames "
+          "(about 20 minutes on 2 cores)", file=sys.stderr, flush=True)
+    held = held_out(frames, spec)
+    tuned, losses = finetune(with_class_rows(model, full_rows(rows, coco_rows)), frames, np.flatnonzero(~held), spec, show_progress)
+    final, calibration = calibrate(tuned, frames.take(np.flatnonzero(held)), spec, report["heldout_start"]["precision"] or 0.0)
+    data = serialize(final)
     path = out_dir / ONNX_NAME
     atomic_write_bytes(path, data)
     meta = {"labels": list(FURNITURE_LABELS), "sha256": file_sha256(path), "recipe": made_by, "spec": asdict(spec),
             "library_digest": library, "source": f"{nanodet.ONNX_NAME} sha256 {nanodet.ONNX_SHA256}",
-            "render_s": round(t1 - t0, 1), "train_s": round(time.perf_counter() - t1, 1), **report}
+            "render_s": round(t1 - t0, 1), "train_s": round(t2 - t1, 1), "finetune_s": round(time.perf_counter() - t2, 1),
+            **report, **losses, **calibration}
     atomic_write_bytes(out_dir / furniture.NOTICE_NAME, furniture.NOTICE.encode())
     atomic_write_bytes(out_dir / META_NAME, json.dumps(meta, indent=1).encode())
     return path

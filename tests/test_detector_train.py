@@ -110,7 +110,7 @@ def synthetic_frames(n: int = 36, seed: int = 0) -> FrameSet:
         gt_boxes.append(gt.astype(np.float32))
         gt_class.append(cls)
     return FrameSet(hidden.astype(np.float16), boxes, np.stack(targets), np.stack(qualities).astype(np.float16),
-                    np.arange(n, dtype=np.int64), np.arange(n, dtype=np.int64), np.concatenate(gt_boxes),
+                    np.zeros((n, nanodet.SIZE, nanodet.SIZE, 3), np.uint8), np.arange(n, dtype=np.int64), np.arange(n, dtype=np.int64), np.concatenate(gt_boxes),
                     np.array(gt_class, np.int64), np.zeros(n, bool))
 
 
@@ -190,7 +190,7 @@ def test_make_models_builds_a_checked_detector_that_the_detect_stage_uses(small_
 
     config = warehouse_copy(small_library_warehouse, tmp_path / "w")
     wh = Warehouse(config.warehouse.root)
-    spec = TrainSpec(rooms=3, frames=3, steps=20, holdout_every=3)
+    spec = TrainSpec(rooms=3, frames=3, steps=20, holdout_every=3, finetune_steps=2, finetune_batch=2)
     path = build(wh, models_dir, spec, show_progress=False)
     assert path == models_dir / furniture_files.ONNX_NAME and furniture_files.is_built(models_dir)
     meta = json.loads((models_dir / furniture_files.META_NAME).read_text())
@@ -211,10 +211,11 @@ def test_make_models_builds_a_checked_detector_that_the_detect_stage_uses(small_
 
 
 @pytest.mark.slow
-def test_the_furniture_detector_keeps_what_coco_saw_on_real_photos():
-    """The real photos of tests/test_models.py: every detection NanoDet-m makes there, the furniture
-    detector makes too, with the same label, box and score (their COCO rows are kept). It may add
-    furniture boxes of its own (it says "piano" on the cat: nothing but rooms taught it)."""
+def test_the_furniture_detector_still_boxes_what_coco_saw_on_real_photos():
+    """The real photos of tests/test_models.py: every object NanoDet-m finds there, the furniture
+    detector boxes too (IoU >= 0.8; its boxes were held to NanoDet-m's while every weight was
+    fine-tuned), and the motorcycle, like nothing in a room, keeps its COCO label. Rooms are all it
+    was fine-tuned on: the cat may now be called a piece of furniture (the closing notes of issue 19)."""
     from skimage import data
 
     from tasks.detection.detectors import Detector, load_detector
@@ -228,5 +229,6 @@ def test_the_furniture_detector_keeps_what_coco_saw_on_real_photos():
     coco = Detector(nanodet.default_cache_dir() / nanodet.ONNX_NAME, "nanodet", nanodet.COCO_LABELS, nanodet.SIZE).detect(images)
     for mine, theirs, (name, box) in zip(furniture, coco, (("cat", CAT_BOX), ("motorcycle", MOTORCYCLE_BOX))):
         assert theirs.names[0] == name and iou(theirs.boxes[0], box) >= 0.75
-        kept = {(n, round(float(s), 5), tuple(np.round(b, 2))) for n, s, b in zip(mine.names, mine.scores, mine.boxes)}
-        assert {(n, round(float(s), 5), tuple(np.round(b, 2))) for n, s, b in zip(theirs.names, theirs.scores, theirs.boxes)} <= kept
+        for found in theirs.boxes:
+            assert max((iou(b, found) for b in mine.boxes), default=0.0) >= 0.8, (found, list(zip(mine.names, mine.boxes)))
+    assert "motorcycle" in furniture[1].names

