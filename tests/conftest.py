@@ -142,6 +142,19 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.write_line(f"fuzz: {sum(CASES.values())} generated cases ran ({per})")
 
 
+@pytest.fixture(scope="session")
+def coco_model():
+    """NanoDet-m as `make models` built it (an onnx.ModelProto); skips when it is not built."""
+    import onnx
+
+    from tasks.detection.models import nanodet
+
+    source = nanodet.default_cache_dir()
+    if not nanodet.is_built(source):
+        pytest.skip("the NanoDet-m model is not built (run `make models`)")
+    return onnx.load(str(source / nanodet.ONNX_NAME))
+
+
 @pytest.fixture
 def models_dir(tmp_path, monkeypatch):
     """A models folder holding the verified NanoDet-m of `make models` (linked) and nothing else,

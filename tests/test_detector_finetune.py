@@ -20,17 +20,13 @@ torch = pytest.importorskip("torch")
 
 
 @pytest.fixture(scope="module")
-def furniture_start():
+def furniture_start(coco_model):
     """NanoDet-m with furniture rows taken from COCO's where COCO has the class (the fine-tuning's start)."""
     from bench.detector_train import full_rows, initial_rows
     from tasks.detection.models.nanodet_head import class_rows, with_class_rows
 
-    source = nanodet.default_cache_dir()
-    if not nanodet.is_built(source):
-        pytest.skip("the NanoDet-m model is not built (run `make models`)")
-    coco = onnx.load(str(source / nanodet.ONNX_NAME))
-    rows = class_rows(coco)
-    return with_class_rows(coco, full_rows(initial_rows(rows), rows))
+    rows = class_rows(coco_model)
+    return with_class_rows(coco_model, full_rows(initial_rows(rows), rows))
 
 
 def _ort(model, x):

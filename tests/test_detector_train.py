@@ -19,14 +19,6 @@ from tasks.detection.models.furniture_files import FURNITURE_CLASSES, FURNITURE_
 onnx = pytest.importorskip("onnx")
 
 
-@pytest.fixture(scope="module")
-def coco_model():
-    source = nanodet.default_cache_dir()
-    if not nanodet.is_built(source):
-        pytest.skip("the NanoDet-m model is not built (run `make models`)")
-    return onnx.load(str(source / nanodet.ONNX_NAME))
-
-
 def _run(model, x):
     from tasks.detection.onnx_session import load_session
 
