@@ -14,6 +14,7 @@ without a default is required, and so is a field made with :func:`fixed` (its va
 from __future__ import annotations
 
 import dataclasses
+import functools
 import types
 import typing
 from typing import Any, Literal, Union
@@ -44,8 +45,12 @@ def _describe(meta: dict) -> str:
     return f"{text} ({'; '.join(extra)})" if extra else text
 
 
+@functools.cache
 def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls, include_extras=False)
+    """The resolved types of the fields of dataclass ``cls``, by name (resolved once per class:
+    documents are read often)."""
+    hints = typing.get_type_hints(cls, include_extras=False)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
 def _optional(tp: Any) -> Any | None:
@@ -128,8 +133,7 @@ def from_json(tp: Any, value: Any) -> Any:
         return None if value is None else from_json(inner, value)
     if dataclasses.is_dataclass(tp):
         hints = _hints(tp)
-        names = {f.name for f in dataclasses.fields(tp)}
-        return tp(**{k: from_json(hints[k], v) for k, v in value.items() if k in names})
+        return tp(**{k: from_json(hints[k], v) for k, v in value.items() if k in hints})
     origin = typing.get_origin(tp)
     if origin is tuple:
         args = typing.get_args(tp)

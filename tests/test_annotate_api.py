@@ -9,6 +9,7 @@ newest in force; a file a crash left un-ingested is ingested when the app starts
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -281,3 +282,39 @@ def test_a_clip_answered_again_soon_is_recorded_in_prefect_once_after_its_last_r
         assert recorded.clips == [] and runs.clips == [CLIP] * 3
         assert resumer.wait_idle(CLIP, 20, settled=True)
     assert recorded.clips == [CLIP] and resumer.status(CLIP)["runs"] == 3
+
+
+def test_the_worker_warms_up_before_its_first_resume_and_goes_on_if_that_fails(lwh):
+    """An answer that comes while the app warms up (cadestate.webapp.resume.warm_up) is queued and
+    runs once the warm-up is over; a warm-up that fails keeps its error and stops nothing."""
+    runs, warm = Requests(), Held()
+    config = Config(warehouse=WarehouseConfig(root=str(lwh.root)))
+    resumer = Resumer(config, run=runs, warm=lambda: warm("warm-up"))
+    with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+        time.sleep(0.3)
+        assert not resumer.warmed.is_set() and runs.clips == []
+        assert client.get(f"/api/clips/{CLIP}").json()["resume"]["state"] == "queued"
+        warm.go.set()
+        assert client.get(f"/api/clips/{CLIP}?wait=20").json()["resume"]["state"] == "idle"
+    assert warm.clips == ["warm-up"] and runs.clips == [CLIP] and resumer.warm_message == "ok"
+
+    def broken() -> str:
+        raise ImportError("no module named torch")
+
+    runs = Requests()
+    resumer = Resumer(config, run=runs, warm=broken)
+    with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
+        assert resumer.warmed.wait(20) and resumer.warm_message == "ImportError: no module named torch"
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+        assert client.get(f"/api/clips/{CLIP}?wait=20").json()["resume"]["state"] == "idle"
+    assert runs.clips == [CLIP]
+
+
+def test_the_real_warm_up_imports_what_an_answer_runs(lwh):
+    from cadestate.webapp.resume import warm_up
+
+    config = Config(warehouse=WarehouseConfig(root=str(lwh.root)))
+    assert warm_up(config) == "6 stages imported, the catalog checked"
+    assert {"tasks.pose.pose", "tasks.human.verification", "tasks.retrieval.retrieval"} <= set(sys.modules)
+    assert (lwh.root / "catalog.duckdb").is_file()

@@ -21,7 +21,8 @@ from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionT
                             ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
                             json_schema, schema_file_name)
 from tasks.human.label_import import import_cvat, import_labelstudio, write_label
-from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, label_history
+from tasks.human.label_format import parse_task
+from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, ingest_validated, label_history
 from tasks.human.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
 from warehouse import Warehouse
 
@@ -334,6 +335,31 @@ def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
     assert {r["track_coplanar_axis"] for r in rows} == {-1} and first.coplanar_keyframes == 1
     sel = lwh.read("cad_selection_labels").to_pylist()
     assert [(r["track_id"], r["cad_id"], r["rank"]) for r in sel] == [(0, "m0b", 2), (1, None, None)]
+
+
+def test_ingest_validated_ingests_what_was_validated_once(lwh, tmp_path):
+    """The app's path (cadestate.webapp.answers.submit): files validated once, then ingested as
+    they are; the same rows as ingest_labels, and bytes ingested before are duplicates."""
+    d = tmp_path / "labels"
+    facts = ClipFacts(lwh)
+    files = [validate_label(put(d, f"{kind}.json", good(kind)), facts=facts) for kind in KINDS]
+    report = ingest_validated(lwh, files, facts)
+    assert sorted(report.ingested) == sorted(str(f.path) for f in files) and report.clips == [CLIP]
+    assert report.rows["correspondences"] == 9 and lwh.read("label_files").num_rows == 4
+    again = ingest_validated(lwh, files[:1], ClipFacts(lwh))
+    assert again.ingested == [] and again.duplicates == [str(files[0].path)]
+    assert ingest_labels(lwh, d).duplicates == sorted(str(f.path) for f in files)
+
+
+def test_a_parsed_task_is_kept_and_a_bad_one_fails_every_time(lwh):
+    text = lwh.read("label_tasks").to_pylist()[0]["path"]
+    doc = (lwh.root / text).read_text()
+    assert parse_task(doc, "task a") is parse_task(doc, "task a")
+    bad = doc.replace('"format": "cadestate-task/1"', '"format": "cadestate-task/0"')
+    assert bad != doc
+    for _ in range(2):
+        with pytest.raises(LabelError, match=r"task a: \$\.format: must be 'cadestate-task/1'"):
+            parse_task(bad, "task a")
 
 
 LABEL_TABLES = ("label_files", "manual_track_labels", "cad_selection_labels", "correspondence_labels", "verification_labels")

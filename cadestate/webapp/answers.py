@@ -3,8 +3,8 @@
 :func:`submit` takes the JSON a page posts (a label document without ``format``/``created_at``;
 ``annotator`` is the app's), adds the header, validates it with :func:`tasks.human.labels.validate_label`
 (the JSON Schema of its kind, then the warehouse rules), writes it atomically as
-``<labels_dir>/<clip>/<task_id>.<UTC time>.json`` and ingests that file
-(:func:`tasks.human.label_ingest.ingest_labels`). A payload that fails validation raises
+``<labels_dir>/<clip>/<task_id>.<UTC time>.json`` and ingests that file as validated
+(:func:`tasks.human.label_ingest.ingest_validated`). A payload that fails validation raises
 :class:`tasks.human.label_format.LabelError` naming the field, and nothing is written. The file is on
 disk before ingest starts, so a crash mid-ingest loses nothing: :func:`ingest_pending` (run when the
 app starts) ingests every file of the folder not ingested yet (ingest is idempotent by content).
@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import json
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from schemas.labels import LABEL_FORMAT
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line
-from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels
+from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels, ingest_validated
 from tasks.human.labels import ClipFacts, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
 
@@ -81,11 +81,12 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
     data = label_bytes(payload, annotator)
     folder_root = labels_dir or wh.root / LABELS_DIR
     with lock:  # one writer: file names, ingest times and the answer tables stay consistent
-        lf = validate_label("answer", facts=ClipFacts(wh), data=data, max_bytes=MAX_LABEL_BYTES)
+        facts = ClipFacts(wh)
+        lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
         path = _free_path(folder_root / lf.clip, lf.task_id)
         atomic_write_bytes(path, data)
-        try:
-            report = ingest_labels(wh, [path], coplanar_tol=coplanar_tol)
+        try:  # the file as validated (its bytes), not parsed again
+            report = ingest_validated(wh, [replace(lf, path=path)], facts, coplanar_tol=coplanar_tol)
         except Exception as e:  # noqa: BLE001  (any failure past the write: the file waits for the next start)
             raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
     if report.errors or not report.ingested:

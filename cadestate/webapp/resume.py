@@ -3,7 +3,9 @@
 :class:`Resumer` keeps a FIFO of clips. A clip asked for while queued is not queued twice; asked
 for while it runs, it runs once more afterwards (its newest answers came after the run read them).
 
-A resume has two phases, and a page waits only for the first:
+Before its first resume the worker warms up (:func:`warm_up`: the modules of the stages an answer
+can make run are imported while the annotator reads the first task), so the first answer does not
+wait for them. A resume has two phases, and a page waits only for the first:
 
 1. ``running``: the clip's stages run here, as plain calls (:func:`run_stages`:
    :func:`tasks.stage_chain.run_unit`, the chain one Prefect task of a flow runs; cached stages do no
@@ -78,6 +80,25 @@ def run_stages(config: Config, clip: str) -> str:
     return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False))
 
 
+def warm_up(config: Config) -> str:
+    """What the first answer would otherwise wait for: the modules of the stages an answer can make
+    run (every clip stage from the first human one on, with the modules their digests come from;
+    the pose solver's torch alone takes about 2 s), and the check of the warehouse's catalog that
+    a process's first write makes (:func:`warehouse.catalog.after_write`: DuckDB imported, the
+    catalog rebuilt if stale). A one-line summary."""
+    from tasks.registry import stages_of
+    from warehouse import Warehouse
+    from warehouse.catalog import after_write
+
+    stages = stages_of("clip")
+    first = next(i for i, s in enumerate(stages) if s.module.startswith("tasks.human."))
+    for stage in stages[first:]:
+        for name, _ in stage.functions:
+            stage.function(name)
+    after_write(Warehouse(Path(config.warehouse.root).expanduser().resolve()))
+    return f"{len(stages) - first} stages imported, the catalog checked"
+
+
 def record_in_prefect(config: Config, clip: str) -> str:
     """Phase 2 (module docstring): resume the clip's suspended run on the warehouse's server, else
     run its flow here; a one-line summary."""
@@ -99,16 +120,22 @@ def record_in_prefect(config: Config, clip: str) -> str:
 
 class Resumer:
     """One worker thread resuming queued clips (module docstring). ``run(clip)`` runs the stages and
-    ``record(clip)`` tells Prefect; each returns a one-line summary. Defaults: :func:`run_stages` and
-    :func:`record_in_prefect` with ``config``; a resumer given ``run`` only records nothing (tests)."""
+    ``record(clip)`` tells Prefect; each returns a one-line summary; ``warm()``, run first, too.
+    Defaults: :func:`run_stages`, :func:`record_in_prefect` and :func:`warm_up` with ``config``; a
+    resumer given ``run`` only records and warms nothing (tests)."""
 
     def __init__(self, config: Config, run: Callable[[str], str] | None = None,
-                 record: Callable[[str], str] | None = None, record_delay_s: float = RECORD_DELAY_S):
+                 record: Callable[[str], str] | None = None, record_delay_s: float = RECORD_DELAY_S,
+                 warm: Callable[[], str] | None = None):
         self.record_delay_s = record_delay_s
         if run is None:
             run = lambda clip: run_stages(config, clip)  # noqa: E731
             record = record or (lambda clip: record_in_prefect(config, clip))
-        self._run, self._record = run, record
+            warm = warm or (lambda: warm_up(config))
+        self._run, self._record, self._warm = run, record, warm
+        self.warmed = threading.Event()
+        """Set once the warm-up is over (at once without one); :attr:`warm_message` says how it went."""
+        self.warm_message = ""
         self._queue: deque[str] = deque()
         self._clips: dict[str, ClipRun] = {}
         self._cond = threading.Condition()
@@ -157,6 +184,9 @@ class Resumer:
             return True
 
     def _work(self) -> None:
+        if self._warm is not None:
+            self.warm_message = self._attempt(lambda _: self._warm(), "")[1]
+        self.warmed.set()
         while True:
             with self._cond:
                 while not self._queue and not self._stop:

@@ -247,8 +247,12 @@ def check_clicks(label: Label, name: str) -> list[str]:
     return warnings
 
 
+@functools.lru_cache(maxsize=64)
 def parse_task(data: bytes | str, name: str) -> Task:
-    """A task document's content after the format checks."""
+    """A task document's content after the format checks. The result (frozen, of tuples) is kept
+    for the latest documents: a label's checks, its ingest and the stage that reads its answers all
+    parse the same task, and a large one takes tens of milliseconds to check. A document that fails
+    raises each time."""
     doc = parse_json(data.encode() if isinstance(data, str) else data, name)
     kind = check_document(doc, "task", name)
     return from_json(TASK_CLASSES[kind], doc)

@@ -219,9 +219,14 @@ def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: 
     return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
 
 
+def _known(wh: Warehouse) -> set[str]:
+    """The SHA-256 of every label file ingested before."""
+    return set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
+
+
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
     """The valid files of ``paths`` that were not ingested before; the others go to ``report``."""
-    known = set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
+    known = _known(wh)
     accepted: list[LabelFile] = []
     for path in paths:
         try:
@@ -298,7 +303,32 @@ def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, c
     write rebuilds the catalog), falling back to one write per file when a batch fails."""
     report = IngestReport()
     facts = ClipFacts(wh)
-    accepted = sorted(_validated(wh, label_paths(source), facts, max_bytes, report), key=_order)
+    accepted = _validated(wh, label_paths(source), facts, max_bytes, report)
+    return _ingest(wh, accepted, facts, report, coplanar_tol, now)
+
+
+def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts, *,
+                     coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> IngestReport:
+    """:func:`ingest_labels` of label files validated already against this warehouse (``facts``:
+    the :class:`ClipFacts` they were validated with; the app validates an answer before it writes
+    its file, and need not parse it again). A file whose bytes were ingested before is a duplicate."""
+    report = IngestReport()
+    known = _known(wh)
+    accepted = []
+    for lf in files:
+        if lf.sha256 in known:
+            report.duplicates.append(str(lf.path))
+            continue
+        report.warnings += lf.warnings
+        known.add(lf.sha256)
+        accepted.append(lf)
+    return _ingest(wh, accepted, facts, report, coplanar_tol, None)
+
+
+def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: IngestReport, coplanar_tol: float,
+            now: dt.datetime | None) -> IngestReport:
+    """Ingest the ``accepted`` files (valid, new) into ``report``: batched per clip and table."""
+    accepted = sorted(accepted, key=_order)
     by_clip: dict[str, list[PreparedFile]] = {}
     for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now)):
         try:
