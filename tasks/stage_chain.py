@@ -27,6 +27,7 @@ from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
 from tasks.status import read_runs
 from warehouse import Warehouse
+from warehouse.read_cache import ReadCache
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,18 +80,19 @@ def report_of(run: StageRun, cached: bool = False) -> StageReport:
 
 
 def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = None, show_progress: bool = True,
-             log: logging.Logger | logging.LoggerAdapter | None = None) -> list[StageReport]:
+             log: logging.Logger | logging.LoggerAdapter | None = None, read_cache: ReadCache | None = None) -> list[StageReport]:
     """Run every stage of ``scope`` for ``unit`` in pipeline order (see the module); one report per
     stage. Runs of the unit that a killed process left unrecorded are recorded as interrupted first.
     An input file that cannot be read is one failed report of the stage that reads it, and nothing
-    of the unit runs."""
+    of the unit runs. ``read_cache``: where the input digests' reads are kept (default: a new cache
+    for this call; a process that runs the unit again and again passes one that lives on)."""
     log = log or logging.getLogger(__name__)
     wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
     settle_interrupted(wh, unit)
     stages = stages_of(scope)
     memo = InputsMemo(wh, unit)  # status finds the digests taken here (tasks.inputs_memo)
     inputs: dict[str, list[str]] = {}
-    wh.cache_reads()  # the stages' digests read the same label tables again and again
+    wh.cache_reads(cache=read_cache)  # the stages' digests read the same label tables again and again
     try:
         for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
             try:

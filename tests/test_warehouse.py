@@ -93,8 +93,24 @@ def test_cached_reads_follow_every_write_compaction_and_replacement(wh):
     wh.read("clips", ["a"])
     wh.write("clips", "a", clip_rows("a", 2))  # replaced
     assert wh.read("clips", ["a"]).column("num_cameras").to_pylist() == [2]
+    within = wh.read("runs", ["a"], filters=[("rows_written", "in", [1, 2])])
+    assert within.num_rows == 3 and wh.read("runs", ["a"], filters=[("rows_written", "in", [1, 2])]) is within
+    assert wh.read("runs", ["a"], filters=[("rows_written", "in", [2])]).num_rows == 1
     wh.cache_reads(0)
     assert wh.read("clips", ["a"]) is not wh.read("clips", ["a"])  # off: read every time
+
+
+def test_a_read_cache_outlives_the_warehouse_object_that_filled_it(wh):
+    """run_unit(read_cache=...): the annotation app's worker keeps one cache from one resume to the next."""
+    from warehouse import Warehouse
+    from warehouse.read_cache import ReadCache
+
+    cache = ReadCache(8)
+    wh.write("runs", "a", run_rows("a", 2))
+    first = Warehouse(wh.root).cache_reads(cache=cache).read("runs", ["a"])
+    assert Warehouse(wh.root).cache_reads(cache=cache).read("runs", ["a"]) is first
+    wh.write("runs", "a", run_rows("a", 1))
+    assert Warehouse(wh.root).cache_reads(cache=cache).read("runs", ["a"]).num_rows == 3
 
 
 @pytest.mark.parametrize(

@@ -37,9 +37,9 @@ class ReadCache:
             return None
         try:
             ids = tuple((f, st.st_ino, st.st_size, st.st_mtime_ns) for f in files for st in [os.stat(f)])
-            rows = tuple(tuple(f) for f in filters) if filters else None
+            rows = tuple(tuple(tuple(v) if isinstance(v, list) else v for v in f) for f in filters) if filters else None
             hash(rows)
-        except (FileNotFoundError, TypeError):  # a file gone; a filter value that is a list (``in``)
+        except (FileNotFoundError, TypeError):  # a file gone; a filter value that cannot be hashed
             return None
         return table, ids, tuple(columns) if columns else None, rows
 

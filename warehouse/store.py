@@ -368,13 +368,14 @@ class Warehouse:
         return Compacted(table, part, len(files), merged.num_rows)
 
     # -- reading -----------------------------------------------------------------------------
-    def cache_reads(self, entries: int = 64) -> Warehouse:
+    def cache_reads(self, entries: int = 64, cache: ReadCache | None = None) -> Warehouse:
         """From now on, give the results of :meth:`read` (with no filter or with list filters) again while
         their files are the same files (:class:`warehouse.read_cache.ReadCache`, ``entries`` kept; 0: stop, and
-        drop what was kept). Returns ``self``."""
+        drop what was kept). ``cache``: keep them there instead (a long-lived process's cache, which
+        outlives this object). Returns ``self``."""
         from warehouse.read_cache import ReadCache
 
-        self._cache = ReadCache(entries) if entries > 0 else None
+        self._cache = cache if cache is not None else ReadCache(entries) if entries > 0 else None
         return self
 
     def read(

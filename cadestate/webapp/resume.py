@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cadestate.config import Config
+from warehouse.read_cache import ReadCache
 
 RECORD_DELAY_S = 1.0
 """How long after its stages ran a clip is recorded in Prefect: the page that was waiting loads the
@@ -69,15 +70,18 @@ def summary(reports: list) -> str:
     return ", ".join(f"{n} {s}" for s, n in sorted(states.items())) + (f" ({'; '.join(failed)})" if failed else "")
 
 
-def run_stages(config: Config, clip: str) -> str:
-    """Phase 1 (module docstring): the clip's stages here, without Prefect; a one-line summary."""
+def run_stages(config: Config, clip: str, read_cache: ReadCache | None = None) -> str:
+    """Phase 1 (module docstring): the clip's stages here, without Prefect; a one-line summary.
+    ``read_cache``: the worker's, kept from one resume to the next (the input digests read the CAD
+    libraries' runs and the clip's other answers again, unchanged)."""
     from tasks.stage_chain import run_unit
     from tasks.video.ingest import registered_source
     from warehouse import Warehouse
 
     root = Path(config.warehouse.root).expanduser().resolve()
     wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
-    return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False))
+    return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False,
+                            read_cache=read_cache))
 
 
 def warm_up(config: Config) -> str:
@@ -129,7 +133,8 @@ class Resumer:
                  warm: Callable[[], str] | None = None):
         self.record_delay_s = record_delay_s
         if run is None:
-            run = lambda clip: run_stages(config, clip)  # noqa: E731
+            cache = ReadCache()
+            run = lambda clip: run_stages(config, clip, cache)  # noqa: E731
             record = record or (lambda clip: record_in_prefect(config, clip))
             warm = warm or (lambda: warm_up(config))
         self._run, self._record, self._warm = run, record, warm
