@@ -17,7 +17,9 @@ Grounding in the seed paper (CAD-Estate, sections 3.1-3.5; ``/work/shared/seed``
   Symmetric models (27.8 % of objects) "lead to inconsistent point correspondence annotations
   across frames" -> ``symmetric_swap_prob`` (per key-frame, a random symmetric equivalent).
 - 3.5 verification: "if it aligns well in all key-frames" -> ``verify_iou`` on every key-frame
-  (mask IoU stands in for the human's judgement; 0.7 is our threshold, not the paper's).
+  (mask IoU stands in for the human's judgement; 0.7 is our threshold, not the paper's), between
+  the chosen model as posed and the same model at the object's true pose: alignment is judged, not
+  how far a look-alike's shape is from the object's.
 """
 
 from __future__ import annotations
@@ -71,7 +73,8 @@ class AnnotatorNoise:
 
     # 3.5 verification
     verify_iou: float = 0.7
-    """Accept a pose when the mask IoU of predicted vs true render is >= this on every key-frame."""
+    """Accept a pose when the mask IoU of the chosen model's render under the predicted pose and
+    under the true pose is >= this on every key-frame."""
 
     # 3.1 manual tracks
     track_keyframes: int = 6

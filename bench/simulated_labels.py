@@ -203,12 +203,16 @@ def _correspond(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> di
 
 
 def _verify(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> dict:
+    """The verdict on one posed track: its model, posed, against the same model where the object
+    is (the ground truth's pose, where :func:`_correspond` clicked it). A look-alike chosen in CAD
+    selection is judged on its alignment, as people judge an overlay of a model that is not the
+    object's own; against the true model's silhouette it failed for its shape alone (issue 18)."""
     o = c.gt(item.track_id)
     ok = False
     if o is not None and item.cad_id in c.models:
         p = item.pose  # in the world of the warehouse's frames, seen through them; the ground truth through its own
         ok = verify_pose(c.frames, o, Pose(tuple(p.translation), tuple(p.rotation), tuple(p.scale), bool(p.is_mirrored)),
-                         c.mesh(item.cad_id), c.keyframes(item.keyframes), noise=noise, gt_mesh=c.mesh(o.cad_id),
+                         c.mesh(item.cad_id), c.keyframes(item.keyframes), noise=noise,
                          renderer=renderer, pose_frames=c.shown)
     return {"track_id": item.track_id, "verdict": "accept" if ok else "reject",
             "comment": None if o is not None else "no ground-truth object"}

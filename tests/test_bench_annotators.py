@@ -301,6 +301,22 @@ def test_verify_pose(renderer):
     assert verify_pose(frames, obj, obj, mesh, kcs, renderer=renderer)
 
 
+
+def test_a_look_alike_is_verified_on_its_alignment_not_its_shape(renderer):
+    """bench.simulated_labels._verify: the chosen model against itself at the object's true pose (where
+    the simulated clicks put it). A look-alike 40 % wider and 20 % shallower than the true chair,
+    posed where the chair is, passes; against the chair's own silhouette it fails for its shape
+    alone; moved by 30 cm it fails."""
+    frames, mesh = make_frames(), chair()
+    look_alike = mesh.copy().apply_scale((1.4, 1.0, 0.8))
+    obj = make_object(frames, mesh, yaw=20.0, mirrored=False)
+    keyframes = [0, 8, 16, 23]
+    assert verify_pose(frames, obj, obj, look_alike, keyframes, renderer=renderer)
+    assert not verify_pose(frames, obj, obj, look_alike, keyframes, renderer=renderer, gt_mesh=mesh)
+    pose = Pose.of(obj)
+    shifted = replace(pose, translation=tuple(np.add(pose.translation, (0.3, 0.0, 0.0))))
+    assert not verify_pose(frames, obj, shifted, look_alike, keyframes, renderer=renderer)
+
 def test_verify_pose_sees_the_pose_through_the_cameras_of_its_own_world(renderer):
     """An SfM clip: its cameras and the solved pose live in a world that is the true one moved by a
     similarity (X' = s W X + b); the verifier renders the pose through those cameras, frame for
