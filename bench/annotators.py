@@ -365,14 +365,27 @@ def select_cad(true_cad_id: str, candidates: Sequence[str],
 
 # ----------------------------------------------------------------------------------------- 3.5 verification
 
+def grown(mask: np.ndarray, radius: float) -> np.ndarray:
+    """bool[H, W] ``mask`` grown by a disc of ``radius`` pixels (unchanged for radius < 1)."""
+    r = int(np.floor(radius))
+    if r < 1 or not mask.any():
+        return mask
+    from scipy.ndimage import binary_dilation
+
+    y, x = np.mgrid[-r:r + 1, -r:r + 1]
+    return binary_dilation(mask, structure=x * x + y * y <= radius * radius)
+
+
 def pose_mask_ious(frames: FramesFile, gt_obj: ObjectAnnotation, predicted: Pose | ObjectAnnotation | Sequence[Any],
                    mesh: trimesh.Trimesh | trimesh.Scene, keyframes: Sequence[int | KeyframeCorrespondences],
                    image_size: tuple[int, int] | None = None, gt_mesh: trimesh.Trimesh | trimesh.Scene | None = None,
-                   renderer: Renderer | None = None, pose_frames: FramesFile | None = None) -> list[float]:
+                   renderer: Renderer | None = None, pose_frames: FramesFile | None = None,
+                   tolerance_px: float = 0.0) -> list[float]:
     """Per key-frame (frame index or :class:`KeyframeCorrespondences`): IoU of the silhouettes of
     ``mesh`` under ``predicted``, seen through ``pose_frames`` (default ``frames``: the cameras of
     the predicted pose's world, frame for frame), and of ``gt_mesh`` (default ``mesh``) under the GT
-    pose through ``frames`` (1 when both are empty)."""
+    pose through ``frames`` (1 when both are empty), each silhouette first grown by a disc of
+    radius ``tolerance_px``."""
     W, H = _size(frames, image_size)
     own = renderer is None
     renderer = renderer or Renderer(W, H)
@@ -384,8 +397,9 @@ def pose_mask_ious(frames: FramesFile, gt_obj: ObjectAnnotation, predicted: Pose
         for k in keyframes:
             fi = k.frame_index if isinstance(k, KeyframeCorrespondences) else int(k)
             seen_from = frame_camera((pose_frames or frames).frames[fi], W, H)
-            a = renderer.render([Instance(pred_mesh, Mp, 0)], seen_from).instance_id >= 0
-            b = renderer.render([Instance(true_mesh, Mg, 0)], frame_camera(frames.frames[fi], W, H)).instance_id >= 0
+            a = grown(renderer.render([Instance(pred_mesh, Mp, 0)], seen_from).instance_id >= 0, tolerance_px)
+            b = grown(renderer.render([Instance(true_mesh, Mg, 0)], frame_camera(frames.frames[fi], W, H)).instance_id >= 0,
+                      tolerance_px)
             union = np.count_nonzero(a | b)
             ious.append(1.0 if union == 0 else np.count_nonzero(a & b) / union)
     finally:
@@ -399,11 +413,13 @@ def verify_pose(frames: FramesFile, gt_obj: ObjectAnnotation, predicted: Pose | 
                 image_size: tuple[int, int] | None = None, noise: AnnotatorNoise = DEFAULT_NOISE,
                 gt_mesh: trimesh.Trimesh | trimesh.Scene | None = None, renderer: Renderer | None = None,
                 pose_frames: FramesFile | None = None) -> bool:
-    """The verifier's verdict: True when the mask IoU is >= ``noise.verify_iou`` on every key-frame
-    (False with no key-frames or no predicted pose). See :func:`pose_mask_ious`."""
+    """The verifier's verdict: True when the mask IoU, the masks grown by ``noise.verify_tolerance_px``,
+    is >= ``noise.verify_iou`` on every key-frame (False with no key-frames or no predicted pose).
+    See :func:`pose_mask_ious`."""
     if predicted is None or (isinstance(predicted, ObjectAnnotation) and predicted.translation is None):
         return False
-    ious = pose_mask_ious(frames, gt_obj, predicted, mesh, keyframes, image_size, gt_mesh, renderer, pose_frames)
+    ious = pose_mask_ious(frames, gt_obj, predicted, mesh, keyframes, image_size, gt_mesh, renderer, pose_frames,
+                          noise.verify_tolerance_px)
     return bool(ious) and min(ious) >= noise.verify_iou
 
 

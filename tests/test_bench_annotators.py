@@ -317,6 +317,24 @@ def test_a_look_alike_is_verified_on_its_alignment_not_its_shape(renderer):
     shifted = replace(pose, translation=tuple(np.add(pose.translation, (0.3, 0.0, 0.0))))
     assert not verify_pose(frames, obj, shifted, look_alike, keyframes, renderer=renderer)
 
+
+def test_the_verifier_does_not_see_a_misalignment_finer_than_its_clicks(renderer):
+    """verify_tolerance_px (3 px, the clicks' sigma): a chair 6 m away, 5 cm off (about 2 px) fails
+    on its bare silhouettes (its thin legs) and passes with the masks grown; 10 cm off (4 px) fails."""
+    frames, mesh = make_frames(radius=6.0), chair()
+    obj = make_object(frames, mesh, yaw=20.0)
+    pose, keyframes = Pose.of(obj), [0, 8, 16, 23]
+
+    def moved(d: float) -> Pose:
+        return replace(pose, translation=tuple(np.add(pose.translation, (d, 0.0, 0.0))))
+
+    bare = replace(AnnotatorNoise(), verify_tolerance_px=0.0)
+    assert not verify_pose(frames, obj, moved(0.05), mesh, keyframes, noise=bare, renderer=renderer)
+    assert verify_pose(frames, obj, moved(0.05), mesh, keyframes, renderer=renderer)
+    assert not verify_pose(frames, obj, moved(0.10), mesh, keyframes, renderer=renderer)
+    with pytest.raises(ValueError, match="noise levels"):
+        AnnotatorNoise(verify_tolerance_px=-1.0)
+
 def test_verify_pose_sees_the_pose_through_the_cameras_of_its_own_world(renderer):
     """An SfM clip: its cameras and the solved pose live in a world that is the true one moved by a
     similarity (X' = s W X + b); the verifier renders the pose through those cameras, frame for
