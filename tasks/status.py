@@ -103,6 +103,20 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     return result
 
 
+def stale_libraries(wh: Warehouse, config: Config) -> dict[str, list[str]]:
+    """The CAD libraries (partitions of ``cad_models``) with a stage that ``config`` makes stale
+    (:func:`pipeline_status`: its config, code or inputs changed since it ran): library -> one
+    ``'stage: reasons'`` per such stage. Retrieval reads a library as its stages last left it, so a
+    stale one is ranked with descriptors the current configuration no longer makes (a warehouse
+    copied from one built with another ``[cad_embed] whitening``, a descriptor retrained since)."""
+    libraries = wh.partitions("cad_models")
+    out: dict[str, list[str]] = {}
+    for s in pipeline_status(wh, config, libraries, scope="library") if libraries else []:
+        if s.stale_reasons:
+            out.setdefault(s.clip, []).append(f"{s.stage}: {', '.join(s.stale_reasons)}")
+    return out
+
+
 def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     """What a user should know about each clip beyond its stages' states, one line per note:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``

@@ -250,3 +250,37 @@ def _draw_missing_objects(folder, wh, clip):
     assert not done.paused and done.rows_written == sum(len(a["boxes"]) for a in drawn.values())
     manual = {g for t, g in track_truth(folder, wh, clip).items() if t >= MANUAL_TRACK_BASE}
     assert truth[gone] in manual
+
+
+def test_bench_run_refuses_a_cad_library_the_configuration_makes_stale(small_library_warehouse, tmp_path):
+    """A warehouse whose library was embedded with another [cad_embed] (copied from elsewhere, a
+    descriptor retrained since) would have its retrieval measured against descriptors the
+    configuration no longer makes: tasks.status.stale_libraries names it, and `bench run` stops
+    with one line naming the library and the fix, before any clip runs."""
+    import dataclasses
+
+    from typer.testing import CliRunner
+
+    from cadestate.cli import app
+    from cadestate.config import to_toml
+    from conftest import warehouse_copy
+    from tasks.status import stale_libraries
+    from warehouse import Warehouse
+
+    config = warehouse_copy(small_library_warehouse, tmp_path / "w")
+    wh = Warehouse(config.warehouse.root)
+    assert stale_libraries(wh, config) == {}
+    other = dataclasses.replace(config, cad_embed=dataclasses.replace(config.cad_embed, whitening="whiten"))
+    stale = stale_libraries(wh, other)
+    libraries = sorted(wh.partitions("cad_models"))  # the small library's models come from several catalogues
+    assert sorted(stale) == libraries and all(stale[lib][0].startswith("cad_embed: config changed") for lib in libraries)
+    library = libraries[0]
+    toml = tmp_path / "other.toml"
+    toml.write_text(to_toml(other))
+    result = CliRunner().invoke(app, ["-c", str(toml), "-w", str(wh.root), "bench", "run", str(tmp_path / "bench")])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1, result.output
+    assert lines[0].startswith(f"CAD library {library} is stale (cad_embed: config changed")
+    more = len(libraries) - 1
+    assert lines[0].endswith(f"(and {more} more librar{'y' if more == 1 else 'ies'}): run `cadestate cad ingest` first")
+    assert not (tmp_path / "bench").exists() and wh.partitions("clips") == []

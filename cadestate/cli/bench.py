@@ -58,6 +58,14 @@ def bench_run(
     from bench.benchmark import clip_sources, read_manifest
     from bench.labels import simulate_labels, write_correspondences
 
+    from tasks.status import stale_libraries
+
+    stale = stale_libraries(ctx.obj.open_warehouse(), ctx.obj.config())
+    if stale:  # the report would measure retrieval against descriptors the configuration no longer makes
+        lib, reasons = next(iter(sorted(stale.items())))
+        more = f" (and {len(stale) - 1} more librar{'y' if len(stale) == 2 else 'ies'})" if len(stale) > 1 else ""
+        err.print(f"CAD library {lib} is stale ({'; '.join(reasons)}){more}: run `cadestate cad ingest` first")
+        raise typer.Exit(1)
     clips = list(read_manifest(bench_dir).clips)
     sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
     made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)

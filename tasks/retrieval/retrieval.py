@@ -20,7 +20,7 @@ own whitening.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pyarrow as pa
@@ -141,7 +141,16 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
 
 
 def _run(ctx: StageContext) -> StageOutput:
-    return retrieve_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+    """:func:`retrieve_clip`; its message names the CAD libraries the configuration makes stale
+    (:func:`tasks.status.stale_libraries`: ranked as their stages last left them)."""
+    from tasks.status import stale_libraries
+
+    out = retrieve_clip(ctx.wh, ctx.cfg, ctx.unit, ctx.run_id)
+    stale = stale_libraries(ctx.wh, ctx.config)
+    if not stale:
+        return out
+    return replace(out, message=f"{out.message}; stale CAD librar{'y' if len(stale) == 1 else 'ies'} "
+                                            f"{', '.join(sorted(stale))} (run `cadestate cad ingest`)")
 
 
 def _clip_inputs(wh: Warehouse, clip: str) -> list[str]:
