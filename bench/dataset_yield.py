@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.ignore import MAX_TRUNCATED_FRACTION, MIN_FRAMES_IN_VIEW, MIN_VISIBLE_FRACTION, clip_objects_in_view
+from bench.loss_funnel import fate_counts, funnel_markdown, object_fates
 from bench.scoring import MODES, Key, Outcome
 from schemas.core import DEFAULT_SPLIT
 from schemas.official import read_objects
@@ -127,6 +128,8 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
     tracked = set(wh.partitions("track_detections")) | set(wh.partitions("manual_tracks"))
     track_objects = {(c, str(t)): (c, gt_id) for c in clips if c in tracked
                      for t, gt_id in track_truth(bench_dir, wh, c).items()}
+    fates = object_fates(expected, track_objects, *_chosen_and_solved(wh, clips),
+                         [o.prediction for o in outcomes[HEADLINE_MODE]], outcomes[HEADLINE_MODE])
     task_parts = set(wh.partitions("label_tasks"))
     tasks = wh.read("label_tasks", [c for c in clips if c in task_parts],
                     columns=["clip", "task_id", "kind", "document"]).to_pylist() if task_parts & set(clips) else []
@@ -140,9 +143,22 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
         out[name] = {"clips": len(members), "target_pct": round(100 * YIELD_TARGETS[name]) if name in YIELD_TARGETS else None,
                      **tracks_per_object({k: v for k, v in track_objects.items() if k[0] in members}, exp),
                      "human_items": items, "human_items_total": sum(items.values()),
+                     "fates": fate_counts({k: v for k, v in fates.items() if k[0] in members}),
                      "modes": {m: pose_yield((o for o in outcomes[m] if o.prediction[0] in members), exp)
                                .as_dict(sum(items.values())) for m in MODES}}
     return {"headline_mode": HEADLINE_MODE, "min_frames_in_view": MIN_FRAMES_IN_VIEW, "splits": out}
+
+
+def _chosen_and_solved(wh: Warehouse, clips: list[str]) -> tuple[set[Key], set[Key]]:
+    """The tracks (clip, track id) of ``clips`` with a model chosen in CAD selection (the answers in
+    force), and those with a solved pose (``poses.status`` ok)."""
+    from tasks.human.label_ingest import current_answers
+
+    chosen = {(r["clip"], str(r["track_id"])) for r in current_answers(wh, "cad_selection", clips).to_pylist()
+              if r["cad_id"] is not None}
+    posed = [c for c in clips if wh.has_partition("poses", c)]
+    rows = wh.read("poses", posed, columns=["clip", "track_id", "status"]).to_pylist() if posed else []
+    return chosen, {(r["clip"], str(r["track_id"])) for r in rows if r["status"] == "ok"}
 
 
 def yield_markdown(result: dict | None) -> list[str]:
@@ -175,4 +191,4 @@ def yield_markdown(result: dict | None) -> list[str]:
             lines.append(f"| {split} | `{mode}` | {m['accepted_poses']} | {m['yielded_objects']} of {m['expected_objects']} "
                          f"({m['yield_pct']} %) | {m['duplicates']} | {m['false_annotations']} | {m['on_other_objects']} | "
                          f"{m['human_items_per_posed_object']} |")
-    return lines + [""]
+    return lines + [""] + funnel_markdown({split: s["fates"] for split, s in result["splits"].items()})
