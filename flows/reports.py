@@ -10,6 +10,11 @@ from tasks.stage_chain import StageReport
 
 WHOLE_UNIT = "stages"
 """The stage name of the report of a unit whose task failed as a whole (not in one of its stages)."""
+_KEPT: dict[str, list[StageReport]] = {}
+"""Each flow run's reports, by flow run id, as its final state carried them in this process
+(:func:`final_state`): the state Prefect hands back sometimes lacks its data (the server's copy of
+it: ``MissingResult``, seen once in a Dask worker on a loaded machine), and no clip's reports may
+be lost that way (:func:`state_reports`)."""
 
 
 def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
@@ -31,6 +36,10 @@ def finish(submitted: list[tuple[str, PrefectFuture]], what: str) -> State:
 def final_state(reports: list[StageReport], what: str) -> State:
     """The flow's final state over ``reports``: Failed when a stage failed, else Completed (named
     Paused, naming what waits, when a human task waits); it carries the reports."""
+    from prefect.runtime import flow_run
+
+    if flow_run.get_id():
+        _KEPT[str(flow_run.get_id())] = reports
     failed = [r for r in reports if r.state == "failed"]
     message = f"{what}: {len(reports)} stage runs, {len(failed)} failed"
     if failed:
@@ -42,3 +51,19 @@ def final_state(reports: list[StageReport], what: str) -> State:
         waits = "; ".join(f"{r.clip} {r.stage}: {r.message}" for r in paused)
         return Completed(name="Paused", message=f"{message}, {len(paused)} paused: {waits}", data=reports)
     return Completed(message=message, data=reports)
+
+
+def state_reports(state: State) -> list[StageReport]:
+    """The reports a finished flow run's final ``state`` carries; when Prefect handed back a state
+    without its data, those its run kept in this process (:data:`_KEPT`)."""
+    from prefect.exceptions import MissingResult
+
+    run_id = str(state.state_details.flow_run_id)
+    try:
+        return state.result(raise_on_failure=False)
+    except MissingResult:
+        if run_id in _KEPT:
+            return _KEPT[run_id]
+        raise
+    finally:
+        _KEPT.pop(run_id, None)

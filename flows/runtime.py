@@ -74,7 +74,9 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
         raise ServerError(api_error_line(api, cause)) from None
     finally:
         _RUN_NAME.reset(name)
-    return state.result(raise_on_failure=False)
+    from flows.reports import state_reports
+
+    return state_reports(state)
 
 
 _NO_HEARTBEATS: dict[int, tuple[object, object]] = {}

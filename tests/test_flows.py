@@ -235,6 +235,32 @@ def test_flow_state_names_the_paused_tasks():
     assert final_state([StageReport("a", "pose", "completed")], "x").name == "Completed"
 
 
+
+def test_a_flow_runs_reports_survive_a_final_state_handed_back_without_its_data(tmp_path):
+    """flows.reports.state_reports: Prefect once handed a Dask worker a clip's final state without its
+    data (MissingResult: the server's copy), and the clip's reports were lost. The run keeps them in
+    its process; a state that carries them is read as before, and either way the kept copy goes."""
+    from prefect import flow
+    from prefect.exceptions import MissingResult
+
+    from flows.reports import final_state, state_reports
+    from flows.runtime import run_flow
+    from tasks.stage_chain import StageReport
+
+    reports = [StageReport("a", "pose", "completed"), StageReport("a", "verification", "paused", message="waits")]
+
+    @flow
+    def tiny():
+        return final_state(reports, "1 clip(s)")
+
+    config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "w")))
+    assert run_flow(tiny, config, run_name="tiny/a", tags=[]) == reports  # also prepares Prefect here
+    state = tiny(return_state=True)
+    bare = state.model_copy(update={"data": None})  # what the server keeps of it
+    assert state_reports(bare) == reports
+    with pytest.raises(MissingResult):
+        state_reports(bare)  # kept once, for the run that made it
+
 def test_a_val_clip_waits_for_its_manual_tracks(config, source, tmp_path):
     """Changing the split reruns ingest (frames rerun and write the same frames) and manual_tracks,
     which pauses; what follows waits; an empty answer ("nothing missing") resumes the clip."""
