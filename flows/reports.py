@@ -14,7 +14,9 @@ _KEPT: dict[str, list[StageReport]] = {}
 """Each flow run's reports, by flow run id, as its final state carried them in this process
 (:func:`final_state`): the state Prefect hands back sometimes lacks its data (the server's copy of
 it: ``MissingResult``, seen once in a Dask worker on a loaded machine), and no clip's reports may
-be lost that way (:func:`state_reports`)."""
+be lost that way (:func:`state_reports`). The oldest go past :data:`KEEP_AT_MOST` (a served
+deployment's runs are never read back here)."""
+KEEP_AT_MOST = 256
 
 
 def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
@@ -40,6 +42,8 @@ def final_state(reports: list[StageReport], what: str) -> State:
 
     if flow_run.get_id():
         _KEPT[str(flow_run.get_id())] = reports
+        while len(_KEPT) > KEEP_AT_MOST:
+            del _KEPT[next(iter(_KEPT))]
     failed = [r for r in reports if r.state == "failed"]
     message = f"{what}: {len(reports)} stage runs, {len(failed)} failed"
     if failed:
