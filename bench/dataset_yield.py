@@ -129,7 +129,8 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
     track_objects = {(c, str(t)): (c, gt_id) for c in clips if c in tracked
                      for t, gt_id in track_truth(bench_dir, wh, c).items()}
     fates = object_fates(expected, track_objects, *_chosen_and_solved(wh, clips),
-                         [o.prediction for o in outcomes[HEADLINE_MODE]], outcomes[HEADLINE_MODE])
+                         [o.prediction for o in outcomes[HEADLINE_MODE]], outcomes[HEADLINE_MODE],
+                         _detected(bench_dir, wh, clips))
     task_parts = set(wh.partitions("label_tasks"))
     tasks = wh.read("label_tasks", [c for c in clips if c in task_parts],
                     columns=["clip", "task_id", "kind", "document"]).to_pylist() if task_parts & set(clips) else []
@@ -147,6 +148,19 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
                      "modes": {m: pose_yield((o for o in outcomes[m] if o.prediction[0] in members), exp)
                                .as_dict(sum(items.values())) for m in MODES}}
     return {"headline_mode": HEADLINE_MODE, "min_frames_in_view": MIN_FRAMES_IN_VIEW, "splits": out}
+
+
+def _detected(bench_dir: Path, wh: Warehouse, clips: list[str]) -> set[Key]:
+    """The ground-truth objects (clip, id) of ``clips`` that at least one detector box falls on (any
+    label; matched as the report's track map matches them, :func:`bench.track_bench.match_truth`)."""
+    from bench.track_bench import detector_clip
+
+    found: set[Key] = set()
+    for clip in clips:
+        boxes = detector_clip(wh, bench_dir, clip)
+        if boxes is not None:
+            found |= {(clip, str(t)) for t in boxes.truth.tolist() if t}
+    return found
 
 
 def _chosen_and_solved(wh: Warehouse, clips: list[str]) -> tuple[set[Key], set[Key]]:

@@ -14,7 +14,11 @@ Every expected object (:func:`bench.dataset_yield.expected_objects`) gets one fa
   no parallax, ...);
 - ``no model chosen``: tracks follow it, none got a model (CAD selection said "none of these" for
   each, or called it a fragment of another track);
-- ``not tracked``: no track follows it (the detector missed it, and on train clips nobody draws it).
+- ``detected, not tracked``: no track follows it, though detector boxes (of any label) fall on it,
+  matched as the track map matches them: tracking did not keep them (too few for a track, or most
+  of a track that follows another object);
+- ``not detected``: no track follows it and no detector box falls on it (on train clips nobody
+  draws it), a loss of detection alone.
 
 "On its tracks": the tracks the report's track map puts on the object
 (:func:`bench.retrieval_bench.track_truth`). Read from the end, a later step's failure hides the
@@ -28,13 +32,15 @@ from collections.abc import Iterable, Mapping
 
 from bench.scoring import Key, Outcome
 
-FATES = ("not tracked", "no model chosen", "not solved", "rejected", "accepted, wrong", "accepted twice", "yielded")
+FATES = ("not detected", "detected, not tracked", "no model chosen", "not solved", "rejected", "accepted, wrong",
+         "accepted twice", "yielded")
 """The fates in pipeline order (the report's columns)."""
 
 
-def fate(tracks: set[Key], chosen: set[Key], solved: set[Key], accepted: int, yielded: bool) -> str:
+def fate(tracks: set[Key], chosen: set[Key], solved: set[Key], accepted: int, yielded: bool, detected: bool) -> str:
     """The fate of one object (module docstring): ``tracks`` follow it, of which ``chosen`` got a
-    model and ``solved`` a pose; ``accepted`` poses on those tracks; ``yielded`` in the headline mode."""
+    model and ``solved`` a pose; ``accepted`` poses on those tracks; ``yielded`` in the headline mode;
+    ``detected``: a detector box falls on it."""
     if yielded:
         return "yielded"
     if accepted > 1:
@@ -45,14 +51,17 @@ def fate(tracks: set[Key], chosen: set[Key], solved: set[Key], accepted: int, yi
         return "rejected"
     if tracks & chosen:
         return "not solved"
-    return "no model chosen" if tracks else "not tracked"
+    if tracks:
+        return "no model chosen"
+    return "detected, not tracked" if detected else "not detected"
 
 
 def object_fates(expected: set[Key], track_objects: Mapping[Key, Key], chosen: set[Key], solved: set[Key],
-                 accepted: Iterable[Key], headline: Iterable[Outcome]) -> dict[Key, str]:
+                 accepted: Iterable[Key], headline: Iterable[Outcome], detected: set[Key]) -> dict[Key, str]:
     """The fate of every ``expected`` object (clip, ground-truth id). ``track_objects``: (clip, track)
     -> the object it follows; ``chosen``, ``solved``: tracks with a chosen model, with a solved pose;
-    ``accepted``: the tracks of the accepted poses; ``headline``: their outcomes in the yield's mode."""
+    ``accepted``: the tracks of the accepted poses; ``headline``: their outcomes in the yield's mode;
+    ``detected``: the objects (clip, ground-truth id) at least one detector box falls on."""
     tracks: dict[Key, set[Key]] = {}
     for track, obj in track_objects.items():
         tracks.setdefault(obj, set()).add(track)
@@ -62,7 +71,7 @@ def object_fates(expected: set[Key], track_objects: Mapping[Key, Key], chosen: s
         if o.on_object is not None:
             credited.setdefault(o.on_object, []).append(o)
     return {k: fate(tracks.get(k, set()), chosen, solved, max(on_tracks[k], len(credited.get(k, []))),
-                    len(credited.get(k, [])) == 1 and credited[k][0].correct) for k in expected}
+                    len(credited.get(k, [])) == 1 and credited[k][0].correct, k in detected) for k in expected}
 
 
 def fate_counts(fates: Mapping[Key, str]) -> dict[str, int]:
