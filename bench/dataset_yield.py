@@ -153,13 +153,16 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
 def _detected(bench_dir: Path, wh: Warehouse, clips: list[str]) -> set[Key]:
     """The ground-truth objects (clip, id) of ``clips`` that at least one detector box falls on (any
     label; matched as the report's track map matches them, :func:`bench.track_bench.match_truth`)."""
-    from bench.track_bench import detector_clip
+    import numpy as np
+
+    from bench.track_bench import gt_clip, match_truth
 
     found: set[Key] = set()
-    for clip in clips:
-        boxes = detector_clip(wh, bench_dir, clip)
-        if boxes is not None:
-            found |= {(clip, str(t)) for t in boxes.truth.tolist() if t}
+    for clip in (c for c in clips if wh.has_partition("detections", c)):
+        d = wh.read("detections", partitions=[clip], columns=["frame_index", "box"]).to_pydict()
+        truth = match_truth(np.array(d["frame_index"], np.int64), np.array(d["box"], np.float64).reshape(-1, 4),
+                            gt_clip(bench_dir, clip, embed=False))
+        found |= {(clip, str(t)) for t in truth.tolist() if t}
     return found
 
 
