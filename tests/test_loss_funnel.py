@@ -23,8 +23,9 @@ def test_every_object_gets_the_fate_of_the_last_step_it_reached():
                 Outcome((c, "9"), (c, "good"), True)]  # track 9 follows "other" but aligns "good": a duplicate there
     detected = {(c, g) for g in ("dropped", "none", "good")}  # a detector box on each (the others: drawn)
     fates = object_fates(expected, track_objects, chosen, solved, accepted, headline, detected)
-    assert fates == {(c, "missed"): "not detected", (c, "dropped"): "detected, not tracked", (c, "none"): "no model chosen", (c, "unsolved"): "not solved",
-                     (c, "rejected"): "rejected", (c, "wrong"): "accepted, wrong", (c, "twice"): "accepted twice",
+    assert fates == {(c, "missed"): "not detected", (c, "dropped"): "detected, not tracked",
+                     (c, "none"): "no model chosen", (c, "unsolved"): "not solved", (c, "rejected"): "rejected",
+                     (c, "wrong"): "accepted, wrong", (c, "twice"): "accepted twice",
                      (c, "good"): "accepted twice", (c, "other"): "accepted, wrong"}
     headline = headline[:4]  # without the pose that doubled "good"
     fates = object_fates(expected, track_objects, chosen, solved, accepted[:4], headline, detected)
