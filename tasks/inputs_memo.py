@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import time
 from collections.abc import Sequence
 
@@ -49,16 +50,16 @@ def _state(wh: Warehouse, read: Sequence[str]) -> tuple[str, int]:
     try:
         if read[0] == "files":
             parts = None if list(read[2:]) == ["*"] else list(read[2:])
-            paths = wh.files(read[1], parts)
+            paths = wh.file_paths(read[1], parts)
         elif read[0] == "partitions":
             if not wh.table_dir(read[1]).is_dir():
                 return digest(*read, "no table folder"), 0
-            paths = [wh.table_dir(read[1])] + [wh.partition_dir(read[1], p) for p in wh.partitions(read[1])]
+            paths = [str(wh.table_dir(read[1]))] + [str(wh.partition_dir(read[1], p)) for p in wh.partitions(read[1])]
         else:
             return f"unknown read {read[0]!r}", time.time_ns()
         for path in paths:
-            st = path.stat()
-            lines.append(f"{path.name} {st.st_ino} {st.st_size} {st.st_mtime_ns}")
+            st = os.stat(path)
+            lines.append(f"{os.path.basename(path)} {st.st_ino} {st.st_size} {st.st_mtime_ns}")
             newest = max(newest, st.st_mtime_ns)
     except FileNotFoundError:  # a file went away while it was listed (compacted): changing now
         return "changing", time.time_ns()
@@ -125,5 +126,5 @@ class InputsMemo:
         if self.changed:
             payload = json.dumps({"version": VERSION, "stages": self.entries}, sort_keys=True)
             with contextlib.suppress(OSError):
-                atomic_write_bytes(self.path, payload.encode())
+                atomic_write_bytes(self.path, payload.encode(), durable=False)  # a cache: lost, it is digested again
             self.changed = False

@@ -85,7 +85,9 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     stage. Runs of the unit that a killed process left unrecorded are recorded as interrupted first.
     An input file that cannot be read is one failed report of the stage that reads it, and nothing
     of the unit runs. ``read_cache``: where the input digests' reads are kept (default: a new cache
-    for this call; a process that runs the unit again and again passes one that lives on)."""
+    for this call); a process that runs the unit again and again passes one that lives on, which
+    the stages read and write through too (their next run and the process's other readers find
+    the files they wrote without reading them)."""
     log = log or logging.getLogger(__name__)
     wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
     settle_interrupted(wh, unit)
@@ -101,10 +103,11 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
             except OSError as e:  # an unreadable input file
                 log.error("%s %s: %s", unit, stage.name, e)
                 return [StageReport(unit, stage.name, "failed", message=str(e))]
+        runs = read_runs(wh, [unit])
     finally:
-        wh.cache_reads(0)
+        if read_cache is None:  # a cache of this call's digests alone; a long-lived one serves the stages too
+            wh.cache_reads(0)
     memo.save()
-    runs = read_runs(wh, [unit])
     done: dict[str, StageRun] = {}
     reports = []
     for stage in stages:

@@ -39,7 +39,10 @@ class StageStatus:
 
 def read_runs(wh: Warehouse, names: Sequence[str] | None = None) -> list[dict]:
     """The :data:`RUN_COLUMNS` of the runs of ``names`` (clips or libraries; default: all), oldest first."""
-    rows = read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
+    if wh.reads_cached:  # a long-lived process (the app's resumes): files read before come from its cache
+        rows = wh.read("runs", names, columns=RUN_COLUMNS).to_pylist()
+    else:
+        rows = read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
     return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
 
 

@@ -318,3 +318,27 @@ def test_the_real_warm_up_imports_what_an_answer_runs(lwh):
     assert warm_up(config) == "6 stages imported, the catalog checked"
     assert {"tasks.pose.pose", "tasks.human.verification", "tasks.retrieval.retrieval"} <= set(sys.modules)
     assert (lwh.root / "catalog.duckdb").is_file()
+
+
+def test_the_warm_up_reads_ahead_what_the_first_resume_of_a_waiting_clip_reads(lwh, monkeypatch):
+    """With the app's read cache, the first answer's resume opens no file its digests read."""
+    import pyarrow.parquet as pq
+
+    from cadestate.webapp.resume import warm_up
+    from tasks.inputs_memo import InputsMemo
+    from tasks.registry import stages_of
+    from tasks.status import read_runs
+    from warehouse.read_cache import ReadCache
+
+    config, cache = Config(warehouse=WarehouseConfig(root=str(lwh.root))), ReadCache()
+    assert warm_up(config, cache).endswith(", 1 clip(s) with items waiting read")
+    opened: list[str] = []
+    real = pq.ParquetFile
+    monkeypatch.setattr(pq, "ParquetFile", lambda f, *a, **k: opened.append(str(f)) or real(f, *a, **k))
+    wh = Warehouse(lwh.root).cache_reads(cache=cache)  # what tasks.stage_chain.run_unit reads before its stages
+    memo = InputsMemo(wh, CLIP)
+    digests = [memo.clip_inputs(s, fresh=True) for s in stages_of("clip") if not s.has("source_inputs")]
+    read_runs(wh, [CLIP])
+    assert any(digests) and opened == []
+    assert digests == [InputsMemo(Warehouse(lwh.root), CLIP).clip_inputs(s, fresh=True)
+                       for s in stages_of("clip") if not s.has("source_inputs")]  # the same digests as uncached

@@ -162,7 +162,7 @@ def plan_views(wh: Warehouse, previous: dict | None = None, recheck: Collection[
 
 def row_counts(wh: Warehouse) -> dict[str, int]:
     """Rows of each table, from its Parquet files' footers (read by DuckDB)."""
-    files = {name: [str(f) for f in wh.files(name)] for name in wh.info}
+    files = {name: wh.file_paths(name) for name in wh.info}
     every = [f for paths in files.values() for f in paths]
     con = duckdb.connect()
     try:

@@ -177,7 +177,7 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
     :meth:`Warehouse.read` sorts them; a column that no file has (an older schema) reads as None. A
     file that vanishes while it is read (its partition compacted) makes it list the files again."""
     for attempt in range(READ_RETRIES):
-        files = [str(f) for f in wh.files(table, partitions)]
+        files = wh.file_paths(table, partitions)
         if not files:
             return []
         con = _reader()

@@ -1,7 +1,9 @@
 """Results of warehouse reads kept while their files stay the same files.
 
 A process that reads the same small tables again and again (the annotation app serving a clip's
-tasks, a unit's input digests before its stages run) reads each file set once. An entry is keyed by
+tasks, a unit's input digests before its stages run) reads each file set once, and each file once:
+a read of a table one file of which is new reads that file alone (the others' rows are kept file by
+file, within ``file_bytes``), and a file the process wrote itself is kept as written. An entry is keyed by
 the table, the columns and the identity of every file read: path, inode, size and modification
 time, taken by ``stat`` on every read. Files are written whole, under new names or by an atomic
 rename (a new inode), so the same identities hold the same rows, and a write, a compaction or a
@@ -20,12 +22,19 @@ if TYPE_CHECKING:
     import pyarrow as pa
 
 
+FILE_BYTES = 256 * 2**20
+"""Default bound on the rows kept file by file (Arrow bytes)."""
+
+
 class ReadCache:
     """At most ``entries`` read results (module docstring); safe to share between threads."""
 
-    def __init__(self, entries: int = 64):
+    def __init__(self, entries: int = 64, file_bytes: int = FILE_BYTES):
         self.entries = entries
+        self.file_bytes = file_bytes
         self._kept: OrderedDict[tuple, pa.Table] = OrderedDict()
+        self._files: OrderedDict[tuple, pa.Table] = OrderedDict()
+        self._file_total = 0
         self._lock = threading.Lock()
 
     @staticmethod
@@ -49,6 +58,53 @@ class ReadCache:
             if hit is not None:
                 self._kept.move_to_end(key)
             return hit
+
+    @staticmethod
+    def file_identity(path: str) -> tuple | None:
+        """The identity of one data file: path, inode, size and modification time (None: it is gone)."""
+        try:
+            st = os.stat(path)
+        except FileNotFoundError:
+            return None
+        return path, st.st_ino, st.st_size, st.st_mtime_ns
+
+    def get_file(self, identity: tuple, schema: pa.Schema) -> pa.Table | None:
+        """The rows of the file ``identity`` as ``schema`` (the table's schema or some of its columns):
+        kept as read with those columns, or cut from the whole file's rows when those are kept."""
+        import pyarrow as pa
+
+        with self._lock:
+            for names in (tuple(schema.names), None):
+                hit = self._files.get((identity, names))
+                if hit is not None:
+                    self._files.move_to_end((identity, names))
+                    break
+        if hit is None or names is not None:
+            return hit
+        if not set(schema.names) <= set(hit.column_names):
+            return None
+        return pa.Table.from_arrays([hit.column(n) for n in schema.names], schema=schema)
+
+    def put_file(self, identity: tuple, part: pa.Table, whole: bool = False) -> None:
+        """Keep one file's rows (``whole``: every column of its table, which any read of some of
+        them can be cut from); the least recently used go while the kept rows exceed ``file_bytes``."""
+        key = (identity, None if whole else tuple(part.column_names))
+        with self._lock:
+            if key in self._files:
+                return
+            self._files[key] = part
+            self._file_total += part.nbytes
+            while self._file_total > self.file_bytes and len(self._files) > 1:
+                _, gone = self._files.popitem(last=False)
+                self._file_total -= gone.nbytes
+
+    def written(self, path: str, table: pa.Table) -> None:
+        """A file this process has just written with ``table`` (every column of its table, cast to
+        its schema): kept, so that the next read of it reads nothing (a reader of the same warehouse
+        finds what a writer of it left)."""
+        identity = self.file_identity(path)
+        if identity is not None:
+            self.put_file(identity, table, whole=True)
 
     def put(self, key: tuple, result: pa.Table) -> None:
         with self._lock:

@@ -89,7 +89,8 @@ def _vanished(e: OSError) -> bool:
     return isinstance(e, FileNotFoundError) or e.errno == errno.ENOENT or "No such file" in str(e)
 
 
-def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] | None) -> pa.Table:
+def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] | None,
+                cache: ReadCache | None = None) -> pa.Table:
     """The rows of ``files`` in order, as ``pyarrow.dataset.dataset(files, schema=schema).to_table(columns)``
     gives them (a column a file lacks reads as null, every column cast to ``schema``), without
     importing pyarrow.dataset."""
@@ -99,13 +100,35 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
     target = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata) if columns else schema
     parts = []
     for f in files:
+        identity = cache.file_identity(f) if cache is not None else None
+        if identity is not None and (kept := cache.get_file(identity, target)) is not None:
+            parts.append(kept)
+            continue
         pf = pq.ParquetFile(f)
         present = set(pf.schema_arrow.names)
         table = pf.read(columns=[n for n in target.names if n in present])
         parts.append(pa.Table.from_arrays(
             [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
              for fl in target], schema=target))
+        if identity is not None:
+            cache.put_file(identity, parts[-1], whole=columns is None)
     return pa.concat_tables(parts)
+
+
+def data_files(folder: Path | str) -> list[str]:
+    """The paths of the ``*.parquet`` files of one partition folder, sorted by name (none when it is
+    missing); listed with ``os.listdir`` and joined as strings: ``Path.glob`` and sorting paths cost
+    about 10x more, and every read lists its partitions. A listing is taken again when the folder
+    was swapped while it was read (a compaction: the folder read may be the old one, its files being
+    removed, which would list fewer files or none)."""
+    while True:
+        try:
+            before = os.stat(folder).st_ino
+            names = os.listdir(folder)
+            if os.stat(folder).st_ino == before:
+                return [os.path.join(folder, n) for n in sorted(names) if n.endswith(".parquet")]
+        except (FileNotFoundError, NotADirectoryError):
+            return []
 
 
 @contextlib.contextmanager
@@ -209,23 +232,27 @@ class Warehouse:
 
     def files(self, table: str, partitions: Sequence[str] | None = None) -> list[Path]:
         """Data files of ``table`` (all partitions, or the named ones), sorted."""
+        return [Path(f) for f in self.file_paths(table, partitions)]
+
+    def file_paths(self, table: str, partitions: Sequence[str] | None = None) -> list[str]:
+        """:meth:`files` as strings (what readers open; no ``Path`` made per file)."""
         note_read("files", table, *(["*"] if partitions is None else partitions))
         base = self.table_dir(table)
         if partitions is None:
             dirs = sorted(base.glob(f"{self._table(table).partition}=*"))
         else:
             dirs = [self.partition_dir(table, p) for p in partitions]
-        return [f for d in dirs for f in sorted(d.glob("*.parquet"))]
+        return [f for d in dirs for f in data_files(d)]
 
     def has_partition(self, table: str, part: str) -> bool:
         """Whether ``table`` has data in partition ``part`` (one folder looked at, not every partition)."""
-        return bool(self.files(table, [part]))
+        return bool(self.file_paths(table, [part]))
 
     def partitions(self, table: str) -> list[str]:
         """Partitions (clips, or libraries) that have data in ``table``."""
         note_read("partitions", table)
         prefix = f"{self._table(table).partition}="
-        return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if any(d.glob("*.parquet")))
+        return sorted(d.name[len(prefix):] for d in self.table_dir(table).glob(prefix + "*") if data_files(d))
 
     # -- writing -----------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -277,12 +304,14 @@ class Warehouse:
         folder = self.partition_dir(table, part)
         with self.locked(table, part):
             if spec.mode == "replace":
-                self._swap_in(folder, data)
+                written = self._swap_in(folder, data)
             else:
                 folder.mkdir(parents=True, exist_ok=True)
-                self._write_file(data, folder)
-                if len(list(folder.glob("*.parquet"))) > self.compact_after:
-                    self._compact_locked(table, part, 2)
+                written = self._write_file(data, folder)
+            if self._cache is not None:  # this process's next read of the file reads nothing
+                self._cache.written(str(written), data)
+            if spec.mode == "append" and len(data_files(folder)) > self.compact_after:
+                self._compact_locked(table, part, 2)
         for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
             hook(self)
         return data.num_rows
@@ -305,13 +334,13 @@ class Warehouse:
         fsync_dir(folder)
         return final
 
-    def _swap_in(self, folder: Path, data: pa.Table) -> None:
+    def _swap_in(self, folder: Path, data: pa.Table) -> Path:
         """Make ``data`` the only file of the partition ``folder`` in one step (see the module): a
-        replace-mode write, or a compaction's merged file."""
+        replace-mode write, or a compaction's merged file. Returns the file's path."""
         stage = self.root / "_staging" / f"swap-{uuid.uuid4().hex}"
         stage.mkdir(parents=True)
         try:
-            self._write_file(data, stage)
+            name = self._write_file(data, stage).name
             if folder.is_dir():
                 exchange(stage, folder)  # the partition now holds the new file, the staging folder the old one
             else:
@@ -320,6 +349,7 @@ class Warehouse:
             fsync_dir(folder.parent)
         finally:
             shutil.rmtree(stage, ignore_errors=True)
+        return folder / name
 
     def rename_legacy(self) -> dict[str, int]:
         """Give every replace-mode file still named ``part.parquet`` (an older warehouse) a name of
@@ -359,7 +389,7 @@ class Warehouse:
         import pyarrow.dataset as ds
 
         folder = self.partition_dir(table, part)
-        files = sorted(folder.glob("*.parquet"))
+        files = data_files(folder)
         if len(files) < max(min_files, 1):
             return None
         schema = self.spec(table).schema
@@ -378,6 +408,11 @@ class Warehouse:
         self._cache = cache if cache is not None else ReadCache(entries) if entries > 0 else None
         return self
 
+    @property
+    def reads_cached(self) -> bool:
+        """Whether :meth:`read` keeps results (:meth:`cache_reads`)."""
+        return self._cache is not None
+
     def read(
         self,
         table: str,
@@ -393,7 +428,7 @@ class Warehouse:
         """
         spec, cache = self.spec(table), self._cache
         for attempt in range(READ_RETRIES):
-            files = [str(f) for f in self.files(table, partitions)]
+            files = self.file_paths(table, partitions)
             if not files:
                 empty = spec.schema.empty_table()
                 return empty.select(list(columns)) if columns else empty
@@ -402,7 +437,13 @@ class Warehouse:
                 return kept
             try:
                 if filters is None:  # file by file: pyarrow.dataset imports pandas (~0.3 s), which `status` never needs
-                    result = _read_files(files, spec.schema, columns)
+                    result = _read_files(files, spec.schema, columns, cache)
+                    break
+                if cache is not None and isinstance(filters, list):  # unchanged files from the cache, filtered here
+                    import pyarrow.parquet as pq
+
+                    result = _read_files(files, spec.schema, None, cache).filter(pq.filters_to_expression(filters))
+                    result = result.select(list(columns)) if columns else result
                     break
                 if isinstance(filters, list):
                     import pyarrow.parquet as pq

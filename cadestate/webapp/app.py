@@ -38,6 +38,7 @@ from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import LabelError
 from warehouse import Warehouse
+from warehouse.read_cache import ReadCache
 
 STATIC = Path(__file__).parent / "static"
 MAX_WAIT_S = 30.0
@@ -68,9 +69,10 @@ def _stage_runs(wh: Warehouse, clip: str) -> list[dict]:
 def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
-    wh = Warehouse(config.warehouse.root).cache_reads()  # each page view reads the clip's task tables again
+    cache = ReadCache()  # each page view reads the clip's task tables again; the resumes write and read them too
+    wh = Warehouse(config.warehouse.root).cache_reads(cache=cache)
     lock = threading.Lock()
-    worker = resumer or Resumer(config)
+    worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
     tol = config.pose.coplanar_tol
 
