@@ -181,10 +181,11 @@ def _order(lf: LabelFile) -> tuple:
     return when, str(lf.path)
 
 
-def _ingest_times(wh: Warehouse, n: int, now: dt.datetime | None) -> list[dt.datetime]:
-    """``n`` strictly increasing times, all after every ``label_files.ingested_at`` so far."""
+def _ingest_times(wh: Warehouse, n: int, now: dt.datetime | None, clips: list[str]) -> list[dt.datetime]:
+    """``n`` strictly increasing times, all after every ``label_files.ingested_at`` of ``clips`` so
+    far (answers are ordered within their clip: every answer table's key starts with the clip)."""
     start = now or utc_now()
-    seen = wh.read("label_files", columns=["ingested_at"]).column("ingested_at").to_pylist()
+    seen = wh.read("label_files", clips, columns=["ingested_at"]).column("ingested_at").to_pylist()
     if seen and max(seen) >= start:
         start = max(seen) + dt.timedelta(microseconds=1)
     return [start + dt.timedelta(microseconds=i) for i in range(n)]
@@ -219,9 +220,10 @@ def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: 
     return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
 
 
-def _known(wh: Warehouse) -> set[str]:
-    """The SHA-256 of every label file ingested before."""
-    return set(wh.read("label_files", columns=["label_sha256"]).column("label_sha256").to_pylist())
+def _known(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
+    """The SHA-256 of every label file ingested before (for ``clips``: of theirs; a file names its
+    clip, so the same bytes were ingested for the same clip)."""
+    return set(wh.read("label_files", clips, columns=["label_sha256"]).column("label_sha256").to_pylist())
 
 
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
@@ -313,7 +315,7 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
     the :class:`ClipFacts` they were validated with; the app validates an answer before it writes
     its file, and need not parse it again). A file whose bytes were ingested before is a duplicate."""
     report = IngestReport()
-    known = _known(wh)
+    known = _known(wh, sorted({lf.clip for lf in files}))
     accepted = []
     for lf in files:
         if lf.sha256 in known:
@@ -330,7 +332,7 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
     """Ingest the ``accepted`` files (valid, new) into ``report``: batched per clip and table."""
     accepted = sorted(accepted, key=_order)
     by_clip: dict[str, list[PreparedFile]] = {}
-    for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now)):
+    for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now, sorted({lf.clip for lf in accepted}))):
         try:
             by_clip.setdefault(lf.clip, []).append(prepare_file(wh, lf, at, facts, coplanar_tol))
         except WRITE_ERRORS as e:
