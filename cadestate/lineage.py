@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import threading
 from collections.abc import Iterator
 from contextvars import ContextVar
 from typing import TYPE_CHECKING
@@ -60,6 +61,29 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+_KNOWN_SHA256: dict[tuple, str] = {}
+_KNOWN_LOCK = threading.Lock()
+KNOWN_SHA256_FILES = 4096
+"""How many files :func:`known_file_sha256` remembers (the oldest forgotten first)."""
+
+
+def known_file_sha256(path: str | os.PathLike) -> str:
+    """:func:`file_sha256`, remembered in this process while the file keeps its identity (path,
+    inode, size, modification and change times: any write changes the change time): a long-lived
+    process (the annotation app) hashes a clip's video once, not at every resume (a 100 MB video
+    costs ~0.1 s)."""
+    st = os.stat(path)
+    key = (os.path.realpath(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    sha = _KNOWN_SHA256.get(key)
+    if sha is None:
+        sha = file_sha256(path)
+        with _KNOWN_LOCK:
+            _KNOWN_SHA256[key] = sha
+            while len(_KNOWN_SHA256) > KNOWN_SHA256_FILES:
+                del _KNOWN_SHA256[next(iter(_KNOWN_SHA256))]
+    return sha
 
 
 def table_digest(table: pa.Table) -> str:

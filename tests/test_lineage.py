@@ -20,3 +20,25 @@ def test_table_digests_are_those_existing_warehouses_hold():
     assert table_digest(_table(b"a column", [1.0, 2.5])) != base
     assert table_digest(pa.table({"x": pa.array([1.0, 2.0], pa.float32())})) != base
     assert digest("cad_selection", "clip") == "8c4d10e280d50c5e"
+
+
+def test_a_known_file_is_hashed_again_only_when_it_changes(tmp_path, monkeypatch):
+    """cadestate.lineage.known_file_sha256: a clip's video, hashed once per process while it stays the same file."""
+    import os
+    import time
+
+    from cadestate import lineage
+
+    path = tmp_path / "video.mp4"
+    path.write_bytes(b"frames")
+    hashed: list[str] = []
+    real = lineage.file_sha256
+    monkeypatch.setattr(lineage, "file_sha256", lambda p, *a: hashed.append(str(p)) or real(p, *a))
+    first = lineage.known_file_sha256(path)
+    assert lineage.known_file_sha256(str(path)) == first == real(path) and len(hashed) == 1
+    st = path.stat()
+    time.sleep(0.05)  # file times come from a coarse clock (a jiffy): the change below gets a later one
+    with open(path, "r+b") as f:  # the same size and modification time, other bytes: the change time moves
+        f.write(b"FRAMES")
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert lineage.known_file_sha256(path) == real(path) != first and len(hashed) == 2

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 
 from cadestate.config import CamerasConfig
-from cadestate.lineage import digest, file_sha256
+from cadestate.lineage import digest, file_sha256, known_file_sha256
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import write_camera_file
 from tasks.video.ingest import SFM_REPORT_FILE, ClipSource, sfm_cameras_path
@@ -54,7 +54,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 def _source_inputs(source: ClipSource) -> list[str]:
     """The video, the given camera file (else "sfm") and the given intrinsics."""
-    cameras = file_sha256(source.cameras) if source.cameras is not None else "sfm"
+    cameras = known_file_sha256(source.cameras) if source.cameras is not None else "sfm"
     return ["cameras-inputs", source.video_sha256, cameras, str(source.intrinsics)]
 
 

@@ -27,7 +27,7 @@ import pyarrow as pa
 
 from cadestate.config import IngestConfig
 from cadestate.geometry import camera_to_world
-from cadestate.lineage import digest, file_sha256
+from cadestate.lineage import digest, file_sha256, known_file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
@@ -75,8 +75,8 @@ class ClipSource:
 
     @cached_property
     def video_sha256(self) -> str:
-        """SHA-256 of the video file, read once per source."""
-        return file_sha256(self.video)
+        """SHA-256 of the video file, read once per source (and per process while the file stays the same)."""
+        return known_file_sha256(self.video)
 
 
 def sfm_cameras_path(wh: Warehouse, clip: str) -> Path:
