@@ -39,7 +39,8 @@ def main() -> int:
     (RESULTS / "latest.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
     print(f"saved {RESULTS / 'latest.json'}")
-    print("\n".join(cli_bench.ratio_lines(results["commands"]["commands"])))
+    print("\n".join(cli_bench.ratio_lines(results["commands"]["commands"]) + cli_bench.round_lines(results["commands"]["label_round"])
+                    + [cli_bench.demo_round_line(results["annotation_app"].get("demo_clip", {}))]))
     if not results["budgets_ok"]:
         print("budgets_ok: false (a command is over its budget, above)")
         return 1

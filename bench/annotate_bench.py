@@ -143,15 +143,11 @@ def run() -> dict:
     return out
 
 
-def _next_task(tmp: Path) -> dict:
+def _next_task(tmp: Path, library: Path = Path("data/warehouse")) -> dict:
     """:func:`bench.annotate_resume.run` and :func:`bench.annotate_resume.run_demo` (over the CAD
-    library of ``make models``' training warehouse, ``$DESCRIPTOR_WAREHOUSE``), each failure as one
-    line (the other timings stand)."""
-    import os
-
+    library of the default warehouse, which ``make bench`` ingests with ``cadestate cad ingest``,
+    copied with its clips), each failure as one line (the other timings stand)."""
     from bench import annotate_resume
-
-    library = Path(os.environ.get("DESCRIPTOR_WAREHOUSE", Path.home() / ".cache" / "cadestate" / "descriptor-train"))
 
     def guarded(run) -> dict:
         try:

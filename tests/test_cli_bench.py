@@ -26,3 +26,16 @@ def test_measure_takes_wall_and_cpu_time_of_each_command():
     times = measure({"idle": [sys.executable, "-c", "pass"], "spin": [sys.executable, "-c", spin]}, repeats=3)
     assert times["spin"]["cpu_s"] >= 0.2 > times["idle"]["cpu_s"]
     assert times["spin"]["wall_s"] >= times["spin"]["cpu_s"] * 0.9
+
+
+def test_label_round_lines_give_each_round_its_share_and_the_target_verdict():
+    from bench.cli_bench import demo_round_line, round_lines
+
+    lines = round_lines({"ephemeral": {"wall_s": 6.0, "outside_share": 0.98}, "server": {"error": ["boom"]},
+                         "app_server": {"wall_s": 0.2, "outside_share": 0.27, "rounds": 5}})
+    assert lines[0] == "label round, labels ingest, ephemeral Prefect: 6.00 s, 98 % outside stage work"  # no target
+    assert lines[1] == "label round, labels ingest, server up: boom"
+    assert "(median of 5): 0.20 s, 27 % outside" in lines[2] and lines[2].endswith("OVER TARGET")
+    demo = {"rounds": {"a": {}, "b": {}, "c": {}}, "all_rounds": {"wall_s": 1.31, "stage_s": 1.08, "outside_share": 0.176}}
+    assert demo_round_line(demo).endswith("(3 rounds): 1.31 s, 18 % outside stage work  target < 20 %  ok")
+    assert demo_round_line({"skipped": "no CAD library in w"}).endswith(": no CAD library in w")
