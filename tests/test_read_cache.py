@@ -90,6 +90,17 @@ def test_files_kept_are_bounded_in_bytes(wh, opened):
         assert len(opened) == opened_again
 
 
+def test_read_results_kept_are_bounded_in_bytes_too(wh):
+    """A long-lived process whose stages read large tables through the cache (the annotation app)."""
+    wh.write("runs", "a", run_rows("a", 50))
+    small, tight = ReadCache(), ReadCache(file_bytes=1)
+    cached = Warehouse(wh.root).cache_reads(cache=small)
+    assert cached.read("runs", ["a"]) is cached.read("runs", ["a"])
+    cached.cache_reads(cache=tight)
+    assert cached.read("runs", ["a"]) is not cached.read("runs", ["a"])  # larger than the bound: not kept
+    assert cached.read("runs", ["a"]).equals(Warehouse(wh.root).read("runs", ["a"]))
+
+
 def test_runs_read_through_a_cache_equal_the_duckdb_read(wh):
     """tasks.status.read_runs: DuckDB for a command, the cache in a long-lived process; the same rows."""
     from tasks.status import read_runs

@@ -23,16 +23,19 @@ if TYPE_CHECKING:
 
 
 FILE_BYTES = 256 * 2**20
-"""Default bound on the rows kept file by file (Arrow bytes)."""
+"""Default bound on the rows kept file by file, and on the read results kept (Arrow bytes each): a
+long-lived process whose stages read large tables through the cache stays within ~0.5 GB for it."""
 
 
 class ReadCache:
-    """At most ``entries`` read results (module docstring); safe to share between threads."""
+    """At most ``entries`` read results, of ``file_bytes`` at most together, and files' rows of
+    ``file_bytes`` at most (module docstring); safe to share between threads."""
 
     def __init__(self, entries: int = 64, file_bytes: int = FILE_BYTES):
         self.entries = entries
         self.file_bytes = file_bytes
         self._kept: OrderedDict[tuple, pa.Table] = OrderedDict()
+        self._kept_total = 0
         self._files: OrderedDict[tuple, pa.Table] = OrderedDict()
         self._file_total = 0
         self._lock = threading.Lock()
@@ -108,6 +111,10 @@ class ReadCache:
 
     def put(self, key: tuple, result: pa.Table) -> None:
         with self._lock:
+            if key in self._kept:
+                self._kept_total -= self._kept.pop(key).nbytes
             self._kept[key] = result
-            while len(self._kept) > self.entries:
-                self._kept.popitem(last=False)
+            self._kept_total += result.nbytes
+            while self._kept and (len(self._kept) > self.entries or self._kept_total > self.file_bytes):
+                _, gone = self._kept.popitem(last=False)
+                self._kept_total -= gone.nbytes
