@@ -242,12 +242,40 @@ def label_rounds(video: Path, cameras: Path) -> dict:
             "app_server_ok": "outside_share" in app and app["outside_share"] < 0.2}
 
 
+DEMO_CLIP = "bench-7-00_0"
+"""``make run``'s demo clip (the Makefile's DEMO_CLIP)."""
+
+
+def demo_warehouse(source: Path, dest: Path, clip: str | None = None) -> tuple[Path, str]:
+    """The demo warehouse the command budgets are stated on, under ``dest``: the tables of
+    ``source`` (the default warehouse) with its CAD libraries and one clip, ``clip`` or make run's
+    demo clip when it has it, else its first (``make bench`` also runs its benchmarks' clips into
+    that warehouse: `status` prints a row per clip and stage, ~0.5 s of table rendering for 29
+    clips). Copied: Parquet files only, no media, catalog or Prefect home. Returns it and the clip."""
+    import shutil
+
+    wh = Warehouse(source)
+    clips = wh.partitions("clips")
+    clip = clip or (DEMO_CLIP if DEMO_CLIP in clips else clips[0] if clips else "")
+    keep = {*wh.partitions("cad_models"), clip}
+    for table_dir in sorted((source / "tables").iterdir()):
+        for entry in table_dir.iterdir():
+            if entry.is_dir() and "=" in entry.name and entry.name.split("=", 1)[1] not in keep:
+                continue
+            target = dest / "tables" / table_dir.name / entry.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            (shutil.copytree if entry.is_dir() else shutil.copy2)(entry, target)
+    return dest, clip
+
+
 def run(warehouse: Path = Path("data/warehouse")) -> dict:
-    """The command ratios on ``warehouse`` (the demo's of `make run`) and the label rounds on a
-    generated clip of the demo's size (138 camera lines, 640x360)."""
+    """The command ratios on the demo warehouse (:func:`demo_warehouse` of ``warehouse``) and the
+    label rounds on a generated clip of the demo's size (138 camera lines, 640x360)."""
     from bench.demo_clip import DemoClipSpec, make_demo_clip
 
-    out = {"commands": command_ratios(warehouse)}
+    with tempfile.TemporaryDirectory(prefix="cadestate-bench-demo-") as tmp:
+        demo, clip = demo_warehouse(warehouse, Path(tmp) / "w")
+        out = {"commands": {**command_ratios(demo), "warehouse": f"{warehouse}: its CAD libraries and clip {clip}"}}
     with tempfile.TemporaryDirectory(prefix="cadestate-bench-clip-") as tmp:
         clip = make_demo_clip(Path(tmp), DemoClipSpec(name="round", num_video_frames=276, seed=3))
         out["label_round"] = label_rounds(clip.video_path, clip.cameras_path)

@@ -39,3 +39,19 @@ def test_label_round_lines_give_each_round_its_share_and_the_target_verdict():
     demo = {"rounds": {"a": {}, "b": {}, "c": {}}, "all_rounds": {"wall_s": 1.31, "stage_s": 1.08, "outside_share": 0.176}}
     assert demo_round_line(demo).endswith("(3 rounds): 1.31 s, 18 % outside stage work  target < 20 %  ok")
     assert demo_round_line({"skipped": "no CAD library in w"}).endswith(": no CAD library in w")
+
+
+def test_the_demo_warehouse_holds_the_cad_libraries_and_one_clip(wh, tmp_path):
+    """bench.cli_bench.demo_warehouse: the budgets' warehouse, cut from one that also holds a benchmark's clips."""
+    from bench.cli_bench import demo_warehouse
+    from tests.test_warehouse import clip_rows, run_rows
+    from warehouse import Warehouse
+
+    for clip in ("a", "b"):
+        wh.write("clips", clip, clip_rows(clip))
+        wh.write("runs", clip, run_rows(clip, 2))
+    root, clip = demo_warehouse(wh.root, tmp_path / "demo", "b")
+    demo = Warehouse(root)
+    assert clip == "b" and demo.partitions("clips") == demo.partitions("runs") == ["b"]
+    assert demo.read("runs").equals(wh.read("runs", ["b"]))
+    assert demo_warehouse(wh.root, tmp_path / "first")[1] == "a"  # no demo clip: the first
