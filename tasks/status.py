@@ -139,3 +139,37 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")
     return notes
+
+
+@dataclass(frozen=True)
+class ClipSummary:
+    """One clip's stages in a line (`cadestate status` beyond a few clips): where it stands (the first
+    stage, in pipeline order, running, failed, interrupted, paused or never run, else 'completed'),
+    its newest run, the stages completed (or paused with answers to go on) of all, and its stale stages."""
+
+    clip: str
+    stands: str
+    last_run_at: str
+    done: int
+    stages: int
+    stale: tuple[str, ...]
+
+
+STANDS_ORDER = ("running", "failed", "interrupted", "paused", "never run")
+"""What a clip's line says first, when one of its stages is so (a running stage before a failed one, ...)."""
+
+
+def clip_summaries(rows: Sequence[StageStatus]) -> list[ClipSummary]:
+    """:class:`ClipSummary` of each clip of ``rows`` (:func:`pipeline_status`: stages in pipeline order)."""
+    by_clip: dict[str, list[StageStatus]] = {}
+    for r in rows:
+        by_clip.setdefault(r.clip, []).append(r)
+    out = []
+    for clip, stages in by_clip.items():
+        first = next(((s, r.stage) for s in STANDS_ORDER for r in stages if r.status == s), None)
+        stands = "completed" if first is None else f"{'waits' if first[0] == 'paused' else first[0]} at {first[1]}"
+        out.append(ClipSummary(clip, stands,
+                               max((r.last_run_at for r in stages), default=""),
+                               sum(r.status == "completed" for r in stages), len(stages),
+                               tuple(r.stage for r in stages if r.stale_reasons)))
+    return out

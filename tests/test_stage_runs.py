@@ -86,3 +86,43 @@ def _clip_row(clip: str):
     from conftest import table_rows
 
     return table_rows("clips", [{"clip": clip, "split": "train"}])
+
+
+def test_a_clip_line_says_where_it_stands_first_in_pipeline_order():
+    """tasks.status.clip_summaries: running before failed before interrupted before paused before never run."""
+    from tasks.status import StageStatus, clip_summaries
+
+    def row(clip, stage, status, stale=(), when="11-29 04:08"):
+        return StageStatus(clip, stage, status, when if status != "never run" else "", 1, stale)
+
+    rows = [row("a", "ingest", "completed"), row("a", "frames", "paused"), row("a", "detect", "failed", ("upstream stale",)),
+            row("b", "ingest", "completed", when="11-29 05:00"), row("b", "frames", "paused"), row("b", "detect", "never run"),
+            row("c", "ingest", "completed"), row("c", "frames", "completed", ("code changed",), "11-29 04:09")]
+    a, b, c = clip_summaries(rows)
+    assert (a.stands, a.done, a.stages, a.stale) == ("failed at detect", 1, 3, ("detect",))
+    assert (b.stands, b.last_run_at, b.done) == ("waits at frames", "11-29 05:00", 1)
+    assert (c.stands, c.last_run_at, c.done, c.stale) == ("completed", "11-29 04:09", 2, ("frames",))
+
+
+def test_status_beyond_eight_clips_shows_one_line_each_unless_asked_for_every_stage(tmp_path):
+    import datetime as dt
+
+    import pyarrow as pa
+
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path / "w")
+    for i in range(9):
+        wh.write("runs", f"c{i}", pa.Table.from_pylist([
+            {"clip": f"c{i}", "run_id": "r0", "stage": "cameras", "status": "completed", "config_hash": "c", "inputs_hash": "i",
+             "output_hash": "o", "code_hash": "k", "started_at": dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc),
+             "duration_s": 1.0, "rows_written": 0, "message": ""}]))
+    runner = CliRunner()
+    summary = runner.invoke(app, ["-w", str(wh.root), "status"])
+    assert summary.exit_code == 0, summary.output
+    assert "one line each" in summary.output and "9 clips:" in summary.output
+    assert summary.output.count("never run at ingest") == 9 and f"1/{len(stages_of('clip'))}" in summary.output
+    every = runner.invoke(app, ["-w", str(wh.root), "status", "--stages"])
+    assert "one line each" not in every.output and every.output.count("never run") == 9 * (len(stages_of("clip")) - 1)
+    named = runner.invoke(app, ["-w", str(wh.root), "status", "c3"])
+    assert "one line each" not in named.output and "c3" in named.output and "c4" not in named.output

@@ -152,25 +152,42 @@ def run(
     run_sources(ctx.obj, items, progress)
 
 
+SUMMARY_AFTER = 8
+"""`cadestate status` without clips named shows one line per clip beyond this many clips (unless --stages)."""
+
+
 @app.command()
 def status(
     ctx: typer.Context,
     clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to show (default: all).")] = None,
+    stages: Annotated[bool, typer.Option("--stages", help=f"Every stage of every clip, also beyond {SUMMARY_AFTER} clips.")] = False,
 ) -> None:
     """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed
-    since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered)."""
-    from tasks.status import clip_notes, pipeline_status, read_runs
+    since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered).
+    Beyond 8 clips, and none named, one line per clip (where it stands, its stale stages): name clips
+    or give --stages for every stage."""
+    from tasks.status import clip_notes, clip_summaries, pipeline_status, read_runs
 
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
     runs = read_runs(wh, clips)  # clips' and libraries' alike
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
         rows = pipeline_status(wh, cfg, clips, scope, runs)
-        table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
-                      Column("fresh", min_width=5), title=f"{title} (times UTC)")
-        for r in rows:
-            fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
-            table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
-        out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
+        names = sorted({r.clip for r in rows})
+        if scope == "clip" and not clips and not stages and len(names) > SUMMARY_AFTER:
+            table = Table(*(Column(name, no_wrap=True) for name in ("clip", "stands", "last run", "done")),
+                          Column("fresh", min_width=5), title=f"{title} (times UTC), one line each")
+            for c in clip_summaries(rows):
+                fresh = "[green]yes[/]" if not c.stale else f"[yellow]no: {len(c.stale)} from {c.stale[0]}[/]"
+                table.add_row(escape(c.clip), c.stands, c.last_run_at, f"{c.done}/{c.stages}", fresh)
+            out.print(table)
+            out.print(f"{len(names)} clips: `cadestate status CLIP...` or `cadestate status --stages` shows every stage")
+        else:
+            table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
+                          Column("fresh", min_width=5), title=f"{title} (times UTC)")
+            for r in rows:
+                fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
+                table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
+            out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
         for r in rows:
             if r.status == "paused":
                 out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
