@@ -567,3 +567,16 @@ def test_cli_size_limit_default_is_the_named_constant():
     from tasks.human.label_format import MAX_LABEL_BYTES
 
     assert DEFAULT_MAX_MB * 1e6 == MAX_LABEL_BYTES
+
+
+def test_the_newest_task_of_each_kind_from_one_read(lwh):
+    """tasks.human.labels.latest_tasks: per kind, the row a filtered read's max by created_at gives."""
+    from schemas.labels import KINDS
+    from tasks.human.labels import latest_tasks
+
+    newest = latest_tasks(lwh, CLIP)
+    assert newest and set(newest) <= set(KINDS)
+    for kind in KINDS:
+        rows = lwh.read("label_tasks", [CLIP], filters=[("kind", "=", kind)]).to_pylist()
+        assert newest.get(kind) == (max(rows, key=lambda r: r["created_at"]) if rows else None)
+    assert latest_tasks(lwh, "no-such-clip") == {}

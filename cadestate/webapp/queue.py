@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
 from tasks.human.label_ingest import answered_tasks, current_answers
-from tasks.human.labels import latest_task_of_kind
+from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
 
 
@@ -37,8 +37,9 @@ class OpenTask:
 def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
     """The newest task of each kind of ``clip`` (answered or not), in pipeline order."""
     out = []
+    newest = latest_tasks(wh, clip)
     for kind in KINDS:
-        row = latest_task_of_kind(wh, clip, kind)
+        row = newest.get(kind)
         if row is None:
             continue
         doc = json.loads(row["document"])

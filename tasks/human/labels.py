@@ -111,10 +111,21 @@ def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
 
 def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
     """The newest ``label_tasks`` row of ``kind`` for ``clip`` (e.g. the task an import answers)."""
+    return latest_tasks(wh, clip).get(kind)
+
+
+def latest_tasks(wh: Warehouse, clip: str) -> dict[str, dict]:
+    """The newest ``label_tasks`` row of each kind for ``clip`` (kind -> row; the first of equal
+    times), from one read: only those rows become Python objects (a task's document can be large)."""
     if not wh.has_partition("label_tasks", clip):
-        return None
-    rows = wh.read("label_tasks", [clip], filters=[("kind", "=", kind)]).to_pylist()
-    return max(rows, key=lambda r: r["created_at"]) if rows else None
+        return {}
+    table = wh.read("label_tasks", [clip])
+    kinds, created = table.column("kind").to_pylist(), table.column("created_at").to_pylist()
+    newest: dict[str, int] = {}
+    for i, (kind, at) in enumerate(zip(kinds, created)):
+        if kind not in newest or at > created[newest[kind]]:
+            newest[kind] = i
+    return {kind: table.slice(i, 1).to_pylist()[0] for kind, i in newest.items()}
 
 
 # ------------------------------------------------------------------------------ warehouse checks
