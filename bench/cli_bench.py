@@ -100,6 +100,12 @@ def ratio_lines(ratios: dict) -> list[str]:
     return lines
 
 
+def _round_text(wall_s: float, share: float, target: bool) -> str:
+    """A label round's (or rounds') wall time and share outside stage work, with the 20 % target's verdict."""
+    verdict = f"  target < 20 %  {'ok' if share < 0.2 else 'OVER TARGET'}" if target else ""
+    return f"{wall_s:.2f} s, {100 * share:.0f} % outside stage work{verdict}"
+
+
 def round_lines(rounds: dict) -> list[str]:
     """One line per label round of :func:`label_rounds`: its wall time and share outside stage
     work, next to the 20 % target where one applies (with the server up)."""
@@ -110,10 +116,8 @@ def round_lines(rounds: dict) -> list[str]:
         if "outside_share" not in r:
             lines.append(f"label round, {what}: {'; '.join(r.get('error', ['not measured']))}")
             continue
-        verdict = ("ok" if r["outside_share"] < 0.2 else "OVER TARGET") if target else ""
         of = f" (median of {r['rounds']})" if "rounds" in r else ""
-        lines.append(f"label round, {what}{of}: {r['wall_s']:.2f} s, {100 * r['outside_share']:.0f} % outside stage work"
-                     + (f"  target < 20 %  {verdict}" if target else ""))
+        lines.append(f"label round, {what}{of}: {_round_text(r['wall_s'], r['outside_share'], target)}")
     return lines
 
 
@@ -123,9 +127,8 @@ def demo_round_line(demo: dict) -> str:
     rounds = demo.get("all_rounds")
     if not rounds or rounds.get("outside_share") is None:
         return f"label rounds, demo clip in the annotation app: {demo.get('answer_to_next_task', demo.get('skipped', 'not measured'))}"
-    verdict = "ok" if rounds["outside_share"] < 0.2 else "OVER TARGET"
-    return (f"label rounds, demo clip in the annotation app ({len(demo['rounds'])} rounds): {rounds['wall_s']:.2f} s, "
-            f"{100 * rounds['outside_share']:.0f} % outside stage work  target < 20 %  {verdict}")
+    return (f"label rounds, demo clip in the annotation app ({len(demo['rounds'])} rounds): "
+            f"{_round_text(rounds['wall_s'], rounds['outside_share'], True)}")
 
 
 def _manual_label(task: Path, answers: list) -> dict:
@@ -242,21 +245,20 @@ def label_rounds(video: Path, cameras: Path) -> dict:
             "app_server_ok": "outside_share" in app and app["outside_share"] < 0.2}
 
 
-DEMO_CLIP = "bench-7-00_0"
-"""``make run``'s demo clip (the Makefile's DEMO_CLIP)."""
-
-
 def demo_warehouse(source: Path, dest: Path, clip: str | None = None) -> tuple[Path, str]:
     """The demo warehouse the command budgets are stated on, under ``dest``: the tables of
     ``source`` (the default warehouse) with its CAD libraries and one clip, ``clip`` or make run's
     demo clip when it has it, else its first (``make bench`` also runs its benchmarks' clips into
-    that warehouse: `status` prints a row per clip and stage, ~0.5 s of table rendering for 29
-    clips). Copied: Parquet files only, no media, catalog or Prefect home. Returns it and the clip."""
+    that warehouse: `status --stages` prints a row per clip and stage, ~0.5 s of table rendering
+    for 28 clips). Copied: Parquet files only, no media, catalog or Prefect home. Returns it and the clip."""
     import shutil
 
+    from bench.annotate_resume import DEMO_SEED
+    from bench.benchmark import clip_name
+
     wh = Warehouse(source)
-    clips = wh.partitions("clips")
-    clip = clip or (DEMO_CLIP if DEMO_CLIP in clips else clips[0] if clips else "")
+    clips, demo = wh.partitions("clips"), clip_name(DEMO_SEED, 0)
+    clip = clip or (demo if demo in clips else clips[0] if clips else "")
     keep = {*wh.partitions("cad_models"), clip}
     for table_dir in sorted((source / "tables").iterdir()):
         for entry in table_dir.iterdir():

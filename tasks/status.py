@@ -145,7 +145,7 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
 class ClipSummary:
     """One clip's stages in a line (`cadestate status` beyond a few clips): where it stands (the first
     stage, in pipeline order, running, failed, interrupted, paused or never run, else 'completed'),
-    its newest run, the stages completed (or paused with answers to go on) of all, and its stale stages."""
+    its newest run, how many of its stages are completed, of how many, and its stale stages."""
 
     clip: str
     stands: str

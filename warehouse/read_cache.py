@@ -47,11 +47,13 @@ class ReadCache:
         or the filter is an expression (read it, keep nothing)."""
         if filters is not None and not isinstance(filters, list):
             return None
+        ids = tuple(ReadCache.file_identity(f) for f in files)
+        if None in ids:  # a file gone
+            return None
         try:
-            ids = tuple((f, st.st_ino, st.st_size, st.st_mtime_ns) for f in files for st in [os.stat(f)])
             rows = tuple(tuple(tuple(v) if isinstance(v, list) else v for v in f) for f in filters) if filters else None
             hash(rows)
-        except (FileNotFoundError, TypeError):  # a file gone; a filter value that cannot be hashed
+        except TypeError:  # a filter value that cannot be hashed
             return None
         return table, ids, tuple(columns) if columns else None, rows
 
