@@ -180,7 +180,7 @@ def status(
                 fresh = "[green]yes[/]" if not c.stale else f"[yellow]no: {len(c.stale)} from {c.stale[0]}[/]"
                 table.add_row(escape(c.clip), c.stands, c.last_run_at, f"{c.done}/{c.stages}", fresh)
             out.print(table)
-            out.print(f"{len(names)} clips: `cadestate status CLIP...` or `cadestate status --stages` shows every stage")
+            out.print(f"{len(names)} clips: `cadestate status CLIP...` or `--stages` shows every stage")
         else:
             table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
                           Column("fresh", min_width=5), title=f"{title} (times UTC)")
