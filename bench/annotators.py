@@ -27,6 +27,7 @@ from cadestate.geometry import pixel_intrinsics_matrix, project, quaternion_to_m
 from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
 from schemas.official import Correspondence, Frame, FramesFile, ObjectAnnotation, TrackEntry
 from tasks.cad.symmetry import rotation_y
+from tasks.human.label_format import SAME_POINT_M
 
 OWN_ID = 0  # instance id of the annotated object in visibility renders; occluders get 1, 2, ...
 
@@ -229,11 +230,16 @@ def _planar_groups(mesh: trimesh.Trimesh) -> np.ndarray:
     return group
 
 
-def _farthest_points(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``n`` well-spread points (greedy farthest-point sampling from a random start)."""
+def _farthest_points(points: np.ndarray, n: int, rng: np.random.Generator, apart: float = SAME_POINT_M) -> np.ndarray:
+    """Indices of up to ``n`` well-spread points (greedy farthest-point sampling from a random
+    start), each at least ``apart`` from the others: fewer when the rest lie closer (a sliver of
+    the model in view), as a person does not click one model point twice (the label rule
+    :data:`tasks.human.label_format.SAME_POINT_M`)."""
     chosen = [int(rng.integers(len(points)))]
     d = np.linalg.norm(points - points[chosen[0]], axis=1)
     for _ in range(1, n):
+        if d.max() < apart:
+            break
         chosen.append(int(np.argmax(d)))
         d = np.minimum(d, np.linalg.norm(points - points[chosen[-1]], axis=1))
     return np.array(chosen)
@@ -300,6 +306,9 @@ def annotate_correspondences(frames: FramesFile, obj: ObjectAnnotation, mesh: tr
             continue
         n = min(int(rng.integers(lo, hi + 1)), len(vis))
         pick = vis[_farthest_points(samples.points[vis], n, rng)]
+        if len(pick) < lo:
+            continue
+        n = len(pick)
         used[pick] = True
         xyz = samples.points[pick]
         deg = 0.0

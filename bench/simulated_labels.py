@@ -29,6 +29,10 @@ label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench
   (:func:`same_as_answers`): of the tracks on one ground-truth object linked by flags, one keeps its
   pose (an accepted one first, then the lowest track id) and the others answer ``same_as_track`` it.
 
+The noise of a pick or a click on a track is drawn from the object the track follows, not from its
+track id (:meth:`_Clip.dice`): two pipelines compared on one benchmark (another detector, another
+tracking) see the same person where they hand over the same object.
+
 :func:`annotate_until_done` is the ``cadestate bench run`` loop (the default; ``--gt-tracks`` skips it): run the clips,
 answer their open tasks, ingest the labels (:func:`tasks.human.label_ingest.ingest_labels`), rerun the
 clips that got labels, until no clip waits or ``max_rounds``.
@@ -55,6 +59,7 @@ from tasks.dataset.export_official import official_frames
 from tasks.dataset.objects import DatasetFrame, clip_frames
 from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
+from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS = "labels"
@@ -75,6 +80,7 @@ class _Clip:
         self.frames = read_frames(Path(bench_dir) / clip / "frames.json")
         self.objects = {o.track_id: o for o in read_objects(Path(bench_dir) / clip / "objects.json").objects}
         self.truth = track_truth(bench_dir, wh, clip)
+        self.sizes = {t: len(track.boxes) for t, track in clip_tracks(wh, clip).items()}
         self.shown = shown_frames(wh, clip, self.frames)
         self.index = {f.timestamp: i for i, f in enumerate(self.frames.frames)}
         self.models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "mesh_path", "symmetry"]).to_pylist()}
@@ -84,6 +90,19 @@ class _Clip:
     def gt_id(self, track_id: int) -> str | None:
         """The ground-truth object the track follows (:func:`bench.retrieval_bench.track_truth`), or None."""
         return self.truth.get(track_id) or self.truth.get(str(track_id))
+
+    def dice(self, track_id: int) -> tuple[str, ...]:
+        """The salt of the simulated person's noise on one track: the object it follows and the
+        track's rank among that object's tracks (most boxes first, then track id), or the track id
+        when it follows none. Track ids are arbitrary (another detector or tracking renumbers them),
+        so a person's clicks and picks on an object's main track stay the same draw when only the
+        numbering or a stray fragment changes: two pipelines compared on one benchmark differ by
+        what they do, not by re-rolled dice."""
+        gt_id = self.gt_id(track_id)
+        if gt_id is None:
+            return ("track", str(track_id))
+        order = sorted((-self.sizes.get(int(t), 0), int(t)) for t, g in self.truth.items() if g == gt_id)
+        return ("object", gt_id, str([t for _, t in order].index(int(track_id))))
 
     def gt(self, track_id: int):
         o = self.objects.get(self.gt_id(track_id) or "")
@@ -179,7 +198,7 @@ def _select(c: _Clip, item, noise: AnnotatorNoise) -> dict:
     cad_id = None
     if o is not None:
         cad_id = select_cad(o.cad_id, [k.cad_id for k in item.candidates], c.distance, noise,
-                            noise.rng(c.clip, "select_cad", item.track_id))
+                            noise.rng(c.clip, "select_cad", *c.dice(item.track_id)))
     return {"track_id": item.track_id, "cad_id": cad_id}
 
 
@@ -191,7 +210,7 @@ def _correspond(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> di
     if not keyframes:
         return None
     clicks = annotate_correspondences(c.frames, o, c.mesh(item.cad_id), noise=noise,
-                                      rng=noise.rng(c.clip, "correspondences", item.track_id, item.cad_id),
+                                      rng=noise.rng(c.clip, "correspondences", *c.dice(item.track_id), item.cad_id),
                                       renderer=renderer, symmetry_order=int(item.symmetry), keyframes=keyframes,
                                       occluders=c.occluders(o.track_id))
     if not clicks:

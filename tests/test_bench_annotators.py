@@ -502,3 +502,48 @@ def test_simulated_verifier_names_the_flagged_duplicates_of_one_object():
     verdicts = {1: "reject", 3: "accept", 7: "accept", 8: "accept", 10: "accept", 11: "accept"}
     assert same_as_answers(NS(items=items), truth, verdicts) == {1: 3, 8: 7}
     assert same_as_answers(NS(items=items), truth, {}) == {3: 1, 8: 7}  # nothing answered: the lowest id
+
+
+def test_a_simulated_persons_dice_follow_the_object_not_the_track_number():
+    """bench.simulated_labels._Clip.dice: renumbering the tracks (another detector, another tracking)
+    keeps the draws of each object's main track (most boxes); two tracks on one object, and tracks
+    on no object, draw apart."""
+    from bench.simulated_labels import _Clip
+
+    def clip(truth: dict[int, str], sizes: dict[int, int]) -> _Clip:
+        c = object.__new__(_Clip)
+        c.truth, c.sizes = truth, sizes
+        return c
+
+    # object 10: a 16-box fragment and its 77-box main track, then one 115-box track; object 8 renumbered
+    before = clip({2: "10", 6: "10", 3: "8"}, {2: 16, 6: 77, 3: 138})
+    after = clip({3: "10", 2: "8"}, {3: 115, 2: 138})
+    assert before.dice(6) == after.dice(3) and before.dice(3) == after.dice(2)
+    assert before.dice(2) != before.dice(6) and before.dice(2) != before.dice(3)
+    assert before.dice(4) == ("track", "4") != before.dice(5)
+    noise = AnnotatorNoise()
+    assert (noise.rng("c", "select_cad", *before.dice(3)).random() == noise.rng("c", "select_cad", *after.dice(2)).random()
+            != noise.rng("c", "select_cad", *before.dice(2)).random())
+
+
+def test_a_simulated_person_never_clicks_one_model_point_twice():
+    """Visible samples that lie closer than the label rule's SAME_POINT_M (a sliver of the model in
+    view) are one point to click: the key-frame gets the distinct ones, or is skipped when fewer
+    than points_per_keyframe[0] are distinct, so every label written passes validation."""
+    from bench.annotators import _farthest_points
+    from tasks.human.label_format import SAME_POINT_M
+
+    rng = np.random.default_rng(0)
+    cluster = rng.uniform(-1e-4, 1e-4, (40, 3))  # 40 samples within 0.2 mm of the model's centre
+    spread = np.vstack([cluster, [[0.2, 0.0, 0.0], [0.0, 0.2, 0.0]]])
+    pick = _farthest_points(spread, 6, np.random.default_rng(1))
+    assert len(pick) == 3 and all(np.linalg.norm(spread[a] - spread[b]) >= SAME_POINT_M
+                                  for i, a in enumerate(pick) for b in pick[:i])
+    frames = make_frames()
+    obj = make_object(frames, chair())
+    tiny = SurfaceSamples(cluster, np.tile([0.0, 0.0, 1.0], (40, 1)))
+    assert annotate_correspondences(frames, obj, None, noise=EXACT, rng=np.random.default_rng(2), samples=tiny,
+                                    keyframes=[0, 12]) == []
+    wide = SurfaceSamples(spread[[0, 40, 41]], np.tile([0.0, 0.0, 1.0], (3, 1)))  # three distinct points
+    assert annotate_correspondences(frames, obj, None, noise=replace(EXACT, points_per_keyframe=(3, 3)),
+                                    rng=np.random.default_rng(2), samples=wide, keyframes=[12]) != []
