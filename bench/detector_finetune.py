@@ -8,11 +8,19 @@ by torch from its own ONNX graph (:mod:`bench.onnx_torch`) and written back into
 Start and teacher: the detector with its trained rows. Loss per batch of ``finetune_batch`` frames
 (:class:`bench.detector_data.FrameSet`, the held-out rooms never drawn):
 
-- Quality Focal Loss on the furniture classes' scores, towards the cells' targets (as the rows);
+- Quality Focal Loss on the furniture classes' scores: a cell asked for a class (the rows'
+  targets) should score it with the IoU of its own box, as it is now, with its object's box;
+- ``box_giou`` times the generalised-IoU loss and ``box_dfl`` times the Distribution Focal Loss
+  (NanoDet's own box losses) of those cells' boxes towards their object's box
+  (:func:`assigned_boxes`), each cell weighted by its target IoU: the teacher's boxes fit COCO's
+  objects, and on held-out rooms half of the false boxes overlapped an object by only 0.2-0.5;
+- ``box_distill`` times the KL divergence of every other cell's box distributions (4 sides x 11
+  bins) from the teacher's, so the cells that should score nothing keep the teacher's boxes;
 - binary cross-entropy of the COCO labels kept beside them towards the teacher's scores, so they
-  keep their meaning (a cat stays a cat);
-- ``box_distill`` times the KL divergence of each cell's box distributions (4 sides x 11 bins)
-  from the teacher's: the cell targets were made with the teacher's boxes, and they stay its.
+  keep their meaning (a cat stays a cat).
+
+With ``box_giou`` 0 the boxes are not trained: every cell's box is held to the teacher's and the
+scores' targets are the rows' (the IoU of the teacher's box).
 
 AdamW on one thread with deterministic algorithms, batches drawn by a generator of the spec's
 seed: the same frames give the same bytes.
@@ -31,7 +39,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from bench.detector_data import FrameSet
+from bench.detector_data import FrameSet, cell_centres, pairwise_iou
 from bench.detector_train import OPERATING_THRESHOLDS, kept, logit, operating_threshold, score_found
 from cadestate.progress import progress
 from tasks.detection.models import nanodet
@@ -83,35 +91,101 @@ def _finetune(torch, model: onnx.ModelProto, frames: FrameSet, train_idx: np.nda
     optimiser = torch.optim.AdamW(student.parameters(), lr=spec.finetune_lr, weight_decay=spec.weight_decay)
     generator = torch.Generator().manual_seed(spec.seed)
     k, losses = len(FURNITURE_CLASSES), []
+    centres = torch.from_numpy(cell_centres().astype(np.float32))[None]
+    strides = torch.cat([torch.full(((nanodet.SIZE // s) ** 2,), float(s)) for s in nanodet.STRIDES])[None]
     for _ in progress(range(spec.finetune_steps), total=spec.finetune_steps, description="fine-tuning", enabled=show_progress):
         pick = np.sort(train_idx[torch.randint(len(train_idx), (spec.finetune_batch,), generator=generator).numpy()])
         x = torch.from_numpy(network_input(frames.canvas[pick]))
         target = torch.from_numpy(frames.target[pick].astype(np.int64))
         quality = torch.from_numpy(frames.quality[pick].astype(np.float32))
+        truth = torch.from_numpy(np.stack([assigned_boxes(frames, f) for f in pick]))
         scores, dists = _split(student(x))
         with torch.no_grad():
             t_scores, t_dists = _split(teacher(x))
         p = scores[..., :k].clamp(1e-6, 1 - 1e-6)  # the graph ends in a sigmoid: scores, not logits
-        wanted = torch.zeros_like(p)
         pos = target >= 0
-        wanted[pos, target[pos]] = quality[pos]
+        log_q = torch.log_softmax(dists.reshape(*dists.shape[:2], 4, BINS), -1)
+        boxes = cell_boxes(log_q[pos].exp(), centres.expand(len(pick), -1, -1)[pos], strides.expand(len(pick), -1)[pos])
+        with torch.no_grad():
+            live_iou = box_iou(boxes, truth[pos]).clamp(min=0.0)
+        wanted = torch.zeros_like(p)
+        wanted[pos, target[pos]] = live_iou if spec.box_giou else quality[pos]
         qfl = F.binary_cross_entropy(p, wanted, reduction="none") * (wanted - p).abs() ** spec.beta
         qfl = (qfl * (target != -2)[..., None]).sum() / max(int(pos.sum()), 1)
         rest = F.binary_cross_entropy(scores[..., k:].clamp(1e-6, 1 - 1e-6), t_scores[..., k:])
-        log_q = torch.log_softmax(dists.reshape(*dists.shape[:2], 4, BINS), -1)
         log_t = torch.log_softmax(t_dists.reshape(*t_dists.shape[:2], 4, BINS), -1)
-        box = F.kl_div(log_q, log_t, log_target=True, reduction="none").sum(-1).mean()
-        loss = qfl + rest + spec.box_distill * box
+        kl = F.kl_div(log_q, log_t, log_target=True, reduction="none").sum(-1).mean(-1)  # [B, cells]
+        held = ~pos if spec.box_giou else torch.ones_like(pos)
+        box = (kl * held).sum() / max(int(held.sum()), 1)
+        weight = quality[pos]
+        giou = ((1 - box_iou(boxes, truth[pos], generalized=True)) * weight).sum() / max(float(weight.sum()), 1e-6)
+        dfl = (distribution_focal(log_q[pos], truth[pos], centres.expand(len(pick), -1, -1)[pos],
+                                  strides.expand(len(pick), -1)[pos]) * weight).sum() / max(float(weight.sum()), 1e-6)
+        loss = qfl + rest + spec.box_distill * box + spec.box_giou * giou + spec.box_dfl * dfl
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
-        losses.append([float(qfl.detach()), float(rest.detach()), float(box.detach())])
+        losses.append([float(qfl.detach()), float(rest.detach()), float(box.detach()), float(giou.detach()), float(dfl.detach())])
     n = max(1, min(50, len(losses) // 2))  # 50 steps, or half of fewer
     first, last = np.mean(losses[:n], 0), np.mean(losses[-n:], 0)
-    names = ("focal", "coco_distill", "box_distill")
+    names = ("focal", "coco_distill", "box_distill", "giou", "dfl")
     return with_weights(model, student), {
         "finetune_loss_first_50": {n: round(float(v), 4) for n, v in zip(names, first)},
         "finetune_loss_last_50": {n: round(float(v), 4) for n, v in zip(names, last)}}
+
+
+def assigned_boxes(frames: FrameSet, f: int) -> np.ndarray:
+    """float32[3549, 4]: for each cell of frame ``f`` asked for a class (``target >= 0``), the box
+    (x1, y1, x2, y2, letterbox pixels) of the object it was assigned to (:func:`bench.detector_data.assign`:
+    of the objects whose box holds the cell's centre, the one its stored box overlaps most); NaN elsewhere."""
+    out = np.full((len(frames.target[f]), 4), np.nan, np.float32)
+    pos = frames.target[f] >= 0
+    gt = frames.gt_boxes[frames.gt_frame == f]
+    if pos.any():
+        c = cell_centres()[pos]
+        inside = ((c[:, None, 0] >= gt[None, :, 0]) & (c[:, None, 0] <= gt[None, :, 2])
+                  & (c[:, None, 1] >= gt[None, :, 1]) & (c[:, None, 1] <= gt[None, :, 3]))
+        out[pos] = gt[np.where(inside, pairwise_iou(frames.boxes[f][pos], gt), -1.0).argmax(1)]
+    return out
+
+
+def cell_boxes(probs, centres, strides):
+    """Bin probabilities [P, 4, 11] of cells at ``centres`` [P, 2] with ``strides`` [P] -> boxes [P, 4]
+    (x1, y1, x2, y2): the expected distance to each side, as the detect stage decodes them."""
+    import torch
+
+    d = (probs * torch.arange(BINS, dtype=probs.dtype)).sum(-1) * strides[:, None]
+    return torch.cat([centres - d[:, :2], centres + d[:, 2:]], 1)
+
+
+def box_iou(a, b, generalized: bool = False):
+    """IoU (or generalised IoU) of paired boxes [P, 4] and [P, 4] (x1, y1, x2, y2) -> [P]."""
+    import torch
+
+    wh = (torch.minimum(a[:, 2:], b[:, 2:]) - torch.maximum(a[:, :2], b[:, :2])).clamp(min=0)
+    inter = wh[:, 0] * wh[:, 1]
+    area = lambda x: (x[:, 2] - x[:, 0]).clamp(min=0) * (x[:, 3] - x[:, 1]).clamp(min=0)  # noqa: E731
+    union = area(a) + area(b) - inter
+    iou = inter / union.clamp(min=1e-6)
+    if not generalized:
+        return iou
+    hull = (torch.maximum(a[:, 2:], b[:, 2:]) - torch.minimum(a[:, :2], b[:, :2])).clamp(min=0)
+    hull_area = (hull[:, 0] * hull[:, 1]).clamp(min=1e-6)
+    return iou - (hull_area - union) / hull_area
+
+
+def distribution_focal(log_probs, truth, centres, strides):
+    """Distribution Focal Loss [P] of bin log-probabilities [P, 4, 11] towards the distances of
+    boxes ``truth`` [P, 4] from the cells' ``centres`` [P, 2], in units of ``strides`` [P]: the two
+    bins around each distance get weights by how near it lies (NanoDet's box loss)."""
+    import torch
+
+    target = torch.cat([centres - truth[:, :2], truth[:, 2:] - centres], 1) / strides[:, None]
+    target = target.clamp(0, BINS - 1 - 0.01)
+    left = target.floor().long()
+    w_right = target - left
+    pick = lambda i: log_probs.gather(-1, i[..., None])[..., 0]  # noqa: E731
+    return -((1 - w_right) * pick(left) + w_right * pick(left + 1)).mean(-1)
 
 
 def cell_outputs(model: onnx.ModelProto, frames: FrameSet) -> list[tuple[np.ndarray, np.ndarray]]:

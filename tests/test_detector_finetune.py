@@ -62,21 +62,24 @@ def test_torch_runs_the_graph_as_onnxruntime_and_trained_weights_go_back(furnitu
 
 
 def square_frames(n: int = 4) -> FrameSet:
-    """Frames of noise with one bright square each; the stride-16 cells inside it should say 'cabinet'."""
+    """Frames of noise with one bright square each (a cabinet's box); the stride-16 cells inside it should say 'cabinet'."""
     rng = np.random.default_rng(5)
     canvas = rng.integers(60, 120, (n, nanodet.SIZE, nanodet.SIZE, 3)).astype(np.uint8)
     target = np.full((n, CELLS), -1, np.int8)
     quality = np.zeros((n, CELLS), np.float16)
     sl, side = stride_slices()[1], nanodet.SIZE // 16
+    squares = np.zeros((n, 4), np.float32)
     for f in range(n):
         y, x = rng.integers(4, side - 10, 2)
         canvas[f, y * 16:(y + 6) * 16, x * 16:(x + 6) * 16] = (230, 40, 40)
+        squares[f] = [x * 16, y * 16, (x + 6) * 16, (y + 6) * 16]
         cells = [sl.start + (y + i) * side + x + j for i in range(1, 5) for j in range(1, 5)]
         target[f, cells] = FURNITURE_CLASSES.index("cabinet")
         quality[f, cells] = 0.9
     z = np.zeros
     return FrameSet(z((n, CELLS, 128), np.float16), z((n, CELLS, 4), np.float32), target, quality, canvas,
-                    np.arange(n, dtype=np.int64), z(0, np.int64), z((0, 4), np.float32), z(0, np.int64), z(0, bool))
+                    np.arange(n, dtype=np.int64), np.arange(n, dtype=np.int64), squares,
+                    np.full(n, FURNITURE_CLASSES.index("cabinet"), np.int64), z(n, bool))
 
 
 def test_finetuning_learns_its_targets_keeps_the_teachers_boxes_and_repeats_bit_for_bit(furniture_start):
