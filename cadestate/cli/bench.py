@@ -44,6 +44,10 @@ def bench_run(
              "ground-truth tracks go into `correspondences` directly (poses of ground-truth tracks, as "
              "`python -m bench.pose_bench` solves them).")] = True,
     max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs of the clips.")] = 6,
+    annotator_seed: Annotated[int, typer.Option(
+        min=0, help="With --answer-tasks: the simulated annotators' seed (their noise: clicks, picks, boxes). One "
+             "run's yield moves by a few objects with it; run other seeds in other warehouses (-w) to see how "
+             "much.")] = 0,
     sfm_cameras: Annotated[bool, typer.Option(
         "--sfm-cameras",
         help="Withhold the camera files: each clip's video alone is ingested under its benchmark name and gets "
@@ -83,9 +87,11 @@ def bench_run(
     prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
     from flows.annotate_clip import run_clips
 
+    from bench.noise import DEFAULT_NOISE
+
     reports, waiting = annotate_until_done(
         bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
-        max_rounds, log=err.print)
+        max_rounds, dataclasses.replace(DEFAULT_NOISE, seed=annotator_seed), log=err.print)
     code = print_reports(merge_rounds(reports))
     if waiting:
         err.print(f"still waiting after {max_rounds} run(s): {', '.join(waiting)}")
