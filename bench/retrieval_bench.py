@@ -106,15 +106,16 @@ def sizes() -> dict:
     return {"12k_models": run(12_000, 10), "120k_models": run(120_000, 1)}
 
 
-def track_truth(bench_dir: Path, wh: Warehouse, clip: str) -> dict[int, str]:
+def track_truth(bench_dir: Path, wh: Warehouse, clip: str, tracks: dict | None = None) -> dict[int, str]:
     """Pipeline track id -> ground-truth track id, for tracks (automatic and manual,
-    :func:`tasks.tracking.clip_tracks.clip_tracks`) whose boxes mostly (> half) match (IoU >= 0.5) boxes of
-    one ground-truth object, matched as :func:`bench.track_bench.match_truth` matches boxes
-    (detections through :func:`bench.track_bench.detector_clip`)."""
+    :func:`tasks.tracking.clip_tracks.clip_tracks`; ``tracks``: its result when the caller has read
+    it) whose boxes mostly (> half) match (IoU >= 0.5) boxes of one ground-truth object, matched as
+    :func:`bench.track_bench.match_truth` matches boxes (detections through
+    :func:`bench.track_bench.detector_clip`)."""
     from bench.track_bench import detector_clip, gt_clip, match_truth
     from tasks.tracking.clip_tracks import clip_tracks
 
-    tracks = clip_tracks(wh, clip)
+    tracks = clip_tracks(wh, clip) if tracks is None else tracks
     cb = detector_clip(wh, bench_dir, clip)
     detected = dict(zip(cb.det_id.tolist(), cb.truth.tolist())) if cb is not None else {}
     drawn = [(t.track_id, b) for t in tracks.values() for b in t.boxes if b.det_id is None]

@@ -79,8 +79,9 @@ class _Clip:
         self.wh, self.clip = wh, clip
         self.frames = read_frames(Path(bench_dir) / clip / "frames.json")
         self.objects = {o.track_id: o for o in read_objects(Path(bench_dir) / clip / "objects.json").objects}
-        self.truth = track_truth(bench_dir, wh, clip)
-        self.sizes = {t: len(track.boxes) for t, track in clip_tracks(wh, clip).items()}
+        tracks = clip_tracks(wh, clip)
+        self.truth = track_truth(bench_dir, wh, clip, tracks)
+        self.sizes = {t: len(track.boxes) for t, track in tracks.items()}
         self.shown = shown_frames(wh, clip, self.frames)
         self.index = {f.timestamp: i for i, f in enumerate(self.frames.frames)}
         self.models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "mesh_path", "symmetry"]).to_pylist()}

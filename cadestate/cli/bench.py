@@ -79,6 +79,7 @@ def bench_run(
         err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
         run_sources(ctx.obj, list(sources.values()), progress)
         return
+    from bench.noise import DEFAULT_NOISE
     from bench.simulated_labels import annotate_until_done, merge_rounds
     from cadestate.cli.common import print_reports
     from flows.runtime import prepare_prefect_environment
@@ -86,8 +87,6 @@ def bench_run(
     cfg = ctx.obj.config()
     prepare_prefect_environment(Path(cfg.warehouse.root).resolve(), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
     from flows.annotate_clip import run_clips
-
-    from bench.noise import DEFAULT_NOISE
 
     reports, waiting = annotate_until_done(
         bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
