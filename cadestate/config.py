@@ -221,6 +221,8 @@ class DetectConfig:
     nms_iou: float = _opt(0.45, "Class-aware NMS: a box overlapping a better one of its class above this IoU is dropped.", lo=0.0, hi=1.0)
     nms_containment: float = _opt(0.8, "Class-aware NMS: a box with more than this share of its area inside a better one of its class "
                                        "is dropped (a part of an object boxed again); 1 = never.", lo=0.0, hi=1.0)
+    nms_agnostic_iou: float = _opt(0.6, "NMS across classes: a box overlapping a better one of any class above this IoU is dropped "
+                                        "(one object boxed under two names); 1 = never.", lo=0.0, hi=1.0)
     max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
     classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
     batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)

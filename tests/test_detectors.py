@@ -223,6 +223,23 @@ def test_class_aware_nms():
     assert nms(boxes[:0], scores[:0], labels[:0], 0.5).tolist() == []
 
 
+def test_nms_across_classes_drops_one_object_boxed_under_two_names_and_keeps_objects_that_overlap_less():
+    table = [0.0, 0.0, 100.0, 60.0]
+    table_as_bed = [2.0, 0.0, 100.0, 62.0]  # IoU 0.93 with the table
+    chair_under = [40.0, 20.0, 100.0, 60.0]  # IoU 0.4 with the table, all of it inside: another object
+    boxes = np.array([table, table_as_bed, chair_under], np.float64)
+    scores, labels = np.array([0.6, 0.5, 0.4]), np.array([0, 1, 2])
+    assert nms(boxes, scores, labels, 0.45, 0.8).tolist() == [0, 1, 2]  # within classes only, as before
+    assert nms(boxes, scores, labels, 0.45, 0.8, agnostic_iou=0.7).tolist() == [0, 2]
+    assert nms(boxes, scores, labels, 0.45, 0.8, agnostic_iou=0.3).tolist() == [0]
+    assert nms(boxes, scores, labels, 0.45, 0.8, agnostic_iou=1.0).tolist() == [0, 1, 2]
+    # a box dropped across classes drops nothing of its own class: the better box of the other class does
+    boxes = np.array([table, table_as_bed, table_as_bed], np.float64)
+    assert nms(boxes, np.array([0.6, 0.5, 0.45]), np.array([0, 1, 1]), 0.45, 0.8, agnostic_iou=0.7).tolist() == [0]
+    # at a higher score the other name wins
+    assert nms(boxes[:2], np.array([0.5, 0.6]), np.array([0, 1]), 0.45, 0.8, agnostic_iou=0.7).tolist() == [1]
+
+
 def test_detect_config_label_map_and_errors(tmp_path):
     cfg = config_from_dict({"detect": {"adapter": "yolov8", "labels": ["a", "b"], "input_size": 640}})
     assert cfg.detect.labels == ("a", "b")

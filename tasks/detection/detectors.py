@@ -1,10 +1,10 @@
-"""Pluggable ONNX object detectors: one adapter per output layout, letterboxed input, class-aware NMS.
+"""Pluggable ONNX object detectors: one adapter per output layout, letterboxed input, NMS within and across classes.
 
 Every detector sees an aspect-preserving letterbox of the image: resized by ``scale = S / max(H, W)``
 and centred on an S x S canvas, so an image pixel (x, y) lands at ``(x * scale + pad_x,
 y * scale + pad_y)``. An adapter turns the canvas into the network input and the raw outputs of
 one image into candidate boxes (x1, y1, x2, y2 in canvas pixels), scores and label indices; the
-rest (score threshold, class-aware NMS, maximum count, back to image pixels) is shared.
+rest (score threshold, NMS, maximum count, back to image pixels) is shared.
 
 Layouts (``[detect] adapter``):
 
@@ -128,22 +128,34 @@ def network_input(rgb: np.ndarray, layout: Layout, size: int, out: np.ndarray) -
     return lb
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float, containment: float = 1.0) -> np.ndarray:
-    """Class-aware greedy NMS; returns kept indices int64[K] by decreasing score. A box is dropped
-    when it overlaps a kept box of its class above ``iou`` (IoU), or when more than ``containment``
-    of its own area lies inside that box (a part of an object boxed again; 1.0: never)."""
+def _overlaps(boxes: np.ndarray, area: np.ndarray, i: int, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(IoU, share of each box's own area inside box ``i``) of boxes ``rest`` with box ``i``; boxes
+    float[N,4] (x1, y1, x2, y2), ``area`` float[N]."""
+    wh = np.clip(np.minimum(boxes[i, 2:], boxes[rest, 2:]) - np.maximum(boxes[i, :2], boxes[rest, :2]), 0, None)
+    inter = wh[:, 0] * wh[:, 1]
+    return inter / np.maximum(area[i] + area[rest] - inter, 1e-9), inter / np.maximum(area[rest], 1e-9)
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, iou: float, containment: float = 1.0,
+        agnostic_iou: float = 1.0) -> np.ndarray:
+    """Greedy NMS of boxes float[N,4] (x1, y1, x2, y2) with scores float[N] and class indices
+    int[N]; returns kept indices int64[K] by decreasing score. A box is dropped when it overlaps a
+    kept box of its class above ``iou`` (IoU), when more than ``containment`` of its own area lies
+    inside that box (a part of an object boxed again; 1.0: never), or when it overlaps a kept box of
+    any class above ``agnostic_iou`` (one object boxed under two names; 1.0: never)."""
     off = boxes + labels[:, None] * (np.abs(boxes).max(initial=0) + 1) * 2  # classes never overlap
     area = (off[:, 2] - off[:, 0]) * (off[:, 3] - off[:, 1])
+    plain_area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
     order = np.argsort(-scores, kind="stable")
     keep: list[int] = []
     while order.size:
         i, rest = order[0], order[1:]
         keep.append(int(i))
-        wh = np.clip(np.minimum(off[i, 2:], off[rest, 2:]) - np.maximum(off[i, :2], off[rest, :2]), 0, None)
-        inter = wh[:, 0] * wh[:, 1]
-        overlap = inter / np.maximum(area[i] + area[rest] - inter, 1e-9) <= iou
-        inside = inter / np.maximum(area[rest], 1e-9) <= containment
-        order = rest[overlap & inside]
+        overlap, inside = _overlaps(off, area, i, rest)
+        kept = (overlap <= iou) & (inside <= containment)
+        if agnostic_iou < 1.0:
+            kept &= _overlaps(boxes, plain_area, i, rest)[0] <= agnostic_iou
+        order = rest[kept]
     return np.array(keep, np.int64)
 
 
@@ -320,15 +332,15 @@ class Detector:
     """An ONNX detector with its layout and label map; :meth:`detect` takes RGB uint8 images."""
 
     def __init__(self, model_path: Path, adapter: str, labels: Sequence[str], input_size: int, *,
-                 score_threshold: float = 0.35, nms_iou: float = 0.45, nms_containment: float = 0.8, max_detections: int = 100,
-                 batch_size: int = 8, threads: int = 2) -> None:
+                 score_threshold: float = 0.35, nms_iou: float = 0.45, nms_containment: float = 0.8, nms_agnostic_iou: float = 1.0,
+                 max_detections: int = 100, batch_size: int = 8, threads: int = 2) -> None:
         if adapter not in LAYOUTS:
             raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
         if not Path(model_path).is_file():
             raise FileNotFoundError(f"detector model {model_path} not found (the default is built by `make models`)")
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
-        self.nms_containment = nms_containment
+        self.nms_containment, self.nms_agnostic_iou = nms_containment, nms_agnostic_iou
         self.session = MeasuredSession(Path(model_path), threads)
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
@@ -365,7 +377,7 @@ class Detector:
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
         """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""
         boxes, scores, labels = self.layout.candidates(outputs, self.size, len(self.labels), self.score_threshold)
-        k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment)[: self.max_detections]
+        k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment, self.nms_agnostic_iou)[: self.max_detections]
         return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
                           tuple(self.labels[i] for i in labels[k]))
 
@@ -384,5 +396,5 @@ def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
         raise ValueError(f"[detect] {problem[0]}: {problem[1]}")
     labels = detector_labels(cfg)
     return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
-                    nms_iou=cfg.nms_iou, nms_containment=cfg.nms_containment, max_detections=cfg.max_detections, batch_size=cfg.batch_size,
-                    threads=cfg.threads)
+                    nms_iou=cfg.nms_iou, nms_containment=cfg.nms_containment, nms_agnostic_iou=cfg.nms_agnostic_iou,
+                    max_detections=cfg.max_detections, batch_size=cfg.batch_size, threads=cfg.threads)
