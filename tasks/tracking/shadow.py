@@ -1,0 +1,74 @@
+"""Shadow tracks: a second track on an object a stronger track already follows (issues 18, 19).
+
+A detector may box one object twice under two names (a table also called a desk's cabinet), or box a
+large part of it under another name, over many frames. Class-aware NMS keeps both boxes and
+``[detect] nms_agnostic_iou`` drops only the closest pairs, so the partition gives the second boxes a
+track of their own: it follows an object another track follows, and people would be asked to
+annotate that object twice (a duplicate if both get a pose, an item answered "none of these" if
+not).
+
+A track is a shadow when at least ``[tracking] shadow_share`` of its boxes overlap a box of a
+stronger kept track on the same frame with IoU >= ``[tracking] shadow_iou``. Stronger: more
+detections, then a higher mean score, then the smaller first detection index. Tracks are visited
+strongest first and compared with the tracks kept so far only, so a dropped shadow never drops
+another track. Boxes are (ymin, xmin, ymax, xmax) normalised by the image size (IoU does not depend
+on the normalisation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def same_frame_overlaps(frames: np.ndarray, boxes: np.ndarray, min_iou: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ordered pairs (a, b), both directions, of the N detections (``frames`` int[N], ``boxes``
+    float[N,4]) on one frame whose boxes overlap with IoU >= ``min_iou``."""
+    order = np.argsort(frames, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(frames[order]) != 0])
+    ends = np.r_[starts[1:], len(order)]
+    a_out, b_out = [], []
+    for s, e in zip(starts, ends):
+        if e - s < 2:
+            continue
+        ids = order[s:e]
+        i, j = np.triu_indices(len(ids), 1)
+        bi, bj = boxes[ids[i]], boxes[ids[j]]
+        hw = np.clip(np.minimum(bi[:, 2:], bj[:, 2:]) - np.maximum(bi[:, :2], bj[:, :2]), 0, None)
+        inter = hw[:, 0] * hw[:, 1]
+        area_i = (bi[:, 2] - bi[:, 0]) * (bi[:, 3] - bi[:, 1])
+        area_j = (bj[:, 2] - bj[:, 0]) * (bj[:, 3] - bj[:, 1])
+        hit = inter / np.maximum(area_i + area_j - inter, 1e-12) >= min_iou
+        a_out += [ids[i[hit]], ids[j[hit]]]
+        b_out += [ids[j[hit]], ids[i[hit]]]
+    if not a_out:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(a_out).astype(np.int64), np.concatenate(b_out).astype(np.int64)
+
+
+def shadow_groups(groups: list[np.ndarray], frames: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
+                  min_iou: float, min_share: float) -> np.ndarray:
+    """bool[G]: which of the ``groups`` (detection indices int64[M] each, disjoint) are shadows
+    (module docstring) of the N detections on ``frames`` int[N] with ``boxes`` float[N,4] and
+    ``scores`` float[N]. ``min_iou`` >= 1 finds none."""
+    shadow = np.zeros(len(groups), bool)
+    if min_iou >= 1.0 or len(groups) < 2:
+        return shadow
+    owner = np.full(len(frames), -1, np.int64)
+    for g, members in enumerate(groups):
+        owner[members] = g
+    a, b = same_frame_overlaps(frames, boxes, min_iou)
+    keep = (owner[a] >= 0) & (owner[b] >= 0) & (owner[a] != owner[b])
+    a, b = a[keep], b[keep]
+    by_group = np.argsort(owner[a], kind="stable")
+    cuts = np.searchsorted(owner[a][by_group], np.arange(len(groups) + 1))
+    strength = sorted(range(len(groups)), key=lambda g: (-len(groups[g]), -float(np.mean(scores[groups[g]])),
+                                                         int(np.min(groups[g]))))
+    kept = np.zeros(len(groups), bool)
+    for g in strength:
+        pairs = by_group[cuts[g]:cuts[g + 1]]
+        covered = np.unique(a[pairs][kept[owner[b[pairs]]]])
+        if len(covered) >= min_share * len(groups[g]):
+            shadow[g] = True
+        else:
+            kept[g] = True
+    return shadow
