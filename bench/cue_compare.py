@@ -7,7 +7,7 @@ object (:func:`bench.track_bench.features_of` with ``matched_only``, as ``track_
 detector`` takes them), one object or two. Scored on the ``--test`` folders' pairs:
 
 - ``binned``: the edge log-odds of :func:`tasks.tracking.affinity.affinities` with the stored
-  calibration (:mod:`tasks.tracking.calibration`; fitted on the default benchmark, seed 20261123);
+  calibration (:mod:`tasks.tracking.calibration`; its ``training_seeds`` say what it was fitted on);
 - ``binned_refit``: the same tables refitted on the ``--train`` folders (``fit_calibration``);
 - ``logistic``: scikit-learn's LogisticRegression on :func:`cue_matrix`, fitted on the ``--train`` folders.
 

@@ -135,3 +135,12 @@ def test_status_counts_the_thin_tracks_dropped():
                                                                    "0 thin tracks dropped)")]
     assert clip_notes(rows) == ["a_0: 3 tracks too thin to annotate were dropped (fewer than [tracking] thin_detections "
                                 "detections, none on a manual-track key-frame)"]
+
+
+def test_stored_cue_calibration_was_fitted_on_seeds_the_default_benchmark_does_not_use():
+    from bench.benchmark import DEFAULT_SEED
+    from tasks.tracking.calibration import CALIBRATION
+
+    seeds = CALIBRATION["training_seeds"]
+    assert seeds and DEFAULT_SEED not in seeds and set(seeds) == set(MERGE_CALIBRATION["training_seeds"])
+    assert CALIBRATION["pairs"]["true"] > 0 and CALIBRATION["label"]["same"] > 0 > CALIBRATION["label"]["different"]
