@@ -138,8 +138,8 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
                          "thin_detections detections, none on a manual-track key-frame)")
         shadows = re.search(r"(\d+) shadow tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
         if shadows and shadows.group(1) != "0":
-            notes.append(f"{r.clip}: {shadows.group(1)} shadow tracks were dropped (most of their boxes on a stronger track's "
-                         "boxes: one object tracked twice; [tracking] shadow_iou)")
+            notes.append(f"{r.clip}: {shadows.group(1)} shadow tracks were dropped (their boxes on a stronger track's boxes: "
+                         "one object tracked twice; [tracking] shadow_iou)")
         if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")

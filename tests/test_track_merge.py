@@ -126,15 +126,17 @@ def test_stored_model_is_generated_with_its_training_seeds():
     assert coef["ray_misfit"] < 0 and coef["appearance"] > 0  # far apart in 3D: two objects; alike: one
 
 
-def test_status_counts_the_thin_tracks_dropped():
+def test_status_counts_the_thin_and_shadow_tracks_dropped():
     from tasks.status import StageStatus, clip_notes
 
     rows = [StageStatus("a_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (1 fragments joined in 3D, "
-                                                                   "3 thin tracks dropped)"),
+                                                                   "3 thin tracks dropped, 2 shadow tracks dropped)"),
             StageStatus("b_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (0 fragments joined in 3D, "
-                                                                   "0 thin tracks dropped)")]
+                                                                   "0 thin tracks dropped, 0 shadow tracks dropped)")]
     assert clip_notes(rows) == ["a_0: 3 tracks too thin to annotate were dropped (fewer than [tracking] thin_detections "
-                                "detections, none on a manual-track key-frame)"]
+                                "detections, none on a manual-track key-frame)",
+                                "a_0: 2 shadow tracks were dropped (their boxes on a stronger track's boxes: one object "
+                                "tracked twice; [tracking] shadow_iou)"]
 
 
 def test_stored_cue_calibration_was_fitted_on_seeds_the_default_benchmark_does_not_use():

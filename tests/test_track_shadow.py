@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 
 from cadestate.config import TrackingConfig
-from tasks.status import StageStatus, clip_notes
 from tasks.tracking.affinity import Cameras
 from tasks.tracking.shadow import same_frame_overlaps, shadow_groups
 from tasks.tracking.track3d import box_rays
@@ -86,11 +85,3 @@ def test_tracking_drops_the_shadow_and_says_so():
                             scores=scores, geometry=geometry)
     assert kept.shadows == 0 and kept.track.max() == 2
 
-
-def test_status_counts_the_shadow_tracks_dropped():
-    rows = [StageStatus("a_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (1 fragments joined in 3D, "
-                                                                   "0 thin tracks dropped, 2 shadow tracks dropped)"),
-            StageStatus("b_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (0 fragments joined in 3D, "
-                                                                   "0 thin tracks dropped, 0 shadow tracks dropped)")]
-    assert clip_notes(rows) == ["a_0: 2 shadow tracks were dropped (most of their boxes on a stronger track's boxes: one "
-                                "object tracked twice; [tracking] shadow_iou)"]
