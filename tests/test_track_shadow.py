@@ -4,8 +4,9 @@ dropped; objects that only overlap, and tracks that overlap only a dropped shado
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cadestate.config import TrackingConfig
+from cadestate.config import ConfigError, TrackingConfig, config_from_dict
 from tasks.tracking.affinity import Cameras
 from tasks.tracking.shadow import same_frame_overlaps, shadow_groups
 from tasks.tracking.track3d import box_rays
@@ -85,3 +86,10 @@ def test_tracking_drops_the_shadow_and_says_so():
                             scores=scores, geometry=geometry)
     assert kept.shadows == 0 and kept.track.max() == 2
 
+
+
+def test_a_shadow_needs_boxes_that_overlap():
+    """IoU 0 would take every track on a frame another track holds for a shadow: the config refuses it."""
+    with pytest.raises(ConfigError, match=r"shadow_iou"):
+        config_from_dict({"tracking": {"shadow_iou": 0.0}})
+    assert config_from_dict({"tracking": {"shadow_iou": 0.01}}).tracking.shadow_iou == 0.01
