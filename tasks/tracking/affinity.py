@@ -65,12 +65,13 @@ class PairFeatures:
     iou: np.ndarray  # float64[P] IoU after camera-rotation compensation (plain IoU without cameras)
 
 
-def candidate_pairs(frame_index: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """All (a, b) with 1 <= frame[b] - frame[a] <= window, ordered by (a, b) in the frame-sorted order."""
+def candidate_pairs(frame_index: np.ndarray, window: int, min_gap: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """All (a, b) with min_gap <= frame[b] - frame[a] <= window, ordered by (a, b) in the frame-sorted
+    order (``min_gap`` 0: two detections of one frame once each, a before b in that order)."""
     f = np.asarray(frame_index, dtype=np.int64)
     order = np.argsort(f, kind="stable")
     fs = f[order]
-    start = np.searchsorted(fs, fs + 1, side="left")
+    start = np.maximum(np.searchsorted(fs, fs + min_gap, side="left"), np.arange(len(fs)) + 1)
     end = np.searchsorted(fs, fs + window, side="right")
     cnt = end - start
     a_sorted = np.repeat(np.arange(len(fs)), cnt)

@@ -19,30 +19,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.tracking.affinity import box_iou_pairs, candidate_pairs
+
 
 def same_frame_overlaps(frames: np.ndarray, boxes: np.ndarray, min_iou: float) -> tuple[np.ndarray, np.ndarray]:
     """Ordered pairs (a, b), both directions, of the N detections (``frames`` int[N], ``boxes``
     float[N,4]) on one frame whose boxes overlap with IoU >= ``min_iou``."""
-    order = np.argsort(frames, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(frames[order]) != 0])
-    ends = np.r_[starts[1:], len(order)]
-    a_out, b_out = [], []
-    for s, e in zip(starts, ends):
-        if e - s < 2:
-            continue
-        ids = order[s:e]
-        i, j = np.triu_indices(len(ids), 1)
-        bi, bj = boxes[ids[i]], boxes[ids[j]]
-        hw = np.clip(np.minimum(bi[:, 2:], bj[:, 2:]) - np.maximum(bi[:, :2], bj[:, :2]), 0, None)
-        inter = hw[:, 0] * hw[:, 1]
-        area_i = (bi[:, 2] - bi[:, 0]) * (bi[:, 3] - bi[:, 1])
-        area_j = (bj[:, 2] - bj[:, 0]) * (bj[:, 3] - bj[:, 1])
-        hit = inter / np.maximum(area_i + area_j - inter, 1e-12) >= min_iou
-        a_out += [ids[i[hit]], ids[j[hit]]]
-        b_out += [ids[j[hit]], ids[i[hit]]]
-    if not a_out:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(a_out).astype(np.int64), np.concatenate(b_out).astype(np.int64)
+    a, b = candidate_pairs(frames, 0, min_gap=0)
+    hit = box_iou_pairs(boxes[a], boxes[b]) >= min_iou
+    a, b = a[hit], b[hit]
+    return np.concatenate([a, b]), np.concatenate([b, a])
 
 
 def shadow_groups(groups: list[np.ndarray], frames: np.ndarray, boxes: np.ndarray, scores: np.ndarray,

@@ -95,9 +95,9 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
     keep = np.ones(n, dtype=bool) if scores is None else np.asarray(scores) >= cfg.min_score
     idx = np.flatnonzero(keep)
     f = np.asarray(frame_index, dtype=np.int64)[idx]
+    kept_boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)[idx]
     vec = None if (vectors is None or cfg.appearance_weight == 0) else np.asarray(vectors)[idx]
-    feats = pair_features(f, np.asarray(boxes, dtype=np.float64).reshape(-1, 4)[idx], np.asarray(labels)[idx], vec,
-                          cameras if cfg.use_cameras else None, cfg.window)
+    feats = pair_features(f, kept_boxes, np.asarray(labels)[idx], vec, cameras if cfg.use_cameras else None, cfg.window)
     w = affinities(feats, calibration, appearance_weight=cfg.appearance_weight, label_weight=cfg.label_weight,
                    motion_weight=cfg.motion_weight, bias=cfg.bias)
     lab = solve(len(idx), feats.a, feats.b, w, groups=f, keys=det_id[idx], refine_result=cfg.refine)
@@ -112,7 +112,7 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
                             geometry.rays.subset(idx), geometry.keyframes, model, cfg.merge_min_probability,
                             cfg.min_detections, cfg.thin_detections)
         groups, joined, thin = merged.groups, merged.joins, merged.thin
-        drop = shadow_groups(groups, f, np.asarray(boxes, dtype=np.float64).reshape(-1, 4)[idx], sc, cfg.shadow_iou, cfg.shadow_share)
+        drop = shadow_groups(groups, f, kept_boxes, sc, cfg.shadow_iou, cfg.shadow_share)
         groups, shadows = [g for g, s in zip(groups, drop) if not s], int(drop.sum())
     # track ids: kept groups ranked by their smallest det_id
     groups.sort(key=lambda g: det_id[idx[g]].min())
