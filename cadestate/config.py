@@ -311,6 +311,7 @@ class PoseConfig:
     coplanar: bool = _opt(True, "Tie the scale perpendicular to co-planar 3D points to the mean of the other two.")
     symmetry: bool = _opt(True, "Per key-frame best symmetric rotation (2/4/36-way models); 36-way: sx = sz.")
     coplanar_tol: float = _opt(0.02, "Co-planar (collinear) when the smallest (middle) singular value of the centred 3D points is below this fraction of the largest.", lo=0.0, hi=1.0)
+    min_axis_span: float = _opt(0.2, "A CAD axis along which the clicked 3D points span less than this fraction of the model's size has its scale tied to the observed axes (all three one scale when none is observed): clicks all on a leg or a corner cannot tell the model's width; 0 = never.", lo=0.0, hi=1.0)
     min_points: int = _opt(6, "Fewest correspondences per track to solve it.", lo=5, hi=10_000)
     max_reprojection_px: float = _opt(20.0, "Mean reprojection error (px) above which a pose gets status high_residual.", lo=0.0)
     min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)

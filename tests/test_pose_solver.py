@@ -12,7 +12,7 @@ from bench.eval_pose import rotation_error_deg
 from cadestate.geometry import look_at, matrix_to_quaternion, quaternion_to_matrix
 from cadestate.render import object_to_world
 from tasks.cad.symmetry import rotation_y
-from tasks.pose.checks import coplanar_axis
+from tasks.pose.checks import coplanar_axis, unobserved_axes
 from tasks.pose.initial import symmetry_offsets, tie_scales
 from tasks.pose.solver import ObjectCorrespondences, SolverOptions, evaluate, make_batch, solve_poses
 
@@ -171,8 +171,62 @@ def test_coplanar_detection_and_ties():
     q[4:] = q[4:] @ rotation_y(180).T  # the symmetric copy of the face on key-frame 1
     assert coplanar_axis(q, np.repeat([0, 1], 4), 1, 0.02) == -1
     assert coplanar_axis(q, np.repeat([0, 1], 4), 2, 0.02) == 2
-    s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([1, -1]), torch.tensor([False, True]))
+    s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([[False, True, False], [False] * 3]),
+                   torch.tensor([False, True]))
     assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]
+
+
+def test_unobserved_axes_take_the_observed_scales():
+    """An axis the points hardly span (relative to the model's size along it) is unobserved; its
+    scale is the mean of the observed axes', and one scale for all when none is observed."""
+    p = np.array([[0.0, 0.0, 0.0], [0.8, 0.05, 0.3], [0.2, 0.1, 0.6]])  # spans x 0.8, y 0.1, z 0.6
+    assert unobserved_axes(p, np.array([1.0, 1.0, 1.0]), 0.2).tolist() == [False, True, False]
+    assert unobserved_axes(p, np.array([1.0, 0.4, 4.0]), 0.2).tolist() == [False, False, True]  # y: 25 %, z: 15 %
+    assert not unobserved_axes(p, None, 0.2).any() and not unobserved_axes(p, np.ones(3), 0.0).any()
+    s = torch.tensor([[1.0, 5.0, 3.0]] * 4)
+    tied = torch.tensor([[False, True, False], [True, True, False], [True] * 3, [False] * 3])
+    assert tie_scales(s, tied, torch.tensor([False] * 4)).tolist() == [[1.0, 2.0, 3.0], [3.0, 3.0, 3.0], [3.0] * 3,
+                                                                       [1.0, 5.0, 3.0]]
+    # 36-way: x and z are one scale first, then the unobserved y takes theirs
+    assert tie_scales(s[:1], tied[:1], torch.tensor([True])).tolist() == [[2.0, 2.0, 2.0]]
+
+
+def patch_object(seed: int, half: np.ndarray, centre, scale, noise: float = 2.0) -> tuple[ObjectCorrespondences, np.ndarray]:
+    """Clicks (``noise`` px) on points within ``half`` of ``centre`` of a 1 m model (its extent
+    known) scaled by ``scale``, from 4 cameras 3 m away; returns (problem, true scales)."""
+    rng = np.random.default_rng(seed)
+    q, T, s = matrix_to_quaternion(rotation_y(rng.uniform(0, 360))), np.array([0.0, 0.5, 0.0]), np.asarray(scale, float)
+    M = object_to_world(T, q, s, False)
+    Rs, ts, xy, xyz = [], [], [], []
+    for f in range(4):
+        ang = np.radians(-30 + 20 * f)
+        Rc, tc = look_at(T + np.array([3 * np.sin(ang), 1.2, 3 * np.cos(ang)]), T)
+        p = np.asarray(centre) + rng.uniform(-1, 1, (6, 3)) * half
+        uv = ((p @ M[:3, :3].T + M[:3, 3]) @ Rc.T + tc) @ K.T
+        Rs.append(Rc), ts.append(tc), xyz.append(p), xy.append(uv[:, :2] / uv[:, 2:] + rng.normal(0, noise, (6, 2)))
+    return ObjectCorrespondences(np.concatenate(xy), np.concatenate(xyz), np.repeat(np.arange(4), 6), np.array([K] * 4),
+                                 np.array(Rs), np.array(ts), extent=np.ones(3)), s
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_clicks_on_a_small_patch_keep_the_models_proportions(seed):
+    """Clicks all within 10 cm of a 1 m model (a leg, a corner) leave every scale unobserved: the
+    solver gives one scale (the model's proportions) and gets it within 10 %; free scales, from the
+    same clicks, miss the size along some axis by more."""
+    o, s = patch_object(seed, np.full(3, 0.05), [0.4, 0.3, 0.4], (1.2, 1.2, 1.2))
+    tied, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(min_axis_span=0.0))[0]
+    assert tied.status == "ok" and "one scale on all axes" in tied.message
+    assert np.ptp(tied.scale) < 1e-9 and np.abs(tied.scale / s - 1).max() < 0.1
+    assert np.abs(free.scale / s - 1).max() > np.abs(tied.scale / s - 1).max()
+
+
+def test_an_axis_the_clicks_hardly_span_takes_the_others_scale():
+    """Clicks spread over x and y but 8 cm deep in z (not co-planar): z's scale is the mean of x's
+    and y's, so a model whose true depth scale is that mean is recovered on all three axes."""
+    o, s = patch_object(3, np.array([0.5, 0.5, 0.04]), [0.0, 0.0, 0.3], (0.9, 1.3, 1.1))
+    r = solve_poses([o], SolverOptions())[0]
+    assert r.status == "ok" and "scale along z tied" in r.message
+    assert abs(r.scale[2] - (r.scale[0] + r.scale[1]) / 2) < 1e-9 and np.abs(r.scale / s - 1).max() < 0.05
 
 
 def test_degenerate_inputs_get_a_clear_status():
@@ -221,7 +275,7 @@ def test_lm_jacobian_matches_finite_differences():
     opts = SolverOptions(min_depth=2.9)  # some points inside min_depth: the front term is active
     b = make_batch([problem], [-1], opts)
     off, om = symmetry_offsets(torch.ones_like(b.sym), True)
-    L = scale_ties(b.axis, b.sym >= 36)
+    L = scale_ties(b.tied, b.sym >= 36)
     pb = Problem(b, off, om, L, torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))
     R = torch.tensor(quaternion_to_matrix(q) @ rotation_y(7.0), dtype=torch.float64)[None] @ so3_exp(torch.tensor([[0.05, 0, 0.02]]).double())
     ls, T0 = torch.log(torch.tensor(s))[None] + 0.05, torch.tensor(T)[None] + 0.1

@@ -175,7 +175,7 @@ def test_lm_floor_jacobian_matches_finite_differences():
     o = dataclasses.replace(objects[0], floor_height=0.2, floor_weight=5.0, upright=False)
     b = make_batch([o], [-1], SolverOptions())
     off, om = symmetry_offsets(b.sym, True)
-    pb = Problem(b, off, om, scale_ties(b.axis, b.sym >= 36), torch.zeros(1, 4, dtype=torch.float64),
+    pb = Problem(b, off, om, scale_ties(b.tied, b.sym >= 36), torch.zeros(1, 4, dtype=torch.float64),
                  torch.tensor([4.0], dtype=torch.float64))
     R = torch.tensor(rotation_y(30.0), dtype=torch.float64)[None] @ so3_exp(torch.tensor([[0.3, -0.2, 0.1]]).double())
     ls, T = torch.tensor([[0.1, -0.05, 0.2]]).double(), torch.tensor([[0.1, 0.6, -4.0]]).double()

@@ -58,6 +58,19 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
     return -1
 
 
+def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float) -> np.ndarray:
+    """bool[3]: the CAD axes (x, y, z) along which the annotated points float[N, 3] (canonical CAD
+    frame) span less than ``min_span`` of the model's bounding-box size ``extent`` float[3]. The
+    clicks barely constrain the scale along such an axis (a few centimetres of a metre-wide model,
+    seen through pixels of click error), so the solver ties it to the observed axes
+    (:func:`tasks.pose.initial.tie_scales`). None of them with no ``extent`` or ``min_span`` 0."""
+    if extent is None or min_span <= 0:
+        return np.zeros(3, bool)
+    size = np.asarray(extent, np.float64)
+    span = np.ptp(np.asarray(xyz, np.float64), axis=0)
+    return (size > 0) & (span < min_span * size)
+
+
 def check_object(o, opts) -> tuple[str, str] | None:
     """(status, message) when the object cannot be solved, else None (``o``: ObjectCorrespondences)."""
     xy, xyz, kf = np.asarray(o.xy, float), np.asarray(o.xyz, float), np.asarray(o.keyframe)

@@ -70,22 +70,26 @@ def symmetry_offsets(symmetry: torch.Tensor, enabled: bool) -> tuple[torch.Tenso
     return 2 * math.pi * i.to(DTYPE) / K[:, None].to(DTYPE), i < K[:, None]
 
 
-def tie_scales(s: torch.Tensor, coplanar_axis: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
+def tie_scales(s: torch.Tensor, tied: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
     """Apply the scale constraints to float[B, 3] scales: for 36-way models (``tie36`` bool[B])
-    sx = sz = their mean; for co-planar point sets (``coplanar_axis`` int[B], -1 = none) the
-    scale along that axis = the mean of the other two."""
+    sx = sz = their mean; then each axis the clicks do not observe (``tied`` bool[B, 3]: the axis
+    normal to co-planar points, or one the points hardly span, :func:`tasks.pose.checks.unobserved_axes`)
+    takes the mean scale of the observed axes, and all three the mean of the three when none is
+    observed (one scale, the model's own proportions). Linear in ``s`` (:func:`tasks.pose.lm.scale_ties`)."""
     h = 0.5 * (s[:, 0] + s[:, 2])
     s = torch.where(tie36[:, None], torch.stack([h, s[:, 1], h], -1), s)
-    others = (s.sum(-1, keepdim=True) - s) / 2  # float[B, 3]: mean of the two other axes
-    axis = torch.nn.functional.one_hot(coplanar_axis.clamp(min=0), 3).bool() & (coplanar_axis >= 0)[:, None]
-    return torch.where(axis, others, s)
+    seen = (~tied).to(s.dtype)
+    n = seen.sum(-1, keepdim=True)
+    mean = torch.where(n > 0, (s * seen).sum(-1, keepdim=True) / n.clamp(min=1), s.mean(-1, keepdim=True))
+    return torch.where(tied, mean, s)
 
 
-def split_affine(A: torch.Tensor, coplanar_axis: torch.Tensor, tie36: torch.Tensor,
+def split_affine(A: torch.Tensor, coplanar_axis: torch.Tensor, tied: torch.Tensor, tie36: torch.Tensor,
                  upright: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Split A = R S (float[B, 3, 3], CAD-after-mirror -> world) into R float[B, 3, 3] and S
     float[B, 3]. The column of a co-planar axis is not observed: it becomes the cross product of
-    the other two. Upright objects get the rotation about +Y nearest to R."""
+    the other two. Upright objects get the rotation about +Y nearest to R. The scales are tied as
+    :func:`tie_scales` ties them (``tied`` bool[B, 3])."""
     s = torch.linalg.norm(A, dim=1).clamp(min=1e-9)  # column norms
     cols = A / s[:, None, :]
     k = coplanar_axis.clamp(min=0)
@@ -99,7 +103,7 @@ def split_affine(A: torch.Tensor, coplanar_axis: torch.Tensor, tie36: torch.Tens
     R = nearest_rotation(cols)
     yaw = torch.atan2(R[:, 0, 2] - R[:, 2, 0], R[:, 0, 0] + R[:, 2, 2])
     R = torch.where(upright[:, None, None], yaw_matrix(yaw), R)
-    s = tie_scales(s, coplanar_axis, tie36)
+    s = tie_scales(s, tied, tie36)
     return R, s
 
 

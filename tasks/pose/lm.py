@@ -50,13 +50,14 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.stack([o, -z, y], -1), torch.stack([z, o, -x], -1), torch.stack([-y, x, o], -1)], -2)
 
 
-def scale_ties(axis: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
-    """The linear map L float[B, 3, 3] of :func:`tasks.pose.initial.tie_scales` (s_tied = L s)."""
+def scale_ties(tied: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
+    """The linear map L float[B, 3, 3] of :func:`tasks.pose.initial.tie_scales` (s_tied = L s;
+    ``tied`` bool[B, 3] the unobserved axes)."""
     from tasks.pose.initial import tie_scales
 
-    B = axis.shape[0]
+    B = tied.shape[0]
     eye = torch.eye(3, dtype=DTYPE)
-    cols = [tie_scales(eye[j].expand(B, 3), axis, tie36) for j in range(3)]
+    cols = [tie_scales(eye[j].expand(B, 3), tied, tie36) for j in range(3)]
     return torch.stack(cols, -1)
 
 

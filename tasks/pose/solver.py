@@ -26,6 +26,9 @@ Special parameterisations (each can be switched off for the ablation):
 - co-planar 3D points (smallest singular value of the centred points <= ``coplanar_tol`` x the
   largest; or, for symmetric models, every key-frame's set planar with the same normal axis):
   the scale along the CAD axis nearest the plane normal is the mean of the other two (2 DoF);
+- axes the 3D points hardly span (less than ``min_axis_span`` of the model's size along them:
+  the clicks all on a leg or a corner): their scale is the mean of the observed axes', or one
+  scale for all three when no axis is observed (the model's proportions kept);
 - symmetric models (order K = 2, 4 about +Y): each key-frame takes the best of the K rotations
   ``Q = R_y(2 pi i / K)``; 36-way: each key-frame has its own continuous rotation about +Y
   (solved, started from the best of 12) and sx = sz;
@@ -53,7 +56,7 @@ import torch
 
 from cadestate.geometry import matrix_to_quaternion
 from tasks.pose.batch import Batch
-from tasks.pose.checks import check_object, coplanar_axis, final_status
+from tasks.pose.checks import check_object, coplanar_axis, final_status, unobserved_axes
 from tasks.pose.initial import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
 from tasks.pose.lm import Problem, bottom_sd, floor_residual, lm_solve, robust, scale_ties
 
@@ -118,6 +121,9 @@ class SolverOptions:
     coplanar: bool = True
     symmetry: bool = True
     coplanar_tol: float = 0.02
+    min_axis_span: float = 0.2
+    """Axes along which the points span less than this fraction of the model's size have their
+    scale tied to the observed ones (:func:`tasks.pose.checks.unobserved_axes`); 0 = never."""
     min_points: int = 6
     max_reprojection_px: float = 20.0
     """A solution whose mean reprojection error (px) exceeds this gets status ``high_residual``."""
@@ -204,11 +210,14 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
         xn[b, :n] = h[:, :2] / h[:, 2:]
     T = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
     half = [np.zeros(3) if o.extent is None else np.asarray(o.extent, np.float64) / 2 for o in objects]
+    axis = np.asarray(axes if opts.coplanar else [-1] * B)
+    tied = np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span) for o in objects]) | (
+        (np.arange(3)[None] == axis[:, None]) & (axis[:, None] >= 0))
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
                  torch.as_tensor([bool(o.upright) and opts.alpha > 0 for o in objects]),
-                 torch.as_tensor(axes if opts.coplanar else [-1] * B), T(np.stack(half)),
+                 torch.as_tensor(axis), torch.as_tensor(tied), T(np.stack(half)),
                  T([float(o.floor_height) for o in objects]),
                  T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]))
 
@@ -274,7 +283,7 @@ def _adam(b: Batch, R0, s0, T0, phi0, offsets, omask, scale_t, is36, opts: Solve
 
     def params():
         R = rotation_6d(a)
-        s = tie_scales(torch.exp(ls), b.axis, b.sym >= 36)
+        s = tie_scales(torch.exp(ls), b.tied, b.sym >= 36)
         return R, s, T0 + scale_t[:, None] * dT, phi0 + dphi * is36
 
     for _ in range(opts.iterations):
@@ -307,7 +316,7 @@ def optimise(b: Batch, R0: torch.Tensor, s0: torch.Tensor, T0: torch.Tensor, phi
             R, ls, T, phi, run = lm_solve(pb, R, ls, T, phi, opts.lm_iterations, opts.min_depth, opts.alpha, opts.beta,
                                           opts.huber_px)
             its += run
-        s = tie_scales(torch.exp(ls), b.axis, b.sym >= 36)
+        s = tie_scales(torch.exp(ls), b.tied, b.sym >= 36)
         return {**evaluate(b, R, s, T, phi, pb.offsets, pb.omask, opts), "phi": phi}, R, s, T, its
 
 
@@ -315,7 +324,7 @@ def _problem(b: Batch, T: torch.Tensor) -> Problem:
     """The :class:`tasks.pose.lm.Problem` of batch ``b``: its discrete symmetric offsets (36-way
     models get a free angle instead), scale ties, and translation unit from the translations T."""
     offsets, omask = symmetry_offsets(torch.where(b.sym >= 36, torch.ones_like(b.sym), b.sym), True)
-    return Problem(b, offsets, omask, scale_ties(b.axis, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
+    return Problem(b, offsets, omask, scale_ties(b.tied, b.sym >= 36), (b.sym >= 36).to(DTYPE)[:, None] * b.fmask,
                    _start_scale(b, T))
 
 
@@ -345,7 +354,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
     B, S = len(todo), max(opts.starts, 1)
     offsets, omask = symmetry_offsets(b.sym, opts.symmetry)
     A, T, phi = linear_init(b.pts, b.xn, b.kf, b.pmask, b.Rc, b.tc, b.fmask, b.mirror, offsets, omask, b.upright)
-    R, s = split_affine(A, b.axis, b.sym >= 36, b.upright)
+    R, s = split_affine(A, b.axis, b.tied, b.sym >= 36, b.upright)
     ok = torch.isfinite(A).all(-1).all(-1) & torch.isfinite(T).all(-1)
     R = torch.where(ok[:, None, None], R, torch.eye(3, dtype=DTYPE))
     s, T = torch.where(ok[:, None], s, torch.ones_like(s)), torch.nan_to_num(T)
@@ -360,7 +369,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
         # Each start also gets the scales and translation that fit its own rotation (linear in (s, T));
         # the better of the two (by the loss) is kept: a poor affine split cannot spoil every start.
         s1, T1 = fit_scale_translation(bs.pts, bs.xn, bs.kf, bs.pmask, bs.Rc, bs.tc, bs.mirror, Rs,
-                                       angle.repeat_interleave(S, 0), scale_ties(bs.axis, bs.sym >= 36))
+                                       angle.repeat_interleave(S, 0), scale_ties(bs.tied, bs.sym >= 36))
         usable = torch.isfinite(s1).all(-1) & torch.isfinite(T1).all(-1) & (s1 > 1e-3).all(-1)
         s1, T1 = torch.where(usable[:, None], s1, s0), torch.where(usable[:, None], T1, T0)
         off0, om0 = symmetry_offsets(torch.where(bs.sym >= 36, torch.ones_like(bs.sym), bs.sym), True)
@@ -404,11 +413,24 @@ def _solve(objects, todo, axes, opts, results) -> None:
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         parallax = float(np.degrees(np.arccos(np.clip(rays @ rays.T, -1, 1)).max()))
         status, message = final_status(z, kf_px, parallax, opts)
+        message += _tie_note(b.tied[j].numpy(), int(b.axis[j]), opts.min_axis_span)
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
             float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]),
             bottom_sd=float(sd[j]))
+
+
+def _tie_note(tied: np.ndarray, coplanar: int, min_span: float) -> str:
+    """The part of a pose's message that says which scales the clicks left unobserved (bool[3]
+    ``tied``, beside the co-planar axis the poses table records): '' when none."""
+    thin = [a for a in range(3) if tied[a] and a != coplanar]
+    if not thin:
+        return ""
+    if tied.all():
+        return f"; one scale on all axes: the clicks span under {100 * min_span:g} % of the model along each"
+    names = ", ".join("xyz"[a] for a in thin)
+    return f"; scale along {names} tied to the other axes: the clicks span under {100 * min_span:g} % of the model there"
 
 
 def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):
