@@ -260,12 +260,34 @@ def _click_pairs(s: Served, kf_index: int, points: list[dict]) -> int:
     return clicked
 
 
+def _assert_narrow_warning(s: Served, task: dict, cad_id: str) -> None:
+    """The page warns of a model axis the track's clicks hardly span exactly when the solver ties
+    its scale (:func:`tasks.pose.checks.unobserved_axes` with the served ``[pose] min_axis_span``),
+    naming the same axes; the model size the page measures is the one the solver reads
+    (``cad_models.extent``), and the page's rule is the solver's on random points too."""
+    from tasks.pose.checks import unobserved_axes
+
+    page, span = s.page, task["pose"]["min_axis_span"]
+    [extent] = [r["extent"] for r in s.wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist() if r["cad_id"] == cad_id]
+    assert np.allclose(page.evaluate("() => viewer.size"), extent, rtol=1e-3, atol=1e-4)
+    points = np.array(page.evaluate("() => pairs.flat().map((q) => q.xyz)"))
+    want = ", ".join("xyz"[a] for a in np.flatnonzero(unobserved_axes(points, np.array(extent), span))) if len(points) >= 4 else ""
+    shown = page.inner_text("#narrow") if page.is_visible("#narrow") else ""
+    assert bool(shown) == bool(want) and (not want or f"along {want}:" in shown), (want, shown)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        pts, size = rng.uniform(-0.5, 0.5, (6, 3)) * rng.uniform(0.01, 1, 3), rng.uniform(0.2, 2, 3)
+        js = page.evaluate("async ([p, z, m]) => (await import('/static/viewer.js')).narrowAxes(p, z, m)", [pts.tolist(), size.tolist(), span])
+        assert js == ["xyz"[a] for a in np.flatnonzero(unobserved_axes(pts, size, span))]
+
+
 def test_correspondences_page(s):
     sim = simulated(s, "correspondences")
     answer = {a["track_id"]: a for a in sim["answers"]}
     open_next(s, "correspondences")
     page, done = s.page, []
-    task = json.loads(page.context.request.get(f"{s.url}/api/tasks/{s.clip}/{sim['task_id']}").text())["task"]
+    served = json.loads(page.context.request.get(f"{s.url}/api/tasks/{s.clip}/{sim['task_id']}").text())
+    task = served["task"]
     assert set(answer) == {it["track_id"] for it in task["items"]}, "the simulated annotators gave up on no track"
     while True:
         page.wait_for_selector("#viewer[data-ready='1']", timeout=60_000)
@@ -281,6 +303,7 @@ def test_correspondences_page(s):
                     page.keyboard.press("u")  # undo: too few visible points on this key-frame
         if not done:
             page.screenshot(path=s.shots / "correspondences.png")
+        _assert_narrow_warning(s, served, next(it for it in task["items"] if it["track_id"] == track)["cad_id"])
         assert page.is_enabled("#submit"), page.inner_text("#summary")
         page.click("#submit")
         done.append(track)

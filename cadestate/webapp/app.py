@@ -139,7 +139,8 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         doc = queue.task_document(wh, clip, task_id)
         if doc is None:
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
-        return {**doc, "annotator": who, "resume": worker.status(clip)}
+        return {**doc, "annotator": who, "resume": worker.status(clip),
+                "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span}}
 
     @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")
     def layers(clip: str, task_id: str, track_id: int) -> list[dict]:

@@ -42,6 +42,7 @@ export class Viewer {
     this.model = gltf.scene; this.group.add(this.model);
     this.model.traverse((o) => { if (o.isMesh) for (const m of [o.material].flat()) { m.side = THREE.DoubleSide; if ("metalness" in m) { m.metalness = 0; m.roughness = 0.85; } } });
     const box = new THREE.Box3().setFromObject(this.model), size = box.getSize(new THREE.Vector3()), c = box.getCenter(new THREE.Vector3());
+    this.size = [size.x, size.y, size.z];   // the model's bounding-box size, CAD frame (x, y, z)
     this.radius = Math.max(size.x, size.y, size.z) / 2 || 1;
     const d = this.radius * 3.2;
     this.camera.position.set(c.x + d * 0.55, c.y + d * 0.45, c.z + d * 0.75); this.camera.near = d / 100; this.camera.far = d * 10;
@@ -99,6 +100,16 @@ export function coplanar(points, tol = 0.02) {
   for (const p of points) for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) C[i][j] += (p[i] - m[i]) * (p[j] - m[j]);
   const e = symEig3(C).map((v) => Math.sqrt(Math.max(0, v)));
   return e[2] <= tol * e[0];
+}
+// The CAD axes ("x", "y", "z") along which points (n x 3) span less than minSpan of the model's
+// size (x, y, z): the solver ties their scale to the other axes' (tasks.pose.checks.unobserved_axes,
+// [pose] min_axis_span).
+export function narrowAxes(points, size, minSpan = 0.2) {
+  if (!points.length || !(minSpan > 0)) return [];
+  return [0, 1, 2].filter((k) => {
+    const v = points.map((p) => p[k]);
+    return size[k] > 0 && Math.max(...v) - Math.min(...v) < minSpan * size[k];
+  }).map((k) => "xyz"[k]);
 }
 function symEig3(A) {   // eigenvalues of a symmetric 3x3 matrix, descending (trigonometric method)
   const p1 = A[0][1] ** 2 + A[0][2] ** 2 + A[1][2] ** 2, q = (A[0][0] + A[1][1] + A[2][2]) / 3;
