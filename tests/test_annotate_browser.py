@@ -275,10 +275,13 @@ def _assert_narrow_warning(s: Served, task: dict, cad_id: str) -> None:
     shown = page.inner_text("#narrow") if page.is_visible("#narrow") else ""
     assert bool(shown) == bool(want) and (not want or f"along {want}:" in shown), (want, shown)
     rng = np.random.default_rng(0)
-    for _ in range(20):
-        pts, size = rng.uniform(-0.5, 0.5, (6, 3)) * rng.uniform(0.01, 1, 3), rng.uniform(0.2, 2, 3)
-        js = page.evaluate("async ([p, z, m]) => (await import('/static/viewer.js')).narrowAxes(p, z, m)", [pts.tolist(), size.tolist(), span])
-        assert js == ["xyz"[a] for a in np.flatnonzero(unobserved_axes(pts, size, span))]
+    cases = [(rng.uniform(-0.5, 0.5, (6, 3)) * rng.uniform(0.01, 1, 3), rng.uniform(0.2, 2, 3), span) for _ in range(20)]
+    edge = np.array([[0.0, 0.0, 0.0], [0.5, 0.1, 0.0]])
+    cases += [(edge, np.array([2.5, 2.5, 0.0]), 0.2),  # x spans exactly 20 %: observed; z: a flat model, never tied
+              (edge, np.ones(3), 0.0), (np.zeros((0, 3)), np.ones(3), 0.2)]  # the rule off; no points
+    for pts, size, m in cases:
+        js = page.evaluate("async ([p, z, m]) => (await import('/static/viewer.js')).narrowAxes(p, z, m)", [pts.tolist(), size.tolist(), m])
+        assert js == ["xyz"[a] for a in np.flatnonzero(unobserved_axes(pts, size, m))], (pts, size, m)
 
 
 def test_correspondences_page(s):

@@ -189,6 +189,23 @@ def test_unobserved_axes_take_the_observed_scales():
                                                                        [1.0, 5.0, 3.0]]
     # 36-way: x and z are one scale first, then the unobserved y takes theirs
     assert tie_scales(s[:1], tied[:1], torch.tensor([True])).tolist() == [[2.0, 2.0, 2.0]]
+    from tasks.pose.lm import scale_ties
+
+    masks = torch.tensor([[bool(m >> a & 1) for a in range(3)] for m in range(8)] * 2)
+    round_ = torch.tensor([False] * 8 + [True] * 8)
+    s = torch.rand(16, 3, dtype=torch.float64) + 0.5
+    L = scale_ties(masks, round_)  # the LM's linear map is the tie itself, for every mask
+    assert torch.allclose(torch.einsum("bij,bj->bi", L, s), tie_scales(s, masks, round_), atol=1e-15)
+
+
+def test_a_round_model_keeps_one_horizontal_scale_when_one_of_x_z_is_narrow():
+    """36-way models: clicks narrow in x only (z observed) tie neither (sx = sz by the symmetry)."""
+    o, s = patch_object(5, np.array([0.04, 0.5, 0.5]), [0.3, 0.0, 0.0], (1.1, 0.9, 1.1))
+    o = dataclasses.replace(o, symmetry=36)
+    b = make_batch([o], [-1], SolverOptions())
+    assert b.tied.tolist() == [[False, False, False]]
+    r = solve_poses([o], SolverOptions())[0]
+    assert r.status == "ok" and abs(r.scale[0] - r.scale[2]) < 1e-9 and np.abs(r.scale / s - 1).max() < 0.05
 
 
 def patch_object(seed: int, half: np.ndarray, centre, scale, noise: float = 2.0) -> tuple[ObjectCorrespondences, np.ndarray]:

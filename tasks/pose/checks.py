@@ -63,8 +63,11 @@ def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float)
     frame) span less than ``min_span`` of the model's bounding-box size ``extent`` float[3]. The
     clicks barely constrain the scale along such an axis (a few centimetres of a metre-wide model,
     seen through pixels of click error), so the solver ties it to the observed axes
-    (:func:`tasks.pose.initial.tie_scales`). None of them with no ``extent`` or ``min_span`` 0."""
-    if extent is None or min_span <= 0:
+    (:func:`tasks.pose.initial.tie_scales`). None of them with no ``extent``, no points or ``min_span``
+    0. The spans are those of the points as clicked on the model: for a symmetric model the solver
+    may turn a key-frame's points about +Y, so an axis may be observed through another (36-way
+    models count x and z as one axis, :func:`tasks.pose.solver.make_batch`)."""
+    if extent is None or min_span <= 0 or len(xyz) == 0:
         return np.zeros(3, bool)
     size = np.asarray(extent, np.float64)
     span = np.ptp(np.asarray(xyz, np.float64), axis=0)

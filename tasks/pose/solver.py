@@ -74,7 +74,7 @@ class ObjectCorrespondences:
         symmetry: order of rotational symmetry about +Y (1, 2, 4, 36).
         upright: the class stands upright (the up-axis term applies).
         extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
-            None when unknown (then no floor term can apply).
+            None when unknown (then no floor term can apply, and no scale is tied for want of span).
         on_floor: the class usually rests on the floor ([pose] floor_classes): it helps estimate
             its clip's floor, and gets the support prior.
         rests: the class rests on a support, the floor or another object's top (upright classes
@@ -213,6 +213,9 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
     axis = np.asarray(axes if opts.coplanar else [-1] * B)
     tied = np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span) for o in objects]) | (
         (np.arange(3)[None] == axis[:, None]) & (axis[:, None] >= 0))
+    # 36-way models have one horizontal scale (sx = sz): observed when either axis is
+    round_ = np.array([opts.symmetry and o.symmetry >= 36 for o in objects])
+    tied[round_, 0] = tied[round_, 2] = tied[round_, 0] & tied[round_, 2]
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
@@ -422,15 +425,16 @@ def _solve(objects, todo, axes, opts, results) -> None:
 
 
 def _tie_note(tied: np.ndarray, coplanar: int, min_span: float) -> str:
-    """The part of a pose's message that says which scales the clicks left unobserved (bool[3]
-    ``tied``, beside the co-planar axis the poses table records): '' when none."""
+    """The part of a pose's message naming the axes tied for the clicks' span (``tied`` bool[3] also
+    holds the co-planar axis ``coplanar``, which the poses table records): '' when none is."""
     thin = [a for a in range(3) if tied[a] and a != coplanar]
     if not thin:
         return ""
-    if tied.all():
-        return f"; one scale on all axes: the clicks span under {100 * min_span:g} % of the model along each"
     names = ", ".join("xyz"[a] for a in thin)
-    return f"; scale along {names} tied to the other axes: the clicks span under {100 * min_span:g} % of the model there"
+    why = f"the clicks span under {100 * min_span:g} % of the model along {names}"
+    if tied.all():
+        return f"; one scale on all axes ({why}" + (f", and lie on a plane across {'xyz'[coplanar]})" if coplanar >= 0 else ")")
+    return f"; scale along {names} tied to the observed axes ({why})"
 
 
 def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):
