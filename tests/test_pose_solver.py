@@ -12,7 +12,7 @@ from bench.eval_pose import rotation_error_deg
 from cadestate.geometry import look_at, matrix_to_quaternion, quaternion_to_matrix
 from cadestate.render import object_to_world
 from tasks.cad.symmetry import rotation_y
-from tasks.pose.checks import coplanar_axis, unobserved_axes
+from tasks.pose.checks import coplanar_axis, prior_matrix, unobserved_axes
 from tasks.pose.initial import symmetry_offsets, tie_scales
 from tasks.pose.solver import ObjectCorrespondences, SolverOptions, evaluate, make_batch, solve_poses
 
@@ -176,13 +176,18 @@ def test_coplanar_detection_and_ties():
     assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]
 
 
-def test_unobserved_axes_take_the_observed_scales():
-    """An axis the points hardly span (relative to the model's size along it) is unobserved; its
-    scale is the mean of the observed axes', and one scale for all when none is observed."""
+def test_unobserved_axes_and_their_prior():
+    """An axis the points hardly span (relative to the model's size along it) is unobserved; the
+    prior's row for it pulls its log-scale towards the observed axes' mean (all three's when none is
+    observed); tie_scales (the co-planar tie) takes such a mask too."""
     p = np.array([[0.0, 0.0, 0.0], [0.8, 0.05, 0.3], [0.2, 0.1, 0.6]])  # spans x 0.8, y 0.1, z 0.6
     assert unobserved_axes(p, np.array([1.0, 1.0, 1.0]), 0.2).tolist() == [False, True, False]
     assert unobserved_axes(p, np.array([1.0, 0.4, 4.0]), 0.2).tolist() == [False, False, True]  # y: 25 %, z: 15 %
     assert not unobserved_axes(p, None, 0.2).any() and not unobserved_axes(p, np.ones(3), 0.0).any()
+    P = prior_matrix(np.array([False, True, False]), np.zeros(3, bool), 4.0)
+    assert np.allclose(P, [[0, 0, 0], [-1, 2, -1], [0, 0, 0]])  # sqrt(4) x (e_y - (e_x + e_z) / 2)
+    assert np.allclose(prior_matrix(np.array([True, True, False]), np.array([False, False, True]), 1.0),
+                       [[2 / 3, -1 / 3, -1 / 3], [-1 / 3, 2 / 3, -1 / 3], [0, 0, 0]])  # none observed: all three
     s = torch.tensor([[1.0, 5.0, 3.0]] * 4)
     tied = torch.tensor([[False, True, False], [True, True, False], [True] * 3, [False] * 3])
     assert tie_scales(s, tied, torch.tensor([False] * 4)).tolist() == [[1.0, 2.0, 3.0], [3.0, 3.0, 3.0], [3.0] * 3,
@@ -203,7 +208,7 @@ def test_a_round_model_keeps_one_horizontal_scale_when_one_of_x_z_is_narrow():
     o, s = patch_object(5, np.array([0.04, 0.5, 0.5]), [0.3, 0.0, 0.0], (1.1, 0.9, 1.1))
     o = dataclasses.replace(o, symmetry=36)
     b = make_batch([o], [-1], SolverOptions())
-    assert b.tied.tolist() == [[False, False, False]]
+    assert b.tied.tolist() == b.loose.tolist() == [[False, False, False]]
     r = solve_poses([o], SolverOptions())[0]
     assert r.status == "ok" and abs(r.scale[0] - r.scale[2]) < 1e-9 and np.abs(r.scale / s - 1).max() < 0.05
 
@@ -228,22 +233,24 @@ def patch_object(seed: int, half: np.ndarray, centre, scale, noise: float = 2.0)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_clicks_on_a_small_patch_keep_the_models_proportions(seed):
     """Clicks all within 10 cm of a 1 m model (a leg, a corner) leave every scale unobserved: the
-    solver gives one scale (the model's proportions) and gets it within 10 %; free scales, from the
+    prior keeps the model's proportions and the size comes within 10 %; free scales, from the
     same clicks, miss the size along some axis by more."""
     o, s = patch_object(seed, np.full(3, 0.05), [0.4, 0.3, 0.4], (1.2, 1.2, 1.2))
-    tied, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(min_axis_span=0.0))[0]
-    assert tied.status == "ok" and "one scale on all axes" in tied.message
-    assert np.ptp(tied.scale) < 1e-9 and np.abs(tied.scale / s - 1).max() < 0.1
-    assert np.abs(free.scale / s - 1).max() > np.abs(tied.scale / s - 1).max()
+    held, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(min_axis_span=0.0))[0]
+    assert held.status == "ok" and "scale along x, y, z held to the model's proportions" in held.message
+    assert np.abs(held.scale / s - 1).max() < 0.1
+    assert np.abs(free.scale / s - 1).max() > np.abs(held.scale / s - 1).max()
+    assert "held" not in free.message
 
 
-def test_an_axis_the_clicks_hardly_span_takes_the_others_scale():
-    """Clicks spread over x and y but 8 cm deep in z (not co-planar): z's scale is the mean of x's
-    and y's, so a model whose true depth scale is that mean is recovered on all three axes."""
+def test_an_axis_the_clicks_hardly_span_is_held_to_the_others_scale():
+    """Clicks spread over x and y but 8 cm deep in z (not co-planar): the prior holds z's scale near
+    the mean of x's and y's, so a model whose true depth scale is that mean is recovered on all
+    three axes; without the prior z strays."""
     o, s = patch_object(3, np.array([0.5, 0.5, 0.04]), [0.0, 0.0, 0.3], (0.9, 1.3, 1.1))
-    r = solve_poses([o], SolverOptions())[0]
-    assert r.status == "ok" and "scale along z tied" in r.message
-    assert abs(r.scale[2] - (r.scale[0] + r.scale[1]) / 2) < 1e-9 and np.abs(r.scale / s - 1).max() < 0.05
+    r, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(axis_prior=0.0, min_axis_span=0.0))[0]
+    assert r.status == "ok" and "scale along z held" in r.message
+    assert np.abs(r.scale / s - 1).max() < 0.05 < abs(free.scale[2] / s[2] - 1)
 
 
 def test_degenerate_inputs_get_a_clear_status():
@@ -291,6 +298,7 @@ def test_lm_jacobian_matches_finite_differences():
     problem, (T, q, s) = make_object(4, symmetry=36, swap=True, mirrored=True, keyframes=3, points=4)
     opts = SolverOptions(min_depth=2.9)  # some points inside min_depth: the front term is active
     b = make_batch([problem], [-1], opts)
+    b.prior = torch.tensor([[[0.0, 0.0, 0.0], [-1.5, 3.0, -1.5], [0.0, 0.0, 0.0]]], dtype=torch.float64)  # y held
     off, om = symmetry_offsets(torch.ones_like(b.sym), True)
     L = scale_ties(b.tied, b.sym >= 36)
     pb = Problem(b, off, om, L, torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))
@@ -310,6 +318,9 @@ def test_lm_jacobian_matches_finite_differences():
         e[0, k] = h
         num = (res(e) - res(-e)) / (2 * h)
         assert torch.allclose(J[..., k], num, atol=1e-5 * (1 + num.abs().max())), k
+        # the scale prior's rows (before the floor's) on their own scale
+        assert torch.allclose(J[0, -4:-1, k], num[0, -4:-1], rtol=1e-5, atol=1e-8), k
+    assert float(r[0, -4:-1].abs().max()) > 1e-3  # the prior is active
 
 
 def _walkthrough_object(seed: int, symmetry: int, keyframes: int = 5, points: int = 5):

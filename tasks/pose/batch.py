@@ -24,8 +24,10 @@ class Batch:
     bool[B, P]; K float[B, F, 3, 3] px; Rc float[B, F, 3, 3], tc float[B, F, 3] world->camera;
     fmask bool[B, F]; mirror float[B] (-1 mirrored, else 1); sym int[B] symmetry order about +Y;
     upright bool[B] (the up-axis term applies); axis int[B] co-planar CAD axis (-1 none); tied
-    bool[B, 3] the CAD axes whose scale the clicks do not observe (tied to the others,
-    :func:`tasks.pose.initial.tie_scales`: the co-planar axis, and axes the points hardly span); half
+    bool[B, 3] the CAD axes whose scale is tied to the others (:func:`tasks.pose.initial.tie_scales`:
+    the co-planar axis); loose bool[B, 3] the axes the points hardly span and prior float[B, 3, 3]
+    the scale prior on them (:func:`tasks.pose.lm.axis_prior`: its residuals are ``(prior @ log
+    s)^2``, px; zero rows for the other axes); half
     float[B, 3] half the CAD bounding-box size (canonical CAD frame, 0 when unknown); floor_y
     float[B] the support-plane (floor) height on world +Y and floor_w float[B] the weight of the
     floor term (px per world unit; 0: no floor term, see :func:`tasks.pose.lm.support_bottom`).
@@ -49,6 +51,8 @@ class Batch:
     upright: torch.Tensor
     axis: torch.Tensor
     tied: torch.Tensor
+    loose: torch.Tensor
+    prior: torch.Tensor
     half: torch.Tensor
     floor_y: torch.Tensor
     floor_w: torch.Tensor

@@ -62,8 +62,8 @@ def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float)
     """bool[3]: the CAD axes (x, y, z) along which the annotated points float[N, 3] (canonical CAD
     frame) span less than ``min_span`` of the model's bounding-box size ``extent`` float[3]. The
     clicks barely constrain the scale along such an axis (a few centimetres of a metre-wide model,
-    seen through pixels of click error), so the solver ties it to the observed axes
-    (:func:`tasks.pose.initial.tie_scales`). None of them with no ``extent``, no points or ``min_span``
+    seen through pixels of click error), so the solver holds it to the observed axes' scale
+    (:func:`prior_matrix`). None of them with no ``extent``, no points or ``min_span``
     0. The spans are those of the points as clicked on the model: for a symmetric model the solver
     may turn a key-frame's points about +Y, so an axis may be observed through another (36-way
     models count x and z as one axis, :func:`tasks.pose.solver.make_batch`)."""
@@ -72,6 +72,20 @@ def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float)
     size = np.asarray(extent, np.float64)
     span = np.ptp(np.asarray(xyz, np.float64), axis=0)
     return (size > 0) & (span < min_span * size)
+
+
+def prior_matrix(loose: np.ndarray, tied: np.ndarray, weight: float) -> np.ndarray:
+    """float[3, 3] of the scale prior (:func:`tasks.pose.lm.axis_prior`): row a, for a ``loose``
+    axis (bool[3], :func:`unobserved_axes`), is sqrt(``weight``) x (e_a - the mean of e_o over the
+    observed axes o, neither loose nor ``tied``; over all three when none is); other rows 0. Its
+    residual weight x (log s_a - mean log s_o)^2 (px) pulls the axis towards the observed axes'
+    scale (the model's proportions) the more the farther it strays, against what the clicks say."""
+    seen = ~loose & ~tied
+    ref = seen / seen.sum() if seen.any() else np.full(3, 1 / 3)
+    P = np.zeros((3, 3))
+    for a in np.flatnonzero(loose):
+        P[a] = np.sqrt(weight) * (np.eye(3)[a] - ref)
+    return P
 
 
 def check_object(o, opts) -> tuple[str, str] | None:

@@ -94,6 +94,13 @@ def support_bottom(R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, half: torc
     return T[:, 1] - reach, 2 * reach
 
 
+def axis_prior(b: Batch, s: torch.Tensor) -> torch.Tensor:
+    """The scale-prior residuals float[B, 3] (px, >= 0) of scales s float[B, 3]: ``(b.prior @ log s)^2``,
+    i.e. for an axis the clicks hardly span, weight x (its log-scale - the observed axes' mean
+    log-scale)^2, and 0 for the other axes (:func:`tasks.pose.checks.prior_matrix`)."""
+    return torch.einsum("bij,bj->bi", b.prior, torch.log(s.clamp(min=1e-12))) ** 2
+
+
 def floor_residual(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
     """The signed floor term float[B] (px): floor_w · (bottom - floor_y); 0 where floor_w is 0."""
     bottom, _ = support_bottom(R, s, T, b.half)
@@ -136,7 +143,8 @@ def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, b
     front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
     floor = floor_residual(pb.b, R, s, T).abs()
-    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up + floor, nan=float("inf")), choice
+    prior = axis_prior(pb.b, s).abs().sum(-1)
+    return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up + floor + prior, nan=float("inf")), choice
 
 
 def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
@@ -184,8 +192,12 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
     J_up[..., :3] = -alpha * up[..., None] * (R @ skew(e_y))
     r_floor, J_floor = _floor_jacobian(pb, R, ls, T, s)
-    r = torch.cat([r_pix.flatten(1), r_front, r_up, r_floor], 1)
-    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up, J_floor], 1)
+    # scale prior: (prior @ log s)^2, d log s_i / d ls_k = L_ik exp(ls_k) / s_i
+    dev = torch.einsum("bij,bj->bi", pb.b.prior, torch.log(s.clamp(min=1e-12)))
+    J_prior = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
+    J_prior[..., 6:9] = 2 * dev[..., None] * (pb.b.prior @ (pb.L * torch.exp(ls)[:, None, :] / s.clamp(min=1e-12)[..., None]))
+    r = torch.cat([r_pix.flatten(1), r_front, r_up, axis_prior(pb.b, s), r_floor], 1)
+    J = torch.cat([Jpix.flatten(1, 2), J_front, J_up, J_prior, J_floor], 1)
     return torch.nan_to_num(r), torch.nan_to_num(J)
 
 

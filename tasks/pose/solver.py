@@ -11,7 +11,7 @@ Frames (see :mod:`cadestate.geometry`):
 
 Objective per object (all key-frames together)::
 
-    L = L_repr + alpha · L_up + beta · L_front [+ L_floor]
+    L = L_repr + alpha · L_up + beta · L_front [+ L_axes] [+ L_floor]
     L_repr  = sum over key-frames of min over symmetric rotations Q of
               sum over the key-frame's points rho(u(T, R, S, M Q x) - u_click) (px), / points
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
@@ -27,8 +27,9 @@ Special parameterisations (each can be switched off for the ablation):
   largest; or, for symmetric models, every key-frame's set planar with the same normal axis):
   the scale along the CAD axis nearest the plane normal is the mean of the other two (2 DoF);
 - axes the 3D points hardly span (less than ``min_axis_span`` of the model's size along them:
-  the clicks all on a leg or a corner): their scale is the mean of the observed axes', or one
-  scale for all three when no axis is observed (the model's proportions kept);
+  the clicks all on a leg or a corner): the loss gains ``L_axes`` = sum over them of
+  ``axis_prior`` x (log s_a - the observed axes' mean log-scale)^2 (px; all three's mean when none
+  is observed), which pulls them towards the model's proportions, and the starts keep those;
 - symmetric models (order K = 2, 4 about +Y): each key-frame takes the best of the K rotations
   ``Q = R_y(2 pi i / K)``; 36-way: each key-frame has its own continuous rotation about +Y
   (solved, started from the best of 12) and sx = sz;
@@ -56,9 +57,9 @@ import torch
 
 from cadestate.geometry import matrix_to_quaternion
 from tasks.pose.batch import Batch
-from tasks.pose.checks import check_object, coplanar_axis, final_status, unobserved_axes
+from tasks.pose.checks import check_object, coplanar_axis, final_status, prior_matrix, unobserved_axes
 from tasks.pose.initial import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
-from tasks.pose.lm import Problem, bottom_sd, floor_residual, lm_solve, robust, scale_ties
+from tasks.pose.lm import Problem, axis_prior, bottom_sd, floor_residual, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -122,8 +123,11 @@ class SolverOptions:
     symmetry: bool = True
     coplanar_tol: float = 0.02
     min_axis_span: float = 0.2
-    """Axes along which the points span less than this fraction of the model's size have their
-    scale tied to the observed ones (:func:`tasks.pose.checks.unobserved_axes`); 0 = never."""
+    """Axes along which the points span less than this fraction of the model's size get the scale
+    prior (:func:`tasks.pose.checks.unobserved_axes`); 0 = never."""
+    axis_prior: float = 10.0
+    """Weight of the scale prior on those axes: px per squared unit of log-scale deviation from the
+    observed axes' mean (:func:`tasks.pose.checks.prior_matrix`); 0 = none."""
     min_points: int = 6
     max_reprojection_px: float = 20.0
     """A solution whose mean reprojection error (px) exceeds this gets status ``high_residual``."""
@@ -211,16 +215,18 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
     T = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
     half = [np.zeros(3) if o.extent is None else np.asarray(o.extent, np.float64) / 2 for o in objects]
     axis = np.asarray(axes if opts.coplanar else [-1] * B)
-    tied = np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span) for o in objects]) | (
-        (np.arange(3)[None] == axis[:, None]) & (axis[:, None] >= 0))
+    tied = (np.arange(3)[None] == axis[:, None]) & (axis[:, None] >= 0)
+    loose = np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span) for o in objects]) & ~tied
     # 36-way models have one horizontal scale (sx = sz): observed when either axis is
     round_ = np.array([opts.symmetry and o.symmetry >= 36 for o in objects])
-    tied[round_, 0] = tied[round_, 2] = tied[round_, 0] & tied[round_, 2]
+    for m in (tied, loose):
+        m[round_, 0] = m[round_, 2] = m[round_, 0] & m[round_, 2]
+    prior = np.stack([prior_matrix(lo, ti, opts.axis_prior) for lo, ti in zip(loose, tied)])
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
                  torch.as_tensor([bool(o.upright) and opts.alpha > 0 for o in objects]),
-                 torch.as_tensor(axis), torch.as_tensor(tied), T(np.stack(half)),
+                 torch.as_tensor(axis), torch.as_tensor(tied), torch.as_tensor(loose), T(prior), T(np.stack(half)),
                  T([float(o.floor_height) for o in objects]),
                  T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]))
 
@@ -257,11 +263,12 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     front = (torch.relu(opts.min_depth - z) * b.pmask).sum(1) / npts
     d_best = torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0] * b.pmask[..., None]
     floor = floor_residual(b, R, s, T)
+    prior = axis_prior(b, s)
     # Signed residuals whose absolute sum is the total loss (for the IRLS / Levenberg-Marquardt polish).
     residuals = torch.cat([d_best.flatten(1) / npts[:, None],
                            opts.alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * b.upright[:, None],
-                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], floor[:, None]], 1)
-    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs(), "reprojection": repr_, "up": up,
+                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], prior, floor[:, None]], 1)
+    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs() + prior.abs().sum(-1), "reprojection": repr_, "up": up,
             "front": front, "floor": floor.abs(), "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)),
             "residuals": residuals}
 
@@ -357,7 +364,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
     B, S = len(todo), max(opts.starts, 1)
     offsets, omask = symmetry_offsets(b.sym, opts.symmetry)
     A, T, phi = linear_init(b.pts, b.xn, b.kf, b.pmask, b.Rc, b.tc, b.fmask, b.mirror, offsets, omask, b.upright)
-    R, s = split_affine(A, b.axis, b.tied, b.sym >= 36, b.upright)
+    R, s = split_affine(A, b.axis, b.tied | b.loose, b.sym >= 36, b.upright)  # starts keep the model's proportions
     ok = torch.isfinite(A).all(-1).all(-1) & torch.isfinite(T).all(-1)
     R = torch.where(ok[:, None, None], R, torch.eye(3, dtype=DTYPE))
     s, T = torch.where(ok[:, None], s, torch.ones_like(s)), torch.nan_to_num(T)
@@ -372,7 +379,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
         # Each start also gets the scales and translation that fit its own rotation (linear in (s, T));
         # the better of the two (by the loss) is kept: a poor affine split cannot spoil every start.
         s1, T1 = fit_scale_translation(bs.pts, bs.xn, bs.kf, bs.pmask, bs.Rc, bs.tc, bs.mirror, Rs,
-                                       angle.repeat_interleave(S, 0), scale_ties(bs.tied, bs.sym >= 36))
+                                       angle.repeat_interleave(S, 0), scale_ties(bs.tied | bs.loose, bs.sym >= 36))
         usable = torch.isfinite(s1).all(-1) & torch.isfinite(T1).all(-1) & (s1 > 1e-3).all(-1)
         s1, T1 = torch.where(usable[:, None], s1, s0), torch.where(usable[:, None], T1, T0)
         off0, om0 = symmetry_offsets(torch.where(bs.sym >= 36, torch.ones_like(bs.sym), bs.sym), True)
@@ -416,7 +423,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         parallax = float(np.degrees(np.arccos(np.clip(rays @ rays.T, -1, 1)).max()))
         status, message = final_status(z, kf_px, parallax, opts)
-        message += _tie_note(b.tied[j].numpy(), int(b.axis[j]), opts.min_axis_span)
+        message += _tie_note(b.loose[j].numpy(), opts.min_axis_span)
         results[i] = PoseResult(
             status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
@@ -424,17 +431,12 @@ def _solve(objects, todo, axes, opts, results) -> None:
             bottom_sd=float(sd[j]))
 
 
-def _tie_note(tied: np.ndarray, coplanar: int, min_span: float) -> str:
-    """The part of a pose's message naming the axes tied for the clicks' span (``tied`` bool[3] also
-    holds the co-planar axis ``coplanar``, which the poses table records): '' when none is."""
-    thin = [a for a in range(3) if tied[a] and a != coplanar]
-    if not thin:
+def _tie_note(loose: np.ndarray, min_span: float) -> str:
+    """The part of a pose's message naming the axes the scale prior held (``loose`` bool[3]): '' when none."""
+    if not loose.any():
         return ""
-    names = ", ".join("xyz"[a] for a in thin)
-    why = f"the clicks span under {100 * min_span:g} % of the model along {names}"
-    if tied.all():
-        return f"; one scale on all axes ({why}" + (f", and lie on a plane across {'xyz'[coplanar]})" if coplanar >= 0 else ")")
-    return f"; scale along {names} tied to the observed axes ({why})"
+    names = ", ".join("xyz"[a] for a in np.flatnonzero(loose))
+    return f"; scale along {names} held to the model's proportions (the clicks span under {100 * min_span:g} % of the model there)"
 
 
 def _bottom_sd(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, opts: SolverOptions):

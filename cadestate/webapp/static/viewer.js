@@ -102,7 +102,7 @@ export function coplanar(points, tol = 0.02) {
   return e[2] <= tol * e[0];
 }
 // The CAD axes ("x", "y", "z") along which points (n x 3) span less than minSpan of the model's
-// size (x, y, z): the solver ties their scale to the other axes' (tasks.pose.checks.unobserved_axes,
+// size (x, y, z): the solver holds their scale to the other axes' (tasks.pose.checks.unobserved_axes,
 // [pose] min_axis_span).
 export function narrowAxes(points, size, minSpan = 0.2) {
   if (!points.length || !(minSpan > 0)) return [];
