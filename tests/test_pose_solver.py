@@ -203,6 +203,32 @@ def test_unobserved_axes_and_their_prior():
     assert torch.allclose(torch.einsum("bij,bj->bi", L, s), tie_scales(s, masks, round_), atol=1e-15)
 
 
+def test_the_lm_stops_at_the_minimum_of_the_loss_with_the_prior():
+    """At the solver's answer the loss (prior included) does not fall when the loose axis's scale
+    moves either way: the LM's steps see the prior's true gradient (its rows at a fixed weight, not
+    clamped like an L1 row near zero, which stopped it short by a 0.66 px per unit slope)."""
+    o, _ = patch_object(0, np.array([0.5, 0.5, 0.04]), [0.0, 0.0, 0.3], (0.9, 1.3, 1.1))
+    opts = SolverOptions(floor_prior=0.0)
+    r = solve_poses([o], opts)[0]
+    b = make_batch([o], [-1], opts)
+    assert b.loose.tolist() == [[False, False, True]]
+    off, om = symmetry_offsets(b.sym, True)
+    t = lambda a: torch.tensor(np.asarray(a, float)[None], dtype=torch.float64)  # noqa: E731
+    R, T, phi = t(quaternion_to_matrix(r.rotation)), t(r.translation), torch.zeros(1, 4, dtype=torch.float64)
+    loss = lambda scale: float(evaluate(b, R, t(scale), T, phi, off, om, opts)["total"][0])  # noqa: E731
+    for step in (1e-3, -1e-3):
+        assert loss(r.scale * np.exp([0.0, 0.0, step])) > loss(r.scale) - 1e-5
+
+
+def test_a_round_model_with_a_coplanar_x_and_a_narrow_z_is_held():
+    """36-way: x is co-planar (tied) and z narrow: the one horizontal scale is unobserved, so the
+    prior holds it (once: x's row), rather than neither tie applying."""
+    o, _ = patch_object(6, np.array([0.0, 0.5, 0.04]), [0.3, 0.0, 0.0], (1.2, 1.2, 1.2))
+    b = make_batch([dataclasses.replace(o, symmetry=36)], [0], SolverOptions())
+    assert b.tied.tolist() == [[False, False, False]] and b.loose.tolist() == [[True, False, True]]
+    assert b.prior[0, 0].abs().sum() > 0 and b.prior[0, 2].abs().sum() == 0
+
+
 def test_a_round_model_keeps_one_horizontal_scale_when_one_of_x_z_is_narrow():
     """36-way models: clicks narrow in x only (z observed) tie neither (sx = sz by the symmetry)."""
     o, s = patch_object(5, np.array([0.04, 0.5, 0.5]), [0.3, 0.0, 0.0], (1.1, 0.9, 1.1))

@@ -1,8 +1,10 @@
 """Levenberg-Marquardt solver of the pose objective (:mod:`tasks.pose.solver`), batched over objects.
 
-The objective is the solver's loss (reprojection + alpha · up + beta · front + floor). It is minimised
-by iteratively reweighted least squares (weights 1 / max(|r|, eps), so the weighted squares equal
-the L1 terms at the current point) with Gauss-Newton steps on an *analytic* Jacobian, from the
+The objective is the solver's loss (reprojection + alpha · up + beta · front + the scale prior +
+floor). It is minimised by iteratively reweighted least squares (weights 1 / max(|r|, eps), so the
+weighted squares equal the L1 terms at the current point; the scale prior, a sum of squares q^2,
+enters with its linear residuals q at the fixed weight :data:`PRIOR_WEIGHT`: exact Gauss-Newton)
+with Gauss-Newton steps on an *analytic* Jacobian, from the
 closed-form start: along the weakly observed depth <-> size direction (small baselines) this lands
 on the minimum in a few iterations where fixed-size gradient steps (Adam) crawl.
 
@@ -29,6 +31,10 @@ import torch
 from tasks.pose.batch import DTYPE, Batch
 
 IRLS_EPS_PX = 1e-3
+PRIOR_WEIGHT = 2.0
+"""IRLS weight of the scale prior's linear rows q (loss q^2: gradient 2 q dq, Gauss-Newton curvature 2 dq dq^T)."""
+PRIOR_ROWS = slice(-4, -1)
+"""Where :func:`residuals_jacobian` puts the scale prior's 3 rows (before the floor's last row)."""
 """Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
 
 
@@ -52,7 +58,7 @@ def skew(v: torch.Tensor) -> torch.Tensor:
 
 def scale_ties(tied: torch.Tensor, tie36: torch.Tensor) -> torch.Tensor:
     """The linear map L float[B, 3, 3] of :func:`tasks.pose.initial.tie_scales` (s_tied = L s;
-    ``tied`` bool[B, 3] the unobserved axes)."""
+    ``tied`` bool[B, 3] the tied axes: the co-planar one while solving, also the loose ones for the starts)."""
     from tasks.pose.initial import tie_scales
 
     B = tied.shape[0]
@@ -94,11 +100,16 @@ def support_bottom(R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, half: torc
     return T[:, 1] - reach, 2 * reach
 
 
+def prior_deviation(b: Batch, s: torch.Tensor) -> torch.Tensor:
+    """q = ``b.prior @ log s`` float[B, 3] of scales s float[B, 3]: for an axis the clicks hardly
+    span, sqrt(weight) x (its log-scale - the observed axes' mean log-scale); 0 for the other axes
+    (:func:`tasks.pose.checks.prior_matrix`)."""
+    return torch.einsum("bij,bj->bi", b.prior, torch.log(s.clamp(min=1e-12)))
+
+
 def axis_prior(b: Batch, s: torch.Tensor) -> torch.Tensor:
-    """The scale-prior residuals float[B, 3] (px, >= 0) of scales s float[B, 3]: ``(b.prior @ log s)^2``,
-    i.e. for an axis the clicks hardly span, weight x (its log-scale - the observed axes' mean
-    log-scale)^2, and 0 for the other axes (:func:`tasks.pose.checks.prior_matrix`)."""
-    return torch.einsum("bij,bj->bi", b.prior, torch.log(s.clamp(min=1e-12))) ** 2
+    """The scale prior's terms float[B, 3] (px, >= 0): q^2 (:func:`prior_deviation`)."""
+    return prior_deviation(b, s) ** 2
 
 
 def floor_residual(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
@@ -148,8 +159,9 @@ def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, b
 
 
 def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alpha: float, beta: float):
-    """Signed residuals float[B, N] (their absolute sum is the loss at the chosen rotations) and
-    their Jacobian float[B, N, 9 + F] with respect to (w, translation step, ls, phi)."""
+    """Signed residuals float[B, N] and their Jacobian float[B, N, 9 + F] with respect to (w,
+    translation step, ls, phi). The loss at the chosen rotations is the absolute sum of the rows
+    but the scale prior's (:data:`PRIOR_ROWS`), which are its linear q and count as q^2."""
     B, P = pb.b.kf.shape
     F = pb.b.Rc.shape[1]
     s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
@@ -192,11 +204,10 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     J_up = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
     J_up[..., :3] = -alpha * up[..., None] * (R @ skew(e_y))
     r_floor, J_floor = _floor_jacobian(pb, R, ls, T, s)
-    # scale prior: (prior @ log s)^2, d log s_i / d ls_k = L_ik exp(ls_k) / s_i
-    dev = torch.einsum("bij,bj->bi", pb.b.prior, torch.log(s.clamp(min=1e-12)))
+    # scale prior, linear rows q = prior @ log s: d log s_i / d ls_k = L_ik exp(ls_k) / s_i
     J_prior = torch.zeros(B, 3, 9 + F, dtype=DTYPE)
-    J_prior[..., 6:9] = 2 * dev[..., None] * (pb.b.prior @ (pb.L * torch.exp(ls)[:, None, :] / s.clamp(min=1e-12)[..., None]))
-    r = torch.cat([r_pix.flatten(1), r_front, r_up, axis_prior(pb.b, s), r_floor], 1)
+    J_prior[..., 6:9] = pb.b.prior @ (pb.L * torch.exp(ls)[:, None, :] / s.clamp(min=1e-12)[..., None])
+    r = torch.cat([r_pix.flatten(1), r_front, r_up, prior_deviation(pb.b, s), r_floor], 1)
     J = torch.cat([Jpix.flatten(1, 2), J_front, J_up, J_prior, J_floor], 1)
     return torch.nan_to_num(r), torch.nan_to_num(J)
 
@@ -222,6 +233,14 @@ def _floor_jacobian(pb: Problem, R, ls, T, s) -> tuple[torch.Tensor, torch.Tenso
     return floor_residual(pb.b, R, s, T)[:, None], w[:, :, None] * bottom_gradient(pb, R, ls, s)[:, None, :]
 
 
+def irls_weights(r: torch.Tensor, huber_px: float, npts: torch.Tensor) -> torch.Tensor:
+    """IRLS weights float[B, N] of :func:`residuals_jacobian`'s rows r: L1 1/|r| (smoothed below
+    IRLS_EPS_PX); Huber: 1/huber_px inside +-huber_px; the scale prior's rows :data:`PRIOR_WEIGHT`."""
+    wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / npts[:, None])
+    wgt[:, PRIOR_ROWS] = PRIOR_WEIGHT
+    return wgt
+
+
 def bottom_sd(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, phi: torch.Tensor, min_depth: float,
               alpha: float, beta: float, huber_px: float) -> torch.Tensor:
     """How loosely the fit holds each object's bottom height, float[B] (world units, relative:
@@ -232,7 +251,7 @@ def bottom_sd(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, p
     s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
     _, choice = loss_and_choice(pb, R, s, T, phi, min_depth, alpha, beta, huber_px)
     r, J = residuals_jacobian(pb, R, ls, T, phi, choice, min_depth, alpha, beta)
-    wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / pb.b.npts[:, None])
+    wgt = irls_weights(r, huber_px, pb.b.npts)
     H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
     diag = H.diagonal(dim1=1, dim2=2)
     H = H + torch.diag_embed((diag <= 0).to(DTYPE) + 1e-12 * diag.amax(-1, keepdim=True))
@@ -261,8 +280,7 @@ def lm_solve(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, ph
         sub = pb.subset(idx) if len(idx) < B else pb
         Ri, lsi, Ti, phii = R[idx], ls[idx], T[idx], phi[idx]
         r, J = residuals_jacobian(sub, Ri, lsi, Ti, phii, choice[idx], min_depth, alpha, beta)
-        # IRLS weights: L1 1/|r| (smoothed below IRLS_EPS_PX); Huber: 1/huber_px inside +-huber_px.
-        wgt = 1.0 / r.abs().clamp(min=max(huber_px, IRLS_EPS_PX) / sub.b.npts[:, None])
+        wgt = irls_weights(r, huber_px, sub.b.npts)
         H = torch.einsum("bnd,bn,bne->bde", J, wgt, J)
         g = torch.einsum("bnd,bn,bn->bd", J, wgt, r)
         diag = H.diagonal(dim1=1, dim2=2)

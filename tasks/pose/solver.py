@@ -75,7 +75,7 @@ class ObjectCorrespondences:
         symmetry: order of rotational symmetry about +Y (1, 2, 4, 36).
         upright: the class stands upright (the up-axis term applies).
         extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
-            None when unknown (then no floor term can apply, and no scale is tied for want of span).
+            None when unknown (then no floor term can apply, and no scale prior).
         on_floor: the class usually rests on the floor ([pose] floor_classes): it helps estimate
             its clip's floor, and gets the support prior.
         rests: the class rests on a support, the floor or another object's top (upright classes
@@ -216,12 +216,15 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
     half = [np.zeros(3) if o.extent is None else np.asarray(o.extent, np.float64) / 2 for o in objects]
     axis = np.asarray(axes if opts.coplanar else [-1] * B)
     tied = (np.arange(3)[None] == axis[:, None]) & (axis[:, None] >= 0)
-    loose = np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span) for o in objects]) & ~tied
+    unseen = tied | np.stack([unobserved_axes(o.xyz, o.extent, opts.min_axis_span if opts.axis_prior > 0 else 0.0)
+                              for o in objects])
     # 36-way models have one horizontal scale (sx = sz): observed when either axis is
     round_ = np.array([opts.symmetry and o.symmetry >= 36 for o in objects])
-    for m in (tied, loose):
+    for m in (tied, unseen):
         m[round_, 0] = m[round_, 2] = m[round_, 0] & m[round_, 2]
+    loose = unseen & ~tied
     prior = np.stack([prior_matrix(lo, ti, opts.axis_prior) for lo, ti in zip(loose, tied)])
+    prior[round_, 2] = 0.0  # x and z are one scale there: its prior counts once (x's row)
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
