@@ -208,7 +208,7 @@ def test_the_lm_stops_at_the_minimum_of_the_loss_with_the_prior():
     moves either way: the LM's steps see the prior's true gradient (its rows at a fixed weight, not
     clamped like an L1 row near zero, which stopped it short by a 0.66 px per unit slope)."""
     o, _ = patch_object(0, np.array([0.5, 0.5, 0.04]), [0.0, 0.0, 0.3], (0.9, 1.3, 1.1))
-    opts = SolverOptions(floor_prior=0.0)
+    opts = SolverOptions(floor_prior=0.0, axis_prior=10.0)
     r = solve_poses([o], opts)[0]
     b = make_batch([o], [-1], opts)
     assert b.loose.tolist() == [[False, False, True]]
@@ -224,7 +224,7 @@ def test_a_round_model_with_a_coplanar_x_and_a_narrow_z_is_held():
     """36-way: x is co-planar (tied) and z narrow: the one horizontal scale is unobserved, so the
     prior holds it (once: x's row), rather than neither tie applying."""
     o, _ = patch_object(6, np.array([0.0, 0.5, 0.04]), [0.3, 0.0, 0.0], (1.2, 1.2, 1.2))
-    b = make_batch([dataclasses.replace(o, symmetry=36)], [0], SolverOptions())
+    b = make_batch([dataclasses.replace(o, symmetry=36)], [0], SolverOptions(axis_prior=10.0))
     assert b.tied.tolist() == [[False, False, False]] and b.loose.tolist() == [[True, False, True]]
     assert b.prior[0, 0].abs().sum() > 0 and b.prior[0, 2].abs().sum() == 0
 
@@ -233,9 +233,9 @@ def test_a_round_model_keeps_one_horizontal_scale_when_one_of_x_z_is_narrow():
     """36-way models: clicks narrow in x only (z observed) tie neither (sx = sz by the symmetry)."""
     o, s = patch_object(5, np.array([0.04, 0.5, 0.5]), [0.3, 0.0, 0.0], (1.1, 0.9, 1.1))
     o = dataclasses.replace(o, symmetry=36)
-    b = make_batch([o], [-1], SolverOptions())
+    b = make_batch([o], [-1], SolverOptions(axis_prior=10.0))
     assert b.tied.tolist() == b.loose.tolist() == [[False, False, False]]
-    r = solve_poses([o], SolverOptions())[0]
+    r = solve_poses([o], SolverOptions(axis_prior=10.0))[0]
     assert r.status == "ok" and abs(r.scale[0] - r.scale[2]) < 1e-9 and np.abs(r.scale / s - 1).max() < 0.05
 
 
@@ -262,7 +262,7 @@ def test_clicks_on_a_small_patch_keep_the_models_proportions(seed):
     prior keeps the model's proportions and the size comes within 10 %; free scales, from the
     same clicks, miss the size along some axis by more."""
     o, s = patch_object(seed, np.full(3, 0.05), [0.4, 0.3, 0.4], (1.2, 1.2, 1.2))
-    held, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(min_axis_span=0.0))[0]
+    held, free = solve_poses([o], SolverOptions(axis_prior=10.0))[0], solve_poses([o], SolverOptions(min_axis_span=0.0))[0]
     assert held.status == "ok" and "scale along x, y, z held to the model's proportions" in held.message
     assert np.abs(held.scale / s - 1).max() < 0.1
     assert np.abs(free.scale / s - 1).max() > np.abs(held.scale / s - 1).max()
@@ -274,7 +274,7 @@ def test_an_axis_the_clicks_hardly_span_is_held_to_the_others_scale():
     the mean of x's and y's, so a model whose true depth scale is that mean is recovered on all
     three axes; without the prior z strays."""
     o, s = patch_object(3, np.array([0.5, 0.5, 0.04]), [0.0, 0.0, 0.3], (0.9, 1.3, 1.1))
-    r, free = solve_poses([o], SolverOptions())[0], solve_poses([o], SolverOptions(axis_prior=0.0, min_axis_span=0.0))[0]
+    r, free = solve_poses([o], SolverOptions(axis_prior=10.0))[0], solve_poses([o], SolverOptions(axis_prior=0.0))[0]
     assert r.status == "ok" and "scale along z held" in r.message
     assert np.abs(r.scale / s - 1).max() < 0.05 < abs(free.scale[2] / s[2] - 1)
 

@@ -125,7 +125,7 @@ class SolverOptions:
     min_axis_span: float = 0.2
     """Axes along which the points span less than this fraction of the model's size get the scale
     prior (:func:`tasks.pose.checks.unobserved_axes`); 0 = never."""
-    axis_prior: float = 10.0
+    axis_prior: float = 0.0
     """Weight of the scale prior on those axes: px per squared unit of log-scale deviation from the
     observed axes' mean (:func:`tasks.pose.checks.prior_matrix`); 0 = none."""
     min_points: int = 6
