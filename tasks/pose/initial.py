@@ -104,9 +104,8 @@ def split_affine(A: torch.Tensor, coplanar_axis: torch.Tensor, tied: torch.Tenso
     yaw = torch.atan2(R[:, 0, 2] - R[:, 2, 0], R[:, 0, 0] + R[:, 2, 2])
     R = torch.where(upright[:, None, None], yaw_matrix(yaw), R)
     # the co-planar column's norm says nothing (its direction was filled in): the other two's mean first
-    s = torch.where(torch.nn.functional.one_hot(k, 3).bool() & (coplanar_axis >= 0)[:, None],
-                    (s.sum(-1, keepdim=True) - s) / 2, s)
-    s = tie_scales(s, tied, tie36)
+    coplanar = torch.nn.functional.one_hot(k, 3).bool() & (coplanar_axis >= 0)[:, None]
+    s = tie_scales(tie_scales(s, coplanar, torch.zeros_like(tie36)), tied, tie36)
     return R, s
 
 

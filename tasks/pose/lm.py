@@ -31,11 +31,11 @@ import torch
 from tasks.pose.batch import DTYPE, Batch
 
 IRLS_EPS_PX = 1e-3
+"""Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
 PRIOR_WEIGHT = 2.0
 """IRLS weight of the scale prior's linear rows q (loss q^2: gradient 2 q dq, Gauss-Newton curvature 2 dq dq^T)."""
 PRIOR_ROWS = slice(-4, -1)
 """Where :func:`residuals_jacobian` puts the scale prior's 3 rows (before the floor's last row)."""
-"""Smallest residual (px) in the IRLS weights 1/|r| (a smoothed L1 near zero)."""
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
@@ -154,7 +154,7 @@ def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, b
     front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
     floor = floor_residual(pb.b, R, s, T).abs()
-    prior = axis_prior(pb.b, s).abs().sum(-1)
+    prior = axis_prior(pb.b, s).sum(-1)
     return torch.nan_to_num((best.sum(1) + beta * front) / pb.b.npts + alpha * up + floor + prior, nan=float("inf")), choice
 
 

@@ -271,7 +271,7 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     residuals = torch.cat([d_best.flatten(1) / npts[:, None],
                            opts.alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * b.upright[:, None],
                            opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], prior, floor[:, None]], 1)
-    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs() + prior.abs().sum(-1), "reprojection": repr_, "up": up,
+    return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs() + prior.sum(-1), "reprojection": repr_, "up": up,
             "front": front, "floor": floor.abs(), "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)),
             "residuals": residuals}
 
