@@ -163,7 +163,7 @@ def test_manual_tracks_page(s):
     stamps = [int(k["timestamp_us"]) for k in task["keyframes"]]
     existing = [t["track_id"] for t in task["existing_tracks"]]
     assert answer["answers"] and all(o["boxes"] for o in answer["answers"]), "the simulated annotators drew no object"
-    assert existing, "the clip has no track to relate the drawn objects to"
+    assert len(existing) >= 2, f"the clip has tracks {existing}: too few to relate the drawn objects to"
     for i, obj in enumerate(answer["answers"]):
         page.keyboard.press("n")
         page.locator("input.cls").nth(i).fill(obj["label"])
@@ -178,8 +178,13 @@ def test_manual_tracks_page(s):
             page.mouse.down()
             page.mouse.move(r["x"] + x1 * r["width"], r["y"] + y1 * r["height"], steps=4)
             page.mouse.up()
-    same, not_object = existing[0], existing[-1]  # "this is track N" on the first object; "track M is not an object"
-    page.locator("select.same").nth(0).select_option(str(same))
+    # "this is track N" on the first object and "track M is not an object". The clip's third track (a chair
+    # seen in 4 frames at detector scores near the threshold) is not always found; with two tracks the drawn
+    # object stays its own, so that the CAD-selection task still has two items (a fragment needs another track).
+    same = existing[0] if len(existing) >= 3 else None
+    not_object = existing[-1]
+    if same is not None:
+        page.locator("select.same").nth(0).select_option(str(same))
     page.locator(f'input.not-object[data-track="{not_object}"]').check()
     page.screenshot(path=s.shots / "manual_track.png")
     page.keyboard.press("Enter")
@@ -192,7 +197,8 @@ def test_manual_tracks_page(s):
         assert np.allclose([b.box for b in a.boxes], [b["box"] for b in o["boxes"]], atol=0.01)
     assert lf.label.seconds is not None and lf.label.seconds > 0
     assert [a.same_as_track for a in drawn] == [same] + [None] * (len(drawn) - 1) and list(lf.label.not_objects) == [not_object]
-    assert relations(s, "manual_track") == {("same_object", same, None, 0), ("not_object", not_object, None, None)}
+    assert relations(s, "manual_track") == ({("same_object", same, None, 0)} if same is not None else set()) | {
+        ("not_object", not_object, None, None)}
     assert "cad_selection" in ready, ready
 
 
