@@ -22,6 +22,7 @@ from PIL import Image, ImageDraw
 from bench.eval_detection import FrameBoxes, evaluate_detections
 from bench.ignore import box_fractions, is_ignored
 from bench.labels import label_statistics
+from bench.seeds import DEFAULT_SEED, seed_note
 from bench.stats import dataset_statistics, statistics_markdown
 from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.lineage import digest
@@ -33,7 +34,6 @@ from tasks.video.decode import decode_at, frame_timestamp_us
 from tasks.video.ingest import ClipSource
 from warehouse import Warehouse
 
-DEFAULT_SEED = 20261123
 DEFAULT_CLIPS = 12
 MANIFEST = "manifest.json"
 VAL_EVERY = 4
@@ -204,6 +204,7 @@ def report_markdown(result: dict) -> str:
     from bench.track_bench import tracking_markdown  # imports this module
 
     lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
+             seed_note(result["benchmark"]["seed"]), "",
              *yield_markdown(result.get("yield")),
              "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "

@@ -7,6 +7,7 @@ import json
 import pytest
 
 from bench.benchmark import BenchmarkError, clip_sources, generate, ignore_rule, read_manifest, report, report_markdown
+from bench.seeds import seed_note
 from bench.walkthrough import WalkthroughSpec
 from cadestate.config import Config, WarehouseConfig
 from schemas.official import read_objects
@@ -84,6 +85,7 @@ def test_report_has_statistics_and_pictures(benchmark):
     assert (folder / result["examples"][0]).stat().st_size > 1000
     markdown = report_markdown(result)
     assert "Table 2" in markdown and result["examples"][0] in markdown
+    assert markdown.splitlines()[2] == seed_note(manifest.seed)  # under the title: whether the seed may flatter
     json.dumps(result)
 
 

@@ -1,0 +1,47 @@
+"""Which benchmark seeds have been looked at while choosing something, and which one is fresh.
+
+A number measured on a benchmark that a knob was chosen on flatters the knob. So the benchmark's
+report says, for its seed, whether it is in :data:`USED_SEEDS` (seen while tuning, fitting or
+deciding: its numbers may flatter) or is :data:`FRESH_SEED`, the seed ``make bench`` generates
+with the same command as every other benchmark (``cadestate bench generate --seed S --clips 8``)
+and that nothing has been chosen on. Whoever tunes on the fresh seed adds it here with what was
+chosen, and picks a new :data:`FRESH_SEED` (a test holds that it is not among the used ones, and
+that it is the Makefile's ``FRESH_SEED``). The detector's and descriptor's training rooms have
+scene seeds from ``bench.descriptor_data.TRAIN_SEED_BASE`` on, far from any benchmark's.
+"""
+
+from __future__ import annotations
+
+DEFAULT_SEED = 20261123
+"""The default benchmark's seed (``make bench``, ``cadestate bench generate`` without ``--seed``)."""
+
+FRESH_SEED = 30307
+"""The benchmark seed ``make bench`` reports beside the default one: never used while tuning."""
+
+USED_SEEDS: dict[int, str] = {
+    DEFAULT_SEED: "the default benchmark: most knobs were measured on it since the first stop",
+    60606: "world-up tolerance, retrieval's class_exponent, NMS across classes, the fine-tuned detector's checks",
+    424242: "world-up tolerance",
+    271828: "world-up tolerance, retrieval's class_exponent, the narrow-axis prior",
+    314159: "world-up tolerance",
+    8675309: "world-up and tracking checks, the narrow-axis prior",
+    1729: "reported fresh by stop 41, then the narrow-axis prior",
+    4711: "hard axis ties against the narrow-axis prior",
+    8128: "reported fresh by stop 42; its yield was one reason the narrow-axis prior is off by default",
+    4242: "reported fresh for the pose solver's support prior",
+    5150: "reported fresh for the 3D joining of track fragments",
+    101: "tracking cue and fragment-joining fits (tasks.tracking.calibration)",
+    31: "tracking cue and fragment-joining fits (tasks.tracking.calibration)",
+    77: "tracking cue and fragment-joining fits (tasks.tracking.calibration)",
+    9137: "tracking cue and fragment-joining fits (tasks.tracking.calibration)",
+}
+"""Benchmark seeds whose numbers were seen while something was chosen, and what."""
+
+
+def seed_note(seed: int) -> str:
+    """One line for a benchmark report: whether numbers on ``seed`` may flatter."""
+    if seed in USED_SEEDS:
+        return f"Seed {seed} was used while tuning ({USED_SEEDS[seed]}): its numbers may flatter; seed {FRESH_SEED} is the fresh one."
+    if seed == FRESH_SEED:
+        return f"Seed {seed} is the fresh seed: nothing was chosen on it (bench/seeds.py)."
+    return f"Seed {seed} is not in bench/seeds.py's record of used seeds: fresh, unless you tuned on it."
