@@ -31,7 +31,7 @@ from bench.eval_retrieval import retrieval_recall
 from cadestate.config import RetrievalConfig
 from tasks.retrieval.descriptor import load_descriptor
 from tasks.retrieval.index import LibraryIndex, build_index, list_matrix
-from tasks.retrieval.retrieval import score_tracks, top_order
+from tasks.retrieval.retrieval import diverse_order, score_tracks
 from warehouse import Warehouse
 
 METHODS = ("whiten", "learned")
@@ -72,13 +72,14 @@ def gt_tracks(bench_dir: Path, clip: str) -> list[tuple[str, str, np.ndarray]]:
             for o in sorted(clip_objects_in_view(bench_dir, clip))]
 
 
-def ranked(libs: list[LibraryIndex], scores: list[np.ndarray]) -> list[tuple[str, str]]:
+def ranked(libs: list[LibraryIndex], scores: list[np.ndarray], per_class: int = TOP_K) -> list[tuple[str, str]]:
     """The first :data:`TOP_K` (cad_id, class) over all libraries, given each library's scores
-    float[M_l] of one track, ordered as the retrieval stage orders them."""
+    float[M_l] of one track, ordered as the retrieval stage orders them with ``[retrieval]
+    max_per_class`` = ``per_class`` (default: no cap, the descriptor's own ranking)."""
     score = np.concatenate(scores)
     cad_ids = np.concatenate([lib.cad_ids for lib in libs])
     classes = np.concatenate([lib.classes for lib in libs])
-    return [(cad_ids[m], classes[m]) for m in top_order(score, cad_ids, TOP_K)]
+    return [(cad_ids[m], classes[m]) for m in diverse_order(score, cad_ids, classes, TOP_K, per_class)]
 
 
 def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]) -> dict[str, dict]:
@@ -101,8 +102,9 @@ def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]
 def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[LibraryIndex]],
                     class_exponents: tuple[float, ...] = (1.0,)) -> dict[str, dict]:
     """Per method and ``[retrieval] class_exponent``: recall@1/@10 of the warehouse's tracks of
-    ``bench_dir``'s clips, scored as the retrieval stage scores (class-label similarity included);
-    keyed by the method, with ``c^x`` after it for an exponent x other than 1."""
+    ``bench_dir``'s clips, scored and ordered as the retrieval stage scores and orders them
+    (class-label similarity included, the default ``[retrieval] max_per_class``); keyed by the
+    method, with ``c^x`` after it for an exponent x other than 1."""
     from bench.benchmark import CLASS_NAMES, read_manifest
     from bench.retrieval_bench import track_truth
     from schemas.official import read_objects
@@ -121,7 +123,7 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
             truth.update(clip_truth)
             scores = [score_tracks(groups, lib, x)[0] for lib in libs]
             for t, track_id in enumerate(ids):
-                ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores])
+                ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores], RetrievalConfig().max_per_class)
         out[method if x == 1.0 else f"{method} c^{x:g}"] = {"clips": len(clips), **retrieval_recall(ranks, truth).as_dict()} if truth else None
     return out
 

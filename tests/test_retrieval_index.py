@@ -4,6 +4,8 @@ candidates equal a brute-force mean over every (detection, view) pair."""
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 import pyarrow as pa
 import pytest
@@ -11,7 +13,7 @@ import pytest
 from cadestate.config import RetrievalConfig
 from tasks.detection.embed import vectors_array
 from tasks.retrieval.index import build_index, clear_cache, list_matrix, load_index
-from tasks.retrieval.retrieval import retrieve_clip, top_order
+from tasks.retrieval.retrieval import diverse_order, retrieve_clip, top_order
 from tasks.retrieval.whitening import fit_whitening, read_whitening, whitening_table
 
 CLASSES = ["chair", "sofa", "table", "bed", "lamp"]
@@ -103,9 +105,42 @@ def test_top_order_equals_a_full_sort():
             assert top_order(score, cad_ids, k).tolist() == np.lexsort((cad_ids, -score))[:k].tolist()
 
 
+def test_diverse_order_caps_a_class_while_others_have_models():
+    score = np.array([0.99, 0.98, 0.97, 0.96, 0.95, 0.94, 0.93, 0.92, 0.91, 0.5, 0.4, 0.3, 0.2], np.float32)
+    classes = np.array(["table"] * 9 + ["bathtub", "bed", "sink", "sink"], dtype=object)
+    cad_ids = np.array([f"m{i:02d}" for i in range(13)], dtype=object)
+    # the 7 best tables, then the best of the other classes (the second sink is the 10th)
+    assert diverse_order(score, cad_ids, classes, 10, 7).tolist() == [0, 1, 2, 3, 4, 5, 6, 9, 10, 11]
+    assert diverse_order(score, cad_ids, classes, 10, 10).tolist() == list(range(10))  # no cap: top_order
+    assert diverse_order(score, cad_ids, classes, 10, 2).tolist() == [0, 1, 9, 10, 11, 12, 2, 3, 4, 5]  # filled up
+    one = np.array(["table"] * 13, dtype=object)  # a library of one class: the cap cannot hold
+    assert diverse_order(score, cad_ids, one, 10, 3).tolist() == top_order(score, cad_ids, 10).tolist()
+    assert diverse_order(score[:4], cad_ids[:4], classes[:4], 10, 3).tolist() == [0, 1, 2, 3]  # fewer models than k
+    assert diverse_order(score[:0], cad_ids[:0], classes[:0], 10, 3).tolist() == []
+
+
+def test_diverse_order_equals_a_greedy_pass_over_a_full_sort():
+    """Against a reference: the whole library sorted (ties by cad_id), taken greedily under the cap,
+    the rest filled from what the cap passed over."""
+    rng = np.random.default_rng(5)
+    cad_ids = np.array([f"m{i:03d}" for i in rng.permutation(300)], dtype=object)
+    for _ in range(30):
+        score = np.round(rng.uniform(size=300), 1).astype(np.float32)
+        classes = rng.choice(np.array(["chair", "table", "sofa", "bed"], dtype=object), 300, p=[0.85, 0.1, 0.04, 0.01])
+        full = np.lexsort((cad_ids, -score)).tolist()
+        for k, cap in ((10, 7), (10, 1), (10, 3), (40, 5), (10, 10), (300, 20)):
+            taken, kept = {}, []
+            for m in full:
+                if taken.get(classes[m], 0) < cap and len(kept) < k:
+                    kept.append(m)
+                    taken[classes[m]] = taken.get(classes[m], 0) + 1
+            kept += [m for m in full if m not in kept][:k - len(kept)]
+            assert diverse_order(score, cad_ids, classes, k, cap).tolist() == kept, (k, cap)
+
+
 def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
     """Two libraries, three tracks: ranks, ids and scores against a brute-force reference (the
-    configured class exponent)."""
+    configured class exponent), without a class cap and with one that binds (2 per class)."""
     rng = np.random.default_rng(4)
     views = {lib: write_library(wh, lib, 30, rng) for lib in ("a", "b")}
     dets = [(t, LABELS[(t + f) % 2 + (t == 2)], unit(rng.normal(size=16))) for t in range(3) for f in range(4)]
@@ -119,11 +154,13 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
         {"clip": "c", "track_id": t, "det_id": i, "frame_index": i, "timestamp_us": i} for i, (t, _, _) in enumerate(dets)],
         schema=wh.spec("track_detections").schema))
     clear_cache()
-    cfg = RetrievalConfig(top_k=10)
+    cfg = RetrievalConfig(top_k=10, max_per_class=10)
     retrieve_clip(wh, cfg, "c", "r")
     got = {(r["track_id"], r["rank"]): r for r in wh.read("cad_candidates", partitions=["c"]).to_pylist()}
+    retrieve_clip(wh, RetrievalConfig(top_k=10, max_per_class=2), "c", "r2")
+    capped = {(r["track_id"], r["rank"]): r for r in wh.read("cad_candidates", partitions=["c"]).to_pylist()}
     for t in range(3):
-        brute = []
+        brute, classes = [], {}
         for lib, v in views.items():
             white, models = read_whitening(wh, lib), wh.read("cad_model_embeddings", partitions=[lib]).to_pylist()
             sim = {(r["detector_label"], r["cad_class"]): max(r["similarity"], 0.0)
@@ -133,7 +170,17 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
                 pairs = [sim.get((label, m["class"]), 0.0) ** cfg.class_exponent * (1 + white.apply(d)[0] @ b[j]) / 2
                          for tt, label, d in dets if tt == t for j in range(len(b))]
                 brute.append((-np.mean(pairs), m["cad_id"], lib))
+                classes[m["cad_id"]] = m["class"]
         for rank, (neg, cad_id, lib) in enumerate(sorted(brute)[:10], 1):
             row = got[(t, rank)]
             assert (row["cad_id"], row["library"]) == (cad_id, lib)
             assert row["score"] == pytest.approx(-neg, abs=1e-5)
+        taken: dict[str, int] = {}
+        expected = []
+        for _, cad_id, _ in sorted(brute):  # greedily, at most 2 of a class (5 classes: 2 each fill the 10)
+            if taken.get(classes[cad_id], 0) < 2 and len(expected) < 10:
+                expected.append(cad_id)
+                taken[classes[cad_id]] = taken.get(classes[cad_id], 0) + 1
+        assert expected != [cad_id for _, cad_id, _ in sorted(brute)[:10]]  # the cap binds
+        assert [capped[(t, rank)]["cad_id"] for rank in range(1, 11)] == expected
+        assert max(Counter(capped[(t, rank)]["cad_class"] for rank in range(1, 11)).values()) == 2

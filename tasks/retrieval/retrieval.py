@@ -13,8 +13,9 @@ Reads: the clip's tracks, automatic and manual (:mod:`tasks.tracking.clip_tracks
 ``track_detections``, ``detections``, ``embeddings``, ``manual_tracks``); every
 library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similarity``, as an index
 built once per library content per process (:mod:`tasks.retrieval.index`). Writes:
-the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries; none while
-the warehouse has no CAD library). Each library's descriptors are compared after that library's
+the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries, at most
+``[retrieval] max_per_class`` of one class while other classes have models: :func:`diverse_order`;
+none while the warehouse has no CAD library). Each library's descriptors are compared after that library's
 own whitening.
 """
 
@@ -84,6 +85,33 @@ def top_order(score: np.ndarray, cad_ids: np.ndarray, k: int) -> np.ndarray:
     return candidates[np.lexsort((cad_ids[candidates], -score[candidates]))[:k]]
 
 
+def diverse_order(score: np.ndarray, cad_ids: np.ndarray, classes: np.ndarray, k: int, per_class: int) -> np.ndarray:
+    """Indices of ``k`` models for one track (scores float[M], cad_ids [M], classes [M]): the best by
+    :func:`top_order`, taking at most ``per_class`` of one class while models of other classes are
+    left, then the best of those passed over when no other class is (a library with fewer classes).
+    ``per_class >= k`` is :func:`top_order`. A detector that names a bathtub a table gives its track
+    a table's class similarity; the cap keeps a few of the best-looking models of other classes
+    among the candidates (``[retrieval] max_per_class``)."""
+    if per_class >= k:
+        return top_order(score, cad_ids, k)
+    n = min(len(score), 4 * k)
+    while True:
+        order = top_order(score, cad_ids, n)
+        taken: dict[str, int] = {}
+        kept = []
+        for m in order:
+            if taken.get(classes[m], 0) < per_class:
+                kept.append(m)
+                taken[classes[m]] = taken.get(classes[m], 0) + 1
+                if len(kept) == k:
+                    return np.array(kept, dtype=np.int64)
+        if n == len(score):  # every model seen: fill up with the best of those the cap passed over
+            chosen = set(kept)
+            passed = [m for m in order if m not in chosen]
+            return np.array(kept + passed[:k - len(kept)], dtype=np.int64)
+        n = min(len(score), 4 * n)
+
+
 def library_digest(wh: Warehouse) -> str:
     """Digest of the latest completed outputs of every library's cad_embed and label_similarity
     (an input of the retrieval of every clip). Reads the ``runs`` partitions of the libraries only
@@ -131,7 +159,7 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
     classes = np.concatenate([p[0].classes for p in parts])
     rows = []
     for t, track_id in enumerate(track_ids):
-        order = top_order(score[t], cad_ids, cfg.top_k)
+        order = diverse_order(score[t], cad_ids, classes, cfg.top_k, cfg.max_per_class)
         rows += [{"clip": clip, "track_id": track_id, "rank": r + 1, "library": library[m], "cad_id": cad_ids[m],
                   "cad_class": classes[m], "score": float(score[t, m]), "appearance": float(appearance[t, m]),
                   "class_similarity": float(cls[t, m])} for r, m in enumerate(order)]
