@@ -37,6 +37,7 @@ from warehouse import Warehouse
 METHODS = ("whiten", "learned")
 TOP_K = 10
 DEFAULT_EXPONENTS = (1.0, RetrievalConfig().class_exponent)
+DEFAULT_CAP = RetrievalConfig().max_per_class
 """The paper's product and the configured default, side by side."""
 
 
@@ -100,11 +101,12 @@ def gt_box_recall(bench_dirs: list[Path], indexes: dict[str, list[LibraryIndex]]
 
 
 def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[LibraryIndex]],
-                    class_exponents: tuple[float, ...] = (1.0,)) -> dict[str, dict]:
+                    class_exponents: tuple[float, ...] = (1.0,), caps: tuple[int, ...] = (DEFAULT_CAP,)) -> dict[str, dict]:
     """Per method and ``[retrieval] class_exponent``: recall@1/@10 of the warehouse's tracks of
     ``bench_dir``'s clips, scored and ordered as the retrieval stage scores and orders them
-    (class-label similarity included, the default ``[retrieval] max_per_class``); keyed by the
-    method, with ``c^x`` after it for an exponent x other than 1."""
+    (class-label similarity included), per ``[retrieval] max_per_class`` of ``caps``; keyed by the
+    method, with ``c^x`` after it for an exponent x other than 1 and ``max N/class`` for a cap
+    other than the default."""
     from bench.benchmark import CLASS_NAMES, read_manifest
     from bench.retrieval_bench import track_truth
     from schemas.official import read_objects
@@ -117,24 +119,26 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
         truth = {(clip, t): (objects[g].cad_id, CLASS_NAMES.get(objects[g].cls, "other")) for t, g in track_truth(bench_dir, wh, clip).items()}
         per_clip.append((clip, *track_groups(wh, clip), truth))
     out = {}
-    for (method, libs), x in ((m, x) for m in indexes.items() for x in class_exponents):
+    for (method, libs), x, cap in ((m, x, c) for m in indexes.items() for x in class_exponents for c in caps):
         ranks, truth = {}, {}
         for clip, ids, groups, clip_truth in per_clip:
             truth.update(clip_truth)
             scores = [score_tracks(groups, lib, x)[0] for lib in libs]
             for t, track_id in enumerate(ids):
-                ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores], RetrievalConfig().max_per_class)
-        out[method if x == 1.0 else f"{method} c^{x:g}"] = {"clips": len(clips), **retrieval_recall(ranks, truth).as_dict()} if truth else None
+                ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores], cap)
+        key = method + ("" if x == 1.0 else f" c^{x:g}") + ("" if cap == DEFAULT_CAP else f" max {cap}/class")
+        out[key] = {"clips": len(clips), **retrieval_recall(ranks, truth).as_dict()} if truth else None
     return out
 
 
-def run(bench_dirs: list[Path], wh: Warehouse, tracks: bool, class_exponents: tuple[float, ...] = DEFAULT_EXPONENTS) -> dict:
+def run(bench_dirs: list[Path], wh: Warehouse, tracks: bool, class_exponents: tuple[float, ...] = DEFAULT_EXPONENTS,
+        caps: tuple[int, ...] = (DEFAULT_CAP,)) -> dict:
     libraries = wh.partitions("cad_embeddings")
     indexes = {m: [whitened_index(wh, lib, m) for lib in libraries] for m in METHODS}
     result = {"benchmarks": {d.name: {"gt_boxes": gt_box_recall([d], indexes)} for d in bench_dirs}}
     if tracks:
         for d in bench_dirs:
-            result["benchmarks"][d.name]["pipeline_tracks"] = pipeline_recall(d, wh, indexes, class_exponents)
+            result["benchmarks"][d.name]["pipeline_tracks"] = pipeline_recall(d, wh, indexes, class_exponents, caps)
     result["descriptor"] = load_descriptor()[1]
     return result
 
@@ -159,9 +163,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracks", action="store_true", help="also score the pipeline's tracks (after `cadestate bench run`)")
     parser.add_argument("--class-exponents", default=",".join(f"{x:g}" for x in DEFAULT_EXPONENTS),
                         help="comma-separated [retrieval] class_exponent values to score the tracks with")
+    parser.add_argument("--max-per-class", default=str(DEFAULT_CAP),
+                        help=f"comma-separated [retrieval] max_per_class values to order the tracks' candidates with "
+                             f"(default {DEFAULT_CAP}; {TOP_K} or more: no cap)")
     args = parser.parse_args(argv)
     exponents = tuple(float(x) for x in args.class_exponents.split(","))
-    result = run(args.bench_dirs, open_warehouse(args.warehouse), args.tracks, exponents)
+    caps = tuple(int(x) for x in args.max_per_class.split(","))
+    result = run(args.bench_dirs, open_warehouse(args.warehouse), args.tracks, exponents, caps)
     print(json.dumps(result, indent=1))
     print("\n".join(markdown(result)))
     return 0

@@ -84,7 +84,8 @@ class ExistingTrack:
 class CadCandidate:
     """One retrieved CAD model (a `cad_candidates` row)."""
 
-    rank: int = spec("1 = best.", minimum=1, maximum=2**31 - 1)
+    rank: int = spec("1 = shown first: by score, with at most [retrieval] max_per_class of one class while other classes have models.",
+                     minimum=1, maximum=2**31 - 1)
     cad_id: str = spec("cad_models.cad_id.", minLength=1)
     library: str = spec("CAD library of the model.")
     cad_class: str = spec("cad_models.class.")

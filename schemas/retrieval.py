@@ -56,7 +56,7 @@ CAD_CANDIDATES = TableSpec(
         [
             CLIP,
             column("track_id", pa.int32(), "tracks.track_id."),
-            column("rank", pa.int32(), "1 = best."),
+            column("rank", pa.int32(), "1 = shown first: by score, with at most [retrieval] max_per_class of one class while other classes have models."),
             column("library", pa.string(), "CAD library of the model."),
             column("cad_id", pa.string(), "cad_models.cad_id."),
             column("cad_class", pa.string(), "cad_models.class."),

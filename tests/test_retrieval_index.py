@@ -4,8 +4,6 @@ candidates equal a brute-force mean over every (detection, view) pair."""
 
 from __future__ import annotations
 
-from collections import Counter
-
 import numpy as np
 import pyarrow as pa
 import pytest
@@ -117,11 +115,13 @@ def test_diverse_order_caps_a_class_while_others_have_models():
     assert diverse_order(score, cad_ids, one, 10, 3).tolist() == top_order(score, cad_ids, 10).tolist()
     assert diverse_order(score[:4], cad_ids[:4], classes[:4], 10, 3).tolist() == [0, 1, 2, 3]  # fewer models than k
     assert diverse_order(score[:0], cad_ids[:0], classes[:0], 10, 3).tolist() == []
+    unrelated = np.where(classes == "table", score, 0).astype(np.float32)  # other classes' similarity 0: score 0
+    assert diverse_order(unrelated, cad_ids, classes, 10, 7).tolist() == list(range(10))  # no slot for a 0 score
 
 
 def test_diverse_order_equals_a_greedy_pass_over_a_full_sort():
-    """Against a reference: the whole library sorted (ties by cad_id), taken greedily under the cap,
-    the rest filled from what the cap passed over."""
+    """Against a reference: the whole library sorted (ties by cad_id), taken greedily under the cap
+    (scores above 0 only), the rest filled from what the cap passed over."""
     rng = np.random.default_rng(5)
     cad_ids = np.array([f"m{i:03d}" for i in rng.permutation(300)], dtype=object)
     for _ in range(30):
@@ -131,7 +131,7 @@ def test_diverse_order_equals_a_greedy_pass_over_a_full_sort():
         for k, cap in ((10, 7), (10, 1), (10, 3), (40, 5), (10, 10), (300, 20)):
             taken, kept = {}, []
             for m in full:
-                if taken.get(classes[m], 0) < cap and len(kept) < k:
+                if taken.get(classes[m], 0) < cap and score[m] > 0 and len(kept) < k:
                     kept.append(m)
                     taken[classes[m]] = taken.get(classes[m], 0) + 1
             kept += [m for m in full if m not in kept][:k - len(kept)]
@@ -177,10 +177,10 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
             assert row["score"] == pytest.approx(-neg, abs=1e-5)
         taken: dict[str, int] = {}
         expected = []
-        for _, cad_id, _ in sorted(brute):  # greedily, at most 2 of a class (5 classes: 2 each fill the 10)
-            if taken.get(classes[cad_id], 0) < 2 and len(expected) < 10:
+        for neg, cad_id, _ in sorted(brute):  # greedily, at most 2 of a class, scores above 0 (then filled up)
+            if taken.get(classes[cad_id], 0) < 2 and -neg > 0 and len(expected) < 10:
                 expected.append(cad_id)
                 taken[classes[cad_id]] = taken.get(classes[cad_id], 0) + 1
+        expected += [cad_id for _, cad_id, _ in sorted(brute) if cad_id not in expected][:10 - len(expected)]
         assert expected != [cad_id for _, cad_id, _ in sorted(brute)[:10]]  # the cap binds
         assert [capped[(t, rank)]["cad_id"] for rank in range(1, 11)] == expected
-        assert max(Counter(capped[(t, rank)]["cad_class"] for rank in range(1, 11)).values()) == 2

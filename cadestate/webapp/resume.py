@@ -79,7 +79,9 @@ def run_stages(config: Config, clip: str, read_cache: ReadCache | None = None) -
     from warehouse import Warehouse
 
     root = Path(config.warehouse.root).expanduser().resolve()
-    wh = Warehouse(root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=read_cache)
+    wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
+    if read_cache is not None:
+        wh.cache_reads(cache=read_cache)
     return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False,
                             read_cache=read_cache))
 

@@ -86,30 +86,48 @@ def top_order(score: np.ndarray, cad_ids: np.ndarray, k: int) -> np.ndarray:
 
 
 def diverse_order(score: np.ndarray, cad_ids: np.ndarray, classes: np.ndarray, k: int, per_class: int) -> np.ndarray:
-    """Indices of ``k`` models for one track (scores float[M], cad_ids [M], classes [M]): the best by
-    :func:`top_order`, taking at most ``per_class`` of one class while models of other classes are
-    left, then the best of those passed over when no other class is (a library with fewer classes).
-    ``per_class >= k`` is :func:`top_order`. A detector that names a bathtub a table gives its track
-    a table's class similarity; the cap keeps a few of the best-looking models of other classes
-    among the candidates (``[retrieval] max_per_class``)."""
+    """Indices of ``k`` models for one track (scores float[M], cad_ids [M], classes [M]: names, or
+    int codes, which a caller ranking many tracks computes once): in the order of :func:`top_order`, at most ``per_class`` of one class among the models
+    scoring above 0, then the best of those passed over (a library with few classes; models whose
+    class similarity to every box's label is 0 score 0 and take no capped slot, as their order
+    would be by cad_id alone). ``per_class >= k`` is :func:`top_order`. A detector that names a
+    bathtub a table gives its track a table's class similarity; the cap keeps a few of the
+    best-looking models of other classes among the candidates (``[retrieval] max_per_class``).
+    Equal to a greedy pass over the whole library sorted, but only the best ``4 k`` are sorted, or,
+    when one class fills them, each class's best ``per_class``."""
     if per_class >= k:
         return top_order(score, cad_ids, k)
     n = min(len(score), 4 * k)
-    while True:
-        order = top_order(score, cad_ids, n)
-        taken: dict[str, int] = {}
-        kept = []
-        for m in order:
-            if taken.get(classes[m], 0) < per_class:
-                kept.append(m)
-                taken[classes[m]] = taken.get(classes[m], 0) + 1
-                if len(kept) == k:
-                    return np.array(kept, dtype=np.int64)
-        if n == len(score):  # every model seen: fill up with the best of those the cap passed over
-            chosen = set(kept)
-            passed = [m for m in order if m not in chosen]
-            return np.array(kept + passed[:k - len(kept)], dtype=np.int64)
-        n = min(len(score), 4 * n)
+    order = top_order(score, cad_ids, n)
+    ok = (_rank_in_class(classes[order]) < per_class) & (score[order] > 0)
+    if ok.sum() >= k or n == len(score):
+        return np.concatenate([order[ok], order[~ok]])[:k]
+    # the best window lacks k models the cap lets in (one class fills it): those are each class's
+    # best per_class scoring above 0, taken from the whole library, then the best of the rest
+    codes = classes if classes.dtype.kind in "iu" else np.unique(classes, return_inverse=True)[1]
+    by_class = np.argsort(codes, kind="stable")
+    groups = np.split(by_class, np.flatnonzero(np.diff(codes[by_class])) + 1)
+    eligible = np.sort(np.concatenate([g[top_order(score[g], cad_ids[g], per_class)] for g in groups]))
+    eligible = eligible[score[eligible] > 0]
+    first = eligible[top_order(score[eligible], cad_ids[eligible], k)]
+    if len(first) == k:
+        return first
+    passed = np.ones(len(score), bool)
+    passed[first] = False
+    rest = np.flatnonzero(passed)
+    return np.concatenate([first, rest[top_order(score[rest], cad_ids[rest], k - len(first))]])
+
+
+def _rank_in_class(classes: np.ndarray) -> np.ndarray:
+    """int[n]: how many earlier entries of ``classes`` [n] have the same class."""
+    _, codes = np.unique(classes, return_inverse=True)
+    by_class = np.argsort(codes, kind="stable")
+    sorted_codes = codes[by_class]
+    starts = np.flatnonzero(np.r_[True, sorted_codes[1:] != sorted_codes[:-1]])
+    within = np.arange(len(codes)) - np.repeat(starts, np.diff(np.r_[starts, len(codes)]))
+    out = np.empty(len(codes), np.int64)
+    out[by_class] = within
+    return out
 
 
 def library_digest(wh: Warehouse) -> str:
@@ -157,9 +175,10 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
     library = np.concatenate([np.full(len(p[0].cad_ids), p[0].library, dtype=object) for p in parts])
     cad_ids = np.concatenate([p[0].cad_ids for p in parts])
     classes = np.concatenate([p[0].classes for p in parts])
+    codes = np.unique(classes, return_inverse=True)[1] if len(classes) else np.zeros(0, np.int64)
     rows = []
     for t, track_id in enumerate(track_ids):
-        order = diverse_order(score[t], cad_ids, classes, cfg.top_k, cfg.max_per_class)
+        order = diverse_order(score[t], cad_ids, codes, cfg.top_k, cfg.max_per_class)
         rows += [{"clip": clip, "track_id": track_id, "rank": r + 1, "library": library[m], "cad_id": cad_ids[m],
                   "cad_class": classes[m], "score": float(score[t, m]), "appearance": float(appearance[t, m]),
                   "class_similarity": float(cls[t, m])} for r, m in enumerate(order)]
