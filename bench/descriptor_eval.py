@@ -37,8 +37,9 @@ from warehouse import Warehouse
 METHODS = ("whiten", "learned")
 TOP_K = 10
 DEFAULT_EXPONENTS = (1.0, RetrievalConfig().class_exponent)
-DEFAULT_CAP = RetrievalConfig().max_per_class
 """The paper's product and the configured default, side by side."""
+DEFAULT_CAP = RetrievalConfig().max_per_class
+"""The configured ``[retrieval] max_per_class`` (results under another cap are keyed by it)."""
 
 
 def whitened_index(wh: Warehouse, library: str, method: str) -> LibraryIndex:

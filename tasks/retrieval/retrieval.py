@@ -15,8 +15,8 @@ library's ``cad_model_embeddings``, ``embedding_whitening`` and ``label_similari
 built once per library content per process (:mod:`tasks.retrieval.index`). Writes:
 the clip's ``cad_candidates`` (top ``[retrieval] top_k`` per track over all libraries, at most
 ``[retrieval] max_per_class`` of one class while other classes have models: :func:`diverse_order`;
-none while the warehouse has no CAD library). Each library's descriptors are compared after that library's
-own whitening.
+none while the warehouse has no CAD library). Each library's descriptors are compared after that
+library's own whitening.
 """
 
 from __future__ import annotations
@@ -87,26 +87,26 @@ def top_order(score: np.ndarray, cad_ids: np.ndarray, k: int) -> np.ndarray:
 
 def diverse_order(score: np.ndarray, cad_ids: np.ndarray, classes: np.ndarray, k: int, per_class: int) -> np.ndarray:
     """Indices of ``k`` models for one track (scores float[M], cad_ids [M], classes [M]: names, or
-    int codes, which a caller ranking many tracks computes once): in the order of :func:`top_order`, at most ``per_class`` of one class among the models
-    scoring above 0, then the best of those passed over (a library with few classes; models whose
-    class similarity to every box's label is 0 score 0 and take no capped slot, as their order
-    would be by cad_id alone). ``per_class >= k`` is :func:`top_order`. A detector that names a
-    bathtub a table gives its track a table's class similarity; the cap keeps a few of the
-    best-looking models of other classes among the candidates (``[retrieval] max_per_class``).
-    Equal to a greedy pass over the whole library sorted, but only the best ``4 k`` are sorted, or,
-    when one class fills them, each class's best ``per_class``."""
+    :func:`class_codes`, which a caller ranking many tracks computes once): in the order of
+    :func:`top_order`, at most ``per_class`` of one class among the models scoring above 0, then
+    the best of those passed over (a library with few classes; models whose class similarity to
+    every box's label is 0 score 0 and take no capped slot, as their order would be by cad_id
+    alone). ``per_class >= k`` is :func:`top_order`. A detector that names a bathtub a table gives
+    its track a table's class similarity; the cap keeps a few of the best-looking models of other
+    classes among the candidates (``[retrieval] max_per_class``). Equal to a greedy pass over the
+    whole library sorted, but only the best ``4 k`` are sorted, or, when one class fills them, each
+    class's best ``per_class``."""
     if per_class >= k:
         return top_order(score, cad_ids, k)
     n = min(len(score), 4 * k)
     order = top_order(score, cad_ids, n)
-    ok = (_rank_in_class(classes[order]) < per_class) & (score[order] > 0)
+    ok = (_rank_in_class(class_codes(classes[order])) < per_class) & (score[order] > 0)
     if ok.sum() >= k or n == len(score):
         return np.concatenate([order[ok], order[~ok]])[:k]
     # the best window lacks k models the cap lets in (one class fills it): those are each class's
     # best per_class scoring above 0, taken from the whole library, then the best of the rest
-    codes = classes if classes.dtype.kind in "iu" else np.unique(classes, return_inverse=True)[1]
-    by_class = np.argsort(codes, kind="stable")
-    groups = np.split(by_class, np.flatnonzero(np.diff(codes[by_class])) + 1)
+    by_class, starts = _grouped(class_codes(classes))
+    groups = np.split(by_class, starts[1:])
     eligible = np.sort(np.concatenate([g[top_order(score[g], cad_ids[g], per_class)] for g in groups]))
     eligible = eligible[score[eligible] > 0]
     first = eligible[top_order(score[eligible], cad_ids[eligible], k)]
@@ -118,15 +118,23 @@ def diverse_order(score: np.ndarray, cad_ids: np.ndarray, classes: np.ndarray, k
     return np.concatenate([first, rest[top_order(score[rest], cad_ids[rest], k - len(first))]])
 
 
-def _rank_in_class(classes: np.ndarray) -> np.ndarray:
-    """int[n]: how many earlier entries of ``classes`` [n] have the same class."""
-    _, codes = np.unique(classes, return_inverse=True)
+def class_codes(classes: np.ndarray) -> np.ndarray:
+    """int[n]: one code per distinct class of ``classes`` [n] (names; int codes are returned as they are)."""
+    return classes if classes.dtype.kind in "iu" else np.unique(classes, return_inverse=True)[1]
+
+
+def _grouped(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of ``codes`` [n] grouped by code, stable; where each group starts among them)."""
     by_class = np.argsort(codes, kind="stable")
     sorted_codes = codes[by_class]
-    starts = np.flatnonzero(np.r_[True, sorted_codes[1:] != sorted_codes[:-1]])
-    within = np.arange(len(codes)) - np.repeat(starts, np.diff(np.r_[starts, len(codes)]))
+    return by_class, np.flatnonzero(np.r_[True, sorted_codes[1:] != sorted_codes[:-1]])
+
+
+def _rank_in_class(codes: np.ndarray) -> np.ndarray:
+    """int[n]: how many earlier entries of ``codes`` [n] have the same code."""
+    by_class, starts = _grouped(codes)
     out = np.empty(len(codes), np.int64)
-    out[by_class] = within
+    out[by_class] = np.arange(len(codes)) - np.repeat(starts, np.diff(np.r_[starts, len(codes)]))
     return out
 
 
@@ -175,7 +183,7 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
     library = np.concatenate([np.full(len(p[0].cad_ids), p[0].library, dtype=object) for p in parts])
     cad_ids = np.concatenate([p[0].cad_ids for p in parts])
     classes = np.concatenate([p[0].classes for p in parts])
-    codes = np.unique(classes, return_inverse=True)[1] if len(classes) else np.zeros(0, np.int64)
+    codes = class_codes(classes)
     rows = []
     for t, track_id in enumerate(track_ids):
         order = diverse_order(score[t], cad_ids, codes, cfg.top_k, cfg.max_per_class)
