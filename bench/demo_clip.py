@@ -9,21 +9,15 @@ index as a 16-bit barcode in a band at the top, so decoded frames can be checked
 
 from __future__ import annotations
 
-import os
-import secrets
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from fractions import Fraction
 from pathlib import Path
 
-import av
 import numpy as np
 from PIL import Image
 
 from cadestate.geometry import hfov_intrinsics, intrinsics_matrix, look_at
 from tasks.video.camera_file import CameraTrack, write_camera_file
-from tasks.video.decode import frame_timestamp_us
+from tasks.video.decode import frame_timestamp_us, write_video
 
 BAND_HEIGHT = 32
 """Rows at the top of every frame that hold the frame-index barcode."""
@@ -184,26 +178,6 @@ def _render(room: _Room, rays_cam: np.ndarray, pose: np.ndarray, shape: tuple[in
     return rgb.clip(0, 255).astype(np.uint8).reshape(*shape, 3)
 
 
-def _write_video(path: Path, spec: DemoClipSpec, draw: Callable[[int], np.ndarray]) -> None:
-    """Encode ``draw(i)`` (uint8[H, W, 3] RGB) for every video frame ``i`` into an MP4 at ``path``.
-
-    Frame ``i`` gets pts ``i`` in time base ``1/fps`` (exact times); one GOP per second of video.
-    """
-    with av.open(str(path), "w", format="mp4") as container, ThreadPoolExecutor(1) as pool:
-        stream = container.add_stream(spec.codec, rate=spec.fps)
-        stream.width, stream.height, stream.pix_fmt = spec.width, spec.height, "yuv420p"
-        stream.time_base = Fraction(1, spec.fps)
-        stream.codec_context.gop_size = spec.fps
-        upcoming = pool.submit(draw, 0)
-        for index in range(spec.num_video_frames):
-            frame = av.VideoFrame.from_ndarray(upcoming.result(), format="rgb24")
-            if index + 1 < spec.num_video_frames:
-                upcoming = pool.submit(draw, index + 1)  # drawn while the encoder works on this frame
-            frame.pts = index
-            container.mux(stream.encode(frame))
-        container.mux(stream.encode())
-
-
 def make_demo_clip(out_dir: Path, spec: DemoClipSpec = DemoClipSpec()) -> DemoClip:
     """Write ``out_dir/<name>.mp4`` and ``out_dir/<name>.txt`` (RealEstate10K), each replaced atomically.
 
@@ -232,12 +206,8 @@ def make_demo_clip(out_dir: Path, spec: DemoClipSpec = DemoClipSpec()) -> DemoCl
         return image
 
     video_path = out_dir / f"{spec.name}.mp4"
-    tmp = out_dir / f".{spec.name}.{secrets.token_hex(8)}.mp4.tmp"
-    try:
-        _write_video(tmp, spec, draw)
-        os.replace(tmp, video_path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_video(video_path, (draw(i) for i in range(spec.num_video_frames)), spec.width, spec.height, spec.fps,
+                spec.codec)
 
     frame_indices = np.arange(0, spec.num_video_frames, spec.sample_every, dtype=np.int64)
     track = CameraTrack(

@@ -133,13 +133,22 @@ def frame_timestamp_us(index: int, fps: int) -> int:
     return round(Fraction(index * 1_000_000, fps))
 
 
+X264_REPRODUCIBLE = {"x264-params": "mbtree=0"}
+"""libx264 options that make an encode a function of its frames: with macroblock-tree rate control
+(x264's default) the first GOP came out differently from run to run in this build (PyAV 18, one
+clip's 60 frames encoded 30 times: 19 different files, also with ``threads=1``; decoded pixels off
+by up to 10 levels), which made a benchmark walkthrough another video each session; without it,
+60 of 60 encodes were identical."""
+
+
 def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], width: int, height: int, fps: int,
                 codec: str = "libx264", options: dict[str, str] | None = None) -> None:
     """Encode the uint8[H, W, 3] RGB ``frames`` into an MP4 at ``path``, replaced atomically.
 
     Frame ``i`` gets pts ``i`` in time base ``1/fps`` (exact times, see :func:`frame_timestamp_us`);
     one GOP per second. Encoding runs on a worker thread while the caller's thread produces the
-    next frame (a renderer's GL context stays on the caller's thread).
+    next frame (a renderer's GL context stays on the caller's thread). The same frames give the
+    same bytes: libx264 runs without its macroblock-tree rate control (:data:`X264_REPRODUCIBLE`).
     """
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.{secrets.token_hex(8)}{path.suffix}.tmp")
@@ -149,6 +158,8 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], width: in
             stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
             stream.time_base = Fraction(1, fps)
             stream.codec_context.gop_size = fps
+            if codec == "libx264":
+                options = {**X264_REPRODUCIBLE, **(options or {})}
             if options:
                 stream.codec_context.options = options
 
