@@ -89,6 +89,11 @@ def served(small_library_warehouse, tmp_path_factory):
     thread.join(30)
 
 
+SCREENSHOT_TIMEOUT_MS = 120_000
+"""A screenshot of a page with a WebGL view (SwiftShader) on a loaded 2-core machine took over 30 s
+(the page's default) in one fresh-clone run; the page itself had answered within its waits."""
+
+
 @pytest.fixture
 def s(served, request):
     """The shared clip; skips when an earlier page failed (the clip did not reach this task)."""
@@ -186,7 +191,7 @@ def test_manual_tracks_page(s):
     if same is not None:
         page.locator("select.same").nth(0).select_option(str(same))
     page.locator(f'input.not-object[data-track="{not_object}"]').check()
-    page.screenshot(path=s.shots / "manual_track.png")
+    page.screenshot(path=s.shots / "manual_track.png", timeout=SCREENSHOT_TIMEOUT_MS)
     page.keyboard.press("Enter")
     ready = wait_for_pipeline(s)
     (lf,) = new_label_files(s, "manual_track", SEEN)
@@ -222,7 +227,7 @@ def test_cad_selection_page(s):
         choice = answer[track]
         page.click(f'.cand[data-cad="{choice}"]' if choice else "#none")
         if not done:
-            page.screenshot(path=s.shots / "cad_selection.png")
+            page.screenshot(path=s.shots / "cad_selection.png", timeout=SCREENSHOT_TIMEOUT_MS)
         page.click("#submit")
         done.append(track)
         if len(done) == len(answer):
@@ -311,7 +316,7 @@ def test_correspondences_page(s):
                 for _ in range(n):
                     page.keyboard.press("u")  # undo: too few visible points on this key-frame
         if not done:
-            page.screenshot(path=s.shots / "correspondences.png")
+            page.screenshot(path=s.shots / "correspondences.png", timeout=SCREENSHOT_TIMEOUT_MS)
         _assert_narrow_warning(s, served, next(it for it in task["items"] if it["track_id"] == track)["cad_id"])
         assert page.is_enabled("#submit"), page.inner_text("#summary")
         page.click("#submit")
@@ -347,7 +352,8 @@ def _stack_pixels(s: Served) -> np.ndarray:
 
     from PIL import Image
 
-    return np.asarray(Image.open(BytesIO(s.page.locator("#stack").screenshot())).convert("RGB"), dtype=np.int16)
+    shot = s.page.locator("#stack").screenshot(timeout=SCREENSHOT_TIMEOUT_MS)
+    return np.asarray(Image.open(BytesIO(shot)).convert("RGB"), dtype=np.int16)
 
 
 def _assert_model_drawn(s: Served, track: int) -> None:
@@ -399,7 +405,7 @@ def test_verification_page(s):
         page.keyboard.press("b")
         _assert_model_drawn(s, track)
         if not done:
-            page.screenshot(path=s.shots / "verification.png")
+            page.screenshot(path=s.shots / "verification.png", timeout=SCREENSHOT_TIMEOUT_MS)
         page.select_option("#same", str(same.get(track, "")))  # after the keys: the select keeps the focus
         page.click("#accept" if answer[track] == "accept" else "#reject")
         done.append(track)
@@ -419,6 +425,6 @@ def test_verification_page(s):
     assert "nothing waits" in ready, ready
     page.goto(s.url + "/")
     page.wait_for_selector("tr[data-clip] td")
-    page.screenshot(path=s.shots / "start.png")
+    page.screenshot(path=s.shots / "start.png", timeout=SCREENSHOT_TIMEOUT_MS)
     effort = s.wh.read("label_effort", [s.clip]).column("kind").to_pylist()
     assert {"manual_track", "cad_selection", "correspondences", "verification"} <= set(effort)
