@@ -237,4 +237,3 @@ def test_aspect_check_honours_non_square_pixels(small_clip, tmp_path):
     with pytest.raises(CameraFileError, match=r"fits frames of aspect 1 \(width/height\) but .* is 64x48 "
                                               r"\(1.333, pixel aspect 1.333\)"):
         check_clip_inputs(video, square)
-
