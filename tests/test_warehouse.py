@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from schemas import TableSpec
-from warehouse import Warehouse, WarehouseError, check_name, connect, refresh_catalog
+from warehouse import Warehouse, WarehouseError, check_name, connect, refresh_catalog, store
 from warehouse.catalog import CATALOG_FILE, ROOT_MACRO, VIEWS_MACRO, schema_path, view_sql
 
 
@@ -138,19 +138,30 @@ def test_clip_names_that_are_not_safe_folder_names_are_rejected(name):
         check_name(name)
 
 
+def test_a_partition_name_no_folder_can_have_has_no_data(wh):
+    wh.write("clips", "a", clip_rows("a", 1))
+    assert wh.has_partition("clips", "a") and not wh.has_partition("clips", "b")
+    assert not any(wh.has_partition("clips", name) for name in ("", "../a", "a/b", ".a", None))
+
+
 def test_unknown_table(wh):
     with pytest.raises(WarehouseError, match="unknown table 'nope'"):
         wh.read("nope")
 
 
-def test_failure_mid_write_leaves_previous_state(wh, monkeypatch):
+@pytest.mark.parametrize("small_bytes", [store.SMALL_TABLE_BYTES, 0], ids=["encoded-in-memory", "written-to-file"])
+def test_failure_mid_write_leaves_previous_state(wh, monkeypatch, small_bytes):
     wh.write("clips", "a", clip_rows("a", 1))
 
     def broken_write(table, where, **kwargs):
-        with open(where, "wb") as f:
-            f.write(b"PAR1 half a file")
+        if isinstance(where, (str, os.PathLike)):
+            with open(where, "wb") as f:
+                f.write(b"PAR1 half a file")
+        else:  # a small table is encoded in memory, into an open temporary file
+            where.write(b"PAR1 half a file")
         raise OSError("disk full (injected)")
 
+    monkeypatch.setattr(store, "SMALL_TABLE_BYTES", small_bytes)
     monkeypatch.setattr(pq, "write_table", broken_write)
     with pytest.raises(OSError, match="injected"):
         wh.write("clips", "a", clip_rows("a", 2))
@@ -159,6 +170,18 @@ def test_failure_mid_write_leaves_previous_state(wh, monkeypatch):
     before = [p.name for p in wh.partition_dir("clips", "a").iterdir()]
     assert len(before) == 1 and before[0].endswith(".parquet")  # the first write's file, and no temporary one
     assert not any((wh.root / "_staging").iterdir())
+
+
+def test_small_tables_are_written_uncompressed_and_large_ones_with_zstd(tmp_path):
+    wh = Warehouse(tmp_path / "w", {"numbers": NUMBERS})
+    small, large = numbers(1, 10), numbers(2, 20_000)
+    assert small.nbytes < store.SMALL_TABLE_BYTES <= large.nbytes
+    for part, table in (("a", small), ("b", large)):
+        table = table.set_column(0, "clip", pa.array([part] * table.num_rows))
+        wh.write("numbers", part, table)
+        assert wh.read("numbers", [part]).equals(table.cast(NUMBERS.schema))
+    codec = {p: pq.ParquetFile(wh.files("numbers", [p])[0]).metadata.row_group(0).column(0).compression for p in "ab"}
+    assert codec == {"a": "UNCOMPRESSED", "b": "ZSTD"}
 
 
 NUMBERS = TableSpec(

@@ -73,22 +73,26 @@ class ReadCache:
             return None
         return path, st.st_ino, st.st_size, st.st_mtime_ns
 
-    def get_file(self, identity: tuple, schema: pa.Schema) -> pa.Table | None:
-        """The rows of the file ``identity`` as ``schema`` (the table's schema or some of its columns):
-        kept as read with those columns, or cut from the whole file's rows when those are kept."""
+    def get_file(self, identity: tuple, schema: pa.Schema, names: tuple[str, ...] | None = None) -> pa.Table | None:
+        """The rows of the file ``identity`` as ``schema`` (the table's schema or some of its columns;
+        ``names``: its column names, when the caller reads many files as one schema): kept as read
+        with those columns, or cut from the whole file's rows when those are kept."""
         import pyarrow as pa
 
+        wanted = names if names is not None else tuple(schema.names)
         with self._lock:
-            for names in (tuple(schema.names), None):
-                hit = self._files.get((identity, names))
+            for key in ((identity, wanted), (identity, None)):
+                hit = self._files.get(key)
                 if hit is not None:
-                    self._files.move_to_end((identity, names))
+                    self._files.move_to_end(key)
                     break
-        if hit is None or names is not None:
+        if hit is None or key[1] is not None:
             return hit
-        if not set(schema.names) <= set(hit.column_names):
+        if hit.schema.equals(schema, check_metadata=True):  # the whole file's rows, as kept
+            return hit
+        if not set(wanted) <= set(hit.column_names):
             return None
-        return pa.Table.from_arrays([hit.column(n) for n in schema.names], schema=schema)
+        return pa.Table.from_arrays([hit.column(n) for n in wanted], schema=schema)
 
     def put_file(self, identity: tuple, part: pa.Table, whole: bool = False) -> None:
         """Keep one file's rows (``whole``: every column of its table, which any read of some of
