@@ -9,15 +9,18 @@ A stage is stale when any of the first three differs from what it would be now
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextvars import ContextVar
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:  # pyarrow is imported by table_digest alone: `cadestate status` digests without it where it can
     import pyarrow as pa
+
+T = TypeVar("T")
 
 
 def digest(*parts: str) -> str:
@@ -52,6 +55,44 @@ def recording_reads() -> Iterator[list[tuple[str, ...]]]:
         yield reads
     finally:
         _READS.reset(token)
+
+
+_ONE_READING: ContextVar[dict | None] = ContextVar("cadestate_one_reading", default=None)
+
+
+@contextlib.contextmanager
+def one_reading() -> Iterator[None]:
+    """Inside the block (in this thread or task), a function wrapped with :func:`once_per_reading`
+    computes once per warehouse and partition: what it read is taken as it was at its first call,
+    as a unit's input digests are all taken once before its stages run (three human stages' digests
+    say which tracks the manual-track answer leaves out). A repeat notes the first call's reads
+    again (:func:`note_read`), so every :func:`recording_reads` block learns what it depends on."""
+    token = _ONE_READING.set({})
+    try:
+        yield
+    finally:
+        _ONE_READING.reset(token)
+
+
+def once_per_reading(fn: Callable[[Any, str], T]) -> Callable[[Any, str], T]:
+    """``fn(wh, partition)`` computed once per :func:`one_reading` block (each call outside one)."""
+
+    @functools.wraps(fn)
+    def wrapper(wh: Any, part: str) -> T:
+        memo = _ONE_READING.get()
+        if memo is None:
+            return fn(wh, part)
+        key = (fn, str(wh.root), part)
+        if key not in memo:
+            with recording_reads() as reads:
+                value = fn(wh, part)
+            memo[key] = (value, list(reads))
+        value, reads = memo[key]
+        for what in reads:
+            note_read(*what)
+        return value
+
+    return wrapper
 
 
 def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

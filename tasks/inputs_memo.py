@@ -27,10 +27,10 @@ import contextlib
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from cadestate.atomic import atomic_write_bytes
-from cadestate.lineage import digest, recording_reads
+from cadestate.lineage import digest, one_reading, recording_reads
 from tasks.registry import Stage
 from warehouse import Warehouse
 from warehouse.store import check_name
@@ -76,6 +76,20 @@ class InputsMemo:
         self.entries = self._load()
         self.changed = False
         self._states: dict[tuple[str, ...], tuple[str, int]] = {}
+        self._since_ns: int | None = None
+
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[None]:
+        """A block in which the stages' digests are taken from one reading of the warehouse
+        (:func:`cadestate.lineage.one_reading`: what several stages digest alike is computed once).
+        An entry stored inside counts as taken when the block began: a value computed for an
+        earlier stage must not be stored with the state of files changed since."""
+        self._since_ns = time.time_ns()
+        try:
+            with one_reading():
+                yield
+        finally:
+            self._since_ns = None
 
     def _load(self) -> dict[str, dict]:
         try:
@@ -99,7 +113,7 @@ class InputsMemo:
         entry = self.entries.get(stage.name)
         if not fresh and isinstance(entry, dict) and entry.get("key") == key and self._holds(entry):
             return list(entry["inputs"])
-        started = time.time_ns()
+        started = self._since_ns or time.time_ns()
         with recording_reads() as noted:
             inputs = stage.clip_inputs(self.wh, self.unit)
         reads = list(dict.fromkeys(noted))

@@ -96,13 +96,14 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     inputs: dict[str, list[str]] = {}
     wh.cache_reads(cache=read_cache)  # the stages' digests read the same label tables again and again
     try:
-        for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
-            try:
-                inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
-                                      else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
-            except OSError as e:  # an unreadable input file
-                log.error("%s %s: %s", unit, stage.name, e)
-                return [StageReport(unit, stage.name, "failed", message=str(e))]
+        with memo.reading():  # one reading of the warehouse for every stage's digests
+            for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
+                try:
+                    inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
+                                          else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
+                except OSError as e:  # an unreadable input file
+                    log.error("%s %s: %s", unit, stage.name, e)
+                    return [StageReport(unit, stage.name, "failed", message=str(e))]
         runs = read_runs(wh, [unit])
     finally:
         if read_cache is None:  # a cache of this call's digests alone; a long-lived one serves the stages too

@@ -103,6 +103,24 @@ def test_digests_of_reads_that_changed_meanwhile_are_not_kept(tmp_path):
     assert "ingest" in json.loads((wh.root / "_cache" / "inputs" / "c1.json").read_text())["stages"]
 
 
+def test_digests_of_one_reading_count_from_when_it_began(tmp_path):
+    """In :meth:`InputsMemo.reading` a digest may reuse a value computed for an earlier stage, so a
+    read changed after the block began keeps its entry out of the memo, however long ago."""
+    wh = Warehouse(tmp_path / "w")
+    _clip(wh, "c1", "train")
+    _settle(wh)
+    memo = InputsMemo(wh, "c1")
+    with memo.reading():
+        _clip(wh, "c1", "val")
+        time.sleep(2 * SETTLE_NS / 1e9)  # settled by the time of the digest, not since the block began
+        assert memo.clip_inputs(STAGES["ingest"]) == STAGES["ingest"].clip_inputs(wh, "c1")
+    memo.save()
+    assert not (wh.root / "_cache" / "inputs" / "c1.json").exists()
+    memo.clip_inputs(STAGES["ingest"])  # outside a reading: from the digest's own start
+    memo.save()
+    assert "ingest" in json.loads((wh.root / "_cache" / "inputs" / "c1.json").read_text())["stages"]
+
+
 def test_a_warehouse_without_room_for_the_memo_still_answers(tmp_path):
     wh = Warehouse(tmp_path / "w")
     _clip(wh, "c1", "train")

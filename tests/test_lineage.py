@@ -3,9 +3,11 @@ warehouses are such digests, so a change of what they count orphans people's ans
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pyarrow as pa
 
-from cadestate.lineage import digest, table_digest
+from cadestate.lineage import digest, note_read, once_per_reading, one_reading, recording_reads, table_digest
 
 
 def _table(description: bytes, values: list[float], meta: dict | None = None) -> pa.Table:
@@ -42,3 +44,26 @@ def test_a_known_file_is_hashed_again_only_when_it_changes(tmp_path, monkeypatch
         f.write(b"FRAMES")
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert lineage.known_file_sha256(path) == real(path) != first and len(hashed) == 2
+
+
+def test_one_reading_computes_once_per_partition_and_every_recording_learns_its_reads(tmp_path):
+    calls: list[str] = []
+
+    @once_per_reading
+    def looked_up(wh, part: str) -> int:
+        calls.append(part)
+        note_read("files", "label_files", part)
+        return len(calls)
+
+    wh = SimpleNamespace(root=tmp_path)
+    assert [looked_up(wh, "a"), looked_up(wh, "a")] == [1, 2]  # outside a block: every call computes
+    with one_reading():
+        with recording_reads() as first:
+            a = looked_up(wh, "a")
+        with recording_reads() as second:
+            again = looked_up(wh, "a")
+        b = looked_up(wh, "b")
+        other = looked_up(SimpleNamespace(root=tmp_path / "other"), "a")
+    assert (a, again, b, other) == (3, 3, 4, 5)
+    assert first == second == [("files", "label_files", "a")]  # the repeat notes what the value depends on
+    assert looked_up(wh, "a") == 6  # the block is over

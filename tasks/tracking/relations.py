@@ -33,7 +33,7 @@ import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from cadestate.lineage import digest
+from cadestate.lineage import digest, once_per_reading
 from schemas.tracking import MANUAL_TRACK_BASE
 from warehouse import Warehouse
 
@@ -185,6 +185,7 @@ def relations_in_force(wh: Warehouse, clip: str) -> TrackRelations:
     return TrackRelations(frozenset(not_objects), fragments, frozenset(drawn), tuple(warnings))
 
 
+@once_per_reading
 def left_out_tracks(wh: Warehouse, clip: str) -> frozenset[int]:
     """Tracks the manual-track answer in force says are no object or are an existing track: the
     CAD-selection, correspondence and verification tasks do not list them."""
