@@ -447,9 +447,18 @@ RUNTIME_SECTIONS = ("warehouse", "prefect", "schedule")
 
 
 def section_hash(name: str, section: Any) -> str:
-    """Stable 16-hex digest of a section's values (key order and file formatting do not matter)."""
-    payload = json.dumps({"section": name, **dataclasses.asdict(section)}, sort_keys=True)
-    return hashlib.sha256(payload.encode()).hexdigest()[:16]
+    """Stable 16-hex digest of a section's values (key order and file formatting do not matter).
+    Remembered by the section's ``repr`` (which tells 1 from 1.0 and True, as the digest does): a
+    long-lived process digests the same sections for every stage of every resume."""
+    key = (name, repr(section))
+    known = _SECTION_HASHES.get(key)
+    if known is None:
+        payload = json.dumps({"section": name, **dataclasses.asdict(section)}, sort_keys=True)
+        known = _SECTION_HASHES[key] = hashlib.sha256(payload.encode()).hexdigest()[:16]
+    return known
+
+
+_SECTION_HASHES: dict[tuple[str, str], str] = {}
 
 
 def _shown(value: Any, limit: int = 60) -> str:

@@ -138,6 +138,7 @@ def _direct_imports(name: str) -> frozenset[str]:
     return frozenset(f for f in found if f.split(".")[0] in LOGIC_PACKAGES and _module_file(f) is not None)
 
 
+@cache
 def _imported_from(module: str, name: str) -> str | None:
     """The project module from which ``module``'s top-level ``from X import ...`` takes ``name``."""
     for m in _IMPORT.finditer(_source(module)):

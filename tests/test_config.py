@@ -72,6 +72,22 @@ def test_section_hash_depends_on_values_only():
     assert Config().section_hash("frames") != Config().section_hash("ingest")
 
 
+def test_section_hash_is_remembered_by_value_and_type():
+    """A long-lived process digests the same sections again and again: remembered, but 1, 1.0 and
+    True (equal in Python) stay three digests, as their JSON differs."""
+    import hashlib
+    import json
+
+    from cadestate.config import section_hash
+
+    sections = [dataclasses.replace(Config().pose, coplanar_tol=v) for v in (1, 1.0, True)]  # equal as dicts keys would be
+    fresh = [hashlib.sha256(json.dumps({"section": "pose", **dataclasses.asdict(s)}, sort_keys=True).encode()).hexdigest()[:16]
+             for s in sections]
+    assert len(set(fresh)) == 3
+    for _ in range(2):
+        assert [section_hash("pose", s) for s in sections] == fresh
+
+
 def test_load_file_env_and_errors(tmp_path, monkeypatch):
     f = tmp_path / "c.toml"
     f.write_text("[frames]\njpeg_quality = 80\n")

@@ -23,7 +23,7 @@ from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionT
 from tasks.human.label_import import import_cvat, import_labelstudio, write_label
 from tasks.human.label_format import parse_task
 from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, ingest_validated, label_history
-from tasks.human.labels import ClipFacts, LabelError, new_task_id, validate_label, write_task
+from tasks.human.labels import ClipFacts, LabelError, latest_task, new_task_id, validate_label, write_task
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -580,3 +580,25 @@ def test_the_newest_task_of_each_kind_from_one_read(lwh):
         rows = lwh.read("label_tasks", [CLIP], filters=[("kind", "=", kind)]).to_pylist()
         assert newest.get(kind) == (max(rows, key=lambda r: r["created_at"]) if rows else None)
     assert latest_tasks(lwh, "no-such-clip") == {}
+
+
+def test_the_newest_version_of_a_task_is_found_among_many(tmp_path):
+    """A task rewritten after answers has a row per version; the newest (the first of equal times)
+    is the one labels are checked against, whatever order the rows were written in."""
+    wh = Warehouse(tmp_path / "w")
+    t0 = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    versions = [("t", 1, "a"), ("other", 9, "x"), ("t", 3, "b"), ("t", 2, "c"), ("t", 3, "d")]
+    for task_id, minute, sha in versions:
+        wh.write("label_tasks", "c", table_rows("label_tasks", [{"clip": "c", "task_id": task_id, "kind": "manual_track",
+                                                                   "task_sha256": sha, "created_at": t0 + dt.timedelta(minutes=minute)}]))
+    assert latest_task(wh, "c", "t")["task_sha256"] == "b"
+    assert latest_task(wh, "c", "other")["task_sha256"] == "x"
+    assert latest_task(wh, "c", "missing") is None and latest_task(wh, "no_clip", "t") is None
+
+
+def test_clip_facts_look_at_one_clip_folder_and_know_no_clip_of_an_impossible_name(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    wh.write("clips", "c", table_rows("clips", [{"clip": "c"}]))
+    facts = ClipFacts(wh)
+    assert facts.has_clip("c") and not facts.has_clip("d")
+    assert not any(facts.has_clip(name) for name in ("../c", "", "a/b", ".c"))

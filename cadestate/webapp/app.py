@@ -58,7 +58,7 @@ def three_dir() -> Path:
 
 def _stage_runs(wh: Warehouse, clip: str) -> list[dict]:
     """The last run of each stage of ``clip`` (stage, status, message), in the order they started."""
-    if clip not in wh.partitions("runs"):
+    if not wh.has_partition("runs", clip):
         return []
     last: dict[str, dict] = {}
     for r in wh.read("runs", [clip], columns=["stage", "status", "started_at", "message"]).sort_by("started_at").to_pylist():
@@ -124,7 +124,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     @app.get("/api/clips/{clip}")
     def one_clip(clip: str, wait: float = 0.0) -> dict:
-        if clip not in wh.partitions("clips"):
+        if not wh.has_partition("clips", clip):
             raise HTTPException(404, f"unknown clip {clip!r}")
         if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
             worker.wait_idle(clip, min(wait, MAX_WAIT_S))

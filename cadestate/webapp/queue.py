@@ -84,7 +84,7 @@ def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     (rows of the kind's answer table, JSON-ready)."""
     from tasks.human.labels import latest_task
 
-    if clip not in wh.partitions("clips"):
+    if not wh.has_partition("clips", clip):
         return None
     row = latest_task(wh, clip, task_id)
     if row is None:

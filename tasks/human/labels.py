@@ -104,9 +104,18 @@ def write_task(wh: Warehouse, task: Task) -> Path:
 
 
 def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
-    """The newest ``label_tasks`` row of a task (its document is what labels are checked against)."""
-    rows = wh.read("label_tasks", [clip], filters=[("task_id", "=", task_id)]).to_pylist() if wh.has_partition("label_tasks", clip) else []
-    return max(rows, key=lambda r: r["created_at"]) if rows else None
+    """The newest ``label_tasks`` row of a task (its document is what labels are checked against;
+    the first of equal times). Only that row becomes a Python object: a task rewritten after each
+    answer has a row, with its whole document, per version."""
+    if not wh.has_partition("label_tasks", clip):
+        return None
+    table = wh.read("label_tasks", [clip])
+    ids, created = table.column("task_id").to_pylist(), table.column("created_at").to_pylist()
+    newest = None
+    for i, (tid, at) in enumerate(zip(ids, created)):
+        if tid == task_id and (newest is None or at > created[newest]):
+            newest = i
+    return None if newest is None else table.slice(newest, 1).to_pylist()[0]
 
 
 def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
@@ -135,10 +144,13 @@ class ClipFacts:
 
     def __init__(self, wh: Warehouse):
         self.wh = wh
-        self._clips = set(wh.partitions("clips"))
+        self._clips: dict[str, bool] = {}
 
     def has_clip(self, clip: str) -> bool:
-        return clip in self._clips
+        """Whether ``clip`` is registered (its folder looked at once, not every clip's)."""
+        if clip not in self._clips:
+            self._clips[clip] = self.wh.has_partition("clips", clip)
+        return self._clips[clip]
 
     @functools.cache
     def timestamps(self, clip: str) -> frozenset[int]:
