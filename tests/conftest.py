@@ -21,6 +21,11 @@ import pytest  # noqa: E402
 from bench.demo_clip import DemoClipSpec, make_demo_clip  # noqa: E402
 from warehouse import Warehouse  # noqa: E402
 
+def pytest_unconfigure(config) -> None:
+    """The session's Prefect home goes with the session (else every run leaves a folder in /tmp)."""
+    shutil.rmtree(_PREFECT_HOME, ignore_errors=True)
+
+
 SMALL_CLIP = DemoClipSpec(name="small", width=320, height=192, num_video_frames=90, sample_every=3, seed=1)
 """A 3-second clip with 30 camera lines, small enough for many tests."""
 
