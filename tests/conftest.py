@@ -8,7 +8,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-_PREFECT_HOME = Path(tempfile.mkdtemp(prefix="cadestate-prefect-"))
+_PREFECT_HOME = Path(os.environ.get("CADESTATE_TEST_PREFECT_HOME") or tempfile.mkdtemp(prefix="cadestate-prefect-"))
+os.environ["CADESTATE_TEST_PREFECT_HOME"] = str(_PREFECT_HOME)  # a process a test spawns imports this module too: it shares the session's
 os.environ["PREFECT_HOME"] = str(_PREFECT_HOME)
 os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
 os.environ.pop("PREFECT_API_URL", None)
