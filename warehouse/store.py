@@ -181,10 +181,15 @@ class WarehouseError(ValueError):
     """Data that does not fit its table, or an unknown table or partition."""
 
 
+def is_name(name: object) -> bool:
+    """Whether ``name`` can be a clip, library or model name (:func:`check_name`)."""
+    return isinstance(name, str) and bool(NAME.match(name))
+
+
 def check_name(name: str, what: str = "clip") -> str:
     """Clip, library and model names become folder and file names: letters, digits, '_', '.', '-'
     (at most 200, not starting with '.' or '-')."""
-    if not isinstance(name, str) or not NAME.match(name):
+    if not is_name(name):
         raise WarehouseError(
             f"invalid {what} name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
         )
@@ -277,7 +282,7 @@ class Warehouse:
     def has_partition(self, table: str, part: str) -> bool:
         """Whether ``table`` has data in partition ``part`` (one folder looked at, not every partition;
         a name no partition can have has none)."""
-        if not isinstance(part, str) or not NAME.match(part):
+        if not is_name(part):
             return False
         return bool(self.file_paths(table, [part]))
 

@@ -110,11 +110,7 @@ def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     if not wh.has_partition("label_tasks", clip):
         return None
     table = wh.read("label_tasks", [clip])
-    ids, created = table.column("task_id").to_pylist(), table.column("created_at").to_pylist()
-    newest = None
-    for i, (tid, at) in enumerate(zip(ids, created)):
-        if tid == task_id and (newest is None or at > created[newest]):
-            newest = i
+    newest = _newest_rows(table, "task_id").get(task_id)
     return None if newest is None else table.slice(newest, 1).to_pylist()[0]
 
 
@@ -129,12 +125,17 @@ def latest_tasks(wh: Warehouse, clip: str) -> dict[str, dict]:
     if not wh.has_partition("label_tasks", clip):
         return {}
     table = wh.read("label_tasks", [clip])
-    kinds, created = table.column("kind").to_pylist(), table.column("created_at").to_pylist()
+    return {kind: table.slice(i, 1).to_pylist()[0] for kind, i in _newest_rows(table, "kind").items()}
+
+
+def _newest_rows(table: pa.Table, column: str) -> dict[str, int]:
+    """Index of the newest ``label_tasks`` row (the first of equal times) of each value of ``column``."""
+    values, created = table.column(column).to_pylist(), table.column("created_at").to_pylist()
     newest: dict[str, int] = {}
-    for i, (kind, at) in enumerate(zip(kinds, created)):
-        if kind not in newest or at > created[newest[kind]]:
-            newest[kind] = i
-    return {kind: table.slice(i, 1).to_pylist()[0] for kind, i in newest.items()}
+    for i, (value, at) in enumerate(zip(values, created)):
+        if value not in newest or at > created[newest[value]]:
+            newest[value] = i
+    return newest
 
 
 # ------------------------------------------------------------------------------ warehouse checks
