@@ -206,6 +206,10 @@ class Compacted:
     rows: int
 
 
+DIRS_KEPT = 4096
+"""How many table and partition folders a :class:`Warehouse` keeps made (:meth:`Warehouse.partition_dir`)."""
+
+
 class Warehouse:
     """A warehouse rooted at a local directory. A write to an append-mode table that leaves more
     than ``compact_after`` files in its partition compacts the partition."""
@@ -218,6 +222,7 @@ class Warehouse:
         self._info: dict[str, TableInfo] | None = None
         self.compact_after = compact_after
         self._cache: ReadCache | None = None
+        self._dirs: dict[tuple[str, str | None], Path] = {}
 
     @property
     def tables(self) -> dict[str, TableSpec]:
@@ -256,11 +261,26 @@ class Warehouse:
             raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.tables))})") from None
 
     def table_dir(self, table: str) -> Path:
-        return self.root / "tables" / self._table(table).name
+        return self._folder(table, None)
 
     def partition_dir(self, table: str, part: str) -> Path:
-        partition = self._table(table).partition
-        return self.table_dir(table) / f"{partition}={check_name(part, partition)}"
+        return self._folder(table, part)
+
+    def _folder(self, table: str, part: str | None) -> Path:
+        """The folder of partition ``part`` of ``table`` (None: the table's folder). Kept once made,
+        up to :data:`DIRS_KEPT` of them: every read and write asks for the folders of the tables it
+        touches, and a label round's digests alone asked about 2,000 times, 2 ms of path building."""
+        key = (table, part)
+        if (kept := self._dirs.get(key)) is not None:
+            return kept
+        info = self._table(table)
+        folder = self.root / "tables" / info.name
+        if part is not None:
+            folder = folder / f"{info.partition}={check_name(part, info.partition)}"
+        if len(self._dirs) >= DIRS_KEPT:
+            self._dirs.clear()
+        self._dirs[key] = folder
+        return folder
 
     def inputs_dir(self, clip: str) -> Path:
         return self.root / "inputs" / check_name(clip)
