@@ -83,8 +83,10 @@ class InputsMemo:
         """A block in which the stages' digests are taken from one reading of the warehouse
         (:func:`cadestate.lineage.one_reading`: what several stages digest alike is computed once).
         An entry stored inside counts as taken when the block began: a value computed for an
-        earlier stage must not be stored with the state of files changed since."""
+        earlier stage must not be stored with the state of files changed since. The state of each
+        read is taken once in the block, for every stage that read it."""
         self._since_ns = time.time_ns()
+        self._states.clear()
         try:
             with one_reading():
                 yield
@@ -117,7 +119,9 @@ class InputsMemo:
         with recording_reads() as noted:
             inputs = stage.clip_inputs(self.wh, self.unit)
         reads = list(dict.fromkeys(noted))
-        self._states.clear()  # what was read may have changed while the memo's other entries were checked
+        if self._since_ns is None:  # what was read may have changed while the memo's other entries were checked
+            self._states.clear()  # (in a reading, a state taken before a change is older than what was read, and
+            # nothing read since the reading began is stored: the states are taken once for all its stages)
         states = [self._state(r) for r in reads]
         if all(newest < started - SETTLE_NS for _, newest in states):
             self.entries[stage.name] = {"key": key, "reads": [list(r) for r in reads],

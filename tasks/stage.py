@@ -20,7 +20,9 @@ with status ``interrupted`` (:func:`settle_interrupted`).
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import json
+import os
 import socket
 import time
 import uuid
@@ -184,13 +186,21 @@ def _marker_dir(wh: Warehouse, clip: str) -> Path:
     return wh.root / RUNNING_DIR / check_name(clip)
 
 
-def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at: dt.datetime) -> Path:
-    """Write the marker of a run that starts now; returns its path."""
+@functools.cache
+def _this_process(pid: int) -> tuple[str, float]:
+    """The host and creation time (epoch seconds) of process ``pid``, this one (asked by pid: a
+    forked child is another process)."""
     import psutil
 
-    me = psutil.Process()
-    doc = {"clip": clip, "stage": stage, "run_id": run_id, "pid": me.pid, "host": socket.gethostname(),
-           "process_start": me.create_time(), "started_at": started_at.isoformat()}
+    return socket.gethostname(), psutil.Process(pid).create_time()
+
+
+def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at: dt.datetime) -> Path:
+    """Write the marker of a run that starts now; returns its path."""
+    pid = os.getpid()
+    host, process_start = _this_process(pid)
+    doc = {"clip": clip, "stage": stage, "run_id": run_id, "pid": pid, "host": host,
+           "process_start": process_start, "started_at": started_at.isoformat()}
     path = _marker_dir(wh, clip) / f"{stage}.{run_id}.json"
     atomic_write_bytes(path, json.dumps(doc).encode(), durable=False)  # lost with the machine: the run left no row
     return path

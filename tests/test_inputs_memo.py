@@ -121,6 +121,27 @@ def test_digests_of_one_reading_count_from_when_it_began(tmp_path):
     assert "ingest" in json.loads((wh.root / "_cache" / "inputs" / "c1.json").read_text())["stages"]
 
 
+def test_a_reading_takes_each_state_once_and_never_keeps_a_stale_digest(tmp_path):
+    """In a reading the state of a read is taken once for every stage that read it. A change made
+    between two digests of the block (dated back, as a coarse file clock may leave it) is digested
+    by the later one, and what the memo keeps serves nothing stale afterwards."""
+    wh = Warehouse(tmp_path / "w")
+    ingest = STAGES["ingest"]
+    _clip(wh, "c1", "train")
+    _settle(wh)
+    memo = InputsMemo(wh, "c1")
+    with memo.reading():
+        train = memo.clip_inputs(ingest)
+        states = dict(memo._states)
+        _clip(wh, "c1", "val")
+        _settle(wh)
+        val = memo.clip_inputs(ingest, fresh=True)
+        assert memo._states == states  # taken once in the block
+    memo.save()
+    assert train != val == ingest.clip_inputs(wh, "c1")
+    assert InputsMemo(wh, "c1").clip_inputs(ingest) == val
+
+
 def test_a_warehouse_without_room_for_the_memo_still_answers(tmp_path):
     wh = Warehouse(tmp_path / "w")
     _clip(wh, "c1", "train")
