@@ -19,6 +19,10 @@ data. An entry is stored only when nothing it read was modified while it was dig
 states could be newer than what was read), and storing is best effort: a read-only warehouse just
 gets no memo. The flows store the digests they take before running a clip (:mod:`tasks.stage_chain`),
 so a ``status`` after a run finds them.
+
+:func:`kept_read` keeps any one read so, by the same rules: ``status`` keeps the ``runs`` rows it
+shows in ``_cache/reads/``, and reads them again (DuckDB imported, every run file opened) only
+when a run file came or went.
 """
 
 from __future__ import annotations
@@ -27,7 +31,8 @@ import contextlib
 import json
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest, one_reading, recording_reads
@@ -146,3 +151,26 @@ class InputsMemo:
             with contextlib.suppress(OSError):
                 atomic_write_bytes(self.path, payload.encode(), durable=False)  # a cache: lost, it is digested again
             self.changed = False
+
+
+def kept_read(wh: Warehouse, name: str, read: tuple[str, ...], compute: Callable[[], Any]) -> Any:
+    """``compute()``, a JSON value made from the files of ``read`` alone (a read as the memo notes
+    one: ``("files", table, partition, ...)``), kept in ``_cache/reads/<name>.json`` with the state
+    of those files and served while it holds (the rules of the module: stored only when nothing
+    read was modified while it was computed, best effort)."""
+    path = wh.root / "_cache" / "reads" / f"{check_name(name)}.json"
+    state, _ = _state(wh, read)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        if doc["version"] == VERSION and doc["read"] == list(read) and doc["state"] == state:
+            return doc["value"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    started = time.time_ns()
+    value = compute()
+    state, newest = _state(wh, read)
+    if newest < started - SETTLE_NS:
+        payload = json.dumps({"version": VERSION, "read": list(read), "state": state, "value": value})
+        with contextlib.suppress(OSError):
+            atomic_write_bytes(path, payload.encode(), durable=False)
+    return value

@@ -10,16 +10,17 @@ results (nothing detected, so every later stage ran on nothing).
 
 from __future__ import annotations
 
+import datetime as dt
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
-from tasks.inputs_memo import InputsMemo
+from cadestate.lineage import digest
+from tasks.inputs_memo import InputsMemo, kept_read
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
 from warehouse import Warehouse
-from warehouse.query import read_rows
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
                "started_at", "rows_written", "duration_s", "message")
@@ -37,13 +38,32 @@ class StageStatus:
     message: str = ""  # the last run's message (for a paused run: the task file and what it waits for)
 
 
-def read_runs(wh: Warehouse, names: Sequence[str] | None = None) -> list[dict]:
-    """The :data:`RUN_COLUMNS` of the runs of ``names`` (clips or libraries; default: all), oldest first."""
+def read_runs(wh: Warehouse, names: Sequence[str] | None = None, keep: bool = False) -> list[dict]:
+    """The :data:`RUN_COLUMNS` of the runs of ``names`` (clips or libraries; default: all), oldest
+    first. ``keep``: from, or into, the rows kept with the state of the run files
+    (:func:`tasks.inputs_memo.kept_read`), as ``cadestate status`` reads them: DuckDB is imported
+    and the files read only when a run file came or went since."""
     if wh.reads_cached:  # a long-lived process (the app's resumes): files read before come from its cache
         rows = wh.read("runs", names, columns=RUN_COLUMNS).to_pylist()
+    elif keep:
+        read = ("files", "runs", *(sorted(set(names)) if names else ["*"]))
+        name = "runs-" + (digest(*read)[:16] if names else "all")
+        rows = [{**r, "started_at": r["started_at"] and dt.datetime.fromisoformat(r["started_at"])}
+                for r in kept_read(wh, name, read, lambda: _runs_json(wh, names))]
     else:
-        rows = read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
+        rows = _runs(wh, names)
     return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
+
+
+def _runs(wh: Warehouse, names: Sequence[str] | None) -> list[dict]:
+    from warehouse.query import read_rows  # here: DuckDB costs `status` ~0.1 s, paid only when runs changed
+
+    return read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
+
+
+def _runs_json(wh: Warehouse, names: Sequence[str] | None) -> list[dict]:
+    """:func:`_runs` as JSON values (times as ISO 8601, with their UTC offset)."""
+    return [{**r, "started_at": r["started_at"] and r["started_at"].isoformat()} for r in _runs(wh, names)]
 
 
 def _registered(wh: Warehouse, table: str, names: Sequence[str] | None) -> set[str]:

@@ -169,7 +169,7 @@ def status(
     from tasks.status import clip_notes, clip_summaries, pipeline_status, read_runs
 
     wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
-    runs = read_runs(wh, clips)  # clips' and libraries' alike
+    runs = read_runs(wh, clips, keep=True)  # clips' and libraries' alike; read again only when runs came or went
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
         rows = pipeline_status(wh, cfg, clips, scope, runs)
         names = sorted({r.clip for r in rows})
