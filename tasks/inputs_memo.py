@@ -20,56 +20,25 @@ states could be newer than what was read), and storing is best effort: a read-on
 gets no memo. The flows store the digests they take before running a clip (:mod:`tasks.stage_chain`),
 so a ``status`` after a run finds them.
 
-:func:`kept_read` keeps any one read so, by the same rules: ``status`` keeps the ``runs`` rows it
-shows in ``_cache/reads/``, and reads them again (DuckDB imported, every run file opened) only
-when a run file came or went.
+The states and the settling rule are :mod:`warehouse.kept`'s, which keeps other values so too.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import os
 import time
-from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from collections.abc import Iterator
 
 from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest, one_reading, recording_reads
 from tasks.registry import Stage
 from warehouse import Warehouse
+from warehouse.kept import SETTLE_NS, read_state
 from warehouse.store import check_name
 
 VERSION = "1"
 """Bump when what an entry means changes: every memo is then digested again."""
-
-SETTLE_NS = 50_000_000
-"""A read whose newest file is younger than the digest's start minus this (file times come from a
-coarse clock) may have changed while it was read: its entry is not stored."""
-
-
-def _state(wh: Warehouse, read: Sequence[str]) -> tuple[str, int]:
-    """Digest of the current state of one noted read, and the newest modification time in it (ns)."""
-    lines: list[str] = []
-    newest = 0
-    try:
-        if read[0] == "files":
-            parts = None if list(read[2:]) == ["*"] else list(read[2:])
-            paths = wh.file_paths(read[1], parts)
-        elif read[0] == "partitions":
-            if not wh.table_dir(read[1]).is_dir():
-                return digest(*read, "no table folder"), 0
-            paths = [str(wh.table_dir(read[1]))] + [str(wh.partition_dir(read[1], p)) for p in wh.partitions(read[1])]
-        else:
-            return f"unknown read {read[0]!r}", time.time_ns()
-        for path in paths:
-            st = os.stat(path)
-            lines.append(f"{os.path.basename(path)} {st.st_ino} {st.st_size} {st.st_mtime_ns}")
-            newest = max(newest, st.st_mtime_ns)
-    except FileNotFoundError:  # a file went away while it was listed (compacted): changing now
-        return "changing", time.time_ns()
-    return digest(*read, *lines), newest
-
 
 class InputsMemo:
     """The memo of one clip (or library): :meth:`clip_inputs` of its stages, then :meth:`save`."""
@@ -108,7 +77,7 @@ class InputsMemo:
 
     def _state(self, read: tuple[str, ...]) -> tuple[str, int]:
         if read not in self._states:
-            self._states[read] = _state(self.wh, read)
+            self._states[read] = read_state(self.wh, read)
         return self._states[read]
 
     def clip_inputs(self, stage: Stage, fresh: bool = False) -> list[str]:
@@ -152,25 +121,3 @@ class InputsMemo:
                 atomic_write_bytes(self.path, payload.encode(), durable=False)  # a cache: lost, it is digested again
             self.changed = False
 
-
-def kept_read(wh: Warehouse, name: str, read: tuple[str, ...], compute: Callable[[], Any]) -> Any:
-    """``compute()``, a JSON value made from the files of ``read`` alone (a read as the memo notes
-    one: ``("files", table, partition, ...)``), kept in ``_cache/reads/<name>.json`` with the state
-    of those files and served while it holds (the rules of the module: stored only when nothing
-    read was modified while it was computed, best effort)."""
-    path = wh.root / "_cache" / "reads" / f"{check_name(name)}.json"
-    state, _ = _state(wh, read)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        if doc["version"] == VERSION and doc["read"] == list(read) and doc["state"] == state:
-            return doc["value"]
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    started = time.time_ns()
-    value = compute()
-    state, newest = _state(wh, read)
-    if newest < started - SETTLE_NS:
-        payload = json.dumps({"version": VERSION, "read": list(read), "state": state, "value": value})
-        with contextlib.suppress(OSError):
-            atomic_write_bytes(path, payload.encode(), durable=False)
-    return value

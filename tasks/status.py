@@ -17,10 +17,11 @@ from dataclasses import dataclass
 
 from cadestate.config import Config
 from cadestate.lineage import digest
-from tasks.inputs_memo import InputsMemo, kept_read
+from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
 from warehouse import Warehouse
+from warehouse.kept import kept_read
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
                "started_at", "rows_written", "duration_s", "message")
@@ -41,7 +42,7 @@ class StageStatus:
 def read_runs(wh: Warehouse, names: Sequence[str] | None = None, keep: bool = False) -> list[dict]:
     """The :data:`RUN_COLUMNS` of the runs of ``names`` (clips or libraries; default: all), oldest
     first. ``keep``: from, or into, the rows kept with the state of the run files
-    (:func:`tasks.inputs_memo.kept_read`), as ``cadestate status`` reads them: DuckDB is imported
+    (:func:`warehouse.kept.kept_read`), as ``cadestate status`` reads them: DuckDB is imported
     and the files read only when a run file came or went since."""
     if wh.reads_cached:  # a long-lived process (the app's resumes): files read before come from its cache
         rows = wh.read("runs", names, columns=RUN_COLUMNS).to_pylist()
@@ -49,7 +50,7 @@ def read_runs(wh: Warehouse, names: Sequence[str] | None = None, keep: bool = Fa
         read = ("files", "runs", *(sorted(set(names)) if names else ["*"]))
         name = "runs-" + (digest(*read)[:16] if names else "all")
         rows = [{**r, "started_at": r["started_at"] and dt.datetime.fromisoformat(r["started_at"])}
-                for r in kept_read(wh, name, read, lambda: _runs_json(wh, names))]
+                for r in kept_read(wh, name, [read], lambda: _runs_json(wh, names))]
     else:
         rows = _runs(wh, names)
     return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order

@@ -58,7 +58,7 @@ def read_wh(tmp_path_factory) -> Path:
     (["config", "show"], HEAVY, ("cadestate",)),
     (["sql", "SELECT count(*) FROM frames"], HEAVY, ("duckdb",)),
     (["sql", "SELECT count(*) FROM poses"], HEAVY, ("duckdb",)),  # an empty table: its schema file is current
-    (["tables"], HEAVY, ("duckdb",)),
+    (["tables"], HEAVY, ("warehouse",)),  # DuckDB counts the rows only when a file came since the last count
     (["tables", "frames"], ("prefect", "bench", "pandas"), ("pyarrow",)),  # the columns: the pyarrow schema
     (["status"], ("prefect", "bench"), ("tasks",)),
 ])

@@ -10,7 +10,7 @@ import os
 import time
 
 from conftest import table_rows
-from tasks.inputs_memo import SETTLE_NS, InputsMemo, kept_read
+from tasks.inputs_memo import SETTLE_NS, InputsMemo
 from tasks.registry import STAGES
 from warehouse import Warehouse
 
@@ -142,30 +142,6 @@ def test_a_reading_takes_each_state_once_and_never_keeps_a_stale_digest(tmp_path
     assert InputsMemo(wh, "c1").clip_inputs(ingest) == val
 
 
-def test_a_kept_read_serves_while_its_files_stay_and_only_once_settled(tmp_path):
-    wh = Warehouse(tmp_path / "w")
-    read = ("files", "clips", "c1")
-    calls = []
-
-    def splits() -> list[str]:
-        calls.append(1)
-        return [r["split"] for r in wh.read("clips", ["c1"]).to_pylist()]
-
-    _clip(wh, "c1", "train")
-    later = time.time_ns() + 10 * SETTLE_NS  # as if written while it was read: not kept
-    os.utime(wh.files("clips", ["c1"])[0], ns=(later, later))
-    assert kept_read(wh, "splits", read, splits) == ["train"]
-    assert not (wh.root / "_cache" / "reads" / "splits.json").exists()
-    _settle(wh)
-    assert kept_read(wh, "splits", read, splits) == kept_read(wh, "splits", read, splits) == ["train"]
-    assert len(calls) == 2  # the third served from what the second kept
-    _clip(wh, "c1", "val")  # the partition rewritten: another file
-    _settle(wh)
-    assert kept_read(wh, "splits", read, splits) == ["val"] and len(calls) == 3
-    (wh.root / "_cache" / "reads" / "splits.json").write_text("{not json")
-    assert kept_read(wh, "splits", read, splits) == ["val"] and len(calls) == 4
-
-
 def test_a_warehouse_without_room_for_the_memo_still_answers(tmp_path):
     wh = Warehouse(tmp_path / "w")
     _clip(wh, "c1", "train")
@@ -175,7 +151,6 @@ def test_a_warehouse_without_room_for_the_memo_still_answers(tmp_path):
         memo = InputsMemo(wh, "c1")
         assert memo.clip_inputs(STAGES["ingest"]) == STAGES["ingest"].clip_inputs(wh, "c1")
         memo.save()
-        assert kept_read(wh, "splits", ("files", "clips", "c1"), lambda: ["train"]) == ["train"]
     broken = Warehouse(tmp_path / "v")
     _clip(broken, "c1", "train")
     (broken.root / "_cache" / "inputs").mkdir(parents=True)

@@ -1,0 +1,74 @@
+"""Values kept with the state of the warehouse files they were computed from (warehouse/kept.py):
+served while those files stay, computed again as soon as one comes or goes, never stored from
+files that changed while they were read, and never in the way of a warehouse that cannot keep them."""
+
+from __future__ import annotations
+
+import os
+import time
+
+from conftest import table_rows
+from warehouse import Warehouse
+from warehouse.catalog import row_counts as counted
+from warehouse.kept import SETTLE_NS, kept_read, row_counts
+
+
+def _settle(wh: Warehouse) -> None:
+    """Date every table file back past the settling time (as if written a while ago)."""
+    old = time.time_ns() - 10 * SETTLE_NS
+    for folder, _, names in os.walk(wh.root / "tables"):
+        for name in names:
+            os.utime(os.path.join(folder, name), ns=(old, old))
+
+
+def _clip(wh: Warehouse, name: str, split: str) -> None:
+    wh.write("clips", name, table_rows("clips", [{"clip": name, "video_sha256": "v" * 64, "split": split}]))
+
+
+def test_a_kept_read_serves_while_its_files_stay_and_only_once_settled(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    reads = [("files", "clips", "c1")]
+    calls = []
+
+    def splits() -> list[str]:
+        calls.append(1)
+        return [r["split"] for r in wh.read("clips", ["c1"]).to_pylist()]
+
+    _clip(wh, "c1", "train")
+    later = time.time_ns() + 10 * SETTLE_NS  # as if written while it was read: not kept
+    os.utime(wh.files("clips", ["c1"])[0], ns=(later, later))
+    assert kept_read(wh, "splits", reads, splits) == ["train"]
+    assert not (wh.root / "_cache" / "reads" / "splits.json").exists()
+    _settle(wh)
+    assert kept_read(wh, "splits", reads, splits) == kept_read(wh, "splits", reads, splits) == ["train"]
+    assert len(calls) == 2  # the third served from what the second kept
+    _clip(wh, "c1", "val")  # the partition rewritten: another file
+    _settle(wh)
+    assert kept_read(wh, "splits", reads, splits) == ["val"] and len(calls) == 3
+    (wh.root / "_cache" / "reads" / "splits.json").write_text("{not json")  # damaged: computed again
+    assert kept_read(wh, "splits", reads, splits) == ["val"] and len(calls) == 4
+
+
+def test_row_counts_are_kept_until_a_file_of_any_table_comes(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    _clip(wh, "c1", "train")
+    wh.write("frames", "c1", table_rows("frames", [{"clip": "c1", "timestamp_us": t} for t in (0, 1)]))
+    _settle(wh)
+    first = row_counts(wh)
+    assert first == counted(wh) and first["frames"] == 2 and first["clips"] == 1
+    kept = wh.root / "_cache" / "reads" / "row-counts.json"
+    kept.write_text(kept.read_text().replace('"frames": 2', '"frames": 7'))
+    assert row_counts(wh)["frames"] == 7  # served as kept: no file came
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "stage": "frames", "status": "completed"}]))
+    _settle(wh)
+    assert row_counts(wh) == counted(wh) == {**first, "runs": 1}
+
+
+def test_a_warehouse_without_room_to_keep_still_answers(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    _clip(wh, "c1", "train")
+    _settle(wh)
+    (wh.root / "_cache").write_text("not a folder")  # nothing can be kept (as in a read-only warehouse)
+    for _ in range(2):
+        assert kept_read(wh, "splits", [("files", "clips", "c1")], lambda: ["train"]) == ["train"]
+        assert row_counts(wh)["clips"] == 1
