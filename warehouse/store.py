@@ -142,12 +142,14 @@ def data_files(folder: Path | str) -> list[str]:
     about 10x more, and every read lists its partitions. A listing is taken again when the folder
     was swapped while it was read (a compaction: the folder read may be the old one, its files being
     removed, which would list fewer files or none)."""
+    base = os.fspath(folder)
+    prefix = os.path.join(base, "")  # joined once: os.path.join per file cost ~1 us each, every read
     while True:
         try:
-            before = os.stat(folder).st_ino
-            names = os.listdir(folder)
-            if os.stat(folder).st_ino == before:
-                return [os.path.join(folder, n) for n in sorted(names) if n.endswith(".parquet")]
+            before = os.stat(base).st_ino
+            names = os.listdir(base)
+            if os.stat(base).st_ino == before:
+                return [prefix + n for n in sorted(names) if n.endswith(".parquet")]
         except (FileNotFoundError, NotADirectoryError):
             return []
 
