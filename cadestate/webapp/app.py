@@ -70,7 +70,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
     cache = ReadCache()  # each page view reads the clip's task tables again; the resumes write and read them too
-    wh = Warehouse(config.warehouse.root).cache_reads(cache=cache)
+    wh = Warehouse(config.warehouse.root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=cache)
     lock = threading.Lock()
     worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
