@@ -60,6 +60,10 @@ def test_a_file_written_through_the_cache_is_not_opened_and_reads_as_an_uncached
     assert runs.equals(plain.read("runs", ["a"])) and clips.equals(plain.read("clips", ["a"]))
     assert subset.equals(plain.read("clips", ["a"], columns=["up_rotation", "ingested_at"]))
     assert clips.column("num_cameras").to_pylist() == [4]
+    [identity] = [ReadCache.file_identity(f) for f in cached.file_paths("clips", ["a"])]
+    schema = pa.schema([plain.spec("clips").schema.field(n) for n in ("up_rotation", "ingested_at")])
+    cut = cached._cache.get_file(identity, schema)
+    assert cut.equals(subset) and cached._cache.get_file(identity, schema) is cut  # the cut is kept, not made again
 
 
 @pytest.mark.parametrize("filters", [

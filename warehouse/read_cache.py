@@ -76,7 +76,7 @@ class ReadCache:
     def get_file(self, identity: tuple, schema: pa.Schema, names: tuple[str, ...] | None = None) -> pa.Table | None:
         """The rows of the file ``identity`` as ``schema`` (the table's schema or some of its columns;
         ``names``: its column names, when the caller reads many files as one schema): kept as read
-        with those columns, or cut from the whole file's rows when those are kept."""
+        with those columns, or cut from the whole file's rows when those are kept (and kept so)."""
         import pyarrow as pa
 
         wanted = names if names is not None else tuple(schema.names)
@@ -92,7 +92,9 @@ class ReadCache:
             return hit
         if not set(wanted) <= set(hit.column_names):
             return None
-        return pa.Table.from_arrays([hit.column(n) for n in wanted], schema=schema)
+        cut = pa.Table.from_arrays([hit.column(n) for n in wanted], schema=schema)
+        self.put_file(identity, cut)  # the next read of these columns takes it as is (its columns are the whole's)
+        return cut
 
     def put_file(self, identity: tuple, part: pa.Table, whole: bool = False) -> None:
         """Keep one file's rows (``whole``: every column of its table, which any read of some of
