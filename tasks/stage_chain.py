@@ -60,7 +60,8 @@ def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Sig
     run with the same signature counts while the stage's latest completed or paused run has its
     output: then the tables hold what a run with this signature writes."""
     ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
-    same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == dataclasses.astuple(signature)]
+    key = (signature.config_hash, signature.code_hash, signature.inputs_hash)
+    same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == key]
     if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
         return None
     r = same[-1]
