@@ -60,10 +60,10 @@ def test_a_file_written_through_the_cache_is_not_opened_and_reads_as_an_uncached
     assert runs.equals(plain.read("runs", ["a"])) and clips.equals(plain.read("clips", ["a"]))
     assert subset.equals(plain.read("clips", ["a"], columns=["up_rotation", "ingested_at"]))
     assert clips.column("num_cameras").to_pylist() == [4]
-    [identity] = [ReadCache.file_identity(f) for f in cached.file_paths("clips", ["a"])]
+    [path] = cached.file_paths("clips", ["a"])
     schema = pa.schema([plain.spec("clips").schema.field(n) for n in ("up_rotation", "ingested_at")])
-    cut = cached._cache.get_file(identity, schema)
-    assert cut.equals(subset) and cached._cache.get_file(identity, schema) is cut  # the cut is kept, not made again
+    cut = cached._cache.get_file(path, schema)
+    assert cut.equals(subset) and cached._cache.get_file(path, schema) is cut  # the cut is kept, not made again
 
 
 @pytest.mark.parametrize("filters", [
@@ -81,6 +81,27 @@ def test_filtered_reads_from_the_cache_equal_the_dataset_reads(wh, opened, filte
     assert opened == []
     want = Warehouse(wh.root).read("runs", ["a"], filters=filters, columns=["stage", "rows_written"])
     assert got.equals(want) and got.num_rows > 0
+
+
+def test_the_store_never_shows_a_path_twice_so_a_cache_keyed_by_paths_stays_right(wh):
+    """The cache keys files by path alone: every write, replace and compaction shows new names, and
+    a cached read after each equals an uncached one."""
+    cached, plain, seen = Warehouse(wh.root).cache_reads(cache=ReadCache()), Warehouse(wh.root), set()
+
+    def wrote(table: str, rows=None) -> None:
+        if rows is None:
+            plain.compact(table, "a")
+        else:
+            plain.write(table, "a", rows)
+        paths = set(plain.file_paths(table, ["a"]))
+        assert paths - seen  # a new name for what was written
+        seen.update(paths)
+        assert cached.read(table, ["a"]).equals(plain.read(table, ["a"]))
+
+    for n in (2, 3):
+        wrote("runs", run_rows("a", n))
+        wrote("clips", clip_rows("a", n))  # replace-mode: swapped in whole
+    wrote("runs")  # compacted
 
 
 def test_files_kept_are_bounded_in_bytes(wh, opened):

@@ -4,15 +4,16 @@ A process that reads the same small tables again and again (the annotation app s
 tasks, a unit's input digests before its stages run) reads each file set once, and each file once:
 a read of a table one file of which is new reads that file alone (the others' rows are kept file by
 file, within ``file_bytes``), and a file the process wrote itself is kept as written. An entry is keyed by
-the table, the columns and the identity of every file read: path, inode, size and modification
-time, taken by ``stat`` on every read. Files are written whole, under new names or by an atomic
-rename (a new inode), so the same identities hold the same rows, and a write, a compaction or a
-removal changes the key. The least recently used entries go first.
+the table, the columns and the path of every file read. The store never writes a name twice (a file
+is named ``<time>-<id>.parquet`` once written; a replace-mode write or a compaction swaps in a
+folder of new names: :mod:`warehouse.store`), so a path holds one content for good, and a write, a
+compaction or a removal changes the listing a read takes, and so its key. (It stat-ed every file of
+every read before: on a clip with 30-60 files in its label and run partitions, about 800 calls a
+label round.) The least recently used entries go first.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -42,20 +43,17 @@ class ReadCache:
 
     @staticmethod
     def key(table: str, files: Sequence[str], columns: Sequence[str] | None, filters: object = None) -> tuple | None:
-        """The identity of a read of ``files`` with ``columns`` and ``filters`` (None, or DNF tuples as
-        :meth:`warehouse.store.Warehouse.read` takes them); None when it is not kept: a file is gone,
-        or the filter is an expression (read it, keep nothing)."""
+        """The identity of a read of ``files`` (paths, as listed) with ``columns`` and ``filters`` (None,
+        or DNF tuples as :meth:`warehouse.store.Warehouse.read` takes them); None when it is not kept:
+        the filter is an expression (read it, keep nothing)."""
         if filters is not None and not isinstance(filters, list):
-            return None
-        ids = tuple(ReadCache.file_identity(f) for f in files)
-        if None in ids:  # a file gone
             return None
         try:
             rows = tuple(tuple(tuple(v) if isinstance(v, list) else v for v in f) for f in filters) if filters else None
             hash(rows)
         except TypeError:  # a filter value that cannot be hashed
             return None
-        return table, ids, tuple(columns) if columns else None, rows
+        return table, tuple(files), tuple(columns) if columns else None, rows
 
     def get(self, key: tuple) -> pa.Table | None:
         with self._lock:
@@ -64,24 +62,15 @@ class ReadCache:
                 self._kept.move_to_end(key)
             return hit
 
-    @staticmethod
-    def file_identity(path: str) -> tuple | None:
-        """The identity of one data file: path, inode, size and modification time (None: it is gone)."""
-        try:
-            st = os.stat(path)
-        except FileNotFoundError:
-            return None
-        return path, st.st_ino, st.st_size, st.st_mtime_ns
-
-    def get_file(self, identity: tuple, schema: pa.Schema, names: tuple[str, ...] | None = None) -> pa.Table | None:
-        """The rows of the file ``identity`` as ``schema`` (the table's schema or some of its columns;
+    def get_file(self, path: str, schema: pa.Schema, names: tuple[str, ...] | None = None) -> pa.Table | None:
+        """The rows of the file ``path`` as ``schema`` (the table's schema or some of its columns;
         ``names``: its column names, when the caller reads many files as one schema): kept as read
         with those columns, or cut from the whole file's rows when those are kept (and kept so)."""
         import pyarrow as pa
 
         wanted = names if names is not None else tuple(schema.names)
         with self._lock:
-            for key in ((identity, wanted), (identity, None)):
+            for key in ((path, wanted), (path, None)):
                 hit = self._files.get(key)
                 if hit is not None:
                     self._files.move_to_end(key)
@@ -93,13 +82,13 @@ class ReadCache:
         if not set(wanted) <= set(hit.column_names):
             return None
         cut = pa.Table.from_arrays([hit.column(n) for n in wanted], schema=schema)
-        self.put_file(identity, cut)  # the next read of these columns takes it as is (its columns are the whole's)
+        self.put_file(path, cut)  # the next read of these columns takes it as is (its columns are the whole's)
         return cut
 
-    def put_file(self, identity: tuple, part: pa.Table, whole: bool = False) -> None:
+    def put_file(self, path: str, part: pa.Table, whole: bool = False) -> None:
         """Keep one file's rows (``whole``: every column of its table, which any read of some of
         them can be cut from); the least recently used go while the kept rows exceed ``file_bytes``."""
-        key = (identity, None if whole else tuple(part.column_names))
+        key = (path, None if whole else tuple(part.column_names))
         with self._lock:
             if key in self._files:
                 return
@@ -113,9 +102,7 @@ class ReadCache:
         """A file this process has just written with ``table`` (every column of its table, cast to
         its schema): kept, so that the next read of it reads nothing (a reader of the same warehouse
         finds what a writer of it left)."""
-        identity = self.file_identity(path)
-        if identity is not None:
-            self.put_file(identity, table, whole=True)
+        self.put_file(path, table, whole=True)
 
     def put(self, key: tuple, result: pa.Table) -> None:
         with self._lock:

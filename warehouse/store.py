@@ -92,20 +92,18 @@ def _vanished(e: OSError) -> bool:
 
 
 def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] | None,
-                cache: ReadCache | None = None, identities: Sequence[tuple] | None = None) -> pa.Table:
+                cache: ReadCache | None = None) -> pa.Table:
     """The rows of ``files`` in order, as ``pyarrow.dataset.dataset(files, schema=schema).to_table(columns)``
     gives them (a column a file lacks reads as null, every column cast to ``schema``), without
-    importing pyarrow.dataset. ``identities``: the files' (:meth:`ReadCache.file_identity`), when
-    the caller has taken them."""
+    importing pyarrow.dataset; through ``cache``, a file whose rows it keeps is not opened."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     target = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata) if columns else schema
     names = tuple(target.names)
     parts = []
-    for i, f in enumerate(files):
-        identity = None if cache is None else identities[i] if identities is not None else cache.file_identity(f)
-        if identity is not None and (kept := cache.get_file(identity, target, names)) is not None:
+    for f in files:
+        if cache is not None and (kept := cache.get_file(f, target, names)) is not None:
             parts.append(kept)
             continue
         pf = pq.ParquetFile(f)
@@ -114,8 +112,8 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
         parts.append(pa.Table.from_arrays(
             [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
              for fl in target], schema=target))
-        if identity is not None:
-            cache.put_file(identity, parts[-1], whole=columns is None)
+        if cache is not None:
+            cache.put_file(f, parts[-1], whole=columns is None)
     return pa.concat_tables(parts)
 
 
@@ -501,12 +499,12 @@ class Warehouse:
                 return kept
             try:
                 if filters is None:  # file by file: pyarrow.dataset imports pandas (~0.3 s), which `status` never needs
-                    result = _read_files(files, spec.schema, columns, cache, key[1] if key is not None else None)
+                    result = _read_files(files, spec.schema, columns, cache)
                     break
                 if cache is not None and isinstance(filters, list):  # unchanged files from the cache, filtered here
                     import pyarrow.parquet as pq
 
-                    result = _read_files(files, spec.schema, None, cache, key[1] if key is not None else None)
+                    result = _read_files(files, spec.schema, None, cache)
                     result = result.filter(pq.filters_to_expression(filters))
                     result = result.select(list(columns)) if columns else result
                     break
