@@ -120,4 +120,3 @@ class InputsMemo:
             with contextlib.suppress(OSError):
                 atomic_write_bytes(self.path, payload.encode(), durable=False)  # a cache: lost, it is digested again
             self.changed = False
-
