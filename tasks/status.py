@@ -11,16 +11,16 @@ results (nothing detected, so every later stage ran on nothing).
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cadestate.config import Config
-from cadestate.lineage import digest
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import run_markers
-from warehouse import Warehouse
+from warehouse import Warehouse, check_name
 from warehouse.kept import kept_read
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
@@ -46,11 +46,12 @@ def read_runs(wh: Warehouse, names: Sequence[str] | None = None, keep: bool = Fa
     and the files read only when a run file came or went since."""
     if wh.reads_cached:  # a long-lived process (the app's resumes): files read before come from its cache
         rows = wh.read("runs", names, columns=RUN_COLUMNS).to_pylist()
-    elif keep:
-        read = ("files", "runs", *(sorted(set(names)) if names else ["*"]))
-        name = "runs-" + (digest(*read)[:16] if names else "all")
+    elif keep:  # kept per clip or library named (one file each, as the input digests), else once for all
+        groups = [[check_name(n)] for n in sorted(set(names))] if names else [None]
         rows = [{**r, "started_at": r["started_at"] and dt.datetime.fromisoformat(r["started_at"])}
-                for r in kept_read(wh, name, [read], lambda: _runs_json(wh, names))]
+                for parts in groups
+                for r in kept_read(wh, f"runs/{parts[0]}" if parts else "runs", [("files", "runs", *(parts or ["*"]))],
+                                   functools.partial(_runs_json, wh, parts))]
     else:
         rows = _runs(wh, names)
     return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order

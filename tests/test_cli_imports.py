@@ -93,24 +93,28 @@ def test_status_reads_runs_without_pyarrow_dataset(read_wh, tmp_path):
 
 
 def test_status_reads_runs_again_only_when_a_run_file_came(read_wh, tmp_path):
-    """`status` keeps the runs it read with the state of their files: the next `status` neither
-    imports DuckDB nor opens a run file; a new run is read at once (DuckDB), then kept in turn."""
-    def status() -> tuple[set[str], str]:
-        modules = loaded(["-w", str(read_wh), "status"], tmp_path / "modules.json")[1]
+    """`status` keeps the runs it read with the state of their files (those of every clip, and those
+    of each clip named): the next `status` neither imports DuckDB nor opens a run file; a new run is
+    read at once (DuckDB), then kept in turn."""
+    def status(*clips: str) -> tuple[set[str], str]:
+        modules = loaded(["-w", str(read_wh), "status", *clips], tmp_path / "modules.json")[1]
         env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-        return modules, subprocess.run([sys.executable, "-m", "cadestate", "-w", str(read_wh), "status"],
+        return modules, subprocess.run([sys.executable, "-m", "cadestate", "-w", str(read_wh), "status", *clips],
                                        capture_output=True, text=True, env=env, check=True).stdout
 
     def embed_done(shown: str) -> bool:
         [line] = [line for line in shown.splitlines() if " embed " in line]
         return line.split("│")[4].strip() == "completed"  # clip, stage, last run, status
 
-    status()
-    modules, shown = status()
-    assert "duckdb" not in modules and not embed_done(shown)
+    for clips in ((), ("c",)):
+        status(*clips)
+        modules, shown = status(*clips)
+        assert "duckdb" not in modules and not embed_done(shown)
     Warehouse(read_wh).write("runs", "c", table_rows("runs", [{"clip": "c", "stage": "embed", "status": "completed"}]))
-    modules, shown = status()
-    assert "duckdb" in modules and embed_done(shown)
+    for clips in ((), ("c",)):
+        modules, shown = status(*clips)
+        assert "duckdb" in modules and embed_done(shown)
+    assert (read_wh / "_cache" / "reads" / "runs" / "c.json").is_file()  # one file per clip named
 
 
 def test_status_of_a_registered_clip_imports_no_stage_dependencies(tmp_path):

@@ -10,9 +10,10 @@ A value is stored only when nothing it read was modified while it was computed: 
 from a coarse clock, so a read whose newest file is younger than the computation's start minus
 :data:`SETTLE_NS` may have changed meanwhile. Storing is best effort (a read-only warehouse keeps
 nothing). :mod:`tasks.inputs_memo` keeps the stages' input digests by these rules; :func:`kept_read`
-keeps any value, in ``_cache/reads/<name>.json``: ``cadestate status`` its ``runs`` rows,
-``cadestate tables`` its row counts, read again (DuckDB imported, every file opened) only when a
-file came or went.
+keeps any value, in ``_cache/reads/<name>.json``: ``cadestate status`` its ``runs`` rows (those of
+every clip, or of each clip it is given, ``runs/<clip>.json``: one file per clip, not one per set
+of clips asked about), ``cadestate tables`` its row counts, each read again (DuckDB imported,
+every file opened) only when a file came or went.
 """
 
 from __future__ import annotations
@@ -66,8 +67,10 @@ def _states(wh: Warehouse, reads: Sequence[tuple[str, ...]]) -> tuple[str, int]:
 
 def kept_read(wh: Warehouse, name: str, reads: Sequence[tuple[str, ...]], compute: Callable[[], Any]) -> Any:
     """``compute()``, a JSON value made from the files of ``reads`` alone, kept in
-    ``_cache/reads/<name>.json`` with their state and served while it holds (module docstring)."""
-    path = wh.root / "_cache" / "reads" / f"{check_name(name)}.json"
+    ``_cache/reads/<name>.json`` with their state and served while it holds (module docstring).
+    ``name``: names joined by '/' (a folder of values, one per clip: ``runs/<clip>``)."""
+    *folders, last = (check_name(part, "kept value") for part in name.split("/"))
+    path = wh.root.joinpath("_cache", "reads", *folders, f"{last}.json")
     what = [list(r) for r in reads]
     state, _ = _states(wh, reads)
     with contextlib.suppress(OSError, ValueError, KeyError, TypeError):

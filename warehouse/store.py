@@ -13,7 +13,7 @@ Layout under the warehouse root::
     _locks/<table>/<partition>.lock                locks of partitions (writes, compaction)
     _locks/catalog.lock                            lock of compaction and the snapshot (warehouse.catalog)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
-    _cache/reads/<name>.json                       values kept with their files' state: status's runs, row counts (warehouse.kept)
+    _cache/reads/...                               values kept with their files' state: status's runs, row counts (warehouse.kept)
 
 File names: ``<time>-<id>.parquet``, ``<time>`` the 20-digit nanoseconds since the epoch at which
 the file was published (taken just before it becomes visible), ``<id>`` random. Every write makes a
