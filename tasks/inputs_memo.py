@@ -93,9 +93,11 @@ class InputsMemo:
         with recording_reads() as noted:
             inputs = stage.clip_inputs(self.wh, self.unit)
         reads = list(dict.fromkeys(noted))
-        if self._since_ns is None:  # what was read may have changed while the memo's other entries were checked
-            self._states.clear()  # (in a reading, a state taken before a change is older than what was read, and
-            # nothing read since the reading began is stored: the states are taken once for all its stages)
+        # What was read may have changed while the memo's other entries were checked: states are taken
+        # again, except in a reading (a state taken before a change is older than what was read, and an
+        # entry of a reading counts from its start: :meth:`reading`).
+        if self._since_ns is None:
+            self._states.clear()
         states = [self._state(r) for r in reads]
         if all(newest < started - SETTLE_NS for _, newest in states):
             self.entries[stage.name] = {"key": key, "reads": [list(r) for r in reads],

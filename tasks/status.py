@@ -11,7 +11,6 @@ results (nothing detected, so every later stage ran on nothing).
 from __future__ import annotations
 
 import datetime as dt
-import functools
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -47,11 +46,7 @@ def read_runs(wh: Warehouse, names: Sequence[str] | None = None, keep: bool = Fa
     if wh.reads_cached:  # a long-lived process (the app's resumes): files read before come from its cache
         rows = wh.read("runs", names, columns=RUN_COLUMNS).to_pylist()
     elif keep:  # kept per clip or library named (one file each, as the input digests), else once for all
-        groups = [[check_name(n)] for n in sorted(set(names))] if names else [None]
-        rows = [{**r, "started_at": r["started_at"] and dt.datetime.fromisoformat(r["started_at"])}
-                for parts in groups
-                for r in kept_read(wh, f"runs/{parts[0]}" if parts else "runs", [("files", "runs", *(parts or ["*"]))],
-                                   functools.partial(_runs_json, wh, parts))]
+        rows = [r for name in (sorted(set(names)) if names else [None]) for r in _kept_runs(wh, name)]
     else:
         rows = _runs(wh, names)
     return sorted(rows, key=lambda r: r["started_at"])  # stable: runs of one start stay in key order
@@ -63,9 +58,16 @@ def _runs(wh: Warehouse, names: Sequence[str] | None) -> list[dict]:
     return read_rows(wh, "runs", RUN_COLUMNS, names, timestamps=("started_at",))
 
 
-def _runs_json(wh: Warehouse, names: Sequence[str] | None) -> list[dict]:
-    """:func:`_runs` as JSON values (times as ISO 8601, with their UTC offset)."""
-    return [{**r, "started_at": r["started_at"] and r["started_at"].isoformat()} for r in _runs(wh, names)]
+def _kept_runs(wh: Warehouse, name: str | None) -> list[dict]:
+    """:func:`_runs` of clip or library ``name`` (None: of all), kept in ``_cache/reads/runs/<name>.json``
+    (``runs.json``) while no run file of it came or went; times kept as ISO 8601 with their UTC offset."""
+    parts = None if name is None else [check_name(name)]
+
+    def as_json() -> list[dict]:
+        return [{**r, "started_at": r["started_at"] and r["started_at"].isoformat()} for r in _runs(wh, parts)]
+
+    kept = kept_read(wh, "runs" if name is None else f"runs/{name}", [("files", "runs", name or "*")], as_json)
+    return [{**r, "started_at": r["started_at"] and dt.datetime.fromisoformat(r["started_at"])} for r in kept]
 
 
 def _registered(wh: Warehouse, table: str, names: Sequence[str] | None) -> set[str]:
