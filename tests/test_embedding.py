@@ -40,6 +40,34 @@ def test_embedder_is_deterministic_and_unit_norm(embedder):
     assert load_embedder(EmbedConfig()).sha256 == embedder.sha256  # the cut graph is byte-stable
 
 
+def test_an_embedder_is_kept_per_thread_until_its_model_file_changes(tmp_path, monkeypatch):
+    import os
+    import shutil
+    import threading
+
+    from tasks.detection.models.embedder import load_embedder
+
+    for f in (nd.ONNX_NAME, nd.LICENSE_NAME, nd.NOTICE_NAME):  # a models folder of our own, to touch
+        shutil.copy2(nd.default_cache_dir() / f, tmp_path / f)
+    monkeypatch.setenv("CADESTATE_MODELS", str(tmp_path))
+    first = load_embedder(EmbedConfig())
+    assert load_embedder(EmbedConfig()) is first
+    assert load_embedder(EmbedConfig(batch_size=1)) is not first  # another config: another embedder
+    again = load_embedder(EmbedConfig())
+    assert again is not first and load_embedder(EmbedConfig()) is again
+    elsewhere = []
+    worker = threading.Thread(target=lambda: elsewhere.append(load_embedder(EmbedConfig())))
+    worker.start()
+    worker.join()
+    assert elsewhere[0] is not again and load_embedder(EmbedConfig()) is again  # one per thread
+    st = os.stat(tmp_path / nd.ONNX_NAME)
+    os.utime(tmp_path / nd.ONNX_NAME, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert load_embedder(EmbedConfig()) is not again  # the file changed: loaded and verified anew
+    (tmp_path / nd.ONNX_NAME).write_bytes(b"not the model")
+    with pytest.raises(FileNotFoundError, match="make models"):
+        load_embedder(EmbedConfig())
+
+
 def test_embedder_sees_the_object_not_the_frame(embedder):
     cat, moto = photos()
     cat_v = embedder.embed(cat, [[0, 0, 420, 300]])[0]

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -121,9 +123,30 @@ class Embedder:
         return self.embed_inputs(self.crops(rgb, np.asarray(boxes).reshape(-1, 4)))
 
 
+_KEPT = threading.local()
+"""Each thread's last embedder, with what it was loaded from (:func:`load_embedder`)."""
+
+
 def load_embedder(cfg) -> Embedder:  # cfg: cadestate.config.EmbedConfig
-    """The embedder ``[embed]`` describes, cut from the verified NanoDet-m of `make models`."""
+    """The embedder ``[embed]`` describes, cut from the verified NanoDet-m of `make models`.
+
+    Kept for the thread's next call while the model file (path, inode, size, modification time) and
+    ``cfg`` stay the same: a long-lived process (the annotation app, ``cadestate serve``) loads it
+    once, not at every stage run (cutting the graph, two onnxruntime sessions and the model's SHA-256
+    cost ~100 ms, two thirds of a manual-track stage run on the demo clip). Per thread, because an
+    embedder's session takes calls from one thread at a time."""
     cache = nanodet.default_cache_dir()
+    path = cache / nanodet.ONNX_NAME
+    try:
+        st = os.stat(path)
+        key = (str(path), st.st_ino, st.st_size, st.st_mtime_ns, cfg.crop_size, cfg.context, cfg.batch_size, cfg.threads)
+    except OSError:
+        key = None
+    kept = getattr(_KEPT, "embedder", None)
+    if key is not None and kept is not None and kept[0] == key:
+        return kept[1]
     if not nanodet.is_built(cache):
         raise FileNotFoundError(f"the NanoDet-m model in {cache} is missing or not verified: run `make models`")
-    return Embedder(cache / nanodet.ONNX_NAME, cfg.crop_size, cfg.context, cfg.batch_size, cfg.threads)
+    embedder = Embedder(path, cfg.crop_size, cfg.context, cfg.batch_size, cfg.threads)
+    _KEPT.embedder = (key, embedder)
+    return embedder
