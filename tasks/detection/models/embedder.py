@@ -130,16 +130,17 @@ _KEPT = threading.local()
 def load_embedder(cfg) -> Embedder:  # cfg: cadestate.config.EmbedConfig
     """The embedder ``[embed]`` describes, cut from the verified NanoDet-m of `make models`.
 
-    Kept for the thread's next call while the model file (path, inode, size, modification time) and
-    ``cfg`` stay the same: a long-lived process (the annotation app, ``cadestate serve``) loads it
-    once, not at every stage run (cutting the graph, two onnxruntime sessions and the model's SHA-256
-    cost ~100 ms, two thirds of a manual-track stage run on the demo clip). Per thread, because an
+    Kept for the thread's next call while the model file (path, inode, size, modification and change
+    times) and ``cfg`` stay the same: a long-lived process (the annotation app, ``cadestate serve``)
+    loads it once, not at every stage run (cutting the graph, two onnxruntime sessions and the
+    model's SHA-256 cost ~100 ms, two thirds of a manual-track stage run on the demo clip). Per thread, because an
     embedder's session takes calls from one thread at a time."""
     cache = nanodet.default_cache_dir()
     path = cache / nanodet.ONNX_NAME
     try:
         st = os.stat(path)
-        key = (str(path), st.st_ino, st.st_size, st.st_mtime_ns, cfg.crop_size, cfg.context, cfg.batch_size, cfg.threads)
+        file_id = (str(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+        key = (*file_id, cfg.crop_size, cfg.context, cfg.batch_size, cfg.threads)
     except OSError:
         key = None
     kept = getattr(_KEPT, "embedder", None)
