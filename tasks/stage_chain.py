@@ -5,11 +5,13 @@ what a bare batch without Prefect runs (``bench.cluster_throughput``'s baseline)
 The cache is the lineage ``runs`` records (:mod:`tasks.stage`): a stage does not run again when a
 completed or paused run of it in this warehouse had the same config digest, code digest and inputs
 digest (its upstream stages' outputs and what else it reads, taken as ``cadestate status`` takes
-them), and the stage's tables still hold what that run wrote: the output of its latest completed or
-paused run is the same (config A, then B, then A again reruns what B overwrote). So an unchanged
-rerun does no work, a config change reruns the stages whose section changed, a stage downstream of
-a rerun stage reruns only if that stage's output changed, a paused stage with nothing new answered
-stays paused, and a copied or moved warehouse reruns nothing: its runs travel with it.
+them: before the unit's first stage runs, and again before each stage that follows one that ran, as
+what a stage writes can be what a later one reads), and the stage's tables still hold what that run
+wrote: the output of its latest completed or paused run is the same (config A, then B, then A again
+reruns what B overwrote). So an unchanged rerun does no work, a config change reruns the stages
+whose section changed, a stage downstream of a rerun stage reruns only if that stage's output
+changed, a paused stage with nothing new answered stays paused, and a copied or moved warehouse
+reruns nothing: its runs travel with it.
 
 A stage whose upstream stage failed (or was skipped) is skipped; one whose upstream stage waits for
 people with nothing answered is ``waiting`` (:func:`tasks.stage.waiting_run`); the others still run.
@@ -106,6 +108,7 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
                     log.error("%s %s: %s", unit, stage.name, e)
                     return [StageReport(unit, stage.name, "failed", message=str(e))]
         runs = read_runs(wh, [unit])
+        len_before = len(runs)  # each stage that runs appends its run (_one_stage)
     finally:
         if read_cache is None:  # a cache of this call's digests alone; a long-lived one serves the stages too
             wh.cache_reads(0)
@@ -113,9 +116,17 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     done: dict[str, StageRun] = {}
     reports = []
     for stage in stages:
+        if len(runs) > len_before and not stage.has("source_inputs"):  # an earlier stage ran: what it wrote
+            try:  # may be what this one's digests read (pose reads the answers to cad_selection's new task)
+                inputs[stage.name] = stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True)
+            except OSError as e:
+                log.error("%s %s: %s", unit, stage.name, e)
+                reports.append(StageReport(unit, stage.name, "failed", message=str(e)))
+                continue
         report = _one_stage(wh, stage, unit, config, source, show_progress, inputs[stage.name], done, runs, log)
         reports.append(report)
         log.info("%s %s: %s%s", unit, stage.name, report.state, f" ({report.duration_s:.2f} s)" if report.duration_s else "")
+    memo.save()  # the digests taken again after a stage ran
     return reports
 
 

@@ -10,6 +10,7 @@ answers fit): it must go straight through, pausing nowhere, to the same tables.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pyarrow as pa
 import pytest
@@ -38,15 +39,35 @@ def _content(wh: Warehouse, table: str, clip: str) -> pa.Table:
     return t.sort_by([(k, "ascending") for k in wh.spec(table).key if k in t.column_names])
 
 
-def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, tmp_path):
-    library = small_library_warehouse
-    folder = tmp_path / "bench"
-    manifest, _ = generate(folder, SEED, 1, Warehouse(library.warehouse.root), SPEC, show_progress=False)
-    clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")  # all four tasks
+@dataclasses.dataclass(frozen=True)
+class Answered:
+    """A val benchmark clip run to its end in ``config``'s warehouse, the simulated annotators
+    answering each task as it paused (``reports``: every run's stage reports)."""
 
-    resumed = warehouse_copy(library, tmp_path / "resumed")
+    config: object  # cadestate.config.Config
+    folder: Path
+    clip: str
+    source: object  # tasks.video.ingest.ClipSource
+    reports: list
+    waiting: list[str]
+
+
+@pytest.fixture(scope="module")
+def answered(small_library_warehouse, tmp_path_factory) -> Answered:
+    tmp = tmp_path_factory.mktemp("resume")
+    folder = tmp / "bench"
+    manifest, _ = generate(folder, SEED, 1, Warehouse(small_library_warehouse.warehouse.root), SPEC, show_progress=False)
+    clip, source = manifest.clips[0], dataclasses.replace(clip_sources(folder)[0], split="val")  # all four tasks
+    resumed = warehouse_copy(small_library_warehouse, tmp / "resumed")
     wa = Warehouse(resumed.warehouse.root)
     reports, waiting = annotate_until_done(folder, wa, [clip], lambda _: run_clips([source], resumed, show_progress=False))
+    return Answered(resumed, folder, clip, source, reports, waiting)
+
+
+def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, answered, tmp_path):
+    library, folder, clip, source = small_library_warehouse, answered.folder, answered.clip, answered.source
+    wa = Warehouse(answered.config.warehouse.root)
+    reports, waiting = answered.reports, answered.waiting
     assert waiting == [] and not [r for r in reports if r.state == "failed"]
     paused_at = {r.stage for r in reports if r.state == "paused"}
     assert {"manual_tracks", "cad_selection", "correspondence_task", "verification"} <= paused_at, "it paused at each task"
@@ -65,3 +86,30 @@ def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, tmp_p
         assert _content(wa, table, clip).equals(_content(wb, table, clip)), table
     ids = lambda wh: set(wh.read("label_tasks", [clip]).column("task_id").to_pylist())  # noqa: E731
     assert ids(wb) == ids(wa), "the same tasks (their files differ only in the media paths of each warehouse)"
+
+
+def test_a_rerun_that_asks_again_leaves_no_stale_pose(answered, tmp_path):
+    """Retrieval rerun with other scores (a config change) gives cad_selection a new task, unanswered:
+    pose, which runs on the answered correspondences, poses nothing in that run. Once the same
+    models are chosen again, the clicks given before hold and pose must run again, so the poses
+    come back. Its inputs are taken after the stages before it ran. Taken before the run, they were
+    the old answers': pose was found cached on them (old poses kept while nothing is chosen), or
+    when it ran its empty result was recorded under them and found cached once the same models were
+    chosen again (a rerun of the default benchmark with another detector lost a clip's poses so)."""
+    from tasks.pose.inputs import answered_correspondences
+
+    config = warehouse_copy(answered.config, tmp_path / "w")
+    wh = Warehouse(config.warehouse.root)
+    clip, source = answered.clip, answered.source
+    posed = _content(wh, "poses", clip)
+    assert posed.num_rows >= 1
+    changed = dataclasses.replace(config, retrieval=dataclasses.replace(config.retrieval, class_exponent=0.2))
+    first = {r.stage: r for r in run_clips([source], changed, show_progress=False)}
+    assert first["cad_selection"].state == "paused" and first["pose"].state == "completed"
+    assert wh.read("poses", [clip]).num_rows == 0, "no model is chosen: nothing is posed"
+    reports, waiting = annotate_until_done(answered.folder, wh, [clip],
+                                           lambda _: run_clips([source], changed, show_progress=False))
+    assert waiting == [] and not [r for r in reports if r.state == "failed"]
+    assert set(wh.read("poses", [clip]).column("track_id").to_pylist()) == \
+        set(answered_correspondences(wh, clip).column("track_id").to_pylist())
+    assert _content(wh, "poses", clip).equals(posed), "the same models chosen, the same clicks: the same poses"
