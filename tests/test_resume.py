@@ -113,26 +113,3 @@ def test_a_rerun_that_asks_again_leaves_no_stale_pose(answered, tmp_path):
     assert set(wh.read("poses", [clip]).column("track_id").to_pylist()) == \
         set(answered_correspondences(wh, clip).column("track_id").to_pylist())
     assert _content(wh, "poses", clip).equals(posed), "the same models chosen, the same clicks: the same poses"
-
-
-def test_clicks_hold_only_for_the_object_they_were_given_on(answered, tmp_path):
-    """Tracks remade so that two answered ids name each other's object now (as another detector or
-    tracking config may number them): the clicks of both no longer hold, so neither is posed from
-    them and the correspondences task asks for both again; the other tracks keep theirs."""
-    from tasks.human.correspondence_task import newest_correspondence_models
-    from tasks.human.same_track import holding_tracks
-    from tasks.pose.inputs import answered_correspondences
-
-    config = warehouse_copy(answered.config, tmp_path / "w")
-    wh, clip = Warehouse(config.warehouse.root), answered.clip
-    held = holding_tracks(wh, clip)
-    assert held == set(newest_correspondence_models(wh, clip)) == \
-        {int(t) for t in answered_correspondences(wh, clip).column("track_id").to_pylist()}
-    members = wh.read("track_detections", [clip])
-    a, b = sorted(held & set(members.column("track_id").to_pylist()))[:2]
-    renumbered = [b if t == a else a if t == b else t for t in members.column("track_id").to_pylist()]
-    i = members.schema.get_field_index("track_id")
-    wh.write("track_detections", clip, members.set_column(i, members.schema.field(i), pa.array(renumbered, pa.int32())))
-    assert holding_tracks(wh, clip) == held - {a, b}
-    assert set(newest_correspondence_models(wh, clip)) == held - {a, b}
-    assert {int(t) for t in answered_correspondences(wh, clip).column("track_id").to_pylist()} == held - {a, b}

@@ -14,7 +14,6 @@ from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.label_ingest import current_answers
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.same_track import holding_tracks
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
@@ -22,17 +21,14 @@ from warehouse import Warehouse
 
 
 def newest_correspondence_models(wh: Warehouse, clip: str) -> dict[int, str]:
-    """Per track, the cad_id of its newest correspondence answer (over all tasks of the clip); a
-    track whose clicks were given on another object (remade since: :mod:`tasks.human.same_track`)
-    has none."""
+    """Per track, the cad_id of its newest correspondence answer (over all tasks of the clip)."""
     rows = current_answers(wh, "correspondences", [clip]).select(["track_id", "cad_id", "ingested_at"]).to_pylist()
     best: dict[int, tuple] = {}
     for r in rows:
         t = int(r["track_id"])
         if t not in best or r["ingested_at"] > best[t][0]:
             best[t] = (r["ingested_at"], r["cad_id"])
-    holding = holding_tracks(wh, clip) if best else set()
-    return {t: v[1] for t, v in best.items() if t in holding}
+    return {t: v[1] for t, v in best.items()}
 
 
 def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip: str, run_id: str) -> StageOutput:

@@ -40,18 +40,14 @@ def cad_models_digest(wh: Warehouse, corr: pa.Table) -> str:
 def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
     """The clip's ``correspondences`` that answer its current tasks. When they came from label
     files, only the tracks whose clicks use the model chosen for them now
-    (:func:`tasks.human.cad_selection.selected_models`) and were given on the object the track
-    follows now (:func:`tasks.human.same_track.holding_tracks`): a track whose choice changed, that
-    no longer exists (re-tracked, or a manual track taken back), or whose id another object took
-    when tracks were remade, is not posed from stale clicks. Rows written directly (``bench run
-    --gt-tracks``) are all kept."""
+    (:func:`tasks.human.cad_selection.selected_models`): a track whose choice changed, or that no longer
+    exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
+    directly (``bench run --gt-tracks``) are all kept."""
     corr = wh.read("correspondences", [clip])
     if not wh.has_partition("correspondence_labels", clip):
         return corr
     from tasks.human.cad_selection import selected_models
-    from tasks.human.same_track import holding_tracks
 
-    holding = {str(t) for t in holding_tracks(wh, clip)}
-    chosen = {str(t): c for t, c in selected_models(wh, clip).items() if c is not None and str(t) in holding}
+    chosen = {str(t): c for t, c in selected_models(wh, clip).items() if c is not None}
     keep = [chosen.get(t) == c for t, c in zip(corr.column("track_id").to_pylist(), corr.column("cad_id").to_pylist())]
     return corr.filter(pa.array(keep, pa.bool_()))
