@@ -102,11 +102,9 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
         with memo.reading():  # one reading of the warehouse for every stage's digests
             for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
                 try:
-                    inputs[stage.name] = (stage.submitted_inputs(config, source) if stage.has("source_inputs")
-                                          else stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True))
+                    inputs[stage.name] = _inputs(stage, config, source, memo)
                 except OSError as e:  # an unreadable input file
-                    log.error("%s %s: %s", unit, stage.name, e)
-                    return [StageReport(unit, stage.name, "failed", message=str(e))]
+                    return [_unreadable(unit, stage, e, log)]
         runs = read_runs(wh, [unit])
         len_before = len(runs)  # each stage that runs appends its run (_one_stage)
     finally:
@@ -118,16 +116,29 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     for stage in stages:
         if len(runs) > len_before and not stage.has("source_inputs"):  # an earlier stage ran: what it wrote
             try:  # may be what this one's digests read (pose reads the answers to cad_selection's new task)
-                inputs[stage.name] = stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True)
+                inputs[stage.name] = _inputs(stage, config, source, memo)
             except OSError as e:
-                log.error("%s %s: %s", unit, stage.name, e)
-                reports.append(StageReport(unit, stage.name, "failed", message=str(e)))
+                reports.append(_unreadable(unit, stage, e, log))
                 continue
         report = _one_stage(wh, stage, unit, config, source, show_progress, inputs[stage.name], done, runs, log)
         reports.append(report)
         log.info("%s %s: %s%s", unit, stage.name, report.state, f" ({report.duration_s:.2f} s)" if report.duration_s else "")
     memo.save()  # the digests taken again after a stage ran
     return reports
+
+
+def _inputs(stage: Stage, config: Config, source: Any, memo: InputsMemo) -> list[str]:
+    """What ``stage`` reads besides its upstream outputs: the submitted source's digests, or its
+    config's and the warehouse's (digested afresh, :meth:`tasks.inputs_memo.InputsMemo.clip_inputs`)."""
+    if stage.has("source_inputs"):
+        return stage.submitted_inputs(config, source)
+    return stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True)
+
+
+def _unreadable(unit: str, stage: Stage, error: OSError, log: Any) -> StageReport:
+    """The failed report of a stage whose input file cannot be read (logged)."""
+    log.error("%s %s: %s", unit, stage.name, error)
+    return StageReport(unit, stage.name, "failed", message=str(error))
 
 
 def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: Any, show_progress: bool,
