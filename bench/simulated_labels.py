@@ -57,7 +57,7 @@ from schemas.official import FramesFile, read_frames, read_objects
 from tasks.cad.classes import class_of_label
 from tasks.dataset.export_official import official_frames
 from tasks.dataset.objects import DatasetFrame, clip_frames
-from tasks.human.label_ingest import answered_tasks, current_answers, ingest_labels
+from tasks.human.label_ingest import answered_items, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse, atomic_write_bytes
@@ -149,19 +149,20 @@ def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
 
 
 def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
-    """(task, its items without an answer in force) of the newest task of each kind, if any waits
-    (a manual-track task is answered whole: its items are its key-frames until it is)."""
+    """(task, its items not answered: :func:`tasks.human.label_ingest.answered_items`) of the newest
+    task of each kind, if any waits (a manual-track task is answered whole: its items are its
+    key-frames until it is)."""
     out = []
     for kind in KINDS:
         row = latest_task_of_kind(wh, clip, kind)
         if row is None:
             continue
         task = parse_task(row["document"], row["path"])
+        done = answered_items(wh, clip, json.loads(row["document"]))
         if kind == "manual_track":
-            todo = [] if task.task_id in answered_tasks(wh, kind, clip) else list(task.keyframes)
+            todo = [] if done else list(task.keyframes)
         else:
-            answered = set(current_answers(wh, kind, [clip], task.task_id).column("track_id").to_pylist())
-            todo = [it for it in task.items if it.track_id not in answered]
+            todo = [it for it in task.items if it.track_id not in done]
         if todo:
             out.append((task, todo))
     return out

@@ -74,7 +74,7 @@ CAD_SELECTION_LABELS = _answer_table(
 
 CORRESPONDENCE_LABELS = _answer_table(
     "correspondence_labels", "3D<->2D clicks per track and key-frame, with the co-planarity found at ingest (history; "
-    "the newest answer per track goes to `correspondences`).", ("track_id", "timestamp_us", "point_index"), [
+    "the clicks in force for the newest correspondences task go to `correspondences`).", ("track_id", "timestamp_us", "point_index"), [
         column("track_id", pa.int32(), "tracks.track_id."),
         column("timestamp_us", pa.int64(), "Key-frame.", unit="µs"),
         column("point_index", pa.int32(), "0-based index of the click within its key-frame."),

@@ -200,7 +200,9 @@ class CorrespondenceItem:
     render_paths: tuple[str, ...] = spec("Renders of the model, relative to the warehouse root.")
     symmetry: int = spec("Symmetry order about +Y (1, 2, 4, 36).", minimum=1)
     keyframes: tuple[KeyframeView, ...] = spec("Key-frames to annotate, with the track's box.", minItems=1)
-    previous: CorrespondenceAnswer | None = spec("The answer given before, if any.", default=None)
+    previous: CorrespondenceAnswer | None = spec("Clicks given before that answer this item: on this task, or on an earlier "
+                                                 "one for the same model and object (tasks.human.clicks_in_force); the item "
+                                                 "counts as answered. Null: none.", default=None)
 
 
 @dataclass(frozen=True, kw_only=True)

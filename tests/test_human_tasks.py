@@ -180,3 +180,95 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     done = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
     assert done.status == "completed" and "1 of 1 poses accepted" in done.message
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
+
+
+# ------------------------------------------------------------------------------ clicks in force
+
+def _answered_correspondences(hwh: Warehouse, tmp_path: Path) -> tuple[dict, dict[int, list]]:
+    """Tracks 0 and 1 given one model each (track 2 none) and clicked on; returns the
+    correspondences task and each track's points."""
+    _select(hwh, tmp_path / "s.json", {0: "lib.chair_a", 1: "lib.chair_b", 2: None}, "2026-01-01T00:00:00+00:00")
+    first = _corr(hwh)
+    task = _task(hwh, first.message)
+    points = {t: [{"x": 0.2 + 0.05 * i + 0.01 * t, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)] for t in (0, 1)}
+    answers = [_clicks(it, points[it["track_id"]]) for it in task["items"]]
+    assert ingest_labels(hwh, _label(tmp_path / "c", "c.json", "correspondences", task["task_id"], answers,
+                                     "2026-01-02T00:00:00+00:00")).ok
+    assert _corr(hwh).status == "completed"
+    return task, points
+
+
+def _select(hwh: Warehouse, path: Path, models: dict[int, str | None], when: str) -> None:
+    """Answer the cad_selection task so (and run the stage)."""
+    answers = [{"track_id": t, "cad_id": c} for t, c in models.items()]
+    assert _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    assert ingest_labels(hwh, _label(path.parent, path.name, "cad_selection", cad_selection_task_id(hwh, CLIP), answers, when)).ok
+    _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+
+
+def _corr(hwh: Warehouse):
+    return _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+
+
+def _clicks(item: dict, points: list) -> dict:
+    """The same points on the first two key-frames of a correspondences task's ``item``."""
+    return {"track_id": item["track_id"], "cad_id": item["cad_id"], "is_mirrored": False,
+            "keyframes": [{"timestamp_us": k["timestamp_us"], "points": points} for k in item["keyframes"][:2]]}
+
+
+def _clicked(hwh: Warehouse) -> dict[str, tuple]:
+    """Per track of ``correspondences``: its model and first clicked image point."""
+    rows = hwh.read("correspondences", [CLIP]).sort_by([("track_id", "ascending"), ("timestamp_us", "ascending"),
+                                                       ("point_index", "ascending")]).to_pylist()
+    return {t: next((r["cad_id"], tuple(r["point_2d"])) for r in rows if r["track_id"] == t) for t in {r["track_id"] for r in rows}}
+
+
+def _waiting(hwh: Warehouse) -> list[int]:
+    """The correspondences items the web app's queue offers."""
+    from cadestate.webapp.queue import clip_tasks
+
+    return next(t.waiting for t in clip_tasks(hwh, CLIP) if t.kind == "correspondences")
+
+
+def test_clicks_come_back_with_the_model_they_were_given_on(hwh, tmp_path):
+    """Track 1's model changes (B) and it is clicked on again, then the first model comes back (A):
+    the first task's clicks answer it again, with no one asked (the stage, the web app's queue and
+    the pose input agree), and the task in force is the first one again."""
+    from tasks.human.labels import latest_task_of_kind
+
+    first, points = _answered_correspondences(hwh, tmp_path)
+    before = _clicked(hwh)
+    _select(hwh, tmp_path / "b" / "b.json", {1: "lib.chair_a"}, "2026-01-03T00:00:00+00:00")
+    paused = _corr(hwh)
+    assert paused.status == "paused" and "1 of 2 tracks unanswered" in paused.message
+    second = _task(hwh, paused.message)
+    assert second["task_id"] != first["task_id"] and _waiting(hwh) == [1]
+    assert second["items"][0]["previous"]["cad_id"] == "lib.chair_a", "track 0's clicks hold: carried, not asked again"
+    assert set(_clicked(hwh)) == {"0"}, "track 1 is not posed from clicks on another model"
+    other = [{**p, "x": p["x"] + 0.1} for p in points[1]]
+    assert ingest_labels(hwh, _label(tmp_path / "b", "c.json", "correspondences", second["task_id"],
+                                     [_clicks(second["items"][1], other)], "2026-01-04T00:00:00+00:00")).ok
+    assert _corr(hwh).status == "completed" and _clicked(hwh)["1"][0] == "lib.chair_a"
+
+    _select(hwh, tmp_path / "a" / "a.json", {1: "lib.chair_b"}, "2026-01-05T00:00:00+00:00")
+    back = _corr(hwh)
+    assert back.status == "completed", back.message
+    assert latest_task_of_kind(hwh, CLIP, "correspondences")["task_id"] == first["task_id"]
+    assert _waiting(hwh) == [] and _clicked(hwh) == before
+
+
+def test_clicks_hold_only_for_the_object_they_were_given_on(hwh, tmp_path):
+    """Tracks remade: track 0's boxes now lie elsewhere on the clicked frames (its id names another
+    object), track 1's moved a little (the same object). Track 0 is asked again and not posed
+    from its old clicks; track 1's clicks hold."""
+    _answered_correspondences(hwh, tmp_path)
+    dets = hwh.read("detections", [CLIP]).to_pylist()
+    for d in dets:
+        track = d["det_id"] // 1000
+        d["box"] = [0.55, 0.55, 0.95, 0.95] if track == 0 else [v + 0.03 for v in d["box"]] if track == 1 else d["box"]
+    hwh.write("detections", CLIP, pa.Table.from_pylist(dets, schema=TABLES["detections"].schema))
+    paused = _corr(hwh)
+    assert paused.status == "paused" and "1 of 2 tracks unanswered" in paused.message
+    task = _task(hwh, paused.message)
+    assert [it.get("previous") is not None for it in task["items"]] == [False, True]
+    assert _waiting(hwh) == [0] and set(_clicked(hwh)) == {"1"}

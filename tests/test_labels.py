@@ -418,7 +418,7 @@ def test_supersession_keeps_history(lwh, tmp_path):
     ingest_labels(lwh, put(tmp_path / "d", "mt.json", good("manual_track")))
     ingest_labels(lwh, put(tmp_path / "e", "mt.json", _edit("manual_track", lambda d: d.__setitem__("answers", []))))
     assert current_answers(lwh, "manual_track", [CLIP]).num_rows == 0 and lwh.read("manual_track_labels").num_rows == 2
-    # correspondences: the newest answer per track is what the pose stage reads
+    # correspondences: the newest answer to the task, track by track, is what the pose stage reads
     ingest_labels(lwh, put(tmp_path / "f", "co.json", good("correspondences")))
     flipped = _edit("correspondences", lambda d: (d["answers"][0].__setitem__("is_mirrored", False), d["answers"][0]["keyframes"].pop()))
     ingest_labels(lwh, put(tmp_path / "g", "co.json", flipped))

@@ -1,8 +1,8 @@
 """What waits for people: the open tasks of every clip, their items, and the next item to do.
 
 A clip's open task of a kind is its newest task file of that kind (``label_tasks``) with items
-that no answer in force covers (:func:`tasks.human.label_ingest.current_answers`); a manual-track task
-is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
+that are not answered as the stages count them (:func:`tasks.human.label_ingest.answered_items`); a
+manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 """
 
@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
-from tasks.human.label_ingest import answered_tasks, current_answers
+from tasks.human.label_ingest import answered_items
 from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
 
@@ -43,13 +43,9 @@ def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
         if row is None:
             continue
         doc = json.loads(row["document"])
-        if kind == "manual_track":
-            items = [-1]
-            waiting = [] if doc["task_id"] in answered_tasks(wh, kind, clip) else [-1]
-        else:
-            items = [int(it["track_id"]) for it in doc["items"]]
-            done = set(current_answers(wh, kind, [clip], doc["task_id"]).column("track_id").to_pylist())
-            waiting = [t for t in items if t not in done]
+        items = [-1] if kind == "manual_track" else [int(it["track_id"]) for it in doc["items"]]
+        done = answered_items(wh, clip, doc)
+        waiting = [t for t in items if t not in done]
         out.append(OpenTask(clip, kind, doc["task_id"], items, waiting))
     return out
 
@@ -80,8 +76,8 @@ def first_waiting(tasks: list[OpenTask]) -> dict | None:
 
 def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     """The newest document of a task (as stored in ``label_tasks``), with ``answered``: the track
-    ids whose answer is in force (manual_track: ``[-1]`` once answered) and ``answers``: those answers
-    (rows of the kind's answer table, JSON-ready)."""
+    ids answered (:func:`tasks.human.label_ingest.answered_items`; manual_track: ``[-1]`` once
+    answered)."""
     from tasks.human.labels import latest_task
 
     if not wh.has_partition("clips", clip):
@@ -90,9 +86,4 @@ def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     if row is None:
         return None
     doc = json.loads(row["document"])
-    if doc["kind"] == "manual_track":
-        answered = [-1] if task_id in answered_tasks(wh, "manual_track", clip) else []
-    else:
-        rows = current_answers(wh, doc["kind"], [clip], task_id).column("track_id").to_pylist()
-        answered = sorted(set(rows))
-    return {"task": doc, "answered": answered}
+    return {"task": doc, "answered": sorted(answered_items(wh, clip, doc))}

@@ -1,6 +1,7 @@
 """Stage ``correspondence_task`` (paper 3.3), after ``cad_selection``: per track with a chosen model, the model's
-  mesh and key-frames to click on. The answers go to ``correspondences`` at ingest (the ``pose``
-  stage's input); a track counts as answered when its newest correspondences use the chosen model.
+  mesh and key-frames to click on. The clicks that answer each item (given on this task, or on an
+  earlier one and still holding: :mod:`tasks.human.clicks_in_force`) go to ``correspondences``
+  (the ``pose`` stage's input), here and at ingest.
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
 """
@@ -8,10 +9,11 @@ How it waits for people: :mod:`tasks.human.cad_selection`.
 from __future__ import annotations
 
 from cadestate.config import CorrespondenceTaskConfig
-from cadestate.lineage import digest
+from cadestate.lineage import digest, table_digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
 from tasks.human.cad_selection import selected_models, model_facts
-from tasks.human.label_ingest import current_answers
+from tasks.human.clicks_in_force import held_clicks, item_key
+from tasks.human.label_ingest import current_answers, sync_correspondences
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
@@ -20,44 +22,40 @@ from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse
 
 
-def newest_correspondence_models(wh: Warehouse, clip: str) -> dict[int, str]:
-    """Per track, the cad_id of its newest correspondence answer (over all tasks of the clip)."""
-    rows = current_answers(wh, "correspondences", [clip]).select(["track_id", "cad_id", "ingested_at"]).to_pylist()
-    best: dict[int, tuple] = {}
-    for r in rows:
-        t = int(r["track_id"])
-        if t not in best or r["ingested_at"] > best[t][0]:
-            best[t] = (r["ingested_at"], r["cad_id"])
-    return {t: v[1] for t, v in best.items()}
-
-
 def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip: str, run_id: str) -> StageOutput:
-    """Write the correspondences task of the tracks with a chosen model; paused until each has clicks."""
+    """Write the correspondences task of the tracks with a chosen model, each carrying the earlier
+    clicks that still hold; write the clicks in force to ``correspondences``; paused until every
+    track has some."""
     chosen = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
     if not chosen:
         return StageOutput(0, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
     track_ids = sorted(chosen)
-    task_id = new_task_id("correspondences", clip, *(f"{t}:{chosen[t]}" for t in track_ids))
-    models, renders = model_facts(wh, set(chosen.values()))
     tracks = clip_tracks(wh, clip)
-    labels = {t: track.label for t, track in tracks.items()}
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
+    task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
+    now: dict[int, dict[int, list]] = {}
+    for t in track_ids:
+        for b in tracks[t].boxes if t in tracks else ():
+            now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
+    tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
+    held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)
+    models, renders = model_facts(wh, set(chosen.values()))
+    labels = {t: track.label for t, track in tracks.items()}
     items = []
     for t in track_ids:
         m = models.get(chosen[t]) or {}
         items.append(CorrespondenceItem(track_id=t, label=labels.get(t, m.get("class") or ""), cad_id=chosen[t],
                                         library=m.get("library") or "", mesh_path=m.get("mesh_path") or "",
                                         render_paths=renders.get(chosen[t], ()), symmetry=int(m.get("symmetry") or 1),
-                                        keyframes=keyframes[t]))
+                                        keyframes=keyframes[t], previous=held.get(t)))
     task = CorrespondenceTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),
                               instructions=INSTRUCTIONS["correspondences"], items=tuple(items))
     path = wh.relative(write_task_once(wh, task))
-    newest = newest_correspondence_models(wh, clip)
-    answered = [t for t in track_ids if newest.get(t) == chosen[t]]
-    output = digest("correspondence_task", task_id, *map(str, answered))
-    waiting = len(track_ids) - len(answered)
-    summary = f"{len(answered)} of {len(track_ids)} tracks have correspondences"
-    return task_output(len(answered), output, summary, "correspondences", path, waiting, len(track_ids))
+    clicks, _ = sync_correspondences(wh, clip)
+    output = digest("correspondence_task", task_id, table_digest(clicks))
+    waiting = len(track_ids) - len(held)
+    summary = f"{len(held)} of {len(track_ids)} tracks have correspondences"
+    return task_output(len(held), output, summary, "correspondences", path, waiting, len(track_ids))
 
 
 def _run(ctx: StageContext) -> StageOutput:

@@ -20,14 +20,16 @@ run. Rules:
   ``created_at`` (else their modification time), then by path;
 - co-planarity of the 3D points of each key-frame (and of each track's answer) is detected at
   ingest with the pose solver's own test (:func:`tasks.pose.checks.coplanar_axis`) and stored;
-- the newest correspondences of every track of a touched clip are written to the
-  ``correspondences`` table (the pose stage's input) when they changed.
+- the clicks that answer the items of a touched clip's newest correspondences task
+  (:mod:`tasks.human.clicks_in_force`) are written to the ``correspondences`` table (the pose
+  stage's input) when they changed.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +43,8 @@ from schemas.label_tables import ANSWER_TABLES, LABEL_EFFORT, LABEL_FILES, SIDE_
 from schemas.labels import KINDS
 from schemas.pose import CORRESPONDENCES
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
-from tasks.human.labels import ClipFacts, LabelFile, utc_now, validate_label
+from tasks.human.clicks_in_force import in_force_rows
+from tasks.human.labels import ClipFacts, LabelFile, latest_task_of_kind, utc_now, validate_label
 from tasks.pose.checks import coplanar_axis
 from warehouse import Warehouse
 
@@ -344,7 +347,7 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
         report.clips += [clip] if committed else []
         if any(f.lf.kind == "correspondences" for f in committed):
             try:
-                report.rows["correspondences"] = report.rows.get("correspondences", 0) + sync_correspondences(wh, clip)
+                report.rows["correspondences"] = report.rows.get("correspondences", 0) + sync_correspondences(wh, clip)[1]
             except WRITE_ERRORS as e:
                 report.errors.append(one_line(f"clip {clip}: the correspondences table was not updated: {e}"))
     return report
@@ -395,6 +398,18 @@ def answered_tasks(wh: Warehouse, kind: str, clip: str) -> set[str]:
     return set(_committed_files(wh, kind, [clip]).column("task_id").to_pylist())
 
 
+def answered_items(wh: Warehouse, clip: str, doc: dict) -> set[int]:
+    """The items of a task (its document) that are answered, as the stages count them: those with
+    an answer in force under the task's id, and those carrying a ``previous`` answer (for
+    correspondences, clicks given on an earlier task that still hold:
+    :mod:`tasks.human.clicks_in_force`; for the other kinds it is an answer under the id). A
+    manual-track task is one item, ``-1``, answered whole."""
+    if doc["kind"] == "manual_track":
+        return {-1} if doc["task_id"] in answered_tasks(wh, "manual_track", clip) else set()
+    done = set(current_answers(wh, doc["kind"], [clip], doc["task_id"]).column("track_id").to_pylist())
+    return done | {int(it["track_id"]) for it in doc["items"] if it.get("previous") is not None}
+
+
 def answers_digest(wh: Warehouse, kind: str, clip: str, task_id: str | None = None) -> str:
     """Digest of the answers in force (without where they came from): part of the inputs hash of a
     stage that consumes labels, so it reruns when its answers change and stays cached otherwise.
@@ -409,23 +424,22 @@ def answers_digest(wh: Warehouse, kind: str, clip: str, task_id: str | None = No
 
 
 def correspondence_table(wh: Warehouse, clip: str) -> pa.Table:
-    """The clip's ``correspondences`` from its labels: per track, the newest answer over all tasks."""
-    rows = current_answers(wh, "correspondences", [clip])
-    newest = _newest([(t,) for t in rows.column("track_id").to_pylist()], rows.column("ingested_at").to_pylist())
-    rows = rows.filter(pa.array(newest, pa.bool_())).to_pylist()
-    out = [{"clip": clip, "track_id": str(r["track_id"]), "timestamp_us": r["timestamp_us"], "point_index": r["point_index"],
-            "cad_id": r["cad_id"], "point_2d": r["point_2d"], "point_3d": r["point_3d"], "is_mirrored": r["is_mirrored"]}
-           for r in rows]
-    table = pa.Table.from_pylist(out, schema=CORRESPONDENCES.schema)
+    """The clip's ``correspondences`` from its labels: the clicks that answer the items of its newest
+    correspondences task (:func:`tasks.human.clicks_in_force.in_force_rows`); empty without one."""
+    row = latest_task_of_kind(wh, clip, "correspondences")
+    rows = [] if row is None else in_force_rows(clip, json.loads(row["document"]),
+                                                current_answers(wh, "correspondences", [clip], row["task_id"]))
+    table = pa.Table.from_pylist(rows, schema=CORRESPONDENCES.schema)
     return table.sort_by([(k, "ascending") for k in CORRESPONDENCES.key])
 
 
-def sync_correspondences(wh: Warehouse, clip: str) -> int:
-    """Rewrite the clip's ``correspondences`` partition from its labels if it changed; returns rows written."""
+def sync_correspondences(wh: Warehouse, clip: str) -> tuple[pa.Table, int]:
+    """Rewrite the clip's ``correspondences`` partition from its labels (:func:`correspondence_table`)
+    if it changed; returns the table and the rows written (0: unchanged)."""
     table = correspondence_table(wh, clip)
     if table_digest(table) == table_digest(wh.read("correspondences", [clip])):
-        return 0
-    return wh.write("correspondences", clip, table)
+        return table, 0
+    return table, wh.write("correspondences", clip, table)
 
 
 def label_history(wh: Warehouse, clips: list[str] | None = None) -> pa.Table:

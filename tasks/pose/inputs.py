@@ -38,11 +38,12 @@ def cad_models_digest(wh: Warehouse, corr: pa.Table) -> str:
 
 
 def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
-    """The clip's ``correspondences`` that answer its current tasks. When they came from label
-    files, only the tracks whose clicks use the model chosen for them now
-    (:func:`tasks.human.cad_selection.selected_models`): a track whose choice changed, or that no longer
-    exists (re-tracked, or a manual track taken back), is not posed from stale clicks. Rows written
-    directly (``bench run --gt-tracks``) are all kept."""
+    """The clip's ``correspondences``: when they came from label files, the clicks that answer its
+    newest correspondences task (:mod:`tasks.human.clicks_in_force`), kept only for the tracks
+    whose clicks use the model chosen for them now (:func:`tasks.human.cad_selection.selected_models`):
+    while the task is behind (nothing chosen any more, a choice changed, a manual track taken
+    back), no track is posed from stale clicks. Rows written directly (``bench run --gt-tracks``)
+    are all kept."""
     corr = wh.read("correspondences", [clip])
     if not wh.has_partition("correspondence_labels", clip):
         return corr

@@ -1,0 +1,137 @@
+"""Which clicks answer each item of a clip's correspondences task: one rule for the stage that
+writes the task, the ``correspondences`` table that pose reads, the web app's queue and the
+simulated annotators.
+
+An item (a track, its chosen CAD model, its key-frames with the track's box there) is answered by
+
+1. the answer in force under the task's own id (:func:`tasks.human.label_ingest.current_answers`),
+   else
+2. its ``previous``: clicks given on an earlier correspondences task of the clip that still hold,
+   which the stage finds when it writes the task (:func:`held_clicks`) and carries in the item.
+
+The task id names every item's track, model, key-frames and boxes
+(:func:`item_key`), so an answer under it was given on what the task shows now. Clicks of an
+earlier task hold when they use the item's model and speak of the same object: tracks are made
+anew when detection or tracking reruns, and a remade track may carry an id that meant another
+object (four identical dining chairs get the same model, so one chair's clicks must not pose
+another). On every clicked key-frame where the earlier task showed a box, the track of that id now
+has a box overlapping it (IoU >= :data:`SAME_OBJECT_IOU`). Going back to an earlier state (a
+detector A, then B, then A again) finds A's task id and A's answers in force again.
+
+Boxes: (ymin, xmin, ymax, xmax), normalised by the image's height and width (``detections.box``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+
+import pyarrow as pa
+
+from schemas.labels import CorrespondenceAnswer, CorrespondenceKeyframe, CorrespondencePoint, KeyframeView
+
+SAME_OBJECT_IOU = 0.5
+"""A clicked key-frame's box shown then and the track's box there now overlap at least this much."""
+
+Box = tuple[float, float, float, float]
+
+
+def box_iou(a: Box, b: Box) -> float:
+    """Intersection over union of two (ymin, xmin, ymax, xmax) boxes (0 when either is empty)."""
+    h = min(a[2], b[2]) - max(a[0], b[0])
+    w = min(a[3], b[3]) - max(a[1], b[1])
+    inter = max(h, 0.0) * max(w, 0.0)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+def item_key(track_id: int, cad_id: str, keyframes: Sequence[KeyframeView]) -> str:
+    """What an item shows, as a part of the task id: track, model, and each key-frame's timestamp
+    (µs) and box (4 decimals; "-": none)."""
+    views = ";".join(f"{k.timestamp_us}@" + ("-" if k.box is None else ",".join(f"{v:.4f}" for v in k.box)) for k in keyframes)
+    return f"{track_id}:{cad_id}:{views}"
+
+
+def shown_boxes(tasks: pa.Table) -> dict[tuple[str, int], list[tuple[object, dict[int, Box]]]]:
+    """Per (task id, track id) of the correspondences tasks among ``tasks`` (``label_tasks`` rows
+    with ``task_id``, ``kind``, ``created_at``, ``document``): each version of the task (its
+    ``created_at``) with the boxes it showed the track with, by key-frame timestamp; oldest first."""
+    shown: dict[tuple[str, int], list[tuple[object, dict[int, Box]]]] = {}
+    for row in tasks.to_pylist():
+        if row["kind"] != "correspondences":
+            continue
+        for item in json.loads(row["document"])["items"]:
+            boxes = {int(k["timestamp_us"]): tuple(k["box"]) for k in item["keyframes"] if k.get("box") is not None}
+            shown.setdefault((row["task_id"], int(item["track_id"])), []).append((row["created_at"], boxes))
+    return {k: sorted(v, key=lambda x: x[0]) for k, v in shown.items()}
+
+
+def seen_then(versions: list[tuple[object, dict[int, Box]]], ingested_at) -> dict[int, Box]:
+    """The boxes of the task version an answer saw: the newest written before it was ingested
+    (the oldest when none was)."""
+    before = [boxes for at, boxes in versions if at <= ingested_at]
+    return before[-1] if before else versions[0][1]
+
+
+def holds(clicked: set[int], then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
+    """Whether clicks on the key-frames ``clicked`` (timestamps), given while the task showed the
+    boxes ``then``, speak of the track whose boxes are ``now`` (timestamp -> its boxes there)."""
+    return all(any(box_iou(then[ts], b) >= SAME_OBJECT_IOU for b in now.get(ts, ())) for ts in clicked if ts in then)
+
+
+def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mapping[int, list[Box]]], answers: pa.Table,
+                tasks: pa.Table) -> dict[int, CorrespondenceAnswer]:
+    """Per track of ``chosen`` (track -> chosen cad_id), the clicks that answer its item of task
+    ``task_id`` (see the module): its answer under that id, else the newest answer of another task
+    that holds. ``now``: each track's boxes by timestamp; ``answers``: the clip's correspondence
+    answers in force over all tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
+    rows: dict[tuple[str, int], list[dict]] = {}
+    for r in answers.to_pylist():
+        rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
+    shown = shown_boxes(tasks)
+    out = {}
+    for t, cad in chosen.items():
+        if (task_id, t) in rows:
+            out[t] = to_answer(t, rows[(task_id, t)])
+            continue
+        earlier = sorted(((rs[0]["ingested_at"], k) for k, rs in rows.items() if k[1] == t and rs[0]["cad_id"] == cad),
+                         reverse=True)
+        for at, key in earlier:
+            versions = shown.get(key)
+            if t in now and holds({int(r["timestamp_us"]) for r in rows[key]}, seen_then(versions, at) if versions else {}, now[t]):
+                out[t] = to_answer(t, rows[key])
+                break
+    return out
+
+
+def to_answer(track_id: int, rows: list[dict]) -> CorrespondenceAnswer:
+    """One track's answer rows (``correspondence_labels``) as the answer they came from."""
+    by_frame: dict[int, list[dict]] = {}
+    for r in sorted(rows, key=lambda r: (r["timestamp_us"], r["point_index"])):
+        by_frame.setdefault(int(r["timestamp_us"]), []).append(r)
+    keyframes = tuple(CorrespondenceKeyframe(timestamp_us=ts, points=tuple(
+        CorrespondencePoint(x=r["point_2d"][0], y=r["point_2d"][1], xyz=tuple(r["point_3d"])) for r in rs))
+        for ts, rs in by_frame.items())
+    return CorrespondenceAnswer(track_id=track_id, cad_id=rows[0]["cad_id"], is_mirrored=bool(rows[0]["is_mirrored"]),
+                                keyframes=keyframes)
+
+
+def in_force_rows(clip: str, doc: dict, answers: pa.Table) -> list[dict]:
+    """``correspondences`` rows of the task ``doc`` (a correspondences task document): per item,
+    the answer in force under its id (``answers``: that task's, from ``correspondence_labels``),
+    else the item's ``previous``."""
+    under_id: dict[int, list[dict]] = {}
+    for r in answers.to_pylist():
+        under_id.setdefault(int(r["track_id"]), []).append(r)
+    out = []
+    for item in doc["items"]:
+        t = int(item["track_id"])
+        if t in under_id:
+            out += [{"clip": clip, "track_id": str(t), "timestamp_us": r["timestamp_us"], "point_index": r["point_index"],
+                     "cad_id": r["cad_id"], "point_2d": r["point_2d"], "point_3d": r["point_3d"], "is_mirrored": r["is_mirrored"]}
+                    for r in under_id[t]]
+        elif (prev := item.get("previous")) is not None:
+            out += [{"clip": clip, "track_id": str(t), "timestamp_us": kf["timestamp_us"], "point_index": k, "cad_id": prev["cad_id"],
+                     "point_2d": [p["x"], p["y"]], "point_3d": list(p["xyz"]), "is_mirrored": prev["is_mirrored"]}
+                    for kf in prev["keyframes"] for k, p in enumerate(kf["points"])]
+    return out

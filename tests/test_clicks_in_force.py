@@ -1,0 +1,81 @@
+"""The rule of tasks.human.clicks_in_force on boxes, task versions and answers (the stage in a
+warehouse: tests/test_human_tasks.py)."""
+
+import datetime as dt
+
+import pyarrow as pa
+import pytest
+
+from schemas.labels import KeyframeView
+from tasks.human.clicks_in_force import box_iou, held_clicks, holds, in_force_rows, item_key, seen_then, to_answer
+from schemas.dataclass_json import to_json
+
+T = [dt.datetime(2026, 12, 1, h, tzinfo=dt.timezone.utc) for h in range(6)]
+BOX = (0.1, 0.1, 0.5, 0.5)
+
+
+def test_box_iou_of_ymin_xmin_ymax_xmax_boxes():
+    assert box_iou((0, 0, 1, 1), (0, 0, 1, 1)) == 1.0
+    assert box_iou((0, 0, 0.5, 1), (0.25, 0, 0.75, 1)) == pytest.approx(1 / 3)  # half of each overlaps
+    assert box_iou((0, 0, 0.2, 0.2), (0.5, 0.5, 0.7, 0.7)) == 0.0
+    assert box_iou((0.3, 0.3, 0.3, 0.3), (0.3, 0.3, 0.3, 0.3)) == 0.0  # empty boxes overlap nothing
+
+
+def test_an_answer_is_checked_against_the_task_version_it_saw():
+    versions = [(T[0], {1: (0, 0, 1, 1)}), (T[2], {1: (0, 0, 0.5, 0.5)})]
+    assert seen_then(versions, T[1]) == {1: (0, 0, 1, 1)}  # written before the second version
+    assert seen_then(versions, T[3]) == {1: (0, 0, 0.5, 0.5)}
+    assert seen_then(versions, T[0] - dt.timedelta(hours=1)) == {1: (0, 0, 1, 1)}  # none before: the oldest
+
+
+def test_clicks_hold_where_every_clicked_box_overlaps_one_now():
+    then = {10: BOX, 20: BOX}
+    assert holds({10, 20}, then, {10: [BOX], 20: [(0.12, 0.1, 0.52, 0.5)]})
+    assert not holds({10, 20}, then, {10: [BOX], 20: [(0.6, 0.6, 0.9, 0.9)]}), "one clicked frame shows another object"
+    assert not holds({10, 20}, then, {10: [BOX]}), "the track has no box on a clicked frame any more"
+    assert holds({10, 20}, then, {10: [BOX], 20: [(0.6, 0.6, 0.9, 0.9), BOX]}), "two boxes there: one overlaps"
+    assert holds({10}, then, {10: [BOX]}), "frames not clicked do not count"
+    assert holds({30}, then, {}), "a frame the task showed no box on says nothing"
+
+
+def test_the_item_key_names_model_frames_and_boxes():
+    view = KeyframeView(timestamp_us=10, frame_index=1, image_path="f.jpg", box=BOX)
+    assert item_key(3, "lib.a", [view]) == "3:lib.a:10@0.1000,0.1000,0.5000,0.5000"
+    assert item_key(3, "lib.a", [KeyframeView(timestamp_us=10, frame_index=1, image_path="f.jpg")]) == "3:lib.a:10@-"
+
+
+def _rows(task: str, track: int, cad: str, at: dt.datetime, stamps=(10, 20), dx: float = 0.0) -> list[dict]:
+    return [{"task_id": task, "track_id": track, "timestamp_us": ts, "point_index": k, "cad_id": cad,
+             "point_2d": [0.2 + 0.05 * k + dx, 0.3], "point_3d": [0.1 * k, 0.0, 0.2], "is_mirrored": k == 9, "ingested_at": at}
+            for ts in stamps for k in range(4)]
+
+
+def _task(task: str, at: dt.datetime, boxes: dict[int, tuple]) -> dict:
+    import json
+
+    items = [{"track_id": t, "keyframes": [{"timestamp_us": ts, "box": list(b)} for ts in (10, 20)]} for t, b in boxes.items()]
+    return {"task_id": task, "kind": "correspondences", "created_at": at, "document": json.dumps({"items": items})}
+
+
+def test_the_answer_under_the_task_id_wins_else_the_newest_that_holds():
+    answers = pa.Table.from_pylist(_rows("old1", 0, "a", T[1]) + _rows("old2", 0, "a", T[3], dx=0.1) + _rows("old3", 0, "b", T[4])
+                                   + _rows("old1", 1, "a", T[1]) + _rows("now", 1, "a", T[5], dx=0.2)
+                                   + _rows("old1", 2, "a", T[1]) + _rows("old2", 2, "a", T[3], dx=0.1))
+    tasks = pa.Table.from_pylist([_task("old1", T[0], {0: BOX, 1: BOX, 2: BOX}),
+                                  _task("old2", T[2], {0: BOX, 2: (0.6, 0.6, 0.9, 0.9)})])
+    now = {t: {10: [BOX], 20: [BOX]} for t in (0, 1, 2)}
+    held = held_clicks("now", {0: "a", 1: "a", 2: "a", 3: "a"}, now, answers, tasks)
+    assert held[0].keyframes[0].points[0].x == pytest.approx(0.3), "the newest that holds (old3 used another model)"
+    assert held[1].keyframes[0].points[0].x == pytest.approx(0.4), "the answer to this task"
+    assert held[2].keyframes[0].points[0].x == pytest.approx(0.2), "old2 showed another object there: old1's"
+    assert 3 not in held
+    assert set(held_clicks("now", {0: "a"}, {}, answers, tasks)) == set(), "a track gone: nothing holds"
+
+
+def test_carried_clicks_give_the_rows_they_came_from():
+    rows = _rows("old", 4, "lib.a", T[0])
+    doc = {"items": [{"track_id": 4, "previous": to_json(to_answer(4, rows))}, {"track_id": 5}]}
+    got = in_force_rows("c", doc, pa.Table.from_pylist([], schema=pa.schema([("track_id", pa.int32())])))
+    keep = ("timestamp_us", "point_index", "cad_id", "point_2d", "point_3d", "is_mirrored")
+    assert [{k: r[k] for k in keep} for r in got] == [{k: r[k] for k in keep} for r in rows]
+    assert {r["track_id"] for r in got} == {"4"}, "track 5 has no clicks"
