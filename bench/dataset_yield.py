@@ -169,7 +169,7 @@ def _detected(bench_dir: Path, wh: Warehouse, clips: list[str]) -> set[Key]:
 def _chosen_and_solved(wh: Warehouse, clips: list[str]) -> tuple[set[Key], set[Key]]:
     """The tracks (clip, track id) of ``clips`` with a model chosen in CAD selection (the answers in
     force), and those with a solved pose (``poses.status`` ok)."""
-    from tasks.human.label_ingest import current_answers
+    from tasks.human.answers_in_force import current_answers
 
     chosen = {(r["clip"], str(r["track_id"])) for r in current_answers(wh, "cad_selection", clips).to_pylist()
               if r["cad_id"] is not None}

@@ -80,7 +80,7 @@ def _ground_truth_map(bench_dir: Path, wh: Warehouse, clip: str) -> dict[str, st
     (``bench run --gt-tracks``) are keyed by ground-truth ids already: the identity."""
     from bench.retrieval_bench import track_truth
     from cadestate.lineage import table_digest
-    from tasks.human.label_ingest import correspondence_table
+    from tasks.human.answers_in_force import correspondence_table
 
     from_labels = table_digest(correspondence_table(wh, clip)) == table_digest(wh.read("correspondences", [clip]))
     if clip not in wh.partitions("correspondence_labels") or not from_labels:

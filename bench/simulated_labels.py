@@ -57,7 +57,8 @@ from schemas.official import FramesFile, read_frames, read_objects
 from tasks.cad.classes import class_of_label
 from tasks.dataset.export_official import official_frames
 from tasks.dataset.objects import DatasetFrame, clip_frames
-from tasks.human.label_ingest import answered_items, ingest_labels
+from tasks.human.answers_in_force import answered_items
+from tasks.human.label_ingest import ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse, atomic_write_bytes
@@ -149,7 +150,7 @@ def shown_frames(wh: Warehouse, clip: str, truth: FramesFile) -> FramesFile:
 
 
 def open_tasks(wh: Warehouse, clip: str) -> list[tuple[object, list]]:
-    """(task, its items not answered: :func:`tasks.human.label_ingest.answered_items`) of the newest
+    """(task, its items not answered: :func:`tasks.human.answers_in_force.answered_items`) of the newest
     task of each kind, if any waits (a manual-track task is answered whole: its items are its
     key-frames until it is)."""
     out = []

@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from cadestate.config import Config, WarehouseConfig
 from cadestate.webapp.app import create_app
 from cadestate.webapp.resume import Resumer
-from tasks.human.label_ingest import current_answers
+from tasks.human.answers_in_force import current_answers
 from tasks.human.labels import validate_label
 from test_labels import CLIP, base_wh, good, lwh  # noqa: F401  (fixtures)
 from warehouse import Warehouse

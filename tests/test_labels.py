@@ -22,7 +22,8 @@ from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionT
                             json_schema, schema_file_name)
 from tasks.human.label_import import import_cvat, import_labelstudio, write_label
 from tasks.human.label_format import parse_task
-from tasks.human.label_ingest import answers_digest, current_answers, ingest_labels, ingest_validated, label_history
+from tasks.human.answers_in_force import answers_digest, current_answers, label_history
+from tasks.human.label_ingest import ingest_labels, ingest_validated
 from tasks.human.labels import ClipFacts, LabelError, latest_task, new_task_id, validate_label, write_task
 from warehouse import Warehouse
 

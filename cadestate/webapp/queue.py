@@ -1,7 +1,7 @@
 """What waits for people: the open tasks of every clip, their items, and the next item to do.
 
 A clip's open task of a kind is its newest task file of that kind (``label_tasks``) with items
-that are not answered as the stages count them (:func:`tasks.human.label_ingest.answered_items`); a
+that are not answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
 manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 """
@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
-from tasks.human.label_ingest import answered_items
+from tasks.human.answers_in_force import answered_items
 from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
 
@@ -76,7 +76,7 @@ def first_waiting(tasks: list[OpenTask]) -> dict | None:
 
 def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     """The newest document of a task (as stored in ``label_tasks``), with ``answered``: the track
-    ids answered (:func:`tasks.human.label_ingest.answered_items`; manual_track: ``[-1]`` once
+    ids answered (:func:`tasks.human.answers_in_force.answered_items`; manual_track: ``[-1]`` once
     answered)."""
     from tasks.human.labels import latest_task
 

@@ -145,7 +145,7 @@ def _keyframe_stamps(wh: Warehouse, clip: str) -> set[int]:
     """Timestamps of the key-frames of the clip's answered manual-track task (none: empty)."""
     import json
 
-    from tasks.human.label_ingest import answered_tasks
+    from tasks.human.answers_in_force import answered_tasks
     from tasks.human.labels import latest_task_of_kind
 
     task = latest_task_of_kind(wh, clip, "manual_track")

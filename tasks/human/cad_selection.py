@@ -11,7 +11,7 @@ the task shows (:func:`tasks.human.labels.new_task_id`), so an unchanged upstrea
 given before still answer it. If every item is answered the run completes; otherwise it is recorded
 ``paused`` (:class:`tasks.stage.StageOutput`) with a message naming the task file and how many
 items wait, and what is answered already goes on (partial labels advance). The answers in force
-(:func:`tasks.human.label_ingest.answers_digest`) are part of each stage's inputs, so ingesting labels
+(:func:`tasks.human.answers_in_force.answers_digest`) are part of each stage's inputs, so ingesting labels
 makes the stage stale and a rerun resumes it, reusing every cached upstream stage.
 
 Tracks are the clip's automatic and manual ones alike (:func:`tasks.tracking.clip_tracks.clip_tracks`),
@@ -32,7 +32,7 @@ import pyarrow as pa
 from cadestate.config import CadSelectionConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CadCandidate, CadSelectionAnswer, CadSelectionItem, CadSelectionTask
-from tasks.human.label_ingest import current_answers
+from tasks.human.answers_in_force import current_answers
 from tasks.human.inputs import cad_selection_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once

@@ -4,7 +4,7 @@ simulated annotators.
 
 An item (a track, its chosen CAD model, its key-frames with the track's box there) is answered by
 
-1. the answer in force under the task's own id (:func:`tasks.human.label_ingest.current_answers`),
+1. the answer in force under the task's own id (:func:`tasks.human.answers_in_force.current_answers`),
    else
 2. its ``previous``: clicks given on an earlier correspondences task of the clip that still hold,
    which the stage finds when it writes the task (:func:`held_clicks`) and carries in the item.

@@ -1,6 +1,6 @@
 """What the human-task stages read besides their upstream outputs, as digests.
 
-People's answers in force (:func:`tasks.human.label_ingest.answers_digest`): ingesting labels makes
+People's answers in force (:func:`tasks.human.answers_in_force.answers_digest`): ingesting labels makes
 the stage stale, and a rerun resumes it. After ``manual_tracks``, also the tracks its answer leaves
 out (said to be no object, or another track: :func:`tasks.tracking.relations.left_out_digest`).
 Kept apart from the stages' modules so that ``cadestate status``, which computes them for every
@@ -11,7 +11,7 @@ from where the stage's module imports it).
 from __future__ import annotations
 
 from cadestate.lineage import digest
-from tasks.human.label_ingest import answers_digest
+from tasks.human.answers_in_force import answers_digest
 from tasks.retrieval.label_similarity import similarity_labels
 from tasks.tracking.relations import left_out_digest
 from warehouse import Warehouse

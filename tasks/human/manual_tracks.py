@@ -41,7 +41,7 @@ from tasks.detection.embed import embed_frame_boxes, vectors_array
 from tasks.detection.model_inputs import detector_labels, label_map_inputs
 from tasks.detection.models.embedder import load_embedder
 from tasks.human.inputs import manual_track_inputs
-from tasks.human.label_ingest import answered_tasks, current_answers
+from tasks.human.answers_in_force import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.keyframes import evenly_spaced, regular_keyframes
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, write_task_once

@@ -19,7 +19,7 @@ import pyarrow as pa
 from cadestate.config import VerificationConfig
 from cadestate.lineage import table_digest
 from schemas.labels import KeyframeView, Pose, VerificationAnswer, VerificationItem, VerificationTask
-from tasks.human.label_ingest import current_answers
+from tasks.human.answers_in_force import current_answers
 from tasks.human.inputs import verification_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once

@@ -137,7 +137,7 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
     same = [r for r in said if r["relation"] == "same_object"]
     if not same:
         return not_objects, {}
-    from tasks.human.label_ingest import current_answers
+    from tasks.human.answers_in_force import current_answers
 
     ids = manual_track_ids(current_answers(wh, "manual_track", [clip], task["task_id"]).to_pylist())
     return not_objects, {ids[r["object_index"]]: int(r["track_id"]) for r in same if r["object_index"] in ids}
@@ -146,7 +146,7 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
 def same_as_statements(wh: Warehouse, clip: str, kind: str, task_id: str | None) -> dict[int, int]:
     """{track: the track it is the same object as} from the answers in force of the clip's task
     ``task_id`` of ``kind`` (cad_selection or verification; None: no such task)."""
-    from tasks.human.label_ingest import current_answers
+    from tasks.human.answers_in_force import current_answers
 
     if task_id is None:
         return {}
