@@ -27,7 +27,7 @@ from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
-from tasks.status import read_runs
+from tasks.status import Signature, cached_run, read_runs
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -42,35 +42,6 @@ class StageReport:
     rows_written: int = 0
     duration_s: float = 0.0
     message: str = ""
-
-
-@dataclasses.dataclass(frozen=True)
-class Signature:
-    """What a stage run depends on: its config section's digest, its code's digest, and the digest of
-    its inputs (upstream output digests, then the digests of what else it reads)."""
-
-    config_hash: str
-    code_hash: str
-    inputs_hash: str
-
-
-def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Signature) -> StageRun | None:
-    """The recorded run that makes running ``stage`` of ``unit`` with ``signature`` again needless,
-    or None.
-
-    ``runs``: the unit's ``runs`` rows (:func:`tasks.status.read_runs`), oldest first. A completed or paused
-    run with the same signature counts while the stage's latest completed or paused run has its
-    output: then the tables hold what a run with this signature writes."""
-    ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
-    key = (signature.config_hash, signature.code_hash, signature.inputs_hash)
-    same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == key]
-    if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
-        return None
-    r = same[-1]
-    return StageRun(clip=unit, stage=stage, run_id=r["run_id"], status=r["status"],
-                    config_hash=signature.config_hash, inputs_hash=signature.inputs_hash, output_hash=r["output_hash"],
-                    code_hash=signature.code_hash, rows_written=int(r["rows_written"] or 0),
-                    duration_s=float(r["duration_s"] or 0.0), message=r["message"] or "")
 
 
 def report_of(run: StageRun, cached: bool = False) -> StageReport:

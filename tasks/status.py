@@ -1,8 +1,9 @@
 """Where each clip stands: the last run of every stage, and why it is stale if it is.
 
-A stage is stale when its last completed (or paused) run used another config section, other code, or
-inputs other than its upstream stages' latest outputs (or when an upstream stage is stale: it
-will rerun and may change them). Read from the ``runs`` table and the markers of runs in progress
+A stage is stale when the stage chain would run it (:func:`cached_run`, the cache rule: no
+completed or paused run with its config section, code and inputs, its upstream stages' latest
+outputs, whose output its tables still hold), the reasons told against its last such run; or when
+an upstream stage is stale (it will rerun and may change them). Read from the ``runs`` table and the markers of runs in progress
 (:mod:`tasks.stage`): a stage whose process is running shows ``running``, one whose process ended
 mid-run (killed) ``interrupted``. :func:`clip_notes` adds what a user should know about a clip's
 results (nothing detected, so every later stage ran on nothing).
@@ -13,18 +14,48 @@ from __future__ import annotations
 import datetime as dt
 import re
 from collections.abc import Sequence
+from typing import Any
 from dataclasses import dataclass
 
 from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
-from tasks.stage import run_markers
+from tasks.stage import StageRun, run_markers
 from warehouse import Warehouse, check_name
 from warehouse.kept import kept_read
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
                "started_at", "rows_written", "duration_s", "message")
 """The columns of ``runs`` that the status and the stage chain's cache (:mod:`tasks.stage_chain`) read."""
+
+
+@dataclass(frozen=True)
+class Signature:
+    """What a stage run depends on: its config section's digest, its code's digest, and the digest of
+    its inputs (upstream output digests, then the digests of what else it reads)."""
+
+    config_hash: str
+    code_hash: str
+    inputs_hash: str
+
+
+def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Signature) -> StageRun | None:
+    """The recorded run that makes running ``stage`` of ``unit`` with ``signature`` again needless,
+    or None.
+
+    ``runs``: the unit's ``runs`` rows (:func:`tasks.status.read_runs`), oldest first. A completed or paused
+    run with the same signature counts while the stage's latest completed or paused run has its
+    output: then the tables hold what a run with this signature writes."""
+    ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
+    key = (signature.config_hash, signature.code_hash, signature.inputs_hash)
+    same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == key]
+    if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
+        return None
+    r = same[-1]
+    return StageRun(clip=unit, stage=stage, run_id=r["run_id"], status=r["status"],
+                    config_hash=signature.config_hash, inputs_hash=signature.inputs_hash, output_hash=r["output_hash"],
+                    code_hash=signature.code_hash, rows_written=int(r["rows_written"] or 0),
+                    duration_s=float(r["duration_s"] or 0.0), message=r["message"] or "")
 
 
 @dataclass(frozen=True)
@@ -88,7 +119,9 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here
     last: dict[tuple[str, str], dict] = {}
     last_ok: dict[tuple[str, str], dict] = {}
+    by_unit: dict[str, list[dict]] = {}
     for r in runs:
+        by_unit.setdefault(r["clip"], []).append(r)
         last[(r["clip"], r["stage"])] = r
         if r["status"] in ("completed", "paused"):  # a paused run's output is valid (what is answered)
             last_ok[(r["clip"], r["stage"])] = r
@@ -106,14 +139,14 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             if ok is None:
                 reasons.append("never completed")
             else:
-                if ok["config_hash"] != config_hash(stage.name, config):
-                    reasons.append("config changed")
-                if ok["code_hash"] != stage.code_hash:
-                    reasons.append("code changed")
                 ups = [last_ok.get((clip, u)) for u in stage.upstream]
-                if stage.upstream and all(ups) and ok["inputs_hash"] != upstream_inputs_hash(
-                        [u["output_hash"] for u in ups] + stage.config_inputs(config) + memo.clip_inputs(stage)):
-                    reasons.append("inputs changed")
+                inputs = upstream_inputs_hash([u["output_hash"] for u in ups] + stage.config_inputs(config) + memo.clip_inputs(stage)) \
+                    if stage.upstream and all(ups) else ok["inputs_hash"]
+                signature = Signature(config_hash(stage.name, config), stage.code_hash, inputs)
+                if cached_run(by_unit.get(clip, []), clip, stage.name, signature) is None:  # as the stage chain finds it
+                    reasons += [why for why, differs in (("config changed", ok["config_hash"] != signature.config_hash),
+                                                         ("code changed", ok["code_hash"] != signature.code_hash),
+                                                         ("inputs changed", ok["inputs_hash"] != inputs)) if differs]
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")
             if reasons:

@@ -119,7 +119,9 @@ def test_changed_stage_config_reruns_that_stage_only(config, source):
     assert [r["config_hash"] for r in runs] == [config.section_hash("frames"), changed.section_hash("frames")]
     assert all(not r.stale_reasons for r in pipeline_status(wh, changed))
     assert len(list((wh.root / "media" / "frames" / "small").iterdir())) == 1  # old images pruned
-    # Back to the first config: its cached results are reused, no work.
+    # Back to the first config: its cached results are reused, no work, and status says so beforehand
+    # (it finds the first run as the chain's cache does, not only the last one)
+    assert all(not r.stale_reasons for r in pipeline_status(wh, config))
     assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached"}
 
 

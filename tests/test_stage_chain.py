@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import datetime as dt
 
-from tasks.stage_chain import Signature, cached_run, report_of
+from tasks.stage_chain import report_of
+from tasks.status import Signature, cached_run
 from tasks.stage import StageRun
 from warehouse import Warehouse
 
