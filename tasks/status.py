@@ -3,10 +3,11 @@
 A stage is stale when the stage chain would run it (:func:`cached_run`, the cache rule: no
 completed or paused run with its config section, code and inputs, its upstream stages' latest
 outputs, whose output its tables still hold), the reasons told against its last such run; or when
-an upstream stage is stale (it will rerun and may change them). Read from the ``runs`` table and the markers of runs in progress
-(:mod:`tasks.stage`): a stage whose process is running shows ``running``, one whose process ended
-mid-run (killed) ``interrupted``. :func:`clip_notes` adds what a user should know about a clip's
-results (nothing detected, so every later stage ran on nothing).
+an upstream stage is stale (it will rerun and may change them). Read from the ``runs`` table and
+the markers of runs in progress (:mod:`tasks.stage`): a stage whose process is running shows
+``running``, one whose process ended mid-run (killed) ``interrupted``. :func:`clip_notes` adds
+what a user should know about a clip's results (nothing detected, so every later stage ran on
+nothing).
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ from __future__ import annotations
 import datetime as dt
 import re
 from collections.abc import Sequence
-from typing import Any
 from dataclasses import dataclass
+from typing import Any
 
 from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
@@ -43,7 +44,7 @@ def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Sig
     """The recorded run that makes running ``stage`` of ``unit`` with ``signature`` again needless,
     or None.
 
-    ``runs``: the unit's ``runs`` rows (:func:`tasks.status.read_runs`), oldest first. A completed or paused
+    ``runs``: the unit's ``runs`` rows (:func:`read_runs`), oldest first. A completed or paused
     run with the same signature counts while the stage's latest completed or paused run has its
     output: then the tables hold what a run with this signature writes."""
     ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
@@ -140,13 +141,16 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                 reasons.append("never completed")
             else:
                 ups = [last_ok.get((clip, u)) for u in stage.upstream]
-                inputs = upstream_inputs_hash([u["output_hash"] for u in ups] + stage.config_inputs(config) + memo.clip_inputs(stage)) \
-                    if stage.upstream and all(ups) else ok["inputs_hash"]
+                inputs = ok["inputs_hash"]  # no upstream (its source is digested as it runs), or one never completed
+                if stage.upstream and all(ups):
+                    inputs = upstream_inputs_hash([u["output_hash"] for u in ups] + stage.config_inputs(config)
+                                                  + memo.clip_inputs(stage))
                 signature = Signature(config_hash(stage.name, config), stage.code_hash, inputs)
-                if cached_run(by_unit.get(clip, []), clip, stage.name, signature) is None:  # as the stage chain finds it
-                    reasons += [why for why, differs in (("config changed", ok["config_hash"] != signature.config_hash),
-                                                         ("code changed", ok["code_hash"] != signature.code_hash),
-                                                         ("inputs changed", ok["inputs_hash"] != inputs)) if differs]
+                if cached_run(by_unit.get(clip, []), clip, stage.name, signature) is None:  # as the chain finds it
+                    differs = (("config changed", ok["config_hash"] != signature.config_hash),
+                               ("code changed", ok["code_hash"] != signature.code_hash),
+                               ("inputs changed", ok["inputs_hash"] != inputs))
+                    reasons += [why for why, changed in differs if changed]
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")
             if reasons:

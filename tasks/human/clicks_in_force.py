@@ -48,7 +48,8 @@ def box_iou(a: Box, b: Box) -> float:
 def item_key(track_id: int, cad_id: str, keyframes: Sequence[KeyframeView]) -> str:
     """What an item shows, as a part of the task id: track, model, and each key-frame's timestamp
     (µs) and box (4 decimals; "-": none)."""
-    views = ";".join(f"{k.timestamp_us}@" + ("-" if k.box is None else ",".join(f"{v:.4f}" for v in k.box)) for k in keyframes)
+    views = ";".join(f"{k.timestamp_us}@" + ("-" if k.box is None else ",".join(f"{v:.4f}" for v in k.box))
+                     for k in keyframes)
     return f"{track_id}:{cad_id}:{views}"
 
 
@@ -98,7 +99,8 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
                          reverse=True)
         for at, key in earlier:
             versions = shown.get(key)
-            if t in now and holds({int(r["timestamp_us"]) for r in rows[key]}, seen_then(versions, at) if versions else {}, now[t]):
+            then = seen_then(versions, at) if versions else {}
+            if t in now and holds({int(r["timestamp_us"]) for r in rows[key]}, then, now[t]):
                 out[t] = to_answer(t, rows[key])
                 break
     return out
@@ -127,11 +129,13 @@ def in_force_rows(clip: str, doc: dict, answers: pa.Table) -> list[dict]:
     for item in doc["items"]:
         t = int(item["track_id"])
         if t in under_id:
-            out += [{"clip": clip, "track_id": str(t), "timestamp_us": r["timestamp_us"], "point_index": r["point_index"],
-                     "cad_id": r["cad_id"], "point_2d": r["point_2d"], "point_3d": r["point_3d"], "is_mirrored": r["is_mirrored"]}
-                    for r in under_id[t]]
+            clicks = [(r["timestamp_us"], r["point_index"], r["cad_id"], r["point_2d"], r["point_3d"], r["is_mirrored"])
+                      for r in under_id[t]]
         elif (prev := item.get("previous")) is not None:
-            out += [{"clip": clip, "track_id": str(t), "timestamp_us": kf["timestamp_us"], "point_index": k, "cad_id": prev["cad_id"],
-                     "point_2d": [p["x"], p["y"]], "point_3d": list(p["xyz"]), "is_mirrored": prev["is_mirrored"]}
-                    for kf in prev["keyframes"] for k, p in enumerate(kf["points"])]
+            clicks = [(kf["timestamp_us"], k, prev["cad_id"], [p["x"], p["y"]], list(p["xyz"]), prev["is_mirrored"])
+                      for kf in prev["keyframes"] for k, p in enumerate(kf["points"])]
+        else:
+            continue
+        out += [{"clip": clip, "track_id": str(t), "timestamp_us": ts, "point_index": k, "cad_id": cad, "point_2d": p2,
+                 "point_3d": p3, "is_mirrored": mirrored} for ts, k, cad, p2, p3, mirrored in clicks]
     return out

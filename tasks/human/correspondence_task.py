@@ -11,9 +11,9 @@ from __future__ import annotations
 from cadestate.config import CorrespondenceTaskConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
+from tasks.human.answers_in_force import current_answers, sync_correspondences
 from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
-from tasks.human.answers_in_force import current_answers, sync_correspondences
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
