@@ -167,12 +167,12 @@ def _detected(bench_dir: Path, wh: Warehouse, clips: list[str]) -> set[Key]:
 
 
 def _chosen_and_solved(wh: Warehouse, clips: list[str]) -> tuple[set[Key], set[Key]]:
-    """The tracks (clip, track id) of ``clips`` with a model chosen in CAD selection (the answers in
-    force), and those with a solved pose (``poses.status`` ok)."""
-    from tasks.human.answers_in_force import current_answers
+    """The tracks (clip, track id) of ``clips`` with a model chosen in CAD selection (as the stages
+    read it: :func:`tasks.human.cad_selection.selected_models`), and those with a solved pose
+    (``poses.status`` ok)."""
+    from tasks.human.cad_selection import selected_models
 
-    chosen = {(r["clip"], str(r["track_id"])) for r in current_answers(wh, "cad_selection", clips).to_pylist()
-              if r["cad_id"] is not None}
+    chosen = {(clip, str(t)) for clip in clips for t, c in selected_models(wh, clip).items() if c is not None}
     posed = [c for c in clips if wh.has_partition("poses", c)]
     rows = wh.read("poses", posed, columns=["clip", "track_id", "status"]).to_pylist() if posed else []
     return chosen, {(r["clip"], str(r["track_id"])) for r in rows if r["status"] == "ok"}

@@ -185,7 +185,10 @@ class CadSelectionItem:
     label: str = spec("Class of the track.")
     keyframes: tuple[KeyframeView, ...] = spec("Evenly spaced frames of the track, with its box.", minItems=1)
     candidates: tuple[CadCandidate, ...] = spec("The retrieved candidates, best first.", minItems=1, maxItems=10)
-    previous: CadSelectionAnswer | None = spec("The answer given before, if any.", default=None)
+    previous: CadSelectionAnswer | None = spec("The answer given before: on this task, or a model chosen on an earlier one "
+                                               "for the same object and still among the candidates "
+                                               "(tasks.human.choices_in_force); the item counts as answered. Null: none.",
+                                               default=None)
 
 
 @dataclass(frozen=True, kw_only=True)

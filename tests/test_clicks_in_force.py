@@ -79,3 +79,23 @@ def test_carried_clicks_give_the_rows_they_came_from():
     keep = ("timestamp_us", "point_index", "cad_id", "point_2d", "point_3d", "is_mirrored")
     assert [{k: r[k] for k in keep} for r in got] == [{k: r[k] for k in keep} for r in rows]
     assert {r["track_id"] for r in got} == {"4"}, "track 5 has no clicks"
+
+
+def test_a_choice_holds_on_the_same_object_with_its_model_among_the_candidates():
+    from tasks.human.choices_in_force import held_choices, same_object
+
+    assert same_object({10: BOX, 20: BOX}, {10: [BOX]}), "a frame the track left says nothing"
+    assert not same_object({10: BOX}, {20: [BOX]}), "no frame in common"
+    assert not same_object({10: BOX, 20: BOX}, {10: [BOX], 20: [(0.6, 0.6, 0.9, 0.9)]})
+    sel = lambda task, t, cad, at: {"task_id": task, "track_id": t, "cad_id": cad, "ingested_at": at}  # noqa: E731
+    answers = pa.Table.from_pylist([sel("old", 0, "a", T[1]), sel("old", 1, "a", T[1]), sel("old", 2, None, T[1]),
+                                    sel("old", 3, "a", T[1]), sel("old2", 3, "b", T[3]), sel("now", 4, "b", T[4]),
+                                    sel("old", 4, "a", T[1])])
+    items = [{"track_id": t, "keyframes": [{"timestamp_us": 10, "box": list(BOX)}]} for t in range(5)]
+    import json
+
+    tasks = pa.Table.from_pylist([{"task_id": k, "kind": "cad_selection", "created_at": T[0], "document": json.dumps({"items": items})}
+                                  for k in ("old", "old2")])
+    now = {t: {10: [BOX]} for t in range(5)}
+    held = held_choices("now", {0: {"a"}, 1: {"b"}, 2: {"a"}, 3: {"a"}, 4: {"a"}}, now, answers, tasks)
+    assert held == {0: "a"}, "1: model gone; 2: none fits; 3: the newest said b, gone; 4: answered under the id"

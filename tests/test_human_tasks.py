@@ -272,3 +272,32 @@ def test_clicks_hold_only_for_the_object_they_were_given_on(hwh, tmp_path):
     task = _task(hwh, paused.message)
     assert [it.get("previous") is not None for it in task["items"]] == [False, True]
     assert _waiting(hwh) == [0] and set(_clicked(hwh)) == {"1"}
+
+
+def test_choices_hold_while_the_object_and_the_model_stay(hwh, tmp_path):
+    """Retrieval reruns (other scores: a new cad_selection task). Track 0's model is still a
+    candidate: its choice is carried, not asked again, and chosen; track 1's model is no longer
+    among its candidates, and track 2 said none fits: both are asked again. When track 0's boxes
+    then lie elsewhere (its id names another object), it is asked again too."""
+    from cadestate.webapp.queue import clip_tasks
+
+    def waiting() -> list[int]:
+        return next(t.waiting for t in clip_tasks(hwh, CLIP) if t.kind == "cad_selection")
+
+    _select(hwh, tmp_path / "s.json", {0: "lib.chair_a", 1: "lib.chair_b", 2: None}, "2026-01-01T00:00:00+00:00")
+    first = cad_selection_task_id(hwh, CLIP)
+    cands = hwh.read("cad_candidates", [CLIP]).to_pylist()
+    cands = [{**r, "score": r["score"] / 2} for r in cands if not (r["track_id"] == 1 and r["cad_id"] == "lib.chair_b")]
+    hwh.write("cad_candidates", CLIP, pa.Table.from_pylist(cands, schema=TABLES["cad_candidates"].schema))
+    paused = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    assert cad_selection_task_id(hwh, CLIP) != first
+    assert paused.status == "paused" and "2 of 3 tracks unanswered" in paused.message
+    assert waiting() == [1, 2] and selected_models(hwh, CLIP) == {0: "lib.chair_a"}
+    assert _task(hwh, paused.message)["items"][0]["previous"]["cad_id"] == "lib.chair_a"
+
+    dets = hwh.read("detections", [CLIP]).to_pylist()
+    for d in dets:
+        d["box"] = [0.55, 0.55, 0.95, 0.95] if d["det_id"] // 1000 == 0 else d["box"]
+    hwh.write("detections", CLIP, pa.Table.from_pylist(dets, schema=TABLES["detections"].schema))
+    again = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    assert "3 of 3 tracks unanswered" in again.message and waiting() == [0, 1, 2] and selected_models(hwh, CLIP) == {}

@@ -10,9 +10,11 @@ answers fit): it must go straight through, pausing nowhere, to the same tables.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401  (pa.compute)
 import pytest
 
 from bench.benchmark import clip_sources, generate
@@ -89,27 +91,39 @@ def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, answe
 
 
 def test_a_rerun_that_asks_again_leaves_no_stale_pose(answered, tmp_path):
-    """Retrieval rerun with other scores (a config change) gives cad_selection a new task, unanswered:
-    pose, which runs on the answered correspondences, poses nothing in that run. Once the same
-    models are chosen again, the clicks given before hold and pose must run again, so the poses
-    come back. Its inputs are taken after the stages before it ran. Taken before the run, they were
-    the old answers': pose was found cached on them (old poses kept while nothing is chosen), or
-    when it ran its empty result was recorded under them and found cached once the same models were
-    chosen again (a rerun of the default benchmark with another detector lost a clip's poses so)."""
-    from tasks.pose.inputs import answered_correspondences
+    """Retrieval reruns with other scores (a config change): cad_selection gets a new task, and the
+    choices still among the candidates are carried to it, so the poses stay. A person then says
+    "none fits" for one posed track on the new task: pose reruns without it. Back on the first
+    config, the first task's answers are in force again and pose must run again, so the poses come
+    back. Its inputs are taken after the stages before it ran: taken before the run, they were the
+    answers of the task in force then (the second), and pose was found cached with a track missing
+    (a rerun of the default benchmark with another detector lost a clip's poses so)."""
+    from cadestate.lineage import table_digest
+    from tasks.human.cad_selection import cad_selection_task_id, selected_models
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.human.labels import label_document
 
     config = warehouse_copy(answered.config, tmp_path / "w")
     wh = Warehouse(config.warehouse.root)
     clip, source = answered.clip, answered.source
     posed = _content(wh, "poses", clip)
+    chosen = selected_models(wh, clip)
     assert posed.num_rows >= 1
     changed = dataclasses.replace(config, retrieval=dataclasses.replace(config.retrieval, class_exponent=0.2))
     first = {r.stage: r for r in run_clips([source], changed, show_progress=False)}
-    assert first["cad_selection"].state == "paused" and first["pose"].state == "completed"
-    assert wh.read("poses", [clip]).num_rows == 0, "no model is chosen: nothing is posed"
-    reports, waiting = annotate_until_done(answered.folder, wh, [clip],
-                                           lambda _: run_clips([source], changed, show_progress=False))
-    assert waiting == [] and not [r for r in reports if r.state == "failed"]
-    assert set(wh.read("poses", [clip]).column("track_id").to_pylist()) == \
-        set(answered_correspondences(wh, clip).column("track_id").to_pylist())
-    assert _content(wh, "poses", clip).equals(posed), "the same models chosen, the same clicks: the same poses"
+    assert first["retrieval"].state == "completed" and first["cad_selection"].state in ("paused", "completed")
+    kept = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
+    assert kept and kept.items() <= chosen.items(), "choices carried to the new task, none made up"
+    assert table_digest(_content(wh, "poses", clip).filter(pa.compute.is_in(
+        _content(wh, "poses", clip).column("track_id"), pa.array([str(t) for t in kept])))) == table_digest(
+        posed.filter(pa.compute.is_in(posed.column("track_id"), pa.array([str(t) for t in kept])))), "their poses stay"
+    dropped = min(int(t) for t in posed.column("track_id").to_pylist() if int(t) in kept)
+    doc = label_document("cad_selection", clip, cad_selection_task_id(wh, clip), [{"track_id": dropped, "cad_id": None}],
+                         annotator="t", created_at="2026-12-02T00:00:00+00:00")
+    (tmp_path / "none.json").write_text(json.dumps(doc))
+    assert ingest_labels(wh, tmp_path / "none.json").ok
+    second = {r.stage: r for r in run_clips([source], changed, show_progress=False)}
+    assert second["pose"].state == "completed" and str(dropped) not in wh.read("poses", [clip]).column("track_id").to_pylist()
+    back = {r.stage: r for r in run_clips([source], config, show_progress=False)}
+    assert back["pose"].state == "completed", "what pose reads changed after the stages before it ran"
+    assert _content(wh, "poses", clip).equals(posed), "the first task's answers: the same poses"

@@ -8,7 +8,9 @@ The human-task stages (paper 3.2, 3.3, 3.5; 3.1 is :mod:`tasks.human.manual_trac
 
 Each stage writes its task file (:func:`tasks.human.labels.write_task`) with a task id derived from what
 the task shows (:func:`tasks.human.labels.new_task_id`), so an unchanged upstream keeps the id and labels
-given before still answer it. If every item is answered the run completes; otherwise it is recorded
+given before still answer it. When upstream changed, an answer given on an earlier task that still fits
+is carried in the item's ``previous`` and counts as given (:mod:`tasks.human.choices_in_force`,
+:mod:`tasks.human.clicks_in_force`). If every item is answered the run completes; otherwise it is recorded
 ``paused`` (:class:`tasks.stage.StageOutput`) with a message naming the task file and how many
 items wait, and what is answered already goes on (partial labels advance). The answers in force
 (:func:`tasks.human.answers_in_force.answers_digest`) are part of each stage's inputs, so ingesting labels
@@ -25,6 +27,7 @@ these stages' inputs (:func:`tasks.registry.clip_inputs`).
 
 from __future__ import annotations
 
+import json
 from collections import defaultdict
 
 import pyarrow as pa
@@ -33,9 +36,10 @@ from cadestate.config import CadSelectionConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CadCandidate, CadSelectionAnswer, CadSelectionItem, CadSelectionTask
 from tasks.human.answers_in_force import current_answers
+from tasks.human.choices_in_force import held_choices
 from tasks.human.inputs import cad_selection_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
+from tasks.human.shared import INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from tasks.tracking.relations import left_out_tracks
@@ -54,14 +58,21 @@ def cad_selection_task_id(wh: Warehouse, clip: str, cands: pa.Table | None = Non
 
 def selected_models(wh: Warehouse, clip: str) -> dict[int, str | None]:
     """The answers in force of the current cad_selection task: track -> chosen cad_id (None: no
-    candidate fits, or a fragment of another track). Tracks without an answer are absent, and so
-    are the tracks left out (:func:`tasks.tracking.relations.left_out_tracks`)."""
+    candidate fits, or a fragment of another track), given under its id or carried from an earlier
+    task in the item's ``previous`` (:mod:`tasks.human.choices_in_force`). Tracks without an answer
+    are absent, and so are the tracks left out (:func:`tasks.tracking.relations.left_out_tracks`)."""
+    from tasks.human.labels import latest_task
+
     task_id = cad_selection_task_id(wh, clip)
     if task_id is None:
         return {}
-    rows = current_answers(wh, "cad_selection", [clip], task_id).to_pylist()
+    chosen = {int(r["track_id"]): r["cad_id"] for r in current_answers(wh, "cad_selection", [clip], task_id).to_pylist()}
+    row = latest_task(wh, clip, task_id)
+    for item in json.loads(row["document"])["items"] if row is not None else ():
+        if item.get("previous") is not None and int(item["track_id"]) not in chosen:
+            chosen[int(item["track_id"])] = item["previous"]["cad_id"]
     left_out = left_out_tracks(wh, clip)
-    return {int(r["track_id"]): r["cad_id"] for r in rows if int(r["track_id"]) not in left_out}
+    return {t: c for t, c in chosen.items() if t not in left_out}
 
 
 def model_facts(wh: Warehouse, cad_ids: set[str]) -> tuple[dict[str, dict], dict[str, tuple[str, ...]]]:
@@ -94,6 +105,11 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     labels = {t: track.label for t, track in tracks.items()}
     models, renders = model_facts(wh, {r["cad_id"] for r in rows})
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
+    now = boxes_now(tracks, track_ids)
+    tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
+    held = held_choices(task_id, {t: {r["cad_id"] for r in by_track[t]} for t in track_ids}, now,
+                        current_answers(wh, "cad_selection", [clip]), tasks)
+    answers.update(held)
     items = []
     for t in track_ids:
         cs = tuple(CadCandidate(rank=int(r["rank"]), cad_id=r["cad_id"], library=r["library"], cad_class=r["cad_class"],

@@ -53,13 +53,13 @@ def item_key(track_id: int, cad_id: str, keyframes: Sequence[KeyframeView]) -> s
     return f"{track_id}:{cad_id}:{views}"
 
 
-def shown_boxes(tasks: pa.Table) -> dict[tuple[str, int], list[tuple[object, dict[int, Box]]]]:
-    """Per (task id, track id) of the correspondences tasks among ``tasks`` (``label_tasks`` rows
-    with ``task_id``, ``kind``, ``created_at``, ``document``): each version of the task (its
+def shown_boxes(tasks: pa.Table, kind: str = "correspondences") -> dict[tuple[str, int], list[tuple[object, dict[int, Box]]]]:
+    """Per (task id, track id) of the tasks of ``kind`` among ``tasks`` (``label_tasks`` rows with
+    ``task_id``, ``kind``, ``created_at``, ``document``): each version of the task (its
     ``created_at``) with the boxes it showed the track with, by key-frame timestamp; oldest first."""
     shown: dict[tuple[str, int], list[tuple[object, dict[int, Box]]]] = {}
     for row in tasks.to_pylist():
-        if row["kind"] != "correspondences":
+        if row["kind"] != kind:
             continue
         for item in json.loads(row["document"])["items"]:
             boxes = {int(k["timestamp_us"]): tuple(k["box"]) for k in item["keyframes"] if k.get("box") is not None}

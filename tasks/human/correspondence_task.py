@@ -16,7 +16,7 @@ from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, image_size, task_output, track_keyframes, write_task_once
+from tasks.human.shared import INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse
@@ -33,10 +33,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     tracks = clip_tracks(wh, clip)
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
-    now: dict[int, dict[int, list]] = {}
-    for t in track_ids:
-        for b in tracks[t].boxes if t in tracks else ():
-            now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
+    now = boxes_now(tracks, track_ids)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)
     models, renders = model_facts(wh, set(chosen.values()))

@@ -55,6 +55,16 @@ def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], trac
     return out
 
 
+def boxes_now(tracks: dict[int, ClipTrack], track_ids: list[int]) -> dict[int, dict[int, list[tuple]]]:
+    """Per track of ``track_ids`` that exists, its boxes by frame timestamp (µs): what
+    :mod:`tasks.human.clicks_in_force` and :mod:`tasks.human.choices_in_force` compare earlier tasks with."""
+    now: dict[int, dict[int, list[tuple]]] = {}
+    for t in track_ids:
+        for b in tracks[t].boxes if t in tracks else ():
+            now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
+    return now
+
+
 def write_task_once(wh: Warehouse, task) -> Path:
     """Write ``task``; if the newest version of the same task id says the same (but for
     ``created_at``) and is still the clip's newest task of its kind, keep that version (no new

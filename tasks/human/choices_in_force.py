@@ -1,0 +1,62 @@
+"""Which CAD choice answers each item of a clip's cad_selection task, when the task changed under
+it (another detector, another retrieval config): a choice given on an earlier task still holds.
+
+The cad_selection task id is a digest of the clip's candidates, so any change upstream makes a new
+task. An item (a track, its key-frames with the track's box there, its candidates) is answered by
+
+1. the answer in force under the task's own id (:func:`tasks.human.answers_in_force.current_answers`),
+   else
+2. its ``previous``: the newest choice given on an earlier cad_selection task of the clip for the
+   track of that id, carried by the stage (:func:`held_choices`) when
+
+   - it chose a model (an answer of "none fits", or "a fragment of track N", is asked again: the
+     candidates, or the other track, may have changed),
+   - that model is among the item's candidates now, and
+   - it speaks of the same object: on every key-frame the earlier task showed a box on where the
+     track has boxes now, one of them overlaps it (IoU >= :data:`tasks.human.clicks_in_force.SAME_OBJECT_IOU`),
+     and there is at least one such key-frame.
+
+The stages, the web app's queue and the simulated annotators count both alike
+(:func:`tasks.human.answers_in_force.answered_items`), and :func:`tasks.human.cad_selection.selected_models`
+reads both. Boxes: (ymin, xmin, ymax, xmax), normalised.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import pyarrow as pa
+
+from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, seen_then, shown_boxes
+
+
+def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
+    """Whether the track whose boxes are ``now`` (timestamp -> its boxes there) is the object an
+    earlier task showed with the boxes ``then``: where both have boxes, one overlaps; on one frame
+    at least."""
+    both = [ts for ts in then if now.get(ts)]
+    return bool(both) and all(any(box_iou(then[ts], b) >= SAME_OBJECT_IOU for b in now[ts]) for ts in both)
+
+
+def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[int, Mapping[int, list[Box]]],
+                 answers: pa.Table, tasks: pa.Table) -> dict[int, str]:
+    """Per track of ``candidates`` (track -> its candidates' cad_ids) without an answer under
+    ``task_id``, the model chosen on an earlier task that still holds (see the module). ``now``:
+    each track's boxes by timestamp; ``answers``: the clip's cad_selection answers in force over all
+    tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
+    answered = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
+    earlier: dict[int, list[dict]] = {}
+    for r in answers.to_pylist():
+        if r["task_id"] != task_id and int(r["track_id"]) in candidates and int(r["track_id"]) not in answered:
+            earlier.setdefault(int(r["track_id"]), []).append(r)
+    shown = shown_boxes(tasks, "cad_selection")
+    out = {}
+    for t, rows in earlier.items():
+        for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
+            versions = shown.get((r["task_id"], t))
+            if not versions or not same_object(seen_then(versions, r["ingested_at"]), now.get(t, {})):
+                continue  # given on another object (or a task not on record): an older answer may hold
+            if r["cad_id"] is not None and r["cad_id"] in candidates[t]:
+                out[t] = r["cad_id"]
+            break  # the newest answer on this object decides
+    return out
