@@ -85,14 +85,18 @@ def tracks_per_object(track_objects: Mapping[Key, Key], expected: set[Key]) -> d
 
 def human_items(tasks: Iterable[dict]) -> dict[str, int]:
     """Items asked per task kind, from ``label_tasks`` rows (clip, task_id, kind, document): a
-    manual-track task is 1 item, any other task 1 per track it lists; versions of one task id count once."""
+    manual-track task is 1 item, any other task 1 per track it lists without a ``previous`` answer
+    in some version; versions of one task id count once. An item that carries an answer given on an
+    earlier task in every version (:mod:`tasks.human.choices_in_force`,
+    :mod:`tasks.human.clicks_in_force`) was never asked."""
     asked: dict[str, set[tuple]] = {}
     for t in tasks:
         if t["kind"] == "manual_track":
             asked.setdefault(t["kind"], set()).add((t["clip"], t["task_id"]))
             continue
         for item in json.loads(t["document"]).get("items", []):
-            asked.setdefault(t["kind"], set()).add((t["clip"], t["task_id"], item["track_id"]))
+            if item.get("previous") is None:
+                asked.setdefault(t["kind"], set()).add((t["clip"], t["task_id"], item["track_id"]))
     return {k: len(v) for k, v in sorted(asked.items())}
 
 

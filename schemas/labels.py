@@ -223,7 +223,9 @@ class VerificationItem:
                                           "smaller box's volume (tasks.pose.duplicates), ascending; absent when none. The "
                                           "annotator says so with the answer's same_as_track.",
                                           default=(), omit_default=True, items=TRACK_ID)
-    previous: VerificationAnswer | None = spec("The verdict given before, if any.", default=None)
+    previous: VerificationAnswer | None = spec("The verdict given before: on this task, or on an earlier one on the same "
+                                               "pose (tasks.human.verification.held_verdicts); the item counts as answered. "
+                                               "Null: none.", default=None)
 
 
 # ------------------------------------------------------------------------------ files

@@ -90,3 +90,7 @@ def test_tracks_per_object_and_human_items():
              {"clip": "d", "task_id": "m1", "kind": "manual_track", "document": "{}"},
              {"clip": "c", "task_id": "v1", "kind": "verification", "document": doc(7)}]
     assert human_items(tasks) == {"cad_selection": 5, "manual_track": 2, "verification": 1}
+    carried = {"track_id": 5, "previous": {"track_id": 5, "cad_id": "m"}}
+    answered_later = [{"clip": "c", "task_id": "s3", "kind": "cad_selection", "document": json.dumps({"items": [carried, i]})}
+                      for i in ({"track_id": 6}, {"track_id": 6, "previous": {"track_id": 6, "cad_id": "m"}})]
+    assert human_items(answered_later) == {"cad_selection": 1}, "5 carried an earlier answer in every version: not asked"

@@ -181,6 +181,19 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     assert done.status == "completed" and "1 of 1 poses accepted" in done.message
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
 
+    # track 1 is solved now (a new task): track 0's pose is the same, its verdict is carried; then
+    # track 0 is solved anew elsewhere: asked again
+    hwh.write("poses", CLIP, table_rows("poses", [pose, {**pose, "track_id": "1", "translation": [0.2, 0, 4]}]))
+    third = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert third.status == "paused" and "1 of 2 poses unanswered" in third.message
+    assert _task(hwh, third.message)["task_id"] != task["task_id"]
+    assert [it.get("previous") for it in _task(hwh, third.message)["items"]][0]["verdict"] == "accept"
+    assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
+    hwh.write("poses", CLIP, table_rows("poses", [{**pose, "translation": [0.0, 0.1, 4]}, {**pose, "track_id": "1",
+                                                                                              "translation": [0.2, 0, 4]}]))
+    fourth = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert "2 of 2 poses unanswered" in fourth.message and hwh.read("verified_poses", [CLIP]).num_rows == 0
+
 
 # ------------------------------------------------------------------------------ clicks in force
 

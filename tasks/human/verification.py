@@ -5,7 +5,9 @@ Duplicates caught after pose: an item lists in ``maybe_same_as`` the other track
 box overlaps its own by at least ``[verification] duplicate_overlap`` (:mod:`tasks.pose.duplicates`),
 and the annotator may answer ``same_as_track`` (:mod:`tasks.tracking.relations`: the export keeps
 the pose of the track named, so each physical object is exported once). The task id digests the
-poses only; an item without flags is written as before the flags existed.
+poses only; an item without flags is written as before the flags existed. When one pose is solved
+anew (a new task), the verdicts given earlier on poses that stay the same are carried in the items'
+``previous`` and count as given (:func:`held_verdicts`).
 
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
@@ -105,6 +107,43 @@ def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k
     return out
 
 
+def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.Table) -> dict[int, dict]:
+    """Per track of ``poses`` (rows of :func:`poses_to_verify`) without an answer under ``task_id``,
+    the verdict given on an earlier verification task of the clip on the same pose: the same model,
+    translation, rotation, scale and mirroring, so the same overlays (the task id digests all poses:
+    one pose solved anew makes a new task). The newest such verdict holds, unless it said "same
+    object as track N" (asked again: the other track may have changed). ``answers``: the clip's
+    verification answers in force over all tasks (rows of ``verification_labels``); ``tasks``: its
+    ``label_tasks`` rows."""
+    import json
+
+    from tasks.human.clicks_in_force import seen_then
+
+    under_id = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
+    shown: dict[tuple[str, int], list[tuple[object, dict]]] = {}
+    for row in tasks.to_pylist():
+        if row["kind"] == "verification":
+            for item in json.loads(row["document"])["items"]:
+                shown.setdefault((row["task_id"], int(item["track_id"])), []).append((row["created_at"], item))
+    now = {int(p["track_id"]): p for p in poses}
+    out = {}
+    for r in sorted(answers.to_pylist(), key=lambda r: r["ingested_at"], reverse=True):
+        t = int(r["track_id"])
+        if r["task_id"] == task_id or t in under_id or t in out or t not in now or (r["task_id"], t) not in shown:
+            continue
+        versions = sorted(shown[(r["task_id"], t)], key=lambda v: v[0])
+        if _same_pose(seen_then(versions, r["ingested_at"]), now[t]):
+            out[t] = r if r.get("same_as_track") is None else None
+    return {t: r for t, r in out.items() if r is not None}
+
+
+def _same_pose(item: dict, pose: dict) -> bool:
+    """Whether a verification item (its document) shows the pose ``pose`` (a row of :func:`ok_poses`)."""
+    p = item["pose"]
+    return item["cad_id"] == pose["cad_id"] and bool(p["is_mirrored"]) == bool(pose["is_mirrored"]) and all(
+        np.allclose(p[k], pose[k], rtol=0, atol=1e-9) for k in ("translation", "rotation", "scale"))
+
+
 def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id: str) -> StageOutput:
     """Write the verification task of the clip's solved poses; paused until each has a verdict.
     Writes ``verified_poses`` (the answered tracks)."""
@@ -117,7 +156,10 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
         return StageOutput(0, table_digest(empty), "no solved pose to verify")
     task_id = verification_task_id(clip, poses)
     rows = poses.to_pylist()
-    answers = {int(r["track_id"]): r for r in current_answers(wh, "verification", [clip], task_id).to_pylist()}
+    in_force = current_answers(wh, "verification", [clip])
+    answers = {int(r["track_id"]): r for r in in_force.to_pylist() if r["task_id"] == task_id}
+    tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
+    answers |= held_verdicts(task_id, rows, in_force, tasks)
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
     frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
