@@ -27,7 +27,7 @@ from collections.abc import Mapping
 
 import pyarrow as pa
 
-from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, seen_then, shown_boxes
+from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, item_boxes, item_versions, seen_then
 
 
 def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
@@ -44,17 +44,18 @@ def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[
     ``task_id``, the model chosen on an earlier task that still holds (see the module). ``now``:
     each track's boxes by timestamp; ``answers``: the clip's cad_selection answers in force over all
     tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
-    answered = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
+    rows = answers.to_pylist()
+    answered = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
     earlier: dict[int, list[dict]] = {}
-    for r in answers.to_pylist():
+    for r in rows:
         if r["task_id"] != task_id and int(r["track_id"]) in candidates and int(r["track_id"]) not in answered:
             earlier.setdefault(int(r["track_id"]), []).append(r)
-    shown = shown_boxes(tasks, "cad_selection")
+    shown = item_versions(tasks, "cad_selection")
     out = {}
     for t, rows in earlier.items():
         for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
             versions = shown.get((r["task_id"], t))
-            if not versions or not same_object(seen_then(versions, r["ingested_at"]), now.get(t, {})):
+            if not versions or not same_object(item_boxes(seen_then(versions, r["ingested_at"])), now.get(t, {})):
                 continue  # given on another object (or a task not on record): an older answer may hold
             if r["cad_id"] is not None and r["cad_id"] in candidates[t]:
                 out[t] = r["cad_id"]

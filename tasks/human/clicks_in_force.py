@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
+from typing import TypeVar
 
 import pyarrow as pa
 
@@ -34,6 +35,7 @@ SAME_OBJECT_IOU = 0.5
 """A clicked key-frame's box shown then and the track's box there now overlap at least this much."""
 
 Box = tuple[float, float, float, float]
+T = TypeVar("T")
 
 
 def box_iou(a: Box, b: Box) -> float:
@@ -53,24 +55,27 @@ def item_key(track_id: int, cad_id: str, keyframes: Sequence[KeyframeView]) -> s
     return f"{track_id}:{cad_id}:{views}"
 
 
-def shown_boxes(tasks: pa.Table, kind: str = "correspondences") -> dict[tuple[str, int], list[tuple[object, dict[int, Box]]]]:
+def item_versions(tasks: pa.Table, kind: str) -> dict[tuple[str, int], list[tuple[object, dict]]]:
     """Per (task id, track id) of the tasks of ``kind`` among ``tasks`` (``label_tasks`` rows with
     ``task_id``, ``kind``, ``created_at``, ``document``): each version of the task (its
-    ``created_at``) with the boxes it showed the track with, by key-frame timestamp; oldest first."""
-    shown: dict[tuple[str, int], list[tuple[object, dict[int, Box]]]] = {}
+    ``created_at``) with the item it showed for the track (its document); oldest first."""
+    shown: dict[tuple[str, int], list[tuple[object, dict]]] = {}
     for row in tasks.to_pylist():
-        if row["kind"] != kind:
-            continue
-        for item in json.loads(row["document"])["items"]:
-            boxes = {int(k["timestamp_us"]): tuple(k["box"]) for k in item["keyframes"] if k.get("box") is not None}
-            shown.setdefault((row["task_id"], int(item["track_id"])), []).append((row["created_at"], boxes))
+        if row["kind"] == kind:
+            for item in json.loads(row["document"])["items"]:
+                shown.setdefault((row["task_id"], int(item["track_id"])), []).append((row["created_at"], item))
     return {k: sorted(v, key=lambda x: x[0]) for k, v in shown.items()}
 
 
-def seen_then(versions: list[tuple[object, dict[int, Box]]], ingested_at) -> dict[int, Box]:
-    """The boxes of the task version an answer saw: the newest written before it was ingested
-    (the oldest when none was)."""
-    before = [boxes for at, boxes in versions if at <= ingested_at]
+def item_boxes(item: dict) -> dict[int, Box]:
+    """The boxes an item (its document) showed the track with, by key-frame timestamp."""
+    return {int(k["timestamp_us"]): tuple(k["box"]) for k in item["keyframes"] if k.get("box") is not None}
+
+
+def seen_then(versions: list[tuple[object, T]], ingested_at) -> T:
+    """What the task version an answer saw showed (``versions``: :func:`item_versions`'): the newest
+    written before the answer was ingested (the oldest when none was)."""
+    before = [shown for at, shown in versions if at <= ingested_at]
     return before[-1] if before else versions[0][1]
 
 
@@ -89,7 +94,7 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
     rows: dict[tuple[str, int], list[dict]] = {}
     for r in answers.to_pylist():
         rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
-    shown = shown_boxes(tasks)
+    shown = item_versions(tasks, "correspondences")
     out = {}
     for t, cad in chosen.items():
         if (task_id, t) in rows:
@@ -99,7 +104,7 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
                          reverse=True)
         for at, key in earlier:
             versions = shown.get(key)
-            then = seen_then(versions, at) if versions else {}
+            then = item_boxes(seen_then(versions, at)) if versions else {}
             if t in now and holds({int(r["timestamp_us"]) for r in rows[key]}, then, now[t]):
                 out[t] = to_answer(t, rows[key])
                 break

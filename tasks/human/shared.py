@@ -13,7 +13,7 @@ import numpy as np
 from schemas.dataclass_json import to_json
 from schemas.labels import KeyframeView
 from tasks.human.keyframes import evenly_spaced
-from tasks.human.labels import latest_task, latest_task_of_kind, parse_task, write_task
+from tasks.human.labels import latest_task_of_kind, parse_task, write_task
 from tasks.stage import StageOutput
 from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
 from warehouse import Warehouse
@@ -71,9 +71,8 @@ def write_task_once(wh: Warehouse, task) -> Path:
     file or ``label_tasks`` row). A task that comes back after another took its place (upstream
     went A, then B, then A again) is written anew: the newest task of a kind is the one in force
     (:func:`tasks.human.labels.latest_tasks`)."""
-    row = latest_task(wh, task.clip, task.task_id)
-    newest = latest_task_of_kind(wh, task.clip, task.kind)
-    if row is not None and newest is not None and newest["task_id"] == task.task_id:
+    row = latest_task_of_kind(wh, task.clip, task.kind)  # when it is this task, also its newest version
+    if row is not None and row["task_id"] == task.task_id:
         old = parse_task(row["document"], f"task {task.task_id}")
         same = dataclasses.replace(task, created_at=old.created_at)
         if to_json(same) == json.loads(row["document"]):

@@ -115,24 +115,18 @@ def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.
     object as track N" (asked again: the other track may have changed). ``answers``: the clip's
     verification answers in force over all tasks (rows of ``verification_labels``); ``tasks``: its
     ``label_tasks`` rows."""
-    import json
+    from tasks.human.clicks_in_force import item_versions, seen_then
 
-    from tasks.human.clicks_in_force import seen_then
-
-    under_id = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
-    shown: dict[tuple[str, int], list[tuple[object, dict]]] = {}
-    for row in tasks.to_pylist():
-        if row["kind"] == "verification":
-            for item in json.loads(row["document"])["items"]:
-                shown.setdefault((row["task_id"], int(item["track_id"])), []).append((row["created_at"], item))
+    rows = answers.to_pylist()
+    under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
+    shown = item_versions(tasks, "verification")
     now = {int(p["track_id"]): p for p in poses}
     out = {}
-    for r in sorted(answers.to_pylist(), key=lambda r: r["ingested_at"], reverse=True):
+    for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
         t = int(r["track_id"])
         if r["task_id"] == task_id or t in under_id or t in out or t not in now or (r["task_id"], t) not in shown:
             continue
-        versions = sorted(shown[(r["task_id"], t)], key=lambda v: v[0])
-        if _same_pose(seen_then(versions, r["ingested_at"]), now[t]):
+        if _same_pose(seen_then(shown[(r["task_id"], t)], r["ingested_at"]), now[t]):
             out[t] = r if r.get("same_as_track") is None else None
     return {t: r for t, r in out.items() if r is not None}
 
