@@ -382,6 +382,11 @@ class VerificationConfig:
                                          "(tasks/pose/duplicates.py); 0 flags every pair, 1 only a box wholly inside the other. "
                                          "On 8 benchmark clips, poses of one object overlapped by 0.50-1.0, of different "
                                          "objects (a chair at a table) by at most 0.17.", lo=0.0, hi=1.0)
+    carry_max_px: float = _opt(2.0, "A verdict given on an earlier task of the clip holds for the track's pose now (same model "
+                                    "and mirroring) while its overlay moved by at most this many pixels: the corners of the "
+                                    "posed model's box, on every key-frame either pose is shown on "
+                                    "(tasks/human/verdicts_in_force.py). Poses move a little when another pose of the clip "
+                                    "is solved (the floor they share). 0: only the identical pose.", lo=0.0, hi=1000.0)
 
 
 @dataclass(frozen=True)

@@ -224,8 +224,9 @@ class VerificationItem:
                                           "annotator says so with the answer's same_as_track.",
                                           default=(), omit_default=True, items=TRACK_ID)
     previous: VerificationAnswer | None = spec("The verdict given before: on this task, or on an earlier one on the same "
-                                               "pose (tasks.human.verification.held_verdicts); the item counts as answered. "
-                                               "Null: none.", default=None)
+                                               "model whose overlay has since moved by at most [verification] carry_max_px "
+                                               "(tasks.human.verdicts_in_force); the item counts as answered. Null: none.",
+                                               default=None)
 
 
 # ------------------------------------------------------------------------------ files

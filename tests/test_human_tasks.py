@@ -182,15 +182,26 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
 
     # track 1 is solved now (a new task): track 0's pose is the same, its verdict is carried; then
-    # track 0 is solved anew elsewhere: asked again
+    # track 0 moves a little (carried, unless only the identical pose may carry it), then far: asked again
     hwh.write("poses", CLIP, table_rows("poses", [pose, {**pose, "track_id": "1", "translation": [0.2, 0, 4]}]))
     third = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
     assert third.status == "paused" and "1 of 2 poses unanswered" in third.message
     assert _task(hwh, third.message)["task_id"] != task["task_id"]
     assert [it.get("previous") for it in _task(hwh, third.message)["items"]][0]["verdict"] == "accept"
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
-    hwh.write("poses", CLIP, table_rows("poses", [{**pose, "translation": [0.0, 0.1, 4]}, {**pose, "track_id": "1",
-                                                                                              "translation": [0.2, 0, 4]}]))
+
+    def moved(dy: float) -> None:
+        hwh.write("poses", CLIP, table_rows("poses", [{**pose, "translation": [0.0, dy, 4]}, {**pose, "track_id": "1",
+                                                                                                 "translation": [0.2, 0, 4]}]))
+
+    moved(0.002)  # 300 px * 2 mm / 3.5 m: its overlay moves by 0.17 px, within carry_max_px (2): the verdict holds
+    slight = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
+    assert "1 of 2 poses unanswered" in slight.message
+    assert _task(hwh, slight.message)["task_id"] != _task(hwh, third.message)["task_id"]
+    assert _task(hwh, slight.message)["items"][0]["previous"]["verdict"] == "accept"
+    exact = VerificationConfig(keyframes=3, carry_max_px=0.0)
+    assert "2 of 2 poses unanswered" in _run(hwh, "verification", lambda rid: verification_stage(hwh, exact, CLIP, rid)).message
+    moved(0.1)  # 8.6 px
     fourth = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
     assert "2 of 2 poses unanswered" in fourth.message and hwh.read("verified_poses", [CLIP]).num_rows == 0
 

@@ -6,14 +6,16 @@ box overlaps its own by at least ``[verification] duplicate_overlap`` (:mod:`tas
 and the annotator may answer ``same_as_track`` (:mod:`tasks.tracking.relations`: the export keeps
 the pose of the track named, so each physical object is exported once). The task id digests the
 poses only; an item without flags is written as before the flags existed. When one pose is solved
-anew (a new task), the verdicts given earlier on poses that stay the same are carried in the items'
-``previous`` and count as given (:func:`held_verdicts`).
+anew (a new task), the verdicts given earlier on poses whose overlays have not visibly moved are
+carried in the items' ``previous`` and count as given (:mod:`tasks.human.verdicts_in_force`).
 
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -25,6 +27,7 @@ from tasks.human.answers_in_force import current_answers
 from tasks.human.inputs import verification_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+from tasks.human.verdicts_in_force import FrameCamera, held_verdicts
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.relations import left_out_tracks
 from warehouse import Warehouse
@@ -51,13 +54,12 @@ def poses_to_verify(wh: Warehouse, clip: str) -> pa.Table:
     return poses.filter(pa.array([int(t) not in left_out for t in poses.column("track_id").to_pylist()], pa.bool_()))
 
 
-def flagged_duplicates(wh: Warehouse, poses: list[dict], threshold: float) -> dict[int, tuple[int, ...]]:
+def flagged_duplicates(poses: list[dict], extents: Mapping[str, Sequence[float]], threshold: float) -> dict[int, tuple[int, ...]]:
     """Per track of ``poses`` (rows of :func:`poses_to_verify`), the other tracks whose posed CAD
     box overlaps its own by at least ``threshold`` (:func:`tasks.pose.duplicates.duplicate_candidates`);
-    poses whose model has no extent are left out."""
+    poses whose model has no extent (``extents``: cad_id -> box size) are left out."""
     from tasks.pose.duplicates import duplicate_candidates, posed_box
 
-    extents = {r["cad_id"]: r["extent"] for r in wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist()}
     boxes = {int(p["track_id"]): posed_box(extents[p["cad_id"]], p["translation"], p["rotation"], p["scale"], p["is_mirrored"])
              for p in poses if extents.get(p["cad_id"]) is not None}
     return duplicate_candidates(boxes, threshold)
@@ -107,37 +109,6 @@ def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k
     return out
 
 
-def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.Table) -> dict[int, dict]:
-    """Per track of ``poses`` (rows of :func:`poses_to_verify`) without an answer under ``task_id``,
-    the verdict given on an earlier verification task of the clip on the same pose: the same model,
-    translation, rotation, scale and mirroring, so the same overlays (the task id digests all poses:
-    one pose solved anew makes a new task). The newest such verdict holds, unless it said "same
-    object as track N" (asked again: the other track may have changed). ``answers``: the clip's
-    verification answers in force over all tasks (rows of ``verification_labels``); ``tasks``: its
-    ``label_tasks`` rows."""
-    from tasks.human.clicks_in_force import item_versions, seen_then
-
-    rows = answers.to_pylist()
-    under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
-    shown = item_versions(tasks, "verification")
-    now = {int(p["track_id"]): p for p in poses}
-    out = {}
-    for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
-        t = int(r["track_id"])
-        if r["task_id"] == task_id or t in under_id or t in out or t not in now or (r["task_id"], t) not in shown:
-            continue
-        if _same_pose(seen_then(shown[(r["task_id"], t)], r["ingested_at"]), now[t]):
-            out[t] = r if r.get("same_as_track") is None else None
-    return {t: r for t, r in out.items() if r is not None}
-
-
-def _same_pose(item: dict, pose: dict) -> bool:
-    """Whether a verification item (its document) shows the pose ``pose`` (a row of :func:`ok_poses`)."""
-    p = item["pose"]
-    return item["cad_id"] == pose["cad_id"] and bool(p["is_mirrored"]) == bool(pose["is_mirrored"]) and all(
-        np.allclose(p[k], pose[k], rtol=0, atol=1e-9) for k in ("translation", "rotation", "scale"))
-
-
 def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id: str) -> StageOutput:
     """Write the verification task of the clip's solved poses; paused until each has a verdict.
     Writes ``verified_poses`` (the answered tracks)."""
@@ -153,11 +124,14 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     in_force = current_answers(wh, "verification", [clip])
     answers = {int(r["track_id"]): r for r in in_force.to_pylist() if r["task_id"] == task_id}
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
-    answers |= held_verdicts(task_id, rows, in_force, tasks)
+    extents = {r["cad_id"]: r["extent"] for r in wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist()}
+    frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=[
+        "timestamp_us", "frame_index", "image_path", "K", "world_to_camera_R", "world_to_camera_t"]).to_pylist()}
+    cameras = {ts: FrameCamera.of(f) for ts, f in frames.items()}
+    answers |= held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px)
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
-    frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
-    flagged = flagged_duplicates(wh, rows, cfg.duplicate_overlap)
+    flagged = flagged_duplicates(rows, extents, cfg.duplicate_overlap)
     items = []
     for p in rows:
         t = int(p["track_id"])

@@ -1,0 +1,123 @@
+"""Which verdict answers each item of a clip's verification task, when the task changed under it: a
+verdict given on an earlier task still holds while the overlay it was given on has not visibly moved.
+
+The verification task id is a digest of every pose of the clip, so one pose solved anew (a track
+clicked later, a rerun after another detector) makes a new task; and every floor-standing pose of
+the clip shares the floor height (:mod:`tasks.pose.support`), so the others move with it, most by
+millimetres. An item (a track, its pose, its key-frames) is answered by
+
+1. the answer in force under the task's own id (:func:`tasks.human.answers_in_force.current_answers`),
+   else
+2. its ``previous``: the newest verdict given on an earlier verification task of the clip for the
+   track of that id, carried by the stage (:func:`held_verdicts`) when
+
+   - it accepted or rejected (an answer "same object as track N" is asked again: the other track
+     may have changed),
+   - the earlier task showed the same model with the same mirroring, and
+   - the overlay moved by at most ``[verification] carry_max_px``: the corners of the posed model's
+     bounding box, projected into every key-frame either pose is shown on, lie at most that many
+     pixels from where they were (:func:`overlay_shift_px`), so the person would be shown what
+     they judged. 0 carries a verdict only to the identical pose.
+
+The stages, the web app's queue and the simulated annotators count both alike
+(:func:`tasks.human.answers_in_force.answered_items`). Frames: poses map the CAD model's canonical
+box (bbox-centred, metres) into the world (+Y up, :func:`cadestate.render.object_to_world`);
+cameras are world->camera (OpenCV) with pixel intrinsics, as in the ``frames`` table.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+
+from cadestate.geometry import project
+from tasks.pose.duplicates import posed_box
+
+CORNERS = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
+"""float64[8, 3]: the corners of a box of unit size about its centre."""
+
+
+@dataclass(frozen=True)
+class FrameCamera:
+    """One frame's camera: ``K`` float64[3, 3] pixel intrinsics; ``R`` float64[3, 3], ``t``
+    float64[3] world -> camera (X_cam = R X_world + t; OpenCV axes)."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @staticmethod
+    def of(row: Mapping) -> FrameCamera:
+        """From a ``frames`` row (``K``, ``world_to_camera_R``, ``world_to_camera_t``, row-major)."""
+        matrix = lambda key: np.asarray(row[key], np.float64).reshape(3, 3)  # noqa: E731
+        return FrameCamera(matrix("K"), matrix("world_to_camera_R"), np.asarray(row["world_to_camera_t"], np.float64))
+
+
+def box_corners(extent: Sequence[float], pose: Mapping) -> np.ndarray:
+    """float64[8, 3] world corners of a model of size ``extent`` (m, CAD axes) under ``pose``
+    (``translation``, ``rotation`` (w, x, y, z), ``scale``, ``is_mirrored``), in :data:`CORNERS`' order."""
+    box = posed_box(extent, pose["translation"], pose["rotation"], pose["scale"], bool(pose["is_mirrored"]))
+    return box.centre + (CORNERS * box.extent) @ box.axes.T
+
+
+def overlay_shift_px(extent: Sequence[float], then: Mapping, now: Mapping, cameras: Iterable[FrameCamera]) -> float:
+    """How far (px) the overlay of a model of size ``extent`` moves from pose ``then`` to pose
+    ``now`` (keys of :func:`box_corners`): the largest distance between a corner of its posed box
+    projected under each pose, over ``cameras``; infinite when a corner is behind a camera under
+    either pose (its overlay there is not a shifted copy), 0 without cameras."""
+    a, b = box_corners(extent, then), box_corners(extent, now)
+    shift = 0.0
+    for cam in cameras:
+        ua, za = project(cam.K, cam.R, cam.t, a)
+        ub, zb = project(cam.K, cam.R, cam.t, b)
+        if (za <= 0).any() or (zb <= 0).any():
+            return float("inf")
+        shift = max(shift, float(np.max(np.linalg.norm(ua - ub, axis=1))))
+    return shift
+
+
+def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.Table, extents: Mapping[str, Sequence[float]],
+                  cameras: Mapping[int, FrameCamera], max_px: float) -> dict[int, dict]:
+    """Per track of ``poses`` (``poses`` rows: ``track_id``, ``cad_id``, the pose,
+    ``keyframe_timestamps_us``) without an answer under ``task_id``, the verdict that still holds
+    (see the module), as its ``verification_labels`` row. ``answers``: the clip's verification
+    answers in force over all tasks; ``tasks``: its ``label_tasks`` rows; ``extents``: cad_id ->
+    the model's box size; ``cameras``: the clip's cameras by timestamp (µs); ``max_px``:
+    ``[verification] carry_max_px``. Tracks without are absent."""
+    from tasks.human.clicks_in_force import item_versions, seen_then
+
+    rows = answers.to_pylist()
+    under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
+    shown = item_versions(tasks, "verification")
+    now = {int(p["track_id"]): p for p in poses}
+    out: dict[int, dict | None] = {}
+    for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
+        t = int(r["track_id"])
+        if r["task_id"] == task_id or t in under_id or t in out or t not in now or (r["task_id"], t) not in shown:
+            continue
+        item = seen_then(shown[(r["task_id"], t)], r["ingested_at"])
+        if _still_shown(item, now[t], extents, cameras, max_px):
+            out[t] = r if r.get("same_as_track") is None else None
+    return {t: r for t, r in out.items() if r is not None}
+
+
+def _still_shown(item: dict, pose: dict, extents: Mapping[str, Sequence[float]], cameras: Mapping[int, FrameCamera],
+                 max_px: float) -> bool:
+    """Whether a verification item (its document) shows, within ``max_px``, the overlays ``pose``
+    (a ``poses`` row) would be shown with now: the same model and mirroring; the identical pose
+    when ``max_px`` is 0 or the model's size is unknown, else the overlay moved by at most
+    ``max_px`` on the item's key-frames and the pose's own."""
+    then = item["pose"]
+    if item["cad_id"] != pose["cad_id"] or bool(then["is_mirrored"]) != bool(pose["is_mirrored"]):
+        return False
+    if all(np.allclose(then[k], pose[k], rtol=0, atol=1e-9) for k in ("translation", "rotation", "scale")):
+        return True
+    extent = extents.get(pose["cad_id"])
+    if max_px <= 0 or extent is None:
+        return False
+    stamps = {int(k["timestamp_us"]) for k in item["keyframes"]} | {int(s) for s in pose["keyframe_timestamps_us"] or ()}
+    views = [cameras[s] for s in sorted(stamps) if s in cameras]
+    return bool(views) and overlay_shift_px(extent, then, pose, views) <= max_px

@@ -1,0 +1,64 @@
+"""How far an overlay moves between two poses (tasks/human/verdicts_in_force.py), on known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cadestate.geometry import quaternion_to_matrix
+from tasks.human.verdicts_in_force import CORNERS, FrameCamera, box_corners, overlay_shift_px
+
+F = 500.0
+K = np.array([[F, 0, 320], [0, F, 180], [0, 0, 1]])
+AHEAD = FrameCamera(K, np.eye(3), np.zeros(3))
+"""A camera at the origin looking along +Z (OpenCV: x right, y down)."""
+UNIT = (1.0, 1.0, 1.0)
+
+
+def _pose(translation=(0.0, 0.0, 5.0), rotation=(1.0, 0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0), mirrored=False) -> dict:
+    return {"translation": list(translation), "rotation": list(rotation), "scale": list(scale), "is_mirrored": mirrored}
+
+
+def test_box_corners_are_the_posed_box_corners():
+    yaw = math.radians(30)
+    pose = _pose((1.0, 2.0, 3.0), (math.cos(yaw / 2), 0.0, math.sin(yaw / 2), 0.0), (2.0, 1.0, 0.5))
+    extent = (0.4, 1.0, 2.0)
+    rotation = quaternion_to_matrix(np.array(pose["rotation"]))
+    expected = np.array(pose["translation"]) + (CORNERS * extent * pose["scale"]) @ rotation.T
+    np.testing.assert_allclose(box_corners(extent, pose), expected, atol=1e-12)
+
+
+def test_a_sideways_move_shifts_the_nearest_corners_most():
+    # 1 cm to the right: a corner at depth z moves F * 0.01 / z px; the near face is at z = 4.5
+    shift = overlay_shift_px(UNIT, _pose(), _pose((0.01, 0.0, 5.0)), [AHEAD])
+    assert shift == pytest.approx(F * 0.01 / 4.5, rel=1e-9)
+
+
+def test_a_move_along_one_cameras_view_ray_shows_on_another_camera():
+    # twice as far and twice as large, about the first camera's centre: every corner stays on its
+    # ray, so that camera sees the same overlay (the depth/scale ambiguity); a camera 1 m to the
+    # left sees the box centre move from x = 1 / 5 to 1 / 10 of the focal length, and its corners further
+    far = _pose((0.0, 0.0, 10.0), scale=(2.0, 2.0, 2.0))
+    assert overlay_shift_px(UNIT, _pose(), far, [AHEAD]) == pytest.approx(0.0, abs=1e-9)
+    left = FrameCamera(K, np.eye(3), np.array([1.0, 0.0, 0.0]))
+    assert overlay_shift_px(UNIT, _pose(), far, [left]) > F * (1 / 5 - 1 / 10)
+
+
+def test_the_largest_shift_over_the_cameras_counts():
+    # a camera 4 m nearer: the near face is 0.5 m away, the same 1 cm move shifts it F * 0.01 / 0.5 px there
+    near = FrameCamera(K, np.eye(3), np.array([0.0, 0.0, -4.0]))
+    assert overlay_shift_px(UNIT, _pose(), _pose((0.01, 0.0, 5.0)), [AHEAD, near]) == pytest.approx(F * 0.01 / 0.5, rel=1e-9)
+
+
+def test_no_move_no_shift_and_a_corner_behind_a_camera_is_not_a_shift():
+    assert overlay_shift_px(UNIT, _pose(), _pose(), [AHEAD]) == 0.0
+    assert overlay_shift_px(UNIT, _pose(), _pose((0.01, 0.0, 5.0)), []) == 0.0
+    assert overlay_shift_px(UNIT, _pose(), _pose((0.0, 0.0, 0.3)), [AHEAD]) == math.inf
+
+
+def test_corners_are_compared_one_to_one():
+    # mirroring flips the CAD x axis: a box's corner set is the same, but each corner takes its
+    # twin's place 1 m away (F * 1 / 4.5 px on the near face); the shift is of corners, not of the silhouette
+    assert overlay_shift_px(UNIT, _pose(), _pose(mirrored=True), [AHEAD]) == pytest.approx(F / 4.5, rel=1e-9)
