@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 
-from bench.dataset_yield import expected_objects, human_items, pose_yield, tracks_per_object
+from bench.dataset_yield import clip_interval, expected_objects, human_items, pose_yield, tracks_per_object
 from bench.eval_pose import PosedObject
 from bench.ignore import MIN_FRAMES_IN_VIEW, box_in_view, objects_in_view
 from bench.scoring import Outcome, score_all
@@ -42,6 +42,20 @@ def test_exactly_one_correct_pose_yields():
     assert d["human_items_per_posed_object"] == 5.0
     empty = pose_yield([], expected).as_dict(3)
     assert empty["yield_pct"] == 0.0 and empty["human_items_per_posed_object"] is None
+
+
+def test_the_interval_resamples_clips():
+    # every clip alike: every draw gives the same yield
+    assert clip_interval([(3, 4), (6, 8), (9, 12)]) == (75.0, 75.0)
+    # one clip all yielded, one none: draws of both alike (0 % or 100 %) fall in the tails
+    assert clip_interval([(2, 2), (0, 2)]) == (0.0, 100.0)
+    # clips without expected objects say nothing; one clip gives no interval
+    assert clip_interval([(5, 10), (0, 0)]) is None and clip_interval([]) is None
+    lo, hi = clip_interval([(9, 10), (7, 10), (10, 10), (4, 10), (8, 10), (6, 10)])
+    assert lo < 100 * 44 / 60 < hi and (lo, hi) == clip_interval([(9, 10), (7, 10), (10, 10), (4, 10), (8, 10), (6, 10)])
+    # a draw pools its clips' objects: a draw of both clips yields 1 of 100 (1 %), not the mean of their rates
+    # (50 %); half the draws are such, a quarter 0 %, a quarter 100 %, so the middle 40 % of them give 1 %
+    assert clip_interval([(1, 1), (0, 99)], level=0.4) == (1.0, 1.0)
 
 
 def _posed(track: str, cls: str, x: float, clip: str = "c") -> PosedObject:
