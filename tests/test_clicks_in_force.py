@@ -7,11 +7,20 @@ import pyarrow as pa
 import pytest
 
 from schemas.labels import KeyframeView
-from tasks.human.clicks_in_force import box_iou, held_clicks, holds, in_force_rows, item_key, seen_then, to_answer
+from tasks.human.clicks_in_force import (box_iou, held_clicks, holds, in_force_rows, item_key, newest_holding, seen_then,
+                                         to_answer)
 from schemas.dataclass_json import to_json
 
 T = [dt.datetime(2026, 12, 1, h, tzinfo=dt.timezone.utc) for h in range(6)]
 BOX = (0.1, 0.1, 0.5, 0.5)
+PLACES = [(0.1 + 0.2 * (t % 4), 0.1 + 0.4 * (t // 4), 0.25 + 0.2 * (t % 4), 0.45 + 0.4 * (t // 4)) for t in range(8)]
+"""Track t's box where each object stands (apart: IoU 0 with one another)."""
+ELSEWHERE = (0.6, 0.6, 0.9, 0.9)
+
+
+def _at(box: tuple) -> dict[int, list[tuple]]:
+    """A track's boxes now: ``box`` on both key-frames of :func:`_task`."""
+    return {10: [box], 20: [box]}
 
 
 def test_box_iou_of_ymin_xmin_ymax_xmax_boxes():
@@ -61,15 +70,29 @@ def test_the_answer_under_the_task_id_wins_else_the_newest_that_holds():
     answers = pa.Table.from_pylist(_rows("old1", 0, "a", T[1]) + _rows("old2", 0, "a", T[3], dx=0.1) + _rows("old3", 0, "b", T[4])
                                    + _rows("old1", 1, "a", T[1]) + _rows("now", 1, "a", T[5], dx=0.2)
                                    + _rows("old1", 2, "a", T[1]) + _rows("old2", 2, "a", T[3], dx=0.1))
-    tasks = pa.Table.from_pylist([_task("old1", T[0], {0: BOX, 1: BOX, 2: BOX}),
-                                  _task("old2", T[2], {0: BOX, 2: (0.6, 0.6, 0.9, 0.9)})])
-    now = {t: {10: [BOX], 20: [BOX]} for t in (0, 1, 2)}
+    tasks = pa.Table.from_pylist([_task("old1", T[0], {t: PLACES[t] for t in range(3)}),
+                                  _task("old2", T[2], {0: PLACES[0], 2: ELSEWHERE})])
+    now = {t: _at(PLACES[t]) for t in (0, 1, 2)}
     held = held_clicks("now", {0: "a", 1: "a", 2: "a", 3: "a"}, now, answers, tasks)
     assert held[0].keyframes[0].points[0].x == pytest.approx(0.3), "the newest that holds (old3 used another model)"
     assert held[1].keyframes[0].points[0].x == pytest.approx(0.4), "the answer to this task"
     assert held[2].keyframes[0].points[0].x == pytest.approx(0.2), "old2 showed another object there: old1's"
     assert 3 not in held
     assert set(held_clicks("now", {0: "a"}, {}, answers, tasks)) == set(), "a track gone: nothing holds"
+    # tracks remade and renumbered: clicks follow the object, whatever id its track has now
+    moved = held_clicks("now", {5: "a", 6: "a", 7: "a"}, {5: _at(PLACES[2]), 6: _at(ELSEWHERE), 7: {10: [ELSEWHERE]}},
+                        answers, tasks)
+    assert moved[5].track_id == 5 and moved[5].keyframes[0].points[0].x == pytest.approx(0.2), "old1's track 2"
+    assert moved[6].keyframes[0].points[0].x == pytest.approx(0.3), "old2's track 2, shown elsewhere"
+    assert 7 not in moved, "no box now on a clicked frame"
+
+
+def test_among_equally_new_answers_the_same_id_wins():
+    earlier = [(T[2], 1, "x"), (T[2], 0, "y"), (T[1], 0, "z")]
+    assert newest_holding(earlier, 0, lambda a: True) == "y", "one label file answered tracks 1 and 0"
+    assert newest_holding(earlier, 5, lambda a: True) == "x"
+    assert newest_holding(earlier, 1, lambda a: a != "x") == "y", "the newest that holds, of any id"
+    assert newest_holding(earlier, 0, lambda a: a == "z") == "z" and newest_holding(earlier, 0, lambda a: False) is None
 
 
 def test_carried_clicks_give_the_rows_they_came_from():
@@ -82,6 +105,8 @@ def test_carried_clicks_give_the_rows_they_came_from():
 
 
 def test_a_choice_holds_on_the_same_object_with_its_model_among_the_candidates():
+    import json
+
     from tasks.human.choices_in_force import held_choices, same_object
 
     assert same_object({10: BOX, 20: BOX}, {10: [BOX]}), "a frame the track left says nothing"
@@ -91,11 +116,11 @@ def test_a_choice_holds_on_the_same_object_with_its_model_among_the_candidates()
     answers = pa.Table.from_pylist([sel("old", 0, "a", T[1]), sel("old", 1, "a", T[1]), sel("old", 2, None, T[1]),
                                     sel("old", 3, "a", T[1]), sel("old2", 3, "b", T[3]), sel("now", 4, "b", T[4]),
                                     sel("old", 4, "a", T[1])])
-    items = [{"track_id": t, "keyframes": [{"timestamp_us": 10, "box": list(BOX)}]} for t in range(5)]
-    import json
-
+    items = [{"track_id": t, "keyframes": [{"timestamp_us": 10, "box": list(PLACES[t])}]} for t in range(5)]
     tasks = pa.Table.from_pylist([{"task_id": k, "kind": "cad_selection", "created_at": T[0], "document": json.dumps({"items": items})}
                                   for k in ("old", "old2")])
-    now = {t: {10: [BOX]} for t in range(5)}
+    now = {t: {10: [PLACES[t]]} for t in range(5)}
     held = held_choices("now", {0: {"a"}, 1: {"b"}, 2: {"a"}, 3: {"a"}, 4: {"a"}}, now, answers, tasks)
     assert held == {0: "a"}, "1: model gone; 2: none fits; 3: the newest said b, gone; 4: answered under the id"
+    # tracks remade and renumbered: the choice follows the object
+    assert held_choices("now", {7: {"a"}, 8: {"a"}}, {7: {10: [PLACES[0]]}, 8: {10: [ELSEWHERE]}}, answers, tasks) == {7: "a"}

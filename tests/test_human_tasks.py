@@ -163,6 +163,9 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(path)
     hwh.write("frames", CLIP, pa.Table.from_pylist(frames, schema=TABLES["frames"].schema))
+    models = hwh.read("cad_models", ["lib"]).to_pylist()
+    hwh.write("cad_models", "lib", pa.Table.from_pylist([{**m, "extent": [1.0, 1.0, 1.0]} for m in models],
+                                                        schema=TABLES["cad_models"].schema))
     pose = {"clip": CLIP, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair", "status": "ok", "translation": [0.0, 0, 4],
             "rotation": [1.0, 0, 0, 0], "scale": [1.0, 1, 1], "is_mirrored": False, "keyframe_timestamps_us": STAMPS[:8]}
     hwh.write("poses", CLIP, table_rows("poses", [pose, {**pose, "track_id": "1", "status": "high_residual"}]))
@@ -181,29 +184,35 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     assert done.status == "completed" and "1 of 1 poses accepted" in done.message
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
 
-    # track 1 is solved now (a new task): track 0's pose is the same, its verdict is carried; then
-    # track 0 moves a little (carried, unless only the identical pose may carry it), then far: asked again
-    hwh.write("poses", CLIP, table_rows("poses", [pose, {**pose, "track_id": "1", "translation": [0.2, 0, 4]}]))
-    third = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
-    assert third.status == "paused" and "1 of 2 poses unanswered" in third.message
-    assert _task(hwh, third.message)["task_id"] != task["task_id"]
-    assert [it.get("previous") for it in _task(hwh, third.message)["items"]][0]["verdict"] == "accept"
+    # track 1 is solved now, 1.5 m aside (a new task): track 0's pose is the same, its verdict is carried
+    def posed(*placed: tuple[str, list[float]]) -> None:
+        hwh.write("poses", CLIP, table_rows("poses", [{**pose, "track_id": t, "translation": xyz} for t, xyz in placed]))
+
+    def verify(config: VerificationConfig = cfg) -> tuple[str, dict]:
+        run = _run(hwh, "verification", lambda rid: verification_stage(hwh, config, CLIP, rid))
+        task = _task(hwh, run.message)
+        return run.message, {it["track_id"]: (it.get("previous") or {}).get("verdict") for it in task["items"]}
+
+    posed(("0", [0.0, 0, 4]), ("1", [1.5, 0, 4]))
+    message, carried = verify()
+    assert "1 of 2 poses unanswered" in message and carried == {0: "accept", 1: None}
+    assert _task(hwh, message)["task_id"] != task["task_id"]
     assert hwh.read("verified_poses", [CLIP]).select(["track_id", "accepted"]).to_pylist() == [{"track_id": "0", "accepted": True}]
-
-    def moved(dy: float) -> None:
-        hwh.write("poses", CLIP, table_rows("poses", [{**pose, "translation": [0.0, dy, 4]}, {**pose, "track_id": "1",
-                                                                                                 "translation": [0.2, 0, 4]}]))
-
-    moved(0.002)  # 300 px * 2 mm / 3.5 m: its overlay moves by 0.17 px, within carry_max_px (2): the verdict holds
-    slight = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
-    assert "1 of 2 poses unanswered" in slight.message
-    assert _task(hwh, slight.message)["task_id"] != _task(hwh, third.message)["task_id"]
-    assert _task(hwh, slight.message)["items"][0]["previous"]["verdict"] == "accept"
-    exact = VerificationConfig(keyframes=3, carry_max_px=0.0)
-    assert "2 of 2 poses unanswered" in _run(hwh, "verification", lambda rid: verification_stage(hwh, exact, CLIP, rid)).message
-    moved(0.1)  # 8.6 px
-    fourth = _run(hwh, "verification", lambda rid: verification_stage(hwh, cfg, CLIP, rid))
-    assert "2 of 2 poses unanswered" in fourth.message and hwh.read("verified_poses", [CLIP]).num_rows == 0
+    # track 0 moves 2 mm: 300 px * 2 mm / 3.5 m, its overlay moves by 0.17 px, within carry_max_px (2): the verdict holds
+    posed(("0", [0.0, 0.002, 4]), ("1", [1.5, 0, 4]))
+    assert verify()[1] == {0: "accept", 1: None}
+    assert verify(VerificationConfig(keyframes=3, carry_max_px=0.0))[1] == {0: None, 1: None}, "only the identical pose"
+    # tracks renumbered: the verdict follows the pose, whatever its track's id
+    posed(("0", [1.5, 0, 4]), ("1", [0.0, 0.002, 4]))
+    assert verify()[1] == {0: None, 1: "accept"}
+    # track 1 solved where track 0 stands: both flagged as maybe one object, a person resolves it
+    posed(("0", [0.0, 0.002, 4]), ("1", [0.2, 0, 4]))
+    message, carried = verify()
+    assert carried == {0: None, 1: None} and _task(hwh, message)["items"][0]["maybe_same_as"] == [1]
+    posed(("0", [0.0, 0.1, 4]), ("1", [1.5, 0, 4]))  # 8.6 px
+    message, carried = verify()
+    assert carried == {0: None, 1: None} and "2 of 2 poses unanswered" in message
+    assert hwh.read("verified_poses", [CLIP]).num_rows == 0
 
 
 # ------------------------------------------------------------------------------ clicks in force
@@ -279,6 +288,29 @@ def test_clicks_come_back_with_the_model_they_were_given_on(hwh, tmp_path):
     assert back.status == "completed", back.message
     assert latest_task_of_kind(hwh, CLIP, "correspondences")["task_id"] == first["task_id"]
     assert _waiting(hwh) == [] and _clicked(hwh) == before
+
+
+def test_answers_follow_their_object_when_tracks_are_renumbered(hwh, tmp_path):
+    """Tracking reruns: the two chairs (apart now) swap ids and retrieval scores them anew (a new
+    cad_selection task). Each chair keeps its model and its clicks under its new id, nobody is asked
+    for them, and pose reads each chair's clicks under its new id; the table's "none fits" is asked again."""
+    apart = {0: [0.1, 0.05, 0.5, 0.35], 1: [0.1, 0.6, 0.5, 0.9], 2: [0.55, 0.3, 0.95, 0.7]}
+    dets = hwh.read("detections", [CLIP]).to_pylist()
+    hwh.write("detections", CLIP, pa.Table.from_pylist([{**d, "box": apart[d["det_id"] // 1000]} for d in dets],
+                                                       schema=TABLES["detections"].schema))
+    _answered_correspondences(hwh, tmp_path)
+    before = _clicked(hwh)
+    swap = {0: 1, 1: 0, 2: 2}
+    for table, score in (("track_detections", None), ("tracks", None), ("cad_candidates", 0.9)):
+        rows = [{**r, "track_id": swap[int(r["track_id"])], **({"score": r["score"] * score} if score else {})}
+                for r in hwh.read(table, [CLIP]).to_pylist()]
+        hwh.write(table, CLIP, pa.Table.from_pylist(rows, schema=TABLES[table].schema))
+    chosen = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    assert "1 of 3 tracks unanswered" in chosen.message, chosen.message
+    assert selected_models(hwh, CLIP) == {0: "lib.chair_b", 1: "lib.chair_a"}
+    clicked = _corr(hwh)
+    assert clicked.status == "completed", clicked.message
+    assert _waiting(hwh) == [] and _clicked(hwh) == {"0": before["1"], "1": before["0"]}
 
 
 def test_clicks_hold_only_for_the_object_they_were_given_on(hwh, tmp_path):

@@ -6,15 +6,17 @@ task. An item (a track, its key-frames with the track's box there, its candidate
 
 1. the answer in force under the task's own id (:func:`tasks.human.answers_in_force.current_answers`),
    else
-2. its ``previous``: the newest choice given on an earlier cad_selection task of the clip for the
-   track of that id, carried by the stage (:func:`held_choices`) when
+2. its ``previous``: the newest choice given on an earlier cad_selection task of the clip on the
+   same object, whatever id its track had then (a detector or tracking change remakes the tracks
+   and renumbers them), carried by the stage (:func:`held_choices`) when
 
    - it chose a model (an answer of "none fits", or "a fragment of track N", is asked again: the
      candidates, or the other track, may have changed),
    - that model is among the item's candidates now, and
    - it speaks of the same object: on every key-frame the earlier task showed a box on where the
      track has boxes now, one of them overlaps it (IoU >= :data:`tasks.human.clicks_in_force.SAME_OBJECT_IOU`),
-     and there is at least one such key-frame.
+     and there is at least one such key-frame. The newest answer on the object decides (of equally
+     new ones, from one label file, the one given on a track of the same id).
 
 The stages, the web app's queue and the simulated annotators count both alike
 (:func:`tasks.human.answers_in_force.answered_items`), and :func:`tasks.human.cad_selection.selected_models`
@@ -27,7 +29,7 @@ from collections.abc import Mapping
 
 import pyarrow as pa
 
-from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, item_boxes, item_versions, seen_then
+from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, item_boxes, item_versions, newest_holding, seen_then
 
 
 def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
@@ -46,18 +48,16 @@ def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[
     tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
     rows = answers.to_pylist()
     answered = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
-    earlier: dict[int, list[dict]] = {}
-    for r in rows:
-        if r["task_id"] != task_id and int(r["track_id"]) in candidates and int(r["track_id"]) not in answered:
-            earlier.setdefault(int(r["track_id"]), []).append(r)
     shown = item_versions(tasks, "cad_selection")
+    earlier = [(r["ingested_at"], int(r["track_id"]), (r, item_boxes(seen_then(shown[(r["task_id"], int(r["track_id"]))],
+                                                                              r["ingested_at"]))))
+               for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
+               if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
     out = {}
-    for t, rows in earlier.items():
-        for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
-            versions = shown.get((r["task_id"], t))
-            if not versions or not same_object(item_boxes(seen_then(versions, r["ingested_at"])), now.get(t, {})):
-                continue  # given on another object (or a task not on record): an older answer may hold
-            if r["cad_id"] is not None and r["cad_id"] in candidates[t]:
-                out[t] = r["cad_id"]
-            break  # the newest answer on this object decides
+    for t, cads in candidates.items():
+        if t in answered:
+            continue
+        newest = newest_holding(earlier, t, lambda e: same_object(e[1], now.get(t, {})))  # it decides
+        if newest is not None and newest[0]["cad_id"] is not None and newest[0]["cad_id"] in cads:
+            out[t] = newest[0]["cad_id"]
     return out

@@ -11,12 +11,13 @@ An item (a track, its chosen CAD model, its key-frames with the track's box ther
 
 The task id names every item's track, model, key-frames and boxes
 (:func:`item_key`), so an answer under it was given on what the task shows now. Clicks of an
-earlier task hold when they use the item's model and speak of the same object: tracks are made
-anew when detection or tracking reruns, and a remade track may carry an id that meant another
-object (four identical dining chairs get the same model, so one chair's clicks must not pose
-another). On every clicked key-frame where the earlier task showed a box, the track of that id now
-has a box overlapping it (IoU >= :data:`SAME_OBJECT_IOU`). Going back to an earlier state (a
-detector A, then B, then A again) finds A's task id and A's answers in force again.
+earlier task hold when they use the item's model and speak of the same object, whatever id its
+track had then: tracks are made anew when detection or tracking reruns, and a remade track may
+carry an id that meant another object, or another id (four identical dining chairs get the same
+model, so one chair's clicks must not pose another). On every clicked key-frame where the earlier
+task showed a box, the track now has a box overlapping it (IoU >= :data:`SAME_OBJECT_IOU`), and
+there is at least one such key-frame. Going back to an earlier state (a detector A, then B, then A
+again) finds A's task id and A's answers in force again.
 
 Boxes: (ymin, xmin, ymax, xmax), normalised by the image's height and width (``detections.box``).
 """
@@ -24,7 +25,7 @@ Boxes: (ymin, xmin, ymax, xmax), normalised by the image's height and width (``d
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TypeVar
 
 import pyarrow as pa
@@ -79,6 +80,19 @@ def seen_then(versions: list[tuple[object, T]], ingested_at) -> T:
     return before[-1] if before else versions[0][1]
 
 
+def newest_holding(earlier: Sequence[tuple[object, int, T]], track: int, test: Callable[[T], bool]) -> T | None:
+    """The answer an item of ``track`` takes from ``earlier`` ((ingested_at, track id, answer),
+    newest first): the newest for which ``test`` holds; among equally new ones (one label file
+    answers many tracks), the one given on a track of the same id. None when none holds."""
+    best: tuple[object, int, T] | None = None
+    for entry in earlier:
+        if best is not None and entry[0] != best[0]:
+            break
+        if (best is None or entry[1] == track) and test(entry[2]):
+            best = entry
+    return None if best is None else best[2]
+
+
 def holds(clicked: set[int], then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
     """Whether clicks on the key-frames ``clicked`` (timestamps), given while the task showed the
     boxes ``then``, speak of the track whose boxes are ``now`` (timestamp -> its boxes there)."""
@@ -88,26 +102,25 @@ def holds(clicked: set[int], then: Mapping[int, Box], now: Mapping[int, list[Box
 def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mapping[int, list[Box]]], answers: pa.Table,
                 tasks: pa.Table) -> dict[int, CorrespondenceAnswer]:
     """Per track of ``chosen`` (track -> chosen cad_id), the clicks that answer its item of task
-    ``task_id`` (see the module): its answer under that id, else the newest answer of another task
-    that holds. ``now``: each track's boxes by timestamp; ``answers``: the clip's correspondence
+    ``task_id`` (see the module): its answer under that id, else the newest answer of another task,
+    on a track of any id, that holds. ``now``: each track's boxes by timestamp; ``answers``: the clip's correspondence
     answers in force over all tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
     rows: dict[tuple[str, int], list[dict]] = {}
     for r in answers.to_pylist():
         rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
     shown = item_versions(tasks, "correspondences")
+    earlier = [(at, key[1], (rows[key], {int(r["timestamp_us"]) for r in rows[key]}, item_boxes(seen_then(shown[key], at))))
+               for at, key in sorted(((rs[0]["ingested_at"], key) for key, rs in rows.items()
+                                      if key[0] != task_id and key in shown), reverse=True)]
     out = {}
     for t, cad in chosen.items():
         if (task_id, t) in rows:
             out[t] = to_answer(t, rows[(task_id, t)])
             continue
-        earlier = sorted(((rs[0]["ingested_at"], k) for k, rs in rows.items() if k[1] == t and rs[0]["cad_id"] == cad),
-                         reverse=True)
-        for at, key in earlier:
-            versions = shown.get(key)
-            then = item_boxes(seen_then(versions, at)) if versions else {}
-            if t in now and holds({int(r["timestamp_us"]) for r in rows[key]}, then, now[t]):
-                out[t] = to_answer(t, rows[key])
-                break
+        found = newest_holding(earlier, t, lambda e: e[0][0]["cad_id"] == cad and bool(e[1] & e[2].keys())
+                               and holds(e[1], e[2], now.get(t, {})))
+        if found is not None:
+            out[t] = to_answer(t, found[0])
     return out
 
 

@@ -8,16 +8,20 @@ millimetres. An item (a track, its pose, its key-frames) is answered by
 
 1. the answer in force under the task's own id (:func:`tasks.human.answers_in_force.current_answers`),
    else
-2. its ``previous``: the newest verdict given on an earlier verification task of the clip for the
-   track of that id, carried by the stage (:func:`held_verdicts`) when
+2. its ``previous``: the newest verdict given on an earlier verification task of the clip on the
+   pose the item shows, whatever id its track had then (tracks are remade and renumbered when
+   detection or tracking reruns), carried by the stage (:func:`held_verdicts`) when
 
+   - the earlier task showed the same model with the same mirroring, and the overlay moved by at
+     most ``[verification] carry_max_px``: the corners of the posed model's bounding box, projected
+     into every key-frame either pose is shown on, lie at most that many pixels from where they
+     were (:func:`overlay_shift_px`), so the person would be shown what they judged (0 carries a
+     verdict only to the identical pose); the newest such verdict decides (of equally new ones,
+     from one label file, the one given on a track of the same id):
    - it accepted or rejected (an answer "same object as track N" is asked again: the other track
-     may have changed),
-   - the earlier task showed the same model with the same mirroring, and
-   - the overlay moved by at most ``[verification] carry_max_px``: the corners of the posed model's
-     bounding box, projected into every key-frame either pose is shown on, lie at most that many
-     pixels from where they were (:func:`overlay_shift_px`), so the person would be shown what
-     they judged. 0 carries a verdict only to the identical pose.
+     may have changed), and
+   - the item is not flagged "may be the same object as track N" (the stage asks those: a person
+     resolves the flag).
 
 The stages, the web app's queue and the simulated annotators count both alike
 (:func:`tasks.human.answers_in_force.answered_items`). Frames: poses map the CAD model's canonical
@@ -87,21 +91,23 @@ def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.
     answers in force over all tasks; ``tasks``: its ``label_tasks`` rows; ``extents``: cad_id ->
     the model's box size; ``cameras``: the clip's cameras by timestamp (µs); ``max_px``:
     ``[verification] carry_max_px``. Tracks without are absent."""
-    from tasks.human.clicks_in_force import item_versions, seen_then
+    from tasks.human.clicks_in_force import item_versions, newest_holding, seen_then
 
     rows = answers.to_pylist()
     under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
     shown = item_versions(tasks, "verification")
-    now = {int(p["track_id"]): p for p in poses}
-    out: dict[int, dict | None] = {}
-    for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
-        t = int(r["track_id"])
-        if r["task_id"] == task_id or t in under_id or t in out or t not in now or (r["task_id"], t) not in shown:
+    earlier = [(r["ingested_at"], int(r["track_id"]), (r, seen_then(shown[(r["task_id"], int(r["track_id"]))], r["ingested_at"])))
+               for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
+               if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
+    out = {}
+    for pose in poses:
+        t = int(pose["track_id"])
+        if t in under_id:
             continue
-        item = seen_then(shown[(r["task_id"], t)], r["ingested_at"])
-        if _still_shown(item, now[t], extents, cameras, max_px):
-            out[t] = r if r.get("same_as_track") is None else None
-    return {t: r for t, r in out.items() if r is not None}
+        newest = newest_holding(earlier, t, lambda e: _still_shown(e[1], pose, extents, cameras, max_px))  # it decides
+        if newest is not None and newest[0].get("same_as_track") is None:
+            out[t] = newest[0]
+    return out
 
 
 def _still_shown(item: dict, pose: dict, extents: Mapping[str, Sequence[float]], cameras: Mapping[int, FrameCamera],

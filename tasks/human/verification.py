@@ -7,7 +7,8 @@ and the annotator may answer ``same_as_track`` (:mod:`tasks.tracking.relations`:
 the pose of the track named, so each physical object is exported once). The task id digests the
 poses only; an item without flags is written as before the flags existed. When one pose is solved
 anew (a new task), the verdicts given earlier on poses whose overlays have not visibly moved are
-carried in the items' ``previous`` and count as given (:mod:`tasks.human.verdicts_in_force`).
+carried in the items' ``previous`` and count as given (:mod:`tasks.human.verdicts_in_force`), but
+on items flagged as maybe duplicates.
 
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
@@ -128,10 +129,11 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=[
         "timestamp_us", "frame_index", "image_path", "K", "world_to_camera_R", "world_to_camera_t"]).to_pylist()}
     cameras = {ts: FrameCamera.of(f) for ts, f in frames.items()}
-    answers |= held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px)
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
     flagged = flagged_duplicates(rows, extents, cfg.duplicate_overlap)
+    answers |= held_verdicts(task_id, [p for p in rows if int(p["track_id"]) not in flagged], in_force, tasks, extents,
+                             cameras, cfg.carry_max_px)
     items = []
     for p in rows:
         t = int(p["track_id"])
