@@ -103,8 +103,9 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
                 tasks: pa.Table) -> dict[int, CorrespondenceAnswer]:
     """Per track of ``chosen`` (track -> chosen cad_id), the clicks that answer its item of task
     ``task_id`` (see the module): its answer under that id, else the newest answer of another task,
-    on a track of any id, that holds. ``now``: each track's boxes by timestamp; ``answers``: the clip's correspondence
-    answers in force over all tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
+    on a track of any id, that holds. ``now``: each track's boxes by timestamp; ``answers``: the
+    clip's correspondence answers in force over all tasks; ``tasks``: its ``label_tasks`` rows.
+    Tracks without are absent."""
     rows: dict[tuple[str, int], list[dict]] = {}
     for r in answers.to_pylist():
         rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)

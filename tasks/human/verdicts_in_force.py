@@ -10,14 +10,14 @@ millimetres. An item (a track, its pose, its key-frames) is answered by
    else
 2. its ``previous``: the newest verdict given on an earlier verification task of the clip on the
    pose the item shows, whatever id its track had then (tracks are remade and renumbered when
-   detection or tracking reruns), carried by the stage (:func:`held_verdicts`) when
+   detection or tracking reruns). "On the pose the item shows": the earlier task showed the same
+   model with the same mirroring, and the overlay moved by at most ``[verification] carry_max_px``:
+   the corners of the posed model's bounding box, projected into every key-frame either pose is
+   shown on, lie at most that many pixels from where they were (:func:`overlay_shift_px`), so the
+   person would be shown what they judged (0 carries a verdict only to the identical pose). The
+   newest such verdict decides (of equally new ones, from one label file, the one given on a track
+   of the same id), and the stage carries it (:func:`held_verdicts`) when
 
-   - the earlier task showed the same model with the same mirroring, and the overlay moved by at
-     most ``[verification] carry_max_px``: the corners of the posed model's bounding box, projected
-     into every key-frame either pose is shown on, lie at most that many pixels from where they
-     were (:func:`overlay_shift_px`), so the person would be shown what they judged (0 carries a
-     verdict only to the identical pose); the newest such verdict decides (of equally new ones,
-     from one label file, the one given on a track of the same id):
    - it accepted or rejected (an answer "same object as track N" is asked again: the other track
      may have changed), and
    - the item is not flagged "may be the same object as track N" (the stage asks those: a person
