@@ -46,16 +46,38 @@ def test_exactly_one_correct_pose_yields():
 
 def test_the_interval_resamples_clips():
     # every clip alike: every draw gives the same yield
-    assert clip_interval([(3, 4), (6, 8), (9, 12)]) == (75.0, 75.0)
+    assert clip_interval([(3, 4), (6, 8), (9, 12), (3, 4), (6, 8)]) == (75.0, 75.0)
     # one clip all yielded, one none: draws of both alike (0 % or 100 %) fall in the tails
-    assert clip_interval([(2, 2), (0, 2)]) == (0.0, 100.0)
-    # clips without expected objects say nothing; one clip gives no interval
-    assert clip_interval([(5, 10), (0, 0)]) is None and clip_interval([]) is None
+    assert clip_interval([(2, 2), (0, 2)], min_clips=2) == (0.0, 100.0)
+    # clips without expected objects say nothing; fewer than MIN_CLIPS (5) give no interval
+    assert clip_interval([(5, 10), (0, 0), (5, 10), (5, 10), (5, 10)]) is None and clip_interval([]) is None
+    assert clip_interval([(5, 10), (4, 10)]) is None and clip_interval([(5, 10)], min_clips=1) is None
     lo, hi = clip_interval([(9, 10), (7, 10), (10, 10), (4, 10), (8, 10), (6, 10)])
     assert lo < 100 * 44 / 60 < hi and (lo, hi) == clip_interval([(9, 10), (7, 10), (10, 10), (4, 10), (8, 10), (6, 10)])
     # a draw pools its clips' objects: a draw of both clips yields 1 of 100 (1 %), not the mean of their rates
     # (50 %); half the draws are such, a quarter 0 %, a quarter 100 %, so the middle 40 % of them give 1 %
-    assert clip_interval([(1, 1), (0, 99)], level=0.4) == (1.0, 1.0)
+    assert clip_interval([(1, 1), (0, 99)], level=0.4, min_clips=2) == (1.0, 1.0)
+
+
+def test_the_report_line_gives_the_interval_where_there_is_one():
+    from bench.dataset_yield import yield_markdown
+    from bench.loss_funnel import FATES
+
+    mode = {"yield_pct": 87.5, "yielded_objects": 49, "expected_objects": 56, "duplicates": 0,
+            "duplicates_pct_of_accepted": 0.0, "accepted_poses": 53, "false_annotations": 2, "on_other_objects": 2,
+            "human_items_per_posed_object": 4.53}
+    split = {"clips": 9, "target_pct": 60, "tracks_per_object": 1.08, "expected_objects_found": 53,
+             "human_items_total": 222,
+             "fates": {f: 0 for f in FATES}, "modes": {"scan2cad-class": mode}}
+    result = {"headline_mode": "scan2cad-class", "min_frames_in_view": 3,
+              "splits": {"train": {**split, "interval_pct": (79.2, 94.7)},
+                         "val": {**split, "target_pct": None, "interval_pct": None}}}
+    lines = yield_markdown(result)
+    train = next(line for line in lines if line.startswith("**train**"))
+    val = next(line for line in lines if line.startswith("**val**"))
+    assert train.startswith("**train** (9 clips): yield **87.5 %** (target 60 %; 95 % interval 79.2-94.7 % over resampled "
+                            "clips): 49 of 56")
+    assert val.startswith("**val** (9 clips): yield **87.5 %**: 49 of 56")
 
 
 def _posed(track: str, cls: str, x: float, clip: str = "c") -> PosedObject:
