@@ -46,7 +46,8 @@ YIELD_TARGETS = {"train": 0.6, "val": 0.8}
 """Issue 18's yield targets per split (val clips get the manual-track task, so more is expected)."""
 
 RESAMPLES = 2000
-"""Bootstrap resamples of :func:`clip_interval` (its bounds move by about 0.5 points between seeds)."""
+"""Bootstrap resamples of :func:`clip_interval`: over seeds 0-5 its bounds moved by under 1 point (the
+default benchmark's 87.5 %: 78.8-79.6 % to 94.6-94.8 %)."""
 
 MIN_CLIPS = 5
 """Fewer clips with expected objects give no interval: resampling 2 or 3 clips gives 3 to 10
