@@ -57,6 +57,9 @@ def test_the_interval_resamples_clips():
     # a draw pools its clips' objects: a draw of both clips yields 1 of 100 (1 %), not the mean of their rates
     # (50 %); half the draws are such, a quarter 0 %, a quarter 100 %, so the middle 40 % of them give 1 %
     assert clip_interval([(1, 1), (0, 99)], level=0.4, min_clips=2) == (1.0, 1.0)
+    # within each split: two clips of all, two of none, resampled apart, always give half
+    assert clip_interval([(1, 1), (1, 1), (0, 1), (0, 1)], min_clips=2, strata=["a", "a", "b", "b"]) == (50.0, 50.0)
+    assert clip_interval([(1, 1), (1, 1), (0, 1), (0, 1)], min_clips=2) == (0.0, 100.0)
 
 
 def test_the_report_line_gives_the_interval_where_there_is_one():

@@ -220,7 +220,7 @@ def _in_view(clip) -> set[str]:
     return out
 
 
-def test_bench_report_leads_with_the_yield(bench3, tmp_path):
+def test_bench_report_leads_with_the_yield(bench3, tmp_path, monkeypatch):
     """The yield line of `cadestate bench report` against a hand count: clip 2 `val`, the others `train`; clip 0
     gets two more accepted poses, the pose of its first posed object on the track of the next
     object (a duplicate in 3D for `scan2cad-class`) and one 100 m away on no track (a false
@@ -282,3 +282,16 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path):
     assert pose_row.split(" | ")[4:6] == ["0", "1"]
     assert lines.index(train) < lines.index("## Dataset statistics (as in the paper's Table 2)")
     assert (bench / "report.md").read_text().strip() == result.stdout.strip()
+    # the interval resamples these clips' counts, within each split (too few clips for one in the report)
+    import bench.dataset_yield as dy
+
+    monkeypatch.setattr(dy, "MIN_CLIPS", 2)
+    counts = dict(zip(names, [(train_yield - len(posed[1]), len(in_view[0])), (len(posed[1]), len(in_view[1])),
+                              (len(posed[2]), len(in_view[2]))]))
+    splits = dict(zip(names, ("train", "train", "val")))
+    got = dy.dataset_yield(bench, wh)["splits"]
+    assert got["all"]["interval_pct"] == dy.clip_interval([counts[n] for n in sorted(names)], min_clips=2,
+                                                          strata=[splits[n] for n in sorted(names)])
+    assert got["train"]["interval_pct"] == dy.clip_interval([counts[n] for n in sorted(names) if splits[n] == "train"],
+                                                            min_clips=2)
+    assert got["all"]["interval_pct"] != dy.clip_interval([counts[n] for n in sorted(names)], min_clips=2)
