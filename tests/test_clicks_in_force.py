@@ -7,7 +7,7 @@ import pyarrow as pa
 import pytest
 
 from schemas.labels import KeyframeView
-from tasks.human.clicks_in_force import (box_iou, held_clicks, holds, in_force_rows, item_key, newest_holding, seen_then,
+from tasks.human.clicks_in_force import (box_iou, held_clicks, holds, in_force_rows, item_key, match, seen_then, taken_answers,
                                          to_answer)
 from schemas.dataclass_json import to_json
 
@@ -87,12 +87,25 @@ def test_the_answer_under_the_task_id_wins_else_the_newest_that_holds():
     assert 7 not in moved, "no box now on a clicked frame"
 
 
-def test_among_equally_new_answers_the_same_id_wins():
+def test_the_match_counts_frames_and_overlap():
+    then = {10: BOX, 20: BOX}
+    assert match([10, 20], then, {10: [BOX], 20: [BOX]}) == (2, 1.0)
+    assert match([10], then, {10: [ELSEWHERE, (0.1, 0.1, 0.5, 0.4)]}) == (1, pytest.approx(0.75)), "the best box there"
+    assert match([10, 20], then, {10: [BOX]}) is None, "no box now on a compared frame"
+    assert match([], then, {}) == (0, 0.0)
+
+
+def test_an_answer_goes_to_the_track_it_matches_best_and_the_newest_decides():
     earlier = [(T[2], 1, "x"), (T[2], 0, "y"), (T[1], 0, "z")]
-    assert newest_holding(earlier, 0, lambda a: True) == "y", "one label file answered tracks 1 and 0"
-    assert newest_holding(earlier, 5, lambda a: True) == "x"
-    assert newest_holding(earlier, 1, lambda a: a != "x") == "y", "the newest that holds, of any id"
-    assert newest_holding(earlier, 0, lambda a: a == "z") == "z" and newest_holding(earlier, 0, lambda a: False) is None
+    alike = lambda t, a: (1, 1.0)  # noqa: E731
+    assert taken_answers(earlier, [0], alike) == {0: ["y", "x", "z"]}, "newest first; of one label file, the same id first"
+    assert taken_answers(earlier, [0, 1], alike) == {1: ["x"], 0: ["y", "z"]}, "an answer speaks of one track"
+    assert taken_answers(earlier, [5], alike) == {5: ["x", "y", "z"]}
+    assert taken_answers(earlier, [6, 5], alike) == {5: ["x", "y", "z"]}, "equal matches, no same id: the smaller id"
+    better = lambda t, a: (2, 0.9) if (t, a) == (0, "x") else (1, 1.0)  # noqa: E731
+    assert taken_answers(earlier, [0, 1], better) == {0: ["y", "x", "z"]}, "more key-frames compared beats the same id"
+    assert taken_answers(earlier, [0], lambda t, a: None if a == "z" else (1, 1.0)) == {0: ["y", "x"]}
+    assert taken_answers(earlier, [0], lambda t, a: None) == {}
 
 
 def test_carried_clicks_give_the_rows_they_came_from():
@@ -124,3 +137,32 @@ def test_a_choice_holds_on_the_same_object_with_its_model_among_the_candidates()
     assert held == {0: "a"}, "1: model gone; 2: none fits; 3: the newest said b, gone; 4: answered under the id"
     # tracks remade and renumbered: the choice follows the object
     assert held_choices("now", {7: {"a"}, 8: {"a"}}, {7: {10: [PLACES[0]]}, 8: {10: [ELSEWHERE]}}, answers, tasks) == {7: "a"}
+
+def test_an_answer_on_another_object_that_overlaps_on_one_key_frame_stays_with_that_object():
+    import json
+
+    from tasks.human.choices_in_force import held_choices
+
+    sel = lambda task, t, cad, at: {"task_id": task, "track_id": t, "cad_id": cad, "ingested_at": at}  # noqa: E731
+    view = lambda ts, box: {"timestamp_us": ts, "box": list(box)}  # noqa: E731
+    # t1 showed track 0 on object 0 (frames 10, 40, 50); t2 showed track 1 on object 1 (20, 30), whose box
+    # jumped onto object 0 on frame 10
+    shown = {"t1": [{"track_id": 0, "keyframes": [view(ts, PLACES[0]) for ts in (10, 40, 50)]}],
+             "t2": [{"track_id": 1, "keyframes": [view(10, PLACES[0])] + [view(ts, PLACES[1]) for ts in (20, 30)]}]}
+    tasks = pa.Table.from_pylist([{"task_id": k, "kind": "cad_selection", "created_at": T[0], "document": json.dumps({"items": v})}
+                                  for k, v in shown.items()])
+    answers = pa.Table.from_pylist([sel("t1", 0, "a", T[1]), sel("t2", 1, "b", T[3])])
+    now = {0: {10: [PLACES[0]], 40: [PLACES[0]]}, 1: {20: [PLACES[1]], 30: [PLACES[1]]}}
+    assert held_choices("now", {0: {"a", "b"}, 1: {"a", "b"}}, now, answers, tasks) == {0: "a", 1: "b"}
+    assert held_choices("now", {0: {"a", "b"}}, now, answers, tasks) == {0: "a"}, "track 1 takes its answer, asked or not"
+
+
+def test_clicks_go_to_one_track_where_two_now_hold_them():
+    answers = pa.Table.from_pylist(_rows("old1", 0, "a", T[1]))
+    tasks = pa.Table.from_pylist([_task("old1", T[0], {0: PLACES[0]})])
+    assert set(held_clicks("now", {4: "a", 5: "a"}, {4: _at(PLACES[0]), 5: _at(PLACES[0])}, answers, tasks)) == {4}
+    assert set(held_clicks("now", {0: "a", 5: "a"}, {5: _at(PLACES[0]), 0: _at(PLACES[0])}, answers, tasks)) == {0}
+    near = (0.1, 0.13, 0.25, 0.48)  # IoU 0.84 with PLACES[0]
+    assert held_clicks("now", {4: "a"}, {4: _at(near), 5: _at(PLACES[0])}, answers, tasks) == {}, \
+        "track 5 matches best: the clicks are its object's, though it has no model chosen"
+    assert set(held_clicks("now", {4: "a"}, {4: _at(near)}, answers, tasks)) == {4}

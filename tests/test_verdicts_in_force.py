@@ -62,3 +62,25 @@ def test_corners_are_compared_one_to_one():
     # mirroring flips the CAD x axis: a box's corner set is the same, but each corner takes its
     # twin's place 1 m away (F * 1 / 4.5 px on the near face); the shift is of corners, not of the silhouette
     assert overlay_shift_px(UNIT, _pose(), _pose(mirrored=True), [AHEAD]) == pytest.approx(F / 4.5, rel=1e-9)
+
+
+def test_a_verdict_goes_to_the_one_pose_it_matches_best():
+    import datetime as dt
+    import json
+
+    import pyarrow as pa
+
+    from tasks.human.verdicts_in_force import held_verdicts
+
+    at = dt.datetime(2026, 12, 1, tzinfo=dt.timezone.utc)
+    item = {"track_id": 0, "cad_id": "lib.a", "pose": _pose(), "keyframes": [{"timestamp_us": 10}]}
+    tasks = pa.Table.from_pylist([{"task_id": "old", "kind": "verification", "created_at": at, "document": json.dumps({"items": [item]})}])
+    answers = pa.Table.from_pylist([{"task_id": "old", "track_id": 0, "accepted": True, "comment": "", "same_as_track": None,
+                                     "ingested_at": at + dt.timedelta(hours=1)}])
+    pose = lambda t, x=0.0: {"track_id": t, "cad_id": "lib.a", **_pose((x, 0.0, 5.0)), "keyframe_timestamps_us": [10]}  # noqa: E731
+    held = lambda poses: set(held_verdicts("new", poses, answers, tasks, {"lib.a": UNIT}, {10: AHEAD}, 2.0))  # noqa: E731
+    assert held([pose(4), pose(5)]) == {4}, "a pose and its duplicate: one takes the verdict"
+    assert held([pose(4, 0.001), pose(5)]) == {5}, "the identical overlay, not the one moved by 0.1 px"
+    assert held([pose(4, 0.001)]) == {4}
+    assert held([pose(4, 0.001), pose(0, 0.002)]) == {4}, "the smaller shift before the same id"
+    assert held([pose(4, 0.05)]) == set(), "moved by 5.6 px"

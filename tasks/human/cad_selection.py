@@ -105,7 +105,7 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     labels = {t: track.label for t, track in tracks.items()}
     models, renders = model_facts(wh, {r["cad_id"] for r in rows})
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
-    now = boxes_now(tracks, track_ids)
+    now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_choices(task_id, {t: {r["cad_id"] for r in by_track[t]} for t in track_ids}, now,
                         current_answers(wh, "cad_selection", [clip]), tasks)

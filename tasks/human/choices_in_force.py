@@ -15,8 +15,10 @@ task. An item (a track, its key-frames with the track's box there, its candidate
    - that model is among the item's candidates now, and
    - it speaks of the same object: on every key-frame the earlier task showed a box on where the
      track has boxes now, one of them overlaps it (IoU >= :data:`tasks.human.clicks_in_force.SAME_OBJECT_IOU`),
-     and there is at least one such key-frame. The newest answer on the object decides (of equally
-     new ones, from one label file, the one given on a track of the same id).
+     and there is at least one such key-frame. An answer speaks of one object: where it holds for
+     several tracks, the best matched takes it (:func:`tasks.human.clicks_in_force.taken_answers`).
+     The newest answer on the object decides (of equally new ones, from one label file, the one
+     given on a track of the same id).
 
 The stages, the web app's queue and the simulated annotators count both alike
 (:func:`tasks.human.answers_in_force.answered_items`), and :func:`tasks.human.cad_selection.selected_models`
@@ -29,22 +31,23 @@ from collections.abc import Mapping
 
 import pyarrow as pa
 
-from tasks.human.clicks_in_force import SAME_OBJECT_IOU, Box, box_iou, item_boxes, item_versions, newest_holding, seen_then
+from tasks.human.clicks_in_force import Box, Match, item_boxes, item_versions, match, seen_then, taken_answers
 
 
-def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
-    """Whether the track whose boxes are ``now`` (timestamp -> its boxes there) is the object an
-    earlier task showed with the boxes ``then``: where both have boxes, one overlaps; on one frame
-    at least."""
-    both = [ts for ts in then if now.get(ts)]
-    return bool(both) and all(any(box_iou(then[ts], b) >= SAME_OBJECT_IOU for b in now[ts]) for ts in both)
+def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> Match | None:
+    """Whether (and how well: :func:`tasks.human.clicks_in_force.match`) the track whose boxes are
+    ``now`` (timestamp -> its boxes there) is the object an earlier task showed with the boxes
+    ``then``: where both have boxes, one overlaps; on one frame at least."""
+    m = match([ts for ts in then if now.get(ts)], then, now)
+    return m if m is not None and m[0] > 0 else None
 
 
 def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[int, Mapping[int, list[Box]]],
                  answers: pa.Table, tasks: pa.Table) -> dict[int, str]:
     """Per track of ``candidates`` (track -> its candidates' cad_ids) without an answer under
-    ``task_id``, the model chosen on an earlier task that still holds (see the module). ``now``:
-    each track's boxes by timestamp; ``answers``: the clip's cad_selection answers in force over all
+    ``task_id``, the model chosen on an earlier task that still holds (see the module). ``now``: the
+    boxes by timestamp of the clip's tracks, all of them (an answer goes to the track that matches
+    it best, asked about or not); ``answers``: the clip's cad_selection answers in force over all
     tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
     rows = answers.to_pylist()
     answered = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
@@ -53,11 +56,12 @@ def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[
                                                                               r["ingested_at"]))))
                for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
                if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
+    taken = taken_answers(earlier, set(now) | set(candidates), lambda t, e: same_object(e[1], now.get(t, {})))
     out = {}
     for t, cads in candidates.items():
-        if t in answered:
+        if t in answered or t not in taken:
             continue
-        newest = newest_holding(earlier, t, lambda e: same_object(e[1], now.get(t, {})))  # it decides
-        if newest is not None and newest[0]["cad_id"] is not None and newest[0]["cad_id"] in cads:
-            out[t] = newest[0]["cad_id"]
+        newest = taken[t][0][0]  # it decides
+        if newest["cad_id"] is not None and newest["cad_id"] in cads:
+            out[t] = newest["cad_id"]
     return out

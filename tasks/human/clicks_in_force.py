@@ -16,8 +16,11 @@ track had then: tracks are made anew when detection or tracking reruns, and a re
 carry an id that meant another object, or another id (four identical dining chairs get the same
 model, so one chair's clicks must not pose another). On every clicked key-frame where the earlier
 task showed a box, the track now has a box overlapping it (IoU >= :data:`SAME_OBJECT_IOU`), and
-there is at least one such key-frame. Going back to an earlier state (a detector A, then B, then A
-again) finds A's task id and A's answers in force again.
+there is at least one such key-frame. An earlier answer speaks of one object: where it holds for
+several tracks now (a track and its shadow, or two objects whose boxes overlap on the one clicked
+key-frame), the best matched takes it (:func:`taken_answers`). Of the answers a track takes, the
+newest given on the model chosen now holds. Going back to an earlier state (a detector A, then B,
+then A again) finds A's task id and A's answers in force again.
 
 Boxes: (ymin, xmin, ymax, xmax), normalised by the image's height and width (``detections.box``).
 """
@@ -25,7 +28,7 @@ Boxes: (ymin, xmin, ymax, xmax), normalised by the image's height and width (``d
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import TypeVar
 
 import pyarrow as pa
@@ -80,32 +83,54 @@ def seen_then(versions: list[tuple[object, T]], ingested_at) -> T:
     return before[-1] if before else versions[0][1]
 
 
-def newest_holding(earlier: Sequence[tuple[object, int, T]], track: int, test: Callable[[T], bool]) -> T | None:
-    """The answer an item of ``track`` takes from ``earlier`` ((ingested_at, track id, answer),
-    newest first): the newest for which ``test`` holds; among equally new ones (one label file
-    answers many tracks), the one given on a track of the same id. None when none holds."""
-    best: tuple[object, int, T] | None = None
-    for entry in earlier:
-        if best is not None and entry[0] != best[0]:
-            break
-        if (best is None or entry[1] == track) and test(entry[2]):
-            best = entry
-    return None if best is None else best[2]
+Match = tuple[int, float]
+"""How well a track now matches an earlier item: the key-frames compared, their mean IoU (more is better)."""
 
 
-def holds(clicked: set[int], then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> bool:
+def match(frames: Iterable[int], then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> Match | None:
+    """How well the track whose boxes are ``now`` (timestamp -> its boxes there) is the object an
+    earlier item showed with the boxes ``then``, compared on ``frames`` (timestamps, each with a box
+    then): None unless on every one of them one of its boxes overlaps the box then (IoU >=
+    :data:`SAME_OBJECT_IOU`), else how many frames and the mean of the best IoUs."""
+    ious = [max((box_iou(then[ts], b) for b in now.get(ts, ())), default=0.0) for ts in frames]
+    return None if any(iou < SAME_OBJECT_IOU for iou in ious) else (len(ious), sum(ious) / len(ious) if ious else 0.0)
+
+
+def holds(clicked: set[int], then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> Match | None:
     """Whether clicks on the key-frames ``clicked`` (timestamps), given while the task showed the
-    boxes ``then``, speak of the track whose boxes are ``now`` (timestamp -> its boxes there)."""
-    return all(any(box_iou(then[ts], b) >= SAME_OBJECT_IOU for b in now.get(ts, ())) for ts in clicked if ts in then)
+    boxes ``then``, speak of the track whose boxes are ``now``: :func:`match` on the clicked
+    key-frames shown with a box (a track without a box there now does not match)."""
+    return match(sorted(ts for ts in clicked if ts in then), then, now)
+
+
+def taken_answers(earlier: Sequence[tuple[object, int, T]], tracks: Iterable[int],
+                  match_of: Callable[[int, T], Match | None]) -> dict[int, list[T]]:
+    """Which earlier answers speak for each track now. ``earlier``: (ingested_at, track id it was
+    given on, answer); ``match_of(track, answer)``: how well the answer's item matches the track now
+    (None: not at all). An answer speaks of one object, so where it matches several tracks (a track
+    and its shadow, or an object and another that overlaps it on one key-frame), the best matched
+    takes it (then the track of the same id, then the smaller id). Per track, the answers it takes,
+    newest first; of equally new ones (one label file answers many tracks), the one given on a track
+    of the same id, then the best matched. Tracks that take none are absent."""
+    tracks = sorted(set(tracks))
+    taken: dict[int, list[tuple[object, bool, Match, int, T]]] = {}
+    for order, (at, then_id, answer) in enumerate(earlier):
+        scored = [(m, t == then_id, -t) for t in tracks if (m := match_of(t, answer)) is not None]
+        if scored:
+            m, same, neg_t = max(scored)
+            taken.setdefault(-neg_t, []).append((at, same, m, -order, answer))
+    return {t: [o[4] for o in sorted(options, key=lambda o: o[:4], reverse=True)] for t, options in taken.items()}
 
 
 def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mapping[int, list[Box]]], answers: pa.Table,
                 tasks: pa.Table) -> dict[int, CorrespondenceAnswer]:
     """Per track of ``chosen`` (track -> chosen cad_id), the clicks that answer its item of task
-    ``task_id`` (see the module): its answer under that id, else the newest answer of another task,
-    on a track of any id, that holds. ``now``: each track's boxes by timestamp; ``answers``: the
-    clip's correspondence answers in force over all tasks; ``tasks``: its ``label_tasks`` rows.
-    Tracks without are absent."""
+    ``task_id`` (see the module): its answer under that id, else, of the answers to other tasks that
+    speak of its object (:func:`taken_answers`: matched by :func:`holds` on a clicked key-frame at
+    least), the newest given on the model chosen now. ``now``: the boxes by timestamp of the clip's
+    tracks, all of them (an answer goes to the track that matches it best, chosen or not);
+    ``answers``: the clip's correspondence answers in force over all tasks; ``tasks``: its
+    ``label_tasks`` rows. Tracks without are absent."""
     rows: dict[tuple[str, int], list[dict]] = {}
     for r in answers.to_pylist():
         rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
@@ -113,14 +138,17 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
     earlier = [(at, key[1], (rows[key], {int(r["timestamp_us"]) for r in rows[key]}, item_boxes(seen_then(shown[key], at))))
                for at, key in sorted(((rs[0]["ingested_at"], key) for key, rs in rows.items()
                                       if key[0] != task_id and key in shown), reverse=True)]
+
+    def clicks_match(t: int, e: tuple) -> Match | None:
+        m = holds(e[1], e[2], now.get(t, {}))
+        return m if m is not None and m[0] > 0 else None
+
+    taken = taken_answers(earlier, set(now) | set(chosen), clicks_match)
     out = {}
     for t, cad in chosen.items():
         if (task_id, t) in rows:
             out[t] = to_answer(t, rows[(task_id, t)])
-            continue
-        found = newest_holding(earlier, t, lambda e: e[0][0]["cad_id"] == cad and bool(e[1] & e[2].keys())
-                               and holds(e[1], e[2], now.get(t, {})))
-        if found is not None:
+        elif found := next((e for e in taken.get(t, ()) if e[0][0]["cad_id"] == cad), None):
             out[t] = to_answer(t, found[0])
     return out
 

@@ -33,7 +33,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     tracks = clip_tracks(wh, clip)
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
-    now = boxes_now(tracks, track_ids)
+    now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)
     models, renders = model_facts(wh, set(chosen.values()))

@@ -55,12 +55,14 @@ def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], trac
     return out
 
 
-def boxes_now(tracks: dict[int, ClipTrack], track_ids: list[int]) -> dict[int, dict[int, list[tuple]]]:
-    """Per track of ``track_ids`` that exists, its boxes by frame timestamp (µs): what
-    :mod:`tasks.human.clicks_in_force` and :mod:`tasks.human.choices_in_force` compare earlier tasks with."""
+def boxes_now(tracks: dict[int, ClipTrack]) -> dict[int, dict[int, list[tuple]]]:
+    """Per track of the clip (``tracks``: :func:`tasks.tracking.clip_tracks.clip_tracks`), its boxes by
+    frame timestamp (µs): what :mod:`tasks.human.clicks_in_force` and
+    :mod:`tasks.human.choices_in_force` compare earlier tasks with (every track, also those not
+    asked about: an earlier answer goes to the track that matches it best)."""
     now: dict[int, dict[int, list[tuple]]] = {}
-    for t in track_ids:
-        for b in tracks[t].boxes if t in tracks else ():
+    for t, track in tracks.items():
+        for b in track.boxes:
             now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
     return now
 

@@ -14,9 +14,11 @@ millimetres. An item (a track, its pose, its key-frames) is answered by
    model with the same mirroring, and the overlay moved by at most ``[verification] carry_max_px``:
    the corners of the posed model's bounding box, projected into every key-frame either pose is
    shown on, lie at most that many pixels from where they were (:func:`overlay_shift_px`), so the
-   person would be shown what they judged (0 carries a verdict only to the identical pose). The
-   newest such verdict decides (of equally new ones, from one label file, the one given on a track
-   of the same id), and the stage carries it (:func:`held_verdicts`) when
+   person would be shown what they judged (0 carries a verdict only to the identical pose). A
+   verdict speaks of one overlay: where it holds for several poses (a pose and its duplicate), the
+   one it matches best takes it (:func:`tasks.human.clicks_in_force.taken_answers`: the smallest
+   shift). The newest verdict a pose takes decides (of equally new ones, from one label file, the
+   one given on a track of the same id), and the stage carries it (:func:`held_verdicts`) when
 
    - it accepted or rejected (an answer "same object as track N" is asked again: the other track
      may have changed), and
@@ -38,6 +40,7 @@ import numpy as np
 import pyarrow as pa
 
 from cadestate.geometry import project
+from tasks.human.clicks_in_force import Match, item_versions, seen_then, taken_answers
 from tasks.pose.duplicates import posed_box
 
 CORNERS = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
@@ -86,44 +89,44 @@ def overlay_shift_px(extent: Sequence[float], then: Mapping, now: Mapping, camer
 def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.Table, extents: Mapping[str, Sequence[float]],
                   cameras: Mapping[int, FrameCamera], max_px: float) -> dict[int, dict]:
     """Per track of ``poses`` (``poses`` rows: ``track_id``, ``cad_id``, the pose,
-    ``keyframe_timestamps_us``) without an answer under ``task_id``, the verdict that still holds
-    (see the module), as its ``verification_labels`` row. ``answers``: the clip's verification
-    answers in force over all tasks; ``tasks``: its ``label_tasks`` rows; ``extents``: cad_id ->
-    the model's box size; ``cameras``: the clip's cameras by timestamp (µs); ``max_px``:
-    ``[verification] carry_max_px``. Tracks without are absent."""
-    from tasks.human.clicks_in_force import item_versions, newest_holding, seen_then
-
+    ``keyframe_timestamps_us``; all the clip's poses: a verdict goes to the pose it matches best)
+    without an answer under ``task_id``, the verdict that still holds (see the module), as its
+    ``verification_labels`` row. ``answers``: the clip's verification answers in force over all
+    tasks; ``tasks``: its ``label_tasks`` rows; ``extents``: cad_id -> the model's box size;
+    ``cameras``: the clip's cameras by timestamp (µs); ``max_px``: ``[verification]
+    carry_max_px``. Tracks without are absent."""
     rows = answers.to_pylist()
     under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
     shown = item_versions(tasks, "verification")
     earlier = [(r["ingested_at"], int(r["track_id"]), (r, seen_then(shown[(r["task_id"], int(r["track_id"]))], r["ingested_at"])))
                for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
                if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
+    now = {int(p["track_id"]): p for p in poses}
+    taken = taken_answers(earlier, now, lambda t, e: _overlay_match(e[1], now[t], extents, cameras, max_px))
     out = {}
-    for pose in poses:
-        t = int(pose["track_id"])
-        if t in under_id:
-            continue
-        newest = newest_holding(earlier, t, lambda e: _still_shown(e[1], pose, extents, cameras, max_px))  # it decides
-        if newest is not None and newest[0].get("same_as_track") is None:
-            out[t] = newest[0]
+    for t, verdicts in taken.items():
+        newest = verdicts[0][0]  # it decides
+        if t not in under_id and newest.get("same_as_track") is None:
+            out[t] = newest
     return out
 
 
-def _still_shown(item: dict, pose: dict, extents: Mapping[str, Sequence[float]], cameras: Mapping[int, FrameCamera],
-                 max_px: float) -> bool:
-    """Whether a verification item (its document) shows, within ``max_px``, the overlays ``pose``
-    (a ``poses`` row) would be shown with now: the same model and mirroring; the identical pose
-    when ``max_px`` is 0 or the model's size is unknown, else the overlay moved by at most
-    ``max_px`` on the item's key-frames and the pose's own."""
+def _overlay_match(item: dict, pose: dict, extents: Mapping[str, Sequence[float]], cameras: Mapping[int, FrameCamera],
+                   max_px: float) -> Match | None:
+    """Whether (and how well: 1 and minus the shift in px, as a :data:`Match`) a verification item
+    (its document) shows, within ``max_px``, the overlays ``pose`` (a ``poses`` row) would be shown
+    with now: the same model and mirroring; the identical pose when ``max_px`` is 0 or the model's
+    size is unknown, else the overlay moved by at most ``max_px`` on the item's key-frames and the
+    pose's own (:func:`overlay_shift_px`)."""
     then = item["pose"]
     if item["cad_id"] != pose["cad_id"] or bool(then["is_mirrored"]) != bool(pose["is_mirrored"]):
-        return False
+        return None
     if all(np.allclose(then[k], pose[k], rtol=0, atol=1e-9) for k in ("translation", "rotation", "scale")):
-        return True
+        return 1, 0.0
     extent = extents.get(pose["cad_id"])
-    if max_px <= 0 or extent is None:
-        return False
     stamps = {int(k["timestamp_us"]) for k in item["keyframes"]} | {int(s) for s in pose["keyframe_timestamps_us"] or ()}
     views = [cameras[s] for s in sorted(stamps) if s in cameras]
-    return bool(views) and overlay_shift_px(extent, then, pose, views) <= max_px
+    if max_px <= 0 or extent is None or not views:
+        return None
+    shift = overlay_shift_px(extent, then, pose, views)
+    return (1, -shift) if shift <= max_px else None

@@ -132,8 +132,8 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
     flagged = flagged_duplicates(rows, extents, cfg.duplicate_overlap)
-    answers |= held_verdicts(task_id, [p for p in rows if int(p["track_id"]) not in flagged], in_force, tasks, extents,
-                             cameras, cfg.carry_max_px)
+    held = held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px)
+    answers |= {t: v for t, v in held.items() if t not in flagged}
     items = []
     for p in rows:
         t = int(p["track_id"])
