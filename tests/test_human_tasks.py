@@ -190,8 +190,12 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
 
     def verify(config: VerificationConfig = cfg) -> tuple[str, dict]:
         run = _run(hwh, "verification", lambda rid: verification_stage(hwh, config, CLIP, rid))
-        task = _task(hwh, run.message)
+        task = newest_task()
         return run.message, {it["track_id"]: (it.get("previous") or {}).get("verdict") for it in task["items"]}
+
+    def newest_task() -> dict:
+        rows = [r for r in hwh.read("label_tasks", [CLIP]).to_pylist() if r["kind"] == "verification"]
+        return json.loads(max(rows, key=lambda r: r["created_at"])["document"])
 
     posed(("0", [0.0, 0, 4]), ("1", [1.5, 0, 4]))
     message, carried = verify()
@@ -208,7 +212,18 @@ def test_verification_renders_overlays_and_waits_for_verdicts(hwh, tmp_path):
     # track 1 solved where track 0 stands: both flagged as maybe one object, a person resolves it
     posed(("0", [0.0, 0.002, 4]), ("1", [0.2, 0, 4]))
     message, carried = verify()
-    assert carried == {0: None, 1: None} and _task(hwh, message)["items"][0]["maybe_same_as"] == [1]
+    assert carried == {0: None, 1: None} and newest_task()["items"][0]["maybe_same_as"] == [1]
+    # the person accepts both (two objects side by side): their verdicts hold while the flag stays
+    ingest_labels(hwh, _label(tmp_path / "v2", "v2.json", "verification", newest_task()["task_id"],
+                              [{"track_id": 0, "verdict": "accept"}, {"track_id": 1, "verdict": "accept"}],
+                              "2026-01-02T00:00:00+00:00"))
+    posed(("0", [0.0, 0.004, 4]), ("1", [0.2, 0.002, 4]))
+    message, carried = verify()
+    assert carried == {0: "accept", 1: "accept"} and newest_task()["items"][0]["maybe_same_as"] == [1]
+    assert "2 of 2 poses accepted" in message
+    posed(("0", [0.0, 0.004, 4]), ("1", [0.2, 0.002, 4]), ("2", [0.1, 0.0, 4]))
+    message, carried = verify()
+    assert carried == {0: "accept", 1: "accept", 2: None}, "a new pose on the pair: its item is asked"
     posed(("0", [0.0, 0.1, 4]), ("1", [1.5, 0, 4]))  # 8.6 px
     message, carried = verify()
     assert carried == {0: None, 1: None} and "2 of 2 poses unanswered" in message

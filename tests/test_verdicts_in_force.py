@@ -52,10 +52,19 @@ def test_the_largest_shift_over_the_cameras_counts():
     assert overlay_shift_px(UNIT, _pose(), _pose((0.01, 0.0, 5.0)), [AHEAD, near]) == pytest.approx(F * 0.01 / 0.5, rel=1e-9)
 
 
-def test_no_move_no_shift_and_a_corner_behind_a_camera_is_not_a_shift():
+def test_no_move_no_shift_and_a_corner_crossing_the_near_plane_is_not_a_shift():
     assert overlay_shift_px(UNIT, _pose(), _pose(), [AHEAD]) == 0.0
     assert overlay_shift_px(UNIT, _pose(), _pose((0.01, 0.0, 5.0)), []) == 0.0
     assert overlay_shift_px(UNIT, _pose(), _pose((0.0, 0.0, 0.3)), [AHEAD]) == math.inf
+
+
+def test_corners_behind_the_camera_under_both_poses_are_left_out():
+    # a box 4 m deep from z = -1 to 3 (a sofa passed close by): its near face is behind the camera,
+    # not drawn; 1 cm to the right moves the far face (z = 3) by F * 0.01 / 3 px
+    deep = (1.0, 1.0, 4.0)
+    shift = overlay_shift_px(deep, _pose((0.0, 0.0, 1.0)), _pose((0.01, 0.0, 1.0)), [AHEAD])
+    assert shift == pytest.approx(F * 0.01 / 3, rel=1e-9)
+    assert overlay_shift_px(deep, _pose((0.0, 0.0, 1.0)), _pose((0.0, 0.0, 3.0)), [AHEAD]) == math.inf, "now all in front"
 
 
 def test_corners_are_compared_one_to_one():

@@ -22,8 +22,9 @@ millimetres. An item (a track, its pose, its key-frames) is answered by
 
    - it accepted or rejected (an answer "same object as track N" is asked again: the other track
      may have changed), and
-   - the item is not flagged "may be the same object as track N" (the stage asks those: a person
-     resolves the flag).
+   - the item is not flagged "may be the same object as track N", unless the verdict was given on
+     an item flagged too (the person saw a flag and judged; a new partner's item is asked, and
+     "same object as track N" is said there).
 
 The stages, the web app's queue and the simulated annotators count both alike
 (:func:`tasks.human.answers_in_force.answered_items`). Frames: poses map the CAD model's canonical
@@ -33,7 +34,7 @@ cameras are world->camera (OpenCV) with pixel intrinsics, as in the ``frames`` t
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,9 @@ from tasks.pose.duplicates import posed_box
 
 CORNERS = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
 """float64[8, 3]: the corners of a box of unit size about its centre."""
+
+NEAR_M = 0.01
+"""The near plane (m) of the verification overlays (:func:`tasks.human.verification.render_overlays`)."""
 
 
 @dataclass(frozen=True)
@@ -73,28 +77,33 @@ def box_corners(extent: Sequence[float], pose: Mapping) -> np.ndarray:
 def overlay_shift_px(extent: Sequence[float], then: Mapping, now: Mapping, cameras: Iterable[FrameCamera]) -> float:
     """How far (px) the overlay of a model of size ``extent`` moves from pose ``then`` to pose
     ``now`` (keys of :func:`box_corners`): the largest distance between a corner of its posed box
-    projected under each pose, over ``cameras``; infinite when a corner is behind a camera under
-    either pose (its overlay there is not a shifted copy), 0 without cameras."""
+    projected under each pose, over ``cameras``, 0 without cameras. A corner nearer than the
+    overlays' near plane (:data:`NEAR_M`; a large object seen from close up) under both poses is
+    not drawn there and is left out; one that crosses it between the poses makes the shift
+    infinite (the overlay there is not a shifted copy)."""
     a, b = box_corners(extent, then), box_corners(extent, now)
     shift = 0.0
     for cam in cameras:
         ua, za = project(cam.K, cam.R, cam.t, a)
         ub, zb = project(cam.K, cam.R, cam.t, b)
-        if (za <= 0).any() or (zb <= 0).any():
+        front = za > NEAR_M
+        if (front != (zb > NEAR_M)).any():
             return float("inf")
-        shift = max(shift, float(np.max(np.linalg.norm(ua - ub, axis=1))))
+        if front.any():
+            shift = max(shift, float(np.max(np.linalg.norm(ua[front] - ub[front], axis=1))))
     return shift
 
 
 def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.Table, extents: Mapping[str, Sequence[float]],
-                  cameras: Mapping[int, FrameCamera], max_px: float) -> dict[int, dict]:
+                  cameras: Mapping[int, FrameCamera], max_px: float, flagged: Collection[int] = ()) -> dict[int, dict]:
     """Per track of ``poses`` (``poses`` rows: ``track_id``, ``cad_id``, the pose,
     ``keyframe_timestamps_us``; all the clip's poses: a verdict goes to the pose it matches best)
     without an answer under ``task_id``, the verdict that still holds (see the module), as its
     ``verification_labels`` row. ``answers``: the clip's verification answers in force over all
     tasks; ``tasks``: its ``label_tasks`` rows; ``extents``: cad_id -> the model's box size;
     ``cameras``: the clip's cameras by timestamp (µs); ``max_px``: ``[verification]
-    carry_max_px``. Tracks without are absent."""
+    carry_max_px``; ``flagged``: the tracks flagged "may be the same object as track N" now, which
+    take a verdict only if it was given on a flagged item. Tracks without are absent."""
     rows = answers.to_pylist()
     under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
     shown = item_versions(tasks, "verification")
@@ -105,8 +114,8 @@ def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.
     taken = taken_answers(earlier, now, lambda t, e: _overlay_match(e[1], now[t], extents, cameras, max_px))
     out = {}
     for t, verdicts in taken.items():
-        newest = verdicts[0][0]  # it decides
-        if t not in under_id and newest.get("same_as_track") is None:
+        newest, item = verdicts[0]  # it decides
+        if t not in under_id and newest.get("same_as_track") is None and (t not in flagged or item.get("maybe_same_as")):
             out[t] = newest
     return out
 

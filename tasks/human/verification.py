@@ -28,7 +28,7 @@ from tasks.human.answers_in_force import current_answers
 from tasks.human.inputs import verification_inputs
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
-from tasks.human.verdicts_in_force import FrameCamera, held_verdicts
+from tasks.human.verdicts_in_force import NEAR_M, FrameCamera, held_verdicts
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.relations import left_out_tracks
 from warehouse import Warehouse
@@ -98,7 +98,7 @@ def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k
                 loaded[p["cad_id"]] = RenderMesh.from_trimesh(trimesh.load(wh.root / meshes[p["cad_id"]], force="scene"))
             f = frames[t]
             camera = Camera(np.array(f["K"]).reshape(3, 3), np.array(f["world_to_camera_R"]).reshape(3, 3),
-                            np.array(f["world_to_camera_t"]), W, H, 0.01, 1000.0)
+                            np.array(f["world_to_camera_t"]), W, H, NEAR_M, 1000.0)
             M = object_to_world(p["translation"], p["rotation"], p["scale"], p["is_mirrored"])
             result = renderer.render([Instance(loaded[p["cad_id"]], M, 1)], camera)
             image = np.asarray(Image.open(wh.root / f["image_path"]).convert("RGB").resize((W, H)), np.float32)
@@ -132,8 +132,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
     flagged = flagged_duplicates(rows, extents, cfg.duplicate_overlap)
-    held = held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px)
-    answers |= {t: v for t, v in held.items() if t not in flagged}
+    answers |= held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px, flagged)
     items = []
     for p in rows:
         t = int(p["track_id"])
