@@ -31,7 +31,7 @@ from collections.abc import Mapping
 
 import pyarrow as pa
 
-from tasks.human.clicks_in_force import Box, Match, item_boxes, item_versions, match, seen_then, taken_answers
+from tasks.human.clicks_in_force import Box, Match, earlier_answers, item_boxes, match, taken_answers
 
 
 def same_object(then: Mapping[int, Box], now: Mapping[int, list[Box]]) -> Match | None:
@@ -49,19 +49,14 @@ def held_choices(task_id: str, candidates: Mapping[int, set[str]], now: Mapping[
     boxes by timestamp of the clip's tracks, all of them (an answer goes to the track that matches
     it best, asked about or not); ``answers``: the clip's cad_selection answers in force over all
     tasks; ``tasks``: its ``label_tasks`` rows. Tracks without are absent."""
-    rows = answers.to_pylist()
-    answered = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
-    shown = item_versions(tasks, "cad_selection")
-    earlier = [(r["ingested_at"], int(r["track_id"]), (r, item_boxes(seen_then(shown[(r["task_id"], int(r["track_id"]))],
-                                                                              r["ingested_at"]))))
-               for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
-               if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
-    taken = taken_answers(earlier, set(now) | set(candidates), lambda t, e: same_object(e[1], now.get(t, {})))
+    answered = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
+    taken = taken_answers(earlier_answers(answers, tasks, "cad_selection", task_id), set(now) | set(candidates),
+                          lambda t, e: same_object(item_boxes(e[1]), now.get(t, {})))
     out = {}
     for t, cads in candidates.items():
         if t in answered or t not in taken:
             continue
-        newest = taken[t][0][0]  # it decides
+        newest = taken[t][0][0][0]  # the newest answer's row decides
         if newest["cad_id"] is not None and newest["cad_id"] in cads:
             out[t] = newest["cad_id"]
     return out

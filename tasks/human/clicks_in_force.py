@@ -83,6 +83,25 @@ def seen_then(versions: list[tuple[object, T]], ingested_at) -> T:
     return before[-1] if before else versions[0][1]
 
 
+Earlier = tuple[object, int, tuple[list[dict], dict]]
+"""An answer to an earlier task: (ingested_at, track id it was given on, (its rows, the item its
+task version showed when it was given))."""
+
+
+def earlier_answers(answers: pa.Table, tasks: pa.Table, kind: str, task_id: str) -> list[Earlier]:
+    """The answers of ``kind`` given on other tasks than ``task_id``, newest first, each with the
+    item it was given on (:func:`seen_then`); an answer is the rows of one (task, track) in
+    ``answers`` (the clip's answers in force: one row, or a row per click). ``tasks``: the clip's
+    ``label_tasks`` rows; answers to a task not on record say nothing of what they saw: left out."""
+    rows: dict[tuple[str, int], list[dict]] = {}
+    for r in answers.to_pylist():
+        rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
+    shown = item_versions(tasks, kind)
+    return [(at, key[1], (rows[key], seen_then(shown[key], at)))
+            for at, key in sorted(((rs[0]["ingested_at"], key) for key, rs in rows.items() if key[0] != task_id and key in shown),
+                                  key=lambda x: x[0], reverse=True)]
+
+
 Match = tuple[int, float]
 """How well a track now matches an earlier item: the key-frames compared, their mean IoU (more is better)."""
 
@@ -131,23 +150,20 @@ def held_clicks(task_id: str, chosen: Mapping[int, str], now: Mapping[int, Mappi
     tracks, all of them (an answer goes to the track that matches it best, chosen or not);
     ``answers``: the clip's correspondence answers in force over all tasks; ``tasks``: its
     ``label_tasks`` rows. Tracks without are absent."""
-    rows: dict[tuple[str, int], list[dict]] = {}
+    under_id: dict[int, list[dict]] = {}
     for r in answers.to_pylist():
-        rows.setdefault((r["task_id"], int(r["track_id"])), []).append(r)
-    shown = item_versions(tasks, "correspondences")
-    earlier = [(at, key[1], (rows[key], {int(r["timestamp_us"]) for r in rows[key]}, item_boxes(seen_then(shown[key], at))))
-               for at, key in sorted(((rs[0]["ingested_at"], key) for key, rs in rows.items()
-                                      if key[0] != task_id and key in shown), reverse=True)]
+        if r["task_id"] == task_id:
+            under_id.setdefault(int(r["track_id"]), []).append(r)
 
-    def clicks_match(t: int, e: tuple) -> Match | None:
-        m = holds(e[1], e[2], now.get(t, {}))
+    def clicks_match(t: int, e: tuple[list[dict], dict]) -> Match | None:
+        m = holds({int(r["timestamp_us"]) for r in e[0]}, item_boxes(e[1]), now.get(t, {}))
         return m if m is not None and m[0] > 0 else None
 
-    taken = taken_answers(earlier, set(now) | set(chosen), clicks_match)
+    taken = taken_answers(earlier_answers(answers, tasks, "correspondences", task_id), set(now) | set(chosen), clicks_match)
     out = {}
     for t, cad in chosen.items():
-        if (task_id, t) in rows:
-            out[t] = to_answer(t, rows[(task_id, t)])
+        if t in under_id:
+            out[t] = to_answer(t, under_id[t])
         elif found := next((e for e in taken.get(t, ()) if e[0][0]["cad_id"] == cad), None):
             out[t] = to_answer(t, found[0])
     return out

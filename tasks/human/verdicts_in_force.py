@@ -41,7 +41,7 @@ import numpy as np
 import pyarrow as pa
 
 from cadestate.geometry import project
-from tasks.human.clicks_in_force import Match, item_versions, seen_then, taken_answers
+from tasks.human.clicks_in_force import Match, earlier_answers, taken_answers
 from tasks.pose.duplicates import posed_box
 
 CORNERS = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
@@ -104,17 +104,13 @@ def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.
     ``cameras``: the clip's cameras by timestamp (µs); ``max_px``: ``[verification]
     carry_max_px``; ``flagged``: the tracks flagged "may be the same object as track N" now, which
     take a verdict only if it was given on a flagged item. Tracks without are absent."""
-    rows = answers.to_pylist()
-    under_id = {int(r["track_id"]) for r in rows if r["task_id"] == task_id}
-    shown = item_versions(tasks, "verification")
-    earlier = [(r["ingested_at"], int(r["track_id"]), (r, seen_then(shown[(r["task_id"], int(r["track_id"]))], r["ingested_at"])))
-               for r in sorted(rows, key=lambda r: r["ingested_at"], reverse=True)
-               if r["task_id"] != task_id and (r["task_id"], int(r["track_id"])) in shown]
+    under_id = {int(r["track_id"]) for r in answers.to_pylist() if r["task_id"] == task_id}
     now = {int(p["track_id"]): p for p in poses}
-    taken = taken_answers(earlier, now, lambda t, e: _overlay_match(e[1], now[t], extents, cameras, max_px))
+    taken = taken_answers(earlier_answers(answers, tasks, "verification", task_id), now,
+                          lambda t, e: _overlay_match(e[1], now[t], extents, cameras, max_px))
     out = {}
     for t, verdicts in taken.items():
-        newest, item = verdicts[0]  # it decides
+        (newest, *_), item = verdicts[0]  # the newest answer's row decides
         if t not in under_id and newest.get("same_as_track") is None and (t not in flagged or item.get("maybe_same_as")):
             out[t] = newest
     return out
