@@ -130,7 +130,9 @@ def taken_answers(earlier: Sequence[tuple[object, int, T]], tracks: Iterable[int
     and its shadow, or an object and another that overlaps it on one key-frame), the best matched
     takes it (then the track of the same id, then the smaller id). Per track, the answers it takes,
     newest first; of equally new ones (one label file answers many tracks), the one given on a track
-    of the same id, then the best matched. Tracks that take none are absent."""
+    of the same id, then the best matched. Tracks that take none are absent. An answer whose object
+    has no track now still goes to a track it matches (the boxes overlap on every key-frame they
+    share, which may be one)."""
     tracks = sorted(set(tracks))
     taken: dict[int, list[tuple[object, bool, Match, int, T]]] = {}
     for order, (at, then_id, answer) in enumerate(earlier):
