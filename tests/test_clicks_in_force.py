@@ -138,6 +138,7 @@ def test_a_choice_holds_on_the_same_object_with_its_model_among_the_candidates()
     # tracks remade and renumbered: the choice follows the object
     assert held_choices("now", {7: {"a"}, 8: {"a"}}, {7: {10: [PLACES[0]]}, 8: {10: [ELSEWHERE]}}, answers, tasks) == {7: "a"}
 
+
 def test_an_answer_on_another_object_that_overlaps_on_one_key_frame_stays_with_that_object():
     import json
 
