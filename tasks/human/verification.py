@@ -7,8 +7,8 @@ and the annotator may answer ``same_as_track`` (:mod:`tasks.tracking.relations`:
 the pose of the track named, so each physical object is exported once). The task id digests the
 poses only; an item without flags is written as before the flags existed. When one pose is solved
 anew (a new task), the verdicts given earlier on poses whose overlays have not visibly moved are
-carried in the items' ``previous`` and count as given (:mod:`tasks.human.verdicts_in_force`), but
-on items flagged as maybe duplicates.
+carried in the items' ``previous`` and count as given (:mod:`tasks.human.verdicts_in_force`); on
+an item flagged as maybe a duplicate, only a verdict given on an item flagged too.
 
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
@@ -66,17 +66,16 @@ def flagged_duplicates(poses: list[dict], extents: Mapping[str, Sequence[float]]
     return duplicate_candidates(boxes, threshold)
 
 
-def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k: int, alpha: float) -> dict[str, list[tuple[int, str]]]:
+def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k: int, alpha: float,
+                    frames: Mapping[int, dict], meshes: Mapping[str, str]) -> dict[str, list[tuple[int, str]]]:
     """Per track (poses.track_id), up to ``k`` of its key-frames with the posed CAD drawn over the
-    frame: (timestamp_us, overlay path relative to the warehouse root). Existing overlays are kept."""
+    frame: (timestamp_us, overlay path relative to the warehouse root). Existing overlays are kept.
+    ``frames``: the clip's ``frames`` rows by timestamp (µs; image_path, width, height, K, the
+    camera); ``meshes``: cad_id -> mesh_path."""
     from PIL import Image
 
     from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
 
-    frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path", "width",
-                                                                            "height", "K", "world_to_camera_R",
-                                                                            "world_to_camera_t"]).to_pylist()}
-    meshes = {r["cad_id"]: r["mesh_path"] for r in wh.read("cad_models", columns=["cad_id", "mesh_path"]).to_pylist()}
     folder = wh.root / "media" / "verification" / clip / task_id
     out: dict[str, list[tuple[int, str]]] = {}
     todo = []
@@ -125,11 +124,13 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     in_force = current_answers(wh, "verification", [clip])
     answers = {int(r["track_id"]): r for r in in_force.to_pylist() if r["task_id"] == task_id}
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
-    extents = {r["cad_id"]: r["extent"] for r in wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist()}
+    models = wh.read("cad_models", columns=["cad_id", "extent", "mesh_path"]).to_pylist()
+    extents = {r["cad_id"]: r["extent"] for r in models}
+    meshes = {r["cad_id"]: r["mesh_path"] for r in models}
     frames = {r["timestamp_us"]: r for r in wh.read("frames", [clip], columns=[
-        "timestamp_us", "frame_index", "image_path", "K", "world_to_camera_R", "world_to_camera_t"]).to_pylist()}
+        "timestamp_us", "frame_index", "image_path", "width", "height", "K", "world_to_camera_R", "world_to_camera_t"]).to_pylist()}
     cameras = {ts: FrameCamera.of(f) for ts, f in frames.items()}
-    overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha)
+    overlays = render_overlays(wh, clip, task_id, rows, cfg.keyframes, cfg.overlay_alpha, frames, meshes)
     rows = [p for p in rows if overlays[p["track_id"]]]  # a pose on no frame of the clip is not asked about
     flagged = flagged_duplicates(rows, extents, cfg.duplicate_overlap)
     answers |= held_verdicts(task_id, rows, in_force, tasks, extents, cameras, cfg.carry_max_px, flagged)
@@ -142,7 +143,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
         previous = VerificationAnswer(track_id=t, verdict="accept" if a["accepted"] else "reject", comment=a["comment"],
                                       same_as_track=a.get("same_as_track")) if a else None
         items.append(VerificationItem(
-            track_id=t, label=p["class"] or "", cad_id=p["cad_id"], mesh_path=_mesh_path(wh, p["cad_id"]),
+            track_id=t, label=p["class"] or "", cad_id=p["cad_id"], mesh_path=meshes.get(p["cad_id"], ""),
             pose=Pose(translation=tuple(p["translation"]), rotation=tuple(p["rotation"]), scale=tuple(p["scale"]),
                       is_mirrored=bool(p["is_mirrored"])),
             keyframes=kfs, maybe_same_as=flagged.get(t, ()), previous=previous))
@@ -164,11 +165,6 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     accepted = sum(r["accepted"] for r in verified)
     summary = f"{accepted} of {len(items)} poses accepted, {len(verified) - accepted} rejected"
     return task_output(len(verified), table_digest(table), summary, "verification", path, waiting, len(items), "poses")
-
-
-def _mesh_path(wh: Warehouse, cad_id: str) -> str:
-    rows = wh.read("cad_models", filters=[("cad_id", "=", cad_id)], columns=["mesh_path"]).to_pylist()
-    return rows[0]["mesh_path"] if rows else ""
 
 
 def _run(ctx: StageContext) -> StageOutput:
