@@ -82,7 +82,8 @@ def square_frames(n: int = 4) -> FrameSet:
                     np.full(n, FURNITURE_CLASSES.index("cabinet"), np.int64), z(n, bool))
 
 
-def test_finetuning_learns_its_targets_keeps_the_teachers_boxes_and_repeats_bit_for_bit(furniture_start):
+def test_finetuning_learns_its_targets_keeps_the_teachers_boxes_and_repeats_bit_for_bit_whatever_the_callers_threads(
+        furniture_start):
     from bench.detector_finetune import finetune
     from bench.onnx_torch import onnx_net
 
@@ -102,7 +103,13 @@ def test_finetuning_learns_its_targets_keeps_the_teachers_boxes_and_repeats_bit_
     drift = lambda out: np.mean([float((sides(a) - sides(b)).abs().mean()) for b, a in zip(before[3:], out[3:])])  # noqa: E731
     assert drift(after) < 0.75 * drift(undistilled), (drift(after), drift(undistilled))  # box sides held to the teacher's
     again, _ = finetune(furniture_start, frames, np.arange(len(frames)), dataclasses.replace(spec, finetune_steps=3), show_progress=False)
-    same, _ = finetune(furniture_start, frames, np.arange(len(frames)), dataclasses.replace(spec, finetune_steps=3), show_progress=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a caller (a machine) with another thread count: fine-tuning runs on its own fixed count
+    try:
+        same, _ = finetune(furniture_start, frames, np.arange(len(frames)), dataclasses.replace(spec, finetune_steps=3), show_progress=False)
+        assert torch.get_num_threads() == 1  # and gives the caller's count back
+    finally:
+        torch.set_num_threads(threads)
     assert again.SerializeToString() == same.SerializeToString()
 
 
