@@ -51,8 +51,8 @@ if TYPE_CHECKING:
 
 BINS = nanodet.REG_MAX + 1
 THREADS = 2
-"""Torch's threads while fine-tuning: two steps of the same batches gave the same weights, at 1.5 s a
-step against 2.4 s on one thread (8 frames of 416 x 416, 2 cores)."""
+"""Torch's threads while fine-tuning: two runs of the same batches gave the same weights, and the
+default 800 steps of 8 frames took 19 minutes against 32 on one thread (2 cores)."""
 
 
 def network_input(canvas: np.ndarray) -> np.ndarray:

@@ -79,7 +79,7 @@ class TrainSpec:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     beta: float = 2.0
-    finetune_steps: int = 1400
+    finetune_steps: int = 800
     finetune_batch: int = 8
     finetune_lr: float = 1e-4
     box_distill: float = 1.0
@@ -325,7 +325,7 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     report["heldout_rows"] = report.pop("heldout_after")
     t2 = time.perf_counter()
     print(f"detector: fine-tuning every weight, {spec.finetune_steps} steps of {spec.finetune_batch} frames "
-          "(about 35 minutes on 2 cores)", file=sys.stderr, flush=True)
+          "(about 20 minutes on 2 cores)", file=sys.stderr, flush=True)
     held = held_out(frames, spec)
     tuned, losses = finetune(with_class_rows(model, full_rows(rows, coco_rows)), frames, np.flatnonzero(~held), spec, show_progress)
     final, calibration = calibrate(tuned, frames.take(np.flatnonzero(held)), spec, report["heldout_start"]["precision"] or 0.0)

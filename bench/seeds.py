@@ -21,7 +21,7 @@ FRESH_SEED = 52711
 USED_SEEDS: dict[int, str] = {
     DEFAULT_SEED: "the default benchmark: most knobs were measured on it since the first stop",
     60606: "world-up tolerance, the simulated verifier's rule (its failures studied), NMS across classes, "
-           "retrieval's max_per_class",
+           "retrieval's max_per_class, the detector's fine-tuning steps",
     424242: "world-up tolerance, retrieval's class_exponent",
     271828: "world-up tolerance, retrieval's class_exponent, the narrow-axis prior, retrieval's max_per_class",
     314159: "world-up tolerance, retrieval's class_exponent",
@@ -32,7 +32,8 @@ USED_SEEDS: dict[int, str] = {
     30307: "fresh until its misnamed bathtub and kitchen island suggested retrieval's class cap (max_per_class)",
     4242: "reported fresh for the pose solver's support prior",
     5150: "reported fresh for the 3D joining of track fragments",
-    101: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
+    101: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class, "
+         "the detector's fine-tuning steps",
     31: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
     77: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
     9137: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
