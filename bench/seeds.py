@@ -21,7 +21,8 @@ FRESH_SEED = 52711
 USED_SEEDS: dict[int, str] = {
     DEFAULT_SEED: "the default benchmark: most knobs were measured on it since the first stop",
     60606: "world-up tolerance, the simulated verifier's rule (its failures studied), NMS across classes, "
-           "retrieval's max_per_class, the detector's fine-tuning steps",
+           "retrieval's max_per_class, the detector's fine-tuning steps, "
+           "the shadow rule's score condition",
     424242: "world-up tolerance, retrieval's class_exponent",
     271828: "world-up tolerance, retrieval's class_exponent, the narrow-axis prior, retrieval's max_per_class",
     314159: "world-up tolerance, retrieval's class_exponent",
@@ -33,7 +34,7 @@ USED_SEEDS: dict[int, str] = {
     4242: "reported fresh for the pose solver's support prior",
     5150: "reported fresh for the 3D joining of track fragments",
     101: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class, "
-         "the detector's fine-tuning steps",
+         "the detector's fine-tuning steps, the shadow rule's score condition (its lost bed and table studied)",
     31: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
     77: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",
     9137: "tracking cue and fragment-joining fits, the shadow-track rule, retrieval's max_per_class",

@@ -273,9 +273,9 @@ class TrackingConfig:
                                              "gives them at least this probability of being one object.", lo=0.0, hi=1.0)
     thin_detections: int = _opt(6, "Tracks with fewer detections and no box on a manual-track key-frame ([manual_tracks] "
                                    "keyframes) are too thin to annotate: dropped (1 keeps them).", lo=1, hi=1_000_000)
-    shadow_iou: float = _opt(0.5, "A track at least shadow_share of whose boxes overlap a stronger track's boxes on their frames "
-                                  "this much (IoU) follows that track's object again (tasks/tracking/shadow.py): dropped "
-                                  "(1 keeps them).", lo=0.01, hi=1.0)
+    shadow_iou: float = _opt(0.5, "A track at least shadow_share of whose boxes overlap the boxes of a stronger track, no less "
+                                  "sure of itself (mean score), on their frames this much (IoU) follows that track's object "
+                                  "again (tasks/tracking/shadow.py): dropped (1 keeps them).", lo=0.01, hi=1.0)
     shadow_share: float = _opt(0.5, "Share of a track's boxes that must overlap a stronger track's for it to be a shadow.",
                                lo=0.01, hi=1.0)
 

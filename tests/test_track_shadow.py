@@ -36,17 +36,34 @@ def test_a_second_track_on_a_tracked_object_is_a_shadow_and_overlapping_objects_
     frames = np.r_[np.arange(20), np.arange(4, 16), np.arange(20), np.arange(0, 20, 2)]
     boxes = np.r_[table, table_again, chair, part]
     groups = [np.arange(20), np.arange(20, 32), np.arange(32, 52), np.arange(52, 62)]
-    scores = np.r_[np.full(20, 0.5), np.full(12, 0.9), np.full(20, 0.6), np.full(10, 0.9)]
+    scores = np.r_[np.full(20, 0.8), np.full(12, 0.6), np.full(20, 0.7), np.full(10, 0.6)]
     assert shadow_groups(groups, frames, boxes, scores, 0.5, 0.5).tolist() == [False, True, False, True]
     assert shadow_groups(groups, frames, boxes, scores, 1.0, 0.5).tolist() == [False] * 4  # 1 keeps them all
-    # too low a threshold takes the table behind the chair (the chair scores better) for the chair again
-    assert shadow_groups(groups, frames, boxes, scores, 0.15, 0.5).tolist() == [True, True, False, True]
-    # the stronger track is the longer one, whatever the scores; at equal length the better-scored one
+    # too low a threshold takes the chair in front of the table (the table scores better) for the table again
+    assert shadow_groups(groups, frames, boxes, scores, 0.15, 0.5).tolist() == [False, True, True, True]
+    # the stronger track is the longer one; at equal length the better-scored one
     assert shadow_groups(groups[:2][::-1], frames, boxes, scores, 0.5, 0.5).tolist() == [True, False]
     twins = [np.arange(20), np.arange(52, 62)]
     even = np.r_[np.arange(20), np.arange(52, 62)]
-    assert shadow_groups([even[:10], even[20:]], frames, boxes, scores, 0.5, 0.5).tolist() == [True, False]
+    assert shadow_groups([even[:10], even[20:]], frames, boxes, scores, 0.5, 0.5).tolist() == [False, True]
+    flipped = np.r_[np.full(20, 0.5), scores[20:]]
+    assert shadow_groups([even[:10], even[20:]], frames, boxes, flipped, 0.5, 0.5).tolist() == [True, False]
     assert shadow_groups(twins, frames, boxes, scores, 0.5, 1.0).tolist() == [False, True]
+
+
+def test_a_confident_track_is_no_shadow_of_a_less_confident_one():
+    """A long track that the partition ran from a bed onto the table beside it (less sure of itself)
+    covers the bed's own, confident track on its frames: that track is the bed's, and stays; a weak
+    track trailing the long one on the same frames is a shadow."""
+    bed = moving((0.4, 0.1, 0.8, 0.5), range(15))
+    table = moving((0.5, 0.55, 0.8, 0.9), range(15, 30))
+    bed_again = moving((0.41, 0.1, 0.8, 0.51), range(15))  # IoU ~0.95 with the long track's bed boxes
+    frames = np.r_[np.arange(30), np.arange(15)]
+    boxes = np.r_[bed, table, bed_again]
+    groups = [np.arange(30), np.arange(30, 45)]
+    for clean, shadow in ((0.8, False), (0.55, False), (0.5, True), (0.4, True)):  # as sure as the long one: a shadow
+        scores = np.r_[np.full(30, 0.5), np.full(15, clean)]
+        assert shadow_groups(groups, frames, boxes, scores, 0.5, 0.5).tolist() == [False, shadow], clean
 
 
 def test_a_track_overlapping_only_a_dropped_shadow_is_kept():
