@@ -113,6 +113,26 @@ def test_config_check_names_the_key(tmp_path):
 
 
 @pytest.mark.slow
+def test_cad_ingest_failure_names_the_library(tmp_path):
+    """A CAD library's failed stage is reported as the library's, not as a clip's."""
+    import trimesh
+
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    trimesh.creation.box((1.0, 0.5, 0.6)).export(folder / "box.obj")
+    (folder / "models.csv").write_text("id,class\nbox,table\n")
+    (tmp_path / "c.toml").write_text("[cad_views]\nviews = 2\nsize = 64\n")
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+    env["CADESTATE_MODELS"] = str(tmp_path / "no-models")  # no model there: cad_embed fails
+    result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "-c", str(tmp_path / "c.toml"),
+                             "cad", "ingest", str(folder), "--library", "mine", "--no-progress"],
+                            capture_output=True, text=True, env=env)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert "error: library mine, stage cad_embed: " in result.stderr and "run `make models`" in result.stderr
+    assert "clip mine" not in result.stderr and result.stderr.startswith("1 model from ")
+
+
+@pytest.mark.slow
 def test_cad_ingest_sheet_export(tmp_path):
     import trimesh
 

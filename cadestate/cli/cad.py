@@ -47,9 +47,10 @@ def cad_ingest(
     api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
     from flows.cad_library import run_cad_library
 
-    err.print(f"{len(items)} models from {path} into {root} " + (f"on the Prefect server at {api}" if api else
+    models = f"{len(items)} model{'' if len(items) == 1 else 's'}"
+    err.print(f"{models} from {path} into {root} " + (f"on the Prefect server at {api}" if api else
               "(Prefect's local API starts alongside, ~3 s; `cadestate server start` saves it)"))
-    raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress)))
+    raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress), unit="library"))
 
 
 @cad_app.command("export-official")

@@ -81,8 +81,10 @@ class CliError(Exception):
     """An error to print as one line, without a traceback."""
 
 
-def print_reports(reports) -> int:
-    table = Table("clip", "stage", "state", "rows", "seconds", "message", title="stage runs")
+def print_reports(reports, unit: str = "clip") -> int:
+    """Print the stage runs' table, then one stderr line per failed or paused run naming its ``unit``
+    (a clip, or a CAD library); returns the exit status (1 when a stage failed)."""
+    table = Table(unit, "stage", "state", "rows", "seconds", "message", title="stage runs")
     colours = {"completed": "green", "cached": "cyan", "failed": "red", "skipped": "yellow", "paused": "magenta",
                "waiting": "magenta"}
     for r in reports:
@@ -91,10 +93,10 @@ def print_reports(reports) -> int:
     out.print(table)
     failed = [r for r in reports if r.state == "failed"]
     for r in failed:
-        err.print(f"[red]error:[/] clip {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
+        err.print(f"[red]error:[/] {unit} {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
     paused = [r for r in reports if r.state == "paused"]
     for r in paused:
-        err.print(f"[magenta]paused:[/] clip {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
+        err.print(f"[magenta]paused:[/] {unit} {escape(r.clip)}, stage {r.stage}: {escape(r.message)}", highlight=False)
     if paused and not failed:
         err.print("answer the task files with label files, then `cadestate labels ingest DIR` resumes the clips")
     return 1 if failed else 0
