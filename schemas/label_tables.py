@@ -110,16 +110,16 @@ LABEL_EFFORT = _answer_table(
     ])
 
 TRACK_RELATIONS = _answer_table(
-    "track_relations", "What annotators said about tracks besides answering them (history): `not_object` (manual_track "
-    "`not_objects`: track_id shows no object), `same_object` (cad_selection "
-    "`same_as_track`: track_id is a fragment of other_track_id; verification `same_as_track`: track_id's pose shows the "
-    "object of other_track_id, a duplicate; manual_track `same_as_track`: the drawn object "
-    "object_index of the label is existing track track_id). Only the statements of the answers in force count "
-    "(tasks.tracking.relations): the dataset export drops not-objects and merges fragments into their root's object; the "
-    "later human tasks leave out the tracks a manual_track answer says are no object or an existing track.", ("statement_index",), [
+    "track_relations", "What annotators said about tracks besides answering them (history): a track is no object, or the "
+    "same object as another; only the statements of the answers in force count (tasks.tracking.relations).", ("statement_index",), [
         column("statement_index", pa.int32(), "0-based index of the statement within its label file."),
         column("kind", pa.string(), "The label's kind (manual_track | cad_selection | verification)."),
-        column("relation", pa.string(), "not_object | same_object."),
+        column("relation", pa.string(), "not_object (manual_track `not_objects`: track_id shows no object; the export drops it "
+                                        "and the later human tasks leave it out) | same_object (cad_selection `same_as_track`: "
+                                        "track_id is a fragment of other_track_id, merged into its root's object by the export; "
+                                        "verification `same_as_track`: track_id's pose shows the object of other_track_id, a "
+                                        "duplicate; manual_track `same_as_track`: the drawn object object_index of the label is "
+                                        "existing track track_id, which the later human tasks then leave out)."),
         column("track_id", pa.int32(), "The track the statement is about."),
         column("other_track_id", pa.int32(), "same_object from cad_selection or verification: the track it is a fragment "
                                              "(or a duplicate) of.", nullable=True),
