@@ -191,6 +191,18 @@ def test_stats_command(bench3, tmp_path):
     assert bad.stdout == "" and not (tmp_path / "bad").exists()
 
 
+def test_stats_of_no_clip_are_zeros(tmp_path):
+    """A warehouse with no clip yet (or a --where that matches none): zeros and no figure, not a traceback."""
+    from fuzz.harness import run_cli
+
+    wh = Warehouse(tmp_path / "w")
+    figures = statistics(dataset_tables(wh, select_clips(wh)))
+    assert figures["scenes"] == figures["posed_objects"] == figures["classes"] == figures["cad_models"] == 0
+    assert figures["per_class"] == {} and figures["truncated_share"] is None
+    result = run_cli("-w", str(wh.root), "stats", "--where", "false")
+    assert result.code == 0 and "#Posed objects: 0" in result.stdout and result.stderr == ""
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
 def test_html_report_renders_in_chromium(bench3, tmp_path):
     from tasks.dataset.stats_report import write_report

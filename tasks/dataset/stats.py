@@ -112,7 +112,7 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
 
 def statistics(t: DatasetTables) -> dict:
     """The figures of the module docstring as a dict of plain numbers (means 0 for no clip/frame)."""
-    posed = t.objects[t.objects.posed]
+    posed = t.objects[t.objects["posed"].astype(bool)]  # bool even when empty (an empty column is of object dtype)
     per_class = posed["class"].value_counts()
     n_clips, n_frames = len(t.clips), len(t.frames)
     per_frame = t.visible.dropna(subset=["distance_m"]).groupby(["clip", "timestamp_us"])["distance_m"]
