@@ -112,6 +112,27 @@ def test_config_check_names_the_key(tmp_path):
     assert "jpeg_quality = 50" in cli("-c", str(f), "config", "show").stdout
 
 
+def test_annotate_on_a_taken_port_is_one_line(tmp_path):
+    """`cadestate annotate` where nothing can listen: one error line naming the address, before Prefect
+    starts or the app's address is printed; a port out of range is refused by the option (and by
+    `server start`'s)."""
+    import socket
+
+    from fuzz.harness import assert_clean_error, run_cli
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = run_cli("-w", str(tmp_path / "w"), "annotate", "--port", str(port))
+    assert_clean_error(result, mentions=f"--host 127.0.0.1 --port {port}: cannot listen there: ")
+    assert "another app on it? choose another --port" in result.stderr and "http://" not in result.stderr
+    out_of_range = cli("-w", str(tmp_path / "w"), "annotate", "--port", "99999")
+    assert out_of_range.returncode == 2 and "Traceback" not in out_of_range.stderr and "--port" in out_of_range.stderr
+    server = cli("-w", str(tmp_path / "w"), "server", "start", "--port", "99999")  # not handed to Prefect to fail on
+    assert server.returncode == 2 and "Invalid value for '--port'" in server.stderr
+
+
 @pytest.mark.slow
 def test_cad_ingest_failure_names_the_library(tmp_path):
     """A CAD library's failed stage is reported as the library's, not as a clip's."""

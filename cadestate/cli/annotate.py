@@ -7,14 +7,14 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import app, err
+from cadestate.cli.common import CliError, app, err
 
 
 @app.command("annotate")
 def annotate(
     ctx: typer.Context,
     host: Annotated[str, typer.Option(help="Address to listen on (127.0.0.1: this machine only).")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="Port to listen on.")] = 8765,
+    port: Annotated[int, typer.Option(min=1, max=65535, help="Port to listen on.")] = 8765,
     annotator: Annotated[Optional[str], typer.Option(help="Name recorded in every label file (default: the user name).")] = None,
 ) -> None:
     """Open the annotation app: the clips' waiting human tasks (manual tracks, CAD selection,
@@ -23,6 +23,7 @@ def annotate(
     background."""
     from flows.runtime import prepare_prefect_environment
 
+    check_listen(host, port)
     cfg = ctx.obj.config()
     root = Path(cfg.warehouse.root).resolve()
     prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
@@ -35,3 +36,19 @@ def annotate(
                   "the correspondences page cannot show models", highlight=False)
     err.print(f"annotation app for {root}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
     uvicorn.run(create_app(cfg, annotator), host=host, port=port, log_level="warning")
+
+
+def check_listen(host: str, port: int) -> None:
+    """Raise a one-line :class:`CliError` when nothing could listen on ``host:port`` (the port taken,
+    the address not this machine's), before Prefect starts and the app's address is printed."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        with socket.socket(infos[0][0], socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a port in TIME_WAIT is free
+            s.bind(infos[0][4])
+    except OSError as e:
+        hint = " (another app on it? choose another --port)" if e.errno == errno.EADDRINUSE else ""
+        raise CliError(f"--host {host} --port {port}: cannot listen there: {e.strerror or e}{hint}") from None

@@ -24,7 +24,7 @@ def _root(ctx: typer.Context) -> Path:
 def server_start(
     ctx: typer.Context,
     host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="Port (0: a free one).")] = 4200,
+    port: Annotated[int, typer.Option(min=0, max=65535, help="Port (0: a free one).")] = 4200,
     database_url: Annotated[str, typer.Option(help="SQLAlchemy URL of a PostgreSQL database "
                                                    "(postgresql+asyncpg://user:password@host/db); default: SQLite under "
                                                    "<warehouse>/_prefect/home.")] = "",
