@@ -112,6 +112,11 @@ def test_config_check_names_the_key(tmp_path):
     assert "jpeg_quality = 50" in cli("-c", str(f), "config", "show").stdout
 
 
+def test_bench_generate_refuses_no_clips(tmp_path):
+    result = cli("-w", str(tmp_path / "w"), "bench", "generate", "--out", str(tmp_path / "b"), "--clips", "0")
+    assert result.returncode == 2 and "Invalid value for '--clips'" in result.stderr and not (tmp_path / "b").exists()
+
+
 def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     """`cadestate annotate` where nothing can listen: one error line naming the address, before Prefect
     starts or the app's address is printed; a port out of range is refused by the option (and by
@@ -175,3 +180,5 @@ def test_cad_ingest_sheet_export(tmp_path):
     assert export.exit_code == 0 and (tmp_path / "official" / "04379243" / "mine.box.npz").is_file()
     again = cli("-w", w, "cad", "export-official", str(tmp_path / "official"))
     assert again.returncode == 2 and "exists and is not empty" in again.stderr
+    onto_file = cli("-w", w, "cad", "export-official", str(tmp_path / "s.png"))
+    assert onto_file.returncode == 2 and f"{tmp_path / 's.png'}: exists and is not a folder" in onto_file.stderr

@@ -224,6 +224,15 @@ def test_export_commands(built, tmp_path):
     assert_clean_error(run_cli(*w, "export", "scan2cad", str(tmp_path / "new"), "--clips", "nope"),
                        mentions="clip 'nope' has no frames")
     assert not (tmp_path / "new").exists()
+    (tmp_path / "file").write_text("x")
+    assert_clean_error(run_cli(*w, "export", "official", str(tmp_path / "file"), "--no-progress"),
+                       mentions=f"{tmp_path / 'file'}: exists and is not a folder")
+    for kind in ("official", "scan2cad"):  # a file where a folder would be made
+        assert_clean_error(run_cli(*w, "export", kind, str(tmp_path / "file" / "out")),
+                           mentions=f"{tmp_path / 'file' / 'out'}: cannot write there")
+    assert_clean_error(run_cli("-w", str(tmp_path / "empty"), "export", "scan2cad", str(tmp_path / "new")),
+                       mentions="no clip with frames")
+    assert (tmp_path / "file").read_text() == "x" and not (tmp_path / "new").exists()
 
 
 def read_csv_text(text: str, tmp_path) -> list[Alignment]:

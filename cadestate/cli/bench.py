@@ -17,7 +17,7 @@ def bench_generate(
     bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there are kept).")],
     seed: Annotated[int, typer.Option(help="Benchmark seed (clip i uses seed*1000+i); the default is the default benchmark's. make "
                                          "bench's fresh seed and the seeds already used while tuning: bench/seeds.py.")] = 20261123,
-    clips: Annotated[int, typer.Option(help="Number of clips.")] = 12,
+    clips: Annotated[int, typer.Option(min=1, help="Number of clips.")] = 12,
     frames: Annotated[int, typer.Option(help="Video frames per clip at 30 fps; every 2nd is a camera line.")] = 276,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:

@@ -33,6 +33,25 @@ class ExportError(ValueError):
     """The export cannot be written (the destination holds files, or the library is empty)."""
 
 
+def check_new_folder(out: Path) -> None:
+    """Refuse (:class:`ExportError`) an export destination ``out`` that is a file or a folder holding files."""
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"{out}: exists and is not a folder; choose a new folder")
+    if out.exists() and any(out.iterdir()):
+        raise ExportError(f"{out}: exists and is not empty; choose a new folder")
+
+
+def temp_folder_beside(out: Path) -> Path:
+    """A new hidden folder beside ``out`` to write an export into before renaming it to ``out``
+    (:class:`ExportError` when none can be made there: no permission, a file in the path)."""
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        tmp.mkdir(parents=True)
+    except OSError as e:
+        raise ExportError(f"{out}: cannot write there: {e.strerror or e}") from None
+    return tmp
+
+
 def triangle_soup(mesh_file: Path) -> np.ndarray:
     """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied)."""
     scene = trimesh.load(mesh_file, force="scene")
@@ -43,14 +62,12 @@ def triangle_soup(mesh_file: Path) -> np.ndarray:
 def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:
     """Write the official layout of ``libraries`` (default: all) to ``out``; returns the model count."""
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise ExportError(f"{out}: exists and is not empty; choose a new folder")
+    check_new_folder(out)
     models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path"]).to_pylist()
     if not models:
         raise ExportError("no CAD model in the warehouse (run `cadestate cad ingest` first)")
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    tmp = temp_folder_beside(out)
     try:
-        tmp.mkdir(parents=True)
         classes = [{"id": c.id, "human_readable": c.name} for c in CLASSES]
         (tmp / "shapenet_classes.json").write_text(json.dumps(classes, indent=1))
         symmetry = {f"{m['class_id']}_{m['cad_id']}": m["symmetry"] for m in models}

@@ -26,14 +26,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import uuid
 from collections.abc import Sequence
 from pathlib import Path
 
 from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
-from tasks.cad.export import ExportError, export_official as export_cad_root
+from tasks.cad.export import ExportError, check_new_folder, export_official as export_cad_root, temp_folder_beside
 from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, clip_dataset
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
@@ -97,8 +96,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     """Write the official layout of ``clips`` (default: every clip with frames) to ``out`` (new
     or empty); returns counts (clips, frames, objects, posed objects, CAD models)."""
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise ExportError(f"{out}: exists and is not empty; choose a new folder")
+    check_new_folder(out)
     known = wh.partitions("frames")
     clips = list(clips) if clips else known
     missing = [c for c in clips if c not in known]
@@ -113,10 +111,9 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
         vid, which = next(iter(shared.items()))
         raise ExportError(f"clips {', '.join(which)} come from different videos but share the video id {vid!r}; "
                           "their frames would overwrite each other in frames/<video_id>/")
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    tmp = temp_folder_beside(out)
     counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0}
     try:
-        tmp.mkdir(parents=True)
         for ds, name in zip(datasets, names):
             folder = tmp / "annotations" / name
             folder.mkdir(parents=True)

@@ -116,7 +116,12 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     missing = [c for c in clips if c not in known]
     if missing:
         raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
-    out.mkdir(parents=True, exist_ok=True)
+    if not clips:
+        raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file in the way, no permission
+        raise ExportError(f"{out}: cannot write there: {e.strerror or e}") from None
     annotations, appearances, total = [], {}, 0
     for clip in clips:
         ds = clip_dataset(wh, clip)
