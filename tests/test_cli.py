@@ -97,7 +97,10 @@ def test_stage_failures_are_one_clear_line(tmp_path, small_clip):
 
 def test_usage_errors_are_one_clear_line(tmp_path):
     result = cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "nowhere"))
-    assert result.returncode == 2 and "nowhere: not a folder" in result.stderr and "Traceback" not in result.stderr
+    assert result.returncode == 2 and "nowhere: no such file or folder" in result.stderr and "Traceback" not in result.stderr
+    (tmp_path / "room.mp4").write_bytes(b"")
+    result = cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "room.mp4"), str(tmp_path / "room.txt"))
+    assert result.returncode == 2 and result.stderr.strip() == f"error: {tmp_path / 'room.txt'}: no such file or folder"
     result = cli("-w", str(tmp_path / "w"), "tables", "nope")
     assert result.returncode == 2 and "unknown table 'nope'" in result.stderr
 

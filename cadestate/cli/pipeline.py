@@ -12,7 +12,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from cadestate.cli.common import State, run_sources, app, config_app, err, out
+from cadestate.cli.common import CliError, State, run_sources, app, config_app, err, out
 from cadestate.config import describe_defaults, load_config, to_toml
 
 
@@ -79,6 +79,9 @@ def ingest(
                               registered_splits, sfm_source)
 
     sfm_intrinsics = _parse_intrinsics(intrinsics)
+    missing = [s for s in sources if not s.exists()]
+    if missing:
+        raise CliError(f"{missing[0]}: no such file or folder")
     if align_start and time_offset_us:
         raise typer.BadParameter("--align-start and --time-offset-us exclude each other")
     if len(sources) == 1 and sources[0].is_file():
