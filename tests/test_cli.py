@@ -101,6 +101,12 @@ def test_usage_errors_are_one_clear_line(tmp_path):
     (tmp_path / "room.mp4").write_bytes(b"")
     result = cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "room.mp4"), str(tmp_path / "room.txt"))
     assert result.returncode == 2 and result.stderr.strip() == f"error: {tmp_path / 'room.txt'}: no such file or folder"
+    from fuzz.harness import assert_clean_error, run_cli
+
+    (tmp_path / "file").write_text("x")
+    for command in (["status"], ["run"], ["annotate"], ["server", "start"], ["cad", "ingest"]):  # before Prefect starts
+        assert_clean_error(run_cli("-w", str(tmp_path / "file"), *command),
+                           mentions=f"{tmp_path / 'file'}: the warehouse is not a folder")
     result = cli("-w", str(tmp_path / "w"), "tables", "nope")
     assert result.returncode == 2 and "unknown table 'nope'" in result.stderr
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -25,7 +24,7 @@ def annotate(
 
     check_listen(host, port)
     cfg = ctx.obj.config()
-    root = Path(cfg.warehouse.root).resolve()
+    root = ctx.obj.root()
     prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     import uvicorn
 

@@ -70,11 +70,17 @@ class State:
             cfg = dataclasses.replace(cfg, warehouse=dataclasses.replace(cfg.warehouse, root=str(self.warehouse)))
         return cfg
 
+    def root(self) -> Path:
+        """The warehouse folder, absolute (:class:`CliError` when a file is in its place)."""
+        root = Path(self.config().warehouse.root).expanduser().resolve()
+        if root.exists() and not root.is_dir():
+            raise CliError(f"{root}: the warehouse is not a folder (set by -w, [warehouse] root or $CADESTATE_WAREHOUSE)")
+        return root
+
     def open_warehouse(self):
         from warehouse import Warehouse
 
-        settings = self.config().warehouse
-        return Warehouse(settings.root, compact_after=settings.compact_after_files)
+        return Warehouse(self.root(), compact_after=self.config().warehouse.compact_after_files)
 
 
 class CliError(Exception):
@@ -106,7 +112,7 @@ def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     from flows.runtime import prepare_prefect_environment
 
     cfg = state.config()
-    root = Path(cfg.warehouse.root).resolve()
+    root = state.root()
     api = prepare_prefect_environment(root, state.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     from flows.annotate_clip import run_clips
 

@@ -17,7 +17,7 @@ app.add_typer(server_app, name="server")
 
 
 def _root(ctx: typer.Context) -> Path:
-    return Path(ctx.obj.config().warehouse.root).expanduser().resolve()
+    return ctx.obj.root()
 
 
 @server_app.command("start")
