@@ -147,16 +147,25 @@ def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     assert server.returncode == 2 and "Invalid value for '--port'" in server.stderr
 
 
-@pytest.mark.slow
-def test_cad_ingest_failure_names_the_library(tmp_path):
-    """A CAD library's failed stage is reported as the library's, not as a clip's."""
+def box_library(tmp_path, bad: bool = False):
+    """A folder of meshes with its models.csv (a 1 x 0.5 x 0.6 m box, a table; with ``bad``, also an
+    unreadable chair) and a small-render config ``tmp_path/c.toml``."""
     import trimesh
 
     folder = tmp_path / "meshes"
     folder.mkdir()
     trimesh.creation.box((1.0, 0.5, 0.6)).export(folder / "box.obj")
-    (folder / "models.csv").write_text("id,class\nbox,table\n")
+    if bad:
+        (folder / "bad.obj").write_text("f 1 2 3\n")
+    (folder / "models.csv").write_text("id,class\nbox,table\n" + ("bad,chair\n" if bad else ""))
     (tmp_path / "c.toml").write_text("[cad_views]\nviews = 2\nsize = 64\n")
+    return folder
+
+
+@pytest.mark.slow
+def test_cad_ingest_failure_names_the_library(tmp_path):
+    """A CAD library's failed stage is reported as the library's, not as a clip's."""
+    folder = box_library(tmp_path)
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
     env["CADESTATE_MODELS"] = str(tmp_path / "no-models")  # no model there: cad_embed fails
     result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "-c", str(tmp_path / "c.toml"),
@@ -169,14 +178,7 @@ def test_cad_ingest_failure_names_the_library(tmp_path):
 
 @pytest.mark.slow
 def test_cad_ingest_sheet_export(tmp_path):
-    import trimesh
-
-    folder = tmp_path / "meshes"
-    folder.mkdir()
-    trimesh.creation.box((1.0, 0.5, 0.6)).export(folder / "box.obj")
-    (folder / "bad.obj").write_text("f 1 2 3\n")
-    (folder / "models.csv").write_text("id,class\nbox,table\nbad,chair\n")
-    (tmp_path / "c.toml").write_text("[cad_views]\nviews = 2\nsize = 64\n")
+    folder = box_library(tmp_path, bad=True)
     w = str(tmp_path / "w")
     result = runner.invoke(app, ["-w", w, "-c", str(tmp_path / "c.toml"), "cad", "ingest", str(folder), "--library", "mine"])
     assert result.exit_code == 0, result.output
