@@ -34,9 +34,9 @@ def test_every_command_has_help(path):
     assert len(result.output.split("\n\n")[1].strip()) > 20  # a real description
 
 
-def cli(*args):
-    """Run the real command in a fresh process, with a user's environment (no test log level)."""
-    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+def cli(*args, env: dict[str, str] | None = None):
+    """Run the real command in a fresh process, with a user's environment (no test log level) and ``env``."""
+    env = {**{k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}, **(env or {})}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env)
 
 
@@ -166,11 +166,8 @@ def box_library(tmp_path, bad: bool = False):
 def test_cad_ingest_failure_names_the_library(tmp_path):
     """A CAD library's failed stage is reported as the library's, not as a clip's."""
     folder = box_library(tmp_path)
-    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
-    env["CADESTATE_MODELS"] = str(tmp_path / "no-models")  # no model there: cad_embed fails
-    result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "-c", str(tmp_path / "c.toml"),
-                             "cad", "ingest", str(folder), "--library", "mine", "--no-progress"],
-                            capture_output=True, text=True, env=env)
+    result = cli("-w", str(tmp_path / "w"), "-c", str(tmp_path / "c.toml"), "cad", "ingest", str(folder), "--library", "mine",
+                 "--no-progress", env={"CADESTATE_MODELS": str(tmp_path / "no-models")})  # no model there: cad_embed fails
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert "error: library mine, stage cad_embed: " in result.stderr and "run `make models`" in result.stderr
     assert "clip mine" not in result.stderr and result.stderr.startswith("1 model from ")

@@ -24,7 +24,7 @@ def annotate(
 
     check_listen(host, port)
     cfg = ctx.obj.config()
-    root = ctx.obj.root()
+    root = ctx.obj.root(cfg)
     prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     import uvicorn
 

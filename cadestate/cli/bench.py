@@ -86,7 +86,7 @@ def bench_run(
     from flows.runtime import prepare_prefect_environment
 
     cfg = ctx.obj.config()
-    prepare_prefect_environment(ctx.obj.root(), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
+    prepare_prefect_environment(ctx.obj.root(cfg), ctx.obj.verbose, cfg.prefect.startup_timeout_s)
     from flows.annotate_clip import run_clips
 
     reports, waiting = annotate_until_done(

@@ -43,7 +43,7 @@ def cad_ingest(
     if not path.is_dir():
         raise CliError(f"{path}: CAD source folder not found" + ("" if source else " (run `make cad-library`)"))
     items = source_items(guess_kind(path) if kind is SourceKind.auto else kind.value, path, library)
-    root = ctx.obj.root()
+    root = ctx.obj.root(cfg)
     api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
     from flows.cad_library import run_cad_library
 

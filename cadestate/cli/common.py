@@ -70,9 +70,10 @@ class State:
             cfg = dataclasses.replace(cfg, warehouse=dataclasses.replace(cfg.warehouse, root=str(self.warehouse)))
         return cfg
 
-    def root(self) -> Path:
-        """The warehouse folder, absolute (:class:`CliError` when a file is in its place)."""
-        root = Path(self.config().warehouse.root).expanduser().resolve()
+    def root(self, cfg: Config | None = None) -> Path:
+        """The warehouse folder of ``cfg`` (default: :meth:`config`), absolute (:class:`CliError`
+        when a file is in its place)."""
+        root = Path((cfg or self.config()).warehouse.root).expanduser().resolve()
         if root.exists() and not root.is_dir():
             raise CliError(f"{root}: the warehouse is not a folder (set by -w, [warehouse] root or $CADESTATE_WAREHOUSE)")
         return root
@@ -80,7 +81,8 @@ class State:
     def open_warehouse(self):
         from warehouse import Warehouse
 
-        return Warehouse(self.root(), compact_after=self.config().warehouse.compact_after_files)
+        cfg = self.config()
+        return Warehouse(self.root(cfg), compact_after=cfg.warehouse.compact_after_files)
 
 
 class CliError(Exception):
@@ -112,7 +114,7 @@ def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     from flows.runtime import prepare_prefect_environment
 
     cfg = state.config()
-    root = state.root()
+    root = state.root(cfg)
     api = prepare_prefect_environment(root, state.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     from flows.annotate_clip import run_clips
 

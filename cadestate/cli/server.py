@@ -16,10 +16,6 @@ server_app = typer.Typer(help="A Prefect server for this warehouse (its database
 app.add_typer(server_app, name="server")
 
 
-def _root(ctx: typer.Context) -> Path:
-    return ctx.obj.root()
-
-
 @server_app.command("start")
 def server_start(
     ctx: typer.Context,
@@ -36,7 +32,7 @@ def server_start(
     """
     from flows.server import start_server
 
-    info = start_server(_root(ctx), host, port, database_url, timeout_s=ctx.obj.config().prefect.startup_timeout_s)
+    info = start_server(ctx.obj.root(), host, port, database_url, timeout_s=ctx.obj.config().prefect.startup_timeout_s)
     out.print(f"Prefect server up: {escape(info.api_url)} (UI {escape(info.api_url.removesuffix('/api'))}, "
               f"pid {info.pid}, log {escape(info.log)})")
 
@@ -46,7 +42,7 @@ def server_stop(ctx: typer.Context) -> None:
     """Stop the server of this warehouse; commands fall back to ephemeral mode."""
     from flows.server import stop_server
 
-    info = stop_server(_root(ctx))
+    info = stop_server(ctx.obj.root())
     out.print(f"stopped the Prefect server at {escape(info.api_url)} (pid {info.pid})" if info else "no server was started")
 
 
@@ -55,7 +51,7 @@ def server_status(ctx: typer.Context) -> None:
     """Whether this warehouse's server is up (exit status 0) or down (exit status 1)."""
     from flows.server import read_server, running_server
 
-    root = _root(ctx)
+    root = ctx.obj.root()
     if (info := running_server(root)) is not None:
         out.print(f"up: {escape(info.api_url)} (pid {info.pid}, since {info.started_at}, log {escape(info.log)})")
         return
@@ -86,7 +82,7 @@ def serve(ctx: typer.Context) -> None:
     from flows.server import running_server
 
     cfg = ctx.obj.config()
-    root = _root(ctx)
+    root = ctx.obj.root()
     if running_server(root) is None:
         raise CliError(f"no Prefect server is up for {root}: start one with `cadestate server start`")
     prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs

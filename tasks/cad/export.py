@@ -41,15 +41,33 @@ def check_new_folder(out: Path) -> None:
         raise ExportError(f"{out}: exists and is not empty; choose a new folder")
 
 
+def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False) -> Path:
+    """Make ``folder`` and its parents; :class:`ExportError` naming ``named`` (default: ``folder``)
+    when it cannot be made there (no permission, a file in the path)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=exist_ok)
+    except OSError as e:
+        raise ExportError(f"{named or folder}: cannot write there: {e.strerror or e}") from None
+    return folder
+
+
 def temp_folder_beside(out: Path) -> Path:
     """A new hidden folder beside ``out`` to write an export into before renaming it to ``out``
-    (:class:`ExportError` when none can be made there: no permission, a file in the path)."""
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        tmp.mkdir(parents=True)
-    except OSError as e:
-        raise ExportError(f"{out}: cannot write there: {e.strerror or e}") from None
-    return tmp
+    (:class:`ExportError` when none can be made there)."""
+    return make_folder(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"), named=out)
+
+
+def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> list[str]:
+    """The clips a dataset export writes: ``clips``, default every clip with frames
+    (:class:`ExportError` when one has no frames, or there is none)."""
+    known = wh.partitions("frames")
+    chosen = list(clips) if clips else known
+    missing = [c for c in chosen if c not in known]
+    if missing:
+        raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
+    if not chosen:
+        raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
+    return chosen
 
 
 def triangle_soup(mesh_file: Path) -> np.ndarray:

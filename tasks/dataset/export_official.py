@@ -32,7 +32,7 @@ from pathlib import Path
 from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
-from tasks.cad.export import ExportError, check_new_folder, export_official as export_cad_root, temp_folder_beside
+from tasks.cad.export import ExportError, check_new_folder, export_clips, export_official as export_cad_root, temp_folder_beside
 from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, clip_dataset
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
@@ -97,13 +97,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     or empty); returns counts (clips, frames, objects, posed objects, CAD models)."""
     out = Path(out)
     check_new_folder(out)
-    known = wh.partitions("frames")
-    clips = list(clips) if clips else known
-    missing = [c for c in clips if c not in known]
-    if missing:
-        raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
-    if not clips:
-        raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
+    clips = export_clips(wh, clips)
     datasets = [clip_dataset(wh, c).in_input_world() for c in clips]
     names = [official_clip_name(ds) for ds in datasets]
     shared = shared_video_ids(zip(names, (ds.url for ds in datasets)))

@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from tasks.cad.export import ExportError
+from tasks.cad.export import ExportError, export_clips, make_folder
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
 from warehouse.store import atomic_write_bytes
@@ -111,17 +111,8 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     """Write the Scan2CAD files of ``clips`` (default: every clip with frames) into ``out``;
     returns counts (scans, alignments)."""
     out = Path(out)
-    known = wh.partitions("frames")
-    clips = list(clips) if clips else known
-    missing = [c for c in clips if c not in known]
-    if missing:
-        raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
-    if not clips:
-        raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:  # a file in the way, no permission
-        raise ExportError(f"{out}: cannot write there: {e.strerror or e}") from None
+    clips = export_clips(wh, clips)
+    make_folder(out, exist_ok=True)
     annotations, appearances, total = [], {}, 0
     for clip in clips:
         ds = clip_dataset(wh, clip)
