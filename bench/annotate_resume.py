@@ -105,19 +105,35 @@ def run(tmp: Path) -> dict:
     return rounds(config, clip, tmp / "bench")
 
 
+def library_copy(source: Path, dest: Path) -> None:
+    """Copy the warehouse ``source`` to ``dest`` without its clips (every table partition, media,
+    task and input folder named after one), its catalog or its Prefect home: its CAD libraries."""
+    import shutil
+
+    from warehouse import Warehouse
+
+    clips = set(Warehouse(source).partitions("clips"))
+    skip = {"_prefect", "_running", "_locks", "_staging", "_cache", "catalog.duckdb"}
+
+    def ignored(_folder: str, names: list[str]) -> list[str]:
+        return [n for n in names if n in skip or n in clips or n.removeprefix("clip=") in clips]
+
+    shutil.copytree(source, dest, ignore=ignored)
+
+
 def run_demo(tmp: Path, library: Path) -> dict:
     """The same rounds on ``make run``'s demo clip (seed :data:`DEMO_SEED`, the paper's frame size, a
     train clip: its tasks are CAD selection, correspondences and verification) over the whole CAD
-    library, taken from the warehouse ``library`` (copied: it is not changed)."""
-    import shutil
-
+    library, taken from the warehouse ``library`` (copied: it is not changed). Its clips are left
+    out of the copy: ``make run`` leaves the demo clip there answered, and a copy of it would never
+    pause."""
     from cadestate.config import Config, WarehouseConfig
     from flows.runtime import prepare_prefect_environment
 
     if not (library / "tables" / "cad_models").is_dir():
         return {"skipped": f"no CAD library in {library} (make run, or cadestate cad ingest)"}
     tmp.mkdir(parents=True, exist_ok=True)
-    shutil.copytree(library, tmp / "wh", ignore=shutil.ignore_patterns("_prefect", "_running", "_locks", "_staging"))
+    library_copy(library, tmp / "wh")
     prepare_prefect_environment(tmp / "wh")
     config = Config(warehouse=WarehouseConfig(root=str(tmp / "wh")))
     clip = _paused_clip(config, tmp / "bench", DEMO_SEED, WalkthroughSpec(), "train", {"cad_selection"})

@@ -55,3 +55,24 @@ def test_the_demo_warehouse_holds_the_cad_libraries_and_one_clip(wh, tmp_path):
     assert clip == "b" and demo.partitions("clips") == demo.partitions("runs") == ["b"]
     assert demo.read("runs").equals(wh.read("runs", ["b"]))
     assert demo_warehouse(wh.root, tmp_path / "first")[1] == "a"  # no demo clip: the first
+
+
+def test_the_demo_rounds_copy_the_cad_libraries_and_no_clip(wh, tmp_path):
+    """bench.annotate_resume.library_copy: make run leaves its demo clip answered in the default
+    warehouse; a copy that kept it would never pause, and make bench's demo rounds failed so."""
+    from bench.annotate_resume import library_copy
+    from tests.test_warehouse import clip_rows, run_rows
+    from warehouse import Warehouse
+
+    for clip in ("demo", "lib"):
+        wh.write("runs", clip, run_rows(clip, 2))
+    wh.write("clips", "demo", clip_rows("demo"))
+    for folder in ("media/frames/demo", "media/cad/lib", "label_tasks/demo", "_prefect/home"):
+        (wh.root / folder).mkdir(parents=True)
+        (wh.root / folder / "f.txt").write_text("x")
+    library_copy(wh.root, tmp_path / "copy")
+    copy = Warehouse(tmp_path / "copy")
+    assert copy.partitions("clips") == [] and copy.partitions("runs") == ["lib"]
+    assert copy.read("runs").equals(wh.read("runs", ["lib"]))
+    assert (tmp_path / "copy/media/cad/lib/f.txt").is_file()
+    assert not any((tmp_path / "copy" / f).exists() for f in ("media/frames/demo", "label_tasks/demo", "_prefect"))
