@@ -11,7 +11,7 @@ the cross-entropy of ``z(x) . p_m / TAU`` over all models of the library against
 model (contrastive: every other model is a negative), Adam, on one thread (reproducible).
 
 Data: the crops of :mod:`bench.descriptor_data` (training rooms only, seeds disjoint from any
-benchmark's); the CAD views' raw descriptors from a warehouse where the library is ingested.
+benchmark's; rendered on every core, :mod:`bench.room_pool`); the CAD views' raw descriptors from a warehouse where the library is ingested.
 Rooms are split by index into training and held-out rooms; the held-out top-1/top-10 are
 reported, and the number of steps is fixed (not chosen on any benchmark).
 
@@ -25,21 +25,23 @@ whose recipe equals the file's returns at once, so ``make models`` retrains only
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import sys
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from bench.descriptor_data import CropSet, room_crops
+from bench.room_pool import default_workers, map_rooms
 from bench.training_cli import training_main
 from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest, file_sha256
 from cadestate.progress import progress
-from tasks.detection.models.embedder import Embedder
 from tasks.retrieval.descriptor import DESCRIPTOR_NAME, save_descriptor
 from tasks.retrieval.index import list_matrix
 from tasks.retrieval.whitening import fit_whitening
@@ -85,15 +87,26 @@ def library_views(wh: Warehouse) -> LibraryViews:
     return LibraryViews(list_matrix(table.column("vector")), model.astype(np.int64), cad_ids)
 
 
-def render_crops(wh: Warehouse, spec: TrainSpec, embedder: Embedder, show_progress: bool = True) -> CropSet:
-    """The crops of every training room (:func:`bench.descriptor_data.room_crops`)."""
+def _room_state(wh_root: Path, stack: ExitStack) -> tuple:
+    """One process's (library rows, warehouse root, embedder, renderer) for :func:`_room`."""
+    from cadestate.config import EmbedConfig
     from cadestate.render import Renderer
+    from tasks.detection.models.embedder import load_embedder
 
-    models = wh.read("cad_models").to_pylist()
-    parts = []
-    with Renderer(640, 360, 2) as renderer:
-        for r in progress(range(spec.rooms), total=spec.rooms, description="training rooms", enabled=show_progress):
-            parts.append(room_crops(spec.seed, r, models, wh.root, embedder, renderer, spec.frames))
+    models = Warehouse(wh_root).read("cad_models").to_pylist()
+    return models, wh_root, load_embedder(EmbedConfig()), stack.enter_context(Renderer(640, 360, 2))
+
+
+def _room(spec: TrainSpec, state: tuple, room: int) -> CropSet:
+    models, wh_root, embedder, renderer = state
+    return room_crops(spec.seed, room, models, wh_root, embedder, renderer, spec.frames)
+
+
+def render_crops(wh: Warehouse, spec: TrainSpec, show_progress: bool = True, workers: int | None = None) -> CropSet:
+    """The crops of every training room (:func:`bench.descriptor_data.room_crops`), rendered on
+    ``workers`` processes (default: one per core; :mod:`bench.room_pool`)."""
+    parts = map_rooms(functools.partial(_room_state, wh.root), functools.partial(_room, spec), range(spec.rooms),
+                      default_workers() if workers is None else workers, "training rooms", show_progress)
     return CropSet.concatenate(parts)
 
 
@@ -204,9 +217,9 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     if crops_file.is_file():
         crops = CropSet.load(crops_file)
     else:
-        print(f"descriptor: rendering {spec.rooms} training rooms, {spec.frames} frames each (about 10 minutes on 2 cores; "
+        print(f"descriptor: rendering {spec.rooms} training rooms, {spec.frames} frames each (about 5 minutes on 2 cores; "
               f"kept in {crops_file.name})", file=sys.stderr, flush=True)
-        crops = render_crops(wh, spec, embedder, show_progress)
+        crops = render_crops(wh, spec, show_progress)
         crops.save(crops_file)
     t1 = time.perf_counter()
     print(f"descriptor: training on {len(crops.vectors)} crops (every {spec.holdout_every}th room's held out), {spec.steps} steps "

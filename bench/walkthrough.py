@@ -147,22 +147,23 @@ def camera_path(scene: Scene, spec: WalkthroughSpec, rng: np.random.Generator,
         pitch = rng.uniform(-math.radians(14), -math.radians(2)) + 0.02 * np.sin(2 * np.pi * time_s / rng.uniform(5, 9))
         eyes = np.stack([xz[:, 0], height, xz[:, 1]], axis=1)
         dirs = np.stack([np.cos(pitch) * np.sin(yaw), np.sin(pitch) * np.ones(n), np.cos(pitch) * np.cos(yaw)], axis=1)
-        poses = np.empty((n, 3, 4))
-        for i in range(n):
-            R, t = look_at(eyes[i], eyes[i] + dirs[i])
-            poses[i] = np.concatenate([R, t[:, None]], axis=1)
         found += 1
         score = 0.0
-        for i in np.linspace(0, n - 1, 6).astype(int):
-            uv, depth = project(K, poses[i, :, :3], poses[i, :, 3], centres)
+        for i in np.linspace(0, n - 1, 6).astype(int):  # only the scored frames' poses: the winner's come last
+            R, t = look_at(eyes[i], eyes[i] + dirs[i])
+            uv, depth = project(K, R, t, centres)
             inside = (depth > 0.3) & (uv[:, 0] > 0) & (uv[:, 0] < spec.width) & (uv[:, 1] > 0) & (uv[:, 1] < spec.height)
             score += np.count_nonzero(inside & (depth > 1.3)) - 1.5 * np.count_nonzero(inside & (depth <= 1.3))
         score += 3.0 * min(clear, 1.0)  # prefer walks that keep well away from furniture
         if score > best_score:
-            best, best_score = poses, score
+            best, best_score = (eyes, dirs), score
     if best is None:
         raise RuntimeError(f"no collision-free camera path in scene {scene.seed}")
-    return best
+    poses = np.empty((n, 3, 4))
+    for i, (eye, direction) in enumerate(zip(*best)):
+        R, t = look_at(eye, eye + direction)
+        poses[i] = np.concatenate([R, t[:, None]], axis=1)
+    return poses
 
 
 def _box_of(mask: np.ndarray) -> tuple[int, int, int, int]:

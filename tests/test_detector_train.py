@@ -203,6 +203,23 @@ def test_make_models_builds_a_checked_detector_that_the_detect_stage_uses(small_
 
 
 @pytest.mark.slow
+def test_rooms_rendered_on_two_processes_are_byte_for_byte_those_of_one(small_library_warehouse, models_dir):
+    """bench.room_pool: the training frames do not depend on how many processes render them."""
+    from bench.detector_train import render_frames
+    from tasks.detection.models import nanodet
+    from warehouse import Warehouse
+
+    wh = Warehouse(small_library_warehouse.warehouse.root)
+    spec = TrainSpec(rooms=3, frames=2)
+    one = render_frames(wh, models_dir / nanodet.ONNX_NAME, spec, show_progress=False, workers=1)
+    two = render_frames(wh, models_dir / nanodet.ONNX_NAME, spec, show_progress=False, workers=2)
+    assert len(one) == 6 and one.rooms.tolist() == [0, 0, 1, 1, 2, 2]
+    for field in FrameSet.FIELDS:
+        a, b = getattr(one, field), getattr(two, field)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), field
+
+
+@pytest.mark.slow
 def test_the_furniture_detector_still_boxes_what_coco_saw_on_real_photos():
     """The real photos of tests/test_models.py: every object NanoDet-m finds there, the furniture
     detector boxes too (IoU >= 0.8; its boxes were held to NanoDet-m's while every weight was
