@@ -1,5 +1,5 @@
-"""bench.room_pool: rooms spread over spawned processes come back in room order, each process's
-state made once and closed in-process."""
+"""bench.room_pool: rooms spread over spawned worker processes come back in room order, and the
+in-process state is closed when the rooms are done."""
 
 from __future__ import annotations
 
@@ -8,14 +8,6 @@ import os
 from contextlib import ExitStack
 
 from bench.room_pool import default_workers, map_rooms
-
-
-class _Closed:
-    def __init__(self, log: list[str]) -> None:
-        self.log = log
-
-    def close(self) -> None:
-        self.log.append("closed")
 
 
 def _state(base: int, stack: ExitStack) -> tuple[int, int]:
@@ -27,7 +19,7 @@ def _room(state: tuple[int, int], room: int) -> tuple[int, int]:
     return base + room * room, pid
 
 
-def test_pooled_rooms_come_back_in_order_with_one_state_per_process():
+def test_pooled_rooms_come_back_in_order_from_the_workers():
     rooms = list(range(7, -1, -1))
     out = map_rooms(functools.partial(_state, 100), _room, rooms, 2, "rooms", show_progress=False)
     assert [v for v, _ in out] == [100 + r * r for r in rooms]
@@ -42,7 +34,7 @@ def test_in_process_state_is_closed_when_the_rooms_are_done():
     log: list[str] = []
 
     def state(stack: ExitStack) -> int:
-        stack.callback(_Closed(log).close)
+        stack.callback(log.append, "closed")
         return 5
 
     assert map_rooms(state, lambda s, r: s + r, [1, 2], 1, "rooms", show_progress=False) == [6, 7]
