@@ -13,7 +13,8 @@ from bench.benchmark import DEFAULT_SEED
 from bench.descriptor_data import (
     MIN_BOX_SIDE_PX, MIN_VISIBLE_PX, CropSet, is_training_seed, jitter_boxes, room_seed, visible_boxes,
 )
-from bench.descriptor_train import LibraryViews, TrainSpec, evaluate, train
+import bench.descriptor_train as descriptor_train
+from bench.descriptor_train import LibraryViews, TrainSpec, crops_path, evaluate, train
 from tasks.retrieval.descriptor import DescriptorMissing, load_descriptor, save_descriptor
 from tasks.retrieval.whitening import fit_whitening
 
@@ -114,6 +115,20 @@ def test_training_learns_what_whitening_cannot_and_the_same_seed_gives_the_same_
     assert a.read_bytes() == b.read_bytes()
     other, _ = train(lib, crops, dataclasses.replace(spec, seed=2), show_progress=False)
     assert not np.array_equal(other, W)
+
+
+def test_the_kept_crops_are_keyed_by_the_code_that_makes_them_not_by_the_training_knobs(tmp_path, monkeypatch):
+    spec = TrainSpec()
+    path = crops_path(tmp_path, spec, "lib")
+    assert path.parent == tmp_path and path.name.startswith("descriptor-crops-")
+    assert crops_path(tmp_path, dataclasses.replace(spec, steps=7, dims=8, lr=1.0), "lib") == path
+    for other in (dataclasses.replace(spec, rooms=3), dataclasses.replace(spec, frames=3), dataclasses.replace(spec, seed=2)):
+        assert crops_path(tmp_path, other, "lib") != path
+    assert crops_path(tmp_path, spec, "another library") != path
+    assert "bench/descriptor_train.py" in descriptor_train.RECIPE_SOURCES
+    assert "bench/descriptor_train.py" not in descriptor_train.DATA_SOURCES
+    monkeypatch.setattr(descriptor_train, "DATA_SOURCES", descriptor_train.DATA_SOURCES[1:])  # other crop code
+    assert crops_path(tmp_path, spec, "lib") != path
 
 
 @pytest.mark.slow
