@@ -81,7 +81,13 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     todo = [(i, name) for i, name in enumerate(manifest.clips) if not (bench_dir / name / "objects.json").is_file()]
     seconds = []
     for i, name in progress(todo, total=len(todo), description="bench clips", enabled=show_progress):
-        seconds.append(generate_clip(bench_dir, name, seed * 1000 + i, models, wh.root, spec).timings["total"])
+        try:
+            seconds.append(generate_clip(bench_dir, name, seed * 1000 + i, models, wh.root, spec).timings["total"])
+        except RuntimeError as e:  # bench.walkthrough.camera_path: a room no camera walk fits in
+            if "camera path" not in str(e):
+                raise
+            fewer = f", or --clips {i} (the clips before it are kept)" if i else ""
+            raise BenchmarkError(f"{bench_dir}: clip {i} of seed {seed} cannot be generated ({e}): use another --seed{fewer}") from None
     (bench_dir / MANIFEST).write_text(json.dumps(manifest.to_json(), indent=1))
     return manifest, seconds
 

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from bench.benchmark import BenchmarkError, clip_sources, generate, ignore_rule, read_manifest, report, report_markdown
+from bench.benchmark import MANIFEST, BenchmarkError, clip_sources, generate, ignore_rule, read_manifest, report, report_markdown
 from bench.seeds import seed_note
 from bench.walkthrough import WalkthroughSpec
 from cadestate.config import Config, WarehouseConfig
@@ -23,6 +23,13 @@ def benchmark(small_cad_library, tmp_path_factory):
     folder = tmp_path_factory.mktemp("bench")
     manifest, made = generate(folder, 5, 2, wh, SPEC, show_progress=False)
     return folder, manifest, made
+
+
+def test_a_room_no_camera_walk_fits_in_is_one_error_naming_the_clip_and_writes_no_manifest(small_cad_library, tmp_path):
+    with pytest.raises(BenchmarkError, match=r"clip 0 of seed 117 cannot be generated \(no collision-free camera path "
+                                             r"in scene 117000\): use another --seed$"):
+        generate(tmp_path, 117, 1, small_cad_library[0], SPEC, show_progress=False)
+    assert not (tmp_path / MANIFEST).exists()
 
 
 def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
