@@ -4,18 +4,23 @@ Detection: the ``[detect]`` default detector over the 138 frames of :mod:`bench.
 clip, batched as the stage runs it (ms per frame, median of ``repeats``), beside, in the same
 rounds on the same frames, a bare onnxruntime session with onnxruntime's default options on the
 network inputs the detector makes of them (prepared beforehand, outside the timing) and the
-detector's own session on those inputs: ``ratio_to_bare_session`` is detection against the bare
+detector's own session on those inputs (both run the graph the detector runs: on its fitted canvas,
+``[detect] canvas``, the size-free one): ``ratio_to_bare_session`` is detection against the bare
 session, ``ratio_to_own_session`` against the network alone with the pipeline's options (what
 letterbox, input preparation, decoding and NMS add). ``thread_options``: per round, what the
 detector's :class:`~tasks.detection.onnx_session.MeasuredSession` measured of its threads sleeping
 and spinning, and which it chose (a new detector each round, as the stage loads one per clip). Embedding: crops of every detected box,
 tiled to ``crops`` crops, through the ``[embed]`` default embedder (descriptors per second, crop
 preparation included). ``coco_detect_ms_per_frame``: the COCO NanoDet-m (``[detect] model = "coco"``)
-in the same rounds, so ``ratio_to_coco`` says what the default furniture detector costs against it.
+in the same rounds, so ``ratio_to_coco`` says what the default furniture detector costs against it;
+``other_canvas_ms_per_frame``: the default detector on the other ``[detect] canvas`` (``"fit"``
+beside the default ``"square"``: a 640x360 frame on 416 x 256 instead of 416 x 416), in the same
+rounds, so ``other_canvas_ratio`` says what it costs against the default.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import statistics
 import time
@@ -27,10 +32,17 @@ import onnxruntime
 from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
-from tasks.detection.detectors import detector_path, letterbox, load_detector
+from tasks.detection.detectors import Detector, detector_path, fit_model, load_detector
+from tasks.detection.letterbox import Letterbox, letterbox
 from tasks.detection.models.embedder import load_embedder
 from tasks.video.camera_file import parse_camera_file
 from tasks.video.decode import decode_at
+
+
+def canvas_name(detector: Detector, image: np.ndarray) -> str:
+    """``"WxH"`` of the network input ``detector`` makes of ``image``."""
+    height, width = Letterbox.of(image.shape[:2], detector.size, detector.multiple).canvas
+    return f"{width}x{height}"
 
 
 def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
@@ -40,12 +52,15 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
     images = [f.rgb for f in decode_at(video, parse_camera_file(cameras).timestamps_us)]
     detector, cfg = load_detector(DetectConfig()), DetectConfig()
     coco = load_detector(DetectConfig(model="coco"))
-    bare = onnxruntime.InferenceSession(str(detector_path(cfg)), providers=["CPUExecutionProvider"])
+    other = load_detector(dataclasses.replace(cfg, canvas="fit" if cfg.canvas == "square" else "square"))
+    graph = fit_model(detector_path(cfg), cfg.adapter) if detector.multiple else None
+    bare = onnxruntime.InferenceSession(graph or str(detector_path(cfg)), providers=["CPUExecutionProvider"])
     name = bare.get_inputs()[0].name
-    inputs = [np.stack([detector.layout.prepare(letterbox(im, detector.size, detector.layout.fill)[0])
+    inputs = [np.stack([detector.layout.prepare(letterbox(im, detector.size, detector.layout.fill, detector.multiple)[0])
                         for im in images[i:i + detector.batch_size]]) for i in range(0, len(images), detector.batch_size)]
     fresh: list = []  # the stage loads its detector per clip: each round times a new one (loaded untimed)
     timed = {"detect": lambda: fresh[-1].detect(images), "coco": lambda: coco.detect(images),
+             "other": lambda: other.detect(images),
              "bare": lambda: [bare.run(None, {name: x}) for x in inputs],
              "own": lambda: [detector.session.run(None, {name: x}) for x in inputs]}
     seconds: dict[str, list[float]] = {k: [] for k in timed}
@@ -75,6 +90,8 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
         "own_session_ms_per_frame": round(ms["own"], 1), "ratio_to_bare_session": round(ms["detect"] / ms["bare"], 3),
         "ratio_to_own_session": round(ms["detect"] / ms["own"], 3), "thread_options": options,
         "coco_detect_ms_per_frame": round(ms["coco"], 1), "ratio_to_coco": round(ms["detect"] / ms["coco"], 3),
+        "canvas": canvas_name(detector, images[0]), "other_canvas": canvas_name(other, images[0]),
+        "other_canvas_ms_per_frame": round(ms["other"], 1), "other_canvas_ratio": round(ms["other"] / ms["detect"], 3),
         "boxes_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
         "embeddings_per_s": round(crops / embed_s, 1), "crop_size": EmbedConfig().crop_size,
     }

@@ -90,16 +90,18 @@ def test_yolov8_adapter_rejects_a_wrong_label_map(tmp_path):
 
 
 # ---- NanoDet layout ---------------------------------------------------------------------------------
-def nanodet_outputs(size: int = 64, num_labels: int = 3) -> list[np.ndarray]:
-    """Six outputs [N, C] / [N, 44] per stride with one confident cell: stride 16, row 1, col 2,
-    class 1 at 0.9, one-hot distance bins (left 3, top 2, right 1, bottom 0)."""
+def nanodet_outputs(size: int = 64, num_labels: int = 3, width: int | None = None) -> list[np.ndarray]:
+    """Six outputs [N, C] / [N, 44] per stride of a ``size`` x ``width`` (default ``size``) input with
+    one confident cell: stride 16, row 1, col 2, class 1 at 0.9, one-hot distance bins (left 3, top
+    2, right 1, bottom 0)."""
+    width = width or size
     outs = []
     for s in nd.STRIDES:
-        n = (size // s) ** 2
+        n = (size // s) * (width // s)
         cls = np.full((n, num_labels), 0.01, np.float32)
         box = np.zeros((n, 44), np.float32)
         if s == 16:
-            cell = 1 * (size // s) + 2
+            cell = 1 * (width // s) + 2
             cls[cell, 1] = 0.9
             logits = np.zeros((4, 11), np.float32)
             logits[np.arange(4), [3, 2, 1, 0]] = 60.0
@@ -147,10 +149,14 @@ def test_yolov8_output_problem(outputs, num_labels, problem):
     assert (found and found[0]) == problem
 
 
-def test_nanodet_candidates_use_cell_centres():
-    boxes, scores, labels = nd.candidates(nanodet_outputs(), 64, 3, 0.3)
+@pytest.mark.parametrize("canvas", [(64, 64), (32, 64), (64, 96), (128, 64)])
+def test_nanodet_candidates_use_cell_centres(canvas):
+    """On a square and on rectangular canvases (height, width): cells are row-major, width/stride a row."""
+    boxes, scores, labels = nd.candidates(nanodet_outputs(canvas[0], width=canvas[1]), canvas, 3, 0.3)
     assert labels.tolist() == [1] and scores.tolist() == pytest.approx([0.9])
     np.testing.assert_allclose(boxes[0], [-8, -8, 56, 24], atol=1e-3)
+    with pytest.raises(ValueError, match="unexpected NanoDet output shape"):
+        nd.candidates(nanodet_outputs(canvas[0], width=canvas[1]), (canvas[0] + 32, canvas[1]), 3, 0.3)
 
 
 # ---- shared pieces ------------------------------------------------------------------------------------
@@ -166,6 +172,32 @@ def test_letterbox_geometry_and_round_trip():
     np.testing.assert_allclose(x[:, lb.pad[1] + 5, 10], (np.array([0, 0, 255], np.float32) - nd.MEAN) / nd.STD, atol=1e-4)
     boxes = np.array([[10, 20, 200, 290], [0, 0, 451, 300]], np.float32)
     np.testing.assert_allclose(lb.to_image(lb.to_canvas(boxes)), boxes, atol=1e-3)
+
+
+@pytest.mark.parametrize("image, canvas, pad", [
+    ((360, 640), (256, 416), (0, 11)),  # 16:9 -> 416 x 234, padded to 256 rows: 0.62 of the square
+    ((640, 360), (416, 256), (11, 0)),  # portrait
+    ((300, 451), (288, 416), (0, 5)),  # 416 x 277
+    ((416, 416), (416, 416), (0, 0)),
+    ((100, 50), (416, 224), (8, 0)),  # upscaled: 208 columns -> 224
+])
+def test_a_fitted_letterbox_pads_only_to_a_multiple_of_32(image, canvas, pad):
+    """Image pixel (x, y) -> canvas (x * scale + pad_x, y * scale + pad_y) on both canvases; the
+    fitted one keeps the square's scale, and is the scaled image rounded up to 32 on each side."""
+    rgb = np.full((*image, 3), 200, np.uint8)
+    fitted, lb = letterbox(rgb, 416, fill=7.0, multiple=32)
+    square = Letterbox.of(image, 416)
+    assert lb.canvas == fitted.shape[:2] == canvas and lb.pad == pad and lb.scale == square.scale
+    assert square.canvas == (416, 416)
+    h, w = round(image[0] * lb.scale), round(image[1] * lb.scale)
+    inside = fitted[pad[1]:pad[1] + h, pad[0]:pad[0] + w]
+    assert inside.shape[:2] == (h, w) and np.allclose(inside, 200, atol=1e-3)
+    outside = np.ones(fitted.shape[:2], bool)
+    outside[pad[1]:pad[1] + h, pad[0]:pad[0] + w] = False
+    assert np.all(fitted[outside] == 7.0)
+    boxes = np.array([[0, 0, image[1], image[0]], [3, 4, 20, 30]], np.float32)
+    np.testing.assert_allclose(lb.to_image(lb.to_canvas(boxes)), boxes, atol=1e-3)
+    np.testing.assert_allclose(lb.to_canvas(boxes[:1]), [[pad[0], pad[1], pad[0] + w, pad[1] + h]], atol=0.51)
 
 
 def four_neighbour_resize(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:

@@ -197,13 +197,42 @@ def test_build_real_model(nanodet_model, monkeypatch):
 
 
 @pytest.mark.slow
-def test_detect_real_images(nanodet_model):
-    """Boxes on real photos (scikit-image) against boxes drawn by hand around the objects."""
+@pytest.mark.parametrize("canvas", ["square", "fit"])
+def test_detect_real_images(nanodet_model, canvas):
+    """Boxes on real photos (scikit-image) against boxes drawn by hand around the objects, on the
+    square canvas and on the fitted one (451 x 300 and 741 x 500 run on 416 x 288)."""
     from skimage import data
 
-    det = Detector(nanodet_model, "nanodet", nd.COCO_LABELS, nd.SIZE)
+    det = Detector(nanodet_model, "nanodet", nd.COCO_LABELS, nd.SIZE, canvas=canvas)
+    assert det.multiple == (32 if canvas == "fit" else None)
+    assert det.inputs([np.zeros((360, 640, 3), np.uint8)])[0].shape == ((1, 3, 256, 416) if canvas == "fit" else (1, 3, 416, 416))
     cat, motorcycle = det.detect([data.chelsea(), data.stereo_motorcycle()[0]])
     assert cat.names[0] == "cat" and cat.scores[0] >= 0.4
     assert iou(cat.boxes[0], CAT_BOX) >= 0.75
     assert motorcycle.names[0] == "motorcycle" and motorcycle.scores[0] >= 0.6
     assert iou(motorcycle.boxes[0], MOTORCYCLE_BOX) >= 0.75
+
+
+def test_a_size_free_graph_computes_what_the_square_one_does_and_takes_any_multiple_of_32(nanodet_model):
+    """:func:`nanodet.size_free`: its Resize nodes scale by 2 or 1/2 instead of resizing to 416's
+    sizes; at 416 x 416 its outputs are the pinned graph's, and a 256 x 416 input gives
+    (256/s) * (416/s) cells per stride."""
+    import onnx
+
+    from tasks.detection.onnx_session import load_session
+
+    model = onnx.load(str(nanodet_model))
+    free = nd.size_free(model)
+    resizes = [n for n in free.graph.node if n.op_type == "Resize"]
+    assert len(resizes) == 4 and all(n.input[3] == "" and n.input[2] for n in resizes)
+    assert file_sha256(nanodet_model) == nd.ONNX_SHA256  # the model given is not changed
+    square, sized = load_session(nanodet_model, 1), load_session(free.SerializeToString(), 1)
+    name = square.get_inputs()[0].name
+    x = np.random.default_rng(0).normal(0, 1, (1, 3, 416, 416)).astype(np.float32)
+    for a, b in zip(square.run(None, {name: x}), sized.run(None, {name: x})):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    outs = sized.run(None, {name: x[:, :, :256]})
+    assert sorted(o.shape[1] for o in outs) == sorted([32 * 52, 8 * 13, 16 * 26] * 2)
+    assert [o.shape[2] for o in outs] == [80, 80, 80, 44, 44, 44]
+    split = nd.split_outputs([o[0] for o in outs], (256, 416))
+    assert {s: c.shape for s, (c, _) in split.items()} == {8: (1664, 80), 16: (416, 80), 32: (104, 80)}

