@@ -219,7 +219,7 @@ class DetectConfig:
     input_size: int = _opt(416, "Longer side of the letterboxed network input (416 for NanoDet-m, usually 640 for YOLOv8).", lo=32, hi=4096)
     canvas: str = _opt("square", "Network input around the letterboxed image: 'square' pads it to input_size x input_size (what the "
                                  "built-in detectors were trained on); 'fit' only up to a multiple of 32 (a 640x360 frame at input_size "
-                                 "416 runs on 416x256: 0.62 of the pixels, about 0.65x the time), for NanoDet graphs and models whose input height "
+                                 "416 runs on 416x256: 0.62 of the pixels and of the time), for NanoDet graphs and models whose input height "
                                  "and width are open (others run on the square).",
                        choices=("square", "fit"))
     score_threshold: float = _opt(0.35, "Lowest detection score kept.", lo=0.0, hi=1.0)
