@@ -1,7 +1,8 @@
 """What the furniture detector buys: both built-in detectors on the same benchmark frames and ground truth.
 
-Each detector (``[detect] model = "coco"`` and ``"furniture"``, every other ``[detect]`` setting at its
-default) runs on the camera-line frames of every clip of each benchmark folder, decoded from the
+Each detector of :data:`DETECTORS` (``[detect] model = "coco"`` and ``"furniture"``, every other
+``[detect]`` setting at its default, and the furniture detector on the fitted canvas, ``canvas =
+"fit"``, which it was not trained on) runs on the camera-line frames of every clip of each benchmark folder, decoded from the
 clip's video as the pipeline decodes them, and is scored as ``cadestate bench report`` scores the
 ``detections`` table (:func:`bench.eval_detection.evaluate_detections`, the ignore rule of
 :mod:`bench.ignore`): recall and precision at IoU 0.5 on the furniture classes, per class, and
@@ -27,7 +28,9 @@ from schemas.official import read_frames, read_objects
 from tasks.detection.detectors import Detector, load_detector
 from tasks.video.decode import decode_at
 
-MODELS = ("coco", "furniture")
+DETECTORS = {"coco": DetectConfig(model="coco"), "furniture": DetectConfig(model="furniture"),
+             "furniture, fitted canvas": DetectConfig(model="furniture", canvas="fit")}
+"""The detectors compared, by the name their row of the report has."""
 
 
 def clip_frames(bench_dir: Path, clip: str, detector: Detector) -> list[FrameBoxes]:
@@ -48,14 +51,14 @@ def clip_frames(bench_dir: Path, clip: str, detector: Detector) -> list[FrameBox
 
 
 def run(bench_dirs: list[Path]) -> dict:
-    """{benchmark folder: {model: evaluate_detections result}} for the built-in detectors."""
+    """{benchmark folder: {detector name: evaluate_detections result}} for the :data:`DETECTORS`."""
     result: dict = {}
     for bench_dir in bench_dirs:
         clips = read_manifest(bench_dir).clips
-        for model in MODELS:
-            detector = load_detector(DetectConfig(model=model))
+        for name, cfg in DETECTORS.items():
+            detector = load_detector(cfg)
             frames = [f for clip in clips for f in clip_frames(Path(bench_dir), clip, detector)]
-            result.setdefault(str(bench_dir), {})[model] = evaluate_detections(frames)
+            result.setdefault(str(bench_dir), {})[name] = evaluate_detections(frames)
     return result
 
 

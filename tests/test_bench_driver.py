@@ -63,8 +63,7 @@ def test_ignore_rule_uses_visibility_and_class(benchmark):
 
 
 def test_detector_eval_scores_both_built_in_detectors_on_the_same_ground_truth(benchmark):
-    from bench.detector_eval import markdown, run
-    from cadestate.config import DetectConfig
+    from bench.detector_eval import DETECTORS, markdown, run
     from tasks.cad.classes import class_of_label
     from tasks.detection.model_inputs import detector_labels
     from tasks.detection.models import furniture_files, nanodet
@@ -73,16 +72,17 @@ def test_detector_eval_scores_both_built_in_detectors_on_the_same_ground_truth(b
         pytest.skip("the furniture detector is not built (run `make models`)")
     folder, manifest, _ = benchmark
     result = run([folder])[str(folder)]
-    assert set(result) == {"coco", "furniture"}
+    assert set(result) == set(DETECTORS) == {"coco", "furniture", "furniture, fitted canvas"}
     for name, r in result.items():  # each detector's boxes are scored under the classes its label map names
-        nameable = {class_of_label(label) or "(other label)" for label in detector_labels(DetectConfig(model=name))}
+        nameable = {class_of_label(label) or "(other label)" for label in detector_labels(DETECTORS[name])}
         assert {c for c, v in r["per_class"].items() if v["predictions"]} <= nameable
-    truth = {c: v["ground_truth"] for c, v in result["coco"]["per_class"].items() if v["ground_truth"]}
-    assert truth and truth == {c: v["ground_truth"] for c, v in result["furniture"]["per_class"].items() if v["ground_truth"]}
+    truth = [{c: v["ground_truth"] for c, v in r["per_class"].items() if v["ground_truth"]} for r in result.values()]
+    assert truth[0] and all(t == truth[0] for t in truth)
     for r in result.values():
         assert 0 <= (r["recall"] or 0) <= r["class_agnostic_recall"] <= 1
+    assert result["furniture"] != result["furniture, fitted canvas"]  # another canvas, other boxes
     table = "\n".join(markdown({str(folder): result}))
-    assert "| coco |" in table and "| furniture |" in table
+    assert "| coco |" in table and "| furniture |" in table and "| furniture, fitted canvas |" in table
 
 
 def test_report_has_statistics_and_pictures(benchmark):
