@@ -33,7 +33,7 @@ from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
 from tasks.detection.detectors import Detector, detector_path, fit_model, load_detector
-from tasks.detection.letterbox import Letterbox, letterbox
+from tasks.detection.letterbox import letterbox
 from tasks.detection.models.embedder import load_embedder
 from tasks.video.camera_file import parse_camera_file
 from tasks.video.decode import decode_at
@@ -41,7 +41,7 @@ from tasks.video.decode import decode_at
 
 def canvas_name(detector: Detector, image: np.ndarray) -> str:
     """``"WxH"`` of the network input ``detector`` makes of ``image``."""
-    height, width = Letterbox.of(image.shape[:2], detector.size, detector.multiple).canvas
+    height, width = detector.canvas(image.shape[:2])
     return f"{width}x{height}"
 
 

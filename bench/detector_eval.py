@@ -2,12 +2,12 @@
 
 Each detector of :data:`DETECTORS` (``[detect] model = "coco"`` and ``"furniture"``, every other
 ``[detect]`` setting at its default, and the furniture detector on the fitted canvas, ``canvas =
-"fit"``, which it was not trained on) runs on the camera-line frames of every clip of each benchmark folder, decoded from the
-clip's video as the pipeline decodes them, and is scored as ``cadestate bench report`` scores the
-``detections`` table (:func:`bench.eval_detection.evaluate_detections`, the ignore rule of
-:mod:`bench.ignore`): recall and precision at IoU 0.5 on the furniture classes, per class, and
-class-agnostic recall. No warehouse is needed, so the two detectors are compared without running
-the pipeline twice.
+"fit"``, which it was not trained on) runs on the camera-line frames of every clip of each
+benchmark folder, decoded from the clip's video as the pipeline decodes them, and is scored as
+``cadestate bench report`` scores the ``detections`` table
+(:func:`bench.eval_detection.evaluate_detections`, the ignore rule of :mod:`bench.ignore`): recall
+and precision at IoU 0.5 on the furniture classes, per class, and class-agnostic recall. No
+warehouse is needed, so the detectors are compared without running the pipeline for each.
 
     python -m bench.detector_eval BENCH_DIR [BENCH_DIR ...] [--json]
 """

@@ -307,11 +307,14 @@ class Detector:
             per_image += [[o[b] for o in outs] for b in range(len(outs[0]))]
         return per_image
 
+    def canvas(self, image_size: tuple[int, int]) -> tuple[int, int]:
+        """(height, width) of the network input of an (H, W) image (:meth:`Letterbox.of` with :attr:`multiple`)."""
+        return Letterbox.of(image_size, self.size, self.multiple).canvas
+
     def inputs(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, list[Letterbox]]:
         """The network input float32[B,3,h,w] of B RGB uint8[H,W,3] images of one size, and their
-        letterboxes (canvas (h, w): :meth:`Letterbox.of` with :attr:`multiple`)."""
-        canvas = Letterbox.of(images[0].shape[:2], self.size, self.multiple).canvas
-        batch = np.empty((len(images), 3, *canvas), np.float32)
+        letterboxes (canvas (h, w): :meth:`canvas`)."""
+        batch = np.empty((len(images), 3, *self.canvas(images[0].shape[:2])), np.float32)
         return batch, [network_input(im, self.layout, self.size, out, self.multiple) for im, out in zip(images, batch)]
 
     def detect_inputs(self, batch: np.ndarray, boxes: Sequence[Letterbox]) -> list[Detections]:
@@ -321,12 +324,11 @@ class Detector:
     def detect(self, images: Sequence[np.ndarray]) -> list[Detections]:
         """Detections for each RGB uint8[H,W,3] image; the next ``batch_size`` images (of one size)
         are letterboxed on a thread while the network runs."""
-        chunks: list[Sequence[np.ndarray]] = []
-        for i, im in enumerate(images):
-            if chunks and len(chunks[-1]) < self.batch_size and chunks[-1][-1].shape[:2] == im.shape[:2]:
-                chunks[-1] = images[i - len(chunks[-1]):i + 1]
-            else:
-                chunks.append(images[i:i + 1])
+        chunks, start = [], 0
+        for end in range(1, len(images) + 1):  # a chunk ends at batch_size images or where the size changes
+            if end == len(images) or end - start == self.batch_size or images[end].shape[:2] != images[start].shape[:2]:
+                chunks.append(images[start:end])
+                start = end
         return [d for _, inputs in prefetch(chunks, self.inputs) for d in self.detect_inputs(*inputs)]
 
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:

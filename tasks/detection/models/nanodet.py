@@ -24,7 +24,6 @@ import tarfile
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 import numpy as np
