@@ -120,6 +120,8 @@ def test_nanodet_adapter_on_exported_model(tmp_path):
     assert a.names == ("sofa",) and a.scores[0] == pytest.approx(0.9)
     np.testing.assert_allclose(a.boxes[0], [0, 0, 56, 24], atol=1e-3)  # x1 = -8 clipped
     np.testing.assert_allclose(b.boxes[0], [0, 0, 56, 8], atol=1e-3)  # pad_y 16
+    strip, = det.detect([np.zeros((8, 64, 3), np.uint8)])  # pad_y 28: the box (y -8 .. 24) lies on the padding
+    assert strip.boxes.shape == (0, 4) and strip.names == () and len(strip.scores) == len(strip.labels) == 0
     # a batch of inputs (what the detect stage prefetches) runs one image per call too
     both = det.detect_inputs(*det.inputs([np.zeros((64, 64, 3), np.uint8), np.zeros((32, 64, 3), np.uint8)]))
     assert [np.array_equal(x.boxes, y.boxes) for x, y in zip(both, (a, b))] == [True, True]
@@ -172,6 +174,16 @@ def test_letterbox_geometry_and_round_trip():
     np.testing.assert_allclose(x[:, lb.pad[1] + 5, 10], (np.array([0, 0, 255], np.float32) - nd.MEAN) / nd.STD, atol=1e-4)
     boxes = np.array([[10, 20, 200, 290], [0, 0, 451, 300]], np.float32)
     np.testing.assert_allclose(lb.to_image(lb.to_canvas(boxes)), boxes, atol=1e-3)
+
+
+def test_a_sliver_keeps_a_pixel_on_the_canvas():
+    """A crop one pixel high and 300 wide letterboxed to 128 (0.43 px high scaled) keeps one row."""
+    sliver = np.full((1, 300, 3), 200, np.uint8)
+    canvas, lb = letterbox(sliver, 128)
+    assert canvas.shape == (128, 128, 3) and lb.pad == (0, 63)
+    np.testing.assert_allclose(canvas[63], 200.0)
+    np.testing.assert_allclose(canvas[62], 0.0)
+    assert Letterbox.of((300, 1), 128, multiple=32).canvas == (128, 32)
 
 
 @pytest.mark.parametrize("image, canvas, pad", [

@@ -332,11 +332,14 @@ class Detector:
         return [d for _, inputs in prefetch(chunks, self.inputs) for d in self.detect_inputs(*inputs)]
 
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
-        """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels."""
+        """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels; a box less
+        than a pixel high or wide on the image (one on the letterbox's padding) is dropped."""
         boxes, scores, labels = self.layout.candidates(outputs, lb.canvas, len(self.labels), self.score_threshold)
-        k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment, self.nms_agnostic_iou)[: self.max_detections]
-        return Detections(lb.to_image(boxes[k]), scores[k].astype(np.float32), labels[k],
-                          tuple(self.labels[i] for i in labels[k]))
+        k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment, self.nms_agnostic_iou)
+        image = lb.to_image(boxes[k])
+        on_image = np.flatnonzero((image[:, 2] - image[:, 0] >= 1) & (image[:, 3] - image[:, 1] >= 1))[: self.max_detections]
+        k = k[on_image]
+        return Detections(image[on_image], scores[k].astype(np.float32), labels[k], tuple(self.labels[i] for i in labels[k]))
 
 
 def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig

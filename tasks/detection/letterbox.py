@@ -33,7 +33,7 @@ class Letterbox:
         multiple of ``multiple``."""
         h, w = image_size
         scale = size / max(h, w)
-        nh, nw = round(h * scale), round(w * scale)
+        nh, nw = _scaled(h, scale), _scaled(w, scale)
         ch, cw = (size, size) if multiple is None else (-(-nh // multiple) * multiple, -(-nw // multiple) * multiple)
         return Letterbox((ch, cw), scale, ((cw - nw) // 2, (ch - nh) // 2), (h, w))
 
@@ -92,7 +92,13 @@ def _resized(rgb: np.ndarray, size: int, multiple: int | None = None) -> tuple[L
     """The Letterbox of RGB [H,W,3] (:meth:`Letterbox.of`), and the image resized to it (float32)."""
     lb = Letterbox.of(rgb.shape[:2], size, multiple)
     h, w = rgb.shape[:2]
-    return lb, resize_bilinear(rgb, round(h * lb.scale), round(w * lb.scale))
+    return lb, resize_bilinear(rgb, _scaled(h, lb.scale), _scaled(w, lb.scale))
+
+
+def _scaled(side: int, scale: float) -> int:
+    """An image side's length on the canvas: rounded, and at least one pixel (a crop 1 px high and
+    300 wide letterboxed to 128 keeps one row)."""
+    return max(1, round(side * scale))
 
 
 def network_input(rgb: np.ndarray, layout: Layout, size: int, out: np.ndarray, multiple: int | None = None) -> Letterbox:
