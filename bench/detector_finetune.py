@@ -22,9 +22,8 @@ Start and teacher: the detector with its trained rows. Loss per batch of ``finet
 With ``box_giou`` 0 the boxes are not trained: every cell's box is held to the teacher's and the
 scores' targets are the rows' (the IoU of the teacher's box).
 
-AdamW on :data:`THREADS` threads with deterministic algorithms, its learning rate decaying from
-``finetune_lr`` to 0 along a cosine (:func:`cosine_lr`), batches drawn by a generator of the
-spec's seed: the same frames give the same bytes (for a given thread count, which is why it is
+AdamW on :data:`THREADS` threads with deterministic algorithms, batches drawn by a generator of
+the spec's seed: the same frames give the same bytes (for a given thread count, which is why it is
 fixed, not the machine's).
 
 Operating point (:func:`calibrate`): as for the rows (:func:`bench.detector_train.operating_threshold`),
@@ -35,7 +34,6 @@ the furniture rows' biases are then shifted so that ``[detect] score_threshold``
 from __future__ import annotations
 
 import functools
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -79,13 +77,6 @@ def finetune(model: onnx.ModelProto, frames: FrameSet, train_idx: np.ndarray, sp
         torch.use_deterministic_algorithms(deterministic)
 
 
-def cosine_lr(peak: float, step: int, steps: int) -> float:
-    """The learning rate of step ``step`` of ``steps`` (0-based): ``peak`` at the first, half of it
-    halfway, towards 0 at the last. Measured 2026-12-05 against a constant rate (1e-4, 3e-4, 1e-3):
-    from 3e-4 it gave the best held-out curve (README, "Detection and appearance")."""
-    return peak * 0.5 * (1.0 + math.cos(math.pi * step / steps))
-
-
 def _split(outputs: list) -> tuple:
     """The six outputs of a batch -> (scores [B, 3549, L], box distributions [B, 3549, 44]), strides in order."""
     import torch
@@ -106,7 +97,7 @@ def _finetune(torch, model: onnx.ModelProto, frames: FrameSet, train_idx: np.nda
     k, losses = len(FURNITURE_CLASSES), []
     centres = torch.from_numpy(cell_centres().astype(np.float32))[None]
     strides = torch.cat([torch.full(((nanodet.SIZE // s) ** 2,), float(s)) for s in nanodet.STRIDES])[None]
-    for step in progress(range(spec.finetune_steps), total=spec.finetune_steps, description="fine-tuning", enabled=show_progress):
+    for _ in progress(range(spec.finetune_steps), total=spec.finetune_steps, description="fine-tuning", enabled=show_progress):
         pick = np.sort(train_idx[torch.randint(len(train_idx), (spec.finetune_batch,), generator=generator).numpy()])
         x = torch.from_numpy(network_input(frames.canvas[pick]))
         target = torch.from_numpy(frames.target[pick].astype(np.int64))
@@ -137,8 +128,6 @@ def _finetune(torch, model: onnx.ModelProto, frames: FrameSet, train_idx: np.nda
         loss = qfl + rest + spec.box_distill * box + spec.box_giou * giou + spec.box_dfl * dfl
         optimiser.zero_grad()
         loss.backward()
-        for group in optimiser.param_groups:
-            group["lr"] = cosine_lr(spec.finetune_lr, step, spec.finetune_steps)
         optimiser.step()
         losses.append([float(qfl.detach()), float(rest.detach()), float(box.detach()), float(giou.detach()), float(dfl.detach())])
     n = max(1, min(50, len(losses) // 2))  # 50 steps, or half of fewer

@@ -67,11 +67,11 @@ OPERATING_THRESHOLDS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)
 class TrainSpec:
     """What to train: ``rooms`` rendered rooms (every ``holdout_every``-th held out) of ``frames``
     frames, ``steps`` AdamW steps of ``batch`` frames at ``lr`` for the rows, then
-    ``finetune_steps`` of ``finetune_batch`` frames from ``finetune_lr`` down a cosine to 0 for
-    every weight (boxes of cells on objects trained towards them with weights ``box_giou`` and
-    ``box_dfl``, the other cells' box distributions held to the start's with weight
-    ``box_distill``: :mod:`bench.detector_finetune`); ``score_threshold``, ``nms_iou`` and
-    ``nms_containment``: the ``[detect]`` defaults the detector is evaluated and calibrated at."""
+    ``finetune_steps`` of ``finetune_batch`` frames at ``finetune_lr`` for every weight (boxes of
+    cells on objects trained towards them with weights ``box_giou`` and ``box_dfl``, the other
+    cells' box distributions held to the start's with weight ``box_distill``:
+    :mod:`bench.detector_finetune`); ``score_threshold``, ``nms_iou``
+    and ``nms_containment``: the ``[detect]`` defaults the detector is evaluated and calibrated at."""
 
     seed: int = 1
     rooms: int = 400
@@ -84,7 +84,7 @@ class TrainSpec:
     beta: float = 2.0
     finetune_steps: int = 800
     finetune_batch: int = 8
-    finetune_lr: float = 3e-4
+    finetune_lr: float = 1e-4
     box_distill: float = 1.0
     box_giou: float = 2.0
     box_dfl: float = 0.25

@@ -133,15 +133,6 @@ def test_the_operating_point_is_the_lowest_threshold_as_precise_as_coco():
     assert operating_threshold({0.3: {"precision": None}, 0.4: {"precision": None}}, 0.5) == 0.4
 
 
-def test_the_fine_tuning_rate_falls_along_a_cosine_from_the_spec_to_zero():
-    from bench.detector_finetune import cosine_lr
-
-    steps = TrainSpec().finetune_steps
-    rates = [cosine_lr(3e-4, step, steps) for step in range(steps)]
-    assert rates[0] == pytest.approx(3e-4) and rates[steps // 2] == pytest.approx(1.5e-4)
-    assert 0 < rates[-1] < 1e-8 and all(a > b for a, b in zip(rates, rates[1:]))
-
-
 def test_rows_start_from_coco_where_coco_has_the_class():
     rng = np.random.default_rng(3)
     coco = [(rng.normal(size=(80, 128)).astype(np.float32), rng.normal(size=80).astype(np.float32)) for _ in range(3)]
