@@ -71,7 +71,7 @@ def track_objects(track: np.ndarray, truth: np.ndarray) -> dict[int, str]:
 
 def fragment_pairs(cb: ClipBoxes, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Cues float[P,6] and truth bool[P] of the pairs of the partition's fragments that both follow an object."""
-    cfg = replace(TrackingConfig(), merge=False, min_detections=1, thin_detections=1, shadow_iou=1.0)
+    cfg = replace(TrackingConfig(), merge=False, min_detections=1, thin_detections=1, shadow_iou=1.0, min_track_score=0.0)
     result = run_tracking(cb, geometry, cfg)
     objects = track_objects(result.track, cb.truth)
     looks = centred(cb.vectors)

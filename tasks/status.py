@@ -186,8 +186,8 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
     threshold or class filter) runs every later stage on nothing; a clip whose world up was
     estimated unreliably (:mod:`tasks.video.world_up`) may have every object pulled the wrong way; the
-    tracks too thin to annotate (:mod:`tasks.tracking.merge`) and the shadow tracks
-    (:mod:`tasks.tracking.shadow`) that tracking dropped are counted."""
+    tracks too thin to annotate (:mod:`tasks.tracking.merge`), the shadow tracks
+    (:mod:`tasks.tracking.shadow`) and the weak tracks that tracking dropped are counted."""
     notes = []
     for r in rows:
         if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:
@@ -201,6 +201,10 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
         if shadows and shadows.group(1) != "0":
             notes.append(f"{r.clip}: {shadows.group(1)} shadow tracks were dropped (their boxes on a stronger track's boxes: "
                          "one object tracked twice; [tracking] shadow_iou)")
+        weak = re.search(r"(\d+) weak tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
+        if weak and weak.group(1) != "0":
+            notes.append(f"{r.clip}: {weak.group(1)} weak tracks were dropped (their detections' mean score below "
+                         "[tracking] min_track_score)")
         if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")

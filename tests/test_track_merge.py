@@ -118,6 +118,24 @@ def test_thin_tracks_are_dropped_and_counted():
     assert res.thin == 0 and len(res.groups) == 1  # below min_detections: dropped as before, not counted thin
 
 
+def test_weak_tracks_are_dropped_and_counted():
+    """A track whose detections score below ``min_track_score`` on average is dropped after joining
+    (its strongest box does not save it); at the threshold it stays; 0, the default, keeps every track."""
+    det_id, frame, boxes, labels, vec, truth, cams, g = clip_arrays()
+    scores = np.where(truth == 0, 0.6, 0.36)
+    scores[np.flatnonzero(truth == 1)[0]] = 0.9  # one sure box among the weak ones: mean 0.374
+    cfg = TrackingConfig(thin_detections=1, min_track_score=0.4)
+    res = track_detections(det_id, frame, boxes, labels, vec, cams, cfg, scores=scores, geometry=g)
+    assert res.weak == 1 and res.joined == 1 and np.all(res.track[truth == 1] == -1)
+    assert len(np.unique(res.track[truth == 0])) == 1 and res.track.max() == 0
+    mean = float(scores[truth == 1].mean())
+    assert TrackingConfig().min_track_score == 0.0
+    for threshold, weak in ((mean - 1e-9, 0), (0.0, 0), (0.6 + 1e-9, 2)):
+        res = track_detections(det_id, frame, boxes, labels, vec, cams, TrackingConfig(thin_detections=1, min_track_score=threshold),
+                               scores=scores, geometry=g)
+        assert res.weak == weak and res.track.max() == 1 - weak, threshold
+
+
 def test_stored_model_is_generated_with_its_training_seeds():
     assert MERGE_CALIBRATION is not None and tuple(MERGE_CALIBRATION["cues"]) == CUES
     assert MERGE_CALIBRATION["training_seeds"] and MERGE_CALIBRATION["pairs"]["one_object"] > 0
@@ -126,17 +144,21 @@ def test_stored_model_is_generated_with_its_training_seeds():
     assert coef["ray_misfit"] < 0 and coef["appearance"] > 0  # far apart in 3D: two objects; alike: one
 
 
-def test_status_counts_the_thin_and_shadow_tracks_dropped():
+def test_status_counts_the_thin_shadow_and_weak_tracks_dropped():
     from tasks.status import StageStatus, clip_notes
 
     rows = [StageStatus("a_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (1 fragments joined in 3D, "
-                                                                   "3 thin tracks dropped, 2 shadow tracks dropped)"),
+                                                                   "3 thin tracks dropped, 2 shadow tracks dropped, "
+                                                                   "4 weak tracks dropped)"),
             StageStatus("b_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (0 fragments joined in 3D, "
-                                                                   "0 thin tracks dropped, 0 shadow tracks dropped)")]
+                                                                   "0 thin tracks dropped, 0 shadow tracks dropped, "
+                                                                   "0 weak tracks dropped)")]
     assert clip_notes(rows) == ["a_0: 3 tracks too thin to annotate were dropped (fewer than [tracking] thin_detections "
                                 "detections, none on a manual-track key-frame)",
                                 "a_0: 2 shadow tracks were dropped (their boxes on a stronger track's boxes: one object "
-                                "tracked twice; [tracking] shadow_iou)"]
+                                "tracked twice; [tracking] shadow_iou)",
+                                "a_0: 4 weak tracks were dropped (their detections' mean score below [tracking] "
+                                "min_track_score)"]
 
 
 def test_stored_cue_calibration_was_fitted_on_seeds_the_default_benchmark_does_not_use():

@@ -10,8 +10,10 @@ detections of one frame can never share a track (cannot-links). The graph is par
 cliques maximising the summed log-odds inside them (:func:`tasks.tracking.partition.solve`). The
 cliques that are fragments of one object are then joined in 3D (:mod:`tasks.tracking.merge`, with
 ``merge``); tracks with fewer than ``min_detections`` detections are dropped, and so are the tracks
-too thin to annotate (fewer than ``thin_detections``, none on a ``[manual_tracks]`` key-frame), and
-the shadow tracks, which follow an object a stronger track follows (:mod:`tasks.tracking.shadow`).
+too thin to annotate (fewer than ``thin_detections``, none on a ``[manual_tracks]`` key-frame),
+the shadow tracks, which follow an object a stronger track follows (:mod:`tasks.tracking.shadow`),
+and the weak tracks, whose detections score less than ``min_track_score`` on average (boxes the
+detector barely kept: mostly on no object, or on part of one).
 Track ids are ranks by first detection id, so a rerun with unchanged inputs gives the same ids.
 """
 
@@ -66,7 +68,7 @@ class Geometry:
 @dataclass(frozen=True)
 class Tracking:
     """Result on N detections: ``track`` int64[N] (track id, -1 = left out), the graph it solved,
-    the fragments ``joined`` in 3D, and the ``thin`` and ``shadows`` tracks dropped."""
+    the fragments ``joined`` in 3D, and the ``thin``, ``shadows`` and ``weak`` tracks dropped."""
 
     track: np.ndarray
     pairs: PairFeatures
@@ -74,6 +76,7 @@ class Tracking:
     joined: int = 0
     thin: int = 0
     shadows: int = 0
+    weak: int = 0
 
 
 def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndarray, labels: np.ndarray,
@@ -83,10 +86,11 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
     """Tracks of one clip's detections (arrays of length N; ``det_id`` unique).
 
     Returns track ids 0..T-1 ordered by each track's smallest det_id, -1 for detections left
-    out (score below ``min_score``, in a track shorter than ``min_detections``, too thin, or a
-    shadow). With ``geometry`` the partition's fragments are joined in 3D (``cfg.merge``;
-    ``merge_model``: default the stored one), then thin tracks and shadow tracks
-    (:mod:`tasks.tracking.shadow`) are dropped; without it none of these happens."""
+    out (score below ``min_score``, in a track shorter than ``min_detections``, too thin, a
+    shadow, or weak). With ``geometry`` the partition's fragments are joined in 3D (``cfg.merge``;
+    ``merge_model``: default the stored one), then thin tracks, shadow tracks
+    (:mod:`tasks.tracking.shadow`) and weak tracks (mean score below ``cfg.min_track_score``) are
+    dropped; without it none of these happens."""
     det_id = np.asarray(det_id, dtype=np.int64)
     n = len(det_id)
     if len(np.unique(det_id)) != n:
@@ -102,7 +106,7 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
                    motion_weight=cfg.motion_weight, bias=cfg.bias)
     lab = solve(len(idx), feats.a, feats.b, w, groups=f, keys=det_id[idx], refine_result=cfg.refine)
     groups = [g for g in np.split(np.argsort(lab, kind="stable"), np.cumsum(np.bincount(lab))[:-1]) if len(g)]
-    joined = thin = shadows = 0
+    joined = thin = shadows = weak = 0
     if geometry is None:
         groups = [g for g in groups if len(g) >= cfg.min_detections]
     else:
@@ -114,13 +118,15 @@ def track_detections(det_id: np.ndarray, frame_index: np.ndarray, boxes: np.ndar
         groups, joined, thin = merged.groups, merged.joins, merged.thin
         drop = shadow_groups(groups, f, kept_boxes, sc, cfg.shadow_iou, cfg.shadow_share)
         groups, shadows = [g for g, s in zip(groups, drop) if not s], int(drop.sum())
+        strong = [g for g in groups if sc[g].mean() >= cfg.min_track_score]
+        groups, weak = strong, len(groups) - len(strong)
     # track ids: kept groups ranked by their smallest det_id
     groups.sort(key=lambda g: det_id[idx[g]].min())
     track = np.full(n, -1, dtype=np.int64)
     for t, g in enumerate(groups):
         track[idx[g]] = t
     pairs = PairFeatures(idx[feats.a], idx[feats.b], feats.gap, feats.cosine, feats.same_label, feats.iou)
-    return Tracking(track, pairs, w, joined, thin, shadows)
+    return Tracking(track, pairs, w, joined, thin, shadows, weak)
 
 
 def vote(labels: list[str], weights: list[float]) -> tuple[str, float]:
@@ -244,7 +250,7 @@ def track_clip(wh: Warehouse, cfg: TrackingConfig, clip: str, run_id: str, keyfr
     out = digest(table_digest(tracks), table_digest(members), table_digest(looks))
     return StageOutput(written, out, f"{tracks.num_rows} tracks from {len(dets['det_id'])} detections "
                                      f"({result.joined} fragments joined in 3D, {result.thin} thin tracks dropped, "
-                                     f"{result.shadows} shadow tracks dropped)")
+                                     f"{result.shadows} shadow tracks dropped, {result.weak} weak tracks dropped)")
 
 
 def _run(ctx: StageContext) -> StageOutput:
