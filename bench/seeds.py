@@ -44,9 +44,10 @@ USED_SEEDS: dict[int, str] = {
     90125: "generated in stop 57: its retrieval misses studied, then the descriptor's 6,000 training steps "
            "adopted on its yield",
     8191: "make bench's fresh seed until stop 58: the detector's input canvas (fitted, long side 480) chosen "
-          "on its detection curves among 416 square and fitted 416, 448, 480, 512 and 544",
+          "on its detection curves among 416 square and fitted 416, 448, 480, 512 and 544; since stop 59 a tuning "
+          "seed (the fine-tuning's rates and schedules, NMS, shadow thresholds, the weak-track rule)",
     131071: "generated in stop 58 after the fitted-canvas pick: the square, fitted 416 and fitted 480 canvases "
-            "measured end to end on it, and the square kept as the default",
+            "measured end to end on it, and the square kept as the default; since stop 59 a tuning seed (as 8191)",
 }
 """Benchmark seeds whose numbers were seen while something was chosen, and what."""
 
