@@ -1,7 +1,8 @@
 """Appearance embedder: the detector's own backbone (NanoDet-m), average-pooled, as an ONNX model.
 
-No registry package ships an ImageNet/CLIP/DINO backbone (see the project notes), so descriptors
-come from the COCO-trained NanoDet-m backbone that `make models` builds and verifies. The
+Descriptors come from the COCO-trained NanoDet-m backbone that `make models` builds and verifies
+(no registry package ships CLIP or DINO weights; the ImageNet backbones some do ship, listed in the
+README's detection section, are not tried yet). The
 embedder graph is cut out of that verified ONNX at load time (deterministically, so its own
 SHA-256 is fixed) and made size-agnostic:
 
