@@ -181,6 +181,17 @@ def stale_libraries(wh: Warehouse, config: Config) -> dict[str, list[str]]:
     return out
 
 
+DROPPED_TRACK_NOTES = (
+    ("thin", "tracks too thin to annotate were dropped (fewer than [tracking] thin_detections detections, none on "
+             "a manual-track key-frame)"),
+    ("shadow", "shadow tracks were dropped (their boxes on a stronger track's boxes: one object tracked twice; "
+               "[tracking] shadow_iou)"),
+    ("weak", "weak tracks were dropped (their detections' mean score below [tracking] min_track_score)"),
+)
+"""The tracks the tracking stage drops, as its message counts them ("N <kind> tracks dropped"), and
+what :func:`clip_notes` says of them."""
+
+
 def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     """What a user should know about each clip beyond its stages' states, one line per note:
     a clip whose detection found nothing (a dark or empty video, or too strict a ``[detect]``
@@ -193,18 +204,11 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
         if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:
             up = r.message[r.message.index("world up: ") + len("world up: "):]
             notes.append(f"{r.clip}: world up unreliable: {up}")
-        thin = re.search(r"(\d+) thin tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
-        if thin and thin.group(1) != "0":
-            notes.append(f"{r.clip}: {thin.group(1)} tracks too thin to annotate were dropped (fewer than [tracking] "
-                         "thin_detections detections, none on a manual-track key-frame)")
-        shadows = re.search(r"(\d+) shadow tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
-        if shadows and shadows.group(1) != "0":
-            notes.append(f"{r.clip}: {shadows.group(1)} shadow tracks were dropped (their boxes on a stronger track's boxes: "
-                         "one object tracked twice; [tracking] shadow_iou)")
-        weak = re.search(r"(\d+) weak tracks dropped", r.message) if r.stage == "tracking" and r.status == "completed" else None
-        if weak and weak.group(1) != "0":
-            notes.append(f"{r.clip}: {weak.group(1)} weak tracks were dropped (their detections' mean score below "
-                         "[tracking] min_track_score)")
+        if r.stage == "tracking" and r.status == "completed":
+            for kind, note in DROPPED_TRACK_NOTES:
+                found = re.search(rf"(\d+) {kind} tracks dropped", r.message)
+                if found and found.group(1) != "0":
+                    notes.append(f"{r.clip}: {found.group(1)} {note}")
         if r.stage == "detect" and r.status == "completed" and r.rows_written == 0:
             notes.append(f"{r.clip}: no object detected in any frame, so every later stage ran on nothing "
                          "(a dark or empty video? else lower [detect] score_threshold or widen [detect] classes)")

@@ -1,9 +1,9 @@
 """Appearance embedder: the detector's own backbone (NanoDet-m), average-pooled, as an ONNX model.
 
 Descriptors come from the COCO-trained NanoDet-m backbone that `make models` builds and verifies
-(no registry package ships CLIP or DINO weights; the ImageNet backbones some do ship, listed in the
-README's detection section, are not tried yet). The
-embedder graph is cut out of that verified ONNX at load time (deterministically, so its own
+(no registry package ships CLIP or DINO weights; an ImageNet MobileNetV2 that one does ship was
+measured under the same trained projection and tied, at 30x the cost: README, detection section).
+The embedder graph is cut out of that verified ONNX at load time (deterministically, so its own
 SHA-256 is fixed) and made size-agnostic:
 
     input  float32[B,3,S,S]   a letterboxed crop, BGR, (x - MEAN) / STD (as the detector); S % 32 == 0
