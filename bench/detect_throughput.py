@@ -1,9 +1,7 @@
 """Detection and embedding throughput on the paper's average clip (138 frames, 640x360).
 
 Detection: the ``[detect]`` default detector over the 138 frames of :mod:`bench.frames_throughput`'s
-clip, batched as the stage runs it, down to the candidate threshold and rescored over time
-(:func:`tasks.detection.detect.network_config`, :mod:`tasks.detection.temporal`; ms per frame, median
-of ``repeats``), beside, in the same
+clip, batched as the stage runs it (ms per frame, median of ``repeats``), beside, in the same
 rounds on the same frames, a bare onnxruntime session with onnxruntime's default options on the
 network inputs the detector makes of them (prepared beforehand, outside the timing) and the
 detector's own session on those inputs (both run the graph the detector runs: on its fitted canvas,
@@ -34,9 +32,7 @@ import onnxruntime
 from bench.demo_clip import make_demo_clip
 from bench.frames_throughput import SPEC
 from cadestate.config import DetectConfig, EmbedConfig
-from tasks.detection.detect import network_config
 from tasks.detection.detectors import Detector, detector_path, fit_model, load_detector
-from tasks.detection.temporal import FrameDetections, temporal_scores
 from tasks.detection.letterbox import letterbox
 from tasks.detection.models.embedder import load_embedder
 from tasks.video.camera_file import parse_camera_file
@@ -54,42 +50,32 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
     if not (video.exists() and cameras.exists()):
         make_demo_clip(cache_dir, SPEC)
     images = [f.rgb for f in decode_at(video, parse_camera_file(cameras).timestamps_us)]
-    cfg = DetectConfig()
-    detector = load_detector(network_config(cfg))
-    coco = load_detector(network_config(DetectConfig(model="coco")))
-    other = load_detector(network_config(dataclasses.replace(cfg, canvas="fit" if cfg.canvas == "square" else "square")))
-
-    def stage_detect(det: Detector) -> list:
-        """What the detect stage does with a clip's frames: the network, then the scores over time."""
-        found = det.detect(images)
-        scores = temporal_scores([FrameDetections(d.boxes, d.scores, d.labels) for d in found],
-                                 cfg.temporal_weight, cfg.temporal_link_iou, cfg.temporal_frames)
-        return [dataclasses.replace(d, scores=s.astype(np.float32)) for d, s in zip(found, scores)]
-
+    detector, cfg = load_detector(DetectConfig()), DetectConfig()
+    coco = load_detector(DetectConfig(model="coco"))
+    other = load_detector(dataclasses.replace(cfg, canvas="fit" if cfg.canvas == "square" else "square"))
     graph = fit_model(detector_path(cfg), cfg.adapter) if detector.multiple else None
     bare = onnxruntime.InferenceSession(graph or str(detector_path(cfg)), providers=["CPUExecutionProvider"])
     name = bare.get_inputs()[0].name
     inputs = [np.stack([detector.layout.prepare(letterbox(im, detector.size, detector.layout.fill, detector.multiple)[0])
                         for im in images[i:i + detector.batch_size]]) for i in range(0, len(images), detector.batch_size)]
     fresh: list = []  # the stage loads its detector per clip: each round times a new one (loaded untimed)
-    timed = {"detect": lambda: stage_detect(fresh[-1]), "coco": lambda: stage_detect(coco),
-             "other": lambda: stage_detect(other),
+    timed = {"detect": lambda: fresh[-1].detect(images), "coco": lambda: coco.detect(images),
+             "other": lambda: other.detect(images),
              "bare": lambda: [bare.run(None, {name: x}) for x in inputs],
              "own": lambda: [detector.session.run(None, {name: x}) for x in inputs]}
     seconds: dict[str, list[float]] = {k: [] for k in timed}
     results, options = {}, []
     for _ in range(repeats):  # interleaved: all see the same load of the machine
-        fresh.append(load_detector(network_config(cfg)))
+        fresh.append(load_detector(cfg))
         for key, call in timed.items():
             t0 = time.perf_counter()
             results[key] = call()
             seconds[key].append(time.perf_counter() - t0)
         options.append(fresh.pop().session.summary())
     detections = results["detect"]
-    kept = [d.boxes[d.scores >= cfg.score_threshold] for d in detections]
     ms = {k: 1000 * statistics.median(v) / len(images) for k, v in seconds.items()}
     embedder = load_embedder(EmbedConfig())
-    pairs = [(im, box) for im, boxes in zip(images, kept) for box in boxes]
+    pairs = [(im, box) for im, det in zip(images, detections) for box in det.boxes]
     if not pairs:  # nothing detected: time crops of the central quarter instead
         pairs = [(im, np.array([160, 90, 480, 270], np.float32)) for im in images]
     pairs = (pairs * (crops // len(pairs) + 1))[:crops]
@@ -106,8 +92,7 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
         "coco_detect_ms_per_frame": round(ms["coco"], 1), "ratio_to_coco": round(ms["detect"] / ms["coco"], 3),
         "canvas": canvas_name(detector, images[0]), "other_canvas": canvas_name(other, images[0]),
         "other_canvas_ms_per_frame": round(ms["other"], 1), "other_canvas_ratio": round(ms["other"] / ms["detect"], 3),
-        "boxes_per_frame": round(sum(len(b) for b in kept) / len(images), 2),
-        "candidates_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
+        "boxes_per_frame": round(sum(len(d) for d in detections) / len(images), 2),
         "embeddings_per_s": round(crops / embed_s, 1), "crop_size": EmbedConfig().crop_size,
     }
 

@@ -70,8 +70,7 @@ def build_clip(wh: Warehouse, tracks: int, per_track: int, rng: np.random.Genera
     wh.write("detections", "bench", pa.table({
         "clip": ["bench"] * n, "det_id": det_id, "timestamp_us": det_id, "frame_index": pa.array(np.arange(n) % 138, pa.int32()),
         "box": [[0.1, 0.1, 0.5, 0.5]] * n, "label": labels, "label_id": pa.array(np.zeros(n), pa.int32()),
-        "score": pa.array(np.full(n, 0.9), pa.float32()), "frame_score": pa.array(np.full(n, 0.9), pa.float32()),
-        "model_sha256": ["x"] * n,
+        "score": pa.array(np.full(n, 0.9), pa.float32()), "model_sha256": ["x"] * n,
     }, schema=wh.spec("detections").schema))
     wh.write("embeddings", "bench", pa.table({
         "clip": ["bench"] * n, "owner": ["detection"] * n, "owner_id": det_id,

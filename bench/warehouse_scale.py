@@ -114,8 +114,7 @@ def template(rng: np.random.Generator, clip: str, models: list[str], classes: li
             "clip": rows(n_det, clip), "det_id": np.arange(n_det), "timestamp_us": ts[det_frame],
             "frame_index": det_frame.astype(np.int32) * 3, "box": list(np.hstack([lo, lo + rng.uniform(0.1, 0.4, (n_det, 2))])),
             "label": labels, "label_id": rng.integers(0, 80, n_det).astype(np.int32),
-            "score": (score := rng.uniform(0.3, 0.95, n_det).astype(np.float32)), "frame_score": score,
-            "model_sha256": rows(n_det, "2" * 64)}),
+            "score": rng.uniform(0.3, 0.95, n_det).astype(np.float32), "model_sha256": rows(n_det, "2" * 64)}),
         "tracks": _table("tracks", {
             "clip": rows(6, clip), "track_id": np.arange(6, dtype=np.int32), "label": labels[:6], "label_votes": rng.uniform(3, 30, 6),
             "first_timestamp_us": rows(6, 0), "last_timestamp_us": rows(6, int(ts[-1])), "first_frame_index": rows(6, 0),

@@ -229,17 +229,6 @@ class DetectConfig:
     nms_agnostic_iou: float = _opt(0.6, "NMS across classes: a box overlapping a better one of any class above this IoU is dropped "
                                         "(one object boxed under two names); 1 = never.", lo=0.0, hi=1.0)
     max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
-    temporal_weight: float = _opt(0.7, "Temporal rescoring (tasks/detection/temporal.py): a box's score becomes this share of "
-                                       "max(its own, its chain's mean) * min(1, chain length / temporal_frames) plus the rest of its "
-                                       "own (a chain: the boxes linked to it on the frames before and after), so that weak boxes on an "
-                                       "object seen for many frames are kept and sure boxes seen on a frame or two are not; 0 = each "
-                                       "frame alone. On the three tuning benchmarks: detection recall +0.8 to +1.6 points, precision +0.8 to +2.4, one "
-                                       "object more yielded of 143 (README, Detection and appearance).", lo=0.0, hi=1.0)
-    temporal_link_iou: float = _opt(0.4, "Temporal rescoring: boxes of one label on consecutive frames that are each other's best "
-                                         "overlap join one chain when their IoU reaches this.", lo=0.01, hi=1.0)
-    temporal_frames: int = _opt(10, "Temporal rescoring: chains shorter than this many boxes count for their share of it.", lo=1, hi=100_000)
-    candidate_threshold: float = _opt(0.1, "Temporal rescoring: lowest network score of a box that may join a chain (boxes are "
-                                           "then kept by their new score against score_threshold).", lo=0.0, hi=1.0)
     classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
     batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)
     threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256)

@@ -28,9 +28,7 @@ DETECTIONS = TableSpec(
             column("box", vector(4), "(ymin, xmin, ymax, xmax) as in CAD-Estate.", frame=BOX_FRAME),
             column("label", pa.string(), "Class name from the detector's label map."),
             column("label_id", pa.int32(), "Index of the label in the detector's label map."),
-            column("score", pa.float32(), "Confidence in [0, 1]: the network's on this frame blended with its chain's over "
-                   "neighbouring frames ([detect] temporal_weight; tasks/detection/temporal.py); kept when >= score_threshold."),
-            column("frame_score", pa.float32(), "The network's confidence on this frame alone, in [0, 1]."),
+            column("score", pa.float32(), "Detector confidence in [0, 1]."),
             column("model_sha256", pa.string(), "SHA-256 of the ONNX detector that produced the box."),
         ]
     ),

@@ -163,16 +163,6 @@ def test_detect_and_embed_stages(detected):
     only = detect_clip(wh, DetectConfig(score_threshold=0.2, classes=(dets[0]["label"],)), "small", "r6", show_progress=False)
     kept = wh.read("detections").to_pylist()
     assert {d["label"] for d in kept} == {dets[0]["label"]} and only.rows_written == len(kept) <= len(dets)
-    # scores are rescored over time (tasks/detection/temporal.py) from boxes down to the candidate threshold;
-    # frame_score keeps the network's, and with temporal_weight 0 the two are one
-    assert all(d["frame_score"] >= cfg.candidate_threshold for d in dets)
-    assert any(abs(d["score"] - d["frame_score"]) > 1e-3 for d in dets) and "rescored over time" in out.message
-    from dataclasses import replace
-
-    plain = detect_clip(wh, replace(cfg, temporal_weight=0.0), "small", "r7", show_progress=False)
-    alone = wh.read("detections").to_pylist()
-    assert plain.rows_written == len(alone) > 0 and "rescored" not in plain.message
-    assert all(d["score"] == d["frame_score"] >= cfg.score_threshold for d in alone)
 
 
 def test_detect_needs_frames(wh):

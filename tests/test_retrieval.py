@@ -88,7 +88,7 @@ def clip_and_library(wh):
     dets = [(0, 0, "chair", protos[0]), (1, 10000, "chair", protos[0]), (2, 20000, "chair", protos[0]),
             (3, 1, "couch", protos[1]), (4, 10001, "couch", protos[1])]
     write(wh, "detections", "c", [{"clip": "c", "det_id": d, "timestamp_us": 0, "frame_index": d // 10000,
-                                   "box": [0.1, 0.1, 0.5, 0.5], "label": label, "label_id": 0, "score": 0.9, "frame_score": 0.9,
+                                   "box": [0.1, 0.1, 0.5, 0.5], "label": label, "label_id": 0, "score": 0.9,
                                    "model_sha256": "x"} for _, d, label, _ in dets])
     write(wh, "embeddings", "c", [{"clip": "c", "owner": "detection", "owner_id": d, "vector": v.tolist(),
                                    "model_sha256": "x"} for _, d, _, v in dets])

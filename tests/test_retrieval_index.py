@@ -146,7 +146,7 @@ def test_candidates_equal_the_mean_over_every_detection_and_view(wh):
     dets = [(t, LABELS[(t + f) % 2 + (t == 2)], unit(rng.normal(size=16))) for t in range(3) for f in range(4)]
     wh.write("detections", "c", pa.Table.from_pylist([
         {"clip": "c", "det_id": i, "timestamp_us": i, "frame_index": i, "box": [0.1, 0.1, 0.5, 0.5], "label": label,
-         "label_id": 0, "score": 0.9, "frame_score": 0.9, "model_sha256": "x"} for i, (_, label, _) in enumerate(dets)], schema=wh.spec("detections").schema))
+         "label_id": 0, "score": 0.9, "model_sha256": "x"} for i, (_, label, _) in enumerate(dets)], schema=wh.spec("detections").schema))
     wh.write("embeddings", "c", pa.Table.from_pylist([
         {"clip": "c", "owner": "detection", "owner_id": i, "vector": v.tolist(), "model_sha256": "x"}
         for i, (_, _, v) in enumerate(dets)], schema=wh.spec("embeddings").schema))

@@ -113,7 +113,7 @@ def test_tracking_accuracy_of_warehouse_tracks(tmp_path):
         for r, k in enumerate(boxes):
             det_id = f * 10000 + r
             dets.append({"clip": clip, "det_id": det_id, "timestamp_us": 1000 * f, "frame_index": f, "box": list(boxes[k]),
-                         "label": "chair", "label_id": 56, "score": 0.9, "frame_score": 0.9, "model_sha256": "x"})
+                         "label": "chair", "label_id": 56, "score": 0.9, "model_sha256": "x"})
             members.append({"clip": clip, "track_id": track_of[k][f], "det_id": det_id, "frame_index": f, "timestamp_us": 1000 * f})
     wh.write("detections", clip, pa.Table.from_pylist(dets, schema=DETECTIONS.schema))
     wh.write("track_detections", clip, pa.Table.from_pylist(members, schema=TRACK_DETECTIONS.schema))
