@@ -45,9 +45,12 @@ USED_SEEDS: dict[int, str] = {
            "adopted on its yield",
     8191: "make bench's fresh seed until stop 58: the detector's input canvas (fitted, long side 480) chosen "
           "on its detection curves among 416 square and fitted 416, 448, 480, 512 and 544; since stop 59 a tuning "
-          "seed (the fine-tuning's rates and schedules, NMS, shadow thresholds, the weak-track rule)",
+          "seed (the fine-tuning's rates and schedules, NMS, shadow thresholds, the weak-track rule, temporal "
+          "rescoring)",
     131071: "generated in stop 58 after the fitted-canvas pick: the square, fitted 416 and fitted 480 canvases "
             "measured end to end on it, and the square kept as the default; since stop 59 a tuning seed (as 8191)",
+    6700417: "generated in stop 63 to judge temporal rescoring of detections (not adopted); its lost bookshelf studied",
+    2147483647: "generated in stop 63 to judge temporal rescoring of detections (not adopted)",
 }
 """Benchmark seeds whose numbers were seen while something was chosen, and what."""
 
