@@ -50,7 +50,9 @@ USED_SEEDS: dict[int, str] = {
     131071: "generated in stop 58 after the fitted-canvas pick: the square, fitted 416 and fitted 480 canvases "
             "measured end to end on it, and the square kept as the default; since stop 59 a tuning seed (as 8191)",
     6700417: "generated in stop 63 to judge temporal rescoring of detections (not adopted); its lost bookshelf studied",
-    2147483647: "generated in stop 63 to judge temporal rescoring of detections (not adopted)",
+    2147483647: "generated in stop 63 to judge temporal rescoring of detections (not adopted); stop 64 judged "
+                "the drawn class exponent and the descriptor's training rooms on it",
+    999983: "generated in stop 64 to judge the drawn class exponent and the descriptor's training rooms",
 }
 """Benchmark seeds whose numbers were seen while something was chosen, and what."""
 

@@ -367,6 +367,9 @@ class RetrievalConfig:
                                  "chosen on tuning seeds (true class among 10: 0.935 without the cap, 0.963 at 7; true "
                                  "model 0.850 both; yield 142 of 212 objects both).",
                               lo=1, hi=1000)
+    drawn_class_exponent: float = _opt(1.0, "class_exponent for a manual track, whose class a person drew: 1, the "
+                                            "paper's product (the filter is tempered above for a detector's guesses, "
+                                            "not for a person's answer).", lo=0.0, hi=10.0)
 
 
 @dataclass(frozen=True)

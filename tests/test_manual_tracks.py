@@ -128,8 +128,14 @@ def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
     # retrieval ranks the manual track (the couch is a sofa), and CAD selection shows it with its boxes
     _library(mwh)
     retrieve_clip(mwh, RetrievalConfig(top_k=2), CLIP, "r")
-    ranked = [r["cad_id"] for r in mwh.read("cad_candidates", [CLIP]).to_pylist() if r["track_id"] == couch]
+    candidates = mwh.read("cad_candidates", [CLIP]).to_pylist()
+    ranked = [r["cad_id"] for r in candidates if r["track_id"] == couch]
     assert ranked == ["lib.sofa", "lib.chair"]
+    x = RetrievalConfig().class_exponent
+    for r in candidates:  # a person's class weighs as the paper weighs it; a detector's is tempered
+        power = 1.0 if r["track_id"] == couch else x
+        assert r["score"] == pytest.approx(r["class_similarity"] ** power * r["appearance"], abs=1e-5), r
+    assert x < 1 and {r["track_id"] for r in candidates} > {couch}
     selection = _task(mwh, _run_cad_selection(mwh, cad_selection_stage).message)
     [item] = [it for it in selection["items"] if it["track_id"] == couch]
     assert item["label"] == "couch" and [k["box"] for k in item["keyframes"]] == [c["box"] for c in COUCH]

@@ -63,6 +63,30 @@ def test_class_exponent_tempers_the_class_filter():
     assert np.argmax(paper[0]) == 0 and np.argmax(quarter[0]) == 1  # the bed wins once the filter is tempered enough
 
 
+def test_a_drawn_class_weighs_as_the_paper_weighs_it():
+    """A manual track's label is a person's answer, not a detector's guess: with the detector's labels
+    tempered (x = 0.1) the same boxes drawn by a person are scored with ``drawn_class_exponent``
+    (1: the paper's product), so the drawn class keeps its candidates."""
+    import dataclasses
+
+    rng = np.random.default_rng(4)
+    D, M = 16, 5
+    views = unit(rng.normal(size=(M, D)))
+    white = fit_whitening(views, "centre", 8)
+    sim = {"chair": np.array([1.0, 0.2, 0.5, 0.0, 0.8], np.float32)}
+    index = LibraryIndex("lib", np.array([f"m{i}" for i in range(M)], dtype=object),
+                         np.array(["chair", "bed", "sofa", "tv", "chair"], dtype=object), white.apply(views), white, sim)
+    dets = unit(views[[1, 1, 3]] + 0.05 * rng.normal(size=(3, D)))  # look like the bed and the tv
+    detected = TrackGroups(["chair"], np.array([3]), [dets])
+    drawn = dataclasses.replace(detected, drawn=True)
+    both = score_tracks([detected, drawn], index, 0.1)
+    np.testing.assert_array_equal(both[0][0], score_tracks([detected], index, 0.1)[0][0])
+    np.testing.assert_array_equal(both[0][1], score_tracks([detected], index, 1.0)[0][0])
+    np.testing.assert_array_equal(both[1][0], both[1][1])  # appearance is the boxes'
+    assert np.argmax(both[0][0]) == 1 and np.argmax(both[0][1]) == 0  # tempered: the bed; drawn "chair": a chair
+    np.testing.assert_array_equal(score_tracks([detected, drawn], index, 0.1, 0.1)[0][1], both[0][0])
+
+
 def write(wh, name: str, part: str, rows: list[dict]) -> None:
     wh.write(name, part, pa.Table.from_pylist(rows, schema=wh.spec(name).schema))
 

@@ -7,7 +7,9 @@ similarity of :mod:`tasks.retrieval.label_similarity` clipped at 0 (a soft class
 factor maps the cosine to [0, 1]. Because the product is linear in b_mv, the mean over views is
 exactly ``c(l_f, k_m) * (1 + w_f . mean_v b_mv) / 2``, and grouping the track's detections by
 label gives ``sum_l c(l, k_m) * (n_l + (sum_{f in l} w_f) . b_m) / (2F)``: one small matrix
-product per library however many views it has (``cad_model_embeddings`` holds b_m).
+product per library however many views it has (``cad_model_embeddings`` holds b_m). ``c`` enters
+raised to ``[retrieval] class_exponent`` for a detector's labels and to ``drawn_class_exponent``
+(1: the paper's product) for a manual track's, whose class a person drew.
 
 Reads: the clip's tracks, automatic and manual (:mod:`tasks.tracking.clip_tracks`: ``tracks``,
 ``track_detections``, ``detections``, ``embeddings``, ``manual_tracks``); every
@@ -37,17 +39,21 @@ from warehouse import Warehouse
 
 @dataclass(frozen=True)
 class TrackGroups:
-    """One track's detections grouped by label: labels [G], counts int[G], sums of raw descriptors float32[G,D]."""
+    """One track's detections grouped by label: labels [G], counts int[G], sums of raw descriptors
+    float32[G,D]; ``drawn``: a manual track, its label a person's (``manual_tracks``), not a detector's."""
 
     labels: list[str]
     counts: np.ndarray
     raw: list[np.ndarray]  # per group: raw unit descriptors [n_l, D]
+    drawn: bool = False
 
 
-def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent: float = 1.0,
+                 drawn_class_exponent: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(score, appearance, class similarity), each float32[T, M], of every track against every model;
     the score weighs each detection's appearance by its class similarity raised to ``class_exponent``
-    (1: the paper's product; the class similarity returned is the plain one).
+    (1: the paper's product; the class similarity returned is the plain one), a drawn track's
+    (:attr:`TrackGroups.drawn`) by it raised to ``drawn_class_exponent``.
 
     One (track, label) group at a time: its detections whitened and summed, one matrix-vector product
     with the models' vectors float32[M,k]. Batching the groups into one matrix product changed scores
@@ -56,11 +62,12 @@ def score_tracks(tracks: list[TrackGroups], index: LibraryIndex, class_exponent:
     M = 120,000, OpenBLAS's threads, spinning for a worker that 2 busy cores did not schedule, burnt
     up to 0.8 s of CPU per clip (``python -m bench.retrieval_bench``)."""
     T, M = len(tracks), len(index.cad_ids)
-    weight = index.class_sim if class_exponent == 1.0 else {
-        label: c ** np.float32(class_exponent) for label, c in index.class_sim.items()}  # per label, once per call
+    weights = {x: index.class_sim if x == 1.0 else {label: c ** np.float32(x) for label, c in index.class_sim.items()}
+               for x in {class_exponent, drawn_class_exponent}}  # per label, once per call
     score, appearance, cls = (np.zeros((T, M), np.float32) for _ in range(3))
     with threadpool_limits(1, user_api="blas"):
         for t, track in enumerate(tracks):
+            weight = weights[drawn_class_exponent if track.drawn else class_exponent]
             F = float(track.counts.sum())
             for label, n, raw in zip(track.labels, track.counts, track.raw):
                 if label not in index.class_sim:
@@ -164,7 +171,7 @@ def track_groups(wh: Warehouse, clip: str) -> tuple[list[int], list[TrackGroups]
         labels = sorted(by_label)
         ids.append(t)
         groups.append(TrackGroups(labels, np.array([len(by_label[l]) for l in labels]),
-                                  [np.asarray(by_label[l], np.float32) for l in labels]))
+                                  [np.asarray(by_label[l], np.float32) for l in labels], drawn=track.manual))
     return ids, groups
 
 
@@ -176,7 +183,7 @@ def retrieve_clip(wh: Warehouse, cfg: RetrievalConfig, clip: str, run_id: str) -
         wh.write("cad_candidates", clip, empty)
         return StageOutput(0, table_digest(empty), "no CAD library in the warehouse yet: run `cadestate cad ingest`")
     track_ids, groups = track_groups(wh, clip)
-    parts = [(index, *score_tracks(groups, index, cfg.class_exponent)) for index in (load_index(wh, lib) for lib in libraries)]
+    parts = [(index, *score_tracks(groups, index, cfg.class_exponent, cfg.drawn_class_exponent)) for index in (load_index(wh, lib) for lib in libraries)]
     score = np.concatenate([p[1] for p in parts], 1) if parts else np.zeros((len(groups), 0))
     appearance = np.concatenate([p[2] for p in parts], 1)
     cls = np.concatenate([p[3] for p in parts], 1)
