@@ -131,6 +131,26 @@ def test_the_kept_crops_are_keyed_by_the_code_that_makes_them_not_by_the_trainin
     assert crops_path(tmp_path, spec, "lib") != path
 
 
+def test_a_room_without_a_camera_walk_gives_no_crops(small_library_warehouse, models_dir):
+    """Some rooms have no collision-free camera walk (room 865 of seed 1 with the embedded library,
+    reached since the descriptor trains on 1,440 rooms; room 40 with the small one): such a room
+    adds no crop, as the detector's rooms skip it, and the others are rendered as before."""
+    from bench.descriptor_data import room_seed
+    from bench.scene import generate_scene
+    from bench.walkthrough import WalkthroughSpec, camera_path
+    from warehouse import Warehouse
+
+    wh = Warehouse(small_library_warehouse.warehouse.root)
+    models = wh.read("cad_models").to_pylist()
+    with pytest.raises(RuntimeError, match=descriptor_train.NO_WALK):
+        camera_path(generate_scene(room_seed(1, 40), models), WalkthroughSpec(), np.random.default_rng(0))
+    spec = TrainSpec(frames=2)
+    crops = descriptor_train.render_crops(wh, spec, show_progress=False, workers=1, rooms=[39, 40])
+    alone = descriptor_train.render_crops(wh, spec, show_progress=False, workers=1, rooms=[39])
+    assert len(crops.cad_ids) and set(crops.rooms.tolist()) == {39}
+    np.testing.assert_array_equal(crops.vectors, alone.vectors)
+
+
 @pytest.mark.slow
 def test_make_models_trains_on_rooms_and_cad_embed_applies_it(small_library_warehouse, models_dir, tmp_path):
     """The trainer on the small library: rooms rendered and embedded, a projection trained and
