@@ -40,9 +40,9 @@ def test_grouped_score_equals_the_mean_over_all_pairs():
         score_tracks([TrackGroups(["tv"], np.array([1]), [dets[:1]])], index)
 
 
-def test_class_exponent_tempers_the_class_filter():
-    """x = 1 is the paper's product to the bit; x = 0 ranks by appearance alone; in between, each
-    detection's appearance is weighed by c ** x."""
+def chair_that_looks_like_a_bed() -> tuple[LibraryIndex, TrackGroups, dict]:
+    """A 5-model library (chair, bed, sofa, tv, chair) and a track of three boxes named "chair" that
+    look like the bed and the tv; and the library's class similarities to "chair"."""
     rng = np.random.default_rng(4)
     D, M = 16, 5
     views = unit(rng.normal(size=(M, D)))
@@ -51,7 +51,13 @@ def test_class_exponent_tempers_the_class_filter():
     index = LibraryIndex("lib", np.array([f"m{i}" for i in range(M)], dtype=object),
                          np.array(["chair", "bed", "sofa", "tv", "chair"], dtype=object), white.apply(views), white, sim)
     dets = unit(views[[1, 1, 3]] + 0.05 * rng.normal(size=(3, D)))  # look like the bed and the tv
-    track = TrackGroups(["chair"], np.array([3]), [dets])
+    return index, TrackGroups(["chair"], np.array([3]), [dets]), sim
+
+
+def test_class_exponent_tempers_the_class_filter():
+    """x = 1 is the paper's product to the bit; x = 0 ranks by appearance alone; in between, each
+    detection's appearance is weighed by c ** x."""
+    index, track, sim = chair_that_looks_like_a_bed()
     paper, appearance, cls = score_tracks([track], index)
     np.testing.assert_array_equal(score_tracks([track], index, 1.0)[0], paper)
     off = score_tracks([track], index, 0.0)
@@ -69,15 +75,7 @@ def test_a_drawn_class_weighs_as_the_paper_weighs_it():
     (1: the paper's product), so the drawn class keeps its candidates."""
     import dataclasses
 
-    rng = np.random.default_rng(4)
-    D, M = 16, 5
-    views = unit(rng.normal(size=(M, D)))
-    white = fit_whitening(views, "centre", 8)
-    sim = {"chair": np.array([1.0, 0.2, 0.5, 0.0, 0.8], np.float32)}
-    index = LibraryIndex("lib", np.array([f"m{i}" for i in range(M)], dtype=object),
-                         np.array(["chair", "bed", "sofa", "tv", "chair"], dtype=object), white.apply(views), white, sim)
-    dets = unit(views[[1, 1, 3]] + 0.05 * rng.normal(size=(3, D)))  # look like the bed and the tv
-    detected = TrackGroups(["chair"], np.array([3]), [dets])
+    index, detected, _ = chair_that_looks_like_a_bed()
     drawn = dataclasses.replace(detected, drawn=True)
     both = score_tracks([detected, drawn], index, 0.1)
     np.testing.assert_array_equal(both[0][0], score_tracks([detected], index, 0.1)[0][0])
