@@ -8,7 +8,7 @@
   default benchmark at click noise 0, 3 and 6 px (the default ``[pose]`` config), the paper's
   ablation (base, + co-planar, + symmetry, + up-axis), the paper's L1 loss vs Huber, LM (Adam as
   fallback) vs Adam alone, with the scale prior on axes the clicks hardly span (``axis_prior`` 10;
-  off by default), with vs without the support prior of :mod:`tasks.pose.support` (off;
+  off by default), with free scales (no ``proportion_prior``, the paper's), with vs without the support prior of :mod:`tasks.pose.support` (off;
   the floor only, no host tops; the floor prior for floor classes only, as before host supports;
   every other row keeps the default prior on), and time per object and for 1,000 objects in one
   batch. Tracks are solved with their clip, so each clip gets its floor and its hosts.
@@ -348,6 +348,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
                 "full, Adam only": dataclasses.replace(cfg, lm_iterations=0),
                 "full, L1 loss and Adam only (paper)": dataclasses.replace(cfg, huber_px=0.0, lm_iterations=0),
                 "full, with the narrow-axis prior (axis_prior 10)": dataclasses.replace(cfg, axis_prior=10.0),
+                "full, free scales (no proportion prior, as the paper)": dataclasses.replace(cfg, proportion_prior=0.0),
                 "full, no floor prior": dataclasses.replace(cfg, floor_prior=0.0),
                 "full, floor only (no host supports)": dataclasses.replace(cfg, host_supports=False)}
     out["ablation_3px"] = {name: evaluate(tracks3, gt, sym, c, wh, bench_dir) for name, c in ablation.items()}

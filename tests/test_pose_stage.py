@@ -61,7 +61,8 @@ def posed_clip(wh):
 
 def test_stage_writes_one_pose_per_track(posed_clip):
     wh, problem, (T, q, s) = posed_clip
-    out = solve_clip(wh, PoseConfig(), "c1", "run")
+    cfg = PoseConfig(proportion_prior=0.0)  # free scales: exact clicks, the exact pose
+    out = solve_clip(wh, cfg, "c1", "run")
     poses = {r["track_id"]: r for r in wh.read("poses", ["c1"]).to_pylist()}
     assert out.rows_written == 3 and "1 of 3" in out.message
     ok = poses["1"]
@@ -69,7 +70,7 @@ def test_stage_writes_one_pose_per_track(posed_clip):
     assert np.linalg.norm(np.array(ok["translation"]) - T) < 1e-3
     assert np.allclose(ok["scale"], s, rtol=1e-3)
     assert len(ok["keyframe_error_px"]) == ok["num_keyframes"] == 4 and max(ok["keyframe_error_px"]) < 0.01
-    assert ok["config_hash"] == section_hash("pose", PoseConfig())
+    assert ok["config_hash"] == section_hash("pose", cfg)
     assert ok["floor_prior"] == "no_floor" and ok["floor_height"] is None  # a table, alone in its clip
     assert poses["2"]["floor_prior"] == "none" and ok["loss_floor"] == 0.0
     assert poses["2"]["status"] == "unknown_cad" and poses["2"]["translation"] is None

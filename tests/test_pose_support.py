@@ -152,7 +152,7 @@ def test_floor_term_matches_hand_computation():
     the signed residuals; a tilted, mirrored pose so every axis reaches down."""
     objects, _ = clip_objects(5, [0.0])
     o = dataclasses.replace(objects[0], mirrored=True, floor_height=0.3, floor_weight=7.0)
-    opts = SolverOptions(huber_px=0.0)  # L1: the residuals' absolute sum is the loss
+    opts = SolverOptions(huber_px=0.0, proportion_prior=0.0)  # L1: the residuals' absolute sum is the loss
     b = make_batch([o], [-1], opts)
     tilt = np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
     R, s, T = tilt @ rotation_y(40.0), np.array([0.9, 1.1, 1.3]), np.array([0.2, 0.1, -4.0])

@@ -26,8 +26,8 @@ class Batch:
     upright bool[B] (the up-axis term applies); axis int[B] co-planar CAD axis (-1 none); tied
     bool[B, 3] the CAD axes whose scale is tied to the others (:func:`tasks.pose.initial.tie_scales`:
     the co-planar axis); loose bool[B, 3] the axes the points hardly span and prior float[B, 3, 3]
-    the scale prior on them (:func:`tasks.pose.lm.axis_prior`: its residuals are ``(prior @ log
-    s)^2``, px; zero rows for the other axes); half
+    the scale prior (:func:`tasks.pose.lm.axis_prior`: its residuals are ``(prior @ log s)^2``, px;
+    rows for the loose axes and, with a proportion prior, the other untied ones); half
     float[B, 3] half the CAD bounding-box size (canonical CAD frame, 0 when unknown); floor_y
     float[B] the support-plane (floor) height on world +Y and floor_w float[B] the weight of the
     floor term (px per world unit; 0: no floor term, see :func:`tasks.pose.lm.support_bottom`).

@@ -74,17 +74,34 @@ def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float)
     return (size > 0) & (span < min_span * size)
 
 
-def prior_matrix(loose: np.ndarray, tied: np.ndarray, weight: float) -> np.ndarray:
-    """float[3, 3] of the scale prior (:func:`tasks.pose.lm.axis_prior`): row a, for a ``loose``
-    axis (bool[3], :func:`unobserved_axes`), is sqrt(``weight``) x (e_a - the mean of e_o over the
-    observed axes o, neither loose nor ``tied``; over all three when none is); other rows 0. Its
-    residual weight x (log s_a - mean log s_o)^2 (px) pulls the axis towards the observed axes'
-    scale (the model's proportions) the more the farther it strays, against what the clicks say."""
+def prior_matrix(loose: np.ndarray, tied: np.ndarray, weight: float, proportion: float = 0.0,
+                 round_: bool = False) -> np.ndarray:
+    """float[3, 3] of the scale prior (:func:`tasks.pose.lm.axis_prior`), one row per CAD axis a:
+
+    - a ``loose`` axis (bool[3], :func:`unobserved_axes`): sqrt(``weight``) x (e_a - the mean of e_o
+      over the observed axes o, neither loose nor ``tied``; over all three when none is). Its residual
+      weight x (log s_a - mean log s_o)^2 (px) pulls the axis towards the observed axes' scale (the
+      model's proportions) the more the farther it strays, against what the clicks say;
+    - every other axis but the ``tied`` ones (the co-planar tie's): sqrt(``proportion``) x (e_a - the
+      mean of e_o over the untied axes): the model's proportions as a weak prior on every scale,
+      which decides where the clicks leave the proportions free (co-planar or narrow clicks seen
+      with little parallax) and costs a fraction of a pixel where they do not (0: none, free scales
+      as the paper).
+
+    ``round_`` (a 36-way model): x and z are one scale, so z's row stays 0 (x's counts once)."""
     seen = ~loose & ~tied
     ref = seen / seen.sum() if seen.any() else np.full(3, 1 / 3)
+    untied = ~tied
+    if round_:
+        untied[2] = False
     P = np.zeros((3, 3))
     for a in np.flatnonzero(loose):
         P[a] = np.sqrt(weight) * (np.eye(3)[a] - ref)
+    if proportion > 0 and untied.sum() > 1:
+        for a in np.flatnonzero(untied & ~loose):
+            P[a] = np.sqrt(proportion) * (np.eye(3)[a] - untied / untied.sum())
+    if round_:
+        P[2] = 0.0
     return P
 
 

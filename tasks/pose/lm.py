@@ -102,7 +102,8 @@ def support_bottom(R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, half: torc
 
 def prior_deviation(b: Batch, s: torch.Tensor) -> torch.Tensor:
     """q = ``b.prior @ log s`` float[B, 3] of scales s float[B, 3]: for an axis the clicks hardly
-    span, sqrt(weight) x (its log-scale - the observed axes' mean log-scale); 0 for the other axes
+    span, sqrt(axis_prior) x (its log-scale - the observed axes' mean log-scale); for the other
+    untied axes sqrt(proportion_prior) x (its log-scale - the untied axes' mean); 0 for a tied axis
     (:func:`tasks.pose.checks.prior_matrix`)."""
     return torch.einsum("bij,bj->bi", b.prior, torch.log(s.clamp(min=1e-12)))
 

@@ -11,12 +11,15 @@ Frames (see :mod:`cadestate.geometry`):
 
 Objective per object (all key-frames together)::
 
-    L = L_repr + alpha · L_up + beta · L_front [+ L_axes] [+ L_floor]
+    L = L_repr + alpha · L_up + beta · L_front + L_prop [+ L_axes] [+ L_floor]
     L_repr  = sum over key-frames of min over symmetric rotations Q of
               sum over the key-frame's points rho(u(T, R, S, M Q x) - u_click) (px), / points
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
     L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
+    L_prop  = proportion_prior · sum over the untied axes a of (log s_a - their mean log-scale)^2
+              (px; not the co-planar tie's axis, nor those L_axes holds): the chosen model's
+              proportions, a weak prior beyond the paper (the paper's free scales: 0)
     L_floor = floor_weight · |bottom - floor_height|  (only in the re-solve with the support
               prior of :mod:`tasks.pose.support`; bottom: lowest world-Y of the posed CAD bbox;
               floor_height: the support's height, the floor or a host's top)
@@ -128,6 +131,9 @@ class SolverOptions:
     axis_prior: float = 0.0
     """Weight of the scale prior on those axes: px per squared unit of log-scale deviation from the
     observed axes' mean (:func:`tasks.pose.checks.prior_matrix`); 0 = none."""
+    proportion_prior: float = 1.0
+    """Weight of the model's proportions on every other untied axis: px per squared unit of log-scale
+    deviation from the untied axes' mean (:func:`tasks.pose.checks.prior_matrix`); 0 = free scales."""
     min_points: int = 6
     max_reprojection_px: float = 20.0
     """A solution whose mean reprojection error (px) exceeds this gets status ``high_residual``."""
@@ -223,8 +229,7 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
     for m in (tied, unseen):
         m[round_, 0] = m[round_, 2] = m[round_, 0] & m[round_, 2]
     loose = unseen & ~tied
-    prior = np.stack([prior_matrix(lo, ti, opts.axis_prior) for lo, ti in zip(loose, tied)])
-    prior[round_, 2] = 0.0  # x and z are one scale there: its prior counts once (x's row)
+    prior = np.stack([prior_matrix(lo, ti, opts.axis_prior, opts.proportion_prior, r) for lo, ti, r in zip(loose, tied, round_)])
     return Batch(T(pts), T(uv), T(xn), torch.as_tensor(kf), torch.as_tensor(pm), T(K), T(Rc), T(tc), torch.as_tensor(fm),
                  T([-1.0 if o.mirrored else 1.0 for o in objects]),
                  torch.as_tensor([int(o.symmetry) if opts.symmetry else 1 for o in objects]),
