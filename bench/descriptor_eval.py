@@ -105,7 +105,7 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
                     class_exponents: tuple[float, ...] = (1.0,), caps: tuple[int, ...] = (DEFAULT_CAP,)) -> dict[str, dict]:
     """Per method and ``[retrieval] class_exponent``: recall@1/@10 of the warehouse's tracks of
     ``bench_dir``'s clips, scored and ordered as the retrieval stage scores and orders them
-    (class-label similarity included), per ``[retrieval] max_per_class`` of ``caps``; keyed by the
+    (class-label similarity included; a manual track's at the default ``drawn_class_exponent``), per ``[retrieval] max_per_class`` of ``caps``; keyed by the
     method, with ``c^x`` after it for an exponent x other than 1 and ``max N/class`` for a cap
     other than the default."""
     from bench.benchmark import CLASS_NAMES, read_manifest
@@ -119,12 +119,12 @@ def pipeline_recall(bench_dir: Path, wh: Warehouse, indexes: dict[str, list[Libr
         objects = {o.track_id: o for o in read_objects(bench_dir / clip / "objects.json").objects}
         truth = {(clip, t): (objects[g].cad_id, CLASS_NAMES.get(objects[g].cls, "other")) for t, g in track_truth(bench_dir, wh, clip).items()}
         per_clip.append((clip, *track_groups(wh, clip), truth))
-    out = {}
+    out, drawn = {}, RetrievalConfig().drawn_class_exponent  # a person's drawn class, weighed as the stage does
     for (method, libs), x, cap in ((m, x, c) for m in indexes.items() for x in class_exponents for c in caps):
         ranks, truth = {}, {}
         for clip, ids, groups, clip_truth in per_clip:
             truth.update(clip_truth)
-            scores = [score_tracks(groups, lib, x)[0] for lib in libs]
+            scores = [score_tracks(groups, lib, x, drawn)[0] for lib in libs]
             for t, track_id in enumerate(ids):
                 ranks[(clip, track_id)] = ranked(libs, [s[t] for s in scores], cap)
         key = method + ("" if x == 1.0 else f" c^{x:g}") + ("" if cap == DEFAULT_CAP else f" max {cap}/class")
