@@ -63,7 +63,7 @@ POSES = TableSpec(
                                             "was tied to the mean of the other two; -1 none."),
         column("num_keyframes", pa.int32(), "Key-frames with correspondences."),
         column("num_points", pa.int32(), "Correspondences used."),
-        column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front + L_axes + L_floor (tasks/pose/solver.py; null: not solved).", nullable=True),
+        column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front + L_prop + L_axes + L_floor (tasks/pose/solver.py; null: not solved).", nullable=True),
         column("loss_reprojection", pa.float64(), "Final L_repr: L1 reprojection error per point (|du| + |dv|).", unit="px", nullable=True),
         column("loss_up", pa.float64(), "Final L_up: |R e_y - e_y|_1 (0 when not upright).", nullable=True),
         column("loss_front", pa.float64(), "Final L_front: mean depth below [pose] min_depth.", unit="m", nullable=True),

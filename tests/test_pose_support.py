@@ -168,8 +168,10 @@ def test_floor_term_matches_hand_computation():
     assert float(e["residuals"].abs().sum()) == pytest.approx(float(e["total"]), rel=1e-9)
 
 
-def test_lm_floor_jacobian_matches_finite_differences():
-    from tasks.pose.lm import Problem, residuals_jacobian, scale_ties, so3_exp
+def test_lm_floor_and_prior_jacobian_matches_finite_differences():
+    """The floor row and the scale prior's rows (the default proportion prior: all three axes) of the
+    LM's Jacobian equal central differences of its residuals."""
+    from tasks.pose.lm import PRIOR_ROWS, Problem, residuals_jacobian, scale_ties, so3_exp
 
     objects, _ = clip_objects(6, [0.0])
     o = dataclasses.replace(objects[0], floor_height=0.2, floor_weight=5.0, upright=False)
@@ -181,18 +183,18 @@ def test_lm_floor_jacobian_matches_finite_differences():
     ls, T = torch.tensor([[0.1, -0.05, 0.2]]).double(), torch.tensor([[0.1, 0.6, -4.0]]).double()
     phi, choice = torch.zeros(1, 4, dtype=torch.float64), torch.zeros(1, 4, dtype=torch.long)
 
-    def floor_row(d):
+    def rows(d):
         return residuals_jacobian(pb, R @ so3_exp(d[:, :3]), ls + d[:, 6:9], T + 4.0 * d[:, 3:6], phi + d[:, 9:], choice,
-                                  0.05, 100.0, 1000.0)[0][:, -1]
+                                  0.05, 100.0, 1000.0)[0][:, -4:]
 
     r, J = residuals_jacobian(pb, R, ls, T, phi, choice, 0.05, 100.0, 1000.0)
-    assert float(r[0, -1].abs()) > 0.1
+    assert float(r[0, -1].abs()) > 0.1 and float(r[0, PRIOR_ROWS].abs().min()) > 0.01
     h = 1e-6
     for k in range(13):
         e = torch.zeros(1, 13, dtype=torch.float64)
         e[0, k] = h
-        num = (floor_row(e) - floor_row(-e)) / (2 * h)
-        assert torch.allclose(J[:, -1, k], num, atol=1e-6 * (1 + float(num.abs().max()))), k
+        num = (rows(e) - rows(-e)) / (2 * h)
+        assert torch.allclose(J[:, -4:, k], num, atol=1e-6 * (1 + float(num.abs().max()))), k
 
 
 def test_prior_off_is_the_solver_alone():

@@ -247,7 +247,8 @@ def bottom_sd(pb: Problem, R: torch.Tensor, ls: torch.Tensor, T: torch.Tensor, p
     """How loosely the fit holds each object's bottom height, float[B] (world units, relative:
     up to the scale of the click noise): sqrt(g^T H^-1 g) with g = :func:`bottom_gradient` and H
     the Gauss-Newton (IRLS) matrix of the loss at the pose, as :func:`lm_solve` builds it (the
-    Laplace approximation of the bottom's variance). Parameters without any residual (the
+    Laplace approximation of the bottom's variance; the scale priors' rows included, as they too
+    hold the object's size). Parameters without any residual (the
     key-frame rotations of models that are not 36-way) are left out."""
     s = torch.einsum("bij,bj->bi", pb.L, torch.exp(ls))
     _, choice = loss_and_choice(pb, R, s, T, phi, min_depth, alpha, beta, huber_px)

@@ -78,7 +78,8 @@ class ObjectCorrespondences:
         symmetry: order of rotational symmetry about +Y (1, 2, 4, 36).
         upright: the class stands upright (the up-axis term applies).
         extent: float[3] size of the CAD model's bounding box (canonical CAD frame, x, y, z), or
-            None when unknown (then no floor term can apply, and no scale prior).
+            None when unknown (then no floor term can apply, and no axis_prior: the proportion prior
+            needs no extent).
         on_floor: the class usually rests on the floor ([pose] floor_classes): it helps estimate
             its clip's floor, and gets the support prior.
         rests: the class rests on a support, the floor or another object's top (upright classes
