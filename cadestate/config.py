@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cadestate.cron import cron_problem
+
 DEFAULT_CONFIG_FILE = "cadestate.toml"
 ENV_CONFIG = "CADESTATE_CONFIG"
 ENV_WAREHOUSE = "CADESTATE_WAREHOUSE"
@@ -88,14 +90,14 @@ class ScheduleConfig:
     """What `cadestate serve` schedules on the Prefect server (not part of lineage)."""
 
     inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4 + <name>.txt) that the build_dataset deployment ingests.")
-    inbox_cron: str = _opt("*/10 * * * *", "Cron schedule of the build_dataset deployment (UTC).")
+    inbox_cron: str = _opt("*/10 * * * *", "Cron schedule of the build_dataset deployment (UTC).", check=cron_problem)
     inbox_split: str = _opt("train", "Dataset split of the inbox's clips (val and test clips get the manual-track task).")
     labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.")
-    labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).")
+    labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).", check=cron_problem)
     stable_s: float = _opt(10.0, "A clip's files are taken once neither was modified (mtime) for this long "
                                  "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
     report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).")
-    report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).")
+    report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).", check=cron_problem)
     suspend_timeout_s: int = _opt(7 * 86400, "A served clip waiting for people is suspended this long at most before it fails.",
                                   lo=60, hi=365 * 86400)
 

@@ -96,10 +96,42 @@ class ObjectsFile:
 def _tuple(where: str, value: Any, n: int, kind: type = float) -> tuple:
     if not isinstance(value, (list, tuple)) or len(value) != n:
         raise OfficialFormatError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    if kind is int:
+        return tuple(_int(f"{where}[{i}]", v) for i, v in enumerate(value))
     try:
         return tuple(kind(v) for v in value)
     except (TypeError, ValueError):
         raise OfficialFormatError(f"{where}: expected numbers, got {value!r}") from None
+
+
+def _field(where: str, entry: Any, key: str, default: Any = ...) -> Any:
+    """``entry[key]`` of a JSON object; ``where`` names the entry (``file: objects[3]``)."""
+    if not isinstance(entry, dict):
+        raise OfficialFormatError(f"{where}: expected an object, got {entry!r:.60}")
+    if key in entry:
+        return entry[key]
+    if default is ...:
+        raise OfficialFormatError(f"{where}: missing field {key!r}")
+    return default
+
+
+def _list(where: str, value: Any) -> list:
+    if not isinstance(value, list):
+        raise OfficialFormatError(f"{where}: expected a list, got {value!r:.60}")
+    return value
+
+
+def _int(where: str, value: Any) -> int:
+    """A whole number (a timestamp in µs): an int, or a float with no fraction."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value or float(value) != int(value):
+        raise OfficialFormatError(f"{where}: expected a whole number, got {value!r:.60}")
+    return int(value)
+
+
+def _bool(where: str, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise OfficialFormatError(f"{where}: expected true or false, got {value!r:.60}")
+    return value
 
 
 def frames_to_json(f: FramesFile) -> dict:
@@ -112,18 +144,22 @@ def frames_to_json(f: FramesFile) -> dict:
     }
 
 
-def frames_from_json(data: dict, source: str = "frames.json") -> FramesFile:
-    try:
-        frames = tuple(
-            Frame(int(fr["timestamp"]), bool(fr["key_frame"]), _tuple(f"{source}: frames[{i}].intrinsics", fr["intrinsics"], 4),
-                  _tuple(f"{source}: frames[{i}].extrinsics.translation", fr["extrinsics"]["translation"], 3),
-                  _tuple(f"{source}: frames[{i}].extrinsics.rotation", fr["extrinsics"]["rotation"], 4))
-            for i, fr in enumerate(data["frames"]))
-        size = data.get("image_size")
-        _check_pixel_intrinsics(frames, source)
-        return FramesFile(str(data["clip_name"]), _tuple(f"{source}: image_size", size, 2, int) if size else None, frames)
-    except KeyError as e:
-        raise OfficialFormatError(f"{source}: missing field {e.args[0]!r}") from None
+def frames_from_json(data: Any, source: str = "frames.json") -> FramesFile:
+    """Parse a ``frames.json`` document; a malformed one raises :class:`OfficialFormatError` naming
+    ``source`` and the field (``frames[3].extrinsics.rotation``)."""
+    frames = []
+    for i, fr in enumerate(_list(f"{source}: frames", _field(source, data, "frames"))):
+        where = f"{source}: frames[{i}]"
+        extrinsics = _field(where, fr, "extrinsics")
+        frames.append(Frame(_int(f"{where}.timestamp", _field(where, fr, "timestamp")),
+                            _bool(f"{where}.key_frame", _field(where, fr, "key_frame")),
+                            _tuple(f"{where}.intrinsics", _field(where, fr, "intrinsics"), 4),
+                            _tuple(f"{where}.extrinsics.translation", _field(f"{where}.extrinsics", extrinsics, "translation"), 3),
+                            _tuple(f"{where}.extrinsics.rotation", _field(f"{where}.extrinsics", extrinsics, "rotation"), 4)))
+    _check_pixel_intrinsics(tuple(frames), source)
+    size = _field(source, data, "image_size", None)
+    return FramesFile(str(_field(source, data, "clip_name")), _tuple(f"{source}: image_size", size, 2, int) if size else None,
+                      tuple(frames))
 
 
 def _check_pixel_intrinsics(frames: tuple[Frame, ...], source: str) -> None:
@@ -152,27 +188,33 @@ def objects_to_json(f: ObjectsFile) -> dict:
     return {"clip_name": f.clip_name, "objects": objects}
 
 
-def objects_from_json(data: dict, source: str = "objects.json") -> ObjectsFile:
+def _track_entry(where: str, entry: Any) -> TrackEntry:
+    pairs = _field(where, entry, "correspondences", None)
+    return TrackEntry(_int(f"{where}.timestamp", _field(where, entry, "timestamp")), _tuple(f"{where}.box", _field(where, entry, "box"), 4),
+                      None if pairs is None else tuple(
+                          Correspondence(_tuple(f"{where}.correspondences[{k}].2d", _field(f"{where}.correspondences[{k}]", c, "2d"), 2),
+                                         _tuple(f"{where}.correspondences[{k}].3d", _field(f"{where}.correspondences[{k}]", c, "3d"), 3))
+                          for k, c in enumerate(_list(f"{where}.correspondences", pairs))))
+
+
+def objects_from_json(data: Any, source: str = "objects.json") -> ObjectsFile:
+    """Parse an ``objects.json`` document; a malformed one raises :class:`OfficialFormatError`
+    naming ``source`` and the field (``objects[2].track[5].box``)."""
     objects = []
-    try:
-        for i, o in enumerate(data["objects"]):
-            where = f"{source}: objects[{i}]"
-            track = tuple(
-                TrackEntry(int(t["timestamp"]), _tuple(f"{where}.track[{j}].box", t["box"], 4),
-                           None if t.get("correspondences") is None else tuple(
-                               Correspondence(_tuple(f"{where}.track[{j}].2d", c["2d"], 2), _tuple(f"{where}.track[{j}].3d", c["3d"], 3))
-                               for c in t["correspondences"]))
-                for j, t in enumerate(o["track"]))
-            posed = "translation" in o
-            objects.append(ObjectAnnotation(
-                track_id=str(o["track_id"]), cls=str(o["class"]), is_track_automatic=bool(o["is_track_automatic"]),
-                is_mirrored=bool(o.get("is_mirrored", False)), track=track, cad_id=o.get("cad_id"),
-                translation=_tuple(f"{where}.translation", o["translation"], 3) if posed else None,
-                rotation=_tuple(f"{where}.rotation", o["rotation"], 4) if posed else None,
-                scale=_tuple(f"{where}.scale", o["scale"], 3) if posed else None))
-        return ObjectsFile(str(data["clip_name"]), tuple(objects))
-    except KeyError as e:
-        raise OfficialFormatError(f"{source}: missing field {e.args[0]!r}") from None
+    for i, o in enumerate(_list(f"{source}: objects", _field(source, data, "objects"))):
+        where = f"{source}: objects[{i}]"
+        track = tuple(_track_entry(f"{where}.track[{j}]", t) for j, t in enumerate(_list(f"{where}.track", _field(where, o, "track"))))
+        posed = "translation" in o
+        cad_id = _field(where, o, "cad_id", None)
+        objects.append(ObjectAnnotation(
+            track_id=str(_field(where, o, "track_id")), cls=str(_field(where, o, "class")),
+            is_track_automatic=_bool(f"{where}.is_track_automatic", _field(where, o, "is_track_automatic")),
+            is_mirrored=_bool(f"{where}.is_mirrored", _field(where, o, "is_mirrored", False)), track=track,
+            cad_id=None if cad_id is None else str(cad_id),
+            translation=_tuple(f"{where}.translation", o["translation"], 3) if posed else None,
+            rotation=_tuple(f"{where}.rotation", _field(where, o, "rotation"), 4) if posed else None,
+            scale=_tuple(f"{where}.scale", _field(where, o, "scale"), 3) if posed else None))
+    return ObjectsFile(str(_field(source, data, "clip_name")), tuple(objects))
 
 
 def write_json(path: str | os.PathLike, data: dict) -> None:

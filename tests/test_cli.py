@@ -75,6 +75,7 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip, monkeypatch):
 
 def test_sql_errors_and_read_only(tmp_path):
     w = str(tmp_path / "w")
+    (tmp_path / "w").mkdir()
     bad = cli("-w", w, "sql", "SELECT nope FROM frames")
     assert bad.returncode == 2 and bad.stderr.startswith("error: SQL error:") and "Traceback" not in bad.stderr
     write = cli("-w", w, "sql", "CREATE TABLE t (i INT)")
@@ -107,6 +108,7 @@ def test_usage_errors_are_one_clear_line(tmp_path):
     for command in (["status"], ["run"], ["annotate"], ["server", "start"], ["cad", "ingest"]):  # before Prefect starts
         assert_clean_error(run_cli("-w", str(tmp_path / "file"), *command),
                            mentions=f"{tmp_path / 'file'}: the warehouse is not a folder")
+    (tmp_path / "w").mkdir()
     result = cli("-w", str(tmp_path / "w"), "tables", "nope")
     assert result.returncode == 2 and "unknown table 'nope'" in result.stderr
 

@@ -33,6 +33,7 @@ def test_lines_naming_files_stay_whole_without_a_terminal(tmp_path):
 
 
 def test_tables_take_their_natural_width_without_a_terminal(tmp_path):
+    (tmp_path / "w").mkdir()
     result = cli("-w", str(tmp_path / "w"), "sql", f"SELECT '{LONG}' AS v, 2 AS n", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert any(LONG in line for line in result.stdout.splitlines()), result.stdout
@@ -40,9 +41,32 @@ def test_tables_take_their_natural_width_without_a_terminal(tmp_path):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="util-linux `script` gives the command a terminal")
 def test_tables_fit_an_80_column_terminal(tmp_path):
+    (tmp_path / "w").mkdir()
     command = f"{sys.executable} -m cadestate -w {tmp_path / 'w'} sql \"SELECT '{LONG}' AS v\""
     result = subprocess.run(["script", "-qec", command, "/dev/null"], capture_output=True, text=True, cwd=tmp_path,
                             env={**os.environ, "COLUMNS": "80", "TERM": "dumb"})
     assert result.returncode == 0, result.stdout
     lines = [ln for ln in result.stdout.splitlines() if ln.strip()]
     assert lines and max(len(ln) for ln in lines) <= 80 and LONG not in result.stdout
+
+
+@pytest.mark.parametrize("command", [("sql", "--help"), ("compact", "--help"), ("ingest", "--help")])
+def test_help_examples_stay_whole_at_80_columns(tmp_path, command):
+    """An example in --help is a line to copy: never wrapped, whatever the width."""
+    result = cli(*command, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    examples = [ln.strip() for ln in lines if ln.strip().startswith("cadestate ")]
+    assert examples, result.stdout
+    nxt = {ln.strip(): lines[i + 1].strip() if i + 1 < len(lines) else "" for i, ln in enumerate(lines)}
+    assert all(not nxt[e].startswith("--") for e in examples), result.stdout  # no option wrapped onto the next line
+
+
+def test_a_mistyped_warehouse_is_refused_and_not_created(tmp_path):
+    """Commands that read a warehouse refuse a folder that is not there, in one line, and make nothing."""
+    missing = tmp_path / "typo"
+    for args in (("status",), ("sql", "SELECT 1"), ("tables",), ("stats",), ("export", "official", str(tmp_path / "out"))):
+        result = cli("-w", str(missing), *args, cwd=tmp_path)
+        errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+        assert result.returncode != 0 and len(errors) == 1 and f"{missing}: no warehouse there" in errors[0], (args, result.stderr)
+        assert not missing.exists() and not (tmp_path / "out").exists(), args

@@ -55,6 +55,9 @@ def test_defaults_are_valid_and_documented():
         ({"warehouse": {"root": " "}}, "[warehouse] root: must not be empty"),
         ({"a\nb": {}}, "unknown section ['a\\nb']"),
         ({"detect": {"classes": [1] * 1000}}, "[detect] classes: expected a list of strings, got [" + "1, " * 19 + "1,..."),
+        ({"schedule": {"inbox_cron": "bad cron"}}, "[schedule] inbox_cron: not a cron string"),
+        ({"schedule": {"labels_cron": "61 * * * *"}}, "[schedule] labels_cron: not a cron string"),
+        ({"schedule": {"report_cron": "R 3 * * *"}}, "[schedule] report_cron: random (R) and hashed (H) cron fields"),
     ],
 )
 def test_bad_config_names_the_key(data, message):
@@ -134,3 +137,34 @@ def test_config_check_checks_the_detect_model(tmp_path):
     f.write_text("[detect]\nscore_threshold = 0.5\n")
     result = run_cli("config", "check", str(f))
     assert result.code == 0 and f"{f}: ok" in result.stdout
+
+
+CRON_STRINGS = ["*/10 * * * *", "0 3 * * *", "@daily", "@hourly", "0 3 * * mon-fri", "0 0 L * *", "0 0 * * 1#2",
+                "*/5 * * * * 30", "bad cron", "61 * * * *", "* * * *", "0 24 * * *", "R 3 * * *", "0 r * * *",
+                "H 3 * * *", "", "0 0 31 2 *", "*/0 * * * *", "0 0 1 jan,jul *"]
+
+
+@pytest.mark.parametrize("value", CRON_STRINGS)
+def test_cron_keys_are_checked_as_prefect_checks_them(value):
+    """cadestate.cron answers as Prefect's own validator does (which `cadestate serve` would hit
+    with a traceback), without importing Prefect."""
+    from prefect._internal.schemas.validators import validate_cron_string
+
+    from cadestate.cron import cron_problem
+
+    try:
+        validate_cron_string(value)
+        prefect_ok = True
+    except ValueError:
+        prefect_ok = False
+    assert (cron_problem(value) is None) == prefect_ok
+
+
+def test_loading_a_schedule_does_not_import_prefect(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "c.toml").write_text('[schedule]\ninbox_cron = "0 3 * * *"\n')
+    code = ("import sys; from cadestate.config import load_config; "
+            f"load_config({str(tmp_path / 'c.toml')!r}); assert 'prefect' not in sys.modules, 'prefect imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -230,6 +230,9 @@ def test_export_commands(built, tmp_path):
     for kind in ("official", "scan2cad"):  # a file where a folder would be made
         assert_clean_error(run_cli(*w, "export", kind, str(tmp_path / "file" / "out")),
                            mentions=f"{tmp_path / 'file' / 'out'}: cannot write there")
+    assert_clean_error(run_cli("-w", str(tmp_path / "typo"), "export", "scan2cad", str(tmp_path / "new")),
+                       mentions=f"{tmp_path / 'typo'}: no warehouse there")
+    (tmp_path / "empty").mkdir()
     assert_clean_error(run_cli("-w", str(tmp_path / "empty"), "export", "scan2cad", str(tmp_path / "new")),
                        mentions="no clip with frames")
     assert (tmp_path / "file").read_text() == "x" and not (tmp_path / "new").exists()

@@ -66,3 +66,59 @@ def test_normalised_intrinsics_are_refused(tmp_path):
     write_json(tmp_path / "frames.json", data)
     with pytest.raises(OfficialFormatError, match=r"frames.json: frames\[1\].intrinsics: .* look normalised"):
         read_frames(tmp_path / "frames.json")
+
+
+def _set(data, path, value):
+    """``data`` with the field at ``path`` (keys and indices) set to ``value``; ``path`` () replaces it."""
+    if not path:
+        return value
+    data = json.loads(json.dumps(data))
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return data
+
+
+OBJECT_DEFECTS = [  # (path, value, the message names)
+    (("objects", 0, "track", 0, "timestamp"), "abc", r"objects\[0\].track\[0\].timestamp: expected a whole number"),
+    (("objects", 0, "track", 1, "timestamp"), 1.5, r"objects\[0\].track\[1\].timestamp: expected a whole number"),
+    (("objects", 1), 1, r"objects\[1\]: expected an object"),
+    (("objects",), None, r"objects.json: objects: expected a list"),
+    (("objects", 0, "track"), {"a": 1}, r"objects\[0\].track: expected a list"),
+    (("objects", 0, "track", 0, "correspondences"), 5, r"objects\[0\].track\[0\].correspondences: expected a list"),
+    (("objects", 0, "track", 0, "correspondences", 0), [1, 2], r"track\[0\].correspondences\[0\]: expected an object"),
+    (("objects", 0, "track", 0, "correspondences", 0, "3d"), [1, "x", 2], r"correspondences\[0\].3d: expected numbers"),
+    (("objects", 0, "is_mirrored"), "yes", r"objects\[0\].is_mirrored: expected true or false"),
+    (("objects", 0, "rotation"), None, r"objects\[0\].rotation: expected a list of 4"),
+    ((), [], r"objects.json: expected an object"),
+]
+
+
+@pytest.mark.parametrize("path,value,message", OBJECT_DEFECTS)
+def test_every_malformed_objects_field_is_named(path, value, message):
+    """Wrong types anywhere in objects.json are one OfficialFormatError naming the field, never a
+    TypeError or ValueError from deep inside the reader."""
+    _, objects = sample_files()
+    with pytest.raises(OfficialFormatError, match=message):
+        objects_from_json(_set(objects_to_json(objects), path, value), "objects.json")
+
+
+FRAME_DEFECTS = [
+    (("frames", 0), 1, r"frames\[0\]: expected an object"),
+    (("frames", 1, "extrinsics"), [1], r"frames\[1\].extrinsics: expected an object"),
+    (("frames", 1, "extrinsics", "rotation"), None, r"frames\[1\].extrinsics.rotation: expected a list of 4"),
+    (("frames", 0, "timestamp"), "0", r"frames\[0\].timestamp: expected a whole number"),
+    (("frames", 0, "key_frame"), 1, r"frames\[0\].key_frame: expected true or false"),
+    (("image_size",), [360.5, 640], r"image_size\[0\]: expected a whole number"),
+    (("frames",), "x", r"frames.json: frames: expected a list"),
+    ((), [], r"frames.json: expected an object"),
+]
+
+
+@pytest.mark.parametrize("path,value,message", FRAME_DEFECTS)
+def test_every_malformed_frames_field_is_named(tmp_path, path, value, message):
+    frames, _ = sample_files()
+    write_json(tmp_path / "frames.json", _set(frames_to_json(frames), path, value))
+    with pytest.raises(OfficialFormatError, match=message):
+        read_frames(tmp_path / "frames.json")

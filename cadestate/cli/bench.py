@@ -110,7 +110,7 @@ def bench_report(
     boxes (written to <bench>/report/ and <bench>/report.md)."""
     from bench.benchmark import report, report_markdown
 
-    result = report(bench_dir, wh=ctx.obj.open_warehouse())
+    result = report(bench_dir, wh=ctx.obj.open_warehouse(must_exist=True))
     markdown = report_markdown(result)
     (bench_dir / "report.md").write_text(markdown)
     print(json.dumps(result, indent=1) if as_json else markdown)

@@ -63,7 +63,7 @@ def cad_export_official(
     <class>/<cad_id>.npz with float32[T,3,3] vertices), loadable by the official cad_estate code."""
     from tasks.cad.export import export_official
 
-    count = export_official(ctx.obj.open_warehouse(), out_dir, library)
+    count = export_official(ctx.obj.open_warehouse(must_exist=True), out_dir, library)
     out.print(f"wrote {count} models to {out_dir}")
 
 
@@ -77,5 +77,5 @@ def cad_sheet(
     """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
     from tasks.cad.sheet import contact_sheet
 
-    count = contact_sheet(ctx.obj.open_warehouse(), out_file, where, limit)
+    count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
     out.print(f"wrote {out_file} ({count} models)")

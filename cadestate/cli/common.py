@@ -78,11 +78,18 @@ class State:
             raise CliError(f"{root}: the warehouse is not a folder (set by -w, [warehouse] root or $CADESTATE_WAREHOUSE)")
         return root
 
-    def open_warehouse(self):
+    def open_warehouse(self, must_exist: bool = False):
+        """The warehouse; ``must_exist``: commands that read it or answer its clips refuse a folder
+        that is not there (a typo in ``-w`` would otherwise create an empty warehouse and report
+        nothing in it); only ingesting and the benchmark's runs create one."""
         from warehouse import Warehouse
 
         cfg = self.config()
-        return Warehouse(self.root(cfg), compact_after=cfg.warehouse.compact_after_files)
+        root = self.root(cfg)
+        if must_exist and not root.exists():
+            raise CliError(f"{root}: no warehouse there (set by -w, [warehouse] root or $CADESTATE_WAREHOUSE); "
+                           "`cadestate ingest` or `cadestate cad ingest` makes one")
+        return Warehouse(root, compact_after=cfg.warehouse.compact_after_files)
 
 
 class CliError(Exception):

@@ -28,7 +28,7 @@ def export_official(
     root cad/ and scene_list.txt: what the official cad_estate dataset classes read."""
     from tasks.dataset.export_official import export_dataset
 
-    counts = export_dataset(ctx.obj.open_warehouse(), out_dir, clips, cad, progress)
+    counts = export_dataset(ctx.obj.open_warehouse(must_exist=True), out_dir, clips, cad, progress)
     out.print(f"wrote {out_dir}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
               f"({counts['posed_objects']} posed), {counts['cad_models']} CAD models")
 
@@ -43,7 +43,7 @@ def export_scan2cad(
     (no header), full_annotations.json and cad_appearances.json; a mirrored model is the CAD id <cad_id>_mirrored."""
     from tasks.dataset.export_scan2cad import export_scan2cad as write
 
-    counts = write(ctx.obj.open_warehouse(), out_dir, clips)
+    counts = write(ctx.obj.open_warehouse(must_exist=True), out_dir, clips)
     out.print(f"wrote {out_dir}: {counts['scans']} scans, {counts['alignments']} alignments")
 
 
@@ -62,7 +62,7 @@ def stats(
     from tasks.dataset.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
-    wh = ctx.obj.open_warehouse()
+    wh = ctx.obj.open_warehouse(must_exist=True)
     try:
         clips = select_clips(wh, where)
     except QueryError as e:

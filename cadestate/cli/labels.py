@@ -69,7 +69,7 @@ def labels_ingest(
     from tasks.human.label_ingest import ingest_labels
 
     cfg = ctx.obj.config()
-    report = ingest_labels(ctx.obj.open_warehouse(), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
+    report = ingest_labels(ctx.obj.open_warehouse(must_exist=True), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
     for path in report.ingested:
         _say(f"{escape(path)}: ingested")
     for path in report.duplicates:
@@ -86,7 +86,7 @@ def labels_ingest(
         from cadestate.cli.common import run_sources
         from tasks.video.ingest import registered_source
 
-        wh = ctx.obj.open_warehouse()
+        wh = ctx.obj.open_warehouse(must_exist=True)
         clips = [c for c in report.clips if c not in resume_served(ctx, wh.root, report.clips)]
         if clips:
             code = max(code, run_sources(ctx.obj, [registered_source(wh, c) for c in clips], progress, exit=False))
@@ -121,7 +121,7 @@ def labels_validate(
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file."""
     from tasks.human.labels import ClipFacts, LabelError, validate_label
 
-    facts = None if offline else ClipFacts(ctx.obj.open_warehouse())
+    facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
     bad = 0
     for f in files:
         try:
@@ -216,7 +216,7 @@ def labels_import_cvat(
     """Make a manual_track label file from CVAT video XML (boxes in pixels, 0-based frames)."""
     from tasks.human.label_import import import_cvat
 
-    result = import_cvat(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
+    result = import_cvat(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
                          skip_sources=tuple(skip_source or ()), label_map=_label_map(label_map))
     _write_import(result, out_dir, f"{clip}.{file.stem}.cvat")
 
@@ -234,6 +234,6 @@ def labels_import_labelstudio(
     """Make a manual_track label file from a Label Studio video export (percent boxes, 1-based frames)."""
     from tasks.human.label_import import import_labelstudio
 
-    result = import_labelstudio(ctx.obj.open_warehouse(), file, clip, task, frame_map=frame_map.value,
+    result = import_labelstudio(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value,
                                 label_map=_label_map(label_map))
     _write_import(result, out_dir, f"{clip}.{file.stem}.labelstudio")

@@ -146,7 +146,7 @@ def run(
 
     cfg = ctx.obj.config()
     check_detect_config(cfg.detect, cfg.source)  # a bad [detect] stops the run before it starts
-    wh = ctx.obj.open_warehouse()
+    wh = ctx.obj.open_warehouse(must_exist=True)
     names = clips or wh.partitions("clips")
     if not names:
         err.print("no clip is ingested yet: see `cadestate ingest --help`")
@@ -171,7 +171,7 @@ def status(
     or give --stages for every stage."""
     from tasks.status import clip_notes, clip_summaries, pipeline_status, read_runs
 
-    wh, cfg = ctx.obj.open_warehouse(), ctx.obj.config()
+    wh, cfg = ctx.obj.open_warehouse(must_exist=True), ctx.obj.config()
     runs = read_runs(wh, clips, keep=True)  # clips' and libraries' alike; read again only when runs came or went
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
         rows = pipeline_status(wh, cfg, clips, scope, runs)
@@ -246,11 +246,13 @@ def sql(
     extension. The table format shows the first rows (--limit) and counts the others; csv and json
     stream every row as it comes (json: an array, one row a line).
 
-    Example:  cadestate sql "SELECT clip, count(*) FROM frames GROUP BY clip" --format csv
+    \b
+    Example:
+      cadestate sql "SELECT clip, count(*) FROM frames GROUP BY clip" --format csv
     """
     from warehouse.query import run_query, split, write_csv, write_json
 
-    with run_query(ctx.obj.open_warehouse(), query, limit=None if format is Format.table else limit) as result:
+    with run_query(ctx.obj.open_warehouse(must_exist=True), query, limit=None if format is Format.table else limit) as result:
         if format is Format.json:
             write_json(result, sys.stdout)
         elif format is Format.csv:
@@ -271,7 +273,7 @@ def tables(
     name: Annotated[Optional[str], typer.Argument(help="A table: show its columns with units and frames.")] = None,
 ) -> None:
     """List the warehouse tables (row counts), or one table's columns."""
-    wh = ctx.obj.open_warehouse()
+    wh = ctx.obj.open_warehouse(must_exist=True)
     if name:
         spec = wh.spec(name)
         table = Table("column", "type", "unit", "frame", "description", title=f"{name}: {spec.description}")
@@ -302,7 +304,7 @@ def catalog(ctx: typer.Context) -> None:
     """
     from warehouse.catalog import rebuild_catalog
 
-    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse(), recheck=True)}")
+    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse(must_exist=True), recheck=True)}")
 
 
 @app.command()
@@ -326,11 +328,13 @@ def compact(
     old files fails (`cadestate sql`: rerun it) rather than answer wrong. Writes compact a partition
     by themselves past [warehouse] compact_after_files files. Prints one line per partition compacted.
 
-    Example:  cadestate compact runs --min-files 10
+    \b
+    Example:
+      cadestate compact runs --min-files 10
     """
     from warehouse.catalog import CATALOG_FILE, compact_warehouse
 
-    wh = ctx.obj.open_warehouse()
+    wh = ctx.obj.open_warehouse(must_exist=True)
     done = compact_warehouse(wh, tables, min_files, whole)
     for table, n in sorted(done.renamed.items()):
         out.print(f"{table}: {n} file(s) renamed to this version's layout", markup=False, highlight=False)

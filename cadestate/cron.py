@@ -1,0 +1,36 @@
+"""Cron strings as the Prefect server's schedules take them, checked without importing Prefect.
+
+``[schedule] inbox_cron`` and its siblings are checked when the config loads, which every command
+does; importing Prefect for it would cost about a second a command (issue 16's budgets). Prefect
+validates a cron string with the croniter it vendors (``prefect._internal.schemas.validators.
+validate_cron_string``: ``croniter.is_valid``, and no random "R" or hashed "H" fields); that one
+module is loaded from Prefect's install by its path (~20 ms: pytz and dateutil), and
+``tests/test_config.py`` holds the two checks to the same answers.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+
+@functools.cache
+def _croniter() -> ModuleType:
+    spec = importlib.util.find_spec("prefect")  # finds the package without importing it
+    path = Path(spec.origin).parent / "_vendor" / "croniter" / "croniter.py"
+    module_spec = importlib.util.spec_from_file_location("_cadestate_prefect_croniter", path)
+    module = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(module)
+    return module
+
+
+def cron_problem(value: str) -> str | None:
+    """What is wrong with a cron string for a Prefect schedule (minute hour day month weekday,
+    or @daily and the like), or None."""
+    if not _croniter().croniter.is_valid(value):
+        return "not a cron string (minute hour day-of-month month day-of-week, e.g. \"*/10 * * * *\")"
+    if any(field.casefold() in ("r", "h") for field in value.split()):
+        return "random (R) and hashed (H) cron fields are not supported by Prefect"
+    return None
