@@ -265,7 +265,11 @@ class ManualTrackTask(TaskHeader):
     keyframes: tuple[KeyframeView, ...] = spec("Regularly spaced key-frames to draw on.", minItems=1)
     existing_tracks: tuple[ExistingTrack, ...] = spec("Tracks found already, with their boxes on the key-frames.")
     classes: tuple[str, ...] = spec("Allowed classes; empty: any.")
-    previous: tuple[ManualTrackAnswer, ...] = spec("Objects drawn before, if any.", default=())
+    previous: tuple[ManualTrackAnswer, ...] = spec("Objects drawn before, if any: this task's answer in force (with what "
+                                                   "each was said to be), else the boxes of the clip's newest earlier answer.",
+                                                   default=())
+    previous_not_objects: tuple[int, ...] = spec("Tracks said to show no object in this task's answer in force (a new "
+                                                 "answer replaces it, so a page shows them ticked).", default=(), items=TRACK_ID)
 
 
 @dataclass(frozen=True, kw_only=True)

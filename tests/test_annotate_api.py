@@ -116,14 +116,18 @@ def test_an_answer_is_written_validated_ingested_and_its_clip_resumed(lwh):
 
 
 def test_relations_and_the_task_seconds_of_a_manual_track_answer_are_kept(lwh):
-    doc = payload("manual_track")
-    doc.update(not_objects=[0], seconds=40.0)
-    doc["answers"].append({"label": "chair", "boxes": [{"timestamp_us": 200_000, "box": [0.1, 0.1, 0.3, 0.3]}], "same_as_track": 0})
+    said_none = {**payload("manual_track"), "not_objects": [0], "seconds": 40.0}
+    said_same = {**payload("manual_track"), "seconds": 5.0}
+    said_same["answers"] = [*said_same["answers"],
+                            {"label": "chair", "boxes": [{"timestamp_us": 200_000, "box": [0.1, 0.1, 0.3, 0.3]}], "same_as_track": 0}]
     with _client(lwh, Requests()) as client:
-        assert client.post("/api/answers", json=doc).status_code == 200
+        both = client.post("/api/answers", json={**said_same, "not_objects": [0]})  # track 0 is no object and is object 2?
+        assert both.status_code == 422 and "$.answers[1].same_as_track" in both.text and "also said to be no object" in both.text
+        assert client.post("/api/answers", json=said_none).status_code == 200
+        assert client.post("/api/answers", json=said_same).status_code == 200
     rel = sorted((r["relation"], r["track_id"], r["object_index"]) for r in lwh.read("track_relations").to_pylist())
     assert rel == [("not_object", 0, None), ("same_object", 0, 1)]
-    assert [(e["track_id"], e["seconds"]) for e in lwh.read("label_effort").to_pylist()] == [(-1, 40.0)]
+    assert sorted((e["track_id"], e["seconds"]) for e in lwh.read("label_effort").to_pylist()) == [(-1, 5.0), (-1, 40.0)]
 
 
 def test_concurrent_answers_to_one_task_all_land_and_the_newest_is_in_force(lwh):
@@ -154,6 +158,17 @@ def test_a_file_left_by_a_crash_is_ingested_when_the_app_starts(lwh):
     with _client(lwh, runs) as client:
         assert client.app.state.resumer.wait_idle(CLIP, 10)
     assert lwh.read("label_files").num_rows == 1 and runs.clips == [CLIP]
+
+
+def test_a_left_file_that_fails_again_at_start_is_reported_not_dropped(lwh, capsys):
+    folder = lwh.root / "labels" / CLIP
+    folder.mkdir(parents=True)
+    (folder / "c1.ve.left.json").write_text("{")  # cut off by the crash
+    with _client(lwh, Requests()) as client:
+        errors = client.get("/api/clips").json()["label_errors"]
+    assert len(errors) == 1 and "c1.ve.left.json" in errors[0]
+    assert f"error: {errors[0]}" in capsys.readouterr().err
+    assert not lwh.has_partition("label_files", CLIP)
 
 
 def test_start_page_data_and_next_item(lwh):

@@ -161,7 +161,7 @@ SEEN: set = set()
 
 def test_manual_tracks_page(s):
     answer = simulated(s, "manual_track")
-    open_next(s, "manual_track")
+    opened = open_next(s, "manual_track")
     page = s.page
     task = page.evaluate("""async () => { const p = new URLSearchParams(location.search);
         const r = await fetch(`/api/tasks/${p.get('clip')}/${p.get('task')}`); return (await r.json()).task; }""")
@@ -193,6 +193,7 @@ def test_manual_tracks_page(s):
     page.locator(f'input.not-object[data-track="{not_object}"]').check()
     page.screenshot(path=s.shots / "manual_track.png", timeout=SCREENSHOT_TIMEOUT_MS)
     page.keyboard.press("Enter")
+    page.keyboard.press("Enter")  # a second press while the answer is on its way sends nothing
     ready = wait_for_pipeline(s)
     (lf,) = new_label_files(s, "manual_track", SEEN)
     drawn, expected = lf.label.answers, answer["answers"]
@@ -205,6 +206,10 @@ def test_manual_tracks_page(s):
     assert relations(s, "manual_track") == ({("same_object", same, None, 0)} if same is not None else set()) | {
         ("not_object", not_object, None, None)}
     assert "cad_selection" in ready, ready
+    page.goto(s.url + opened["url"])  # reopened, the task shows its whole answer: submitting it again loses nothing
+    page.wait_for_selector("select.same")
+    assert page.locator(f'input.not-object[data-track="{not_object}"]').is_checked()
+    assert page.locator("select.same").nth(0).input_value() == ("" if same is None else str(same))
 
 
 def test_cad_selection_page(s):
@@ -250,7 +255,9 @@ VIEWS = [(0.6, 0.5, 0.8), (-0.6, 0.5, 0.8), (0.6, 0.5, -0.8), (-0.6, 0.5, -0.8),
 """Camera directions (world, from the model's centre) the test orbits through to see a point."""
 
 
-def _click_pairs(s: Served, kf_index: int, points: list[dict]) -> int:
+def _click_pairs(s: Served, kf_index: int, points: list[dict], where: list | None = None) -> int:
+    """Click the pairs ``points`` on key-frame ``kf_index``; ``where`` collects each clicked pair's
+    view direction and screen position on the model."""
     page = s.page
     page.locator("#strip .thumb").nth(kf_index).click()
     page.wait_for_function("() => document.querySelector('#image-canvas') && document.querySelector('#image-canvas').width > 0")
@@ -265,10 +272,23 @@ def _click_pairs(s: Served, kf_index: int, points: list[dict]) -> int:
         else:
             continue  # hidden from every side: a person would click another point
         page.mouse.click(sx, sy)
+        if where is not None:
+            where.append((d, sx, sy))
         r = page.locator("#image-canvas").bounding_box()
         page.mouse.click(r["x"] + q["x"] * r["width"], r["y"] + q["y"] * r["height"])
         clicked += 1
     return clicked
+
+
+def _assert_a_paired_model_point_is_refused(s: Served, direction, sx: float, sy: float) -> None:
+    """Clicking the model point of the key-frame's first pair again (the same view, the same spot)
+    is refused on the page, naming the pair (the label format would refuse it at submit), and no
+    pair is started."""
+    page = s.page
+    page.evaluate("dir => viewer.viewDirection(dir)", direction)
+    page.mouse.click(sx, sy)
+    assert "the model point of pair 1" in page.locator(".toast.error").last.inner_text()
+    assert "now click it in the image" not in page.inner_text("#pairs")
 
 
 def _assert_narrow_warning(s: Served, task: dict, cad_id: str) -> None:
@@ -311,7 +331,10 @@ def test_correspondences_page(s):
         if a["is_mirrored"]:
             page.keyboard.press("m")
         for kf in a["keyframes"]:
-            n = _click_pairs(s, stamps.index(kf["timestamp_us"]), kf["points"])
+            where = []
+            n = _click_pairs(s, stamps.index(kf["timestamp_us"]), kf["points"], where)
+            if n >= 4 and not done:
+                _assert_a_paired_model_point_is_refused(s, *where[0])
             if 0 < n < 4:
                 for _ in range(n):
                     page.keyboard.press("u")  # undo: too few visible points on this key-frame

@@ -8,6 +8,8 @@ import json
 import os
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import click
 import pytest
@@ -147,6 +149,46 @@ def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     assert out_of_range.returncode == 2 and "Traceback" not in out_of_range.stderr and "--port" in out_of_range.stderr
     server = cli("-w", str(tmp_path / "w"), "server", "start", "--port", "99999")  # not handed to Prefect to fail on
     assert server.returncode == 2 and "Invalid value for '--port'" in server.stderr
+
+
+@pytest.mark.slow
+def test_annotate_stopped_by_sigterm_stops_the_prefect_api_it_started(tmp_path):
+    """A service manager stops the app with SIGTERM: the app shuts down and so does the Prefect
+    API process it launched (it was left running, reparented to init)."""
+    import signal
+    import socket
+    import urllib.request
+
+    from flows.server import free_port
+
+    (tmp_path / "w").mkdir()
+    port = free_port("127.0.0.1")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    app = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "annotate", "--port", str(port)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/api/clips", timeout=2).read()
+                break
+            except OSError:
+                time.sleep(0.5)
+        children = [int(c) for c in Path(f"/proc/{app.pid}/task/{app.pid}/children").read_text().split()]
+        assert children, "the app launched no Prefect API process"
+        app.send_signal(signal.SIGTERM)
+        assert app.wait(60) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
+            time.sleep(0.2)
+        alive = [c for c in children if Path(f"/proc/{c}").exists() and "zombie" not in Path(f"/proc/{c}/status").read_text()]
+        assert not alive, f"left running: {alive}"
+    finally:
+        app.kill()
+        app.wait()
+    with socket.socket() as s:  # the app's port is free again (TIME_WAIT aside, as uvicorn binds)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
 
 
 def box_library(tmp_path, bad: bool = False):

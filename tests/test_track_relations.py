@@ -27,7 +27,7 @@ from tasks.human.manual_tracks import manual_tracks_stage
 from tasks.human.verification import verification_stage
 from tasks.registry import clip_inputs
 from tasks.stage import run_stage
-from tasks.tracking.relations import TrackRelations, relations_in_force, resolve_fragments
+from tasks.tracking.relations import TrackRelations, manual_statements, relations_in_force, resolve_fragments
 from warehouse import Warehouse
 
 CLIP = "c1"
@@ -212,6 +212,31 @@ def test_a_drawn_object_said_to_be_a_track_joins_it(rwh, tmp_path):
     objects = {o.track_id: o for o in clip_dataset(rwh, CLIP).objects}
     assert sorted(objects) == [0, 2] and objects[0].merged == (1, drawn)
     assert sorted(objects[0].boxes) == [STAMPS[f] for f in (*range(16), 19)]  # 0's, then 1's, then the drawn boxes
+
+
+@pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
+                    reason="the NanoDet-m model is not built (`make models`, which `make test` runs)")
+def test_an_answered_manual_track_task_shows_its_whole_answer_again(rwh, tmp_path):
+    """Reopened, a manual-track task carries every statement of its answer in force (what each drawn
+    object is, the tool's id, the tracks that are no object): a page that sends it back unchanged
+    loses nothing, since a new answer replaces the whole old one."""
+    manual = _manual_task(rwh)
+    boxes = [{"timestamp_us": STAMPS[f], "box": [0.3, 0.1, 0.6, 0.5]} for f in (15, 19)]
+    new = [{"timestamp_us": STAMPS[3], "box": [0.1, 0.1, 0.2, 0.2]}]
+    _ingest(rwh, _label(tmp_path / "m", "manual_track", manual, [{"label": "chair", "boxes": boxes, "source_id": "cvat:7",
+                                                                    "same_as_track": 1}, {"label": "chair", "boxes": new}],
+                        "2026-01-01T00:00:00+00:00", not_objects=[2]))
+    _run(rwh, "manual_tracks", lambda rid: manual_tracks_stage(rwh, ManualTracksConfig(), EmbedConfig(), LABELS, CLIP, rid))
+    tasks = rwh.read("label_tasks", [CLIP]).filter(pc.equal(pc.field("kind"), "manual_track"))
+    task = json.loads(tasks.sort_by([("created_at", "descending")]).column("document")[0].as_py())
+    assert task["task_id"] == manual and task["previous_not_objects"] == [2]
+    assert [(a["same_as_track"], a["source_id"], len(a["boxes"])) for a in task["previous"]] == [(1, "cvat:7", 2), (None, None, 1)]
+    again = {k: task["previous"] if k == "answers" else v for k, v in json.loads(
+        _label(tmp_path / "a", "manual_track", manual, [], "2026-01-02T00:00:00+00:00").read_text()).items()}
+    again["not_objects"] = task["previous_not_objects"]  # what the page sends back untouched
+    (tmp_path / "again.json").write_text(json.dumps(again))
+    _ingest(rwh, tmp_path / "again.json")
+    assert manual_statements(rwh, CLIP)[0] == {2} and list(manual_statements(rwh, CLIP)[1].values()) == [1]
 
 
 def _verification(wh: Warehouse, cfg: VerificationConfig = VerificationConfig(keyframes=2)) -> tuple[object, dict]:

@@ -3,7 +3,7 @@
 :func:`submit` takes the JSON a page posts (a label document without ``format``/``created_at``;
 ``annotator`` is the app's), adds the header, validates it with :func:`tasks.human.labels.validate_label`
 (the JSON Schema of its kind, then the warehouse rules), writes it atomically as
-``<labels_dir>/<clip>/<task_id>.<UTC time>.json`` and ingests that file as validated
+``<labels_dir>/<clip>/<task_id>.<UTC time>.<n>.json`` and ingests that file as validated
 (:func:`tasks.human.label_ingest.ingest_validated`). A payload that fails validation raises
 :class:`tasks.human.label_format.LabelError` naming the field, and nothing is written. The file is on
 disk before ingest starts, so a crash mid-ingest loses nothing: :func:`ingest_pending` (run when the

@@ -3,7 +3,8 @@
 Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 ``/annotate/<kind>?clip=C&task=T[&track=N]`` for the four kinds. API (JSON):
 
-- ``GET /api/clips``: every clip with its tasks (items, waiting), its last stage runs, its resume state;
+- ``GET /api/clips``: every clip with its tasks (items, waiting), its last stage runs, its resume state,
+  and the label files left un-ingested that failed again at this start (``label_errors``, one line each);
 - ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
   the clip's next task learns it the moment the resume ends, without polling;
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import getpass
 import os
+import sys
 import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -36,7 +38,7 @@ from cadestate.webapp import queue
 from cadestate.webapp.answers import IngestFailed, ingest_pending, submit
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
-from tasks.human.label_format import LabelError
+from tasks.human.label_format import SAME_POINT_M, LabelError
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -82,6 +84,11 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         report = ingest_pending(wh, lock, coplanar_tol=tol)  # answers a crash left un-ingested
         for clip in report.clips if report else []:
             worker.request(clip)
+        app.state.pending_errors = list(report.errors) if report else []  # shown on the start page too
+        for line in app.state.pending_errors:
+            print(f"error: {line}", file=sys.stderr, flush=True)
+        for line in report.warnings if report else []:
+            print(f"warning: {line}", file=sys.stderr, flush=True)
         yield
         worker.stop()
 
@@ -120,7 +127,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     def clips() -> dict:
         views = [clip_view(c) for c in queue.clips(wh)]
         nxt = next((v["next"] for v in views if v["next"]), None)
-        return {"annotator": who, "clips": views, "next": nxt}
+        return {"annotator": who, "clips": views, "next": nxt, "label_errors": getattr(app.state, "pending_errors", [])}
 
     @app.get("/api/clips/{clip}")
     def one_clip(clip: str, wait: float = 0.0) -> dict:
@@ -140,7 +147,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         if doc is None:
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
         return {**doc, "annotator": who, "resume": worker.status(clip),
-                "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span}}
+                "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span, "same_point_m": SAME_POINT_M}}
 
     @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")
     def layers(clip: str, task_id: str, track_id: int) -> list[dict]:

@@ -212,6 +212,9 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
             _check_boxes(a.boxes, stamps, name, ["answers", i, "boxes"])
             if a.same_as_track is not None and a.same_as_track not in existing:
                 raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is not an existing track of task {task.task_id}")
+            if a.same_as_track is not None and a.same_as_track in label.not_objects:
+                raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is also said to be no object "
+                                                                   "(not_objects): one of the two is wrong")
         for i, t in enumerate(label.not_objects):
             if t not in existing:
                 raise _fail(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")

@@ -48,7 +48,7 @@ from tasks.human.shared import INSTRUCTIONS, image_size, task_output, write_task
 from tasks.retrieval.label_similarity import similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
-from tasks.tracking.relations import manual_track_ids
+from tasks.tracking.relations import manual_answer_statements, manual_track_ids
 from tasks.video.ingest import clip_inputs, clip_split
 from warehouse import Warehouse
 
@@ -67,24 +67,30 @@ def _empty(wh: Warehouse, clip: str) -> pa.Table:
     return table
 
 
-def _answers(rows: list[dict]) -> tuple[ManualTrackAnswer, ...]:
-    """The objects of one label's ``manual_track_labels`` rows, in label order."""
+def _answers(rows: list[dict], same_as: dict[int, int] | None = None) -> tuple[ManualTrackAnswer, ...]:
+    """The objects of one label's ``manual_track_labels`` rows, in label order; ``same_as``: {object
+    index: the existing track it was said to be} (:func:`manual_answer_statements`)."""
     objects: dict[int, list[dict]] = defaultdict(list)
     for r in rows:
         objects[r["object_index"]].append(r)
-    return tuple(ManualTrackAnswer(label=rs[0]["label"], source_id=rs[0]["source_id"],
+    same_as = same_as or {}
+    return tuple(ManualTrackAnswer(label=rs[0]["label"], source_id=rs[0]["source_id"], same_as_track=same_as.get(i),
                                    boxes=tuple(TimedBox(timestamp_us=r["timestamp_us"], box=tuple(r["box"]))
                                                for r in sorted(rs, key=lambda r: r["timestamp_us"])))
-                 for _, rs in sorted(objects.items()))
+                 for i, rs in sorted(objects.items()))
 
 
-def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[ManualTrackAnswer, ...]:
-    """The answer in force of this task, else (a new task) the newest answer of the clip's earlier tasks."""
+def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[tuple[ManualTrackAnswer, ...], tuple[int, ...]]:
+    """(objects drawn, tracks said to be no object) of this task's answer in force; a new task gets
+    the boxes of the clip's newest earlier answer (its statements named another task's tracks)."""
     rows = current_answers(wh, KIND, [clip]).to_pylist()
-    if not answered and rows:
+    if not answered:
+        if not rows:
+            return (), ()
         newest = max(r["ingested_at"] for r in rows)
-        return _answers([r for r in rows if r["ingested_at"] == newest])
-    return _answers([r for r in rows if r["task_id"] == task_id])
+        return _answers([r for r in rows if r["ingested_at"] == newest]), ()
+    not_objects, same_as = manual_answer_statements(wh, clip, task_id)
+    return _answers([r for r in rows if r["task_id"] == task_id], same_as), tuple(sorted(not_objects))
 
 
 def manual_track_table(wh: Warehouse, embed_cfg: EmbedConfig, clip: str, task_id: str, rows: list[dict]) -> pa.Table:
@@ -135,11 +141,12 @@ def manual_tracks_stage(wh: Warehouse, cfg: ManualTracksConfig, embed_cfg: Embed
     task_id = new_task_id(KIND, clip, digest(*map(str, sorted(stamps))), digest(*classes),
                           digest(json.dumps([to_json(e) for e in existing], sort_keys=True)))
     answered = task_id in answered_tasks(wh, KIND, clip)
+    previous, not_objects = _previous(wh, clip, task_id, answered)
     task = ManualTrackTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),
                            instructions=INSTRUCTIONS[KIND],
                            keyframes=tuple(KeyframeView(timestamp_us=f["timestamp_us"], frame_index=f["frame_index"],
                                                         image_path=f["image_path"]) for f in keyframes),
-                           existing_tracks=existing, classes=classes, previous=_previous(wh, clip, task_id, answered))
+                           existing_tracks=existing, classes=classes, previous=previous, previous_not_objects=not_objects)
     path = wh.relative(write_task_once(wh, task))
     if not answered:
         _empty(wh, clip)

@@ -119,6 +119,19 @@ def _statements(wh: Warehouse, clip: str, kind: str, files: set[tuple]) -> list[
     return [r for r in rows if r["kind"] == kind and (r["label_sha256"], r["ingested_at"]) in files]
 
 
+def manual_answer_statements(wh: Warehouse, clip: str, task_id: str) -> tuple[set[int], dict[int, int]]:
+    """(tracks that are no object, {drawn object's index in the answer: the existing track it is})
+    of the answer in force of the manual-track task ``task_id`` (none: empty)."""
+    files = [f for f in wh.read("label_files", [clip], columns=["label_sha256", "ingested_at", "task_id", "kind"]).to_pylist()
+             if f["kind"] == "manual_track" and f["task_id"] == task_id] if wh.has_partition("label_files", clip) else []
+    if not files:
+        return set(), {}
+    newest = max(files, key=lambda f: f["ingested_at"])
+    said = _statements(wh, clip, "manual_track", {(newest["label_sha256"], newest["ingested_at"])})
+    return ({int(r["track_id"]) for r in said if r["relation"] == "not_object"},
+            {int(r["object_index"]): int(r["track_id"]) for r in said if r["relation"] == "same_object"})
+
+
 def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int]]:
     """(tracks that are no object, {manual track id: the existing track its drawn object is}) of
     the answer in force of the clip's current manual-track task (none: empty)."""
@@ -127,20 +140,13 @@ def manual_statements(wh: Warehouse, clip: str) -> tuple[set[int], dict[int, int
     task = latest_task_of_kind(wh, clip, "manual_track")
     if task is None:
         return set(), {}
-    files = [f for f in wh.read("label_files", [clip], columns=["label_sha256", "ingested_at", "task_id", "kind"]).to_pylist()
-             if f["kind"] == "manual_track" and f["task_id"] == task["task_id"]]
-    if not files:
-        return set(), {}
-    newest = max(files, key=lambda f: f["ingested_at"])
-    said = _statements(wh, clip, "manual_track", {(newest["label_sha256"], newest["ingested_at"])})
-    not_objects = {int(r["track_id"]) for r in said if r["relation"] == "not_object"}
-    same = [r for r in said if r["relation"] == "same_object"]
+    not_objects, same = manual_answer_statements(wh, clip, task["task_id"])
     if not same:
         return not_objects, {}
     from tasks.human.answers_in_force import current_answers
 
     ids = manual_track_ids(current_answers(wh, "manual_track", [clip], task["task_id"]).to_pylist())
-    return not_objects, {ids[r["object_index"]]: int(r["track_id"]) for r in same if r["object_index"] in ids}
+    return not_objects, {ids[i]: track for i, track in same.items() if i in ids}
 
 
 def same_as_statements(wh: Warehouse, clip: str, kind: str, task_id: str | None) -> dict[int, int]:
