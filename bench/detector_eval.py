@@ -1,8 +1,8 @@
 """What the furniture detector buys: both built-in detectors on the same benchmark frames and ground truth.
 
 Each detector of :data:`DETECTORS` (``[detect] model = "coco"`` and ``"furniture"``, every other
-``[detect]`` setting at its default, and the furniture detector on the fitted canvas, ``canvas =
-"fit"``, which it was not trained on) runs on the camera-line frames of every clip of each
+``[detect]`` setting at its default (the fitted canvas, 480 on its longer side), and the furniture
+detector on the 416 x 416 square canvas it was trained on, the default until 2026-12-05) runs on the camera-line frames of every clip of each
 benchmark folder, decoded from the clip's video as the pipeline decodes them, and is scored as
 ``cadestate bench report`` scores the ``detections`` table
 (:func:`bench.eval_detection.evaluate_detections`, the ignore rule of :mod:`bench.ignore`): recall
@@ -29,7 +29,7 @@ from tasks.detection.detectors import Detector, load_detector
 from tasks.video.decode import decode_at
 
 DETECTORS = {"coco": DetectConfig(model="coco"), "furniture": DetectConfig(model="furniture"),
-             "furniture, fitted canvas": DetectConfig(model="furniture", canvas="fit")}
+             "furniture, square canvas": DetectConfig(model="furniture", canvas="square", input_size=416)}
 """The detectors compared, by the name their row of the report has."""
 
 

@@ -218,11 +218,13 @@ class DetectConfig:
     model: str = _opt("furniture", "Detector: 'furniture' (NanoDet-m with class rows for the CAD classes, trained by `make models` on "
                                    "rooms rendered from the CAD library), 'coco' (NanoDet-m, COCO-80), or an ONNX file.")
     labels: tuple = _opt((), "Label map: class names in the model's output order; empty = the built-in model's (COCO-80 for a file).")
-    input_size: int = _opt(416, "Longer side of the letterboxed network input (416 for NanoDet-m, usually 640 for YOLOv8).", lo=32, hi=4096)
-    canvas: str = _opt("square", "Network input around the letterboxed image: 'square' pads it to input_size x input_size (what the "
-                                 "built-in detectors were trained on); 'fit' only up to a multiple of 32 (a 640x360 frame at input_size "
-                                 "416 runs on 416x256: 0.62 of the pixels and of the time), for NanoDet graphs and models whose input height "
-                                 "and width are open (others run on the square).",
+    input_size: int = _opt(480, "Longer side of the letterboxed network input (NanoDet-m: 480 on the fitted canvas, the default, "
+                                "416 on the square it was trained on; usually 640 for YOLOv8).", lo=32, hi=4096)
+    canvas: str = _opt("fit", "Network input around the letterboxed image: 'fit' pads it only up to a multiple of 32 (a 640x360 "
+                              "frame at input_size 480 runs on 480x288: 0.80 of the pixels of 416x416, and more of them on each "
+                              "object), for NanoDet graphs and models whose input height and width are open (others run on the "
+                              "square); 'square' pads it to input_size x input_size (what the built-in detectors were trained on, "
+                              "at 416).",
                        choices=("square", "fit"))
     score_threshold: float = _opt(0.35, "Lowest detection score kept.", lo=0.0, hi=1.0)
     nms_iou: float = _opt(0.45, "Class-aware NMS: a box overlapping a better one of its class above this IoU is dropped.", lo=0.0, hi=1.0)

@@ -72,7 +72,7 @@ def test_detector_eval_scores_both_built_in_detectors_on_the_same_ground_truth(b
         pytest.skip("the furniture detector is not built (run `make models`)")
     folder, manifest, _ = benchmark
     result = run([folder])[str(folder)]
-    assert set(result) == set(DETECTORS) == {"coco", "furniture", "furniture, fitted canvas"}
+    assert set(result) == set(DETECTORS) == {"coco", "furniture", "furniture, square canvas"}
     for name, r in result.items():  # each detector's boxes are scored under the classes its label map names
         nameable = {class_of_label(label) or "(other label)" for label in detector_labels(DETECTORS[name])}
         assert {c for c, v in r["per_class"].items() if v["predictions"]} <= nameable
@@ -80,9 +80,9 @@ def test_detector_eval_scores_both_built_in_detectors_on_the_same_ground_truth(b
     assert truth[0] and all(t == truth[0] for t in truth)
     for r in result.values():
         assert 0 <= (r["recall"] or 0) <= r["class_agnostic_recall"] <= 1
-    assert result["furniture"] != result["furniture, fitted canvas"]  # another canvas, other boxes
+    assert result["furniture"] != result["furniture, square canvas"]  # another canvas, other boxes
     table = "\n".join(markdown({str(folder): result}))
-    assert "| coco |" in table and "| furniture |" in table and "| furniture, fitted canvas |" in table
+    assert "| coco |" in table and "| furniture |" in table and "| furniture, square canvas |" in table
 
 
 def test_report_has_statistics_and_pictures(benchmark):
