@@ -1,9 +1,9 @@
 """Pluggable ONNX object detectors: one adapter per output layout, letterboxed input, NMS within and across classes.
 
 Every detector sees an aspect-preserving letterbox of the image (:mod:`tasks.detection.letterbox`):
-on an S x S canvas (``[detect] canvas = "square"``, the default), or, where the model takes it
-(``"fit"``), on the resized image padded only up to a multiple of 32 on each side (a 640x360 frame
-at S = 416 runs on 416 x 256, 0.62 of the square's pixels). NanoDet graphs are made to take any such
+on the resized image padded only up to a multiple of 32 on each side (``[detect] canvas = "fit"``,
+the default, where the model takes it: a 640x360 frame at S = 480 runs on 480 x 288), or on an
+S x S canvas (``"square"``, what the built-in detectors were trained on at S = 416). NanoDet graphs are made to take any such
 size (:func:`tasks.detection.models.nanodet.size_free`); other models only when their input leaves
 height and width open. An adapter turns the canvas into the network input and the raw outputs of
 one image into candidate boxes (x1, y1, x2, y2 in canvas pixels), scores and label indices; the
