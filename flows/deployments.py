@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
 from uuid import uuid4
 
@@ -73,16 +74,25 @@ def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float |
     return ready
 
 
-def official_names(pairs: list[ClipSource]) -> list[ClipSource]:
+def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None = None) -> list[ClipSource]:
     """``pairs`` named ``<video_id>_<start_us>`` from their camera files (as `cadestate ingest` names
-    them); a pair whose camera file is bad is left out with a warning naming the file and line."""
-    named = []
+    them); a pair whose camera file is bad is left out with a warning naming the file and line, and
+    so is every pair after the first that gets a name already taken (two runs of one clip would
+    write its tables at once). ``warn``: where the warnings go (default: the flow run's log)."""
+    warn = warn or get_run_logger().warning
+    named: dict[str, ClipSource] = {}
     for p in pairs:
         try:
-            named.append(dataclasses.replace(p, clip=official_clip_name(parse_camera_file(p.cameras), p.cameras)))
+            clip = official_clip_name(parse_camera_file(p.cameras), p.cameras)
         except (CameraFileError, ClipNameError) as e:
-            get_run_logger().warning("left out of the inbox: %s", e)
-    return named
+            warn(f"left out of the inbox: {e}")
+            continue
+        if clip in named:
+            warn(f"left out of the inbox: {p.video}: its camera file names clip {clip}, as {named[clip].video}'s does "
+                 "(the same video id and first timestamp); give it a camera file of its own")
+            continue
+        named[clip] = dataclasses.replace(p, clip=clip)
+    return list(named.values())
 
 
 _SHA256: dict[tuple[str, int, int], str] = {}

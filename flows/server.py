@@ -98,6 +98,19 @@ def free_port(host: str) -> int:
         return s.getsockname()[1]
 
 
+def check_port_free(host: str, port: int) -> None:
+    """Raise :class:`ServerError` when ``host:port`` is taken: the server's API would be another
+    process's (another warehouse's Prefect server answers as ours would, while ours dies on the
+    clash), or this warehouse's earlier server that has stopped answering still holds it."""
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a port in TIME_WAIT is free
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            raise ServerError(f"{host}:{port} is taken ({e.strerror or e}): another Prefect server, perhaps another "
+                              "warehouse's (`cadestate -w W server status`)? choose another --port") from None
+
+
 def server_environment(root: Path, database_url: str = "") -> dict[str, str]:
     """The environment of the server process: this warehouse's PREFECT_HOME, no telemetry, and the
     database URL when one is given (e.g. ``postgresql+asyncpg://user:pw@host/db``)."""
@@ -116,6 +129,8 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
     root = Path(root)
     if (up := running_server(root)) is not None:
         return up
+    if port:
+        check_port_free(host, port)
     prefect_home(root).mkdir(parents=True, exist_ok=True)
     if not database_url:
         seed_home(prefect_home(root))  # a new warehouse's database copied, not migrated (flows.prefect_db)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 from typing import Any
 
 from cadestate.config import Config
@@ -28,8 +29,9 @@ from tasks.inputs_memo import InputsMemo
 from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
 from tasks.status import Signature, cached_run, read_runs
-from warehouse import Warehouse
+from warehouse import Warehouse, check_name
 from warehouse.read_cache import ReadCache
+from warehouse.store import file_lock
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +66,19 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
     the files they wrote without reading them)."""
     log = log or logging.getLogger(__name__)
     wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
+    with file_lock(unit_lock_path(wh, unit)):  # one run of a unit at a time: a second waits, then finds the first's work
+        return _run_unit(wh, scope, unit, config, source, show_progress, log, read_cache)
+
+
+def unit_lock_path(wh: Warehouse, unit: str) -> Path:
+    """The lock a run of ``unit`` (a clip or a CAD library) holds (``_locks/_units/<unit>.lock``, apart from the tables' locks):
+    two runs of one clip (an inbox tick and `cadestate run`, two workers) would write its tables at
+    once, and one's media pruning would delete the other's frames."""
+    return wh.root / "_locks" / "_units" / f"{check_name(unit)}.lock"
+
+
+def _run_unit(wh: Warehouse, scope: str, unit: str, config: Config, source: Any, show_progress: bool,
+              log: logging.Logger | logging.LoggerAdapter, read_cache: ReadCache | None) -> list[StageReport]:
     settle_interrupted(wh, unit)
     stages = stages_of(scope)
     memo = InputsMemo(wh, unit)  # status finds the digests taken here (tasks.inputs_memo)

@@ -2,7 +2,7 @@
 
 A stage is stale when the stage chain would run it (:func:`cached_run`, the cache rule: no
 completed or paused run with its config section, code and inputs, its upstream stages' latest
-outputs, whose output its tables still hold), the reasons told against its last such run; or when
+outputs, whose output its tables still hold, no run of it having failed or been killed since), the reasons told against its last such run; or when
 an upstream stage is stale (it will rerun and may change them). Read from the ``runs`` table and
 the markers of runs in progress (:mod:`tasks.stage`): a stage whose process is running shows
 ``running``, one whose process ended mid-run (killed) ``interrupted``. :func:`clip_notes` adds
@@ -46,11 +46,17 @@ def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Sig
 
     ``runs``: the unit's ``runs`` rows (:func:`read_runs`), oldest first. A completed or paused
     run with the same signature counts while the stage's latest completed or paused run has its
-    output: then the tables hold what a run with this signature writes."""
+    output and no run failed or was interrupted after it: then the tables hold what a run with
+    this signature writes. (Each table is swapped whole, but a stage writes its tables one after
+    another: one that failed or was killed between two of them, or after its first, left them
+    holding part of its own output.)"""
     ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
     key = (signature.config_hash, signature.code_hash, signature.inputs_hash)
     same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == key]
     if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
+        return None
+    ended = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused", "failed", "interrupted")]
+    if ended[-1]["status"] in ("failed", "interrupted"):
         return None
     r = same[-1]
     return StageRun(clip=unit, stage=stage, run_id=r["run_id"], status=r["status"],

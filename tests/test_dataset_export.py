@@ -26,7 +26,6 @@ from schemas.official import TrackEntry, read_objects
 from schemas.tracking import MANUAL_TRACK_BASE
 from tasks.dataset.export_official import export_dataset
 from tasks.dataset.export_scan2cad import Alignment, csv_text, export_scan2cad, read_csv, split_cad_id
-from tasks.video.camera_file import parse_camera_file
 from warehouse import Warehouse
 
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=40, sample_every=2, alone_scale=0.5)

@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from flows.deployments import pairs_to_run, ready_pairs
+from flows.deployments import official_names, pairs_to_run, ready_pairs
 from flows.server import read_server
 from tasks.video.ingest import ClipSource
 from warehouse import Warehouse
@@ -37,6 +37,26 @@ def test_only_completely_copied_pairs_are_taken(tmp_path):
     assert {p.split for p in ready_pairs(inbox, 10.0, "val", now)} == {"val"}
     assert [p.clip for p in ready_pairs(inbox, 0.0, now=now)] == ["fresh", "marked", "old"]
     assert ready_pairs(tmp_path / "missing", 0.0) == []
+
+
+def test_two_inbox_pairs_naming_one_clip_start_one_run(tmp_path):
+    """Two videos with the same camera file get the same official name: only the first is run (two
+    runs of one clip would write its tables at once), the other is named in a warning; a bad camera
+    file is left out naming its line."""
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    lines = ["https://www.youtube.com/watch?v=abcdefghijk"] + [
+        f"{t} 0.8 1.4 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0" for t in (1_000_000, 1_033_333)]
+    for name in ("a", "b"):
+        (inbox / f"{name}.mp4").write_bytes(name.encode())
+        (inbox / f"{name}.txt").write_text("\n".join(lines) + "\n")
+    (inbox / "c.mp4").write_bytes(b"c")
+    (inbox / "c.txt").write_text(lines[0] + "\nnot a camera line\n")
+    warnings = []
+    named = official_names(ready_pairs(inbox, 0.0), warnings.append)
+    assert [(p.clip, p.video.name) for p in named] == [("abcdefghijk_1000000", "a.mp4")]
+    assert len(warnings) == 2 and any("b.mp4: its camera file names clip abcdefghijk_1000000, as" in w for w in warnings)
+    assert any("c.txt:2: expected 19 columns" in w for w in warnings), warnings
 
 
 def test_clips_done_are_not_run_again(tmp_path, small_clip):

@@ -4,7 +4,6 @@ named and tagged flow runs, fallback to ephemeral mode, and Prefect failing to s
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 
@@ -80,15 +79,33 @@ def test_a_dead_prefect_api_url_is_one_line(tmp_path, small_clip):
 
 
 def test_server_start_on_a_port_in_use_says_so_and_forgets_the_server(tmp_path):
+    """Another process on the port, here one answering every request as a healthy Prefect API would
+    (another warehouse's server): refused in one line before anything starts, not taken for ours."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Healthy(BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.end_headers()
+            self.wfile.write(b"true")
+
+        def log_message(self, *args):
+            pass
+
     w = tmp_path / "w"
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
+    other = ThreadingHTTPServer(("127.0.0.1", 0), Healthy)
+    threading.Thread(target=other.serve_forever, daemon=True).start()
+    port = other.server_address[1]
+    try:
         result = cli("-w", str(w), "server", "start", "--host", "127.0.0.1", "--port", str(port), cwd=tmp_path)
+    finally:
+        other.shutdown()
+        other.server_close()
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
     errors = [ln for ln in result.stderr.splitlines() if ln.startswith("error:")]
-    assert len(errors) == 1 and f"Port {port} is already in use" in errors[0], result.stderr
+    assert len(errors) == 1 and f"127.0.0.1:{port} is taken" in errors[0] and "--port" in errors[0], result.stderr
     assert not (w / "_prefect" / "server.json").exists() and read_server(w) is None
 
 

@@ -3,6 +3,7 @@ run needless. The flows' behaviour on real clips is in ``test_flows.py``."""
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 
 from tasks.stage_chain import report_of
@@ -45,10 +46,17 @@ def test_a_run_whose_output_a_later_run_replaced_is_not_reused():
     assert cached_run(again, "c", "tracking", A).run_id == "r2"
 
 
-def test_failed_and_interrupted_runs_are_never_reused_nor_hide_the_output():
-    runs = [row(A, "out1", minute=0), row(A, "", "failed", minute=1), row(B, "", "interrupted", minute=2)]
-    assert cached_run(runs, "c", "tracking", A).run_id == "r0"
+def test_failed_and_interrupted_runs_are_never_reused_and_hide_what_came_before():
+    """A run that failed or was killed may have written some of its tables (each is swapped whole,
+    one after another): config A, then B fails after writing `tracks`, then A again runs anew."""
     assert cached_run([row(A, "", "failed")], "c", "tracking", A) is None
+    assert cached_run([row(A, "out1", minute=0), row(B, "", "failed", minute=1)], "c", "tracking", A) is None
+    assert cached_run([row(A, "out1", minute=0), row(A, "", "interrupted", minute=1)], "c", "tracking", A) is None
+    # a run after the failure that wrote the tables whole counts again
+    again = [row(A, "out1", minute=0), row(B, "", "failed", minute=1), row(A, "out1", minute=2)]
+    assert cached_run(again, "c", "tracking", A).run_id == "r2"
+    # another stage's failure is not this stage's
+    assert cached_run([row(A, "out1", minute=0), row(B, "", "failed", stage="detect", minute=1)], "c", "tracking", A).run_id == "r0"
 
 
 def test_a_paused_run_is_reused_as_paused():
@@ -88,3 +96,28 @@ def test_a_batch_runs_without_prefect_and_an_unchanged_rerun_does_no_work(tmp_pa
                      ClipSource(clip, found.video, found.cameras), show_progress=False)
     assert [r.stage for r in again] == [s.name for s in stages_of("clip")]
     assert {r.state for r in again} <= {"cached", "paused", "waiting"} and "cached" in {r.state for r in again}, again
+
+
+def test_one_run_of_a_unit_at_a_time(tmp_path):
+    """A second run of a clip (an inbox tick beside `cadestate run`) waits for the first's lock
+    instead of writing the clip's tables at the same time."""
+    import threading
+
+    from cadestate.config import Config
+    from tasks.stage_chain import run_unit, unit_lock_path
+    from tasks.video.ingest import ClipSource
+    from warehouse.store import file_lock
+
+    wh = Warehouse(tmp_path / "w")
+    source = ClipSource("c1", tmp_path / "none.mp4", tmp_path / "none.txt", "train")  # fails at once: no camera file
+    reports = []
+    second = threading.Thread(target=lambda: reports.extend(run_unit(str(wh.root), "clip", "c1", Config(), source, False)))
+    with file_lock(unit_lock_path(wh, "c1")):  # the first run
+        second.start()
+        second.join(1.0)
+        assert second.is_alive() and not reports
+    second.join(30)
+    assert not second.is_alive() and [(r.stage, r.state) for r in reports] == [("cameras", "failed")]
+    with file_lock(unit_lock_path(wh, "c1")):  # another clip runs beside a run of c1
+        other = run_unit(str(wh.root), "clip", "c2", Config(), dataclasses.replace(source, clip="c2"), False)
+    assert [(r.stage, r.state) for r in other] == [("cameras", "failed")]

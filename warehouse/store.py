@@ -12,6 +12,7 @@ Layout under the warehouse root::
     _prefect/                                      Prefect's local state and cached task results
     _locks/<table>/<partition>.lock                locks of partitions (writes, compaction)
     _locks/catalog.lock                            lock of compaction and the snapshot (warehouse.catalog)
+    _locks/_units/<clip or library>.lock           held by a run of the unit's stages (tasks.stage_chain.run_unit)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
     _cache/reads/...                               values kept with their files' state: status's runs, row counts (warehouse.kept)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 from typing import Annotated, Optional
 
 import typer
@@ -35,14 +34,7 @@ def annotate(
         err.print(f"[yellow]warning:[/] three.js not found at {three_dir()} (run `make web-vendor`): "
                   "the correspondences page cannot show models", highlight=False)
     err.print(f"annotation app for {root}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
-    # uvicorn shuts down on SIGTERM, then raises it again; with the default action the process would
-    # die there, before its exit handlers stop the Prefect API it started (left running otherwise)
-    signal.signal(signal.SIGTERM, _exit)
-    uvicorn.run(create_app(cfg, annotator), host=host, port=port, log_level="warning")
-
-
-def _exit(signum: int, frame) -> None:
-    raise SystemExit(128 + signum)
+    uvicorn.run(create_app(cfg, annotator), host=host, port=port, log_level="warning")  # SIGTERM: flows.local_api
 
 
 def check_listen(host: str, port: int) -> None:

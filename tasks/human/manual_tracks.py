@@ -43,7 +43,7 @@ from tasks.detection.models.embedder import load_embedder
 from tasks.human.inputs import manual_track_inputs
 from tasks.human.answers_in_force import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.keyframes import evenly_spaced, regular_keyframes
+from tasks.human.keyframes import regular_keyframes
 from tasks.human.shared import INSTRUCTIONS, image_size, task_output, write_task_once
 from tasks.retrieval.label_similarity import similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
