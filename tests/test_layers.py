@@ -2,7 +2,7 @@
 ``from ... import`` of the project's modules, those inside functions included (an import in a
 function still runs, only later), and ``importlib.import_module("literal")``.
 
-From the bottom up: the foundation (``cadestate/``: config, geometry, render, lineage, progress,
+From the bottom up: the foundation (``cadestate/``: config and cron, geometry, render, lineage, progress,
 atomic file writes), ``schemas/``, ``warehouse/``, ``tasks/``, then ``flows/``, the CLI and the web
 app; ``bench/`` sits beside the top and only its own commands reach it.
 """
@@ -20,8 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("cadestate", "tasks", "flows", "warehouse", "schemas", "bench")
 """The project's top-level packages (``tests/`` is not a layer)."""
 
-FOUNDATION = frozenset({"cadestate", "cadestate.atomic", "cadestate.config", "cadestate.geometry", "cadestate.lineage",
-                        "cadestate.progress", "cadestate.render"})
+FOUNDATION = frozenset({"cadestate", "cadestate.atomic", "cadestate.config", "cadestate.cron", "cadestate.geometry",
+                        "cadestate.lineage", "cadestate.progress", "cadestate.render"})
 """Modules that import no other project module but each other."""
 
 
