@@ -98,17 +98,26 @@ def free_port(host: str) -> int:
         return s.getsockname()[1]
 
 
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why nothing could listen on ``host:port`` now (the port taken, the address not this
+    machine's), or None. Binds as uvicorn does: a port in TIME_WAIT is free (SO_REUSEADDR)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        with socket.socket(infos[0][0], socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind(infos[0][4])
+    except OSError as e:
+        return e
+    return None
+
+
 def check_port_free(host: str, port: int) -> None:
     """Raise :class:`ServerError` when ``host:port`` is taken: the server's API would be another
     process's (another warehouse's Prefect server answers as ours would, while ours dies on the
     clash), or this warehouse's earlier server that has stopped answering still holds it."""
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a port in TIME_WAIT is free
-        try:
-            s.bind((host, port))
-        except OSError as e:
-            raise ServerError(f"{host}:{port} is taken ({e.strerror or e}): another Prefect server, perhaps another "
-                              "warehouse's (`cadestate -w W server status`)? choose another --port") from None
+    if (e := bind_error(host, port)) is not None:
+        raise ServerError(f"{host}:{port} is taken ({e.strerror or e}): another Prefect server, perhaps another "
+                          "warehouse's (`cadestate -w W server status`)? choose another --port")
 
 
 def server_environment(root: Path, database_url: str = "") -> dict[str, str]:

@@ -50,13 +50,13 @@ def cached_run(runs: list[dict[str, Any]], unit: str, stage: str, signature: Sig
     this signature writes. (Each table is swapped whole, but a stage writes its tables one after
     another: one that failed or was killed between two of them, or after its first, left them
     holding part of its own output.)"""
-    ok = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused")]
+    mine = [r for r in runs if r["stage"] == stage]  # recorded runs end completed, paused, failed or interrupted
+    if not mine or mine[-1]["status"] in ("failed", "interrupted"):
+        return None
+    ok = [r for r in mine if r["status"] in ("completed", "paused")]
     key = (signature.config_hash, signature.code_hash, signature.inputs_hash)
     same = [r for r in ok if (r["config_hash"], r["code_hash"], r["inputs_hash"]) == key]
     if not same or same[-1]["output_hash"] != ok[-1]["output_hash"]:
-        return None
-    ended = [r for r in runs if r["stage"] == stage and r["status"] in ("completed", "paused", "failed", "interrupted")]
-    if ended[-1]["status"] in ("failed", "interrupted"):
         return None
     r = same[-1]
     return StageRun(clip=unit, stage=stage, run_id=r["run_id"], status=r["status"],

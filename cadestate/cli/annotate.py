@@ -41,13 +41,9 @@ def check_listen(host: str, port: int) -> None:
     """Raise a one-line :class:`CliError` when nothing could listen on ``host:port`` (the port taken,
     the address not this machine's), before Prefect starts and the app's address is printed."""
     import errno
-    import socket
 
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-        with socket.socket(infos[0][0], socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a port in TIME_WAIT is free
-            s.bind(infos[0][4])
-    except OSError as e:
+    from flows.server import bind_error
+
+    if (e := bind_error(host, port)) is not None:
         hint = " (another app on it? choose another --port)" if e.errno == errno.EADDRINUSE else ""
-        raise CliError(f"--host {host} --port {port}: cannot listen there: {e.strerror or e}{hint}") from None
+        raise CliError(f"--host {host} --port {port}: cannot listen there: {e.strerror or e}{hint}")
