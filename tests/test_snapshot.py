@@ -138,6 +138,30 @@ def test_a_watermark_never_goes_back_from_the_last_snapshot(wh, monkeypatch):
     assert through_view(wh, TRACKS) == [("a", "chair", 3)]  # not read twice (snapshot and file)
 
 
+def test_a_rebuild_racing_a_snapshot_copies_the_snapshot_of_the_watermark_it_records(wh, monkeypatch):
+    """A catalog rebuild (any command's, after a schema change) while another process takes a
+    snapshot: the rebuild must copy the snapshot of the catalog whose watermark it records, or the
+    files named between the two watermarks are read twice (from the new snapshot and from themselves)."""
+    from warehouse import catalog
+
+    wh.write("tracks", "a", tracks("a", 3))
+    snapshot(wh)
+    wh.write("tracks", "b", tracks("b", 2))
+    plan_views, raced = catalog.plan_views, []
+
+    def then_another_process_snapshots(*args, **kwargs):
+        plan = plan_views(*args, **kwargs)
+        if not raced:  # the rebuild has read the catalog's watermarks; the other process replaces the catalog now
+            raced.append(True)
+            snapshot(wh)
+        return plan
+
+    monkeypatch.setattr(catalog, "plan_views", then_another_process_snapshots)
+    catalog.refresh_catalog(wh)
+    assert raced and through_view(wh, TRACKS) == [("a", "chair", 3), ("b", "chair", 2)]
+    assert not list(wh.root.glob(".*.pin"))
+
+
 def test_a_schema_change_drops_that_tables_snapshot_only_and_a_moved_warehouse_keeps_them(wh, tmp_path):
     wh.write("tracks", "a", tracks("a", 3))
     wh.write("runs", "a", runs("a", "r0"))

@@ -234,24 +234,43 @@ def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
     theirs where their schema did not change."""
     wh.root.mkdir(parents=True, exist_ok=True)
     final = wh.root / CATALOG_FILE
-    recorded = recorded_views(final)
-    plan = plan_views(wh, None if recheck is True else recorded, () if recheck is False else recheck)
     tmp = wh.root / f".{CATALOG_FILE}.{uuid.uuid4().hex}.tmp"
-    try:
-        con = duckdb.connect(str(tmp))
+    with _pinned(final) as current:
+        recorded = recorded_views(current)
+        plan = plan_views(wh, None if recheck is True else recorded, () if recheck is False else recheck)
         try:
-            schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
-            snapshot.carry(con, wh, plan, recorded, final, schema_files, snapshots, whole)
-            create_views(con, wh, plan)
-            con.execute("CHECKPOINT")
+            con = duckdb.connect(str(tmp))
+            try:
+                schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
+                snapshot.carry(con, wh, plan, recorded, current, schema_files, snapshots, whole)
+                create_views(con, wh, plan)
+                con.execute("CHECKPOINT")
+            finally:
+                con.close()
+            os.replace(tmp, final)
         finally:
-            con.close()
-        os.replace(tmp, final)
-    finally:
-        tmp.unlink(missing_ok=True)
-        Path(f"{tmp}.wal").unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+            Path(f"{tmp}.wal").unlink(missing_ok=True)
     _ENSURED.add(wh.root)
     return final
+
+
+@contextlib.contextmanager
+def _pinned(path: Path) -> Iterator[Path]:
+    """``path`` as it is now, for the length of the block: a hard link to it beside it (removed
+    after), so that the watermarks a rebuild reads and the snapshots it copies come from one
+    catalog even when another process replaces the file meanwhile (a snapshot and a rebuild at
+    once). ``path`` itself where it is missing or the file system has no hard links."""
+    pin = path.with_name(f".{path.name}.{uuid.uuid4().hex}.pin")
+    try:
+        os.link(path, pin)
+    except OSError:
+        yield path
+        return
+    try:
+        yield pin
+    finally:
+        pin.unlink(missing_ok=True)
 
 
 def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
