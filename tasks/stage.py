@@ -12,21 +12,26 @@ digests; ``paused`` when the body says it waits for people) and returns a :class
 
 A run in progress is journalled by a marker file, ``<warehouse>/_running/<clip>/<stage>.<run_id>.json``
 (the process, its host and start), written before the body starts and removed once its ``runs`` row
-is written. A process killed mid-stage (``kill -9``, a lost machine) leaves its marker: ``cadestate
-status`` shows the stage ``interrupted``, and the next run of the clip records the run in ``runs``
-with status ``interrupted`` (:func:`settle_interrupted`).
+is written; while the body runs, a thread touches it every :data:`HEARTBEAT_S` (its modification
+time is the run's heartbeat). A process killed mid-stage (``kill -9``, a lost machine) leaves its
+marker: ``cadestate status`` shows the stage ``interrupted``, and the next run of the clip records
+the run in ``runs`` with status ``interrupted`` (:func:`settle_interrupted`). On the marker's own
+host a run is alive while its process is; a marker of another host (a Dask worker's) while its
+heartbeat is younger than :data:`STALE_AFTER_S`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import functools
 import json
 import os
 import socket
+import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -39,6 +44,11 @@ if TYPE_CHECKING:
 
 RUNNING_DIR = "_running"
 """Folder of the markers of runs in progress, under the warehouse root."""
+HEARTBEAT_S = 30.0
+"""How often a running stage touches its marker."""
+STALE_AFTER_S = 300.0
+"""A marker of another host untouched this long is of a run whose process or machine is gone (ten
+heartbeats: clocks that NTP keeps and a shared file system's attribute caching stay well inside it)."""
 
 
 @dataclass(frozen=True)
@@ -158,7 +168,8 @@ def record_run(wh: Warehouse, run: StageRun, started_at: dt.datetime) -> None:
 @dataclass(frozen=True)
 class RunMarker:
     """A stage run in progress (or interrupted), as its marker file records it. ``process_start``:
-    the process's creation time (epoch seconds), which tells a live process from a recycled pid."""
+    the process's creation time (epoch seconds), which tells a live process from a recycled pid;
+    ``touched``: the marker's last heartbeat (its modification time, epoch seconds)."""
 
     clip: str
     stage: str
@@ -168,12 +179,14 @@ class RunMarker:
     process_start: float
     started_at: dt.datetime
     path: Path
+    touched: float
 
     @property
     def alive(self) -> bool:
-        """Whether the run's process still runs (a run on another host is taken as running)."""
+        """Whether the run's process still runs: on this host, asked of the process; on another, its
+        heartbeat is younger than :data:`STALE_AFTER_S`."""
         if self.host != socket.gethostname():
-            return True
+            return time.time() - self.touched < STALE_AFTER_S
         import psutil  # here: `cadestate status` imports this module and seldom finds a marker
 
         try:
@@ -206,6 +219,24 @@ def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at:
     return path
 
 
+@contextlib.contextmanager
+def heartbeat(marker: Path, every_s: float = HEARTBEAT_S) -> Iterator[None]:
+    """Touch ``marker`` every ``every_s`` seconds from a daemon thread while the block runs (a
+    marker removed meanwhile is not recreated)."""
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(every_s):
+            with contextlib.suppress(OSError):
+                os.utime(marker)
+
+    threading.Thread(target=beat, name=f"heartbeat of {marker.name}", daemon=True).start()
+    try:
+        yield
+    finally:
+        stop.set()
+
+
 def run_markers(wh: Warehouse, clip: str) -> list[RunMarker]:
     """The markers of ``clip``'s runs in progress or interrupted, oldest first (unreadable ones skipped:
     a marker is written atomically, so only a foreign file is unreadable)."""
@@ -214,7 +245,7 @@ def run_markers(wh: Warehouse, clip: str) -> list[RunMarker]:
         try:
             d = json.loads(path.read_text())
             markers.append(RunMarker(d["clip"], d["stage"], d["run_id"], int(d["pid"]), d["host"], float(d["process_start"]),
-                                     dt.datetime.fromisoformat(d["started_at"]), path))
+                                     dt.datetime.fromisoformat(d["started_at"]), path, path.stat().st_mtime))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return sorted(markers, key=lambda m: m.run_id)  # run ids sort by start time
@@ -257,7 +288,8 @@ def run_stage(
     common = dict(clip=clip, stage=stage, run_id=run_id, config_hash=config_hash, inputs_hash=inputs_hash, code_hash=code_hash)
     marker = _start_marker(wh, clip, stage, run_id, started_at)
     try:
-        out = body(run_id)
+        with heartbeat(marker):
+            out = body(run_id)
     except Exception as e:
         failed = StageRun(**common, status="failed", output_hash="", rows_written=0,
                           duration_s=time.perf_counter() - t0, message=str(e))

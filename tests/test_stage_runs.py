@@ -70,6 +70,54 @@ def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
     assert settle_interrupted(wh, "c1") == []  # recorded once
 
 
+def test_a_marker_of_another_host_is_alive_while_its_heartbeat_is(wh):
+    """A run on a Dask worker: its pid means nothing here, its marker's heartbeat does; a lost worker's
+    run is settled as interrupted once the heartbeat is older than STALE_AFTER_S."""
+    import datetime as dt
+    import json
+    import os
+    import time
+
+    from tasks.stage import STALE_AFTER_S, _start_marker
+
+    wh.write("clips", "c1", _clip_row("c1"))
+    path = _start_marker(wh, "c1", "detect", "r1", dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc))
+    path.write_text(json.dumps({**json.loads(path.read_text()), "host": "worker-7", "pid": 1}))
+    [marker] = run_markers(wh, "c1")
+    assert marker.host == "worker-7" and marker.alive and settle_interrupted(wh, "c1") == []
+    old = time.time() - STALE_AFTER_S - 1
+    os.utime(path, (old, old))
+    [marker] = run_markers(wh, "c1")
+    assert not marker.alive
+    status = {r.stage: r for r in pipeline_status(wh, Config(), ["c1"])}
+    assert status["detect"].status == "interrupted" and "worker-7" in status["detect"].message
+    [settled] = settle_interrupted(wh, "c1")
+    assert settled.status == "interrupted" and run_markers(wh, "c1") == []
+
+
+def test_a_running_stage_beats_its_heartbeat_and_stops_when_it_ends(tmp_path):
+    import os
+    import time
+
+    from tasks.stage import heartbeat
+
+    marker = tmp_path / "m.json"
+    marker.write_text("{}")
+    os.utime(marker, (1.0, 1.0))
+    with heartbeat(marker, every_s=0.02):
+        deadline = time.time() + 10
+        while marker.stat().st_mtime == 1.0 and time.time() < deadline:
+            time.sleep(0.01)
+        assert marker.stat().st_mtime > time.time() - 60
+    os.utime(marker, (1.0, 1.0))
+    time.sleep(0.2)
+    assert marker.stat().st_mtime == 1.0
+    marker.unlink()
+    with heartbeat(marker, every_s=0.02):
+        time.sleep(0.1)
+    assert not marker.exists()  # a removed marker is not made again
+
+
 @pytest.mark.slow
 def test_a_clip_with_no_detection_flows_through_every_stage(tmp_path, small_clip):
     """An empty room, a dark video or a strict threshold: zero rows everywhere, and a note in status."""
