@@ -106,8 +106,8 @@ def test_write_then_parse_is_bit_exact_and_overwrites(tmp_path):
 def test_crlf_and_trailing_blank_lines_accepted():
     lines = [URL, camera_line(10), camera_line(20)]
     expected = parse_camera_text("\n".join(lines))
-    crlf, lf = "\r\n".join(lines), "\n".join(lines)
-    for text in [crlf + "\r\n", lf + "\n\n   \n\t\n", crlf + "\r\n \r\n\r\n"]:
+    crlf, lf, cr = "\r\n".join(lines), "\n".join(lines), "\r".join(lines)
+    for text in [crlf + "\r\n", lf + "\n\n   \n\t\n", crlf + "\r\n \r\n\r\n", cr + "\r", cr]:
         assert_identical(parse_camera_text(text), expected)
 
 
@@ -217,6 +217,9 @@ def test_malformed_camera_lines(tmp_path, camera_lines, line, message):
                  "missing", id="missing-url"),
     pytest.param("\n".join(GOOD).replace("100", "nan", 1), 1, "the URL line is missing", id="missing-url-nan"),
     pytest.param("\ufeff" + "\n".join(GOOD), 1, "the URL line is missing", id="missing-url-after-bom"),
+    pytest.param("\n".join([GOOD[0].rsplit(" ", 1)[0], *GOOD[1:]]), 1, "line 1 holds 18 numbers, not the video URL: "
+                 "the URL line is missing (and a camera line has 19 numbers)", id="missing-url-broken-line"),
+    pytest.param("\n".join([GOOD[0] + " 0", *GOOD[1:]]), 1, "line 1 holds 20 numbers", id="missing-url-long-line"),
     pytest.param("\ufeff", 0, "empty file", id="bom-only"),
 ])
 def test_malformed_whole_file(text, line, message):

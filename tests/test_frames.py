@@ -237,3 +237,59 @@ def test_aspect_check_honours_non_square_pixels(small_clip, tmp_path):
     with pytest.raises(CameraFileError, match=r"fits frames of aspect 1 \(width/height\) but .* is 64x48 "
                                               r"\(1.333, pixel aspect 1.333\)"):
         check_clip_inputs(video, square)
+
+
+def _write(path: Path, frames: list[np.ndarray], fmt: str | None = None, codec: str = "libx264", gop: int = 30,
+           pts: list[int] | None = None, sar=None) -> Path:
+    """Encode ``frames`` (30 fps) with PyAV: ``pts`` per frame (default its index), ``sar`` the pixel aspect."""
+    import av
+
+    with av.open(str(path), "w", format=fmt) as container:
+        stream = container.add_stream(codec, rate=30)
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuv420p" if codec == "libx264" else "yuvj420p"
+        stream.codec_context.gop_size = gop
+        if sar is not None:
+            stream.codec_context.sample_aspect_ratio = sar
+        for i, image in enumerate(frames):
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            frame.pts = i if pts is None else pts[i]
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode())
+    return path
+
+
+def _corner(height: int, width: int, value: int = 0) -> np.ndarray:
+    """A grey picture with a white block in its top-left corner."""
+    image = np.full((height, width, 3), 100 + value, np.uint8)
+    image[:32, :32] = 255
+    return image
+
+
+def test_a_video_stored_sideways_is_decoded_upright(small_clip, tmp_path):
+    """A phone's portrait video: stored 320x192 with a display matrix that turns it 90 degrees
+    clockwise (ffprobe: rotation -90). Its size, frames and camera file are those of the upright picture."""
+    import struct
+
+    stored = _write(tmp_path / "stored.mp4", [_corner(192, 320)] * 30)
+    data = bytearray(stored.read_bytes())
+    at = data.find(b"tkhd")
+    end = at - 4 + struct.unpack(">I", data[at - 4:at])[0]  # the matrix lies 44 bytes before the box's end
+    data[end - 44:end - 8] = struct.pack(">9i", 0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30)
+    video = tmp_path / "portrait.mp4"
+    video.write_bytes(bytes(data))
+    info = probe_video(video)
+    assert (info.width, info.height, info.rotation) == (192, 320, 270)
+    [frame] = decode_at(video, np.array([0]))
+    assert frame.rgb.shape == (320, 192, 3)
+    assert frame.rgb[5, 187].min() > 240 and frame.rgb[5, 5].max() < 150  # top-left turned clockwise: top-right
+    portrait = with_intrinsics(small_clip.cameras_path, tmp_path / "portrait.txt", 0.9, 0.9 * 192 / 320)
+    portrait.write_text("\n".join(portrait.read_text().splitlines()[:11]) + "\n")
+    assert check_clip_inputs(video, portrait).warnings == ()
+
+
+def test_a_seek_that_lands_after_its_target_is_taken_again_from_further_back(tmp_path):
+    """MPEG-TS has no exact index: a backward seek may land after the frame asked for."""
+    video = _write(tmp_path / "long.ts", [_corner(96, 160, i % 100) for i in range(300)], fmt="mpegts", gop=250)
+    wanted = np.array([0, 3_333_333, 6_666_667, 9_000_000])
+    assert [f.time_us for f in decode_at(video, wanted)] == wanted.tolist()

@@ -100,6 +100,28 @@ def test_a_frame_between_keyframes_gets_its_true_pose_from_matches_with_outliers
     np.testing.assert_allclose(np.asarray(poses["between.png"].translation), t, atol=1e-6)
 
 
+def test_sampled_frames_are_upright_square_pixels_in_increasing_time(tmp_path):
+    """A video of 4:3-wide pixels is stretched to its shown width (SfM models square pixels), and a
+    frame that repeats a time is skipped (a muxer's duplicate timestamps)."""
+    import av
+    from fractions import Fraction
+
+    video = tmp_path / "dup.mkv"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mjpeg", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuvj420p"
+        stream.codec_context.sample_aspect_ratio = Fraction(4, 3)
+        for i, pts in enumerate([0, 1, 2, 2, 3, 4]):
+            frame = av.VideoFrame.from_ndarray(np.full((48, 64, 3), 40 * i, np.uint8), format="rgb24")
+            frame.pts = i
+            for packet in stream.encode(frame):  # mjpeg: one packet per frame, its time as the muxer is told
+                packet.pts = packet.dts = pts
+                container.mux(packet)
+    frames = sample_frames(video, 30.0, tmp_path)
+    assert (frames.width, frames.height) == (85, 48)
+    assert frames.times_us.tolist() == [0, 33000, 67000, 100000, 133000]  # Matroska counts milliseconds
+
+
 def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
     with pytest.raises(SfmError, match=r"small.mp4: 1 frame\(s\) sampled at 0.1 fps; SfM needs at least 2"):
         sample_frames(small_clip.video_path, 0.1, tmp_path)

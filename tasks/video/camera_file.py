@@ -1,10 +1,11 @@
 """Read and write RealEstate10K camera files.
 
-File format (one text file per clip, UTF-8, ``\\n`` or ``\\r\\n`` line endings; a leading UTF-8
-byte-order mark, as Windows editors write, is dropped: it is an encoding artefact, not part of the URL):
+File format (one text file per clip, UTF-8, ``\\n``, ``\\r\\n`` or, throughout, ``\\r`` line endings; a
+leading UTF-8 byte-order mark, as Windows editors write, is dropped: it is an encoding artefact, not
+part of the URL):
 
-- line 1: the source video URL: any text that is not itself a camera line (19 numbers), which
-  would mean that the URL line is missing;
+- line 1: the source video URL: any text that is not itself numbers only (a camera line, or a
+  broken one), which would mean that the URL line is missing;
 - every further line: one camera, 19 whitespace-separated columns
   ``timestamp fx fy cx cy 0 0 r11 r12 r13 t1 r21 r22 r23 t2 r31 r32 r33 t3``;
 - blank lines only at the end of the file.
@@ -220,6 +221,8 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
       CameraFileError: ``f"{source}:{line}: {what is wrong}"`` at the first problem found.
     """
     text = text.removeprefix(BOM)
+    if "\r" in text and "\n" not in text:
+        text = text.replace("\r", "\n")  # classic Mac line ends
     lines = text.split("\n")  # a "\r" left by "\r\n" is whitespace, dropped like any other
     if not text.strip():
         raise CameraFileError(source, 0, "empty file")
@@ -228,6 +231,10 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
     if _is_camera_line(lines[0]):
         raise CameraFileError(source, 1, "line 1 is a camera line (19 numbers), not the video URL: "
                                          "the URL line is missing")
+    first = lines[0].split()
+    if len(first) > 1 and all(map(_is_number, first)):
+        raise CameraFileError(source, 1, f"line 1 holds {len(first)} numbers, not the video URL: the URL line is "
+                                         f"missing (and a camera line has {len(COLUMNS)} numbers)")
     last = max(i for i, line in enumerate(lines) if line.strip())
     if last == 0:
         raise CameraFileError(source, 0, "no camera lines after the URL")

@@ -2,6 +2,10 @@
 
 Time frame: microseconds since the start of the video stream (the stream's ``start_time`` is
 subtracted), the frame of RealEstate10K timestamps.
+
+Pictures are upright: a stream's display rotation (the display matrix phones write for a video
+held in portrait, stored sideways) is applied to every decoded frame, and sizes are the upright
+picture's (:func:`upright`), as a player shows it and as a camera file made for it counts pixels.
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ class VideoError(ValueError):
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """Properties of a video's first video stream (sizes in px, times in µs; ``pixel_aspect``:
-    the sample aspect ratio, a pixel's width over its height, 1 when the stream does not say)."""
+    """Properties of a video's first video stream, upright (sizes in px of the picture as shown,
+    times in µs; ``pixel_aspect``: the sample aspect ratio, a shown pixel's width over its height, 1
+    when the stream does not say; ``rotation``: degrees counterclockwise applied to the stored
+    picture, a multiple of 90)."""
 
     width: int
     height: int
@@ -33,6 +39,7 @@ class VideoInfo:
     duration_us: int
     codec: str
     pixel_aspect: float = 1.0
+    rotation: int = 0
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,19 @@ def _open(path: str | os.PathLike) -> av.container.InputContainer:
     return container
 
 
+def _quarter_turns(frame: av.VideoFrame) -> int:
+    """Counterclockwise quarter turns that make ``frame`` upright (its display matrix's rotation,
+    rounded to a multiple of 90 degrees; 0 without one)."""
+    return round((frame.rotation or 0) / 90) % 4
+
+
+def upright(frame: av.VideoFrame) -> np.ndarray:
+    """``frame`` as RGB uint8[H, W, 3], turned as its display rotation says."""
+    rgb = frame.to_ndarray(format="rgb24")
+    turns = _quarter_turns(frame)
+    return np.ascontiguousarray(np.rot90(rgb, turns)) if turns else rgb
+
+
 def probe_video(path: str | os.PathLike) -> VideoInfo:
     """Read the stream properties and decode the first frame (a corrupt file fails here)."""
     with _open(path) as container:
@@ -73,7 +93,10 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         fps = float(stream.average_rate) if stream.average_rate else 0.0
         sar = stream.sample_aspect_ratio
         pixel_aspect = float(sar) if sar and sar > 0 else 1.0
-        return VideoInfo(first.width, first.height, fps, duration_us, stream.codec_context.name, pixel_aspect)
+        turns = _quarter_turns(first)
+        width, height = (first.height, first.width) if turns % 2 else (first.width, first.height)
+        return VideoInfo(width, height, fps, duration_us, stream.codec_context.name,
+                         1.0 / pixel_aspect if turns % 2 else pixel_aspect, 90 * turns)
 
 
 def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction) -> int:
@@ -88,8 +111,10 @@ def decode_at(
     """Yield, for each timestamp (strictly increasing, µs), the decoded frame nearest to it.
 
     Decodes forward while the next timestamp is near; seeks (to the keyframe before it, then
-    decodes forward) when it is more than ``seek_threshold_us`` ahead. The caller checks how far
-    each frame's ``time_us`` is from the timestamp it asked for.
+    decodes forward) when it is more than ``seek_threshold_us`` ahead. A seek that lands after the
+    timestamp (containers without an exact index, MPEG-TS) is taken again from further back, in
+    the end from the start. The caller checks how far each frame's ``time_us`` is from the
+    timestamp it asked for. Frames are upright (:func:`upright`).
     """
     with _open(path) as container:
         stream = container.streams.video[0]
@@ -109,23 +134,42 @@ def decode_at(
                 raise VideoError(f"{path}: decoding failed (corrupt or truncated video?): {e}") from None
             return None if frame is None else (_frame_time_us(frame, start, time_base), frame)
 
+        def seek(goal_us: int) -> None:
+            nonlocal frames
+            try:
+                container.seek(start + int(Fraction(goal_us, 1_000_000) / time_base), stream=stream, backward=True)
+            except av.error.FFmpegError as e:
+                raise VideoError(f"{path}: seek to {goal_us} µs failed: {e}") from None
+            frames = container.decode(stream)
+
+        def restart(target: int) -> tuple[int, av.VideoFrame] | None:
+            """The first frame decoded after seeking before ``target`` (1 s, 2 s, 4 s, ... before
+            it while a seek lands after it or at the end), or from the start when it is that near."""
+            nonlocal frames
+            back = 0
+            while True:
+                goal = target - back
+                if goal > seek_threshold_us:
+                    seek(goal)
+                elif frames is None:
+                    frames = container.decode(stream)
+                else:
+                    seek(0)
+                first = advance()
+                if (first is not None and first[0] <= target) or goal <= seek_threshold_us:
+                    return first
+                back = max(2 * back, seek_threshold_us, 1_000_000)
+
         for target in np.asarray(timestamps_us, dtype=np.int64).tolist():
             if frames is None or (nxt is not None and target - nxt[0] > seek_threshold_us):
-                if target > seek_threshold_us:
-                    offset = start + int(Fraction(target, 1_000_000) / time_base)
-                    try:
-                        container.seek(offset, stream=stream, backward=True)
-                    except av.error.FFmpegError as e:
-                        raise VideoError(f"{path}: seek to {target} µs failed: {e}") from None
-                frames = container.decode(stream)
-                prev, nxt = None, advance()
+                prev, nxt = None, restart(target)
             while nxt is not None and nxt[0] < target:
                 prev, nxt = nxt, advance()
             candidates = [f for f in (prev, nxt) if f is not None]
             if not candidates:
                 raise VideoError(f"{path}: no frame could be decoded near {target} µs")
             time_us, frame = min(candidates, key=lambda f: abs(f[0] - target))
-            yield DecodedFrame(time_us, frame.to_ndarray(format="rgb24"))
+            yield DecodedFrame(time_us, upright(frame))
 
 
 def frame_timestamp_us(index: int, fps: int) -> int:

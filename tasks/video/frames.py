@@ -105,7 +105,7 @@ def extract_frames(wh: Warehouse, cfg: FramesConfig, clip: str, run_id: str, sho
             err = frame.time_us - int(video_targets[i])
             if abs(err) > cfg.max_timestamp_error_us:
                 raise VideoError(
-                    f"{name}: camera line {i + 2} asks for {cameras.timestamps_us[i]} µs{shifted.format(video_targets[i])} "
+                    f"{row['source_cameras']}:{i + 2}: {name}: camera line {i + 2} asks for {cameras.timestamps_us[i]} µs{shifted.format(video_targets[i])} "
                     f"but the nearest video frame "
                     f"is at {frame.time_us} µs ({err:+d} µs; [frames] max_timestamp_error_us = {cfg.max_timestamp_error_us}). "
                     "Wrong camera file for this video, or a truncated video?"

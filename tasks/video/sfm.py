@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world, world_to_camera
 from tasks.video.camera_file import CameraTrack
-from tasks.video.decode import VideoError
+from tasks.video.decode import VideoError, probe_video, upright
 from tasks.video.sfm_focal import FocalEstimate, ba_options, estimate_focal, refine_focal, set_focal
 from tasks.video.sfm_register import frame_correspondences, register_frames
 
@@ -46,7 +46,9 @@ class SfmError(ValueError):
 @dataclass(frozen=True)
 class SampledFrames:
     """Frames sampled from a video: ``times_us`` int64[N] decoded presentation times (µs since the
-    stream's start), ``paths`` the N image files (PNG, full resolution), ``width``/``height`` px."""
+    stream's start, increasing), ``paths`` the N image files (PNG, upright, full resolution in square
+    pixels: a video of non-square pixels is stretched to its shown width), ``width``/``height`` px of
+    those images."""
 
     times_us: np.ndarray
     paths: list[Path]
@@ -86,7 +88,9 @@ class SfmResult:
 
 
 def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrames:
-    """Decode ``video`` and keep every k-th frame, k = max(1, round(fps / sample_fps)), as PNGs in ``out_dir``."""
+    """Decode ``video`` and keep every k-th frame, k = max(1, round(fps / sample_fps)), as PNGs in
+    ``out_dir`` (:class:`SampledFrames`; a frame whose time is not after the last kept one is skipped)."""
+    pixel_aspect = probe_video(video).pixel_aspect
     try:
         container = av.open(str(video))
     except (av.error.FFmpegError, OSError) as e:
@@ -104,11 +108,16 @@ def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrame
             for i, frame in enumerate(container.decode(stream)):
                 if i % every or frame.pts is None:
                     continue
+                time_us = int(round((frame.pts - start) * base * 1_000_000))
+                if times and time_us <= times[-1]:
+                    continue
                 path = out_dir / f"{len(paths):06d}.png"
-                image = frame.to_image()
+                image = Image.fromarray(upright(frame))
+                if pixel_aspect != 1.0:
+                    image = image.resize((round(image.width * pixel_aspect), image.height), Image.Resampling.BICUBIC)
                 image.save(path, compress_level=1)
                 size = image.size
-                times.append(int(round((frame.pts - start) * base * 1_000_000)))
+                times.append(time_us)
                 paths.append(path)
         except av.error.FFmpegError as e:
             raise VideoError(f"{video}: decoding failed (corrupt or truncated video?): {e}") from None
