@@ -15,6 +15,8 @@ import json
 import shutil
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute  # noqa: F401  (pa.compute)
 import pytest
 
 from bench.walkthrough import WalkthroughSpec, generate_clip
@@ -181,7 +183,7 @@ def test_unposed_objects_carry_no_pose(built, tmp_path):
 def test_scan2cad_round_trip(built, tmp_path):
     wh, clip, truth = built
     counts = export_scan2cad(wh, tmp_path / "s2c")
-    assert counts == {"scans": 1, "alignments": 3}  # accepted poses only: not the rejected one, not the unposed track
+    assert counts == {"scans": 1, "alignments": 3, "unfinished": []}  # accepted poses only: not the rejected one, not the unposed track
     rows = read_csv(tmp_path / "s2c" / f"{CLIP}.csv")
     assert len(rows) == 3
     for row, tid in zip(rows, sorted(truth)):
@@ -251,3 +253,108 @@ def test_scan2cad_csv_errors_name_the_line(tmp_path):
     mirrored = Alignment("03001627", "sh3d.chair_mirrored", (0.5, 0.0, -1.0), (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     assert split_cad_id(mirrored.id_cad) == ("sh3d.chair", True)
     assert read_csv_text(csv_text([mirrored]), tmp_path) == [mirrored]
+
+
+def _copy(built, tmp_path) -> Warehouse:
+    wh, _, _ = built
+    shutil.copytree(wh.root, tmp_path / "wh", ignore=shutil.ignore_patterns("catalog.duckdb", "_cache"))
+    return Warehouse(tmp_path / "wh")
+
+
+def test_a_default_export_leaves_out_clips_that_never_reached_verification(built, tmp_path):
+    """A clip with only its frames would read as a scene with nothing in it: left out and named,
+    exported only when asked for; two clips of one export name, or a clip named twice, are sorted out."""
+    from tasks.cad.export import ExportError
+
+    wh = _copy(built, tmp_path)
+    _, clip, _ = built
+    write_frames(wh, "kitchen", clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
+    counts = export_dataset(wh, tmp_path / "a", cad=False, show_progress=False)
+    assert counts["clips"] == 1 and counts["unfinished"] == ["kitchen"]
+    assert (tmp_path / "a" / "scene_list.txt").read_text() == f"{CLIP}\n"
+    with pytest.raises(ExportError, match=rf"^clips {CLIP}, kitchen would both be exported as '{CLIP}'"):
+        export_dataset(wh, tmp_path / "b", [CLIP, "kitchen"], cad=False, show_progress=False)
+    assert export_dataset(wh, tmp_path / "c", [CLIP, CLIP], cad=False, show_progress=False)["clips"] == 1
+    with pytest.raises(ExportError, match="no clip of .* has reached verification yet \\(1 with frames: kitchen\\)"):
+        export_dataset(_only_unfinished(tmp_path), tmp_path / "d", cad=False, show_progress=False)
+
+
+def _only_unfinished(tmp_path) -> Warehouse:
+    wh = Warehouse(tmp_path / "bare")
+    frames = Warehouse(tmp_path / "wh")
+    wh.write("frames", "kitchen", frames.read("frames", ["kitchen"]))
+    return wh
+
+
+def test_two_clips_of_one_video_share_its_frames_and_never_write_into_the_warehouse(built, tmp_path):
+    wh = _copy(built, tmp_path)
+    _, clip, _ = built
+    later = tmp_path / "later.txt"  # the same video from its second camera line: clip bench-9-00_<ts>
+    lines = clip.cameras_path.read_text().splitlines()
+    later.write_text("\n".join([lines[0], *lines[2:]]) + "\n")
+    cams = write_frames(wh, "later", clip.video_path, later, SPEC.width, SPEC.height)
+    images = sorted((wh.root / "media").rglob("*.jpg"))
+    before = {p: p.read_bytes() for p in images}
+    counts = export_dataset(wh, tmp_path / "a", [CLIP, "later"], cad=False, show_progress=False)
+    assert counts["clips"] == 2 and len(list((tmp_path / "a" / "frames" / "bench-9-00").iterdir())) == len(lines) - 1
+    assert (tmp_path / "a" / "scene_list.txt").read_text() == f"{CLIP}\nbench-9-00_{cams.timestamps_us[0]}\n"
+    first = next(p for p in images if "/later/" in str(p))
+    first.write_bytes(before[next(p for p in images if "/later/" not in str(p) and p.name == first.name)][::-1][:100])
+    from tasks.cad.export import ExportError
+
+    with pytest.raises(ExportError, match=rf"clips {CLIP} and later both hold frame bench-9-00_\d+.jpg of video "
+                                          "'bench-9-00' with different images"):
+        export_dataset(wh, tmp_path / "b", [CLIP, "later"], cad=False, show_progress=False)
+    assert all(p.read_bytes() == before[p] for p in images if p != first)
+
+
+def test_an_object_whose_model_left_the_library_is_refused_by_name(built, tmp_path):
+    from tasks.cad.export import ExportError
+
+    wh = _copy(built, tmp_path)
+    _, _, truth = built
+    gone = truth[2].cad_id
+    for lib in wh.partitions("cad_models"):
+        rows = wh.read("cad_models", [lib])
+        wh.write("cad_models", lib, rows.filter(pa.compute.not_equal(rows.column("cad_id"), gone)))
+    with pytest.raises(ExportError, match=rf"clip {CLIP}, track \d: its model '{gone}' is not in the warehouse's cad_models"):
+        export_dataset(wh, tmp_path / "a", cad=False, show_progress=False)
+    assert not (tmp_path / "a").exists()
+
+
+def test_an_export_into_the_current_folder(built, tmp_path, monkeypatch):
+    from pathlib import Path
+
+    wh, _, _ = built
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    assert export_dataset(wh, Path("."), cad=False, show_progress=False)["clips"] == 1
+    assert sorted(p.name for p in (tmp_path / "here").iterdir()) == ["annotations", "frames", "scene_list.txt"]
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_terminated_export_leaves_nothing_behind(built, tmp_path):
+    """SIGTERM (a scheduler's stop, `timeout`) while the export writes: the command exits 143 and its
+    temporary folder goes with it, as with Ctrl-C."""
+    import subprocess
+    import sys
+    import textwrap
+
+    wh, _, _ = built
+    script = textwrap.dedent(f"""
+        import os, signal, sys, threading, time
+        from pathlib import Path
+        from cadestate.cli import main
+
+        def stop():  # once the export has started writing
+            while not list(Path({str(tmp_path)!r}).glob(".out.*.tmp")):
+                time.sleep(0.001)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        threading.Thread(target=stop, daemon=True).start()
+        sys.argv = ["cadestate", "-w", {str(wh.root)!r}, "export", "official", {str(tmp_path / "out")!r}, "--no-progress"]
+        main()
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 143, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -47,7 +47,12 @@ def is_one_of(e: BaseException, types: dict[str, str]) -> bool:
 
 def main() -> None:
     """Entry point: known input errors become one clear line on stderr and exit status 2 (1 for a
-    failing environment)."""
+    failing environment). SIGTERM ends the command as an exit (status 143), so that its cleanup
+    runs (temporary folders, the Prefect API it launched), as Ctrl-C's does."""
+    import signal
+
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _terminated)
     try:
         app()
     except Exception as e:
@@ -56,3 +61,7 @@ def main() -> None:
             raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(codes[0])
+
+
+def _terminated(signum: int, frame) -> None:
+    raise SystemExit(128 + signum)

@@ -16,9 +16,11 @@ beside ``out`` and renamed into place at the end: an interrupted export leaves n
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import uuid
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,22 +54,61 @@ def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False)
 
 
 def temp_folder_beside(out: Path) -> Path:
-    """A new hidden folder beside ``out`` to write an export into before renaming it to ``out``
-    (:class:`ExportError` when none can be made there)."""
+    """A new hidden folder beside ``out`` to write an export into before moving it to ``out``
+    (:class:`ExportError` when none can be made there). ``out`` is made absolute first (``.``
+    has no name to put beside)."""
+    out = Path(os.path.abspath(out))
     return make_folder(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"), named=out)
 
 
-def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> list[str]:
-    """The clips a dataset export writes: ``clips``, default every clip with frames
-    (:class:`ExportError` when one has no frames, or there is none)."""
+def publish(tmp: Path, out: Path) -> None:
+    """Move the finished export ``tmp`` to ``out``: renamed whole when ``out`` is not there, else
+    (an empty folder, the current one say, which a rename cannot replace) entry by entry into it."""
+    if not out.exists():
+        tmp.rename(out)
+        return
+    for entry in sorted(tmp.iterdir()):
+        entry.rename(out / entry.name)
+
+
+@dataclass(frozen=True)
+class ExportClips:
+    """The clips a dataset export writes (``chosen``, in order, each once) and those it leaves out by
+    default (``unfinished``: frames, but the verification stage never ran, so their objects would
+    read as a scene with nothing posed)."""
+
+    chosen: list[str]
+    unfinished: list[str]
+
+
+def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
+    """The clips a dataset export writes: ``clips`` (repeats dropped), default every clip with
+    frames that reached verification (:class:`ExportError` when one has no frames, or there is none)."""
     known = wh.partitions("frames")
-    chosen = list(clips) if clips else known
+    if clips:
+        chosen, unfinished = list(dict.fromkeys(clips)), []
+    else:
+        verified = set(wh.partitions("verified_poses"))
+        chosen, unfinished = [c for c in known if c in verified], [c for c in known if c not in verified]
     missing = [c for c in chosen if c not in known]
     if missing:
         raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
+    if not chosen and unfinished:
+        raise ExportError(f"no clip of {wh.root} has reached verification yet ({len(unfinished)} with frames: "
+                          f"{', '.join(unfinished[:5])}{', ...' if len(unfinished) > 5 else ''}); run them on "
+                          "(`cadestate run`), or name them with --clips to export them as they are")
     if not chosen:
         raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
-    return chosen
+    return ExportClips(chosen, unfinished)
+
+
+def unfinished_note(unfinished: Sequence[str]) -> str:
+    """The warning line of the clips a default export left out ('' when none)."""
+    if not unfinished:
+        return ""
+    shown = ", ".join(unfinished[:10]) + (f" and {len(unfinished) - 10} more" if len(unfinished) > 10 else "")
+    return (f"left out {len(unfinished)} clip(s) that have not reached verification: {shown} "
+            "(name them with --clips to export them as they are)")
 
 
 def triangle_soup(mesh_file: Path) -> np.ndarray:
@@ -79,7 +120,7 @@ def triangle_soup(mesh_file: Path) -> np.ndarray:
 
 def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:
     """Write the official layout of ``libraries`` (default: all) to ``out``; returns the model count."""
-    out = Path(out)
+    out = Path(os.path.abspath(out))
     check_new_folder(out)
     models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path"]).to_pylist()
     if not models:
@@ -95,9 +136,7 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
             folder.mkdir(exist_ok=True)
             np.savez_compressed(folder / f"{m['cad_id']}.npz", vertices=triangle_soup(wh.root / m["mesh_path"]),
                                 label=m["class_id"], mesh_id=m["cad_id"])
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
+        publish(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return len(models)

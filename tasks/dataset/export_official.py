@@ -17,9 +17,12 @@ that ingest applied, ``clips.up_rotation``, is undone: :meth:`ClipDataset.in_inp
 exported extrinsics are the camera file's own.
 
 Clip names are ``<video_id>_<start_us>`` (:mod:`tasks.video.clip_names`): a warehouse clip whose name
-is not that of its camera file is exported under the derived name. Two clips of different source
-videos that share a video id are refused (their frames would overwrite each other). Written into a
-temporary folder beside ``out`` and renamed into place at the end.
+is not that of its camera file is exported under the derived name. Refused, naming the warehouse
+clips: two clips under one name, two clips of different source videos that share a video id (their
+frames would overwrite each other), two clips of one video whose images of one frame differ, and an
+object whose chosen model is no longer in ``cad_models``. By default only clips that reached
+verification are exported (:func:`tasks.cad.export.export_clips`). Written into a temporary folder
+beside ``out`` and moved into place at the end.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from pathlib import Path
 from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
-from tasks.cad.export import ExportError, check_new_folder, export_clips, export_official as export_cad_root, temp_folder_beside
+from tasks.cad.export import (ExportError, check_new_folder, export_clips, export_official as export_cad_root, publish,
+                              temp_folder_beside)
 from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, clip_dataset
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
@@ -79,7 +83,9 @@ def object_annotation(o: DatasetObject) -> ObjectAnnotation:
 
 
 def _put_jpeg(src: Path, dst: Path) -> None:
-    """``dst`` as a JPEG of the frame image ``src``: hard-linked (or copied) when it is one, else converted."""
+    """``dst`` (a new file) as a JPEG of the frame image ``src``: hard-linked (or copied) when it is
+    one, else converted. The warehouse's image and the export's are then one file: edit an exported
+    image by replacing it, not in place."""
     if src.suffix.lower() not in (".jpg", ".jpeg"):
         from PIL import Image
 
@@ -91,22 +97,47 @@ def _put_jpeg(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None, cad: bool = True,
-                   show_progress: bool = True) -> dict[str, int]:
-    """Write the official layout of ``clips`` (default: every clip with frames) to ``out`` (new
-    or empty); returns counts (clips, frames, objects, posed objects, CAD models)."""
-    out = Path(out)
-    check_new_folder(out)
-    clips = export_clips(wh, clips)
-    datasets = [clip_dataset(wh, c).in_input_world() for c in clips]
-    names = [official_clip_name(ds) for ds in datasets]
+def check_exportable(datasets: Sequence[ClipDataset], names: Sequence[str]) -> None:
+    """Refuse (:class:`ExportError`, naming the warehouse clips) two clips under one export name,
+    clips of different videos under one video id, and a model chosen for an object that the
+    warehouse's ``cad_models`` no longer holds (the official loader would fail on its mesh)."""
+    by_name: dict[str, list[str]] = {}
+    for ds, name in zip(datasets, names):
+        by_name.setdefault(name, []).append(ds.clip)
+    twice = {n: c for n, c in by_name.items() if len(c) > 1}
+    if twice:
+        name, which = next(iter(twice.items()))
+        raise ExportError(f"clips {', '.join(which)} would both be exported as {name!r} (one video, one first "
+                          "timestamp); export one of them")
+    clip_of = dict(zip(names, (ds.clip for ds in datasets)))
     shared = shared_video_ids(zip(names, (ds.url for ds in datasets)))
     if shared:
         vid, which = next(iter(shared.items()))
-        raise ExportError(f"clips {', '.join(which)} come from different videos but share the video id {vid!r}; "
-                          "their frames would overwrite each other in frames/<video_id>/")
+        raise ExportError(f"clips {', '.join(clip_of[n] for n in which)} come from different videos but share the "
+                          f"video id {vid!r}; their frames would overwrite each other in frames/<video_id>/")
+    for ds in datasets:
+        for o in ds.objects:
+            if o.cad_id and o.extent is None:
+                raise ExportError(f"clip {ds.clip}, track {o.track_id}: its model {o.cad_id!r} is not in the "
+                                  "warehouse's cad_models (its CAD library removed?); ingest the library again, "
+                                  "or answer the clip's CAD selection again")
+
+
+def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None, cad: bool = True,
+                   show_progress: bool = True) -> dict[str, int]:
+    """Write the official layout of ``clips`` (default: every clip that reached verification,
+    :func:`export_clips`) to ``out`` (new or empty); returns counts (clips, frames, objects, posed
+    objects, CAD models, and ``unfinished``: the clips a default export left out)."""
+    out = Path(os.path.abspath(out))
+    check_new_folder(out)
+    selection = export_clips(wh, clips)
+    datasets = [clip_dataset(wh, c).in_input_world() for c in selection.chosen]
+    names = [official_clip_name(ds) for ds in datasets]
+    check_exportable(datasets, names)
     tmp = temp_folder_beside(out)
-    counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0}
+    counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0,
+              "unfinished": selection.unfinished}
+    frame_of: dict[Path, tuple[str, Path]] = {}  # exported frame -> (clip, warehouse image)
     try:
         for ds, name in zip(datasets, names):
             folder = tmp / "annotations" / name
@@ -117,16 +148,23 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
             vid = video_id_of(name)
             (tmp / "frames" / vid).mkdir(parents=True, exist_ok=True)
             for f in ds.frames:
-                _put_jpeg(wh.root / f.image_path, tmp / "frames" / vid / f"{vid}_{f.timestamp_us}.jpg")
+                dst = tmp / "frames" / vid / f"{vid}_{f.timestamp_us}.jpg"
+                src = wh.root / f.image_path
+                if dst in frame_of:  # two clips of one video, overlapping: one frame, or a refusal
+                    first, image = frame_of[dst]
+                    if image.read_bytes() != src.read_bytes():
+                        raise ExportError(f"clips {first} and {ds.clip} both hold frame {dst.name} of video {vid!r} "
+                                          "with different images; export one of them")
+                    continue
+                _put_jpeg(src, dst)
+                frame_of[dst] = (ds.clip, src)
             counts["frames"] += len(ds.frames)
             counts["objects"] += len(objects)
             counts["posed_objects"] += sum(o.translation is not None for o in objects)
         (tmp / "scene_list.txt").write_text("".join(f"{n}\n" for n in sorted(names)))
         if cad:
             counts["cad_models"] = export_cad_root(wh, tmp / "cad", show_progress=show_progress)
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
+        publish(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return counts

@@ -108,10 +108,12 @@ def annotation(ds: ClipDataset) -> dict:
 
 
 def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None) -> dict[str, int]:
-    """Write the Scan2CAD files of ``clips`` (default: every clip with frames) into ``out``;
-    returns counts (scans, alignments)."""
+    """Write the Scan2CAD files of ``clips`` (default: every clip that reached verification,
+    :func:`export_clips`) into ``out``; returns counts (scans, alignments, and ``unfinished``: the
+    clips a default export left out)."""
     out = Path(out)
-    clips = export_clips(wh, clips)
+    selection = export_clips(wh, clips)
+    clips = selection.chosen
     make_folder(out, exist_ok=True)
     annotations, appearances, total = [], {}, 0
     for clip in clips:
@@ -123,4 +125,4 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
         total += len(rows)
     atomic_write_bytes(out / "full_annotations.json", json.dumps(annotations, indent=1).encode())
     atomic_write_bytes(out / "cad_appearances.json", json.dumps(appearances, indent=1).encode())
-    return {"scans": len(clips), "alignments": total}
+    return {"scans": len(clips), "alignments": total, "unfinished": selection.unfinished}
