@@ -69,18 +69,45 @@ def test_sparse_timestamps_are_reached_by_seeking(small_clip):
     assert [decode_index(f.rgb) for f in frames] == list(small_clip.frame_indices[[0, 4, 11, 29]])
 
 
+def shifted_inside(src: Path, dst: Path, shift_us: int = 15_000) -> Path:
+    """A copy of the camera file ``src`` whose cameras but the first and the last are ``shift_us`` late
+    (half a frame at 30 fps): ingest's check of the end frames passes, the frames stage finds them."""
+    cams = parse_camera_file(src)
+    times = cams.timestamps_us.copy()
+    times[1:-1] += shift_us
+    write_camera_file(dst, CameraTrack(cams.url, times, cams.intrinsics, cams.world_to_camera))
+    return dst
+
+
 def test_timestamp_discrepancy_past_tolerance_fails_and_writes_nothing(wh, small_clip, tmp_path):
-    cams = parse_camera_file(small_clip.cameras_path)
-    shifted = tmp_path / "shifted.txt"  # every camera 15 ms after its frame (half a frame at 30 fps)
-    write_camera_file(shifted, CameraTrack(cams.url, cams.timestamps_us + 15_000, cams.intrinsics, cams.world_to_camera))
+    shifted = shifted_inside(small_clip.cameras_path, tmp_path / "shifted.txt")
     ingest(wh, small_clip.video_path, shifted)
-    with pytest.raises(VideoError, match=r"clip small \(.*small.mp4\): camera line 2 asks for 15000 µs but the nearest video frame is at 0 µs \(-15000 µs"):
+    step = int(parse_camera_file(small_clip.cameras_path).timestamps_us[1])
+    with pytest.raises(VideoError, match=rf"^{shifted}:3: clip small \(.*small.mp4\): camera line 3 asks for {step + 15_000} µs "
+                                         rf"but the nearest video frame is at {step} µs \(-15000 µs"):
         extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
     assert wh.read("frames").num_rows == 0
     assert not list((wh.root / "media").rglob("*.jpg")) and not list((wh.root / "_staging").iterdir())
     # A looser tolerance accepts it and records the discrepancy per frame.
     extract_frames(wh, FramesConfig(max_timestamp_error_us=20_000), "small", "run2", show_progress=False)
-    assert set(wh.read("frames").column("timestamp_error_us").to_pylist()) == {-15_000}  # the earlier frame is always nearer
+    assert set(wh.read("frames").column("timestamp_error_us").to_pylist()) == {0, -15_000}  # the earlier frame is always nearer
+
+
+def test_cameras_off_the_frames_at_either_end_fail_at_ingest(small_clip, tmp_path):
+    """A video of another frame rate, or a truncated one, is refused before anything starts, naming the line."""
+    cams = parse_camera_file(small_clip.cameras_path)
+    late = tmp_path / "late.txt"
+    write_camera_file(late, CameraTrack(cams.url, cams.timestamps_us + 15_000, cams.intrinsics, cams.world_to_camera))
+    with pytest.raises(CameraFileError, match=rf"^{late}:2: timestamp 15000 µs has no frame in .*small.mp4: the nearest is "
+                                              r"at 0 µs \(-15000 µs; \[frames\] max_timestamp_error_us = 3000\)"):
+        check_clip_inputs(small_clip.video_path, late)
+    assert check_clip_inputs(small_clip.video_path, late, tolerance_us=20_000).time_offset_us == 0
+    last = tmp_path / "last.txt"
+    times = cams.timestamps_us.copy()
+    times[-1] += 15_000
+    write_camera_file(last, CameraTrack(cams.url, times, cams.intrinsics, cams.world_to_camera))
+    with pytest.raises(CameraFileError, match=rf"^{last}:{len(times) + 1}: timestamp {times[-1]} µs has no frame"):
+        check_clip_inputs(small_clip.video_path, last)
 
 
 def test_corrupt_video_fails_clearly_at_ingest(wh, small_clip, tmp_path):
@@ -204,15 +231,15 @@ def remux(src: Path, dst: Path) -> None:
                 out.mux(packet)
 
 
-def test_video_that_opens_but_ends_early_fails_at_extraction(wh, small_clip, tmp_path):
+def test_video_that_opens_but_ends_early_fails_at_ingest(wh, small_clip, tmp_path):
     mkv = tmp_path / "full.mkv"
     remux(small_clip.video_path, mkv)
     cut = tmp_path / "cut.mkv"
     cut.write_bytes(mkv.read_bytes()[: int(mkv.stat().st_size * 0.6)])
-    ingest(wh, cut, small_clip.cameras_path)  # the header still promises 3 s
-    with pytest.raises(VideoError, match=r"clip small \(.*cut.mkv\): camera line \d+ asks for \d+ µs but the nearest video frame is at"):
-        extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
-    assert wh.read("frames").num_rows == 0 and not list((wh.root / "_staging").iterdir())
+    n = len(parse_camera_file(small_clip.cameras_path))  # the header still promises 3 s; the last frame is gone
+    with pytest.raises(CameraFileError, match=rf":{n + 1}: timestamp \d+ µs has no frame in .*cut.mkv: the nearest is at"):
+        ingest(wh, cut, small_clip.cameras_path)
+    assert wh.read("clips").num_rows == 0
 
 
 def test_aspect_check_honours_non_square_pixels(small_clip, tmp_path):

@@ -102,7 +102,7 @@ def ingest(
         cfg = ctx.obj.config()
         items, urls = [], []
         for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts
-            checked = check_clip_inputs(video, cameras, time_offset_us, align_start)
+            checked = check_clip_inputs(video, cameras, time_offset_us, align_start, cfg.frames.max_timestamp_error_us)
             for warning in checked.warnings:
                 err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
             if align_start:

@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from cadestate.config import IngestConfig
+from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256, known_file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
-from tasks.video.decode import VideoInfo, probe_video
+from tasks.video.decode import VideoInfo, decode_at, probe_video
 from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
 from tasks.video.vertical_lines import video_segment_normals
 from tasks.video.world_up import UpEstimate, estimate_up
@@ -196,12 +196,29 @@ def _check_times(track: CameraTrack, info: VideoInfo, video: Path, cameras: Path
             f"{info.duration_us} µs ({past.size} of the {len(track)} cameras are past it){hint}"))
 
 
-def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align_start: bool = False) -> CheckedInputs:
+def _check_end_frames(track: CameraTrack, video: Path, cameras: Path, offset: int, tolerance_us: int) -> None:
+    """The first and the last camera each have a video frame within ``tolerance_us`` of their time
+    (decoded: a truncated file, a video of another frame rate, or one whose stream states no
+    duration is caught before anything starts, not by the frames stage)."""
+    lines = sorted({0, len(track) - 1})
+    targets = track.timestamps_us[lines] - offset
+    for line, target, frame in zip(lines, targets.tolist(), decode_at(video, np.maximum(targets, 0))):
+        if abs(frame.time_us - target) > tolerance_us:
+            shifted = f" minus the time offset {offset} µs" if offset else ""
+            raise CameraFileError(str(cameras), line + 2, (
+                f"timestamp {int(track.timestamps_us[line])} µs{shifted} has no frame in {video}: the nearest is at "
+                f"{frame.time_us} µs ({frame.time_us - target:+d} µs; [frames] max_timestamp_error_us = {tolerance_us}): "
+                "a truncated video, or one of another frame rate than the camera file's?"))
+
+
+def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align_start: bool = False,
+                      tolerance_us: int = FramesConfig().max_timestamp_error_us) -> CheckedInputs:
     """Parse ``cameras``, probe ``video`` and check that they belong together: every camera within
-    the video once ``time_offset_us`` is subtracted (give or take END_TOLERANCE_US), intrinsics for
-    the video's frame aspect (ASPECT_ERROR; ASPECT_WARNING gives a warning). ``align_start``: the
-    offset is :func:`align_start_offset`'s (``time_offset_us`` must then be 0); the result's
-    ``time_offset_us`` is the offset in force.
+    the video once ``time_offset_us`` is subtracted (give or take END_TOLERANCE_US), a frame within
+    ``tolerance_us`` of the first and the last camera's time (:func:`_check_end_frames`),
+    intrinsics for the video's frame aspect (ASPECT_ERROR; ASPECT_WARNING gives a warning).
+    ``align_start``: the offset is :func:`align_start_offset`'s (``time_offset_us`` must then be 0);
+    the result's ``time_offset_us`` is the offset in force.
 
     Raises:
       CameraFileError: a malformed camera file, or a camera line that does not fit the video
@@ -215,6 +232,7 @@ def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align
             raise ValueError("--align-start and --time-offset-us exclude each other")
         time_offset_us = align_start_offset(track, info, cameras, video)
     _check_times(track, info, video, cameras, time_offset_us)
+    _check_end_frames(track, video, cameras, time_offset_us, tolerance_us)
     errors = _aspect_errors(track, info)
     bad = [i for i, e in enumerate(errors) if e > ASPECT_ERROR]
     if bad:
@@ -230,14 +248,16 @@ def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align
 
 
 def ingest_clip(
-    wh: Warehouse, cfg: IngestConfig, source: ClipSource, video_sha256: str, cameras_sha256: str, run_id: str
+    wh: Warehouse, cfg: IngestConfig, source: ClipSource, video_sha256: str, cameras_sha256: str, run_id: str,
+    tolerance_us: int = FramesConfig().max_timestamp_error_us,
 ) -> StageOutput:
-    """Validate ``source`` (:func:`check_clip_inputs`; its warnings become the stage's message),
+    """Validate ``source`` (:func:`check_clip_inputs`, with the frames stage's ``tolerance_us``; its
+    warnings become the stage's message),
     find its world's up (:func:`find_up`, ``cfg.up``; an unreliable estimate is
     noted in the message and ``clips.up_note``) and register it (see module docstring).
     ``cameras_sha256`` is that of :func:`cameras_file`. ``run_id`` is unused by ingest."""
     cameras_path = cameras_file(wh, source)
-    checked = check_clip_inputs(source.video, cameras_path, source.time_offset_us)
+    checked = check_clip_inputs(source.video, cameras_path, source.time_offset_us, tolerance_us=tolerance_us)
     cameras, info = checked.cameras, checked.video
     up = find_up(source.video, cameras, source.time_offset_us, cfg)
     last = int(cameras.timestamps_us[-1])
@@ -365,7 +385,8 @@ def check_video_ids(wh: Warehouse, new: Sequence[tuple[str, str]]) -> None:
 
 def _run(ctx: StageContext) -> StageOutput:
     source = ctx.source
-    return ingest_clip(ctx.wh, ctx.cfg, source, source.video_sha256, file_sha256(cameras_file(ctx.wh, source)), ctx.run_id)
+    return ingest_clip(ctx.wh, ctx.cfg, source, source.video_sha256, file_sha256(cameras_file(ctx.wh, source)), ctx.run_id,
+                       ctx.config.frames.max_timestamp_error_us)
 
 
 def _source_inputs(source: ClipSource) -> list[str]:
