@@ -15,6 +15,8 @@ Layout (what the official ``cad_estate`` dataset classes read)::
 World: frames and poses are written in the world of the clip's camera file (the rotation to +Y up
 that ingest applied, ``clips.up_rotation``, is undone: :meth:`ClipDataset.in_input_world`), so the
 exported extrinsics are the camera file's own.
+A symmetric model's pose is the turn about its +Y through which its clicks reproject
+(:mod:`tasks.dataset.symmetry_turn`): the same shape in the same place as the accepted pose.
 
 Clip names are ``<video_id>_<start_us>`` (:mod:`tasks.video.clip_names`): a warehouse clip whose name
 is not that of its camera file is exported under the derived name. Refused, naming the warehouse
@@ -38,6 +40,7 @@ from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotatio
 from tasks.cad.export import (ExportError, check_new_folder, export_clips, export_official as export_cad_root, publish,
                               temp_folder_beside)
 from tasks.dataset.objects import ClipDataset, DatasetFrame, DatasetObject, clip_dataset
+from tasks.dataset.symmetry_turn import turn_poses_to_clicks
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from warehouse import Warehouse
 
@@ -131,7 +134,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     out = Path(os.path.abspath(out))
     check_new_folder(out)
     selection = export_clips(wh, clips)
-    datasets = [clip_dataset(wh, c).in_input_world() for c in selection.chosen]
+    datasets = [turn_poses_to_clicks(clip_dataset(wh, c).in_input_world()) for c in selection.chosen]
     names = [official_clip_name(ds) for ds in datasets]
     check_exportable(datasets, names)
     tmp = temp_folder_beside(out)
