@@ -20,7 +20,7 @@ from schemas import TABLES
 from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
                             ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
                             json_schema, schema_file_name)
-from tasks.human.label_import import import_cvat, import_labelstudio, write_label
+from tasks.human.label_import import import_cvat, import_labelstudio, read_cvat, write_label
 from tasks.human.label_format import parse_task
 from tasks.human.answers_in_force import answers_digest, current_answers, label_history
 from tasks.human.label_ingest import ingest_labels, ingest_validated
@@ -521,6 +521,69 @@ def test_labelstudio_import(lwh, tmp_path):
         import_labelstudio(lwh, path, CLIP)
 
 
+def test_cvat_exports_of_the_wrong_kind_or_task_are_refused_and_rotated_boxes_bounded(lwh, tmp_path):
+    images = put(tmp_path, "img.xml", '<annotations><version>1.1</version><image id="0" name="f0.jpg" width="320" '
+                 'height="192"><box label="chair" xtl="1" ytl="1" xbr="9" ybr="9"/></image></annotations>')
+    with pytest.raises(LabelError, match=r"img.xml: /annotations/image\[0\]/box\[0\]: a 'CVAT for images' export"):
+        import_cvat(lwh, images, CLIP)
+    video = put(tmp_path, "video.xml", CVAT.replace("<size>10</size>", "<size>30</size>"))  # the task was made on the video
+    with pytest.raises(LabelError, match=r"video.xml: /annotations/meta/task/size: the tool showed 30 frames and clip 'c1' "
+                                         r"has 10: was the task made on the video\? \(--frame-map video\)"):
+        import_cvat(lwh, video, CLIP, skip_sources=("file",))
+    assert import_cvat(lwh, video, CLIP, skip_sources=("file",), frame_map="video").document["answers"]
+    turned = put(tmp_path, "rot.xml", CVAT.replace('xtl="32" ytl="19.2" xbr="160" ybr="96"',
+                                                     'xtl="32" ytl="19.2" xbr="160" ybr="96" rotation="90"', 1))
+    box = import_cvat(lwh, turned, CLIP, skip_sources=("file",)).document["answers"][0]["boxes"][0]["box"]
+    # 128 x 76.8 px about its centre (96, 57.6), turned a quarter: 76.8 x 128 px
+    assert box == pytest.approx([max(0.0, (57.6 - 64) / H), (96 - 38.4) / W, (57.6 + 64) / H, (96 + 38.4) / W])
+    project = CVAT.replace("<meta><task><id>4</id><name>c1</name><size>10</size>",
+                           "<meta><project><tasks><task><id>4</id><name>c1</name><size>10</size></task>"
+                           "<task><id>8</id><name>c10</name><size>10</size></task></tasks></project><task><id>4</id><name>c1</name><size>10</size>")
+    project = project.replace('<track id="0" label="chair" source="manual">', '<track id="0" label="chair" source="manual" task_id="4">')
+    project = project.replace('<track id="1" label="table" source="file">', '<track id="1" label="table" source="manual" task_id="8">')
+    doc = import_cvat(lwh, put(tmp_path, "project.xml", project), CLIP).document
+    assert [a["source_id"] for a in doc["answers"]] == ["cvat:0"]  # c10's track left out, c1 not taken for c10
+    with pytest.raises(LabelError, match=r"a project export of 2 tasks \('c1', 'c10'\), none of which names clip 'c2'"):
+        read_cvat(tmp_path / "project.xml", (W, H), clip="c2")
+
+
+def test_labelstudio_frames_not_times_and_the_clip_it_names(lwh, tmp_path):
+    """Label Studio writes a 1-based frame f at time f / fps: the frame is read, the time is not."""
+    seq = [{"frame": 1, "x": 10, "y": 10, "width": 40, "height": 40, "time": 0.1},
+           {"frame": 4, "x": 10, "y": 10, "width": 40, "height": 40, "time": 0.4}]
+    task = {"id": 1, "data": {"video": "/data/upload/3/1f2e-kitchen.mp4"}, "annotations": [{"id": 3, "result": [
+        {"id": "r1", "type": "videorectangle", "value": {"framesCount": 10, "sequence": seq, "labels": ["chair"]}}]}]}
+    path = put(tmp_path, "ls.json", [task])
+    result = import_labelstudio(lwh, path, CLIP, frame_map="video")
+    assert [b["timestamp_us"] for b in result.document["answers"][0]["boxes"]] == [0, 300_000]
+    assert result.warnings == [f"{path}: $[0].data: names no clip 'c1' ({{\"video\": \"/data/upload/3/1f2e-kitchen.mp4\"}}): "
+                               "is this the clip's export?"]
+    two = put(tmp_path, "two.json", [task | {"data": {"video": "/data/upload/c1.mp4"}}, task | {"id": 2, "data": {"video": "c10.mp4"}}])
+    assert import_labelstudio(lwh, two, CLIP).warnings == []  # c1, not c10
+    longer = put(tmp_path, "long.json", [task | {"data": {"video": "c1.mp4"}, "annotations": [{"id": 3, "result": [
+        {"id": "r1", "type": "videorectangle", "value": {"framesCount": 30, "sequence": seq, "labels": ["chair"]}}]}]}])
+    with pytest.raises(LabelError, match=r"long.json: \$\[0\].annotations\[0\].result\[0\].value.framesCount: the tool "
+                                         "showed 30 frames"):
+        import_labelstudio(lwh, longer, CLIP)
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + two.read_bytes())
+    assert import_labelstudio(lwh, bom, CLIP).document["answers"]
+    with pytest.raises(LabelError, match=r"^\S+nothing.json: \$: expected one Label Studio task \(for clip 'c1'\), found 0$"):
+        import_labelstudio(lwh, put(tmp_path, "nothing.json", []), CLIP)
+
+
+def test_a_label_file_with_a_bom_is_read_and_answers_naming_each_other_are_refused(lwh, tmp_path):
+    path = tmp_path / "v.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(good("verification")).encode())
+    assert validate_label(path, lwh).kind == "verification"
+    ring = _edit("cad_selection", lambda x: x.__setitem__("answers", [
+        {"track_id": 0, "cad_id": None, "same_as_track": 1}, {"track_id": 1, "cad_id": None, "same_as_track": 2},
+        {"track_id": 2, "cad_id": None, "same_as_track": 0}]))
+    with pytest.raises(LabelError, match=r"\$.answers\[0\].same_as_track: tracks 0 -> 1 -> 2 -> 0 each name the next as "
+                                         "the same object"):
+        validate_label(put(tmp_path, "ring.json", ring), lwh)
+
+
 # ------------------------------------------------------------------------------ command line
 
 def test_cli_schema_validate_ingest(lwh, tmp_path):
@@ -540,7 +603,10 @@ def test_cli_schema_validate_ingest(lwh, tmp_path):
     xml = put(tmp_path, "annotations.xml", CVAT)
     result = runner.invoke(app, [*w, "labels", "import-cvat", str(xml), "--clip", CLIP, "--out", str(d), "--skip-source", "file"])
     assert result.exit_code == 0, result.output
-    assert validate_label(d / "c1.annotations.cvat.json", lwh).kind == "manual_track"
+    from cadestate.lineage import file_sha256
+
+    written = d / f"c1.annotations.{file_sha256(xml)[:8]}.cvat.json"  # two CVAT exports, both annotations.xml, both kept
+    assert validate_label(written, lwh).kind == "manual_track"
 
 
 def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):

@@ -179,13 +179,18 @@ def _label_map(pairs: list[str] | None) -> dict[str, str]:
     return out_map
 
 
-def _write_import(result, out_dir: Path, stem: str) -> None:
+def _write_import(result, out_dir: Path, source: Path, clip: str, tool: str) -> None:
+    """Write the label file ``<clip>.<export name>.<first 8 hex of the export's SHA-256>.<tool>.json``:
+    two exports of one name (CVAT names every export annotations.xml) never overwrite each other."""
+    from cadestate.lineage import file_sha256
     from tasks.human.label_import import write_label
 
     for d in result.dropped:
         err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
+    for w in result.warnings:
+        err.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, emoji=False)
     try:
-        path = write_label(result.document, out_dir, stem)
+        path = write_label(result.document, out_dir, f"{clip}.{source.stem}.{file_sha256(source)[:8]}.{tool}")
     except OSError as e:
         raise CliError(f"{out_dir}: cannot write the label file there: {e.strerror or e}") from None
     n = len(result.document["answers"])
@@ -218,7 +223,7 @@ def labels_import_cvat(
 
     result = import_cvat(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
                          skip_sources=tuple(skip_source or ()), label_map=_label_map(label_map))
-    _write_import(result, out_dir, f"{clip}.{file.stem}.cvat")
+    _write_import(result, out_dir, file, clip, "cvat")
 
 
 @labels_app.command("import-labelstudio")
@@ -236,4 +241,4 @@ def labels_import_labelstudio(
 
     result = import_labelstudio(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value,
                                 label_map=_label_map(label_map))
-    _write_import(result, out_dir, f"{clip}.{file.stem}.labelstudio")
+    _write_import(result, out_dir, file, clip, "labelstudio")

@@ -95,9 +95,10 @@ def check_size(data: bytes, name: str, max_bytes: int = MAX_LABEL_BYTES, what: s
 
 
 def parse_json(data: bytes, name: str) -> Any:
-    """Parse bytes as UTF-8 JSON; errors name the file and line/column."""
+    """Parse bytes as UTF-8 JSON (a leading byte-order mark, as Windows editors write, dropped);
+    errors name the file and line/column."""
     try:
-        text = data.decode("utf-8")
+        text = data.removeprefix(b"\xef\xbb\xbf").decode("utf-8")
     except UnicodeDecodeError as e:
         raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
     try:

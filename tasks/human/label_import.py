@@ -4,15 +4,19 @@ Both become a ``manual_track`` label file (:mod:`schemas.labels`) for a task of 
 like any label file before it is written; ``cadestate labels ingest`` then ingests it.
 
 - CVAT for video 1.1 (``annotations.xml``): ``<track id label source>`` holding
-  ``<box frame xtl ytl xbr ybr outside occluded keyframe>`` in pixels (normalised by
-  ``meta/*/original_size``, else the clip's frame size). Boxes with ``outside="1"`` are dropped;
-  by default only ``keyframe="1"`` boxes (the ones drawn, not interpolated) are kept. ``frame``
-  is 0-based.
+  ``<box frame xtl ytl xbr ybr outside occluded keyframe rotation>`` in pixels (normalised by
+  ``meta/*/original_size``, else the clip's frame size; a box rotated about its centre becomes its
+  axis-aligned bounding box). Boxes with ``outside="1"`` are dropped; by default only
+  ``keyframe="1"`` boxes (the ones drawn, not interpolated) are kept. ``frame`` is 0-based. A
+  project export of several tasks keeps the tracks (``task_id``) of the one task whose name or
+  source names the clip. A "CVAT for images" export (boxes on single frames, no tracks) is refused.
 - Label Studio video (JSON export): results of type ``videorectangle`` with
   ``value.sequence[{frame, enabled, x, y, width, height, rotation, time}]`` in percent (0-100) and
   ``value.labels``; ``frame`` is 1-based, every sequence entry is a key-frame; a rotated box
   becomes its axis-aligned bounding box (rotation in degrees about its top-left corner). The
-  newest annotation that was not cancelled is used.
+  newest annotation that was not cancelled is used. With several tasks in the export, the one
+  whose ``data`` names the clip (as a whole word); one task that names another video is imported
+  with a warning.
 
 Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
 number an element or field needs must be there and be a finite number (frames: whole numbers),
@@ -24,9 +28,12 @@ label would say that nothing is missing.
 
 Frame numbers map to camera timestamps in one of two ways (``frame_map``):
 ``frames`` (default): the tool showed the clip's extracted frames as an image sequence, so tool
-frame n is ``frames.frame_index`` n; ``video``: the tool showed the video, so tool frame n is at
-n / fps seconds (Label Studio: its ``time``) and maps to the camera frame whose decoded video
-frame is nearest, within half a video frame (boxes between camera frames are dropped).
+frame n is ``frames.frame_index`` n (refused when the tool says it showed another number of
+frames: CVAT's ``meta/*/size``, Label Studio's ``framesCount``); ``video``: the tool showed the
+video, so tool frame n (0-based) is at n / fps seconds and maps to the camera frame whose decoded
+video frame is nearest, within half a video frame (boxes between camera frames are dropped).
+Label Studio's ``time`` is not used: it writes frame f (1-based) at f / fps, a frame after the
+frame's own time.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ import bisect
 import datetime as dt
 import json
 import math
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,30 +68,38 @@ MAX_PERCENT = 1000.0
 
 @dataclass(frozen=True)
 class ToolBox:
-    """A box from a tool: its frame (``index``: 0-based frame number, ``time_s`` when the tool gives it)
-    and (ymin, xmin, ymax, xmax) normalised."""
+    """A box from a tool: its frame (``index``: 0-based frame number) and (ymin, xmin, ymax, xmax) normalised."""
 
     index: int
-    time_s: float | None
     box: tuple[float, float, float, float]
 
 
 @dataclass
 class ToolTrack:
-    """A track from a tool: its id there, its label, its boxes, and where it is in the file."""
+    """A track from a tool: its id there, its label, its boxes, and where it is in the file;
+    ``shown_frames``: how many frames the tool says it showed (None: it does not say), stated at
+    ``shown_where``."""
 
     source_id: str
     label: str
     boxes: list[ToolBox] = field(default_factory=list)
     where: str = ""
+    shown_frames: int | None = None
+    shown_where: str = ""
 
 
 @dataclass
 class ImportResult:
-    """The label document made, and what was left out (in words)."""
+    """The label document made, what was left out, and warnings (in words)."""
 
     document: dict
     dropped: list[str]
+    warnings: list[str] = field(default_factory=list)
+
+
+def names_clip(text: str, clip: str) -> bool:
+    """Whether ``text`` holds ``clip`` as a whole word (``c1`` is not in ``c10.mp4``)."""
+    return re.search(rf"(?<![A-Za-z0-9]){re.escape(clip)}(?![A-Za-z0-9])", text) is not None
 
 
 # ------------------------------------------------------------------------------ frames
@@ -112,7 +128,7 @@ class ClipFrames:
         """The camera timestamp of a tool box's frame, or None when no camera frame matches."""
         if mode == "frames":
             return self.by_index.get(b.index)
-        t = (b.time_s if b.time_s is not None else b.index / self.fps) * 1e6
+        t = b.index / self.fps * 1e6
         i = bisect.bisect_left(self.video_times, t)
         best = min((j for j in (i - 1, i) if 0 <= j < len(self.video_times)), key=lambda j: abs(self.video_times[j] - t))
         return self.timestamps[best] if abs(self.video_times[best] - t) <= 0.5e6 / self.fps else None
@@ -201,27 +217,69 @@ def _cvat_size(root: ET.Element, name: str, size: tuple[int, int] | None) -> tup
     return size
 
 
+def _cvat_task(root: ET.Element, name: str, clip: str | None) -> tuple[str | None, ET.Element | None, str]:
+    """(task id whose tracks to keep, None: all; that task's meta element; where it is): a project
+    export of several tasks keeps the one whose name or source names ``clip``."""
+    tasks = root.findall("meta/project/tasks/task")
+    if len(tasks) <= 1 or clip is None:
+        for owner in ("task", "job"):
+            if (meta := root.find(f"meta/{owner}")) is not None:
+                return None, meta, f"/annotations/meta/{owner}"
+        if tasks:
+            return None, tasks[0], "/annotations/meta/project/tasks/task[0]"
+        return None, None, ""
+    chosen = [(i, t) for i, t in enumerate(tasks)
+              if names_clip(f"{t.findtext('name') or ''} {t.findtext('source') or ''}", clip)]
+    if len(chosen) != 1:
+        listed = ", ".join(repr(t.findtext("name") or "") for t in tasks[:8])
+        raise LabelError(f"{name}: /annotations/meta/project/tasks: a project export of {len(tasks)} tasks ({listed}), "
+                         f"{'none' if not chosen else len(chosen)} of which names clip {clip!r}; export the clip's task alone")
+    i, task = chosen[0]
+    return task.findtext("id"), task, f"/annotations/meta/project/tasks/task[{i}]"
+
+
+def _cvat_box(box: ET.Element, at: str, width: int, height: int) -> tuple[float, float, float, float]:
+    """The normalised axis-aligned box of a CVAT ``<box>`` (its ``rotation``, degrees about its centre, applied)."""
+    x0, y0, x1, y1 = (_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr"))
+    rotation = _number(box.get("rotation", "0"), f"{at}/@rotation")
+    if rotation:
+        c, s = abs(math.cos(math.radians(rotation))), abs(math.sin(math.radians(rotation)))
+        cx, cy, hw, hh = (x0 + x1) / 2, (y0 + y1) / 2, abs(x1 - x0) / 2, abs(y1 - y0) / 2
+        x0, x1 = cx - (hw * c + hh * s), cx + (hw * c + hh * s)
+        y0, y1 = cy - (hw * s + hh * c), cy + (hw * s + hh * c)
+    return normalised_box(x0, y0, x1, y1, width, height)
+
+
 def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_only: bool = True,
-              skip_sources: tuple[str, ...] = ()) -> list[ToolTrack]:
-    """Tracks of a CVAT video XML 1.1 file (``size``: (width, height) when the file has none)."""
+              skip_sources: tuple[str, ...] = (), clip: str | None = None) -> list[ToolTrack]:
+    """Tracks of a CVAT video XML 1.1 file (``size``: (width, height) when the file has none;
+    ``clip``: the clip, to pick its task from a project export)."""
     name = str(path)
     root = _parse_xml(path)
     if root.tag != "annotations":
         raise LabelError(f"{name}: /{root.tag}: not a CVAT annotations file (root element must be <annotations>)")
+    if not root.findall("track") and root.find("image/box") is not None:
+        i = next(i for i, image in enumerate(root.findall("image")) if image.find("box") is not None)
+        raise LabelError(f"{name}: /annotations/image[{i}]/box[0]: a 'CVAT for images' export holds boxes on single "
+                         "frames, not tracks; export the task as 'CVAT for video 1.1'")
     width, height = _cvat_size(root, name, size)
+    task_id, meta, meta_where = _cvat_task(root, name, clip)
+    shown = None
+    if meta is not None and meta.find("size") is not None:
+        shown = _whole(meta.findtext("size"), f"{name}: {meta_where}/size", 0)
     tracks = []
     for i, el in enumerate(root.findall("track")):
         where = f"{name}: /annotations/track[{i}]"
-        if el.get("source", "manual") in skip_sources:
+        if el.get("source", "manual") in skip_sources or (task_id is not None and el.get("task_id", task_id) != task_id):
             continue
-        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where)
+        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where,
+                          shown_frames=shown, shown_where=f"{name}: {meta_where}/size")
         for j, box in enumerate(el.findall("box")):
             if box.get("outside", "0") == "1" or (keyframes_only and box.get("keyframe", "1") != "1"):
                 continue
             at = f"{where}/box[{j}]"
             frame = _whole(box.get("frame"), f"{at}/@frame", 0)
-            corners = [_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr")]
-            track.boxes.append(ToolBox(frame, None, normalised_box(*corners, width, height)))
+            track.boxes.append(ToolBox(frame, _cvat_box(box, at, width, height)))
         tracks.append(track)
     return tracks
 
@@ -245,13 +303,12 @@ def _ls_box(item: object, size: tuple[int, int], where: str) -> ToolBox:
     if max(abs(x), abs(y), abs(w), abs(h)) > MAX_PERCENT:
         raise LabelError(f"{where}: x, y, width and height are percent of the frame, not beyond +-{MAX_PERCENT:g}")
     rotation = _json_number(item.get("rotation") or 0.0, f"{where}.rotation")
-    time_s = None if item.get("time") is None else _json_number(item["time"], f"{where}.time")
     W, H = size
     x, y, w, h = x / 100 * W, y / 100 * H, w / 100 * W, h / 100 * H
     c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
     xs = [x + dx * c - dy * s for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
     ys = [y + dx * s + dy * c for dx, dy in ((0, 0), (w, 0), (w, h), (0, h))]
-    return ToolBox(frame - 1, time_s, normalised_box(min(xs), min(ys), max(xs), max(ys), W, H))
+    return ToolBox(frame - 1, normalised_box(min(xs), min(ys), max(xs), max(ys), W, H))
 
 
 def _ls_track(result: dict, size: tuple[int, int], where: str, index: int) -> ToolTrack:
@@ -265,34 +322,42 @@ def _ls_track(result: dict, size: tuple[int, int], where: str, index: int) -> To
     track = ToolTrack(f"labelstudio:{_text(str(rid), f'{where}.id')}", _text(labels[0], f"{where}.value.labels[0]"), where=where)
     sequence = _of_type(value.get("sequence"), list, f"{where}.value.sequence")
     track.boxes = [_ls_box(item, size, f"{where}.value.sequence[{j}]") for j, item in enumerate(sequence)]
+    if value.get("framesCount") is not None:
+        track.shown_frames = _whole(value["framesCount"], f"{where}.value.framesCount", 0)
+        track.shown_where = f"{where}.value.framesCount"
     return track
 
 
 def _ls_task(data: object, name: str, clip: str | None) -> tuple[dict, str]:
-    """The export's one task (with several, the one whose ``data`` mentions ``clip``) and where it is."""
+    """The export's one task (with several, the one whose ``data`` names ``clip``) and where it is."""
     tasks = [(t, f"{name}: $[{i}]" if isinstance(data, list) else f"{name}: $")
              for i, t in enumerate(data if isinstance(data, list) else [data]) if isinstance(t, dict)]
     if len(tasks) > 1 and clip is not None:
-        tasks = [t for t in tasks if clip in json.dumps(t[0].get("data", {}))]
+        tasks = [t for t in tasks if names_clip(json.dumps(t[0].get("data", {})), clip)]
     if len(tasks) != 1:
         raise LabelError(f"{name}: $: expected one Label Studio task (for clip {clip!r}), found {len(tasks)}")
     return tasks[0]
 
 
-def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None = None) -> list[ToolTrack]:
+def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None = None,
+                     warnings: list[str] | None = None) -> list[ToolTrack]:
     """Tracks of a Label Studio JSON export (``size``: (width, height) of the frames). With several
-    tasks in the export, the one whose ``data`` mentions ``clip`` is used."""
+    tasks in the export, the one whose ``data`` names ``clip`` is used; one task whose ``data``
+    names a video but not ``clip`` adds a line to ``warnings``."""
     name = str(path)
     raw = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "$")
     try:
-        data = json.loads(raw.decode("utf-8"))
-        task, where = _ls_task(data, name, clip)
+        data = json.loads(raw.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except UnicodeDecodeError as e:
         raise LabelError(f"{name}: $: not UTF-8 text (byte {e.start})") from None
     except json.JSONDecodeError as e:
         raise LabelError(f"{name}: $: not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
     except (ValueError, RecursionError) as e:
         raise LabelError(f"{name}: $: not valid JSON: {e or 'nested too deeply'}") from None
+    task, where = _ls_task(data, name, clip)
+    shown = json.dumps(task.get("data", {}), ensure_ascii=False)
+    if clip is not None and warnings is not None and not names_clip(shown, clip):
+        warnings.append(f"{where}.data: names no clip {clip!r} ({shown[:80]}): is this the clip's export?")
     annotation, where = _ls_annotation(task, where)
     results = _of_type(annotation.get("result", []), list, f"{where}.result")
     tracks = []
@@ -325,6 +390,11 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     clip's newest manual-track task); ``name``: the file, for errors."""
     task = _answered_task(wh, clip, task_id)
     frames = ClipFrames.of(wh, clip)
+    if frame_map == "frames":
+        for t in tracks:
+            if t.shown_frames is not None and t.shown_frames != len(frames.timestamps):
+                raise LabelError(f"{t.shown_where}: the tool showed {t.shown_frames} frames and clip {clip!r} has "
+                                 f"{len(frames.timestamps)}: was the task made on the video? (--frame-map video)")
     answers, dropped = [], []
     for t in tracks:
         label = (label_map or {}).get(t.label, t.label)
@@ -360,7 +430,7 @@ def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None 
                 keyframes_only: bool = True, skip_sources: tuple[str, ...] = (), label_map: dict[str, str] | None = None) -> ImportResult:
     """A ``manual_track`` label document from a CVAT video XML 1.1 file."""
     frames = ClipFrames.of(wh, clip)
-    tracks = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources)
+    tracks = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources, clip)
     return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}", name=str(path))
 
 
@@ -368,9 +438,12 @@ def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str 
                        frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None) -> ImportResult:
     """A ``manual_track`` label document from a Label Studio video JSON export."""
     frames = ClipFrames.of(wh, clip)
-    tracks = read_labelstudio(path, (frames.width, frames.height), clip)
-    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
-                           name=str(path))
+    warnings: list[str] = []
+    tracks = read_labelstudio(path, (frames.width, frames.height), clip, warnings)
+    result = tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
+                             name=str(path))
+    result.warnings.extend(warnings)
+    return result
 
 
 def write_label(doc: dict, out_dir: str | Path, stem: str) -> Path:

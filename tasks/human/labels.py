@@ -222,6 +222,7 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
                 raise _fail(name, ["not_objects", i], f"track {t} is listed twice")
         return
     items = _items(task, name, label)
+    _check_same_as_cycles(label, name)
     for i, a in enumerate(label.answers):
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
@@ -244,6 +245,23 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
                 if kf.timestamp_us in seen:
                     raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
                 seen.add(kf.timestamp_us)
+
+
+def _check_same_as_cycles(label, name: str) -> None:
+    """Refuse answers whose ``same_as_track`` links go round (track 0 the same object as 1, and 1 as
+    0): none of them would be the object, and the object would leave the dataset."""
+    same = {a.track_id: (i, a.same_as_track) for i, a in enumerate(label.answers)
+            if getattr(a, "same_as_track", None) is not None}
+    for start in same:
+        seen, track = [start], same[start][1]
+        while track in same and track not in seen:
+            seen.append(track)
+            track = same[track][1]
+        if track == start:
+            i = same[start][0]
+            ring = " -> ".join(str(t) for t in [*seen, start])
+            raise _fail(name, ["answers", i, "same_as_track"], f"tracks {ring} each name the next as the same object: "
+                                                               "one of them must be the object (its own answer)")
 
 
 def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
