@@ -42,10 +42,13 @@ class ConfigError(ValueError):
 
 
 def _opt(default: Any, doc: str, *, choices: tuple | None = None, lo: float | None = None, hi: float | None = None,
-         check: Callable[[Any], str | None] | None = None):
+         check: Callable[[Any], str | None] | None = None, runtime: bool = False):
     """A config key with its documentation and constraints (kept in dataclass field metadata);
-    ``check(value)`` says what else is wrong with a value, or None."""
-    return field(default=default, metadata={"doc": doc, "choices": choices, "lo": lo, "hi": hi, "check": check})
+    ``check(value)`` says what else is wrong with a value, or None; ``runtime``: the key says how
+    to run (threads, workers, links), not what comes out, so it is left out of the section's
+    digest (:func:`section_hash`) and changing it reruns nothing."""
+    return field(default=default, metadata={"doc": doc, "choices": choices, "lo": lo, "hi": hi, "check": check,
+                                            "runtime": runtime})
 
 
 def _non_empty(value: str) -> str | None:
@@ -106,7 +109,7 @@ class ScheduleConfig:
 class IngestConfig:
     """Stage ``ingest``: validate a clip's video and camera file and register it."""
 
-    link_inputs: bool = _opt(True, "Hard-link inputs into the warehouse when possible instead of copying them.")
+    link_inputs: bool = _opt(True, "Hard-link inputs into the warehouse when possible instead of copying them.", runtime=True)
     up: str = _opt("auto", "The camera file's world up: 'auto' estimates it from the cameras (level, upright phones; "
                    "tasks/video/world_up.py), or force an axis of that world ('+y' for worlds built +Y up, '-y' for "
                    "ORB-SLAM worlds whose first camera is level). The world is turned to +Y up at ingest.",
@@ -173,7 +176,7 @@ class CamerasConfig:
                    "and SfM then gives other cameras, at times another model.", lo=1, hi=256)
     workers: int = _opt(2, "Threads for feature extraction and for the focal hypotheses; the cameras do not depend on it "
                         "(the frames enter the database in time order before their features, and each hypothesis maps "
-                        "its own copy of the database).", lo=1, hi=256)
+                        "its own copy of the database).", lo=1, hi=256, runtime=True)
     seed: int = _opt(0, "Random seed of two-view verification and the mapper (same seed, same cameras).", lo=0, hi=2**31 - 1)
 
 
@@ -198,7 +201,7 @@ class CadIngestConfig:
     source: str = _opt("", "CAD source folder (Sweet Home 3D *.sh3f, ShapeNet layout, or meshes + models.csv); empty = the embedded Sweet Home 3D library.")
     samples: int = _opt(4096, "Surface samples per model (symmetry detection, later geometry).", lo=256, hi=1_000_000)
     symmetry_tolerance: float = _opt(0.008, "Largest symmetric-copy distance, relative to the model size, that counts as symmetric.", lo=0.0, hi=1.0)
-    workers: int = _opt(2, "Processes that ingest models in parallel (results do not depend on it).", lo=1, hi=256)
+    workers: int = _opt(2, "Processes that ingest models in parallel (results do not depend on it).", lo=1, hi=256, runtime=True)
 
 
 @dataclass(frozen=True)
@@ -235,7 +238,7 @@ class DetectConfig:
     max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
     classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
     batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)
-    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256)
+    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256, runtime=True)
 
 
 @dataclass(frozen=True)
@@ -246,7 +249,7 @@ class EmbedConfig:
     crop_size: int = _opt(128, "Side of the square letterboxed crop fed to the embedder.", lo=32, hi=1024)
     context: float = _opt(0.1, "Box margin added on every side before cropping, as a fraction of the box size.", lo=0.0, hi=2.0)
     batch_size: int = _opt(32, "Crops per network call.", lo=1, hi=4096)
-    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256)
+    threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256, runtime=True)
 
 
 @dataclass(frozen=True)
@@ -333,7 +336,8 @@ class PoseConfig:
     min_points: int = _opt(6, "Fewest correspondences per track to solve it.", lo=5, hi=10_000)
     max_reprojection_px: float = _opt(20.0, "Mean reprojection error (px) above which a pose gets status high_residual.", lo=0.0)
     min_parallax_deg: float = _opt(1.0, "Key-frames seeing the object under less angle than this: status low_parallax (ok when the support prior rests it on a support seen under at least this angle from its cameras, which then fixes its depth).", lo=0.0, hi=180.0)
-    threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects).", lo=1, hi=256)
+    threads: int = _opt(1, "Torch threads (1 is fastest for a clip's few objects; results do not depend on it).", lo=1,
+                        hi=256, runtime=True)
     huber_px: float = _opt(5.0, "Reprojection loss: Huber, quadratic within this many px and L1 beyond; 0 = the paper's L1.", lo=0.0)
     floor_prior: float = _opt(30.0, "Support prior (tasks/pose/support.py): weight, px per object height, of the distance between a resting object's bottom and its support (world +Y up): its clip's floor (the inverse-variance weighted mean of its solved floor objects' bottoms within floor_max_gap of their weighted median) or the top of another solved object it stands over; 0 switches it off.", lo=0.0)
     floor_classes: tuple = _opt(
@@ -471,14 +475,22 @@ RUNTIME_SECTIONS = ("warehouse", "prefect", "schedule")
 """Sections that do not affect results (no lineage)."""
 
 
+def runtime_keys(section: Any) -> frozenset[str]:
+    """The keys of a section dataclass that do not affect results (``_opt(..., runtime=True)``)."""
+    return frozenset(f.name for f in dataclasses.fields(section) if f.metadata.get("runtime"))
+
+
 def section_hash(name: str, section: Any) -> str:
-    """Stable 16-hex digest of a section's values (key order and file formatting do not matter).
-    Remembered by the section's ``repr`` (which tells 1 from 1.0 and True, as the digest does): a
-    long-lived process digests the same sections for every stage of every resume."""
+    """Stable 16-hex digest of a section's values that affect results (key order and file formatting
+    do not matter; :func:`runtime_keys` are left out). Remembered by the section's ``repr`` (which
+    tells 1 from 1.0 and True, as the digest does): a long-lived process digests the same sections
+    for every stage of every resume."""
     key = (name, repr(section))
     known = _SECTION_HASHES.get(key)
     if known is None:
-        payload = json.dumps({"section": name, **dataclasses.asdict(section)}, sort_keys=True)
+        skip = runtime_keys(section)
+        values = {k: v for k, v in dataclasses.asdict(section).items() if k not in skip}
+        payload = json.dumps({"section": name, **values}, sort_keys=True)
         known = _SECTION_HASHES[key] = hashlib.sha256(payload.encode()).hexdigest()[:16]
     return known
 

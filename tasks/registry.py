@@ -28,7 +28,7 @@ import importlib
 import json
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cache, cached_property
 from pathlib import Path
@@ -284,13 +284,27 @@ def stages_of(scope: str) -> list[Stage]:
 
 def config_hash(stage: str, config: Config | Mapping[str, Any]) -> str:
     """``runs.config_hash`` of ``stage``: its section's digest, combined with the digests of its
-    ``extra_sections``; ``config``: a :class:`cadestate.config.Config` or a mapping of section
-    names to their dataclasses."""
+    ``extra_sections`` (a whole section, or one key of it: ``"manual_tracks.keyframes"``);
+    ``config``: a :class:`cadestate.config.Config` or a mapping of section names to their dataclasses."""
     section = config.__getitem__ if isinstance(config, Mapping) else config.section
     name = STAGES[stage].section
     own = section_hash(name, section(name)) if name is not None else digest("no config section")
     extra = STAGES[stage].extra_sections
-    return digest(own, *(section_hash(n, section(n)) for n in extra)) if extra else own
+    return digest(own, *(_extra_digest(e, section) for e in extra)) if extra else own
+
+
+def _extra_digest(entry: str, section: Callable[[str], Any]) -> str:
+    """Digest of an ``extra_sections`` entry: a section's :func:`section_hash`, or one key's value."""
+    name, _, key = entry.partition(".")
+    if not key:
+        return section_hash(name, section(name))
+    return digest(f"{entry}={json.dumps(getattr(section(name), key), sort_keys=True)}")
+
+
+def extra_shown(entry: str) -> str:
+    """An ``extra_sections`` entry as the docs show it: ``[embed]``, ``[manual_tracks] keyframes``."""
+    name, _, key = entry.partition(".")
+    return f"[{name}] {key}" if key else f"[{name}]"
 
 
 def extra_inputs(stage: str, config: Config) -> list[str]:
@@ -311,7 +325,7 @@ def stages_markdown(scope: str) -> str:
         after = ", ".join(f"`{u}`" for u in s.upstream + s.after) or "(the source)"
         writes = ", ".join(f"`{t}`" for t in s.tables) or "(files)"
         config = f"`[{s.section}]`" if s.section else ""
-        config += "".join(f", `[{e}]`" for e in s.extra_sections)
+        config += "".join(f", `{extra_shown(e)}`" for e in s.extra_sections)
         module = "tasks/" + "/".join(s.module.split(".")[1:]) + ".py"
         rows.append(f"| `{s.name}` | {after} | {writes} | {config} | `{module}` | {s.description} |")
     return "\n".join(rows)

@@ -100,7 +100,8 @@ class StageDef:
     a ``clip`` or a CAD ``library`` (whose runs use the library name as ``runs.clip``). ``upstream``:
     the stages whose outputs it reads (their output digests make its ``inputs_hash``; it does not run,
     and is ``waiting``, while one of them waits for people with nothing answered). ``tables``: what
-    it writes. ``extra_sections``: config sections it reads besides its own (part of its config hash).
+    it writes. ``extra_sections``: config sections it reads besides its own, or single keys of them
+    (``"manual_tracks.keyframes"``; part of its config hash).
     ``after``: stages it is listed after without reading their output (pose reads the answers of the
     correspondence task from the warehouse).
 

@@ -84,11 +84,25 @@ def test_section_hash_is_remembered_by_value_and_type():
     from cadestate.config import section_hash
 
     sections = [dataclasses.replace(Config().pose, coplanar_tol=v) for v in (1, 1.0, True)]  # equal as dicts keys would be
-    fresh = [hashlib.sha256(json.dumps({"section": "pose", **dataclasses.asdict(s)}, sort_keys=True).encode()).hexdigest()[:16]
-             for s in sections]
+    fresh = [hashlib.sha256(json.dumps({"section": "pose", **{k: v for k, v in dataclasses.asdict(s).items() if k != "threads"}},
+                                       sort_keys=True).encode()).hexdigest()[:16] for s in sections]
     assert len(set(fresh)) == 3
     for _ in range(2):
         assert [section_hash("pose", s) for s in sections] == fresh
+
+
+def test_keys_that_only_say_how_to_run_leave_the_digest_alone():
+    """Threads, workers and input links change no result: changing them reruns no stage."""
+    from cadestate.config import runtime_keys
+
+    c = Config()
+    for name, key, value in [("detect", "threads", 7), ("embed", "threads", 7), ("pose", "threads", 3),
+                             ("cameras", "workers", 5), ("cad_ingest", "workers", 5), ("ingest", "link_inputs", False)]:
+        assert key in runtime_keys(c.section(name))
+        changed = dataclasses.replace(c, **{name: dataclasses.replace(c.section(name), **{key: value})})
+        assert changed.section_hash(name) == c.section_hash(name), (name, key)
+    assert "threads" not in runtime_keys(c.cameras)  # SfM's mapping threads do change the cameras
+    assert dataclasses.replace(c, cameras=dataclasses.replace(c.cameras, threads=2)).section_hash("cameras") != c.section_hash("cameras")
 
 
 def test_load_file_env_and_errors(tmp_path, monkeypatch):

@@ -57,6 +57,11 @@ def test_config_hash_covers_own_and_extra_sections():
     assert config_hash("cad_embed", changed) != config_hash("cad_embed", base)  # [embed] is an extra section
     assert config_hash("cad_views", changed) == config_hash("cad_views", base)
     assert config_hash("detect", base) == config_hash("detect", {"detect": base.detect})
+    # one key of another section: tracking reads [manual_tracks] keyframes, not its splits
+    keyframes = replace(base, manual_tracks=replace(base.manual_tracks, keyframes=base.manual_tracks.keyframes + 1))
+    splits = replace(base, manual_tracks=replace(base.manual_tracks, splits=("val",)))
+    assert config_hash("tracking", keyframes) != config_hash("tracking", base) == config_hash("tracking", splits)
+    assert config_hash("manual_tracks", splits) != config_hash("manual_tracks", base)
 
 
 def test_readme_stage_tables_are_the_registry_s():

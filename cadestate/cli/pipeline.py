@@ -208,7 +208,7 @@ def stages(
     """The pipeline's stages, in order: what each runs after, the tables it writes, its config
     section, its module and what it does. A stage is declared in its module (``STAGE = StageDef(...)``);
     adding one is writing such a module."""
-    from tasks.registry import stages_markdown, stages_of
+    from tasks.registry import extra_shown, stages_markdown, stages_of
 
     for scope, title in (("clip", "per clip"), ("library", "per CAD library")):
         if markdown:
@@ -217,7 +217,7 @@ def stages(
         table = Table("stage", "after", "writes", "config", "module", "what it does", title=f"stages {title}")
         for st in stages_of(scope):
             table.add_row(st.name, ", ".join(st.upstream + st.after), ", ".join(st.tables),
-                          ", ".join(filter(None, (st.section, *st.extra_sections))), st.module, escape(st.description))
+                          escape(", ".join(filter(None, (st.section and f"[{st.section}]", *map(extra_shown, st.extra_sections))))), st.module, escape(st.description))
         out.print(table)
 
 

@@ -261,5 +261,5 @@ STAGE = StageDef(
     name="tracking", section="tracking", scope="clip", upstream=("frames", "detect", "embed"),
     tables=("tracks", "track_detections", "track_appearance"),
     description="associate detections into tracks by clique partitioning, join fragments in 3D",
-    extra_sections=("manual_tracks",), run=_run,
+    extra_sections=("manual_tracks.keyframes",), run=_run,
 )
