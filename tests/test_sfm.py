@@ -257,3 +257,23 @@ def test_a_video_alone_goes_to_verified_poses(small_library_warehouse, tmp_path)
     assert wh.read("verified_poses", [clip]).num_rows >= 1
     accepted = pose_accuracy(folder, wh)["accepted"]["pose"]
     assert accepted["correct"] >= 1, accepted
+
+
+def test_an_sfm_clip_is_rerun_with_the_intrinsics_it_was_given(tmp_path):
+    """`cadestate run` and label ingest rerun a registered clip from the warehouse: an SfM clip ingested
+    with --intrinsics keeps them (the cameras stage's inputs digest them), so its cameras stay cached."""
+    import json
+
+    from conftest import table_rows
+    from tasks.video.ingest import SFM_REPORT_FILE, registered_source, sfm_cameras_path
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path / "w")
+    for clip in ("given", "found"):
+        wh.write("clips", clip, table_rows("clips", [{"clip": clip, "video_path": f"inputs/{clip}/video.mp4",
+                                                      "cameras_path": f"inputs/{clip}/cameras.txt", "cameras_source": "sfm"}]))
+    report = sfm_cameras_path(wh, "given").with_name(SFM_REPORT_FILE)
+    report.parent.mkdir(parents=True)
+    report.write_text(json.dumps({"registered_fraction": 1.0, "given_intrinsics": [250, 250.5, 160, 96]}))
+    assert registered_source(wh, "given").intrinsics == (250.0, 250.5, 160.0, 96.0)
+    assert registered_source(wh, "found").intrinsics is None

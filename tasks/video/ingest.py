@@ -13,6 +13,7 @@ before it starts anything).
 from __future__ import annotations
 
 import datetime as dt
+import json
 import math
 import os
 import shutil
@@ -330,11 +331,24 @@ def registered_splits(wh: Warehouse) -> dict[str, str]:
 
 
 def registered_source(wh: Warehouse, clip: str) -> ClipSource:
-    """A registered clip as a :class:`ClipSource` of the warehouse's copies, with its split (what
-    ``cadestate run`` and label ingest rerun: the same clip, so cached)."""
+    """A registered clip as a :class:`ClipSource` of the warehouse's copies, with its split and, for
+    an SfM clip, the intrinsics it was given (what ``cadestate run`` and label ingest rerun: the
+    same clip, so cached)."""
     video, cameras, row = clip_inputs(wh, clip)
     sfm = row.get("cameras_source") == "sfm"
-    return ClipSource(clip, video, None if sfm else cameras, clip_split(row), int(row.get("time_offset_us") or 0))
+    return ClipSource(clip, video, None if sfm else cameras, clip_split(row), int(row.get("time_offset_us") or 0),
+                      intrinsics=given_intrinsics(wh, clip) if sfm else None)
+
+
+def given_intrinsics(wh: Warehouse, clip: str) -> tuple[float, float, float, float] | None:
+    """The ``--intrinsics`` an SfM clip was ingested with, as its SfM report keeps them (None: none given)."""
+    try:
+        given = json.loads(sfm_cameras_path(wh, clip).with_name(SFM_REPORT_FILE).read_text()).get("given_intrinsics")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(given, list) or len(given) != 4 or not all(isinstance(v, (int, float)) for v in given):
+        return None
+    return tuple(float(v) for v in given)
 
 
 def sfm_source(video: Path, given: str | None = None,
