@@ -15,6 +15,7 @@ import os
 import threading
 from collections.abc import Callable, Iterator
 from contextvars import ContextVar
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:  # pyarrow is imported by table_digest alone: `cadestate status` digests without it where it can
@@ -102,6 +103,13 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def folder_digest(folder: str | os.PathLike) -> str:
+    """Digest of a folder's files: their names (relative, sorted) and bytes."""
+    root = Path(folder)
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    return digest(*(f"{p.relative_to(root).as_posix()}:{file_sha256(p)}" for p in files))
 
 
 _KNOWN_SHA256: dict[tuple, str] = {}

@@ -96,11 +96,11 @@ def test_ingest_canonicalises_and_reports_bad_items(ingested):
 
 def test_ingest_rerun_gives_the_same_result(ingested, mesh_folder):
     wh, out = ingested
-    before = wh.read("cad_models").drop_columns(["mesh_path"])
+    before = wh.read("cad_models")
     again = ingest_library(wh, CadIngestConfig(samples=2048), "testlib", list(folder_items(mesh_folder, "testlib")),
                            "run2", show_progress=False)
-    assert again.output_hash == out.output_hash and wh.read("cad_models").drop_columns(["mesh_path"]).equals(before)
-    assert [p.name for p in (wh.root / "media" / "cad" / "testlib").iterdir()] == ["run2"]  # old meshes pruned
+    assert again.output_hash == out.output_hash and wh.read("cad_models").equals(before)  # the same meshes at the same paths
+    assert [p.name for p in (wh.root / "media" / "cad" / "testlib").iterdir()] == [before.column("mesh_path")[0].as_py().split("/")[3]]
     assert wh.read("cad_issues").num_rows == 4  # replaced, not appended
 
 
@@ -122,6 +122,34 @@ def test_items_digest_tracks_files(mesh_folder, tmp_path):
     items = list(folder_items(mesh_folder, "testlib"))
     assert items_digest(items) == items_digest(list(folder_items(mesh_folder, "testlib")))
     assert items_digest(items[:3]) != items_digest(items)
+
+
+def test_a_repainted_model_is_a_new_input_and_a_new_output(tmp_path):
+    """A folder library whose material changes colour (the mesh file untouched): the items' digest
+    changes (cad_ingest reruns) and so does the ingest's output (its meshes' bytes: cad_views and
+    cad_embed rerun), while the meshes' folder follows their content."""
+    import os
+
+    from warehouse import Warehouse
+
+    src = tmp_path / "src"
+    src.mkdir()
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(src / "chair1.obj")
+    obj = (src / "chair1.obj").read_text()
+    (src / "chair1.obj").write_text("mtllib m.mtl\nusemtl paint\n" + obj)
+    (src / "m.mtl").write_text("newmtl paint\nKd 1 0 0\n")
+    (src / "models.csv").write_text("id,class,unit_m,licence,creator\nchair1,chair,1,CC0-1.0,test\n")
+    wh = Warehouse(tmp_path / "wh")
+    items = list(folder_items(src, "mylib"))
+    red_inputs = items_digest(items)
+    red = ingest_library(wh, CadIngestConfig(samples=256), "mylib", items, "r1", show_progress=False)
+    (src / "m.mtl").write_text("newmtl paint\nKd 0 0 1\n")
+    st = (src / "m.mtl").stat()
+    os.utime(src / "m.mtl", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    assert items_digest(items) != red_inputs
+    blue = ingest_library(wh, CadIngestConfig(samples=256), "mylib", items, "r2", show_progress=False)
+    assert blue.output_hash != red.output_hash
+    assert len(list((wh.root / "media" / "cad" / "mylib").iterdir())) == 1
 
 
 def test_java_properties():

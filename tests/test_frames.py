@@ -36,7 +36,12 @@ def test_extracted_frames_are_exactly_the_camera_frames(wh, small_clip):
         assert image.shape == (192, 320, 3) and (row["width"], row["height"]) == (320, 192)
         assert decode_index(image) == index  # the very frame the camera line names
         assert row["timestamp_error_us"] == 0
-    assert {p.parent.name for p in (wh.root / "media" / "frames" / "small").glob("*/*")} == {"run1"}
+    (version,) = {p.parent.name for p in (wh.root / "media" / "frames" / "small").glob("*/*")}
+    assert len(version) == 16  # the images' digest: a rerun that decodes the same images keeps their paths
+    again = extract_frames(wh, FramesConfig(max_timestamp_error_us=2_999), "small", "run2", show_progress=False)
+    assert again.output_hash == out.output_hash and wh.read("frames").column("image_path").to_pylist() == \
+        [r["image_path"] for r in frames]  # task files written before still name images that are there
+    assert [p.name for p in (wh.root / "media" / "frames" / "small").iterdir()] == [version]
 
 
 def test_frames_table_geometry_matches_the_camera_file(wh, small_clip):

@@ -538,12 +538,16 @@ class Warehouse:
         finally:
             shutil.rmtree(path, ignore_errors=True)
 
-    def publish_media(self, kind: str, part: str, staged: Path, version: str) -> Path:
-        """Move a staged folder to ``media/<kind>/<part>/<version>`` (a new, unreferenced path).
+    def publish_media(self, kind: str, part: str, staged: Path, version: str, content: bool = False) -> Path:
+        """Move a staged folder to ``media/<kind>/<part>/<version>`` (a new, unreferenced path; with
+        ``content``, ``version`` is the digest of the staged files, and a folder of that name holds
+        them already: the staged copy is then dropped, and rows written before keep their paths).
 
         Returns the final folder. Call :meth:`prune_media` after the rows pointing to it are written.
         """
         final = self.root / "media" / kind / check_name(part, "partition") / version
+        if final.exists() and content:
+            return final
         if final.exists():
             raise WarehouseError(f"media version {final} exists already")
         final.parent.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,8 @@
 
 Reads: the items of one library (:mod:`tasks.cad.sources`). Writes: ``cad_models``,
 ``cad_samples`` and ``cad_issues`` for that library, and one canonical GLB per model under
-``media/cad/<library>/<run_id>/``.
+``media/cad/<library>/<digest of the meshes>/`` (a rerun that writes the same meshes keeps
+their paths; the output digest covers their bytes).
 
 Canonical CAD frame: metres, +Y up, front +Z, origin at the centre of the axis-aligned bounding
 box. A source's mesh gets, in order: its pre-rotation (Sweet Home 3D ``modelRotation``), then a
@@ -25,7 +26,7 @@ import pyarrow as pa
 import trimesh
 
 from cadestate.config import CadIngestConfig
-from cadestate.lineage import table_digest
+from cadestate.lineage import digest, folder_digest, table_digest
 from cadestate.progress import progress
 from tasks.cad.classes import BY_NAME
 from tasks.cad.sources import CadItem, items_digest, load_item, rotation_matrix
@@ -159,17 +160,19 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
             issues += [{**i, "library": library} for i in result.issues]
             if result.model is None:
                 continue
-            cad_id = result.model["cad_id"]
-            models.append({**result.model, "library": library, "mesh_path": f"media/{MEDIA_KIND}/{library}/{run_id}/{cad_id}.glb"})
-            samples.append({"library": library, "cad_id": cad_id, "points": result.points.tolist()})
-        wh.publish_media(MEDIA_KIND, library, staged, run_id)
+            models.append({**result.model, "library": library})
+            samples.append({"library": library, "cad_id": result.model["cad_id"], "points": result.points.tolist()})
+        meshes = folder_digest(staged)
+        version = meshes[:16]  # by content: a rerun that writes the same meshes keeps their paths (task files name them)
+        models = [{**m, "mesh_path": f"media/{MEDIA_KIND}/{library}/{version}/{m['cad_id']}.glb"} for m in models]
+        wh.publish_media(MEDIA_KIND, library, staged, version, content=True)
     wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
     wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
     table = pa.Table.from_pylist(models, schema=wh.spec("cad_models").schema)
     rows = wh.write("cad_models", library, table)
-    wh.prune_media(MEDIA_KIND, library, keep=run_id)
+    wh.prune_media(MEDIA_KIND, library, keep=version)
     skipped = sum(i["severity"] == "skipped" for i in issues)
-    return StageOutput(rows, table_digest(table.drop_columns(["mesh_path"])),
+    return StageOutput(rows, digest(table_digest(table.drop_columns(["mesh_path"])), meshes),
                        message=f"{skipped} item(s) skipped, see cad_issues" if skipped else "")
 
 

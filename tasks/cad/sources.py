@@ -255,11 +255,30 @@ def rotation_matrix(item: CadItem) -> np.ndarray:
     return np.eye(3) if item.rotation is None else np.asarray(item.rotation, dtype=np.float64).reshape(3, 3)
 
 
+def item_folder(item: CadItem) -> Path | None:
+    """The folder of the files a loose mesh may refer to (materials, textures): its own folder, or
+    for ShapeNet's ``<model>/models/model_normalized.obj`` the model's folder (its ``images/``);
+    None for a mesh inside an archive (the archive is one file)."""
+    if "!" in item.path:
+        return None
+    folder = Path(item.path).parent
+    return folder.parent if folder.name == SHAPENET_MESH.parent.name and item.source == "shapenet" else folder
+
+
 def items_digest(items: list[CadItem]) -> str:
-    """Lineage digest of a library's items: their metadata and their source files' size and mtime
-    (content hashes of whole CAD collections would cost more than ingesting them)."""
+    """Lineage digest of a library's items: their metadata, and the size and mtime of their source
+    files and of every file under their folders (:func:`item_folder`: a repainted material or a new
+    texture is a change); content hashes of whole CAD collections would cost more than ingesting them."""
+    files = {item.path.split("!", 1)[0] for item in items}
+    folders = sorted({f for f in map(item_folder, items) if f is not None})
+    walked: list[Path] = []
+    for folder in folders:
+        if any(folder.is_relative_to(w) for w in walked):
+            continue
+        walked.append(folder)
+        files.update(str(f) for f in folder.rglob("*") if f.is_file())
     parts = []
-    for f in sorted({item.path.split("!", 1)[0] for item in items}):
+    for f in sorted(files):
         stat = Path(f).stat() if Path(f).exists() else None
         parts.append(f"{f}:{stat.st_size}:{stat.st_mtime_ns}" if stat else f"{f}:missing")
     return digest(*(repr(item) for item in items), *parts)

@@ -1,7 +1,8 @@
 """Stage ``cad_views``: render every model of a library from random viewpoints around it.
 
 Reads: ``cad_models`` of one library and its canonical meshes. Writes: ``cad_views`` and the
-renders under ``media/cad_views/<library>/<run_id>/``. The model sits at the origin of its
+renders under ``media/cad_views/<library>/<digest of the renders>/`` (the output digest covers
+their pixels). The model sits at the origin of its
 canonical frame (+Y up, front +Z), which is the "world" of these cameras: azimuth 0 looks at
 its front from +Z, elevation is above the horizontal; the camera looks at the origin from a
 distance at which the bounding sphere fills the frame. Viewpoints are a deterministic function
@@ -20,7 +21,7 @@ from PIL import Image
 
 from cadestate.config import CadViewsConfig
 from cadestate.geometry import look_at
-from cadestate.lineage import table_digest
+from cadestate.lineage import digest, folder_digest, table_digest
 from cadestate.progress import progress
 from cadestate.render import Camera, Instance, Renderer, RenderMesh
 from tasks.stage import StageContext, StageDef, StageOutput
@@ -68,15 +69,18 @@ def render_library(wh: Warehouse, cfg: CadViewsConfig, library: str, run_id: str
                 Image.fromarray(result.rgb).save(staged / name, compress_level=1)
                 rows.append({
                     "library": library, "cad_id": model["cad_id"], "view": view,
-                    "image_path": f"media/{MEDIA_KIND}/{library}/{run_id}/{name}", "width": cfg.size, "height": cfg.size,
+                    "image_path": name, "width": cfg.size, "height": cfg.size,
                     "azimuth_deg": float(az), "elevation_deg": float(el), "K": camera.K.ravel().tolist(),
                     "world_to_camera_R": camera.R.ravel().tolist(), "world_to_camera_t": camera.t.tolist(),
                 })
-        wh.publish_media(MEDIA_KIND, library, staged, run_id)
+        pixels = folder_digest(staged)
+        version = pixels[:16]  # by content: a rerun that renders the same views keeps their paths
+        rows = [{**r, "image_path": f"media/{MEDIA_KIND}/{library}/{version}/{r['image_path']}"} for r in rows]
+        wh.publish_media(MEDIA_KIND, library, staged, version, content=True)
     table = pa.Table.from_pylist(rows, schema=wh.spec("cad_views").schema)
     written = wh.write("cad_views", library, table)
-    wh.prune_media(MEDIA_KIND, library, keep=run_id)
-    return StageOutput(written, table_digest(table.drop_columns(["image_path"])))
+    wh.prune_media(MEDIA_KIND, library, keep=version)
+    return StageOutput(written, digest(table_digest(table.drop_columns(["image_path"])), pixels))
 
 
 def _run(ctx: StageContext) -> StageOutput:

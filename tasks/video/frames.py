@@ -2,7 +2,7 @@
 
 Reads: the clip's ``clips`` row (its time offset and up rotation) and its video and camera file
 in ``inputs/<clip>/`` (and, for SfM cameras, which lines were interpolated). Writes: one image per
-camera line under ``media/frames/<clip>/<run_id>/`` and the clip's ``frames`` partition (camera in
+camera line under ``media/frames/<clip>/<digest of the images>/`` and the clip's ``frames`` partition (camera in
 pixels, world->camera and camera->world in the aligned world, +Y up: the camera file's extrinsics
 turned by ``clips.up_rotation``, :mod:`tasks.video.world_up`; see :mod:`cadestate.geometry`). The frame
 of camera timestamp ``t`` is the video's at ``t - clips.time_offset_us``. Fails, writing nothing,
@@ -118,12 +118,13 @@ def extract_frames(wh: Warehouse, cfg: FramesConfig, clip: str, run_id: str, sho
         for job in saving:
             job.result()
         images_digest = digest(*(file_sha256(staged / name) for name in names))
-        final = wh.publish_media(MEDIA_KIND, clip, staged, run_id)
+        version = digest(images_digest, *names)[:16]  # by content: a rerun that decodes the same images keeps their paths
+        final = wh.publish_media(MEDIA_KIND, clip, staged, version, content=True)
     image_paths = [wh.relative(final / name) for name in names]
     table = frames_table(clip, cameras, image_paths, row["width"], row["height"], times, offset,
                          stored_rotation(row.get("up_rotation")), interpolated_cameras(cameras_path, len(cameras)))
     rows = wh.write("frames", clip, table)
-    wh.prune_media(MEDIA_KIND, clip, keep=run_id)
+    wh.prune_media(MEDIA_KIND, clip, keep=version)
     # The output digest covers the cameras, decoded times and image bytes, not the run-specific image folder.
     return StageOutput(rows, digest(table_digest(table.drop_columns(["image_path"])), images_digest))
 
