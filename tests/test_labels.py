@@ -669,3 +669,20 @@ def test_clip_facts_look_at_one_clip_folder_and_know_no_clip_of_an_impossible_na
     facts = ClipFacts(wh)
     assert facts.has_clip("c") and not facts.has_clip("d")
     assert not any(facts.has_clip(name) for name in ("../c", "", "a/b", ".c"))
+
+
+def test_a_manual_track_answer_that_leaves_out_objects_of_the_one_it_replaces_is_warned_of(lwh, tmp_path):
+    """Two CVAT jobs exported for one task: the second answer replaces the first whole."""
+    first = _edit("manual_track", lambda x: [a.__setitem__("source_id", f"cvat:{i}") for i, a in enumerate(x["answers"])])
+    report = ingest_labels(lwh, put(tmp_path / "a", "job1.json", first))
+    assert report.ok and report.warnings == []
+    second = _edit("manual_track", lambda x: (x.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
+                                               x["answers"][0].__setitem__("source_id", "cvat:9")))
+    report = ingest_labels(lwh, put(tmp_path / "b", "job2.json", second))
+    assert report.ok and report.warnings == [f"{tmp_path / 'b' / 'job2.json'}: its answer replaces that of "
+                                             f"{tmp_path / 'a' / 'job1.json'} for task c1.mt and leaves out 1 of its object(s): "
+                                             "the newest manual-track answer is the whole answer, so put every object drawn in one file"]
+    whole = _edit("manual_track", lambda x: (x.__setitem__("created_at", "2026-01-03T00:00:00+00:00"),
+                                              x["answers"][0].__setitem__("source_id", "cvat:9"),
+                                              x["answers"][0].__setitem__("boxes", x["answers"][0]["boxes"][:1])))
+    assert ingest_labels(lwh, put(tmp_path / "c", "all.json", whole)).warnings == []  # the same objects, answered again
