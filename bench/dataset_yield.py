@@ -164,8 +164,9 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
         return None
     library = {r["class"] for r in wh.read("cad_models", columns=["class"]).to_pylist()}
     expected = {k for c in clips for k in expected_objects(bench_dir, c, library, CLASS_NAMES)}
-    gt, truth, symmetries = scoring_inputs(bench_dir, wh, clips)
-    outcomes = {m: r.outcomes for m, r in score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries).items()}
+    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, clips)
+    outcomes = {m: r.outcomes for m, r in score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries,
+                                                    extents).items()}
     tracked = set(wh.partitions("track_detections")) | set(wh.partitions("manual_tracks"))
     track_objects = {(c, str(t)): (c, gt_id) for c in clips if c in tracked
                      for t, gt_id in track_truth(bench_dir, wh, c).items()}

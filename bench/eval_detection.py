@@ -22,9 +22,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from bench.ignore import IGNORE_IOU, box_iou, predictions_to_drop
+from bench.ignore import IGNORE_IOU, box_iou, match_pairs, predictions_to_drop
 from tasks.cad.classes import class_of_label
 
 OTHER = "(other label)"
@@ -43,11 +42,8 @@ class FrameBoxes:
 
 
 def _match(iou: np.ndarray) -> int:
-    """Size of the best one-to-one matching with IoU >= IGNORE_IOU."""
-    if iou.size == 0:
-        return 0
-    rows, cols = linear_sum_assignment(-iou)
-    return int((iou[rows, cols] >= IGNORE_IOU).sum())
+    """Size of the largest one-to-one matching with IoU >= IGNORE_IOU (:func:`bench.ignore.match_pairs`)."""
+    return len(match_pairs(iou, IGNORE_IOU)[0])
 
 
 def evaluate_detections(frames: Iterable[FrameBoxes]) -> dict:

@@ -58,6 +58,20 @@ DETECTABLE_CLASSES = frozenset(FURNITURE_CLASSES)
 """Class names (tasks/cad/classes.py vocabulary) that the detectors are asked to find."""
 
 
+def match_pairs(iou: np.ndarray, threshold: float = IGNORE_IOU) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a one-to-one matching of ``iou`` float[R, C]'s pairs at ``threshold`` or more:
+    as many pairs as can be, and of those matchings the one of the largest IoU sum (a pair under the
+    threshold never takes the place of two that pass it)."""
+    iou = np.asarray(iou, dtype=np.float64)
+    if iou.size == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    ok = iou >= threshold
+    weight = np.where(ok, 1.0 + iou / (min(iou.shape) + 1), 0.0)  # a pair more outweighs any IoU sum
+    rows, cols = linear_sum_assignment(-weight)
+    keep = ok[rows, cols]
+    return rows[keep], cols[keep]
+
+
 def is_ignored(class_name: str, visible_fraction: float = 1.0, truncated_fraction: float = 0.0, *,
                detectable: frozenset[str] | set[str] = DETECTABLE_CLASSES,
                min_visible: float = MIN_VISIBLE_FRACTION, max_truncated: float = MAX_TRUNCATED_FRACTION) -> bool:
@@ -139,9 +153,7 @@ def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore:
     matched = np.zeros(len(pred_boxes), dtype=bool)
     valid = gt_boxes[~gt_ignore]
     if len(valid):
-        iou = box_iou(valid, pred_boxes)
-        score = np.where(iou >= iou_threshold, iou, 0.0)
-        rows, cols = linear_sum_assignment(-score)
-        matched[cols[score[rows, cols] > 0]] = True
+        _, cols = match_pairs(box_iou(valid, pred_boxes), iou_threshold)
+        matched[cols] = True
     on_ignore = (box_iou(gt_boxes[gt_ignore], pred_boxes) >= iou_threshold).any(axis=0)
     return on_ignore & ~matched

@@ -94,14 +94,14 @@ def _predictions(rows: list[dict]) -> list[PosedObject]:
 
 
 def scoring_inputs(bench_dir: Path, wh: Warehouse, clips: list[str]
-                   ) -> tuple[list[PosedObject], dict[tuple[str, str], str], dict[str, int]]:
+                   ) -> tuple[list[PosedObject], dict[tuple[str, str], str], dict[str, int], dict[str, tuple]]:
     """What :func:`bench.scoring.score_all` scores against, for ``clips``: the posed ground truth
-    (class names), the pipeline track -> ground-truth object map (:func:`_ground_truth_map`) and
-    the symmetry order of every CAD model."""
+    (class names), the pipeline track -> ground-truth object map (:func:`_ground_truth_map`), the
+    symmetry order and the bounding-box size (m) of every CAD model."""
     truth = {(c, t): gt for c in clips for t, gt in _ground_truth_map(bench_dir, wh, c).items()}
     gt = [dataclasses.replace(g, cls=_class_of(g.cls)) for g in _gt(bench_dir, clips)]
-    symmetries = {r["cad_id"]: r["symmetry"] for r in wh.read("cad_models", columns=["cad_id", "symmetry"]).to_pylist()}
-    return gt, truth, symmetries
+    models = wh.read("cad_models", columns=["cad_id", "symmetry", "extent"]).to_pylist()
+    return gt, truth, {r["cad_id"]: r["symmetry"] for r in models}, {r["cad_id"]: tuple(r["extent"]) for r in models}
 
 
 def accepted_predictions(wh: Warehouse, clips: list[str], bench_dir: Path | None = None) -> list[PosedObject]:
@@ -128,34 +128,37 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
         return None
     rows = [r for c in clips for r in wh.read("poses", [c]).to_pylist()]
     verdicts = [r for r in wh.read("verified_poses", clips).to_pylist()]
-    gt, truth, symmetries = scoring_inputs(bench_dir, wh, clips)
+    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, clips)
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    solved = score_all(in_truth_world(_predictions([r for r in rows if r["status"] == "ok"]), wh, bench_dir), gt, truth, symmetries)
-    accepted = score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries) if verdicts else None
+    solved_poses = in_truth_world(_predictions([r for r in rows if r["status"] == "ok"]), wh, bench_dir)
+    solved = score_all(solved_poses, gt, truth, symmetries, extents)
+    accepted = score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries, extents) if verdicts else None
     annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
     return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
             "statuses": statuses,
             "solved": {m: v.as_dict() for m, v in solved.items()},
             "accepted": accepted and {m: v.as_dict() for m, v in accepted.items()},
-            "verification": _verification_agreement(verdicts, rows, gt, truth, symmetries)}
+            "verification": _verification_agreement(verdicts, solved_poses, gt, truth, symmetries, extents)}
 
 
-def _verification_agreement(verdicts: list[dict], rows: list[dict], gt: list[PosedObject],
-                            truth: dict[tuple[str, str], str], symmetries: dict[str, int]) -> dict | None:
+def _verification_agreement(verdicts: list[dict], solved: list[PosedObject], gt: list[PosedObject],
+                            truth: dict[tuple[str, str], str], symmetries: dict[str, int],
+                            extents: dict[str, tuple]) -> dict | None:
     """Accepted / rejected verdicts of ``verified_poses`` against the ``pose`` criterion on the
-    object each judged track follows (None: no verdicts)."""
+    object each judged track follows (``solved``: the solver's poses in the ground truth's world;
+    None: no verdicts)."""
     from bench.scoring import score_pose
 
     if not verdicts:
         return None
-    by_key = {(r["clip"], r["track_id"]): r for r in rows if r["status"] == "ok"}
+    by_key = {p.key: p for p in solved}
     judged = []
     for v in verdicts:
         key = (v["clip"], v["track_id"])
         if key in truth and key in by_key:
-            ok = score_pose(_predictions([by_key[key]]), gt, truth, symmetries).num_correct == 1
+            ok = score_pose([by_key[key]], gt, truth, symmetries, extents).num_correct == 1
             judged.append((v["accepted"], ok))
     accepted = [ok for acc, ok in judged if acc]
     correct = [acc for acc, ok in judged if ok]

@@ -30,11 +30,19 @@ object is credited at most once; accuracy = credited objects / all posed ground-
 In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
 ``duplicate``, any other unmatched one a ``false_positive``.
 
+Scales: a pose's scale multiplies its own model's size (the library's models are in metres, where
+Scan2CAD's ShapeNet models are normalised, so that a scale there is the object's size). A
+prediction of another model than the ground truth's is compared by the sizes it gives in the
+world: its scale is first brought to the ground-truth model's units, ``s * extent_pred /
+extent_gt`` (``extents``: cad_id -> bounding-box size; the same model is compared as it is).
+
 Every mode also says, per prediction, which ground-truth object it is *on* and whether it is
 correct (:class:`Outcome`, the input of the dataset's yield, :mod:`bench.dataset_yield`): in
 ``pose`` the object its track follows (correct or not); in the Scan2CAD modes the object it is
 credited with, or for a duplicate the credited object it aligns (both correct); a false positive
-is on no object.
+is on the object its track follows (not correct: a wrong second pose on an object leaves the
+object unyielded and is a duplicate of the dataset, not a false annotation), or on no object
+when its track follows none.
 """
 
 from __future__ import annotations
@@ -42,6 +50,8 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+
+import dataclasses
 
 import numpy as np
 
@@ -107,8 +117,19 @@ def _symmetry(symmetries: Mapping[str, int], cad_id: str | None) -> int:
     return int(symmetries.get(cad_id, 1)) if cad_id is not None else 1
 
 
+def in_truth_units(p: PosedObject, g: PosedObject, extents: Mapping[str, tuple] | None) -> PosedObject:
+    """``p`` with its scale in the units of ``g``'s model (module docstring: scales); as it is for
+    the same model, or when an extent is unknown."""
+    if not extents or p.cad_id == g.cad_id:
+        return p
+    mine, theirs = extents.get(p.cad_id), extents.get(g.cad_id)
+    if mine is None or theirs is None or min(theirs) <= 0:
+        return p
+    return dataclasses.replace(p, scale=tuple(float(s) * a / b for s, a, b in zip(p.scale, mine, theirs)))
+
+
 def score_pose(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], truth: Mapping[tuple[str, str], str],
-               symmetries: Mapping[str, int]) -> ModeResult:
+               symmetries: Mapping[str, int], extents: Mapping[str, tuple] | None = None) -> ModeResult:
     """Mode ``pose``. ``truth``: (clip, predicted track id) -> ground-truth track id of that clip."""
     preds, gts = list(predictions), list(ground_truth)
     by_key = {g.key: g for g in gts}
@@ -123,6 +144,7 @@ def score_pose(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedO
             outcomes.append(Outcome(p.key, None, False))
             continue
         on_object[g.key] += 1
+        p = in_truth_units(p, g, extents)
         ok = is_correct(p.translation, p.rotation, p.scale, g.translation, g.rotation, g.scale,
                         _symmetry(symmetries, g.cad_id), mirrored=p.is_mirrored, mirrored_gt=g.is_mirrored)
         if ok:
@@ -132,16 +154,19 @@ def score_pose(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedO
     return _result("pose", gts, credited, len(preds), duplicates, false_positives, outcomes)
 
 
-def _aligns(p: PosedObject, g: PosedObject, symmetry: int) -> bool:
+def _aligns(p: PosedObject, g: PosedObject, symmetry: int, extents: Mapping[str, tuple] | None = None) -> bool:
     """Scan2CAD's test: translation, symmetric rotation and unswapped scale errors within thresholds."""
+    p = in_truth_units(p, g, extents)
     return (translation_error(p.translation, g.translation) <= MAX_TRANSLATION_M
             and rotation_error_deg(p.rotation, g.rotation, symmetry) <= MAX_ROTATION_DEG
             and scale_error_pct(p.scale, g.scale) <= MAX_SCALE_PCT)
 
 
 def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], symmetries: Mapping[str, int],
-                   exact: bool) -> ModeResult:
-    """Mode ``scan2cad-exact`` (``exact``) or ``scan2cad-class``; predictions in the order given."""
+                   exact: bool, truth: Mapping[tuple[str, str], str] | None = None,
+                   extents: Mapping[str, tuple] | None = None) -> ModeResult:
+    """Mode ``scan2cad-exact`` (``exact``) or ``scan2cad-class``; predictions in the order given;
+    ``truth`` (the track map of :func:`score_pose`) places a false positive on its track's object."""
     preds, gts = list(predictions), list(ground_truth)
     open_gt: dict[tuple[str, str], list[PosedObject]] = {}
     for g in gts:
@@ -160,7 +185,7 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
             used[model] += 1
         candidates = open_gt.get((p.clip, p.cls), [])
         hit = next((g for g in candidates
-                    if _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id))), None)
+                    if _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id), extents)), None)
         if hit is None:
             unmatched.append(p)
             continue
@@ -168,19 +193,22 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
         credited_objects.append(hit)
         outcomes.append(Outcome(p.key, hit.key, True))
     duplicates = 0
+    known = {g.key for g in gts}
     for p in unmatched:
         aligned = next((g for g in credited_objects if g.clip == p.clip and g.cls == p.cls
-                        and _aligns(p, g, _symmetry(symmetries, g.cad_id))), None)
+                        and _aligns(p, g, _symmetry(symmetries, g.cad_id), extents)), None)
         duplicates += aligned is not None
-        outcomes.append(Outcome(p.key, None if aligned is None else aligned.key, aligned is not None))
+        tracked = (p.clip, (truth or {}).get(p.key, ""))
+        on = aligned.key if aligned is not None else (tracked if tracked in known else None)
+        outcomes.append(Outcome(p.key, on, aligned is not None))
     return _result("scan2cad-exact" if exact else "scan2cad-class", gts, {g.key for g in credited_objects}, len(preds),
                    duplicates, len(unmatched) - duplicates, outcomes)
 
 
 def score_all(predictions: list[PosedObject], ground_truth: list[PosedObject], truth: Mapping[tuple[str, str], str],
-              symmetries: Mapping[str, int]) -> dict[str, ModeResult]:
+              symmetries: Mapping[str, int], extents: Mapping[str, tuple] | None = None) -> dict[str, ModeResult]:
     """Every mode of :data:`MODES` on the same predictions (ordered by clip, then track id)."""
     ordered = sorted(predictions, key=lambda p: (p.clip, int(p.track_id) if p.track_id.isdigit() else 0, p.track_id))
-    return {"pose": score_pose(ordered, ground_truth, truth, symmetries),
-            "scan2cad-class": score_scan2cad(ordered, ground_truth, symmetries, exact=False),
-            "scan2cad-exact": score_scan2cad(ordered, ground_truth, symmetries, exact=True)}
+    return {"pose": score_pose(ordered, ground_truth, truth, symmetries, extents),
+            "scan2cad-class": score_scan2cad(ordered, ground_truth, symmetries, False, truth, extents),
+            "scan2cad-exact": score_scan2cad(ordered, ground_truth, symmetries, True, truth, extents)}

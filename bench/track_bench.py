@@ -147,19 +147,15 @@ def match_truth(frame: np.ndarray, boxes: np.ndarray, gt: ClipBoxes) -> np.ndarr
     """The ground-truth identity object[N] of each box float[N, 4] (ymin, xmin, ymax, xmax,
     normalised) on frame int[N]: matched to ``gt``'s boxes of its frame (Hungarian on IoU, kept
     when >= 0.5); "" when unmatched."""
-    from scipy.optimize import linear_sum_assignment
-
-    from bench.ignore import box_iou
+    from bench.ignore import box_iou, match_pairs
 
     truth = np.full(len(frame), "", dtype=object)
     for f in np.unique(frame):
         p, g = np.flatnonzero(frame == f), np.flatnonzero(gt.frame_index == f)
         if len(g) == 0:
             continue
-        iou = box_iou(boxes[p], gt.boxes[g])
-        r, c = linear_sum_assignment(-iou)
-        ok = iou[r, c] >= 0.5
-        truth[p[r[ok]]] = gt.truth[g[c[ok]]]
+        r, c = match_pairs(box_iou(boxes[p], gt.boxes[g]), 0.5)
+        truth[p[r]] = gt.truth[g[c]]
     return truth
 
 

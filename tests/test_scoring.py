@@ -61,3 +61,47 @@ def test_duplicates_in_scan2cad_modes_and_all_modes():
     for m in modes.values():
         assert (m.num_correct, m.duplicates, m.false_positives) == (1, 1, 1), m
         assert m.as_dict()["instance_accuracy_pct"] == pytest.approx(100.0)
+
+
+def test_a_wrong_second_pose_on_an_object_is_on_that_object_in_every_mode():
+    """Two accepted poses on one chair, one right and one turned 90 degrees: the object is not
+    yielded (two poses on it), the wrong one is a duplicate of the dataset, not a false annotation."""
+    from bench.dataset_yield import pose_yield
+
+    gt = [obj("0")]
+    preds = [obj("1"), obj("2", q=YAW90)]
+    truth = {("a_0", "1"): "0", ("a_0", "2"): "0"}
+    for mode, result in score_all(preds, gt, truth, {}).items():
+        y = pose_yield(result.outcomes, {("a_0", "0")})
+        assert (y.yielded, y.duplicates, y.false_annotations) == (0, 1, 0), mode
+    off = score_all([obj("3", t=(5.0, 0, 0))], gt, {}, {})  # a track on no object: a false annotation
+    assert all(pose_yield(r.outcomes, {("a_0", "0")}).false_annotations == 1 for r in off.values())
+
+
+def test_scales_of_another_model_are_compared_as_sizes():
+    """A library model's scale multiplies its size in metres: a washer (0.6 x 0.85 x 0.6 m) at scale 1
+    where a refrigerator (0.7 x 1.8 x 0.7 m) stands at scale 1 is 27 % (and more) off, not 0 %."""
+    extents = {"fridge": (0.7, 1.8, 0.7), "washer": (0.6, 0.85, 0.6), "big_washer": (0.7, 1.8, 0.7)}
+    gt = [obj("0", cls="refrigerator", cad="fridge")]
+    truth = {("a_0", "1"): "0"}
+    washer = obj("1", cls="refrigerator", cad="washer")
+    assert score_pose([washer], gt, truth, {}).num_correct == 1  # without sizes: scale multipliers only
+    assert score_pose([washer], gt, truth, {}, extents).num_correct == 0
+    assert score_scan2cad([washer], gt, {}, False, truth, extents).num_correct == 0
+    grown = obj("1", cls="refrigerator", cad="washer", s=(0.7 / 0.6, 1.8 / 0.85, 0.7 / 0.6))  # the fridge's size
+    assert score_pose([grown], gt, truth, {}, extents).num_correct == 1
+    assert score_pose([obj("1", cls="refrigerator", cad="big_washer")], gt, truth, {}, extents).num_correct == 1
+
+
+def test_box_matching_takes_the_most_pairs_that_pass():
+    """Two pairs of IoU 0.51 beat the larger IoU sum of a pair of 0.95 and one of 0.45 (under 0.5)."""
+    import numpy as np
+
+    from bench.eval_detection import _match
+    from bench.ignore import match_pairs
+
+    iou = np.array([[0.95, 0.51], [0.51, 0.45]])
+    assert _match(iou) == 2
+    rows, cols = match_pairs(iou)
+    assert sorted(zip(rows.tolist(), cols.tolist())) == [(0, 1), (1, 0)]
+    assert _match(np.array([[0.4, 0.3]])) == 0 and _match(np.zeros((0, 3))) == 0
