@@ -212,7 +212,7 @@ def report_markdown(result: dict) -> str:
     lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
              seed_note(result["benchmark"]["seed"]), "",
              *yield_markdown(result.get("yield")),
-             "## Dataset statistics (as in the paper's Table 2)", "", statistics_markdown(result["statistics"]), "",
+             "## The benchmark's ground truth (the paper's Table 2 statistics; what the dataset built holds is above and in `cadestate stats`)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
              f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden or cut off, or of a class no detector is asked to find).", "",
              "## Simulated annotators (label files of `cadestate bench run`)", "",

@@ -292,7 +292,7 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path, monkeypatch):
     pose_row = next(line for line in lines if line.startswith("| train | `pose` |"))
     assert pose_row.startswith(f"| train | `pose` | {train_accepted} | {len(posed[0]) + len(posed[1])} of {train_view} ")
     assert pose_row.split(" | ")[4:6] == ["0", "1"]
-    assert lines.index(train) < lines.index("## Dataset statistics (as in the paper's Table 2)")
+    assert lines.index(train) < lines.index("## The benchmark's ground truth (the paper's Table 2 statistics; what the dataset built holds is above and in `cadestate stats`)")
     assert (bench / "report.md").read_text().strip() == result.stdout.strip()
     # the interval resamples these clips' counts, within each split (too few clips for one in the report)
     import bench.dataset_yield as dy
