@@ -686,3 +686,26 @@ def test_a_manual_track_answer_that_leaves_out_objects_of_the_one_it_replaces_is
                                               x["answers"][0].__setitem__("source_id", "cvat:9"),
                                               x["answers"][0].__setitem__("boxes", x["answers"][0]["boxes"][:1])))
     assert ingest_labels(lwh, put(tmp_path / "c", "all.json", whole)).warnings == []  # the same objects, answered again
+
+
+def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_path):
+    """Two processes (here threads) ingesting one folder: the duplicate check and the commit hold
+    the clip's labels lock, so each file is committed once and reported a duplicate by the other."""
+    import threading
+
+    d = tmp_path / "labels"
+    for kind in ("verification", "cad_selection"):
+        put(d, f"{kind}.json", good(kind))
+    start, reports = threading.Barrier(2), []
+
+    def ingest():
+        start.wait()
+        reports.append(ingest_labels(lwh, d))
+
+    threads = [threading.Thread(target=ingest) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted((len(r.ingested), len(r.duplicates)) for r in reports) == [(0, 2), (2, 0)]
+    assert lwh.read("label_files").num_rows == 2 and lwh.read("verification_labels").num_rows == 2

@@ -54,6 +54,22 @@ def test_replace_write_is_idempotent_and_partitioned(wh):
     assert wh.partitions("clips") == ["a", "b"]
 
 
+def test_swapped_out_files_stay_a_while_for_queries_that_listed_them(wh):
+    """A DuckDB glob that opened a partition folder just before a replace-mode swap reads the names
+    it holds: the old files stay (in _staging/) for RETIRED_S, so such a query fails on a missing
+    file instead of finding the clip empty; a later swap removes them, and a killed process's folder."""
+    wh.write("clips", "a", clip_rows("a", 1))
+    old = wh.files("clips", ["a"])[0].name
+    wh.write("clips", "a", clip_rows("a", 2))
+    staged = wh.root / "_staging"
+    assert [f.name for f in staged.glob("swap-*/*.parquet")] == [old]
+    (staged / "killed-writer").mkdir()
+    wh._sweep_staging(now=time.time() + store.RETIRED_S + 1)
+    assert [p.name for p in staged.iterdir()] == ["killed-writer"]  # a live write's folder is younger than a day
+    wh._sweep_staging(now=time.time() + store.STALE_STAGING_S + 1)
+    assert list(staged.iterdir()) == [] and wh.read("clips").column("num_cameras").to_pylist() == [2]
+
+
 def test_append_mode_keeps_history(wh):
     wh.write("runs", "a", run_rows("a", 2))
     wh.write("runs", "a", run_rows("a", 3))

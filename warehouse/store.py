@@ -38,10 +38,12 @@ column as null). The merged file (named at the time of the merge, so it sorts af
 replaces) is written into a fresh folder under ``_staging/`` (outside every table, so no glob sees
 it) and flushed; then that folder and the partition folder swap names in one
 step (:func:`cadestate.atomic.exchange`), and the old files, now in the staging folder, are
-removed. A reader listing the partition sees all the old files or the merged one (under a new
-name), never both (rows twice) nor neither (rows missing); one that listed the old files and opens
-one after the swap finds it gone and fails rather than answer wrong (:meth:`Warehouse.read` lists
-again; a DuckDB query reports the missing file, and run again answers). Interrupted at any point, a
+removed a few minutes later (:data:`RETIRED_S`, by a later swap). A reader listing the partition
+sees all the old files or the merged one (under a new name), never both (rows twice) nor neither
+(rows missing: a DuckDB glob that opened the folder just before the swap still lists the old
+names); one that listed the old files and opens one after the swap finds it gone and fails rather
+than answer wrong (:meth:`Warehouse.read` lists again; a DuckDB query reports the missing file, and
+run again answers). Interrupted at any point, a
 compaction leaves the partition as it was or compacted, plus a staging folder nothing reads. Writes
 to a partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`), so no
 write lands in a folder being swapped out.
@@ -77,6 +79,10 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 LEGACY_FILE = "part.parquet"
 """Name of a replace-mode file in warehouses written before file names held their time."""
+RETIRED_S = 300.0
+"""How long a partition's swapped-out files are kept in ``_staging/`` (a query that listed them still fails loudly)."""
+STALE_STAGING_S = 86_400.0
+"""A ``_staging/`` folder untouched this long is a killed process's: removed (a live write touches its folder)."""
 COMPACT_AFTER = 64
 """Default of :attr:`Warehouse.compact_after` (config ``[warehouse] compact_after_files``)."""
 READ_RETRIES = 5
@@ -403,20 +409,40 @@ class Warehouse:
 
     def _swap_in(self, folder: Path, data: pa.Table) -> Path:
         """Make ``data`` the only file of the partition ``folder`` in one step (see the module): a
-        replace-mode write, or a compaction's merged file. Returns the file's path."""
+        replace-mode write, or a compaction's merged file. Returns the file's path. The files
+        swapped out are kept for :data:`RETIRED_S` (a query that listed the partition just before
+        the swap then fails on a missing file rather than find the partition empty), and removed
+        by a later swap (:meth:`_sweep_staging`)."""
         stage = self.root / "_staging" / f"swap-{uuid.uuid4().hex}"
         stage.mkdir(parents=True)
+        retired = False
         try:
             name = self._write_file(data, stage).name
             if folder.is_dir():
                 exchange(stage, folder)  # the partition now holds the new file, the staging folder the old one
+                os.utime(stage)  # retired now
+                retired = True
             else:
                 folder.parent.mkdir(parents=True, exist_ok=True)
                 os.rename(stage, folder)
             fsync_dir(folder.parent)
         finally:
-            shutil.rmtree(stage, ignore_errors=True)
+            if not retired:
+                shutil.rmtree(stage, ignore_errors=True)
+        self._sweep_staging()
         return folder / name
+
+    def _sweep_staging(self, now: float | None = None) -> None:
+        """Remove what ``_staging/`` holds that nothing uses any more: partitions swapped out more
+        than :data:`RETIRED_S` ago, and folders of a process killed mid-write (untouched for
+        :data:`STALE_STAGING_S`)."""
+        now = time.time() if now is None else now
+        with contextlib.suppress(OSError):
+            for entry in (self.root / "_staging").iterdir():
+                with contextlib.suppress(OSError):
+                    age = now - entry.stat().st_mtime
+                    if age > (RETIRED_S if entry.name.startswith("swap-") else STALE_STAGING_S):
+                        shutil.rmtree(entry, ignore_errors=True)
 
     def rename_legacy(self) -> dict[str, int]:
         """Give every replace-mode file still named ``part.parquet`` (an older warehouse) a name of

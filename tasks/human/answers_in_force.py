@@ -103,13 +103,24 @@ def correspondence_table(wh: Warehouse, clip: str) -> pa.Table:
     return table.sort_by([(k, "ascending") for k in CORRESPONDENCES.key])
 
 
+def labels_lock(wh: Warehouse, clip: str):
+    """The lock of a clip's answers (``_locks/_labels/<clip>.lock``): held while label files of the
+    clip are checked for duplicates and committed, and while its ``correspondences`` are rewritten
+    from them, so that two ingests (or an ingest and the clip's run) never both commit one file nor
+    write a table from answers one of them has not seen."""
+    from warehouse.store import check_name, file_lock
+
+    return file_lock(wh.root / "_locks" / "_labels" / f"{check_name(clip)}.lock")
+
+
 def sync_correspondences(wh: Warehouse, clip: str) -> tuple[pa.Table, int]:
     """Rewrite the clip's ``correspondences`` partition from its labels (:func:`correspondence_table`)
-    if it changed; returns the table and the rows written (0: unchanged)."""
-    table = correspondence_table(wh, clip)
-    if table_digest(table) == table_digest(wh.read("correspondences", [clip])):
-        return table, 0
-    return table, wh.write("correspondences", clip, table)
+    if it changed, under :func:`labels_lock`; returns the table and the rows written (0: unchanged)."""
+    with labels_lock(wh, clip):
+        table = correspondence_table(wh, clip)
+        if table_digest(table) == table_digest(wh.read("correspondences", [clip])):
+            return table, 0
+        return table, wh.write("correspondences", clip, table)
 
 
 def label_history(wh: Warehouse, clips: list[str] | None = None) -> pa.Table:

@@ -39,7 +39,7 @@ import pyarrow as pa
 
 from schemas.label_tables import ANSWER_TABLES, LABEL_EFFORT, LABEL_FILES, SIDE_TABLES, TRACK_RELATIONS
 from schemas.labels import KINDS
-from tasks.human.answers_in_force import sync_correspondences
+from tasks.human.answers_in_force import labels_lock, sync_correspondences
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
 from tasks.human.labels import ClipFacts, LabelFile, utc_now, validate_label
 from tasks.pose.checks import coplanar_axis
@@ -370,7 +370,10 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
         except WRITE_ERRORS as e:
             _failed(report, lf, e)
     for clip, files in sorted(by_clip.items()):
-        committed = _commit_clip(wh, clip, files, report)
+        with labels_lock(wh, clip):  # another ingest of the same files commits them once: checked again here
+            known = _known(wh, [clip])
+            report.duplicates += [str(f.lf.path) for f in files if f.lf.sha256 in known]
+            committed = _commit_clip(wh, clip, [f for f in files if f.lf.sha256 not in known], report)
         for f in committed:
             _count(report, f)
         report.clips += [clip] if committed else []
