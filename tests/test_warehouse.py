@@ -70,6 +70,17 @@ def test_swapped_out_files_stay_a_while_for_queries_that_listed_them(wh):
     assert list(staged.iterdir()) == [] and wh.read("clips").column("num_cameras").to_pylist() == [2]
 
 
+def test_a_read_whose_listing_a_write_overtook_lists_that_partition_again(wh):
+    """A whole-table read while a batch writes: files listed, then one partition swapped before its
+    file is opened. Only that partition is listed again; the read answers with the new rows."""
+    for clip in ("a", "b", "c"):
+        wh.write("clips", clip, clip_rows(clip, 1))
+    listed = wh.file_paths("clips")
+    wh.write("clips", "b", clip_rows("b", 7))
+    rows = store._read_listed(listed, wh.spec("clips").schema, ["clip", "num_cameras"])
+    assert sorted(zip(rows.column("clip").to_pylist(), rows.column("num_cameras").to_pylist())) == [("a", 1), ("b", 7), ("c", 1)]
+
+
 def test_append_mode_keeps_history(wh):
     wh.write("runs", "a", run_rows("a", 2))
     wh.write("runs", "a", run_rows("a", 3))

@@ -46,6 +46,9 @@ CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
 ROOT_MACRO = "warehouse_root"
 VIEWS_MACRO = "catalog_views"
+SNAPSHOT_RETRIES = 5
+"""Tries of a catalog build that takes snapshots: a write that swaps a partition while the snapshot
+reads it removes a file it listed (the build reads again from the start)."""
 LAYOUT = 3
 """Version of how views are made; a catalog of another layout is rebuilt."""
 SCHEMA_DIGEST = b"cadestate.schema_sha256"
@@ -238,19 +241,24 @@ def refresh_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
     with _pinned(final) as current:
         recorded = recorded_views(current)
         plan = plan_views(wh, None if recheck is True else recorded, () if recheck is False else recheck)
-        try:
-            con = duckdb.connect(str(tmp))
+        for attempt in range(SNAPSHOT_RETRIES):
             try:
-                schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
-                snapshot.carry(con, wh, plan, recorded, current, schema_files, snapshots, whole)
-                create_views(con, wh, plan)
-                con.execute("CHECKPOINT")
+                con = duckdb.connect(str(tmp))
+                try:
+                    schema_files = {name: _schema_file(wh, name, con) for name in plan["tables"]}
+                    snapshot.carry(con, wh, plan, recorded, current, schema_files, snapshots, whole)
+                    create_views(con, wh, plan)
+                    con.execute("CHECKPOINT")
+                finally:
+                    con.close()
+                os.replace(tmp, final)
+                break
+            except duckdb.IOException as e:  # a file a write swapped away while the snapshot read it: read again
+                if not snapshots or attempt == SNAPSHOT_RETRIES - 1 or "No such file" not in str(e) and "Cannot open" not in str(e):
+                    raise
             finally:
-                con.close()
-            os.replace(tmp, final)
-        finally:
-            tmp.unlink(missing_ok=True)
-            Path(f"{tmp}.wal").unlink(missing_ok=True)
+                tmp.unlink(missing_ok=True)
+                Path(f"{tmp}.wal").unlink(missing_ok=True)
     _ENSURED.add(wh.root)
     return final
 
