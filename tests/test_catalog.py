@@ -102,7 +102,7 @@ def test_an_append_partition_is_compacted_past_the_configured_count(tmp_path):
     assert sorted(wh.read("runs").column("run_id").to_pylist()) == ["r0", "r1", "r2", "r3"]
     wh.write("runs", "a", runs("a", "r4"))  # later writes sort after the merged file
     assert wh.files("runs", ["a"])[-1].stat().st_size and len(wh.files("runs", ["a"])) == 2
-    assert {p.name[:5] for p in (wh.root / "_staging").iterdir()} <= {"swap-"}  # files merged away, kept a few minutes
+    assert not list((wh.root / "_staging").iterdir())
 
 
 def test_compact_command(tmp_path):

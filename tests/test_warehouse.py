@@ -54,20 +54,18 @@ def test_replace_write_is_idempotent_and_partitioned(wh):
     assert wh.partitions("clips") == ["a", "b"]
 
 
-def test_swapped_out_files_stay_a_while_for_queries_that_listed_them(wh):
-    """A DuckDB glob that opened a partition folder just before a replace-mode swap reads the names
-    it holds: the old files stay (in _staging/) for RETIRED_S, so such a query fails on a missing
-    file instead of finding the clip empty; a later swap removes them, and a killed process's folder."""
-    wh.write("clips", "a", clip_rows("a", 1))
-    old = wh.files("clips", ["a"])[0].name
-    wh.write("clips", "a", clip_rows("a", 2))
+def test_a_killed_writers_staging_folders_are_swept(wh):
+    """A process killed mid-write leaves its folder in _staging/ (a swap's, or media being made):
+    a later swap removes it once it has gone untouched long enough; a live write's stays."""
     staged = wh.root / "_staging"
-    assert [f.name for f in staged.glob("swap-*/*.parquet")] == [old]
-    (staged / "killed-writer").mkdir()
+    (staged / "swap-killed").mkdir(parents=True)
+    (staged / "media-killed").mkdir()
+    wh.write("clips", "a", clip_rows("a", 1))
+    assert sorted(p.name for p in staged.iterdir()) == ["media-killed", "swap-killed"]
     wh._sweep_staging(now=time.time() + store.RETIRED_S + 1)
-    assert [p.name for p in staged.iterdir()] == ["killed-writer"]  # a live write's folder is younger than a day
+    assert [p.name for p in staged.iterdir()] == ["media-killed"]
     wh._sweep_staging(now=time.time() + store.STALE_STAGING_S + 1)
-    assert list(staged.iterdir()) == [] and wh.read("clips").column("num_cameras").to_pylist() == [2]
+    assert list(staged.iterdir()) == [] and wh.read("clips").column("num_cameras").to_pylist() == [1]
 
 
 def test_a_read_whose_listing_a_write_overtook_lists_that_partition_again(wh):

@@ -38,12 +38,13 @@ column as null). The merged file (named at the time of the merge, so it sorts af
 replaces) is written into a fresh folder under ``_staging/`` (outside every table, so no glob sees
 it) and flushed; then that folder and the partition folder swap names in one
 step (:func:`cadestate.atomic.exchange`), and the old files, now in the staging folder, are
-removed a few minutes later (:data:`RETIRED_S`, by a later swap). A reader listing the partition
-sees all the old files or the merged one (under a new name), never both (rows twice) nor neither
-(rows missing: a DuckDB glob that opened the folder just before the swap still lists the old
-names); one that listed the old files and opens one after the swap finds it gone and fails rather
-than answer wrong (:meth:`Warehouse.read` lists again; a DuckDB query reports the missing file, and
-run again answers). Interrupted at any point, a
+removed. A reader listing the partition sees all the old files or the merged one (under a new
+name), never both (rows twice); one that listed the old files and opens one after the swap finds
+it gone and fails rather than answer wrong (:meth:`Warehouse.read` lists that partition again; a
+DuckDB query reports the missing file, and run again answers). Known limit: a DuckDB glob whose
+listing a swap overtakes can instead leave that partition's rows out without an error (it drops
+names that vanished between its listing and its check of each name): SQL over a table that a
+batch is rewriting may miss a clip's rows until the batch is done. Interrupted at any point, a
 compaction leaves the partition as it was or compacted, plus a staging folder nothing reads. Writes
 to a partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`), so no
 write lands in a folder being swapped out.
@@ -80,7 +81,7 @@ NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 LEGACY_FILE = "part.parquet"
 """Name of a replace-mode file in warehouses written before file names held their time."""
 RETIRED_S = 300.0
-"""How long a partition's swapped-out files are kept in ``_staging/`` (a query that listed them still fails loudly)."""
+"""A swap's ``_staging/`` folder untouched this long is a killed process's (a swap takes moments): removed."""
 STALE_STAGING_S = 86_400.0
 """A ``_staging/`` folder untouched this long is a killed process's: removed (a live write touches its folder)."""
 COMPACT_AFTER = 64
@@ -436,33 +437,26 @@ class Warehouse:
 
     def _swap_in(self, folder: Path, data: pa.Table) -> Path:
         """Make ``data`` the only file of the partition ``folder`` in one step (see the module): a
-        replace-mode write, or a compaction's merged file. Returns the file's path. The files
-        swapped out are kept for :data:`RETIRED_S` (a query that listed the partition just before
-        the swap then fails on a missing file rather than find the partition empty), and removed
-        by a later swap (:meth:`_sweep_staging`)."""
+        replace-mode write, or a compaction's merged file. Returns the file's path."""
         stage = self.root / "_staging" / f"swap-{uuid.uuid4().hex}"
         stage.mkdir(parents=True)
-        retired = False
         try:
             name = self._write_file(data, stage).name
             if folder.is_dir():
                 exchange(stage, folder)  # the partition now holds the new file, the staging folder the old one
-                os.utime(stage)  # retired now
-                retired = True
             else:
                 folder.parent.mkdir(parents=True, exist_ok=True)
                 os.rename(stage, folder)
             fsync_dir(folder.parent)
         finally:
-            if not retired:
-                shutil.rmtree(stage, ignore_errors=True)
+            shutil.rmtree(stage, ignore_errors=True)
         self._sweep_staging()
         return folder / name
 
     def _sweep_staging(self, now: float | None = None) -> None:
-        """Remove what ``_staging/`` holds that nothing uses any more: partitions swapped out more
-        than :data:`RETIRED_S` ago, and folders of a process killed mid-write (untouched for
-        :data:`STALE_STAGING_S`)."""
+        """Remove the ``_staging/`` folders of processes killed mid-write: a swap's untouched for
+        :data:`RETIRED_S`, any other (media being made) for :data:`STALE_STAGING_S` (a live write
+        touches its folder)."""
         now = time.time() if now is None else now
         with contextlib.suppress(OSError):
             for entry in (self.root / "_staging").iterdir():
