@@ -23,6 +23,10 @@ from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
 from tasks.stage import StageRun, run_markers
 from warehouse import Warehouse, check_name
+
+SOURCE_FILE_STAGES = ("cameras", "ingest")
+"""Clip stages that read the clip's input files themselves (their inputs digest is taken from the
+files as they run, which status does not hash: it compares their sizes and times instead)."""
 from warehouse.kept import kept_read
 
 RUN_COLUMNS = ("clip", "run_id", "stage", "status", "config_hash", "inputs_hash", "output_hash", "code_hash",
@@ -157,6 +161,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                                ("code changed", ok["code_hash"] != signature.code_hash),
                                ("inputs changed", ok["inputs_hash"] != inputs))
                     reasons += [why for why, changed in differs if changed]
+                if stage.name in SOURCE_FILE_STAGES and (edited := _edited_inputs(wh, clip)):
+                    reasons.append(f"inputs changed ({', '.join(edited)} of inputs/{clip}/ edited since ingest)")
                 if any(u in stale_stages for u in stage.upstream):
                     reasons.append("upstream stale")
             if reasons:
@@ -171,6 +177,13 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             ))
         memo.save()
     return result
+
+
+def _edited_inputs(wh: Warehouse, clip: str) -> list[str]:
+    """:func:`tasks.video.inputs.edited_inputs`, imported here: a library's status imports no clip module."""
+    from tasks.video.inputs import edited_inputs
+
+    return edited_inputs(wh, clip)
 
 
 def stale_libraries(wh: Warehouse, config: Config) -> dict[str, list[str]]:

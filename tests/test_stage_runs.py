@@ -174,3 +174,31 @@ def test_status_beyond_eight_clips_shows_one_line_each_unless_asked_for_every_st
     assert "one line each" not in every.output and every.output.count("never run") == 9 * (len(stages_of("clip")) - 1)
     named = runner.invoke(app, ["-w", str(wh.root), "status", "c3"])
     assert "one line each" not in named.output and "c3" in named.output and "c4" not in named.output
+
+
+def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_path):
+    """Inputs are hard-linked into the warehouse: a user who edits their camera file in place edits
+    the warehouse's copy. `run` finds it by its digests; `status` (which hashes nothing) by the size
+    and modification time that ingest recorded."""
+    import os
+    import shutil
+
+    from cadestate.config import IngestConfig
+    from cadestate.lineage import file_sha256
+    from tasks.video.ingest import ingest_clip
+
+    video, cams = tmp_path / "in.mp4", tmp_path / "in.txt"
+    shutil.copy(small_clip.video_path, video)
+    shutil.copy(small_clip.cameras_path, cams)
+    out = ingest_clip(wh, IngestConfig(up="+y"), ClipSource("small", video, cams), file_sha256(video), file_sha256(cams), "r0")
+    run_stage(wh, "small", "ingest", body=lambda run_id: out, **HASHES)
+
+    def edited() -> list[str]:
+        status = {r.stage: r for r in pipeline_status(wh, Config(), ["small"])}
+        return [why for why in status["ingest"].stale_reasons if "edited since ingest" in why]
+
+    assert edited() == []
+    with open(cams, "a") as f:  # in place: the warehouse's inputs/small/cameras.txt is the same file
+        f.write("\n")
+    assert (wh.inputs_dir("small") / "cameras.txt").stat().st_ino == os.stat(cams).st_ino
+    assert edited() == ["inputs changed (cameras.txt of inputs/small/ edited since ingest)"]
