@@ -9,6 +9,7 @@ scoring mode of :mod:`bench.scoring` (headline: :data:`HEADLINE_MODE`) and per s
   objects. What "on" and "correct" mean is the mode's (:class:`bench.scoring.Outcome`): an object
   with two accepted poses does not count, even if one is right;
 - **duplicates**: accepted poses beyond the first on one object (any object), also as % of accepted poses;
+- **wrong poses**: accepted poses on an expected object that are not correct (its only pose, or one of several);
 - **false annotations**: accepted poses on no ground-truth object;
 - **on other objects**: accepted poses on objects that are not expected (not in view, or a class
   the library lacks): neither yield nor false annotations;
@@ -63,6 +64,7 @@ class PoseYield:
     accepted: int
     yielded: int
     duplicates: int
+    wrong_poses: int
     false_annotations: int
     on_other_objects: int
 
@@ -71,7 +73,8 @@ class PoseYield:
         return {"expected_objects": self.expected, "accepted_poses": self.accepted, "yielded_objects": self.yielded,
                 "yield_pct": pct(self.yielded, self.expected), "duplicates": self.duplicates,
                 "duplicates_pct_of_accepted": pct(self.duplicates, self.accepted),
-                "false_annotations": self.false_annotations, "on_other_objects": self.on_other_objects,
+                "wrong_poses": self.wrong_poses, "false_annotations": self.false_annotations,
+                "on_other_objects": self.on_other_objects,
                 "human_items_per_posed_object": round(human_items / self.yielded, 2) if self.yielded else None}
 
 
@@ -85,6 +88,7 @@ def pose_yield(outcomes: Iterable[Outcome], expected: set[Key]) -> PoseYield:
     yielded = sum(1 for k in expected if len(on.get(k, [])) == 1 and on[k][0].correct)
     return PoseYield(expected=len(expected), accepted=len(outcomes), yielded=yielded,
                      duplicates=sum(len(v) - 1 for v in on.values()),
+                     wrong_poses=sum(1 for o in outcomes if o.on_object in expected and not o.correct),
                      false_annotations=sum(o.on_object is None for o in outcomes),
                      on_other_objects=sum(len(v) for k, v in on.items() if k not in expected))
 
@@ -240,15 +244,16 @@ def yield_markdown(result: dict | None) -> list[str]:
         lines.append(f"**{split}** ({s['clips']} clips): yield **{m['yield_pct']} %**{target}: {m['yielded_objects']} of "
                      f"{m['expected_objects']} objects in view have exactly one accepted, correct pose; "
                      f"{m['duplicates']} duplicates ({m['duplicates_pct_of_accepted']} % of {m['accepted_poses']} "
-                     f"accepted poses); {m['false_annotations']} false annotations; {s['tracks_per_object']} tracks per "
+                     f"accepted poses); {m.get('wrong_poses', 0)} wrong poses of objects in view; "
+                     f"{m['false_annotations']} false annotations; {s['tracks_per_object']} tracks per "
                      f"object ({s['expected_objects_found']} objects found by a track); "
                      f"{m['human_items_per_posed_object']} human items per posed object ({s['human_items_total']} asked).")
         lines.append("")
     lines += [f"In view: ground-truth boxes visible >= {100 * MIN_VISIBLE_FRACTION:.0f} % and truncated <= "
               f"{100 * MAX_TRUNCATED_FRACTION:.0f} % on at least {result['min_frames_in_view']} "
               "frames (`bench/ignore.py`), of classes the CAD library has. Yield: exactly one accepted pose on the object, "
-              "and it is correct; duplicates: accepted poses beyond the first on one object; false annotations: accepted "
-              "poses on no object; tracks per object: automatic and manual tracks following an object in view (the "
+              "and it is correct; duplicates: accepted poses beyond the first on one object; wrong poses: accepted poses "
+              "on an object in view that are not correct; false annotations: accepted poses on no object; tracks per object: automatic and manual tracks following an object in view (the "
               "retrieval section's track map) / objects in view they found; human items: manual-track tasks 1 each, other "
               "tasks 1 per track listed / objects yielded. Interval: the percentile bootstrap over the split's clips "
               f"(objects of one clip share its room and tracker; all: within each split; none under {MIN_CLIPS} clips; "

@@ -297,6 +297,7 @@ def test_two_clips_of_one_video_share_its_frames_and_never_write_into_the_wareho
     before = {p: p.read_bytes() for p in images}
     counts = export_dataset(wh, tmp_path / "a", [CLIP, "later"], cad=False, show_progress=False)
     assert counts["clips"] == 2 and len(list((tmp_path / "a" / "frames" / "bench-9-00").iterdir())) == len(lines) - 1
+    assert counts["frames"] == len(lines) - 1  # the images written: the frames both clips hold count once
     assert (tmp_path / "a" / "scene_list.txt").read_text() == f"{CLIP}\nbench-9-00_{cams.timestamps_us[0]}\n"
     first = next(p for p in images if "/later/" in str(p))
     first.write_bytes(before[next(p for p in images if "/later/" not in str(p) and p.name == first.name)][::-1][:100])

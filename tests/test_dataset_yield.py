@@ -37,6 +37,7 @@ def test_exactly_one_correct_pose_yields():
                 _o("c", None, False, "f"), _o("c", None, False, "g")]  # false annotations
     y = pose_yield(outcomes, expected)
     assert (y.expected, y.accepted, y.yielded, y.duplicates, y.false_annotations, y.on_other_objects) == (4, 7, 1, 1, 2, 1)
+    assert y.wrong_poses == 2  # object 2's only pose, and object 3's second
     d = y.as_dict(human_items=5)
     assert d["yield_pct"] == 25.0 and d["duplicates_pct_of_accepted"] == round(100 / 7, 1)
     assert d["human_items_per_posed_object"] == 5.0

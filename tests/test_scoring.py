@@ -73,7 +73,9 @@ def test_a_wrong_second_pose_on_an_object_is_on_that_object_in_every_mode():
     truth = {("a_0", "1"): "0", ("a_0", "2"): "0"}
     for mode, result in score_all(preds, gt, truth, {}).items():
         y = pose_yield(result.outcomes, {("a_0", "0")})
-        assert (y.yielded, y.duplicates, y.false_annotations) == (0, 1, 0), mode
+        assert (y.yielded, y.duplicates, y.wrong_poses, y.false_annotations) == (0, 1, 1, 0), mode
+        lone = pose_yield(score_all([obj("2", q=YAW90)], gt, truth, {})[mode].outcomes, {("a_0", "0")})
+        assert (lone.yielded, lone.duplicates, lone.wrong_poses, lone.false_annotations) == (0, 0, 1, 0), mode
     off = score_all([obj("3", t=(5.0, 0, 0))], gt, {}, {})  # a track on no object: a false annotation
     assert all(pose_yield(r.outcomes, {("a_0", "0")}).false_annotations == 1 for r in off.values())
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import time
 import uuid
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
@@ -269,6 +270,10 @@ def _pinned(path: Path) -> Iterator[Path]:
     after), so that the watermarks a rebuild reads and the snapshots it copies come from one
     catalog even when another process replaces the file meanwhile (a snapshot and a rebuild at
     once). ``path`` itself where it is missing or the file system has no hard links."""
+    for stale in path.parent.glob(f".{path.name}.*.pin"):  # a killed rebuild's, an hour on
+        with contextlib.suppress(OSError):
+            if time.time() - stale.stat().st_mtime > 3600:
+                stale.unlink()
     pin = path.with_name(f".{path.name}.{uuid.uuid4().hex}.pin")
     try:
         os.link(path, pin)

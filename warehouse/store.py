@@ -80,10 +80,9 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
 LEGACY_FILE = "part.parquet"
 """Name of a replace-mode file in warehouses written before file names held their time."""
-RETIRED_S = 300.0
-"""A swap's ``_staging/`` folder untouched this long is a killed process's (a swap takes moments): removed."""
 STALE_STAGING_S = 86_400.0
-"""A ``_staging/`` folder untouched this long is a killed process's: removed (a live write touches its folder)."""
+"""A ``_staging/`` folder untouched this long is a killed process's: removed (a swap's or a stage's
+media; a folder's time changes only when an entry is made in it, so the age is far above any write's)."""
 COMPACT_AFTER = 64
 """Default of :attr:`Warehouse.compact_after` (config ``[warehouse] compact_after_files``)."""
 READ_RETRIES = 5
@@ -454,15 +453,12 @@ class Warehouse:
         return folder / name
 
     def _sweep_staging(self, now: float | None = None) -> None:
-        """Remove the ``_staging/`` folders of processes killed mid-write: a swap's untouched for
-        :data:`RETIRED_S`, any other (media being made) for :data:`STALE_STAGING_S` (a live write
-        touches its folder)."""
+        """Remove the ``_staging/`` folders of processes killed mid-write (untouched for :data:`STALE_STAGING_S`)."""
         now = time.time() if now is None else now
         with contextlib.suppress(OSError):
             for entry in (self.root / "_staging").iterdir():
                 with contextlib.suppress(OSError):
-                    age = now - entry.stat().st_mtime
-                    if age > (RETIRED_S if entry.name.startswith("swap-") else STALE_STAGING_S):
+                    if now - entry.stat().st_mtime > STALE_STAGING_S:
                         shutil.rmtree(entry, ignore_errors=True)
 
     def rename_legacy(self) -> dict[str, int]:

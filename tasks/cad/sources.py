@@ -271,11 +271,11 @@ def items_digest(items: list[CadItem]) -> str:
     texture is a change); content hashes of whole CAD collections would cost more than ingesting them."""
     files = {item.path.split("!", 1)[0] for item in items}
     folders = sorted({f for f in map(item_folder, items) if f is not None})
-    walked: list[Path] = []
-    for folder in folders:
-        if any(folder.is_relative_to(w) for w in walked):
+    walked: set[Path] = set()
+    for folder in folders:  # sorted: a folder comes after every folder above it
+        if walked.intersection(folder.parents):
             continue
-        walked.append(folder)
+        walked.add(folder)
         files.update(str(f) for f in folder.rglob("*") if f.is_file())
     parts = []
     for f in sorted(files):

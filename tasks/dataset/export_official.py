@@ -161,7 +161,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
                     continue
                 _put_jpeg(src, dst)
                 frame_of[dst] = (ds.clip, src)
-            counts["frames"] += len(ds.frames)
+            counts["frames"] = len(frame_of)  # images written: a frame two clips share counts once
             counts["objects"] += len(objects)
             counts["posed_objects"] += sum(o.translation is not None for o in objects)
         (tmp / "scene_list.txt").write_text("".join(f"{n}\n" for n in sorted(names)))

@@ -98,8 +98,8 @@ class ImportResult:
 
 
 def names_clip(text: str, clip: str) -> bool:
-    """Whether ``text`` holds ``clip`` as a whole word (``c1`` is not in ``c10.mp4``)."""
-    return re.search(rf"(?<![A-Za-z0-9]){re.escape(clip)}(?![A-Za-z0-9])", text) is not None
+    """Whether ``text`` holds ``clip`` as a whole word (``c1`` is not in ``c10.mp4`` nor ``c1_b.mp4``)."""
+    return re.search(rf"(?<![A-Za-z0-9_]){re.escape(clip)}(?![A-Za-z0-9_])", text) is not None
 
 
 # ------------------------------------------------------------------------------ frames

@@ -226,11 +226,15 @@ def _known(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
     return set(wh.read("label_files", clips, columns=["label_sha256"]).column("label_sha256").to_pylist())
 
 
-def _manual_answers(wh: Warehouse) -> dict[str, tuple[str, list]]:
-    """task id -> (source path, its objects' ids or None each) of the newest manual-track label file ingested for it."""
-    rows = wh.read("label_files", columns=["task_id", "kind", "source_path", "ingested_at", "document"]).to_pylist()
+def _manual_answers(wh: Warehouse, clips: list[str]) -> dict[str, tuple[str, list]]:
+    """task id -> (source path, its objects' ids or None each) of the newest manual-track label file
+    ingested for it, for ``clips``."""
+    if not clips:
+        return {}
+    rows = wh.read("label_files", clips, filters=[("kind", "==", "manual_track")],
+                   columns=["task_id", "source_path", "ingested_at", "document"]).to_pylist()
     out: dict[str, tuple[str, list]] = {}
-    for r in sorted((r for r in rows if r["kind"] == "manual_track"), key=lambda r: r["ingested_at"]):
+    for r in sorted(rows, key=lambda r: r["ingested_at"]):
         try:
             answers = json.loads(r["document"]).get("answers", [])
         except (ValueError, AttributeError):
@@ -252,7 +256,7 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
     with a warning for a manual-track answer that leaves out objects of the one it replaces (the
     newest answer is the whole answer: two tools' exports for one task are not added up)."""
     known = _known(wh)
-    manual = _manual_answers(wh)
+    manual: dict[str, tuple[str, list]] | None = None  # read once a manual-track file comes
     accepted: list[LabelFile] = []
     for path in paths:
         try:
@@ -266,6 +270,7 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
             continue
         report.warnings += lf.warnings
         if lf.kind == "manual_track":
+            manual = _manual_answers(wh, wh.partitions("label_files")) if manual is None else manual
             now = [getattr(a, "source_id", None) for a in lf.label.answers]
             before, objects = manual.get(lf.task_id, ("", []))
             if (lost := _dropped(objects, now)):

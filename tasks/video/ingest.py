@@ -411,5 +411,5 @@ def _source_inputs(source: ClipSource) -> list[str]:
 STAGE = StageDef(
     name="ingest", section="ingest", scope="clip", upstream=("cameras",), tables=("clips",),
     description="validate the video and camera file, find the world's up, keep them, register the clip",
-    run=_run, source_inputs=_source_inputs, clip_inputs=registered_inputs,
+    extra_sections=("frames.max_timestamp_error_us",), run=_run, source_inputs=_source_inputs, clip_inputs=registered_inputs,
 )
