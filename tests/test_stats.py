@@ -281,7 +281,8 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path, monkeypatch):
     train = next(line for line in lines if line.startswith("**train**"))
     assert train == (f"**train** (2 clips): yield **{pct(train_yield, train_view)} %** (target 60 %): {train_yield} of "
                      f"{train_view} objects in view have exactly one accepted, correct pose; 1 duplicates "
-                     f"({pct(1, train_accepted)} % of {train_accepted} accepted poses); 1 false annotations; 1.0 tracks "
+                     f"({pct(1, train_accepted)} % of {train_accepted} accepted poses); 0 wrong poses of objects in view; "
+                     f"1 false annotations; 1.0 tracks "
                      f"per object ({train_view} objects found by a track); {round(4 / train_yield, 2)} human items per "
                      f"posed object (4 asked).")
     val = next(line for line in lines if line.startswith("**val**"))
