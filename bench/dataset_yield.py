@@ -244,7 +244,7 @@ def yield_markdown(result: dict | None) -> list[str]:
         lines.append(f"**{split}** ({s['clips']} clips): yield **{m['yield_pct']} %**{target}: {m['yielded_objects']} of "
                      f"{m['expected_objects']} objects in view have exactly one accepted, correct pose; "
                      f"{m['duplicates']} duplicates ({m['duplicates_pct_of_accepted']} % of {m['accepted_poses']} "
-                     f"accepted poses); {m.get('wrong_poses', 0)} wrong poses of objects in view; "
+                     f"accepted poses); {m['wrong_poses']} wrong poses of objects in view; "
                      f"{m['false_annotations']} false annotations; {s['tracks_per_object']} tracks per "
                      f"object ({s['expected_objects_found']} objects found by a track); "
                      f"{m['human_items_per_posed_object']} human items per posed object ({s['human_items_total']} asked).")
@@ -253,7 +253,8 @@ def yield_markdown(result: dict | None) -> list[str]:
               f"{100 * MAX_TRUNCATED_FRACTION:.0f} % on at least {result['min_frames_in_view']} "
               "frames (`bench/ignore.py`), of classes the CAD library has. Yield: exactly one accepted pose on the object, "
               "and it is correct; duplicates: accepted poses beyond the first on one object; wrong poses: accepted poses "
-              "on an object in view that are not correct; false annotations: accepted poses on no object; tracks per object: automatic and manual tracks following an object in view (the "
+              "on an object in view that are not correct; false annotations: accepted poses on no object; tracks per "
+              "object: automatic and manual tracks following an object in view (the "
               "retrieval section's track map) / objects in view they found; human items: manual-track tasks 1 each, other "
               "tasks 1 per track listed / objects yielded. Interval: the percentile bootstrap over the split's clips "
               f"(objects of one clip share its room and tracker; all: within each split; none under {MIN_CLIPS} clips; "

@@ -18,14 +18,13 @@ from __future__ import annotations
 import atexit
 import importlib.util
 import os
-import signal
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from cadestate import exit_on_sigterm
 from flows.prefect_db import seed_home
 from flows.server import free_port, healthy
 
@@ -65,14 +64,9 @@ def launch(home: Path) -> None:
     port = free_port("127.0.0.1")
     _LAUNCHED = Launched(port, subprocess.Popen(uvicorn_command(port), env={**os.environ, **SERVER_ENV}))
     atexit.register(_stop_unadopted)
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-        signal.signal(signal.SIGTERM, _exit)  # killed by default, the command would leave the API running
-
-
-def _exit(signum: int, frame) -> None:
-    """SIGTERM as an exit: the exit handlers run and stop the API (Prefect's, or ours when unadopted).
-    `cadestate annotate`'s uvicorn shuts down on SIGTERM, then raises it again: it ends here too."""
-    raise SystemExit(128 + signum)
+    # killed by default, the process would leave the API running; as an exit, the exit handlers stop it
+    # (`cadestate annotate`'s uvicorn shuts down on SIGTERM, then raises it again: it ends there too)
+    exit_on_sigterm()
 
 
 def take() -> Launched | None:

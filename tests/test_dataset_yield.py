@@ -68,7 +68,7 @@ def test_the_report_line_gives_the_interval_where_there_is_one():
     from bench.loss_funnel import FATES
 
     mode = {"yield_pct": 87.5, "yielded_objects": 49, "expected_objects": 56, "duplicates": 0,
-            "duplicates_pct_of_accepted": 0.0, "accepted_poses": 53, "false_annotations": 2, "on_other_objects": 2,
+            "duplicates_pct_of_accepted": 0.0, "accepted_poses": 53, "wrong_poses": 1, "false_annotations": 2, "on_other_objects": 2,
             "human_items_per_posed_object": 4.53}
     split = {"clips": 9, "target_pct": 60, "tracks_per_object": 1.08, "expected_objects_found": 53,
              "human_items_total": 222,

@@ -14,6 +14,7 @@ import sys
 from rich.markup import escape
 
 from cadestate.cli import annotate, bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
+from cadestate import exit_on_sigterm
 from cadestate.cli.common import app, err
 
 __all__ = ["app", "main"]
@@ -49,10 +50,7 @@ def main() -> None:
     """Entry point: known input errors become one clear line on stderr and exit status 2 (1 for a
     failing environment). SIGTERM ends the command as an exit (status 143), so that its cleanup
     runs (temporary folders, the Prefect API it launched), as Ctrl-C's does."""
-    import signal
-
-    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-        signal.signal(signal.SIGTERM, _terminated)
+    exit_on_sigterm()
     try:
         app()
     except Exception as e:
@@ -61,7 +59,3 @@ def main() -> None:
             raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(codes[0])
-
-
-def _terminated(signum: int, frame) -> None:
-    raise SystemExit(128 + signum)

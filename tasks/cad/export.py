@@ -54,10 +54,8 @@ def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False)
 
 
 def temp_folder_beside(out: Path) -> Path:
-    """A new hidden folder beside ``out`` to write an export into before moving it to ``out``
-    (:class:`ExportError` when none can be made there). ``out`` is made absolute first (``.``
-    has no name to put beside)."""
-    out = Path(os.path.abspath(out))
+    """A new hidden folder beside ``out`` (an absolute path: ``.`` has no name to put beside) to
+    write an export into before moving it to ``out`` (:class:`ExportError` when none can be made there)."""
     return make_folder(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"), named=out)
 
 
