@@ -177,9 +177,48 @@ def test_coplanar_detection_and_ties():
     q[4:] = q[4:] @ rotation_y(180).T  # the symmetric copy of the face on key-frame 1
     assert coplanar_axis(q, np.repeat([0, 1], 4), 1, 0.02) == -1
     assert coplanar_axis(q, np.repeat([0, 1], 4), 2, 0.02) == 2
+    assert coplanar_axis(q, np.repeat([0, 1], 4), 4, 0.02) == -1  # a quarter turn takes x to z: no one face
+    top_feet = np.array([[x, y, z] for y in (0.5, -0.5) for x in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    for order in (1, 2, 4):  # turns about +Y keep y: a top and the feet span the height
+        assert coplanar_axis(top_feet, np.repeat([0, 1], 4), order, 0.02) == -1
+    sides = top_feet[:, [1, 0, 2]]  # the faces x = +0.5 and x = -0.5: one face and its twin, or two faces
+    assert coplanar_axis(sides, np.repeat([0, 1], 4), 2, 0.02) == 0
+    assert coplanar_axis(sides * [0.5, 1, 1] + [0.3, 0, 0], np.repeat([0, 1], 4), 2, 0.02) == -1  # x = 0.55, 0.05
     s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([[False, True, False], [False] * 3]),
                    torch.tensor([False, True]))
     assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]
+
+
+def faces_problem(faces: list[np.ndarray], symmetry: int):
+    """Exact clicks of a table (scale 1.6, 0.7, 0.9) on ``faces[f]`` float[N, 3] (CAD frame) from
+    key-frame f, cameras walking round it; returns (problem, (T, q, s))."""
+    T, R, s = np.array([0.3, 0.4, -0.2]), rotation_y(20.0), np.array([1.6, 0.7, 0.9])
+    q = matrix_to_quaternion(R)
+    M = object_to_world(T, q, s, False)
+    Rs, ts, xy = [], [], []
+    for f, p in enumerate(faces):
+        a = np.radians(90 * f + 30)
+        Rc, tc = look_at(T + np.array([3 * np.sin(a), 1.5, 3 * np.cos(a)]), T)
+        cam = (p @ M[:3, :3].T + M[:3, 3]) @ Rc.T + tc
+        uv = cam @ K.T
+        Rs.append(Rc), ts.append(tc), xy.append(uv[:, :2] / uv[:, 2:])
+    kf = np.concatenate([[f] * len(p) for f, p in enumerate(faces)])
+    return ObjectCorrespondences(np.concatenate(xy), np.concatenate(faces), kf, np.array([K] * len(faces)),
+                                 np.array(Rs), np.array(ts), False, symmetry, True), (T, q, s)
+
+
+def test_a_symmetric_table_clicked_on_faces_a_turn_cannot_join_is_solved_untied():
+    """Key-frames each co-planar: the top and the feet (no turn about +Y joins them), or a 2-way
+    table's long sides clicked from both of them (a half turn makes them one face: tied first, the
+    tie explains no click, solved again untied). Both are the exact pose, as without symmetry."""
+    top = np.array([[x, 0.5, z] for x in (-0.5, 0.5) for z in (-0.5, 0.5)] + [[0.0, 0.5, 0.3]])
+    feet = np.array([[x, -0.5, z] for x in (-0.47, 0.47) for z in (-0.47, 0.47)])
+    side = np.array([[0.5, y, z] for y in (-0.5, 0.5) for z in (-0.5, 0.5)] + [[0.5, 0.1, 0.2]])
+    problems = [faces_problem([top, feet, top, feet], order) for order in (2, 4)]
+    problems.append(faces_problem([side, side * [-1, 1, -1], side, side * [-1, 1, -1]], 2))
+    for r, (_, (T, q, s)) in zip(solve_poses([p for p, _ in problems], FREE), problems):
+        assert r.status == "ok" and r.coplanar_axis == -1, r.message
+        assert np.linalg.norm(r.translation - T) < 1e-3 and np.abs(r.scale / s - 1).max() < 1e-3
 
 
 def test_unobserved_axes_and_their_prior():

@@ -36,26 +36,31 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
     """The CAD axis (0 x, 1 y, 2 z) perpendicular to co-planar annotated points, or -1.
 
     Co-planar: all points (at least 4) lie on one plane within ``tol`` (relative to their spread);
-    the axis is the CAD axis nearest its normal. A symmetric model's key-frames may carry different
-    symmetric rotations of the same face, so there it is enough that every key-frame with 4 or
-    more points is co-planar with the same nearest axis, and that axis is unchanged by the
-    symmetry (any axis for order 2, only +Y for 4 and 36).
+    the axis is the CAD axis nearest its normal. A 2-way model's key-frames may carry the face and
+    its twin under the half turn about +Y (x, z -> -x, -z): there each key-frame with 4 or more
+    points must be co-planar with the same nearest axis x or z, and the points must be co-planar
+    once each key-frame's face is turned to the positive side of that axis. Turns about +Y keep
+    y, so faces across +Y (a table's top and its feet) tie nothing whatever the symmetry, and a
+    4- or 36-way model's faces across x or z may be turned onto each other's neighbours: the
+    plain test over all points decides there.
     """
     xyz = np.asarray(xyz, np.float64)
     if len(xyz) >= 4 and (n := _normal(xyz, tol)) is not None:
         return int(np.argmax(np.abs(n)))
-    if symmetry > 1:
-        axes = []
-        for f in np.unique(keyframe):
-            p = xyz[keyframe == f]
-            if len(p) < 4:
-                continue
-            if (n := _normal(p, tol)) is None:
-                return -1
-            axes.append(int(np.argmax(np.abs(n))))
-        if axes and len(set(axes)) == 1 and (symmetry == 2 or axes[0] == 1):
-            return axes[0]
-    return -1
+    if symmetry != 2:
+        return -1
+    axes, turned = [], []
+    for f in np.unique(keyframe):
+        p = xyz[keyframe == f]
+        if len(p) < 4:
+            continue
+        if (n := _normal(p, tol)) is None:
+            return -1
+        axes.append(int(np.argmax(np.abs(n))))
+        turned.append(p * np.array([-1.0, 1.0, -1.0]) if p[:, axes[-1]].mean() < 0 else p)
+    if not axes or len(set(axes)) != 1 or axes[0] == 1:
+        return -1
+    return axes[0] if _normal(np.concatenate(turned), tol) is not None else -1
 
 
 def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float) -> np.ndarray:

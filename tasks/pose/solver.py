@@ -27,8 +27,11 @@ Objective per object (all key-frames together)::
 Special parameterisations (each can be switched off for the ablation):
 
 - co-planar 3D points (smallest singular value of the centred points <= ``coplanar_tol`` x the
-  largest; or, for symmetric models, every key-frame's set planar with the same normal axis):
-  the scale along the CAD axis nearest the plane normal is the mean of the other two (2 DoF);
+  largest; or, for 2-way models, every key-frame's set planar across x or z and one plane once
+  each face is turned to the positive side, :func:`tasks.pose.checks.coplanar_axis`): the scale
+  along the CAD axis nearest the plane normal is the mean of the other two (2 DoF). A 2-way tie
+  whose pose cannot explain the clicks (``high_residual``: two faces clicked from both sides, not
+  one face and its twin) is solved again untied, and that pose kept when it is ``ok``;
 - axes the 3D points hardly span (less than ``min_axis_span`` of the model's size along them:
   the clicks all on a leg or a corner): the loss gains ``L_axes`` = sum over them of
   ``axis_prior`` x (log s_a - the observed axes' mean log-scale)^2 (px; all three's mean when none
@@ -363,6 +366,18 @@ def solve_poses(objects: list[ObjectCorrespondences], opts: SolverOptions = Solv
         torch.set_num_threads(opts.threads)
         try:
             _solve(objects, todo, axes, opts, results)
+            # A 2-way model's tie may be wrong: its key-frames' faces may be one face and its twin
+            # (tied: the scale across them is unseen) or two faces clicked from both sides (the
+            # scale between them is seen). The clicks decide: a tied pose that cannot explain
+            # them is solved again untied and replaced when that one is fit for use.
+            again = [i for i, a in zip(todo, axes) if a >= 0 and results[i].status == "high_residual"
+                     and coplanar_axis(objects[i].xyz, objects[i].keyframe, 1, opts.coplanar_tol) < 0]
+            if again:
+                untied: list[PoseResult | None] = [None] * len(objects)
+                _solve(objects, again, [-1] * len(again), opts, untied)
+                for i in again:
+                    if untied[i].status == "ok":
+                        results[i] = untied[i]
         finally:
             torch.set_num_threads(threads)
     return results  # type: ignore[return-value]
