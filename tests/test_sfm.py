@@ -15,7 +15,8 @@ from bench.walkthrough import WalkthroughSpec, generate_clip
 from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world
 from tasks.video.camera_file import parse_camera_file
-from tasks.video.sfm import SfmError, _interpolate, check_registered, run_sfm, sample_frames
+from tasks.video.decode import probe_video
+from tasks.video.sfm import SfmError, _interpolate, _options, check_registered, run_sfm, sample_frames
 from tasks.video.sfm_focal import best_focal, focal_hypotheses
 from tasks.video.sfm_register import Correspondences, register_frames
 
@@ -120,6 +121,9 @@ def test_sampled_frames_are_upright_square_pixels_in_increasing_time(tmp_path):
     frames = sample_frames(video, 30.0, tmp_path)
     assert (frames.width, frames.height) == (85, 48)
     assert frames.times_us.tolist() == [0, 33000, 67000, 100000, 133000]  # Matroska counts milliseconds
+    # --intrinsics are in the stored pixels: SfM gets them in the sampled frames' square ones
+    centred = _options(CamerasConfig(), (40.0, 40.0, 32.0, 24.0), probe_video(video).pixel_aspect)[0]
+    assert [float(v) for v in centred.camera_params.split(",")] == pytest.approx([160 / 3, 40.0, 128 / 3, 24.0])
 
 
 def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):

@@ -44,8 +44,8 @@ def ingest(
         "Map the first camera timestamp to the video's first frame; allowed only when every timestamp lies past the "
         "video's end. The offset chosen is printed."))] = False,
     intrinsics: Annotated[Optional[str], typer.Option(help=(
-        "Without a camera file: the camera's fx,fy,cx,cy in pixels for SfM (default: the focal length is "
-        "estimated, the principal point at the image centre)."))] = None,
+        "Without a camera file: the camera's fx,fy,cx,cy in the video's stored pixels for SfM (default: the focal "
+        "length is estimated, the principal point at the image centre)."))] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).

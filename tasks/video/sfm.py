@@ -126,14 +126,17 @@ def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrame
     return SampledFrames(np.asarray(times, dtype=np.int64), paths, size[0], size[1])
 
 
-def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None):
-    """pycolmap's reader, extraction, matching, pairing, two-view verification and mapping options for ``cfg``."""
+def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None, pixel_aspect: float = 1.0):
+    """pycolmap's reader, extraction, matching, pairing, two-view verification and mapping options for ``cfg``;
+    ``intrinsics`` (fx, fy, cx, cy) in the video's stored pixels, of ``pixel_aspect`` (their width over
+    their height), are handed over in the square pixels of :func:`sample_frames` (fx and cx scaled)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
     if intrinsics:
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
         reader.camera_model = "PINHOLE"
-        reader.camera_params = ",".join(repr(float(v)) for v in intrinsics)
+        reader.camera_params = ",".join(repr(v) for v in (fx * pixel_aspect, fy, cx * pixel_aspect, cy))
     else:
         reader.camera_model = "SIMPLE_PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
@@ -232,7 +235,9 @@ def check_registered(video: Path | str, registered: np.ndarray, cfg: CamerasConf
 def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, float, float] | None = None,
             url: str | None = None, work_dir: Path | None = None) -> SfmResult:
     """Cameras of ``video`` by SfM (module docstring); ``url`` is the camera file's line 1
-    (default: the video's ``file://`` URI); ``intrinsics`` (fx, fy, cx, cy) px fix the camera.
+    (default: the video's ``file://`` URI); ``intrinsics`` (fx, fy, cx, cy) px fix the camera, in
+    the video's stored pixels (a video of non-square pixels is sampled in square ones: x scaled by
+    its pixel aspect, and so are fx and cx).
 
     Raises:
       SfmError: no model, or fewer than ``cfg.min_registered_fraction`` of the frames registered.
@@ -247,7 +252,8 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         (tmp / "images").mkdir()
         frames = sample_frames(video, cfg.sample_fps, tmp / "images")
         seconds["sampling"] = time.perf_counter() - t0
-        reader, extraction, matching, pairing, verification, mapping = _options(cfg, intrinsics)
+        options = _options(cfg, intrinsics, probe_video(video).pixel_aspect if intrinsics else 1.0)
+        reader, extraction, matching, pairing, verification, mapping = options
         db, names = tmp / "database.db", [p.name for p in frames.paths]
         t = time.perf_counter()
         pycolmap.Database.open(str(db)).close()
