@@ -15,10 +15,10 @@ from cadestate.geometry import project
 from cadestate.render import Instance, Renderer, RenderMesh, object_to_world
 from tasks.cad.classes import BY_NAME, CLASSES, classify
 from tasks.cad.export import ExportError, export_official, triangle_soup
-from tasks.cad.ingest import ingest_library
+from tasks.cad.ingest import CadItemError, ingest_library
 from tasks.cad.sources import (
     CadSourceError, default_source, folder_items, guess_kind, items_digest, load_item, read_java_properties, shapenet_items,
-    sweethome3d_items,
+    source_items, sweethome3d_items,
 )
 from tasks.cad.views import render_library, view_camera, viewpoints
 
@@ -116,6 +116,71 @@ def test_shapenet_layout(tmp_path):
     assert missing == [] and np.allclose(scene.extents, [0.5, 0.9, 0.5])
     with pytest.raises(CadSourceError, match="no <synset>/<model_id>"):
         list(shapenet_items(tmp_path / "03001627"))
+
+
+def test_ids_that_slug_alike_are_made_unique_and_the_others_kept(tmp_path):
+    """Rows whose ids slug alike (case, spaces, names in other scripts) each get a cad_id of their
+    own; a ShapeNet model id under two synsets too; an id of its own keeps its plain slug."""
+    for name in ("Chair A", "chair-a", "椅子", "テーブル", "desk"):
+        trimesh.creation.box((1, 1, 1)).export(tmp_path / f"{name}.obj")
+    (tmp_path / "models.csv").write_text("id,class\nChair A,chair\nchair-a,chair\n椅子,chair\nテーブル,table\ndesk,table\n",
+                                         encoding="utf-8")
+    ids = [i.cad_id for i in source_items("folder", tmp_path, "lib")]
+    assert len(set(ids)) == 5 and ids[4] == "lib.desk"
+    assert ids[0].startswith("lib.chair-a-") and ids[2].startswith("lib.item-")
+    assert ids == [i.cad_id for i in source_items("folder", tmp_path, "lib")]  # stable
+    for synset in ("03001627", "04379243"):
+        (tmp_path / "sn" / synset / "m1" / "models").mkdir(parents=True)
+        trimesh.creation.box((1, 1, 1)).export(tmp_path / "sn" / synset / "m1" / "models" / "model_normalized.obj")
+    shapenet = source_items("shapenet", tmp_path / "sn")
+    assert len({i.cad_id for i in shapenet}) == 2 and all(i.library == "sn" for i in shapenet)  # named after its folder
+
+
+@pytest.mark.parametrize("table, message", [
+    ("id,class,unit_m\nbox,table,nan\n", "models.csv:2: unit_m must be a positive number"),
+    ("id,class,unit_m\nbox,table,1\nbox2,table,-1\n", "models.csv:3: unit_m must be a positive number"),
+    ("id,class,unit_m\nbox\n", "models.csv:2: 1 field(s), the header has 3"),
+    ("id,class\nbox,table,extra\n", "models.csv:2: 3 field(s), the header has 2"),
+    ("id,class\n,table\n", "models.csv:2: empty id"),
+    ("id,class\nsame,table\n", "models.csv:2: id 'same' has 2 meshes (same.obj, same.ply); name one in a file column"),
+])
+def test_a_bad_models_csv_is_one_line_naming_its_line(tmp_path, table, message):
+    trimesh.creation.box((1, 1, 1)).export(tmp_path / "box.obj")
+    for suffix in ("obj", "ply"):
+        trimesh.creation.box((1, 1, 1)).export(tmp_path / f"same.{suffix}")
+    (tmp_path / "models.csv").write_text(table)
+    with pytest.raises(CadSourceError) as e:
+        list(folder_items(tmp_path))
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_spreadsheet_csv_glob_characters_and_a_bang_in_the_path(tmp_path):
+    """A byte-order mark (as spreadsheets save UTF-8) is read; Latin-1 is refused by name; an id
+    with glob characters finds its mesh; a folder with '!' in its path is no archive."""
+    folder = tmp_path / "wow!meshes"
+    folder.mkdir()
+    trimesh.creation.box((1, 1, 1)).export(folder / "chair[1].obj")
+    (folder / "models.csv").write_bytes("id,class\nchair[1],chair\n".encode("utf-8-sig"))
+    (item,) = folder_items(folder)
+    assert item.path == str(folder / "chair[1].obj")
+    scene, missing = load_item(item)
+    assert missing == [] and np.allclose(scene.extents, 1)
+    assert items_digest([item])  # its folder is walked, not an archive's
+    (folder / "models.csv").write_bytes("id,class\nchaise,chair\nfauteuil é,chair\n".encode("latin-1"))
+    with pytest.raises(CadSourceError, match=r"models.csv: not UTF-8 text \(byte \d+\); save it as UTF-8"):
+        list(folder_items(folder))
+
+
+def test_a_library_of_no_readable_model_fails_and_keeps_what_it_held(ingested, tmp_path):
+    wh, _ = ingested
+    before = wh.read("cad_models")
+    (tmp_path / "broken.obj").write_text("v 0 0 0\nv not a number\nf 1 2 3\n")
+    (tmp_path / "models.csv").write_text("id,class\nbroken,chair\n")
+    with pytest.raises(CadItemError, match=r"no model of CAD library 'testlib' could be ingested \(1 skipped; the first, "
+                                           r".*broken.obj: "):
+        ingest_library(wh, CadIngestConfig(samples=2048), "testlib", list(folder_items(tmp_path, "testlib")), "run3",
+                       show_progress=False)
+    assert wh.read("cad_models").equals(before) and wh.read("cad_issues").num_rows == 4
 
 
 def test_items_digest_tracks_files(mesh_folder, tmp_path):

@@ -231,6 +231,15 @@ def test_cad_ingest_sheet_export(tmp_path):
     assert sheet.exit_code == 0 and (tmp_path / "s.png").stat().st_size > 1000
     export = runner.invoke(app, ["-w", w, "cad", "export-official", str(tmp_path / "official")])
     assert export.exit_code == 0 and (tmp_path / "official" / "04379243" / "mine.box.npz").is_file()
+    credits = (tmp_path / "official" / "ATTRIBUTION.csv").read_text().splitlines()
+    assert credits == ["cad_id,library,name,licence,creator,source", "mine.box,mine,box,unknown,unknown,folder"]
+    unknown = cli("-w", w, "cad", "export-official", str(tmp_path / "o2"), "--library", "nosuch")
+    assert unknown.returncode == 2 and "no CAD library 'nosuch'" in unknown.stderr and "(libraries: mine)" in unknown.stderr
+    (tmp_path / "elsewhere").mkdir()
+    other = box_library(tmp_path / "elsewhere")  # another folder under the same library name: refused before Prefect starts
+    clash = cli("-w", w, "cad", "ingest", str(other), "--library", "mine", "--no-progress")
+    assert clash.returncode == 2 and clash.stderr.count("\n") == 1, clash.stderr
+    assert f"library 'mine' already holds models from {folder}, not {other}: " in clash.stderr
     again = cli("-w", w, "cad", "export-official", str(tmp_path / "official"))
     assert again.returncode == 2 and "exists and is not empty" in again.stderr
     onto_file = cli("-w", w, "cad", "export-official", str(tmp_path / "s.png"))

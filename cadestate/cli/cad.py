@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
@@ -42,8 +43,20 @@ def cad_ingest(
     path = source or (Path(cfg.cad_ingest.source) if cfg.cad_ingest.source else default_source())
     if not path.is_dir():
         raise CliError(f"{path}: CAD source folder not found" + ("" if source else " (run `make cad-library`)"))
-    items = source_items(guess_kind(path) if kind is SourceKind.auto else kind.value, path, library)
+    path = path.resolve()  # one folder, one library and one lineage, from whatever working directory
+    chosen = guess_kind(path) if kind is SourceKind.auto else kind.value
+    if library is not None:
+        if chosen == "sweethome3d":
+            raise CliError("--library: a Sweet Home 3D source names one library per catalogue (sh3d-<catalogue>)")
+        from warehouse import WarehouseError, check_name
+
+        try:
+            check_name(library, "library")
+        except WarehouseError as e:
+            raise CliError(f"--library: {e}") from None
+    items = source_items(chosen, path, library)
     root = ctx.obj.root(cfg)
+    held_elsewhere(root, items)
     api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
     from flows.cad_library import run_cad_library
 
@@ -51,6 +64,28 @@ def cad_ingest(
     err.print(f"{models} from {path} into {root} " + (f"on the Prefect server at {api}" if api else
               "(Prefect's local API starts alongside, ~3 s; `cadestate server start` saves it)"))
     raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress), unit="library"))
+
+
+def _root_of(paths: list[str]) -> str:
+    """The folder holding every file of ``paths`` (an archive member counts as its archive)."""
+    return os.path.commonpath([os.path.dirname(p.split("!", 1)[0]) for p in paths])
+
+
+def held_elsewhere(root: Path, items: list) -> None:
+    """Refuse items of a library the warehouse holds from another source folder (two folders of
+    one name would replace each other's models)."""
+    from warehouse import Warehouse
+
+    if not (root / "tables" / "cad_models").is_dir():
+        return
+    wh = Warehouse(root)
+    for library in sorted({i.library for i in items} & set(wh.partitions("cad_models"))):
+        held = [p for p in wh.read("cad_models", partitions=[library], columns=["source_path"]).column(0).to_pylist()
+                if os.path.isabs(p)]  # stored relative by older versions: not comparable
+        ours = _root_of([i.path for i in items if i.library == library])
+        if held and _root_of(held) != ours:
+            raise CliError(f"library {library!r} already holds models from {_root_of(held)}, not {ours}: "
+                           f"give this source another name with --library NAME")
 
 
 @cad_app.command("export-official")

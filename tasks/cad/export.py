@@ -7,6 +7,8 @@ Layout (what ``cad_estate.objects.load_shapenet_metadata`` / ``load_objects`` re
     symmetry_dict.json         {"<class id>_<cad_id>": K, ...}
     <class id>/<cad_id>.npz    vertices: float32[T, 3, 3] triangle soup in the canonical CAD frame;
                                label: the class id; mesh_id: the cad_id
+    ATTRIBUTION.csv            cad_id, library, name, licence, creator, source: every model's terms
+                               (most of Sweet Home 3D's are CC-BY: whoever shares the meshes credits them)
 
 Class ids are ShapeNet synsets where ShapeNet has the class (``cadestate-<name>`` otherwise), so
 objects annotated on our library load with the official code. Written into a temporary folder
@@ -15,6 +17,7 @@ beside ``out`` and renamed into place at the end: an interrupted export leaves n
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -120,7 +123,12 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
     """Write the official layout of ``libraries`` (default: all) to ``out``; returns the model count."""
     out = Path(os.path.abspath(out))
     check_new_folder(out)
-    models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path"]).to_pylist()
+    held = wh.partitions("cad_models")
+    unknown = [lib for lib in libraries or () if lib not in held]
+    if unknown:
+        raise ExportError(f"no CAD library {unknown[0]!r} in {wh.root} (libraries: {', '.join(held) or 'none'})")
+    models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path", "library",
+                                                                  "name", "licence", "creator", "source"]).to_pylist()
     if not models:
         raise ExportError("no CAD model in the warehouse (run `cadestate cad ingest` first)")
     tmp = temp_folder_beside(out)
@@ -129,6 +137,11 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
         (tmp / "shapenet_classes.json").write_text(json.dumps(classes, indent=1))
         symmetry = {f"{m['class_id']}_{m['cad_id']}": m["symmetry"] for m in models}
         (tmp / "symmetry_dict.json").write_text(json.dumps(symmetry, indent=1, sort_keys=True))
+        with open(tmp / "ATTRIBUTION.csv", "w", newline="", encoding="utf-8") as f:
+            columns = ["cad_id", "library", "name", "licence", "creator", "source"]
+            writer = csv.DictWriter(f, columns, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(sorted(models, key=lambda m: m["cad_id"]))
         for m in progress(models, total=len(models), description="export", enabled=show_progress):
             folder = tmp / m["class_id"]
             folder.mkdir(exist_ok=True)

@@ -9,7 +9,9 @@ Canonical CAD frame: metres, +Y up, front +Z, origin at the centre of the axis-a
 box. A source's mesh gets, in order: its pre-rotation (Sweet Home 3D ``modelRotation``), then a
 per-axis scale to the catalogue size (Sweet Home 3D) or a uniform unit scale, then the
 translation that centres its bounding box. An item that cannot be read, is empty, or is
-degenerate is skipped and listed in ``cad_issues``; the stage never stops halfway.
+degenerate is skipped and listed in ``cad_issues``; the stage never stops halfway. A library none
+of whose items could be ingested fails the stage (naming the first item's problem) and keeps
+what it held.
 """
 
 from __future__ import annotations
@@ -162,14 +164,18 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
                 continue
             models.append({**result.model, "library": library})
             samples.append({"library": library, "cad_id": result.model["cad_id"], "points": result.points.tolist()})
+        if items and not models:  # retrieval would rank every clip against an empty library
+            first = issues[0]
+            raise CadItemError(f"no model of CAD library {library!r} could be ingested ({len(items)} skipped; the "
+                               f"first, {first['source_path']}: {first['problem']})")
         meshes = folder_digest(staged)
         version = meshes[:16]  # by content: a rerun that writes the same meshes keeps their paths (task files name them)
         models = [{**m, "mesh_path": f"media/{MEDIA_KIND}/{library}/{version}/{m['cad_id']}.glb"} for m in models]
         wh.publish_media(MEDIA_KIND, library, staged, version, content=True)
-    wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
-    wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
     table = pa.Table.from_pylist(models, schema=wh.spec("cad_models").schema)
-    rows = wh.write("cad_models", library, table)
+    rows = wh.write("cad_models", library, table)  # first: the one whose key check may refuse
+    wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
+    wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
     wh.prune_media(MEDIA_KIND, library, keep=version)
     skipped = sum(i["severity"] == "skipped" for i in issues)
     return StageOutput(rows, digest(table_digest(table.drop_columns(["mesh_path"])), meshes),

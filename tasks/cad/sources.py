@@ -10,7 +10,8 @@ canonicalises). Sources:
   the "Characters" category) are left out. Meshes are in centimetres, +Y up, front +Z;
   ``modelRotation`` (a 3x3 matrix) applies first; the catalogue's width/height/depth is the size.
 - ShapeNetCore v2: ``<root>/<synset>/<model_id>/models/model_normalized.obj`` (+Y up; ShapeNet's
-  normalised units are kept, as CAD-Estate's own ShapeNet poses assume).
+  normalised units are kept, as CAD-Estate's own ShapeNet poses assume); the library is named
+  after the root folder.
 - A folder: meshes (OBJ/GLB/GLTF/PLY/OFF/STL) with ``models.csv``: columns ``id,class`` and
   optionally ``file`` (default: the one ``<id>.*`` mesh), ``licence``, ``creator``, ``unit_m``
   (metres per mesh unit, default 1).
@@ -19,13 +20,15 @@ canonicalises). Sources:
 from __future__ import annotations
 
 import csv
+import glob
 import io
 import os
 import posixpath
 import re
 import zipfile
+from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -72,10 +75,12 @@ class CadItem:
     size_m: tuple[float, float, float] | None = None
     unit_m: float = 1.0
     rotation: tuple[float, ...] | None = None
+    key: str = ""
+    """The id within the library when ``slug(item)`` is not unique there (:func:`unique_keys`)."""
 
     @property
     def cad_id(self) -> str:
-        return f"{self.library}.{slug(self.item)}"
+        return f"{self.library}.{self.key or slug(self.item)}"
 
 
 def slug(text: str) -> str:
@@ -155,23 +160,37 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
     table = folder / "models.csv"
     if not table.is_file():
         raise CadSourceError(f"{folder}: no models.csv (columns: id,class[,file,licence,creator,unit_m])")
-    with open(table, newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    if not rows or not {"id", "class"} <= set(rows[0]):
+    try:
+        with open(table, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
+            reader = csv.DictReader(f)
+            rows = list(reader)
+    except UnicodeDecodeError as e:
+        raise CadSourceError(f"{table}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
+    if not {"id", "class"} <= set(reader.fieldnames or ()):
         raise CadSourceError(f"{table}: needs a header with columns id and class")
     library = library or slug(folder.name)
     for line, row in enumerate(rows, start=2):
+        if None in row or any(row.get(k) is None for k in ("id", "class")):
+            raise CadSourceError(f"{table}:{line}: {len([v for v in row.values() if v is not None])} field(s), "
+                                 f"the header has {len(reader.fieldnames)}")
         name = row["id"].strip()
+        if not name:
+            raise CadSourceError(f"{table}:{line}: empty id")
         if row.get("file"):
             path = folder / row["file"]
         else:
-            candidates = [p for p in folder.glob(f"{name}.*") if p.suffix.lower() in MESH_SUFFIXES]
-            path = candidates[0] if len(candidates) == 1 else folder / f"{name}.<mesh>"
+            candidates = sorted(p for p in folder.glob(f"{glob.escape(name)}.*") if p.suffix.lower() in MESH_SUFFIXES)
+            if len(candidates) > 1:
+                raise CadSourceError(f"{table}:{line}: id {name!r} has {len(candidates)} meshes "
+                                     f"({', '.join(p.name for p in candidates)}); name one in a file column")
+            path = candidates[0] if candidates else folder / f"{name}.<mesh>"
         cls = row["class"].strip().lower()
         try:
             unit = float(row.get("unit_m") or 1.0)
         except ValueError:
             raise CadSourceError(f"{table}:{line}: unit_m is not a number: {row['unit_m']!r}") from None
+        if not (np.isfinite(unit) and unit > 0):
+            raise CadSourceError(f"{table}:{line}: unit_m must be a positive number of metres per mesh unit, not {row['unit_m']!r}")
         yield CadItem(library=library, item=name, name=name, category=row["class"].strip(),
                       cls=cls if cls in BY_NAME else classify(cls), source="folder", path=str(path),
                       licence=row.get("licence") or "unknown", creator=row.get("creator") or "unknown", unit_m=unit)
@@ -195,10 +214,16 @@ class _FolderResolver(trimesh.resolvers.ZipResolver):
             raise
 
 
+def archive_member(item: CadItem) -> tuple[str, str] | None:
+    """(archive, member) of an item inside a catalogue zip (Sweet Home 3D), None for a loose file
+    (whose path may hold a '!')."""
+    return tuple(item.path.split("!", 1)) if item.source == "sweethome3d" else None  # type: ignore[return-value]
+
+
 def load_item(item: CadItem) -> tuple[trimesh.Scene, list[str]]:
     """The item's mesh as its source stores it, and the names of files it refers to that are missing."""
-    if "!" in item.path:
-        archive_path, member = item.path.split("!", 1)
+    if (inside := archive_member(item)) is not None:
+        archive_path, member = inside
         with zipfile.ZipFile(archive_path) as archive:
             resolver = _FolderResolver(archive, posixpath.dirname(member))
             loaded = trimesh.load(io.BytesIO(archive.read(member)), file_type=Path(member).suffix[1:].lower(),
@@ -228,14 +253,23 @@ class _LocalResolver(trimesh.resolvers.FilePathResolver):
 
 
 def source_items(kind: str, path: Path, library: str | None = None) -> list[CadItem]:
-    """Items of a source of kind ``sweethome3d``, ``shapenet`` or ``folder``."""
+    """Items of a source of kind ``sweethome3d``, ``shapenet`` or ``folder``, each of a unique cad_id."""
     if kind == "sweethome3d":
-        return list(sweethome3d_items(path))
+        return unique_keys(list(sweethome3d_items(path)))
     if kind == "shapenet":
-        return list(shapenet_items(path, library or "shapenet"))
+        return unique_keys(list(shapenet_items(path, library or slug(Path(path).resolve().name))))
     if kind == "folder":
-        return list(folder_items(path, library))
+        return unique_keys(list(folder_items(path, library)))
     raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
+
+
+def unique_keys(items: list[CadItem]) -> list[CadItem]:
+    """``items`` with a unique cad_id each: ids that ``slug`` makes alike ("Chair A" and "chair-a",
+    two names of other scripts, one ShapeNet model id under two synsets) all get the slug and a
+    digest of their name and file as ``key``; the others keep their slug (ids stay stable)."""
+    count = Counter(item.cad_id for item in items)
+    return [item if count[item.cad_id] == 1 else
+            replace(item, key=f"{slug(item.item)}-{digest(item.item, item.path)[:8]}") for item in items]
 
 
 def guess_kind(path: Path) -> str:
@@ -259,7 +293,7 @@ def item_folder(item: CadItem) -> Path | None:
     """The folder of the files a loose mesh may refer to (materials, textures): its own folder, or
     for ShapeNet's ``<model>/models/model_normalized.obj`` the model's folder (its ``images/``);
     None for a mesh inside an archive (the archive is one file)."""
-    if "!" in item.path:
+    if archive_member(item) is not None:
         return None
     folder = Path(item.path).parent
     return folder.parent if folder.name == SHAPENET_MESH.parent.name and item.source == "shapenet" else folder
@@ -269,7 +303,7 @@ def items_digest(items: list[CadItem]) -> str:
     """Lineage digest of a library's items: their metadata, and the size and mtime of their source
     files and of every file under their folders (:func:`item_folder`: a repainted material or a new
     texture is a change); content hashes of whole CAD collections would cost more than ingesting them."""
-    files = {item.path.split("!", 1)[0] for item in items}
+    files = {inside[0] if (inside := archive_member(item)) else item.path for item in items}
     folders = sorted({f for f in map(item_folder, items) if f is not None})
     walked: set[Path] = set()
     for folder in folders:  # sorted: a folder comes after every folder above it
