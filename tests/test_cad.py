@@ -71,6 +71,12 @@ def test_folder_source_lists_every_row(mesh_folder):
     assert [i.item for i in items] == ["crate", "stool", "chair", "cube", "broken", "empty", "flat", "missing"]
     assert {i.cad_id for i in items} == {f"testlib.{i.item}" for i in items}
     assert items[0].cls == "other" and items[1].cls == "chair" and items[0].unit_m == 0.01
+    (mesh_folder / "models.csv").rename(mesh_folder / "models.bak")
+    try:  # a ShapeNet synset id names its class
+        (mesh_folder / "models.csv").write_text("id,class\ncrate,04379243\n")
+        assert [i.cls for i in folder_items(mesh_folder)] == ["table"]
+    finally:
+        (mesh_folder / "models.bak").replace(mesh_folder / "models.csv")
     assert guess_kind(mesh_folder) == "folder"
 
 
@@ -79,8 +85,9 @@ def test_ingest_canonicalises_and_reports_bad_items(ingested):
     models = {m["cad_id"].split(".")[1]: m for m in wh.read("cad_models").to_pylist()}
     assert sorted(models) == ["chair", "crate", "cube", "stool"] and out.rows_written == 4
     issues = {i["item"]: i for i in wh.read("cad_issues").to_pylist()}
-    assert sorted(issues) == ["broken", "empty", "flat", "missing"]
-    assert all(i["severity"] == "skipped" for i in issues.values())
+    assert sorted(issues) == ["broken", "crate", "empty", "flat", "missing"]
+    assert all(i["severity"] == "skipped" for k, i in issues.items() if k != "crate")
+    assert issues["crate"]["severity"] == "warning" and "class 'box' is none of the vocabulary's" in issues["crate"]["problem"]
     assert "not found" in issues["missing"]["problem"] and "degenerate" in issues["flat"]["problem"]
     assert "no triangles" in issues["empty"]["problem"]
     np.testing.assert_allclose(models["crate"]["extent"], [1.0, 0.4, 0.6], atol=1e-6)  # cm -> m
@@ -101,7 +108,7 @@ def test_ingest_rerun_gives_the_same_result(ingested, mesh_folder):
                            "run2", show_progress=False)
     assert again.output_hash == out.output_hash and wh.read("cad_models").equals(before)  # the same meshes at the same paths
     assert [p.name for p in (wh.root / "media" / "cad" / "testlib").iterdir()] == [before.column("mesh_path")[0].as_py().split("/")[3]]
-    assert wh.read("cad_issues").num_rows == 4  # replaced, not appended
+    assert wh.read("cad_issues").num_rows == 5  # replaced, not appended
 
 
 def test_shapenet_layout(tmp_path):
@@ -180,7 +187,7 @@ def test_a_library_of_no_readable_model_fails_and_keeps_what_it_held(ingested, t
                                            r".*broken.obj: "):
         ingest_library(wh, CadIngestConfig(samples=2048), "testlib", list(folder_items(tmp_path, "testlib")), "run3",
                        show_progress=False)
-    assert wh.read("cad_models").equals(before) and wh.read("cad_issues").num_rows == 4
+    assert wh.read("cad_models").equals(before) and wh.read("cad_issues").num_rows == 5
 
 
 def test_items_digest_tracks_files(mesh_folder, tmp_path):

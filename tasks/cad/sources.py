@@ -169,6 +169,7 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
     if not {"id", "class"} <= set(reader.fieldnames or ()):
         raise CadSourceError(f"{table}: needs a header with columns id and class")
     library = library or slug(folder.name)
+    by_id = {c.id: c.name for c in BY_NAME.values()}
     for line, row in enumerate(rows, start=2):
         if None in row or any(row.get(k) is None for k in ("id", "class")):
             raise CadSourceError(f"{table}:{line}: {len([v for v in row.values() if v is not None])} field(s), "
@@ -191,6 +192,7 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
             raise CadSourceError(f"{table}:{line}: unit_m is not a number: {row['unit_m']!r}") from None
         if not (np.isfinite(unit) and unit > 0):
             raise CadSourceError(f"{table}:{line}: unit_m must be a positive number of metres per mesh unit, not {row['unit_m']!r}")
+        cls = by_id.get(cls, cls)  # a ShapeNet synset id names its class
         yield CadItem(library=library, item=name, name=name, category=row["class"].strip(),
                       cls=cls if cls in BY_NAME else classify(cls), source="folder", path=str(path),
                       licence=row.get("licence") or "unknown", creator=row.get("creator") or "unknown", unit_m=unit)
