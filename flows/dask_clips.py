@@ -121,12 +121,25 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
     module again, and when that imports Prefect, Prefect reads its settings there, before any clip."""
     from distributed import Client, LocalCluster
 
+    from flows.server import ServerError
+
     if cfg.dask_address:
-        with Client(cfg.dask_address, timeout=cfg.startup_timeout_s) as client:
+        try:
+            client = Client(cfg.dask_address, timeout=cfg.startup_timeout_s)
+        except (OSError, TimeoutError) as e:
+            raise ServerError(f"[prefect] dask_address {cfg.dask_address}: no Dask scheduler answered within "
+                              f"{cfg.startup_timeout_s:g} s ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+                              "start it (`dask scheduler`), or leave dask_address empty for a local cluster") from None
+        with client:
             yield client
         return
-    with _environ("PREFECT_API_URL", api_url):
-        cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    try:
+        with _environ("PREFECT_API_URL", api_url):
+            cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    except (OSError, TimeoutError, RuntimeError) as e:
+        raise ServerError(f"a local Dask cluster of {cfg.max_workers} worker(s) did not start ({type(e).__name__}: "
+                          f"{str(e).splitlines()[0] if str(e) else ''}); lower [prefect] max_workers, or use "
+                          "task_runner = \"threads\"") from None
     with cluster, Client(cluster) as client:
         yield client
 
@@ -167,13 +180,16 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
         if cause is None:
             raise
         raise ServerError(api_error_line(os.environ.get("PREFECT_API_URL", ""), cause)) from None
-    outcomes: dict[str, ClipOutcome] = {}
+    # Workers resolve paths in their own working directory: theirs are absolute
+    sources = [dataclasses.replace(s, video=s.video.resolve(), cameras=s.cameras and s.cameras.resolve()) for s in sources]
+    outcomes: dict[int, ClipOutcome] = {}
     with dask_client(config.prefect, api_url) as client:
         futures = {client.submit(annotate_clip_here, root, s, config, api_url, pure=False,
-                                 key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): s.clip for s in sources}
+                                 key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i for i, s in enumerate(sources)}
         for future in as_completed(futures):
+            i = futures[future]
             try:
-                outcomes[futures[future]] = future.result()
+                outcomes[i] = future.result()
             except Exception as e:  # the clip's task as a whole: report it, go on with the others
-                outcomes[futures[future]] = _failed(futures[future], e)
-    return [outcomes[s.clip] for s in sources]
+                outcomes[i] = _failed(sources[i].clip, e)
+    return [outcomes[i] for i in range(len(sources))]

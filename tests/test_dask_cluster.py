@@ -36,8 +36,9 @@ def _start(args: list[str], log: Path) -> subprocess.Popen:
     output to ``log``, importing this checkout."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     env.pop("PREFECT_API_URL", None)
-    with open(log, "wb") as out:
-        return subprocess.Popen([str(DASK), *args], stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    with open(log, "wb") as out:  # in a folder of its own: the clips' relative paths are not the workers'
+        return subprocess.Popen([str(DASK), *args], stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                cwd=log.parent)
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -83,6 +84,8 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
     clips = [make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name=f"d{i}", seed=10 + i)) for i in range(4)]
     sources = [ClipSource(f"d{i}", c.video_path, c.cameras_path, split="val" if i == 3 else "train")
                for i, c in enumerate(clips)]
+    sources[1] = dataclasses.replace(sources[1], video=Path(os.path.relpath(clips[1].video_path)),
+                                     cameras=Path(os.path.relpath(clips[1].cameras_path)))  # relative to this process
     broken = ClipSource("gone", tmp_path / "missing.mp4", clips[0].cameras_path)
     config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "warehouse")),
                     prefect=PrefectConfig(task_runner="dask", dask_address=cluster))
@@ -118,3 +121,14 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
 
     again = run_clips(sources[:3], config, show_progress=False)  # the cache is shared: workers find each other's results
     assert {r.state for r in again} == {"cached"}
+
+
+def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):
+    from flows.dask_clips import dask_client
+    from flows.server import ServerError
+
+    with pytest.raises(ServerError, match=r"^\[prefect\] dask_address tcp://127.0.0.1:9: no Dask scheduler answered "
+                                          r"within 2 s \(.*\); start it") as e:
+        with dask_client(PrefectConfig(task_runner="dask", dask_address="tcp://127.0.0.1:9", startup_timeout_s=2), ""):
+            pass
+    assert "\n" not in str(e.value)

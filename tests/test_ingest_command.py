@@ -130,3 +130,18 @@ def test_a_video_id_clash_is_resolved_with_clip(tmp_path, small_clip, started):
     help_example = run_cli("-w", str(tmp_path / "w2"), "ingest", str(video_b), str(cams_b), "--clip", "kitchen_0")
     assert help_example.code == 0, help_example.stderr
     assert started[1][0].clip == "kitchen_0"
+
+
+def test_two_inputs_that_name_one_clip_are_refused(tmp_path, small_clip, started):
+    """Two folders each holding a copy of one clip (its name comes from the camera file): one run
+    would replace the other's tables, so nothing starts."""
+    import shutil
+
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        for f in (small_clip.video_path, small_clip.cameras_path):
+            shutil.copy(f, tmp_path / folder / f.name)
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "a"), str(tmp_path / "b"))
+    a, b = (tmp_path / x / small_clip.video_path.name for x in "ab")
+    assert_clean_error(result, mentions=f"is named by 2 inputs ({a}, {b}): one would replace the other")
+    assert started == []

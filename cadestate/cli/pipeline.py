@@ -73,6 +73,7 @@ def ingest(
       cadestate ingest val_clips/ --split val
     """
     import dataclasses
+    from collections import Counter
 
     from tasks.detection.detectors import check_detect_config
     from tasks.video.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
@@ -111,6 +112,11 @@ def ingest(
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
             urls.append((items[-1].clip, checked.cameras.url))
+    twice = [c for c, n in Counter(s.clip for s in items).items() if n > 1]
+    if twice:
+        named = [f"{s.video}" for s in items if s.clip == twice[0]]
+        raise CliError(f"clip {twice[0]!r} is named by {len(named)} inputs ({', '.join(named)}): one would replace "
+                       "the other; ingest them apart with --clip NAME")
     check_detect_config(cfg.detect, cfg.source)
     wh = ctx.obj.open_warehouse()
     check_video_ids(wh, urls)
@@ -147,7 +153,7 @@ def run(
     cfg = ctx.obj.config()
     check_detect_config(cfg.detect, cfg.source)  # a bad [detect] stops the run before it starts
     wh = ctx.obj.open_warehouse(must_exist=True)
-    names = clips or wh.partitions("clips")
+    names = list(dict.fromkeys(clips)) if clips else wh.partitions("clips")  # a clip named twice runs once
     if not names:
         err.print("no clip is ingested yet: see `cadestate ingest --help`")
         raise typer.Exit(1)
