@@ -112,14 +112,14 @@ def ingest(
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
             urls.append((items[-1].clip, checked.cameras.url))
+    check_detect_config(cfg.detect, cfg.source)
+    wh = ctx.obj.open_warehouse()
+    check_video_ids(wh, urls)
     twice = [c for c, n in Counter(s.clip for s in items).items() if n > 1]
     if twice:
         named = [f"{s.video}" for s in items if s.clip == twice[0]]
         raise CliError(f"clip {twice[0]!r} is named by {len(named)} inputs ({', '.join(named)}): one would replace "
                        "the other; ingest them apart with --clip NAME")
-    check_detect_config(cfg.detect, cfg.source)
-    wh = ctx.obj.open_warehouse()
-    check_video_ids(wh, urls)
     known = registered_splits(wh)
     items = [dataclasses.replace(s, split=split or known.get(s.clip, "train")) for s in items]
     run_sources(ctx.obj, items, progress)
