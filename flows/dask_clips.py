@@ -16,7 +16,10 @@ Prefect in the workers: every worker process talks to one Prefect API, handed to
 That is the warehouse's server or ``$PREFECT_API_URL`` when one is in use; otherwise the ephemeral
 API that this process starts (as the thread runner does), which listens on 127.0.0.1: workers on
 this machine (a local cluster, or one on loopback) reach it, workers on other machines need a
-server they can reach (``PREFECT_API_URL``). So flow runs, their names and tags are the same as with
+server they can reach (``PREFECT_API_URL``). A worker keeps the API of its first clip (Prefect
+reads its settings once per process), and the ephemeral API ends with its command: a cluster that
+outlives commands needs a server (``cadestate server start``), else the next command is refused
+in one line (:func:`check_workers_api`). So flow runs, their names and tags are the same as with
 threads, and so is the cache (the warehouse's ``runs`` table, :mod:`tasks.stage_chain`): an
 unchanged rerun on Dask is cached, a clip waiting for people ends
 ``paused``. A worker must not import Prefect before its first clip (Prefect reads its settings
@@ -80,6 +83,24 @@ def _prepare_worker(root: str, api_url: str) -> None:
 
     prepare_prefect_environment(Path(root))
     _WORKER_API.append(api_url)
+
+
+def _worker_api() -> str:
+    """The Prefect API this worker process was set up for ('' before its first clip)."""
+    return _WORKER_API[0] if _WORKER_API else ""
+
+
+def check_workers_api(client: Client, api_url: str) -> None:
+    """Refuse (:class:`flows.server.ServerError`, one line) a cluster whose workers were set up for
+    another Prefect API than ``api_url``: a cluster that outlives a command, which started its own
+    local API, would refuse every clip."""
+    from flows.server import ServerError
+
+    other = sorted({api for api in client.run(_worker_api).values() if api and api != api_url})
+    if other:
+        raise ServerError(f"the Dask workers talk to Prefect's API at {other[0]}, not this command's ({api_url}): "
+                          "a cluster that outlives one command needs a Prefect server they all keep "
+                          "(`cadestate server start`), or restart the workers")
 
 
 def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str) -> ClipOutcome:
@@ -184,6 +205,7 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
     sources = [dataclasses.replace(s, video=s.video.resolve(), cameras=s.cameras and s.cameras.resolve()) for s in sources]
     outcomes: dict[int, ClipOutcome] = {}
     with dask_client(config.prefect, api_url) as client:
+        check_workers_api(client, api_url)
         futures = {client.submit(annotate_clip_here, root, s, config, api_url, pure=False,
                                  key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i for i, s in enumerate(sources)}
         for future in as_completed(futures):

@@ -122,6 +122,16 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
     again = run_clips(sources[:3], config, show_progress=False)  # the cache is shared: workers find each other's results
     assert {r.state for r in again} == {"cached"}
 
+    from flows.dask_clips import _worker_api, check_workers_api
+    from flows.server import ServerError
+
+    with Client(cluster) as client:  # the next command's own local API: refused before any clip, in one line
+        [api] = set(client.run(_worker_api).values())
+        check_workers_api(client, api)
+        with pytest.raises(ServerError, match=r"^the Dask workers talk to Prefect's API at http.*, not this command's "
+                                              r"\(http://127.0.0.1:1/api\): .*`cadestate server start`"):
+            check_workers_api(client, "http://127.0.0.1:1/api")
+
 
 def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):
     from flows.dask_clips import dask_client
