@@ -217,13 +217,18 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     threshold or class filter) runs every later stage on nothing; a clip whose world up was
     estimated unreliably (:mod:`tasks.video.world_up`) may have every object pulled the wrong way; the
     tracks too thin to annotate (:mod:`tasks.tracking.merge`), the shadow tracks
-    (:mod:`tasks.tracking.shadow`) and the weak tracks that tracking dropped are counted."""
+    (:mod:`tasks.tracking.shadow`) and the weak tracks that tracking dropped are counted, and a clip
+    whose detections made no track at all is named."""
     notes = []
     for r in rows:
         if r.stage == "ingest" and r.status == "completed" and "world up: " in r.message:
             up = r.message[r.message.index("world up: ") + len("world up: "):]
             notes.append(f"{r.clip}: world up unreliable: {up}")
         if r.stage == "tracking" and r.status == "completed":
+            if (none := re.match(r"0 tracks from (\d+) detections", r.message)) and none.group(1) != "0":
+                notes.append(f"{r.clip}: tracking kept no track of its {none.group(1)} detections (no object boxed on "
+                             "[tracking] min_detections frames, or every track dropped as counted here), so every "
+                             "later stage ran on nothing")
             for kind, note in DROPPED_TRACK_NOTES:
                 found = re.search(rf"(\d+) {kind} tracks dropped", r.message)
                 if found and found.group(1) != "0":

@@ -159,6 +159,15 @@ def test_status_counts_the_thin_shadow_and_weak_tracks_dropped():
                                 "tracked twice; [tracking] shadow_iou)",
                                 "a_0: 4 weak tracks were dropped (their detections' mean score below [tracking] "
                                 "min_track_score)"]
+    nothing = [StageStatus("c_0", "tracking", "completed", "", 0, (), "0 tracks from 9 detections (0 fragments joined "
+                                                                     "in 3D, 0 thin tracks dropped, 0 shadow tracks "
+                                                                     "dropped, 0 weak tracks dropped)"),
+               StageStatus("d_0", "tracking", "completed", "", 0, (), "0 tracks from 0 detections (0 fragments joined "
+                                                                     "in 3D, 0 thin tracks dropped, 0 shadow tracks "
+                                                                     "dropped, 0 weak tracks dropped)")]
+    assert clip_notes(nothing) == ["c_0: tracking kept no track of its 9 detections (no object boxed on [tracking] "
+                                   "min_detections frames, or every track dropped as counted here), so every later "
+                                   "stage ran on nothing"]  # no detection at all: the detect stage's note says it
 
 
 def test_stored_cue_calibration_was_fitted_on_seeds_the_default_benchmark_does_not_use():
