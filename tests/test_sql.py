@@ -168,6 +168,14 @@ def test_json_is_valid_json(w):
     rows = strict(sql(w, query, "-f", "json").stdout)
     assert rows == [{"i": 0, "x": 0.0, "l": [None]}, {"i": 1, "x": None, "l": [None]}, {"i": 2, "x": 2.0, "l": [None]}]
     assert strict(sql(w, "SELECT * FROM clips WHERE false", "-f", "json").stdout) == []
+    # a join's columns of one name: each kept, under a name of its own
+    assert strict(sql(w, "SELECT 1 AS a, 2 AS a, 3 AS a_1", "-f", "json").stdout) == [{"a": 1, "a_2": 2, "a_1": 3}]
+
+
+def test_csv_is_for_unix_tools(w):
+    """Unix line ends; lists and maps as JSON, not Python's repr; a non-finite number empty."""
+    out = sql(w, "SELECT 1 AS n, ['a', 'b'] AS l, MAP {'k': 'v'} AS m, 'nan'::DOUBLE AS x", "-f", "csv").stdout
+    assert "\r" not in out and out.splitlines() == ["n,l,m,x", '1,"[""a"", ""b""]","{""k"": ""v""}",']
 
 
 class Sink(io.TextIOBase):

@@ -252,20 +252,47 @@ def json_value(value: Any) -> Any:
     return str(value)
 
 
+def unique_names(names: Sequence[str]) -> list[str]:
+    """``names`` with a repeated one suffixed ``_1``, ``_2``, ... (a join's two ``translation``
+    columns; never a name another column has): a JSON object keeps one value per key."""
+    reserved, out = set(names), []
+    for name in names:
+        new, k = name, 0
+        while new in out:
+            k += 1
+            new = f"{name}_{k}"
+            while new in reserved:
+                k += 1
+                new = f"{name}_{k}"
+        out.append(new)
+    return out
+
+
 def write_json(result: Result, out: TextIO) -> None:
-    """A JSON array of one object per row, one row a line, written as the rows come."""
+    """A JSON array of one object per row, one row a line, written as the rows come (repeated
+    column names made unique: :func:`unique_names`)."""
+    names = unique_names(result.names)
     out.write("[")
     sep = "\n"
     for rows in result.batches:
         for row in rows:
-            out.write(sep + json.dumps({n: json_value(v) for n, v in zip(result.names, row)}, allow_nan=False))
+            out.write(sep + json.dumps({n: json_value(v) for n, v in zip(names, row)}, allow_nan=False))
             sep = ",\n"
     out.write("\n]\n" if sep != "\n" else "]\n")
 
 
+def csv_value(value: Any) -> Any:
+    """``value`` as a CSV field: lists and maps as JSON (not Python's repr), non-finite floats empty."""
+    if isinstance(value, (list, tuple, dict)):
+        return json.dumps(json_value(value))
+    if isinstance(value, float) and not math.isfinite(value):
+        return ""
+    return value
+
+
 def write_csv(result: Result, out: TextIO) -> None:
-    """CSV with a header line, written as the rows come."""
-    writer = csv.writer(out)
+    """CSV with a header line, Unix line ends, written as the rows come."""
+    writer = csv.writer(out, lineterminator="\n")
     writer.writerow(result.names)
     for rows in result.batches:
-        writer.writerows(rows)
+        writer.writerows([csv_value(v) for v in row] for row in rows)
