@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -50,6 +51,21 @@ def test_tables_fit_an_80_column_terminal(tmp_path):
     assert lines and max(len(ln) for ln in lines) <= 80 and LONG not in result.stdout
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="util-linux `script` gives the command a terminal")
+def test_a_result_too_wide_for_the_terminal_is_shown_as_records(tmp_path):
+    """Twelve columns cannot share 80: each row is a record of 'name  value' lines, every value whole
+    (Rich had shrunk every cell to nothing)."""
+    (tmp_path / "w").mkdir()
+    columns = ", ".join(f"'value{i}' AS column_{i}" for i in range(12))
+    command = f"{sys.executable} -m cadestate -w {tmp_path / 'w'} sql \"SELECT {columns} FROM range(2)\""
+    result = subprocess.run(["script", "-qec", command, "/dev/null"], capture_output=True, text=True, cwd=tmp_path,
+                            env={**os.environ, "COLUMNS": "80", "TERM": "dumb"})
+    assert result.returncode == 0, result.stdout
+    lines = [ln.strip() for ln in result.stdout.splitlines() if ln.strip()]
+    assert sum(ln.startswith("row ") for ln in lines) == 2, result.stdout
+    assert all(f"column_{i}   value{i}" in lines for i in range(10)) and lines.count("column_11  value11") == 2
+
+
 @pytest.mark.parametrize("command", [("sql", "--help"), ("compact", "--help"), ("ingest", "--help")])
 def test_help_examples_stay_whole_at_80_columns(tmp_path, command):
     """An example in --help is a line to copy: never wrapped, whatever the width."""
@@ -65,8 +81,60 @@ def test_help_examples_stay_whole_at_80_columns(tmp_path, command):
 def test_a_mistyped_warehouse_is_refused_and_not_created(tmp_path):
     """Commands that read a warehouse refuse a folder that is not there, in one line, and make nothing."""
     missing = tmp_path / "typo"
-    for args in (("status",), ("sql", "SELECT 1"), ("tables",), ("stats",), ("export", "official", str(tmp_path / "out"))):
+    for args in (("status",), ("sql", "SELECT 1"), ("tables",), ("stats",), ("export", "official", str(tmp_path / "out")),
+                 ("annotate", "--port", "8799")):
         result = cli("-w", str(missing), *args, cwd=tmp_path)
         errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
         assert result.returncode != 0 and len(errors) == 1 and f"{missing}: no warehouse there" in errors[0], (args, result.stderr)
         assert not missing.exists() and not (tmp_path / "out").exists(), args
+
+
+def test_a_warehouse_that_cannot_be_written_is_one_line_before_prefect(tmp_path):
+    """Runs (here `cad ingest`) and `compact` on a read-only warehouse say so at once (a run waited out
+    Prefect's start and blamed it; compact gave a traceback)."""
+    folder = tmp_path / "ro"
+    (folder / "tables").mkdir(parents=True)
+    folder.chmod(0o500)
+    try:
+        candidates = [folder, Path("/sys/kernel")]
+        ro = next((c for c in candidates if c.is_dir() and not _can_write(c)), None)
+        if ro is None:
+            pytest.skip("no folder here that this user cannot write")
+        import trimesh
+
+        source = tmp_path / "meshes"
+        source.mkdir()
+        trimesh.creation.box((1.0, 0.5, 0.6)).export(source / "box.obj")
+        (source / "models.csv").write_text("id,class\nbox,table\n")
+        for args in (("cad", "ingest", str(source)), ("compact",)):
+            result = cli("-w", str(ro), *args, cwd=tmp_path)
+            errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+            assert result.returncode == 2 and len(errors) == 1, (args, result.stderr)
+            assert errors[0].startswith(f"error: {ro}: the warehouse cannot be written ("), errors[0]
+    finally:
+        folder.chmod(0o700)
+
+
+def _can_write(folder) -> bool:
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
+
+
+def test_status_of_a_clip_that_is_not_there_fails(tmp_path):
+    (tmp_path / "w").mkdir()
+    result = cli("-w", str(tmp_path / "w"), "status", "nope_0", cwd=tmp_path)
+    assert result.returncode == 2 and result.stderr.strip() == f"error: no clip or CAD library named nope_0 in {tmp_path / 'w'}"
+
+
+def test_a_usage_error_is_one_line_naming_the_help(tmp_path):
+    for args, message in ((("sql", "SELECT 1", "-f", "xml"), "error: Invalid value for '--format' / '-f': 'xml' is not "
+                                                             "one of 'table', 'csv', 'json'. (`cadestate sql --help`)"),
+                          (("--nope",), "error: No such option: --nope (`cadestate --help`)"),
+                          (("ingest",), "error: Missing argument 'sources'. (`cadestate ingest --help`)")):
+        result = cli(*args, cwd=tmp_path)
+        assert result.returncode == 2 and result.stderr.splitlines() == [message], result.stderr

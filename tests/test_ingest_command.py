@@ -145,3 +145,10 @@ def test_two_inputs_that_name_one_clip_are_refused(tmp_path, small_clip, started
     a, b = (tmp_path / x / small_clip.video_path.name for x in "ab")
     assert_clean_error(result, mentions=f"is named by 2 inputs ({a}, {b}): one would replace the other")
     assert started == []
+
+
+def test_a_split_of_no_known_name_is_refused(tmp_path, small_clip, started):
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(small_clip.cameras_path),
+                     "--split", "Val")
+    assert_clean_error(result, mentions="'Val' is none of train, val, test")
+    assert started == []

@@ -47,15 +47,31 @@ def is_one_of(e: BaseException, types: dict[str, str]) -> bool:
 
 
 def main() -> None:
-    """Entry point: known input errors become one clear line on stderr and exit status 2 (1 for a
-    failing environment). SIGTERM ends the command as an exit (status 143), so that its cleanup
-    runs (temporary folders, the Prefect API it launched), as Ctrl-C's does."""
+    """Entry point: known input errors and usage errors (a mistyped option or value) become one
+    clear line on stderr and exit status 2 (1 for a failing environment); Ctrl-C is "interrupted",
+    status 130. SIGTERM ends the command as an exit (status 143), so that its cleanup runs
+    (temporary folders, the Prefect API it launched), as Ctrl-C's does."""
+    import typer
+    from typer._click.exceptions import NoArgsIsHelpError, UsageError  # Typer carries its own Click
+
     exit_on_sigterm()
     try:
-        app()
+        code = typer.main.get_command(app).main(prog_name="cadestate", standalone_mode=False)
+    except NoArgsIsHelpError as e:  # a group named alone: its help
+        e.show()
+        sys.exit(e.exit_code)
+    except UsageError as e:  # a mistyped option or value: one line, and where the help is
+        where = f" (`{e.ctx.command_path} --help`)" if e.ctx is not None else ""
+        message = e.format_message().replace("Value error, ", "")  # Typer's parsing says it of every value
+        err.print(f"[red]error:[/] {escape(message)}{escape(where)}", highlight=False)
+        sys.exit(e.exit_code)
+    except typer.Abort:  # Ctrl-C
+        err.print("interrupted", highlight=False)
+        sys.exit(130)
     except Exception as e:
         codes = [code for types, code in ((INPUT_ERRORS, 2), (ENVIRONMENT_ERRORS, 1)) if is_one_of(e, types)]
         if not codes:
             raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(codes[0])
+    sys.exit(code if isinstance(code, int) else 0)

@@ -24,7 +24,7 @@ def annotate(
 
     check_listen(host, port)
     cfg = ctx.obj.config()
-    root = ctx.obj.root(cfg)
+    root = ctx.obj.open_warehouse(must_exist=True).root  # a typo in -w is no new, empty warehouse
     prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     import uvicorn
 

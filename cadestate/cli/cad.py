@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import CliError, print_reports, cad_app, err, out
+from cadestate.cli.common import CliError, cad_app, check_writable, err, out, print_reports
 
 
 class SourceKind(str, Enum):
@@ -56,6 +56,7 @@ def cad_ingest(
             raise CliError(f"--library: {e}") from None
     items = source_items(chosen, path, library)
     root = ctx.obj.root(cfg)
+    check_writable(root)
     held_elsewhere(root, items)
     api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
     from flows.cad_library import run_cad_library
@@ -112,5 +113,10 @@ def cad_sheet(
     """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
     from tasks.cad.sheet import contact_sheet
 
-    count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
+    if out_file.suffix.lower() not in (".png", ".jpg", ".jpeg", ".webp"):
+        raise CliError(f"{out_file}: a picture's name: .png, .jpg or .webp")
+    try:
+        count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
+    except OSError as e:
+        raise CliError(f"{out_file}: cannot write the sheet there ({e.strerror or e})") from None
     out.print(f"wrote {out_file} ({count} models)")

@@ -7,6 +7,7 @@ and Prefect's environment is set (per warehouse) before Prefect is first importe
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 from pathlib import Path
 from typing import Optional
 
@@ -117,11 +118,24 @@ def print_reports(reports, unit: str = "clip") -> int:
     return 1 if failed else 0
 
 
+def check_writable(root: Path) -> None:
+    """Refuse (:class:`CliError`) a warehouse, or the folder it is to be made in, that this process
+    cannot write: a run would otherwise wait out Prefect's start and blame it."""
+    folder = root if root.exists() else next((p for p in root.parents if p.exists()), root)
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise CliError(f"{root}: the warehouse cannot be written ({e.strerror or e}); runs write their tables "
+                       "there (read it with `cadestate sql`, or copy it somewhere writable)") from None
+
+
 def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     from flows.runtime import prepare_prefect_environment
 
     cfg = state.config()
     root = state.root(cfg)
+    check_writable(root)
     api = prepare_prefect_environment(root, state.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     from flows.annotate_clip import run_clips
 

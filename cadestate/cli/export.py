@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import app, err, out
+from cadestate.cli.common import CliError, app, err, out
 
 export_app = typer.Typer(help="Write the dataset out: the official CAD-Estate layout, or Scan2CAD files.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
@@ -66,7 +66,6 @@ def stats(
     per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
     record per kind and per posed object, and how many answered items recorded none)."""
-    from cadestate.cli.common import CliError
     from tasks.dataset.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
@@ -89,5 +88,8 @@ def stats(
     if html is not None:
         from tasks.dataset.stats_report import write_report
 
-        index = write_report(wh, tables, figures, html)
+        try:
+            index = write_report(wh, tables, figures, html)
+        except OSError as e:
+            raise CliError(f"{html}: cannot write the HTML report there ({e.strerror or e}); give a folder") from None
         (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document

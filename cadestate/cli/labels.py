@@ -160,7 +160,11 @@ def labels_schema(
     if write is not None:
         from schemas.labels import publish_schemas
 
-        for p in publish_schemas(str(write)):
+        try:
+            written = publish_schemas(str(write))
+        except OSError as e:
+            raise CliError(f"{write}: cannot write the schemas there ({e.strerror or e}); give a folder") from None
+        for p in written:
             out.print(p)
         return
     if kind is not None and kind not in KINDS:

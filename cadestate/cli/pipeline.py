@@ -12,7 +12,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from cadestate.cli.common import CliError, State, run_sources, app, config_app, err, out
+from cadestate.cli.common import CliError, State, check_writable, run_sources, app, config_app, err, out
 from cadestate.config import describe_defaults, load_config, to_toml
 
 
@@ -112,6 +112,10 @@ def ingest(
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
             urls.append((items[-1].clip, checked.cameras.url))
+    known_splits = ("train", "val", "test", *(x for x in cfg.manual_tracks.splits if x not in ("train", "val", "test")))
+    if split is not None and split not in known_splits:
+        raise typer.BadParameter(f"{split!r} is none of {', '.join(known_splits)} (the splits of the dataset and "
+                                 "[manual_tracks] splits)", param_hint="--split")
     check_detect_config(cfg.detect, cfg.source)
     wh = ctx.obj.open_warehouse()
     check_video_ids(wh, urls)
@@ -179,9 +183,11 @@ def status(
 
     wh, cfg = ctx.obj.open_warehouse(must_exist=True), ctx.obj.config()
     runs = read_runs(wh, clips, keep=True)  # clips' and libraries' alike; read again only when runs came or went
+    shown: set[str] = set()
     for scope, title in (("clip", "clips"), ("library", "CAD libraries")):
         rows = pipeline_status(wh, cfg, clips, scope, runs)
         names = sorted({r.clip for r in rows})
+        shown.update(names)
         if scope == "clip" and not clips and not stages and len(names) > SUMMARY_AFTER:
             table = Table(*(Column(name, no_wrap=True) for name in ("clip", "stands", "last run", "done")),
                           Column("fresh", min_width=5), title=f"{title} (times UTC), one line each")
@@ -205,6 +211,9 @@ def status(
                           f"`cadestate run {escape(r.clip)}` reruns it")
         for note in clip_notes(rows):
             out.print(f"[yellow]note:[/] {escape(note)}")
+    unknown = [c for c in dict.fromkeys(clips or ()) if c not in shown]
+    if unknown:
+        raise CliError(f"no clip or CAD library named {', '.join(unknown)} in {wh.root}")
 
 
 @app.command()
@@ -265,12 +274,30 @@ def sql(
             write_csv(result, sys.stdout)
         else:
             rows, rest = split(result.batches, TABLE_ROWS if limit is None else limit)
-            table = Table(*map(escape, result.names))
-            for r in rows:
-                table.add_row(*("NULL" if v is None else escape(str(v)) for v in r))
-            out.print(table)
+            cells = [["NULL" if v is None else str(v) for v in r] for r in rows]
+            natural = sum(max([len(n), *(len(r[i]) for r in cells)]) + 3 for i, n in enumerate(result.names)) + 1
+            if out.is_terminal and natural > out.width and out.width < MIN_CELL * len(result.names):
+                print_records(result.names, cells)  # too many columns to share the width: one per line
+            else:
+                table = Table(*map(escape, result.names))
+                for r in cells:
+                    table.add_row(*map(escape, r))
+                out.print(table)
             if rest:
                 out.print(f"{rest:,} more rows not shown (--limit N, or --format csv or json for every row)")
+
+
+MIN_CELL = 10
+"""A terminal narrower than this many columns per result column shows the rows as records."""
+
+
+def print_records(names: list[str], rows: list[list[str]]) -> None:
+    """Each row as a record: a rule naming it, then one ``name  value`` line per column."""
+    pad = max(map(len, names), default=0)
+    for i, row in enumerate(rows, 1):
+        out.rule(f"row {i}", align="left", style="dim")
+        for name, value in zip(names, row):
+            out.print(f"[bold]{escape(name.ljust(pad))}[/]  {escape(value)}", highlight=False)
 
 
 @app.command()
@@ -341,6 +368,7 @@ def compact(
     from warehouse.catalog import CATALOG_FILE, compact_warehouse
 
     wh = ctx.obj.open_warehouse(must_exist=True)
+    check_writable(wh.root)
     done = compact_warehouse(wh, tables, min_files, whole)
     for table, n in sorted(done.renamed.items()):
         out.print(f"{table}: {n} file(s) renamed to this version's layout", markup=False, highlight=False)
