@@ -177,3 +177,44 @@ def test_stored_cue_calibration_was_fitted_on_seeds_the_default_benchmark_does_n
     seeds = CALIBRATION["training_seeds"]
     assert seeds and DEFAULT_SEED not in seeds and set(seeds) == set(MERGE_CALIBRATION["training_seeds"])
     assert CALIBRATION["pairs"]["true"] > 0 and CALIBRATION["label"]["same"] > 0 > CALIBRATION["label"]["different"]
+
+
+def test_the_greedy_join_is_the_plain_one_most_probable_pair_first():
+    """merge_fragments (pairs in a heap, those that no 3D cue could lift to the threshold never
+    triangulated) joins what the plain greedy loop joins: rescore every pair after each join,
+    join the most probable compatible pair (ties: smaller indices) while it reaches the threshold."""
+    from tasks.tracking.merge import compatible, join, merge_fragments
+
+    rng = np.random.default_rng(3)
+    R, t = walk(60)
+    frame = np.tile(np.arange(60), 6)
+    objects = np.repeat(np.arange(6), 60)
+    centres = np.array([[x, 0.5, 3.0 + 0.3 * (x % 2)] for x in np.linspace(-1.5, 1.5, 6)])
+    boxes = np.concatenate([boxes_of(c, R, t) for c in centres]) + rng.normal(0, 0.004, (360, 4))
+    looks = rng.normal(0, 1, (6, 32))[objects] + rng.normal(0, 0.8, (360, 32))
+    labels = np.array(["chair", "table"], dtype=object)[objects % 2]
+    scores = rng.uniform(0.4, 0.9, 360)
+    rays = box_rays(boxes, np.repeat(K[None], 360, 0), R[frame], t[frame], W, H)
+    cut = rng.integers(0, 60, (6, 3))  # each object in 4 runs of frames, some of them mixed up
+    groups = []
+    for o in range(6):
+        members = np.flatnonzero(objects == o)
+        groups += [g for g in np.split(members, np.sort(cut[o])) if len(g)]
+    groups[0], groups[5] = np.sort(np.concatenate([groups[0][:5], groups[5][5:]])), np.concatenate([groups[5][:5], groups[0][5:]])
+    groups = [g for g in groups if len(g) and len(np.unique(frame[g])) == len(g)]
+    model = MergeModel.from_dict(MERGE_CALIBRATION)
+    frags = [make_fragment(g, frame, labels, scores, looks, rays) for g in groups]
+    for threshold in (0.3, 0.5, 0.8):
+        got, joins = merge_fragments(frags, model, threshold, labels, scores, rays)
+        plain, alive, n = list(frags), set(range(len(frags))), 0
+        while True:
+            best = max(((float(model.probability(pair_cues(plain[i], plain[j]))[0]), -i, -j)
+                        for i in sorted(alive) for j in sorted(alive) if i < j and compatible(plain[i], plain[j])),
+                       default=None)
+            if best is None or best[0] < threshold:
+                break
+            i, j = -best[1], -best[2]
+            plain[i], n = join(plain[i], plain[j], labels, scores, rays), n + 1
+            alive.discard(j)
+        assert joins == n > 0
+        assert [f.members.tolist() for f in got] == [plain[k].members.tolist() for k in sorted(alive)]

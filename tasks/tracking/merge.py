@@ -27,6 +27,7 @@ detections and no box on a manual-track key-frame (:func:`tasks.human.keyframes.
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +73,15 @@ class MergeModel:
         z = ((np.atleast_2d(x) - self.mean) / self.scale) @ self.coef + self.intercept
         return 1.0 / (1.0 + np.exp(-z))
 
+    def bound(self, x: np.ndarray) -> float:
+        """The most a pair with cues x float[6] can score whatever its 3D cues (``ray_misfit`` and
+        ``size_ratio``, NaN in x): both are >= 0, so a negative coefficient does best at 0; 1 when
+        one is positive (no bound)."""
+        unknown = np.isnan(x)
+        if (self.coef[unknown] > 0).any():
+            return 1.0
+        return float(self.probability(np.where(unknown, 0.0, x))[0])
+
 
 @dataclass(frozen=True)
 class MergeResult:
@@ -110,18 +120,31 @@ def join(a: Fragment, b: Fragment, labels: np.ndarray, scores: np.ndarray, rays:
                     sub, triangulate(sub))
 
 
-def pair_cues(a: Fragment, b: Fragment) -> np.ndarray:
-    """Cues float[6] (:data:`CUES`) of two fragments with no frame in common."""
-    joint = triangulate(a.rays + b.rays)
-    misfit = np.log1p(np.sqrt(max(joint.cost - a.point.cost - b.point.cost, 0.0)))
-    na, nb = len(a.members), len(b.members)
-    size_a = object_size(a.rays, joint.depth[:na])
-    size_b = object_size(b.rays, joint.depth[na:])
+def plain_cues(a: Fragment, b: Fragment) -> np.ndarray:
+    """Cues float[6] (:data:`CUES`) of two fragments but those that need their joint 3D point
+    (``ray_misfit``, ``size_ratio``: NaN)."""
     norms = np.linalg.norm(a.look) * np.linalg.norm(b.look)
     cos = float(a.look @ b.look / norms) if norms > 0 else 0.0
-    gap = int(np.abs(a.frames[:, None] - b.frames[None, :]).min())
-    return np.array([misfit, cos, float(a.label == b.label), np.log1p(gap),
-                     abs(np.log(max(size_a, 1e-3) / max(size_b, 1e-3))), np.log(min(na, nb))])
+    other = np.sort(b.frames)
+    at = np.searchsorted(other, a.frames)  # the nearest frame of b is just before or at
+    last = len(other) - 1
+    gap = int(np.minimum(np.abs(a.frames - other[np.clip(at - 1, 0, last)]),
+                         np.abs(a.frames - other[np.clip(at, 0, last)])).min())
+    return np.array([np.nan, cos, float(a.label == b.label), np.log1p(gap), np.nan,
+                     np.log(min(len(a.members), len(b.members)))])
+
+
+def pair_cues(a: Fragment, b: Fragment, plain: np.ndarray | None = None) -> np.ndarray:
+    """Cues float[6] (:data:`CUES`) of two fragments with no frame in common (``plain``: their
+    :func:`plain_cues`, when known)."""
+    x = plain_cues(a, b) if plain is None else plain.copy()
+    joint = triangulate(a.rays + b.rays)
+    x[0] = np.log1p(np.sqrt(max(joint.cost - a.point.cost - b.point.cost, 0.0)))
+    na = len(a.members)
+    size_a = object_size(a.rays, joint.depth[:na])
+    size_b = object_size(b.rays, joint.depth[na:])
+    x[4] = abs(np.log(max(size_a, 1e-3) / max(size_b, 1e-3)))
+    return x
 
 
 def compatible(a: Fragment, b: Fragment) -> bool:
@@ -131,29 +154,39 @@ def compatible(a: Fragment, b: Fragment) -> bool:
 
 def merge_fragments(fragments: list[Fragment], model: MergeModel, min_probability: float, labels: np.ndarray,
                     scores: np.ndarray, rays: Rays) -> tuple[list[Fragment], int]:
-    """Join fragments greedily, most probable pair first, while a compatible pair reaches
-    ``min_probability`` (module docstring). Returns the fragments left (a joined one takes the
-    place of its first part) and the number of joins."""
+    """Join fragments greedily, most probable pair first (ties: the smaller indices), while a
+    compatible pair reaches ``min_probability`` (module docstring). Returns the fragments left (a
+    joined one takes the place of its first part) and the number of joins.
+
+    The pairs that reach the threshold wait in a heap; a pair whose fragment has changed since it
+    was scored is passed over when it comes up (the join scored its new pairs): each join costs the
+    new fragment's pairs, not a pass over every pair of the clip."""
     frags = list(fragments)
-    prob: dict[tuple[int, int], float] = {}
+    version = [0] * len(frags)
+    heap: list[tuple[float, int, int, int, int]] = []
 
     def score(i: int, j: int) -> None:
+        plain = plain_cues(frags[i], frags[j])
+        if model.bound(plain) < min_probability - 1e-9:  # no 3D cue could lift it: triangulate nothing
+            return
         if compatible(frags[i], frags[j]):
-            prob[(i, j)] = float(model.probability(pair_cues(frags[i], frags[j]))[0])
+            p = float(model.probability(pair_cues(frags[i], frags[j], plain))[0])
+            if p >= min_probability:  # below it a pair is never joined: only a join rescores it
+                heapq.heappush(heap, (-p, i, j, version[i], version[j]))
 
     for i in range(len(frags)):
         for j in range(i + 1, len(frags)):
             score(i, j)
     alive = set(range(len(frags)))
     joins = 0
-    while prob:
-        (i, j), p = max(prob.items(), key=lambda kv: (kv[1], -kv[0][0], -kv[0][1]))
-        if p < min_probability:
-            break
+    while heap:
+        _, i, j, vi, vj = heapq.heappop(heap)
+        if i not in alive or j not in alive or vi != version[i] or vj != version[j]:
+            continue
         frags[i] = join(frags[i], frags[j], labels, scores, rays)
         alive.discard(j)
+        version[i] += 1
         joins += 1
-        prob = {k: v for k, v in prob.items() if i not in k and j not in k}
         for k in sorted(alive - {i}):
             score(min(i, k), max(i, k))
     return [frags[k] for k in sorted(alive)], joins
