@@ -31,6 +31,7 @@ import math
 import os
 import re
 import tempfile
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -124,11 +125,40 @@ def _batches(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> Iterator[lis
     while True:
         try:
             rows = cursor.fetchmany(batch_rows)
+        except duckdb.InterruptException:
+            raise KeyboardInterrupt from None
         except duckdb.Error as e:
             raise _error(e) from None
         if not rows:
             return
         yield rows
+
+
+def _execute(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement) -> duckdb.DuckDBPyConnection:
+    """``con.execute(statement)`` in a thread of its own, so that Ctrl-C (KeyboardInterrupt, in
+    this thread) interrupts the query at once: DuckDB itself noticed it only after many seconds."""
+    done: dict[str, Any] = {}
+    finished = threading.Event()  # not Thread.join: a join that Ctrl-C broke may return at once after
+
+    def work() -> None:
+        try:
+            done["cursor"] = con.execute(statement)
+        except BaseException as e:  # handed to the caller's thread
+            done["error"] = e
+        finally:
+            finished.set()
+
+    threading.Thread(target=work, name="cadestate-sql", daemon=True).start()
+    try:
+        while not finished.wait(0.1):
+            pass
+    except KeyboardInterrupt:
+        con.interrupt()
+        finished.wait()
+        raise
+    if "error" in done:
+        raise done["error"]
+    return done["cursor"]
 
 
 @contextlib.contextmanager
@@ -144,7 +174,7 @@ def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int
             statement = read_only_statement(con, sql)
             _lock_down(con, wh)
             try:
-                cursor = con.execute(statement)
+                cursor = _execute(con, statement)
             except duckdb.Error as e:
                 raise _error(e) from None
             yield Result([d[0] for d in cursor.description], head(_batches(cursor, batch_rows), limit))

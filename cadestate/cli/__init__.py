@@ -65,13 +65,15 @@ def main() -> None:
         message = e.format_message().replace("Value error, ", "")  # Typer's parsing says it of every value
         err.print(f"[red]error:[/] {escape(message)}{escape(where)}", highlight=False)
         sys.exit(e.exit_code)
-    except typer.Abort:  # Ctrl-C
-        err.print("interrupted", highlight=False)
-        sys.exit(130)
+    except typer.Abort:  # input ended where a prompt waited
+        err.print("aborted", highlight=False)
+        sys.exit(1)
     except Exception as e:
         codes = [code for types, code in ((INPUT_ERRORS, 2), (ENVIRONMENT_ERRORS, 1)) if is_one_of(e, types)]
         if not codes:
             raise
         err.print(f"[red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(codes[0])
+    if code == 130:  # Typer's exit for Ctrl-C
+        err.print("interrupted", highlight=False)
     sys.exit(code if isinstance(code, int) else 0)
