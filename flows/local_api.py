@@ -62,11 +62,25 @@ def launch(home: Path) -> None:
         return
     seed_home(home)  # a new warehouse's database copied, not migrated (flows.prefect_db)
     port = free_port("127.0.0.1")
-    _LAUNCHED = Launched(port, subprocess.Popen(uvicorn_command(port), env={**os.environ, **SERVER_ENV}))
+    # its own session: a terminal's Ctrl-C interrupts the command, which stops the API as it exits
+    # (in the command's process group it died at once, and the stages still running waited on it)
+    _LAUNCHED = Launched(port, subprocess.Popen(uvicorn_command(port), env={**os.environ, **SERVER_ENV},
+                                                start_new_session=True, preexec_fn=_end_with_parent))
     atexit.register(_stop_unadopted)
     # killed by default, the process would leave the API running; as an exit, the exit handlers stop it
     # (`cadestate annotate`'s uvicorn shuts down on SIGTERM, then raises it again: it ends there too)
     exit_on_sigterm()
+
+
+def _end_with_parent() -> None:
+    """In the API's process before it starts: SIGTERM when the command's process ends, however it
+    ends (Linux's parent-death signal; elsewhere nothing: the exit handlers stop it)."""
+    if sys.platform == "linux":
+        import ctypes
+        import signal
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def take() -> Launched | None:

@@ -11,8 +11,13 @@ the clips, their splits and the warehouse's CAD libraries, so the Prefect UI fin
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import functools
 import os
+import signal
+import sys
+import threading
 from collections.abc import Iterator
 from contextvars import ContextVar
 from pathlib import Path
@@ -65,7 +70,7 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     try:
         if not api:
             start_ephemeral_api(config.prefect.startup_timeout_s)
-        with prefect_tags(*tags), without_heartbeats():
+        with prefect_tags(*tags), without_heartbeats(), ctrl_c_ends_the_run():
             state = configured(flow, config.prefect)(*args, return_state=True)
     except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
         cause = api_failure(e)
@@ -77,6 +82,31 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     from flows.reports import state_reports
 
     return state_reports(state)
+
+
+@contextlib.contextmanager
+def ctrl_c_ends_the_run() -> Iterator[None]:
+    """Within the block (a flow run in this process's main thread), Ctrl-C ends the process at once:
+    "interrupted", the exit handlers (the Prefect API the command launched stops), status 130. The
+    thread runner had queued every stage of every clip, and ran them all before a KeyboardInterrupt
+    got out. What a stage was writing is not published (partitions go in whole or not at all), and
+    its run reads as interrupted: `cadestate run` resumes it. Elsewhere (the annotation app's
+    threads) nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupted(signum, frame) -> None:
+        sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
+        sys.stderr.flush()
+        atexit._run_exitfuncs()
+        os._exit(130)
+
+    before = signal.signal(signal.SIGINT, interrupted)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 _NO_HEARTBEATS: dict[int, tuple[object, object]] = {}

@@ -244,3 +244,52 @@ def test_cad_ingest_sheet_export(tmp_path):
     assert again.returncode == 2 and "exists and is not empty" in again.stderr
     onto_file = cli("-w", w, "cad", "export-official", str(tmp_path / "s.png"))
     assert onto_file.returncode == 2 and f"{tmp_path / 's.png'}: exists and is not a folder" in onto_file.stderr
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_a_run_at_once_and_run_resumes_it(tmp_path, small_clip):
+    """Ctrl-C (SIGINT to the command's process group, as a terminal sends it) while a stage runs:
+    the command ends within seconds, status 130, saying so; the Prefect API it launched (in a
+    session of its own) goes with it; the stage reads as interrupted and the command again finishes
+    the clip. Before, every queued stage of every clip ran to the end first."""
+    import signal
+
+    w = tmp_path / "w"
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+    proc = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "ingest", str(small_clip.video_path),
+                             str(small_clip.cameras_path), "--clip", "small_0", "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list((w / "_running").rglob("*.json")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)  # until a stage is running
+    assert proc.poll() is None, proc.communicate()
+    sent = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and time.monotonic() - sent < 10, err
+    assert "interrupted: the stages in progress stop unfinished" in err and "Traceback" not in err, err
+    deadline = time.monotonic() + 10
+    while prefect_apis_of(w) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not prefect_apis_of(w)
+    status = cli("-w", str(w), "status", "small_0")
+    assert "was interrupted at" in status.stdout, status.stdout
+    again = cli("-w", str(w), "ingest", str(small_clip.video_path), str(small_clip.cameras_path), "--clip", "small_0",
+                "--no-progress")  # (`run` once the clip got registered)
+    assert again.returncode == 0, again.stderr
+    rows = json.loads(cli("-w", str(w), "sql", "SELECT DISTINCT status FROM runs WHERE clip = 'small_0' AND stage = "
+                          "'verification'", "-f", "json").stdout)
+    assert rows == [{"status": "completed"}]
+
+
+def prefect_apis_of(w: Path) -> list[int]:
+    """Pids of the Prefect API processes (uvicorn) whose Prefect home is under warehouse ``w``."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if b"prefect.server.api.server" in (proc / "cmdline").read_bytes() and \
+                    str(w).encode() in (proc / "environ").read_bytes():
+                pids.append(int(proc.name))
+        except (OSError, ValueError):
+            continue
+    return pids
