@@ -31,9 +31,11 @@ def commands(group: click.Group, prefix=()):
 
 @pytest.mark.parametrize("path", [()] + list(commands(get_command(app))))
 def test_every_command_has_help(path):
-    result = runner.invoke(app, [*path, "--help"])
+    result = runner.invoke(app, [*path, "--help"], terminal_width=80)
     assert result.exit_code == 0 and "Usage:" in result.output
     assert len(result.output.split("\n\n")[1].strip()) > 20  # a real description
+    wide = [line for line in result.output.splitlines() if len(line) > 80]
+    assert not wide, wide  # its examples and tables too fit 80 columns
 
 
 def cli(*args, env: dict[str, str] | None = None):

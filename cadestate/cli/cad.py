@@ -31,9 +31,13 @@ def cad_ingest(
 
     \b
     Sources:
-      sweethome3d  a folder of *.sh3f catalogues (default: Debian's sweethome3d-furniture, `make cad-library`)
-      shapenet     ShapeNetCore v2: <synset>/<model_id>/models/model_normalized.obj
-      folder       meshes (OBJ/GLB/PLY/OFF/STL) + models.csv with columns id,class[,file,licence,creator,unit_m]
+      sweethome3d  a folder of *.sh3f catalogues (default: Debian's
+                   sweethome3d-furniture, `make cad-library`)
+      shapenet     ShapeNetCore v2: <synset>/<model_id>/models/
+                   model_normalized.obj
+      folder       meshes (OBJ/GLB/PLY/OFF/STL) + models.csv with columns
+                   id,class[,file,licence,creator,unit_m]
+
     Unreadable, empty or degenerate models are skipped and listed in the cad_issues table.
     """
     from flows.runtime import prepare_prefect_environment

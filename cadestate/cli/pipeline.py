@@ -64,12 +64,16 @@ def ingest(
 
     \b
     Examples:
-      cadestate ingest room.mp4 room.txt                 (clip room_0 when line 1 is file:///videos/room.mp4)
-      cadestate ingest room.mp4                          (cameras by SfM: clip room_0)
-      cadestate ingest clip.mp4 clip.txt --align-start   (a RealEstate10K camera file of a clip cut from its video)
-      cadestate ingest room.mp4 room.txt --clip kitchen_1200000   (any id for a non-YouTube video; the start
-                                                                   must be its first timestamp, here 1200000 µs)
-      cadestate ingest clips/            (every <name>.mp4 with its <name>.txt)
+      # clip room_0 when line 1 of room.txt is file:///videos/room.mp4
+      cadestate ingest room.mp4 room.txt
+      # no camera file: cameras by SfM, clip room_0
+      cadestate ingest room.mp4
+      # a RealEstate10K camera file of a clip cut from its video
+      cadestate ingest clip.mp4 clip.txt --align-start
+      # any id for a non-YouTube video; the start is its first timestamp (µs)
+      cadestate ingest room.mp4 room.txt --clip kitchen_1200000
+      # every <name>.mp4 with its <name>.txt; then clips of the val split
+      cadestate ingest clips/
       cadestate ingest val_clips/ --split val
     """
     import dataclasses

@@ -66,12 +66,14 @@ def serve(ctx: typer.Context) -> None:
     """Serve the dataset-building deployments on this warehouse's Prefect server until stopped (Ctrl-C).
 
     \b
-      build_dataset   on [schedule] inbox_cron: every new <name>.mp4 + <name>.txt of [schedule] inbox
-                      gets an annotate_clip run (half-copied files wait; <name>.done marks a pair ready)
-      ingest_labels   on [schedule] labels_cron: the label files of [schedule] labels_inbox are ingested
-                      and the clips they answer resumed
+      build_dataset   on [schedule] inbox_cron: every new <name>.mp4 + <name>.txt
+                      of [schedule] inbox gets an annotate_clip run (half-copied
+                      files wait; <name>.done marks a pair ready)
+      ingest_labels   on [schedule] labels_cron: the label files of [schedule]
+                      labels_inbox are ingested, the clips they answer resumed
       annotate_clip   one run per clip, suspended while people answer its tasks
-      dataset_report  on [schedule] report_cron: statistics and an HTML report in [schedule] report
+      dataset_report  on [schedule] report_cron: statistics and an HTML report in
+                      [schedule] report
 
     Start the server first (`cadestate server start`); its UI shows the runs, and a run can be
     started by hand there or with `prefect deployment run build_dataset_inbox/build_dataset`.
