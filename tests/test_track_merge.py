@@ -144,27 +144,26 @@ def test_stored_model_is_generated_with_its_training_seeds():
     assert coef["ray_misfit"] < 0 and coef["appearance"] > 0  # far apart in 3D: two objects; alike: one
 
 
-def test_status_counts_the_thin_shadow_and_weak_tracks_dropped():
-    from tasks.status import StageStatus, clip_notes
+def tracking_row(clip: str, tracks: int, detections: int, joined: int, thin: int, shadows: int, weak: int):
+    """The status row of a completed tracking stage whose message counts these."""
+    from tasks.status import StageStatus
 
-    rows = [StageStatus("a_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (1 fragments joined in 3D, "
-                                                                   "3 thin tracks dropped, 2 shadow tracks dropped, "
-                                                                   "4 weak tracks dropped)"),
-            StageStatus("b_0", "tracking", "completed", "", 9, (), "4 tracks from 90 detections (0 fragments joined in 3D, "
-                                                                   "0 thin tracks dropped, 0 shadow tracks dropped, "
-                                                                   "0 weak tracks dropped)")]
+    return StageStatus(clip, "tracking", "completed", "", tracks, (), f"{tracks} tracks from {detections} detections "
+                       f"({joined} fragments joined in 3D, {thin} thin tracks dropped, {shadows} shadow tracks dropped, "
+                       f"{weak} weak tracks dropped)")
+
+
+def test_status_counts_the_thin_shadow_and_weak_tracks_dropped():
+    from tasks.status import clip_notes
+
+    rows = [tracking_row("a_0", 4, 90, 1, 3, 2, 4), tracking_row("b_0", 4, 90, 0, 0, 0, 0)]
     assert clip_notes(rows) == ["a_0: 3 tracks too thin to annotate were dropped (fewer than [tracking] thin_detections "
                                 "detections, none on a manual-track key-frame)",
                                 "a_0: 2 shadow tracks were dropped (their boxes on a stronger track's boxes: one object "
                                 "tracked twice; [tracking] shadow_iou)",
                                 "a_0: 4 weak tracks were dropped (their detections' mean score below [tracking] "
                                 "min_track_score)"]
-    nothing = [StageStatus("c_0", "tracking", "completed", "", 0, (), "0 tracks from 9 detections (0 fragments joined "
-                                                                     "in 3D, 0 thin tracks dropped, 0 shadow tracks "
-                                                                     "dropped, 0 weak tracks dropped)"),
-               StageStatus("d_0", "tracking", "completed", "", 0, (), "0 tracks from 0 detections (0 fragments joined "
-                                                                     "in 3D, 0 thin tracks dropped, 0 shadow tracks "
-                                                                     "dropped, 0 weak tracks dropped)")]
+    nothing = [tracking_row("c_0", 0, 9, 0, 0, 0, 0), tracking_row("d_0", 0, 0, 0, 0, 0, 0)]
     assert clip_notes(nothing) == ["c_0: tracking kept no track of its 9 detections (no object boxed on [tracking] "
                                    "min_detections frames, or every track dropped as counted here), so every later "
                                    "stage ran on nothing"]  # no detection at all: the detect stage's note says it
