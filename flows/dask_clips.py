@@ -149,8 +149,8 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
             client = Client(cfg.dask_address, timeout=cfg.startup_timeout_s)
         except (OSError, TimeoutError) as e:
             raise ServerError(f"[prefect] dask_address {cfg.dask_address}: no Dask scheduler answered within "
-                              f"{cfg.startup_timeout_s:g} s ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
-                              "start it (`dask scheduler`), or leave dask_address empty for a local cluster") from None
+                              f"{cfg.startup_timeout_s:g} s ({_first_line(e)}); start it (`dask scheduler`), or leave "
+                              "dask_address empty for a local cluster") from None
         with client:
             yield client
         return
@@ -158,11 +158,15 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
         with _environ("PREFECT_API_URL", api_url):
             cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True, dashboard_address=None)
     except (OSError, TimeoutError, RuntimeError) as e:
-        raise ServerError(f"a local Dask cluster of {cfg.max_workers} worker(s) did not start ({type(e).__name__}: "
-                          f"{str(e).splitlines()[0] if str(e) else ''}); lower [prefect] max_workers, or use "
-                          "task_runner = \"threads\"") from None
+        raise ServerError(f"a local Dask cluster of {cfg.max_workers} worker(s) did not start ({_first_line(e)}); "
+                          "lower [prefect] max_workers, or use task_runner = \"threads\"") from None
     with cluster, Client(cluster) as client:
         yield client
+
+
+def _first_line(e: BaseException) -> str:
+    """``Type: first line of the message`` of ``e``."""
+    return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
 
 
 def prefect_api_url(config: Config) -> str:

@@ -191,7 +191,8 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
         except ValueError:
             raise CadSourceError(f"{table}:{line}: unit_m is not a number: {row['unit_m']!r}") from None
         if not (np.isfinite(unit) and unit > 0):
-            raise CadSourceError(f"{table}:{line}: unit_m must be a positive number of metres per mesh unit, not {row['unit_m']!r}")
+            raise CadSourceError(f"{table}:{line}: unit_m must be a positive number of metres per mesh unit, "
+                                 f"not {row['unit_m']!r}")
         cls = by_id.get(cls, cls)  # a ShapeNet synset id names its class
         yield CadItem(library=library, item=name, name=name, category=row["class"].strip(),
                       cls=cls if cls in BY_NAME else classify(cls), source="folder", path=str(path),
