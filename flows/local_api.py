@@ -21,6 +21,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,22 +66,24 @@ def launch(home: Path) -> None:
     # its own session: a terminal's Ctrl-C interrupts the command, which stops the API as it exits
     # (in the command's process group it died at once, and the stages still running waited on it)
     _LAUNCHED = Launched(port, subprocess.Popen(uvicorn_command(port), env={**os.environ, **SERVER_ENV},
-                                                start_new_session=True, preexec_fn=_end_with_parent))
+                                                start_new_session=True, preexec_fn=end_with_parent()))
     atexit.register(_stop_unadopted)
     # killed by default, the process would leave the API running; as an exit, the exit handlers stop it
     # (`cadestate annotate`'s uvicorn shuts down on SIGTERM, then raises it again: it ends there too)
     exit_on_sigterm()
 
 
-def _end_with_parent() -> None:
-    """In the API's process before it starts: SIGTERM when the command's process ends, however it
-    ends (Linux's parent-death signal; elsewhere nothing: the exit handlers stop it)."""
-    if sys.platform == "linux":
-        import ctypes
-        import signal
+def end_with_parent() -> Callable[[], None] | None:
+    """What the API's process runs before it starts (None: nothing): on Linux, ask for SIGTERM when
+    the command's process ends, however it ends (the parent-death signal; elsewhere the exit
+    handlers stop it). Loaded here: the child between fork and exec may import nothing."""
+    if sys.platform != "linux":
+        return None
+    import ctypes
+    import signal
 
-        PR_SET_PDEATHSIG = 1
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    prctl, PR_SET_PDEATHSIG, sigterm = ctypes.CDLL(None, use_errno=True).prctl, 1, int(signal.SIGTERM)
+    return lambda: prctl(PR_SET_PDEATHSIG, sigterm)
 
 
 def take() -> Launched | None:

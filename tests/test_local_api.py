@@ -76,3 +76,30 @@ def test_a_launched_api_no_flow_took_is_stopped_at_exit(tmp_path):
 def test_a_launched_api_that_never_answers_is_replaced_by_prefects_own(tmp_path):
     wedged_port, wedged_killed, url = run_script(WEDGED, str(tmp_path / "w"), "45")
     assert wedged_killed == "True" and f":{wedged_port}/" not in url
+
+
+KILLED = textwrap.dedent("""
+    import os, signal, sys
+    from pathlib import Path
+    from flows import local_api
+    from flows.runtime import prepare_prefect_environment
+    prepare_prefect_environment(Path(sys.argv[1]), start_api=True)
+    print(local_api._LAUNCHED.process.pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)  # no exit handler runs
+""")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="Linux's parent-death signal")
+def test_a_launched_api_ends_when_its_command_is_killed(tmp_path):
+    """The API runs in a session of its own (a terminal's Ctrl-C goes to the command alone), so
+    nothing would end it after a kill -9 of the command but the parent-death signal."""
+    import time
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    done = subprocess.run([sys.executable, "-c", KILLED, str(tmp_path / "w")], env=env, capture_output=True, text=True,
+                          timeout=300, cwd=REPO)
+    pid = int(done.stdout.split()[0])
+    deadline = time.monotonic() + 20
+    while psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
