@@ -342,3 +342,21 @@ def test_config_default_is_the_calibrated_symmetry_tolerance():
     from tasks.cad.symmetry import DEFAULT_TOLERANCE
 
     assert CadIngestConfig().symmetry_tolerance == DEFAULT_TOLERANCE
+
+
+def test_textured_means_a_texture_image_not_a_placeholder(tmp_path):
+    """An OBJ with a real texture is textured; one whose material file is missing is not (trimesh
+    gives it a 2 x 2 placeholder), and the missing file is named."""
+    from PIL import Image
+
+    from tasks.cad.ingest import _is_textured
+
+    quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+    Image.new("RGB", (8, 8), (200, 30, 30)).save(tmp_path / "red.png")
+    (tmp_path / "tex.mtl").write_text("newmtl red\nKd 1 1 1\nmap_Kd red.png\n")
+    (tmp_path / "tex.obj").write_text("mtllib tex.mtl\n" + quad + "usemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    (tmp_path / "nomtl.obj").write_text("mtllib absent.mtl\n" + quad + "usemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    (tmp_path / "models.csv").write_text("id,class\ntex,table\nnomtl,table\n")
+    (tex, missing_tex), (nomtl, missing) = (load_item(i) for i in folder_items(tmp_path))
+    assert _is_textured(tex) and missing_tex == []
+    assert not _is_textured(nomtl) and missing == ["absent.mtl"]

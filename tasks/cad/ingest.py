@@ -104,10 +104,13 @@ def canonicalise(scene: trimesh.Scene, item: CadItem) -> CanonicalModel:
 
 
 def _is_textured(scene: trimesh.Scene) -> bool:
+    """Whether a part carries a texture image of more than 2 x 2 pixels (trimesh gives an OBJ whose
+    material file is missing a 2 x 2 placeholder)."""
     for g in scene.geometry.values():
         material = getattr(g.visual, "material", None)
-        if getattr(material, "image", None) is not None or getattr(material, "baseColorTexture", None) is not None:
-            return True
+        for image in (getattr(material, "image", None), getattr(material, "baseColorTexture", None)):
+            if image is not None and max(image.size) > 2:
+                return True
     return False
 
 
