@@ -360,3 +360,23 @@ def test_textured_means_a_texture_image_not_a_placeholder(tmp_path):
     (tex, missing_tex), (nomtl, missing) = (load_item(i) for i in folder_items(tmp_path))
     assert _is_textured(tex) and missing_tex == []
     assert not _is_textured(nomtl) and missing == ["absent.mtl"]
+
+
+def test_a_catalogue_item_without_an_id_is_listed(tmp_path):
+    """Sweet Home 3D catalogues may leave id#N out (name#N is what every item has): such an item
+    was dropped without a word; it gets an id from its name and number."""
+    import zipfile
+
+    obj = trimesh.creation.box((50, 90, 40)).export(file_type="obj")
+    props = ("name=My catalogue\nlicense=Public domain\nprovider=Me\n"
+             "id#1=me#chair1\nname#1=Red chair\ncategory#1=Living room\nmodel#1=/chair1/chair.obj\n"
+             "width#1=50\ndepth#1=40\nheight#1=90\n"
+             "name#2=Blue table\ncategory#2=Living room\nmodel#2=/table2/table.obj\nwidth#2=120\ndepth#2=80\nheight#2=75\n")
+    with zipfile.ZipFile(tmp_path / "Mine.sh3f", "w") as z:
+        z.writestr("PluginFurnitureCatalog.properties", props)
+        z.writestr("chair1/chair.obj", obj)
+        z.writestr("table2/table.obj", obj)
+    items = source_items("sweethome3d", tmp_path)
+    assert [(i.cad_id, i.cls, i.size_m) for i in items] == [("sh3d-mine.chair1", "chair", (0.5, 0.9, 0.4)),
+                                                           ("sh3d-mine.blue-table-2", "table", (1.2, 0.75, 0.8))]
+    assert all(load_item(i)[0].extents.max() > 0 for i in items)

@@ -126,13 +126,14 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
         with zipfile.ZipFile(archive) as z:
             props = read_java_properties(z.read("PluginFurnitureCatalog.properties"))
         licence = _sh3d_licence(props.get("license", ""))
-        indices = sorted(int(k.split("#")[1]) for k in props if k.startswith("id#"))
+        indices = sorted(int(k.split("#")[1]) for k in props if k.startswith("name#") and k.split("#")[1].isdigit())
         for i in indices:
             get = lambda key, default="": props.get(f"{key}#{i}", default)  # noqa: E731
             if get("category").lower() in SH3D_EXCLUDED_CATEGORIES:
                 continue
             rotation = tuple(float(v) for v in get("modelRotation").split()) or None
-            name, item = get("name"), get("id").split("#", 1)[-1]
+            name = get("name")
+            item = get("id").split("#", 1)[-1] or f"{name}-{i}"  # the id is optional in a catalogue
             yield CadItem(
                 library=library, item=item, name=name, category=get("category"),
                 cls=classify(name, get("category"), f"{library}.{slug(item)}"), source="sweethome3d",
