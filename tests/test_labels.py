@@ -625,6 +625,9 @@ def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
     assert {f"{d / 'b.json'}: ingested", f"{d / 'e.json'}: ingested"} <= set(result.stdout.splitlines())
     again = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"))
     assert again.code == 0 and f"{d / 'b.json'}: already ingested" in again.stdout.splitlines()
+    (tmp_path / "none").mkdir()
+    nothing = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(tmp_path / "none"))
+    assert nothing.code == 0 and nothing.stderr.startswith(f"warning: no label file (*.json) in {tmp_path / 'none'}: ")
     small = run_cli("-w", str(lwh.root), "labels", "validate", "--max-mb", "0.0001", str(d / "b.json"))
     assert small.code == 1 and small.stderr.startswith(f"error: {d / 'b.json'}: $: larger than the limit of 0.0001 MB")
 

@@ -76,6 +76,9 @@ def labels_ingest(
         _say(f"{escape(path)}: already ingested")
     _say(f"{len(report.ingested)} label file(s) ingested, {len(report.duplicates)} already ingested, "
          f"{len(report.errors)} not ingested; {report.coplanar_keyframes} co-planar key-frame(s)")
+    if not (report.ingested or report.duplicates or report.errors):
+        err.print(f"[yellow]warning:[/] no label file (*.json) in {escape(str(source))}: is it the folder the "
+                  "annotators' files went to?", highlight=False)
     for table, rows in sorted(report.rows.items()):
         _say(f"  {table}: {rows} row(s)")
     if report.clips:
