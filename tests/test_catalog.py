@@ -199,3 +199,23 @@ def test_compacting_a_replace_table_is_refused(wh):
     wh.write("clips", "a", table_rows("clips", [{"clip": "a"}]))
     with pytest.raises(WarehouseError, match="not append-mode"):
         wh.compact("clips", "a")
+
+
+def test_a_catalog_that_cannot_be_rebuilt_gives_way_to_views_in_memory(wh, tmp_path):
+    """A copy whose catalog is out of date and cannot be written (here a folder in its place; a
+    read-only copy in life): reading falls back to views made in memory, as `cadestate sql` does
+    (`cadestate stats` failed there); opening it to write still fails."""
+    import shutil
+
+    from warehouse.catalog import CatalogError
+
+    wh.write("runs", "a", runs("a", "r1"))
+    shutil.copytree(wh.root, tmp_path / "copy")
+    (tmp_path / "copy" / CATALOG_FILE).unlink()
+    (tmp_path / "copy" / CATALOG_FILE / "x").mkdir(parents=True)
+    copy = Warehouse(tmp_path / "copy")
+    con = connect(copy)
+    assert con.execute("SELECT count(*) FROM runs").fetchone() == (1,)
+    con.close()
+    with pytest.raises(CatalogError, match="cannot rebuild the catalog"):
+        connect(copy, read_only=False)

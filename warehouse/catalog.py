@@ -359,8 +359,17 @@ def after_write(wh: Warehouse) -> None:
 
 
 def connect(wh: Warehouse, read_only: bool = True) -> duckdb.DuckDBPyConnection:
-    """Open the catalog (:func:`ensure_catalog` first). Read-only by default."""
-    path = ensure_catalog(wh)
+    """Open the catalog (:func:`ensure_catalog` first). Read-only by default; to read, a catalog
+    that is out of date and cannot be rebuilt (a read-only copy of a warehouse) gives way to the
+    views made in memory, as `cadestate sql` makes them (:func:`attach_views`)."""
+    try:
+        path = ensure_catalog(wh)
+    except CatalogError:
+        if not read_only:
+            raise
+        con = duckdb.connect(":memory:")
+        create_views(con, wh)
+        return con
     try:
         return duckdb.connect(str(path), read_only=read_only)
     except duckdb.Error as e:
