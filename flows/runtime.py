@@ -97,8 +97,10 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         return
 
     def interrupted(signum, frame) -> None:
-        sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
-        sys.stderr.flush()
+        with contextlib.suppress(OSError, ValueError):  # what was printed goes out whole
+            sys.stdout.flush()
+            sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
+            sys.stderr.flush()
         atexit._run_exitfuncs()
         os._exit(130)
 

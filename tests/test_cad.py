@@ -140,7 +140,11 @@ def test_ids_that_slug_alike_are_made_unique_and_the_others_kept(tmp_path):
         (tmp_path / "sn" / synset / "m1" / "models").mkdir(parents=True)
         trimesh.creation.box((1, 1, 1)).export(tmp_path / "sn" / synset / "m1" / "models" / "model_normalized.obj")
     shapenet = source_items("shapenet", tmp_path / "sn")
-    assert len({i.cad_id for i in shapenet}) == 2 and all(i.library == "sn" for i in shapenet)  # named after its folder
+    assert len({i.cad_id for i in shapenet}) == 2 and all(i.library == "shapenet" for i in shapenet)
+    import shutil
+
+    shutil.copytree(tmp_path, tmp_path.parent / f"{tmp_path.name}-moved", ignore=shutil.ignore_patterns("sn"))
+    assert [i.cad_id for i in source_items("folder", tmp_path.parent / f"{tmp_path.name}-moved", "lib")] == ids  # moved
 
 
 @pytest.mark.parametrize("table, message", [
@@ -149,6 +153,7 @@ def test_ids_that_slug_alike_are_made_unique_and_the_others_kept(tmp_path):
     ("id,class,unit_m\nbox\n", "models.csv:2: 1 field(s), the header has 3"),
     ("id,class\nbox,table,extra\n", "models.csv:2: 3 field(s), the header has 2"),
     ("id,class\n,table\n", "models.csv:2: empty id"),
+    ('id,class,creator\nbox,table,"A\nB"\n,chair,\n', "models.csv:4: empty id"),  # the line a quoted break moved it to
     ("id,class\nsame,table\n", "models.csv:2: id 'same' has 2 meshes (same.obj, same.ply); name one in a file column"),
 ])
 def test_a_bad_models_csv_is_one_line_naming_its_line(tmp_path, table, message):
@@ -159,6 +164,12 @@ def test_a_bad_models_csv_is_one_line_naming_its_line(tmp_path, table, message):
     with pytest.raises(CadSourceError) as e:
         list(folder_items(tmp_path))
     assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_spreadsheets_empty_rows_are_no_models(tmp_path):
+    trimesh.creation.box((1, 1, 1)).export(tmp_path / "box.obj")
+    (tmp_path / "models.csv").write_text("id,class,unit_m\nbox,table,1\n,,\n,,\n")
+    assert [i.item for i in folder_items(tmp_path)] == ["box"]
 
 
 def test_spreadsheet_csv_glob_characters_and_a_bang_in_the_path(tmp_path):
@@ -380,3 +391,22 @@ def test_a_catalogue_item_without_an_id_is_listed(tmp_path):
     assert [(i.cad_id, i.cls, i.size_m) for i in items] == [("sh3d-mine.chair1", "chair", (0.5, 0.9, 0.4)),
                                                            ("sh3d-mine.blue-table-2", "table", (1.2, 0.75, 0.8))]
     assert all(load_item(i)[0].extents.max() > 0 for i in items)
+
+
+def test_a_library_name_held_from_another_folder_is_refused_and_the_same_folder_is_not(ingested, mesh_folder, tmp_path):
+    """The warehouse holds testlib from mesh_folder: another folder under that name is refused; the
+    same folder again, or with models added in a subfolder (its files' common folder moves), is not."""
+    import dataclasses
+
+    from cadestate.cli.cad import held_elsewhere
+    from cadestate.cli.common import CliError
+
+    wh, _ = ingested
+    items = list(folder_items(mesh_folder, "testlib"))
+    held_elsewhere(wh.root, items)
+    deeper = dataclasses.replace(items[0], item="sofa", path=str(mesh_folder / "more" / "sofa.obj"))
+    held_elsewhere(wh.root, [*items, deeper])
+    held_elsewhere(wh.root, [deeper])  # only the new one: inside the held folder
+    other = [dataclasses.replace(i, path=str(tmp_path / "elsewhere" / Path(i.path).name)) for i in items]
+    with pytest.raises(CliError, match=f"library 'testlib' already holds models from {mesh_folder}, not "):
+        held_elsewhere(wh.root, other)

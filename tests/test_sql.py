@@ -254,3 +254,9 @@ def test_ctrl_c_interrupts_a_long_query_at_once(w):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err == "interrupted\n" and out == "", err
     assert time.monotonic() - sent < 5
+    proc = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "sql", query], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(5)
+    proc.send_signal(signal.SIGTERM)  # an exit: the query stops before its connection closes (DuckDB aborted)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and err == "" and out == "", err

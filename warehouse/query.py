@@ -152,9 +152,14 @@ def _execute(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement) -> duc
     try:
         while not finished.wait(0.1):
             pass
-    except KeyboardInterrupt:
+    except BaseException:  # Ctrl-C, or SIGTERM's exit: the query stops before its connection closes
         con.interrupt()
-        finished.wait()
+        while True:
+            try:
+                finished.wait()
+                break
+            except KeyboardInterrupt:  # a second Ctrl-C: still waiting for the query to stop
+                continue
         raise
     if "error" in done:
         raise done["error"]

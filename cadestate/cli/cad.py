@@ -24,7 +24,7 @@ def cad_ingest(
     ctx: typer.Context,
     source: Annotated[Optional[Path], typer.Argument(help="CAD source folder (default: [cad_ingest] source, else the embedded Sweet Home 3D library).")] = None,
     kind: Annotated[SourceKind, typer.Option(help="Source layout (auto: guess from the folder).")] = SourceKind.auto,
-    library: Annotated[Optional[str], typer.Option(help="Library name for shapenet/folder sources (default: from the folder).")] = None,
+    library: Annotated[Optional[str], typer.Option(help="Library name for shapenet/folder sources (default: the folder's name; ShapeNet: shapenet).")] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Canonicalise a CAD collection (metres, +Y up, front +Z, centred), detect symmetries, render views.
@@ -87,9 +87,10 @@ def held_elsewhere(root: Path, items: list) -> None:
     for library in sorted({i.library for i in items} & set(wh.partitions("cad_models"))):
         held = [p for p in wh.read("cad_models", partitions=[library], columns=["source_path"]).column(0).to_pylist()
                 if os.path.isabs(p)]  # stored relative by older versions: not comparable
-        ours = _root_of([i.path for i in items if i.library == library])
-        if held and _root_of(held) != ours:
-            raise CliError(f"library {library!r} already holds models from {_root_of(held)}, not {ours}: "
+        theirs, ours = Path(_root_of(held)) if held else None, Path(_root_of([i.path for i in items if i.library == library]))
+        # one source: one folder holds the other's files (models added or skipped move the common folder)
+        if theirs is not None and not (ours.is_relative_to(theirs) or theirs.is_relative_to(ours)):
+            raise CliError(f"library {library!r} already holds models from {theirs}, not {ours}: "
                            f"give this source another name with --library NAME")
 
 

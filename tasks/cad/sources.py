@@ -10,8 +10,8 @@ canonicalises). Sources:
   the "Characters" category) are left out. Meshes are in centimetres, +Y up, front +Z;
   ``modelRotation`` (a 3x3 matrix) applies first; the catalogue's width/height/depth is the size.
 - ShapeNetCore v2: ``<root>/<synset>/<model_id>/models/model_normalized.obj`` (+Y up; ShapeNet's
-  normalised units are kept, as CAD-Estate's own ShapeNet poses assume); the library is named
-  after the root folder.
+  normalised units are kept, as CAD-Estate's own ShapeNet poses assume); the library is
+  ``shapenet`` unless named.
 - A folder: meshes (OBJ/GLB/GLTF/PLY/OFF/STL) with ``models.csv``: columns ``id,class`` and
   optionally ``file`` (default: the one ``<id>.*`` mesh), ``licence``, ``creator``, ``unit_m``
   (metres per mesh unit, default 1).
@@ -164,14 +164,16 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
     try:
         with open(table, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
             reader = csv.DictReader(f)
-            rows = list(reader)
+            rows = [(reader.line_num, row) for row in reader]  # the line a row ends on (quoted line breaks)
     except UnicodeDecodeError as e:
         raise CadSourceError(f"{table}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
     if not {"id", "class"} <= set(reader.fieldnames or ()):
         raise CadSourceError(f"{table}: needs a header with columns id and class")
     library = library or slug(folder.name)
     by_id = {c.id: c.name for c in BY_NAME.values()}
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
+        if not any((v or "").strip() for k, v in row.items() if k is not None) and None not in row:
+            continue  # an empty row (a spreadsheet's trailing ",,,")
         if None in row or any(row.get(k) is None for k in ("id", "class")):
             raise CadSourceError(f"{table}:{line}: {len([v for v in row.values() if v is not None])} field(s), "
                                  f"the header has {len(reader.fieldnames)}")
@@ -261,7 +263,7 @@ def source_items(kind: str, path: Path, library: str | None = None) -> list[CadI
     if kind == "sweethome3d":
         return unique_keys(list(sweethome3d_items(path)))
     if kind == "shapenet":
-        return unique_keys(list(shapenet_items(path, library or slug(Path(path).resolve().name))))
+        return unique_keys(list(shapenet_items(path, library or "shapenet")))
     if kind == "folder":
         return unique_keys(list(folder_items(path, library)))
     raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
@@ -270,10 +272,11 @@ def source_items(kind: str, path: Path, library: str | None = None) -> list[CadI
 def unique_keys(items: list[CadItem]) -> list[CadItem]:
     """``items`` with a unique cad_id each: ids that ``slug`` makes alike ("Chair A" and "chair-a",
     two names of other scripts, one ShapeNet model id under two synsets) all get the slug and a
-    digest of their name and file as ``key``; the others keep their slug (ids stay stable)."""
+    digest of their name and source category (wherever the source is mounted) as ``key``; the
+    others keep their slug. An id that comes to slug like another later changes too."""
     count = Counter(item.cad_id for item in items)
     return [item if count[item.cad_id] == 1 else
-            replace(item, key=f"{slug(item.item)}-{digest(item.item, item.path)[:8]}") for item in items]
+            replace(item, key=f"{slug(item.item)}-{digest(item.item, item.category)[:8]}") for item in items]
 
 
 def guess_kind(path: Path) -> str:
