@@ -16,6 +16,7 @@ process launched and never adopted (the command ran no flow) is stopped at exit.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import importlib.util
 import os
 import subprocess
@@ -46,6 +47,8 @@ class Launched:
 
 
 _LAUNCHED: Launched | None = None
+_EVER_LAUNCHED: list[subprocess.Popen] = []
+"""Every API process this process launched, adopted by Prefect or not (:func:`stop_launched_now`)."""
 
 
 def uvicorn_command(port: int) -> list[str]:
@@ -67,6 +70,7 @@ def launch(home: Path) -> None:
     # (in the command's process group it died at once, and the stages still running waited on it)
     _LAUNCHED = Launched(port, subprocess.Popen(uvicorn_command(port), env={**os.environ, **SERVER_ENV},
                                                 start_new_session=True, preexec_fn=end_with_parent()))
+    _EVER_LAUNCHED.append(_LAUNCHED.process)
     atexit.register(_stop_unadopted)
     # killed by default, the process would leave the API running; as an exit, the exit handlers stop it
     # (`cadestate annotate`'s uvicorn shuts down on SIGTERM, then raises it again: it ends there too)
@@ -84,6 +88,15 @@ def end_with_parent() -> Callable[[], None] | None:
 
     prctl, PR_SET_PDEATHSIG, sigterm = ctypes.CDLL(None, use_errno=True).prctl, 1, int(signal.SIGTERM)
     return lambda: prctl(PR_SET_PDEATHSIG, sigterm)
+
+
+def stop_launched_now() -> None:
+    """SIGTERM to every API process this process launched that still runs, waiting for none (the
+    process is about to end without its exit handlers)."""
+    for process in _EVER_LAUNCHED:
+        if process.poll() is None:
+            with contextlib.suppress(OSError):
+                process.terminate()
 
 
 def take() -> Launched | None:

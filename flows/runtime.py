@@ -11,7 +11,6 @@ the clips, their splits and the warehouse's CAD libraries, so the Prefect UI fin
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import functools
 import os
@@ -87,21 +86,23 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
 @contextlib.contextmanager
 def ctrl_c_ends_the_run() -> Iterator[None]:
     """Within the block (a flow run in this process's main thread), Ctrl-C ends the process at once:
-    "interrupted", the exit handlers (the Prefect API the command launched stops), status 130. The
-    thread runner had queued every stage of every clip, and ran them all before a KeyboardInterrupt
-    got out. What a stage was writing is not published (partitions go in whole or not at all), and
-    its run reads as interrupted: `cadestate run` resumes it. Elsewhere (the annotation app's
-    threads) nothing changes."""
-    if threading.current_thread() is not threading.main_thread():
+    "interrupted", the Prefect API the command launched stopped, status 130. The thread runner had
+    queued every stage of every clip, and ran them all before a KeyboardInterrupt got out. What a
+    stage was writing is not published (partitions go in whole or not at all), and its run reads as
+    interrupted: `cadestate run` resumes it. The exit handlers are not run: Prefect's wait on its
+    own threads, which the interrupted ones may hold. Elsewhere (the annotation app's threads), or
+    where Ctrl-C is ignored (a shell's background job), nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         yield
         return
+    from flows.local_api import stop_launched_now  # not in the handler: an import there may wait on the main thread's
 
     def interrupted(signum, frame) -> None:
         with contextlib.suppress(OSError, ValueError):  # what was printed goes out whole
             sys.stdout.flush()
             sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
             sys.stderr.flush()
-        atexit._run_exitfuncs()
+        stop_launched_now()
         os._exit(130)
 
     before = signal.signal(signal.SIGINT, interrupted)

@@ -247,7 +247,8 @@ def test_ctrl_c_interrupts_a_long_query_at_once(w):
 
     query = "SELECT sum(a.range * b.range) FROM range(100000) a, range(100000) b"
     proc = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "sql", query], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,  # Ctrl-C as in a terminal (a background job ignores it)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(5)  # started and in the query (it runs for minutes)
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
