@@ -180,8 +180,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
 
 
 def _edited_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """:func:`tasks.video.inputs.edited_inputs`, imported here: a library's status imports no clip module."""
-    from tasks.video.inputs import edited_inputs
+    """:func:`tasks.video.placed.edited_inputs`, imported here: a library's status imports no clip module."""
+    from tasks.video.placed import edited_inputs
 
     return edited_inputs(wh, clip)
 

@@ -141,3 +141,12 @@ def test_status_of_a_cad_library_digests_the_learned_descriptor_without_numpy(tm
     assert code == 0
     assert "tasks.retrieval.descriptor" in json.loads((tmp_path / "modules.json").read_text())["modules"]
     assert sorted({"numpy", "torch", "onnxruntime", "prefect", "trimesh"} & modules) == []
+
+
+def test_the_record_of_placed_inputs_imports_nothing_heavy():
+    """`status` checks every clip's placed inputs (tasks/video/placed.py): from tasks/video/inputs.py
+    that brought pyarrow and numpy (its schema import) into every status, 2x its CPU."""
+    done = subprocess.run([sys.executable, "-c", "import sys, tasks.video.placed; "
+                           "print(sorted({'pyarrow', 'numpy', 'schemas.core'} & set(sys.modules)))"],
+                          capture_output=True, text=True, check=True, cwd=Path(__file__).resolve().parents[1])
+    assert done.stdout.strip() == "[]"

@@ -34,7 +34,8 @@ from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.video.decode import VideoInfo, decode_at, probe_video
-from tasks.video.inputs import clip_split, ingest_source_digest, record_placed, registered_inputs
+from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
+from tasks.video.placed import record_placed
 from tasks.video.vertical_lines import video_segment_normals
 from tasks.video.world_up import UpEstimate, estimate_up
 from warehouse import Warehouse, WarehouseError, check_name

@@ -6,19 +6,9 @@ the three columns it needs (a timestamp column's values would import pandas thro
 
 from __future__ import annotations
 
-import json
-import os
-from pathlib import Path
-
-from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest
 from schemas.core import DEFAULT_SPLIT
 from warehouse import Warehouse
-
-PLACED_FILE = "placed.json"
-"""Beside a clip's inputs (``inputs/<clip>/``): each input file's size and modification time as
-ingest placed it (:func:`record_placed`), so that ``cadestate status`` sees a file edited in place
-(a hard link to the user's file) without hashing it (:func:`edited_inputs`)."""
 
 REGISTERED = ["video_sha256", "split", "time_offset_us"]
 """The columns of ``clips`` the digest reads."""
@@ -46,29 +36,3 @@ def registered_inputs_digest(wh: Warehouse, clip: str) -> str:
 def registered_inputs(wh: Warehouse, clip: str) -> list[str]:
     """The ingest stage's clip inputs (its declaration's ``clip_inputs``)."""
     return [registered_inputs_digest(wh, clip)]
-
-
-def record_placed(folder: Path, files: list[Path]) -> None:
-    """Record the size and modification time of ``files`` (just placed in ``folder``) in :data:`PLACED_FILE`."""
-    stats = {f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in files}
-    atomic_write_bytes(folder / PLACED_FILE, json.dumps(stats, sort_keys=True).encode(), durable=False)
-
-
-def edited_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The clip's input files whose size or modification time differ from what ingest recorded
-    (edited in place since; none when nothing was recorded: a clip ingested before this record)."""
-    folder = wh.inputs_dir(clip)
-    try:
-        placed = json.loads((folder / PLACED_FILE).read_text())
-    except (OSError, ValueError):
-        return []
-    edited = []
-    for name, (size, mtime_ns) in sorted(placed.items()) if isinstance(placed, dict) else []:
-        try:
-            st = os.stat(folder / name)
-        except OSError:
-            edited.append(name)
-            continue
-        if (st.st_size, st.st_mtime_ns) != (size, mtime_ns):
-            edited.append(name)
-    return edited
