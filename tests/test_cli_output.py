@@ -138,3 +138,18 @@ def test_a_usage_error_is_one_line_naming_the_help(tmp_path):
                           (("ingest",), "error: Missing argument 'sources'. (`cadestate ingest --help`)")):
         result = cli(*args, cwd=tmp_path)
         assert result.returncode == 2 and result.stderr.splitlines() == [message], result.stderr
+
+
+def test_an_output_path_that_cannot_be_written_is_one_line(tmp_path):
+    """labels schema --write, cad sheet and stats --html under a file (not a folder): one line each."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    (tmp_path / "w").mkdir()
+    for args, message in ((("labels", "schema", "--write", str(blocker / "x")), f"{blocker / 'x'}: cannot write the schemas there: "),
+                          (("-w", str(tmp_path / "w"), "cad", "sheet", str(blocker / "s.png")),
+                           f"{blocker / 's.png'}: cannot write the sheet there: "),
+                          (("-w", str(tmp_path / "w"), "stats", "--html", str(blocker / "h")),
+                           f"{blocker / 'h'}: cannot write the HTML report there: ")):
+        result = cli(*args, cwd=tmp_path)
+        errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+        assert result.returncode == 2 and len(errors) == 1 and errors[0].startswith(f"error: {message}"), result.stderr

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import CliError, cad_app, check_writable, err, out, print_reports
+from cadestate.cli.common import CliError, cad_app, cannot_write, check_writable, err, out, print_reports
 
 
 class SourceKind(str, Enum):
@@ -120,8 +120,6 @@ def cad_sheet(
 
     if out_file.suffix.lower() not in (".png", ".jpg", ".jpeg", ".webp"):
         raise CliError(f"{out_file}: a picture's name: .png, .jpg or .webp")
-    try:
+    with cannot_write(out_file, "the sheet"):
         count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
-    except OSError as e:
-        raise CliError(f"{out_file}: cannot write the sheet there ({e.strerror or e})") from None
     out.print(f"wrote {out_file} ({count} models)")

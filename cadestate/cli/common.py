@@ -6,8 +6,10 @@ and Prefect's environment is set (per warehouse) before Prefect is first importe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Optional
 
@@ -116,6 +118,16 @@ def print_reports(reports, unit: str = "clip") -> int:
     if paused and not failed:
         err.print("answer the task files with label files, then `cadestate labels ingest DIR` resumes the clips")
     return 1 if failed else 0
+
+
+@contextlib.contextmanager
+def cannot_write(where: Path, what: str, hint: str = "") -> Iterator[None]:
+    """Within the block, an OSError (no permission, a file in the path, a folder named as a file)
+    is one :class:`CliError` line: ``<where>: cannot write <what> there: <why><hint>``."""
+    try:
+        yield
+    except OSError as e:
+        raise CliError(f"{where}: cannot write {what} there: {e.strerror or e}{hint}") from None
 
 
 def check_writable(root: Path) -> None:

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cadestate.cli.common import CliError, app, err, out
+from cadestate.cli.common import CliError, app, cannot_write, err, out
 
 export_app = typer.Typer(help="Write the dataset out: the official CAD-Estate layout, or Scan2CAD files.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
@@ -88,8 +88,6 @@ def stats(
     if html is not None:
         from tasks.dataset.stats_report import write_report
 
-        try:
+        with cannot_write(html, "the HTML report", "; give a folder"):
             index = write_report(wh, tables, figures, html)
-        except OSError as e:
-            raise CliError(f"{html}: cannot write the HTML report there ({e.strerror or e}); give a folder") from None
         (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document

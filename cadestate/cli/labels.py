@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from cadestate.cli.common import CliError, app, err, out
+from cadestate.cli.common import CliError, app, cannot_write, err, out
 
 labels_app = typer.Typer(help="Label files of the human tasks: ingest them, validate them, print their JSON Schemas, "
                               "import manual tracks from CVAT or Label Studio.", no_args_is_help=True)
@@ -163,10 +163,8 @@ def labels_schema(
     if write is not None:
         from schemas.labels import publish_schemas
 
-        try:
+        with cannot_write(write, "the schemas", "; give a folder"):
             written = publish_schemas(str(write))
-        except OSError as e:
-            raise CliError(f"{write}: cannot write the schemas there ({e.strerror or e}); give a folder") from None
         for p in written:
             out.print(p)
         return
@@ -196,10 +194,8 @@ def _write_import(result, out_dir: Path, source: Path, clip: str, tool: str) -> 
         err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
     for w in result.warnings:
         err.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, emoji=False)
-    try:
+    with cannot_write(out_dir, "the label file"):
         path = write_label(result.document, out_dir, f"{clip}.{source.stem}.{file_sha256(source)[:8]}.{tool}")
-    except OSError as e:
-        raise CliError(f"{out_dir}: cannot write the label file there: {e.strerror or e}") from None
     n = len(result.document["answers"])
     _say(f"{escape(str(path))}: {n} manual track(s) for task {escape(result.document['task_id'])}; "
          f"ingest with `cadestate labels ingest {escape(str(out_dir))}`")
