@@ -116,7 +116,7 @@ def ingest(
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
             urls.append((items[-1].clip, checked.cameras.url))
-    known_splits = ("train", "val", "test", *(x for x in cfg.manual_tracks.splits if x not in ("train", "val", "test")))
+    known_splits = tuple(dict.fromkeys(("train", "val", "test", *cfg.manual_tracks.splits)))
     if split is not None and split not in known_splits:
         raise typer.BadParameter(f"{split!r} is none of {', '.join(known_splits)} (the splits of the dataset and "
                                  "[manual_tracks] splits)", param_hint="--split")
