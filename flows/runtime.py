@@ -18,7 +18,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
-from contextvars import ContextVar
+from contextvars import ContextVar, copy_context
 from pathlib import Path
 
 from cadestate.config import Config, PrefectConfig
@@ -83,6 +83,10 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     return state_reports(state)
 
 
+CANCEL_WAIT_S = 3.0
+"""How long Ctrl-C waits for the API to mark the flow run Cancelled before the process ends."""
+
+
 @contextlib.contextmanager
 def ctrl_c_ends_the_run() -> Iterator[None]:
     """Within the block (a flow run in this process's main thread), Ctrl-C ends the process at once:
@@ -91,17 +95,38 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
     stage was writing is not published (partitions go in whole or not at all), and its run reads as
     interrupted: `cadestate run` resumes it. The exit handlers are not run: Prefect's wait on its
     own threads, which the interrupted ones may hold. Elsewhere (the annotation app's threads), or
-    where Ctrl-C is ignored (a shell's background job), nothing changes."""
+    where Ctrl-C is ignored (a shell's background job), nothing changes. The flow run is marked
+    Cancelled on the API first (:func:`cancel_flow_run`), so the Prefect UI does not show it running
+    for ever."""
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         yield
         return
     from flows.local_api import stop_launched_now  # not in the handler: an import there may wait on the main thread's
+    from prefect.client.orchestration import get_client
+    from prefect.context import FlowRunContext
+    from prefect.states import Cancelled
+
+    def cancel_flow_run() -> None:
+        """Mark this thread's flow run Cancelled, giving the API at most :data:`CANCEL_WAIT_S`."""
+        run = FlowRunContext.get()
+        if run is None or run.flow_run is None:
+            return
+        state = Cancelled(message="interrupted (Ctrl-C); `cadestate run` resumes its clips")
+
+        def send() -> None:
+            with contextlib.suppress(Exception), get_client(sync_client=True) as client:
+                client.set_flow_run_state(run.flow_run.id, state, force=True)
+
+        sender = threading.Thread(target=copy_context().run, args=(send,), daemon=True)
+        sender.start()
+        sender.join(CANCEL_WAIT_S)
 
     def interrupted(signum, frame) -> None:
         with contextlib.suppress(OSError, ValueError):  # what was printed goes out whole
             sys.stdout.flush()
             sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
             sys.stderr.flush()
+        cancel_flow_run()
         stop_launched_now()
         os._exit(130)
 

@@ -253,8 +253,9 @@ def test_ctrl_c_ends_a_run_at_once_and_run_resumes_it(tmp_path, small_clip):
     """Ctrl-C (SIGINT to the command's process group, as a terminal sends it) while a stage runs:
     the command ends within seconds, status 130, saying so; the Prefect API it launched (in a
     session of its own) goes with it; the stage reads as interrupted and `cadestate run` finishes
-    the clip. Before, every queued stage of every clip ran to the end first."""
+    the clip; the flow run reads as Cancelled. Before, every queued stage of every clip ran to the end first."""
     import signal
+    import sqlite3
 
     w = tmp_path / "w"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
@@ -276,6 +277,10 @@ def test_ctrl_c_ends_a_run_at_once_and_run_resumes_it(tmp_path, small_clip):
     while prefect_apis_of(w) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not prefect_apis_of(w)
+    with sqlite3.connect(Path(os.environ["PREFECT_HOME"]) / "prefect.db") as db:  # not left "Running" in the UI
+        states = db.execute("SELECT state_type FROM flow_run WHERE name = 'annotate_clip/small_0' AND parameters "
+                            "LIKE ?", (f"%{w}%",)).fetchall()  # the tests share one Prefect home
+    assert states == [("CANCELLED",)]
     status = cli("-w", str(w), "status", "small_0")
     assert "small_0 was interrupted at detect" in status.stdout, status.stdout
     assert cli("-w", str(w), "run", "small_0", "--no-progress").returncode == 0
