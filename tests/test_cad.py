@@ -147,6 +147,28 @@ def test_ids_that_slug_alike_are_made_unique_and_the_others_kept(tmp_path):
     assert [i.cad_id for i in source_items("folder", tmp_path.parent / f"{tmp_path.name}-moved", "lib")] == ids  # moved
 
 
+def test_a_held_model_keeps_its_id_when_a_new_item_slugs_alike(tmp_path):
+    """Ids the warehouse holds do not change on a re-ingest: "Chair A" held as lib.chair-a keeps it
+    when "chair-a" joins (the newcomer takes the digest), and one held under its digest keeps that
+    when the item it was alike with leaves; two new alike items both take digests, as before."""
+    for name in ("Chair A", "chair-a"):
+        trimesh.creation.box((1, 1, 1)).export(tmp_path / f"{name}.obj")
+    csv = tmp_path / "models.csv"
+    csv.write_text("id,class\nChair A,chair\n")
+    first = source_items("folder", tmp_path, "lib")
+    assert [i.cad_id for i in first] == ["lib.chair-a"]
+    held = [(i.cad_id, i.name, i.category) for i in first]
+    csv.write_text("id,class\nchair-a,chair\nChair A,chair\n")
+    grown = source_items("folder", tmp_path, "lib", held)
+    assert grown[1].cad_id == "lib.chair-a" and grown[0].cad_id.startswith("lib.chair-a-")
+    unheld = source_items("folder", tmp_path, "lib")  # a new warehouse: both alike take digests
+    assert all(i.cad_id.startswith("lib.chair-a-") for i in unheld) and unheld[0].cad_id == grown[0].cad_id
+    csv.write_text("id,class\nchair-a,chair\n")  # the one held by its slug leaves: the other keeps its digest
+    assert [i.cad_id for i in source_items("folder", tmp_path, "lib", held + [(grown[0].cad_id, "chair-a", "chair")])] \
+        == [grown[0].cad_id]
+    assert [i.cad_id for i in source_items("folder", tmp_path, "lib")] == ["lib.chair-a"]  # nothing held: plain slug
+
+
 @pytest.mark.parametrize("table, message", [
     ("id,class,unit_m\nbox,table,nan\n", "models.csv:2: unit_m must be a positive number"),
     ("id,class,unit_m\nbox,table,1\nbox2,table,-1\n", "models.csv:3: unit_m must be a positive number"),

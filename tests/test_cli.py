@@ -237,6 +237,14 @@ def test_cad_ingest_sheet_export(tmp_path):
     assert credits == ["cad_id,library,name,licence,creator,source", "mine.box,mine,box,unknown,unknown,folder"]
     unknown = cli("-w", w, "cad", "export-official", str(tmp_path / "o2"), "--library", "nosuch")
     assert unknown.returncode == 2 and "no CAD library 'nosuch'" in unknown.stderr and "(libraries: mine)" in unknown.stderr
+    import trimesh
+
+    trimesh.creation.box((0.5, 0.5, 0.5)).export(folder / "Box.obj")  # slugs like the held "box": which keeps its id
+    (folder / "models.csv").write_text("id,class\nBox,table\nbox,table\nbad,chair\n")
+    assert cli("-w", w, "-c", str(tmp_path / "c.toml"), "cad", "ingest", str(folder), "--library", "mine",
+               "--no-progress").returncode == 0
+    ids = json.loads(cli("-w", w, "sql", "SELECT cad_id, name FROM cad_models ORDER BY name", "-f", "json").stdout)
+    assert ids[1] == {"cad_id": "mine.box", "name": "box"} and ids[0]["cad_id"].startswith("mine.box-"), ids
     (tmp_path / "elsewhere").mkdir()
     other = box_library(tmp_path / "elsewhere")  # another folder under the same library name: refused before Prefect starts
     clash = cli("-w", w, "cad", "ingest", str(other), "--library", "mine", "--no-progress")

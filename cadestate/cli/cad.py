@@ -58,8 +58,8 @@ def cad_ingest(
             check_name(library, "library")
         except WarehouseError as e:
             raise CliError(f"--library: {e}") from None
-    items = source_items(chosen, path, library)
     root = ctx.obj.root(cfg)
+    items = source_items(chosen, path, library, held_ids(root))
     check_writable(root)
     held_elsewhere(root, items)
     api = prepare_prefect_environment(root, ctx.obj.verbose, cfg.prefect.startup_timeout_s, start_api=True)
@@ -74,6 +74,17 @@ def cad_ingest(
 def _root_of(paths: list[str]) -> str:
     """The folder holding every file of ``paths`` (an archive member counts as its archive)."""
     return os.path.commonpath([os.path.dirname(p.split("!", 1)[0]) for p in paths])
+
+
+def held_ids(root: Path) -> list[tuple[str, str, str]]:
+    """(cad_id, name, source category) of every model the warehouse holds (none in a new one): what
+    :func:`tasks.cad.sources.unique_keys` needs to keep their ids."""
+    from warehouse import Warehouse
+
+    if not (root / "tables" / "cad_models").is_dir():
+        return []
+    held = Warehouse(root).read("cad_models", columns=["cad_id", "name", "source_category"])
+    return list(zip(*(held.column(c).to_pylist() for c in held.column_names)))
 
 
 def held_elsewhere(root: Path, items: list) -> None:

@@ -27,7 +27,7 @@ import posixpath
 import re
 import zipfile
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -258,25 +258,37 @@ class _LocalResolver(trimesh.resolvers.FilePathResolver):
             raise
 
 
-def source_items(kind: str, path: Path, library: str | None = None) -> list[CadItem]:
-    """Items of a source of kind ``sweethome3d``, ``shapenet`` or ``folder``, each of a unique cad_id."""
+def source_items(kind: str, path: Path, library: str | None = None,
+                 held: Iterable[tuple[str, str, str]] = ()) -> list[CadItem]:
+    """Items of a source of kind ``sweethome3d``, ``shapenet`` or ``folder``, each of a unique cad_id;
+    ``held`` as :func:`unique_keys` takes it."""
     if kind == "sweethome3d":
-        return unique_keys(list(sweethome3d_items(path)))
-    if kind == "shapenet":
-        return unique_keys(list(shapenet_items(path, library or "shapenet")))
-    if kind == "folder":
-        return unique_keys(list(folder_items(path, library)))
-    raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
+        items = list(sweethome3d_items(path))
+    elif kind == "shapenet":
+        items = list(shapenet_items(path, library or "shapenet"))
+    elif kind == "folder":
+        items = list(folder_items(path, library))
+    else:
+        raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
+    return unique_keys(items, held)
 
 
-def unique_keys(items: list[CadItem]) -> list[CadItem]:
+def unique_keys(items: list[CadItem], held: Iterable[tuple[str, str, str]] = ()) -> list[CadItem]:
     """``items`` with a unique cad_id each: ids that ``slug`` makes alike ("Chair A" and "chair-a",
-    two names of other scripts, one ShapeNet model id under two synsets) all get the slug and a
-    digest of their name and source category (wherever the source is mounted) as ``key``; the
-    others keep their slug. An id that comes to slug like another later changes too."""
-    count = Counter(item.cad_id for item in items)
-    return [item if count[item.cad_id] == 1 else
-            replace(item, key=f"{slug(item.item)}-{digest(item.item, item.category)[:8]}") for item in items]
+    two names of other scripts, one ShapeNet model id under two synsets) get the slug and a digest
+    of their name and source category (wherever the source is mounted) as ``key``; the others keep
+    their slug. ``held`` is (cad_id, name, source category) of each model the warehouse holds
+    already: a model keeps the id it was given (labels name it), so when a new item comes to slug
+    like one held, the held one keeps its plain slug if it alone of the alike matches its row's name
+    and category, and the newcomer takes the digest; a model held under its digest keeps it."""
+    held_as = {cad_id: (name, category) for cad_id, name, category in held}
+    alike = Counter(item.cad_id for item in items)
+    holders = Counter(item.cad_id for item in items if alike[item.cad_id] > 1 and
+                      held_as.get(item.cad_id) == (item.name, item.category))
+    keyed = [replace(item, key=f"{slug(item.item)}-{digest(item.item, item.category)[:8]}") for item in items]
+    return [with_digest if with_digest.cad_id in held_as or (alike[item.cad_id] > 1 and not (
+            holders[item.cad_id] == 1 and held_as.get(item.cad_id) == (item.name, item.category))) else item
+            for item, with_digest in zip(items, keyed)]
 
 
 def guess_kind(path: Path) -> str:
