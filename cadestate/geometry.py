@@ -168,12 +168,16 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = WORLD_UP) -> tuple[np.ndarray, np.ndarray]:
     """World->camera ``(R, t)`` of an OpenCV camera at ``eye`` looking at ``target``.
 
-    The camera's image "up" (-y_cam) is as close to the world ``up`` as the viewing direction allows.
+    The camera's image "up" (-y_cam) is as close to the world ``up`` as the viewing direction allows;
+    looking straight along ``up`` (or against it), it is the first world axis (x, y, z) least along
+    the view instead (+X for +Y up), not NaN.
     """
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye
     z /= np.linalg.norm(z)
     x = np.cross(-np.asarray(up, dtype=np.float64), z)  # right = down x forward
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(-np.eye(3)[np.argmin(np.abs(z))], z)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)  # down
     R = np.stack([x, y, z])  # rows: camera axes in world coordinates

@@ -83,3 +83,14 @@ def test_rotation_error_flags_reflections_and_scaling():
     assert rotation_error(np.eye(3)) == 0
     assert rotation_error(np.diag([1.0, 1, -1])) == pytest.approx(2)
     assert rotation_error(1.01 * np.eye(3)) > 0.02
+
+
+@pytest.mark.parametrize("target", [(0.0, -3.0, 0.0), (0.0, 3.0, 0.0)])
+def test_look_at_straight_down_or_up_is_a_rotation_facing_the_target(target):
+    """Looking along the world's up (a camera over a table) gives a proper rotation whose image up
+    is +X, where the cross product with up vanished and gave NaN."""
+    eye = np.array([1.0, 1.0, 1.0])
+    R, t = look_at(eye, eye + np.array(target))
+    assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(R[2], np.sign(target[1]) * np.array([0.0, 1.0, 0.0]))  # forward: along the view
+    assert np.allclose(-R[1], [1.0, 0.0, 0.0]) and np.allclose(R @ eye + t, 0.0)
