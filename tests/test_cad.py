@@ -379,7 +379,7 @@ def test_config_default_is_the_calibrated_symmetry_tolerance():
 
 def test_textured_means_a_texture_image_not_a_placeholder(tmp_path):
     """An OBJ with a real texture is textured; one whose material file is missing is not (trimesh
-    gives it a 2 x 2 placeholder), and the missing file is named."""
+    gives it a 2 x 2 placeholder), and the missing file is named; so is a texture that is no image."""
     from PIL import Image
 
     from tasks.cad.ingest import _is_textured
@@ -389,10 +389,14 @@ def test_textured_means_a_texture_image_not_a_placeholder(tmp_path):
     (tmp_path / "tex.mtl").write_text("newmtl red\nKd 1 1 1\nmap_Kd red.png\n")
     (tmp_path / "tex.obj").write_text("mtllib tex.mtl\n" + quad + "usemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
     (tmp_path / "nomtl.obj").write_text("mtllib absent.mtl\n" + quad + "usemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
-    (tmp_path / "models.csv").write_text("id,class\ntex,table\nnomtl,table\n")
-    (tex, missing_tex), (nomtl, missing) = (load_item(i) for i in folder_items(tmp_path))
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG not really")  # trimesh dropped it without a word
+    (tmp_path / "broken.mtl").write_text("newmtl red\nKd 1 1 1\nmap_Kd broken.png\n")
+    (tmp_path / "broken.obj").write_text("mtllib broken.mtl\n" + quad + "usemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    (tmp_path / "models.csv").write_text("id,class\ntex,table\nnomtl,table\nbroken,table\n")
+    (tex, missing_tex), (nomtl, missing), (broken, unreadable) = (load_item(i) for i in folder_items(tmp_path))
     assert _is_textured(tex) and missing_tex == []
     assert not _is_textured(nomtl) and missing == ["absent.mtl"]
+    assert not _is_textured(broken) and unreadable == ["broken.png (unreadable)"]
 
 
 def test_a_catalogue_item_without_an_id_is_listed(tmp_path):

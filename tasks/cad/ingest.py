@@ -135,7 +135,7 @@ def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResul
     points = sample_surface(model.mesh, cfg.samples, seed=0)
     symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
     (out_dir / f"{item.cad_id}.glb").write_bytes(model.scene.export(file_type="glb"))
-    issues = [{**issue, "severity": "warning", "problem": f"missing files (rendered without them): {', '.join(missing)}"}] if missing else []
+    issues = [{**issue, "severity": "warning", "problem": f"missing or unreadable files (rendered without them): {', '.join(missing)}"}] if missing else []
     if item.source == "folder" and item.cls == "other" and item.category.lower() != "other":
         issues.append({**issue, "severity": "warning", "problem": f"class {item.category!r} is none of the vocabulary's "
                        "(tasks/cad/classes.py) nor a synonym of one: ingested as 'other'"})

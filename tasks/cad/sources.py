@@ -214,9 +214,12 @@ class _FolderResolver(trimesh.resolvers.ZipResolver):
 
     def get(self, name: str) -> bytes:
         try:
-            return super().get(name)
+            return _readable(name, super().get(name))
         except KeyError:
             self.missing.append(name)
+            raise
+        except OSError:
+            self.missing.append(f"{name} (unreadable)")
             raise
 
 
@@ -227,7 +230,8 @@ def archive_member(item: CadItem) -> tuple[str, str] | None:
 
 
 def load_item(item: CadItem) -> tuple[trimesh.Scene, list[str]]:
-    """The item's mesh as its source stores it, and the names of files it refers to that are missing."""
+    """The item's mesh as its source stores it, and the names of files it refers to that are missing
+    (or, marked so, unreadable)."""
     if (inside := archive_member(item)) is not None:
         archive_path, member = inside
         with zipfile.ZipFile(archive_path) as archive:
@@ -252,10 +256,31 @@ class _LocalResolver(trimesh.resolvers.FilePathResolver):
 
     def get(self, name: str) -> bytes:
         try:
-            return super().get(name)
+            data = super().get(name)
         except (OSError, KeyError):
             self.missing.append(name)
             raise
+        try:
+            return _readable(name, data)
+        except OSError:
+            self.missing.append(f"{name} (unreadable)")
+            raise
+
+
+IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tga", ".tif", ".tiff", ".webp"})
+
+
+def _readable(name: str, data: bytes) -> bytes:
+    """``data``, or OSError for an image file PIL cannot identify: trimesh drops such a texture
+    without a word (it opens images as this does, reading the header only)."""
+    if Path(name).suffix.lower() in IMAGE_SUFFIXES:
+        from PIL import Image
+
+        try:
+            Image.open(io.BytesIO(data))
+        except Exception as e:  # PIL raises UnidentifiedImageError, SyntaxError, ValueError...
+            raise OSError(f"{name}: {e}") from None
+    return data
 
 
 def source_items(kind: str, path: Path, library: str | None = None,
