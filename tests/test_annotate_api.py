@@ -8,6 +8,7 @@ newest in force; a file a crash left un-ingested is ingested when the app starts
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import threading
@@ -21,7 +22,7 @@ from cadestate.config import Config, WarehouseConfig
 from cadestate.webapp.app import create_app
 from cadestate.webapp.resume import Resumer
 from tasks.human.answers_in_force import current_answers
-from tasks.human.labels import validate_label
+from tasks.human.labels import validate_label, write_task
 from test_labels import CLIP, base_wh, good, lwh  # noqa: F401  (fixtures)
 from warehouse import Warehouse
 
@@ -357,3 +358,79 @@ def test_the_warm_up_reads_ahead_what_the_first_resume_of_a_waiting_clip_reads(l
     assert any(digests) and opened == []
     assert digests == [InputsMemo(Warehouse(lwh.root), CLIP).clip_inputs(s, fresh=True)
                        for s in stages_of("clip") if not s.has("source_inputs")]  # the same digests as uncached
+
+
+def _one(track: int, cad_id: str | None) -> dict:
+    """A CAD-selection answer to one track of task c1.cs."""
+    return {**payload("cad_selection"), "answers": [{"track_id": track, "cad_id": cad_id}]}
+
+
+def test_an_item_answered_since_the_page_loaded_is_a_409_not_a_silent_replacement(lwh):
+    """Two tabs (or annotators) on one item: the second to answer is told, and nothing of theirs is
+    written; another item of the same task, or the item once reloaded, is answered as usual."""
+    with _client(lwh, Requests()) as client:
+        tab_a = client.get(f"/api/tasks/{CLIP}/c1.cs").json()["as_of"]
+        tab_b = client.get(f"/api/tasks/{CLIP}/c1.cs").json()["as_of"]
+        assert tab_a == tab_b == ""  # nothing answered yet
+        assert client.post("/api/answers", json=_one(0, "m0a"), params={"as_of": tab_b}).status_code == 200
+        late = client.post("/api/answers", json=_one(0, "m0b"), params={"as_of": tab_a})
+        assert late.status_code == 409 and "this item was answered by tester at " in late.json()["detail"], late.text
+        assert client.post("/api/answers", json=_one(2, "m2b"), params={"as_of": tab_a}).status_code == 200  # another item
+        reloaded = client.get(f"/api/tasks/{CLIP}/c1.cs").json()
+        assert reloaded["answered"] == [0, 2] and reloaded["as_of"] > tab_a
+        assert client.post("/api/answers", json=_one(0, "m0b"), params={"as_of": reloaded["as_of"]}).status_code == 200
+        bad = client.post("/api/answers", json=_one(1, None), params={"as_of": "yesterday"})
+        assert bad.status_code == 422 and "as_of: 'yesterday' is not an ISO 8601 time" in bad.json()["detail"]
+    assert len(_label_files(lwh)) == 3
+    assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 2: "m2b"}
+
+
+def test_an_answer_to_a_task_the_pipeline_replaced_is_a_409(lwh):
+    """A page left open on a task that a rerun replaced (a drawn object made new tracks): its answers
+    would not count, so they are refused, and the task reads as not current."""
+    from test_labels import _tasks
+
+    newer = dataclasses.replace(_tasks()[1], task_id="c1.cs2", created_at="2026-01-01T00:01:00+00:00")
+    write_task(lwh, newer)
+    with _client(lwh, Requests()) as client:
+        assert client.get(f"/api/tasks/{CLIP}/c1.cs").json()["current"] is False
+        assert client.get(f"/api/tasks/{CLIP}/c1.cs2").json()["current"] is True
+        old = client.post("/api/answers", json=_one(0, None))
+        assert old.status_code == 409 and "task c1.cs was replaced by task c1.cs2" in old.json()["detail"], old.text
+        assert client.post("/api/answers", json={**_one(0, None), "task_id": "c1.cs2"}).status_code == 200
+    assert len(_label_files(lwh)) == 1
+
+
+def test_a_left_answer_answered_again_since_is_set_aside_not_put_in_force(lwh, monkeypatch, capsys):
+    """An answer written but not ingested (the warehouse failed), then answered again once the
+    warehouse was back: at the next start the left file is set aside, since ingested then it would
+    come in force over the newer answer."""
+    real = Warehouse.write
+
+    def failing(self, name, *args, **kwargs):
+        if name == "label_files":
+            raise OSError(28, "No space left on device")
+        return real(self, name, *args, **kwargs)
+
+    with _client(lwh, Requests()) as client:
+        monkeypatch.setattr(Warehouse, "write", failing)
+        assert client.post("/api/answers", json=_one(0, "m0a")).status_code == 500
+        monkeypatch.setattr(Warehouse, "write", real)
+        assert client.post("/api/answers", json=_one(0, None)).status_code == 200
+    (left,) = [p for p in _label_files(lwh) if validate_label(p, lwh).label.answers[0].cad_id == "m0a"]
+    with _client(lwh, Requests()):
+        pass
+    assert not left.exists() and left.with_name(left.name + ".superseded").is_file()
+    assert f"warning: {left}: not ingested, its items were answered again at " in capsys.readouterr().err
+    assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: None}
+    assert lwh.read("label_files").num_rows == 1
+
+
+def test_layers_that_cannot_be_rendered_are_a_one_line_503_and_odd_media_names_a_404(lwh):
+    with _client(lwh, Requests()) as client:
+        r = client.get(f"/api/verification_layers/{CLIP}/c1.ve/0")  # its mesh m.glb is nowhere
+        assert r.status_code == 503 and r.json()["detail"].startswith("cannot render track 0's posed model: ") and \
+            "\n" not in r.json()["detail"], r.text
+        assert client.get("/media/" + "x" * 300).status_code == 404
+        assert client.get("/media/a%00b").status_code == 404
+        assert client.get("/api/next", params={"clip": "nope"}).status_code == 404

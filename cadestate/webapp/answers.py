@@ -7,11 +7,19 @@
 (:func:`tasks.human.label_ingest.ingest_validated`). A payload that fails validation raises
 :class:`tasks.human.label_format.LabelError` naming the field, and nothing is written. The file is on
 disk before ingest starts, so a crash mid-ingest loses nothing: :func:`ingest_pending` (run when the
-app starts) ingests every file of the folder not ingested yet (ingest is idempotent by content).
+app starts) ingests every file of the folder not ingested yet (ingest is idempotent by content), but
+for one whose items were answered again later (:func:`set_aside_superseded`).
+
+An answer counts only for the newest task of its kind (:class:`Conflict` otherwise: the pipeline
+replaced the task the page showed), and a page says which answers it saw (``as_of``,
+:func:`answers_as_of`): an item answered by someone else since then is a :class:`Conflict` too,
+not a silent replacement of their answer.
 """
 
 from __future__ import annotations
 
+import datetime as dt
+import hashlib
 import json
 import threading
 from dataclasses import dataclass, field, replace
@@ -21,7 +29,7 @@ from typing import Any
 from schemas.labels import LABEL_FORMAT
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line
 from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels, ingest_validated
-from tasks.human.labels import ClipFacts, utc_now, validate_label
+from tasks.human.labels import ClipFacts, latest_tasks, utc_now, validate_label
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS_DIR = "labels"
@@ -31,6 +39,11 @@ LABELS_DIR = "labels"
 class IngestFailed(RuntimeError):
     """A valid answer was written but not ingested (a failed warehouse write): it stays on disk and
     is ingested when the app starts next (or by ``cadestate labels ingest <warehouse>/labels``)."""
+
+
+class Conflict(RuntimeError):
+    """A valid answer that would silently undo another: to a task the pipeline has replaced, or to
+    an item someone answered since the page loaded. Nothing is written."""
 
 
 @dataclass
@@ -74,15 +87,79 @@ def _not_ingested(path: Path, errors: list[str]) -> str:
     return f"{path}: written but not ingested ({why}); it is ingested when the app starts next"
 
 
-def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threading.Lock,
+def answers_as_of(wh: Warehouse, clip: str) -> str:
+    """When the newest answer of ``clip`` was ingested (ISO 8601; '' when none): what a page that
+    shows the clip's answers now has seen, and sends back with its own (:func:`submit`)."""
+    if not wh.has_partition("label_files", clip):
+        return ""
+    times = wh.read("label_files", [clip], columns=["ingested_at"]).column("ingested_at").to_pylist()
+    return max(times).isoformat() if times else ""
+
+
+def _tracks(kind: str, answers: list) -> set[int]:
+    """The items a label file answers: its tracks' ids, or -1 for a manual-track task (one item)."""
+    if kind == "manual_track":
+        return {-1}
+    return {a["track_id"] if isinstance(a, dict) else a.track_id for a in answers
+            if not isinstance(a, dict) or isinstance(a.get("track_id"), int)}
+
+
+def _answered_since(wh: Warehouse, clip: str, task_id: str, tracks: set[int], since: dt.datetime | None,
+                    created_after: dt.datetime | None = None) -> dict | None:
+    """The newest ``label_files`` row of ``task_id`` answering one of ``tracks`` that was ingested
+    after ``since`` (None: ever) and, with ``created_after``, whose answers were given after it."""
+    if not wh.has_partition("label_files", clip):
+        return None
+    rows = wh.read("label_files", [clip], filters=[("task_id", "==", task_id)],
+                   columns=["kind", "ingested_at", "created_at", "annotator", "document"]).to_pylist()
+    for row in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
+        if since is not None and row["ingested_at"] <= since:
+            break
+        if created_after is not None and (row["created_at"] is None or row["created_at"] <= created_after):
+            continue
+        try:
+            answers = json.loads(row["document"]).get("answers", [])
+        except (ValueError, AttributeError):
+            continue
+        if _tracks(row["kind"], answers if isinstance(answers, list) else []) & tracks:
+            return row
+    return None
+
+
+def _check_not_stale(wh: Warehouse, kind: str, clip: str, task_id: str, tracks: set[int], as_of: str | None) -> None:
+    """Raise :class:`Conflict` for an answer to a replaced task or, given the page's ``as_of``, to an
+    item answered since."""
+    newest = latest_tasks(wh, clip).get(kind)
+    if newest is not None and newest["task_id"] != task_id:
+        raise Conflict(f"task {task_id} was replaced by task {newest['task_id']} (the pipeline ran again): "
+                       "reload the page; this answer was not saved")
+    if as_of is None:
+        return
+    try:
+        since = dt.datetime.fromisoformat(as_of) if as_of else None
+    except ValueError:
+        raise LabelError(f"as_of: {as_of!r} is not an ISO 8601 time") from None
+    if since is not None and since.tzinfo is None:
+        raise LabelError(f"as_of: {as_of!r} has no time zone")
+    row = _answered_since(wh, clip, task_id, tracks, since)
+    if row is not None:
+        who = f" by {row['annotator']}" if row["annotator"] else ""
+        what = "this task" if kind == "manual_track" else "this item"
+        raise Conflict(f"{what} was answered{who} at {row['ingested_at']:%H:%M:%S} since the page loaded: "
+                       "reload the page to see that answer; yours was not saved")
+
+
+def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threading.Lock, as_of: str | None = None,
            labels_dir: Path | None = None, coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> Submitted:
-    """Validate, write and ingest one answer (module docstring). Raises LabelError (bad payload,
-    nothing written) or :class:`IngestFailed` (written, not ingested)."""
+    """Validate, write and ingest one answer (module docstring). ``as_of``: what the page had seen
+    (:func:`answers_as_of`; None: no check of answers since). Raises LabelError (bad payload, nothing
+    written), :class:`Conflict` (nothing written) or :class:`IngestFailed` (written, not ingested)."""
     data = label_bytes(payload, annotator)
     folder_root = labels_dir or wh.root / LABELS_DIR
     with lock:  # one writer: file names, ingest times and the answer tables stay consistent
         facts = ClipFacts(wh)
         lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
+        _check_not_stale(wh, lf.kind, lf.clip, lf.task_id, _tracks(lf.kind, list(lf.label.answers)), as_of)
         path = _free_path(folder_root / lf.clip, lf.task_id)
         atomic_write_bytes(path, data)
         try:  # the file as validated (its bytes), not parsed again
@@ -101,4 +178,39 @@ def ingest_pending(wh: Warehouse, lock: threading.Lock, labels_dir: Path | None 
     if not folder.is_dir():
         return None
     with lock:
-        return ingest_labels(wh, folder, coplanar_tol=coplanar_tol)
+        set_aside = set_aside_superseded(wh, folder)
+        report = ingest_labels(wh, folder, coplanar_tol=coplanar_tol)
+    report.warnings[:0] = set_aside
+    return report
+
+
+SUPERSEDED = ".superseded"
+"""Suffix of a left label file whose items were answered again later (:func:`set_aside_superseded`)."""
+
+
+def set_aside_superseded(wh: Warehouse, folder: Path) -> list[str]:
+    """Rename ``<file>.superseded`` each label file of ``folder`` not ingested yet (left by a failed
+    ingest) one of whose items has an answer in the warehouse given after it: ingested now, it would
+    come in force over that newer answer (the newest ingested is in force). Returns a warning each."""
+    notes = []
+    for path in sorted(folder.rglob("*.json")):
+        try:
+            data = path.read_bytes()
+            doc = json.loads(data)
+            clip, task_id, kind = doc["clip"], doc["task_id"], doc["kind"]
+            created = dt.datetime.fromisoformat(doc["created_at"])
+            tracks = _tracks(kind, doc.get("answers", []))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue  # ingest reports what it cannot read
+        if not isinstance(clip, str) or not wh.has_partition("label_files", clip) or created.tzinfo is None:
+            continue
+        sha = hashlib.sha256(data).hexdigest()
+        if sha in set(wh.read("label_files", [clip], columns=["label_sha256"]).column(0).to_pylist()):
+            continue
+        newer = _answered_since(wh, clip, str(task_id), tracks, None, created_after=created)
+        if newer is not None:
+            aside = path.with_name(path.name + SUPERSEDED)
+            path.rename(aside)
+            notes.append(f"{path}: not ingested, its items were answered again at {newer['created_at']:%Y-%m-%d %H:%M:%S} "
+                         f"(kept as {aside.name})")
+    return notes

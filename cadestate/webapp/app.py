@@ -9,12 +9,15 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
   the clip's next task learns it the moment the resume ends, without polling;
 - ``GET /api/next[?clip=C]``: the next waiting item (null: none);
-- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, the clip's resume state;
-- ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers;
-- ``POST /api/answers``: a label document without ``format``/``created_at`` (see
+- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, the clip's resume
+  state, whether it is the newest task of its kind (``current``) and ``as_of``, what answers it saw;
+- ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers
+  (503, one line, when they cannot be rendered);
+- ``POST /api/answers[?as_of=T]``: a label document without ``format``/``created_at`` (see
   :mod:`cadestate.webapp.answers`): 200 with the label file written and ingested and the clip
-  queued for resume; 422 naming the field when it does not validate (nothing written); 500 when
-  it was written but not ingested (it is ingested at the next start).
+  queued for resume; 422 naming the field when it does not validate, 409 when it answers a replaced
+  task or an item answered since ``as_of`` (nothing written either way); 500 when it was written
+  but not ingested (it is ingested at the next start, unless answered again meanwhile).
 
 ``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
 overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).
@@ -35,10 +38,11 @@ from fastapi.staticfiles import StaticFiles
 
 from cadestate.config import Config
 from cadestate.webapp import queue
-from cadestate.webapp.answers import IngestFailed, ingest_pending, submit
+from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, submit
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
-from tasks.human.label_format import SAME_POINT_M, LabelError
+from tasks.human.label_format import SAME_POINT_M, LabelError, one_line
+from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -111,8 +115,12 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     @app.get("/media/{path:path}")
     def media(path: str) -> FileResponse:
         media_root = (wh.root / "media").resolve()
-        target = (media_root / path).resolve()
-        if not target.is_relative_to(media_root) or not target.is_file():
+        try:
+            target = (media_root / path).resolve()
+            found = target.is_relative_to(media_root) and target.is_file()
+        except (OSError, ValueError):  # a name too long, a NUL byte
+            found = False
+        if not found:
             raise HTTPException(404, f"media/{path}: no such file")
         return FileResponse(target, headers={"Cache-Control": "max-age=3600"})
 
@@ -139,14 +147,19 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     @app.get("/api/next")
     def next_item(clip: str | None = None) -> JSONResponse:
+        if clip is not None and not wh.has_partition("clips", clip):
+            raise HTTPException(404, f"unknown clip {clip!r}")
         return JSONResponse(queue.next_item(wh, clip))
 
     @app.get("/api/tasks/{clip}/{task_id}")
     def task(clip: str, task_id: str) -> dict:
+        as_of = answers_as_of(wh, clip)  # first: an answer landing meanwhile then counts as unseen
         doc = queue.task_document(wh, clip, task_id)
         if doc is None:
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
-        return {**doc, "annotator": who, "resume": worker.status(clip),
+        newest = latest_tasks(wh, clip).get(doc["task"]["kind"])
+        return {**doc, "annotator": who, "resume": worker.status(clip), "as_of": as_of,
+                "current": newest is None or newest["task_id"] == task_id,
                 "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span, "same_point_m": SAME_POINT_M}}
 
     @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")
@@ -159,14 +172,19 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         item = next((it for it in doc["task"]["items"] if it["track_id"] == track_id), None)
         if item is None:
             raise HTTPException(404, f"track {track_id} is not an item of task {task_id}")
-        return verification_layers(wh, clip, task_id, item)
+        try:
+            return verification_layers(wh, clip, task_id, item)
+        except Exception as e:  # noqa: BLE001  (a missing mesh or frame, a renderer failing: the page says so)
+            raise HTTPException(503, one_line(f"cannot render track {track_id}'s posed model: {type(e).__name__}: {e}"))
 
     @app.post("/api/answers")
-    def answer(payload: object = Body(...)) -> dict:
+    def answer(payload: object = Body(...), as_of: str | None = None) -> dict:
         try:
-            done = submit(wh, payload, annotator=who, lock=lock, coplanar_tol=tol)
+            done = submit(wh, payload, annotator=who, lock=lock, as_of=as_of, coplanar_tol=tol)
         except LabelError as e:
             raise HTTPException(422, str(e)) from None
+        except Conflict as e:
+            raise HTTPException(409, str(e)) from None
         except IngestFailed as e:
             raise HTTPException(500, str(e)) from None
         worker.request(done.clip)

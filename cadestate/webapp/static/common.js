@@ -37,8 +37,10 @@ export function timer() {
   return () => Math.round(((total + (since === null ? 0 : performance.now() - since)) / 1000) * 10) / 10;
 }
 
-// Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field.
+// Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field. A drop-down
+// lets go of the keys once a choice is made in it (it kept them, and the page's letters chose options).
 export function shortcuts(map) {
+  document.addEventListener("change", (ev) => { if (ev.target.tagName === "SELECT") ev.target.blur(); });
   document.addEventListener("keydown", (ev) => {
     const tag = (ev.target.tagName || "").toLowerCase();  // typing in a field: no shortcuts (a tick box or slider is no field)
     if ((tag === "input" && !["range", "checkbox", "radio"].includes(ev.target.type)) || tag === "textarea" || tag === "select") {
@@ -63,10 +65,15 @@ export function header(title, clip, task) {
   return h;
 }
 
-// The task and its answered tracks; the item to show: ?track=N, else the first waiting one.
+let loaded = null, leaving = false;   // the task as loaded (its as_of goes with the answer); an answer saved
+
+// The task and its answered tracks; the item to show: ?track=N, else the first waiting one. A task the
+// pipeline has replaced since the link was made is said so at once (its answers would be refused).
 export async function loadTask() {
   const p = params();
   const data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
+  loaded = data;
+  if (data.current === false) toast("A newer task of this kind replaced this one: answers here are refused. Open the clip's task from the queue.", "error");
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
   const items = data.task.items || [];
   const waiting = items.filter((it) => !data.answered.includes(it.track_id));
@@ -78,11 +85,22 @@ export async function loadTask() {
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
 // run (the server answers ?wait= requests when it ends) and show (and offer with Enter) its next task.
 export async function afterAnswer(clip, taskId, kind, res) {
+  leaving = true;
   toast(`saved ${res.path}`, "ok");
   const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
   const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
   if (waiting.length) { location.href = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`; return; }
   showWaiting(clip);
+}
+
+// Post an answer with what the page saw (the server refuses it, 409, if someone answered the item since).
+export function postAnswer(body) {
+  return api(`/api/answers?as_of=${encodeURIComponent(loaded ? loaded.as_of : "")}`, body);
+}
+
+// Ask before a reload or a link drops work not yet submitted (``dirty()``: the page has some).
+export function guardUnsaved(dirty) {
+  window.addEventListener("beforeunload", (ev) => { if (!leaving && dirty()) { ev.preventDefault(); ev.returnValue = ""; } });
 }
 
 export function showWaiting(clip) {

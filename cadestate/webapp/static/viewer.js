@@ -8,7 +8,7 @@ import {GLTFLoader} from "three/addons/loaders/GLTFLoader.js";
 
 export class Viewer {
   constructor(canvas, {onPick} = {}) {
-    this.canvas = canvas; this.onPick = onPick; this.markers = []; this.mirrored = false;
+    this.canvas = canvas; this.onPick = onPick; this.markers = []; this.mirrored = false; this.radius = 1;   // until the model loads (markers may come first)
     this.renderer = new THREE.WebGLRenderer({canvas, antialias: true, preserveDrawingBuffer: true});
     this.renderer.setPixelRatio(1);
     this.scene = new THREE.Scene(); this.scene.background = new THREE.Color(0xe9edf3);
