@@ -79,6 +79,74 @@ def test_a_column_added_to_a_table_with_data(tmp_path):
     con.close()
 
 
+def test_a_never_null_column_added_to_a_table_with_data_reads_as_nulls_and_compacts(tmp_path):
+    """A column the schema says is never null, added after files were written (a new version's
+    column): the old rows read it as null, and a write past ``compact_after`` files compacts, where
+    the merge failed (a never-null column holding nulls) and the write raised after its rows were in."""
+    v3 = TableSpec(name="numbers", mode="append", key=("clip", "i"), description="test table",
+                   schema=V1.schema.append(pa.field("host", pa.string(), False)))
+    old = Warehouse(tmp_path / "w", {"numbers": V1})
+    old.write("numbers", "a", pa.table({"clip": ["a"], "i": [1]}))
+    new = Warehouse(tmp_path / "w", {"numbers": v3}, compact_after=2)
+    read = new.read("numbers")
+    assert read.column("host").to_pylist() == [None] and read.schema.field("host").nullable
+    for i in (2, 3):
+        assert new.write("numbers", "a", pa.table({"clip": ["a"], "i": [i], "host": ["h"]})) == 1
+    assert len(new.files("numbers", ["a"])) == 1  # compacted
+    assert new.read("numbers").to_pydict() == {"clip": ["a"] * 3, "i": [1, 2, 3], "host": [None, "h", "h"]}
+
+
+@pytest.mark.parametrize("folder", ["br[ab]", "v*1"])
+def test_a_warehouse_in_a_folder_whose_name_is_a_pattern_reads_its_own_files(tmp_path, folder):
+    """'[ab]' and '*' in the warehouse's path made DuckDB's views read nothing (no file matched) or a
+    sibling's files (v*1 matched vX1 too)."""
+    for name in (folder, "vX1", "b"):
+        Warehouse(tmp_path / name).write("runs", "a", runs("a", *[f"r{i}" for i in range(3 if name == folder else 5)]))
+    con = connect(Warehouse(tmp_path / folder))
+    assert con.execute("SELECT count(*) FROM runs").fetchone() == (3,)
+    con.close()
+    result = run_cli("-w", str(tmp_path / folder), "sql", "SELECT count(*) AS n FROM runs", "-f", "csv")
+    assert result.code == 0 and result.stdout.splitlines() == ["n", "3"], result.stderr
+    assert run_cli("-w", str(tmp_path / folder), "compact").code == 0
+    result = run_cli("-w", str(tmp_path / folder), "sql", "SELECT count(*) AS n FROM runs", "-f", "csv")
+    assert result.stdout.splitlines() == ["n", "3"], result.stderr
+
+
+def test_a_warehouse_whose_path_holds_a_question_mark_writes_and_reads_without_a_catalog(tmp_path, capsys):
+    """DuckDB cannot keep a catalog there: the write says so once and is not failed by it (its rows
+    are in), and reads go on without it."""
+    wh = Warehouse(tmp_path / "w?1")
+    assert wh.write("runs", "a", runs("a", "r1")) == 1
+    assert "cannot build the catalog" in capsys.readouterr().err
+    assert wh.write("runs", "a", runs("a", "r2")) == 1
+    assert sorted(wh.read("runs").column("run_id").to_pylist()) == ["r1", "r2"]
+    result = run_cli("-w", str(wh.root), "sql", "SELECT count(*) AS n FROM runs", "-f", "csv")
+    assert result.stdout.splitlines() == ["n", "2"], result.stderr
+
+
+def test_a_damaged_file_is_one_line_for_status_and_stats(tmp_path):
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "a", runs("a", "r1"))
+    wh.write("runs", "a", runs("a", "r2"))
+    wh.files("runs", ["a"])[0].write_bytes(b"not parquet at all")
+    for command in (["status"], ["stats"]):
+        result = run_cli("-w", str(wh.root), *command)
+        assert result.code != 0 and "Traceback" not in result.stderr and result.stderr.count("\n") == 1, result.stderr
+        assert "cannot read" in result.stderr, result.stderr
+
+
+def test_temporary_files_of_a_killed_write_go_with_the_next_compaction(tmp_path):
+    """A write killed before its rename leaves ``.<uuid>.tmp`` in an append partition: the next
+    compaction (past ``compact_after`` files, or ``cadestate compact``) swaps in a folder without it."""
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "a", runs("a", "r1"))
+    left = wh.partition_dir("runs", "a") / ".dead.tmp"
+    left.write_bytes(b"half a file")
+    wh.write("runs", "a", runs("a", "r2"))
+    wh.compact("runs", "a")
+    assert not left.exists() and len(wh.files("runs", ["a"])) == 1
+
+
 def test_a_copied_warehouse_keeps_what_its_catalog_knew_of_its_files(wh, tmp_path, monkeypatch):
     import shutil
 

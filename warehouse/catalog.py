@@ -41,7 +41,7 @@ from pathlib import Path
 import duckdb
 
 from warehouse import snapshot
-from warehouse.store import Compacted, Warehouse, WarehouseError, file_lock
+from warehouse.store import Compacted, Warehouse, WarehouseError, file_lock, warn
 
 CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
@@ -290,6 +290,9 @@ def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,
                     snapshots: Collection[str] = (), whole: Collection[str] = ()) -> Path:
     """:func:`refresh_catalog`, with a catalog that cannot be written reported as a
     :class:`CatalogError` naming it."""
+    if "?" in str(wh.root):  # DuckDB reads what follows a '?' in a database path as options
+        raise CatalogError(f"cannot build the catalog {wh.root / CATALOG_FILE}: DuckDB cannot keep one in a folder "
+                           "whose path holds '?' (rename the folder)")
     try:
         return refresh_catalog(wh, recheck, snapshots, whole)
     except (OSError, duckdb.Error) as e:
@@ -353,9 +356,15 @@ def compact_warehouse(wh: Warehouse, tables: Collection[str] | None = None, min_
 
 def after_write(wh: Warehouse) -> None:
     """The store's after-write hook: :func:`ensure_catalog`, once per process and root (so a
-    warehouse has a catalog from its first write, and new code's schemas reach it)."""
+    warehouse has a catalog from its first write, and new code's schemas reach it). A catalog that
+    cannot be built is a warning, not a failed write: the data is in, and readers rebuild it or
+    read the tables without it (:func:`connect`)."""
     if wh.root not in _ENSURED:
-        ensure_catalog(wh)
+        try:
+            ensure_catalog(wh)
+        except CatalogError as e:
+            _ENSURED.add(wh.root)  # said once per process
+            warn(f"{e} (the write itself is done)")
 
 
 def connect(wh: Warehouse, read_only: bool = True) -> duckdb.DuckDBPyConnection:

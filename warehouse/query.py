@@ -40,6 +40,7 @@ from typing import Any, TextIO
 import duckdb
 
 from warehouse.catalog import attach_views, one_line
+from warehouse.snapshot import literal
 from warehouse.store import READ_RETRIES, Warehouse, WarehouseError
 
 BATCH_ROWS = 10_000
@@ -114,7 +115,8 @@ def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
         attach_views(con, wh)
     except (OSError, duckdb.Error) as e:
         raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
-    readable = [f"{(wh.root / 'tables').as_posix()}/"]
+    tables = wh.root / "tables"  # as the views name it too: a pattern whose '[', '*' and '?' match themselves
+    readable = sorted({f"{tables.as_posix()}/", f"{literal(tables)}/"})
     con.execute("SET allowed_directories = ?", [readable])
     con.execute("SET enable_external_access = false")
     con.execute("SET lock_configuration = true")
@@ -224,9 +226,11 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
                 present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [files]).fetchall()}
                 rows = _select(con, files, columns, timestamps, wh.info[table].key, present)
             break
-        except duckdb.IOException:
+        except duckdb.IOException as e:
             if all(Path(f).exists() for f in files) or attempt == READ_RETRIES - 1:
-                raise
+                raise WarehouseError(f"table {table}: cannot read its files: {one_line(str(e))}") from None
+        except duckdb.Error as e:  # a damaged file ("No magic bytes found"): one line naming it, not a traceback
+            raise WarehouseError(f"table {table}: cannot read its files: {one_line(str(e))}") from None
         finally:
             con.close()
     out = [dict(zip(columns, r)) for r in rows]

@@ -70,8 +70,14 @@ def _str(value: str) -> str:
     return "'" + value.replace("'", "''") + "'"
 
 
+def literal(path: Path) -> str:
+    """``path`` as a DuckDB file pattern matching itself alone: a ``[``, ``*`` or ``?`` in the
+    warehouse's folder names (``runs[2]``) made the views read nothing, or another folder's files."""
+    return "".join(f"[{c}]" if c in "[*?" else c for c in path.as_posix())
+
+
 def _glob(wh: Warehouse, table: str) -> str:
-    return _str((wh.table_dir(table) / DATA_GLOB).as_posix())
+    return _str(f"{literal(wh.table_dir(table))}/{DATA_GLOB}")
 
 
 def _relative(wh: Warehouse, table: str, column: str) -> str:
@@ -81,7 +87,7 @@ def _relative(wh: Warehouse, table: str, column: str) -> str:
 
 def _files(wh: Warehouse, table: str, schema_file: Path, uniform: bool) -> str:
     union = "" if uniform else ", union_by_name = true"
-    return f"read_parquet([{_str(schema_file.as_posix())}, {_glob(wh, table)}], filename = true{union})"
+    return f"read_parquet([{_str(literal(schema_file))}, {_glob(wh, table)}], filename = true{union})"
 
 
 def _present(wh: Warehouse, table: str, source: str) -> str:
@@ -95,7 +101,7 @@ def view_sql(wh: Warehouse, table: str, schema_file: Path, uniform: bool, mark: 
     head = f'CREATE OR REPLACE VIEW "{table}" AS '
     if mark is None:
         union = "" if uniform else ", union_by_name = true"
-        return head + f"SELECT * FROM read_parquet([{_str(schema_file.as_posix())}, {_glob(wh, table)}]{union})"
+        return head + f"SELECT * FROM read_parquet([{_str(literal(schema_file))}, {_glob(wh, table)}]{union})"
     return (head + f'SELECT * EXCLUDE (_file) FROM ({_present(wh, table, f"{SCHEMA}.{table}")}) '
             f"UNION ALL BY NAME SELECT * EXCLUDE (filename) FROM {_files(wh, table, schema_file, uniform)} "
             f"WHERE parse_filename(filename) > {_str(mark)}")

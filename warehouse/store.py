@@ -93,6 +93,13 @@ AFTER_WRITE: list[Callable[[Warehouse], object]] = []
 the DuckDB catalog's refresh, so this module knows nothing of the catalog, which is built on it."""
 
 
+def warn(message: str) -> None:
+    """One line on stderr, ``warning: <message>``: what went wrong after the data was safely in."""
+    import sys
+
+    print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
 def _vanished(e: OSError) -> bool:
     """Whether ``e`` says a file is not there (pyarrow raises some as plain OSError, errno unset)."""
     return isinstance(e, FileNotFoundError) or e.errno == errno.ENOENT or "No such file" in str(e)
@@ -116,11 +123,26 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
         pf = pq.ParquetFile(f)
         present = set(pf.schema_arrow.names)
         table = pf.read(columns=[n for n in target.names if n in present])
-        parts.append(pa.Table.from_arrays(
-            [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
-             for fl in target], schema=target))
+        arrays = [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
+                  for fl in target]
+        parts.append(pa.Table.from_arrays(arrays, schema=pa.schema(
+            [fl.with_nullable(fl.nullable or a.null_count > 0) for fl, a in zip(target, arrays)], metadata=target.metadata)))
         if cache is not None:
             cache.put_file(f, parts[-1], whole=columns is None)
+    return _concat(parts)
+
+
+def _concat(parts: list[pa.Table]) -> pa.Table:
+    """``parts`` as one table; a column is nullable where a part's is: a column added to a table
+    since a file was written reads as nulls there (even one the schema says is never null), and
+    a file merged from those keeps them."""
+    import pyarrow as pa
+
+    if len({p.schema for p in parts}) > 1:
+        first = parts[0].schema
+        schema = pa.schema([fl.with_nullable(any(p.schema.field(i).nullable for p in parts))
+                            for i, fl in enumerate(first)], metadata=first.metadata)
+        parts = [p.cast(schema) for p in parts]
     return pa.concat_tables(parts)
 
 
@@ -404,7 +426,11 @@ class Warehouse:
             if self._cache is not None:  # this process's next read of the file reads nothing
                 self._cache.written(str(written), data)
             if spec.mode == "append" and len(data_files(folder)) > self.compact_after:
-                self._compact_locked(table, part, 2)
+                try:
+                    self._compact_locked(table, part, 2)
+                except Exception as e:  # noqa: BLE001  (the rows are in: raising would have them written twice on a retry)
+                    warn(f"table {table}, partition {part}: not compacted after a write ({type(e).__name__}: "
+                         f"{' '.join(str(e).split())[:300]}); `cadestate compact` merges it")
         for hook in AFTER_WRITE:  # the DuckDB catalog's refresh (warehouse/__init__.py): its views follow the tables
             hook(self)
         return data.num_rows

@@ -73,9 +73,11 @@ def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:
 
 def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
     """The tables :func:`statistics` reads, for ``clips``."""
+    import duckdb
     import pandas as pd
 
-    from warehouse import connect
+    from warehouse import WarehouseError, connect
+    from warehouse.catalog import one_line
 
     objects, visible = [], []
     for clip in clips:
@@ -102,6 +104,8 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
             "count(e.seconds) AS timed_items, coalesce(sum(e.seconds), 0.0) AS seconds FROM label_files f "
             "LEFT JOIN label_effort e USING (clip, label_sha256, ingested_at) WHERE list_contains(?, f.clip) "
             "GROUP BY f.clip, f.label_sha256, f.ingested_at, f.kind", params).df()
+    except duckdb.Error as e:  # a damaged file: one line naming it, not a traceback
+        raise WarehouseError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
     finally:
         con.close()
     columns = {"objects": ["clip", "track_id", "class", "cad_id", "posed", "automatic"],
