@@ -33,4 +33,11 @@ def cron_problem(value: str) -> str | None:
         return "not a cron string (minute hour day-of-month month day-of-week, e.g. \"*/10 * * * *\")"
     if any(field.casefold() in ("r", "h") for field in value.split()):
         return "random (R) and hashed (H) cron fields are not supported by Prefect"
+    if not value.strip().startswith("@") and len(value.split()) != 5:  # croniter takes a sixth, seconds: 60 runs a minute
+        return f"{len(value.split())} fields, not five (minute hour day-of-month month day-of-week)"
+    cron = _croniter()
+    try:
+        cron.croniter(value).get_next(float)
+    except cron.CroniterBadDateError:  # valid fields, but no such date (31 February): it would never run
+        return "names no date that exists (it would never run)"
     return None

@@ -15,8 +15,10 @@
   clips pile up), then the dataset's statistics (``cadestate stats``) as ``stats.json`` and an
   HTML report in ``[schedule] report``.
 
-Parameters are plain strings (the warehouse root and the config file), so the Prefect UI can start
-a run by hand. Served runs keep their results under the warehouse, as every run does.
+The three scheduled ones run one at a time (a run due while one runs is cancelled). Parameters are
+plain strings (the warehouse root and the config file), so the Prefect UI can start a run by hand;
+each run reads the config file again, but the schedules are fixed when ``serve`` starts (restart it
+after changing a ``*_cron``). Served runs keep their results under the warehouse, as every run does.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from prefect import flow, get_run_logger
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (DeploymentFilter, DeploymentFilterName, FlowRunFilter, FlowRunFilterState,
                                             FlowRunFilterStateType, FlowRunFilterTags)
-from prefect.client.schemas.objects import StateType
+from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLimitStrategy, StateType
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
@@ -242,17 +244,20 @@ def deployments(config: Config, config_path: str) -> list:
     root = str(Path(config.warehouse.root).expanduser().resolve())
     params = {"warehouse": root, "config_path": str(Path(config_path).resolve()) if config_path else ""}
     module = EntrypointType.MODULE_PATH
+    # One run of each scheduled flow at a time: after the server was down, its missed ticks came due
+    # together, and two build_dataset runs at once each started a run of the same new clip.
+    one = ConcurrencyLimitConfig(limit=1, collision_strategy=ConcurrencyLimitStrategy.CANCEL_NEW)
     return [
         annotate_clip_served.to_deployment(
             name=ANNOTATE_DEPLOYMENT, entrypoint_type=module, tags=["cadestate"],
             description="The stages of one clip; suspended while people answer its tasks."),
         build_dataset_inbox.to_deployment(
-            name="build_dataset", cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,
+            name="build_dataset", concurrency_limit=one, cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Annotate every new clip of {config.schedule.inbox}."),
         ingest_labels_inbox.to_deployment(
-            name="ingest_labels", cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
+            name="ingest_labels", concurrency_limit=one, cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Ingest the label files of {config.schedule.labels_inbox} and resume their clips."),
         dataset_report.to_deployment(
-            name="dataset_report", cron=config.schedule.report_cron, parameters=params, entrypoint_type=module,
+            name="dataset_report", concurrency_limit=one, cron=config.schedule.report_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Write the dataset's statistics and HTML report to {config.schedule.report}."),
     ]

@@ -14,6 +14,7 @@ Nothing here imports Prefect: the server is a separate process (``prefect server
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import json
 import os
 import signal
@@ -51,6 +52,8 @@ class ServerInfo:
     database_url: str
     log: str
     started_at: str
+    root: str = ""
+    """The warehouse it serves (resolved): a record copied with a warehouse is not the copy's server."""
 
     @property
     def process_alive(self) -> bool:
@@ -70,11 +73,13 @@ def prefect_home(root: Path) -> Path:
 
 
 def read_server(root: Path) -> ServerInfo | None:
-    """The server recorded for this warehouse, or None (no record, or an unreadable one)."""
+    """The server recorded for this warehouse, or None (no record, an unreadable one, or the record
+    of another warehouse's server, copied with its folder)."""
     try:
-        return ServerInfo(**json.loads((prefect_dir(root) / SERVER_FILE).read_text()))
+        info = ServerInfo(**json.loads((prefect_dir(root) / SERVER_FILE).read_text()))
     except (OSError, ValueError, TypeError):
         return None
+    return info if not info.root or info.root == str(Path(root).resolve()) else None
 
 
 def healthy(api_url: str, timeout_s: float = 2.0) -> bool:
@@ -93,9 +98,24 @@ def running_server(root: Path) -> ServerInfo | None:
 
 
 def free_port(host: str) -> int:
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+    """A port free on ``host`` now; :class:`ServerError` when ``host`` is no address of this machine."""
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+        with socket.socket(infos[0][0], socket.SOCK_STREAM) as s:
+            s.bind(infos[0][4])
+            return s.getsockname()[1]
+    except OSError as e:
+        raise ServerError(_address_error(host, e) or f"{host}: cannot listen there ({e.strerror or e})") from None
+
+
+def _address_error(host: str, e: OSError) -> str | None:
+    """The one line of a bind that failed for the address itself (not this machine's, or no such
+    name), else None."""
+    if isinstance(e, socket.gaierror):
+        return f"--host {host}: no such host ({e.strerror or e})"
+    if e.errno == errno.EADDRNOTAVAIL:
+        return f"--host {host}: not an address of this machine ({e.strerror}); 127.0.0.1 or 0.0.0.0 (every address)"
+    return None
 
 
 def bind_error(host: str, port: int) -> OSError | None:
@@ -116,8 +136,8 @@ def check_port_free(host: str, port: int) -> None:
     process's (another warehouse's Prefect server answers as ours would, while ours dies on the
     clash), or this warehouse's earlier server that has stopped answering still holds it."""
     if (e := bind_error(host, port)) is not None:
-        raise ServerError(f"{host}:{port} is taken ({e.strerror or e}): another Prefect server, perhaps another "
-                          "warehouse's (`cadestate -w W server status`)? choose another --port")
+        raise ServerError(_address_error(host, e) or f"{host}:{port} is taken ({e.strerror or e}): another Prefect "
+                          "server, perhaps another warehouse's (`cadestate -w W server status`)? choose another --port")
 
 
 def server_environment(root: Path, database_url: str = "") -> dict[str, str]:
@@ -135,9 +155,12 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
                  timeout_s: float = 180.0) -> ServerInfo:
     """Start ``prefect server start`` in the background for this warehouse and wait until its API
     answers (at most ``timeout_s``). A server already up is returned as is. ``port`` 0 takes a free one."""
-    root = Path(root)
+    root = Path(root).resolve()
     if (up := running_server(root)) is not None:
         return up
+    if (known := read_server(root)) is not None and known.process_alive:  # alive, not answering: hung
+        raise ServerError(f"this warehouse's Prefect server (pid {known.pid}, {known.api_url}) runs but does not "
+                          f"answer: `cadestate server stop` ends it (see {known.log})")
     if port:
         check_port_free(host, port)
     prefect_home(root).mkdir(parents=True, exist_ok=True)
@@ -153,7 +176,7 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
                                    env=server_environment(root, database_url), start_new_session=True)
     info = ServerInfo(pid=process.pid, process_start=psutil.Process(process.pid).create_time(),
                       api_url=f"http://{host}:{port}/api", database_url=database_url, log=str(log),
-                      started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
+                      started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), root=str(root))
     atomic_write_bytes(prefect_dir(root) / SERVER_FILE, json.dumps(asdict(info), indent=1).encode())
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

@@ -158,10 +158,16 @@ CRON_STRINGS = ["*/10 * * * *", "0 3 * * *", "@daily", "@hourly", "0 3 * * mon-f
                 "H 3 * * *", "", "0 0 31 2 *", "*/0 * * * *", "0 0 1 jan,jul *"]
 
 
+STRICTER = {"*/5 * * * * 30": "6 fields, not five", "0 3 * * * *": "6 fields, not five",
+            "0 0 31 2 *": "names no date that exists"}
+"""Cron strings Prefect takes that misbehave on its server: a sixth field is seconds (one schedule
+ran 60 times a minute), and a date that never comes makes the scheduler log an error every loop."""
+
+
 @pytest.mark.parametrize("value", CRON_STRINGS)
 def test_cron_keys_are_checked_as_prefect_checks_them(value):
     """cadestate.cron answers as Prefect's own validator does (which `cadestate serve` would hit
-    with a traceback), without importing Prefect."""
+    with a traceback), without importing Prefect; and refuses what misbehaves on the server (STRICTER)."""
     from prefect._internal.schemas.validators import validate_cron_string
 
     from cadestate.cron import cron_problem
@@ -171,7 +177,14 @@ def test_cron_keys_are_checked_as_prefect_checks_them(value):
         prefect_ok = True
     except ValueError:
         prefect_ok = False
-    assert (cron_problem(value) is None) == prefect_ok
+    assert (cron_problem(value) is None) == (prefect_ok and value not in STRICTER)
+
+
+@pytest.mark.parametrize("value", sorted(STRICTER))
+def test_cron_strings_prefect_takes_but_runs_wrong_are_refused(value):
+    from cadestate.cron import cron_problem
+
+    assert STRICTER[value] in cron_problem(value)
 
 
 def test_loading_a_schedule_does_not_import_prefect(tmp_path):

@@ -151,6 +151,13 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         crons = {d["name"]: [(x["schedule"].get("cron"), x["active"]) for x in d["schedules"]] for d in deployments}
         assert crons["build_dataset"] == crons["ingest_labels"] == crons["dataset_report"] == [("0 0 1 1 *", True)]
         assert crons["annotate_clip"] == []  # run on demand, per clip
+        one_at_a_time = {d["name"]: ((d.get("global_concurrency_limit") or {}).get("limit"),
+                                     (d.get("concurrency_options") or {}).get("collision_strategy"))
+                         for d in deployments}  # missed ticks come due together after an outage: one runs
+        assert one_at_a_time["build_dataset"] == one_at_a_time["ingest_labels"] == one_at_a_time["dataset_report"] == \
+            (1, "CANCEL_NEW"), one_at_a_time
+        second = cli(*common, "serve", cwd=tmp_path)  # stopping either would pause the schedules of both
+        assert second.returncode == 2 and "`cadestate serve` already serves" in second.stderr, second.stderr
         shutil.copy(small_clip.video_path, inbox / "room_1.mp4")  # named small_0 from its camera file
         shutil.copy(small_clip.cameras_path, inbox / "room_1.txt")
         (inbox / "room_1.done").touch()

@@ -109,6 +109,61 @@ def test_server_start_on_a_port_in_use_says_so_and_forgets_the_server(tmp_path):
     assert not (w / "_prefect" / "server.json").exists() and read_server(w) is None
 
 
+@pytest.mark.parametrize("host, says", [("10.255.255.1", "not an address of this machine"),
+                                         ("no-such-host.invalid", "no such host")])
+@pytest.mark.parametrize("port", ["0", "4399"])
+def test_a_host_that_is_not_this_machines_is_one_line(tmp_path, host, says, port):
+    """It said "the port is taken" (with a port), or ended in a traceback (--port 0)."""
+    result = cli("-w", str(tmp_path / "w"), "server", "start", "--host", host, "--port", port, cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr and result.stderr.count("\n") == 1, result.stderr
+    assert f"--host {host}: {says}" in result.stderr
+
+
+def _record(w, pid: int, root) -> None:
+    """A server record of ``w`` naming process ``pid`` (alive), at a URL where nothing answers."""
+    import json
+
+    import psutil
+
+    (w / "_prefect").mkdir(parents=True)
+    (w / "_prefect" / "server.json").write_text(json.dumps({
+        "pid": pid, "process_start": psutil.Process(pid).create_time(), "log": str(w / "_prefect" / "server.log"),
+        "api_url": f"http://127.0.0.1:{free_port('127.0.0.1')}/api", "database_url": "", "started_at": "then",
+        "root": str(root)}))
+
+
+def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
+    """A hung server (its process alive, its API silent): start says so and points to stop, where
+    it recorded a second server over the first, which then outlived `server stop`."""
+    w = tmp_path / "w"
+    hung = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
+    try:
+        _record(w, hung.pid, w)
+        result = cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path)
+        assert result.returncode == 1 and f"(pid {hung.pid}, " in result.stderr and "runs but does not answer: " \
+            "`cadestate server stop` ends it" in result.stderr, result.stderr
+        assert cli("-w", str(w), "server", "stop", cwd=tmp_path).returncode == 0
+        assert hung.wait(30) is not None
+    finally:
+        hung.kill()
+
+
+def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
+    """`cp -a` of a warehouse copies its server record: the copy's `server stop` stopped the
+    original's server. A record names its warehouse; another's is no record."""
+    import shutil
+
+    server = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
+    try:
+        _record(tmp_path / "a", server.pid, tmp_path / "a")
+        shutil.copytree(tmp_path / "a", tmp_path / "b")
+        assert read_server(tmp_path / "a") is not None and read_server(tmp_path / "b") is None
+        stop = cli("-w", str(tmp_path / "b"), "server", "stop", cwd=tmp_path)
+        assert stop.returncode == 0 and "no server was started" in stop.stdout and server.poll() is None
+    finally:
+        server.kill()
+
+
 @pytest.mark.parametrize("verbose, level, glog", [(False, "CRITICAL", "3"), (True, "INFO", "0")])
 def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, verbose, level, glog):
     """The ephemeral API runs in the command's process with a log level of its own: left at Prefect's

@@ -76,7 +76,9 @@ def serve(ctx: typer.Context) -> None:
                       [schedule] report
 
     Start the server first (`cadestate server start`); its UI shows the runs, and a run can be
-    started by hand there or with `prefect deployment run build_dataset_inbox/build_dataset`.
+    started by hand there or with `PREFECT_API_URL=<URL of server status> prefect deployment run
+    build_dataset_inbox/build_dataset`. Each scheduled flow runs one at a time. The schedules are
+    set when serve starts: restart it after changing a [schedule] *_cron. One serve per warehouse.
     """
     import os
 
@@ -85,8 +87,12 @@ def serve(ctx: typer.Context) -> None:
 
     cfg = ctx.obj.config()
     root = ctx.obj.root()
-    if running_server(root) is None:
+    if (server := running_server(root)) is None:
         raise CliError(f"no Prefect server is up for {root}: start one with `cadestate server start`")
+    if os.environ.get("PREFECT_API_URL", server.api_url).rstrip("/") != server.api_url:
+        raise CliError(f"PREFECT_API_URL is {os.environ['PREFECT_API_URL']}, not this warehouse's server "
+                       f"({server.api_url}): its deployments would run this warehouse from there; unset it")
+    lock = _serving_lock(root)  # held until the process ends
     prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs
     os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))
     from prefect import serve as prefect_serve
@@ -94,4 +100,30 @@ def serve(ctx: typer.Context) -> None:
     from flows.deployments import deployments
 
     config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
-    prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
+    try:
+        prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
+    finally:
+        lock.close()
+
+
+def _serving_lock(root: Path):
+    """The open file of ``<warehouse>/_prefect/serve.lock``, locked and holding this pid; a second
+    serve of the warehouse is refused in one line: stopping either would pause the deployments both
+    serve (Prefect pauses a served deployment's schedule when its serve stops)."""
+    import fcntl
+    import os
+
+    path = root / "_prefect" / "serve.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    f = open(path, "a+")
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        pid = f.read().strip() or "?"
+        f.close()
+        raise CliError(f"`cadestate serve` already serves {root} (pid {pid}): one per warehouse") from None
+    f.truncate(0)
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
