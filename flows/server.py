@@ -52,8 +52,9 @@ class ServerInfo:
     database_url: str
     log: str
     started_at: str
-    root: str = ""
-    """The warehouse it serves (resolved): a record copied with a warehouse is not the copy's server."""
+    root_id: str = ""
+    """The warehouse folder it serves, as ``<device>:<inode>`` (:func:`folder_id`): a record copied
+    with a warehouse is not the copy's server, while a renamed or moved warehouse keeps its own."""
 
     @property
     def process_alive(self) -> bool:
@@ -79,7 +80,16 @@ def read_server(root: Path) -> ServerInfo | None:
         info = ServerInfo(**json.loads((prefect_dir(root) / SERVER_FILE).read_text()))
     except (OSError, ValueError, TypeError):
         return None
-    return info if not info.root or info.root == str(Path(root).resolve()) else None
+    return info if not info.root_id or info.root_id == folder_id(root) else None
+
+
+def folder_id(root: Path) -> str:
+    """``<device>:<inode>`` of the folder ``root`` ('' when it cannot be read)."""
+    try:
+        st = Path(root).stat()
+    except OSError:
+        return ""
+    return f"{st.st_dev}:{st.st_ino}"
 
 
 def healthy(api_url: str, timeout_s: float = 2.0) -> bool:
@@ -176,7 +186,7 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
                                    env=server_environment(root, database_url), start_new_session=True)
     info = ServerInfo(pid=process.pid, process_start=psutil.Process(process.pid).create_time(),
                       api_url=f"http://{host}:{port}/api", database_url=database_url, log=str(log),
-                      started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), root=str(root))
+                      started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), root_id=folder_id(root))
     atomic_write_bytes(prefect_dir(root) / SERVER_FILE, json.dumps(asdict(info), indent=1).encode())
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

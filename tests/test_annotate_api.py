@@ -385,20 +385,30 @@ def test_an_item_answered_since_the_page_loaded_is_a_409_not_a_silent_replacemen
     assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 2: "m2b"}
 
 
-def test_an_answer_to_a_task_the_pipeline_replaced_is_a_409(lwh):
-    """A page left open on a task that a rerun replaced (a drawn object made new tracks): its answers
-    would not count, so they are refused, and the task reads as not current."""
+def test_an_answer_to_a_task_the_pipeline_replaced_goes_to_the_new_task_where_it_fits(lwh):
+    """A page left open on a task that a rerun replaced (a fragment or a drawn object changes the
+    tracks asked about): the answer is saved to the newest task when it fits it (there, "none of these"
+    and fragments were lost: only chosen models were carried over); one that does not fit (its track
+    is no item there) is a 409, nothing written."""
     from test_labels import _tasks
 
-    newer = dataclasses.replace(_tasks()[1], task_id="c1.cs2", created_at="2026-01-01T00:01:00+00:00")
-    write_task(lwh, newer)
+    older = _tasks()[1]
+    write_task(lwh, dataclasses.replace(older, task_id="c1.cs2", created_at="2026-01-01T00:01:00+00:00",
+                                        items=older.items[:2]))  # track 2 is no longer asked about
     with _client(lwh, Requests()) as client:
         assert client.get(f"/api/tasks/{CLIP}/c1.cs").json()["current"] is False
         assert client.get(f"/api/tasks/{CLIP}/c1.cs2").json()["current"] is True
-        old = client.post("/api/answers", json=_one(0, None))
-        assert old.status_code == 409 and "task c1.cs was replaced by task c1.cs2" in old.json()["detail"], old.text
-        assert client.post("/api/answers", json={**_one(0, None), "task_id": "c1.cs2"}).status_code == 200
+        moved = client.post("/api/answers", json=_one(0, None), params={"as_of": ""})
+        assert moved.status_code == 200 and moved.json()["task_id"] == "c1.cs2", moved.text
+        assert "task c1.cs was replaced by task c1.cs2" in moved.json()["warnings"][0]
+        gone = client.post("/api/answers", json=_one(2, "m2a"))
+        assert gone.status_code == 409 and "task c1.cs was replaced by task c1.cs2 (the pipeline ran again), which " \
+            "this answer does not fit (answer: $.answers[0].track_id: unknown track 2" in gone.json()["detail"], gone.text
+        again = client.post("/api/answers", json=_one(0, "m0a"), params={"as_of": ""})  # the page saw no answer
+        assert again.status_code == 409 and "this item was answered by tester" in again.json()["detail"], again.text
     assert len(_label_files(lwh)) == 1
+    assert [(a["task_id"], a["track_id"], a["cad_id"]) for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()] \
+        == [("c1.cs2", 0, None)]
 
 
 def test_a_left_answer_answered_again_since_is_set_aside_not_put_in_force(lwh, monkeypatch, capsys):

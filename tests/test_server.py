@@ -119,17 +119,19 @@ def test_a_host_that_is_not_this_machines_is_one_line(tmp_path, host, says, port
     assert f"--host {host}: {says}" in result.stderr
 
 
-def _record(w, pid: int, root) -> None:
+def _record(w, pid: int) -> None:
     """A server record of ``w`` naming process ``pid`` (alive), at a URL where nothing answers."""
     import json
 
     import psutil
 
+    from flows.server import folder_id
+
     (w / "_prefect").mkdir(parents=True)
     (w / "_prefect" / "server.json").write_text(json.dumps({
         "pid": pid, "process_start": psutil.Process(pid).create_time(), "log": str(w / "_prefect" / "server.log"),
         "api_url": f"http://127.0.0.1:{free_port('127.0.0.1')}/api", "database_url": "", "started_at": "then",
-        "root": str(root)}))
+        "root_id": folder_id(w)}))
 
 
 def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
@@ -138,7 +140,7 @@ def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
     w = tmp_path / "w"
     hung = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
     try:
-        _record(w, hung.pid, w)
+        _record(w, hung.pid)
         result = cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path)
         assert result.returncode == 1 and f"(pid {hung.pid}, " in result.stderr and "runs but does not answer: " \
             "`cadestate server stop` ends it" in result.stderr, result.stderr
@@ -150,16 +152,20 @@ def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
 
 def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
     """`cp -a` of a warehouse copies its server record: the copy's `server stop` stopped the
-    original's server. A record names its warehouse; another's is no record."""
+    original's server. A record names its warehouse folder (device and inode); another's is no
+    record, while the folder renamed keeps it."""
     import shutil
 
     server = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
     try:
-        _record(tmp_path / "a", server.pid, tmp_path / "a")
+        (tmp_path / "a").mkdir()
+        _record(tmp_path / "a", server.pid)
         shutil.copytree(tmp_path / "a", tmp_path / "b")
         assert read_server(tmp_path / "a") is not None and read_server(tmp_path / "b") is None
         stop = cli("-w", str(tmp_path / "b"), "server", "stop", cwd=tmp_path)
         assert stop.returncode == 0 and "no server was started" in stop.stdout and server.poll() is None
+        (tmp_path / "a").rename(tmp_path / "renamed")  # a renamed warehouse keeps its server
+        assert read_server(tmp_path / "renamed").pid == server.pid
     finally:
         server.kill()
 

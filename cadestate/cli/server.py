@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from cadestate.cli.common import CliError, app, out
+from cadestate.cli.common import CliError, app, err, out
 
 server_app = typer.Typer(help="A Prefect server for this warehouse (its database under the warehouse, or PostgreSQL): "
                               "while it is up every command uses it instead of starting Prefect's ephemeral API (~3 s more per command), "
@@ -89,9 +89,9 @@ def serve(ctx: typer.Context) -> None:
     root = ctx.obj.root()
     if (server := running_server(root)) is None:
         raise CliError(f"no Prefect server is up for {root}: start one with `cadestate server start`")
-    if os.environ.get("PREFECT_API_URL", server.api_url).rstrip("/") != server.api_url:
-        raise CliError(f"PREFECT_API_URL is {os.environ['PREFECT_API_URL']}, not this warehouse's server "
-                       f"({server.api_url}): its deployments would run this warehouse from there; unset it")
+    if os.environ.get("PREFECT_API_URL", server.api_url).rstrip("/") != server.api_url:  # the same, named otherwise?
+        err.print(f"warning: PREFECT_API_URL is {escape(os.environ['PREFECT_API_URL'])}, not the URL of this "
+                  f"warehouse's server ({escape(server.api_url)}): the deployments are served there")
     lock = _serving_lock(root)  # held until the process ends
     prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs
     os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))

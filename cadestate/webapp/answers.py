@@ -10,10 +10,10 @@ disk before ingest starts, so a crash mid-ingest loses nothing: :func:`ingest_pe
 app starts) ingests every file of the folder not ingested yet (ingest is idempotent by content), but
 for one whose items were answered again later (:func:`set_aside_superseded`).
 
-An answer counts only for the newest task of its kind (:class:`Conflict` otherwise: the pipeline
-replaced the task the page showed), and a page says which answers it saw (``as_of``,
-:func:`answers_as_of`): an item answered by someone else since then is a :class:`Conflict` too,
-not a silent replacement of their answer.
+An answer to a task that a rerun replaced goes to the newest task of its kind where it fits it
+(:class:`Conflict` otherwise), and a page says which answers it saw (``as_of``,
+:func:`answers_as_of`): an item answered by someone else since then is a :class:`Conflict`, not a
+silent replacement of their answer.
 """
 
 from __future__ import annotations
@@ -104,15 +104,22 @@ def _tracks(kind: str, answers: list) -> set[int]:
             if not isinstance(a, dict) or isinstance(a.get("track_id"), int)}
 
 
-def _answered_since(wh: Warehouse, clip: str, task_id: str, tracks: set[int], since: dt.datetime | None,
-                    created_after: dt.datetime | None = None) -> dict | None:
-    """The newest ``label_files`` row of ``task_id`` answering one of ``tracks`` that was ingested
-    after ``since`` (None: ever) and, with ``created_after``, whose answers were given after it."""
+def _ingested(wh: Warehouse, clip: str) -> tuple[set[str], list[dict]]:
+    """The SHA-256 of the label files ingested for ``clip``, and their rows (:func:`_answered_since`)."""
     if not wh.has_partition("label_files", clip):
-        return None
-    rows = wh.read("label_files", [clip], filters=[("task_id", "==", task_id)],
-                   columns=["kind", "ingested_at", "created_at", "annotator", "document"]).to_pylist()
+        return set(), []
+    rows = wh.read("label_files", [clip], columns=["label_sha256", "task_id", "kind", "ingested_at", "created_at",
+                                                   "annotator", "document"]).to_pylist()
+    return {r["label_sha256"] for r in rows}, rows
+
+
+def _answered_since(rows: list[dict], task_id: str, tracks: set[int], since: dt.datetime | None,
+                    created_after: dt.datetime | None = None) -> dict | None:
+    """The newest of the ``label_files`` ``rows`` of ``task_id`` answering one of ``tracks`` that was
+    ingested after ``since`` (None: ever) and, with ``created_after``, whose answers were given after it."""
     for row in sorted(rows, key=lambda r: r["ingested_at"], reverse=True):
+        if row["task_id"] != task_id:
+            continue
         if since is not None and row["ingested_at"] <= since:
             break
         if created_after is not None and (row["created_at"] is None or row["created_at"] <= created_after):
@@ -126,40 +133,58 @@ def _answered_since(wh: Warehouse, clip: str, task_id: str, tracks: set[int], si
     return None
 
 
-def _check_not_stale(wh: Warehouse, kind: str, clip: str, task_id: str, tracks: set[int], as_of: str | None) -> None:
-    """Raise :class:`Conflict` for an answer to a replaced task or, given the page's ``as_of``, to an
-    item answered since."""
-    newest = latest_tasks(wh, clip).get(kind)
-    if newest is not None and newest["task_id"] != task_id:
-        raise Conflict(f"task {task_id} was replaced by task {newest['task_id']} (the pipeline ran again): "
-                       "reload the page; this answer was not saved")
-    if as_of is None:
-        return
+def _retargeted(payload: dict, annotator: str | None, newest: str, facts: ClipFacts, replaced: str) -> tuple[bytes, Any]:
+    """The answer to task ``replaced`` given to ``newest``, the task of its kind that a rerun put in
+    its place (a drawn object, a fragment or a duplicate changes the tracks asked about): its bytes
+    and label file, where it fits that task (its tracks there, its model among their candidates);
+    else :class:`Conflict`."""
+    data = label_bytes({**payload, "task_id": newest}, annotator)
+    try:
+        return data, validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
+    except LabelError as e:
+        raise Conflict(f"task {replaced} was replaced by task {newest} (the pipeline ran again), which this answer "
+                       f"does not fit ({e}): reload the page; this answer was not saved") from None
+
+
+def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str) -> None:
+    """Raise :class:`Conflict` when an item of ``lf`` was answered (under one of ``task_ids``) after
+    ``as_of``, what the page had seen."""
     try:
         since = dt.datetime.fromisoformat(as_of) if as_of else None
     except ValueError:
         raise LabelError(f"as_of: {as_of!r} is not an ISO 8601 time") from None
     if since is not None and since.tzinfo is None:
         raise LabelError(f"as_of: {as_of!r} has no time zone")
-    row = _answered_since(wh, clip, task_id, tracks, since)
-    if row is not None:
+    tracks = _tracks(lf.kind, list(lf.label.answers))
+    ingested = _ingested(wh, lf.clip)[1]
+    rows = [r for t in sorted(task_ids) if (r := _answered_since(ingested, t, tracks, since)) is not None]
+    if rows:
+        row = max(rows, key=lambda r: r["ingested_at"])
         who = f" by {row['annotator']}" if row["annotator"] else ""
-        what = "this task" if kind == "manual_track" else "this item"
+        what = "this task" if lf.kind == "manual_track" else "this item"
         raise Conflict(f"{what} was answered{who} at {row['ingested_at']:%H:%M:%S} since the page loaded: "
                        "reload the page to see that answer; yours was not saved")
 
 
 def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threading.Lock, as_of: str | None = None,
            labels_dir: Path | None = None, coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> Submitted:
-    """Validate, write and ingest one answer (module docstring). ``as_of``: what the page had seen
-    (:func:`answers_as_of`; None: no check of answers since). Raises LabelError (bad payload, nothing
-    written), :class:`Conflict` (nothing written) or :class:`IngestFailed` (written, not ingested)."""
+    """Validate, write and ingest one answer (module docstring). An answer to a task a rerun has
+    replaced goes to the newest task of its kind where it fits it (:func:`_retargeted`). ``as_of``:
+    what the page had seen (:func:`answers_as_of`; None: no check of answers since). Raises
+    LabelError (bad payload, nothing written), :class:`Conflict` (nothing written) or
+    :class:`IngestFailed` (written, not ingested)."""
     data = label_bytes(payload, annotator)
     folder_root = labels_dir or wh.root / LABELS_DIR
     with lock:  # one writer: file names, ingest times and the answer tables stay consistent
         facts = ClipFacts(wh)
         lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
-        _check_not_stale(wh, lf.kind, lf.clip, lf.task_id, _tracks(lf.kind, list(lf.label.answers)), as_of)
+        asked, moved = lf.task_id, []
+        newest = latest_tasks(wh, lf.clip).get(lf.kind)
+        if newest is not None and newest["task_id"] != asked:
+            data, lf = _retargeted(payload, annotator, newest["task_id"], facts, asked)
+            moved = [f"task {asked} was replaced by task {lf.task_id} (the pipeline ran again): the answer went to it"]
+        if as_of is not None:
+            _check_unseen(wh, lf, {asked, lf.task_id}, as_of)
         path = _free_path(folder_root / lf.clip, lf.task_id)
         atomic_write_bytes(path, data)
         try:  # the file as validated (its bytes), not parsed again
@@ -168,7 +193,7 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
             raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
     if report.errors or not report.ingested:
         raise IngestFailed(_not_ingested(path, report.errors))
-    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, list(lf.warnings), dict(report.rows))
+    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(lf.warnings), dict(report.rows))
 
 
 def ingest_pending(wh: Warehouse, lock: threading.Lock, labels_dir: Path | None = None,
@@ -191,8 +216,9 @@ SUPERSEDED = ".superseded"
 def set_aside_superseded(wh: Warehouse, folder: Path) -> list[str]:
     """Rename ``<file>.superseded`` each label file of ``folder`` not ingested yet (left by a failed
     ingest) one of whose items has an answer in the warehouse given after it: ingested now, it would
-    come in force over that newer answer (the newest ingested is in force). Returns a warning each."""
-    notes = []
+    come in force over that newer answer (the newest ingested is in force). Returns a warning each.
+    The warehouse's label files are read once per clip."""
+    notes, known = [], {}
     for path in sorted(folder.rglob("*.json")):
         try:
             data = path.read_bytes()
@@ -202,12 +228,13 @@ def set_aside_superseded(wh: Warehouse, folder: Path) -> list[str]:
             tracks = _tracks(kind, doc.get("answers", []))
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue  # ingest reports what it cannot read
-        if not isinstance(clip, str) or not wh.has_partition("label_files", clip) or created.tzinfo is None:
+        if not isinstance(clip, str) or created.tzinfo is None:
             continue
-        sha = hashlib.sha256(data).hexdigest()
-        if sha in set(wh.read("label_files", [clip], columns=["label_sha256"]).column(0).to_pylist()):
+        if clip not in known:
+            known[clip] = _ingested(wh, clip)
+        if hashlib.sha256(data).hexdigest() in known[clip][0]:
             continue
-        newer = _answered_since(wh, clip, str(task_id), tracks, None, created_after=created)
+        newer = _answered_since(known[clip][1], str(task_id), tracks, None, created_after=created)
         if newer is not None:
             aside = path.with_name(path.name + SUPERSEDED)
             path.rename(aside)

@@ -15,9 +15,10 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
   (503, one line, when they cannot be rendered);
 - ``POST /api/answers[?as_of=T]``: a label document without ``format``/``created_at`` (see
   :mod:`cadestate.webapp.answers`): 200 with the label file written and ingested and the clip
-  queued for resume; 422 naming the field when it does not validate, 409 when it answers a replaced
-  task or an item answered since ``as_of`` (nothing written either way); 500 when it was written
-  but not ingested (it is ingested at the next start, unless answered again meanwhile).
+  queued for resume (an answer to a task a rerun replaced goes to the newer task where it fits); 422
+  naming the field when it does not validate, 409 when it does not fit the newer task or answers an
+  item answered since ``as_of`` (nothing written either way); 500 when it was written but not
+  ingested (it is ingested at the next start, unless answered again meanwhile).
 
 ``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
 overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).

@@ -66,6 +66,8 @@ export function header(title, clip, task) {
 }
 
 let loaded = null, leaving = false;   // the task as loaded (its as_of goes with the answer); an answer saved
+// A page brought back by the browser's Back button (its cache) knows old answers: load it again.
+window.addEventListener("pageshow", (ev) => { if (ev.persisted) location.reload(); });
 
 // The task and its answered tracks; the item to show: ?track=N, else the first waiting one. A task the
 // pipeline has replaced since the link was made is said so at once (its answers would be refused).
@@ -73,7 +75,7 @@ export async function loadTask() {
   const p = params();
   const data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
   loaded = data;
-  if (data.current === false) toast("A newer task of this kind replaced this one: answers here are refused. Open the clip's task from the queue.", "error");
+  if (data.current === false) toast("A rerun replaced this task with a newer one: answers here go to it where they fit. The queue opens the newer task.", "error");
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
   const items = data.task.items || [];
   const waiting = items.filter((it) => !data.answered.includes(it.track_id));
@@ -87,6 +89,8 @@ export async function loadTask() {
 export async function afterAnswer(clip, taskId, kind, res) {
   leaving = true;
   toast(`saved ${res.path}`, "ok");
+  for (const w of res.warnings || []) toast(w);
+  taskId = res.task_id || taskId;   // a replaced task's answer went to the newer one: go on there
   const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
   const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
   if (waiting.length) { location.href = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`; return; }
