@@ -39,7 +39,9 @@ def test_commands_use_the_server_while_it_is_up_and_fall_back_when_it_is_down(tm
         assert (w / "_prefect" / "home").is_dir() and (w / "_prefect" / "server.log").is_file()
         assert cli("-w", str(w), "server", "status", cwd=tmp_path).returncode == 0
         again = cli("-w", str(w), "server", "start", cwd=tmp_path)  # already up: the same server
-        assert again.returncode == 0 and read_server(w).pid == info.pid
+        assert again.returncode == 0 and read_server(w).pid == info.pid and "already up" not in again.stderr
+        moved = cli("-w", str(w), "server", "start", "--port", "4399", cwd=tmp_path)  # said, not silently ignored
+        assert moved.returncode == 0 and f"already up at {info.api_url}: --port 4399 is not taken" in moved.stderr
         run = cli("-w", str(w), "ingest", video, cameras, "--split", "val", "--no-progress", cwd=tmp_path)
         assert f"on the Prefect server at {info.api_url}" in run.stderr, run.stderr
         [flow_run] = flow_runs(info.api_url)

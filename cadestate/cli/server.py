@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
@@ -20,7 +20,8 @@ app.add_typer(server_app, name="server")
 def server_start(
     ctx: typer.Context,
     host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(min=0, max=65535, help="Port (0: a free one).")] = 4200,
+    port: Annotated[Optional[int], typer.Option(min=0, max=65535, help="Port (0: a free one).  [default: 4200]",
+                                                show_default=False)] = None,
     database_url: Annotated[str, typer.Option(help="SQLAlchemy URL of a PostgreSQL database "
                                                    "(postgresql+asyncpg://user:password@host/db); default: SQLite under "
                                                    "<warehouse>/_prefect/home.")] = "",
@@ -30,9 +31,13 @@ def server_start(
     Its PID, URL and log are kept under <warehouse>/_prefect/ (server.json, server.log);
     `cadestate server stop` stops it.
     """
-    from flows.server import start_server
+    from flows.server import running_server, start_server
 
-    info = start_server(ctx.obj.root(), host, port, database_url, timeout_s=ctx.obj.config().prefect.startup_timeout_s)
+    root = ctx.obj.root()
+    if (up := running_server(root)) is not None and port is not None and not up.api_url.endswith(f":{port}/api"):
+        err.print(f"already up at {escape(up.api_url)}: --port {port} is not taken (`cadestate server stop` first to move it)")
+    info = up or start_server(root, host, 4200 if port is None else port, database_url,
+                              timeout_s=ctx.obj.config().prefect.startup_timeout_s)
     out.print(f"Prefect server up: {escape(info.api_url)} (UI {escape(info.api_url.removesuffix('/api'))}, "
               f"pid {info.pid}, log {escape(info.log)})")
 
