@@ -17,10 +17,11 @@ Every file is named after ``W`` or was there when the snapshot listed the table 
 its file within moments of taking its name, and the snapshot waits out a minute of margin), so a
 file is read exactly once: from the snapshot or from itself. This assumes the clocks of the
 machines that write a shared warehouse (Dask workers) agree within that minute, as NTP keeps them:
-a file named more than a minute in the past when it appears would be missed until a snapshot is
-taken from the files alone (``cadestate compact --whole``, or a schema change). The next snapshot starts from the
-last: it keeps the rows whose files are still there and reads only the files named between the two
-watermarks.
+a file named more than a minute in the past when it appears (or a backup copied back into a
+partition, which keeps its old names) is missed until the next snapshot. That one starts from the
+last: it keeps the rows whose files are still there and reads the files named between the two
+watermarks, and those named before that it lacks (a listing of the table's folder against the
+files the snapshot holds: none opened).
 
 Tables whose rows carry descriptors or point sets (a variable-length list of float32 or of lists:
 ``embeddings``, ``cad_samples``, ...) are not copied: a copy would double the warehouse's largest
@@ -115,8 +116,22 @@ def take(con: duckdb.DuckDBPyConnection, wh: Warehouse, table: str, schema_file:
     new = (f"SELECT * EXCLUDE (filename), {_relative(wh, table, 'filename')} AS _file FROM "
            f"{_files(wh, table, schema_file, uniform)} WHERE parse_filename(filename) <= {_str(mark)}")
     if previous is not None and previous_mark is not None:
-        new = f"{_present(wh, table, previous)} UNION ALL BY NAME {new} AND parse_filename(filename) > {_str(previous_mark)}"
+        since = f"parse_filename(filename) > {_str(previous_mark)}"
+        if lacking := _named_before_but_lacking(con, wh, table, previous, previous_mark):
+            since = f"({since} OR filename IN ({', '.join(_str(f) for f in lacking)}))"
+        new = f"{_present(wh, table, previous)} UNION ALL BY NAME {new} AND {since}"
     con.execute(f'CREATE TABLE {SCHEMA}."{table}" AS {new}')
+
+
+def _named_before_but_lacking(con: duckdb.DuckDBPyConnection, wh: Warehouse, table: str, previous: str,
+                              previous_mark: str) -> list[str]:
+    """The table's files (absolute paths) named up to ``previous_mark`` that the snapshot
+    ``previous`` does not hold: copied back into a partition by hand (a backup restored keeps its
+    old names), or written by a machine whose clock was behind. Listed, not opened."""
+    base = wh.table_dir(table)
+    held = {row[0] for row in con.execute(f"SELECT DISTINCT _file FROM {previous}").fetchall()}
+    return [f.as_posix() for f in sorted(base.glob(DATA_GLOB))
+            if f.name <= previous_mark and f.relative_to(base).as_posix() not in held]
 
 
 def carry(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict, recorded: dict | None, catalog: Path,

@@ -349,7 +349,7 @@ def compact(
     ctx: typer.Context,
     tables: Annotated[Optional[list[str]], typer.Argument(help="Append-mode tables to compact (default: runs, label_files, label_tasks).")] = None,
     min_files: Annotated[int, typer.Option("--min-files", min=2, help="Compact a partition only if it has at least this many files.")] = 2,
-    whole: Annotated[bool, typer.Option("--whole", help="Take the snapshot from every file, not from the last snapshot and the files since (after a writer's clock was off by more than a minute).")] = False,
+    whole: Annotated[bool, typer.Option("--whole", help="Take the snapshot from every file, not from the last snapshot and the files it lacks (after a file was changed in place, under its old name).")] = False,
 ) -> None:
     """Merge each partition of the append-mode tables (one file per write) into one file, then take
     a snapshot of the tables in the catalog so that SQL opens only the files written since.
