@@ -145,7 +145,11 @@ def test_a_read_cache_outlives_the_warehouse_object_that_filled_it(wh):
         (lambda t: t.append_column("extra", pa.array([1])), "unexpected columns ['extra']"),
         (lambda t: t.set_column(0, "clip", pa.array(["other"])), "must have clip = 'a'"),
         (lambda t: t.set_column(1, "url", pa.array([None], pa.string())), "column 'url' has nulls"),
-        (lambda t: t.set_column(8, "num_cameras", pa.array(["x"])), "does not fit the schema"),
+        (lambda t: t.set_column(8, "num_cameras", pa.array(["x"])), "column 'num_cameras' is string, not int"),
+        (lambda t: t.set_column(8, "num_cameras", pa.array(["42"])), "column 'num_cameras' is string, not int"),
+        (lambda t: t.set_column(16, "ingested_at", pa.array([1764979200])), "column 'ingested_at' is int64, not timestamp"),
+        (lambda t: t.set_column(1, "url", pa.array([7])), "column 'url' is int64, not string"),
+        (lambda t: t.set_column(8, "num_cameras", pa.array([2**40])), "does not fit the schema"),  # int64 to int32
         (lambda t: pa.concat_tables([t, t]), "duplicate key {'clip': 'a'}"),
     ],
 )

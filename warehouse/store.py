@@ -93,6 +93,26 @@ AFTER_WRITE: list[Callable[[Warehouse], object]] = []
 the DuckDB catalog's refresh, so this module knows nothing of the catalog, which is built on it."""
 
 
+def _changes_meaning(given: pa.DataType, wanted: pa.DataType) -> bool:
+    """Whether casting a column of type ``given`` to ``wanted`` would reinterpret it rather than
+    widen it: a number to a time, text to a number or a time, anything but text to text. Nulls,
+    and numbers to numbers, cast as before."""
+    import pyarrow as pa
+
+    def text(t: pa.DataType) -> bool:
+        return pa.types.is_string(t) or pa.types.is_large_string(t)
+
+    if given == wanted or pa.types.is_null(given) or pa.types.is_dictionary(given):
+        return False
+    if pa.types.is_timestamp(wanted) or pa.types.is_date(wanted):
+        return not (pa.types.is_timestamp(given) or pa.types.is_date(given))
+    if pa.types.is_integer(wanted) or pa.types.is_floating(wanted) or pa.types.is_boolean(wanted):
+        return text(given)
+    if text(wanted):
+        return not text(given)
+    return False
+
+
 def warn(message: str) -> None:
     """One line on stderr, ``warning: <message>``: what went wrong after the data was safely in."""
     import sys
@@ -391,6 +411,9 @@ class Warehouse:
         for f in spec.schema:
             if not f.nullable and data.column(f.name).null_count:
                 raise WarehouseError(f"table {table}: column {f.name!r} has nulls but is not nullable")
+            if _changes_meaning(data.schema.field(f.name).type, f.type):
+                raise WarehouseError(f"table {table}: column {f.name!r} is {data.schema.field(f.name).type}, not "
+                                     f"{f.type} (a cast would change its meaning: seconds read as a time, text as a number)")
         try:
             data = data.select(spec.schema.names).cast(spec.schema)
         except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as e:
