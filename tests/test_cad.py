@@ -377,6 +377,22 @@ def test_config_default_is_the_calibrated_symmetry_tolerance():
     assert CadIngestConfig().symmetry_tolerance == DEFAULT_TOLERANCE
 
 
+def test_an_item_with_two_problems_is_one_issue_row(tmp_path):
+    """A folder item whose material file is missing and whose class is unknown: both problems in
+    one cad_issues row (the table's key is the item), where two rows failed the whole library."""
+    from warehouse import Warehouse
+
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "gizmo.obj").write_text("mtllib absent.mtl\n" + trimesh.creation.box((1, 1, 1)).export(file_type="obj"))
+    (tmp_path / "m" / "models.csv").write_text("id,class\ngizmo,widget\n")
+    wh = Warehouse(tmp_path / "w")
+    out = ingest_library(wh, CadIngestConfig(samples=256), "lib", list(folder_items(tmp_path / "m", "lib")), "r",
+                         show_progress=False)
+    (issue,) = wh.read("cad_issues").to_pylist()
+    assert out.rows_written == 1 and issue["severity"] == "warning"
+    assert "missing or unreadable files (rendered without them): absent.mtl; class 'widget' is none" in issue["problem"]
+
+
 def test_textured_means_a_texture_image_not_a_placeholder(tmp_path):
     """An OBJ with a real texture is textured; one whose material file is missing is not (trimesh
     gives it a 2 x 2 placeholder), and the missing file is named; so is a texture that is no image."""

@@ -421,7 +421,7 @@ class Warehouse:
         column = spec.partition
         if data.num_rows and not pc.all(pc.equal(data.column(column), part)).as_py():
             raise WarehouseError(f"table {table}: every row of partition {part!r} must have {column} = {part!r}")
-        if data.num_rows and spec.mode == "replace":
+        if data.num_rows > 1:  # append tables too: a write adds no two rows of one key (earlier writes are not read)
             counts = data.group_by(list(spec.key)).aggregate([([], "count_all")])
             dup = counts.filter(pc.greater(counts.column("count_all"), 1))
             if dup.num_rows:

@@ -135,10 +135,11 @@ def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResul
     points = sample_surface(model.mesh, cfg.samples, seed=0)
     symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
     (out_dir / f"{item.cad_id}.glb").write_bytes(model.scene.export(file_type="glb"))
-    issues = [{**issue, "severity": "warning", "problem": f"missing or unreadable files (rendered without them): {', '.join(missing)}"}] if missing else []
+    problems = [f"missing or unreadable files (rendered without them): {', '.join(missing)}"] if missing else []
     if item.source == "folder" and item.cls == "other" and item.category.lower() != "other":
-        issues.append({**issue, "severity": "warning", "problem": f"class {item.category!r} is none of the vocabulary's "
-                       "(tasks/cad/classes.py) nor a synonym of one: ingested as 'other'"})
+        problems.append(f"class {item.category!r} is none of the vocabulary's (tasks/cad/classes.py) nor a synonym of "
+                        "one: ingested as 'other'")
+    issues = [{**issue, "severity": "warning", "problem": "; ".join(problems)}] if problems else []  # one row an item
     row = {
         "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id, "name": item.name,
         "source_category": item.category, "source": item.source, "source_path": item.path, "licence": item.licence,
