@@ -7,6 +7,7 @@ ephemeral mode. Its state lives under the warehouse:
     _prefect/home/          PREFECT_HOME: the server's SQLite database (unless a database URL is given)
     _prefect/server.json    the running server: pid, process start time, URL, database, log
     _prefect/server.log     its output
+    _prefect/serve.lock     held by ``cadestate serve`` while it serves the deployments (its pid)
 
 Nothing here imports Prefect: the server is a separate process (``prefect server start``).
 """
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import datetime as dt
 import errno
+import fcntl
 import json
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -34,6 +37,7 @@ from warehouse.store import atomic_write_bytes
 
 SERVER_FILE = "server.json"
 LOG_FILE = "server.log"
+SERVE_LOCK = "serve.lock"
 
 
 class ServerError(RuntimeError):
@@ -59,7 +63,8 @@ class ServerInfo:
     @property
     def process_alive(self) -> bool:
         try:
-            return abs(psutil.Process(self.pid).create_time() - self.process_start) < 1.0
+            process = psutil.Process(self.pid)
+            return abs(process.create_time() - self.process_start) < 1.0 and process.status() != psutil.STATUS_ZOMBIE
         except psutil.Error:
             return False
 
@@ -236,19 +241,92 @@ def _terminate(info: ServerInfo, timeout_s: float = 20.0) -> None:
             os.killpg(info.pid, sig)
         except ProcessLookupError:
             return
+        if _ended(info.pid, timeout_s):
+            return
+
+
+def _ended(pid: int, timeout_s: float) -> bool:
+    """Whether process ``pid`` ends within ``timeout_s``: gone, or a zombie its parent has not
+    reaped (``psutil.Process.wait`` waits those out, as it must for another's child)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
         try:
-            psutil.Process(info.pid).wait(timeout_s)
-            return
-        except psutil.TimeoutExpired:
-            continue
+            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+                return True
         except psutil.Error:
-            return
+            return True
+        time.sleep(0.1)
+    return False
 
 
-def stop_server(root: Path) -> ServerInfo | None:
-    """Stop the warehouse's server (if one was started) and forget it; returns what was stopped."""
+def stop_server(root: Path) -> tuple[ServerInfo | None, int | None]:
+    """Stop the warehouse's ``cadestate serve`` (which would keep polling a dead API) and then its
+    server, and forget the server; returns the server stopped and the pid of the serve stopped."""
+    served = stop_serving(root)
     info = read_server(root)
     if info is not None:
         _terminate(info)
         forget_server(root)
-    return info
+    return info, served
+
+
+def serving_lock(root: Path):
+    """The open file of ``<warehouse>/_prefect/serve.lock``, locked and holding this pid (held until
+    the process ends); :class:`ServerError` when another serve holds it: stopping either would
+    pause the deployments both serve (Prefect pauses a served deployment's schedule when its serve stops)."""
+    path = prefect_dir(root) / SERVE_LOCK
+    path.parent.mkdir(parents=True, exist_ok=True)
+    f = open(path, "a+")
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        pid = f.read().strip() or "?"
+        f.close()
+        raise ServerError(f"`cadestate serve` already serves {root} (pid {pid}): one per warehouse") from None
+    f.truncate(0)
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
+
+
+def serving_pid(root: Path) -> int | None:
+    """The pid of the ``cadestate serve`` holding this warehouse's serve lock, or None."""
+    path = prefect_dir(root) / SERVE_LOCK
+    try:
+        with open(path) as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                return None  # nobody holds it
+            except BlockingIOError:
+                return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def stop_serving(root: Path, timeout_s: float = 30.0) -> int | None:
+    """End the warehouse's ``cadestate serve`` the way Prefect shuts a runner down (SIGTERM: it
+    pauses its schedules and stops), SIGKILL after ``timeout_s``; returns its pid, None when none serves."""
+    if (pid := serving_pid(root)) is None:
+        return None
+    try:
+        process = psutil.Process(pid)
+        process.terminate()
+        if not _ended(pid, timeout_s):
+            process.kill()
+    except psutil.Error:
+        pass
+    return pid
+
+
+def end_with_server(info: ServerInfo, on_end, every_s: float = 2.0) -> threading.Thread:
+    """Watch the server's process in a daemon thread; once it has ended (stopped or crashed),
+    call ``on_end()`` (a serve exits: every poll of a dead API would print a traceback)."""
+    def watch() -> None:
+        while info.process_alive:
+            time.sleep(every_s)
+        on_end()
+
+    thread = threading.Thread(target=watch, name="server-watch", daemon=True)
+    thread.start()
+    return thread

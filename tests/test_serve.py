@@ -189,7 +189,11 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         report = wait_for("the dataset report", lambda: (r := api.flow_run("dataset_report")) and
                           r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
         assert report["state"]["type"] == "COMPLETED" and json.loads((tmp_path / "report" / "stats.json").read_text())
+        stopped = cli(*common, "server", "stop", cwd=tmp_path)  # the serve first: it polled a dead API for good
+        assert f"stopped `cadestate serve` (pid {serving.pid})" in stopped.stdout, stopped.stdout
+        assert serving.wait(60) is not None and "Traceback" not in (tmp_path / "serve.log").read_text()
     finally:
-        os.killpg(serving.pid, signal.SIGTERM)
-        serving.wait(60)
+        if serving.poll() is None:
+            os.killpg(serving.pid, signal.SIGTERM)
+            serving.wait(60)
         cli(*common, "server", "stop", cwd=tmp_path)

@@ -152,6 +152,55 @@ def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
         hung.kill()
 
 
+def test_server_stop_stops_the_serve_of_its_warehouse_first(tmp_path):
+    """`server stop` under a running `cadestate serve` left it polling a dead API, a traceback every
+    few seconds for good: the serve (the holder of serve.lock) is stopped first, and named."""
+    w = tmp_path / "w"
+    hung = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
+    serving = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
+                                "from flows.server import serving_lock; lock = serving_lock(Path(sys.argv[1])); "
+                                "print('held', flush=True); time.sleep(120)", str(w)], stdout=subprocess.PIPE, text=True)
+    try:
+        _record(w, hung.pid)
+        assert serving.stdout.readline() == "held\n"
+        stop = cli("-w", str(w), "server", "stop", cwd=tmp_path)
+        assert stop.returncode == 0 and f"stopped `cadestate serve` (pid {serving.pid})" in stop.stdout, stop.stdout
+        assert serving.wait(30) is not None and hung.wait(30) is not None
+        again = cli("-w", str(w), "server", "stop", cwd=tmp_path)
+        assert again.stdout == "no server was started\n"
+    finally:
+        hung.kill()
+        serving.kill()
+
+
+def test_a_serve_whose_server_ends_says_so_in_one_line_and_ends(tmp_path):
+    """The server killed under a serve (a crash, a reboot of its process): the serve ends at once
+    with one line, where it printed a traceback per poll."""
+    import signal
+    import time
+
+    from flows.server import serving_pid
+
+    w = tmp_path / "w"
+    assert cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    info = read_server(w)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    serving = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "serve"], cwd=tmp_path, env=env,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while serving_pid(w) is None and serving.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert serving_pid(w) == serving.pid
+        os.killpg(info.pid, signal.SIGKILL)
+        assert serving.wait(30) == 1
+        said = serving.stderr.read()
+        assert f"the Prefect server at {info.api_url} stopped: serve ends" in said and "Traceback" not in said, said
+    finally:
+        serving.kill()
+        cli("-w", str(w), "server", "stop", cwd=tmp_path)
+
+
 def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
     """`cp -a` of a warehouse copies its server record: the copy's `server stop` stopped the
     original's server. A record names its warehouse folder (device and inode); another's is no

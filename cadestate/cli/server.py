@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -44,10 +45,13 @@ def server_start(
 
 @server_app.command("stop")
 def server_stop(ctx: typer.Context) -> None:
-    """Stop the server of this warehouse; commands fall back to ephemeral mode."""
+    """Stop the server of this warehouse, and its `cadestate serve` first; commands fall back to
+    ephemeral mode."""
     from flows.server import stop_server
 
-    info = stop_server(ctx.obj.root())
+    info, served = stop_server(ctx.obj.root())
+    if served is not None:
+        out.print(f"stopped `cadestate serve` (pid {served}); its schedules are paused until it serves again")
     out.print(f"stopped the Prefect server at {escape(info.api_url)} (pid {info.pid})" if info else "no server was started")
 
 
@@ -83,12 +87,13 @@ def serve(ctx: typer.Context) -> None:
     Start the server first (`cadestate server start`); its UI shows the runs, and a run can be
     started by hand there or with `PREFECT_API_URL=<URL of server status> prefect deployment run
     build_dataset_inbox/build_dataset`. Each scheduled flow runs one at a time. The schedules are
-    set when serve starts: restart it after changing a [schedule] *_cron. One serve per warehouse.
+    set when serve starts: restart it after changing a [schedule] *_cron. One serve per warehouse;
+    it ends when the server stops (`cadestate server stop` stops it first).
     """
     import os
 
     from flows.runtime import prepare_prefect_environment
-    from flows.server import running_server
+    from flows.server import ServerError, end_with_server, running_server, serving_lock
 
     cfg = ctx.obj.config()
     root = ctx.obj.root()
@@ -97,7 +102,11 @@ def serve(ctx: typer.Context) -> None:
     if os.environ.get("PREFECT_API_URL", server.api_url).rstrip("/") != server.api_url:  # the same, named otherwise?
         err.print(f"warning: PREFECT_API_URL is {escape(os.environ['PREFECT_API_URL'])}, not the URL of this "
                   f"warehouse's server ({escape(server.api_url)}): the deployments are served there")
-    lock = _serving_lock(root)  # held until the process ends
+    try:
+        lock = serving_lock(root)
+    except ServerError as e:
+        raise CliError(str(e)) from None
+    end_with_server(server, lambda: _server_ended(server.api_url))
     prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs
     os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))
     from prefect import serve as prefect_serve
@@ -107,28 +116,30 @@ def serve(ctx: typer.Context) -> None:
     config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
     try:
         prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
+    except Exception:
+        if not server.process_alive:  # ended while the deployments were being registered
+            _server_ended(server.api_url)
+        raise
     finally:
         lock.close()
 
 
-def _serving_lock(root: Path):
-    """The open file of ``<warehouse>/_prefect/serve.lock``, locked and holding this pid; a second
-    serve of the warehouse is refused in one line: stopping either would pause the deployments both
-    serve (Prefect pauses a served deployment's schedule when its serve stops)."""
-    import fcntl
+_ENDING = threading.Lock()
+
+
+def _server_ended(api_url: str) -> None:
+    """The server stopped under a serve: say so in one line and end, with the runs it started
+    (their API is gone too), instead of a traceback per poll."""
     import os
 
-    path = root / "_prefect" / "serve.lock"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    f = open(path, "a+")
-    try:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        f.seek(0)
-        pid = f.read().strip() or "?"
-        f.close()
-        raise CliError(f"`cadestate serve` already serves {root} (pid {pid}): one per warehouse") from None
-    f.truncate(0)
-    f.write(f"{os.getpid()}\n")
-    f.flush()
-    return f
+    import psutil
+
+    if not _ENDING.acquire(blocking=False):  # the watch and the main thread both saw it: one says it
+        threading.Event().wait()
+    err.print(f"the Prefect server at {escape(api_url)} stopped: serve ends (`cadestate server start`, then serve again)")
+    for child in psutil.Process().children(recursive=True):
+        try:
+            child.terminate()
+        except psutil.Error:
+            pass
+    os._exit(1)
