@@ -9,9 +9,10 @@ import json
 import pytest
 
 from fuzz.harness import assert_clean_error, run_cli
-from tasks.human.label_import import import_cvat, import_labelstudio
+from tasks.human.label_import import import_labelstudio, write_label
+from tasks.human.label_import_cvat import import_cvat
 from tasks.human.labels import LabelError
-from test_labels import CLIP, CVAT, base_wh, lwh, put  # noqa: F401  (fixtures)
+from test_labels import CLIP, CVAT, H, W, base_wh, lwh, put  # noqa: F401  (fixtures)
 
 LS = [{"id": 1, "data": {"video": f"/data/upload/{CLIP}.mp4"}, "annotations": [
     {"id": 3, "was_cancelled": False, "result": [
@@ -104,3 +105,102 @@ def test_cli_import_into_an_unwritable_folder(lwh, tmp_path):
     res = run_cli("-w", str(lwh.root), "labels", "import-cvat", str(put(tmp_path, "a.xml", CVAT)), "--clip", CLIP,
                   "--skip-source", "file", "--out", str(blocker / "sub"))
     assert_clean_error(res, mentions=f"{blocker / 'sub'}: cannot write the label file there")
+
+
+# ------------------------------------------------------------------------------ what a review found (stop 70)
+
+def _box(frame: int, x0: float = 32, x1: float = 160) -> str:
+    return f'<box frame="{frame}" keyframe="1" outside="0" occluded="0" xtl="{x0}" ytl="19.2" xbr="{x1}" ybr="96"/>'
+
+
+def _export(meta: str, tracks: str) -> str:
+    return f'<?xml version="1.0" encoding="utf-8"?>\n<annotations><version>1.1</version><meta>{meta}</meta>{tracks}</annotations>'
+
+
+def _stamps(doc: dict) -> list[list[int]]:
+    return [[b["timestamp_us"] for b in a["boxes"]] for a in doc["answers"]]
+
+
+def test_a_cvat_project_export_takes_off_the_frames_of_the_tasks_before_the_clips(lwh, tmp_path):
+    """CVAT numbers a project's frames on from the tasks before in the subset (start_frame + step *
+    size each): the clip's boxes landed 5 frames late when its task came second."""
+    task = lambda i, name, size, subset="default": (f"<task><id>{i}</id><name>{name}</name><size>{size}</size><start_frame>0"
+                                                    f"</start_frame><stop_frame>{size - 1}</stop_frame><frame_filter></frame_filter>"
+                                                    f"<subset>{subset}</subset></task>")
+    meta = f"<project><id>1</id><tasks>{task(3, 'attic', 7, 'Train')}{task(2, 'hall', 5)}{task(4, CLIP, 10)}</tasks></project>"
+    tracks = (f'<track id="0" label="table" source="manual" task_id="2">{_box(1)}</track>'
+              f'<track id="1" label="chair" source="manual" task_id="4">{_box(5)}{_box(11)}</track>')
+    doc = import_cvat(lwh, put(tmp_path, "p.xml", _export(meta, tracks)), CLIP).document
+    assert _stamps(doc) == [[0, 600_000]]  # hall's 5 frames taken off; attic's are of another subset (ordered by subset, id)
+    early = tracks.replace(_box(5), _box(3))
+    with pytest.raises(LabelError, match=r"track\[1\]/box\[0\]/@frame: 3 is before the frames of the clip's task"):
+        import_cvat(lwh, put(tmp_path, "q.xml", _export(meta, early)), CLIP)
+
+
+def test_cvat_job_exports_and_frame_steps_are_read_by_their_frame_span(lwh, tmp_path):
+    """A job export states its own length as size (it was refused as 'made on the video'), its
+    frame size outside meta/job (boxes were scaled by the clip's frames), and numbers its tracks
+    from 0 as every job does (a second job's answer replaced the first without a warning)."""
+    job = lambda i, start, stop: (f"<job><id>{i}</id><size>{stop - start + 1}</size><start_frame>{start}</start_frame>"
+                                  f"<stop_frame>{stop}</stop_frame></job><original_size><width>{2 * W}</width>"
+                                  f"<height>{2 * H}</height></original_size>")
+    doc = import_cvat(lwh, put(tmp_path, "j.xml", _export(job(7, 5, 9), f'<track id="0" label="chair">{_box(5)}{_box(6)}</track>')),
+                      CLIP).document
+    assert _stamps(doc) == [[500_000, 600_000]] and doc["answers"][0]["source_id"] == "cvat:job7:0"
+    assert doc["answers"][0]["boxes"][0]["box"] == pytest.approx([0.05, 0.05, 0.25, 0.25])  # of 640 x 384
+    step = f"<task><id>4</id><name>{CLIP}</name><size>5</size><start_frame>0</start_frame><stop_frame>9</stop_frame>" \
+           "<frame_filter>step=2</frame_filter></task>"
+    assert _stamps(import_cvat(lwh, put(tmp_path, "s.xml", _export(step, f'<track id="0" label="chair">{_box(0)}{_box(4)}</track>')),
+                               CLIP).document) == [[0, 400_000]]
+    on_video = step.replace("<stop_frame>9", "<stop_frame>29")
+    with pytest.raises(LabelError, match=r"meta/task/stop_frame: the tool showed 30 frames and clip 'c1' has 10: .*--frame-map video"):
+        import_cvat(lwh, put(tmp_path, "v.xml", _export(on_video, f'<track id="0" label="chair">{_box(0)}</track>')), CLIP)
+
+
+def test_an_import_keeps_the_not_an_object_statements_in_force_and_the_same_export_makes_the_same_file(lwh, tmp_path):
+    """The import answers the task whole: it revoked the web app's 'track 0 is not an object'
+    silently; and each import was dated now, so one export ingested twice was two answers."""
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.tracking.relations import manual_answer_statements
+
+    web = {"format": "cadestate-label/1", "kind": "manual_track", "task_id": "c1.mt", "clip": CLIP, "annotator": "a",
+           "created_at": "2026-01-01T00:00:00+00:00", "not_objects": [0], "answers": []}
+    assert ingest_labels(lwh, put(tmp_path / "web", "a.json", json.dumps(web))).ok
+    xml = put(tmp_path, "a.xml", _export(f"<task><id>4</id><name>{CLIP}</name><size>10</size></task>"
+                                         "<dumped>2026-03-01 10:00:00.5+01:00</dumped>",
+                                         f'<track id="0" label="chair">{_box(0)}</track>'))
+    first, again = import_cvat(lwh, xml, CLIP), import_cvat(lwh, xml, CLIP)
+    assert first.document == again.document and first.document["created_at"] == "2026-03-01T09:00:00+00:00"
+    assert first.document["not_objects"] == [0] and "keeps the answer in force's 'track N is not an object'" in first.warnings[0]
+    out = write_label(first.document, tmp_path / "labels", "c1.a.cvat")
+    assert len(ingest_labels(lwh, out).ingested) == 1 and manual_answer_statements(lwh, CLIP, "c1.mt")[0] == {0}
+    assert ingest_labels(lwh, write_label(again.document, tmp_path / "labels2", "c1.a.cvat")).duplicates
+    ls_doc = import_labelstudio(lwh, put(tmp_path, "ls.json", json.dumps(ls(lambda d: d[0]["annotations"][0].__setitem__(
+        "updated_at", "2026-02-03T04:05:06.789Z")))), CLIP).document
+    assert ls_doc["created_at"] == "2026-02-03T04:05:06+00:00"
+
+
+def test_exports_of_nothing_the_importer_reads_are_refused_not_nothing_missing(lwh, tmp_path):
+    """An image export, polygons, or every track skipped made an empty answer: 'nothing is missing'."""
+    rect = ls(lambda d: result(d).__setitem__("type", "rectanglelabels"))
+    with pytest.raises(LabelError, match=r"result\[0\]\.type: 1 shape\(s\) on single images and no videorectangle"):
+        import_labelstudio(lwh, put(tmp_path, "r.json", json.dumps(rect)), CLIP)
+    polygons = '<annotations><image id="0" name="f0.jpg"><polygon label="chair" points="1,1;5,5;1,5"/></image></annotations>'
+    with pytest.raises(LabelError, match=r"/annotations/image\[0\]/polygon\[0\]: a 'CVAT for images' export"):
+        import_cvat(lwh, put(tmp_path, "i.xml", polygons), CLIP)
+    only_file = CVAT.replace('source="manual"', 'source="file"')
+    with pytest.raises(LabelError, match=r"each of its 2 track\(s\) has a --skip-source source \(file\)"):
+        import_cvat(lwh, put(tmp_path, "f.xml", only_file), CLIP, skip_sources=("file",))
+
+
+def test_clip_names_with_dashes_a_cvat_export_of_another_video_and_two_boxes_on_a_frame(lwh, tmp_path):
+    from tasks.human.label_import import names_clip_exactly
+
+    assert names_clip_exactly(["/data/upload/1/ab12cd34-c1.mp4"], CLIP) and not names_clip_exactly(["c1-2.mp4"], CLIP)
+    two = [LS[0] | {"data": {"video": "/data/upload/1/ab12cd34-c1-2.mp4"}}, LS[0] | {"data": {"video": "/data/upload/1/ab12cd34-c1.mp4"}}]
+    assert import_labelstudio(lwh, put(tmp_path, "two.json", json.dumps(two)), CLIP).warnings == []
+    kitchen = _export(f"<task><id>4</id><name>kitchen</name><size>10</size><source>kitchen.mp4</source></task>",
+                      f'<track id="0" label="chair">{_box(2)}{_box(2, 10, 100)}</track>')
+    result_ = import_cvat(lwh, put(tmp_path, "k.xml", kitchen), CLIP)
+    assert "its task (kitchen kitchen.mp4) names no clip 'c1'" in result_.warnings[0]
+    assert result_.dropped == ["cvat:0: a second box on frame 200000 µs, left out"]

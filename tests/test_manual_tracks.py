@@ -214,7 +214,8 @@ def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
 
 @needs_embedder
 def test_a_cvat_import_answers_the_task(mwh, tmp_path):
-    from tasks.human.label_import import import_cvat, write_label
+    from tasks.human.label_import import write_label
+    from tasks.human.label_import_cvat import import_cvat
 
     task = _task(mwh, _run(mwh).message)
     xml = tmp_path / "annotations.xml"

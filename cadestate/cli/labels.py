@@ -221,8 +221,9 @@ def labels_import_cvat(
     skip_source: Annotated[Optional[list[str]], typer.Option(help="Leave out tracks with this source (e.g. file: pre-loaded tracks).")] = None,
     label_map: MapOpt = None,
 ) -> None:
-    """Make a manual_track label file from CVAT video XML (boxes in pixels, 0-based frames)."""
-    from tasks.human.label_import import import_cvat
+    """Make a manual_track label file from a CVAT for video 1.1 export of a task, a job or a
+    project (boxes in pixels; frames as CVAT numbers them, a project's from the clip's task)."""
+    from tasks.human.label_import_cvat import import_cvat
 
     result = import_cvat(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
                          skip_sources=tuple(skip_source or ()), label_map=_label_map(label_map))

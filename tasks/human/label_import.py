@@ -1,22 +1,19 @@
 """Manual tracks from the annotation tools teams already use: CVAT video XML and Label Studio video JSON.
 
 Both become a ``manual_track`` label file (:mod:`schemas.labels`) for a task of the clip, checked
-like any label file before it is written; ``cadestate labels ingest`` then ingests it.
+like any label file before it is written; ``cadestate labels ingest`` then ingests it. The label
+file keeps the "track N is not an object" statements of the task's answer in force (an import
+answers the task whole), and is dated by the export, so the same export makes the same file.
 
-- CVAT for video 1.1 (``annotations.xml``): ``<track id label source>`` holding
-  ``<box frame xtl ytl xbr ybr outside occluded keyframe rotation>`` in pixels (normalised by
-  ``meta/*/original_size``, else the clip's frame size; a box rotated about its centre becomes its
-  axis-aligned bounding box). Boxes with ``outside="1"`` are dropped; by default only
-  ``keyframe="1"`` boxes (the ones drawn, not interpolated) are kept. ``frame`` is 0-based. A
-  project export of several tasks keeps the tracks (``task_id``) of the one task whose name or
-  source names the clip. A "CVAT for images" export (boxes on single frames, no tracks) is refused.
+- CVAT for video 1.1: :mod:`tasks.human.label_import_cvat`.
 - Label Studio video (JSON export): results of type ``videorectangle`` with
   ``value.sequence[{frame, enabled, x, y, width, height, rotation, time}]`` in percent (0-100) and
   ``value.labels``; ``frame`` is 1-based, every sequence entry is a key-frame; a rotated box
   becomes its axis-aligned bounding box (rotation in degrees about its top-left corner). The
   newest annotation that was not cancelled is used. With several tasks in the export, the one
-  whose ``data`` names the clip (as a whole word); one task that names another video is imported
-  with a warning.
+  whose ``data`` names the clip (as a whole word; among several, the one whose file is the clip's
+  name); one task that names another video is imported with a warning. An export with no
+  ``videorectangle`` but other shapes (an image export of the frames) is refused.
 
 Files are read whole (at most :data:`MAX_IMPORT_BYTES`) and checked as they are read: every
 number an element or field needs must be there and be a finite number (frames: whole numbers),
@@ -28,9 +25,8 @@ label would say that nothing is missing.
 
 Frame numbers map to camera timestamps in one of two ways (``frame_map``):
 ``frames`` (default): the tool showed the clip's extracted frames as an image sequence, so tool
-frame n is ``frames.frame_index`` n (refused when the tool says it showed another number of
-frames: CVAT's ``meta/*/size``, Label Studio's ``framesCount``); ``video``: the tool showed the
-video, so tool frame n (0-based) is at n / fps seconds and maps to the camera frame whose decoded
+frame n is ``frames.frame_index`` n (refused when the tool says it showed more frames than the
+clip has: CVAT's ``stop_frame``, Label Studio's ``framesCount``); ``video``: the tool showed the video, so tool frame n (0-based) is at n / fps seconds and maps to the camera frame whose decoded
 video frame is nearest, within half a video frame (boxes between camera frames are dropped).
 Label Studio's ``time`` is not used: it writes frame f (1-based) at f / fps, a frame after the
 frame's own time.
@@ -43,7 +39,6 @@ import datetime as dt
 import json
 import math
 import re
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -51,6 +46,7 @@ from typing import Literal
 from schemas.labels import Task
 from tasks.human.label_format import LabelError, parse_label, read_limited
 from tasks.human.labels import ClipFacts, check_label, label_document, latest_task_of_kind
+from tasks.tracking.relations import manual_answer_statements
 from warehouse import Warehouse, atomic_write_bytes
 
 FrameMapMode = Literal["frames", "video"]
@@ -77,8 +73,8 @@ class ToolBox:
 @dataclass
 class ToolTrack:
     """A track from a tool: its id there, its label, its boxes, and where it is in the file;
-    ``shown_frames``: how many frames the tool says it showed (None: it does not say), stated at
-    ``shown_where``."""
+    ``shown_frames``: how many frames the tool says it showed, numbered from 0 (None: it does not
+    say), stated at ``shown_where``."""
 
     source_id: str
     label: str
@@ -98,8 +94,25 @@ class ImportResult:
 
 
 def names_clip(text: str, clip: str) -> bool:
-    """Whether ``text`` holds ``clip`` as a whole word (``c1`` is not in ``c10.mp4`` nor ``c1_b.mp4``)."""
+    """Whether ``text`` holds ``clip`` as a whole word (``c1`` is not in ``c10.mp4`` nor ``c1_b.mp4``;
+    ``room`` is in ``room-2.mp4``: see :func:`names_clip_exactly`)."""
     return re.search(rf"(?<![A-Za-z0-9_]){re.escape(clip)}(?![A-Za-z0-9_])", text) is not None
+
+
+def names_clip_exactly(texts: tuple[str, ...] | list[str], clip: str) -> bool:
+    """Whether one of ``texts`` (names, file paths) is ``clip`` itself or a file of that name
+    (Label Studio's upload prefix ``<8 hex>-`` aside): ``room.mp4`` is, ``room-2.mp4`` is not."""
+    for text in texts:
+        stem = Path(str(text)).stem if text else ""
+        if clip in (text, stem, re.sub(r"^[0-9a-f]{8}-", "", stem)):
+            return True
+    return False
+
+
+def file_time(path: str | Path) -> str:
+    """When ``path`` was last written, in UTC seconds (ISO 8601): the date of a label made from an
+    export that states none."""
+    return dt.datetime.fromtimestamp(Path(path).stat().st_mtime, dt.timezone.utc).isoformat(timespec="seconds")
 
 
 # ------------------------------------------------------------------------------ frames
@@ -192,98 +205,6 @@ def _of_type(value: object, kind: type, where: str) -> object:
     return value
 
 
-# ------------------------------------------------------------------------------ CVAT
-
-def _parse_xml(path: str | Path) -> ET.Element:
-    name = str(path)
-    data = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "/")
-    try:
-        return ET.fromstring(data)
-    except ET.ParseError as e:
-        raise LabelError(f"{name}: not well-formed XML: {e}") from None
-    except (LookupError, ValueError) as e:  # an encoding Python does not know, or that cannot hold the bytes
-        raise LabelError(f"{name}: not a readable XML file: {e}") from None
-
-
-def _cvat_size(root: ET.Element, name: str, size: tuple[int, int] | None) -> tuple[int, int]:
-    """(width, height) of the frames: the file's ``original_size``, else ``size``."""
-    for owner in ("task", "job"):
-        original = root.find(f"meta/{owner}/original_size")
-        if original is not None:
-            where = f"{name}: /annotations/meta/{owner}/original_size"
-            return tuple(_whole(original.findtext(k), f"{where}/{k}", 1) for k in ("width", "height"))
-    if not size or min(size) <= 0:
-        raise LabelError(f"{name}: /annotations/meta: no original_size and no frame size given")
-    return size
-
-
-def _cvat_task(root: ET.Element, name: str, clip: str | None) -> tuple[str | None, ET.Element | None, str]:
-    """(task id whose tracks to keep, None: all; that task's meta element; where it is): a project
-    export of several tasks keeps the one whose name or source names ``clip``."""
-    tasks = root.findall("meta/project/tasks/task")
-    if len(tasks) <= 1 or clip is None:
-        for owner in ("task", "job"):
-            if (meta := root.find(f"meta/{owner}")) is not None:
-                return None, meta, f"/annotations/meta/{owner}"
-        if tasks:
-            return None, tasks[0], "/annotations/meta/project/tasks/task[0]"
-        return None, None, ""
-    chosen = [(i, t) for i, t in enumerate(tasks)
-              if names_clip(f"{t.findtext('name') or ''} {t.findtext('source') or ''}", clip)]
-    if len(chosen) != 1:
-        listed = ", ".join(repr(t.findtext("name") or "") for t in tasks[:8])
-        raise LabelError(f"{name}: /annotations/meta/project/tasks: a project export of {len(tasks)} tasks ({listed}), "
-                         f"{'none' if not chosen else len(chosen)} of which names clip {clip!r}; export the clip's task alone")
-    i, task = chosen[0]
-    return task.findtext("id"), task, f"/annotations/meta/project/tasks/task[{i}]"
-
-
-def _cvat_box(box: ET.Element, at: str, width: int, height: int) -> tuple[float, float, float, float]:
-    """The normalised axis-aligned box of a CVAT ``<box>`` (its ``rotation``, degrees about its centre, applied)."""
-    x0, y0, x1, y1 = (_number(box.get(a), f"{at}/@{a}") for a in ("xtl", "ytl", "xbr", "ybr"))
-    rotation = _number(box.get("rotation", "0"), f"{at}/@rotation")
-    if rotation:
-        c, s = abs(math.cos(math.radians(rotation))), abs(math.sin(math.radians(rotation)))
-        cx, cy, hw, hh = (x0 + x1) / 2, (y0 + y1) / 2, abs(x1 - x0) / 2, abs(y1 - y0) / 2
-        x0, x1 = cx - (hw * c + hh * s), cx + (hw * c + hh * s)
-        y0, y1 = cy - (hw * s + hh * c), cy + (hw * s + hh * c)
-    return normalised_box(x0, y0, x1, y1, width, height)
-
-
-def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_only: bool = True,
-              skip_sources: tuple[str, ...] = (), clip: str | None = None) -> list[ToolTrack]:
-    """Tracks of a CVAT video XML 1.1 file (``size``: (width, height) when the file has none;
-    ``clip``: the clip, to pick its task from a project export)."""
-    name = str(path)
-    root = _parse_xml(path)
-    if root.tag != "annotations":
-        raise LabelError(f"{name}: /{root.tag}: not a CVAT annotations file (root element must be <annotations>)")
-    if not root.findall("track") and root.find("image/box") is not None:
-        i = next(i for i, image in enumerate(root.findall("image")) if image.find("box") is not None)
-        raise LabelError(f"{name}: /annotations/image[{i}]/box[0]: a 'CVAT for images' export holds boxes on single "
-                         "frames, not tracks; export the task as 'CVAT for video 1.1'")
-    width, height = _cvat_size(root, name, size)
-    task_id, meta, meta_where = _cvat_task(root, name, clip)
-    shown = None
-    if meta is not None and meta.find("size") is not None:
-        shown = _whole(meta.findtext("size"), f"{name}: {meta_where}/size", 0)
-    tracks = []
-    for i, el in enumerate(root.findall("track")):
-        where = f"{name}: /annotations/track[{i}]"
-        if el.get("source", "manual") in skip_sources or (task_id is not None and el.get("task_id", task_id) != task_id):
-            continue
-        track = ToolTrack(f"cvat:{el.get('id', i)}", _text(el.get("label"), f"{where}/@label"), where=where,
-                          shown_frames=shown, shown_where=f"{name}: {meta_where}/size")
-        for j, box in enumerate(el.findall("box")):
-            if box.get("outside", "0") == "1" or (keyframes_only and box.get("keyframe", "1") != "1"):
-                continue
-            at = f"{where}/box[{j}]"
-            frame = _whole(box.get("frame"), f"{at}/@frame", 0)
-            track.boxes.append(ToolBox(frame, _cvat_box(box, at, width, height)))
-        tracks.append(track)
-    return tracks
-
-
 # ------------------------------------------------------------------------------ Label Studio
 
 def _ls_annotation(task: dict, where: str) -> tuple[dict, str]:
@@ -334,16 +255,25 @@ def _ls_task(data: object, name: str, clip: str | None) -> tuple[dict, str]:
              for i, t in enumerate(data if isinstance(data, list) else [data]) if isinstance(t, dict)]
     if len(tasks) > 1 and clip is not None:
         tasks = [t for t in tasks if names_clip(json.dumps(t[0].get("data", {})), clip)]
+        exact = [t for t in tasks if isinstance(t[0].get("data"), dict) and names_clip_exactly(
+            [v for v in t[0]["data"].values() if isinstance(v, str)], clip)]
+        tasks = exact if len(exact) == 1 else tasks
     if len(tasks) != 1:
         raise LabelError(f"{name}: $: expected one Label Studio task (for clip {clip!r}), found {len(tasks)}")
     return tasks[0]
 
 
+LS_SHAPES = ("rectanglelabels", "rectangle", "polygonlabels", "polygon", "ellipselabels", "ellipse", "keypointlabels",
+             "brushlabels")
+"""Label Studio results that are shapes on one image: an export of them holds no manual tracks."""
+
+
 def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None = None,
-                     warnings: list[str] | None = None) -> list[ToolTrack]:
-    """Tracks of a Label Studio JSON export (``size``: (width, height) of the frames). With several
-    tasks in the export, the one whose ``data`` names ``clip`` is used; one task whose ``data``
-    names a video but not ``clip`` adds a line to ``warnings``."""
+                     warnings: list[str] | None = None) -> tuple[list[ToolTrack], str | None]:
+    """Tracks of a Label Studio JSON export (``size``: (width, height) of the frames) and when their
+    annotation was last saved (None: not said). With several tasks in the export, the one whose
+    ``data`` names ``clip`` is used; one task whose ``data`` names a video but not ``clip`` adds a
+    line to ``warnings``."""
     name = str(path)
     raw = read_limited(Path(path), MAX_IMPORT_BYTES, "tool exports", "$")
     try:
@@ -360,12 +290,26 @@ def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None =
         warnings.append(f"{where}.data: names no clip {clip!r} ({shown[:80]}): is this the clip's export?")
     annotation, where = _ls_annotation(task, where)
     results = _of_type(annotation.get("result", []), list, f"{where}.result")
-    tracks = []
+    tracks, shapes = [], []
     for i, result in enumerate(results):
         result = _of_type(result, dict, f"{where}.result[{i}]")
         if result.get("type") == "videorectangle":
             tracks.append(_ls_track(result, size, f"{where}.result[{i}]", i))
-    return tracks
+        elif result.get("type") in LS_SHAPES:
+            shapes.append(f"{where}.result[{i}].type")
+    if shapes and not tracks:
+        raise LabelError(f"{shapes[0]}: {len(shapes)} shape(s) on single images and no videorectangle: manual tracks "
+                         "are drawn on the video (a VideoRectangle labelling config)")
+    return tracks, _utc(annotation.get("updated_at") or annotation.get("created_at"))
+
+
+def _utc(text: object) -> str | None:
+    """An ISO 8601 time with its zone (``Z`` too) in UTC seconds; None when it is not one."""
+    try:
+        when = dt.datetime.fromisoformat(str(text).strip().replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return when.astimezone(dt.timezone.utc).isoformat(timespec="seconds") if when.tzinfo else None
 
 
 # ------------------------------------------------------------------------------ label files
@@ -385,14 +329,15 @@ def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
 
 def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: str | None = None,
                     frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None,
-                    source: str = "", name: str = "tool tracks") -> ImportResult:
+                    source: str = "", name: str = "tool tracks", created_at: str | None = None) -> ImportResult:
     """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
-    clip's newest manual-track task); ``name``: the file, for errors."""
+    clip's newest manual-track task), dated ``created_at`` (default: now), keeping the "track N is
+    not an object" statements of the task's answer in force; ``name``: the file, for errors."""
     task = _answered_task(wh, clip, task_id)
     frames = ClipFrames.of(wh, clip)
     if frame_map == "frames":
         for t in tracks:
-            if t.shown_frames is not None and t.shown_frames != len(frames.timestamps):
+            if t.shown_frames is not None and t.shown_frames > len(frames.timestamps):
                 raise LabelError(f"{t.shown_where}: the tool showed {t.shown_frames} frames and clip {clip!r} has "
                                  f"{len(frames.timestamps)}: was the task made on the video? (--frame-map video)")
     answers, dropped = [], []
@@ -407,8 +352,10 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
             if ts is None:
                 dropped.append(f"{t.source_id}: frame {b.index + (1 if t.source_id.startswith('labelstudio') else 0)} "
                                f"is not a camera frame of the clip")
+            elif ts in boxes:
+                dropped.append(f"{t.source_id}: a second box on frame {ts} µs, left out")
             elif b.box[0] < b.box[2] and b.box[1] < b.box[3]:
-                boxes.setdefault(ts, b.box)
+                boxes[ts] = b.box
             else:
                 dropped.append(f"{t.source_id}: empty box on frame {ts} µs")
         if not boxes:
@@ -419,19 +366,14 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     if tracks and not answers:
         raise LabelError(f"{name}: none of its {len(tracks)} track(s) has a box on a frame of clip {clip!r} "
                          f"(--frame-map {'video' if frame_map == 'frames' else 'frames'}?)")
-    created = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    created = created_at or dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    not_objects = sorted(manual_answer_statements(wh, clip, task.task_id)[0])
     doc = label_document("manual_track", clip, task.task_id, answers, annotator=f"import:{source}" if source else None,
-                         created_at=created)
+                         created_at=created, **({"not_objects": not_objects} if not_objects else {}))
     check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
-    return ImportResult(doc, dropped)
-
-
-def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *, frame_map: FrameMapMode = "frames",
-                keyframes_only: bool = True, skip_sources: tuple[str, ...] = (), label_map: dict[str, str] | None = None) -> ImportResult:
-    """A ``manual_track`` label document from a CVAT video XML 1.1 file."""
-    frames = ClipFrames.of(wh, clip)
-    tracks = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources, clip)
-    return tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}", name=str(path))
+    kept = [f"{name}: keeps the answer in force's 'track N is not an object' for track(s) "
+            f"{', '.join(map(str, not_objects))} (put them in the label file to change them)"] if not_objects else []
+    return ImportResult(doc, dropped, kept)
 
 
 def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *,
@@ -439,9 +381,9 @@ def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str 
     """A ``manual_track`` label document from a Label Studio video JSON export."""
     frames = ClipFrames.of(wh, clip)
     warnings: list[str] = []
-    tracks = read_labelstudio(path, (frames.width, frames.height), clip, warnings)
+    tracks, saved = read_labelstudio(path, (frames.width, frames.height), clip, warnings)
     result = tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
-                             name=str(path))
+                             name=str(path), created_at=saved or file_time(path))
     result.warnings.extend(warnings)
     return result
 
