@@ -87,9 +87,9 @@ def bare_batch(batch: Path, root: Path) -> int:
 
     config = Config(warehouse=WarehouseConfig(root=str(root)))
     sources = []
-    for found in discover_clips(batch):
-        checked = check_clip_inputs(found.video, found.cameras, 0, False)
-        sources.append(ClipSource(official_clip_name(checked.cameras, found.cameras, None), found.video, found.cameras))
+    for video, cameras in discover_clips(batch):
+        checked = check_clip_inputs(video, cameras, 0, False)
+        sources.append(ClipSource(official_clip_name(checked.cameras, cameras, None), video, cameras))
     with ThreadPoolExecutor(WORKERS) as pool:
         reports = [r for unit in pool.map(lambda s: run_unit(str(root), "clip", s.clip, config, s, False), sources)
                    for r in unit]

@@ -89,9 +89,18 @@ def test_format_then_parse_is_bit_exact():
 
 def test_url_keeps_inner_whitespace_and_drops_outer():
     track = random_track(2)
-    odd = CameraTrack("clip 1\t\rx", track.timestamps_us, track.intrinsics, track.world_to_camera)
-    assert parse_camera_text(format_camera_track(odd)).url == "clip 1\t\rx"
+    odd = CameraTrack("clip 1\tx", track.timestamps_us, track.intrinsics, track.world_to_camera)
+    assert parse_camera_text(format_camera_track(odd)).url == "clip 1\tx"
     assert parse_camera_text(" \t" + URL + " \r\n" + camera_line(0)).url == URL
+    with pytest.raises(ValueError, match="one-line text"):  # a CR ends a line: no URL holds one
+        CameraTrack("clip 1\rx", track.timestamps_us, track.intrinsics, track.world_to_camera)
+
+
+def test_a_lone_cr_after_the_url_ends_its_line_in_a_file_of_lf_lines():
+    """An editor's CR after line 1 of an LF file glued the first camera onto the URL: one camera
+    lost, and the clip named after 19 numbers."""
+    lines = [URL, camera_line(10), camera_line(20)]
+    assert_identical(parse_camera_text(lines[0] + "\r" + "\n".join(lines[1:])), parse_camera_text("\n".join(lines)))
 
 
 def test_write_then_parse_is_bit_exact_and_overwrites(tmp_path):

@@ -19,6 +19,11 @@ from tasks.video.clip_names import (
     ("https://www.youtube.com/watch?v=tooshort", ""),
     ("synthetic://walkthrough/bench-7-00", "bench-7-00"),
     ("file:///videos/my room.mp4", "my-room"),
+    ("file:///videos/my%20room.mp4", "my-room"),  # Path.as_uri() of an SfM video: decoded, not my-20room
+    ("file:///videos/chambre_%C3%A9t%C3%A9.mp4", "chambre_-t-"),
+    ("www.youtube.com/watch?v=ZxUv_7CnPBE", "ZxUv_7CnPBE"),  # no scheme: was 'watch'
+    ("youtu.be/ZxUv_7CnPBE", "ZxUv_7CnPBE"),
+    ("https://youtube.com/watch/?v=ZxUv_7CnPBE", "ZxUv_7CnPBE"),
     ("room_a.mp4", "room_a"),
     ("", ""),
 ])
@@ -65,6 +70,9 @@ def test_a_local_video_may_get_any_safe_video_id():
 def test_shared_video_ids():
     assert shared_video_ids([("a_0", "u1"), ("a_900", "u1"), ("b_0", "u2")]) == {}
     assert shared_video_ids([("a_0", "u1"), ("a_900", "u2")]) == {"a": ["a_0", "a_900"]}
+    spellings = ["https://www.youtube.com/watch?v=ZxUv_7CnPBE", "https://youtu.be/ZxUv_7CnPBE",
+                 "http://youtube.com/watch?v=ZxUv_7CnPBE&t=65s", "www.youtube.com/watch?v=ZxUv_7CnPBE"]
+    assert shared_video_ids([(f"ZxUv_7CnPBE_{i}", u) for i, u in enumerate(spellings)]) == {}  # one video, any spelling
 
 
 def test_benchmark_clips_have_their_own_videos():

@@ -214,9 +214,9 @@ def test_ingest_keeps_inputs_and_probe(wh, small_clip):
 
 
 def test_discover_clips_pairs_videos_with_camera_files(tmp_path, small_clip):
-    shutil.copy(small_clip.video_path, tmp_path / "a.mp4")
-    shutil.copy(small_clip.cameras_path, tmp_path / "a.txt")
-    assert [s.clip for s in discover_clips(tmp_path)] == ["a"]
+    shutil.copy(small_clip.video_path, tmp_path / "living room é.mp4")  # named by its camera file: any file name
+    shutil.copy(small_clip.cameras_path, tmp_path / "living room é.txt")
+    assert discover_clips(tmp_path) == [(tmp_path / "living room é.mp4", tmp_path / "living room é.txt")]
     shutil.copy(small_clip.video_path, tmp_path / "b.mp4")
     with pytest.raises(FileNotFoundError, match="b.mp4: no camera file b.txt"):
         discover_clips(tmp_path)
@@ -241,8 +241,9 @@ def test_video_that_opens_but_ends_early_fails_at_ingest(wh, small_clip, tmp_pat
     remux(small_clip.video_path, mkv)
     cut = tmp_path / "cut.mkv"
     cut.write_bytes(mkv.read_bytes()[: int(mkv.stat().st_size * 0.6)])
-    n = len(parse_camera_file(small_clip.cameras_path))  # the header still promises 3 s; the last frame is gone
-    with pytest.raises(CameraFileError, match=rf":{n + 1}: timestamp \d+ µs has no frame in .*cut.mkv: the nearest is at"):
+    n = len(parse_camera_file(small_clip.cameras_path))  # the header still promises 3 s: the packets say how long it is
+    with pytest.raises(CameraFileError, match=rf":\d+: timestamp \d+ µs is past the end of .*cut.mkv, which lasts \d+ µs "
+                                              rf"\(\d+ of the {n} cameras are past it\)"):
         ingest(wh, cut, small_clip.cameras_path)
     assert wh.read("clips").num_rows == 0
 
@@ -325,3 +326,20 @@ def test_a_seek_that_lands_after_its_target_is_taken_again_from_further_back(tmp
     video = _write(tmp_path / "long.ts", [_corner(96, 160, i % 100) for i in range(300)], fmt="mpegts", gop=250)
     wanted = np.array([0, 3_333_333, 6_666_667, 9_000_000])
     assert [f.time_us for f in decode_at(video, wanted)] == wanted.tolist()
+
+
+def test_a_matroska_video_starting_late_lasts_its_own_length(tmp_path):
+    """Matroska states no stream duration, and its container's can be the end time: a 3 s clip cut
+    at 60 s (``-copyts``) read as 63 s long, so --align-start was refused as 'within the video'."""
+    import av
+
+    path = tmp_path / "late.mkv"
+    with av.open(str(path), "w", format="matroska") as c:
+        s = c.add_stream("libx264", rate=30)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        for i in range(90):
+            f = av.VideoFrame.from_ndarray(np.full((48, 64, 3), i, np.uint8), format="rgb24")
+            f.pts = 1800 + i  # from 60 s, at 1/30 s
+            c.mux(s.encode(f))
+        c.mux(s.encode())
+    assert abs(probe_video(path).duration_us - 3_000_000) <= 34_000

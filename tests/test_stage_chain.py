@@ -90,10 +90,10 @@ def test_a_batch_runs_without_prefect_and_an_unchanged_rerun_does_no_work(tmp_pa
               "assert 'prefect' not in sys.modules, 'Prefect imported'; sys.exit(failed)")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
-    [found] = discover_clips(batch)
+    [(video, cameras)] = discover_clips(batch)
     [clip] = Warehouse(root).read("clips", columns=["clip"]).column("clip").to_pylist()
     again = run_unit(str(root), "clip", clip, Config(warehouse=WarehouseConfig(root=str(root))),
-                     ClipSource(clip, found.video, found.cameras), show_progress=False)
+                     ClipSource(clip, video, cameras), show_progress=False)
     assert [r.stage for r in again] == [s.name for s in stages_of("clip")]
     assert {r.state for r in again} <= {"cached", "paused", "waiting"} and "cached" in {r.state for r in again}, again
 

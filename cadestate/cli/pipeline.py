@@ -103,7 +103,7 @@ def ingest(
         else:
             if clip:
                 raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt (or VIDEO alone), not folders")
-            pairs = [(s.video, s.cameras) for folder in sources for s in discover_clips(folder)]
+            pairs = [pair for folder in sources for pair in discover_clips(folder)]
         cfg = ctx.obj.config()
         items, urls = [], []
         for video, cameras in pairs:  # the ingest stage checks again; here a bad input stops everything before it starts

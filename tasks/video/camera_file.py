@@ -81,7 +81,7 @@ class CameraTrack:
 
     def __post_init__(self) -> None:
         url = self.url
-        if not isinstance(url, str) or not url or url != url.strip() or "\n" in url:
+        if not isinstance(url, str) or not url or url != url.strip() or "\n" in url or "\r" in url:
             raise ValueError(f"url must be non-empty one-line text without surrounding whitespace: {url!r}")
         n = len(self.timestamps_us) if isinstance(self.timestamps_us, np.ndarray) else 0
         for name, dtype, shape in (("timestamps_us", np.int64, (n,)), ("intrinsics", np.float64, (n, 4)),
@@ -221,9 +221,7 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
       CameraFileError: ``f"{source}:{line}: {what is wrong}"`` at the first problem found.
     """
     text = text.removeprefix(BOM)
-    if "\r" in text and "\n" not in text:
-        text = text.replace("\r", "\n")  # classic Mac line ends
-    lines = text.split("\n")  # a "\r" left by "\r\n" is whitespace, dropped like any other
+    lines = re.split(r"\r\n|\r|\n", text)  # Unix, Windows and classic Mac line ends, mixed too
     if not text.strip():
         raise CameraFileError(source, 0, "empty file")
     if not lines[0].strip():

@@ -6,10 +6,10 @@ when they really are cut from one video. The video id comes from line 1 of the R
 camera file (its URL):
 
 - YouTube (``youtube.com/watch?v=ID``, ``youtu.be/ID``, ``youtube.com/embed/ID``, ``/shorts/ID``,
-  ``/live/ID``): the 11-character video id;
+  ``/live/ID``; with or without ``https://``): the 11-character video id;
 - any other URL or path (``synthetic://walkthrough/bench-7-00``, ``file:///videos/room.mp4``): its
-  last path segment without the extension, every character outside ``[A-Za-z0-9_-]`` replaced by
-  ``-``.
+  last path segment without the extension, percent-escapes decoded (``living%20room.mp4`` is
+  ``living room``), every character outside ``[A-Za-z0-9_-]`` replaced by ``-``.
 
 The start timestamp is the first camera line's timestamp (µs since the start of the video).
 
@@ -25,7 +25,7 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import PurePosixPath
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import SplitResult, parse_qs, unquote, urlsplit
 
 _CLIP = re.compile(r"^(?P<video>.+)_(?P<start>\d+)$")
 _YOUTUBE_ID = re.compile(r"^[A-Za-z0-9_-]{11}$")
@@ -62,18 +62,34 @@ def video_id_of(name: str) -> str:
     return parsed.video_id if parsed else name
 
 
+def _split(url: str) -> SplitResult:
+    """``url`` split; a YouTube address written without its scheme (``www.youtube.com/watch?v=ID``)
+    is read as https."""
+    url = url.strip()
+    if "://" not in url and url.split("/", 1)[0].lower() in _YOUTUBE_HOSTS | _YOUTU_BE_HOSTS:
+        url = "https://" + url
+    return urlsplit(url)
+
+
 def is_youtube_url(url: str) -> bool:
     """Whether ``url`` is on a YouTube host (``youtube.com``, ``youtu.be`` and their variants)."""
-    return urlsplit(url.strip()).netloc.lower() in _YOUTUBE_HOSTS | _YOUTU_BE_HOSTS
+    return _split(url).netloc.lower() in _YOUTUBE_HOSTS | _YOUTU_BE_HOSTS
+
+
+def source_video(url: str) -> str:
+    """What a URL line names as one video: ``youtube:<id>`` for any spelling of a YouTube video
+    (``youtu.be/ID``, ``http://``, ``&t=65s``), else the line itself."""
+    vid = video_id_from_url(url)
+    return f"youtube:{vid}" if vid and is_youtube_url(url) else url.strip()
 
 
 def video_id_from_url(url: str) -> str:
     """The video id of a camera file's URL line (module docstring); "" when it names none."""
     url = url.strip()
-    parts = urlsplit(url)
+    parts = _split(url)
     host = parts.netloc.lower()
     if host in _YOUTUBE_HOSTS:
-        if parts.path == "/watch":
+        if parts.path.rstrip("/") == "/watch":
             vid = parse_qs(parts.query).get("v", [""])[0]
         else:
             segments = [s for s in parts.path.split("/") if s]
@@ -82,7 +98,7 @@ def video_id_from_url(url: str) -> str:
     if host in _YOUTU_BE_HOSTS:
         vid = parts.path.strip("/")
         return vid if _YOUTUBE_ID.match(vid) else ""
-    last = PurePosixPath(parts.path or url).name
+    last = PurePosixPath(unquote(parts.path or url)).name
     stem = last.rsplit(".", 1)[0] if "." in last else last
     return re.sub(r"[^A-Za-z0-9_-]", "-", stem)
 
@@ -126,12 +142,13 @@ def _suggest(url: str, first_timestamp_us: int, source: str) -> str:
 
 
 def shared_video_ids(clips: Iterable[tuple[str, str]]) -> dict[str, list[str]]:
-    """Video ids that clips of *different* URLs share: ``clips`` (clip name, URL line) -> {video id:
-    clip names}. Empty when every video id belongs to one source video."""
+    """Video ids that clips of *different* videos share (URL lines told apart by
+    :func:`source_video`): ``clips`` (clip name, URL line) -> {video id: clip names}. Empty when
+    every video id belongs to one source video."""
     urls: dict[str, set[str]] = {}
     names: dict[str, list[str]] = {}
     for name, url in clips:
         vid = video_id_of(name)
-        urls.setdefault(vid, set()).add(url.strip())
+        urls.setdefault(vid, set()).add(source_video(url))
         names.setdefault(vid, []).append(name)
     return {v: sorted(names[v]) for v, u in urls.items() if len(u) > 1}

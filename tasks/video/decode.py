@@ -74,6 +74,28 @@ def upright(frame: av.VideoFrame) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(rgb, turns)) if turns else rgb
 
 
+def _length_us(container: av.container.InputContainer, stream: av.video.stream.VideoStream) -> int:
+    """The video stream's length, µs (0: unknown): its stated duration, else the end of its last
+    packet less its first time (Matroska states none, and its container duration can be the end
+    time itself: a 3 s clip cut at 60 s read as 63 s). Seeks: call last."""
+    if stream.duration is not None and stream.time_base is not None:
+        return int(round(stream.duration * stream.time_base * 1_000_000))
+    if stream.time_base is None:
+        return int(container.duration or 0)  # AV_TIME_BASE is 1 µs
+    start = stream.start_time or 0
+    end = None
+    try:
+        container.seek(start + int((container.duration or 0) / 1e6 / stream.time_base) + 1, stream=stream, backward=True)
+        for packet in container.demux(stream):
+            if packet.pts is not None:
+                end = max(end or packet.pts, packet.pts + (packet.duration or 0))
+    except av.error.FFmpegError:
+        pass
+    if end is None:
+        return int(container.duration or 0)
+    return max(0, int(round((end - start) * stream.time_base * 1_000_000)))
+
+
 def probe_video(path: str | os.PathLike) -> VideoInfo:
     """Read the stream properties and decode the first frame (a corrupt file fails here)."""
     with _open(path) as container:
@@ -84,12 +106,7 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
             raise VideoError(f"{path}: cannot decode video: {e}") from None
         if first is None:
             raise VideoError(f"{path}: the video stream has no decodable frame")
-        if stream.duration is not None and stream.time_base is not None:
-            duration_us = int(round(stream.duration * stream.time_base * 1_000_000))
-        elif container.duration is not None:
-            duration_us = int(container.duration)  # AV_TIME_BASE is 1 µs
-        else:
-            duration_us = 0
+        duration_us = _length_us(container, stream)
         fps = float(stream.average_rate) if stream.average_rate else 0.0
         sar = stream.sample_aspect_ratio
         pixel_aspect = float(sar) if sar and sar > 0 else 1.0

@@ -91,8 +91,10 @@ def cameras_file(wh: Warehouse, source: ClipSource) -> Path:
     return source.cameras if source.cameras is not None else sfm_cameras_path(wh, source.clip)
 
 
-def discover_clips(folder: str | os.PathLike, split: str = DEFAULT_SPLIT) -> list[ClipSource]:
-    """Clips of a folder (all of dataset split ``split``): each ``<name>.<video suffix>`` paired with ``<name>.txt``.
+def discover_clips(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
+    """The clip inputs of a folder: (video, camera file) pairs, each ``<name>.<video suffix>`` with
+    ``<name>.txt``. The clips are named from their camera files (:func:`official_clip_name`), not
+    from the file names, which may hold any character (``living room.mp4``).
 
     A video without a camera file is an error (naming it), since SfM cameras come later.
     """
@@ -102,13 +104,13 @@ def discover_clips(folder: str | os.PathLike, split: str = DEFAULT_SPLIT) -> lis
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
         raise FileNotFoundError(f"{folder}: no video files ({', '.join(VIDEO_SUFFIXES)})")
-    sources = []
+    pairs = []
     for video in videos:
         cameras = video.with_suffix(".txt")
         if not cameras.is_file():
             raise FileNotFoundError(f"{video}: no camera file {cameras.name} beside it")
-        sources.append(ClipSource(video.stem, video, cameras, split))
-    return sources
+        pairs.append((video, cameras))
+    return pairs
 
 
 def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split: str = DEFAULT_SPLIT,
