@@ -343,3 +343,25 @@ def test_a_matroska_video_starting_late_lasts_its_own_length(tmp_path):
             c.mux(s.encode(f))
         c.mux(s.encode())
     assert abs(probe_video(path).duration_us - 3_000_000) <= 34_000
+
+
+def test_mpeg_ts_frames_before_the_first_keyframe_after_the_start_are_reached(tmp_path):
+    """A seek to 0 in MPEG-TS (no index) landed on the keyframe at 0.5 s: with seeks on every
+    target (threshold 0) frames 7 and 14 came out as frame 15. The start is decoded from the file
+    opened again."""
+    import av
+
+    path = tmp_path / "open.ts"
+    with av.open(str(path), "w", format="mpegts") as c:
+        s = c.add_stream("libx264", rate=30)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        s.codec_context.gop_size = 15
+        s.codec_context.options = {"x264-params": "open-gop=1:bframes=3:keyint=15:min-keyint=15:scenecut=0"}
+        for i in range(60):
+            f = av.VideoFrame.from_ndarray(np.full((48, 64, 3), 4 * i, np.uint8), format="rgb24")
+            f.pts = i
+            c.mux(s.encode(f))
+        c.mux(s.encode())
+    wanted = [7, 14, 40]
+    got = [f.time_us for f in decode_at(path, np.array([i * 1_000_000 // 30 for i in wanted]), seek_threshold_us=0)]
+    assert [round(t * 30 / 1e6) for t in got] == wanted

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import secrets
 from collections.abc import Iterable, Iterator
+from contextlib import ExitStack
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from fractions import Fraction
@@ -116,9 +117,9 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
                          1.0 / pixel_aspect if turns % 2 else pixel_aspect, 90 * turns)
 
 
-def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction) -> int:
+def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction, path: str | os.PathLike) -> int:
     if frame.pts is None:
-        raise VideoError("a decoded frame has no timestamp")
+        raise VideoError(f"{path}: a decoded frame has no timestamp")
     return int(round((frame.pts - start) * time_base * 1_000_000))
 
 
@@ -133,7 +134,8 @@ def decode_at(
     the end from the start. The caller checks how far each frame's ``time_us`` is from the
     timestamp it asked for. Frames are upright (:func:`upright`).
     """
-    with _open(path) as container:
+    with ExitStack() as opened:
+        container = opened.enter_context(_open(path))
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
         time_base = stream.time_base
@@ -149,7 +151,16 @@ def decode_at(
                 frame = next(frames, None)
             except av.error.FFmpegError as e:
                 raise VideoError(f"{path}: decoding failed (corrupt or truncated video?): {e}") from None
-            return None if frame is None else (_frame_time_us(frame, start, time_base), frame)
+            return None if frame is None else (_frame_time_us(frame, start, time_base, path), frame)
+
+        def from_start() -> None:
+            """Decode from the first packet of the file opened again: a seek to 0 in a container
+            without an index (MPEG-TS) may land on the first keyframe after it."""
+            nonlocal container, stream, frames
+            container = opened.enter_context(_open(path))
+            stream = container.streams.video[0]
+            stream.thread_type = "AUTO"
+            frames = container.decode(stream)
 
         def seek(goal_us: int) -> None:
             nonlocal frames
@@ -171,7 +182,7 @@ def decode_at(
                 elif frames is None:
                     frames = container.decode(stream)
                 else:
-                    seek(0)
+                    from_start()
                 first = advance()
                 if (first is not None and first[0] <= target) or goal <= seek_threshold_us:
                     return first
