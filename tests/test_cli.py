@@ -180,7 +180,7 @@ def test_annotate_stopped_by_sigterm_stops_the_prefect_api_it_started(tmp_path):
         children = [int(c) for c in Path(f"/proc/{app.pid}/task/{app.pid}/children").read_text().split()]
         assert children, "the app launched no Prefect API process"
         app.send_signal(signal.SIGTERM)
-        assert app.wait(60) == 128 + signal.SIGTERM
+        assert app.wait(60) == 128 + signal.SIGTERM, app.stderr.read()[-4000:]
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
             time.sleep(0.2)

@@ -123,8 +123,9 @@ def test_status_of_a_registered_clip_imports_no_stage_dependencies(tmp_path):
     model runtime, no mesh library, no Prefect."""
     wh = Warehouse(tmp_path / "w")
     wh.write("clips", "c", table_rows("clips", [{"clip": "c", "video_sha256": "ab", "split": "val"}]))
-    wh.write("runs", "c", table_rows("runs", [{"clip": "c", "stage": stage, "status": "completed"}
-                                              for stage in ("cameras", "ingest", "frames", "tracking", "manual_tracks")]))
+    wh.write("runs", "c", table_rows("runs", [{"clip": "c", "run_id": f"r{i}", "stage": stage, "status": "completed"}
+                                              for i, stage in enumerate(("cameras", "ingest", "frames", "tracking",
+                                                                         "manual_tracks"))]))
     code, modules = loaded(["-w", str(wh.root), "status"], tmp_path / "modules.json")
     assert code == 0
     assert sorted({"av", "torch", "onnxruntime", "prefect", "trimesh", "scipy", "cv2", "PIL"} & modules) == []
@@ -135,8 +136,9 @@ def test_status_of_a_cad_library_digests_the_learned_descriptor_without_numpy(tm
     `status` digests it through a light module, as the detector's (no numpy)."""
     wh = Warehouse(tmp_path / "w")
     wh.write("cad_models", "lib", table_rows("cad_models", [{"library": "lib", "cad_id": "lib.a"}]))
-    wh.write("runs", "lib", table_rows("runs", [{"clip": "lib", "stage": stage, "status": "completed"}
-                                                for stage in ("cad_ingest", "cad_views", "cad_embed", "label_similarity")]))
+    wh.write("runs", "lib", table_rows("runs", [{"clip": "lib", "run_id": f"r{i}", "stage": stage, "status": "completed"}
+                                                for i, stage in enumerate(("cad_ingest", "cad_views", "cad_embed",
+                                                                           "label_similarity"))]))
     code, modules = loaded(["-w", str(wh.root), "status"], tmp_path / "modules.json")
     assert code == 0
     assert "tasks.retrieval.descriptor" in json.loads((tmp_path / "modules.json").read_text())["modules"]

@@ -34,7 +34,32 @@ def annotate(
         err.print(f"[yellow]warning:[/] three.js not found at {three_dir()} (run `make web-vendor`): "
                   "the correspondences page cannot show models", highlight=False)
     err.print(f"annotation app for {root}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
-    uvicorn.run(create_app(cfg, annotator), host=host, port=port, log_level="warning")  # SIGTERM: flows.local_api
+    application = create_app(cfg, annotator)
+    try:
+        uvicorn.run(application, host=host, port=port, log_level="warning")  # SIGTERM: flows.local_api
+    except (KeyboardInterrupt, SystemExit) as e:
+        _end_under_busy_worker(application.state.resumer, 130 if isinstance(e, KeyboardInterrupt) else e.code)
+        raise
+    _end_under_busy_worker(application.state.resumer, 0)
+
+
+def _end_under_busy_worker(resumer, code: int | str | None) -> None:
+    """End the process now, exit handlers run (the Prefect API it launched stopped), when the
+    resume worker still runs after the app stopped: Python's own exit ends such a thread where it
+    stands, and inside a native library's code (torch imported by the warm-up, a model running) that
+    aborted the process (SIGABRT, "FATAL: exception not rethrown"). A clip's stages stopped so read
+    as interrupted and run again on the next resume."""
+    import atexit
+    import os
+    import sys
+
+    if not resumer.alive():
+        return
+    err.print("stopped while the background resume was running: a clip it ran resumes on the next start", highlight=False)
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code if isinstance(code, int) else 1)
 
 
 def check_listen(host: str, port: int) -> None:

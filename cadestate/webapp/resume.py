@@ -176,11 +176,17 @@ class Resumer:
         self._thread.start()
         return self
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = 10.0) -> None:
+        """Ask the worker to stop and wait for it (the warm-up or a clip's stages may outlast
+        ``timeout``: :meth:`alive` then says so)."""
         with self._cond:
             self._stop = True
             self._cond.notify_all()
         self._thread.join(timeout)
+
+    def alive(self) -> bool:
+        """Whether the worker thread still runs (after :meth:`stop`: in the warm-up or a clip's stages)."""
+        return self._thread.is_alive()
 
     def request(self, clip: str) -> None:
         """Queue ``clip`` for a resume (see the module docstring for repeats)."""
