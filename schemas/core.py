@@ -67,7 +67,7 @@ FRAMES = TableSpec(
     name="frames",
     mode="replace",
     key=("clip", "timestamp_us"),
-    description="One row per camera line: the extracted image and its camera (intrinsics in pixels, world->camera pose).",
+    description="One row per camera line: the extracted image and its camera (intrinsics normalised, K in pixels, world->camera pose).",
     schema=pa.schema(
         [
             CLIP,

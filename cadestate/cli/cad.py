@@ -124,7 +124,7 @@ def cad_sheet(
     ctx: typer.Context,
     out_file: Annotated[Path, typer.Argument(help="PNG to write.")],
     where: Annotated[str, typer.Option(help="SQL condition on cad_models, e.g. \"class = 'chair'\".")] = "true",
-    limit: Annotated[int, typer.Option(help="At most this many models.")] = 48,
+    limit: Annotated[int, typer.Option(min=1, help="At most this many models.")] = 48,
 ) -> None:
     """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
     from tasks.cad.sheet import contact_sheet
