@@ -116,7 +116,8 @@ def test_crlf_and_trailing_blank_lines_accepted():
     lines = [URL, camera_line(10), camera_line(20)]
     expected = parse_camera_text("\n".join(lines))
     crlf, lf, cr = "\r\n".join(lines), "\n".join(lines), "\r".join(lines)
-    for text in [crlf + "\r\n", lf + "\n\n   \n\t\n", crlf + "\r\n \r\n\r\n", cr + "\r", cr]:
+    for text in [crlf + "\r\n", lf + "\n\n   \n\t\n", crlf + "\r\n \r\n\r\n", cr + "\r", cr,
+                 "\r\r\n".join(lines)]:  # CRLF written in text mode on Windows
         assert_identical(parse_camera_text(text), expected)
 
 

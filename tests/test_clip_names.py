@@ -19,8 +19,8 @@ from tasks.video.clip_names import (
     ("https://www.youtube.com/watch?v=tooshort", ""),
     ("synthetic://walkthrough/bench-7-00", "bench-7-00"),
     ("file:///videos/my room.mp4", "my-room"),
-    ("file:///videos/my%20room.mp4", "my-room"),  # Path.as_uri() of an SfM video: decoded, not my-20room
-    ("file:///videos/chambre_%C3%A9t%C3%A9.mp4", "chambre_-t-"),
+    ("file:///videos/my%20room.mp4", "my-20room"),  # Path.as_uri(): escapes kept, so names of other
+    ("file:///videos/caf%C3%A9.mp4", "caf-C3-A9"),  # letters stay apart (and as they were named before)
     ("www.youtube.com/watch?v=ZxUv_7CnPBE", "ZxUv_7CnPBE"),  # no scheme: was 'watch'
     ("youtu.be/ZxUv_7CnPBE", "ZxUv_7CnPBE"),
     ("https://youtube.com/watch/?v=ZxUv_7CnPBE", "ZxUv_7CnPBE"),

@@ -59,7 +59,7 @@ def _end_under_busy_worker(resumer, code: int | str | None) -> None:
     atexit._run_exitfuncs()
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(code if isinstance(code, int) else 1)
+    os._exit(code if isinstance(code, int) else 0 if code is None else 1)
 
 
 def check_listen(host: str, port: int) -> None:

@@ -1,6 +1,6 @@
 """Read and write RealEstate10K camera files.
 
-File format (one text file per clip, UTF-8, ``\\n``, ``\\r\\n`` or, throughout, ``\\r`` line endings; a
+File format (one text file per clip, UTF-8, ``\\n``, ``\\r\\n`` or ``\\r`` line endings, mixed too; a
 leading UTF-8 byte-order mark, as Windows editors write, is dropped: it is an encoding artefact, not
 part of the URL):
 
@@ -221,7 +221,7 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
       CameraFileError: ``f"{source}:{line}: {what is wrong}"`` at the first problem found.
     """
     text = text.removeprefix(BOM)
-    lines = re.split(r"\r\n|\r|\n", text)  # Unix, Windows and classic Mac line ends, mixed too
+    lines = re.split(r"\r*\n|\r", text)  # Unix, Windows (also \r\r\n) and classic Mac line ends, mixed too
     if not text.strip():
         raise CameraFileError(source, 0, "empty file")
     if not lines[0].strip():

@@ -8,8 +8,9 @@ camera file (its URL):
 - YouTube (``youtube.com/watch?v=ID``, ``youtu.be/ID``, ``youtube.com/embed/ID``, ``/shorts/ID``,
   ``/live/ID``; with or without ``https://``): the 11-character video id;
 - any other URL or path (``synthetic://walkthrough/bench-7-00``, ``file:///videos/room.mp4``): its
-  last path segment without the extension, percent-escapes decoded (``living%20room.mp4`` is
-  ``living room``), every character outside ``[A-Za-z0-9_-]`` replaced by ``-``.
+  last path segment without the extension, every character outside ``[A-Za-z0-9_-]`` replaced by
+  ``-`` (percent-escapes are kept as written: ``living%20room.mp4`` is ``living-20room``, and
+  ``café``'s and ``cafè``'s names stay apart; names already given stay the same).
 
 The start timestamp is the first camera line's timestamp (µs since the start of the video).
 
@@ -25,7 +26,7 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import PurePosixPath
-from urllib.parse import SplitResult, parse_qs, unquote, urlsplit
+from urllib.parse import SplitResult, parse_qs, urlsplit
 
 _CLIP = re.compile(r"^(?P<video>.+)_(?P<start>\d+)$")
 _YOUTUBE_ID = re.compile(r"^[A-Za-z0-9_-]{11}$")
@@ -98,7 +99,7 @@ def video_id_from_url(url: str) -> str:
     if host in _YOUTU_BE_HOSTS:
         vid = parts.path.strip("/")
         return vid if _YOUTUBE_ID.match(vid) else ""
-    last = PurePosixPath(unquote(parts.path or url)).name
+    last = PurePosixPath(parts.path or url).name
     stem = last.rsplit(".", 1)[0] if "." in last else last
     return re.sub(r"[^A-Za-z0-9_-]", "-", stem)
 

@@ -135,7 +135,8 @@ def decode_at(
     timestamp it asked for. Frames are upright (:func:`upright`).
     """
     with ExitStack() as opened:
-        container = opened.enter_context(_open(path))
+        container = _open(path)
+        opened.callback(lambda: container.close())  # the one open now (from_start opens the file again)
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
         time_base = stream.time_base
@@ -157,7 +158,8 @@ def decode_at(
             """Decode from the first packet of the file opened again: a seek to 0 in a container
             without an index (MPEG-TS) may land on the first keyframe after it."""
             nonlocal container, stream, frames
-            container = opened.enter_context(_open(path))
+            old, container = container, _open(path)
+            old.close()
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
             frames = container.decode(stream)
