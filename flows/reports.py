@@ -5,6 +5,7 @@ from __future__ import annotations
 from prefect.futures import PrefectFuture, wait
 from prefect.states import Completed, Failed, State
 
+from flows.runtime import sigterm_ends_the_run
 from tasks.stage_chain import StageReport
 
 
@@ -31,7 +32,8 @@ def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
 
 def finish(submitted: list[tuple[str, PrefectFuture]], what: str) -> State:
     """Wait for the submitted unit tasks (unit, future); the flow's final state carries every report."""
-    wait([fut for _, fut in submitted])
+    with sigterm_ends_the_run():
+        wait([fut for _, fut in submitted])
     return final_state([r for unit, fut in submitted for r in unit_reports(unit, fut)], what)
 
 

@@ -97,8 +97,19 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
     own threads, which the interrupted ones may hold. Elsewhere (the annotation app's threads), or
     where Ctrl-C is ignored (a shell's background job), nothing changes. The flow run is marked
     Cancelled on the API first (:func:`cancel_flow_run`), so the Prefect UI does not show it running
-    for ever."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    for ever. SIGTERM (``kill``, a service manager, ``timeout``) ends it the same way, status 143:
+    as an exit it waited for every queued stage too (over a minute of `cad ingest`). Prefect's flow
+    engine puts its own SIGTERM handler in place during the flow run, so the flow's wait for its
+    stages takes this one back (:func:`sigterm_ends_the_run`)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    import cadestate
+
+    signals = [s for s, ours in ((signal.SIGINT, (signal.default_int_handler, signal.SIG_DFL)),
+                                 (signal.SIGTERM, (cadestate._exit_on_signal, signal.SIG_DFL)))
+               if signal.getsignal(s) in ours]  # not where it is ignored (a shell's background job) or handled
+    if not signals:
         yield
         return
     from flows.local_api import stop_launched_now  # not in the handler: an import there may wait on the main thread's
@@ -124,17 +135,41 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
     def interrupted(signum, frame) -> None:
         with contextlib.suppress(OSError, ValueError):  # what was printed goes out whole
             sys.stdout.flush()
-            sys.stderr.write("\ninterrupted: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
+            said = "interrupted" if signum == signal.SIGINT else "terminated"
+            sys.stderr.write(f"\n{said}: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
             sys.stderr.flush()
         cancel_flow_run()
         stop_launched_now()
-        os._exit(130)
+        os._exit(128 + signum)
 
-    before = signal.signal(signal.SIGINT, interrupted)
+    before = {s: signal.signal(s, interrupted) for s in signals}
+    token = _ENDS_THE_RUN.set(interrupted if signal.SIGTERM in signals else None)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, before)
+        _ENDS_THE_RUN.reset(token)
+        for s, handler in before.items():
+            signal.signal(s, handler)
+
+
+_ENDS_THE_RUN: ContextVar[object] = ContextVar("cadestate_ends_the_run", default=None)
+"""The handler with which SIGTERM ends a flow run of this process at once (None: not in such a run)."""
+
+
+@contextlib.contextmanager
+def sigterm_ends_the_run() -> Iterator[None]:
+    """Within a flow run :func:`ctrl_c_ends_the_run` started (a command's, not a served run's, whose
+    SIGTERM is Prefect's cancellation), SIGTERM ends the process at once, as Ctrl-C does; Prefect's
+    engine had put its own handler in place, which waited for every queued stage."""
+    handler = _ENDS_THE_RUN.get()
+    if handler is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 _NO_HEARTBEATS: dict[int, tuple[object, object]] = {}
