@@ -300,11 +300,12 @@ def read_labelstudio(path: str | Path, size: tuple[int, int], clip: str | None =
     if shapes and not tracks:
         raise LabelError(f"{shapes[0]}: {len(shapes)} shape(s) on single images and no videorectangle: manual tracks "
                          "are drawn on the video (a VideoRectangle labelling config)")
-    return tracks, _utc(annotation.get("updated_at") or annotation.get("created_at"))
+    return tracks, utc_seconds(annotation.get("updated_at") or annotation.get("created_at"))
 
 
-def _utc(text: object) -> str | None:
-    """An ISO 8601 time with its zone (``Z`` too) in UTC seconds; None when it is not one."""
+def utc_seconds(text: object) -> str | None:
+    """An ISO 8601 time with its zone (``Z`` too; CVAT's ``2026-03-01 10:00:00.123456+00:00``) in
+    UTC seconds; None when it is not one (no zone, not a time)."""
     try:
         when = dt.datetime.fromisoformat(str(text).strip().replace("Z", "+00:00"))
     except ValueError:
@@ -329,12 +330,14 @@ def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
 
 def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: str | None = None,
                     frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None,
-                    source: str = "", name: str = "tool tracks", created_at: str | None = None) -> ImportResult:
+                    source: str = "", name: str = "tool tracks", created_at: str | None = None,
+                    frames: ClipFrames | None = None) -> ImportResult:
     """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
     clip's newest manual-track task), dated ``created_at`` (default: now), keeping the "track N is
-    not an object" statements of the task's answer in force; ``name``: the file, for errors."""
+    not an object" statements of the task's answer in force; ``name``: the file, for errors;
+    ``frames``: the clip's, when the caller read them already."""
     task = _answered_task(wh, clip, task_id)
-    frames = ClipFrames.of(wh, clip)
+    frames = frames or ClipFrames.of(wh, clip)
     if frame_map == "frames":
         for t in tracks:
             if t.shown_frames is not None and t.shown_frames > len(frames.timestamps):
@@ -383,7 +386,7 @@ def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str 
     warnings: list[str] = []
     tracks, saved = read_labelstudio(path, (frames.width, frames.height), clip, warnings)
     result = tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
-                             name=str(path), created_at=saved or file_time(path))
+                             name=str(path), created_at=saved or file_time(path), frames=frames)
     result.warnings.extend(warnings)
     return result
 

@@ -21,7 +21,6 @@ tracks of every export from 0: two jobs' exports of one task name different obje
 
 from __future__ import annotations
 
-import datetime as dt
 import math
 import re
 import xml.etree.ElementTree as ET
@@ -31,7 +30,7 @@ from pathlib import Path
 from tasks.human.label_format import LabelError, read_limited
 from tasks.human.label_import import (MAX_IMPORT_BYTES, ClipFrames, FrameMapMode, ImportResult, ToolBox, ToolTrack,
                                       _number, _text, _whole, file_time, names_clip, names_clip_exactly, normalised_box,
-                                      tracks_to_label)
+                                      tracks_to_label, utc_seconds)
 from warehouse import Warehouse
 
 SHAPES = ("box", "polygon", "polyline", "points", "ellipse", "mask", "cuboid", "skeleton", "tag")
@@ -195,17 +194,6 @@ def read_cvat(path: str | Path, size: tuple[int, int] | None = None, keyframes_o
     return tracks, source
 
 
-def _dumped(text: str | None) -> str | None:
-    """``meta/dumped`` (``2026-03-01 10:00:00.123456+00:00``) in UTC seconds, None when unreadable."""
-    try:
-        when = dt.datetime.fromisoformat((text or "").strip())
-    except ValueError:
-        return None
-    if when.tzinfo is None:
-        return None
-    return when.astimezone(dt.timezone.utc).isoformat(timespec="seconds")
-
-
 def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *, frame_map: FrameMapMode = "frames",
                 keyframes_only: bool = True, skip_sources: tuple[str, ...] = (), label_map: dict[str, str] | None = None) -> ImportResult:
     """A ``manual_track`` label document from a CVAT video XML 1.1 file, dated when CVAT dumped it
@@ -213,7 +201,7 @@ def import_cvat(wh: Warehouse, path: str | Path, clip: str, task_id: str | None 
     frames = ClipFrames.of(wh, clip)
     tracks, source = read_cvat(path, (frames.width, frames.height), keyframes_only, skip_sources, clip)
     result = tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"cvat:{Path(path).name}",
-                             name=str(path), created_at=_dumped(source.dumped) or file_time(path))
+                             name=str(path), created_at=utc_seconds(source.dumped) or file_time(path), frames=frames)
     if source.names and not names_clip(source.names, clip):
         result.warnings.append(f"{path}: /annotations/meta: its task ({source.names.strip()[:80]}) names no clip "
                                f"{clip!r}: is this the clip's export?")
