@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import secrets
 from collections.abc import Iterable, Iterator
-from contextlib import ExitStack
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from fractions import Fraction
@@ -134,11 +133,9 @@ def decode_at(
     the end from the start. The caller checks how far each frame's ``time_us`` is from the
     timestamp it asked for. Frames are upright (:func:`upright`).
     """
-    with ExitStack() as opened:
-        container = _open(path)
-        opened.callback(lambda: container.close())  # the one open now (from_start opens the file again)
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
+    container = _open(path)  # from_start swaps in the file opened again: the one open is closed at the end
+    try:
+        stream = _video_stream(container)
         time_base = stream.time_base
         start = stream.start_time or 0
         frames: Iterator[av.VideoFrame] | None = None
@@ -160,8 +157,7 @@ def decode_at(
             nonlocal container, stream, frames
             old, container = container, _open(path)
             old.close()
-            stream = container.streams.video[0]
-            stream.thread_type = "AUTO"
+            stream = _video_stream(container)
             frames = container.decode(stream)
 
         def seek(goal_us: int) -> None:
@@ -200,6 +196,15 @@ def decode_at(
                 raise VideoError(f"{path}: no frame could be decoded near {target} µs")
             time_us, frame = min(candidates, key=lambda f: abs(f[0] - target))
             yield DecodedFrame(time_us, upright(frame))
+    finally:
+        container.close()
+
+
+def _video_stream(container: av.container.InputContainer) -> av.video.stream.VideoStream:
+    """The container's (first) video stream, decoded on threads."""
+    stream = container.streams.video[0]
+    stream.thread_type = "AUTO"
+    return stream
 
 
 def frame_timestamp_us(index: int, fps: int) -> int:
