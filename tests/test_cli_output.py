@@ -31,6 +31,10 @@ def test_lines_naming_files_stay_whole_without_a_terminal(tmp_path):
     result = cli("labels", "validate", "--offline", str(bad), cwd=tmp_path)
     errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
     assert result.returncode == 1 and len(errors) == 1 and errors[0].startswith(f"error: {bad}"), result.stderr
+    result = cli("labels", "validate", "--offline", str(folder), str(tmp_path / "none"), cwd=tmp_path)
+    errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert result.returncode == 1 and errors[0] == f"error: {tmp_path / 'none'}: no such label file or folder", result.stderr
+    assert sum(ln.startswith(f"error: {folder}/") for ln in errors) == len(list(folder.glob("*.json"))), result.stderr
 
 
 def test_tables_take_their_natural_width_without_a_terminal(tmp_path):

@@ -199,6 +199,7 @@ def test_malformed_labels_name_file_and_field(lwh, tmp_path, kind, edit, message
 @pytest.mark.parametrize("text, message", [
     ('{"a": 1, "a": 2}', "duplicate key 'a'"), ("{", "not valid JSON"), ("[1, 2]", "expected a JSON object"),
     (b"\xff\xfe", "not UTF-8"), ("", "not valid JSON"),
+    ('{"clip_name": "c", "noise": {}}', r'\$\.format: missing: not a label file \(one starts with "format": "cadestate-label/1"\)'),
 ])
 def test_unreadable_documents(tmp_path, text, message):
     path = tmp_path / "bad.json"

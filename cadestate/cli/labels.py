@@ -116,17 +116,31 @@ def resume_served(ctx: typer.Context, root: Path, clips: list[str]) -> list[str]
 @labels_app.command("validate")
 def labels_validate(
     ctx: typer.Context,
-    files: Annotated[list[Path], typer.Argument(help="Label files to check.")],
+    files: Annotated[list[Path], typer.Argument(help="Label files to check, or folders of them (every *.json below).")],
     offline: Annotated[bool, typer.Option(help="Check the format only, not against the warehouse.")] = False,
     max_mb: MaxMbOpt = DEFAULT_MAX_MB,
 ) -> None:
     """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
-    frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file."""
+    frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file;
+    a folder is checked as `labels ingest` reads it."""
+    from tasks.human.label_ingest import label_paths
     from tasks.human.labels import ClipFacts, LabelError, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
     bad = 0
-    for f in files:
+    paths: list[Path] = []
+    for source in files:
+        try:
+            found = label_paths(source)
+        except FileNotFoundError as e:
+            bad += 1
+            _problems([str(e)], [])
+            continue
+        if not found:
+            bad += 1
+            _problems([f"{source}: no label file (*.json) in this folder"], [])
+        paths += found
+    for f in paths:
         try:
             lf = validate_label(f, facts=facts, max_bytes=round(max_mb * 1e6))
         except LabelError as e:

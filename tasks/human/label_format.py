@@ -176,6 +176,8 @@ def check_document(doc: Any, which: str, name: str) -> str:
         raise LabelError(f"{name}: {json_path(bad[0])}: {bad[1]}")
     expected = LABEL_FORMAT if which == "label" else TASK_FORMAT
     fmt = doc.get("format")
+    if "format" not in doc:
+        raise LabelError(f"{name}: $.format: missing: not a {which} file (one starts with \"format\": \"{expected}\")")
     if fmt != expected:
         other = {LABEL_FORMAT: " (a label file)", TASK_FORMAT: " (a task file)"}.get(fmt, "") if isinstance(fmt, str) else ""
         raise LabelError(f"{name}: $.format: must be {expected!r}, not {repr(fmt)[:60]}{other}")
