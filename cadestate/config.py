@@ -364,7 +364,7 @@ class LabelSimilarityConfig:
 class RetrievalConfig:
     """Stage ``retrieval``: the top CAD models of every track (appearance x class-label similarity)."""
 
-    top_k: int = _opt(10, "Candidates kept per track (the paper shows annotators 10).", lo=1, hi=1000)
+    top_k: int = _opt(10, "Candidates kept per track (at most 10, as many as the CAD-selection task shows: the paper shows annotators 10).", lo=1, hi=10)
     class_exponent: float = _opt(0.1, "The class-label similarity enters the score raised to this power: 1 is the paper's "
                                       "product, 0 appearance alone; below 1 the soft class filter weighs less against "
                                       "appearance, for a detector whose labels are often wrong (ours: precision 0.6). 0.1 "

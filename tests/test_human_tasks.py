@@ -47,7 +47,8 @@ def hwh(tmp_path) -> Warehouse:
                                               for t in range(3)]))
     models = ["lib.chair_a", "lib.chair_b", "lib.table_a", "lib.table_b"]
     wh.write("cad_models", "lib", table_rows("cad_models", [{"library": "lib", "cad_id": m, "class": m.split(".")[1][:-2],
-                                                         "symmetry": 1, "mesh_path": f"media/cad/lib/{m}.glb"} for m in models]))
+                                                         "symmetry": 1, "extent": [1.0, 1.0, 1.0],
+                                                         "mesh_path": f"media/cad/lib/{m}.glb"} for m in models]))
     wh.write("cad_views", "lib", table_rows("cad_views", [{"library": "lib", "cad_id": m, "view": v,
                                                        "image_path": f"media/cad_views/lib/{m}/{v}.png"}
                                                       for m in models for v in range(2)]))
@@ -124,8 +125,9 @@ def test_cad_selection_pauses_then_resumes_with_partial_labels(hwh, tmp_path):
     ctask = _task(hwh, corr.message)
     assert corr.status == "paused" and [it["track_id"] for it in ctask["items"]] == [0, 1]
     pts = [{"x": 0.1 + 0.1 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)]
+    shown = {it["track_id"]: [k["timestamp_us"] for k in it["keyframes"]] for it in ctask["items"]}
     answers = [{"track_id": t, "cad_id": c, "is_mirrored": False,
-                "keyframes": [{"timestamp_us": STAMPS[5], "points": pts}, {"timestamp_us": STAMPS[10], "points": pts}]}
+                "keyframes": [{"timestamp_us": shown[t][1], "points": pts}, {"timestamp_us": shown[t][-1], "points": pts}]}
                for t, c in ((0, "lib.chair_a"), (1, "lib.chair_b"))]
     assert ingest_labels(hwh, _label(tmp_path / "l3", "c.json", "correspondences", ctask["task_id"], answers,
                                      "2026-01-03T00:00:00+00:00")).ok

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import datetime as dt
 import json
 import random
@@ -156,6 +157,16 @@ MALFORMED = [
      r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: 123 is not a frame of the clip"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 0),
      r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: key-frame 0 is answered twice"),
+    ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 900_000),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: 900000 is not a key-frame of track 0 in task c1\.co "
+     r"\(its key-frames: 0, 300000, 600000\)"),
+    ("manual_track", lambda d: d["answers"].append(copy.deepcopy(d["answers"][0])),
+     r"\$\.answers\[1\]: the same object as answers\[0\] \(class 'table', boxes overlapping by IoU >= 0\.9"),
+    ("manual_track", lambda d: d["answers"].extend([{**d["answers"][0], "label": "chair", "source_id": "cvat:1"}] * 2),
+     r"\$\.answers\[2\]\.source_id: 'cvat:1' is also answers\[1\]'s"),
+    ("manual_track", lambda d: [d["answers"].append({"label": c, "boxes": [{"timestamp_us": 200_000, "box": [0.1, 0.1, 0.3, 0.3]}],
+                                                     "same_as_track": 0}) for c in ("chair", "table")],
+     r"\$\.answers\[2\]\.same_as_track: answers\[1\] is track 0 too: one drawn object per track"),
     ("correspondences", lambda d: d["answers"][0].__setitem__("cad_id", "m0b"), r"\$\.answers\[0\]\.cad_id: 'm0b' is not the task's model"),
     ("correspondences", lambda d: d["answers"][0].__setitem__("track_id", 7), r"\$\.answers\[0\]\.track_id: unknown track 7"),
     ("cad_selection", lambda d: d["answers"][0].__setitem__("cad_id", "m1a"), r"\$\.answers\[0\]\.cad_id: 'm1a' is not a candidate of track 0"),
@@ -577,7 +588,8 @@ def test_labelstudio_frames_not_times_and_the_clip_it_names(lwh, tmp_path):
 def test_a_label_file_with_a_bom_is_read_and_answers_naming_each_other_are_refused(lwh, tmp_path):
     path = tmp_path / "v.json"
     path.write_bytes(b"\xef\xbb\xbf" + json.dumps(good("verification")).encode())
-    assert validate_label(path, lwh).kind == "verification"
+    lf = validate_label(path, lwh)
+    assert lf.kind == "verification" and json.loads(lf.document) == good("verification")  # the document kept is JSON
     ring = _edit("cad_selection", lambda x: x.__setitem__("answers", [
         {"track_id": 0, "cad_id": None, "same_as_track": 1}, {"track_id": 1, "cad_id": None, "same_as_track": 2},
         {"track_id": 2, "cad_id": None, "same_as_track": 0}]))
@@ -691,6 +703,37 @@ def test_a_manual_track_answer_that_leaves_out_objects_of_the_one_it_replaces_is
                                               x["answers"][0].__setitem__("source_id", "cvat:9"),
                                               x["answers"][0].__setitem__("boxes", x["answers"][0]["boxes"][:1])))
     assert ingest_labels(lwh, put(tmp_path / "c", "all.json", whole)).warnings == []  # the same objects, answered again
+
+
+def test_clicked_points_lie_within_the_models_box(lwh, tmp_path):
+    """A unit error (centimetres for metres) is refused, naming the point; points on the box's faces pass."""
+    lwh.write("cad_models", "lib", table_rows("cad_models", [{"cad_id": "m0a", "library": "lib", "extent": [1.0, 1.0, 1.0]}]))
+    assert validate_label(put(tmp_path, "m.json", good("correspondences")), lwh).kind == "correspondences"
+    cm = _edit("correspondences", lambda d: [q.__setitem__("xyz", [v * 100 for v in q["xyz"]])
+                                             for q in d["answers"][0]["keyframes"][1]["points"]])
+    with pytest.raises(LabelError, match=r"cm\.json: \$\.answers\[0\]\.keyframes\[1\]\.points\[0\]\.xyz: \[-40\.0, 50\.0, -30\.0\] "
+                                         r"is outside the model's bounding box \(extent \[1\.0, 1\.0, 1\.0\] m, centred on 0\): metres expected"):
+        validate_label(put(tmp_path, "cm.json", cm), lwh)
+
+
+def test_answers_to_a_replaced_task_and_clicks_leaving_out_key_frames_are_warned_of(lwh, tmp_path):
+    """Two sessions of clicks for one track: the second replaces the first whole. An answer to a
+    task that a newer one replaced counts only where it still holds."""
+    first = good("correspondences")
+    assert ingest_labels(lwh, put(tmp_path / "a", "s1.json", first)).warnings == []
+    second = _edit("correspondences", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
+                                                 d["answers"][0]["keyframes"].pop(0)))
+    report = ingest_labels(lwh, put(tmp_path / "b", "s2.json", second))
+    assert report.ok and report.warnings == [f"{tmp_path / 'b' / 's2.json'}: its clicks for track 0 replace those of "
+                                             f"{tmp_path / 'a' / 's1.json'} and leave out 1 of its key-frame(s): the newest "
+                                             "answer of a track is its whole answer, so give every key-frame's clicks in one file"]
+    newer = next(t for t in _tasks() if t.kind == "correspondences")
+    write_task(lwh, dataclasses.replace(newer, task_id="c1.co2", created_at="2026-01-05T00:00:00+00:00"))
+    third = _edit("correspondences", lambda d: d.__setitem__("created_at", "2026-01-03T00:00:00+00:00"))
+    report = ingest_labels(lwh, put(tmp_path / "c", "s3.json", third))
+    assert report.ok and report.warnings == [f"{tmp_path / 'c' / 's3.json'}: answers task c1.co, which a rerun replaced with "
+                                             "c1.co2: its answers count only where they still hold on the newest task "
+                                             "(`cadestate status` says what waits)"]
 
 
 def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_path):

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +40,7 @@ from schemas.label_tables import ANSWER_TABLES, LABEL_EFFORT, LABEL_FILES, SIDE_
 from schemas.labels import KINDS
 from tasks.human.answers_in_force import labels_lock, sync_correspondences
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
+from tasks.human.label_warnings import LabelWarnings
 from tasks.human.labels import ClipFacts, LabelFile, utc_now, validate_label
 from tasks.pose.checks import coplanar_axis
 from warehouse import Warehouse
@@ -226,37 +226,11 @@ def _known(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
     return set(wh.read("label_files", clips, columns=["label_sha256"]).column("label_sha256").to_pylist())
 
 
-def _manual_answers(wh: Warehouse, clips: list[str]) -> dict[str, tuple[str, list]]:
-    """task id -> (source path, its objects' ids or None each) of the newest manual-track label file
-    ingested for it, for ``clips``."""
-    if not clips:
-        return {}
-    rows = wh.read("label_files", clips, filters=[("kind", "==", "manual_track")],
-                   columns=["task_id", "source_path", "ingested_at", "document"]).to_pylist()
-    out: dict[str, tuple[str, list]] = {}
-    for r in sorted(rows, key=lambda r: r["ingested_at"]):
-        try:
-            answers = json.loads(r["document"]).get("answers", [])
-        except (ValueError, AttributeError):
-            answers = []
-        out[r["task_id"]] = (r["source_path"], [a.get("source_id") if isinstance(a, dict) else None for a in answers])
-    return out
-
-
-def _dropped(earlier: list, now: list) -> int:
-    """Objects of an earlier manual-track answer that a newer one leaves out: by tool id where both
-    have ids, else by count."""
-    if earlier and all(earlier) and all(now):
-        return len(set(earlier) - set(now))
-    return max(0, len(earlier) - len(now))
-
-
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
     """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
-    with a warning for a manual-track answer that leaves out objects of the one it replaces (the
-    newest answer is the whole answer: two tools' exports for one task are not added up)."""
+    with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
     known = _known(wh)
-    manual: dict[str, tuple[str, list]] | None = None  # read once a manual-track file comes
+    warn = LabelWarnings(wh)
     accepted: list[LabelFile] = []
     for path in paths:
         try:
@@ -268,16 +242,7 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
         except LabelError as e:
             report.errors.append(str(e))
             continue
-        report.warnings += lf.warnings
-        if lf.kind == "manual_track":
-            manual = _manual_answers(wh, wh.partitions("label_files")) if manual is None else manual
-            now = [getattr(a, "source_id", None) for a in lf.label.answers]
-            before, objects = manual.get(lf.task_id, ("", []))
-            if (lost := _dropped(objects, now)):
-                report.warnings.append(f"{path}: its answer replaces that of {before} for task {lf.task_id} and leaves out "
-                                       f"{lost} of its object(s): the newest manual-track answer is the whole answer, so "
-                                       "put every object drawn in one file")
-            manual[lf.task_id] = (str(path), now)
+        report.warnings += [*lf.warnings, *warn.check(lf)]
         known.add(lf.sha256)
         accepted.append(lf)
     return accepted

@@ -8,7 +8,9 @@ and pauses; :func:`validate_label` checks a label file in two steps:
    the kind's JSON Schema, ``created_at``, different 3D points per key-frame;
 2. the warehouse: the clip exists, the task exists and is of that kind, track ids are the task's,
    a chosen ``cad_id`` is one of the track's candidates (or the task's model), timestamps are
-   frames of the clip, boxes have positive size, no track or key-frame is answered twice, and the
+   frames of the clip, clicks are on the item's key-frames (or those of its ``previous`` clicks)
+   and their 3D points within the model's bounding box, boxes have positive size, no track or
+   key-frame is answered twice, no object is drawn twice in one manual-track answer, and the
    tracks named by ``same_as_track`` / ``not_objects`` are the task's (another track than the one
    answered; a CAD-selection fragment's ``cad_id`` is null).
 
@@ -34,6 +36,7 @@ import pyarrow as pa
 from cadestate.lineage import digest
 from schemas.dataclass_json import to_json
 from schemas.labels import LABEL_FORMAT, Label, Task
+from tasks.human.clicks_in_force import box_iou
 from tasks.human.label_format import (MAX_LABEL_BYTES, LabelError, check_clicks, check_size, check_time, json_path, parse_label,
                                 parse_task, read_limited)
 from warehouse import Warehouse, atomic_write_bytes, check_name
@@ -157,6 +160,12 @@ class ClipFacts:
     def timestamps(self, clip: str) -> frozenset[int]:
         return frozenset(self.wh.read("frames", [clip], columns=["timestamp_us"]).column("timestamp_us").to_pylist())
 
+    @functools.cached_property
+    def extents(self) -> dict[str, tuple[float, float, float]]:
+        """cad_id -> the canonical bounding box's size (m, along the CAD axes) of every model."""
+        rows = self.wh.read("cad_models", columns=["cad_id", "extent"]).to_pylist()
+        return {r["cad_id"]: tuple(r["extent"]) for r in rows if r["extent"] is not None}
+
     @functools.cache
     def task(self, clip: str, task_id: str) -> Task | None:
         row = latest_task(self.wh, clip, task_id)
@@ -178,6 +187,45 @@ def _check_boxes(boxes, stamps: frozenset[int], name: str, path: list) -> None:
         ymin, xmin, ymax, xmax = b.box
         if not (ymin < ymax and xmin < xmax):
             raise _fail(name, [*path, j, "box"], f"empty box {list(b.box)}: need ymin < ymax and xmin < xmax")
+
+
+BOX_SLACK = (0.05, 0.01)
+"""A clicked 3D point lies within its model's canonical box grown by 5 % and 1 cm per axis (the
+mesh's surface is inside the box; the slack absorbs rounding): a point beyond is a unit error
+(centimetres for metres) or a point of another model."""
+
+
+def _check_xyz(points, extent: tuple[float, float, float] | None, name: str, path: list) -> None:
+    if extent is None:
+        return
+    limit = [e / 2 * (1 + BOX_SLACK[0]) + BOX_SLACK[1] for e in extent]
+    for k, q in enumerate(points):
+        if any(abs(v) > lim for v, lim in zip(q.xyz, limit)):
+            raise _fail(name, [*path, k, "xyz"], f"{list(q.xyz)} is outside the model's bounding box "
+                        f"(extent {[round(e, 3) for e in extent]} m, centred on 0): metres expected")
+
+
+def _same_drawing(a, b) -> bool:
+    """Whether two drawn objects are one: the same class and, on every frame both have a box (at
+    least one), boxes overlapping by IoU >= 0.9."""
+    mine = {x.timestamp_us: x.box for x in a.boxes}
+    shared = [x for x in b.boxes if x.timestamp_us in mine]
+    return a.label == b.label and bool(shared) and all(box_iou(mine[x.timestamp_us], x.box) >= 0.9 for x in shared)
+
+
+def _check_drawn_once(label: Label, name: str) -> None:
+    """Refuse a manual-track answer naming one object twice (a repeated ``source_id``, two drawings
+    of one object, two objects each 'track N'): each would become a manual track of its own."""
+    for i, a in enumerate(label.answers):
+        for j, b in enumerate(label.answers[:i]):
+            if a.source_id is not None and a.source_id == b.source_id:
+                raise _fail(name, ["answers", i, "source_id"], f"{a.source_id!r} is also answers[{j}]'s")
+            if a.same_as_track is not None and a.same_as_track == b.same_as_track:
+                raise _fail(name, ["answers", i, "same_as_track"], f"answers[{j}] is track {a.same_as_track} too: "
+                                                                   "one drawn object per track")
+            if _same_drawing(a, b):
+                raise _fail(name, ["answers", i], f"the same object as answers[{j}] (class {a.label!r}, boxes overlapping "
+                                                  "by IoU >= 0.9 on every frame both have)")
 
 
 def _items(task: Task, name: str, label: Label) -> dict[int, Any]:
@@ -220,6 +268,7 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
                 raise _fail(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")
             if t in label.not_objects[:i]:
                 raise _fail(name, ["not_objects", i], f"track {t} is listed twice")
+        _check_drawn_once(label, name)
         return
     items = _items(task, name, label)
     _check_same_as_cycles(label, name)
@@ -237,14 +286,20 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         if label.kind == "correspondences":
             if a.cad_id != item.cad_id:
                 raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")
+            shown = {k.timestamp_us for k in item.keyframes}
+            shown |= {k.timestamp_us for k in item.previous.keyframes} if item.previous is not None else set()
             seen = set()
             for j, kf in enumerate(a.keyframes):
                 where = ["answers", i, "keyframes", j, "timestamp_us"]
                 if kf.timestamp_us not in stamps:
                     raise _fail(name, where, f"{kf.timestamp_us} is not a frame of the clip")
+                if kf.timestamp_us not in shown:
+                    raise _fail(name, where, f"{kf.timestamp_us} is not a key-frame of track {a.track_id} in task "
+                                             f"{task.task_id} (its key-frames: {', '.join(map(str, sorted(shown)))})")
                 if kf.timestamp_us in seen:
                     raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
                 seen.add(kf.timestamp_us)
+                _check_xyz(kf.points, facts.extents.get(a.cad_id), name, ["answers", i, "keyframes", j, "points"])
 
 
 def _check_same_as_cycles(label, name: str) -> None:
@@ -280,7 +335,8 @@ def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFac
         facts = ClipFacts(wh)
     if facts is not None:
         check_label(label, facts, name)
-    return LabelFile(path, hashlib.sha256(data).hexdigest(), data.decode("utf-8"), label, created_at, tuple(warnings))
+    text = data.decode("utf-8").removeprefix("\ufeff")  # a byte-order mark is no part of the JSON document kept
+    return LabelFile(path, hashlib.sha256(data).hexdigest(), text, label, created_at, tuple(warnings))
 
 
 def label_document(kind: str, clip: str, task_id: str, answers: list[dict], **header: Any) -> dict:
