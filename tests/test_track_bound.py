@@ -62,3 +62,16 @@ def test_components_add_up_and_a_spent_time_limit_keeps_a_valid_bound():
     out_of_time = upper_bound(n, i, j, w, groups=groups, time_limit=0.0)
     assert not out_of_time.converged and out_of_time.value == pytest.approx(out_of_time.trivial)
     assert out_of_time.value >= objective(solve_exact(n, i, j, w, groups=groups), i, j, w)
+
+
+def test_the_cycle_search_stops_at_the_deadline_and_says_it_did_not_finish():
+    """A large graph's search for violated cycles ran 2-3x past the bound's time limit; it now
+    stops between batches of sources once past the deadline, and the bound is then not converged."""
+    from tasks.tracking.partition_bound import _repulsive_pairs, _separate
+    from tasks.tracking.partition_graph import renumber
+
+    _, g = renumber(3, np.array([0, 1, 0]), np.array([1, 2, 2]), np.array([1.0, 1.0, -1.5]), None, None)
+    x = (g.w < 0).astype(np.float64)  # a-b, b-c joined, a-c cut (x = 1): the triangle's cycle inequality is violated
+    found, complete = _separate(g, _repulsive_pairs(g), x, set())
+    assert complete and len(found) == 1
+    assert _separate(g, _repulsive_pairs(g), x, set(), deadline=0.0) == ([], False)

@@ -196,3 +196,10 @@ def test_detection_vectors_read_from_arrow_as_the_row_by_row_read():
     assert np.array_equal(vectors, np.asarray([by_id[d] for d in det_id.tolist()], dtype=np.float32))
     with pytest.raises(TrackingError, match="det_id 13"):
         detection_vectors(table, np.array([5, 13]), "c")
+    nan = pa.Table.from_pylist([{**r, "vector": [float("nan")] + r["vector"][1:]} if r["owner_id"] == 12 else r for r in rows],
+                               schema=EMBEDDINGS.schema)
+    with pytest.raises(TrackingError, match=r"clip c: 1 descriptors hold a value that is not a finite number \(e\.g\. det_id 12\)"):
+        detection_vectors(nan, det_id, "c")  # one NaN would make every cosine of the clip NaN, binned as 'identical'
+    empty = pa.Table.from_pylist([{**r, "vector": []} for r in rows], schema=EMBEDDINGS.schema)
+    with pytest.raises(TrackingError, match="descriptors of length 0"):
+        detection_vectors(empty, det_id, "c")

@@ -102,14 +102,17 @@ def _paths(pred: np.ndarray, sources: np.ndarray, targets: np.ndarray, row_of: d
     return out
 
 
-def _separate(g: Graph, rep: _Repulsive, x: np.ndarray, current: set) -> list[tuple[float, int, tuple[int, ...]]]:
-    """Violated conflicted-cycle inequalities at ``x`` float[E]: (violation, repulsive pair index,
-    its path's positive edges), one per violated pair (its shortest path), those not in ``current``."""
+def _separate(g: Graph, rep: _Repulsive, x: np.ndarray, current: set,
+              deadline: float = float("inf")) -> tuple[list[tuple[float, int, tuple[int, ...]]], bool]:
+    """(violated conflicted-cycle inequalities at ``x`` float[E]: (violation, repulsive pair index,
+    its path's positive edges), one per violated pair (its shortest path), those not in ``current``;
+    whether every pair was searched: the search stops between batches of sources once past
+    ``deadline``, time.monotonic())."""
     pos = np.flatnonzero(g.w > 0)
     cut = np.where(rep.edge >= 0, x[np.maximum(rep.edge, 0)], 1.0)
     todo = np.flatnonzero(cut > VIOLATION)
     if len(todo) == 0 or len(pos) == 0:
-        return []
+        return [], True
     lengths = x[pos] + PATH_LENGTH_FLOOR
     G = sp.csr_matrix((np.concatenate([lengths, lengths]), (np.concatenate([g.i[pos], g.j[pos]]),
                                                           np.concatenate([g.j[pos], g.i[pos]]))), shape=(g.n, g.n))
@@ -117,6 +120,8 @@ def _separate(g: Graph, rep: _Repulsive, x: np.ndarray, current: set) -> list[tu
     found = []
     sources = np.unique(rep.u[todo])
     for s in range(0, len(sources), SOURCES_PER_BATCH):
+        if time.monotonic() > deadline:
+            return found, False
         batch = sources[s:s + SOURCES_PER_BATCH]
         dist, pred = dijkstra(G, indices=batch, return_predecessors=True, limit=float(cut[todo].max()))
         row_of = {int(b): k for k, b in enumerate(batch.tolist())}
@@ -128,7 +133,7 @@ def _separate(g: Graph, rep: _Repulsive, x: np.ndarray, current: set) -> list[tu
             violation = float(cut[k] - x[list(edges)].sum())
             if (k, edges) not in current and violation > VIOLATION:
                 found.append((violation, k, edges))
-    return found
+    return found, True
 
 
 def _component_bound(g: Graph, deadline: float, max_rounds: int) -> tuple[float, int, int, bool]:
@@ -154,9 +159,11 @@ def _component_bound(g: Graph, deadline: float, max_rounds: int) -> tuple[float,
         bound = min(bound, float(g.w.sum() - res.fun))
         slack = res.ineqlin.residual[stars.shape[0]:]
         rows = [row for row, s in zip(rows, slack.tolist()) if s <= DROP_SLACK]  # drop the clearly inactive ones
-        new = _separate(g, rep, x, set(rows))
+        if time.monotonic() > deadline:
+            return bound, r + 1, len(rows), False
+        new, complete = _separate(g, rep, x, set(rows), deadline)
         if not new:
-            return bound, r + 1, len(rows), True
+            return bound, r + 1, len(rows), complete
         new.sort(key=lambda t: (-t[0], t[1], t[2]))
         rows += [(k, path) for _, k, path in new[:max(NEW_CYCLES[0], NEW_CYCLES[1] * g.n)]]
     return bound, max_rounds, len(rows), False

@@ -171,8 +171,14 @@ def detection_vectors(emb: pa.Table, det_id: np.ndarray, clip: str) -> tuple[np.
     lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
     if len(lengths) and (lengths != lengths[0]).any():
         raise TrackingError(f"clip {clip}: descriptors of different lengths ({lengths.min()} to {lengths.max()})")
+    if len(lengths) and lengths[0] == 0:
+        raise TrackingError(f"clip {clip}: descriptors of length 0: rerun its embed stage")
     flat = col.flatten().to_numpy(zero_copy_only=False).astype(np.float32, copy=False)
     vectors = flat.reshape(len(ids), int(lengths[0]) if len(lengths) else 0)[rows]
+    bad = ~np.isfinite(vectors).all(axis=1)
+    if bad.any():  # one NaN would spread through the clip's mean descriptor into every cosine
+        raise TrackingError(f"clip {clip}: {int(bad.sum())} descriptors hold a value that is not a finite number "
+                            f"(e.g. det_id {int(det_id[bad][0])}): rerun its embed stage")
     return vectors, str(emb["model_sha256"][int(rows[0])])
 
 
