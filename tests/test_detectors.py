@@ -79,6 +79,10 @@ def test_yolov8_adapter_on_exported_model(tmp_path, transposed):
     assert square.labels.tolist() == [0, 1, 2, 2]
     few = Detector(path, "yolov8", LABELS, 64, score_threshold=0.3, max_detections=2).detect(images[2:])[0]
     assert few.names == ("chair", "sofa")
+    # [detect] classes: other labels are dropped before the cap and NMS, so they take no place of a kept box
+    tables = Detector(path, "yolov8", LABELS, 64, score_threshold=0.3, max_detections=2, classes=("table",)).detect(images[2:])[0]
+    assert tables.names == ("table", "table")
+    np.testing.assert_allclose(tables.scores, [0.5, 0.36], atol=1e-6)
 
 
 def test_yolov8_adapter_rejects_a_wrong_label_map(tmp_path):

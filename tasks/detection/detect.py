@@ -3,7 +3,8 @@
 Reads: the clip's ``frames`` (images). Writes: its ``detections`` partition, one row per kept box
 with the box normalised as in CAD-Estate, (ymin, xmin, ymax, xmax) in [0, 1] of the image (origin
 top-left, y down), and ``det_id = frame_index * 10000 + rank`` (rank by score within the frame).
-Boxes whose label is not in ``[detect] classes`` (when set) are dropped before ranking.
+Boxes whose label is not in ``[detect] classes`` (when set) are dropped by the detector before its
+NMS and its cap of ``max_detections`` (:class:`tasks.detection.detectors.Detector`).
 """
 
 from __future__ import annotations
@@ -32,17 +33,16 @@ def load_rgb(path: Path) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def detection_rows(clip: str, frame: dict, det: Detections, model_sha256: str, classes: tuple[str, ...]) -> list[dict]:
+def detection_rows(clip: str, frame: dict, det: Detections, model_sha256: str) -> list[dict]:
     """``detections`` rows of one frame (``frame``: a ``frames`` row with width, height, index, timestamp)."""
     w, h = frame["width"], frame["height"]
-    keep = [k for k in range(len(det)) if not classes or det.names[k] in classes]
     return [{
         "clip": clip, "det_id": frame["frame_index"] * DET_ID_STRIDE + rank,
         "timestamp_us": frame["timestamp_us"], "frame_index": frame["frame_index"],
         "box": [float(y1 / h), float(x1 / w), float(y2 / h), float(x2 / w)],
-        "label": det.names[k], "label_id": int(det.labels[k]), "score": float(det.scores[k]),
+        "label": det.names[rank], "label_id": int(det.labels[rank]), "score": float(det.scores[rank]),
         "model_sha256": model_sha256,
-    } for rank, k in enumerate(keep) for x1, y1, x2, y2 in [det.boxes[k].tolist()]]
+    } for rank, (x1, y1, x2, y2) in enumerate(det.boxes.tolist())]
 
 
 def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_progress: bool = True) -> StageOutput:
@@ -58,7 +58,7 @@ def detect_clip(wh: Warehouse, cfg: DetectConfig, clip: str, run_id: str, show_p
     loaded = prefetch(batches, lambda b: detector.inputs([load_rgb(wh.root / f["image_path"]) for f in b]))
     for batch, inputs in progress(loaded, total=len(batches), description=f"detect {clip}", enabled=show_progress):
         for frame, det in zip(batch, detector.detect_inputs(*inputs)):
-            rows += detection_rows(clip, frame, det, detector.sha256, cfg.classes)
+            rows += detection_rows(clip, frame, det, detector.sha256)
     table = pa.Table.from_pylist(rows, schema=wh.spec("detections").schema)
     written = wh.write("detections", clip, table)
     labels = sorted({r["label"] for r in rows})

@@ -278,7 +278,8 @@ class Detector:
 
     def __init__(self, model_path: Path, adapter: str, labels: Sequence[str], input_size: int, *,
                  score_threshold: float = 0.35, nms_iou: float = 0.45, nms_containment: float = 0.8, nms_agnostic_iou: float = 1.0,
-                 max_detections: int = 100, batch_size: int = 8, threads: int = 2, canvas: str = "square") -> None:
+                 max_detections: int = 100, batch_size: int = 8, threads: int = 2, canvas: str = "square",
+                 classes: Sequence[str] = ()) -> None:
         if adapter not in LAYOUTS:
             raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
         if not Path(model_path).is_file():
@@ -286,6 +287,8 @@ class Detector:
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
         self.nms_containment, self.nms_agnostic_iou = nms_containment, nms_agnostic_iou
+        # label ids kept (None: every label): boxes of other labels neither suppress a kept one nor count to the cap
+        self.kept = np.array([k for k, name in enumerate(self.labels) if name in classes], np.int64) if classes else None
         graph = fit_model(Path(model_path), adapter) if canvas == "fit" else None
         self.session = MeasuredSession(Path(model_path) if graph is None else graph, threads)
         self.sha256 = file_sha256(Path(model_path))
@@ -332,9 +335,13 @@ class Detector:
         return [d for _, inputs in prefetch(chunks, self.inputs) for d in self.detect_inputs(*inputs)]
 
     def finish(self, outputs: list[np.ndarray], lb: Letterbox) -> Detections:
-        """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels; a box less
-        than a pixel high or wide on the image (one on the letterbox's padding) is dropped."""
+        """Raw outputs of one image -> thresholded, NMS-ed Detections in image pixels, of the kept
+        ``classes`` only (dropped before NMS and the cap); a box less than a pixel high or wide on
+        the image (one on the letterbox's padding) is dropped."""
         boxes, scores, labels = self.layout.candidates(outputs, lb.canvas, len(self.labels), self.score_threshold)
+        if self.kept is not None:
+            mine = np.isin(labels, self.kept)
+            boxes, scores, labels = boxes[mine], scores[mine], labels[mine]
         k = nms(boxes, scores, labels, self.nms_iou, self.nms_containment, self.nms_agnostic_iou)
         image = lb.to_image(boxes[k])
         on_image = np.flatnonzero((image[:, 2] - image[:, 0] >= 1) & (image[:, 3] - image[:, 1] >= 1))[: self.max_detections]
@@ -357,4 +364,5 @@ def load_detector(cfg) -> Detector:  # cfg: cadestate.config.DetectConfig
     labels = detector_labels(cfg)
     return Detector(model, cfg.adapter, labels, cfg.input_size, score_threshold=cfg.score_threshold,
                     nms_iou=cfg.nms_iou, nms_containment=cfg.nms_containment, nms_agnostic_iou=cfg.nms_agnostic_iou,
-                    max_detections=cfg.max_detections, batch_size=cfg.batch_size, threads=cfg.threads, canvas=cfg.canvas)
+                    max_detections=cfg.max_detections, batch_size=cfg.batch_size, threads=cfg.threads, canvas=cfg.canvas,
+                    classes=cfg.classes)
