@@ -62,8 +62,8 @@ def stats(
     html: Annotated[Optional[Path], typer.Option("--html", help="Also write an HTML report into this folder.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
-    """The dataset's figures (the paper's Table 2 and section 4: scenes, posed objects, classes, objects
-    per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
+    """The dataset's yield (posed objects of all its objects), its figures (the paper's Table 2 and
+    section 4: scenes, posed objects, classes, posed objects per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
     record per kind and per posed object, and how many answered items recorded none)."""
     from tasks.dataset.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
@@ -82,6 +82,8 @@ def stats(
         for label, value in statistics_lines(figures):
             out.print(f"{label}: {value}", highlight=False)
         out.print(f"compute seconds per stage: {figures['compute_s_per_stage']}", highlight=False)
+        out.print(f"compute seconds of the CAD libraries (shared by every clip): {figures['compute_s_cad_libraries']}",
+                  highlight=False)
         out.print(f"human items answered: {figures['human_items']}", highlight=False)
         for label, value in annotation_cost_lines(figures):
             out.print(f"{label}: {value}", highlight=False)

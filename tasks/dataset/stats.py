@@ -6,17 +6,20 @@ objects (:func:`tasks.dataset.objects.clip_dataset`); an object is *posed* when 
 accepted in verification. Clips are chosen with a SQL condition on the ``clips`` table
 (``--where``); tables come from DuckDB (the warehouse catalog) into pandas.
 
-Figures: scenes (clips), frames, frames per scene, objects, posed objects, classes of posed
-objects and those with > 100 and > 1,000, posed objects per scene, posed objects visible per frame
-(with a box on it), distinct CAD models; per frame with >= 2 posed objects visible, the ratio of the
-nearest to the farthest object distance (camera centre to object translation, world metres); per
-visible posed object and frame, the truncation: the share of its projected CAD bounding box (the
-box of the 8 posed corners, pixels) outside the image. Cost: compute seconds per stage (``runs``),
-human items answered per task kind (``label_files.num_answers``), and annotation seconds: the
-``seconds`` label files give per item (``label_effort``; a manual_track label is one item, any other
-one item per track answered), summed over every ingested label file (a superseded answer cost time
-too), per kind and per posed object, with the count of items that gave no ``seconds`` (their time
-is missing from the sum).
+Figures: the yield first (posed objects of all physical objects, posed or not: what the pipeline
+made of what it found), scenes (clips), frames, frames per scene, objects, posed objects, classes
+of posed objects and those with > 100 and > 1,000, posed objects per scene, posed objects visible
+per frame (with a box on it), distinct CAD models; per frame with >= 2 posed objects visible, the
+ratio of the nearest to the farthest object distance (camera centre to object translation, world
+metres); per visible posed object and frame, the truncation: the share of its projected CAD
+bounding box (the box of the 8 posed corners, pixels) outside the image (1 when a corner is behind
+the camera: the box reaches beyond the image). Cost: compute seconds per stage (``runs``) and of
+the CAD libraries (shared by every clip), human items answered per task kind (a manual_track label
+is one item, any other one item per track answered), and annotation seconds: the ``seconds`` label
+files give per item (``label_effort``), summed over every ingested label file (a superseded answer
+cost time too), per kind (None when no item of the kind gave any) and per posed object (None
+unless every item gave its seconds: a partial sum would flatter), with the count of items that
+gave no ``seconds`` (their time is missing from the sums).
 """
 
 from __future__ import annotations
@@ -34,8 +37,9 @@ from warehouse import Warehouse
 class DatasetTables:
     """pandas DataFrames. ``objects``: clip, track_id, class, cad_id, posed, automatic (one row per
     physical object); ``visible``: clip, timestamp_us, track_id, class, distance_m, truncated (one
-    row per posed object and frame it has a box on; distance and truncation NaN when a corner of
-    its box is behind the camera); ``frames``: clip, timestamp_us; ``runs``: stage, duration_s;
+    row per posed object and frame it has a box on; both NaN when its model has no extent);
+    ``frames``: clip, timestamp_us; ``runs``: stage, duration_s (the clips'); ``library_s``: the
+    seconds of the CAD libraries' runs;
     ``labels`` (one row per ingested label file): kind, num_answers, items (answered items: 1 for
     manual_track, else num_answers), timed_items (items with ``seconds``), seconds (their sum)."""
 
@@ -45,6 +49,7 @@ class DatasetTables:
     frames: object
     runs: object
     labels: object
+    library_s: float = 0.0
 
 
 def select_clips(wh: Warehouse, where: str = "true") -> list[str]:
@@ -56,7 +61,8 @@ def select_clips(wh: Warehouse, where: str = "true") -> list[str]:
 
 
 def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:
-    """(distance_m, truncated share) of posed object ``o`` on ``frame`` (NaN, NaN behind the camera)."""
+    """(distance_m, truncated share) of posed object ``o`` on ``frame`` (share 1 when a corner of its
+    box is behind the camera: the box's projection reaches beyond the image)."""
     h, w = ds.image_size
     half = np.asarray(o.extent, np.float64) / 2
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
@@ -64,7 +70,7 @@ def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:
     uv, depth = project(frame.K, frame.R, frame.t, corners @ M[:3, :3].T + M[:3, 3])
     distance = float(np.linalg.norm(np.asarray(o.pose.translation) - camera_to_world(frame.R, frame.t)[1]))
     if np.any(depth <= 0):
-        return distance, float("nan")
+        return distance, 1.0
     (x0, y0), (x1, y1) = uv.min(0), uv.max(0)
     area = (x1 - x0) * (y1 - y0)
     inside = max(0.0, min(x1, w) - max(x0, 0)) * max(0.0, min(y1, h) - max(y0, 0))
@@ -98,6 +104,8 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
         params = [clips]
         frames_df = con.execute("SELECT clip, timestamp_us FROM frames WHERE list_contains(?, clip)", params).df()
         runs_df = con.execute("SELECT stage, duration_s FROM runs WHERE list_contains(?, clip)", params).df()
+        library_s = con.execute("SELECT coalesce(sum(duration_s), 0.0) FROM runs WHERE clip IN "
+                                "(SELECT DISTINCT library FROM cad_models)").fetchone()[0] if clips else 0.0
         labels_df = con.execute(
             "SELECT f.kind, any_value(f.num_answers) AS num_answers, "
             "CASE WHEN f.kind = 'manual_track' THEN 1 ELSE any_value(f.num_answers) END AS items, "
@@ -111,7 +119,7 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
     columns = {"objects": ["clip", "track_id", "class", "cad_id", "posed", "automatic"],
                "visible": ["clip", "timestamp_us", "track_id", "class", "distance_m", "truncated"]}
     return DatasetTables(clips, pd.DataFrame(objects, columns=columns["objects"]),
-                         pd.DataFrame(visible, columns=columns["visible"]), frames_df, runs_df, labels_df)
+                         pd.DataFrame(visible, columns=columns["visible"]), frames_df, runs_df, labels_df, float(library_s))
 
 
 def statistics(t: DatasetTables) -> dict:
@@ -122,9 +130,11 @@ def statistics(t: DatasetTables) -> dict:
     per_frame = t.visible.dropna(subset=["distance_m"]).groupby(["clip", "timestamp_us"])["distance_m"]
     ratios = (per_frame.min() / per_frame.max())[per_frame.count() >= 2]
     truncated = t.visible["truncated"].dropna()
-    timed = int(t.labels["timed_items"].sum())
     seconds = float(t.labels["seconds"].sum())
+    missing = int(t.labels["items"].sum()) - int(t.labels["timed_items"].sum())
+    by_kind = t.labels.groupby("kind")
     return {
+        "yield": len(posed) / len(t.objects) if len(t.objects) else None,
         "scenes": n_clips, "frames": n_frames, "frames_per_scene": n_frames / n_clips if n_clips else 0.0,
         "objects": len(t.objects), "posed_objects": len(posed), "classes": int(per_class.size),
         "classes_over_100": int((per_class > 100).sum()), "classes_over_1000": int((per_class > 1000).sum()),
@@ -138,32 +148,38 @@ def statistics(t: DatasetTables) -> dict:
         "truncated_mean": float(truncated.mean()) if len(truncated) else None,
         "per_class": {k: int(v) for k, v in per_class.sort_index().items()},
         "compute_s_per_stage": {k: round(float(v), 2) for k, v in t.runs.groupby("stage")["duration_s"].sum().items()},
-        "human_items": {k: int(v) for k, v in t.labels.groupby("kind")["num_answers"].sum().items()},
+        "compute_s_cad_libraries": round(t.library_s, 2),
+        "human_items": {k: int(v) for k, v in by_kind["items"].sum().items()},
         "annotation_s": round(seconds, 3),
-        "annotation_s_per_kind": {k: round(float(v), 3) for k, v in t.labels.groupby("kind")["seconds"].sum().items()},
-        "items_without_seconds": int(t.labels["items"].sum()) - timed,
-        "annotation_s_per_posed_object": seconds / len(posed) if len(posed) and timed else None,
+        "annotation_s_per_kind": {k: round(float(s), 3) if timed else None
+                                  for (k, s), timed in zip(by_kind["seconds"].sum().items(), by_kind["timed_items"].sum())},
+        "items_without_seconds": missing,
+        "annotation_s_per_posed_object": seconds / len(posed) if len(posed) and len(t.labels) and not missing else None,
     }
 
 
-TABLE_ROWS = (("scenes", "#Scenes (clips)"), ("posed_objects", "#Posed objects"), ("objects", "#Objects (tracks)"),
+TABLE_ROWS = (("scenes", "#Scenes (clips)"), ("posed_objects", "#Posed objects"),
+              ("objects", "#Objects (physical, posed or not)"),
               ("classes", "#Classes"), ("classes_over_1000", "#Classes >1000"), ("classes_over_100", "#Classes >100"),
-              ("objects_per_scene", "#Objects per scene"), ("objects_per_frame", "#Objects per frame (visible)"),
+              ("objects_per_scene", "#Posed objects per scene"), ("objects_per_frame", "#Posed objects per frame (visible)"),
               ("cad_models", "#CAD models"), ("frames", "#Frames"), ("frames_per_scene", "#Frames per scene"),
               ("near_far_ratio_median", "Nearest / farthest object distance (median per frame)"),
-              ("truncated_share", "Share of visible objects truncated by the image border"))
+              ("truncated_share", "Share of visible posed objects truncated by the image border"))
 
 
 def statistics_lines(stats: dict) -> list[tuple[str, str]]:
-    """(label, value) rows of Table 2 and section 4, values formatted."""
+    """(label, value) rows: the yield, then Table 2 and section 4, values formatted."""
     fmt = lambda v: "-" if v is None else f"{v:.2f}" if isinstance(v, float) else str(v)  # noqa: E731
-    return [(label, fmt(stats[key])) for key, label in TABLE_ROWS]
+    share = "-" if stats["yield"] is None else f"{100 * stats['yield']:.1f} %"
+    return [("Yield (posed of all objects found)", f"{stats['posed_objects']} of {stats['objects']} ({share})"),
+            *((label, fmt(stats[key])) for key, label in TABLE_ROWS)]
 
 
 def annotation_cost_lines(stats: dict) -> list[tuple[str, str]]:
     """(label, value) rows of the annotation time the label files record (``label_effort``)."""
     per_object = stats["annotation_s_per_posed_object"]
-    rows = [(f"annotation s: {k}", f"{v:.1f}") for k, v in stats["annotation_s_per_kind"].items()]
-    rows.append(("annotation s per posed object", "-" if per_object is None else f"{per_object:.1f}"))
+    rows = [(f"annotation s: {k}", "-" if v is None else f"{v:.1f}") for k, v in stats["annotation_s_per_kind"].items()]
+    rows.append(("annotation s per posed object" + (" (shown when every item is timed)" if stats["items_without_seconds"] else ""),
+                 "-" if per_object is None else f"{per_object:.1f}"))
     rows.append(("answered items with no seconds recorded (missing from the sums)", str(stats["items_without_seconds"])))
     return rows
