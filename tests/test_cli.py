@@ -62,6 +62,8 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip, monkeypatch):
     assert rows[0] == ["stage", "status"] and sorted(rows[1:]) == sorted([s, "completed"] for s in stages)
     status = runner.invoke(app, ["-w", w, "status"])
     assert status.exit_code == 0 and status.output.count("yes") == len(stages) and "small_0" in status.output
+    named = runner.invoke(app, ["-w", w, "status", "small_0"])  # a clip named: no line saying no CAD library has that name
+    assert named.exit_code == 0 and "small_0" in named.output and "named" not in named.output, named.output
     tables = runner.invoke(app, ["-w", w, "tables"])
     assert "frames" in tables.output and "30" in tables.output
     (tmp_path / "c.toml").write_text("[warehouse]\nsnapshot_after_clips = 1\n")

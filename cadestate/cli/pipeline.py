@@ -206,7 +206,8 @@ def status(
             for r in rows:
                 fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
                 table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
-            out.print(table if rows else (f"no {title} named {', '.join(clips)}" if clips else f"no {title} yet"))
+            if rows or not clips:  # names found in neither scope are one error below, not a line per scope
+                out.print(table if rows else f"no {title} yet")
         for r in rows:
             if r.status == "paused":
                 out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
