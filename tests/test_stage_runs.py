@@ -198,6 +198,9 @@ def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_p
         return [why for why in status["ingest"].stale_reasons if "edited since ingest" in why]
 
     assert edited() == []
+    placed = wh.inputs_dir("small") / "video.mp4"
+    os.utime(placed, ns=(placed.stat().st_atime_ns, placed.stat().st_mtime_ns + 10**9))  # copied without its times
+    assert edited() == [] and edited() == []  # the same bytes: not edited (hashed once, then its new time is recorded)
     with open(cams, "a") as f:  # in place: the warehouse's inputs/small/cameras.txt is the same file
         f.write("\n")
     assert (wh.inputs_dir("small") / "cameras.txt").stat().st_ino == os.stat(cams).st_ino

@@ -274,7 +274,7 @@ def ingest_clip(
     cameras_dst = inputs / CAMERAS_FILE
     _place(source.video, video_dst, cfg.link_inputs)
     _place(cameras_path, cameras_dst, cfg.link_inputs)
-    record_placed(inputs, [video_dst, cameras_dst])
+    record_placed(inputs, {video_dst: video_sha256, cameras_dst: cameras_sha256})
     row = {
         "clip": source.clip,
         "url": cameras.url,

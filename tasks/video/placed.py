@@ -17,32 +17,54 @@ if TYPE_CHECKING:
     from warehouse import Warehouse
 
 PLACED_FILE = "placed.json"
-"""Beside a clip's inputs (``inputs/<clip>/``): each input file's size and modification time as
-ingest placed it (:func:`record_placed`), so that ``cadestate status`` sees a file edited in place
-(a hard link to the user's file) without hashing it (:func:`edited_inputs`)."""
+"""Beside a clip's inputs (``inputs/<clip>/``): each input file's size, modification time and
+SHA-256 as ingest placed it (:func:`record_placed`), so that ``cadestate status`` sees a file
+edited in place (a hard link to the user's file) without hashing it (:func:`edited_inputs`)."""
 
 
-def record_placed(folder: Path, files: list[Path]) -> None:
-    """Record the size and modification time of ``files`` (just placed in ``folder``) in :data:`PLACED_FILE`."""
-    stats = {f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in files}
+def record_placed(folder: Path, files: dict[Path, str]) -> None:
+    """Record the size, modification time and SHA-256 (``files``: path -> its SHA-256) of files just
+    placed in ``folder`` in :data:`PLACED_FILE`."""
+    stats = {f.name: [f.stat().st_size, f.stat().st_mtime_ns, sha] for f, sha in files.items()}
     atomic_write_bytes(folder / PLACED_FILE, json.dumps(stats, sort_keys=True).encode(), durable=False)
 
 
 def edited_inputs(wh: Warehouse, clip: str) -> list[str]:
-    """The clip's input files whose size or modification time differ from what ingest recorded
-    (edited in place since; none when nothing was recorded: a clip ingested before this record)."""
+    """The clip's input files edited in place since ingest: of another size, or of another
+    modification time and other bytes (none when nothing was recorded: a clip ingested before this
+    record). A file that only has another time (a warehouse copied without its times, `cp -r`) is
+    hashed once: the record takes its new time when the bytes are those ingest placed."""
     folder = wh.inputs_dir(clip)
     try:
         placed = json.loads((folder / PLACED_FILE).read_text())
     except (OSError, ValueError):
         return []
-    edited = []
-    for name, (size, mtime_ns) in sorted(placed.items()) if isinstance(placed, dict) else []:
+    edited, retimed = [], False
+    for name, (size, mtime_ns, *sha) in sorted(placed.items()) if isinstance(placed, dict) else []:
         try:
             st = os.stat(folder / name)
         except OSError:
             edited.append(name)
             continue
-        if (st.st_size, st.st_mtime_ns) != (size, mtime_ns):
+        if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
+            continue
+        if st.st_size == size and sha and _same_bytes(folder / name, sha[0]):
+            placed[name] = [size, st.st_mtime_ns, sha[0]]
+            retimed = True
+        else:
             edited.append(name)
+    if retimed:
+        try:  # best effort: a read-only warehouse hashes again next time
+            atomic_write_bytes(folder / PLACED_FILE, json.dumps(placed, sort_keys=True).encode(), durable=False)
+        except OSError:
+            pass
     return edited
+
+
+def _same_bytes(path: Path, sha256: str) -> bool:
+    from cadestate.lineage import file_sha256
+
+    try:
+        return file_sha256(path) == sha256
+    except OSError:
+        return False
