@@ -157,3 +157,29 @@ def test_an_output_path_that_cannot_be_written_is_one_line(tmp_path):
         result = cli(*args, cwd=tmp_path)
         errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
         assert result.returncode == 2 and len(errors) == 1 and errors[0].startswith(f"error: {message}"), result.stderr
+
+
+def test_stale_reasons_too_wide_for_the_terminal_go_under_the_status_table(monkeypatch):
+    """At 80 columns the reasons were folded a word a line into a 6-column cell; they are numbered
+    there and written out whole under the table. Without a terminal they stay inline."""
+    import io
+    from types import SimpleNamespace
+
+    import cadestate.cli.pipeline as pipeline
+    from cadestate.cli.common import LineConsole
+
+    why = ("code changed", "inputs changed (cameras.txt, video.mp4 of inputs/bench-7-00_0/ edited since ingest)")
+    rows = [SimpleNamespace(clip="bench-7-00_0", stage=s, last_run_at="12-06 02:30", status="completed", rows_written=1,
+                            stale_reasons=why if s != "frames" else ()) for s in ("cameras", "frames", "correspondence_task")]
+    for terminal, inline in ((True, False), (False, True)):
+        screen = LineConsole(file=io.StringIO(), force_terminal=terminal, width=80, soft_wrap=True, color_system=None)
+        monkeypatch.setattr(pipeline, "out", screen)
+        table, notes = pipeline._stage_table(rows, "clip", "clips", inline=True)
+        assert pipeline._wider_than_terminal(table) == (not inline)
+        if not inline:
+            table, notes = pipeline._stage_table(rows, "clip", "clips", inline=False)
+            screen.print(table)
+            lines = screen.file.getvalue().splitlines()
+            assert max(len(ln) for ln in lines) <= 80 and any(ln.endswith("│ no (2) │") for ln in lines), lines
+            assert notes == [f"[yellow](1)[/] bench-7-00_0 cameras: {'; '.join(why)}",
+                             f"[yellow](2)[/] bench-7-00_0 correspondence_task: {'; '.join(why)}"]

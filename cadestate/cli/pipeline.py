@@ -201,13 +201,13 @@ def status(
             out.print(table)
             out.print(f"{len(names)} clips: `cadestate status CLIP...` or `--stages` shows every stage")
         else:
-            table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
-                          Column("fresh", min_width=5), title=f"{title} (times UTC)")
-            for r in rows:
-                fresh = "[green]yes[/]" if not r.stale_reasons else "[yellow]no: " + "; ".join(r.stale_reasons) + "[/]"
-                table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
+            table, why = _stage_table(rows, scope, title, inline=True)
+            if _wider_than_terminal(table):  # the reasons would be folded to a word a line: under the table instead
+                table, why = _stage_table(rows, scope, title, inline=False)
             if rows or not clips:  # names found in neither scope are one error below, not a line per scope
                 out.print(table if rows else f"no {title} yet")
+            for line in why:
+                out.print(line, highlight=False)
         for r in rows:
             if r.status == "paused":
                 out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
@@ -219,6 +219,32 @@ def status(
     unknown = [c for c in dict.fromkeys(clips or ()) if c not in shown]
     if unknown:
         raise CliError(f"no clip or CAD library named {', '.join(unknown)} in {wh.root}")
+
+
+def _stage_table(rows, scope: str, title: str, inline: bool) -> tuple[Table, list[str]]:
+    """The status table of one scope, and the lines that go under it: each stale stage's reasons
+    in its 'fresh' cell (``inline``), or numbered there and written out under the table."""
+    table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
+                  Column("fresh", min_width=5 if inline else len(f"no ({len(rows)})")), title=f"{title} (times UTC)")
+    notes: list[str] = []
+    for r in rows:
+        reasons = "; ".join(r.stale_reasons)
+        if not r.stale_reasons:
+            fresh = "[green]yes[/]"
+        elif inline:
+            fresh = f"[yellow]no: {escape(reasons)}[/]"
+        else:
+            notes.append(f"[yellow]({len(notes) + 1})[/] {escape(r.clip)} {r.stage}: {escape(reasons)}")
+            fresh = f"[yellow]no ({len(notes)})[/]"
+        table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
+    return table, notes
+
+
+def _wider_than_terminal(table: Table) -> bool:
+    """Whether ``table`` at its natural width overflows the terminal (never without one: lines stay whole)."""
+    from rich.measure import Measurement
+
+    return out.is_terminal and Measurement.get(out, out.options.update_width(10**6), table).maximum > out.width
 
 
 @app.command()
