@@ -123,6 +123,19 @@ def test_resolve_fragments_follows_chains_and_drops_cycles():
     assert not rel.is_object(0) and not rel.is_object(1) and rel.is_object(2) and rel.root(2) == 5 and rel.root(9) == 9
 
 
+def test_a_fragment_of_a_fragment_of_no_object_is_no_object():
+    """1 is a fragment of 2, 2 of 3, and 2 is said to be no object: 1 is none either (it was, its
+    root 3 being an object); cycles leave their tracks roots."""
+    from tasks.tracking.relations import no_object_chains
+
+    edges = {1: 2, 2: 3, 5: 6, 6: 5, 7: 6}
+    fragments, _ = resolve_fragments(edges)
+    assert no_object_chains({2}, edges, fragments) == {1, 2}
+    assert no_object_chains({6}, edges, fragments) == {6, 7}
+    relations = TrackRelations(frozenset(no_object_chains({2}, edges, fragments)), fragments)
+    assert not relations.is_object(1) and relations.is_object(3)
+
+
 def test_not_objects_and_fragments_act_downstream_while_in_force(rwh, tmp_path):
     manual = _manual_task(rwh)
     _, first = _cad_task(rwh)

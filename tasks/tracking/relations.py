@@ -188,7 +188,22 @@ def relations_in_force(wh: Warehouse, clip: str) -> TrackRelations:
     fragments, warnings = resolve_fragments(edges)
     for w in warnings:
         log.warning("clip %s: %s", clip, w)
-    return TrackRelations(frozenset(not_objects), fragments, frozenset(drawn), tuple(warnings))
+    return TrackRelations(frozenset(no_object_chains(not_objects, edges, fragments)), fragments, frozenset(drawn),
+                          tuple(warnings))
+
+
+def no_object_chains(not_objects: set[int], edges: Mapping[int, int], fragments: Mapping[int, int]) -> set[int]:
+    """``not_objects`` and every fragment whose chain to its root (``edges``: track -> the track it
+    is a fragment of; ``fragments``: fragment -> root) passes a track said to be no object: a
+    fragment of a track that is no object is no object either, however many links away."""
+    out = set(not_objects)
+    for start, root in fragments.items():
+        t = start
+        while t != root and t not in not_objects:
+            t = edges[t]
+        if t in not_objects:
+            out.add(start)
+    return out
 
 
 @once_per_reading
