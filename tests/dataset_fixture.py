@@ -52,8 +52,9 @@ def write_tracks(wh: Warehouse, clip: str, cams: CameraTrack, tracks: dict) -> N
 
 def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None = None,
                    rejected: dict | None = None) -> None:
-    """``verified_poses`` (accepted, the ground-truth pose) and ``poses`` rows of ``{track id: object}``;
-    ``rejected`` {track id: object}: poses refused in verification (``verified_poses`` only)."""
+    """``verified_poses`` (accepted, the ground-truth pose) and ``poses`` rows of ``{track id: object}``,
+    and the completed verification run; ``rejected`` {track id: object}: poses refused in verification
+    (``verified_poses`` only)."""
     verdicts = [(t, o, True) for t, o in posed.items()] + [(t, o, False) for t, o in (rejected or {}).items()]
     wh.write("verified_poses", clip, table_rows("verified_poses", [
         {"clip": clip, "track_id": str(t), "cad_id": o.cad_id, "class": CLASS_NAME[o.cls], "accepted": ok,
@@ -61,6 +62,8 @@ def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None
          "is_mirrored": o.is_mirrored, "comment": None} for t, o, ok in verdicts]))
     wh.write("poses", clip, table_rows("poses", [{"clip": clip, "track_id": str(t),
                                                   "num_keyframes": (keyframes or {}).get(t, 2)} for t in posed]))
+    wh.write("runs", clip, table_rows("runs", [{"clip": clip, "run_id": "20260101T000000Z-verified", "stage": "verification",
+                                                "status": "completed"}]))  # every pose judged: the clip is exported
 
 
 def write_selection(wh: Warehouse, clip: str, chosen: dict[int, str | None]) -> None:

@@ -183,7 +183,7 @@ def test_unposed_objects_carry_no_pose(built, tmp_path):
 def test_scan2cad_round_trip(built, tmp_path):
     wh, clip, truth = built
     counts = export_scan2cad(wh, tmp_path / "s2c")
-    assert counts == {"scans": 1, "alignments": 3, "unfinished": []}  # accepted poses only: not the rejected one, not the unposed track
+    assert counts == {"scans": 1, "alignments": 3, "note": ""}  # accepted poses only: not the rejected one, not the unposed track
     rows = read_csv(tmp_path / "s2c" / f"{CLIP}.csv")
     assert len(rows) == 3
     for row, tid in zip(rows, sorted(truth)):
@@ -261,22 +261,35 @@ def _copy(built, tmp_path) -> Warehouse:
     return Warehouse(tmp_path / "wh")
 
 
-def test_a_default_export_leaves_out_clips_that_never_reached_verification(built, tmp_path):
-    """A clip with only its frames would read as a scene with nothing in it: left out and named,
-    exported only when asked for; two clips of one export name, or a clip named twice, are sorted out."""
+def test_a_default_export_leaves_out_clips_whose_verification_has_not_completed(built, tmp_path):
+    """A clip with only its frames would read as a scene with nothing in it, one whose verification
+    waits for verdicts as one whose unjudged poses were rejected: left out and named, exported only
+    when asked for (and named then too); two clips of one export name, or a clip named twice, are
+    sorted out. Scan2CAD has no scan without a model: a clip with no accepted pose is left out."""
     from tasks.cad.export import ExportError
 
     wh = _copy(built, tmp_path)
     _, clip, _ = built
     write_frames(wh, "kitchen", clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
     counts = export_dataset(wh, tmp_path / "a", cad=False, show_progress=False)
-    assert counts["clips"] == 1 and counts["unfinished"] == ["kitchen"]
+    assert counts["clips"] == 1 and counts["note"] == ("left out 1 clip(s) whose verification has not completed: kitchen "
+                                                       "(name them with --clips to export them as they are)")
     assert (tmp_path / "a" / "scene_list.txt").read_text() == f"{CLIP}\n"
     with pytest.raises(ExportError, match=rf"^clips {CLIP}, kitchen would both be exported as '{CLIP}'"):
         export_dataset(wh, tmp_path / "b", [CLIP, "kitchen"], cad=False, show_progress=False)
     assert export_dataset(wh, tmp_path / "c", [CLIP, CLIP], cad=False, show_progress=False)["clips"] == 1
-    with pytest.raises(ExportError, match="no clip of .* has reached verification yet \\(1 with frames: kitchen\\)"):
+    with pytest.raises(ExportError, match="no clip of .* has completed verification yet \\(1 with frames: kitchen\\)"):
         export_dataset(_only_unfinished(tmp_path), tmp_path / "d", cad=False, show_progress=False)
+    wh.write("runs", CLIP, table_rows("runs", [{"clip": CLIP, "run_id": "20260102T000000Z-waiting", "stage": "verification",
+                                                "status": "paused"}]))  # a rerun waits for verdicts on new poses
+    with pytest.raises(ExportError, match="no clip of .* has completed verification yet \\(2 with frames"):
+        export_dataset(wh, tmp_path / "e", cad=False, show_progress=False)
+    named = export_scan2cad(wh, tmp_path / "s", [CLIP, "kitchen"])
+    assert named["scans"] == 1 and named["note"].splitlines() == [
+        f"2 clip(s) written as they are, their verification not completed (poses still unjudged read as not posed): "
+        f"{CLIP}, kitchen", "left out 1 clip(s) with no accepted pose (no Scan2CAD scan): kitchen"]
+    assert not (tmp_path / "s" / "kitchen.csv").exists()
+    assert [a["id_scan"] for a in json.loads((tmp_path / "s" / "full_annotations.json").read_text())] == [CLIP]
 
 
 def _only_unfinished(tmp_path) -> Warehouse:

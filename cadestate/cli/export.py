@@ -19,7 +19,7 @@ app.add_typer(export_app, name="export")
 def export_official(
     ctx: typer.Context,
     out_dir: Annotated[Path, typer.Argument(help="New (or empty) folder to write.")],
-    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all that reached verification).")] = None,
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
     cad: Annotated[bool, typer.Option(help="Also write the CAD root (cad/, as `cadestate cad export-official`).")] = True,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
@@ -28,10 +28,8 @@ def export_official(
     root cad/ and scene_list.txt: what the official cad_estate dataset classes read."""
     from tasks.dataset.export_official import export_dataset
 
-    from tasks.cad.export import unfinished_note
-
     counts = export_dataset(ctx.obj.open_warehouse(must_exist=True), out_dir, clips, cad, progress)
-    if note := unfinished_note(counts["unfinished"]):
+    if note := counts["note"]:
         err.print(f"warning: {note}", highlight=False, markup=False)
     out.print(f"wrote {out_dir}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
               f"({counts['posed_objects']} posed), {counts['cad_models']} CAD models")
@@ -41,16 +39,14 @@ def export_official(
 def export_scan2cad(
     ctx: typer.Context,
     out_dir: Annotated[Path, typer.Argument(help="Folder to write (files of the same names are replaced).")],
-    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all that reached verification).")] = None,
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
 ) -> None:
     """Write the accepted poses as Scan2CAD files: <clip>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
     (no header), full_annotations.json and cad_appearances.json; a mirrored model is the CAD id <cad_id>_mirrored."""
     from tasks.dataset.export_scan2cad import export_scan2cad as write
 
-    from tasks.cad.export import unfinished_note
-
     counts = write(ctx.obj.open_warehouse(must_exist=True), out_dir, clips)
-    if note := unfinished_note(counts["unfinished"]):
+    if note := counts["note"]:
         err.print(f"warning: {note}", highlight=False, markup=False)
     out.print(f"wrote {out_dir}: {counts['scans']} scans, {counts['alignments']} alignments")
 

@@ -74,42 +74,56 @@ def publish(tmp: Path, out: Path) -> None:
 
 @dataclass(frozen=True)
 class ExportClips:
-    """The clips a dataset export writes (``chosen``, in order, each once) and those it leaves out by
-    default (``unfinished``: frames, but the verification stage never ran, so their objects would
-    read as a scene with nothing posed)."""
+    """The clips a dataset export writes (``chosen``, in order, each once) and its clips whose
+    verification has not completed (``unfinished``: it never ran, or waits for verdicts, so poses
+    still unjudged would read as not posed): left out by default, written as they are when
+    ``named`` (``--clips``)."""
 
     chosen: list[str]
     unfinished: list[str]
+    named: bool = False
+
+    def note(self) -> str:
+        """The warning line about ``unfinished`` ('' when none)."""
+        if not self.unfinished:
+            return ""
+        shown = ", ".join(self.unfinished[:10]) + (f" and {len(self.unfinished) - 10} more" if len(self.unfinished) > 10 else "")
+        if self.named:
+            return (f"{len(self.unfinished)} clip(s) written as they are, their verification not completed (poses still "
+                    f"unjudged read as not posed): {shown}")
+        return (f"left out {len(self.unfinished)} clip(s) whose verification has not completed: {shown} "
+                "(name them with --clips to export them as they are)")
+
+
+def verification_completed(wh: Warehouse, clips: Sequence[str]) -> set[str]:
+    """The ``clips`` whose newest verification run completed (every solved pose has its verdict)."""
+    runs = wh.read("runs", list(clips), filters=[("stage", "==", "verification")], columns=["clip", "run_id", "status"])
+    newest: dict[str, tuple[str, str]] = {}
+    for clip, run_id, status in zip(*(runs.column(c).to_pylist() for c in ("clip", "run_id", "status"))):
+        if clip not in newest or run_id > newest[clip][0]:
+            newest[clip] = (run_id, status)
+    return {c for c, (_, status) in newest.items() if status == "completed"}
 
 
 def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
     """The clips a dataset export writes: ``clips`` (repeats dropped), default every clip with
-    frames that reached verification (:class:`ExportError` when one has no frames, or there is none)."""
+    frames whose verification completed (:class:`ExportError` when one has no frames, or there is none)."""
     known = wh.partitions("frames")
-    if clips:
-        chosen, unfinished = list(dict.fromkeys(clips)), []
-    else:
-        verified = set(wh.partitions("verified_poses"))
-        chosen, unfinished = [c for c in known if c in verified], [c for c in known if c not in verified]
+    chosen = list(dict.fromkeys(clips)) if clips else known
+    done = verification_completed(wh, [c for c in chosen if c in known])
+    unfinished = [c for c in chosen if c in known and c not in done]
+    if not clips:
+        chosen = [c for c in known if c in done]
     missing = [c for c in chosen if c not in known]
     if missing:
         raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
     if not chosen and unfinished:
-        raise ExportError(f"no clip of {wh.root} has reached verification yet ({len(unfinished)} with frames: "
+        raise ExportError(f"no clip of {wh.root} has completed verification yet ({len(unfinished)} with frames: "
                           f"{', '.join(unfinished[:5])}{', ...' if len(unfinished) > 5 else ''}); run them on "
                           "(`cadestate run`), or name them with --clips to export them as they are")
     if not chosen:
         raise ExportError(f"no clip with frames in {wh.root}; run `cadestate ingest` and `cadestate run` first")
-    return ExportClips(chosen, unfinished)
-
-
-def unfinished_note(unfinished: Sequence[str]) -> str:
-    """The warning line of the clips a default export left out ('' when none)."""
-    if not unfinished:
-        return ""
-    shown = ", ".join(unfinished[:10]) + (f" and {len(unfinished) - 10} more" if len(unfinished) > 10 else "")
-    return (f"left out {len(unfinished)} clip(s) that have not reached verification: {shown} "
-            "(name them with --clips to export them as they are)")
+    return ExportClips(chosen, unfinished, bool(clips))
 
 
 def triangle_soup(mesh_file: Path) -> np.ndarray:

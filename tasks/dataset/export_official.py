@@ -130,7 +130,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
                    show_progress: bool = True) -> dict[str, int]:
     """Write the official layout of ``clips`` (default: every clip that reached verification,
     :func:`export_clips`) to ``out`` (new or empty); returns counts (clips, frames, objects, posed
-    objects, CAD models, and ``unfinished``: the clips a default export left out)."""
+    objects, CAD models, and ``note``: :meth:`ExportClips.note`)."""
     out = Path(os.path.abspath(out))
     check_new_folder(out)
     selection = export_clips(wh, clips)
@@ -139,7 +139,7 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     check_exportable(datasets, names)
     tmp = temp_folder_beside(out)
     counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0,
-              "unfinished": selection.unfinished}
+              "note": selection.note()}
     frame_of: dict[Path, tuple[str, Path]] = {}  # exported frame -> (clip, warehouse image)
     try:
         for ds, name in zip(datasets, names):

@@ -108,21 +108,29 @@ def annotation(ds: ClipDataset) -> dict:
 
 
 def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None) -> dict[str, int]:
-    """Write the Scan2CAD files of ``clips`` (default: every clip that reached verification,
-    :func:`export_clips`) into ``out``; returns counts (scans, alignments, and ``unfinished``: the
-    clips a default export left out)."""
+    """Write the Scan2CAD files of ``clips`` (default: every clip whose verification completed,
+    :func:`export_clips`) into ``out``; returns counts (scans, alignments, and ``note``: the
+    warning lines, '' when none). A clip with no accepted pose is no scan (Scan2CAD's evaluation
+    divides by a scan's models): left out, its file of an earlier export removed, and named."""
     out = Path(out)
     selection = export_clips(wh, clips)
-    clips = selection.chosen
     make_folder(out, exist_ok=True)
-    annotations, appearances, total = [], {}, 0
-    for clip in clips:
+    annotations, appearances, total, empty = [], {}, 0, []
+    for clip in selection.chosen:
         ds = clip_dataset(wh, clip)
         rows = alignments(ds)
+        if not rows:
+            empty.append(clip)
+            (out / f"{clip}.csv").unlink(missing_ok=True)
+            continue
         atomic_write_bytes(out / f"{clip}.csv", csv_text(rows).encode())
         annotations.append(annotation(ds))
         appearances[clip] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
         total += len(rows)
     atomic_write_bytes(out / "full_annotations.json", json.dumps(annotations, indent=1).encode())
     atomic_write_bytes(out / "cad_appearances.json", json.dumps(appearances, indent=1).encode())
-    return {"scans": len(clips), "alignments": total, "unfinished": selection.unfinished}
+    notes = [selection.note()] if selection.note() else []
+    if empty:
+        notes.append(f"left out {len(empty)} clip(s) with no accepted pose (no Scan2CAD scan): {', '.join(empty[:10])}"
+                     + (f" and {len(empty) - 10} more" if len(empty) > 10 else ""))
+    return {"scans": len(annotations), "alignments": total, "note": "\n".join(notes)}
