@@ -257,7 +257,7 @@ def build(wh: Warehouse, out_dir: Path, spec: TrainSpec, show_progress: bool = T
     W, report = train(views, crops, spec, show_progress)
     meta = {"spec": asdict(spec), "recipe": made_by, "library_digest": library, "models": int(len(views.cad_ids)), "tau": TAU,
             "crops_sha256": hashlib.sha256(crops.vectors.tobytes()).hexdigest(), **report}
-    path = save_descriptor(out_dir / DESCRIPTOR_NAME, W, meta)
+    path = save_descriptor(out_dir / DESCRIPTOR_NAME, W, views.vectors.mean(0), meta)
     timings = {"render_s": round(t1 - t0, 1), "train_s": round(time.perf_counter() - t1, 1)}
     atomic_write_bytes(out_dir / "descriptor-report.json", json.dumps({**meta, **timings, "sha256": file_sha256(path)}, indent=1).encode())
     return path

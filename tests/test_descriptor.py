@@ -5,6 +5,7 @@ a benchmark, the training crops, the file and its digest, the 'learned' whitenin
 from __future__ import annotations
 
 import dataclasses
+import io
 
 import numpy as np
 import pytest
@@ -55,12 +56,19 @@ def test_visible_boxes_keep_objects_seen_well_enough():
 
 def test_descriptor_file_round_trips_and_its_bytes_depend_on_values_only(tmp_path):
     W = np.random.default_rng(1).normal(size=(16, 32)).astype(np.float32)
-    a = save_descriptor(tmp_path / "a.npz", W, {"seed": 1, "spec": {"rooms": 3}})
-    b = save_descriptor(tmp_path / "b.npz", W.copy(), {"spec": {"rooms": 3}, "seed": 1})
+    mu = np.random.default_rng(2).normal(size=32)
+    a = save_descriptor(tmp_path / "a.npz", W, mu, {"seed": 1, "spec": {"rooms": 3}})
+    b = save_descriptor(tmp_path / "b.npz", W.copy(), mu.copy(), {"spec": {"rooms": 3}, "seed": 1})
     assert a.read_bytes() == b.read_bytes()
-    got, meta = load_descriptor(a)
+    got, meta, mean = load_descriptor(a)
     np.testing.assert_array_equal(got, W)
+    np.testing.assert_array_equal(mean, mu.astype(np.float32))
     assert meta == {"seed": 1, "spec": {"rooms": 3}}
+    buf = io.BytesIO()  # a file from before the mean was kept: made again, not centred on each library's own mean
+    np.savez(buf, projection=W, meta=np.array("{}"))
+    (tmp_path / "old.npz").write_bytes(buf.getvalue())
+    with pytest.raises(DescriptorMissing, match=r"old.npz: mean must be float32\[32\], got none .*run `make models` again"):
+        load_descriptor(tmp_path / "old.npz")
     with pytest.raises(DescriptorMissing, match="make models"):
         load_descriptor(tmp_path / "none.npz")
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
@@ -68,14 +76,17 @@ def test_descriptor_file_round_trips_and_its_bytes_depend_on_values_only(tmp_pat
         load_descriptor(tmp_path / "bad.npz")
 
 
-def test_learned_whitening_is_the_trained_map_centred_on_the_library():
+def test_learned_whitening_is_the_trained_map_centred_on_the_trained_mean():
+    """Every library gets the one trained map: a library of two models centred on its own mean
+    would make the two exact opposites, one of them close to almost any object."""
     rng = np.random.default_rng(2)
-    v, W = rng.normal(size=(40, 24)), rng.normal(size=(8, 24)).astype(np.float32)
-    fitted = fit_whitening(v, "learned", 128, W)
-    expected = (v - v.mean(0)) @ W.T.astype(np.float64)
+    v, W, mu = rng.normal(size=(40, 24)), rng.normal(size=(8, 24)).astype(np.float32), rng.normal(size=24)
+    fitted = fit_whitening(v, "learned", 128, W, mu)
+    expected = (v - mu) @ W.T.astype(np.float64)
     expected /= np.linalg.norm(expected, axis=1, keepdims=True)
     np.testing.assert_allclose(fitted.apply(v), expected, atol=1e-5)
     assert fitted.method == "learned" and fitted.projection.shape == (8, 24)
+    np.testing.assert_array_equal(fit_whitening(v[:2], "learned", 128, W, mu).mean, fitted.mean)
     with pytest.raises(ValueError, match=r"float32\[k, 24\]"):
         fit_whitening(v, "learned", 128, W[:, :10])
     with pytest.raises(ValueError, match="learned projection"):
@@ -110,8 +121,8 @@ def test_training_learns_what_whitening_cannot_and_the_same_seed_gives_the_same_
     assert after["top1"] >= 0.8, report
     assert evaluate(W, lib.vectors.mean(0), lib, crops)["top10"] >= after["top10"] - 0.1
     again, _ = train(lib, crops, spec, show_progress=False)
-    a = save_descriptor(tmp_path / "a.npz", W, {"seed": spec.seed})
-    b = save_descriptor(tmp_path / "b.npz", again, {"seed": spec.seed})
+    a = save_descriptor(tmp_path / "a.npz", W, lib.vectors.mean(0), {"seed": spec.seed})
+    b = save_descriptor(tmp_path / "b.npz", again, lib.vectors.mean(0), {"seed": spec.seed})
     assert a.read_bytes() == b.read_bytes()
     other, _ = train(lib, crops, dataclasses.replace(spec, seed=2), show_progress=False)
     assert not np.array_equal(other, W)
@@ -170,8 +181,8 @@ def test_make_models_trains_on_rooms_and_cad_embed_applies_it(small_library_ware
     spec = TrainSpec(rooms=3, frames=3, steps=30, holdout_every=3)
     path = build(wh, models_dir, spec, show_progress=False)
     assert path == models_dir / DESCRIPTOR_NAME
-    W, meta = load_descriptor(path)
-    assert W.shape[1] == 768
+    W, meta, mean = load_descriptor(path)
+    assert W.shape[1] == 768 and mean.shape == (768,)
     assert meta["spec"]["rooms"] == 3 and meta["train_crops"] + meta["heldout_crops"] > 0
     inputs = CAD_EMBED.config_inputs(config)
     assert inputs and len(inputs[0]) == 64
@@ -185,8 +196,10 @@ def test_make_models_trains_on_rooms_and_cad_embed_applies_it(small_library_ware
         np.testing.assert_array_equal(np.asarray(row["projection"], np.float32).reshape(W.shape), W)
     views = [v for v in wh.read("cad_embeddings").to_pylist() if v["library"] == rows[0]["library"]]
     raw = np.asarray([v["vector"] for v in views], np.float32)
-    fitted = fit_whitening(raw, "learned", 0, W)  # centred on this library's views
-    np.testing.assert_allclose(np.asarray(rows[0]["mean"]), raw.mean(0), atol=1e-6)
+    fitted = fit_whitening(raw, "learned", 0, W, mean)  # centred on the file's mean: that of every library's views, not its own
+    np.testing.assert_array_equal(np.asarray(rows[0]["mean"], np.float32), mean)
+    every = np.asarray(wh.read("cad_embeddings").column("vector").to_pylist(), np.float32)
+    np.testing.assert_allclose(mean, every.mean(0), atol=1e-5)
     per_model = {r["cad_id"]: np.asarray(r["vector"]) for r in wh.read("cad_model_embeddings").to_pylist()}
     some = views[0]["cad_id"]
     mine = np.array([v["cad_id"] == some for v in views])
@@ -197,5 +210,5 @@ def test_make_models_trains_on_rooms_and_cad_embed_applies_it(small_library_ware
     library = rows[0]["library"]  # the evaluation's in-memory index is the one the stage wrote
     np.testing.assert_allclose(whitened_index(wh, library, "learned").vectors, build_index(wh, library).vectors, atol=1e-6)
 
-    save_descriptor(path, W * 2, meta)  # retrained: another file
+    save_descriptor(path, W * 2, mean, meta)  # retrained: another file
     assert CAD_EMBED.config_inputs(config) != inputs

@@ -58,9 +58,12 @@ def model_embeddings(library: str, classes: dict[str, str], cad_ids: list[str], 
 
 def library_whitening(vectors: np.ndarray, cfg: CadEmbedConfig) -> Whitening:
     """The ``[cad_embed] whitening`` of a library whose raw view descriptors are ``vectors``
-    float[N, D]: fitted on them, or for 'learned' the trained projection centred on them."""
-    learned = load_descriptor()[0] if cfg.whitening == "learned" else None
-    return fit_whitening(vectors, cfg.whitening, cfg.whitening_dims, learned)
+    float[N, D]: fitted on them, or for 'learned' the trained file's (its projection and mean:
+    one map for every library, so scores of different libraries compare)."""
+    if cfg.whitening == "learned":
+        projection, _, mean = load_descriptor()
+        return fit_whitening(vectors, "learned", cfg.whitening_dims, projection, mean)
+    return fit_whitening(vectors, cfg.whitening, cfg.whitening_dims)
 
 
 def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, library: str, run_id: str,
@@ -99,7 +102,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="cad_embed", section="cad_embed", scope="library", upstream=("cad_views",),
+    name="cad_embed", section="cad_embed", scope="library", upstream=("cad_ingest", "cad_views"),
     tables=("cad_embeddings", "embedding_whitening", "cad_model_embeddings"),
     description="embed every CAD view, fit the descriptor whitening",
     extra_sections=("embed",), run=_run, config_inputs=descriptor_inputs,

@@ -3,14 +3,16 @@
 library's own views.
 
 File: ``<models cache>/descriptor-projection.npz`` (``$CADESTATE_MODELS``, as the detector), with
-``projection`` float32[k, D] (D = the embedder's 768) and ``meta`` (a JSON string: the training
-spec and seed, the library it was trained on, held-out accuracy). Its SHA-256 versions it: the
+``projection`` float32[k, D] (D = the embedder's 768), ``mean`` float32[D] (the mean view
+descriptor of the library it was trained on, which the training centred on) and ``meta`` (a JSON
+string: the training spec and seed, the library it was trained on, held-out accuracy). Its SHA-256 versions it: the
 ``cad_embed`` stage digests the file as an input (:func:`descriptor_inputs`), so a retrained
 projection re-embeds the libraries and reruns retrieval.
 
 ``[cad_embed] whitening = "learned"`` applies it as a :class:`tasks.retrieval.whitening.Whitening`
-whose mean is the library's mean view descriptor and whose projection is the file's matrix:
-``w = normalise(P (v - mean))``, the same map the training optimised.
+whose mean and projection are the file's: ``w = normalise(P (v - mean))``, the same map the
+training optimised, for every library alike (a library centred on its own mean would score on
+another scale: a small one's models would come out near the top for any object).
 
 Light on purpose (numpy only inside the functions that read or write the file): ``cadestate
 status`` digests the file through :func:`descriptor_inputs`.
@@ -43,19 +45,21 @@ def descriptor_path() -> Path:
     return default_cache_dir() / DESCRIPTOR_NAME
 
 
-def save_descriptor(path: Path, projection: np.ndarray, meta: dict) -> Path:
-    """Write ``projection`` float32[k, D] and ``meta`` to ``path`` atomically; the bytes depend on
-    the values only (numpy's archive entries carry a fixed date)."""
+def save_descriptor(path: Path, projection: np.ndarray, mean: np.ndarray, meta: dict) -> Path:
+    """Write ``projection`` float32[k, D], ``mean`` float32[D] and ``meta`` to ``path`` atomically;
+    the bytes depend on the values only (numpy's archive entries carry a fixed date)."""
     import numpy as np
 
     buf = io.BytesIO()
-    np.savez(buf, projection=np.ascontiguousarray(projection, np.float32), meta=np.array(json.dumps(meta, sort_keys=True)))
+    np.savez(buf, projection=np.ascontiguousarray(projection, np.float32), mean=np.ascontiguousarray(mean, np.float32),
+             meta=np.array(json.dumps(meta, sort_keys=True)))
     atomic_write_bytes(path, buf.getvalue())
     return path
 
 
-def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict]:
-    """(projection float32[k, D], meta) of the descriptor file (default :func:`descriptor_path`)."""
+def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict, np.ndarray]:
+    """(projection float32[k, D], meta, mean float32[D]) of the descriptor file (default
+    :func:`descriptor_path`)."""
     import numpy as np
 
     path = path or descriptor_path()
@@ -65,11 +69,16 @@ def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict]:
     try:
         with np.load(path, allow_pickle=False) as f:
             projection, meta = f["projection"], json.loads(str(f["meta"]))
+            mean = f["mean"] if "mean" in f.files else None
     except (OSError, ValueError, KeyError) as e:
         raise DescriptorMissing(f"{path}: not a descriptor file ({e}); run `make models` again") from None
     if projection.ndim != 2 or projection.dtype != np.float32:
         raise DescriptorMissing(f"{path}: projection must be float32[k, D], got {projection.dtype}{list(projection.shape)}")
-    return projection, meta
+    if mean is None or mean.dtype != np.float32 or mean.shape != projection.shape[1:]:
+        shape = "none" if mean is None else f"{mean.dtype}{list(mean.shape)}"
+        raise DescriptorMissing(f"{path}: mean must be float32[{projection.shape[1]}], got {shape} (a file made before "
+                                "the mean was kept); run `make models` again")
+    return projection, meta, mean
 
 
 def descriptor_inputs(config: Config) -> list[str]:

@@ -5,8 +5,9 @@ before comparing descriptors of detections and CAD views both go through the sam
 ``w = normalise(P (v - mean))``: 'centre' subtracts the library mean (P = identity), 'whiten'
 also projects on the top ``k`` principal directions scaled by 1 / sqrt(eigenvalue + shrinkage),
 shrinkage = 10 % of the mean kept eigenvalue (so near-empty directions do not explode noise);
-'learned' subtracts the library mean and applies the projection trained by ``make models``
-(:mod:`tasks.retrieval.descriptor`), given to :func:`fit_whitening` as ``learned``.
+'learned' subtracts the mean the training centred on and applies the projection trained by
+``make models`` (:mod:`tasks.retrieval.descriptor`), given to :func:`fit_whitening` as
+``learned_mean`` and ``learned``: the same map for every library.
 """
 
 from __future__ import annotations
@@ -38,9 +39,12 @@ class Whitening:
         return (w / np.where(n > 0, n, 1)).astype(np.float32)
 
 
-def fit_whitening(vectors: np.ndarray, method: str, dims: int, learned: np.ndarray | None = None) -> Whitening:
+def fit_whitening(vectors: np.ndarray, method: str, dims: int, learned: np.ndarray | None = None,
+                  learned_mean: np.ndarray | None = None) -> Whitening:
     """Fit ``method`` on descriptors float[N,D]; 'whiten' keeps min(dims, D, N - 1) directions;
-    'learned' needs the trained projection ``learned`` float32[k, D] (``dims`` does not apply)."""
+    'learned' needs the trained projection ``learned`` float32[k, D] (``dims`` does not apply) and
+    is centred on ``learned_mean`` float32[D], the mean the training centred on (None: the mean of
+    ``vectors``, which is that mean only for the library the projection was trained on)."""
     if method not in METHODS:
         raise ValueError(f"unknown whitening {method!r} (known: {', '.join(METHODS)})")
     v = np.asarray(vectors, np.float64)
@@ -49,8 +53,8 @@ def fit_whitening(vectors: np.ndarray, method: str, dims: int, learned: np.ndarr
         if learned is None or learned.ndim != 2 or learned.shape[1] != d:
             shape = None if learned is None else list(learned.shape)
             raise ValueError(f"the learned projection must be float32[k, {d}] for {d}-d descriptors, got {shape}")
-        mean = v.mean(0) if len(v) else np.zeros(d)
-        return Whitening("learned", mean.astype(np.float32), np.asarray(learned, np.float32))
+        mean = learned_mean if learned_mean is not None else v.mean(0) if len(v) else np.zeros(d)
+        return Whitening("learned", np.asarray(mean, np.float32), np.asarray(learned, np.float32))
     if method == "none" or len(v) == 0:
         return Whitening("none", np.zeros(d, np.float32), np.eye(d, dtype=np.float32))
     mean = v.mean(0)
