@@ -180,6 +180,12 @@ def test_cad_library_flow_caches_per_stage(config, tmp_path):
     status = {r.stage: r.stale_reasons for r in pipeline_status(wh, crops, scope="library")}
     assert status["cad_embed"] == ("config changed",) and status["cad_views"] == ()
     assert pipeline_status(wh, bigger, ["lib"], scope="clip") == []  # a library is not a clip
+    # a model's class changed in models.csv: its renders come out the same, yet its descriptors take the new class
+    (folder / "models.csv").write_text("id,class\nbox,cabinet\ncone,lamp\n")
+    relabelled = list(folder_items(folder, "lib"))
+    assert states(run_cad_library(relabelled, bigger, show_progress=False)) == [("lib", s, "completed") for s in names]
+    classes = {r["cad_id"]: r["class"] for r in wh.read("cad_model_embeddings", columns=["cad_id", "class"]).to_pylist()}
+    assert classes == {"lib.box": "cabinet", "lib.cone": "lamp"}
 
 
 def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, source, tmp_path):
