@@ -28,7 +28,8 @@ CORRESPONDENCES = TableSpec(
     description="3D<->2D point correspondences of the human task (one row per click): the input of pose solving.",
     schema=pa.schema([
         CLIP,
-        column("track_id", pa.string(), "Track (object) the click belongs to."),
+        column("track_id", pa.string(), "Track (object) the click belongs to: tracks.track_id written as text (cast "
+                                         "to INTEGER to compare or sort as a number)."),
         column("timestamp_us", pa.int64(), "Key-frame: camera timestamp of the frame clicked on (a `frames` row).", unit="µs"),
         column("point_index", pa.int32(), "0-based index of the click within its key-frame."),
         column("cad_id", pa.string(), "CAD model the 3D points lie on (a `cad_models` row)."),
@@ -46,7 +47,8 @@ POSES = TableSpec(
     description="One 9-DoF pose per annotated track, solved from its correspondences; use only status = 'ok'.",
     schema=pa.schema([
         CLIP,
-        column("track_id", pa.string(), "Track (object)."),
+        column("track_id", pa.string(), "Track (object): tracks.track_id written as text (cast to INTEGER to compare "
+                                         "or sort as a number)."),
         column("cad_id", pa.string(), "CAD model posed."),
         column("class", pa.string(), "Class of the CAD model."),
         column("status", pa.string(), "ok | invalid_input | too_few_points | single_keyframe | collinear_points | "
@@ -64,7 +66,10 @@ POSES = TableSpec(
         column("num_keyframes", pa.int32(), "Key-frames with correspondences."),
         column("num_points", pa.int32(), "Correspondences used."),
         column("loss_total", pa.float64(), "Final L_repr + alpha L_up + beta L_front + L_prop + L_axes + L_floor (tasks/pose/solver.py; null: not solved).", nullable=True),
-        column("loss_reprojection", pa.float64(), "Final L_repr: L1 reprojection error per point (|du| + |dv|).", unit="px", nullable=True),
+        column("loss_reprojection", pa.float64(), "Final L_repr per point: the robust loss of [pose] huber_px summed over "
+                                                  "du and dv (|du| + |dv| when huber_px = 0; with the default 5 px, smaller "
+                                                  "than the pixel error: read keyframe_error_px for errors in pixels).",
+               unit="px", nullable=True),
         column("loss_up", pa.float64(), "Final L_up: |R e_y - e_y|_1 (0 when not upright).", nullable=True),
         column("loss_front", pa.float64(), "Final L_front: mean depth below [pose] min_depth.", unit="m", nullable=True),
         column("keyframe_timestamps_us", pa.list_(pa.int64()), "Key-frames, in the order of keyframe_error_px.", unit="µs"),

@@ -374,3 +374,13 @@ def test_choices_hold_while_the_object_and_the_model_stay(hwh, tmp_path):
     hwh.write("detections", CLIP, pa.Table.from_pylist(dets, schema=TABLES["detections"].schema))
     again = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
     assert "3 of 3 tracks unanswered" in again.message and waiting() == [0, 1, 2] and selected_models(hwh, CLIP) == {}
+
+
+def test_verification_items_come_in_track_order_by_number(tmp_path):
+    """poses.track_id is text: '10' sorted before '2', and a manual track's 1000123 before '2'."""
+    from tasks.human.verification import ok_poses
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("poses", "c", table_rows("poses", [{"clip": "c", "track_id": t, "status": s}
+                                                for t, s in (("10", "ok"), ("2", "ok"), ("1000123", "ok"), ("3", "failed"))]))
+    assert ok_poses(wh, "c").column("track_id").to_pylist() == ["2", "10", "1000123"]

@@ -40,7 +40,9 @@ POSE_COLUMNS = ["track_id", "cad_id", "class", "translation", "rotation", "scale
 def ok_poses(wh: Warehouse, clip: str) -> pa.Table:
     poses = wh.read("poses", [clip])
     mask = pa.array([s == "ok" for s in poses.column("status").to_pylist()], pa.bool_())
-    return poses.filter(mask).select(POSE_COLUMNS).sort_by([("track_id", "ascending")])
+    poses = poses.filter(mask).select(POSE_COLUMNS)
+    ids = poses.column("track_id").to_pylist()
+    return poses.take(sorted(range(len(ids)), key=lambda i: int(ids[i])))  # by number: track ids are text here
 
 
 def verification_task_id(clip: str, poses: pa.Table) -> str:
