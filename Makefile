@@ -116,7 +116,7 @@ run: setup cad-library models
 	  round(median(extent[2]), 2) AS median_height_m FROM cad_models GROUP BY class ORDER BY models DESC LIMIT 12"
 	@echo "== every track: retrieval's best guess, the model the annotator chose, its pose, the verdict"
 	$(BIN)/cadestate sql "SELECT t.track_id, t.label, t.num_detections AS boxes, c.cad_id AS top_candidate, \
-	  p.cad_id AS chosen_model, p.status AS pose, round(p.loss_reprojection, 2) AS reprojection_px, v.accepted \
+	  p.cad_id AS chosen_model, p.status AS pose, round(list_avg(p.keyframe_error_px), 2) AS reprojection_px, v.accepted \
 	  FROM tracks t LEFT JOIN cad_candidates c ON c.clip = t.clip AND c.track_id = t.track_id AND c.rank = 1 \
 	  LEFT JOIN poses p ON p.clip = t.clip AND p.track_id = CAST(t.track_id AS VARCHAR) \
 	  LEFT JOIN verified_poses v ON v.clip = p.clip AND v.track_id = p.track_id \
