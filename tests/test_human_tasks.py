@@ -384,3 +384,15 @@ def test_verification_items_come_in_track_order_by_number(tmp_path):
     wh.write("poses", "c", table_rows("poses", [{"clip": "c", "track_id": t, "status": s}
                                                 for t, s in (("10", "ok"), ("2", "ok"), ("1000123", "ok"), ("3", "failed"))]))
     assert ok_poses(wh, "c").column("track_id").to_pylist() == ["2", "10", "1000123"]
+
+
+def test_a_fragment_answer_comes_back_as_the_items_previous(hwh, tmp_path):
+    """Reopened, an item answered "fragment of track 0" showed "none of these" (its previous kept
+    the null model only), and a plain Enter saved that."""
+    first = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    task_id = _task(hwh, first.message)["task_id"]
+    assert ingest_labels(hwh, _label(tmp_path, "f.json", "cad_selection", task_id,
+                                     [{"track_id": 1, "cad_id": None, "same_as_track": 0}], "2026-01-02T00:00:00+00:00")).ok
+    again = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    items = {it["track_id"]: it for it in _task(hwh, again.message)["items"]}
+    assert items[1]["previous"]["cad_id"] is None and items[1]["previous"]["same_as_track"] == 0

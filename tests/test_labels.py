@@ -705,6 +705,20 @@ def test_a_manual_track_answer_that_leaves_out_objects_of_the_one_it_replaces_is
     assert ingest_labels(lwh, put(tmp_path / "c", "all.json", whole)).warnings == []  # the same objects, answered again
 
 
+def test_a_fragment_answer_closing_a_ring_with_the_answers_in_force_is_refused(lwh, tmp_path):
+    """Track 0 said to be a fragment of 1 (one file), then 1 of 0 (another): both would leave the
+    dataset; the second is refused naming the earlier link. Answering 0 anew (a model) frees 1."""
+    first = _edit("cad_selection", lambda d: d.__setitem__("answers", [{"track_id": 0, "cad_id": None, "same_as_track": 1}]))
+    assert ingest_labels(lwh, put(tmp_path / "a", "one.json", first)).ok
+    ring = _edit("cad_selection", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
+                                             d.__setitem__("answers", [{"track_id": 1, "cad_id": None, "same_as_track": 0}])))
+    report = ingest_labels(lwh, put(tmp_path / "b", "two.json", ring))
+    assert report.errors == [f"{tmp_path / 'b' / 'two.json'}: $.answers[0].same_as_track: tracks 1 -> 0 -> 1 each name the "
+                             "next as the same object (0 -> 1 answered before): one of them must be the object (its own answer)"]
+    ring["answers"].append({"track_id": 0, "cad_id": "m0a"})
+    assert ingest_labels(lwh, put(tmp_path / "c", "three.json", ring)).ok
+
+
 def test_clicked_points_lie_within_the_models_box(lwh, tmp_path):
     """A unit error (centimetres for metres) is refused, naming the point; points on the box's faces pass."""
     lwh.write("cad_models", "lib", table_rows("cad_models", [{"cad_id": "m0a", "library": "lib", "extent": [1.0, 1.0, 1.0]}]))

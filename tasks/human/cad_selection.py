@@ -42,7 +42,7 @@ from tasks.human.labels import new_task_id, utc_now
 from tasks.human.shared import INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, write_task_once
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
-from tasks.tracking.relations import left_out_tracks
+from tasks.tracking.relations import left_out_tracks, same_as_statements
 from warehouse import Warehouse
 
 
@@ -110,12 +110,14 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     held = held_choices(task_id, {t: {r["cad_id"] for r in by_track[t]} for t in track_ids}, now,
                         current_answers(wh, "cad_selection", [clip]), tasks)
     answers.update(held)
+    fragment_of = same_as_statements(wh, clip, "cad_selection", task_id)  # a fragment's answer: "same object as track N"
     items = []
     for t in track_ids:
         cs = tuple(CadCandidate(rank=int(r["rank"]), cad_id=r["cad_id"], library=r["library"], cad_class=r["cad_class"],
                                 score=float(r["score"]), mesh_path=(models.get(r["cad_id"]) or {}).get("mesh_path") or "",
                                 render_paths=renders.get(r["cad_id"], ())) for r in by_track[t])
-        previous = CadSelectionAnswer(track_id=t, cad_id=answers[t]) if t in answers else None
+        previous = (CadSelectionAnswer(track_id=t, cad_id=answers[t], same_as_track=fragment_of.get(t))
+                    if t in answers else None)
         items.append(CadSelectionItem(track_id=t, label=labels.get(t, by_track[t][0]["cad_class"]), keyframes=keyframes[t],
                                       candidates=cs, previous=previous))
     task = CadSelectionTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),

@@ -27,6 +27,7 @@ import datetime as dt
 import functools
 import hashlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -167,6 +168,16 @@ class ClipFacts:
         return {r["cad_id"]: tuple(r["extent"]) for r in rows if r["extent"] is not None}
 
     @functools.cache
+    def same_as(self, clip: str, kind: str, task_id: str) -> dict[int, int]:
+        """{track: the track it is the same object as} of the answers in force of a cad_selection or
+        verification task ({} for other kinds)."""
+        if kind not in ("cad_selection", "verification"):
+            return {}
+        from tasks.tracking.relations import same_as_statements  # it reads answers in force, which read label files
+
+        return same_as_statements(self.wh, clip, kind, task_id)
+
+    @functools.cache
     def task(self, clip: str, task_id: str) -> Task | None:
         row = latest_task(self.wh, clip, task_id)
         return None if row is None else parse_task(row["document"], f"task {task_id}")
@@ -271,7 +282,7 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         _check_drawn_once(label, name)
         return
     items = _items(task, name, label)
-    _check_same_as_cycles(label, name)
+    _check_same_as_cycles(label, name, facts.same_as(label.clip, label.kind, label.task_id))
     for i, a in enumerate(label.answers):
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
@@ -302,21 +313,27 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
                 _check_xyz(kf.points, facts.extents.get(a.cad_id), name, ["answers", i, "keyframes", j, "points"])
 
 
-def _check_same_as_cycles(label, name: str) -> None:
+def _check_same_as_cycles(label, name: str, in_force: Mapping[int, int] | None = None) -> None:
     """Refuse answers whose ``same_as_track`` links go round (track 0 the same object as 1, and 1 as
-    0): none of them would be the object, and the object would leave the dataset."""
-    same = {a.track_id: (i, a.same_as_track) for i, a in enumerate(label.answers)
-            if getattr(a, "same_as_track", None) is not None}
-    for start in same:
+    0), within the label or with the links of the task's answers in force (``in_force``: track ->
+    the track it is the same object as; the label's answers replace those of their tracks): none
+    of them would be the object, and the object would leave the dataset."""
+    answered = {a.track_id for a in label.answers}
+    same: dict[int, tuple[int | None, int]] = {t: (None, o) for t, o in (in_force or {}).items() if t not in answered}
+    same |= {a.track_id: (i, a.same_as_track) for i, a in enumerate(label.answers)
+             if getattr(a, "same_as_track", None) is not None}
+    for start in [t for t in same if same[t][0] is not None]:
         seen, track = [start], same[start][1]
         while track in same and track not in seen:
             seen.append(track)
             track = same[track][1]
         if track == start:
-            i = same[start][0]
+            before = [t for t in seen if same[t][0] is None]
+            said = f" ({', '.join(f'{t} -> {same[t][1]}' for t in before)} answered before)" if before else ""
             ring = " -> ".join(str(t) for t in [*seen, start])
-            raise _fail(name, ["answers", i, "same_as_track"], f"tracks {ring} each name the next as the same object: "
-                                                               "one of them must be the object (its own answer)")
+            raise _fail(name, ["answers", same[start][0], "same_as_track"],
+                        f"tracks {ring} each name the next as the same object{said}: one of them must be the object "
+                        "(its own answer)")
 
 
 def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,

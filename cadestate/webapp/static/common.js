@@ -21,10 +21,10 @@ export async function api(path, body) {
 }
 
 export function toast(text, kind = "") {
-  const box = $("#status") || document.body.appendChild(el("div", {id: "status"}));
+  const box = $("#status") || document.body.appendChild(el("div", {id: "status", role: "status", "aria-live": "polite"}));
   const t = el("div", {class: "toast " + kind}, text);
   box.append(t);
-  setTimeout(() => t.remove(), kind === "error" ? 12000 : 5000);
+  if (kind !== "warn" && !(text instanceof Node)) setTimeout(() => t.remove(), kind === "error" ? 12000 : 5000);
   return t;
 }
 
@@ -47,6 +47,8 @@ export function shortcuts(map) {
       if (ev.key === "Escape") ev.target.blur();
       return;
     }
+    // a focused button or link keeps its own Enter and Space (they pressed it; the page's Enter submitted instead)
+    if ((ev.key === "Enter" || ev.key === " ") && (["button", "a", "summary"].includes(tag) || ev.target.hasAttribute?.("tabindex"))) return;
     if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = map["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
     const f = map[ev.key];
     if (f) { ev.preventDefault(); f(ev); }
@@ -86,14 +88,24 @@ export async function loadTask() {
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
 // run (the server answers ?wait= requests when it ends) and show (and offer with Enter) its next task.
+// Warnings (legal but suspicious answers) stay on screen until the person goes on (they vanished with the page).
 export async function afterAnswer(clip, taskId, kind, res) {
   leaving = true;
   toast(`saved ${res.path}`, "ok");
-  for (const w of res.warnings || []) toast(w);
+  const warnings = res.warnings || [];
+  for (const w of warnings) toast(w, "warn");
   taskId = res.task_id || taskId;   // a replaced task's answer went to the newer one: go on there
   const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
   const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
-  if (waiting.length) { location.href = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`; return; }
+  if (waiting.length) {
+    const next = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`;
+    if (!warnings.length) { location.href = next; return; }
+    const go = el("button", {id: "next-item", class: "primary", onclick: () => { location.href = next; }}, "Next item (Enter)");
+    toast(el("span", {}, `${warnings.length} warning(s) above: the answer is saved. `, go), "warn");
+    document.addEventListener("keydown", (ev) => { if (ev.key === "Enter") { ev.stopImmediatePropagation(); go.click(); } }, true);
+    go.focus();
+    return;
+  }
   showWaiting(clip);
 }
 
