@@ -384,6 +384,8 @@ def test_verification_items_come_in_track_order_by_number(tmp_path):
     wh.write("poses", "c", table_rows("poses", [{"clip": "c", "track_id": t, "status": s}
                                                 for t, s in (("10", "ok"), ("2", "ok"), ("1000123", "ok"), ("3", "failed"))]))
     assert ok_poses(wh, "c").column("track_id").to_pylist() == ["2", "10", "1000123"]
+    wh.write("poses", "none", table_rows("poses", [{"clip": "none", "track_id": "1", "status": "failed"}]))
+    assert ok_poses(wh, "none").num_rows == 0  # no solved pose: an empty table (taking no row failed on its type)
 
 
 def test_a_fragment_answer_comes_back_as_the_items_previous(hwh, tmp_path):

@@ -42,7 +42,7 @@ def ok_poses(wh: Warehouse, clip: str) -> pa.Table:
     mask = pa.array([s == "ok" for s in poses.column("status").to_pylist()], pa.bool_())
     poses = poses.filter(mask).select(POSE_COLUMNS)
     ids = poses.column("track_id").to_pylist()
-    return poses.take(sorted(range(len(ids)), key=lambda i: int(ids[i])))  # by number: track ids are text here
+    return poses.take(pa.array(sorted(range(len(ids)), key=lambda i: int(ids[i])), pa.int64()))  # by number: ids are text
 
 
 def verification_task_id(clip: str, poses: pa.Table) -> str:
