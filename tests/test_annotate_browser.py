@@ -237,14 +237,20 @@ def test_cad_selection_page(s):
         track = track_shown(s)
         choice = answer[track]
         page.click(f'.cand[data-cad="{choice}"]' if choice else "#none")
-        if not done:  # Enter on a focused button presses it: it had submitted the choice made before instead
+        if not done:  # Enter on a button reached by keyboard presses it: it had submitted the choice made before instead
             page.focus("#none")
+            page.keyboard.press("Shift+Tab")
+            page.keyboard.press("Tab")  # keyboard focus (:focus-visible), not a click's
+            assert page.evaluate("document.activeElement.id") == "none"
             page.keyboard.press("Enter")
             page.wait_for_timeout(300)
             assert page.inner_text("#choice") == "none of these" and f"track={track}" in page.url, page.url
             page.click(f'.cand[data-cad="{choice}"]' if choice else "#none")
             page.screenshot(path=s.shots / "cad_selection.png", timeout=SCREENSHOT_TIMEOUT_MS)
-        page.click("#submit")
+        if len(done) == 1:
+            page.keyboard.press("Enter")  # the card or button clicked has the focus, a mouse's: Enter is the page's, submit
+        else:
+            page.click("#submit")
         done.append(track)
         if len(done) == len(answer):
             break

@@ -719,6 +719,30 @@ def test_a_fragment_answer_closing_a_ring_with_the_answers_in_force_is_refused(l
     assert ingest_labels(lwh, put(tmp_path / "c", "three.json", ring)).ok
 
 
+def test_a_ring_closed_by_two_files_of_one_ingest_is_refused(lwh, tmp_path):
+    """Both files are validated before either is written: the second is checked against the first."""
+    a = _edit("cad_selection", lambda d: d.__setitem__("answers", [{"track_id": 0, "cad_id": None, "same_as_track": 1}]))
+    b = _edit("cad_selection", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
+                                          d.__setitem__("answers", [{"track_id": 1, "cad_id": None, "same_as_track": 0}])))
+    put(tmp_path / "in", "a.json", a)
+    put(tmp_path / "in", "b.json", b)
+    report = ingest_labels(lwh, tmp_path / "in")
+    assert len(report.ingested) == 1 and len(report.errors) == 1 and "b.json: $.answers[0].same_as_track: tracks 1 -> 0 -> 1" \
+        in report.errors[0], report.errors
+
+
+@pytest.mark.parametrize("newest_drops", [False, True])
+def test_the_key_frame_warning_follows_the_order_answers_are_applied_in(lwh, tmp_path, newest_drops):
+    """Files of one ingest apply by created_at, not by name: the warning is the newest answer's."""
+    def clicks(created, drop_first):
+        return _edit("correspondences", lambda d: (d.__setitem__("created_at", created),
+                                                   d["answers"][0]["keyframes"].pop(0) if drop_first else None))
+    put(tmp_path / "in", "a.json", clicks("2026-01-03T00:00:00+00:00", newest_drops))  # the newer, in force
+    put(tmp_path / "in", "b.json", clicks("2026-01-02T00:00:00+00:00", not newest_drops))
+    warnings = ingest_labels(lwh, tmp_path / "in").warnings
+    assert [w.split(":")[0] for w in warnings] == ([str(tmp_path / "in" / "a.json")] if newest_drops else []), warnings
+
+
 def test_clicked_points_lie_within_the_models_box(lwh, tmp_path):
     """A unit error (centimetres for metres) is refused, naming the point; points on the box's faces pass."""
     lwh.write("cad_models", "lib", table_rows("cad_models", [{"cad_id": "m0a", "library": "lib", "extent": [1.0, 1.0, 1.0]}]))

@@ -180,6 +180,7 @@ def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_p
     """Inputs are hard-linked into the warehouse: a user who edits their camera file in place edits
     the warehouse's copy. `run` finds it by its digests; `status` (which hashes nothing) by the size
     and modification time that ingest recorded."""
+    import json
     import os
     import shutil
 
@@ -201,6 +202,10 @@ def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_p
     placed = wh.inputs_dir("small") / "video.mp4"
     os.utime(placed, ns=(placed.stat().st_atime_ns, placed.stat().st_mtime_ns + 10**9))  # copied without its times
     assert edited() == [] and edited() == []  # the same bytes: not edited (hashed once, then its new time is recorded)
+    record = wh.inputs_dir("small") / "placed.json"  # a record from before records kept the SHA-256: the clips row's
+    record.write_text(json.dumps({k: v[:2] for k, v in json.loads(record.read_text()).items()}))
+    os.utime(placed, ns=(placed.stat().st_atime_ns, placed.stat().st_mtime_ns + 10**9))
+    assert edited() == [] and len(json.loads(record.read_text())["video.mp4"]) == 3
     with open(cams, "a") as f:  # in place: the warehouse's inputs/small/cameras.txt is the same file
         f.write("\n")
     assert (wh.inputs_dir("small") / "cameras.txt").stat().st_ino == os.stat(cams).st_ino

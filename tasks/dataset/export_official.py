@@ -22,8 +22,8 @@ Clip names are ``<video_id>_<start_us>`` (:mod:`tasks.video.clip_names`): a ware
 is not that of its camera file is exported under the derived name. Refused, naming the warehouse
 clips: two clips under one name, two clips of different source videos that share a video id (their
 frames would overwrite each other), two clips of one video whose images of one frame differ, and an
-object whose chosen model is no longer in ``cad_models``. By default only clips that reached
-verification are exported (:func:`tasks.cad.export.export_clips`). Written into a temporary folder
+object whose chosen model is no longer in ``cad_models``. By default only clips whose
+verification completed are exported (:func:`tasks.cad.export.export_clips`). Written into a temporary folder
 beside ``out`` and moved into place at the end.
 """
 
@@ -128,7 +128,7 @@ def check_exportable(datasets: Sequence[ClipDataset], names: Sequence[str]) -> N
 
 def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None, cad: bool = True,
                    show_progress: bool = True) -> dict[str, int]:
-    """Write the official layout of ``clips`` (default: every clip that reached verification,
+    """Write the official layout of ``clips`` (default: every clip whose verification completed,
     :func:`export_clips`) to ``out`` (new or empty); returns counts (clips, frames, objects, posed
     objects, CAD models, and ``note``: :meth:`ExportClips.note`)."""
     out = Path(os.path.abspath(out))

@@ -230,7 +230,6 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
     """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
     with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
     known = _known(wh)
-    warn = LabelWarnings(wh)
     accepted: list[LabelFile] = []
     for path in paths:
         try:
@@ -242,9 +241,13 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
         except LabelError as e:
             report.errors.append(str(e))
             continue
-        report.warnings += [*lf.warnings, *warn.check(lf)]
+        report.warnings += lf.warnings
+        facts.take(lf.label)  # the files after it are checked against its links too (a ring across two files)
         known.add(lf.sha256)
         accepted.append(lf)
+    warn = LabelWarnings(wh)
+    for lf in sorted(accepted, key=_order):  # in the order they are applied: the newest answer is the one in force
+        report.warnings += warn.check(lf)
     return accepted
 
 

@@ -177,6 +177,16 @@ class ClipFacts:
 
         return same_as_statements(self.wh, clip, kind, task_id)
 
+    def take(self, label: Label) -> None:
+        """Count ``label``'s 'same object as' answers as in force for the labels checked after it (a
+        file accepted earlier in the same ingest, not written yet)."""
+        links = self.same_as(label.clip, label.kind, label.task_id)
+        for a in label.answers if label.kind in ("cad_selection", "verification") else ():
+            if a.same_as_track is None:
+                links.pop(a.track_id, None)
+            else:
+                links[a.track_id] = a.same_as_track
+
     @functools.cache
     def task(self, clip: str, task_id: str) -> Task | None:
         row = latest_task(self.wh, clip, task_id)

@@ -33,7 +33,8 @@ def edited_inputs(wh: Warehouse, clip: str) -> list[str]:
     """The clip's input files edited in place since ingest: of another size, or of another
     modification time and other bytes (none when nothing was recorded: a clip ingested before this
     record). A file that only has another time (a warehouse copied without its times, `cp -r`) is
-    hashed once: the record takes its new time when the bytes are those ingest placed."""
+    hashed once against the SHA-256 ingest recorded (in a record made before records kept it, the
+    ``clips`` row's): the record takes its new time when the bytes are those ingest placed."""
     folder = wh.inputs_dir(clip)
     try:
         placed = json.loads((folder / PLACED_FILE).read_text())
@@ -48,8 +49,9 @@ def edited_inputs(wh: Warehouse, clip: str) -> list[str]:
             continue
         if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
             continue
-        if st.st_size == size and sha and _same_bytes(folder / name, sha[0]):
-            placed[name] = [size, st.st_mtime_ns, sha[0]]
+        known = sha[0] if sha else _ingested_sha256(wh, clip, name) if st.st_size == size else None
+        if known and _same_bytes(folder / name, known):
+            placed[name] = [size, st.st_mtime_ns, known]
             retimed = True
         else:
             edited.append(name)
@@ -59,6 +61,16 @@ def edited_inputs(wh: Warehouse, clip: str) -> list[str]:
         except OSError:
             pass
     return edited
+
+
+def _ingested_sha256(wh: Warehouse, clip: str, name: str) -> str | None:
+    """The SHA-256 the ``clips`` row holds for input file ``name`` (a record made before records kept
+    it; read only then: the read brings pyarrow)."""
+    column = "cameras_sha256" if name == "cameras.txt" else "video_sha256" if name.startswith("video.") else None
+    if column is None:
+        return None
+    values = wh.read("clips", [clip], columns=[column]).column(column).to_pylist()
+    return values[-1] if values else None
 
 
 def _same_bytes(path: Path, sha256: str) -> bool:

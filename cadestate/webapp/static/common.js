@@ -40,6 +40,9 @@ export function timer() {
 // Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field. A drop-down
 // lets go of the keys once a choice is made in it (it kept them, and the page's letters chose options).
 export function shortcuts(map) {
+  let tabbedTo = null;  // the control Tab moved the focus to (a click moves it elsewhere)
+  document.addEventListener("keyup", (ev) => { if (ev.key === "Tab") tabbedTo = document.activeElement; }, true);
+  document.addEventListener("pointerdown", () => { tabbedTo = null; }, true);
   document.addEventListener("change", (ev) => { if (ev.target.tagName === "SELECT") ev.target.blur(); });
   document.addEventListener("keydown", (ev) => {
     const tag = (ev.target.tagName || "").toLowerCase();  // typing in a field: no shortcuts (a tick box or slider is no field)
@@ -47,8 +50,9 @@ export function shortcuts(map) {
       if (ev.key === "Escape") ev.target.blur();
       return;
     }
-    // a focused button or link keeps its own Enter and Space (they pressed it; the page's Enter submitted instead)
-    if ((ev.key === "Enter" || ev.key === " ") && (["button", "a", "summary"].includes(tag) || ev.target.hasAttribute?.("tabindex"))) return;
+    // a button or link reached with Tab keeps its own Enter and Space (the page's Enter submitted instead);
+    // one focused by a click leaves Enter to the page, as its help says
+    if ((ev.key === "Enter" || ev.key === " ") && tabbedTo === ev.target) return;
     if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = map["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
     const f = map[ev.key];
     if (f) { ev.preventDefault(); f(ev); }
