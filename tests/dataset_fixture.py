@@ -63,7 +63,7 @@ def write_accepted(wh: Warehouse, clip: str, posed: dict, keyframes: dict | None
     wh.write("poses", clip, table_rows("poses", [{"clip": clip, "track_id": str(t),
                                                   "num_keyframes": (keyframes or {}).get(t, 2)} for t in posed]))
     wh.write("runs", clip, table_rows("runs", [{"clip": clip, "run_id": "20260101T000000Z-verified", "stage": "verification",
-                                                "status": "completed"}]))  # every pose judged: the clip is exported
+                                                "status": "completed", "duration_s": 0.0}]))  # every pose judged: the clip is exported
 
 
 def write_selection(wh: Warehouse, clip: str, chosen: dict[int, str | None]) -> None:

@@ -105,7 +105,7 @@ def test_statistics_match_a_hand_count(bench3):
     assert s["cad_models"] == len({o.cad_id for o in posed})
     assert s["frames_with_two_posed"] == len(ratios) and s["near_far_ratio_median"] == pytest.approx(np.median(ratios))
     assert 0 <= s["truncated_share"] <= 1
-    assert s["compute_s_per_stage"] == {"detect": 12.0, "frames": 7.5, "pose": 3.0}
+    assert s["compute_s_per_stage"] == {"detect": 12.0, "frames": 7.5, "pose": 3.0, "verification": 0.0}
     # a manual-track answer is one item whatever it draws (here 4 objects); a kind no item of which gave
     # seconds has no figure (not 0 s), nor has the cost per posed object while any item's time is missing
     assert s["human_items"] == {"cad_selection": 2, "correspondences": 1, "manual_track": 1, "verification": 3}

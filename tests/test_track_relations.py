@@ -7,7 +7,6 @@ physical object."""
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -186,7 +185,7 @@ def test_not_objects_and_fragments_act_downstream_while_in_force(rwh, tmp_path):
     assert _objects(rwh) == {2: ()}
 
 
-def test_chains_resolve_and_cycles_are_ignored(rwh, tmp_path, caplog):
+def test_chains_resolve_and_a_ring_with_the_answers_in_force_is_refused(rwh, tmp_path):
     _manual_task(rwh)
     _, task = _cad_task(rwh)
     _ingest(rwh, _label(tmp_path / "a", "cad_selection", task["task_id"], [
@@ -195,14 +194,15 @@ def test_chains_resolve_and_cycles_are_ignored(rwh, tmp_path, caplog):
     assert relations_in_force(rwh, CLIP).fragments == {1: 0, 2: 0}
     assert _objects(rwh) == {0: (1, 2)}
 
-    # a newer answer for track 0 makes a cycle with the answer in force for track 1 (one file refuses
-    # a cycle of its own: tests/test_labels.py): ignored with a warning; track 2's statement stays in force
-    _ingest(rwh, _label(tmp_path / "b", "cad_selection", task["task_id"], [
-        {"track_id": 0, "cad_id": None, "same_as_track": 1}], "2026-01-02T00:00:00+00:00"))
-    with caplog.at_level(logging.WARNING, logger="tasks.tracking.relations"):
-        rel = relations_in_force(rwh, CLIP)
-    assert rel.fragments == {2: 1} and "tracks 0 -> 1 -> 0" in caplog.text and len(rel.warnings) == 1
-    assert _objects(rwh) == {0: (), 1: (2,)}
+    # a newer answer for track 0 would close a ring with the answer in force for track 1: refused at
+    # ingest (it was taken, and the ring ignored with a log line: both tracks left the dataset); the
+    # relations stay as they were (rings across kinds, still possible, are dropped: resolve_fragments)
+    ring = _label(tmp_path / "b", "cad_selection", task["task_id"], [{"track_id": 0, "cad_id": None, "same_as_track": 1}],
+                  "2026-01-02T00:00:00+00:00")
+    report = ingest_labels(rwh, ring)
+    assert not report.ingested and "tracks 0 -> 1 -> 0 each name the next as the same object (1 -> 0 answered before)" \
+        in report.errors[0], report.errors
+    assert relations_in_force(rwh, CLIP).fragments == {1: 0, 2: 0} and _objects(rwh) == {0: (1, 2)}
 
 
 @pytest.mark.skipif(not nd.is_built(nd.default_cache_dir()),
