@@ -170,7 +170,9 @@ def record_run(wh: Warehouse, run: StageRun, started_at: dt.datetime) -> None:
 class RunMarker:
     """A stage run in progress (or interrupted), as its marker file records it. ``process_start``:
     the process's creation time (epoch seconds), which tells a live process from a recycled pid;
-    ``touched``: the marker's last heartbeat (its modification time, epoch seconds)."""
+    ``process_ticks``: the same as clock ticks since boot (Linux; None elsewhere or in an older
+    marker), which a step of the wall clock does not move; ``touched``: the marker's last heartbeat
+    (its modification time, epoch seconds)."""
 
     clip: str
     stage: str
@@ -181,6 +183,7 @@ class RunMarker:
     started_at: dt.datetime
     path: Path
     touched: float
+    process_ticks: int | None = None
 
     @property
     def alive(self) -> bool:
@@ -188,6 +191,8 @@ class RunMarker:
         heartbeat is younger than :data:`STALE_AFTER_S`."""
         if self.host != socket.gethostname():
             return time.time() - self.touched < STALE_AFTER_S
+        if self.process_ticks is not None and (ticks := _start_ticks(self.pid)) is not None:
+            return ticks == self.process_ticks  # the creation time in epoch seconds moves when the clock is set
         import psutil  # here: `cadestate status` imports this module and seldom finds a marker
 
         try:
@@ -198,6 +203,16 @@ class RunMarker:
 
 def _marker_dir(wh: Warehouse, clip: str) -> Path:
     return wh.root / RUNNING_DIR / check_name(clip)
+
+
+def _start_ticks(pid: int) -> int | None:
+    """Process ``pid``'s start time in clock ticks since boot (field 22 of ``/proc/<pid>/stat``; None
+    without procfs or without the process)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return int(stat[stat.rindex(")") + 2:].split()[19])  # fields after the command name start at field 3
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 @functools.cache
@@ -214,7 +229,7 @@ def _start_marker(wh: Warehouse, clip: str, stage: str, run_id: str, started_at:
     pid = os.getpid()
     host, process_start = _this_process(pid)
     doc = {"clip": clip, "stage": stage, "run_id": run_id, "pid": pid, "host": host,
-           "process_start": process_start, "started_at": started_at.isoformat()}
+           "process_start": process_start, "process_ticks": _start_ticks(pid), "started_at": started_at.isoformat()}
     path = _marker_dir(wh, clip) / f"{stage}.{run_id}.json"
     atomic_write_bytes(path, json.dumps(doc).encode(), durable=False)  # lost with the machine: the run left no row
     return path
@@ -245,8 +260,10 @@ def run_markers(wh: Warehouse, clip: str) -> list[RunMarker]:
     for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
         try:
             d = json.loads(path.read_text())
+            ticks = d.get("process_ticks")
             markers.append(RunMarker(d["clip"], d["stage"], d["run_id"], int(d["pid"]), d["host"], float(d["process_start"]),
-                                     dt.datetime.fromisoformat(d["started_at"]), path, path.stat().st_mtime))
+                                     dt.datetime.fromisoformat(d["started_at"]), path, path.stat().st_mtime,
+                                     None if ticks is None else int(ticks)))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return sorted(markers, key=lambda m: m.run_id)  # run ids sort by start time

@@ -210,3 +210,24 @@ def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_p
         f.write("\n")
     assert (wh.inputs_dir("small") / "cameras.txt").stat().st_ino == os.stat(cams).st_ino
     assert edited() == ["inputs changed (cameras.txt of inputs/small/ edited since ingest)"]
+
+
+def test_a_live_run_stays_alive_when_the_wall_clock_is_set():
+    """Its process's creation time in epoch seconds moves when the clock is stepped (psutil adds the
+    boot time, which the kernel shifts with the clock): a live run read as interrupted. The marker
+    keeps the start in clock ticks since boot, which no clock setting moves."""
+    import datetime as dt
+    import os
+    import socket
+    from pathlib import Path
+
+    import psutil
+
+    from tasks.stage import RunMarker, _start_ticks
+
+    pid, ticks = os.getpid(), _start_ticks(os.getpid())
+    stepped = psutil.Process(pid).create_time() - 5.0  # recorded before the clock was set 5 s forward
+    marker = lambda start, t: RunMarker("c", "detect", "r", pid, socket.gethostname(), start,  # noqa: E731
+                                        dt.datetime.now(dt.timezone.utc), Path("m.json"), 0.0, t)
+    assert marker(stepped, ticks).alive and not marker(stepped + 5.0, ticks + 1).alive  # a recycled pid: other ticks
+    assert not marker(stepped, None).alive and marker(stepped + 5.0, None).alive  # an older marker: seconds, as before

@@ -17,12 +17,13 @@ beside ``out`` and renamed into place at the end: an interrupted export leaves n
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import shutil
 import uuid
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,10 +57,18 @@ def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False)
     return folder
 
 
-def temp_folder_beside(out: Path) -> Path:
+@contextlib.contextmanager
+def temp_folder_beside(out: Path) -> Iterator[Path]:
     """A new hidden folder beside ``out`` (an absolute path: ``.`` has no name to put beside) to
-    write an export into before moving it to ``out`` (:class:`ExportError` when none can be made there)."""
-    return make_folder(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"), named=out)
+    write an export into before moving it to ``out`` (:class:`ExportError` when none can be made
+    there); removed on leaving, whatever ends the export. It is made inside the ``try``: a signal
+    between making it and a caller's ``try`` (SIGTERM's exit) had left it behind."""
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        make_folder(tmp, named=out)
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def publish(tmp: Path, out: Path) -> None:
@@ -145,8 +154,7 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
                                                                   "name", "licence", "creator", "source"]).to_pylist()
     if not models:
         raise ExportError("no CAD model in the warehouse (run `cadestate cad ingest` first)")
-    tmp = temp_folder_beside(out)
-    try:
+    with temp_folder_beside(out) as tmp:
         classes = [{"id": c.id, "human_readable": c.name} for c in CLASSES]
         (tmp / "shapenet_classes.json").write_text(json.dumps(classes, indent=1))
         symmetry = {f"{m['class_id']}_{m['cad_id']}": m["symmetry"] for m in models}
@@ -162,6 +170,4 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
             np.savez_compressed(folder / f"{m['cad_id']}.npz", vertices=triangle_soup(wh.root / m["mesh_path"]),
                                 label=m["class_id"], mesh_id=m["cad_id"])
         publish(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return len(models)

@@ -137,11 +137,10 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     datasets = [turn_poses_to_clicks(clip_dataset(wh, c).in_input_world()) for c in selection.chosen]
     names = [official_clip_name(ds) for ds in datasets]
     check_exportable(datasets, names)
-    tmp = temp_folder_beside(out)
     counts = {"clips": len(datasets), "frames": 0, "objects": 0, "posed_objects": 0, "cad_models": 0,
               "note": selection.note()}
     frame_of: dict[Path, tuple[str, Path]] = {}  # exported frame -> (clip, warehouse image)
-    try:
+    with temp_folder_beside(out) as tmp:
         for ds, name in zip(datasets, names):
             folder = tmp / "annotations" / name
             folder.mkdir(parents=True)
@@ -168,6 +167,4 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
         if cad:
             counts["cad_models"] = export_cad_root(wh, tmp / "cad", show_progress=show_progress)
         publish(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return counts
