@@ -96,12 +96,17 @@ class ExportClips:
         """The warning line about ``unfinished`` ('' when none)."""
         if not self.unfinished:
             return ""
-        shown = ", ".join(self.unfinished[:10]) + (f" and {len(self.unfinished) - 10} more" if len(self.unfinished) > 10 else "")
+        shown = some_named(self.unfinished)
         if self.named:
             return (f"{len(self.unfinished)} clip(s) written as they are, their verification not completed (poses still "
                     f"unjudged read as not posed): {shown}")
         return (f"left out {len(self.unfinished)} clip(s) whose verification has not completed: {shown} "
                 "(name them with --clips to export them as they are)")
+
+
+def some_named(names: Sequence[str], limit: int = 10) -> str:
+    """The first ``limit`` of ``names``, comma-separated, and how many more."""
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
 def verification_completed(wh: Warehouse, clips: Sequence[str]) -> set[str]:

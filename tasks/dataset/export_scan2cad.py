@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from tasks.cad.export import ExportError, export_clips, make_folder
+from tasks.cad.export import ExportError, export_clips, make_folder, some_named
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
 from warehouse.store import atomic_write_bytes
@@ -131,6 +131,5 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     atomic_write_bytes(out / "cad_appearances.json", json.dumps(appearances, indent=1).encode())
     notes = [selection.note()] if selection.note() else []
     if empty:
-        notes.append(f"left out {len(empty)} clip(s) with no accepted pose (no Scan2CAD scan): {', '.join(empty[:10])}"
-                     + (f" and {len(empty) - 10} more" if len(empty) > 10 else ""))
+        notes.append(f"left out {len(empty)} clip(s) with no accepted pose (no Scan2CAD scan): {some_named(empty)}")
     return {"scans": len(annotations), "alignments": total, "note": "\n".join(notes)}

@@ -67,7 +67,7 @@ class LabelWarnings:
         """The warnings of ``lf``; it is then counted as ingested for the files after it."""
         out = []
         if lf.clip not in self._tasks:
-            self._tasks[lf.clip] = latest_tasks(self.wh, lf.clip)
+            self._tasks[lf.clip] = latest_tasks(self.wh, lf.clip, columns=["task_id", "kind", "created_at"])
         newest = self._tasks[lf.clip].get(lf.kind)
         if newest is not None and newest["task_id"] != lf.task_id:
             out.append(f"{lf.path}: answers task {lf.task_id}, which a rerun replaced with {newest['task_id']}: its answers "

@@ -27,7 +27,7 @@ import datetime as dt
 import functools
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -123,12 +123,13 @@ def latest_task_of_kind(wh: Warehouse, clip: str, kind: str) -> dict | None:
     return latest_tasks(wh, clip).get(kind)
 
 
-def latest_tasks(wh: Warehouse, clip: str) -> dict[str, dict]:
+def latest_tasks(wh: Warehouse, clip: str, columns: Sequence[str] | None = None) -> dict[str, dict]:
     """The newest ``label_tasks`` row of each kind for ``clip`` (kind -> row; the first of equal
-    times), from one read: only those rows become Python objects (a task's document can be large)."""
+    times), from one read: only those rows become Python objects (a task's document can be large);
+    ``columns``: only these (with kind and created_at; e.g. no document read at all)."""
     if not wh.has_partition("label_tasks", clip):
         return {}
-    table = wh.read("label_tasks", [clip])
+    table = wh.read("label_tasks", [clip], columns=columns)
     return {kind: table.slice(i, 1).to_pylist()[0] for kind, i in _newest_rows(table, "kind").items()}
 
 

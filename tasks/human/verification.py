@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from cadestate.config import VerificationConfig
 from cadestate.lineage import table_digest
@@ -41,8 +42,7 @@ def ok_poses(wh: Warehouse, clip: str) -> pa.Table:
     poses = wh.read("poses", [clip])
     mask = pa.array([s == "ok" for s in poses.column("status").to_pylist()], pa.bool_())
     poses = poses.filter(mask).select(POSE_COLUMNS)
-    ids = poses.column("track_id").to_pylist()
-    return poses.take(pa.array(sorted(range(len(ids)), key=lambda i: int(ids[i])), pa.int64()))  # by number: ids are text
+    return poses.take(pc.sort_indices(pc.cast(poses["track_id"], pa.int64())))  # by number: the ids are text here
 
 
 def verification_task_id(clip: str, poses: pa.Table) -> str:
