@@ -20,10 +20,10 @@ from tasks.video.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, disc
 from warehouse import WarehouseError, connect
 
 
-def ingest(wh, video: Path, cameras: Path, clip: str = "small"):
+def ingest(wh, video: Path, cameras: Path, clip: str = "small", tolerance_us: int = FramesConfig().max_timestamp_error_us):
     # up forced to +Y: the demo world is built +Y up, and these tests compare the frames with the camera file exactly
     return ingest_clip(wh, IngestConfig(up="+y"), ClipSource(clip, video, cameras), file_sha256(video), file_sha256(cameras),
-                       "r0")
+                       "r0", tolerance_us)
 
 
 def test_extracted_frames_are_exactly_the_camera_frames(wh, small_clip):
@@ -76,7 +76,7 @@ def test_sparse_timestamps_are_reached_by_seeking(small_clip):
 
 def shifted_inside(src: Path, dst: Path, shift_us: int = 15_000) -> Path:
     """A copy of the camera file ``src`` whose cameras but the first and the last are ``shift_us`` late
-    (half a frame at 30 fps): ingest's check of the end frames passes, the frames stage finds them."""
+    (half a frame at 30 fps)."""
     cams = parse_camera_file(src)
     times = cams.timestamps_us.copy()
     times[1:-1] += shift_us
@@ -85,8 +85,9 @@ def shifted_inside(src: Path, dst: Path, shift_us: int = 15_000) -> Path:
 
 
 def test_timestamp_discrepancy_past_tolerance_fails_and_writes_nothing(wh, small_clip, tmp_path):
+    """Ingested under a looser tolerance than the frames stage's (ingest refuses it under the same)."""
     shifted = shifted_inside(small_clip.cameras_path, tmp_path / "shifted.txt")
-    ingest(wh, small_clip.video_path, shifted)
+    ingest(wh, small_clip.video_path, shifted, tolerance_us=20_000)
     step = int(parse_camera_file(small_clip.cameras_path).timestamps_us[1])
     with pytest.raises(VideoError, match=rf"^{shifted}:3: clip small \(.*small.mp4\): camera line 3 asks for {step + 15_000} µs "
                                          rf"but the nearest video frame is at {step} µs \(-15000 µs"):
@@ -113,6 +114,18 @@ def test_cameras_off_the_frames_at_either_end_fail_at_ingest(small_clip, tmp_pat
     write_camera_file(last, CameraTrack(cams.url, times, cams.intrinsics, cams.world_to_camera))
     with pytest.raises(CameraFileError, match=rf"^{last}:{len(times) + 1}: timestamp {times[-1]} µs has no frame"):
         check_clip_inputs(small_clip.video_path, last)
+
+
+def test_cameras_between_the_frames_inside_the_clip_fail_at_ingest(wh, small_clip, tmp_path):
+    """A camera file of another frame rate lines up with the video at its ends (a 60 fps file on a
+    30 fps video): every camera is checked against the video's frame times before anything is
+    written, not only the first and the last (the clip was registered and its frames stage failed)."""
+    shifted = shifted_inside(small_clip.cameras_path, tmp_path / "shifted.txt")
+    step = int(parse_camera_file(small_clip.cameras_path).timestamps_us[1])
+    with pytest.raises(CameraFileError, match=rf"^{shifted}:3: timestamp {step + 15_000} µs has no frame in .*small.mp4: "
+                                              rf"the nearest is at {step} µs \(-15000 µs"):
+        ingest(wh, small_clip.video_path, shifted)
+    assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs" / "small").exists()
 
 
 def test_corrupt_video_fails_clearly_at_ingest(wh, small_clip, tmp_path):

@@ -200,6 +200,28 @@ def decode_at(
         container.close()
 
 
+def frame_times_us(path: str | os.PathLike) -> np.ndarray | None:
+    """int64[F] sorted presentation times (µs, stream time) of every frame of the video stream, read
+    from its packets (demuxed, not decoded: a second for an hour of video); None when a packet
+    states no time (some AVI files), so that the times cannot be known without decoding."""
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        if stream.time_base is None:
+            return None
+        start, times = stream.start_time or 0, []
+        try:
+            for packet in container.demux(stream):
+                if packet.size == 0:
+                    continue  # the flush packet demux ends with
+                if packet.pts is None:
+                    return None
+                times.append(packet.pts - start)
+        except av.error.FFmpegError as e:
+            raise VideoError(f"{path}: reading its packets failed (corrupt or truncated video?): {e}") from None
+    scale = float(stream.time_base) * 1_000_000
+    return np.sort(np.round(np.asarray(times, np.float64) * scale).astype(np.int64))
+
+
 def _video_stream(container: av.container.InputContainer) -> av.video.stream.VideoStream:
     """The container's (first) video stream, decoded on threads."""
     stream = container.streams.video[0]

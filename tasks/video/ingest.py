@@ -33,7 +33,7 @@ from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
-from tasks.video.decode import VideoInfo, decode_at, probe_video
+from tasks.video.decode import VideoInfo, decode_at, frame_times_us, probe_video
 from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
 from tasks.video.placed import record_placed
 from tasks.video.vertical_lines import video_segment_normals
@@ -200,26 +200,42 @@ def _check_times(track: CameraTrack, info: VideoInfo, video: Path, cameras: Path
             f"{info.duration_us} µs ({past.size} of the {len(track)} cameras are past it){hint}"))
 
 
-def _check_end_frames(track: CameraTrack, video: Path, cameras: Path, offset: int, tolerance_us: int) -> None:
-    """The first and the last camera each have a video frame within ``tolerance_us`` of their time
-    (decoded: a truncated file, a video of another frame rate, or one whose stream states no
-    duration is caught before anything starts, not by the frames stage)."""
+def _check_frame_times(track: CameraTrack, video: Path, cameras: Path, offset: int, tolerance_us: int) -> None:
+    """Every camera has a video frame within ``tolerance_us`` of its time: the first and the last
+    decoded (a truncated file, or one whose stream states no duration), every one against the
+    frame times the video's packets state (:func:`frame_times_us`: a 60 fps camera file on a 30 fps
+    video has every other camera between two frames). Caught before anything starts, not by the
+    frames stage, and before a re-ingest replaces a clip's camera file."""
+    shifted = f" minus the time offset {offset} µs" if offset else ""
+
+    def refuse(line: int, nearest: int, target: int) -> None:
+        raise CameraFileError(str(cameras), line + 2, (
+            f"timestamp {int(track.timestamps_us[line])} µs{shifted} has no frame in {video}: the nearest is at "
+            f"{nearest} µs ({nearest - target:+d} µs; [frames] max_timestamp_error_us = {tolerance_us}): "
+            "a truncated video, or one of another frame rate than the camera file's?"))
+
     lines = sorted({0, len(track) - 1})
     targets = track.timestamps_us[lines] - offset
     for line, target, frame in zip(lines, targets.tolist(), decode_at(video, np.maximum(targets, 0))):
         if abs(frame.time_us - target) > tolerance_us:
-            shifted = f" minus the time offset {offset} µs" if offset else ""
-            raise CameraFileError(str(cameras), line + 2, (
-                f"timestamp {int(track.timestamps_us[line])} µs{shifted} has no frame in {video}: the nearest is at "
-                f"{frame.time_us} µs ({frame.time_us - target:+d} µs; [frames] max_timestamp_error_us = {tolerance_us}): "
-                "a truncated video, or one of another frame rate than the camera file's?"))
+            refuse(line, frame.time_us, target)
+    times = frame_times_us(video)
+    if times is None or not times.size:
+        return
+    targets = np.asarray(track.timestamps_us, np.int64) - offset
+    after = np.clip(np.searchsorted(times, targets), 1, len(times) - 1) if len(times) > 1 else np.zeros(len(targets), int)
+    before = np.maximum(after - 1, 0)
+    nearest = np.where(np.abs(times[before] - targets) <= np.abs(times[after] - targets), times[before], times[after])
+    bad = np.flatnonzero(np.abs(nearest - targets) > tolerance_us)
+    if bad.size:
+        refuse(int(bad[0]), int(nearest[bad[0]]), int(targets[bad[0]]))
 
 
 def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align_start: bool = False,
                       tolerance_us: int = FramesConfig().max_timestamp_error_us) -> CheckedInputs:
     """Parse ``cameras``, probe ``video`` and check that they belong together: every camera within
     the video once ``time_offset_us`` is subtracted (give or take END_TOLERANCE_US), a frame within
-    ``tolerance_us`` of the first and the last camera's time (:func:`_check_end_frames`),
+    ``tolerance_us`` of every camera's time (:func:`_check_frame_times`),
     intrinsics for the video's frame aspect (ASPECT_ERROR; ASPECT_WARNING gives a warning).
     ``align_start``: the offset is :func:`align_start_offset`'s (``time_offset_us`` must then be 0);
     the result's ``time_offset_us`` is the offset in force.
@@ -236,7 +252,7 @@ def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align
             raise ValueError("--align-start and --time-offset-us exclude each other")
         time_offset_us = align_start_offset(track, info, cameras, video)
     _check_times(track, info, video, cameras, time_offset_us)
-    _check_end_frames(track, video, cameras, time_offset_us, tolerance_us)
+    _check_frame_times(track, video, cameras, time_offset_us, tolerance_us)
     errors = _aspect_errors(track, info)
     bad = [i for i, e in enumerate(errors) if e > ASPECT_ERROR]
     if bad:
