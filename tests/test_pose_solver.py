@@ -184,6 +184,11 @@ def test_coplanar_detection_and_ties():
     sides = top_feet[:, [1, 0, 2]]  # the faces x = +0.5 and x = -0.5: one face and its twin, or two faces
     assert coplanar_axis(sides, np.repeat([0, 1], 4), 2, 0.02) == 0
     assert coplanar_axis(sides * [0.5, 1, 1] + [0.3, 0, 0], np.repeat([0, 1], 4), 2, 0.02) == -1  # x = 0.55, 0.05
+    # A third key-frame of 3 clicks, off the face: it unties (a key-frame of fewer than 4 points was
+    # left out of the test, and the clicks of a 2-way model's sides and front were fitted tied, 10 px off, ok).
+    front = np.array([[0.2, 0.1, 0.5], [-0.3, 0.4, 0.5], [0.1, -0.2, 0.5]])
+    assert coplanar_axis(np.concatenate([sides, front]), np.repeat([0, 1, 2], [4, 4, 3]), 2, 0.02) == -1
+    assert coplanar_axis(np.concatenate([sides, sides[:3]]), np.repeat([0, 1, 2], [4, 4, 3]), 2, 0.02) == 0
     s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([[False, True, False], [False] * 3]),
                    torch.tensor([False, True]))
     assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]
@@ -404,11 +409,16 @@ def test_degenerate_inputs_get_a_clear_status():
     # are those of points behind it.
     flip = np.diag([-1.0, 1.0, -1.0])
     behind = dataclasses.replace(good, R=flip @ good.R, t=good.t @ flip.T)
-    results = solve_poses([few, one_view, collinear, nan, bad_index, behind, good])
+    no_focal, mirror = good.K.copy(), good.R.copy()
+    no_focal[1, 0, 0] = 0.0  # a singular K crashed the clip's every track (LinAlgError)
+    mirror[2] = mirror[2] @ np.diag([1.0, 1.0, -1.0])  # a reflection was solved to a wrong pose, ok
+    zero_k, reflected = dataclasses.replace(good, K=no_focal), dataclasses.replace(good, R=mirror)
+    results = solve_poses([few, one_view, collinear, nan, bad_index, behind, good, zero_k, reflected])
     status = [r.status for r in results]
     assert status[:5] == ["too_few_points", "single_keyframe", "collinear_points", "invalid_input", "invalid_input"]
     assert status[5] in ("behind_camera", "high_residual"), results[5].message
     assert status[6] == "ok"
+    assert status[7:] == ["invalid_input"] * 2 and "focal" in results[7].message and "reflection" in results[8].message
     for r in results[:5]:
         assert r.translation is None and r.message
     assert "NaN" in results[3].message or "non-finite" in results[3].message

@@ -2,8 +2,9 @@
 
 Every object gets a status; only ``ok`` poses are fit for use. Before solving:
 
-- ``invalid_input``: a non-finite click, 3D point or camera value, or a key-frame index that
-  names no camera (the object is not solved: no silent repair);
+- ``invalid_input``: a non-finite click, 3D point or camera value, a camera K of no positive
+  focal length or an R that is no rotation (a reflection), or a key-frame index that names no
+  camera (the object is not solved: no silent repair);
 - ``too_few_points``: fewer than ``min_points`` clicks (9 unknowns, 2 equations per click);
 - ``single_keyframe``: every click on one key-frame: one view cannot tell the depth, hence the
   size, of the object (scaling it about the camera centre leaves every projection unchanged);
@@ -22,6 +23,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from cadestate.geometry import rotation_error
+
+ROTATION_TOL = 1e-2
+"""Largest :func:`rotation_error` of a key-frame camera's R the solver takes: ten times what a
+camera file may hold (tasks.video.camera_file), far below a reflection's (2)."""
+
 
 def _normal(points: np.ndarray, tol: float) -> np.ndarray | None:
     """Unit normal of float[N, 3] points if they are co-planar (smallest singular value of the
@@ -38,8 +45,8 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
     Co-planar: all points (at least 4) lie on one plane within ``tol`` (relative to their spread);
     the axis is the CAD axis nearest its normal. A 2-way model's key-frames may carry the face and
     its twin under the half turn about +Y (x, z -> -x, -z): there each key-frame with 4 or more
-    points must be co-planar with the same nearest axis x or z, and the points must be co-planar
-    once each key-frame's face is turned to the positive side of that axis. Turns about +Y keep
+    points must be co-planar with the same nearest axis x or z, and all the points (those of every
+    key-frame) must be co-planar once each key-frame's face is turned to the positive side of that axis. Turns about +Y keep
     y, so faces across +Y (a table's top and its feet) tie nothing whatever the symmetry, and a
     4- or 36-way model's faces across x or z may be turned onto each other's neighbours: the
     plain test over all points decides there.
@@ -49,18 +56,18 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
         return int(np.argmax(np.abs(n)))
     if symmetry != 2:
         return -1
-    axes, turned = [], []
-    for f in np.unique(keyframe):
-        p = xyz[keyframe == f]
-        if len(p) < 4:
-            continue
-        if (n := _normal(p, tol)) is None:
-            return -1
-        axes.append(int(np.argmax(np.abs(n))))
-        turned.append(p * np.array([-1.0, 1.0, -1.0]) if p[:, axes[-1]].mean() < 0 else p)
+    faces = [xyz[keyframe == f] for f in np.unique(keyframe)]
+    axes = []
+    for p in faces:
+        if len(p) >= 4:
+            if (n := _normal(p, tol)) is None:
+                return -1
+            axes.append(int(np.argmax(np.abs(n))))
     if not axes or len(set(axes)) != 1 or axes[0] == 1:
         return -1
-    return axes[0] if _normal(np.concatenate(turned), tol) is not None else -1
+    a = axes[0]  # every key-frame turned, those of fewer than 4 points too: their clicks off the plane untie
+    turned = [p * np.array([-1.0, 1.0, -1.0]) if p[:, a].mean() < 0 else p for p in faces]
+    return a if _normal(np.concatenate(turned), tol) is not None else -1
 
 
 def unobserved_axes(xyz: np.ndarray, extent: np.ndarray | None, min_span: float) -> np.ndarray:
@@ -119,6 +126,11 @@ def check_object(o, opts) -> tuple[str, str] | None:
     for name, a in (("2D click", xy), ("3D point", xyz), ("camera K", o.K), ("camera R", o.R), ("camera t", o.t)):
         if not np.isfinite(np.asarray(a, float)).all():
             return "invalid_input", f"non-finite {name} value(s)"
+    K, R = np.asarray(o.K, float).reshape(F, 3, 3), np.asarray(o.R, float).reshape(F, 3, 3)
+    if F and not ((K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)).all():
+        return "invalid_input", "a camera K whose focal length is not positive"
+    if any(rotation_error(r) > ROTATION_TOL for r in R):
+        return "invalid_input", "a camera R that is not a rotation (not orthonormal, or a reflection)"
     if len(kf) and (kf.min() < 0 or kf.max() >= F):
         return "invalid_input", f"key-frame index outside 0..{F - 1}"
     if len(xy) < opts.min_points:
