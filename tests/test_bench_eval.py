@@ -372,3 +372,21 @@ def test_four_way_symmetric_pose_turned_by_90_degrees_swaps_sx_and_sz():
     gt = PosedObject("1", "table", (0, 0, 0), tuple(q_gt), s_gt, cad_id="m", clip="c")
     pred = PosedObject("1", "table", (0, 0, 0), tuple(q_turned), (1.5, 0.7, 0.5), cad_id="m", clip="c")
     assert match_and_score([pred], [gt], {"m": 4}).num_correct == 1
+
+
+def test_pose_ground_truth_is_the_objects_the_clip_shows(tmp_path):
+    """A room's object the camera never sees (no box on any frame) is no object anyone could pose:
+    it left the pose section's denominator at 10 where the yield's was the 7 in view."""
+    import json
+
+    from bench.pose_bench import _gt
+    from schemas.official import objects_to_json
+
+    box, pose = (0.1, 0.1, 0.3, 0.3), dict(translation=(0.0, 0.0, 3.0), rotation=ID, scale=(1.0, 1.0, 1.0))
+    objects = ObjectsFile("A", (
+        ObjectAnnotation("0", "03001627", False, False, (TrackEntry(0, box),), "c1", **pose),
+        ObjectAnnotation("1", "04256520", False, False, (), "c2", **pose),  # behind the camera all along
+    ))
+    (tmp_path / "A").mkdir()
+    (tmp_path / "A" / "objects.json").write_text(json.dumps(objects_to_json(objects)))
+    assert [g.track_id for g in _gt(tmp_path, ["A"])] == ["0"]
