@@ -290,18 +290,27 @@ def serving_lock(root: Path):
     return f
 
 
-def serving_pid(root: Path) -> int | None:
-    """The pid of the ``cadestate serve`` holding this warehouse's serve lock, or None."""
+def serving_pid(root: Path, wait_s: float = 2.0) -> int | None:
+    """The pid of the ``cadestate serve`` holding this warehouse's serve lock, or None. A serve
+    writes its pid just after taking the lock: a held lock with no pid yet is read again for up
+    to ``wait_s`` (read as "nobody serves", a starting serve would be missed by ``stop``)."""
     path = prefect_dir(root) / SERVE_LOCK
-    try:
-        with open(path) as f:
-            try:
-                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-                return None  # nobody holds it
-            except BlockingIOError:
-                return int(f.read().strip())
-    except (OSError, ValueError):
-        return None
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with open(path) as f:
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                    return None  # nobody holds it
+                except BlockingIOError:
+                    text = f.read().strip()
+        except OSError:
+            return None
+        if text.isdigit():
+            return int(text)
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.05)
 
 
 def stop_serving(root: Path, timeout_s: float = 30.0) -> int | None:

@@ -285,3 +285,25 @@ def test_in_process_flow_runs_start_no_heartbeat_thread():
             assert inside.flows.heartbeat_frequency is None
             assert (inside.home, inside.api.url, inside.logging.level) == (outside.home, outside.api.url, outside.logging.level)
     assert get_current_settings().flows.heartbeat_frequency == outside.flows.heartbeat_frequency
+
+
+def test_a_serve_that_holds_its_lock_but_has_not_written_its_pid_yet_is_still_found(tmp_path):
+    """The serve lock is taken, then its pid written: ``serving_pid`` read the empty file between
+    the two as "nobody serves" (``server stop`` then left the starting serve running)."""
+    import fcntl
+    import threading
+
+    from flows.server import SERVE_LOCK, prefect_dir, serving_pid
+
+    path = prefect_dir(tmp_path) / SERVE_LOCK
+    path.parent.mkdir(parents=True)
+    holder = open(path, "a+")
+    fcntl.flock(holder.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    writer = threading.Timer(0.3, lambda: (holder.write("4242\n"), holder.flush()))
+    writer.start()
+    try:
+        assert serving_pid(tmp_path) == 4242
+    finally:
+        writer.join()
+        holder.close()
+    assert serving_pid(tmp_path) is None  # the lock released: nobody serves
