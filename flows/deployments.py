@@ -113,19 +113,41 @@ def inbox_sha256(path: Path) -> str:
 
 def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
     """The pairs that need a run: not ingested yet with these exact bytes (a changed file counts as
-    new), or whose last run of some stage failed or was interrupted. Clips done cost nothing."""
+    new), or whose last run of some stage failed or was interrupted, or whose run a killed process
+    left unfinished (:func:`unfinished`). Clips done cost nothing."""
     known = {(r["clip"], r["video_sha256"], r["cameras_sha256"])
              for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
     todo = []
     for p in pairs:
-        if (p.clip, inbox_sha256(p.video), inbox_sha256(p.cameras)) not in known:
-            todo.append(p)
-            continue
-        last = {r["stage"]: r["status"] for r in wh.read("runs", partitions=[p.clip], columns=["stage", "status", "started_at"])
-                .sort_by("started_at").to_pylist()}
-        if {"failed", "interrupted"} & set(last.values()):
+        if (p.clip, inbox_sha256(p.video), inbox_sha256(p.cameras)) not in known or unfinished(wh, p.clip):
             todo.append(p)
     return todo
+
+
+def unfinished(wh: Warehouse, clip: str) -> bool:
+    """Whether ``clip``'s stages need a run to finish what the last left: the last run of some stage
+    failed or was interrupted; a killed process left a run's marker (recorded as interrupted only
+    by the clip's next run, which nothing else starts); or a stage has no run though none of its
+    upstream stages waits for people (paused with nothing answered): the process ended between two
+    stages. A stage of a clip that waits for people has no run until the answers come."""
+    from tasks.registry import stages_of
+    from tasks.stage import run_markers
+
+    rows = wh.read("runs", partitions=[clip], columns=["stage", "status", "rows_written", "started_at"])
+    last = {r["stage"]: r for r in rows.sort_by("started_at").to_pylist()}
+    if {"failed", "interrupted"} & {r["status"] for r in last.values()}:
+        return True
+    if any(not m.alive for m in run_markers(wh, clip)):
+        return True
+    waiting: set[str] = set()
+    for stage in stages_of("clip"):
+        if stage.name in last:
+            continue
+        if not any(u in waiting or (last.get(u, {}).get("status") == "paused" and last[u]["rows_written"] == 0)
+                   for u in stage.upstream):
+            return True
+        waiting.add(stage.name)
+    return False
 
 
 def active_clip_runs(clip: str, states: list[StateType]) -> list:

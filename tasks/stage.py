@@ -279,7 +279,7 @@ def settle_interrupted(wh: Warehouse, clip: str) -> list[StageRun]:
         run = StageRun(clip=clip, stage=m.stage, run_id=m.run_id, status="interrupted", config_hash="", inputs_hash="",
                        output_hash="", code_hash="", rows_written=0, duration_s=0.0,
                        message=f"interrupted: process {m.pid} on {m.host} ended before the run finished (killed or crashed); "
-                               "its output was not written")
+                               "its tables may hold part of its output until it runs again")
         record_run(wh, run, m.started_at)
         m.path.unlink(missing_ok=True)
         settled.append(run)

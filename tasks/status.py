@@ -161,6 +161,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                                ("code changed", ok["code_hash"] != signature.code_hash),
                                ("inputs changed", ok["inputs_hash"] != inputs))
                     reasons += [why for why, changed in differs if changed]
+                if latest["status"] in ("failed", "interrupted"):  # a killed run's marker too: the next run redoes it
+                    reasons.append(f"last run {latest['status']}")
                 if stage.name in SOURCE_FILE_STAGES and (edited := _edited_inputs(wh, clip)):
                     reasons.append(f"inputs changed ({', '.join(edited)} of inputs/{clip}/ edited since ingest)")
                 if any(u in stale_stages for u in stage.upstream):

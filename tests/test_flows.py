@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
+import json
 import shutil
+import socket
 from pathlib import Path
 
 import pytest
@@ -73,6 +76,17 @@ def test_unchanged_rerun_does_nothing(config, source):
     # Rerunning from the warehouse's own copies (what `cadestate run` does) is the same clip: cached.
     video, cameras, _ = clip_inputs(wh, "small")
     assert {r.state for r in run_clips([ClipSource("small", video, cameras)], config, show_progress=False)} == {"cached"}
+    # A process killed within detect (its marker left, no row): status says detect and what follows
+    # it are stale, as the next run finds (it said "fresh" while that run redid detect).
+    marker = wh.root / "_running" / "small" / "detect.r9.json"
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"clip": "small", "stage": "detect", "run_id": "r9", "pid": 2 ** 22 + 7,
+                                  "host": socket.gethostname(), "process_start": 0.0, "process_ticks": 1,
+                                  "started_at": dt.datetime.now(dt.timezone.utc).isoformat()}))
+    stale = {r.stage: r.stale_reasons for r in pipeline_status(wh, config) if r.stale_reasons}
+    assert stale["detect"] == ("last run interrupted",) and stale["embed"] == ("upstream stale",), stale
+    assert {r.stage: r.state for r in run_clips([source], config, show_progress=False)}["detect"] == "completed"
+    assert all(not r.stale_reasons for r in pipeline_status(wh, config))
 
 
 def test_a_copied_or_moved_warehouse_reruns_nothing(config, source, tmp_path):

@@ -60,17 +60,46 @@ def test_two_inbox_pairs_naming_one_clip_start_one_run(tmp_path):
 
 
 def test_clips_done_are_not_run_again(tmp_path, small_clip):
+    import datetime as dt
+    import json
+    import shutil
+    import socket
+
     from conftest import table_rows
     from cadestate.lineage import file_sha256
+    from tasks.registry import stages_of
 
     wh = Warehouse(tmp_path / "w")
     pair = ClipSource("room", small_clip.video_path, small_clip.cameras_path)
     assert pairs_to_run(wh, [pair]) == [pair]
     wh.write("clips", "room", table_rows("clips", [{"clip": "room", "video_sha256": file_sha256(pair.video),
                                                      "cameras_sha256": file_sha256(pair.cameras)}]))
+    stages = [s.name for s in stages_of("clip")]
+    at = [dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc) + dt.timedelta(seconds=i) for i in range(len(stages) + 1)]
+
+    def runs(rows):  # the runs table appends: the clip's runs are these alone
+        shutil.rmtree(wh.root / "tables" / "runs", ignore_errors=True)
+        wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": f"r{i}", "started_at": at[i], **r}
+                                                     for i, r in enumerate(rows)]))
+
+    runs([{"stage": s, "status": "completed"} for s in stages])
     assert pairs_to_run(wh, [pair]) == []
-    wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": "r1", "stage": "detect", "status": "failed"}]))
+    runs([{"stage": s, "status": "failed" if s == "detect" else "completed"} for s in stages])
     assert pairs_to_run(wh, [pair]) == [pair]  # its last detect run failed: it runs again
+    # A process killed between two stages (tracking's run never started): it runs again. A clip
+    # whose cad_selection waits for people has no run of the stages after it: done for now.
+    runs([{"stage": s, "status": "completed"} for s in stages[:stages.index("tracking")]])
+    assert pairs_to_run(wh, [pair]) == [pair]
+    i = stages.index("cad_selection")
+    runs([{"stage": s, "status": "completed"} for s in stages[:i]] + [{"stage": "cad_selection", "status": "paused", "rows_written": 0}]
+         + [{"stage": s, "status": "completed"} for s in ("pose", "verification")])  # those read label files only
+    assert pairs_to_run(wh, [pair]) == []
+    # A process killed within a stage leaves its marker, and no row: it runs again.
+    marker = wh.root / "_running" / "room" / "pose.r9.json"
+    marker.parent.mkdir(parents=True)
+    marker.write_text(json.dumps({"clip": "room", "stage": "pose", "run_id": "r9", "pid": 2 ** 22 + 7, "host": socket.gethostname(),
+                                  "process_start": 0.0, "process_ticks": 1, "started_at": at[0].isoformat()}))
+    assert pairs_to_run(wh, [pair]) == [pair]
 
 
 def test_inbox_files_are_hashed_once_until_they_change(tmp_path):
