@@ -378,3 +378,19 @@ def test_mpeg_ts_frames_before_the_first_keyframe_after_the_start_are_reached(tm
     wanted = [7, 14, 40]
     got = [f.time_us for f in decode_at(path, np.array([i * 1_000_000 // 30 for i in wanted]), seek_threshold_us=0)]
     assert [round(t * 30 / 1e6) for t in got] == wanted
+
+
+def test_a_given_camera_file_has_no_interpolated_camera_whatever_an_earlier_sfm_ingest_left(wh, small_clip):
+    """A clip first ingested from its video alone (SfM) leaves its report of interpolated cameras;
+    re-ingested with a given camera file of as many lines, its frames took that report's flags."""
+    import json
+
+    from tasks.video.ingest import SFM_REPORT_FILE
+
+    n = len(parse_camera_file(small_clip.cameras_path))
+    folder = wh.inputs_dir("small")
+    folder.mkdir(parents=True)
+    (folder / SFM_REPORT_FILE).write_text(json.dumps({"interpolated": [i % 2 == 1 for i in range(n)]}))
+    ingest(wh, small_clip.video_path, small_clip.cameras_path)
+    extract_frames(wh, FramesConfig(), "small", "run1", show_progress=False)
+    assert not any(wh.read("frames").column("camera_interpolated").to_pylist())

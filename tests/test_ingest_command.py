@@ -65,6 +65,17 @@ def test_sfm_options_are_checked(tmp_path, small_clip, started, args, message):
     assert result.code == 2 and message in result.stderr and started == []
 
 
+def test_two_videos_or_a_camera_file_first_are_named_as_such(tmp_path, small_clip, started):
+    """Two files are VIDEO CAMERAS.txt: two videos (two SfM clips, the user thought) read the second
+    as a camera file ("not valid UTF-8")."""
+    other = tmp_path / "other.mp4"
+    other.write_bytes(small_clip.video_path.read_bytes())
+    for args in ([small_clip.video_path, other], [small_clip.cameras_path, small_clip.video_path]):
+        result = run_cli("-w", str(tmp_path / "w"), "ingest", *map(str, args))
+        assert result.code == 2 and "two files are VIDEO CAMERAS.txt, in that order" in result.stderr, result.stderr
+        assert "UTF-8" not in result.stderr and started == []
+
+
 def test_align_start_prints_the_offset_and_hands_it_on(tmp_path, small_clip, started):
     import dataclasses
 

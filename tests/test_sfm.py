@@ -281,3 +281,23 @@ def test_an_sfm_clip_is_rerun_with_the_intrinsics_it_was_given(tmp_path):
     report.write_text(json.dumps({"registered_fraction": 1.0, "given_intrinsics": [250, 250.5, 160, 96]}))
     assert registered_source(wh, "given").intrinsics == (250.0, 250.5, 160.0, 96.0)
     assert registered_source(wh, "found").intrinsics is None
+
+
+def test_an_sfm_clip_rerun_from_the_warehouse_keeps_its_videos_url(tmp_path):
+    """The cameras stage of an SfM clip rerun from the warehouse's copy of its video (`cadestate run`
+    after a [cameras] change) wrote that copy's URI as the clip's URL: a later ingest of the very
+    same video was refused as another video under the clip's name."""
+    from conftest import table_rows
+    from tasks.video.cameras import _sfm_url
+    from tasks.video.ingest import ClipSource, registered_source
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path / "w")
+    first = tmp_path / "room.mp4"
+    wh.write("clips", "room_0", table_rows("clips", [{"clip": "room_0", "url": first.as_uri(), "cameras_source": "sfm",
+                                                      "video_path": "inputs/room_0/video.mp4",
+                                                      "cameras_path": "inputs/room_0/cameras.sfm.txt"}]))
+    assert _sfm_url(wh, registered_source(wh, "room_0")) == first.as_uri()
+    elsewhere = tmp_path / "moved" / "room.mp4"  # an ingest of a video from outside the warehouse: its own URI
+    assert _sfm_url(wh, ClipSource("room_0", elsewhere, None)) == elsewhere.as_uri()
+    assert _sfm_url(wh, ClipSource("new_0", wh.root / "inputs" / "new_0" / "video.mp4", None)).endswith("new_0/video.mp4")

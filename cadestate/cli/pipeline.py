@@ -44,8 +44,9 @@ def ingest(
         "Map the first camera timestamp to the video's first frame; allowed only when every timestamp lies past the "
         "video's end. The offset chosen is printed."))] = False,
     intrinsics: Annotated[Optional[str], typer.Option(help=(
-        "Without a camera file: the camera's fx,fy,cx,cy in the video's stored pixels for SfM (default: the focal "
-        "length is estimated, the principal point at the image centre)."))] = None,
+        "Without a camera file: the camera's fx,fy,cx,cy for SfM, in pixels of the picture upright as a player "
+        "shows it (a phone video held in portrait: its portrait width and height), before any non-square pixel "
+        "stretch (default: the focal length is estimated, the principal point at the image centre)."))] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Ingest clips and run the pipeline on them (the annotate_clip flow; build_dataset for several).
@@ -81,7 +82,7 @@ def ingest(
 
     from tasks.detection.detectors import check_detect_config
     from tasks.video.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
-                              registered_splits, sfm_source)
+                              registered_splits, sfm_source, VIDEO_SUFFIXES)
 
     sfm_intrinsics = _parse_intrinsics(intrinsics)
     missing = [s for s in sources if not s.exists()]
@@ -99,6 +100,9 @@ def ingest(
         if sfm_intrinsics:
             raise typer.BadParameter("--intrinsics is for a video without a camera file")
         if len(sources) == 2 and sources[0].is_file() and sources[1].is_file():
+            if sources[1].suffix.lower() in VIDEO_SUFFIXES or sources[0].suffix.lower() == ".txt":
+                raise typer.BadParameter(f"{sources[0]} {sources[1]}: two files are VIDEO CAMERAS.txt, in that order; "
+                                         "videos without a camera file are ingested one at a time")
             pairs = [(sources[0], sources[1])]
         else:
             if clip:

@@ -36,7 +36,7 @@ def cameras_stage(wh: Warehouse, cfg: CamerasConfig, source: ClipSource, cameras
 
     path = sfm_cameras_path(wh, source.clip)
     path.parent.mkdir(parents=True, exist_ok=True)
-    result = run_sfm(source.video, cfg, source.intrinsics, work_dir=wh.root)
+    result = run_sfm(source.video, cfg, source.intrinsics, url=_sfm_url(wh, source), work_dir=wh.root)
     report = sfm_report(result) | {"given_intrinsics": list(source.intrinsics) if source.intrinsics else None}
     atomic_write_bytes(path.with_name(SFM_REPORT_FILE), json.dumps(report).encode())
     write_camera_file(path, result.track)
@@ -46,6 +46,18 @@ def cameras_stage(wh: Warehouse, cfg: CamerasConfig, source: ClipSource, cameras
     message = (f"SfM: {int(result.registered.sum())} of {len(result.registered)} frames registered "
                f"({result.registered_fraction:.1%}), {interpolated} interpolated{dropped}, {result.seconds['total']:.0f} s")
     return StageOutput(len(result.registered), cameras_output_hash("sfm", file_sha256(path)), message=message)
+
+
+def _sfm_url(wh: Warehouse, source: ClipSource) -> str:
+    """Line 1 of an SfM clip's camera file: the ``file://`` URI of the video as ingested. A rerun
+    (``cadestate run``, the app, label ingest) reads the warehouse's copy, whose URI would make
+    the clip another video (a re-ingest of the first file was then refused as a clash)."""
+    video = source.video.resolve()
+    if video.is_relative_to(wh.root) and source.clip in wh.partitions("clips"):
+        rows = wh.read("clips", partitions=[source.clip], columns=["url"]).column("url").to_pylist()
+        if rows and rows[0]:
+            return rows[0]
+    return video.as_uri()
 
 
 def _run(ctx: StageContext) -> StageOutput:

@@ -69,11 +69,12 @@ def frames_table(clip: str, cameras: CameraTrack, image_paths: list[str], width:
     })
 
 
-def interpolated_cameras(cameras_path: Path, n: int) -> np.ndarray:
+def interpolated_cameras(cameras_path: Path, n: int, sfm: bool) -> np.ndarray:
     """bool[n]: which camera lines the ``cameras`` stage interpolated (its report beside the SfM
-    camera file); all false for a given camera file."""
+    camera file); all false for a given camera file (``sfm`` false: a report an earlier SfM ingest
+    of the clip left is not this file's)."""
     report = cameras_path.with_name(SFM_REPORT_FILE)
-    if cameras_path.name == "cameras.txt" and report.is_file():
+    if sfm and cameras_path.name == "cameras.txt" and report.is_file():
         flags = json.loads(report.read_text()).get("interpolated")
         if isinstance(flags, list) and len(flags) == n:
             return np.asarray(flags, dtype=bool)
@@ -121,8 +122,9 @@ def extract_frames(wh: Warehouse, cfg: FramesConfig, clip: str, run_id: str, sho
         version = digest(images_digest, *names)[:16]  # by content: a rerun that decodes the same images keeps their paths
         final = wh.publish_media(MEDIA_KIND, clip, staged, version, content=True)
     image_paths = [wh.relative(final / name) for name in names]
+    interpolated = interpolated_cameras(cameras_path, len(cameras), row.get("cameras_source") == "sfm")
     table = frames_table(clip, cameras, image_paths, row["width"], row["height"], times, offset,
-                         stored_rotation(row.get("up_rotation")), interpolated_cameras(cameras_path, len(cameras)))
+                         stored_rotation(row.get("up_rotation")), interpolated)
     rows = wh.write("frames", clip, table)
     wh.prune_media(MEDIA_KIND, clip, keep=version)
     # The output digest covers the cameras, decoded times and image bytes, not the run-specific image folder.

@@ -128,8 +128,8 @@ def sample_frames(video: Path, sample_fps: float, out_dir: Path) -> SampledFrame
 
 def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None, pixel_aspect: float = 1.0):
     """pycolmap's reader, extraction, matching, pairing, two-view verification and mapping options for ``cfg``;
-    ``intrinsics`` (fx, fy, cx, cy) in the video's stored pixels, of ``pixel_aspect`` (their width over
-    their height), are handed over in the square pixels of :func:`sample_frames` (fx and cx scaled)."""
+    ``intrinsics`` (fx, fy, cx, cy) in pixels of the upright picture (a display rotation applied,
+    :func:`tasks.video.decode.upright`), of ``pixel_aspect`` (their width over their height), are handed over in the square pixels of :func:`sample_frames` (fx and cx scaled)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -236,8 +236,8 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             url: str | None = None, work_dir: Path | None = None) -> SfmResult:
     """Cameras of ``video`` by SfM (module docstring); ``url`` is the camera file's line 1
     (default: the video's ``file://`` URI); ``intrinsics`` (fx, fy, cx, cy) px fix the camera, in
-    the video's stored pixels (a video of non-square pixels is sampled in square ones: x scaled by
-    its pixel aspect, and so are fx and cx).
+    pixels of the upright picture, as :func:`sample_frames` turns it (a video of non-square pixels
+    is sampled in square ones: x scaled by its pixel aspect, and so are fx and cx).
 
     Raises:
       SfmError: no model, or fewer than ``cfg.min_registered_fraction`` of the frames registered.
