@@ -5,7 +5,7 @@ the CAD vocabulary (:mod:`tasks.cad.classes`); :func:`tasks.cad.classes.class_of
 label stands for which class. Per frame:
 
 1. predictions on ignore regions are dropped (:func:`bench.ignore.predictions_to_drop`, the one
-   ignore rule);
+   ignore rule, its matching within each class);
 2. per class, predictions whose label maps to it are matched one-to-one (Hungarian on IoU,
    IoU >= 0.5) to the non-ignored ground-truth boxes of that class: true positives;
 3. unmatched non-ignored ground truth is a miss of its class; an unmatched kept prediction is a
@@ -51,9 +51,10 @@ def evaluate_detections(frames: Iterable[FrameBoxes]) -> dict:
     tp, gt_n, pred_n = Counter(), Counter(), Counter()
     agnostic_tp = 0
     for f in frames:
-        keep = ~predictions_to_drop(f.pred_boxes, f.gt_boxes, f.gt_ignore)
+        named = np.array([class_of_label(label) or OTHER for label in f.pred_labels], dtype=object)
+        keep = ~predictions_to_drop(f.pred_boxes, f.gt_boxes, f.gt_ignore, pred_classes=named, gt_classes=f.gt_classes)
         pred_boxes = np.asarray(f.pred_boxes, np.float64).reshape(-1, 4)[keep]
-        pred_cls = np.array([class_of_label(label) or OTHER for label in f.pred_labels], dtype=object)[keep]
+        pred_cls = named[keep]
         valid = ~np.asarray(f.gt_ignore, bool)
         gt_boxes = np.asarray(f.gt_boxes, np.float64).reshape(-1, 4)[valid]
         gt_cls = np.array(list(f.gt_classes), dtype=object)[valid]

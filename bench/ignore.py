@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -137,12 +137,16 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore: np.ndarray,
-                        iou_threshold: float = IGNORE_IOU) -> np.ndarray:
+                        iou_threshold: float = IGNORE_IOU, pred_classes: Sequence[str] | None = None,
+                        gt_classes: Sequence[str] | None = None) -> np.ndarray:
     """Which predictions of ONE frame lie on ignore regions and must be dropped.
 
-    ``pred_boxes`` float[M, 4]; ``gt_boxes`` float[N, 4]; ``gt_ignore`` bool[N].
+    ``pred_boxes`` float[M, 4]; ``gt_boxes`` float[N, 4]; ``gt_ignore`` bool[N]; ``pred_classes``
+    and ``gt_classes`` (M and N names, both or neither): the matching is within each class, as
+    detection scores it (class-agnostic, a chair box on a hidden chair under a table took the table's
+    match from the table box, which was then dropped: a miss and a false positive).
     Returns bool[M]: True for a prediction that is not matched (Hungarian, IoU >= threshold) to a
-    non-ignored ground-truth box and overlaps some ignore box with IoU >= threshold.
+    non-ignored ground-truth box (of its class) and overlaps some ignore box with IoU >= threshold.
     """
     pred_boxes = np.asarray(pred_boxes, dtype=np.float64).reshape(-1, 4)
     gt_boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)
@@ -152,8 +156,11 @@ def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore:
         return drop
     matched = np.zeros(len(pred_boxes), dtype=bool)
     valid = gt_boxes[~gt_ignore]
-    if len(valid):
-        _, cols = match_pairs(box_iou(valid, pred_boxes), iou_threshold)
-        matched[cols] = True
+    pred_cls = np.zeros(len(pred_boxes), object) if pred_classes is None else np.asarray(list(pred_classes), object)
+    valid_cls = np.zeros(len(valid), object) if gt_classes is None else np.asarray(list(gt_classes), object)[~gt_ignore]
+    for c in set(valid_cls.tolist()):
+        preds = np.flatnonzero(pred_cls == c)
+        _, cols = match_pairs(box_iou(valid[valid_cls == c], pred_boxes[preds]), iou_threshold)
+        matched[preds[cols]] = True
     on_ignore = (box_iou(gt_boxes[gt_ignore], pred_boxes) >= iou_threshold).any(axis=0)
     return on_ignore & ~matched
