@@ -26,6 +26,14 @@ def test_identical_boxes_overlap_fully():
     assert overlap(box((1, 0, 2)), box((1, 0, 2))) == 1.0
 
 
+def test_a_flat_model_overlaps_its_twin():
+    """A model of one flat face (a rug: a side of 0) had a box of no volume: no overlap, not even
+    with its own twin, so two poses of one rug were never flagged."""
+    rug = (2.0, 0.0, 1.4)
+    assert overlap(box(extent=rug), box(extent=rug)) == 1.0
+    assert overlap(box(extent=rug), box((0.0, 0.5, 0.0), extent=rug)) == 0.0  # one above the other: apart
+
+
 def test_disjoint_boxes_do_not_overlap():
     assert overlap(box(), box((0.6, 0, 0))) == 0.0  # 0.1 m apart along x
     assert overlap(box(), box((0.0, 0, 0.52))) == 0.0  # near enough for the sphere test: the grid decides

@@ -24,6 +24,9 @@ from cadestate.render import object_to_world
 
 GRID = 20
 """Points per axis of the grid that measures an overlap (GRID³ points in the smaller box)."""
+THINNEST = 0.01
+"""Least side of a posed box, as a share of its model's largest: a model of one flat face (a rug,
+a picture: a side of 0) has a box of no volume, which overlapped nothing, its own twin included."""
 
 
 @dataclass(frozen=True)
@@ -61,9 +64,11 @@ class OrientedBox:
 def posed_box(extent: Sequence[float], translation: Sequence[float], rotation: Sequence[float], scale: Sequence[float],
               is_mirrored: bool) -> OrientedBox:
     """The oriented box of a CAD model of size ``extent`` (m, canonical CAD axes) under a pose
-    (translation m world; rotation (w, x, y, z) CAD -> world; scale along the CAD axes)."""
+    (translation m world; rotation (w, x, y, z) CAD -> world; scale along the CAD axes); no side
+    thinner than :data:`THINNEST` of the largest."""
     M = object_to_world(translation, rotation, scale, is_mirrored)
-    return OrientedBox(M[:3, 3].copy(), M[:3, :3].copy(), np.asarray(extent, np.float64))
+    size = np.asarray(extent, np.float64)
+    return OrientedBox(M[:3, 3].copy(), M[:3, :3].copy(), np.maximum(size, THINNEST * size.max()))
 
 
 def overlap(a: OrientedBox, b: OrientedBox, n: int = GRID) -> float:
