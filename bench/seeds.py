@@ -61,6 +61,7 @@ USED_SEEDS: dict[int, str] = {
                 "the drawn class exponent and the descriptor's training rooms on it; stop 65: its wrong poses studied "
                 "for the pose solver's proportion prior; stop 66: one of the seven seeds the fitted 480 canvas "
                 "was chosen on",
+    5550001: "generated in stop 72 at 1920 x 1080 to judge an antialiased shrink of the detector's input (not adopted)",
     999983: "generated in stop 64 to judge the drawn class exponent and the descriptor's training rooms; stop 65: "
             "its wrong poses studied for the pose solver's proportion prior; stop 66: one of the seven seeds the "
             "fitted 480 canvas was chosen on",
