@@ -363,6 +363,12 @@ def test_ingest_validated_ingests_what_was_validated_once(lwh, tmp_path):
     again = ingest_validated(lwh, files[:1], ClipFacts(lwh))
     assert again.ingested == [] and again.duplicates == [str(files[0].path)]
     assert ingest_labels(lwh, d).duplicates == sorted(str(f.path) for f in files)
+    # The app's answers get the warnings a file's ingest gives (a second session's clicks leaving out a key-frame).
+    second = _edit("correspondences", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
+                                                 d["answers"][0]["keyframes"].pop(0)))
+    fewer = validate_label(put(d, "fewer.json", second), facts=ClipFacts(lwh))
+    assert [w.split(": ", 1)[1][:40] for w in ingest_validated(lwh, [fewer], ClipFacts(lwh)).warnings] == [
+        "its clicks for track 0 replace those of "]
 
 
 def test_a_parsed_task_is_kept_and_a_bad_one_fails_every_time(lwh):

@@ -193,7 +193,7 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
             raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
     if report.errors or not report.ingested:
         raise IngestFailed(_not_ingested(path, report.errors))
-    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(lf.warnings), dict(report.rows))
+    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(report.warnings), dict(report.rows))
 
 
 def ingest_pending(wh: Warehouse, lock: threading.Lock, labels_dir: Path | None = None,

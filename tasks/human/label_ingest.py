@@ -318,7 +318,8 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
                      coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> IngestReport:
     """:func:`ingest_labels` of label files validated already against this warehouse (``facts``:
     the :class:`ClipFacts` they were validated with; the app validates an answer before it writes
-    its file, and need not parse it again). A file whose bytes were ingested before is a duplicate."""
+    its file, and need not parse it again). A file whose bytes were ingested before is a duplicate.
+    The warnings are those :func:`ingest_labels` gives (:mod:`tasks.human.label_warnings` too)."""
     report = IngestReport()
     known = _known(wh, sorted({lf.clip for lf in files}))
     accepted = []
@@ -329,6 +330,9 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
         report.warnings += lf.warnings
         known.add(lf.sha256)
         accepted.append(lf)
+    warn = LabelWarnings(wh)
+    for lf in sorted(accepted, key=_order):
+        report.warnings += warn.check(lf)
     return _ingest(wh, accepted, facts, report, coplanar_tol, None)
 
 
