@@ -1,7 +1,8 @@
 """Tables of the CAD library, partitioned by ``library`` (one Sweet Home 3D set, a ShapeNet copy, a folder).
 
-Canonical CAD frame (every mesh the library stores): metres, +Y up, the model's front facing +Z,
-origin at the centre of its axis-aligned bounding box. Object-to-world poses (later stages) map
+Canonical CAD frame (every mesh the library stores): metres, +Y up, the model's front facing +Z
+(a ShapeNet model keeps ShapeNet's orientation, whatever its front), origin at the centre of its
+axis-aligned bounding box. Object-to-world poses (later stages) map
 this frame to the world: mirror => scale => rotation => translation (official CAD-Estate order).
 """
 

@@ -435,6 +435,62 @@ def test_a_catalogue_item_without_an_id_is_listed(tmp_path):
     assert all(load_item(i)[0].extents.max() > 0 for i in items)
 
 
+def test_a_malformed_catalogue_entry_or_catalogue_is_one_line_naming_it(tmp_path):
+    """A comma decimal in a size, a rotation of 8 numbers, a catalogue with no properties file and
+    one that is no zip were tracebacks."""
+    import zipfile
+
+    def catalogue(folder, props=None, raw=None):
+        folder.mkdir()
+        if raw is not None:
+            (folder / "Mine.sh3f").write_bytes(raw)
+            return folder
+        with zipfile.ZipFile(folder / "Mine.sh3f", "w") as z:
+            if props is not None:
+                z.writestr("PluginFurnitureCatalog.properties", props)
+        return folder
+
+    entry = "name#1=Chair\ncategory#1=Living room\nmodel#1=/c/c.obj\nwidth#1={w}\ndepth#1=40\nheight#1=90\n{more}"
+    cases = [(catalogue(tmp_path / "a", entry.format(w="50,5", more="")), r"width#1 = '50,5' is not 1 number"),
+             (catalogue(tmp_path / "b", entry.format(w="50", more="modelRotation#1=1 0 0 0 1 0 0 0\n")),
+              r"modelRotation#1 = '1 0 0 0 1 0 0 0' is not 9 number"),
+             (catalogue(tmp_path / "c"), "no PluginFurnitureCatalog.properties in it"),
+             (catalogue(tmp_path / "d", raw=b"not a zip"), "not a readable zip")]
+    for folder, message in cases:
+        with pytest.raises(CadSourceError, match=rf"^{folder / 'Mine.sh3f'}: .*{message}"):
+            source_items("sweethome3d", folder)
+
+
+def test_a_model_whose_texture_cannot_be_written_is_skipped_not_the_library(tmp_path):
+    """An OBJ whose texture is a float TIFF: the GLB export raised out of ingest_item, failing the
+    whole library (its good models too) with no model named."""
+    from PIL import Image
+
+    from tasks.cad.ingest import ingest_item
+
+    Image.fromarray(np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8)).save(tmp_path / "f32.tif")
+    quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    (tmp_path / "f32.mtl").write_text("newmtl m\nmap_Kd f32.tif\n")
+    (tmp_path / "f32.obj").write_text("mtllib f32.mtl\n" + quad)
+    (tmp_path / "models.csv").write_text("id,class\nf32,table\n")
+    (item,) = folder_items(tmp_path)
+    result = ingest_item(item, CadIngestConfig(samples=256), tmp_path)
+    assert result.model is None and result.issues[0]["severity"] == "skipped" and "f32" in result.issues[0]["item"]
+
+
+def test_a_shapenet_synset_outside_the_vocabulary_is_named_in_the_issues(tmp_path):
+    """A ShapeNet pillow (03938244) is ingested as 'other', as a folder's unknown class is: said so."""
+    from warehouse import Warehouse
+
+    folder = tmp_path / "sn" / "03938244" / "p1" / "models"
+    folder.mkdir(parents=True)
+    trimesh.creation.box((0.5, 0.2, 0.4)).export(folder / "model_normalized.obj")
+    wh = Warehouse(tmp_path / "w")
+    ingest_library(wh, CadIngestConfig(samples=256), "shapenet", list(shapenet_items(tmp_path / "sn")), "r", show_progress=False)
+    (issue,) = wh.read("cad_issues").to_pylist()
+    assert "class '03938244' is none of the vocabulary's" in issue["problem"]
+
+
 def test_a_library_name_held_from_another_folder_is_refused_and_the_same_folder_is_not(ingested, mesh_folder, tmp_path):
     """The warehouse holds testlib from mesh_folder: another folder under that name is refused; the
     same folder again, or with models added in a subfolder (its files' common folder moves), is not."""

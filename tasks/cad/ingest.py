@@ -127,16 +127,17 @@ class ItemResult:
 def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResult:
     """Canonicalise one item, write ``out_dir/<cad_id>.glb``; never raises for a bad item."""
     issue = {"library": item.library, "item": item.item, "source_path": item.path}
-    try:
+    try:  # through its GLB: a texture the exporter cannot write (a float TIFF) failed the whole library
         scene, missing = load_item(item)
         model = canonicalise(scene, item)
+        points = sample_surface(model.mesh, cfg.samples, seed=0)
+        symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
+        glb = model.scene.export(file_type="glb")
     except Exception as e:  # any unreadable item is reported and skipped
         return ItemResult(None, None, [{**issue, "severity": "skipped", "problem": f"{type(e).__name__}: {e}"}])
-    points = sample_surface(model.mesh, cfg.samples, seed=0)
-    symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
-    (out_dir / f"{item.cad_id}.glb").write_bytes(model.scene.export(file_type="glb"))
+    (out_dir / f"{item.cad_id}.glb").write_bytes(glb)
     problems = [f"missing or unreadable files (rendered without them): {', '.join(missing)}"] if missing else []
-    if item.source == "folder" and item.cls == "other" and item.category.lower() != "other":
+    if item.source in ("folder", "shapenet") and item.cls == "other" and item.category.lower() != "other":
         problems.append(f"class {item.category!r} is none of the vocabulary's (tasks/cad/classes.py) nor a synonym of "
                         "one: ingested as 'other'")
     issues = [{**issue, "severity": "warning", "problem": "; ".join(problems)}] if problems else []  # one row an item

@@ -114,6 +114,19 @@ def _sh3d_licence(header: str) -> str:
     return next((spdx for text, spdx in SH3D_LICENCES.items() if lowered.startswith(text)), header.strip() or "unknown")
 
 
+def _numbers(archive: Path, key: str, text: str, counts: tuple[int, ...]) -> tuple[float, ...]:
+    """The finite numbers of catalogue entry ``key``'s value ``text``, as many as one of ``counts``;
+    else :class:`CadSourceError` naming the catalogue and the key (a comma decimal: a traceback was all)."""
+    try:
+        values = tuple(float(v) for v in text.split())
+    except ValueError:
+        values = (float("nan"),)
+    if len(values) not in counts or not np.isfinite(values).all():
+        many = " or ".join(str(c) for c in counts if c)
+        raise CadSourceError(f"{archive}: PluginFurnitureCatalog.properties: {key} = {text!r} is not {many} number(s)")
+    return values
+
+
 def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
     """Items of every ``*.sh3f`` catalogue in ``folder`` (people excluded)."""
     catalogues = sorted(Path(folder).glob("*.sh3f"))
@@ -123,22 +136,27 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
         if archive.stem.lower() in SH3D_EXCLUDED_SETS:
             continue
         library = "sh3d-" + slug(archive.stem)
-        with zipfile.ZipFile(archive) as z:
-            props = read_java_properties(z.read("PluginFurnitureCatalog.properties"))
+        try:
+            with zipfile.ZipFile(archive) as z:
+                props = read_java_properties(z.read("PluginFurnitureCatalog.properties"))
+        except (zipfile.BadZipFile, KeyError, OSError) as e:
+            why = "no PluginFurnitureCatalog.properties in it" if isinstance(e, KeyError) else f"not a readable zip ({e})"
+            raise CadSourceError(f"{archive}: {why}") from None
         licence = _sh3d_licence(props.get("license", ""))
         indices = sorted(int(k.split("#")[1]) for k in props if k.startswith("name#") and k.split("#")[1].isdigit())
         for i in indices:
             get = lambda key, default="": props.get(f"{key}#{i}", default)  # noqa: E731
             if get("category").lower() in SH3D_EXCLUDED_CATEGORIES:
                 continue
-            rotation = tuple(float(v) for v in get("modelRotation").split()) or None
+            rotation = _numbers(archive, f"modelRotation#{i}", get("modelRotation"), (0, 9)) or None
             name = get("name")
             item = get("id").split("#", 1)[-1] or f"{name}-{i}"  # the id is optional in a catalogue
             yield CadItem(
                 library=library, item=item, name=name, category=get("category"),
                 cls=classify(name, get("category"), f"{library}.{slug(item)}"), source="sweethome3d",
                 path=f"{archive}!{get('model').lstrip('/')}", licence=licence, creator=get("creator") or props.get("provider", ""),
-                size_m=tuple(float(get(k, "0")) / 100.0 for k in ("width", "height", "depth")),
+                size_m=tuple(_numbers(archive, f"{k}#{i}", get(k, "0"), (1,))[0] / 100.0
+                             for k in ("width", "height", "depth")),
                 unit_m=0.01, rotation=rotation,
             )
 
