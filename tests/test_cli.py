@@ -90,16 +90,22 @@ def test_sql_errors_and_read_only(tmp_path):
 
 @pytest.mark.slow
 def test_stage_failures_are_one_clear_line(tmp_path, small_clip):
-    # Cameras half a frame off the video's frames, but for the first and the last, pass `ingest`'s
-    # up-front checks (tests/fuzz has those) and fail in the frames stage.
+    # Cameras half a frame off the video's frames but for the first and the last: ingest checks
+    # every camera against the frames' times under [frames] max_timestamp_error_us, so they pass
+    # under a loose tolerance; run again under the default one, a stage fails.
     lines = small_clip.cameras_path.read_text().splitlines()
     shifted = [*lines[:2]] + [" ".join([str(int(ln.split()[0]) + 15_000), *ln.split()[1:]]) for ln in lines[2:-1]] + lines[-1:]
     cams = tmp_path / "c.txt"
     cams.write_text("\n".join(shifted) + "\n")
-    result = cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(cams))
+    (tmp_path / "loose.toml").write_text("[frames]\nmax_timestamp_error_us = 20000\n")
+    refused = cli("-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(cams))
+    assert refused.returncode == 2 and f"{cams}:3: timestamp" in refused.stderr, refused.stderr
+    loose = cli("-c", str(tmp_path / "loose.toml"), "-w", str(tmp_path / "w"), "ingest", str(small_clip.video_path), str(cams))
+    assert loose.returncode == 0, loose.stderr
+    result = cli("-w", str(tmp_path / "w"), "run", "small_0")  # the ingest stage checks its inputs again, under 3 ms
     assert result.returncode == 1
-    assert "error: clip small_0, stage frames: " in result.stderr and f"{cams}:3: " in result.stderr
-    assert "camera line 3 asks for" in result.stderr
+    placed = tmp_path / "w" / "inputs" / "small_0" / "cameras.txt"  # the warehouse's copy of c.txt
+    assert f"error: clip small_0, stage ingest: {placed}:3: timestamp" in result.stderr, result.stderr
     assert "Traceback" not in result.stderr
 
 
@@ -233,6 +239,9 @@ def test_cad_ingest_sheet_export(tmp_path):
     assert issues == [{"item": "bad", "severity": "skipped"}]
     sheet = runner.invoke(app, ["-w", w, "cad", "sheet", str(tmp_path / "s.png")])
     assert sheet.exit_code == 0 and (tmp_path / "s.png").stat().st_size > 1000
+    none = cli("-w", w, "cad", "sheet", str(tmp_path / "none.png"), "--where", "class = 'zzz'")  # was a blank sheet, exit 0
+    assert none.returncode == 2 and "no CAD model with rendered views matches" in none.stderr
+    assert not (tmp_path / "none.png").exists()
     export = runner.invoke(app, ["-w", w, "cad", "export-official", str(tmp_path / "official")])
     assert export.exit_code == 0 and (tmp_path / "official" / "04379243" / "mine.box.npz").is_file()
     credits = (tmp_path / "official" / "ATTRIBUTION.csv").read_text().splitlines()

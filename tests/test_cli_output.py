@@ -91,6 +91,15 @@ def test_a_mistyped_warehouse_is_refused_and_not_created(tmp_path):
         errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
         assert result.returncode != 0 and len(errors) == 1 and f"{missing}: no warehouse there" in errors[0], (args, result.stderr)
         assert not missing.exists() and not (tmp_path / "out").exists(), args
+    # A folder that is there but no warehouse (-w data for data/warehouse, -w ~): read as an empty
+    # warehouse, exit 0, and a catalog and 29 table schemas were left in it.
+    other = tmp_path / "data"
+    (other / "warehouse").mkdir(parents=True)  # -w data, for data/warehouse
+    for args in (("status",), ("sql", "SELECT 1"), ("tables",), ("stats",)):
+        result = cli("-w", str(other), *args, cwd=tmp_path)
+        errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
+        assert result.returncode == 2 and len(errors) == 1 and f"{other}: not a warehouse" in errors[0], (args, result.stderr)
+        assert [p.name for p in other.iterdir()] == ["warehouse"], args
 
 
 def test_a_warehouse_that_cannot_be_written_is_one_line_before_prefect(tmp_path):
@@ -114,7 +123,8 @@ def test_a_warehouse_that_cannot_be_written_is_one_line_before_prefect(tmp_path)
             result = cli("-w", str(ro), *args, cwd=tmp_path)
             errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
             assert result.returncode == 2 and len(errors) == 1, (args, result.stderr)
-            assert errors[0].startswith(f"error: {ro}: the warehouse cannot be written ("), errors[0]
+            said = "the warehouse cannot be written (" if args[0] == "cad" or (ro / "tables").is_dir() else "not a warehouse"
+            assert errors[0].startswith(f"error: {ro}: {said}"), errors[0]  # as root, /sys/kernel: a folder of other files
     finally:
         folder.chmod(0o700)
 
@@ -183,3 +193,31 @@ def test_stale_reasons_too_wide_for_the_terminal_go_under_the_status_table(monke
             assert max(len(ln) for ln in lines) <= 80 and any(ln.endswith("│ no (2) │") for ln in lines), lines
             assert notes == [f"[yellow](1)[/] bench-7-00_0 cameras: {'; '.join(why)}",
                              f"[yellow](2)[/] bench-7-00_0 correspondence_task: {'; '.join(why)}"]
+
+
+def test_progress_bars_are_drawn_on_the_terminal_of_stderr_not_into_stdout(tmp_path):
+    """`cmd > log` on a terminal: the bars go to stderr (the terminal); stdout, a file, holds the
+    command's output alone (the bars went to stdout: a blank line in the file per bar, none shown)."""
+    import pty
+
+    master, slave = pty.openpty()
+    code = "from cadestate.progress import progress\nfor _ in progress(range(3), 3, 'frames'): pass\nprint('done')"
+    with open(tmp_path / "out.txt", "w") as stdout:
+        done = subprocess.run([sys.executable, "-c", code], stdout=stdout, stderr=slave, timeout=120,
+                              env={**os.environ, "CADESTATE_PROGRESS": "1"})
+    os.close(slave)
+    drawn = os.read(master, 1 << 16).decode(errors="replace")
+    os.close(master)
+    assert done.returncode == 0 and (tmp_path / "out.txt").read_text() == "done\n"
+    assert "frames" in drawn, drawn
+
+
+def test_output_is_utf8_whatever_the_locale_says(tmp_path):
+    """Under an ASCII locale (PYTHONIOENCODING=ascii, or C without coercion) an 'é' in a CSV was a
+    traceback after its header; a µ in `tables` too."""
+    (tmp_path / "w" / "tables").mkdir(parents=True)
+    env = {**os.environ, "COLUMNS": "80", "PYTHONIOENCODING": "ascii"}
+    for args, shown in ((["sql", "SELECT 'é' AS x", "--format", "csv"], "x\né\n"), (["tables", "frames"], "µs")):
+        done = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), *args], capture_output=True,
+                              env=env, cwd=tmp_path)
+        assert done.returncode == 0 and shown in done.stdout.decode("utf-8"), done.stderr.decode()

@@ -283,6 +283,8 @@ class Compacted:
     rows: int
 
 
+TABLES_DIR = "tables"
+"""The warehouse's folder of tables (``tables/<table>/...``): what tells a warehouse from another folder."""
 DIRS_KEPT = 4096
 """How many table and partition folders a :class:`Warehouse` keeps made (:meth:`Warehouse.partition_dir`)."""
 
@@ -351,7 +353,7 @@ class Warehouse:
         if (kept := self._dirs.get(key)) is not None:
             return kept
         info = self._table(table)
-        folder = self.root / "tables" / info.name
+        folder = self.root / TABLES_DIR / info.name
         if part is not None:
             folder = folder / f"{info.partition}={check_name(part, info.partition)}"
         if len(self._dirs) >= DIRS_KEPT:

@@ -50,9 +50,14 @@ def main() -> None:
     """Entry point: known input errors and usage errors (a mistyped option or value) become one
     clear line on stderr and exit status 2 (1 for a failing environment); Ctrl-C is "interrupted",
     status 130. SIGTERM ends the command as an exit (status 143), so that its cleanup runs
-    (temporary folders, the Prefect API it launched), as Ctrl-C's does."""
+    (temporary folders, the Prefect API it launched), as Ctrl-C's does. Output is UTF-8 whatever
+    the locale says (an 'é' in a CSV under an ASCII locale was a traceback half-way through)."""
     import typer
     from typer._click.exceptions import NoArgsIsHelpError, UsageError  # Typer carries its own Click
+
+    for stream, errors in ((sys.stdout, "strict"), (sys.stderr, "backslashreplace")):
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(encoding="utf-8", errors=errors)
 
     exit_on_sigterm()
     try:

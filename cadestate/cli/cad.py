@@ -133,4 +133,7 @@ def cad_sheet(
         raise CliError(f"{out_file}: a picture's name: .png, .jpg or .webp")
     with cannot_write(out_file, "the sheet"):
         count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
+    if not count:
+        raise CliError(f"no CAD model with rendered views matches --where {where!r}: nothing written "
+                       "(`cadestate sql \"SELECT class, count(*) FROM cad_models GROUP BY class\"` lists the classes)")
     out.print(f"wrote {out_file} ({count} models)")

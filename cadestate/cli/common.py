@@ -92,7 +92,21 @@ class State:
         if must_exist and not root.exists():
             raise CliError(f"{root}: no warehouse there (set by -w, [warehouse] root or $CADESTATE_WAREHOUSE); "
                            "`cadestate ingest` or `cadestate cad ingest` makes one")
+        if must_exist and not _warehouse_or_empty(root):  # a near miss (-w data, -w ~) was read as an empty warehouse
+            raise CliError(f"{root}: not a warehouse (a folder of other files, with no tables/ folder; set by -w, "
+                           "[warehouse] root or $CADESTATE_WAREHOUSE)")
         return Warehouse(root, compact_after=cfg.warehouse.compact_after_files)
+
+
+def _warehouse_or_empty(root: Path) -> bool:
+    """Whether the folder ``root`` is a warehouse (its tables, catalog or Prefect folder), or empty."""
+    from warehouse.catalog import CATALOG_FILE
+    from warehouse.store import TABLES_DIR
+
+    try:
+        return any((root / name).exists() for name in (TABLES_DIR, CATALOG_FILE, "_prefect")) or not any(root.iterdir())
+    except OSError:  # not listable: what opens it next says why
+        return True
 
 
 class CliError(Exception):

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 from PIL import Image, ImageDraw
 
-from warehouse import Warehouse
+from warehouse import Warehouse, atomic_write_bytes
 from warehouse.query import run_query
 
 TILE = 160
@@ -14,11 +15,15 @@ COLUMNS = 8
 
 
 def contact_sheet(wh: Warehouse, out_file: Path, where: str = "true", limit: int = 48) -> int:
-    """Write a PNG of up to ``limit`` models matching the SQL condition ``where``; returns the count."""
+    """Write a PNG of up to ``limit`` models matching the SQL condition ``where``; returns the count
+    (0: no model matches, and nothing is written)."""
     sql = (f"SELECT m.cad_id, m.name, m.class, m.symmetry, v.image_path FROM cad_models m "
            f"JOIN cad_views v USING (library, cad_id) WHERE v.view = 0 AND ({where}) ORDER BY m.cad_id LIMIT {int(limit)}")
+    out_file.parent.mkdir(parents=True, exist_ok=True)  # first: a path that cannot be written is said before anything
     with run_query(wh, sql) as result:  # read-only: ``where`` is the user's SQL
         rows = [row for batch in result.batches for row in batch]
+    if not rows:
+        return 0
     rows_n = max(1, -(-len(rows) // COLUMNS))
     sheet = Image.new("RGB", (TILE * COLUMNS, TILE * rows_n), "white")
     for i, (cad_id, name, cls, symmetry, image_path) in enumerate(rows):
@@ -27,6 +32,7 @@ def contact_sheet(wh: Warehouse, out_file: Path, where: str = "true", limit: int
         draw.text((3, 2), f"{name[:22]}", fill=(0, 0, 0))
         draw.text((3, TILE - 12), f"{cls}  sym {symmetry}", fill=(180, 0, 0))
         sheet.paste(tile, ((i % COLUMNS) * TILE, (i // COLUMNS) * TILE))
-    out_file.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(out_file)
+    picture = io.BytesIO()
+    sheet.save(picture, format=Image.registered_extensions()[out_file.suffix.lower()])
+    atomic_write_bytes(out_file, picture.getvalue())
     return len(rows)

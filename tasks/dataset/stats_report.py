@@ -10,6 +10,9 @@ colour per object, its class and track id at its box) and its per-class counts. 
 from __future__ import annotations
 
 import html
+import os
+import shutil
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -97,8 +100,35 @@ def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
 
 
 def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> Path:
-    """Write the report (module docstring) into ``out``; returns ``out/index.html``."""
-    out = Path(out)
+    """Write the report (module docstring) into ``out``; returns ``out/index.html``. It is made in a
+    folder beside ``out``, then put in place (its ``img/``, ``clips/`` and ``index.html`` replace
+    those of an earlier report, the index last), so that a report stopped half-way (Ctrl-C) leaves
+    ``out`` as it was."""
+    from tasks.cad.export import temp_folder_beside
+
+    out = Path(out).absolute()
+    out.parent.mkdir(parents=True, exist_ok=True)  # an OSError of its own: the caller names what cannot be written
+    with temp_folder_beside(out) as tmp:
+        _write_report(wh, tables, stats, tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        for entry in sorted(tmp.iterdir(), key=lambda e: e.name == "index.html"):
+            _replace(entry, out / entry.name)
+    return out / "index.html"
+
+
+def _replace(src: Path, dst: Path) -> None:
+    """Move ``src`` to ``dst``, replacing a file or folder there (a folder is renamed aside first)."""
+    if dst.is_dir() and not dst.is_symlink():
+        aside = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.old")
+        dst.rename(aside)
+        src.rename(dst)
+        shutil.rmtree(aside, ignore_errors=True)
+    else:
+        os.replace(src, dst)
+
+
+def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> None:
+    """Write the report's files into the new folder ``out``."""
     (out / "img").mkdir(parents=True, exist_ok=True)
     (out / "clips").mkdir(exist_ok=True)
     figures = []
@@ -137,6 +167,4 @@ def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -
             "<h2>Posed objects per class</h2>", _table(list(stats["per_class"].items()), ("class", "posed objects")),
             *[f"<img src=\"img/{f}\" alt=\"{f}\">" for f in figures],
             "<h2>Cost of the dataset</h2>", _table(cost, ("", "")), "<h2>Clips</h2>", "<ul>", *links, "</ul>"]
-    index = out / "index.html"
-    index.write_text(_page("cadestate dataset statistics", body), encoding="utf-8")
-    return index
+    (out / "index.html").write_text(_page("cadestate dataset statistics", body), encoding="utf-8")
