@@ -8,8 +8,10 @@ it), so a clip's stages stay in one process and the per-process caches (the dete
 retrieval index) serve every stage of every clip the worker takes.
 
 What the workers share: the warehouse, at the same absolute path on every worker (a shared file
-system: partition files are swapped in by atomic renames and append-mode partitions are locked with
-``flock``, so several processes write it safely), and the clips' input files. The CAD library is
+system: partition files are swapped in by atomic renames, a replace-mode partition by the
+``renameat2`` exchange of two folders (:func:`cadestate.atomic.exchange`: not on NFS), and
+append-mode partitions are locked with ``flock``, so several processes write it safely), and the
+clips' input files. The CAD library is
 built beforehand (``cadestate cad ingest``): clip stages only read it.
 
 Prefect in the workers: every worker process talks to one Prefect API, handed to it with the clip.
