@@ -479,16 +479,19 @@ def test_a_model_whose_texture_cannot_be_written_is_skipped_not_the_library(tmp_
 
 
 def test_a_shapenet_synset_outside_the_vocabulary_is_named_in_the_issues(tmp_path):
-    """A ShapeNet pillow (03938244) is ingested as 'other', as a folder's unknown class is: said so."""
+    """A ShapeNet pillow (03938244) is ingested as 'other', as a folder's unknown class is: said so; a model
+    folder without its mesh is a skipped item (it vanished without a trace)."""
     from warehouse import Warehouse
 
     folder = tmp_path / "sn" / "03938244" / "p1" / "models"
     folder.mkdir(parents=True)
     trimesh.creation.box((0.5, 0.2, 0.4)).export(folder / "model_normalized.obj")
+    (tmp_path / "sn" / "03001627" / "nomesh" / "models").mkdir(parents=True)  # vanished without a trace
     wh = Warehouse(tmp_path / "w")
     ingest_library(wh, CadIngestConfig(samples=256), "shapenet", list(shapenet_items(tmp_path / "sn")), "r", show_progress=False)
-    (issue,) = wh.read("cad_issues").to_pylist()
-    assert "class '03938244' is none of the vocabulary's" in issue["problem"]
+    issues = {r["item"]: r for r in wh.read("cad_issues").to_pylist()}
+    assert "class '03938244' is none of the vocabulary's" in issues["p1"]["problem"]
+    assert issues["nomesh"]["severity"] == "skipped"
 
 
 def test_a_library_name_held_from_another_folder_is_refused_and_the_same_folder_is_not(ingested, mesh_folder, tmp_path):

@@ -164,10 +164,11 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
 def shapenet_items(root: Path, library: str = "shapenet") -> Iterator[CadItem]:
     """Items of a ShapeNetCore v2 folder (``<synset>/<model_id>/models/model_normalized.obj``)."""
     by_id = {c.id: c.name for c in BY_NAME.values()}
-    meshes = sorted(Path(root).glob(f"*/*/{SHAPENET_MESH.as_posix()}"))
-    if not meshes:
+    if not any(Path(root).glob(f"*/*/{SHAPENET_MESH.as_posix()}")):
         raise CadSourceError(f"{root}: no <synset>/<model_id>/{SHAPENET_MESH} files")
-    for mesh in meshes:
+    # every model folder of a synset folder, its mesh there or not (one without is a cad_issues row, not nothing)
+    folders = sorted(d for d in Path(root).glob("*/*") if d.is_dir() and re.fullmatch(r"\d{8}", d.parent.name))
+    for mesh in (d / SHAPENET_MESH for d in folders):
         synset, model_id = mesh.parts[-4], mesh.parts[-3]
         yield CadItem(library=library, item=model_id, name=model_id, category=synset, cls=by_id.get(synset, "other"),
                       source="shapenet", path=str(mesh), licence="ShapeNet terms of use", creator="ShapeNet")
