@@ -12,7 +12,8 @@ false positive) when
 
 Predictions on ignore regions are *dropped* (not counted as false positives). Decision, per frame:
 predictions are first matched one-to-one (Hungarian, IoU >= ``IGNORE_IOU``) to the non-ignored
-ground-truth boxes; only the predictions left unmatched are then dropped when they overlap any
+ground-truth boxes (when classes are given, within each class first, then the rest whatever
+their class); only the predictions left unmatched are then dropped when they overlap any
 ignore box with IoU >= ``IGNORE_IOU`` (an ignore box can absorb several predictions, like COCO's
 crowd regions). So a prediction that covers a real object is never thrown away because an ignored
 one lies nearby.
@@ -142,11 +143,13 @@ def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore:
     """Which predictions of ONE frame lie on ignore regions and must be dropped.
 
     ``pred_boxes`` float[M, 4]; ``gt_boxes`` float[N, 4]; ``gt_ignore`` bool[N]; ``pred_classes``
-    and ``gt_classes`` (M and N names, both or neither): the matching is within each class, as
-    detection scores it (class-agnostic, a chair box on a hidden chair under a table took the table's
-    match from the table box, which was then dropped: a miss and a false positive).
-    Returns bool[M]: True for a prediction that is not matched (Hungarian, IoU >= threshold) to a
-    non-ignored ground-truth box (of its class) and overlaps some ignore box with IoU >= threshold.
+    and ``gt_classes`` (M and N names, both or neither): predictions are matched to the boxes in
+    view of their own class first, then the others to the boxes in view left, whatever their
+    class (class-agnostic alone, a chair box on a hidden chair under a table took the table's
+    match from the table box, which was dropped: a miss and a false positive; class-aware alone, a
+    sofa box on a table in view beside a hidden chair was dropped, no false positive).
+    Returns bool[M]: True for a prediction that is matched (Hungarian, IoU >= threshold) to no
+    non-ignored ground-truth box and overlaps some ignore box with IoU >= threshold.
     """
     pred_boxes = np.asarray(pred_boxes, dtype=np.float64).reshape(-1, 4)
     gt_boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)
@@ -156,11 +159,16 @@ def predictions_to_drop(pred_boxes: np.ndarray, gt_boxes: np.ndarray, gt_ignore:
         return drop
     matched = np.zeros(len(pred_boxes), dtype=bool)
     valid = gt_boxes[~gt_ignore]
-    pred_cls = np.zeros(len(pred_boxes), object) if pred_classes is None else np.asarray(list(pred_classes), object)
-    valid_cls = np.zeros(len(valid), object) if gt_classes is None else np.asarray(list(gt_classes), object)[~gt_ignore]
-    for c in set(valid_cls.tolist()):
-        preds = np.flatnonzero(pred_cls == c)
-        _, cols = match_pairs(box_iou(valid[valid_cls == c], pred_boxes[preds]), iou_threshold)
-        matched[preds[cols]] = True
+    taken = np.zeros(len(valid), dtype=bool)
+    if pred_classes is not None and gt_classes is not None:
+        pred_cls = np.asarray(list(pred_classes), object)
+        valid_cls = np.asarray(list(gt_classes), object)[~gt_ignore]
+        for c in set(valid_cls.tolist()):
+            preds, gts = np.flatnonzero(pred_cls == c), np.flatnonzero(valid_cls == c)
+            rows, cols = match_pairs(box_iou(valid[gts], pred_boxes[preds]), iou_threshold)
+            matched[preds[cols]], taken[gts[rows]] = True, True
+    preds, gts = np.flatnonzero(~matched), np.flatnonzero(~taken)
+    _, cols = match_pairs(box_iou(valid[gts], pred_boxes[preds]), iou_threshold)
+    matched[preds[cols]] = True
     on_ignore = (box_iou(gt_boxes[gt_ignore], pred_boxes) >= iou_threshold).any(axis=0)
     return on_ignore & ~matched

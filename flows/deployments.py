@@ -129,7 +129,8 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
     failed or was interrupted; a killed process left a run's marker (recorded as interrupted only
     by the clip's next run, which nothing else starts); or a stage has no run though none of its
     upstream stages waits for people (paused with nothing answered): the process ended between two
-    stages. A stage of a clip that waits for people has no run until the answers come."""
+    stages. A stage of a clip that waits for people has no run until the answers come; a clip whose
+    run is under way (a live marker) needs none."""
     from tasks.registry import stages_of
     from tasks.stage import run_markers
 
@@ -137,7 +138,10 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
     last = {r["stage"]: r for r in rows.sort_by("started_at").to_pylist()}
     if {"failed", "interrupted"} & {r["status"] for r in last.values()}:
         return True
-    if any(not m.alive for m in run_markers(wh, clip)):
+    markers = run_markers(wh, clip)
+    if any(m.alive for m in markers):  # a run under way (a command's, a Dask worker's): it finishes the clip
+        return False
+    if markers:
         return True
     waiting: set[str] = set()
     for stage in stages_of("clip"):

@@ -221,3 +221,8 @@ def test_output_is_utf8_whatever_the_locale_says(tmp_path):
         done = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), *args], capture_output=True,
                               env=env, cwd=tmp_path)
         assert done.returncode == 0 and shown in done.stdout.decode("utf-8"), done.stderr.decode()
+    # A file name that is no UTF-8 (its bytes kept as surrogates) is printed as its bytes, not a traceback.
+    folder = os.fsdecode(bytes(tmp_path) + b"/schemas\xff")
+    done = subprocess.run([sys.executable, "-m", "cadestate", "labels", "schema", "--write", folder], capture_output=True,
+                          env={**os.environ, "COLUMNS": "80"}, cwd=tmp_path)
+    assert done.returncode == 0 and done.stdout.startswith(os.fsencode(folder)), done.stderr.decode()

@@ -62,8 +62,11 @@ def test_two_inbox_pairs_naming_one_clip_start_one_run(tmp_path):
 def test_clips_done_are_not_run_again(tmp_path, small_clip):
     import datetime as dt
     import json
+    import os
     import shutil
     import socket
+
+    import psutil
 
     from conftest import table_rows
     from cadestate.lineage import file_sha256
@@ -100,6 +103,9 @@ def test_clips_done_are_not_run_again(tmp_path, small_clip):
     marker.write_text(json.dumps({"clip": "room", "stage": "pose", "run_id": "r9", "pid": 2 ** 22 + 7, "host": socket.gethostname(),
                                   "process_start": 0.0, "process_ticks": 1, "started_at": at[0].isoformat()}))
     assert pairs_to_run(wh, [pair]) == [pair]
+    marker.write_text(json.dumps({**json.loads(marker.read_text()), "pid": os.getpid(), "process_ticks": None,
+                                  "process_start": psutil.Process().create_time()}))
+    assert pairs_to_run(wh, [pair]) == []  # its run is under way (this process): not submitted again
 
 
 def test_inbox_files_are_hashed_once_until_they_change(tmp_path):

@@ -55,7 +55,7 @@ def main() -> None:
     import typer
     from typer._click.exceptions import NoArgsIsHelpError, UsageError  # Typer carries its own Click
 
-    for stream, errors in ((sys.stdout, "strict"), (sys.stderr, "backslashreplace")):
+    for stream, errors in ((sys.stdout, "surrogateescape"), (sys.stderr, "backslashreplace")):  # a file name's bytes
         if hasattr(stream, "reconfigure"):
             stream.reconfigure(encoding="utf-8", errors=errors)
 
