@@ -93,6 +93,10 @@ def test_a_mistyped_warehouse_is_refused_and_not_created(tmp_path):
         assert not missing.exists() and not (tmp_path / "out").exists(), args
     # A folder that is there but no warehouse (-w data for data/warehouse, -w ~): read as an empty
     # warehouse, exit 0, and a catalog and 29 table schemas were left in it.
+    from warehouse.catalog import CATALOG_FILE
+    from warehouse.store import TABLES_DIR
+
+    assert (TABLES_DIR, CATALOG_FILE) == ("tables", "catalog.duckdb")  # the names cadestate.cli.common looks for
     other = tmp_path / "data"
     (other / "warehouse").mkdir(parents=True)  # -w data, for data/warehouse
     for args in (("status",), ("sql", "SELECT 1"), ("tables",), ("stats",)):

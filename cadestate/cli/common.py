@@ -100,11 +100,8 @@ class State:
 
 def _warehouse_or_empty(root: Path) -> bool:
     """Whether the folder ``root`` is a warehouse (its tables, catalog or Prefect folder), or empty."""
-    from warehouse.catalog import CATALOG_FILE
-    from warehouse.store import TABLES_DIR
-
-    try:
-        return any((root / name).exists() for name in (TABLES_DIR, CATALOG_FILE, "_prefect")) or not any(root.iterdir())
+    try:  # warehouse.store.TABLES_DIR, warehouse.catalog.CATALOG_FILE (not imported: a read command's start stays light)
+        return any((root / name).exists() for name in ("tables", "catalog.duckdb", "_prefect")) or not any(root.iterdir())
     except OSError:  # not listable: what opens it next says why
         return True
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import threading
 from pathlib import Path
 from typing import Annotated, Optional
@@ -114,6 +116,7 @@ def serve(ctx: typer.Context) -> None:
     from flows.deployments import deployments
 
     config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
+    logging.getLogger("asyncio").addFilter(_quiet_cancelled_reads)
     try:
         prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
     except Exception:
@@ -122,6 +125,15 @@ def serve(ctx: typer.Context) -> None:
         raise
     finally:
         lock.close()
+
+
+def _quiet_cancelled_reads(record: logging.LogRecord) -> bool:
+    """Drop asyncio's "Exception in callback" for a task cancelled as the loop ends: Prefect's runner
+    ends its loop on SIGTERM (`server stop`) while a flow run's process may still be connected to
+    its control channel, whose pending read is then cancelled (a traceback in the serve's log for
+    a clean stop)."""
+    exc = record.exc_info[1] if record.exc_info else None
+    return not isinstance(exc, asyncio.CancelledError)
 
 
 _ENDING = threading.Lock()
