@@ -58,7 +58,7 @@ from tasks.cad.classes import class_of_label
 from tasks.dataset.export_official import official_frames
 from tasks.dataset.objects import DatasetFrame, clip_frames
 from tasks.human.answers_in_force import answered_items
-from tasks.human.label_ingest import ingest_labels
+from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, ingest_labels
 from tasks.human.labels import LabelError, label_document, latest_task_of_kind, parse_task, utc_now, validate_label
 from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse, atomic_write_bytes
@@ -317,9 +317,11 @@ def answer_tasks(bench_dir: Path, wh: Warehouse, clip: str, noise: AnnotatorNois
 
 def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: Callable[[list[str]], list],
                         max_rounds: int = 6, noise: AnnotatorNoise = DEFAULT_NOISE,
-                        log: Callable[[str], None] = lambda s: None) -> tuple[list, list[str]]:
+                        log: Callable[[str], None] = lambda s: None,
+                        coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> tuple[list, list[str]]:
     """Run ``clips`` (``run(clips)`` -> stage reports), answer the open tasks of the clips that
-    wait, ingest the label files, rerun those clips; until none waits or ``max_rounds`` runs.
+    wait, ingest the label files (``coplanar_tol``: the config's ``[pose] coplanar_tol``, as
+    ``labels ingest`` takes it), rerun those clips; until none waits or ``max_rounds`` runs.
     Returns (the reports of every run, the clips still waiting)."""
     reports: list = []
     todo = list(clips)
@@ -335,7 +337,7 @@ def annotate_until_done(bench_dir: Path, wh: Warehouse, clips: list[str], run: C
         for clip, paths in written.items():
             if not paths:
                 continue
-            report = ingest_labels(wh, paths)  # only this round's: the folder may hold another warehouse's
+            report = ingest_labels(wh, paths, coplanar_tol=coplanar_tol)  # only this round's: the folder may hold another warehouse's
             if report.errors:
                 raise LabelError("; ".join(report.errors))
             resumed += report.clips

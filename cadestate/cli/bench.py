@@ -91,7 +91,8 @@ def bench_run(
 
     reports, waiting = annotate_until_done(
         bench_dir, ctx.obj.open_warehouse(), clips, lambda todo: run_clips([sources[c] for c in todo], cfg, progress),
-        max_rounds, dataclasses.replace(DEFAULT_NOISE, seed=annotator_seed), log=err.print)
+        max_rounds, dataclasses.replace(DEFAULT_NOISE, seed=annotator_seed), log=err.print,
+        coplanar_tol=cfg.pose.coplanar_tol)
     code = print_reports(merge_rounds(reports))
     if waiting:
         err.print(f"still waiting after {max_rounds} run(s): {', '.join(waiting)}")
