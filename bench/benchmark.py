@@ -215,7 +215,8 @@ def report_markdown(result: dict) -> str:
              "## The benchmark's ground truth (the paper's Table 2 statistics; what the dataset built holds is above and in `cadestate stats`)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
              f"{result['ground_truth_boxes']['ignore']} are ignore regions (mostly hidden or cut off, or of a class no detector is asked to find).", "",
-             "## Simulated annotators (label files of `cadestate bench run`)", "",
+             "## Simulated annotators' clicks on every ground-truth object (`bench/labels.py`: the noise model as "
+             "measured; the answers to the pipeline's own tasks are what the yield above counts)", "",
              "| | |", "|---|---:|", *[f"| {k.replace('_', ' ')} | {v} |" for k, v in result["simulated_labels"].items()], "",
              *detection_markdown(result.get("detection")),
              *tracking_markdown(result.get("tracking")),
