@@ -132,7 +132,7 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
     stages. A stage of a clip that waits for people has no run until the answers come; a clip whose
     run is under way (a live marker) needs none."""
     from tasks.registry import stages_of
-    from tasks.stage import run_markers
+    from tasks.stage import run_markers, waits_for_people
 
     rows = wh.read("runs", partitions=[clip], columns=["stage", "status", "rows_written", "started_at"])
     last = {r["stage"]: r for r in rows.sort_by("started_at").to_pylist()}
@@ -147,7 +147,7 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
     for stage in stages_of("clip"):
         if stage.name in last:
             continue
-        if not any(u in waiting or (last.get(u, {}).get("status") == "paused" and last[u]["rows_written"] == 0)
+        if not any(u in waiting or (u in last and waits_for_people(last[u]["status"], last[u]["rows_written"]))
                    for u in stage.upstream):
             return True
         waiting.add(stage.name)

@@ -321,10 +321,16 @@ def run_stage(
     return run
 
 
+def waits_for_people(status: str, rows_written: int) -> bool:
+    """Whether a run of this status and rows written waits for people with nothing answered yet
+    (paused with no rows, or itself waiting): the stages after it do not run on nothing."""
+    return status == "waiting" or (status == "paused" and rows_written == 0)
+
+
 def waiting_run(clip: str, stage: str, upstream: list[StageRun]) -> StageRun | None:
-    """A ``waiting`` result when an upstream run waits for people with nothing answered yet
-    (paused with no rows, or itself waiting): the stage does not run on nothing. Else None."""
-    blocked = [u for u in upstream if u.status == "waiting" or (u.status == "paused" and u.rows_written == 0)]
+    """A ``waiting`` result when an upstream run waits for people (:func:`waits_for_people`): the
+    stage does not run on nothing. Else None."""
+    blocked = [u for u in upstream if waits_for_people(u.status, u.rows_written)]
     if not blocked:
         return None
     names = ", ".join(sorted({u.stage for u in blocked}))

@@ -73,12 +73,20 @@ def temp_folder_beside(out: Path) -> Iterator[Path]:
 
 def publish(tmp: Path, out: Path) -> None:
     """Move the finished export ``tmp`` to ``out``: renamed whole when ``out`` is not there, else
-    (an empty folder, the current one say, which a rename cannot replace) entry by entry into it."""
+    (a folder, the current one say, which a rename cannot replace) entry by entry into it, in name
+    order, each replacing an entry of its name there (a folder is renamed aside, then removed)."""
     if not out.exists():
         tmp.rename(out)
         return
     for entry in sorted(tmp.iterdir()):
-        entry.rename(out / entry.name)
+        there = out / entry.name
+        if there.is_dir() and not there.is_symlink():
+            aside = there.with_name(f".{there.name}.{uuid.uuid4().hex}.old")
+            there.rename(aside)
+            entry.rename(there)
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
+            os.replace(entry, there)
 
 
 @dataclass(frozen=True)

@@ -187,10 +187,10 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
     wh.prune_media(MEDIA_KIND, library, keep=version)
     skipped = sum(i["severity"] == "skipped" for i in issues)
     said = [f"{skipped} item(s) skipped, see cad_issues"] if skipped else []
-    outside = sorted({m["source_category"] for m in models if m["source"] == "shapenet" and m["class"] == "other"})
+    outside = [m["source_category"] for m in models if m["source"] == "shapenet" and m["class"] == "other"]
     if outside:  # one line, not a row per model (ShapeNetCore's airplanes alone are 4,045)
-        said.append(f"{sum(m['source'] == 'shapenet' and m['class'] == 'other' for m in models)} model(s) of ShapeNet "
-                    f"synsets outside the vocabulary (tasks/cad/classes.py) ingested as 'other': {', '.join(outside)}")
+        said.append(f"{len(outside)} model(s) of ShapeNet synsets outside the vocabulary (tasks/cad/classes.py) "
+                    f"ingested as 'other': {', '.join(sorted(set(outside)))}")
     return StageOutput(rows, digest(table_digest(table.drop_columns(["mesh_path"])), meshes), message="; ".join(said))
 
 

@@ -10,9 +10,6 @@ colour per object, its class and track id at its box) and its per-class counts. 
 from __future__ import annotations
 
 import html
-import os
-import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -101,30 +98,17 @@ def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
 
 def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> Path:
     """Write the report (module docstring) into ``out``; returns ``out/index.html``. It is made in a
-    folder beside ``out``, then put in place (its ``img/``, ``clips/`` and ``index.html`` replace
-    those of an earlier report, the index last), so that a report stopped half-way (Ctrl-C) leaves
-    ``out`` as it was."""
-    from tasks.cad.export import temp_folder_beside
+    folder beside ``out``, then put in place (:func:`tasks.cad.export.publish`: its ``clips/``,
+    ``img/`` and ``index.html`` replace those of an earlier report, in that order, the index last),
+    so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was."""
+    from tasks.cad.export import publish, temp_folder_beside
 
     out = Path(out).absolute()
     out.parent.mkdir(parents=True, exist_ok=True)  # an OSError of its own: the caller names what cannot be written
     with temp_folder_beside(out) as tmp:
         _write_report(wh, tables, stats, tmp)
-        out.mkdir(parents=True, exist_ok=True)
-        for entry in sorted(tmp.iterdir(), key=lambda e: e.name == "index.html"):
-            _replace(entry, out / entry.name)
+        publish(tmp, out)
     return out / "index.html"
-
-
-def _replace(src: Path, dst: Path) -> None:
-    """Move ``src`` to ``dst``, replacing a file or folder there (a folder is renamed aside first)."""
-    if dst.is_dir() and not dst.is_symlink():
-        aside = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.old")
-        dst.rename(aside)
-        src.rename(dst)
-        shutil.rmtree(aside, ignore_errors=True)
-    else:
-        os.replace(src, dst)
 
 
 def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> None:

@@ -116,10 +116,15 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
                          1.0 / pixel_aspect if turns % 2 else pixel_aspect, 90 * turns)
 
 
+def _time_us(pts: int, start: int, time_base: Fraction) -> int:
+    """A stream timestamp in µs of stream time (its ``start_time`` subtracted), exactly rounded."""
+    return int(round((pts - start) * time_base * 1_000_000))
+
+
 def _frame_time_us(frame: av.VideoFrame, start: int, time_base: Fraction, path: str | os.PathLike) -> int:
     if frame.pts is None:
         raise VideoError(f"{path}: a decoded frame has no timestamp")
-    return int(round((frame.pts - start) * time_base * 1_000_000))
+    return _time_us(frame.pts, start, time_base)
 
 
 def decode_at(
@@ -215,11 +220,10 @@ def frame_times_us(path: str | os.PathLike) -> np.ndarray | None:
                     continue  # the flush packet demux ends with
                 if packet.pts is None:
                     return None
-                times.append(packet.pts - start)
+                times.append(_time_us(packet.pts, start, stream.time_base))  # as decode_at times its frames
         except av.error.FFmpegError as e:
             raise VideoError(f"{path}: reading its packets failed (corrupt or truncated video?): {e}") from None
-    scale = float(stream.time_base) * 1_000_000
-    return np.sort(np.round(np.asarray(times, np.float64) * scale).astype(np.int64))
+    return np.sort(np.asarray(times, np.int64))
 
 
 def _video_stream(container: av.container.InputContainer) -> av.video.stream.VideoStream:
