@@ -8,6 +8,8 @@ import datetime as dt
 import json
 import random
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -618,6 +620,11 @@ def test_cli_schema_validate_ingest(lwh, tmp_path):
     bad = put(d, "bad.json", _edit("verification", lambda x: x["answers"][0].__setitem__("verdict", 1)))
     result = runner.invoke(app, [*w, "labels", "validate", str(d / "ok.json"), str(bad)])
     assert result.exit_code == 1 and "ok (verification" in result.output
+    for args in (["validate"], ["ingest", "--no-resume"], ["validate", str(d / "ok.json")]):  # as the shell sees it
+        done = subprocess.run([sys.executable, "-m", "cadestate", *w, "labels", *args, str(d / "nothing.json")],
+                              capture_output=True, text=True)
+        assert done.returncode == 2 and "nothing.json: no such label file or folder" in done.stderr, (args, done.stderr)
+        assert ("ok (verification" in done.stdout) == (len(args) == 2 and args[0] == "validate"), done.stdout  # others checked
     result = runner.invoke(app, [*w, "labels", "ingest", "--no-resume", str(d)])
     assert result.exit_code == 1 and "1 label file(s) ingested" in result.output and "clips with new labels: c1" in result.output
     xml = put(tmp_path, "annotations.xml", CVAT)

@@ -64,7 +64,7 @@ def labels_ingest(
     ingested, or an `error:` line (file and field); a bad file stops no other. The clips with new
     labels are rerun (the stages their labels made stale, e.g. cad_selection, and what follows;
     everything upstream is cached). Exit status 1 when any file was not ingested or a resumed
-    stage failed.
+    stage failed, 2 when the source does not exist.
     """
     from tasks.human.label_ingest import ingest_labels
 
@@ -122,18 +122,19 @@ def labels_validate(
 ) -> None:
     """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file;
-    a folder is checked as `labels ingest` reads it."""
+    a folder is checked as `labels ingest` reads it. Exit status 1 when any file is bad, 2 when a
+    path given does not exist (as `labels ingest`); the other paths are still checked."""
     from tasks.human.label_ingest import label_paths
     from tasks.human.labels import ClipFacts, LabelError, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
-    bad = 0
+    bad = missing = 0
     paths: list[Path] = []
     for source in files:
         try:
             found = label_paths(source)
         except FileNotFoundError as e:
-            bad += 1
+            missing += 1
             _problems([str(e)], [])
             continue
         if not found:
@@ -149,7 +150,7 @@ def labels_validate(
             continue
         _say(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
         _problems([], list(lf.warnings))
-    raise typer.Exit(1 if bad else 0)
+    raise typer.Exit(2 if missing else 1 if bad else 0)
 
 
 def _schema(kind: str, which: str) -> dict:
