@@ -19,7 +19,7 @@ from cadestate.config import describe_defaults, load_config, to_toml
 @app.callback()
 def main_options(
     ctx: typer.Context,
-    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Config TOML (default: $CADESTATE_CONFIG, else ./cadestate.toml, else built-in defaults).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Config TOML (default: $CADESTATE_CONFIG, else ./cadestate.toml, else built-in defaults); its relative paths are taken from the current folder.")] = None,
     warehouse: Annotated[Optional[Path], typer.Option("--warehouse", "-w", help="Warehouse root (overrides [warehouse] root and $CADESTATE_WAREHOUSE).")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's flow and task logs.")] = False,
 ) -> None:
