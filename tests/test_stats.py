@@ -202,6 +202,10 @@ def test_stats_command(bench3, tmp_path):
     assert text.code == 0 and "#Scenes (clips): 3" in text.stdout
     assert text.stdout.startswith(f"Yield (posed of all objects found): {sum(len(p) for _, _, p, _ in clips)} of ")
     assert "annotation s per posed object (shown when every item is timed): -" in text.stdout
+    lines = text.stdout.splitlines()  # the cost one figure a line, as the HTML report's table (no Python dict)
+    assert "{" not in text.stdout and any(re.fullmatch(r"compute s: detect: \d+\.\d\d", line) for line in lines), lines
+    assert any(line.startswith("compute s: CAD libraries (shared by every clip): ") for line in lines)
+    assert any(re.fullmatch(r"human items answered: verification: \d+", line) for line in lines), lines
     bad = run_cli("-w", str(wh.root), "stats", "--where", "no_such_column = 1", "--html", str(tmp_path / "bad"), "--json")
     assert_clean_error(bad, mentions="error: --where 'no_such_column = 1': SQL error: ")
     assert bad.stdout == "" and not (tmp_path / "bad").exists()

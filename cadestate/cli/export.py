@@ -62,7 +62,7 @@ def stats(
     section 4: scenes, posed objects, classes, posed objects per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
     record per kind and per posed object, and how many answered items recorded none)."""
-    from tasks.dataset.stats import annotation_cost_lines, dataset_tables, select_clips, statistics, statistics_lines
+    from tasks.dataset.stats import cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
     wh = ctx.obj.open_warehouse(must_exist=True)
@@ -77,11 +77,7 @@ def stats(
     else:
         for label, value in statistics_lines(figures):
             out.print(f"{label}: {value}", highlight=False)
-        out.print(f"compute seconds per stage: {figures['compute_s_per_stage']}", highlight=False)
-        out.print(f"compute seconds of the CAD libraries (shared by every clip): {figures['compute_s_cad_libraries']}",
-                  highlight=False)
-        out.print(f"human items answered: {figures['human_items']}", highlight=False)
-        for label, value in annotation_cost_lines(figures):
+        for label, value in cost_lines(figures):
             out.print(f"{label}: {value}", highlight=False)
     if html is not None:
         from tasks.dataset.stats_report import write_report

@@ -175,6 +175,19 @@ def statistics_lines(stats: dict) -> list[tuple[str, str]]:
             *((label, fmt(stats[key])) for key, label in TABLE_ROWS)]
 
 
+def cost_lines(stats: dict) -> list[tuple[str, str]]:
+    """(label, value) rows of the dataset's cost: compute seconds per stage and of the CAD libraries,
+    human items answered per kind, then :func:`annotation_cost_lines`."""
+    from tasks.registry import stages_of
+
+    order = {st.name: i for i, st in enumerate(stages_of("clip"))}  # the pipeline's order; others after, by name
+    per_stage = sorted(stats["compute_s_per_stage"].items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0]))
+    rows = [(f"compute s: {k}", f"{v:.2f}") for k, v in per_stage]
+    rows.append(("compute s: CAD libraries (shared by every clip)", f"{stats['compute_s_cad_libraries']:.2f}"))
+    rows += [(f"human items answered: {k}", str(v)) for k, v in stats["human_items"].items()]
+    return rows + annotation_cost_lines(stats)
+
+
 def annotation_cost_lines(stats: dict) -> list[tuple[str, str]]:
     """(label, value) rows of the annotation time the label files record (``label_effort``)."""
     per_object = stats["annotation_s_per_posed_object"]

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from tasks.dataset.objects import ClipDataset, clip_dataset
-from tasks.dataset.stats import DatasetTables, annotation_cost_lines, statistics_lines
+from tasks.dataset.stats import DatasetTables, cost_lines, statistics_lines
 from tasks.human.shared import evenly_spaced
 from warehouse import Warehouse
 
@@ -132,9 +132,7 @@ def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) 
             _histogram(truncated, "Truncation per visible object", "share of its projected box outside the image",
                        out / "img" / "truncation.png")
             figures.append("truncation.png")
-    cost = [(f"compute s: {k}", v) for k, v in stats["compute_s_per_stage"].items()]
-    cost += [(f"human items answered: {k}", v) for k, v in stats["human_items"].items()]
-    cost += annotation_cost_lines(stats)
+    cost = cost_lines(stats)
     links = []
     for clip in tables.clips:
         ds = clip_dataset(wh, clip)
