@@ -3,6 +3,8 @@ on reprojects them exactly, and stays the same model in the same place (known an
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -70,3 +72,29 @@ def test_clicks_that_fit_already_and_unsymmetric_models_keep_their_pose():
     assert turn_to_clicks(o, frames(), SIZE) is o
     one = posed(1, False, clicked_turn=np.pi)
     assert turn_to_clicks(one, frames(), SIZE) is one
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_key_frames_clicked_on_different_turns_all_reproject_through_the_one_pose(mirrored):
+    """The solver matches each key-frame to its own turn: a 4-way table clicked on turn 0 in one
+    key-frame and on 90 and 270 degrees in the others. The exported pose is one turn; the other
+    key-frames' 3D points are turned to the same points of the symmetric model, so every click
+    reprojects, and the points stay where they were up to a symmetric turn."""
+    o = posed(4, mirrored)
+    per_frame = {0: 0.0, 100: np.pi / 2, 200: 3 * np.pi / 2}
+    M = o.pose.matrix()
+    clicks = {}
+    for ts, f in frames().items():
+        turn = M @ np.block([[y_rotation(per_frame[ts]), np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])
+        xyz = np.array([x for _, x in o.correspondences[ts]])
+        uv, _ = project(f.K, f.R, f.t, xyz @ turn[:3, :3].T + turn[:3, 3])
+        clicks[ts] = tuple((tuple(p / [SIZE[1], SIZE[0]]), tuple(x)) for p, x in zip(uv, xyz))
+    o = dataclasses.replace(o, correspondences=clicks)
+    assert reprojection_px(o) > 5
+    folded = turn_to_clicks(o, frames(), SIZE)
+    assert reprojection_px(folded) < 1e-6
+    for ts in clicks:  # each point moved by a quarter turn about +Y at most: the same point of the model
+        before = np.array([x for _, x in clicks[ts]])
+        after = np.array([x for _, x in folded.correspondences[ts]])
+        assert any(np.allclose(after, before @ y_rotation(k * np.pi / 2).T, atol=1e-12) for k in range(4)), ts
+        assert [xy for xy, _ in folded.correspondences[ts]] == [xy for xy, _ in clicks[ts]]  # the clicks themselves kept

@@ -2,11 +2,13 @@
 
 The pose solver lets each key-frame's clicks match any of a symmetric model's equivalent turns
 about its +Y axis (``tasks.pose.initial.symmetry_offsets``): the model looks the same either way,
-and the pose it keeps is one of those turns, not always the one the clicks were made on. A table's
-exported clicks could then reproject tens of pixels off while its silhouette is exact. Before
-export, each posed object with clicks gets the turn through which its clicks, every key-frame
-together, reproject best (:func:`turn_to_clicks`); the exported model, silhouette and pose accuracy
-are unchanged.
+and the pose it keeps is one of those turns, not always the one the clicks were made on; each
+key-frame may match another. A table's exported clicks could then reproject tens of pixels off
+while its silhouette is exact. Before export, each posed object with clicks gets the turn through
+which its clicks, every key-frame together, reproject best, and a key-frame whose clicks match
+another turn has its 3D points turned to the same point of the symmetric model on that turn
+(:func:`turn_to_clicks`): every click then reprojects through the one exported pose; the exported
+model, silhouette and pose accuracy are unchanged.
 
 Frames: object->world ``M = T R S F`` (:func:`cadestate.render.object_to_world`; ``F`` the mirror
 x -> -x), clicks' 3D points in the CAD frame before the mirror. Turning the model by ``Y(a)``
@@ -61,36 +63,49 @@ def turned(pose: Pose, angle: float) -> Pose:
 
 
 def click_errors(obj: DatasetObject, frames: Mapping[int, DatasetFrame], image_size: tuple[int, int],
-                 angles: np.ndarray) -> np.ndarray:
-    """float64[A]: per turn, the sum of squared pixel distances between the object's clicks and their
-    3D points reprojected through its pose turned by that angle."""
+                 angles: np.ndarray) -> dict[int, np.ndarray]:
+    """Per key-frame timestamp of ``obj``'s clicks (on a frame of ``frames``), float64[A]: per turn,
+    the sum of squared pixel distances between its clicks and their 3D points reprojected through
+    the object's pose turned by that angle."""
     h, w = image_size
     M = obj.pose.matrix()
-    total = np.zeros(len(angles))
+    out = {}
     for ts, pairs in obj.correspondences.items():
         f = frames.get(ts)
         if f is None or not pairs:
             continue
         clicked = np.array([xy for xy, _ in pairs], dtype=np.float64) * [w, h]
         xyz = np.array([p for _, p in pairs], dtype=np.float64)
-        for i, a in enumerate(angles):
-            world = xyz @ (M[:3, :3] @ y_rotation(a)).T + M[:3, 3]
-            uv, _ = project(f.K, f.R, f.t, world)
-            total[i] += float(((uv - clicked) ** 2).sum())
-    return total
+        out[ts] = np.array([float(((project(f.K, f.R, f.t, xyz @ (M[:3, :3] @ y_rotation(a)).T + M[:3, 3])[0] - clicked) ** 2).sum())
+                            for a in angles])
+    return out
 
 
 def turn_to_clicks(obj: DatasetObject, frames: Mapping[int, DatasetFrame], image_size: tuple[int, int]) -> DatasetObject:
     """``obj`` with its pose turned (:func:`turned`) to the model's symmetric turn through which its
-    clicks reproject best; as it is when it has no pose, no clicks, no symmetry, or no turn does better."""
+    clicks reproject best, and each key-frame's 3D points whose clicks fit another turn better
+    turned about the model's +Y by the difference (the same point of the symmetric model, so that
+    they reproject through the pose); as it is when it has no pose, no clicks, no symmetry, or no
+    turn does better."""
     if obj.pose is None or obj.symmetry <= 1 or not obj.correspondences:
         return obj
     angles = turns(obj.symmetry, obj.pose.scale)
     errors = click_errors(obj, frames, image_size, angles)
-    best = int(np.argmin(errors))
-    if best == 0 or not errors[best] < errors[0]:
+    if not errors:
         return obj
-    return replace(obj, pose=turned(obj.pose, float(angles[best])))
+    total = np.sum(list(errors.values()), axis=0)
+    best = int(np.argmin(total))
+    if not total[best] < total[0]:
+        best = 0
+    clicks = dict(obj.correspondences)
+    for ts, e in errors.items():
+        own = int(np.argmin(e))
+        if e[own] < e[best]:  # this key-frame's clicks were matched to another turn of the model
+            Y = y_rotation(float(angles[own] - angles[best]))
+            clicks[ts] = tuple((xy, tuple(float(v) for v in Y @ np.asarray(xyz, np.float64))) for xy, xyz in clicks[ts])
+    if best == 0 and clicks == obj.correspondences:
+        return obj
+    return replace(obj, pose=obj.pose if best == 0 else turned(obj.pose, float(angles[best])), correspondences=clicks)
 
 
 def turn_poses_to_clicks(ds: ClipDataset) -> ClipDataset:
