@@ -257,7 +257,10 @@ def dataset_report(warehouse: str, config_path: str = "") -> str:
     wh = Warehouse(warehouse)
     done = compact_warehouse(wh)
     get_run_logger().info("compacted %d partition(s); snapshot of %d table(s)", len(done.compacted), len(done.snapshotted))
-    tables = dataset_tables(wh, select_clips(wh))
+    choice = select_clips(wh)
+    if choice.unfinished:
+        get_run_logger().info("%s", choice.note(hint=""))
+    tables = dataset_tables(wh, choice.chosen)
     figures = statistics(tables)
     out = Path(cfg.schedule.report)
     atomic_write_bytes(out / "stats.json", json.dumps(figures, indent=1, default=str).encode())

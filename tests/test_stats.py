@@ -49,8 +49,9 @@ def bench3(small_cad_library, tmp_path_factory):
         posed = {int(o.track_id): o for k, o in enumerate(gt) if k % 2 == 0}
         write_accepted(wh, name, posed)
         write_solved(wh, name, {int(o.track_id): o for o in gt}, wrong_mirror=gt[1].track_id if i == 0 else None)
-        wh.write("runs", name, table_rows("runs", [{"clip": name, "run_id": f"r{i}{s}", "stage": s, "duration_s": d}
-                                                   for s, d in (("frames", 2.5), ("detect", 4.0), ("pose", 1.0))]))
+        wh.write("runs", name, table_rows("runs", [{"clip": name, "run_id": f"r{i}{s}", "stage": s, "duration_s": d, "status": "completed"}
+                                                   for s, d in (("frames", 2.5), ("detect", 4.0), ("pose", 1.0),
+                                                                ("verification", 0.0))]))
         clips.append((name, clip, list(posed.values()), len(gt)))
     (tmp / "bench" / "manifest.json").write_text(json.dumps({"seed": 31, "clips": [c[0] for c in clips], "library": "x"}))
     write_labels(wh, clips[0][0], [("verification", 3, [12.5, 7.5]), ("manual_track", 4, [30.0]),
@@ -83,9 +84,9 @@ def write_labels(wh: Warehouse, clip: str, files: list[tuple[str, int, list[floa
 
 def test_statistics_match_a_hand_count(bench3):
     wh, clips = bench3
-    assert select_clips(wh) == sorted(c[0] for c in clips)
-    assert select_clips(wh, f"clip = '{clips[1][0]}'") == [clips[1][0]]
-    s = statistics(dataset_tables(wh, select_clips(wh)))
+    assert select_clips(wh).chosen == sorted(c[0] for c in clips) and select_clips(wh).unfinished == []
+    assert select_clips(wh, f"clip = '{clips[1][0]}'").chosen == [clips[1][0]]
+    s = statistics(dataset_tables(wh, select_clips(wh).chosen))
     frames = sum(len(parse_camera_file(c.cameras_path).timestamps_us) for _, c, _, _ in clips)
     posed = [o for _, _, p, _ in clips for o in p]
     boxes = sum(len(o.track) for o in posed)
@@ -126,7 +127,7 @@ def test_html_report_pages_and_pictures(bench3, tmp_path):
     from tasks.dataset.stats_report import write_report
 
     wh, clips = bench3
-    tables = dataset_tables(wh, select_clips(wh))
+    tables = dataset_tables(wh, select_clips(wh).chosen)
     index = write_report(wh, tables, statistics(tables), tmp_path / "report")
     text = index.read_text()
     assert "#Posed objects" in text and "Cost of the dataset" in text
@@ -216,7 +217,7 @@ def test_stats_of_no_clip_are_zeros(tmp_path):
     from fuzz.harness import run_cli
 
     wh = Warehouse(tmp_path / "w")
-    figures = statistics(dataset_tables(wh, select_clips(wh)))
+    figures = statistics(dataset_tables(wh, select_clips(wh).chosen))
     assert figures["scenes"] == figures["posed_objects"] == figures["classes"] == figures["cad_models"] == 0
     assert figures["per_class"] == {} and figures["truncated_share"] is None
     result = run_cli("-w", str(wh.root), "stats", "--where", "false")
@@ -229,7 +230,7 @@ def test_html_report_renders_in_chromium(bench3, tmp_path):
     from tasks.dataset.stats_report import write_report
 
     wh, _ = bench3
-    tables = dataset_tables(wh, select_clips(wh))
+    tables = dataset_tables(wh, select_clips(wh).chosen)
     index = write_report(wh, tables, statistics(tables), tmp_path / "report")
     shot = tmp_path / "shot.png"
     subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", f"--screenshot={shot}",
@@ -329,3 +330,23 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path, monkeypatch):
     assert got["train"]["interval_pct"] == dy.clip_interval([counts[n] for n in sorted(names) if splits[n] == "train"],
                                                             min_clips=2)
     assert got["all"]["interval_pct"] != dy.clip_interval([counts[n] for n in sorted(names)], min_clips=2)
+
+
+def test_a_clip_whose_verification_waits_is_not_in_the_dataset(bench3, tmp_path):
+    """As `export official` chooses them: a clip whose newest verification run waits for verdicts
+    (its poses unjudged) is left out of the figures and named, not counted as objects not posed."""
+    from fuzz.harness import run_cli
+
+    wh, clips = bench3
+    shutil.copytree(wh.root, tmp_path / "w")
+    copy = Warehouse(tmp_path / "w")
+    waiting = clips[1][0]
+    copy.write("runs", waiting, table_rows("runs", [*copy.read("runs", [waiting]).to_pylist(), {
+        "clip": waiting, "run_id": "r9verification", "stage": "verification", "status": "paused", "duration_s": 0.0}]))
+    choice = select_clips(copy)
+    assert choice.chosen == sorted(c[0] for c in clips if c[0] != waiting) and choice.unfinished == [waiting]
+    result = run_cli("-w", str(copy.root), "stats", "--json")
+    assert result.code == 0, result.stderr
+    figures = json.loads(result.stdout)
+    assert figures["scenes"] == 2 and figures["posed_objects"] == sum(len(c[2]) for c in clips if c[0] != waiting)
+    assert result.stderr.strip() == (f"warning: left out 1 clip(s) whose verification has not completed: {waiting}")

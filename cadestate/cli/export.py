@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 
 from cadestate.cli.common import CliError, app, cannot_write, err, out
 
@@ -61,7 +62,9 @@ def stats(
     """The dataset's yield (posed objects of all its objects), its figures (the paper's Table 2 and
     section 4: scenes, posed objects, classes, posed objects per scene and per frame, CAD models, frames per scene, nearest/farthest distance ratio, truncation)
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
-    record per kind and per posed object, and how many answered items recorded none)."""
+    record per kind and per posed object, and how many answered items recorded none). The dataset is
+    what `export official` writes: the clips of --where whose verification completed (the others are
+    named on stderr: their poses still unjudged would read as not posed)."""
     from tasks.dataset.stats import cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 
@@ -70,7 +73,9 @@ def stats(
         clips = select_clips(wh, where)
     except QueryError as e:
         raise CliError(f"--where {where!r}: {e}") from None
-    tables = dataset_tables(wh, clips)
+    if clips.unfinished:
+        err.print(f"[yellow]warning:[/] {escape(clips.note(hint=''))}", highlight=False)
+    tables = dataset_tables(wh, clips.chosen)
     figures = statistics(tables)
     if as_json:
         out.print_json(json.dumps(figures))

@@ -100,16 +100,15 @@ class ExportClips:
     unfinished: list[str]
     named: bool = False
 
-    def note(self) -> str:
-        """The warning line about ``unfinished`` ('' when none)."""
+    def note(self, hint: str = " (name them with --clips to export them as they are)") -> str:
+        """The warning line about ``unfinished`` ('' when none); ``hint`` ends the line of clips left out."""
         if not self.unfinished:
             return ""
         shown = some_named(self.unfinished)
         if self.named:
             return (f"{len(self.unfinished)} clip(s) written as they are, their verification not completed (poses still "
                     f"unjudged read as not posed): {shown}")
-        return (f"left out {len(self.unfinished)} clip(s) whose verification has not completed: {shown} "
-                "(name them with --clips to export them as they are)")
+        return f"left out {len(self.unfinished)} clip(s) whose verification has not completed: {shown}{hint}"
 
 
 def some_named(names: Sequence[str], limit: int = 10) -> str:

@@ -4,7 +4,9 @@ any warehouse.
 The dataset is what ``cadestate export official`` writes: per clip its frames and its physical
 objects (:func:`tasks.dataset.objects.clip_dataset`); an object is *posed* when its pose was
 accepted in verification. Clips are chosen with a SQL condition on the ``clips`` table
-(``--where``); tables come from DuckDB (the warehouse catalog) into pandas.
+(``--where``), and, as the export chooses them, only those whose verification completed (a clip
+still waiting for verdicts would count every object of it as not posed); tables come from DuckDB
+(the warehouse catalog) into pandas.
 
 Figures: the yield first (posed objects of all physical objects, posed or not: what the pipeline
 made of what it found), scenes (clips), frames, frames per scene, objects, posed objects, classes
@@ -25,12 +27,16 @@ gave no ``seconds`` (their time is missing from the sums).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cadestate.geometry import camera_to_world, project
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
+
+if TYPE_CHECKING:
+    from tasks.cad.export import ExportClips
 
 
 @dataclass(frozen=True)
@@ -52,12 +58,17 @@ class DatasetTables:
     library_s: float = 0.0
 
 
-def select_clips(wh: Warehouse, where: str = "true") -> list[str]:
-    """Clip names of the ``clips`` table matching the SQL condition ``where`` (sorted)."""
+def select_clips(wh: Warehouse, where: str = "true") -> ExportClips:
+    """The clips of the ``clips`` table matching the SQL condition ``where`` (sorted), as ``export
+    official`` chooses them: ``chosen`` those whose verification completed, ``unfinished`` the others
+    (:func:`tasks.cad.export.verification_completed`)."""
+    from tasks.cad.export import ExportClips, verification_completed
     from warehouse.query import run_query
 
     with run_query(wh, f"SELECT clip FROM clips WHERE ({where}) ORDER BY clip") as result:  # read-only: the user's SQL
-        return [row[0] for batch in result.batches for row in batch]
+        matching = [row[0] for batch in result.batches for row in batch]
+    done = verification_completed(wh, matching) if matching else set()
+    return ExportClips([c for c in matching if c in done], [c for c in matching if c not in done])
 
 
 def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:
