@@ -33,8 +33,18 @@ def test_lines_naming_files_stay_whole_without_a_terminal(tmp_path):
     assert result.returncode == 1 and len(errors) == 1 and errors[0].startswith(f"error: {bad}"), result.stderr
     result = cli("labels", "validate", "--offline", str(folder), str(tmp_path / "none"), cwd=tmp_path)
     errors = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert result.returncode == 1 and errors[0] == f"error: {tmp_path / 'none'}: no such label file or folder", result.stderr
+    assert result.returncode == 2 and errors[0] == f"error: {tmp_path / 'none'}: no such label file or folder", result.stderr
     assert sum(ln.startswith(f"error: {folder}/") for ln in errors) == len(list(folder.glob("*.json"))), result.stderr
+
+
+def test_paths_with_brackets_are_printed_as_they_are(tmp_path):
+    """A path is text, not rich markup: '[x]' stayed out of the line and '[/]' was a traceback
+    after the work was done."""
+    folder = tmp_path / "a[/]b" / "c[x]"
+    folder.mkdir(parents=True)
+    (folder / "cfg[red].toml").write_text("[detect]\nscore_threshold = 0.4\n")
+    result = cli("config", "check", str(folder / "cfg[red].toml"), cwd=tmp_path)
+    assert result.returncode == 0 and result.stdout == f"{folder / 'cfg[red].toml'}: ok\n", (result.stdout, result.stderr)
 
 
 def test_tables_take_their_natural_width_without_a_terminal(tmp_path):

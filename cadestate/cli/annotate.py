@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 
 from cadestate.cli.common import CliError, app, err
 
@@ -31,9 +32,9 @@ def annotate(
     from cadestate.webapp.app import create_app, three_dir
 
     if not three_dir().is_dir():
-        err.print(f"[yellow]warning:[/] three.js not found at {three_dir()} (run `make web-vendor`): "
+        err.print(f"[yellow]warning:[/] three.js not found at {escape(str(three_dir()))} (run `make web-vendor`): "
                   "the correspondences page cannot show models", highlight=False)
-    err.print(f"annotation app for {root}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
+    err.print(f"annotation app for {escape(str(root))}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
     application = create_app(cfg, annotator)
     try:
         uvicorn.run(application, host=host, port=port, log_level="warning")  # SIGTERM: flows.local_api

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from cadestate.cli.common import run_sources, bench_app, err, out
 
@@ -28,7 +29,7 @@ def bench_generate(
 
     manifest, seconds = generate(bench_dir, seed, clips, ctx.obj.open_warehouse(), WalkthroughSpec(num_video_frames=frames), progress)
     timing = f", {sum(seconds) / len(seconds):.1f} s per clip" if seconds else ""
-    out.print(f"{bench_dir}: {len(manifest.clips)} clips ({len(seconds)} generated now{timing}, "
+    out.print(f"{escape(str(bench_dir))}: {len(manifest.clips)} clips ({len(seconds)} generated now{timing}, "
               f"{len(manifest.clips) - len(seconds)} already there)")
 
 
@@ -69,7 +70,7 @@ def bench_run(
     if stale:  # the report would measure retrieval against descriptors the configuration no longer makes
         lib, reasons = next(iter(sorted(stale.items())))
         more = f" (and {len(stale) - 1} more librar{'y' if len(stale) == 2 else 'ies'})" if len(stale) > 1 else ""
-        err.print(f"CAD library {lib} is stale ({'; '.join(reasons)}){more}: run `cadestate cad ingest` first")
+        err.print(f"CAD library {escape(lib)} is stale ({'; '.join(reasons)}){more}: run `cadestate cad ingest` first")
         raise typer.Exit(1)
     clips = list(read_manifest(bench_dir).clips)
     sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
@@ -95,7 +96,7 @@ def bench_run(
         coplanar_tol=cfg.pose.coplanar_tol)
     code = print_reports(merge_rounds(reports))
     if waiting:
-        err.print(f"still waiting after {max_rounds} run(s): {', '.join(waiting)}")
+        err.print(f"still waiting after {max_rounds} run(s): {escape(', '.join(waiting))}")
     raise typer.Exit(code or (1 if waiting else 0))
 
 
@@ -129,5 +130,5 @@ def bench_demo(
     from bench.demo_clip import DemoClipSpec, make_demo_clip
 
     clip = make_demo_clip(out_dir, DemoClipSpec(name=name, seed=seed, num_video_frames=frames))
-    out.print(f"wrote {clip.video_path} and {clip.cameras_path} ({len(clip.frame_indices)} cameras)")
+    out.print(f"wrote {escape(str(clip.video_path))} and {escape(str(clip.cameras_path))} ({len(clip.frame_indices)} cameras)")
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 
 from cadestate.cli.common import CliError, cad_app, cannot_write, check_writable, err, out, print_reports
 
@@ -66,7 +67,7 @@ def cad_ingest(
     from flows.cad_library import run_cad_library
 
     models = f"{len(items)} model{'' if len(items) == 1 else 's'}"
-    err.print(f"{models} from {path} into {root} " + (f"on the Prefect server at {api}" if api else
+    err.print(f"{models} from {escape(str(path))} into {escape(str(root))} " + (f"on the Prefect server at {api}" if api else
               "(Prefect's local API starts alongside, ~3 s; `cadestate server start` saves it)"))
     raise typer.Exit(print_reports(run_cad_library(items, cfg, show_progress=progress), unit="library"))
 
@@ -116,7 +117,7 @@ def cad_export_official(
     from tasks.cad.export import export_official
 
     count = export_official(ctx.obj.open_warehouse(must_exist=True), out_dir, library)
-    out.print(f"wrote {count} models to {out_dir}")
+    out.print(f"wrote {count} models to {escape(str(out_dir))}")
 
 
 @cad_app.command("sheet")
@@ -136,4 +137,4 @@ def cad_sheet(
     if not count:
         raise CliError(f"no CAD model with rendered views matches --where {where!r}: nothing written "
                        "(`cadestate sql \"SELECT class, count(*) FROM cad_models GROUP BY class\"` lists the classes)")
-    out.print(f"wrote {out_file} ({count} models)")
+    out.print(f"wrote {escape(str(out_file))} ({count} models)")

@@ -162,7 +162,7 @@ def run_sources(state: State, items, progress: bool, exit: bool = True) -> int:
     api = prepare_prefect_environment(root, state.verbose, cfg.prefect.startup_timeout_s, start_api=True)  # before Prefect is imported
     from flows.annotate_clip import run_clips
 
-    err.print(f"running {len(items)} clip(s) into {root} " + (f"on the Prefect server at {api}" if api else
+    err.print(f"running {len(items)} clip(s) into {escape(str(root))} " + (f"on the Prefect server at {api}" if api else
               "(Prefect's local API starts alongside, ~3 s; `cadestate server start` saves it)"))
     code = print_reports(run_clips(items, cfg, show_progress=progress))
     if 0 < cfg.warehouse.snapshot_after_clips <= len(items):

@@ -32,7 +32,7 @@ def export_official(
     counts = export_dataset(ctx.obj.open_warehouse(must_exist=True), out_dir, clips, cad, progress)
     if note := counts["note"]:
         err.print(f"warning: {note}", highlight=False, markup=False)
-    out.print(f"wrote {out_dir}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
+    out.print(f"wrote {escape(str(out_dir))}: {counts['clips']} clips, {counts['frames']} frames, {counts['objects']} objects "
               f"({counts['posed_objects']} posed), {counts['cad_models']} CAD models")
 
 
@@ -49,7 +49,7 @@ def export_scan2cad(
     counts = write(ctx.obj.open_warehouse(must_exist=True), out_dir, clips)
     if note := counts["note"]:
         err.print(f"warning: {note}", highlight=False, markup=False)
-    out.print(f"wrote {out_dir}: {counts['scans']} scans, {counts['alignments']} alignments")
+    out.print(f"wrote {escape(str(out_dir))}: {counts['scans']} scans, {counts['alignments']} alignments")
 
 
 @app.command("stats")
@@ -81,12 +81,12 @@ def stats(
         out.print_json(json.dumps(figures))
     else:
         for label, value in statistics_lines(figures):
-            out.print(f"{label}: {value}", highlight=False)
+            out.print(f"{escape(label)}: {escape(value)}", highlight=False)
         for label, value in cost_lines(figures):
-            out.print(f"{label}: {value}", highlight=False)
+            out.print(f"{escape(label)}: {escape(value)}", highlight=False)
     if html is not None:
         from tasks.dataset.stats_report import write_report
 
         with cannot_write(html, "the HTML report", "; give a folder"):
             index = write_report(wh, tables, figures, html)
-        (err if as_json else out).print(f"wrote {index}", highlight=False)  # stdout stays one JSON document
+        (err if as_json else out).print(f"wrote {escape(str(index))}", highlight=False)  # stdout stays one JSON document

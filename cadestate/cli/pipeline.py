@@ -372,7 +372,7 @@ def catalog(ctx: typer.Context) -> None:
     """
     from warehouse.catalog import rebuild_catalog
 
-    out.print(f"catalog: {rebuild_catalog(ctx.obj.open_warehouse(must_exist=True), recheck=True)}")
+    out.print(f"catalog: {escape(str(rebuild_catalog(ctx.obj.open_warehouse(must_exist=True), recheck=True)))}")
 
 
 @app.command()
@@ -431,4 +431,4 @@ def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to valid
 
     config = load_config(path)
     check_detect_config(config.detect, config.source)
-    out.print(f"{path}: ok")
+    out.print(f"{escape(str(path))}: ok")
