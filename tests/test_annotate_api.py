@@ -385,6 +385,36 @@ def test_an_item_answered_since_the_page_loaded_is_a_409_not_a_silent_replacemen
     assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 2: "m2b"}
 
 
+@pytest.mark.parametrize("kind", ["manual_track", "cad_selection", "correspondences", "verification"])
+def test_a_task_served_after_an_answer_shows_that_answer_before_any_resume(lwh, kind):
+    """The task file holds an answer only once the clip's resume has rerun its stage: a page opened
+    before that (Back, a 409's reload, a resume that failed) showed the answer as it was when the
+    task was written (an empty manual-track answer that Enter saved over the objects drawn). The
+    served task's items carry the answer in force now."""
+    task_id = payload(kind)["task_id"]
+    with _client(lwh, Requests()) as client:
+        before = client.get(f"/api/tasks/{CLIP}/{task_id}").json()["task"]
+        first = payload(kind)
+        if kind == "manual_track":
+            first = {**first, "not_objects": [0]}
+        if kind == "cad_selection":
+            first["answers"][1] = {"track_id": 1, "cad_id": None, "same_as_track": 0}
+        if kind == "verification":
+            first["answers"][0]["same_as_track"] = 1
+        assert client.post("/api/answers", json=first).status_code == 200
+        served = client.get(f"/api/tasks/{CLIP}/{task_id}").json()["task"]
+    strip = lambda a: {k: v for k, v in a.items() if k != "seconds" and v is not None}  # noqa: E731
+    if kind == "manual_track":
+        assert before.get("previous", []) == []
+        assert [strip(a) for a in served["previous"]] == [strip(a) for a in first["answers"]]
+        assert served["previous_not_objects"] == [0]
+        return
+    shown = {it["track_id"]: strip(it["previous"]) for it in served["items"] if it.get("previous")}
+    assert shown == {a["track_id"]: strip(a) for a in first["answers"]}
+    assert all(not it.get("previous") for it in before["items"])
+    assert [it["track_id"] for it in served["items"]] == [it["track_id"] for it in before["items"]]
+
+
 def test_an_answer_to_a_task_the_pipeline_replaced_goes_to_the_new_task_where_it_fits(lwh):
     """A page left open on a task that a rerun replaced (a fragment or a drawn object changes the
     tracks asked about): the answer is saved to the newest task when it fits it (there, "none of these"

@@ -75,8 +75,8 @@ def first_waiting(tasks: list[OpenTask]) -> dict | None:
 
 
 def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
-    """The newest document of a task (as stored in ``label_tasks``), with ``answered``: the track
-    ids answered (:func:`tasks.human.answers_in_force.answered_items`; manual_track: ``[-1]`` once
+    """The newest document of a task (as stored in ``label_tasks``; the items' ``previous``: the
+    answers in force, :mod:`cadestate.webapp.previous`), with ``answered``: the track ids answered (:func:`tasks.human.answers_in_force.answered_items`; manual_track: ``[-1]`` once
     answered)."""
     from tasks.human.labels import latest_task
 
@@ -85,5 +85,7 @@ def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     row = latest_task(wh, clip, task_id)
     if row is None:
         return None
+    from cadestate.webapp.previous import with_answers_in_force
+
     doc = json.loads(row["document"])
-    return {"task": doc, "answered": sorted(answered_items(wh, clip, doc))}
+    return {"task": with_answers_in_force(wh, clip, doc), "answered": sorted(answered_items(wh, clip, doc))}

@@ -80,7 +80,7 @@ def _answers(rows: list[dict], same_as: dict[int, int] | None = None) -> tuple[M
                  for i, rs in sorted(objects.items()))
 
 
-def _previous(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[tuple[ManualTrackAnswer, ...], tuple[int, ...]]:
+def previous_answer(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[tuple[ManualTrackAnswer, ...], tuple[int, ...]]:
     """(objects drawn, tracks said to be no object) of this task's answer in force; a new task gets
     the boxes of the clip's newest earlier answer (its statements named another task's tracks)."""
     rows = current_answers(wh, KIND, [clip]).to_pylist()
@@ -141,7 +141,7 @@ def manual_tracks_stage(wh: Warehouse, cfg: ManualTracksConfig, embed_cfg: Embed
     task_id = new_task_id(KIND, clip, digest(*map(str, sorted(stamps))), digest(*classes),
                           digest(json.dumps([to_json(e) for e in existing], sort_keys=True)))
     answered = task_id in answered_tasks(wh, KIND, clip)
-    previous, not_objects = _previous(wh, clip, task_id, answered)
+    previous, not_objects = previous_answer(wh, clip, task_id, answered)
     task = ManualTrackTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),
                            instructions=INSTRUCTIONS[KIND],
                            keyframes=tuple(KeyframeView(timestamp_us=f["timestamp_us"], frame_index=f["frame_index"],
