@@ -271,7 +271,8 @@ def test_a_page_is_answered_when_the_stages_ran_not_when_prefect_has_recorded_th
         assert resumer.wait_idle(CLIP, 20, settled=True)
         assert runs.clips == [CLIP, CLIP] and record.clips == [CLIP, CLIP]
         assert client.get(f"/api/clips/{CLIP}").json()["resume"] == {
-            "state": "idle", "runs": 2, "message": "ok", "finished_at": resumer.status(CLIP)["finished_at"], "prefect": "ok"}
+            "state": "idle", "runs": 2, "message": "ok", "finished_at": resumer.status(CLIP)["finished_at"], "failed": False,
+            "prefect": "ok"}
 
     def broken(clip: str) -> str:
         raise RuntimeError("Prefect's API did not start\nsecond line")

@@ -46,19 +46,22 @@ BUSY = ("queued", "running")
 @dataclass
 class ClipRun:
     """The worker's view of one clip: ``state`` idle | queued | running | recording | failed, runs
-    of its stages done, the last run's summary (or error) and when it ended (epoch seconds), and
-    what the last record in Prefect said (``prefect``; '' before one)."""
+    of its stages done, the last run's summary (or error) and when it ended (epoch seconds), whether
+    it failed (``failed``: an error, or a stage that failed; such a run is still recorded in Prefect,
+    and its state ends ``failed``), and what the last record in Prefect said (``prefect``; '' before
+    one)."""
 
     state: str = "idle"
     runs: int = 0
     message: str = ""
+    failed: bool = False
     finished_at: float | None = None
     prefect: str = ""
     again: bool = field(default=False, repr=False)
 
     def as_dict(self) -> dict:
         return {"state": self.state, "runs": self.runs, "message": self.message, "finished_at": self.finished_at,
-                "prefect": self.prefect}
+                "failed": self.failed, "prefect": self.prefect}
 
 
 def summary(reports: list) -> str:
@@ -70,8 +73,19 @@ def summary(reports: list) -> str:
     return ", ".join(f"{n} {s}" for s, n in sorted(states.items())) + (f" ({'; '.join(failed)})" if failed else "")
 
 
+class StagesFailed(RuntimeError):
+    """A resume in which a stage failed (the stages' summary): the clip's resume is ``failed``, and
+    the page says so (it said "nothing waits for people" with the failure inside the line)."""
+
+    PREFIX = "a stage failed: "
+
+    def __str__(self) -> str:
+        return self.PREFIX + super().__str__()
+
+
 def run_stages(config: Config, clip: str, read_cache: ReadCache | None = None) -> str:
-    """Phase 1 (module docstring): the clip's stages here, without Prefect; a one-line summary.
+    """Phase 1 (module docstring): the clip's stages here, without Prefect; a one-line summary
+    (:class:`StagesFailed` with it when a stage failed).
     ``read_cache``: the worker's, kept from one resume to the next (the input digests read the CAD
     libraries' runs and the clip's other answers again, unchanged)."""
     from tasks.stage_chain import run_unit
@@ -82,8 +96,10 @@ def run_stages(config: Config, clip: str, read_cache: ReadCache | None = None) -
     wh = Warehouse(root, compact_after=config.warehouse.compact_after_files)
     if read_cache is not None:
         wh.cache_reads(cache=read_cache)
-    return summary(run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False,
-                            read_cache=read_cache))
+    reports = run_unit(str(root), "clip", clip, config, registered_source(wh, clip), show_progress=False, read_cache=read_cache)
+    if any(r.state == "failed" for r in reports):
+        raise StagesFailed(summary(reports))
+    return summary(reports)
 
 
 WARM_CLIPS = 4
@@ -233,14 +249,16 @@ class Resumer:
                 run = self._clips[clip]
                 run.state, run.again = "running", False
             ok, message = self._attempt(self._run, clip)
+            stages_failed = not ok and message.startswith(StagesFailed.PREFIX)  # recorded as a run that ran
+            ok = ok or stages_failed
             with self._cond:
                 run.runs += 1
-                run.message, run.finished_at = message, time.time()
+                run.message, run.finished_at, run.failed = message, time.time(), not ok or stages_failed
                 if run.again:  # newer answers: run again first (that run gets recorded)
                     run.state, run.again = "queued", False
                     self._queue.append(clip)
                 else:
-                    run.state = "recording" if ok and self._record else ("idle" if ok else "failed")
+                    run.state = "recording" if ok and self._record else ("failed" if run.failed else "idle")
                 self._cond.notify_all()
                 if run.state != "recording":
                     continue
@@ -255,7 +273,7 @@ class Resumer:
             with self._cond:
                 run.prefect = recorded
                 if run.state == "recording":  # else a request queued it meanwhile
-                    run.state = "idle"
+                    run.state = "failed" if run.failed else "idle"
                 self._cond.notify_all()
 
     @staticmethod
@@ -263,6 +281,8 @@ class Resumer:
         """``call(clip)``: (True, its line), or (False, the error's first line); the worker goes on."""
         try:
             return True, call(clip)
+        except StagesFailed as e:  # the stage's error is logged where it failed
+            return False, str(e)
         except Exception as e:  # reported on the page
             traceback.print_exc()
             return False, f"{type(e).__name__}: {e}".splitlines()[0]

@@ -20,10 +20,14 @@ export async function api(path, body) {
   return data;
 }
 
+// Messages at the bottom right: the live region is there from the page's start (a region made with its
+// first message is not announced); an error is an alert. A warning stays until closed (✕).
+const statusBox = () => $("#status") || document.body.appendChild(el("div", {id: "status", role: "status", "aria-live": "polite"}));
+statusBox();  // a module runs once the page is parsed
 export function toast(text, kind = "") {
-  const box = $("#status") || document.body.appendChild(el("div", {id: "status", role: "status", "aria-live": "polite"}));
-  const t = el("div", {class: "toast " + kind}, text);
-  box.append(t);
+  const t = el("div", {class: "toast " + kind, ...(kind === "error" ? {role: "alert"} : {})}, text);
+  if (kind === "warn") t.append(el("button", {class: "close", title: "close", "aria-label": "close this warning", onclick: () => t.remove()}, "✕"));
+  statusBox().append(t);
   if (kind !== "warn" && !(text instanceof Node)) setTimeout(() => t.remove(), kind === "error" ? 12000 : 5000);
   return t;
 }
@@ -38,12 +42,14 @@ export function timer() {
 }
 
 // Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field. A drop-down
-// lets go of the keys once a choice is made in it (it kept them, and the page's letters chose options).
+// lets go of the keys once a choice is made in it with the mouse (it kept them, and the page's letters
+// chose options); one stepped through with the arrow keys keeps them until Tab or Escape.
 export function shortcuts(map) {
-  let tabbedTo = null;  // the control Tab moved the focus to (a click moves it elsewhere)
+  let tabbedTo = null, byPointer = false;  // the control Tab moved the focus to (a click moves it elsewhere)
   document.addEventListener("keyup", (ev) => { if (ev.key === "Tab") tabbedTo = document.activeElement; }, true);
-  document.addEventListener("pointerdown", () => { tabbedTo = null; }, true);
-  document.addEventListener("change", (ev) => { if (ev.target.tagName === "SELECT") ev.target.blur(); });
+  document.addEventListener("pointerdown", () => { tabbedTo = null; byPointer = true; }, true);
+  document.addEventListener("keydown", () => { byPointer = false; }, true);
+  document.addEventListener("change", (ev) => { if (ev.target.tagName === "SELECT" && byPointer) ev.target.blur(); });
   document.addEventListener("keydown", (ev) => {
     const tag = (ev.target.tagName || "").toLowerCase();  // typing in a field: no shortcuts (a tick box or slider is no field)
     if ((tag === "input" && !["range", "checkbox", "radio"].includes(ev.target.type)) || tag === "textarea" || tag === "select") {
@@ -77,9 +83,17 @@ window.addEventListener("pageshow", (ev) => { if (ev.persisted) location.reload(
 
 // The task and its answered tracks; the item to show: ?track=N, else the first waiting one. A task the
 // pipeline has replaced since the link was made is said so at once (its answers would be refused).
+// A task that cannot be loaded (a stale link, the app down) leaves the page with that said, and nothing to submit.
 export async function loadTask() {
   const p = params();
-  const data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
+  let data;
+  try {
+    data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
+  } catch (e) {
+    $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"}, el("b", {}, "This task cannot be loaded: "),
+      e.message, " ", el("a", {href: "/"}, "back to the queue")));
+    throw e;
+  }
   loaded = data;
   if (data.current === false) toast("A rerun replaced this task with a newer one: answers here go to it where they fit. The queue opens the newer task.", "error");
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
@@ -100,6 +114,7 @@ export async function afterAnswer(clip, taskId, kind, res) {
   for (const w of warnings) toast(w, "warn");
   taskId = res.task_id || taskId;   // a replaced task's answer went to the newer one: go on there
   const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
+  loaded = {...loaded, as_of: data.as_of};  // answering again from this page edits the person's own answer (no 409)
   const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
   if (waiting.length) {
     const next = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`;
@@ -128,42 +143,56 @@ export function showWaiting(clip) {
   const panel = el("div", {id: "pipeline", class: "panel"}, el("b", {}, "Task done. "), el("span", {id: "pipeline-state"}, "the pipeline resumes the clip…"));
   $("main").replaceChildren(panel);
   const poll = async () => {
-    const c = await api(`/api/clips/${encodeURIComponent(clip)}?wait=2`);
-    const busy = c.resume.state === "queued" || c.resume.state === "running";
     const s = $("#pipeline-state");
+    let c;
+    try {
+      c = await api(`/api/clips/${encodeURIComponent(clip)}?wait=2`);
+    } catch (e) {  // the app restarting, the network: say so and ask again
+      s.textContent = `cannot reach the app (${e.message}); asking again…`;
+      setTimeout(poll, 2000);
+      return;
+    }
+    const busy = c.resume.state === "queued" || c.resume.state === "running";
     if (busy) { s.textContent = `the pipeline is ${c.resume.state} (${Math.round((performance.now() - started) / 1000)} s)…`; poll(); return; }
-    if (c.resume.state === "failed") s.textContent = `the resume failed: ${c.resume.message}`;
+    const failed = c.resume.failed;  // said first, and not overwritten by what waits (also while Prefect records the run)
+    const said = failed ? [el("div", {id: "resume-failed", class: "toast error", role: "alert"}, `The resume failed: ${c.resume.message}`)] : [];
     if (c.next) {
-      s.replaceChildren(el("span", {id: "next-ready"}, `next task ready: ${c.next.kind} `), el("a", {href: c.next.url, id: "next-link"}, "open (Enter)"));
+      s.replaceChildren(...said, el("span", {id: "next-ready"}, `next task ready: ${c.next.kind} `), el("a", {href: c.next.url, id: "next-link"}, "open (Enter)"));
       shortcuts({Enter: () => (location.href = c.next.url)});
     } else {
-      s.replaceChildren(el("span", {id: "next-ready"}, `nothing waits for people on ${clip}: ${c.resume.message || "done"}. `), el("a", {href: "/"}, "back to the queue"));
+      const why = failed ? "" : `: ${c.resume.message || "done"}`;
+      s.replaceChildren(...said, el("span", {id: "next-ready"}, `nothing waits for people on ${clip}${why}. `), el("a", {href: "/"}, "back to the queue"));
     }
   };
   poll();
 }
 
+// Canvas pixels per pixel on screen: the overlay has the frame's size, shown smaller (a full-HD frame at
+// 830 px wide drew 13 px labels 6 px high); lines, labels and dots are sized on screen through it.
+export const canvasScale = (canvas) => canvas.width / (canvas.clientWidth || canvas.width);
+
 // Draw boxes (normalised ymin, xmin, ymax, xmax) with labels on a canvas over an image.
 export function drawBoxes(canvas, boxes) {
-  const ctx = canvas.getContext("2d"), W = canvas.width, H = canvas.height;
+  const ctx = canvas.getContext("2d"), W = canvas.width, H = canvas.height, k = canvasScale(canvas);
   ctx.clearRect(0, 0, W, H);
-  ctx.font = "bold 13px system-ui"; ctx.lineWidth = 2;
+  ctx.font = `bold ${13 * k}px system-ui`; ctx.lineWidth = 2 * k;
   for (const b of boxes) {
     const [y0, x0, y1, x1] = b.box;
-    ctx.strokeStyle = b.color || "#4da3ff"; ctx.setLineDash(b.dash ? [6, 4] : []);
+    ctx.strokeStyle = b.color || "#4da3ff"; ctx.setLineDash(b.dash ? [6 * k, 4 * k] : []);
     ctx.strokeRect(x0 * W, y0 * H, (x1 - x0) * W, (y1 - y0) * H);
     if (b.text) {
-      const w = ctx.measureText(b.text).width + 8;
-      ctx.fillStyle = b.color || "#4da3ff"; ctx.fillRect(x0 * W, Math.max(0, y0 * H - 18), w, 18);
-      ctx.fillStyle = "#000"; ctx.fillText(b.text, x0 * W + 4, Math.max(13, y0 * H - 5));
+      const w = ctx.measureText(b.text).width + 8 * k;
+      ctx.fillStyle = b.color || "#4da3ff"; ctx.fillRect(x0 * W, Math.max(0, y0 * H - 18 * k), w, 18 * k);
+      ctx.fillStyle = "#000"; ctx.fillText(b.text, x0 * W + 4 * k, Math.max(13 * k, y0 * H - 5 * k));
     }
   }
   ctx.setLineDash([]);
 }
 
-// A frame image with an overlay canvas at the image's pixel size.
-export function frameView(src, onload) {
-  const img = el("img", {src, draggable: "false"});
+// A frame image with an overlay canvas at the image's pixel size; an image that does not load is said so.
+export function frameView(src, onload, alt = "key-frame") {
+  const img = el("img", {src, alt, draggable: "false"});
+  img.addEventListener("error", () => toast(`cannot load the image ${src}`, "error"));
   const canvas = el("canvas", {class: "over"});
   const wrap = el("div", {class: "frame"}, img, canvas);
   img.addEventListener("load", () => { canvas.width = img.naturalWidth; canvas.height = img.naturalHeight; onload && onload(); });

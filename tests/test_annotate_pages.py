@@ -1,0 +1,217 @@
+"""The annotation pages by real clicks in Chromium, on one task of each kind written straight into a
+warehouse (no pipeline run, so each test takes seconds): the controls a person uses do what they say.
+
+The app is the real one with its real background resume; the clip here has no video, so every resume
+of it fails for real, which the page must say. tests/test_annotate_browser.py takes a rendered clip
+through all four pages with the pipeline running between them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from browser import chromium_path, launch
+from conftest import table_rows
+from warehouse import Warehouse
+
+pytestmark = pytest.mark.skipif(chromium_path() is None, reason="chromium not installed (make browser)")
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+CLIP = "c1"
+W, H = 640, 360
+STAMPS = [i * 100_000 for i in range(10)]
+NOW = "2026-01-01T00:00:00+00:00"
+TRACKS = (0, 1, 2)
+
+
+def _build(root: Path) -> Warehouse:
+    """Frames (grey pictures), six box models with one render each, and a task of each kind for ``TRACKS``."""
+    import trimesh
+    from PIL import Image
+
+    from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, ExistingTrack, KeyframeView,
+                                ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask)
+    from tasks.human.labels import write_task
+
+    wh = Warehouse(root)
+    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    K = [W * 0.8, 0, W / 2, 0, W * 0.8, H / 2, 0, 0, 1]
+    wh.write("frames", CLIP, table_rows("frames", [
+        {"clip": CLIP, "timestamp_us": t, "frame_index": i, "video_time_us": t, "width": W, "height": H, "K": K,
+         "world_to_camera_R": [1, 0, 0, 0, 1, 0, 0, 0, 1], "world_to_camera_t": [0, 0, 0]} for i, t in enumerate(STAMPS)]))
+    for t in STAMPS:
+        path = root / "media" / "frames" / CLIP / f"{t}.jpg"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.new("RGB", (W, H), (90, 110, 130)).save(path)
+    for c in ("m0a", "m0b", "m1a", "m1b", "m2a", "m2b"):
+        (root / "media" / "cad" / c).mkdir(parents=True, exist_ok=True)
+        trimesh.creation.box(extents=(1, 1, 1)).export(root / "media" / "cad" / f"{c}.glb")
+        Image.new("RGB", (64, 64), (200, 180, 160)).save(root / "media" / "cad" / c / "0.png")
+
+    def kf(ts: int) -> KeyframeView:
+        return KeyframeView(timestamp_us=ts, frame_index=ts // 100_000, image_path=f"media/frames/{CLIP}/{ts}.jpg",
+                            box=(0.2, 0.2, 0.6, 0.6))
+
+    head = dict(clip=CLIP, created_at=NOW, image_size=(H, W))
+    write_task(wh, ManualTrackTask(task_id="c1.mt", **head, keyframes=tuple(kf(t) for t in STAMPS[::2]), classes=("chair", "table"),
+                                   existing_tracks=tuple(ExistingTrack(track_id=k, label="chair", boxes=tuple(
+                                       TimedBox(timestamp_us=t, box=(0.1, 0.1 + 0.2 * k, 0.3, 0.25 + 0.2 * k)) for t in STAMPS[::2]))
+                                       for k in TRACKS)))
+    write_task(wh, CadSelectionTask(task_id="c1.cs", **head, items=tuple(
+        CadSelectionItem(track_id=t, label="chair", keyframes=(kf(0), kf(500_000)), candidates=tuple(
+            CadCandidate(rank=r + 1, cad_id=c, library="lib", cad_class="chair", score=0.5, mesh_path=f"media/cad/{c}.glb",
+                         render_paths=(f"media/cad/{c}/0.png",)) for r, c in enumerate((f"m{t}a", f"m{t}b"))))
+        for t in TRACKS)))
+    write_task(wh, VerificationTask(task_id="c1.ve", **head, items=tuple(
+        VerificationItem(track_id=t, label="chair", cad_id=f"m{t}a", mesh_path=f"media/cad/m{t}a.glb",
+                         pose=Pose(translation=(0, 0, 3), rotation=(1, 0, 0, 0), scale=(1, 1, 1), is_mirrored=False),
+                         keyframes=(kf(0), kf(200_000))) for t in TRACKS)))
+    return wh
+
+
+@dataclasses.dataclass
+class App:
+    url: str
+    wh: Warehouse
+    page: object
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory):
+    import uvicorn
+
+    from cadestate.config import Config, WarehouseConfig
+    from cadestate.webapp.app import create_app
+    from flows.server import free_port
+
+    wh = _build(tmp_path_factory.mktemp("pages") / "wh")
+    config = Config(warehouse=WarehouseConfig(root=str(wh.root)))
+    port = free_port("127.0.0.1")
+    server = uvicorn.Server(uvicorn.Config(create_app(config, annotator="pages-test"), host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.05)
+    with playwright_api.sync_playwright() as p:
+        browser = launch(p)
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        page.set_default_timeout(30_000)
+        yield App(f"http://127.0.0.1:{port}", wh, page)
+        browser.close()
+    server.should_exit = True
+    thread.join(30)
+
+
+def _answers(a: App, kind: str) -> list[list[dict]]:
+    """The ``answers`` of every label file of ``kind`` the app wrote, oldest first."""
+    files = sorted((a.wh.root / "labels" / CLIP).glob(f"{CLIP}.{ {'manual_track': 'mt', 'cad_selection': 'cs'}[kind]}.*.json"))
+    return [json.loads(f.read_text())["answers"] for f in files]
+
+
+def _drag(page, x0: float, y0: float, x1: float, y1: float, button: str = "left") -> None:
+    r = page.locator("#draw").bounding_box()
+    page.mouse.move(r["x"] + x0 * r["width"], r["y"] + y0 * r["height"])
+    page.mouse.down(button=button)
+    page.mouse.move(r["x"] + x1 * r["width"], r["y"] + y1 * r["height"], steps=4)
+    page.mouse.up(button=button)
+
+
+def _open_manual_tracks(a: App) -> None:
+    a.page.goto(f"{a.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
+    a.page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+
+
+def test_manual_tracks_by_mouse_alone(app):
+    """A click into an object's class field types there (the row was rebuilt under the click); deleting
+    another object keeps the selected one selected; a right-button drag draws nothing; a page opened
+    again before any resume shows the answer just saved (it showed none, and Enter saved that)."""
+    page = app.page
+    _open_manual_tracks(app)
+    _drag(page, 0.6, 0.6, 0.8, 0.9, button="right")
+    assert page.locator(".obj").count() == 0
+    for k in range(3):  # three objects, one box each: a drag with none selected makes a new one
+        page.evaluate("document.activeElement.blur()")
+        page.click("#new")
+        _drag(page, 0.1 + 0.25 * k, 0.6, 0.3 + 0.25 * k, 0.9)
+    page.locator("input.cls").nth(1).click()
+    page.keyboard.type("table")
+    page.locator("input.cls").nth(1).blur()
+    assert [page.locator("input.cls").nth(i).input_value() for i in range(3)] == ["", "table", ""]
+    page.locator(".obj").nth(2).locator("b").click()  # select the third, delete the first: the third stays selected
+    page.locator(".obj").nth(0).locator("button.danger").click()
+    assert page.inner_text(".obj.sel b") == "new 2"
+    page.keyboard.press("ArrowRight")
+    _drag(page, 0.4, 0.1, 0.6, 0.3)
+    page.locator("select.same").nth(0).select_option("1")
+    boxes = page.evaluate("[...document.querySelectorAll('.obj')].map(o => o.innerText.match(/(\\d+) box/)[1])")
+    assert boxes == ["1", "2"], boxes
+    for i in range(2):
+        page.locator("input.cls").nth(i).fill("chair" if i else "table")
+        page.locator("input.cls").nth(i).dispatch_event("change")
+    page.evaluate("document.activeElement.blur()")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#pipeline")
+    (saved,) = _answers(app, "manual_track")
+    assert [(o["label"], len(o["boxes"]), o.get("same_as_track")) for o in saved] == [("table", 1, 1), ("chair", 2, None)]
+    _open_manual_tracks(app)  # again at once: the answer in force, not the task file's "none drawn"
+    assert page.locator(".obj").count() == 2 and page.locator("input.cls").nth(0).input_value() == "table"
+
+
+def test_cad_selection_keys_after_tab(app):
+    """Tab to the first candidate, press 2, Enter: the second is submitted (Enter chose the tabbed one
+    again); the fragment list steps with the arrow keys and keeps the focus."""
+    page = app.page
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=0")
+    page.wait_for_selector(".cand")
+    page.locator("#same").focus()
+    page.keyboard.press("ArrowDown")
+    page.keyboard.press("ArrowDown")
+    assert page.locator("#same").input_value() == "2" and page.evaluate("document.activeElement.id") == "same"
+    page.keyboard.press("Escape")
+    page.locator(".cand").nth(0).focus()
+    page.keyboard.press("Tab")
+    page.keyboard.press("Shift+Tab")
+    assert page.evaluate("document.activeElement.dataset.cad") == "m0a"
+    page.keyboard.press("2")
+    assert page.locator(".cand.sel").get_attribute("aria-pressed") == "true"
+    page.keyboard.press("Enter")
+    page.wait_for_url("**track=1**")
+    assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0b"
+
+
+def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
+    """The clip has no video: the real resume after an answer fails, and the panel says so (it was
+    overwritten by "next task ready"). A stale link says it cannot load, with no Submit to press."""
+    page = app.page
+    other = page.request.post(f"{app.url}/api/answers", data={"kind": "cad_selection", "task_id": "c1.cs", "clip": CLIP,
+                                                             "answers": [{"track_id": t, "cad_id": None} for t in (0, 1)]})
+    assert other.ok, other.text()  # the other items answered: the page's is the last, the panel follows it
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=2")
+    page.wait_for_selector(".cand")
+    page.keyboard.press("1")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#resume-failed", timeout=120_000)
+    assert page.inner_text("#resume-failed").startswith("The resume failed: ")
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.gone")
+    page.wait_for_selector("#load-error")
+    assert "no task 'c1.gone'" in page.inner_text("#load-error") and page.locator("#accept").count() == 0
+
+
+def test_no_verdict_on_a_model_that_cannot_be_shown(app):
+    """The posed model's mesh is gone and the key-frames have no overlay: the page says so and keeps
+    Accept and Reject off (pressing a accepted a pose nobody saw)."""
+    page = app.page
+    (app.wh.root / "media" / "cad" / "m1a.glb").unlink()
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=1")
+    page.wait_for_selector("#stack[data-ready='1']")
+    assert "no verdict without it" in page.inner_text("#loading")
+    page.keyboard.press("a")
+    page.wait_for_timeout(300)
+    assert page.locator("#accept").is_disabled() and not list((app.wh.root / "labels" / CLIP).glob(f"{CLIP}.ve.*.json"))
