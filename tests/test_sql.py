@@ -261,3 +261,29 @@ def test_ctrl_c_interrupts_a_long_query_at_once(w):
     proc.send_signal(signal.SIGTERM)  # an exit: the query stops before its connection closes (DuckDB aborted)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 143 and err == "" and out == "", err
+
+
+def test_a_partition_rewritten_while_a_statement_reads_it_is_read_again(w):
+    """A replace-mode write swaps a partition's file while a statement is planned but has not opened
+    it yet (the statement's subquery runs first): the statement runs again and answers from the new
+    file, where it was 'Cannot open file ...: No such file or directory'."""
+    import threading
+    import time
+
+    from warehouse.query import run_query
+
+    wh = Warehouse(w)
+    statement = ("SELECT num_cameras FROM clips WHERE clip = 'a' AND (SELECT count(*) FROM range(1000000) x, "
+                 "range(1000) y WHERE x.range + y.range < 0) = 0")  # seconds of work before clips is opened
+    started = time.monotonic()
+    with run_query(wh, statement) as result:
+        assert list(result.batches) == [[(1,)]]
+    took = time.monotonic() - started
+    rewrite = threading.Timer(took / 5, lambda: wh.write("clips", "a", clips("a", 5)))
+    rewrite.start()
+    try:
+        with run_query(wh, statement) as result:
+            rows = list(result.batches)
+    finally:
+        rewrite.join()
+    assert rows == [[(5,)]]

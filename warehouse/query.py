@@ -18,7 +18,8 @@ from itself, and a broken catalog file does not matter), then locked down before
   (``tables/<table>/_schema/_schema.parquet``) when missing or outdated.
 
 Results come in batches of rows (:func:`run_query`), so output starts at once and memory stays
-bounded.
+bounded. A table file that vanishes before the first rows come (its partition rewritten or
+compacted meanwhile) makes the statement run again, as :meth:`Warehouse.read` lists the files again.
 """
 
 from __future__ import annotations
@@ -122,18 +123,38 @@ def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
     con.execute("SET lock_configuration = true")
 
 
-def _batches(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> Iterator[list[tuple]]:
-    """The rows of the open result of ``cursor``, ``batch_rows`` at a time; errors as one line."""
-    while True:
+def _fetch(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> list[tuple]:
+    """The next ``batch_rows`` rows of the open result of ``cursor`` (DuckDB's errors raised as
+    they are; its interrupt as :class:`KeyboardInterrupt`)."""
+    try:
+        return cursor.fetchmany(batch_rows)
+    except duckdb.InterruptException:
+        raise KeyboardInterrupt from None
+
+
+def _batches(cursor: duckdb.DuckDBPyConnection, first: list[tuple], batch_rows: int) -> Iterator[list[tuple]]:
+    """``first`` (the rows already fetched), then the rest of the open result of ``cursor``,
+    ``batch_rows`` at a time; errors as one line."""
+    rows = first
+    while rows:
+        yield rows
         try:
-            rows = cursor.fetchmany(batch_rows)
-        except duckdb.InterruptException:
-            raise KeyboardInterrupt from None
+            rows = _fetch(cursor, batch_rows)
         except duckdb.Error as e:
             raise _error(e) from None
-        if not rows:
-            return
-        yield rows
+
+
+_CANNOT_OPEN = re.compile(r'Cannot open file "([^"]+)"')
+
+
+def _vanished(e: duckdb.Error, wh: Warehouse) -> bool:
+    """Whether ``e`` says a file under ``wh``'s ``tables/`` that is no longer there could not be
+    opened: a partition rewritten (its files swapped) while the statement read it."""
+    opened = _CANNOT_OPEN.search(str(e))
+    if not isinstance(e, duckdb.IOException) or not opened:
+        return False
+    path = Path(opened.group(1))
+    return path.is_relative_to(wh.root / "tables") and not path.exists()
 
 
 def _execute(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement) -> duckdb.DuckDBPyConnection:
@@ -171,7 +192,9 @@ def _execute(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement) -> duc
 @contextlib.contextmanager
 def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int = BATCH_ROWS) -> Iterator[Result]:
     """Run ``sql`` over ``wh`` in a locked-down session (see the module) and stream its rows (at
-    most ``limit``). The statement is checked before the warehouse is read."""
+    most ``limit``). The statement is checked before the warehouse is read. A file of a table that
+    vanishes before the first rows come (its partition rewritten meanwhile, or compacted) makes the
+    statement run again, up to :data:`READ_RETRIES` times in all: it only reads."""
     with tempfile.TemporaryDirectory(prefix="cadestate-sql-") as spill:
         config = {"temp_directory": spill, "autoinstall_known_extensions": False,
                   "autoload_known_extensions": False, "allow_community_extensions": False,
@@ -180,11 +203,15 @@ def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int
         try:
             statement = read_only_statement(con, sql)
             _lock_down(con, wh)
-            try:
-                cursor = _execute(con, statement)
-            except duckdb.Error as e:
-                raise _error(e) from None
-            yield Result([d[0] for d in cursor.description], head(_batches(cursor, batch_rows), limit))
+            for attempt in range(READ_RETRIES):
+                try:
+                    cursor = _execute(con, statement)
+                    first = _fetch(cursor, batch_rows)
+                    break
+                except duckdb.Error as e:
+                    if not _vanished(e, wh) or attempt == READ_RETRIES - 1:
+                        raise _error(e) from None
+            yield Result([d[0] for d in cursor.description], head(_batches(cursor, first, batch_rows), limit))
         finally:
             con.close()
 
