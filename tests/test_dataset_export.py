@@ -372,3 +372,54 @@ def test_a_terminated_export_leaves_nothing_behind(built, tmp_path):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert done.returncode == 143, done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_the_next_export_removes_a_killed_exports_temporary_folder_not_a_running_ones(built, tmp_path):
+    """SIGKILL (or a power loss) while `export official` writes leaves its hidden temporary folder
+    beside the destination, nothing to clean it up: the next export into that destination removes it
+    and names it on stderr. The temporary folder of an export running meanwhile (another process,
+    holding it) is left alone."""
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+
+    from fuzz.harness import run_cli
+
+    wh, _, _ = built
+    out = tmp_path / "out"
+    running = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import sys
+        from pathlib import Path
+        from tasks.cad.export import temp_folder_beside
+
+        with temp_folder_beside(Path({str(out)!r})) as tmp:
+            print(tmp, flush=True)
+            sys.stdin.read()  # until the test is done
+    """)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        held = Path(running.stdout.readline().strip())
+        killed = textwrap.dedent(f"""
+            import os, signal, sys, threading, time
+            from pathlib import Path
+            from cadestate.cli import main
+
+            def kill():  # once the export has started writing
+                while not [p for p in Path({str(tmp_path)!r}).glob(".out.*.tmp/*") if p.parent != Path({str(held)!r})]:
+                    time.sleep(0.001)
+                os.kill(os.getpid(), signal.SIGKILL)
+
+            threading.Thread(target=kill, daemon=True).start()
+            sys.argv = ["cadestate", "-w", {str(wh.root)!r}, "export", "official", {str(out)!r}, "--no-progress"]
+            main()
+        """)
+        done = subprocess.run([sys.executable, "-c", killed], capture_output=True, text=True, timeout=300)
+        assert done.returncode == -9 and held.is_dir(), done.stderr
+        [left] = set(tmp_path.glob(".out.*.tmp")) - {held}
+        again = run_cli("-w", str(wh.root), "export", "official", str(out), "--no-cad", "--no-progress")
+        assert again.code == 0 and again.stderr.strip() == \
+            f"warning: removed {left}: the temporary folder of an earlier export that did not finish", again.stderr
+        assert not left.exists() and held.is_dir() and (out / "scene_list.txt").is_file()
+    finally:
+        running.communicate("", timeout=60)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

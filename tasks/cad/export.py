@@ -12,15 +12,18 @@ Layout (what ``cad_estate.objects.load_shapenet_metadata`` / ``load_objects`` re
 
 Class ids are ShapeNet synsets where ShapeNet has the class (``cadestate-<name>`` otherwise), so
 objects annotated on our library load with the official code. Written into a temporary folder
-beside ``out`` and renamed into place at the end: an interrupted export leaves nothing behind.
+beside ``out`` and renamed into place at the end: an interrupted export leaves nothing behind (a
+killed one's folder is removed by the next export into ``out``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import fcntl
 import json
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Iterator, Sequence
@@ -33,6 +36,7 @@ import trimesh
 from cadestate.progress import progress
 from tasks.cad.classes import CLASSES
 from warehouse import Warehouse
+from warehouse.store import warn
 
 
 class ExportError(ValueError):
@@ -59,16 +63,64 @@ def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False)
 
 @contextlib.contextmanager
 def temp_folder_beside(out: Path) -> Iterator[Path]:
-    """A new hidden folder beside ``out`` (an absolute path: ``.`` has no name to put beside) to
-    write an export into before moving it to ``out`` (:class:`ExportError` when none can be made
-    there); removed on leaving, whatever ends the export. It is made inside the ``try``: a signal
-    between making it and a caller's ``try`` (SIGTERM's exit) had left it behind."""
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
+    """A new hidden folder ``.<name>.<uuid>.tmp`` beside ``out`` (an absolute path: ``.`` has no
+    name to put beside) to write an export into before moving it to ``out`` (:class:`ExportError`
+    when none can be made there); removed on leaving, whatever ends the export. It is made inside
+    the ``try``: a signal between making it and a caller's ``try`` (SIGTERM's exit) had left it
+    behind. It is locked (``flock``) while in use, and the earlier ones that no process holds, left
+    by an export that could not clean up (SIGKILL, power loss), are removed first (:func:`remove_leftovers`)."""
+    remove_leftovers(out)
+    made: list[Path] = []
+    held: list[int] = []
     try:
-        make_folder(tmp, named=out)
-        yield tmp
+        for _ in range(3):
+            made.append(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"))
+            make_folder(made[-1], named=out)
+            held.append(os.open(made[-1], os.O_RDONLY | os.O_DIRECTORY))
+            fcntl.flock(held[-1], fcntl.LOCK_EX)
+            if made[-1].exists() and os.path.samestat(os.fstat(held[-1]), os.stat(made[-1])):
+                break  # else another export's remove_leftovers took it between making and locking: a new one
+        else:
+            raise ExportError(f"{out}: cannot keep a temporary folder beside it (removed as soon as made)")
+        yield made[-1]
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        for folder in made:
+            shutil.rmtree(folder, ignore_errors=True)
+        for fd in held:
+            os.close(fd)
+
+
+def remove_leftovers(out: Path) -> None:
+    """Remove the temporary folders of earlier exports into ``out`` (:func:`temp_folder_beside`)
+    that no process holds (``flock``), each named on stderr."""
+    prefix = f".{out.name}."
+    try:
+        found = [e for e in out.parent.iterdir() if e.name.startswith(prefix) and e.name.endswith(".tmp")
+                 and re.fullmatch(r"[0-9a-f]{32}", e.name[len(prefix):-len(".tmp")])]
+    except OSError:  # no parent folder yet: nothing left there
+        return
+    for folder in sorted(found):
+        _remove_unheld(folder)
+
+
+def _remove_unheld(folder: Path) -> None:
+    """Remove ``folder`` (a real folder, not a link) if no process holds its lock, saying so on stderr."""
+    try:
+        if folder.is_symlink():
+            return
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # an export running now holds it
+        os.close(fd)
+        return
+    try:
+        shutil.rmtree(folder, ignore_errors=True)
+    finally:
+        os.close(fd)
+    warn(f"removed {folder}: the temporary folder of an earlier export that did not finish")
 
 
 def publish(tmp: Path, out: Path) -> None:
