@@ -423,3 +423,35 @@ def test_the_next_export_removes_a_killed_exports_temporary_folder_not_a_running
     finally:
         running.communicate("", timeout=60)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, tmp_path):
+    """Exporting one clip into the folder of an export of two leaves the CSV files, full_annotations.json
+    and cad_appearances.json of that one clip alone (the other clip's CSV had stayed, named by neither
+    JSON file); a folder holding anything else is refused in one line and left as it was."""
+    from tasks.cad.export import ExportError
+
+    wh = _copy(built, tmp_path)
+    for table in wh.info:  # a second clip, "other": a copy of the first
+        if CLIP in wh.partitions(table) and "clip" in wh.info[table].key:
+            data = wh.read(table, [CLIP])
+            wh.write(table, "other", data.set_column(data.schema.get_field_index("clip"), "clip",
+                                                     pa.array(["other"] * len(data), pa.string())))
+    out = tmp_path / "s"
+    assert export_scan2cad(wh, out)["scans"] == 2
+    assert sorted(p.name for p in out.iterdir()) == [f"{CLIP}.csv", "cad_appearances.json", "full_annotations.json",
+                                                     "other.csv"]
+    assert export_scan2cad(wh, out, ["other"])["scans"] == 1
+    assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "other.csv"]
+    assert [a["id_scan"] for a in json.loads((out / "full_annotations.json").read_text())] == ["other"]
+    assert list(json.loads((out / "cad_appearances.json").read_text())) == ["other"]
+    assert not list(tmp_path.glob(".s.*.tmp"))
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ExportError, match=rf"^{out}: holds 'notes.txt', which no Scan2CAD export writes"):
+        export_scan2cad(wh, out)
+    assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "notes.txt",
+                                                     "other.csv"]
+    (tmp_path / "csvs").mkdir()
+    (tmp_path / "csvs" / "table.csv").write_text("a,b\n")
+    with pytest.raises(ExportError, match="holds files but no full_annotations.json"):
+        export_scan2cad(wh, tmp_path / "csvs")

@@ -39,7 +39,7 @@ def export_official(
 @export_app.command("scan2cad")
 def export_scan2cad(
     ctx: typer.Context,
-    out_dir: Annotated[Path, typer.Argument(help="Folder to write (files of the same names are replaced).")],
+    out_dir: Annotated[Path, typer.Argument(help="New or empty folder, or that of an earlier `export scan2cad` (replaced: it then holds this export alone).")],
     clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
 ) -> None:
     """Write the accepted poses as Scan2CAD files: <clip>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz

@@ -2,7 +2,10 @@
 
 Each clip is a "scan" (``id_scan`` = the clip name); the world is the clip's aligned world (metres,
 +Y up: the camera file's world turned by ``clips.up_rotation``, :mod:`tasks.video.world_up`), so every
-scan's own transform is the identity. Written into ``out``:
+scan's own transform is the identity. Written into a temporary folder beside ``out`` and moved into
+place at the end (:func:`tasks.cad.export.publish`); ``out`` is new, empty, or the folder of an
+earlier Scan2CAD export, which then holds this export alone (its CSV files of scans not written
+this time are removed: :func:`earlier_csvs`):
 
 - ``<clip>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
   no header (``EvaluateBenchmark.py`` reads every row as an alignment): the class id, the CAD id,
@@ -24,19 +27,20 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from tasks.cad.export import ExportError, export_clips, make_folder, some_named
+from tasks.cad.export import ExportError, export_clips, publish, some_named, temp_folder_beside
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
-from warehouse.store import atomic_write_bytes
 
 MIRRORED_SUFFIX = "_mirrored"
 SYMMETRY_TAGS = {1: "__SYM_NONE", 2: "__SYM_ROTATE_UP_2", 4: "__SYM_ROTATE_UP_4", 36: "__SYM_ROTATE_UP_INF"}
 CSV_COLUMNS = ("catid", "id_cad", "tx", "ty", "tz", "qw", "qx", "qy", "qz", "sx", "sy", "sz")
+JSON_FILES = ("full_annotations.json", "cad_appearances.json")
 
 
 def scan2cad_cad_id(cad_id: str, mirrored: bool) -> str:
@@ -107,28 +111,52 @@ def annotation(ds: ClipDataset) -> dict:
             "n_aligned_models": len(models), "aligned_models": models}
 
 
+def earlier_csvs(out: Path) -> list[Path]:
+    """The CSV files of the earlier Scan2CAD export in ``out`` (none when ``out`` is missing or
+    empty). :class:`ExportError` when ``out`` is a file, or a folder that is not an export's: one
+    without ``full_annotations.json``, or holding anything but :data:`JSON_FILES` and ``*.csv`` files."""
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"{out}: exists and is not a folder; choose a new folder")
+    entries = sorted(out.iterdir()) if out.exists() else []
+    if not entries:
+        return []
+    other = [e.name for e in entries if not e.is_file() or (e.name not in JSON_FILES and e.suffix != ".csv")]
+    if other:
+        raise ExportError(f"{out}: holds {other[0]!r}, which no Scan2CAD export writes; choose a new folder "
+                          "(or that of an earlier export, which it replaces)")
+    if not (out / JSON_FILES[0]).is_file():
+        raise ExportError(f"{out}: holds files but no {JSON_FILES[0]}: not the folder of a Scan2CAD export; "
+                          "choose a new folder")
+    return [e for e in entries if e.suffix == ".csv"]
+
+
 def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None) -> dict[str, int]:
     """Write the Scan2CAD files of ``clips`` (default: every clip whose verification completed,
-    :func:`export_clips`) into ``out``; returns counts (scans, alignments, and ``note``: the
+    :func:`export_clips`) to ``out`` (see the module: new, empty or an earlier export's folder,
+    which then holds this export alone); returns counts (scans, alignments, and ``note``: the
     warning lines, '' when none). A clip with no accepted pose is no scan (Scan2CAD's evaluation
     divides by a scan's models): left out, its file of an earlier export removed, and named."""
-    out = Path(out)
+    out = Path(os.path.abspath(out))
+    earlier = earlier_csvs(out)
     selection = export_clips(wh, clips)
-    make_folder(out, exist_ok=True)
     annotations, appearances, total, empty = [], {}, 0, []
-    for clip in selection.chosen:
-        ds = clip_dataset(wh, clip)
-        rows = alignments(ds)
-        if not rows:
-            empty.append(clip)
-            (out / f"{clip}.csv").unlink(missing_ok=True)
-            continue
-        atomic_write_bytes(out / f"{clip}.csv", csv_text(rows).encode())
-        annotations.append(annotation(ds))
-        appearances[clip] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
-        total += len(rows)
-    atomic_write_bytes(out / "full_annotations.json", json.dumps(annotations, indent=1).encode())
-    atomic_write_bytes(out / "cad_appearances.json", json.dumps(appearances, indent=1).encode())
+    with temp_folder_beside(out) as tmp:
+        for clip in selection.chosen:
+            ds = clip_dataset(wh, clip)
+            rows = alignments(ds)
+            if not rows:
+                empty.append(clip)
+                continue
+            (tmp / f"{clip}.csv").write_text(csv_text(rows))
+            annotations.append(annotation(ds))
+            appearances[clip] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
+            total += len(rows)
+        (tmp / JSON_FILES[0]).write_text(json.dumps(annotations, indent=1))
+        (tmp / JSON_FILES[1]).write_text(json.dumps(appearances, indent=1))
+        for stale in earlier:  # the earlier export's scans not written this time
+            if not (tmp / stale.name).exists():
+                stale.unlink(missing_ok=True)
+        publish(tmp, out)
     notes = [selection.note()] if selection.note() else []
     if empty:
         notes.append(f"left out {len(empty)} clip(s) with no accepted pose (no Scan2CAD scan): {some_named(empty)}")
