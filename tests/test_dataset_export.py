@@ -334,6 +334,9 @@ def test_an_object_whose_model_left_the_library_is_refused_by_name(built, tmp_pa
     with pytest.raises(ExportError, match=rf"clip {CLIP}, track \d: its model '{gone}' is not in the warehouse's cad_models"):
         export_dataset(wh, tmp_path / "a", cad=False, show_progress=False)
     assert not (tmp_path / "a").exists()
+    with pytest.raises(ExportError, match=rf"clip {CLIP}, track \d: its model '{gone}' is not in the warehouse's cad_models"):
+        export_scan2cad(wh, tmp_path / "s2c")  # it wrote the object with a box of size 0
+    assert not (tmp_path / "s2c").exists()
 
 
 def test_an_export_into_the_current_folder(built, tmp_path, monkeypatch):

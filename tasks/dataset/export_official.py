@@ -119,11 +119,7 @@ def check_exportable(datasets: Sequence[ClipDataset], names: Sequence[str]) -> N
         raise ExportError(f"clips {', '.join(clip_of[n] for n in which)} come from different videos but share the "
                           f"video id {vid!r}; their frames would overwrite each other in frames/<video_id>/")
     for ds in datasets:
-        for o in ds.objects:
-            if o.cad_id and o.extent is None:
-                raise ExportError(f"clip {ds.clip}, track {o.track_id}: its model {o.cad_id!r} is not in the "
-                                  "warehouse's cad_models (its CAD library removed?); ingest the library again, "
-                                  "or answer the clip's CAD selection again")
+        ds.require_models()
 
 
 def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None, cad: bool = True,

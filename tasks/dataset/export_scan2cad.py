@@ -143,6 +143,7 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     with temp_folder_beside(out) as tmp:
         for clip in selection.chosen:
             ds = clip_dataset(wh, clip)
+            ds.require_models()  # a model gone from cad_models has no box to write
             rows = alignments(ds)
             if not rows:
                 empty.append(clip)

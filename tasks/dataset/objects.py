@@ -118,6 +118,15 @@ class ClipDataset:
     up_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
     """float64[3, 3] Q of ``clips.up_rotation``: X_aligned = Q X_input; identity once in the input world."""
 
+    def require_models(self) -> None:
+        """:class:`ExportError` naming the first object whose chosen model is no longer in the
+        warehouse's ``cad_models`` (no extent): an export would write it without its model's box."""
+        for o in self.objects:
+            if o.cad_id and o.extent is None:
+                raise ExportError(f"clip {self.clip}, track {o.track_id}: its model {o.cad_id!r} is not in the "
+                                  "warehouse's cad_models (its CAD library removed?); ingest the library again, "
+                                  "or answer the clip's CAD selection again")
+
     def in_input_world(self) -> "ClipDataset":
         """The same clip with frames (world->camera ``R Q``, ``t``) and poses (``Q^T T``, ``Q^T R``)
         in the world of its camera file; ``up_rotation`` becomes the identity."""
