@@ -77,10 +77,13 @@ class StagesFailed(RuntimeError):
     """A resume in which a stage failed (the stages' summary): the clip's resume is ``failed``, and
     the page says so (it said "nothing waits for people" with the failure inside the line)."""
 
-    PREFIX = "a stage failed: "
-
     def __str__(self) -> str:
-        return self.PREFIX + super().__str__()
+        return f"a stage failed: {super().__str__()}"
+
+
+def first_line(e: BaseException) -> str:
+    """``Type: message`` of ``e``, its first line."""
+    return f"{type(e).__name__}: {e}".splitlines()[0]
 
 
 def run_stages(config: Config, clip: str, read_cache: ReadCache | None = None) -> str:
@@ -248,17 +251,21 @@ class Resumer:
                 clip = self._queue.popleft()
                 run = self._clips[clip]
                 run.state, run.again = "running", False
-            ok, message = self._attempt(self._run, clip)
-            stages_failed = not ok and message.startswith(StagesFailed.PREFIX)  # recorded as a run that ran
-            ok = ok or stages_failed
+            try:
+                message, ran, failed = self._run(clip), True, False
+            except StagesFailed as e:  # the stages ran (the failed one logged its error): recorded in Prefect too
+                message, ran, failed = str(e), True, True
+            except Exception as e:  # reported on the page
+                traceback.print_exc()
+                message, ran, failed = first_line(e), False, True
             with self._cond:
                 run.runs += 1
-                run.message, run.finished_at, run.failed = message, time.time(), not ok or stages_failed
+                run.message, run.finished_at, run.failed = message, time.time(), failed
                 if run.again:  # newer answers: run again first (that run gets recorded)
                     run.state, run.again = "queued", False
                     self._queue.append(clip)
                 else:
-                    run.state = "recording" if ok and self._record else ("failed" if run.failed else "idle")
+                    run.state = "recording" if ran and self._record else ("failed" if failed else "idle")
                 self._cond.notify_all()
                 if run.state != "recording":
                     continue
@@ -281,8 +288,6 @@ class Resumer:
         """``call(clip)``: (True, its line), or (False, the error's first line); the worker goes on."""
         try:
             return True, call(clip)
-        except StagesFailed as e:  # the stage's error is logged where it failed
-            return False, str(e)
         except Exception as e:  # reported on the page
             traceback.print_exc()
-            return False, f"{type(e).__name__}: {e}".splitlines()[0]
+            return False, first_line(e)

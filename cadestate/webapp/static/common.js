@@ -195,7 +195,8 @@ export function frameView(src, onload, alt = "key-frame") {
   img.addEventListener("error", () => toast(`cannot load the image ${src}`, "error"));
   const canvas = el("canvas", {class: "over"});
   const wrap = el("div", {class: "frame"}, img, canvas);
-  img.addEventListener("load", () => { canvas.width = img.naturalWidth; canvas.height = img.naturalHeight; onload && onload(); });
+  img.addEventListener("load", () => { canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
+    wrap.style.setProperty("--ar", img.naturalWidth / img.naturalHeight); onload && onload(); });
   return {wrap, img, canvas};
 }
 

@@ -44,7 +44,10 @@ export class Viewer {
     const box = new THREE.Box3().setFromObject(this.model), size = box.getSize(new THREE.Vector3()), c = box.getCenter(new THREE.Vector3());
     this.size = [size.x, size.y, size.z];   // the model's bounding-box size, CAD frame (x, y, z)
     this.radius = Math.max(size.x, size.y, size.z) / 2 || 1;
-    const d = this.radius * 3.2;
+    // far enough that the model's bounding sphere fits the narrower of the view's two angles (a cube's
+    // corners were cut off at 3.2 half-sides)
+    const halfV = THREE.MathUtils.degToRad(this.camera.fov) / 2, halfH = Math.atan(Math.tan(halfV) * this.camera.aspect);
+    const d = 1.05 * (size.length() / 2 || 1) / Math.sin(Math.min(halfV, halfH));
     this.camera.position.set(c.x + d * 0.55, c.y + d * 0.45, c.z + d * 0.75); this.camera.near = d / 100; this.camera.far = d * 10;
     this.camera.updateProjectionMatrix(); this.controls.target.copy(c); this.controls.update();
     // the symmetry axis: +Y through the model's centre (dashed when the model has no symmetry)
