@@ -416,6 +416,35 @@ def test_a_task_served_after_an_answer_shows_that_answer_before_any_resume(lwh, 
     assert [it["track_id"] for it in served["items"]] == [it["track_id"] for it in before["items"]]
 
 
+def test_a_correspondences_item_whose_clicks_gave_no_pose_says_why(lwh):
+    """The pose stage runs after the correspondences task: a pose the solver could not make from a
+    person's clicks was lost without a word. The item, served again, carries the status, message and
+    per-key-frame errors of the pose solved from the answer in force, and nothing for an answer newer
+    than the last pose run (not solved yet) or for a pose that is ok."""
+    import datetime as dt
+
+    from conftest import table_rows
+
+    with _client(lwh, Requests()) as client:
+        assert client.post("/api/answers", json=payload("correspondences")).status_code == 200
+        answered = max(lwh.read("label_files").column("ingested_at").to_pylist())
+        later = answered + dt.timedelta(microseconds=1)  # the pose run after that answer
+        lwh.write("runs", CLIP, table_rows("runs", [{"clip": CLIP, "run_id": "r-pose", "stage": "pose", "status": "completed",
+                                                      "started_at": later}]))
+        bad = {"clip": CLIP, "track_id": "0", "status": "high_residual", "message": "mean reprojection error 31.0 px > 20.0 px",
+               "keyframe_timestamps_us": [0, 300_000], "keyframe_error_px": [2.0, 60.0]}
+        lwh.write("poses", CLIP, table_rows("poses", [bad, {**bad, "track_id": "1", "status": "ok"}]))
+        items = {it["track_id"]: it for it in client.get(f"/api/tasks/{CLIP}/c1.co").json()["task"]["items"]}
+        assert items[0]["pose_failed"] == {"status": "high_residual", "message": "mean reprojection error 31.0 px > 20.0 px",
+                                           "keyframe_error_px": {"0": 2.0, "300000": 60.0}}
+        assert "pose_failed" not in items[1]  # no answer of its own here, and its pose is ok
+        (co,) = [t for t in client.get("/api/clips").json()["clips"][0]["tasks"] if t["kind"] == "correspondences"]
+        assert co["pose_failed"] == [0]  # the start page links to it
+        assert client.post("/api/answers", json=payload("correspondences")).status_code == 200  # answered again after the run
+        items = {it["track_id"]: it for it in client.get(f"/api/tasks/{CLIP}/c1.co").json()["task"]["items"]}
+        assert "pose_failed" not in items[0]
+
+
 def test_an_answer_to_a_task_the_pipeline_replaced_goes_to_the_new_task_where_it_fits(lwh):
     """A page left open on a task that a rerun replaced (a fragment or a drawn object changes the
     tracks asked about): the answer is saved to the newest task when it fits it (there, "none of these"

@@ -12,6 +12,7 @@ import json
 from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
+from cadestate.webapp.served_task import served, with_pose_outcomes
 from tasks.human.answers_in_force import answered_items
 from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
@@ -19,18 +20,20 @@ from warehouse import Warehouse
 
 @dataclass
 class OpenTask:
-    """One task of a clip: its id, kind, item track ids (manual_track: ``[-1]``, the whole task)
-    and those still unanswered."""
+    """One task of a clip: its id, kind, item track ids (manual_track: ``[-1]``, the whole task),
+    those still unanswered, and (correspondences) those answered whose clicks gave no pose
+    (:func:`cadestate.webapp.served_task.with_pose_outcomes`: to be clicked again)."""
 
     clip: str
     kind: str
     task_id: str
     items: list[int]
     waiting: list[int] = field(default_factory=list)
+    pose_failed: list[int] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"clip": self.clip, "kind": self.kind, "task_id": self.task_id, "items": len(self.items),
-                "waiting": len(self.waiting), "waiting_tracks": self.waiting,
+                "waiting": len(self.waiting), "waiting_tracks": self.waiting, "pose_failed": self.pose_failed,
                 "url": f"/annotate/{self.kind}?clip={self.clip}&task={self.task_id}"}
 
 
@@ -46,7 +49,9 @@ def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
         items = [-1] if kind == "manual_track" else [int(it["track_id"]) for it in doc["items"]]
         done = answered_items(wh, clip, doc)
         waiting = [t for t in items if t not in done]
-        out.append(OpenTask(clip, kind, doc["task_id"], items, waiting))
+        failed = [int(it["track_id"]) for it in with_pose_outcomes(wh, clip, doc)["items"] if "pose_failed" in it] \
+            if kind == "correspondences" else []
+        out.append(OpenTask(clip, kind, doc["task_id"], items, waiting, failed))
     return out
 
 
@@ -75,9 +80,9 @@ def first_waiting(tasks: list[OpenTask]) -> dict | None:
 
 
 def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
-    """The newest document of a task (as stored in ``label_tasks``; the items' ``previous``: the
-    answers in force, :mod:`cadestate.webapp.previous`), with ``answered``: the track ids answered (:func:`tasks.human.answers_in_force.answered_items`; manual_track: ``[-1]`` once
-    answered)."""
+    """The newest document of a task (as stored in ``label_tasks``, as the app serves it:
+    :mod:`cadestate.webapp.served_task`), with ``answered``: the track ids answered
+    (:func:`tasks.human.answers_in_force.answered_items`; manual_track: ``[-1]`` once answered)."""
     from tasks.human.labels import latest_task
 
     if not wh.has_partition("clips", clip):
@@ -85,7 +90,5 @@ def task_document(wh: Warehouse, clip: str, task_id: str) -> dict | None:
     row = latest_task(wh, clip, task_id)
     if row is None:
         return None
-    from cadestate.webapp.previous import with_answers_in_force
-
     doc = json.loads(row["document"])
-    return {"task": with_answers_in_force(wh, clip, doc), "answered": sorted(answered_items(wh, clip, doc))}
+    return {"task": served(wh, clip, doc), "answered": sorted(answered_items(wh, clip, doc))}
