@@ -148,7 +148,7 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
         if stage.name in last:
             continue
         if not any(u in waiting or (u in last and waits_for_people(last[u]["status"], last[u]["rows_written"]))
-                   for u in stage.upstream):
+                   for u in stage.upstream + stage.after):
             return True
         waiting.add(stage.name)
     return False

@@ -103,7 +103,8 @@ class StageDef:
     it writes. ``extra_sections``: config sections it reads besides its own, or single keys of them
     (``"manual_tracks.keyframes"``; part of its config hash).
     ``after``: stages it is listed after without reading their output (pose reads the answers of the
-    correspondence task from the warehouse).
+    correspondence task from the warehouse); it is ``waiting`` too while one of them waits for people
+    with nothing answered (pose does not run, and is not recorded completed, before any click).
 
     ``run(ctx: StageContext) -> StageOutput`` does the work. What it reads besides its upstream
     outputs is digested by ``config_inputs(config) -> list[str]`` (files the config names, such as

@@ -134,7 +134,7 @@ def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: A
     if any(u is None for u in upstream):
         return StageReport(unit, stage.name, "skipped", message="an upstream stage failed")
     ups = [u for u in upstream if u is not None]
-    waiting = waiting_run(unit, stage.name, ups)
+    waiting = waiting_run(unit, stage.name, ups + [done[a] for a in stage.after if a in done])  # pose: no clicks yet
     if waiting is not None:
         done[stage.name] = waiting
         return report_of(waiting)

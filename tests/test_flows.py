@@ -216,7 +216,8 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     wh = Warehouse(config.warehouse.root)
     tracks = wh.read("tracks", ["small"], columns=["track_id"]).column("track_id").to_pylist()
     assert tracks, "the small clip has tracks"
-    assert states(first) == expect("small", cad_selection="paused", correspondence_task="waiting", rest="completed")
+    assert states(first) == expect("small", cad_selection="paused", correspondence_task="waiting", pose="waiting",
+                                         verification="waiting", rest="completed")  # no pose before any click
     paused = {r.stage: r for r in first}["cad_selection"]
     assert f"{len(tracks)} of {len(tracks)} tracks unanswered in cad_selection task label_tasks/small/" in paused.message
     status = {r.stage: r for r in pipeline_status(wh, config)}
@@ -225,7 +226,8 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     assert [r["status"] for r in wh.read("runs", filters=[("stage", "==", "cad_selection")]).to_pylist()] == ["paused"]
     # an unchanged rerun stays paused, doing no work
     again = run_clips([source], config, show_progress=False)
-    assert states(again) == expect("small", cad_selection="paused", correspondence_task="waiting", rest="cached")
+    assert states(again) == expect("small", cad_selection="paused", correspondence_task="waiting", pose="waiting",
+                                         verification="waiting", rest="cached")
 
     task_path = wh.root / paused.message.split(" task ", 1)[1].split(";")[0]
     task = json.loads(task_path.read_text())
@@ -238,12 +240,13 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     assert {r.stage: r.stale_reasons for r in pipeline_status(wh, config)}["cad_selection"] == ("inputs changed",)
     resumed = run_clips([source], config, show_progress=False)
     # upstream work is reused; the selection completes, the correspondences task now waits for clicks
-    assert states(resumed) == expect("small", cad_selection="completed", correspondence_task="paused", rest="cached")
+    assert states(resumed) == expect("small", cad_selection="completed", correspondence_task="paused", pose="waiting",
+                                           verification="waiting", rest="cached")
     assert selected_models(wh, "small") == {t: chosen[t] for t in tracks}
     clicks = {r.stage: r for r in resumed}["correspondence_task"]
     assert f"{len(tracks)} of {len(tracks)} tracks unanswered in correspondences task" in clicks.message
     # nothing changed since: a rerun does no work
-    assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached", "paused"}
+    assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached", "paused", "waiting"}
 
 
 def test_flow_state_names_the_paused_tasks():
@@ -297,7 +300,7 @@ def test_a_val_clip_waits_for_its_manual_tracks(config, source, tmp_path):
     reports = run_clips([val], config, show_progress=False)
     assert states(reports) == expect("small", ingest="completed", frames="completed", manual_tracks="paused",
                                      retrieval="waiting", cad_selection="waiting", correspondence_task="waiting",
-                                     rest="cached")
+                                     pose="waiting", verification="waiting", rest="cached")
     wh = Warehouse(config.warehouse.root)
     assert registered_source(wh, "small").split == "val"  # what `cadestate run` reruns
     status = {r.stage: r for r in pipeline_status(wh, config)}
