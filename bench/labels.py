@@ -1,11 +1,13 @@
-"""Simulated annotators on a benchmark: label files from the ground truth, and what they contain.
+"""Simulated annotators on a benchmark: their clicks and tracks from the ground truth, and what they contain.
 
-For every clip, ``<bench>/labels/<clip>.json`` holds, per ground-truth object, the 3D<->2D
+For every clip, ``<bench>/simulated_clicks/<clip>.json`` holds, per ground-truth object, the 3D<->2D
 correspondences of :func:`bench.annotators.annotate_correspondences` (other objects of the
 scene occlude) and a manual track of :func:`bench.annotators.draw_manual_track`, made with the
-noise model :class:`bench.noise.AnnotatorNoise`. The label-file format of the pipeline's human
-tasks comes with the retrieval issue; until then these files are the benchmark's own and the
-stages that will consume them (pose solving) read them from here.
+noise model :class:`bench.noise.AnnotatorNoise`: the benchmark's own file, not a label file (the
+label files the simulated people answer tasks with go to ``<bench>/labels/<clip>/``,
+:mod:`bench.simulated_labels`; it sat in ``labels/``, where ``cadestate labels validate`` of that
+folder took it for a bad label file). ``bench run --gt-tracks``, :mod:`bench.pose_bench` and
+:mod:`bench.sfm_bench` read it.
 """
 
 from __future__ import annotations
@@ -27,11 +29,11 @@ from schemas.official import read_frames, read_objects
 from tasks.cad.symmetry import rotation_y
 from warehouse import Warehouse, atomic_write_bytes
 
-LABELS = "labels"
+CLICKS = "simulated_clicks"
 
 
 def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: AnnotatorNoise = DEFAULT_NOISE) -> dict:
-    """The label file of one clip (also written to ``<bench>/labels/<clip>.json``)."""
+    """The label file of one clip (also written to ``<bench>/simulated_clicks/<clip>.json``)."""
     frames = read_frames(Path(bench_dir) / clip / "frames.json")
     objects = read_objects(Path(bench_dir) / clip / "objects.json")
     models = {m["cad_id"]: m for m in wh.read("cad_models", columns=["cad_id", "symmetry", "mesh_path"]).to_pylist()}
@@ -50,7 +52,7 @@ def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: Annot
                 "correspondences": [kf.to_json() for kf in keyframes],
                 "manual_track": track_to_json(draw_manual_track(frames, obj, noise, noise.rng(clip, obj.track_id, "track"))),
             })
-    out = Path(bench_dir) / LABELS / f"{clip}.json"
+    out = Path(bench_dir) / CLICKS / f"{clip}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, json.dumps(result, indent=1).encode())
     return result
@@ -58,7 +60,7 @@ def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: Annot
 
 def simulate_labels(bench_dir: Path, clips: list[str], wh: Warehouse, show_progress: bool = True) -> int:
     """Label files for ``clips`` that do not have one yet; returns how many were written."""
-    todo = [c for c in clips if not (Path(bench_dir) / LABELS / f"{c}.json").is_file()]
+    todo = [c for c in clips if not (Path(bench_dir) / CLICKS / f"{c}.json").is_file()]
     for clip in progress(todo, total=len(todo), description="simulated labels", enabled=show_progress):
         simulate_clip_labels(bench_dir, clip, wh)
     return len(todo)
@@ -69,7 +71,7 @@ def label_statistics(bench_dir: Path, clips: list[str]) -> dict:
     keyframes = points = coplanar = swapped = annotated = objects_n = 0
     residuals: list[float] = []
     for clip in clips:
-        path = Path(bench_dir) / LABELS / f"{clip}.json"
+        path = Path(bench_dir) / CLICKS / f"{clip}.json"
         if not path.is_file():
             continue
         labels = json.loads(path.read_text())
@@ -125,7 +127,7 @@ def write_correspondences(bench_dir: Path, clips: list[str], wh: Warehouse) -> i
 
     total = 0
     for clip in clips:
-        path = Path(bench_dir) / LABELS / f"{clip}.json"
+        path = Path(bench_dir) / CLICKS / f"{clip}.json"
         if not path.is_file():
             continue
         table = pa.Table.from_pylist(correspondence_rows(json.loads(path.read_text())), schema=CORRESPONDENCES.schema)

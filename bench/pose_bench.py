@@ -33,7 +33,7 @@ import pyarrow as pa
 from bench.annotators import KeyframeCorrespondences, frame_camera
 from bench.benchmark import read_manifest
 from bench.eval_pose import PosedObject, match_and_score
-from bench.labels import LABELS, correspondence_rows
+from bench.labels import CLICKS, correspondence_rows
 from bench.sfm_eval import Similarity, align
 from cadestate.config import PoseConfig
 from cadestate.geometry import camera_to_world, matrix_to_quaternion, project, quaternion_to_matrix
@@ -236,7 +236,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
     models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()}
     tracks = []
     for clip in clips:
-        path = Path(bench_dir) / LABELS / f"{clip}.json"
+        path = Path(bench_dir) / CLICKS / f"{clip}.json"
         if not path.is_file():
             continue
         labels = json.loads(path.read_text())
@@ -340,7 +340,7 @@ def timing(tracks, cfg: PoseConfig, singles: int = 10, batch: int = 1000) -> dic
 def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int = 1000) -> dict:
     """Every number of the module docstring, as a dict (``python -m bench``)."""
     wh = wh or Warehouse("data/warehouse")
-    if not (Path(bench_dir) / LABELS).is_dir():
+    if not (Path(bench_dir) / CLICKS).is_dir():
         return {"skipped": f"{bench_dir}: no simulated labels (run `cadestate bench run {bench_dir}`)"}
     cfg = PoseConfig()
     tracks3, gt, sym = bench_tracks(bench_dir, wh, cfg)

@@ -4,7 +4,7 @@ Per clip: the registered fraction of the sampled frames, the median rotation err
 trajectory error (% of the path length) after a similarity alignment to the true cameras
 (:mod:`bench.sfm_eval`), SfM's wall time and focal length (``fx / width``: the true one, SfM's, its
 error in %, the field-of-view hypotheses' estimate, :func:`tasks.video.sfm.focal_report`); then the
-pose accuracy downstream: the simulated annotators' clicks on the ground-truth tracks (``<bench>/labels/<clip>.json``, written by ``cadestate
+pose accuracy downstream: the simulated annotators' clicks on the ground-truth tracks (``<bench>/simulated_clicks/<clip>.json``, written by ``cadestate
 bench run``) solved with the SfM cameras and with the true cameras, each turned to +Y up as ingest
 does (:func:`tasks.video.ingest.find_up`: the cameras, refined by the video's vertical lines), the SfM poses mapped into the true world by the same similarity
 (translation and scale scaled), scored as :mod:`bench.pose_bench` scores (Scan2CAD criterion).
@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.benchmark import read_manifest
 from bench.eval_pose import PosedObject
-from bench.labels import LABELS, correspondence_rows
+from bench.labels import CLICKS, correspondence_rows
 from bench.pose_bench import _class_of, _gt, score
 from bench.sfm_eval import Similarity, align, camera_errors
 from cadestate.config import CamerasConfig, IngestConfig, PoseConfig
@@ -91,7 +91,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
 
     wh = wh or Warehouse("data/warehouse")
     bench_dir = Path(bench_dir)
-    if not (bench_dir / LABELS).is_dir():
+    if not (bench_dir / CLICKS).is_dir():
         return {"skipped": f"{bench_dir}: no simulated labels (run `cadestate bench run {bench_dir}`)"}
     names = list(read_manifest(bench_dir).clips)[:clips]
     models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()}
@@ -119,7 +119,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
                      "true_fx_over_width": round(float(truth.intrinsics[0, 0]), 4),
                      "focal_error_pct": round(100 * (float(sfm.intrinsics[0, 0] / truth.intrinsics[0, 0]) - 1), 2),
                      **focal, "models": result.models})
-        label_file = bench_dir / LABELS / f"{clip}.json"
+        label_file = bench_dir / CLICKS / f"{clip}.json"
         if not label_file.is_file():
             continue
         corr = pa.Table.from_pylist(correspondence_rows(json.loads(label_file.read_text())), schema=CORRESPONDENCES.schema)

@@ -58,7 +58,7 @@ def bench_run(
 ) -> None:
     """Run the pipeline on every benchmark clip, the simulated annotators answering its human tasks
     (cached stages do no work). Also writes the simulated annotators' clicks on the ground-truth
-    tracks (<bench>/labels/<clip>.json, once), the input of `python -m bench.pose_bench`."""
+    tracks (<bench>/simulated_clicks/<clip>.json, once), the input of `python -m bench.pose_bench`."""
     import dataclasses
 
     from bench.benchmark import clip_sources, read_manifest
@@ -75,7 +75,7 @@ def bench_run(
     clips = list(read_manifest(bench_dir).clips)
     sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
     made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)
-    err.print(f"simulated labels: {made} clip(s) labelled now")
+    err.print(f"simulated clicks on every ground-truth object: {made} clip(s) made now")
     if not answer_tasks:
         rows = write_correspondences(bench_dir, clips, ctx.obj.open_warehouse())
         err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
