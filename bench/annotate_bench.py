@@ -161,4 +161,7 @@ def _next_task(tmp: Path, library: Path = Path("data/warehouse")) -> dict:
 
 
 if __name__ == "__main__":
+    from bench.script_args import no_arguments
+
+    no_arguments(__doc__)
     print(run())

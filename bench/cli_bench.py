@@ -295,4 +295,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from bench.script_args import no_arguments
+
+    no_arguments(__doc__)
     sys.exit(main())

@@ -103,4 +103,7 @@ def run(cache_dir: Path, repeats: int = 3, crops: int = 1000) -> dict:
 
 
 if __name__ == "__main__":
+    from bench.script_args import no_arguments
+
+    no_arguments(__doc__)
     print(json.dumps(run(Path("data/bench/perf")), indent=2))

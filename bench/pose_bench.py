@@ -370,4 +370,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, batch: int
 
 
 if __name__ == "__main__":
+    from bench.script_args import no_arguments
+
+    no_arguments(__doc__)
     print(json.dumps(run(), indent=1))

@@ -168,4 +168,7 @@ def retrieval_markdown(retrieval: dict | None) -> list[str]:
 
 
 if __name__ == "__main__":
+    from bench.script_args import no_arguments
+
+    no_arguments(__doc__)
     print(json.dumps(sizes(), indent=2))

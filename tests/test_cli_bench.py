@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+import pytest
+
 from bench.cli_bench import BASELINE, measure, ratio_lines, ratios
 
 
@@ -76,3 +78,17 @@ def test_the_demo_rounds_copy_the_cad_libraries_and_no_clip(wh, tmp_path):
     assert copy.read("runs").equals(wh.read("runs", ["lib"]))
     assert (tmp_path / "copy/media/cad/lib/f.txt").is_file()
     assert not any((tmp_path / "copy" / f).exists() for f in ("media/frames/demo", "label_tasks/demo", "_prefect"))
+
+
+@pytest.mark.parametrize("module", ["bench", "bench.pose_bench", "bench.retrieval_bench", "bench.detect_throughput",
+                                    "bench.cli_bench", "bench.annotate_bench"])
+def test_bench_scripts_answer_help_instead_of_running(module):
+    """They took no arguments and ran (minutes) on --help; now --help prints what they measure."""
+    import importlib
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60)
+    doc = importlib.import_module(module if module != "bench" else "bench.__main__").__doc__
+    assert done.returncode == 0 and done.stdout.split("\n")[0] == doc.strip().split("\n")[0], done.stdout + done.stderr
+    other = subprocess.run([sys.executable, "-m", module, "--clips", "3"], capture_output=True, text=True, timeout=60)
+    assert other.returncode == 2 and "takes no arguments (got --clips 3)" in other.stderr
