@@ -287,3 +287,31 @@ def test_a_partition_rewritten_while_a_statement_reads_it_is_read_again(w):
     finally:
         rewrite.join()
     assert rows == [[(5,)]]
+
+
+def test_a_partition_swapped_while_a_statement_lists_it_is_not_left_out(w):
+    """DuckDB lists a partition folder's names, then checks each by its path: a replace-mode write
+    that swaps the folder in between (strace holds DuckDB's check of clip a's file until the write
+    is done) left clip a out of the answer, with no error ('1' clips of 2). The statement is
+    planned again, as a table's folder changed meanwhile, and counts both."""
+    import subprocess
+    import time
+
+    strace = shutil.which("strace")
+    options = ["-f", "-qq", "--seccomp-bpf", "-e", "trace=%%stat", "-e", "inject=%%stat:delay_enter=3s:when=1"]
+    trace = w.parent / "trace.txt"
+    if strace is None or subprocess.run([strace, *options, "-P", str(trace), "true"], capture_output=True).returncode:
+        pytest.skip("needs strace (5.3 or later), allowed to trace")
+    wh = Warehouse(w)
+    [listed] = wh.file_paths("clips", ["a"])
+    proc = subprocess.Popen([strace, *options, "-o", str(trace), "-P", listed, sys.executable, "-m", "cadestate",
+                             "-w", str(w), "sql", "-f", "csv", "--", "SELECT count(*) AS n FROM clips"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        while proc.poll() is None and not (trace.is_file() and listed in trace.read_text()):
+            time.sleep(0.01)  # until DuckDB checks the file it listed (held there for 3 s)
+        wh.write("clips", "a", clips("a", 1))
+    finally:
+        out, err = proc.communicate(timeout=120)
+    assert listed in trace.read_text(), "DuckDB never checked clip a's file"
+    assert (proc.returncode, out) == (0, "n\n2\n"), err

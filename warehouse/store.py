@@ -41,13 +41,15 @@ step (:func:`cadestate.atomic.exchange`), and the old files, now in the staging 
 removed. A reader listing the partition sees all the old files or the merged one (under a new
 name), never both (rows twice); one that listed the old files and opens one after the swap finds
 it gone and fails rather than answer wrong (:meth:`Warehouse.read` lists that partition again; a
-DuckDB query reports the missing file, and run again answers). Known limit: a DuckDB glob whose
-listing a swap overtakes can instead leave that partition's rows out without an error (it drops
-names that vanished between its listing and its check of each name): SQL over a table that a
-batch is rewriting may miss a clip's rows until the batch is done. Interrupted at any point, a
-compaction leaves the partition as it was or compacted, plus a staging folder nothing reads. Writes
-to a partition and its compaction hold the partition's lock (:meth:`Warehouse.locked`), so no
-write lands in a folder being swapped out.
+DuckDB query reports the missing file, and run again answers). A DuckDB glob (the catalog's views)
+whose listing a swap overtakes leaves that partition's rows out without an error instead: it reads
+a folder's names, then checks each by its path, which by then leads to the new folder, and drops
+the names it does not find there. So `cadestate sql` plans a statement again when a table's folder
+changed while it was planned (:meth:`Warehouse.table_times`, :func:`warehouse.query.run_query`);
+another DuckDB client of ``catalog.duckdb`` may miss a clip's rows while a batch rewrites it.
+Interrupted at any point, a compaction leaves the partition as it was or compacted, plus a staging
+folder nothing reads. Writes to a partition and its compaction hold the partition's lock
+(:meth:`Warehouse.locked`), so no write lands in a folder being swapped out.
 """
 
 from __future__ import annotations
@@ -377,6 +379,21 @@ class Warehouse:
         else:
             dirs = [self.partition_dir(table, p) for p in partitions]
         return [f for d in dirs for f in data_files(d)]
+
+    def table_times(self) -> tuple[int, ...]:
+        """The modification time (ns) of each table's folder, in the order of :attr:`info` (0 for a
+        table with none yet). Swapping a partition in (a replace-mode write, a compaction) changes its
+        table's, as does making a partition; adding a file to a partition does not. `cadestate sql`
+        plans a statement again when they changed while it was planned (:func:`warehouse.query.run_query`).
+        Exact where the kernel gives a folder changed after it was looked at a new time (Linux 6.13 on);
+        where times keep to the kernel's tick, a swap in the tick of the table's previous change is not seen."""
+        times = []
+        for name in self.info:
+            try:
+                times.append(os.stat(self.table_dir(name)).st_mtime_ns)
+            except FileNotFoundError:
+                times.append(0)
+        return tuple(times)
 
     def has_partition(self, table: str, part: str) -> bool:
         """Whether ``table`` has data in partition ``part`` (one folder looked at, not every partition;
