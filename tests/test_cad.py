@@ -174,6 +174,7 @@ def test_a_held_model_keeps_its_id_when_a_new_item_slugs_alike(tmp_path):
     ("id,class,unit_m\nbox,table,1\nbox2,table,-1\n", "models.csv:3: unit_m must be a positive number"),
     ("id,class,unit_m\nbox\n", "models.csv:2: 1 field(s), the header has 3"),
     ("id,class\nbox,table,extra\n", "models.csv:2: 3 field(s), the header has 2"),
+    ("id,class,unit_m\nbox,table,1,a,b,c,d\n", "models.csv:2: 7 field(s), the header has 3"),  # it said 4
     ("id,class\n,table\n", "models.csv:2: empty id"),
     ('id,class,creator\nbox,table,"A\nB"\n,chair,\n', "models.csv:4: empty id"),  # the line a quoted break moved it to
     ("id,class\nsame,table\n", "models.csv:2: id 'same' has 2 meshes (same.obj, same.ply); name one in a file column"),

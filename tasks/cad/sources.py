@@ -194,8 +194,8 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
         if not any((v or "").strip() for k, v in row.items() if k is not None) and None not in row:
             continue  # an empty row (a spreadsheet's trailing ",,,")
         if None in row or any(row.get(k) is None for k in ("id", "class")):
-            raise CadSourceError(f"{table}:{line}: {len([v for v in row.values() if v is not None])} field(s), "
-                                 f"the header has {len(reader.fieldnames)}")
+            fields = sum(len(v) if k is None else 1 for k, v in row.items() if v is not None)  # extras: a list under None
+            raise CadSourceError(f"{table}:{line}: {fields} field(s), the header has {len(reader.fieldnames)}")
         name = row["id"].strip()
         if not name:
             raise CadSourceError(f"{table}:{line}: empty id")
