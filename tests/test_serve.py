@@ -227,6 +227,7 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         stopped = cli(*common, "server", "stop", cwd=tmp_path)  # the serve first: it polled a dead API for good
         assert f"stopped `cadestate serve` (pid {serving.pid})" in stopped.stdout, stopped.stdout
         assert serving.wait(60) is not None and "Traceback" not in (tmp_path / "serve.log").read_text()
+        assert "RuntimeWarning" not in (tmp_path / "serve.log").read_text()  # Prefect's un-awaited stop
     finally:
         if serving.poll() is None:
             os.killpg(serving.pid, signal.SIGTERM)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -117,6 +118,9 @@ def serve(ctx: typer.Context) -> None:
 
     config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
     logging.getLogger("asyncio").addFilter(_quiet_cancelled_reads)
+    # Prefect's runner calls its async stop without awaiting it on SIGTERM (it then stops anyway): a
+    # RuntimeWarning with its "enable tracemalloc" line closed every clean `server stop`
+    warnings.filterwarnings("ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning)
     try:
         prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
     except Exception:
