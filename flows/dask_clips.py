@@ -8,8 +8,10 @@ it), so a clip's stages stay in one process and the per-process caches (the dete
 retrieval index) serve every stage of every clip the worker takes.
 
 What the workers share: the warehouse, at the same absolute path on every worker (a shared file
-system: partition files are swapped in by atomic renames, a replace-mode partition by the
-``renameat2`` exchange of two folders (:func:`cadestate.atomic.exchange`: not on NFS), and
+system, checked: each worker must read a token file the command leaves in the warehouse root, else
+the command is refused in one line naming the workers, :func:`check_workers_see`, and a clip given
+to a worker that joined later fails so; partition files are swapped in by atomic renames, a
+replace-mode partition by the ``renameat2`` exchange of two folders (:func:`cadestate.atomic.exchange`: not on NFS), and
 append-mode partitions are locked with ``flock``, so several processes write it safely), and the
 clips' input files. The CAD library is
 built beforehand (``cadestate cad ingest``): clip stages only read it.
@@ -87,6 +89,49 @@ def _prepare_worker(root: str, api_url: str) -> None:
     _WORKER_API.append(api_url)
 
 
+PROBE_PREFIX = ".dask-probe-"
+"""Name prefix of the token file a command leaves in the warehouse root while its clips run on Dask
+(:func:`warehouse_probe`): a worker that reads the token there sees the driver's warehouse."""
+
+
+@contextlib.contextmanager
+def warehouse_probe(root: str) -> Iterator[tuple[str, str]]:
+    """A token file in the warehouse root (``root``: absolute, existing) for the block: ``(its path,
+    the token it holds)``, removed after."""
+    token = uuid.uuid4().hex
+    path = Path(root) / f"{PROBE_PREFIX}{token[:12]}"
+    path.write_text(token, encoding="utf-8")
+    try:
+        yield str(path), token
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _sees_probe(path: str, token: str) -> bool:
+    """Whether this process reads ``token`` in the file at ``path`` (the driver's warehouse probe)."""
+    try:
+        return Path(path).read_text(encoding="utf-8") == token
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+def _blind_line(workers: list[str], root: str) -> str:
+    """The one line for Dask workers that do not see the warehouse at ``root``."""
+    return (f"the Dask worker(s) {', '.join(workers)} do not see the warehouse at {root} (its files are not "
+            "those of this machine): workers need it at the same path on a shared file system")
+
+
+def check_workers_see(client: Client, root: str, probe: tuple[str, str]) -> None:
+    """Refuse (:class:`flows.server.ServerError`, one line naming them) workers that do not read the
+    token of ``probe`` (:func:`warehouse_probe`): without a shared file system they would write a
+    warehouse of their own, and every stage would report ``completed`` into nothing."""
+    from flows.server import ServerError
+
+    blind = sorted(w for w, sees in client.run(_sees_probe, *probe).items() if not sees)
+    if blind:
+        raise ServerError(_blind_line(blind, root))
+
+
 def _worker_api() -> str:
     """The Prefect API this worker process was set up for ('' before its first clip)."""
     return _WORKER_API[0] if _WORKER_API else ""
@@ -105,12 +150,17 @@ def check_workers_api(client: Client, api_url: str) -> None:
                           "(`cadestate server start`), or restart the workers")
 
 
-def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str) -> ClipOutcome:
+def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str,
+                       probe: tuple[str, str]) -> ClipOutcome:
     """Run in a Dask worker: the whole ``annotate_clip`` flow of ``source`` with Prefect's thread
-    runner (as many threads as the worker has), against the Prefect API at ``api_url``."""
+    runner (as many threads as the worker has), against the Prefect API at ``api_url``. A worker
+    that does not read the token of ``probe`` (one that joined after :func:`check_workers_see`) is
+    refused in one line before it touches anything: it never creates a warehouse of its own."""
     from distributed import get_worker
 
     worker = get_worker()
+    if not _sees_probe(*probe):
+        raise RuntimeError(_blind_line([worker.address], root))
     _prepare_worker(root, api_url)
     from flows.annotate_clip import annotate_clip
     from flows.runtime import run_flow, run_tags
@@ -210,9 +260,10 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
     # Workers resolve paths in their own working directory: theirs are absolute
     sources = [dataclasses.replace(s, video=s.video.resolve(), cameras=s.cameras and s.cameras.resolve()) for s in sources]
     outcomes: dict[int, ClipOutcome] = {}
-    with dask_client(config.prefect, api_url) as client:
+    with dask_client(config.prefect, api_url) as client, warehouse_probe(root) as probe:
+        check_workers_see(client, root, probe)
         check_workers_api(client, api_url)
-        futures = {client.submit(annotate_clip_here, root, s, config, api_url, pure=False,
+        futures = {client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,
                                  key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i for i, s in enumerate(sources)}
         for future in as_completed(futures):
             i = futures[future]

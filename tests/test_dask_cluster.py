@@ -4,9 +4,12 @@ the one warehouse, with real Prefect (this session's ephemeral API, handed to th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -31,14 +34,14 @@ DASK = Path(sys.executable).with_name("dask")
 CLIP_STAGES = [s.name for s in stages_of("clip")]
 
 
-def _start(args: list[str], log: Path) -> subprocess.Popen:
-    """A ``dask`` command in its own process group (so that its worker process goes with it), its
-    output to ``log``, importing this checkout."""
+def _start(args: list[str], log: Path, prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+    """A ``dask`` command (after ``prefix``: a command that runs it) in its own process group (so
+    that its worker process goes with it), its output to ``log``, importing this checkout."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     env.pop("PREFECT_API_URL", None)
     with open(log, "wb") as out:  # in a folder of its own: the clips' relative paths are not the workers'
-        return subprocess.Popen([str(DASK), *args], stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
-                                cwd=log.parent)
+        return subprocess.Popen([*prefix, str(DASK), *args], stdout=out, stderr=subprocess.STDOUT, env=env,
+                                start_new_session=True, cwd=log.parent)
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -53,10 +56,10 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-@pytest.fixture
-def cluster(tmp_path) -> Iterator[str]:
-    """The address of a scheduler on 127.0.0.1 (a free port, read from its scheduler file) with two
-    single-threaded workers connected."""
+@contextlib.contextmanager
+def _cluster(tmp_path: Path, prefixes: list[tuple[str, ...]]) -> Iterator[str]:
+    """The address of a scheduler on 127.0.0.1 (a free port, read from its scheduler file) with one
+    single-threaded worker per entry of ``prefixes`` (the command each is started under) connected."""
     from distributed import Client
 
     scheduler_file = tmp_path / "scheduler.json"
@@ -69,13 +72,20 @@ def cluster(tmp_path) -> Iterator[str]:
         assert scheduler_file.is_file(), (tmp_path / "scheduler.log").read_text()
         address = json.loads(scheduler_file.read_text())["address"]
         procs += [_start(["worker", address, "--nthreads", "1", "--host", "127.0.0.1", "--no-dashboard",
-                          "--name", f"w{i}"], tmp_path / f"worker{i}.log") for i in range(2)]
+                          "--name", f"w{i}"], tmp_path / f"worker{i}.log", prefix) for i, prefix in enumerate(prefixes)]
         with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=180)
+            client.wait_for_workers(len(prefixes), timeout=180)
         yield address
     finally:
         for proc in reversed(procs):
             _stop(proc)
+
+
+@pytest.fixture
+def cluster(tmp_path) -> Iterator[str]:
+    """The address of a scheduler on 127.0.0.1 with two single-threaded workers connected."""
+    with _cluster(tmp_path, [(), ()]) as address:
+        yield address
 
 
 def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
@@ -142,3 +152,44 @@ def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):
         with dask_client(PrefectConfig(task_runner="dask", dask_address="tcp://127.0.0.1:9", startup_timeout_s=2), ""):
             pass
     assert "\n" not in str(e.value)
+
+
+def _hides_folders() -> bool:
+    """Whether this machine lets a process have its own view of the file system (user and mount
+    namespaces: ``unshare -rm``)."""
+    return subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode == 0 if shutil.which("unshare") else False
+
+
+@pytest.mark.skipif(not _hides_folders(), reason="no user and mount namespaces here (unshare -rm)")
+def test_a_worker_that_does_not_see_the_warehouse_is_refused(tmp_path):
+    """A worker whose warehouse path is another folder (a tmpfs mounted over it in its own mount
+    namespace: a machine without the shared file system) ran every stage into a warehouse of its own,
+    and the command said completed."""
+    from distributed import Client
+
+    from flows.server import ServerError
+
+    root = tmp_path / "warehouse"
+    root.mkdir()
+    clip = make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name="b0"))
+    source = ClipSource("b0", clip.video_path, clip.cameras_path)
+    hidden = ("unshare", "-rm", "sh", "-c", f'mount -t tmpfs none "{root}" && exec "$0" "$@"')
+    with _cluster(tmp_path, [(), hidden]) as address:
+        config = Config(warehouse=WarehouseConfig(root=str(root)), prefect=PrefectConfig(task_runner="dask",
+                                                                                          dask_address=address))
+        with pytest.raises(ServerError, match=r"^the Dask worker\(s\) tcp://127\.0\.0\.1:\d+ do not see the warehouse "
+                                              rf"at {re.escape(str(root))} \(.*\): .*shared file system$"):
+            run_clips([source], config, show_progress=False)
+        assert not list(Warehouse(root).partitions("clips"))
+        from flows.dask_clips import annotate_clip_here, warehouse_probe
+
+        with Client(address) as client:
+            [blind] = [w for w, info in client.scheduler_info()["workers"].items() if info["name"] == "w1"]
+            # a worker that joins after the check: its clip fails in one line, and it writes nothing
+            with warehouse_probe(str(root)) as probe:
+                future = client.submit(annotate_clip_here, str(root), source, config, "http://127.0.0.1:1/api", probe,
+                                       workers=[blind], pure=False)
+                with pytest.raises(RuntimeError, match=rf"^the Dask worker\(s\) {blind} do not see the warehouse"):
+                    future.result()
+            assert client.run(os.listdir, str(root), workers=[blind]) == {blind: []}
+        assert not [p.name for p in root.iterdir() if p.name.startswith(".dask-probe-")]  # the probe goes with the command
