@@ -42,13 +42,15 @@ class ConfigError(ValueError):
 
 
 def _opt(default: Any, doc: str, *, choices: tuple | None = None, lo: float | None = None, hi: float | None = None,
-         check: Callable[[Any], str | None] | None = None, runtime: bool = False):
+         check: Callable[[Any], str | None] | None = None, runtime: bool = False,
+         file_unless: tuple[str, ...] | None = None):
     """A config key with its documentation and constraints (kept in dataclass field metadata);
     ``check(value)`` says what else is wrong with a value, or None; ``runtime``: the key says how
     to run (threads, workers, links), not what comes out, so it is left out of the section's
-    digest (:func:`section_hash`) and changing it reruns nothing."""
+    digest (:func:`section_hash`) and changing it reruns nothing; ``file_unless``: the key names a
+    file that clip stages read, unless it is one of these names (see :func:`absolute_paths`)."""
     return field(default=default, metadata={"doc": doc, "choices": choices, "lo": lo, "hi": hi, "check": check,
-                                            "runtime": runtime})
+                                            "runtime": runtime, "file_unless": file_unless})
 
 
 def _non_empty(value: str) -> str | None:
@@ -219,7 +221,8 @@ class DetectConfig:
 
     adapter: str = _opt("nanodet", "Output layout of the ONNX model (see tasks/detection/detectors.py): 'nanodet' or 'yolov8'.", choices=("nanodet", "yolov8"))
     model: str = _opt("furniture", "Detector: 'furniture' (NanoDet-m with class rows for the CAD classes, trained by `make models` on "
-                                   "rooms rendered from the CAD library), 'coco' (NanoDet-m, COCO-80), or an ONNX file.")
+                                   "rooms rendered from the CAD library), 'coco' (NanoDet-m, COCO-80), or an ONNX file.",
+                       file_unless=("", "furniture", "coco"))
     labels: tuple = _opt((), "Label map: class names in the model's output order; empty = the built-in model's (COCO-80 for a file).")
     input_size: int = _opt(480, "Longer side of the letterboxed network input (NanoDet-m: 480 on the fitted canvas, the default, "
                                 "416 on the square it was trained on; usually 640 for YOLOv8).", lo=32, hi=4096)
@@ -482,9 +485,12 @@ def runtime_keys(section: Any) -> frozenset[str]:
 
 def section_hash(name: str, section: Any) -> str:
     """Stable 16-hex digest of a section's values that affect results (key order and file formatting
-    do not matter; :func:`runtime_keys` are left out). Remembered by the section's ``repr`` (which
+    do not matter; :func:`runtime_keys` are left out; a file a key names is digested by its absolute
+    path, :func:`absolute_section`, so that a run on a Dask worker, given absolute paths, digests
+    what a run here does). Remembered by the section's ``repr`` (which
     tells 1 from 1.0 and True, as the digest does): a long-lived process digests the same sections
     for every stage of every resume."""
+    section = absolute_section(section)
     key = (name, repr(section))
     known = _SECTION_HASHES.get(key)
     if known is None:
@@ -496,6 +502,23 @@ def section_hash(name: str, section: Any) -> str:
 
 
 _SECTION_HASHES: dict[tuple[str, str], str] = {}
+
+
+def absolute_section(section: Any) -> Any:
+    """``section`` with each key that names a file (``file_unless``: ``[detect] model`` when not a
+    built-in detector's name) absolute, taken from the current folder as a relative path is."""
+    changes = {}
+    for f in dataclasses.fields(section):
+        names, value = f.metadata.get("file_unless"), getattr(section, f.name)
+        if names is not None and value not in names and not os.path.isabs(value):
+            changes[f.name] = os.path.abspath(os.path.expanduser(value))
+    return dataclasses.replace(section, **changes) if changes else section
+
+
+def absolute_paths(config: Config) -> Config:
+    """``config`` with the files its stage sections name made absolute (:func:`absolute_section`;
+    ``[warehouse] root`` is not touched): what a process in another folder, a Dask worker, reads."""
+    return dataclasses.replace(config, **{name: absolute_section(config.section(name)) for name in SECTIONS})
 
 
 def _shown(value: Any, limit: int = 60) -> str:

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cadestate.config import Config, PrefectConfig
+from cadestate.config import Config, PrefectConfig, absolute_paths
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -240,7 +240,9 @@ def _failed(clip: str, e: BaseException) -> ClipOutcome:
 
 def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOutcome]:
     """Run every clip of ``sources`` as one Dask task on the cluster of ``config.prefect``, in
-    ``sources`` order; a clip whose task fails is a failed outcome, the others go on."""
+    ``sources`` order; a clip whose task fails is a failed outcome, the others go on. The workers
+    get absolute paths (the warehouse, the clips' files, the files the config names: theirs may
+    run in another folder)."""
     from distributed import as_completed
 
     from flows.runtime import ServerError, api_error_line, api_failure
@@ -248,7 +250,8 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
     from warehouse.catalog import ensure_catalog
 
     root = str(Path(config.warehouse.root).expanduser().resolve())
-    config = dataclasses.replace(config, warehouse=dataclasses.replace(config.warehouse, root=root))
+    # Workers resolve paths in their own working directory: theirs are absolute
+    config = absolute_paths(dataclasses.replace(config, warehouse=dataclasses.replace(config.warehouse, root=root)))
     ensure_catalog(Warehouse(root))
     try:
         api_url = prefect_api_url(config)
@@ -257,7 +260,6 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
         if cause is None:
             raise
         raise ServerError(api_error_line(os.environ.get("PREFECT_API_URL", ""), cause)) from None
-    # Workers resolve paths in their own working directory: theirs are absolute
     sources = [dataclasses.replace(s, video=s.video.resolve(), cameras=s.cameras and s.cameras.resolve()) for s in sources]
     outcomes: dict[int, ClipOutcome] = {}
     with dask_client(config.prefect, api_url) as client, warehouse_probe(root) as probe:

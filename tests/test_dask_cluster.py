@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from bench.demo_clip import make_demo_clip
-from cadestate.config import Config, PrefectConfig, WarehouseConfig
+from cadestate.config import Config, DetectConfig, PrefectConfig, WarehouseConfig
 from flows.annotate_clip import run_clips
 from tasks.registry import stages_of
 from tasks.video.ingest import ClipSource
@@ -193,3 +193,31 @@ def test_a_worker_that_does_not_see_the_warehouse_is_refused(tmp_path):
                     future.result()
             assert client.run(os.listdir, str(root), workers=[blind]) == {blind: []}
         assert not [p.name for p in root.iterdir() if p.name.startswith(".dask-probe-")]  # the probe goes with the command
+
+
+def test_a_relative_model_path_is_the_drivers_on_the_workers(tmp_path, cluster, monkeypatch):
+    """``[detect] model = "models/det.onnx"`` is taken from the command's folder, as with threads;
+    the workers run in another (``tmp_path``). The runs it records digest the config as a command
+    here does (``cadestate status`` says fresh)."""
+    from tasks.detection.model_inputs import BUILT_IN, detector_path
+    from tasks.registry import config_hash
+
+    coco = detector_path(DetectConfig(model="coco"))
+    if not coco.is_file():
+        pytest.skip(f"{coco} missing: `make models` builds it ({BUILT_IN['coco'][0]})")
+    project = tmp_path / "project"
+    (project / "models").mkdir(parents=True)
+    shutil.copy(coco, project / "models" / "det.onnx")
+    clip = make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name="m0"))
+    monkeypatch.chdir(project)
+    config = Config(warehouse=WarehouseConfig(root="warehouse"), detect=DetectConfig(model="models/det.onnx"),
+                    prefect=PrefectConfig(task_runner="dask", dask_address=cluster))
+    reports = run_clips([ClipSource("m0", clip.video_path, clip.cameras_path)], config, show_progress=False)
+    [detect] = [r for r in reports if r.stage == "detect"]
+    assert detect.state == "completed", detect.message
+    con = connect(Warehouse(project / "warehouse"))
+    try:
+        [(recorded,)] = con.execute("SELECT config_hash FROM runs WHERE stage = 'detect'").fetchall()
+    finally:
+        con.close()
+    assert recorded == config_hash("detect", config)

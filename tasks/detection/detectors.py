@@ -41,6 +41,7 @@ from cadestate.prefetch import prefetch
 from tasks.detection.letterbox import Letterbox, letterbox, network_input, resize_bilinear  # noqa: F401  (imported from here too)
 from tasks.detection.model_inputs import built_in, detector_labels, detector_path
 from tasks.detection.models import furniture_files, nanodet
+from tasks.detection.models.nanodet_files import default_cache_dir
 from tasks.detection.onnx_session import MeasuredSession
 
 Shape = tuple[int | None, ...]
@@ -273,6 +274,14 @@ def fit_model(path: Path, adapter: str) -> bytes | None:
         return None
 
 
+def _missing_model_hint(path: Path) -> str:
+    """What to do about a detector file that is not there: build the built-in ones, or name a file
+    that is (a relative ``[detect] model`` is taken from the folder the command runs in)."""
+    if path.parent == default_cache_dir():
+        return "the built-in detectors are built by `make models`"
+    return "[detect] model names an ONNX file; a relative path is taken from the folder the command runs in"
+
+
 class Detector:
     """An ONNX detector with its layout and label map; :meth:`detect` takes RGB uint8 images."""
 
@@ -283,7 +292,7 @@ class Detector:
         if adapter not in LAYOUTS:
             raise ValueError(f"unknown detector adapter {adapter!r} (known: {', '.join(LAYOUTS)})")
         if not Path(model_path).is_file():
-            raise FileNotFoundError(f"detector model {model_path} not found (the default is built by `make models`)")
+            raise FileNotFoundError(f"detector model {model_path} not found ({_missing_model_hint(Path(model_path))})")
         self.layout, self.labels, self.size = LAYOUTS[adapter], tuple(labels), input_size
         self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
         self.nms_containment, self.nms_agnostic_iou = nms_containment, nms_agnostic_iou
