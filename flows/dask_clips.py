@@ -240,7 +240,8 @@ def _failed(clip: str, e: BaseException) -> ClipOutcome:
 
 def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOutcome]:
     """Run every clip of ``sources`` as one Dask task on the cluster of ``config.prefect``, in
-    ``sources`` order; a clip whose task fails is a failed outcome, the others go on. The workers
+    ``sources`` order; a clip whose task fails is a failed outcome, the others go on. A clip's
+    result is let go once read, so a worker lost later does not run its finished clips again. The workers
     get absolute paths (the warehouse, the clips' files, the files the config names: theirs may
     run in another folder)."""
     from distributed import as_completed
@@ -267,10 +268,11 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
         check_workers_api(client, api_url)
         futures = {client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,
                                  key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i for i, s in enumerate(sources)}
-        for future in as_completed(futures):
-            i = futures[future]
+        for future in as_completed(list(futures)):
+            i = futures.pop(future)
             try:
                 outcomes[i] = future.result()
             except Exception as e:  # the clip's task as a whole: report it, go on with the others
                 outcomes[i] = _failed(sources[i].clip, e)
+            future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
     return [outcomes[i] for i in range(len(sources))]

@@ -13,6 +13,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -221,3 +222,48 @@ def test_a_relative_model_path_is_the_drivers_on_the_workers(tmp_path, cluster, 
     finally:
         con.close()
     assert recorded == config_hash("detect", config)
+
+
+def _kill_the_second_clips_worker(root: Path, killed: list[tuple[str, str]], stop: threading.Event) -> None:
+    """Once a second clip has a stage running (one single-threaded worker: the first clip is done),
+    ``kill -9`` the worker process running it; ``killed`` gets (first clip, second clip)."""
+    first = ""
+    while not stop.wait(0.1):
+        for marker in sorted((root / "_running").glob("*/*.json")):
+            with contextlib.suppress(OSError, ValueError):
+                pid = json.loads(marker.read_text())["pid"]
+                first = first or marker.parent.name
+                if marker.parent.name != first:
+                    time.sleep(1)  # the first clip's result reaches the client meanwhile
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append((first, marker.parent.name))
+                    return
+
+
+def test_a_lost_worker_does_not_run_finished_clips_again(tmp_path):
+    """distributed recomputes the results of a lost worker that a client still holds: a clip that had
+    finished ran again (its stages cached, another flow run) when the worker was killed later."""
+    from distributed import Client
+
+    clips = [make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name=f"k{i}", seed=20 + i))
+             for i in range(2)]
+    sources = [ClipSource(f"k{i}", c.video_path, c.cameras_path) for i, c in enumerate(clips)]
+    root = tmp_path / "warehouse"
+    with _cluster(tmp_path, [()]) as address, Client(address) as client:
+        config = Config(warehouse=WarehouseConfig(root=str(root)),
+                        prefect=PrefectConfig(task_runner="dask", dask_address=address))
+        killed: list[tuple[str, str]] = []
+        stop = threading.Event()
+        killer = threading.Thread(target=_kill_the_second_clips_worker, args=(root, killed, stop), daemon=True)
+        client.get_task_stream()
+        killer.start()
+        try:
+            reports = run_clips(sources, config, show_progress=False)
+        finally:
+            stop.set()
+            killer.join()
+        stream = client.get_task_stream()
+    [(first, second)] = killed
+    ran = [str(t["key"]).split("-")[1] for t in stream if str(t["key"]).startswith("annotate_clip-")]
+    assert sorted(ran) == [first, second]  # the killed clip ran again (Dask's retry), the finished one did not
+    assert {r.state for r in reports if r.clip == first} == {"completed"}
