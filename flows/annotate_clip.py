@@ -44,11 +44,12 @@ def build_dataset(root: str, sources: list[ClipSource], config: Config, show_pro
 
 def run_clips(sources: list[ClipSource], config: Config, show_progress: bool = True) -> list[StageReport]:
     """Run the pipeline on ``sources`` with ``config`` and return one report per stage run. With
-    ``[prefect] task_runner = "dask"`` each clip runs whole on a Dask worker (:mod:`flows.dask_clips`)."""
+    ``[prefect] task_runner = "dask"`` each clip runs whole on a Dask worker (:mod:`flows.dask_clips`),
+    and progress is a line per finished clip."""
     if config.prefect.task_runner == "dask":
         from flows.dask_clips import run_clips_on_dask
 
-        return [r for outcome in run_clips_on_dask(sources, config) for r in outcome.reports]
+        return [r for outcome in run_clips_on_dask(sources, config, show_progress) for r in outcome.reports]
     root = str(Path(config.warehouse.root).expanduser().resolve())
     tags = run_tags(Path(root), {s.clip: s.split for s in sources})
     if len(sources) == 1:

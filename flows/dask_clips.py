@@ -208,7 +208,9 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
         return
     try:
         with _environ("PREFECT_API_URL", api_url):
-            cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+            # the scheduler's web server always starts: on a free loopback port, without the dashboard
+            cluster = LocalCluster(n_workers=cfg.max_workers, threads_per_worker=1, processes=True,
+                                   dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False})
     except (OSError, TimeoutError, RuntimeError) as e:
         raise ServerError(f"a local Dask cluster of {cfg.max_workers} worker(s) did not start ({_first_line(e)}); "
                           "lower [prefect] max_workers, or use task_runner = \"threads\"") from None
@@ -238,10 +240,20 @@ def _failed(clip: str, e: BaseException) -> ClipOutcome:
     return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(f"{type(e).__name__}: {e}"))], "", 0)
 
 
-def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOutcome]:
+def progress_line(outcome: ClipOutcome, done: int, total: int) -> str:
+    """One line for a finished clip: ``[done/total] clip: N completed, N paused, ... (worker)``."""
+    counts: dict[str, int] = {}
+    for report in outcome.reports:
+        counts[report.state] = counts.get(report.state, 0) + 1
+    states = ", ".join(f"{n} {state}" for state, n in counts.items())
+    return f"[{done}/{total}] {outcome.clip}: {states}" + (f" ({outcome.worker})" if outcome.worker else "")
+
+
+def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: bool = False) -> list[ClipOutcome]:
     """Run every clip of ``sources`` as one Dask task on the cluster of ``config.prefect``, in
     ``sources`` order; a clip whose task fails is a failed outcome, the others go on. A clip's
-    result is let go once read, so a worker lost later does not run its finished clips again. The workers
+    result is let go once read, so a worker lost later does not run its finished clips again; with
+    ``show_progress`` a line on stderr says how it ended (:func:`progress_line`). The workers
     get absolute paths (the warehouse, the clips' files, the files the config names: theirs may
     run in another folder)."""
     from distributed import as_completed
@@ -275,4 +287,6 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config) -> list[ClipOut
             except Exception as e:  # the clip's task as a whole: report it, go on with the others
                 outcomes[i] = _failed(sources[i].clip, e)
             future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
+            if show_progress:
+                print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)
     return [outcomes[i] for i in range(len(sources))]

@@ -27,7 +27,8 @@ from flows.server import ServerError, prefect_home, running_server
 
 def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeout_s: float = 180.0,
                                 start_api: bool = False) -> str:
-    """Set Prefect's environment defaults (and COLMAP's log level). Call before the first ``import prefect``. Returns the API
+    """Set Prefect's environment defaults (and COLMAP's and Dask's log levels: quiet unless
+    ``verbose``). Call before the first ``import prefect``. Returns the API
     Prefect will use: the warehouse's running server, ``$PREFECT_API_URL``, or '' (ephemeral). With
     ``start_api`` (a command that will run flows), the ephemeral API is launched now, in the background
     (:mod:`flows.local_api`)."""
@@ -45,6 +46,9 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     level = "INFO" if verbose else "CRITICAL"
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", level)
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", level)
+    # Dask's (clips on a cluster, flows.dask_clips): ~40 INFO lines a run, a traceback at times when
+    # the local cluster shuts down; read when distributed is imported, here and in local workers.
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", level.lower())
     # COLMAP (glog, read when pycolmap loads) logs ~2,000 lines per SfM run, and an error line for each
     # focal hypothesis that maps nothing (an expected outcome); the cameras stage reports what matters.
     os.environ.setdefault("GLOG_minloglevel", "0" if verbose else "3")

@@ -267,3 +267,23 @@ def test_a_lost_worker_does_not_run_finished_clips_again(tmp_path):
     ran = [str(t["key"]).split("-")[1] for t in stream if str(t["key"]).startswith("annotate_clip-")]
     assert sorted(ran) == [first, second]  # the killed clip ran again (Dask's retry), the finished one did not
     assert {r.state for r in reports if r.clip == first} == {"completed"}
+
+
+def test_a_command_on_a_local_cluster_says_a_line_per_clip_and_nothing_of_dask(tmp_path):
+    """`cadestate ingest` on a local cluster without --verbose: a line per finished clip on stderr
+    (there was no progress at all), and none of distributed's ~40 log lines."""
+    clips = [make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name=f"q{i}", seed=30 + i))
+             for i in range(2)]
+    cfg = tmp_path / "dask.toml"
+    cfg.write_text('[prefect]\ntask_runner = "dask"\nmax_workers = 2\n')
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PREFECT_LOGGING_LEVEL", "PREFECT_API_URL")},
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run([sys.executable, "-m", "cadestate", "-c", str(cfg), "-w", str(tmp_path / "w"), "ingest",
+                           str(clips[0].video_path.parent)], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.splitlines()
+    assert not [line for line in lines if "distributed" in line or "Traceback" in line], done.stderr
+    finished = sorted(line for line in lines if line.startswith("["))
+    assert [line.split(":")[0] for line in finished] == ["[1/2] q0_0", "[2/2] q1_0"] or \
+        [line.split(":")[0] for line in finished] == ["[1/2] q1_0", "[2/2] q0_0"], done.stderr
+    assert all(re.fullmatch(r"\[\d/2\] q\d_0: \d+ completed \(tcp://127\.0\.0\.1:\d+\)", line) for line in finished), finished
