@@ -83,7 +83,7 @@ class WarehouseConfig:
 class PrefectConfig:
     """How flows run (not part of lineage)."""
 
-    task_runner: str = _opt("threads", "Task runner: 'threads' (local threads) or 'dask' (a Dask cluster: each worker runs whole clips).", choices=("threads", "dask"))
+    task_runner: str = _opt("threads", "Task runner: 'threads' (local threads) or 'dask' (a Dask cluster: each worker runs whole clips; other flows, the CAD library's, run on local threads).", choices=("threads", "dask"))
     max_workers: int = _opt(2, "Worker threads for the 'threads' runner; worker processes (one thread each) of the local Dask cluster.", lo=1, hi=256)
     dask_address: str = _opt("", "Address of a running Dask scheduler (its workers see the warehouse at the same path); empty starts a local cluster.")
     startup_timeout_s: float = _opt(180.0, "Seconds to wait for Prefect's API to start (`cadestate server start`; ephemeral mode retries once on a new port after a third of them).",

@@ -299,11 +299,10 @@ def run_tags(root: Path, clips: dict[str, str]) -> list[str]:
 
 
 def task_runner(cfg: PrefectConfig):
-    """The task runner for ``[prefect] task_runner``: local threads, or Dask (local cluster or an address)."""
-    if cfg.task_runner == "dask":
-        from prefect_dask import DaskTaskRunner
-
-        return DaskTaskRunner(address=cfg.dask_address) if cfg.dask_address else DaskTaskRunner()
+    """Prefect's thread runner of ``max_workers`` threads, whatever ``task_runner`` says: on Dask,
+    clips go to the cluster whole (:func:`flows.annotate_clip.run_clips`, :mod:`flows.dask_clips`)
+    and run there on threads; the other flows (the CAD library's, built before the clips; exports,
+    reports) run in this process."""
     from prefect.task_runners import ThreadPoolTaskRunner
 
     return ThreadPoolTaskRunner(max_workers=cfg.max_workers)
