@@ -31,14 +31,19 @@ when imported): :func:`annotate_clip_here` sets them first.
 
 A clip whose task fails as a whole (its worker lost three times, its code not importable there,
 Prefect's API unreachable) is one ``failed`` report of stage ``annotate_clip``; the other clips go on.
+Ctrl-C or SIGTERM ends the command at once, as with threads (:func:`signals_end_the_clips`): a local
+cluster's workers are killed; a remote cluster's finish the clips they run.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import datetime as dt
 import os
+import signal
 import sys
+import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -48,7 +53,7 @@ from typing import TYPE_CHECKING
 from cadestate.config import Config, PrefectConfig, absolute_paths
 
 if TYPE_CHECKING:
-    from distributed import Client
+    from distributed import Client, Future
 
     from tasks.stage_chain import StageReport
     from tasks.video.ingest import ClipSource
@@ -218,6 +223,84 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
         yield client
 
 
+CANCEL_WAIT_S = 3.0
+"""How long Ctrl-C or SIGTERM waits for the scheduler to cancel the clips (and Prefect's API to mark
+their flow runs Cancelled) before the command ends."""
+
+REMOTE_CLIPS_GO_ON = ("the clips not started are cancelled; those running on the cluster's workers run to their end "
+                      "(`cadestate run` does the rest)")
+"""What a command's Ctrl-C or SIGTERM does to its clips on a cluster of ``dask_address``."""
+
+
+def _cancel_flow_runs(api_url: str, clips: list[str], since: dt.datetime) -> None:
+    """Mark Cancelled the running ``annotate_clip`` flow runs of ``clips`` started since ``since``
+    on the Prefect API at ``api_url`` (their worker processes were killed: else the Prefect UI shows
+    them running for ever); failures to reach the API are ignored."""
+    from prefect.client.orchestration import SyncPrefectClient
+    from prefect.client.schemas.filters import (FlowRunFilter, FlowRunFilterName, FlowRunFilterStartTime,
+                                                FlowRunFilterState, FlowRunFilterStateType)
+    from prefect.client.schemas.objects import StateType
+    from prefect.client.schemas.sorting import FlowRunSort
+    from prefect.states import Cancelled
+
+    running = FlowRunFilter(name=FlowRunFilterName(any_=[f"{WHOLE_CLIP}/{c}" for c in clips]),
+                            state=FlowRunFilterState(type=FlowRunFilterStateType(any_=[StateType.RUNNING])),
+                            start_time=FlowRunFilterStartTime(after_=since))
+    with contextlib.suppress(Exception), SyncPrefectClient(api_url) as prefect:
+        for run in prefect.read_flow_runs(flow_run_filter=running, sort=FlowRunSort.START_TIME_DESC,
+                                          limit=len(clips)):
+            prefect.set_flow_run_state(run.id, Cancelled(message="interrupted (Ctrl-C or SIGTERM); `cadestate run` "
+                                                                 "resumes its clip"), force=True)
+
+
+@contextlib.contextmanager
+def signals_end_the_clips(client: Client, futures: dict[Future, int], clips: list[str], api_url: str,
+                          probe: str) -> Iterator[None]:
+    """Within the block (the main thread waiting for ``futures``, future -> index in ``clips``, a
+    dict it empties as they end), Ctrl-C or SIGTERM ends the command at once, status 128 + the
+    signal, as with threads (:func:`flows.runtime.ctrl_c_ends_the_run`): a local cluster's worker
+    processes are killed (the stages in progress stop unfinished, read as interrupted: `cadestate
+    run` resumes them) and their flow runs marked Cancelled on the Prefect API at ``api_url``; on a
+    cluster of ``dask_address`` the clips not started are cancelled, and those running finish (Dask
+    does not stop a running task). Then the token file ``probe`` is removed and the Prefect API the
+    command launched stopped. Elsewhere, or where the signals are not ours, nothing changes."""
+    from flows.local_api import stop_launched_now  # not in the handler: an import there may wait on the main thread's
+    from flows.runtime import STAGES_STOP, ending_signals, say_ended
+
+    signals = ending_signals()
+    if not signals:
+        yield
+        return
+    since = dt.datetime.now(dt.timezone.utc)
+
+    def stop_clips(local: bool) -> None:
+        unfinished = [clips[i] for i in list(futures.values())]
+        client.cancel(list(futures), force=True)
+        if local:
+            _cancel_flow_runs(api_url, unfinished, since)
+
+    def end(signum, frame) -> None:
+        local = client.cluster is not None
+        say_ended(signum, STAGES_STOP if local else REMOTE_CLIPS_GO_ON)
+        for nanny in client.cluster.workers.values() if local else ():
+            with contextlib.suppress(AttributeError, OSError):  # a worker process not started, or gone
+                os.kill(nanny.process.process.pid, signal.SIGKILL)
+        stopping = threading.Thread(target=stop_clips, args=(local,), daemon=True)
+        stopping.start()
+        stopping.join(CANCEL_WAIT_S)
+        with contextlib.suppress(OSError):
+            Path(probe).unlink(missing_ok=True)
+        stop_launched_now()
+        os._exit(128 + signum)
+
+    before = {s: signal.signal(s, end) for s in signals}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+
+
 def _first_line(e: BaseException) -> str:
     """``Type: first line of the message`` of ``e``."""
     return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
@@ -278,15 +361,18 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
     with dask_client(config.prefect, api_url) as client, warehouse_probe(root) as probe:
         check_workers_see(client, root, probe)
         check_workers_api(client, api_url)
-        futures = {client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,
-                                 key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i for i, s in enumerate(sources)}
-        for future in as_completed(list(futures)):
-            i = futures.pop(future)
-            try:
-                outcomes[i] = future.result()
-            except Exception as e:  # the clip's task as a whole: report it, go on with the others
-                outcomes[i] = _failed(sources[i].clip, e)
-            future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
-            if show_progress:
-                print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)
+        futures: dict[Future, int] = {}
+        with signals_end_the_clips(client, futures, [s.clip for s in sources], api_url, probe[0]):
+            futures.update({client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,
+                                          key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i
+                            for i, s in enumerate(sources)})
+            for future in as_completed(list(futures)):
+                i = futures.pop(future)
+                try:
+                    outcomes[i] = future.result()
+                except Exception as e:  # the clip's task as a whole: report it, go on with the others
+                    outcomes[i] = _failed(sources[i].clip, e)
+                future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
+                if show_progress:
+                    print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)
     return [outcomes[i] for i in range(len(sources))]

@@ -105,14 +105,7 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
     as an exit it waited for every queued stage too (over a minute of `cad ingest`). Prefect's flow
     engine puts its own SIGTERM handler in place during the flow run, so the flow's wait for its
     stages takes this one back (:func:`sigterm_ends_the_run`)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    import cadestate
-
-    signals = [s for s, ours in ((signal.SIGINT, (signal.default_int_handler, signal.SIG_DFL)),
-                                 (signal.SIGTERM, (cadestate._exit_on_signal, signal.SIG_DFL)))
-               if signal.getsignal(s) in ours]  # not where it is ignored (a shell's background job) or handled
+    signals = ending_signals()
     if not signals:
         yield
         return
@@ -137,11 +130,7 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         sender.join(CANCEL_WAIT_S)
 
     def interrupted(signum, frame) -> None:
-        with contextlib.suppress(OSError, ValueError):  # what was printed goes out whole
-            sys.stdout.flush()
-            said = "interrupted" if signum == signal.SIGINT else "terminated"
-            sys.stderr.write(f"\n{said}: the stages in progress stop unfinished (`cadestate run` resumes them)\n")
-            sys.stderr.flush()
+        say_ended(signum, STAGES_STOP)
         cancel_flow_run()
         stop_launched_now()
         os._exit(128 + signum)
@@ -154,6 +143,32 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         _ENDS_THE_RUN.reset(token)
         for s, handler in before.items():
             signal.signal(s, handler)
+
+
+STAGES_STOP = "the stages in progress stop unfinished (`cadestate run` resumes them)"
+"""What a command's Ctrl-C or SIGTERM does to the stages it runs (here, or on a local Dask cluster)."""
+
+
+def ending_signals() -> list[int]:
+    """SIGINT and SIGTERM, those this process's main thread (the caller: none elsewhere) may take
+    to end a run: not where one is ignored (a shell's background job) or handled already."""
+    if threading.current_thread() is not threading.main_thread():
+        return []
+    import cadestate
+
+    return [s for s, ours in ((signal.SIGINT, (signal.default_int_handler, signal.SIG_DFL)),
+                              (signal.SIGTERM, (cadestate._exit_on_signal, signal.SIG_DFL)))
+            if signal.getsignal(s) in ours]
+
+
+def say_ended(signum: int, what: str) -> None:
+    """After what was printed (stdout flushed, so it goes out whole), ``interrupted: what`` (SIGINT)
+    or ``terminated: what`` on stderr."""
+    with contextlib.suppress(OSError, ValueError):
+        sys.stdout.flush()
+        said = "interrupted" if signum == signal.SIGINT else "terminated"
+        sys.stderr.write(f"\n{said}: {what}\n")
+        sys.stderr.flush()
 
 
 _ENDS_THE_RUN: ContextVar[object] = ContextVar("cadestate_ends_the_run", default=None)

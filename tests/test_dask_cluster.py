@@ -287,3 +287,50 @@ def test_a_command_on_a_local_cluster_says_a_line_per_clip_and_nothing_of_dask(t
     assert [line.split(":")[0] for line in finished] == ["[1/2] q0_0", "[2/2] q1_0"] or \
         [line.split(":")[0] for line in finished] == ["[1/2] q1_0", "[2/2] q0_0"], done.stderr
     assert all(re.fullmatch(r"\[\d/2\] q\d_0: \d+ completed \(tcp://127\.0\.0\.1:\d+\)", line) for line in finished), finished
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_ends_a_command_on_a_local_cluster_at_once(tmp_path, sig):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) or SIGTERM (to the command) while
+    clips run on a local cluster: the command ends within seconds, status 128 + the signal, saying
+    what the thread runner says; the workers stop (the stage reads as interrupted), and their flow
+    runs read Cancelled. Before, SIGTERM ended it silently after ~7 s and Ctrl-C printed distributed's
+    tracebacks, the flow runs left Running."""
+    import sqlite3
+
+    import psutil
+
+    signum = getattr(signal, sig)
+    clip = make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name="i0"))
+    cfg = tmp_path / "dask.toml"
+    cfg.write_text('[prefect]\ntask_runner = "dask"\nmax_workers = 1\n')
+    w = tmp_path / "w"
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PREFECT_LOGGING_LEVEL", "PREFECT_API_URL")},
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.Popen([sys.executable, "-m", "cadestate", "-c", str(cfg), "-w", str(w), "ingest",
+                             str(clip.video_path), str(clip.cameras_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
+    deadline = time.monotonic() + 120
+    while not (markers := list((w / "_running" / "i0_0").glob("detect.*.json"))) and time.monotonic() < deadline \
+            and proc.poll() is None:
+        time.sleep(0.01)  # until the detect stage runs on the worker (its run marker)
+    assert proc.poll() is None, proc.communicate()
+    worker = json.loads(markers[0].read_text())["pid"]
+    sent = time.monotonic()
+    os.killpg(proc.pid, signum) if signum == signal.SIGINT else proc.send_signal(signum)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum and time.monotonic() - sent < 10, err
+    said = "interrupted" if signum == signal.SIGINT else "terminated"
+    assert f"{said}: the stages in progress stop unfinished (`cadestate run` resumes them)" in err, err
+    assert "Traceback" not in err and "distributed" not in err, err
+    deadline = time.monotonic() + 10
+    while psutil.pid_exists(worker) and psutil.Process(worker).status() != psutil.STATUS_ZOMBIE \
+            and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not psutil.pid_exists(worker) or psutil.Process(worker).status() == psutil.STATUS_ZOMBIE
+    assert not [p.name for p in w.iterdir() if p.name.startswith(".dask-probe-")]
+    with sqlite3.connect(Path(os.environ["PREFECT_HOME"]) / "prefect.db") as db:  # not left "Running" in the UI
+        states = db.execute("SELECT state_type FROM flow_run WHERE name = 'annotate_clip/i0_0' AND parameters "
+                            "LIKE ?", (f"%{w}%",)).fetchall()  # the tests share one Prefect home
+    assert states == [("CANCELLED",)]
