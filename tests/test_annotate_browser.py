@@ -17,8 +17,6 @@ import dataclasses
 import json
 import os
 import re
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +25,8 @@ import pytest
 from bench.benchmark import clip_sources, generate
 from bench.simulated_labels import answer_tasks
 from bench.walkthrough import WalkthroughSpec
-from browser import chromium_path, launch
+from browser import chromium_path, launch, served_app
 from conftest import warehouse_copy
-from flows.server import free_port
 from tasks.human.labels import validate_label
 from tasks.tracking.relations import verification_statements
 from warehouse import Warehouse
@@ -55,8 +52,6 @@ class Served:
 
 @pytest.fixture(scope="module")
 def served(small_library_warehouse, tmp_path_factory):
-    import uvicorn
-
     from cadestate.webapp.app import create_app
     from flows.annotate_clip import run_clips
 
@@ -70,23 +65,14 @@ def served(small_library_warehouse, tmp_path_factory):
     reports = run_clips([source], config, show_progress=False)
     assert {r.stage for r in reports if r.state == "paused"} == {"manual_tracks"}
 
-    port = free_port("127.0.0.1")
-    server = uvicorn.Server(uvicorn.Config(create_app(config, annotator="browser-test"), host="127.0.0.1", port=port,
-                                           log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    while not server.started:
-        time.sleep(0.05)
     shots = Path(os.environ.get("CADESTATE_SCREENSHOTS") or tmp / "screens")
     shots.mkdir(parents=True, exist_ok=True)
-    with playwright_api.sync_playwright() as p:
+    with served_app(create_app(config, annotator="browser-test")) as url, playwright_api.sync_playwright() as p:
         browser = launch(p)
         page = browser.new_page(viewport={"width": 1400, "height": 860})
         page.set_default_timeout(30_000)
-        yield Served(Warehouse(config.warehouse.root), folder, clip, f"http://127.0.0.1:{port}", page, shots)
+        yield Served(Warehouse(config.warehouse.root), folder, clip, url, page, shots)
         browser.close()
-    server.should_exit = True
-    thread.join(30)
 
 
 SCREENSHOT_TIMEOUT_MS = 120_000

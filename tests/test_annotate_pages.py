@@ -10,13 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import threading
-import time
 from pathlib import Path
 
 import pytest
 
-from browser import chromium_path, launch
+from browser import chromium_path, launch, served_app
 from conftest import table_rows
 from warehouse import Warehouse
 
@@ -84,29 +82,17 @@ class App:
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
-    import uvicorn
-
     from cadestate.config import Config, WarehouseConfig
     from cadestate.webapp.app import create_app
-    from flows.server import free_port
 
     wh = _build(tmp_path_factory.mktemp("pages") / "wh")
     config = Config(warehouse=WarehouseConfig(root=str(wh.root)))
-    port = free_port("127.0.0.1")
-    server = uvicorn.Server(uvicorn.Config(create_app(config, annotator="pages-test"), host="127.0.0.1", port=port,
-                                           log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    while not server.started:
-        time.sleep(0.05)
-    with playwright_api.sync_playwright() as p:
+    with served_app(create_app(config, annotator="pages-test")) as url, playwright_api.sync_playwright() as p:
         browser = launch(p)
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         page.set_default_timeout(30_000)
-        yield App(f"http://127.0.0.1:{port}", wh, page)
+        yield App(url, wh, page)
         browser.close()
-    server.should_exit = True
-    thread.join(30)
 
 
 def _answers(a: App, kind: str) -> list[list[dict]]:
