@@ -34,6 +34,24 @@ def test_interpolation_fills_gaps_and_holds_the_ends():
     np.testing.assert_allclose(angles, [0, 0, 10, 20, 30, 30], atol=1e-9)
 
 
+def test_a_bundle_adjustment_leaves_colmaps_log_level_as_set(monkeypatch):
+    """pycolmap 4.2.1's bundle adjustment sets glog's minloglevel to 0, and every mapper line of the
+    SfM run printed after it (~390 lines of an ingest without --verbose); ours sets it back to
+    $GLOG_minloglevel (what flows.runtime.prepare_prefect_environment sets)."""
+    import pycolmap
+
+    from tasks.video.sfm_focal import ba_options, bundle_adjust
+
+    monkeypatch.setenv("GLOG_minloglevel", "2")
+    empty = pycolmap.Reconstruction()
+    pycolmap.logging.minloglevel = 2
+    pycolmap.bundle_adjustment(empty, ba_options(1))
+    assert pycolmap.logging.minloglevel == 0, "pycolmap's binding no longer resets the level: bundle_adjust may go"
+    pycolmap.logging.minloglevel = 2
+    bundle_adjust(empty, ba_options(1))
+    assert pycolmap.logging.minloglevel == 2
+
+
 def test_similarity_alignment_recovers_a_turned_scaled_world():
     rng = np.random.default_rng(0)
     R_true = Rotation.random(20, random_state=1).as_matrix()

@@ -35,7 +35,7 @@ from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world, world_to_camera
 from tasks.video.camera_file import CameraTrack
 from tasks.video.decode import VideoError, probe_video, upright
-from tasks.video.sfm_focal import FocalEstimate, ba_options, estimate_focal, refine_focal, set_focal
+from tasks.video.sfm_focal import FocalEstimate, ba_options, bundle_adjust, estimate_focal, refine_focal, set_focal
 from tasks.video.sfm_register import frame_correspondences, register_frames
 
 
@@ -214,7 +214,7 @@ def polish(reconstruction, max_error_px: float, min_tri_angle_deg: float, thread
     polished, dropped = pycolmap.Reconstruction(reconstruction), 0
     for _ in range(POLISH_ROUNDS):
         dropped += pycolmap.ObservationManager(polished).filter_all_points3D(max_error_px, min_tri_angle_deg)
-        pycolmap.bundle_adjustment(polished, ba_options(threads, focal=False))
+        bundle_adjust(polished, ba_options(threads, focal=False))
     return polished, dropped
 
 

@@ -22,6 +22,7 @@ Deterministic: each hypothesis runs the seeded mapper on its own copy of the dat
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -93,7 +94,7 @@ def hypothesis_error(db_path: Path, image_dir: Path, names: list[str], focal_px:
     best = max(models.values(), key=lambda m: m.num_reg_images(), default=None)
     if best is None:
         return math.inf, math.nan
-    pycolmap.bundle_adjustment(best, ba_options(threads))
+    bundle_adjust(best, ba_options(threads))
     focal = float(best.cameras[next(iter(best.cameras))].focal_length)
     if 2 * best.num_reg_images() < len(names):
         return math.inf, focal
@@ -137,6 +138,19 @@ def ba_options(threads: int, focal: bool = True):
     return options
 
 
+def bundle_adjust(reconstruction, options) -> None:
+    """``pycolmap.bundle_adjustment``, then COLMAP's log level set back to ``$GLOG_minloglevel``:
+    pycolmap 4.2.1's binding leaves glog's ``minloglevel`` at 0, after which every mapper line of the
+    run printed (~390 lines on stderr of an SfM ingest without ``--verbose``)."""
+    import pycolmap
+
+    try:
+        pycolmap.bundle_adjustment(reconstruction, options)
+    finally:
+        level = os.environ.get("GLOG_minloglevel", "0")
+        pycolmap.logging.minloglevel = int(level) if level.isdigit() else 0
+
+
 def refine_focal(reconstruction, max_change: float, threads: int):
     """(``reconstruction`` bundle-adjusted with its focal length free, True) when the focal length
     moves by less than ``max_change`` (a fraction), else (``reconstruction`` untouched, False);
@@ -144,7 +158,7 @@ def refine_focal(reconstruction, max_change: float, threads: int):
     import pycolmap
 
     refined = pycolmap.Reconstruction(reconstruction)
-    pycolmap.bundle_adjustment(refined, ba_options(threads))
+    bundle_adjust(refined, ba_options(threads))
     camera_id = next(iter(reconstruction.cameras))
     change = refined.cameras[camera_id].focal_length / reconstruction.cameras[camera_id].focal_length - 1
     return (refined, True) if abs(change) < max_change else (reconstruction, False)
