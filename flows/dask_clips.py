@@ -317,10 +317,18 @@ def prefect_api_url(config: Config) -> str:
 
 
 def _failed(clip: str, e: BaseException) -> ClipOutcome:
+    """The failed outcome of a clip whose Dask task failed as a whole: its error, one line; for
+    distributed's ``KilledWorker`` (which names no cause, and a long URL) what may have killed them."""
     from tasks.stage_chain import StageReport
     from warehouse.catalog import one_line
 
-    return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(f"{type(e).__name__}: {e}"))], "", 0)
+    message = f"{type(e).__name__}: {e}"
+    if type(e).__name__ == "KilledWorker":
+        last = getattr(getattr(e, "last_worker", None), "address", "?")
+        message = (f"KilledWorker: every worker that ran it died (the last: {last}): out of memory? a local cluster "
+                   "gives each worker the machine's memory / [prefect] max_workers and kills it at 95 %: lower "
+                   "max_workers, or use task_runner = \"threads\"")
+    return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(message))], "", 0)
 
 
 def progress_line(outcome: ClipOutcome, done: int, total: int) -> str:

@@ -141,6 +141,8 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
         stale_stages: set[str] = set()
         memo = InputsMemo(wh, clip)
         for m in run_markers(wh, clip):  # runs not recorded yet: in progress, or their process was killed
+            if (recorded := last.get((clip, m.stage))) is not None and recorded["started_at"] > m.started_at:
+                continue  # a later run of the stage was recorded (a Dask retry on another worker): this one is over
             last[(clip, m.stage)] = {"status": "running" if m.alive else "interrupted", "started_at": m.started_at,
                                      "message": f"process {m.pid} on {m.host}" + ("" if m.alive else
                                                 " ended before the run finished (killed or crashed)")}

@@ -334,3 +334,20 @@ def test_ctrl_c_ends_a_command_on_a_local_cluster_at_once(tmp_path, sig):
         states = db.execute("SELECT state_type FROM flow_run WHERE name = 'annotate_clip/i0_0' AND parameters "
                             "LIKE ?", (f"%{w}%",)).fetchall()  # the tests share one Prefect home
     assert states == [("CANCELLED",)]
+
+
+def test_a_clip_whose_workers_died_says_what_may_have_killed_them():
+    """distributed's KilledWorker names no cause: a clip whose workers died under it (a local
+    cluster's worker memory is the machine's / max_workers, killed at 95 %) says memory and the knob."""
+    from distributed.scheduler import KilledWorker, WorkerState
+
+    from flows.dask_clips import WHOLE_CLIP, _failed
+
+    last = WorkerState(address="tcp://127.0.0.1:1", status=None, pid=1, name="w", memory_limit=0, local_directory="/tmp",
+                       nanny=None, server_id="s")
+    [report] = _failed("c0", KilledWorker("annotate_clip-c0", last, 3)).reports
+    assert report.stage == WHOLE_CLIP and report.state == "failed" and "\n" not in report.message
+    assert report.message.startswith("KilledWorker: every worker that ran it died (the last: tcp://127.0.0.1:1): out of "
+                                     "memory? ") and "max_workers" in report.message
+    [other] = _failed("c0", RuntimeError("boom")).reports
+    assert other.message == "RuntimeError: boom"

@@ -71,26 +71,36 @@ def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
 
 
 def test_a_marker_of_another_host_is_alive_while_its_heartbeat_is(wh):
-    """A run on a Dask worker: its pid means nothing here, its marker's heartbeat does; a lost worker's
-    run is settled as interrupted once the heartbeat is older than STALE_AFTER_S."""
+    """A run on a Dask worker: its pid means nothing here, its marker's heartbeat does, for `status`.
+    The next run of the clip settles it as interrupted whatever its heartbeat: it holds the clip's
+    lock, which the marker's run held while it ran. A later run of the stage recorded meanwhile (a
+    Dask retry that finished the clip) is what `status` shows, not the old marker (it showed
+    'running', then 'interrupted', for a clip done)."""
     import datetime as dt
     import json
     import os
     import time
 
-    from tasks.stage import STALE_AFTER_S, _start_marker
+    from tasks.stage import STALE_AFTER_S, StageRun, _start_marker, record_run
 
     wh.write("clips", "c1", _clip_row("c1"))
-    path = _start_marker(wh, "c1", "detect", "r1", dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc))
+    marked = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    path = _start_marker(wh, "c1", "detect", "r1", marked)
     path.write_text(json.dumps({**json.loads(path.read_text()), "host": "worker-7", "pid": 1}))
     [marker] = run_markers(wh, "c1")
-    assert marker.host == "worker-7" and marker.alive and settle_interrupted(wh, "c1") == []
+    assert marker.host == "worker-7" and marker.alive
+    assert {r.stage: r for r in pipeline_status(wh, Config(), ["c1"])}["detect"].status == "running"
     old = time.time() - STALE_AFTER_S - 1
     os.utime(path, (old, old))
     [marker] = run_markers(wh, "c1")
     assert not marker.alive
     status = {r.stage: r for r in pipeline_status(wh, Config(), ["c1"])}
     assert status["detect"].status == "interrupted" and "worker-7" in status["detect"].message
+    record_run(wh, StageRun(clip="c1", stage="detect", run_id="r2", status="completed", config_hash="c", inputs_hash="i",
+                            output_hash="o", code_hash="k", rows_written=3, duration_s=1.0, message=""),
+               marked + dt.timedelta(seconds=5))
+    assert {r.stage: r for r in pipeline_status(wh, Config(), ["c1"])}["detect"].status == "completed"
+    os.utime(path, None)  # a fresh heartbeat: still settled by the next run, which holds the clip's lock
     [settled] = settle_interrupted(wh, "c1")
     assert settled.status == "interrupted" and run_markers(wh, "c1") == []
 
