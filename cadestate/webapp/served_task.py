@@ -79,7 +79,9 @@ def with_pose_outcomes(wh: Warehouse, clip: str, doc: dict) -> dict:
     if doc["kind"] != "correspondences" or not wh.has_partition("poses", clip):
         return doc
     solved_at = _latest_pose_run(wh, clip)
-    answered = {int(r["track_id"]): r["ingested_at"] for r in current_answers(wh, "correspondences", [clip]).to_pylist()}
+    answered: dict[int, object] = {}  # track -> when its newest answer in force (of any of the clip's tasks) came
+    for r in current_answers(wh, "correspondences", [clip]).to_pylist():
+        answered[int(r["track_id"])] = max(answered.get(int(r["track_id"]), r["ingested_at"]), r["ingested_at"])
     failed = {}
     for p in wh.read("poses", [clip], columns=["track_id", "status", "message", "keyframe_timestamps_us",
                                                "keyframe_error_px"]).to_pylist():

@@ -190,8 +190,8 @@ export function drawBoxes(canvas, boxes) {
 }
 
 // A frame image with an overlay canvas at the image's pixel size; an image that does not load is said so.
-export function frameView(src, onload, alt = "key-frame") {
-  const img = el("img", {src, alt, draggable: "false"});
+export function frameView(src, onload) {
+  const img = el("img", {src, alt: "key-frame", draggable: "false"});
   img.addEventListener("error", () => toast(`cannot load the image ${src}`, "error"));
   const canvas = el("canvas", {class: "over"});
   const wrap = el("div", {class: "frame"}, img, canvas);
