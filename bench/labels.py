@@ -32,6 +32,11 @@ from warehouse import Warehouse, atomic_write_bytes
 CLICKS = "simulated_clicks"
 
 
+def clicks_path(bench_dir: Path | str, clip: str) -> Path:
+    """``<bench>/simulated_clicks/<clip>.json``: the clip's file of simulated clicks (module docstring)."""
+    return Path(bench_dir) / CLICKS / f"{clip}.json"
+
+
 def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: AnnotatorNoise = DEFAULT_NOISE) -> dict:
     """The label file of one clip (also written to ``<bench>/simulated_clicks/<clip>.json``)."""
     frames = read_frames(Path(bench_dir) / clip / "frames.json")
@@ -52,7 +57,7 @@ def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: Annot
                 "correspondences": [kf.to_json() for kf in keyframes],
                 "manual_track": track_to_json(draw_manual_track(frames, obj, noise, noise.rng(clip, obj.track_id, "track"))),
             })
-    out = Path(bench_dir) / CLICKS / f"{clip}.json"
+    out = clicks_path(bench_dir, clip)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, json.dumps(result, indent=1).encode())
     return result
@@ -60,7 +65,7 @@ def simulate_clip_labels(bench_dir: Path, clip: str, wh: Warehouse, noise: Annot
 
 def simulate_labels(bench_dir: Path, clips: list[str], wh: Warehouse, show_progress: bool = True) -> int:
     """Label files for ``clips`` that do not have one yet; returns how many were written."""
-    todo = [c for c in clips if not (Path(bench_dir) / CLICKS / f"{c}.json").is_file()]
+    todo = [c for c in clips if not clicks_path(bench_dir, c).is_file()]
     for clip in progress(todo, total=len(todo), description="simulated labels", enabled=show_progress):
         simulate_clip_labels(bench_dir, clip, wh)
     return len(todo)
@@ -71,7 +76,7 @@ def label_statistics(bench_dir: Path, clips: list[str]) -> dict:
     keyframes = points = coplanar = swapped = annotated = objects_n = 0
     residuals: list[float] = []
     for clip in clips:
-        path = Path(bench_dir) / CLICKS / f"{clip}.json"
+        path = clicks_path(bench_dir, clip)
         if not path.is_file():
             continue
         labels = json.loads(path.read_text())
@@ -127,7 +132,7 @@ def write_correspondences(bench_dir: Path, clips: list[str], wh: Warehouse) -> i
 
     total = 0
     for clip in clips:
-        path = Path(bench_dir) / CLICKS / f"{clip}.json"
+        path = clicks_path(bench_dir, clip)
         if not path.is_file():
             continue
         table = pa.Table.from_pylist(correspondence_rows(json.loads(path.read_text())), schema=CORRESPONDENCES.schema)

@@ -33,7 +33,7 @@ import pyarrow as pa
 from bench.annotators import KeyframeCorrespondences, frame_camera
 from bench.benchmark import read_manifest
 from bench.eval_pose import PosedObject, match_and_score
-from bench.labels import CLICKS, correspondence_rows
+from bench.labels import CLICKS, clicks_path, correspondence_rows
 from bench.sfm_eval import Similarity, align
 from cadestate.config import PoseConfig
 from cadestate.geometry import camera_to_world, matrix_to_quaternion, project, quaternion_to_matrix
@@ -236,7 +236,7 @@ def bench_tracks(bench_dir: Path, wh: Warehouse, cfg: PoseConfig, sigma: float |
     models = {r["cad_id"]: r for r in wh.read("cad_models", columns=list(MODEL_FACTS)).to_pylist()}
     tracks = []
     for clip in clips:
-        path = Path(bench_dir) / CLICKS / f"{clip}.json"
+        path = clicks_path(bench_dir, clip)
         if not path.is_file():
             continue
         labels = json.loads(path.read_text())

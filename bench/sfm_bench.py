@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.benchmark import read_manifest
 from bench.eval_pose import PosedObject
-from bench.labels import CLICKS, correspondence_rows
+from bench.labels import CLICKS, clicks_path, correspondence_rows
 from bench.pose_bench import _class_of, _gt, score
 from bench.sfm_eval import Similarity, align, camera_errors
 from cadestate.config import CamerasConfig, IngestConfig, PoseConfig
@@ -119,7 +119,7 @@ def run(bench_dir: Path = DEFAULT_BENCH, wh: Warehouse | None = None, clips: int
                      "true_fx_over_width": round(float(truth.intrinsics[0, 0]), 4),
                      "focal_error_pct": round(100 * (float(sfm.intrinsics[0, 0] / truth.intrinsics[0, 0]) - 1), 2),
                      **focal, "models": result.models})
-        label_file = bench_dir / CLICKS / f"{clip}.json"
+        label_file = clicks_path(bench_dir, clip)
         if not label_file.is_file():
             continue
         corr = pa.Table.from_pylist(correspondence_rows(json.loads(label_file.read_text())), schema=CORRESPONDENCES.schema)
