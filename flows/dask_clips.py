@@ -20,7 +20,8 @@ Prefect in the workers: every worker process talks to one Prefect API, handed to
 That is the warehouse's server or ``$PREFECT_API_URL`` when one is in use; otherwise the ephemeral
 API that this process starts (as the thread runner does), which listens on 127.0.0.1: workers on
 this machine (a local cluster, or one on loopback) reach it, workers on other machines need a
-server they can reach (``PREFECT_API_URL``). A worker keeps the API of its first clip (Prefect
+server they can reach (``PREFECT_API_URL``; workers that cannot reach the API are refused before any
+clip, in one line naming them: :func:`check_workers_reach_api`). A worker keeps the API of its first clip (Prefect
 reads its settings once per process), and the ephemeral API ends with its command: a cluster that
 outlives commands needs a server (``cadestate server start``), else the next command is refused
 in one line (:func:`check_workers_api`). So flow runs, their names and tags are the same as with
@@ -44,6 +45,7 @@ import os
 import signal
 import sys
 import threading
+import urllib.parse
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -60,6 +62,9 @@ if TYPE_CHECKING:
 
 WHOLE_CLIP = "annotate_clip"
 """The stage name of the report of a clip whose Dask task failed as a whole."""
+
+API_CHECK_TIMEOUT_S = 10.0
+"""Seconds a worker waits for Prefect's API to answer its health check (:func:`check_workers_reach_api`)."""
 
 _WORKER_API: list[str] = []
 """The Prefect API this worker process was set up for (at most one entry)."""
@@ -153,6 +158,26 @@ def check_workers_api(client: Client, api_url: str) -> None:
         raise ServerError(f"the Dask workers talk to Prefect's API at {other[0]}, not this command's ({api_url}): "
                           "a cluster that outlives one command needs a Prefect server they all keep "
                           "(`cadestate server start`), or restart the workers")
+
+
+def _unreached_line(workers: list[str], api_url: str) -> str:
+    """The one line for Dask workers whose health check of Prefect's API at ``api_url`` failed."""
+    loopback = urllib.parse.urlsplit(api_url).hostname in ("127.0.0.1", "localhost", "::1")
+    fix = ("it listens on this machine's loopback: run `cadestate server start --host 0.0.0.0` and set "
+           "PREFECT_API_URL to its address as the workers see it" if loopback else
+           "start the workers where it can be reached, or set PREFECT_API_URL to an address they reach")
+    return f"the Dask worker(s) {', '.join(workers)} cannot reach Prefect's API at {api_url}: {fix}"
+
+
+def check_workers_reach_api(client: Client, api_url: str, timeout_s: float) -> None:
+    """Refuse (:class:`flows.server.ServerError`, one line naming them) workers on which Prefect's
+    API at ``api_url`` does not answer its health check within ``timeout_s``: each of their clips
+    would fail alone, after its worker had set Prefect up for that API."""
+    from flows.server import ServerError, healthy
+
+    unreached = sorted(w for w, ok in client.run(healthy, api_url, timeout_s).items() if not ok)
+    if unreached:
+        raise ServerError(_unreached_line(unreached, api_url))
 
 
 def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str,
@@ -369,6 +394,7 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
     with dask_client(config.prefect, api_url) as client, warehouse_probe(root) as probe:
         check_workers_see(client, root, probe)
         check_workers_api(client, api_url)
+        check_workers_reach_api(client, api_url, API_CHECK_TIMEOUT_S)
         futures: dict[Future, int] = {}
         with signals_end_the_clips(client, futures, [s.clip for s in sources], api_url, probe[0]):
             futures.update({client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,

@@ -133,7 +133,7 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
     again = run_clips(sources[:3], config, show_progress=False)  # the cache is shared: workers find each other's results
     assert {r.state for r in again} == {"cached"}
 
-    from flows.dask_clips import _worker_api, check_workers_api
+    from flows.dask_clips import _worker_api, check_workers_api, check_workers_reach_api
     from flows.server import ServerError
 
     with Client(cluster) as client:  # the next command's own local API: refused before any clip, in one line
@@ -142,6 +142,13 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
         with pytest.raises(ServerError, match=r"^the Dask workers talk to Prefect's API at http.*, not this command's "
                                               r"\(http://127.0.0.1:1/api\): .*`cadestate server start`"):
             check_workers_api(client, "http://127.0.0.1:1/api")
+        check_workers_reach_api(client, api, 2.0)  # the API of the clips above answers every worker
+        # an API the workers cannot reach (a loopback one, from workers on other machines): refused
+        # before any clip, naming every worker, where each clip failed alone
+        with pytest.raises(ServerError, match=r"^the Dask worker\(s\) tcp://127\.0\.0\.1:\d+, tcp://127\.0\.0\.1:\d+ "
+                                              r"cannot reach Prefect's API at http://127.0.0.1:1/api: it listens on "
+                                              r"this machine's loopback: .*PREFECT_API_URL"):
+            check_workers_reach_api(client, "http://127.0.0.1:1/api", 2.0)
 
 
 def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):
