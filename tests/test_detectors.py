@@ -300,6 +300,10 @@ def test_detect_config_label_map_and_errors(tmp_path):
     (tmp_path / "junk.onnx").write_bytes(b"not a model")
     with pytest.raises(ValueError, match="junk.onnx: not a loadable ONNX model"):
         load_detector(DetectConfig(model=str(tmp_path / "junk.onnx")))
+    (tmp_path / "empty.onnx").write_bytes(b"")  # parses as an empty graph: the session names the file
+    for canvas in ("fit", "square"):
+        with pytest.raises(ValueError, match="empty.onnx: not a loadable ONNX model"):
+            load_detector(DetectConfig(model=str(tmp_path / "empty.onnx"), canvas=canvas))
     with pytest.raises(ValueError, match=r"\[detect\] classes: 'sofa' not in \[detect\] labels"):
         load_detector(DetectConfig(model=str(tmp_path / "junk.onnx"), labels=("a",), classes=("sofa",)))
 

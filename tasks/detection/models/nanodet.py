@@ -153,11 +153,14 @@ def size_free(model: onnx.ModelProto) -> onnx.ModelProto:
     shapes declare).
 
     Raises:
-      ValueError: a Resize whose input size shape inference cannot tell (not a NanoDet graph).
+      ValueError: a graph with no input, or an output of fewer than two dimensions, or a Resize
+        whose input size shape inference cannot tell (not a NanoDet graph).
     """
     import onnx
     from onnx import numpy_helper
 
+    if not model.graph.input or any(len(v.type.tensor_type.shape.dim) < 2 for v in model.graph.output):
+        raise ValueError("no graph input, or an output of fewer than two dimensions")
     out = onnx.ModelProto()
     out.CopyFrom(model)
     graph = out.graph
