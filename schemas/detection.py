@@ -3,7 +3,7 @@
 
 Boxes follow CAD-Estate: normalised image coordinates (ymin, xmin, ymax, xmax) in [0, 1], origin
 at the image's top-left corner, y down. Descriptors are float32, L2-normalised, raw (before the
-library's centring/whitening, which :mod:`tasks.embeddings` applies when comparing).
+library's centring/whitening, which :mod:`tasks.retrieval.whitening` applies when comparing).
 """
 
 from __future__ import annotations
