@@ -5,7 +5,7 @@ A track is one physical object: a cluster of the clip's detections (at most one 
 ``track_id`` is the track's rank when tracks are ordered by their first detection id, so it is
 the same on every rerun with unchanged inputs (and never depends on the order rows were read).
 A manual track (drawn by people on the val/test splits, paper Sec. 3.1) has the id
-``MANUAL_TRACK_BASE`` + a digest of the drawn object (tasks.human.manual_tracks.manual_track_ids): never an automatic id.
+``MANUAL_TRACK_BASE`` + a digest of the drawn object (tasks.tracking.relations.manual_track_ids): never an automatic id.
 """
 
 from __future__ import annotations
