@@ -240,7 +240,7 @@ class DetectConfig:
                                         "(one object boxed under two names); 1 = never.", lo=0.0, hi=1.0)
     max_detections: int = _opt(100, "Most detections kept per frame (best scores first).", lo=1, hi=10_000)
     classes: tuple = _opt((), "Keep only these labels (e.g. furniture); empty keeps every label.")
-    batch_size: int = _opt(8, "Frames per network call (models with a fixed batch of 1 run them one by one).", lo=1, hi=1024)
+    batch_size: int = _opt(8, "Frames per network call (a model whose input batch is fixed takes that many).", lo=1, hi=1024)
     threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256, runtime=True)
 
 

@@ -85,6 +85,20 @@ def test_yolov8_adapter_on_exported_model(tmp_path, transposed):
     np.testing.assert_allclose(tables.scores, [0.5, 0.36], atol=1e-6)
 
 
+def test_a_model_with_a_fixed_batch_of_two_takes_an_odd_number_of_images(tmp_path):
+    path = tmp_path / "yolo_b2.onnx"
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(FixedOutputs([yolo_outputs()]), torch.zeros(2, 3, 64, 64), buf, dynamo=False,
+                          input_names=["images"], output_names=["out0"], opset_version=17)
+    path.write_bytes(buf.getvalue())
+    det = Detector(path, "yolov8", LABELS, 64, score_threshold=0.3, batch_size=8)
+    assert det.batch_size == 2
+    found = det.detect([np.zeros((64, 64, 3), np.uint8)] * 3)  # a batch of 2, then 1 padded to 2
+    assert [d.names for d in found] == [("chair", "sofa", "table", "table")] * 3
+
+
 def test_yolov8_adapter_rejects_a_wrong_label_map(tmp_path):
     path = tmp_path / "yolo.onnx"
     export(FixedOutputs([yolo_outputs()]), path, 64, dynamic_batch=True, n_outputs=1)

@@ -21,7 +21,8 @@ Layouts (``[detect] adapter``):
     padding grey (114); one output float32[B, 4 + C, N]: rows cx, cy, w, h in canvas pixels,
     then C class scores in [0, 1] (no objectness). A transposed [B, N, 4 + C] output is accepted.
 
-Models whose input batch is fixed to 1 run one image per call; others get ``batch_size`` images.
+Models whose input batch is fixed to B run B images per call (a last, shorter batch padded with copies
+of its last image, whose outputs are dropped); others get ``batch_size`` images.
 A model's declared output shapes must fit its layout and label map (:func:`output_problem`):
 :func:`check_detect_config` checks that from the file before a run, :class:`Detector` from its session.
 """
@@ -302,7 +303,8 @@ class Detector:
         self.session = MeasuredSession(Path(model_path) if graph is None else graph, threads)
         self.sha256 = file_sha256(Path(model_path))
         shape = self.session.get_inputs()[0].shape
-        self.batch_size = batch_size if not isinstance(shape[0], int) else shape[0]
+        self.fixed_batch = isinstance(shape[0], int)  # the model takes batches of exactly batch_size images
+        self.batch_size = shape[0] if self.fixed_batch else batch_size
         # canvas sides are rounded up to this (None: the canvas is input_size square), Letterbox.of
         self.multiple = CANVAS_MULTIPLE if canvas == "fit" and None in _shape(shape)[2:4] else None
         problem = output_problem(adapter, [_shape(o.shape) for o in self.session.get_outputs()], len(self.labels)) or \
@@ -311,12 +313,17 @@ class Detector:
             raise ValueError(f"{model_path}: {problem[1]} ([detect] {problem[0]})")
 
     def _run(self, batch: np.ndarray) -> list[list[np.ndarray]]:
-        """Network on float32[B,3,h,w] (``batch_size`` images per call) -> per image, its outputs
+        """Network on float32[B,3,h,w] (``batch_size`` images per call; a model with a fixed batch
+        gets a shorter last one padded with copies of its last image) -> per image, its outputs
         without the batch axis."""
         name, per_image = self.session.get_inputs()[0].name, []
         for start in range(0, len(batch), self.batch_size):
-            outs = self.session.run(None, {name: batch[start:start + self.batch_size]})
-            per_image += [[o[b] for o in outs] for b in range(len(outs[0]))]
+            part = batch[start:start + self.batch_size]
+            images = len(part)
+            if self.fixed_batch and images < self.batch_size:
+                part = np.concatenate([part, np.repeat(part[-1:], self.batch_size - images, axis=0)])
+            outs = self.session.run(None, {name: part})
+            per_image += [[o[b] for o in outs] for b in range(images)]
         return per_image
 
     def canvas(self, image_size: tuple[int, int]) -> tuple[int, int]:
