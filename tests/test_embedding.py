@@ -165,6 +165,21 @@ def test_detect_and_embed_stages(detected):
     assert {d["label"] for d in kept} == {dets[0]["label"]} and only.rows_written == len(kept) <= len(dets)
 
 
+def test_an_unreadable_frame_image_is_named(tmp_path):
+    from PIL import Image
+
+    from tasks.detection.detect import load_rgb
+
+    whole = tmp_path / "whole.jpg"
+    Image.new("RGB", (64, 48), (10, 20, 30)).save(whole)
+    assert load_rgb(whole).shape == (48, 64, 3)
+    (tmp_path / "cut.jpg").write_bytes(whole.read_bytes()[:100])  # PIL says "Truncated File Read" alone
+    (tmp_path / "junk.jpg").write_bytes(b"not an image")
+    for name in ("cut.jpg", "junk.jpg", "missing.jpg"):
+        with pytest.raises(OSError, match=f"^{tmp_path / name}: not a readable image \\("):
+            load_rgb(tmp_path / name)
+
+
 def test_detect_needs_frames(wh):
     from tasks.detection.detect import detect_clip
 

@@ -28,9 +28,17 @@ DET_ID_STRIDE = 10_000  # det_id = frame_index * DET_ID_STRIDE + rank
 
 
 def load_rgb(path: Path) -> np.ndarray:
-    """An image file as RGB uint8[H,W,3]."""
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
+    """An image file as RGB uint8[H,W,3].
+
+    Raises:
+      OSError: the file is missing, cut short or not an image; the message names it (PIL's
+        "Truncated File Read" does not).
+    """
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except OSError as e:
+        raise OSError(f"{path}: not a readable image ({e.strerror or e})") from None
 
 
 def detection_rows(clip: str, frame: dict, det: Detections, model_sha256: str) -> list[dict]:
