@@ -64,6 +64,17 @@ def test_min_detections_and_empty_input():
     assert len(empty.track) == 0
 
 
+def test_detections_all_below_min_score_make_no_track_and_no_warning():
+    import warnings
+
+    det_id, frame, boxes, labels, vec, _ = synthetic_clip(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "Mean of empty slice" of the clip's mean descriptor was printed
+        res = track_detections(det_id, frame, boxes, labels, vec, None, TrackingConfig(min_score=0.9),
+                               scores=np.full(len(det_id), 0.5))
+    assert np.all(res.track == -1) and len(res.pairs.a) == 0
+
+
 def test_candidate_pairs_window_and_rotation_warp_identity():
     a, b = candidate_pairs(np.array([2, 0, 1, 1, 5]), 2)
     pairs = sorted(zip(a.tolist(), b.tolist()))

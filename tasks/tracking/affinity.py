@@ -122,9 +122,10 @@ def rotation_warp(boxes: np.ndarray, fa: np.ndarray, fb: np.ndarray, cams: Camer
 
 
 def centred(vectors: np.ndarray) -> np.ndarray:
-    """Descriptors centred on their mean and renormalised (float32[N,D])."""
+    """Descriptors centred on their mean and renormalised (float32[N,D]; N may be 0)."""
     v = np.asarray(vectors, np.float64)
-    v = v - v.mean(0, keepdims=True)
+    if len(v):  # no descriptor has no mean (numpy would warn of an empty slice)
+        v = v - v.mean(0, keepdims=True)
     n = np.linalg.norm(v, axis=1, keepdims=True)
     return (v / np.where(n > 0, n, 1)).astype(np.float32)
 
