@@ -315,3 +315,17 @@ def test_a_partition_swapped_while_a_statement_lists_it_is_not_left_out(w):
         out, err = proc.communicate(timeout=120)
     assert listed in trace.read_text(), "DuckDB never checked clip a's file"
     assert (proc.returncode, out) == (0, "n\n2\n"), err
+
+
+def test_table_format_shortens_long_lists_and_csv_keeps_them(w):
+    """A row of ``embeddings`` printed its 768 floats whole in the table format (187 KB, ~200 lines
+    at 80 columns); csv and json are for scripts and keep every item."""
+    query = "SELECT range(768)::DOUBLE[] AS descriptor, [1, 2, 3] AS short"
+    result = sql(w, query)
+    assert result.code == 0, result.stderr
+    assert "[0.0, 1.0, 2.0, 3.0, 4.0, 5.0, ... (768 items)]" in result.stdout
+    assert "[1, 2, 3]" in result.stdout and "767.0" not in result.stdout
+    assert len(result.stdout) < 1000
+    [row] = json.loads(sql(w, query, "-f", "json").stdout)
+    assert row["descriptor"] == [float(i) for i in range(768)]
+    assert sql(w, query, "-f", "csv").stdout.count("767.0") == 1

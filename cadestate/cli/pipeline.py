@@ -293,8 +293,9 @@ def sql(
     Read-only: one SELECT (or WITH, FROM, VALUES, TABLE, DESCRIBE, SHOW, SUMMARIZE), or EXPLAIN of
     one. Any other statement (COPY, EXPORT, ATTACH, INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, ...)
     is refused, and only the warehouse's table files can be read: no other file, no network, no
-    extension. The table format shows the first rows (--limit) and counts the others; csv and json
-    stream every row as it comes (json: an array, one row a line).
+    extension. The table format shows the first rows (--limit) and counts the others, and a list of
+    more than 8 items (an embedding) as its first 6 and its length; csv and json stream every row
+    whole as it comes (json: an array, one row a line).
 
     \b
     Example:
@@ -309,7 +310,7 @@ def sql(
             write_csv(result, sys.stdout)
         else:
             rows, rest = split(result.batches, TABLE_ROWS if limit is None else limit)
-            cells = [["NULL" if v is None else str(v) for v in r] for r in rows]
+            cells = [[cell_text(v) for v in r] for r in rows]
             natural = sum(max([len(n), *(len(r[i]) for r in cells)]) + 3 for i, n in enumerate(result.names)) + 1
             if out.is_terminal and natural > out.width and out.width < MIN_CELL * len(result.names):
                 print_records(result.names, cells)  # too many columns to share the width: one per line
@@ -320,6 +321,20 @@ def sql(
                 out.print(table)
             if rest:
                 out.print(f"{rest:,} more rows not shown (--limit N, or --format csv or json for every row)")
+
+
+LIST_SHOWN = 8
+"""A list value (an embedding's 768 floats) of more items than this shows its first ones and its
+length in the table format; csv and json hold it whole."""
+
+
+def cell_text(value: object) -> str:
+    """A value as the table format shows it: NULL for None, a long list shortened."""
+    if value is None:
+        return "NULL"
+    if isinstance(value, list) and len(value) > LIST_SHOWN:
+        return f"[{', '.join(map(str, value[:LIST_SHOWN - 2]))}, ... ({len(value):,} items)]"
+    return str(value)
 
 
 MIN_CELL = 10
