@@ -398,3 +398,16 @@ def test_a_fragment_answer_comes_back_as_the_items_previous(hwh, tmp_path):
     again = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
     items = {it["track_id"]: it for it in _task(hwh, again.message)["items"]}
     assert items[1]["previous"]["cad_id"] is None and items[1]["previous"]["same_as_track"] == 0
+
+
+def test_the_summary_counts_a_fragment_apart_from_none(hwh, tmp_path):
+    """A track answered "same object as track N" has no model but is not "none of these": the
+    run's message said "1 of 3 tracks have a CAD model, 2 none" for one model, one none, one fragment."""
+    first = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    task_id = _task(hwh, first.message)["task_id"]
+    answers = [{"track_id": 0, "cad_id": None, "same_as_track": 1}, {"track_id": 1, "cad_id": "lib.chair_a"},
+               {"track_id": 2, "cad_id": None}]
+    assert ingest_labels(hwh, _label(tmp_path, "f.json", "cad_selection", task_id, answers, "2026-01-02T00:00:00+00:00")).ok
+    done = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    assert done.status == "completed"
+    assert done.message == "1 of 3 tracks have a CAD model, 1 none, 1 the same object as another track"

@@ -125,9 +125,11 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     path = wh.relative(write_task_once(wh, task))
     answered = [t for t in track_ids if t in answers]
     chosen = [t for t in answered if answers[t] is not None]
+    fragments = sum(t in fragment_of for t in answered if answers[t] is None)
     output = digest("cad_selection", task_id, *(f"{t}\t{answers[t]}" for t in answered))
     waiting = len(track_ids) - len(answered)
-    summary = f"{len(chosen)} of {len(track_ids)} tracks have a CAD model, {len(answered) - len(chosen)} none"
+    summary = (f"{len(chosen)} of {len(track_ids)} tracks have a CAD model, {len(answered) - len(chosen) - fragments} none"
+               + (f", {fragments} the same object as another track" if fragments else ""))
     if len(by_track) > len(track_ids):
         summary += f" ({len(by_track) - len(track_ids)} left out: no object, or another track)"
     return task_output(len(chosen), output, summary, "cad_selection", path, waiting, len(track_ids))
