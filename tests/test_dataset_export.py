@@ -458,3 +458,22 @@ def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, 
     (tmp_path / "csvs" / "table.csv").write_text("a,b\n")
     with pytest.raises(ExportError, match="holds files but no full_annotations.json"):
         export_scan2cad(wh, tmp_path / "csvs")
+
+
+def test_a_clip_waiting_for_clicks_on_models_chosen_anew_is_not_completed(tmp_path):
+    """A person chose another model for every posed track: correspondence_task paused with nothing
+    answered, so pose and verification wait and do not run, and their newest recorded runs stay the
+    completed ones of the old models; the default export wrote those old models' accepted poses."""
+    from tasks.cad.export import verification_completed
+
+    wh = Warehouse(tmp_path / "wh")
+    runs = [("20260101T000000Z-a", "correspondence_task", "completed", 2), ("20260101T000001Z-b", "pose", "completed", 2),
+            ("20260101T000002Z-c", "verification", "completed", 2)]
+    for clip in ("done", "rechosen"):
+        wh.write("runs", clip, table_rows("runs", [{"clip": clip, "run_id": r, "stage": s, "status": st, "rows_written": n,
+                                                    "duration_s": 0.0} for r, s, st, n in runs]))
+    assert verification_completed(wh, ["done", "rechosen"]) == {"done", "rechosen"}
+    wh.write("runs", "rechosen", table_rows("runs", [{"clip": "rechosen", "run_id": "20260102T000000Z-d",
+                                                      "stage": "correspondence_task", "status": "paused", "rows_written": 0,
+                                                      "duration_s": 0.0}]))
+    assert verification_completed(wh, ["done", "rechosen"]) == {"done"}

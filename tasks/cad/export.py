@@ -35,6 +35,7 @@ import trimesh
 
 from cadestate.progress import progress
 from tasks.cad.classes import CLASSES
+from tasks.stage import waits_for_people
 from warehouse import Warehouse
 from warehouse.store import warn
 
@@ -169,13 +170,20 @@ def some_named(names: Sequence[str], limit: int = 10) -> str:
 
 
 def verification_completed(wh: Warehouse, clips: Sequence[str]) -> set[str]:
-    """The ``clips`` whose newest verification run completed (every solved pose has its verdict)."""
-    runs = wh.read("runs", list(clips), filters=[("stage", "==", "verification")], columns=["clip", "run_id", "status"])
-    newest: dict[str, tuple[str, str]] = {}
-    for clip, run_id, status in zip(*(runs.column(c).to_pylist() for c in ("clip", "run_id", "status"))):
-        if clip not in newest or run_id > newest[clip][0]:
-            newest[clip] = (run_id, status)
-    return {c for c, (_, status) in newest.items() if status == "completed"}
+    """The ``clips`` whose newest verification run completed (every solved pose has its verdict)
+    and none of whose stages' newest run waits for people with nothing answered
+    (:func:`tasks.stage.waits_for_people`): the stages after such a run wait and are not run, so
+    the verdicts on record judge the poses of answers no longer in force (every track's model
+    chosen anew leaves pose and verification waiting for clicks on the new models)."""
+    runs = wh.read("runs", list(clips), columns=["clip", "stage", "run_id", "status", "rows_written"])
+    newest: dict[tuple[str, str], tuple[str, str, int]] = {}
+    for clip, stage, run_id, status, rows in zip(*(runs.column(c).to_pylist()
+                                                   for c in ("clip", "stage", "run_id", "status", "rows_written"))):
+        if (clip, stage) not in newest or run_id > newest[clip, stage][0]:
+            newest[clip, stage] = (run_id, status, rows or 0)
+    waiting = {clip for (clip, _), (_, status, rows) in newest.items() if waits_for_people(status, rows)}
+    return {clip for (clip, stage), (_, status, _) in newest.items()
+            if stage == "verification" and status == "completed" and clip not in waiting}
 
 
 def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
