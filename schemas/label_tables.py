@@ -119,7 +119,8 @@ TRACK_RELATIONS = _answer_table(
                                         "track_id is a fragment of other_track_id, merged into its root's object by the export; "
                                         "verification `same_as_track`: track_id's pose shows the object of other_track_id, a "
                                         "duplicate; manual_track `same_as_track`: the drawn object object_index of the label is "
-                                        "existing track track_id, which the later human tasks then leave out)."),
+                                        "existing track track_id: its manual track is a fragment of track_id, and the later "
+                                        "human tasks leave that manual track out)."),
         column("track_id", pa.int32(), "The track the statement is about."),
         column("other_track_id", pa.int32(), "same_object from cad_selection or verification: the track it is a fragment "
                                              "(or a duplicate) of.", nullable=True),
