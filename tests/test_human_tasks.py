@@ -411,3 +411,37 @@ def test_the_summary_counts_a_fragment_apart_from_none(hwh, tmp_path):
     done = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
     assert done.status == "completed"
     assert done.message == "1 of 3 tracks have a CAD model, 1 none, 1 the same object as another track"
+
+
+def test_another_overlay_opacity_renders_the_overlays_anew(hwh, tmp_path):
+    """The overlays of a task were kept by file name alone, so a rerun with another
+    ``[verification] overlay_alpha`` (the same poses, the same task) kept the old opacity."""
+    import numpy as np
+    import trimesh
+    from PIL import Image
+
+    from cadestate.config import VerificationConfig
+    from tasks.human.verification import verification_stage
+
+    mesh = hwh.root / "media/cad/lib/lib.chair_a.glb"
+    mesh.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(1, 1, 1)).export(mesh)
+    frames = hwh.read("frames", [CLIP]).to_pylist()
+    for f in frames:
+        f.update(K=[300.0, 0, W / 2, 0, 300.0, H / 2, 0, 0, 1], world_to_camera_R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1],
+                 world_to_camera_t=[0.0, 0, 0])
+        (hwh.root / f["image_path"]).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(hwh.root / f["image_path"])
+    hwh.write("frames", CLIP, pa.Table.from_pylist(frames, schema=TABLES["frames"].schema))
+    hwh.write("poses", CLIP, table_rows("poses", [{"clip": CLIP, "track_id": "0", "cad_id": "lib.chair_a", "class": "chair",
+                                                   "status": "ok", "translation": [0.0, 0, 4], "rotation": [1.0, 0, 0, 0],
+                                                   "scale": [1.0, 1, 1], "is_mirrored": False,
+                                                   "keyframe_timestamps_us": STAMPS[:2]}]))
+
+    def centre(alpha: float) -> int:
+        run = _run(hwh, "verification", lambda rid: verification_stage(hwh, VerificationConfig(overlay_alpha=alpha), CLIP, rid))
+        path = _task(hwh, run.message)["items"][0]["keyframes"][0]["overlay_path"]
+        return int(np.asarray(Image.open(hwh.root / path))[H // 2, W // 2].max())
+
+    faint = centre(0.2)
+    assert centre(1.0) > faint + 50 and centre(0.2) == faint

@@ -71,9 +71,10 @@ def flagged_duplicates(poses: list[dict], extents: Mapping[str, Sequence[float]]
 def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k: int, alpha: float,
                     frames: Mapping[int, dict], meshes: Mapping[str, str]) -> dict[str, list[tuple[int, str]]]:
     """Per track (poses.track_id), up to ``k`` of its key-frames with the posed CAD drawn over the
-    frame: (timestamp_us, overlay path relative to the warehouse root). Existing overlays are kept.
-    ``frames``: the clip's ``frames`` rows by timestamp (µs; image_path, width, height, K, the
-    camera); ``meshes``: cad_id -> mesh_path."""
+    frame at opacity ``alpha``: (timestamp_us, overlay path relative to the warehouse root). Existing
+    overlays are kept (the task id digests the poses; the file name holds the opacity, so another
+    ``[verification] overlay_alpha`` renders anew). ``frames``: the clip's ``frames`` rows by
+    timestamp (µs; image_path, width, height, K, the camera); ``meshes``: cad_id -> mesh_path."""
     from PIL import Image
 
     from cadestate.render import Camera, Instance, Renderer, RenderMesh, object_to_world
@@ -84,8 +85,9 @@ def render_overlays(wh: Warehouse, clip: str, task_id: str, poses: list[dict], k
     for p in poses:
         stamps = [t for t in p["keyframe_timestamps_us"] if t in frames]
         stamps = [stamps[i] for i in evenly_spaced(len(stamps), k)]
-        out[p["track_id"]] = [(t, wh.relative(folder / f"{p['track_id']}_{t}.jpg")) for t in stamps]
-        todo += [(p, t, folder / f"{p['track_id']}_{t}.jpg") for t in stamps if not (folder / f"{p['track_id']}_{t}.jpg").is_file()]
+        paths = {t: folder / f"{p['track_id']}_{t}_alpha{alpha:g}.jpg" for t in stamps}
+        out[p["track_id"]] = [(t, wh.relative(path)) for t, path in paths.items()]
+        todo += [(p, t, path) for t, path in paths.items() if not path.is_file()]
     if not todo:
         return out
     import trimesh
