@@ -261,7 +261,7 @@ class CadEmbedConfig:
     centring or whitening that every descriptor goes through before it is compared."""
 
     whitening: str = _opt("learned", "Transform of the descriptors before they are compared: 'learned' (the projection `make models` "
-                                     "trains on rooms rendered from the CAD library, centred on its training crops' mean: one map for every library), or fitted on the "
+                                     "trains on rooms rendered from the CAD library, centred on the mean view descriptor of the library it was trained on: one map for every library), or fitted on the "
                                      "library's views: 'none', 'centre', 'whiten' (PCA whitening).",
                           choices=("none", "centre", "whiten", "learned"))
     whitening_dims: int = _opt(128, f"Dimensions kept by 'whiten' (at most the descriptor size, {DESCRIPTOR_DIM}).",
