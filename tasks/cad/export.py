@@ -171,7 +171,7 @@ def some_named(names: Sequence[str], limit: int = 10) -> str:
 
 def verification_completed(wh: Warehouse, clips: Sequence[str]) -> set[str]:
     """The ``clips`` whose newest verification run completed (every solved pose has its verdict)
-    and none of whose stages' newest run waits for people with nothing answered
+    and no stage of which has run since with a run that waits for people with nothing answered
     (:func:`tasks.stage.waits_for_people`): the stages after such a run wait and are not run, so
     the verdicts on record judge the poses of answers no longer in force (every track's model
     chosen anew leaves pose and verification waiting for clicks on the new models)."""
@@ -181,9 +181,11 @@ def verification_completed(wh: Warehouse, clips: Sequence[str]) -> set[str]:
                                                    for c in ("clip", "stage", "run_id", "status", "rows_written"))):
         if (clip, stage) not in newest or run_id > newest[clip, stage][0]:
             newest[clip, stage] = (run_id, status, rows or 0)
-    waiting = {clip for (clip, _), (_, status, rows) in newest.items() if waits_for_people(status, rows)}
-    return {clip for (clip, stage), (_, status, _) in newest.items()
-            if stage == "verification" and status == "completed" and clip not in waiting}
+    verified = {clip: run_id for (clip, stage), (run_id, status, _) in newest.items()
+                if stage == "verification" and status == "completed"}
+    waiting = {clip for (clip, _), (run_id, status, rows) in newest.items()
+               if clip in verified and run_id > verified[clip] and waits_for_people(status, rows)}
+    return set(verified) - waiting
 
 
 def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
