@@ -2,9 +2,14 @@
 per CAD library, ``cad_candidates`` per clip.
 
 A track's score for a CAD model is the mean, over every (detection of the track, view of the model)
-pair, of ``class_similarity(detection label, model class) x appearance(detection, view)``, with
+pair, of ``class_similarity(detection label, model class) ** x * appearance(detection, view)``, with
 ``class_similarity`` the cosine of the two label names in a sentence encoder's space (clipped at
-0) and ``appearance = (1 + cosine) / 2`` of the whitened descriptors (:mod:`tasks.retrieval.whitening`).
+0), ``x`` = ``[retrieval] class_exponent`` (``drawn_class_exponent`` for a manual track's drawn
+boxes; 1 is the paper's product) and ``appearance = (1 + cosine) / 2`` of the whitened descriptors
+(:mod:`tasks.retrieval.whitening`). The ``score`` column's description, written before the exponent,
+stays as it is: the column descriptions of ``cad_candidates`` are part of the digest that names a
+clip's CAD-selection task (:func:`cadestate.lineage.table_digest`), so editing one would leave
+every answer given unmatched.
 """
 
 from __future__ import annotations
