@@ -110,13 +110,19 @@ def scoring_inputs(bench_dir: Path, wh: Warehouse, clips: list[str]
 
 def accepted_predictions(wh: Warehouse, clips: list[str], bench_dir: Path | None = None) -> list[PosedObject]:
     """The poses the dataset publishes for ``clips``, in the ground truth's worlds (:func:`in_truth_world`): those accepted in
-    verification (``verified_poses``) but of the tracks people said are no object or another
-    track's object (:func:`tasks.tracking.relations.relations_in_force`: the export keeps the root's pose only)."""
+    verification (``verified_poses``), one per object people named (:func:`tasks.tracking.relations.relations_in_force`:
+    none for tracks of no object, the one pose of an object's tracks that the export keeps,
+    :meth:`~tasks.tracking.relations.TrackRelations.pose_speakers`)."""
     from tasks.tracking.relations import relations_in_force
 
     rows = [r for r in wh.read("verified_poses", clips).to_pylist() if r["accepted"]]
-    said = {c: relations_in_force(wh, c) for c in {r["clip"] for r in rows}}
-    rows = [r for r in rows if said[r["clip"]].speaks_for_itself(int(r["track_id"]))]
+    kept: set[tuple[str, int]] = set()
+    for c in {r["clip"] for r in rows}:
+        keyframes = {int(p["track_id"]): p["num_keyframes"] or 0
+                     for p in wh.read("poses", [c], columns=["track_id", "num_keyframes"]).to_pylist()}
+        posed = {int(r["track_id"]): keyframes.get(int(r["track_id"]), 0) for r in rows if r["clip"] == c}
+        kept |= {(c, t) for t in relations_in_force(wh, c).pose_speakers(posed)}
+    rows = [r for r in rows if (r["clip"], int(r["track_id"])) in kept]
     return in_truth_world(_predictions(rows), wh, bench_dir)
 
 

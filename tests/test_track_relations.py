@@ -303,6 +303,18 @@ def test_duplicate_poses_are_flagged_in_verification_and_join_the_track_named(rw
     assert relations_in_force(rwh, CLIP).fragments == {} and _objects(rwh) == {0: (), 1: (), 2: ()}
     assert sorted(p.track_id for p in accepted_predictions(rwh, [CLIP])) == ["0", "1"]
 
+    # track 0's pose rejected, track 1's accepted as the same object: track 1's pose speaks for it (the
+    # export kept track 0's, none, and the object lost its only accepted pose)
+    _ingest(rwh, _label(tmp_path / "v3", "verification", task["task_id"], [
+        {"track_id": 0, "verdict": "reject"}, {"track_id": 1, "verdict": "accept", "same_as_track": 0}],
+        "2026-01-03T00:00:00+00:00"))
+    assert relations_in_force(rwh, CLIP).fragments == {1: 0}
+    assert "1 of 3 poses accepted" in _verification(rwh)[0].message
+    objects = {o.track_id: o for o in clip_dataset(rwh, CLIP).objects}
+    assert {t: o.merged for t, o in objects.items()} == {1: (0,), 2: ()}
+    assert objects[1].pose.translation == (0.03, 0.0, 4.02) and objects[1].cad_id == "lib.chair_b"
+    assert [p.track_id for p in accepted_predictions(rwh, [CLIP])] == ["1"]
+
 
 def relations(wh: Warehouse) -> set[tuple]:
     """The clip's verification statements in ``track_relations``: (relation, track_id, other_track_id)."""

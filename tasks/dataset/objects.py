@@ -22,7 +22,10 @@ the answers in force). A track said to be no object ("track N is not an object",
 such a track) is not exported. A fragment ("same object as track N" in CAD selection or
 verification, or a drawn object that "is track N"; chains followed to their root) joins its root's object, as a claimed track does below:
 its boxes fill the frames the root has none on, its id is listed in the object's ``merged``, its
-own pose and correspondences are dropped. A fragment whose root has no track stays an object of its own.
+own pose and correspondences are dropped; but when the root has no accepted pose and fragments
+do, the fragment's of most key-frames (then lowest id) speaks for the object instead (a pose
+accepted as "the same object as track N" where N's was rejected), the root joining it. A fragment
+whose root has no track stays an object of its own.
 
 **Fragments and duplicates nobody named.** A tracker may cut one object into several tracks, and
 several of them may be posed. Each accepted pose, in order of more key-frames, then lower track id,
@@ -220,7 +223,8 @@ def join(root: DatasetObject, parts: list[DatasetObject]) -> DatasetObject:
 
 def declared_objects(objects: list[DatasetObject], relations: TrackRelations) -> list[DatasetObject]:
     """``objects`` as people said (module docstring): none for the tracks that are no object, each
-    fragment joined to its root's object; in track id order."""
+    fragment joined to its root's object, which a fragment's accepted pose speaks for when the
+    root's was not accepted (:meth:`TrackRelations.pose_speakers`); in the speakers' track id order."""
     kept = {o.track_id: o for o in sorted(objects, key=lambda o: o.track_id) if relations.is_object(o.track_id)}
     parts: dict[int, list[DatasetObject]] = {}
     for t, o in kept.items():
@@ -228,7 +232,15 @@ def declared_objects(objects: list[DatasetObject], relations: TrackRelations) ->
         if root != t and root in kept:
             parts.setdefault(root, []).append(o)
     joined = {x.track_id for ps in parts.values() for x in ps}
-    return [join(o, parts.get(t, [])) for t, o in kept.items() if t not in joined]
+    result = []
+    for t, o in kept.items():
+        if t in joined:
+            continue
+        group = [o, *parts.get(t, [])]
+        speakers = relations.pose_speakers({x.track_id: x.keyframes for x in group if x.pose is not None})
+        speaker = next((x for x in group if x.track_id in speakers), o)
+        result.append(join(speaker, [x for x in group if x is not speaker]))
+    return sorted(result, key=lambda o: o.track_id)
 
 
 def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...], image_size: tuple[int, int],

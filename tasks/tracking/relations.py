@@ -80,9 +80,16 @@ class TrackRelations:
         """False when the track, or the track it is a fragment of, is said to be no object."""
         return track_id not in self.not_objects and self.root(track_id) not in self.not_objects
 
-    def speaks_for_itself(self, track_id: int) -> bool:
-        """An object that is no other track's fragment: its own pose is the one the export keeps."""
-        return self.is_object(track_id) and self.root(track_id) == track_id
+    def pose_speakers(self, posed: Mapping[int, int]) -> set[int]:
+        """Of the tracks with an accepted pose, ``posed`` (track -> key-frames of its pose), those
+        whose pose the export keeps: one per object, its root's when the root's pose was accepted,
+        else its fragment's of most key-frames, then lowest id (a pose accepted as "the same object
+        as track N" speaks for N's object when N's was rejected); none for tracks of no object."""
+        by_root: dict[int, list[tuple[bool, int, int]]] = {}
+        for t, keyframes in posed.items():
+            if self.is_object(t):
+                by_root.setdefault(self.root(t), []).append((self.root(t) != t, -keyframes, t))
+        return {min(candidates)[2] for candidates in by_root.values()}
 
 
 def resolve_fragments(edges: Mapping[int, int]) -> tuple[dict[int, int], list[str]]:
