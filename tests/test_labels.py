@@ -808,3 +808,22 @@ def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_pa
         t.join()
     assert sorted((len(r.ingested), len(r.duplicates)) for r in reports) == [(0, 2), (2, 0)]
     assert lwh.read("label_files").num_rows == 2 and lwh.read("verification_labels").num_rows == 2
+
+
+
+def test_validate_checks_a_folder_as_ingest_reads_it(lwh, tmp_path):
+    """`labels validate` of a folder refuses what `labels ingest` of it refuses (a ring closed by
+    two of its files) and gives the warnings ingest gives (an answer to a task a rerun replaced)."""
+    from fuzz.harness import run_cli
+
+    d = tmp_path / "in"
+    put(d, "a.json", _edit("cad_selection", lambda x: x.__setitem__("answers", [{"track_id": 0, "cad_id": None, "same_as_track": 1}])))
+    put(d, "b.json", _edit("cad_selection", lambda x: x.__setitem__("answers", [{"track_id": 1, "cad_id": None, "same_as_track": 0}])))
+    newer = next(t for t in _tasks() if t.kind == "cad_selection")
+    write_task(lwh, dataclasses.replace(newer, task_id="c1.cs2", created_at="2026-01-05T00:00:00+00:00"))
+    checked = run_cli("-w", str(lwh.root), "labels", "validate", str(d))
+    report = ingest_labels(lwh, d)
+    assert len(report.errors) == 1 and "b.json: $.answers[0].same_as_track: tracks 1 -> 0 -> 1" in report.errors[0]
+    assert len(report.warnings) == 1 and "a.json: answers task c1.cs, which a rerun replaced with c1.cs2" in report.warnings[0]
+    assert checked.code == 1 and checked.stdout.splitlines() == [f"{d / 'a.json'}: ok (cad_selection, task c1.cs, 1 answer(s))"]
+    assert checked.stderr.splitlines() == [f"error: {report.errors[0]}", f"warning: {report.warnings[0]}"]

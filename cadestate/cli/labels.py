@@ -122,14 +122,16 @@ def labels_validate(
 ) -> None:
     """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file;
-    a folder is checked as `labels ingest` reads it. Exit status 1 when any file is bad, 2 when a
-    path given does not exist (as `labels ingest`); the other paths are still checked."""
-    from tasks.human.label_ingest import label_paths
-    from tasks.human.labels import ClipFacts, LabelError, validate_label
+    the files are checked together as `labels ingest` checks them (each against the ones before it,
+    with its warnings). Exit status 1 when any file is bad, 2 when a path given does not exist (as
+    `labels ingest`); the other paths are still checked."""
+    from tasks.human.label_ingest import label_paths, order_warnings
+    from tasks.human.labels import ClipFacts, LabelError, LabelFile, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
     bad = missing = 0
     paths: list[Path] = []
+    valid: list[LabelFile] = []
     for source in files:
         try:
             found = label_paths(source)
@@ -148,8 +150,13 @@ def labels_validate(
             bad += 1
             _problems([str(e)], [])
             continue
+        if facts is not None:
+            facts.take(lf.label)  # as ingest: the files after it are checked against its links too
+            valid.append(lf)
         _say(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
         _problems([], list(lf.warnings))
+    if facts is not None:
+        _problems([], order_warnings(facts.wh, valid))
     raise typer.Exit(2 if missing else 1 if bad else 0)
 
 

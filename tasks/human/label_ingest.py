@@ -245,10 +245,16 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
         facts.take(lf.label)  # the files after it are checked against its links too (a ring across two files)
         known.add(lf.sha256)
         accepted.append(lf)
-    warn = LabelWarnings(wh)
-    for lf in sorted(accepted, key=_order):  # in the order they are applied: the newest answer is the one in force
-        report.warnings += warn.check(lf)
+    report.warnings += order_warnings(wh, accepted)
     return accepted
+
+
+def order_warnings(wh: Warehouse, files: Sequence[LabelFile]) -> list[str]:
+    """The warnings of :mod:`tasks.human.label_warnings` on valid label files, each compared with
+    the answers ingested before and with the files before it in the order they are applied (the
+    newest answer is the one in force)."""
+    warn = LabelWarnings(wh)
+    return [w for lf in sorted(files, key=_order) for w in warn.check(lf)]
 
 
 def _failed(report: IngestReport, lf: LabelFile, e: Exception) -> None:
@@ -330,9 +336,7 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
         report.warnings += lf.warnings
         known.add(lf.sha256)
         accepted.append(lf)
-    warn = LabelWarnings(wh)
-    for lf in sorted(accepted, key=_order):
-        report.warnings += warn.check(lf)
+    report.warnings += order_warnings(wh, accepted)
     return _ingest(wh, accepted, facts, report, coplanar_tol, None)
 
 
