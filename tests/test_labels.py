@@ -197,6 +197,11 @@ MALFORMED = [
      r"\$\.answers\[0\]\.keyframes\[1\]\.points\[2\]\.xyz\[0\]: 1e\+308 is greater than the maximum of 100"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("points", [d["answers"][0]["keyframes"][1]["points"][0]] * 4),
      r"\$\.answers\[0\]\.keyframes\[1\]\.points\[1\]\.xyz: the same 3D point as points\[0\]"),
+    # a track said to be the same object as itself: that, not a ring of one
+    ("verification", lambda d: d["answers"][0].__setitem__("same_as_track", 0),
+     r"\$\.answers\[0\]\.same_as_track: track 0 is not another track of task c1\.ve"),
+    ("cad_selection", lambda d: d["answers"][1].update(same_as_track=1),
+     r"\$\.answers\[1\]\.same_as_track: track 1 is not another track of task c1\.cs"),
 ]
 
 

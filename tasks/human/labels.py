@@ -293,7 +293,6 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         _check_drawn_once(label, name)
         return
     items = _items(task, name, label)
-    _check_same_as_cycles(label, name, facts.same_as(label.clip, label.kind, label.task_id))
     for i, a in enumerate(label.answers):
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
@@ -322,6 +321,7 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
                     raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
                 seen.add(kf.timestamp_us)
                 _check_xyz(kf.points, facts.extents.get(a.cad_id), name, ["answers", i, "keyframes", j, "points"])
+    _check_same_as_cycles(label, name, facts.same_as(label.clip, label.kind, label.task_id))  # each names another track
 
 
 def _check_same_as_cycles(label, name: str, in_force: Mapping[int, int] | None = None) -> None:
