@@ -70,6 +70,7 @@ LS_CASES = [
     (lambda d: d[0]["annotations"][0]["result"].__setitem__(0, "x"), r"annotations\[0\]\.result\[0\]: expected an object, not str"),
     (lambda d: result(d).__setitem__("id", {"a": 1}), r"result\[0\]\.id: must be a string or an integer"),
     (lambda d: d.append(copy.deepcopy(d[0])), r"\$: expected one Label Studio task \(for clip 'c1'\), found 2"),
+    (lambda d: d[0].pop("annotations"), r"\$\[0\]\.annotations: missing: not a Label Studio JSON export \(a JSON-MIN"),
 ]
 
 

@@ -209,7 +209,10 @@ def _of_type(value: object, kind: type, where: str) -> object:
 
 def _ls_annotation(task: dict, where: str) -> tuple[dict, str]:
     """The newest annotation that was not cancelled, and where it is."""
-    annotations = _of_type(task.get("annotations", []), list, f"{where}.annotations")
+    if "annotations" not in task:
+        raise LabelError(f"{where}.annotations: missing: not a Label Studio JSON export (a JSON-MIN or CSV export has "
+                         "no annotations list; export the project as JSON)")
+    annotations = _of_type(task["annotations"], list, f"{where}.annotations")
     kept = [(a, f"{where}.annotations[{k}]") for k, a in enumerate(annotations)
             if isinstance(a, dict) and not a.get("was_cancelled")]
     if not kept:
