@@ -12,7 +12,7 @@ from fuzz.harness import assert_clean_error, run_cli
 from tasks.human.label_import import import_labelstudio, write_label
 from tasks.human.label_import_cvat import import_cvat
 from tasks.human.labels import LabelError
-from test_labels import CLIP, CVAT, H, W, base_wh, lwh, put  # noqa: F401  (fixtures)
+from test_labels import CLIP, CVAT, H, STAMPS, W, base_wh, lwh, put  # noqa: F401  (fixtures)
 
 LS = [{"id": 1, "data": {"video": f"/data/upload/{CLIP}.mp4"}, "annotations": [
     {"id": 3, "was_cancelled": False, "result": [
@@ -205,3 +205,15 @@ def test_clip_names_with_dashes_a_cvat_export_of_another_video_and_two_boxes_on_
     result_ = import_cvat(lwh, put(tmp_path, "k.xml", kitchen), CLIP)
     assert "its task (kitchen kitchen.mp4) names no clip 'c1'" in result_.warnings[0]
     assert result_.dropped == ["cvat:0: a second box on frame 200000 µs, left out"]
+
+
+def test_boxes_off_the_clips_frames_are_left_out_in_one_line_per_track(lwh, tmp_path):
+    """An export of every interpolated box of a video (--all-frames --frame-map video) leaves out
+    the boxes between camera frames: one line per track says how many and on which frames, not one
+    line per box (thousands on a long video, hiding the warnings)."""
+    boxes = "".join(_box(f).replace('keyframe="1"', 'keyframe="0"') if f % 5 else _box(f) for f in range(25))
+    export = put(tmp_path, "v.xml", _export("<task><id>4</id><name>c1</name></task>", f'<track id="0" label="chair">{boxes}</track>'))
+    result_ = import_cvat(lwh, export, CLIP, frame_map="video", keyframes_only=False)
+    assert [b["timestamp_us"] for b in result_.document["answers"][0]["boxes"]] == STAMPS
+    assert result_.dropped == ["cvat:0: 15 box(es) on frames that are no camera frame of the clip: "
+                               "frames 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, ... 24"]

@@ -318,6 +318,12 @@ def utc_seconds(text: object) -> str | None:
 
 # ------------------------------------------------------------------------------ label files
 
+def _listed(numbers: list[int], most: int = 10) -> str:
+    """``1, 3, 5`` (at most ``most`` of them, then ``... last``)."""
+    shown = ", ".join(map(str, numbers[:most]))
+    return shown if len(numbers) <= most else f"{shown}, ... {numbers[-1]}"
+
+
 def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
     """The manual_track task an import answers: ``task_id``, else the clip's newest."""
     if task_id is None:
@@ -353,17 +359,20 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
             raise LabelError(f"{t.where or name}: class {label!r} is not one of the task's: {', '.join(task.classes)} "
                              "(--map renames a tool label)")
         boxes: dict[int, tuple] = {}
+        off: list[int] = []  # the tool's numbers of the frames that are no camera frame
         for b in t.boxes:
             ts = frames.timestamp(b, frame_map)
             if ts is None:
-                dropped.append(f"{t.source_id}: frame {b.index + (1 if t.source_id.startswith('labelstudio') else 0)} "
-                               f"is not a camera frame of the clip")
+                off.append(b.index + (1 if t.source_id.startswith("labelstudio") else 0))
             elif ts in boxes:
                 dropped.append(f"{t.source_id}: a second box on frame {ts} µs, left out")
             elif b.box[0] < b.box[2] and b.box[1] < b.box[3]:
                 boxes[ts] = b.box
             else:
                 dropped.append(f"{t.source_id}: empty box on frame {ts} µs")
+        if off:
+            dropped.append(f"{t.source_id}: {len(off)} box(es) on frames that are no camera frame of the clip: "
+                           f"frames {_listed(off)}")
         if not boxes:
             dropped.append(f"{t.source_id}: no box left, track left out")
             continue
