@@ -217,3 +217,13 @@ def test_boxes_off_the_clips_frames_are_left_out_in_one_line_per_track(lwh, tmp_
     assert [b["timestamp_us"] for b in result_.document["answers"][0]["boxes"]] == STAMPS
     assert result_.dropped == ["cvat:0: 15 box(es) on frames that are no camera frame of the clip: "
                                "frames 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, ... 24"]
+
+
+def test_cli_import_prints_what_it_left_out_and_warns_of_one_line_each(lwh, tmp_path):
+    """A track id or task name holding a line break (an XML ``&#10;``) stays on its line."""
+    export = _export("<task><id>4</id><name>kitchen&#10;2nd floor</name><source>k.mp4</source></task>",
+                     f'<track id="0&#10;a" label="chair">{_box(2)}{_box(40)}</track>')
+    res = run_cli("-w", str(lwh.root), "labels", "import-cvat", str(put(tmp_path, "k.xml", export)), "--clip", CLIP,
+                  "--out", str(tmp_path / "out"))
+    assert res.code == 0 and [ln.split(": ")[0] for ln in res.stderr.splitlines()] == ["left out", "warning"], res.stderr
+    assert "cvat:0\\na: 1 box(es)" in res.stderr and "kitchen\\n2nd floor" in res.stderr

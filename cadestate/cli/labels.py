@@ -210,12 +210,12 @@ def _write_import(result, out_dir: Path, source: Path, clip: str, tool: str) -> 
     """Write the label file ``<clip>.<export name>.<first 8 hex of the export's SHA-256>.<tool>.json``:
     two exports of one name (CVAT names every export annotations.xml) never overwrite each other."""
     from cadestate.lineage import file_sha256
+    from tasks.human.label_format import one_line
     from tasks.human.label_import import write_label
 
-    for d in result.dropped:
-        err.print(f"[yellow]left out:[/] {escape(d)}", highlight=False, emoji=False)
-    for w in result.warnings:
-        err.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, emoji=False)
+    for d in result.dropped:  # the export's ids and names may hold line breaks: each line stays one
+        err.print(f"[yellow]left out:[/] {escape(one_line(d))}", highlight=False, emoji=False)
+    _problems([], result.warnings)
     with cannot_write(out_dir, "the label file"):
         path = write_label(result.document, out_dir, f"{clip}.{source.stem}.{file_sha256(source)[:8]}.{tool}")
     n = len(result.document["answers"])
