@@ -39,6 +39,8 @@ CVAT_CASES = [
     (CVAT.replace('frame="0" ', "", 1), r"track\[0\]/box\[0\]/@frame: must be a number, not None"),
     (CVAT.replace(' label="chair"', ""), r"/annotations/track\[0\]/@label: must be a non-empty string"),
     (CVAT.replace('label="chair"', 'label="lamp"'), r"/annotations/track\[0\]: class 'lamp' is not one of the task's"),
+    (CVAT.replace('label="chair"', 'label="Chair"'), r"/annotations/track\[0\]: class 'Chair' is not one of the task's: "
+     r"chair, table \(is it 'chair'\? --map Chair=chair\)$"),
     (CVAT.replace('encoding="utf-8"', 'encoding="no-such-codec"'), r": not a readable XML file: unknown encoding"),
     (CVAT[:200], r": not well-formed XML"),
     (CVAT.replace('frame="0"', 'frame="90"').replace('frame="3"', 'frame="93"'), r": none of its 1 track\(s\) has a box on a frame"),

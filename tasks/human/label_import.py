@@ -36,9 +36,11 @@ from __future__ import annotations
 
 import bisect
 import datetime as dt
+import difflib
 import json
 import math
 import re
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -324,6 +326,14 @@ def _listed(numbers: list[int], most: int = 10) -> str:
     return shown if len(numbers) <= most else f"{shown}, ... {numbers[-1]}"
 
 
+def _map_hint(tool_label: str, classes: tuple[str, ...]) -> str:
+    """How ``--map`` renames ``tool_label``: to the class it names in other letter case or
+    spelling ('Chair', 'chairs': chair), when there is one."""
+    folded = {c.casefold(): c for c in classes}
+    near = next(iter(difflib.get_close_matches(tool_label.casefold(), folded, 1, 0.8)), None)
+    return f"is it {folded[near]!r}? --map {shlex.quote(f'{tool_label}={folded[near]}')}" if near else "--map renames a tool label"
+
+
 def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
     """The manual_track task an import answers: ``task_id``, else the clip's newest."""
     if task_id is None:
@@ -357,7 +367,7 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
         label = (label_map or {}).get(t.label, t.label)
         if task.classes and label not in task.classes:
             raise LabelError(f"{t.where or name}: class {label!r} is not one of the task's: {', '.join(task.classes)} "
-                             "(--map renames a tool label)")
+                             f"({_map_hint(t.label, task.classes)})")
         boxes: dict[int, tuple] = {}
         off: list[int] = []  # the tool's numbers of the frames that are no camera frame
         for b in t.boxes:
