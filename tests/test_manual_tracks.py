@@ -210,6 +210,11 @@ def test_new_tracks_make_a_new_task_that_shows_the_answer_before(mwh, tmp_path):
     assert [t["track_id"] for t in new["existing_tracks"]] == [0]
     assert new["previous"] == [{"label": "couch", "boxes": COUCH, "source_id": "s", "same_as_track": None}]
     assert mwh.read("manual_tracks", [CLIP]).num_rows == 0  # the old answer does not answer the new task
+    # "nothing is missing" on the new task, then another: the newest earlier answer drew nothing
+    ingest_labels(mwh, _label(tmp_path / "b", "b.json", "manual_track", new["task_id"], [], "2026-01-02T00:00:00+00:00"))
+    mwh.write("track_detections", CLIP, table_rows("track_detections", [m for m in members if m["frame_index"] < 15]))
+    third = _task(mwh, _run(mwh).message)
+    assert third["task_id"] not in (task["task_id"], new["task_id"]) and third["previous"] == []
 
 
 @needs_embedder

@@ -82,12 +82,13 @@ def _answers(rows: list[dict], same_as: dict[int, int] | None = None) -> tuple[M
 
 def previous_answer(wh: Warehouse, clip: str, task_id: str, answered: bool) -> tuple[tuple[ManualTrackAnswer, ...], tuple[int, ...]]:
     """(objects drawn, tracks said to be no object) of this task's answer in force; a new task gets
-    the boxes of the clip's newest earlier answer (its statements named another task's tracks)."""
+    the boxes of the clip's newest earlier answer (none when it said nothing is missing; its
+    statements named another task's tracks)."""
     rows = current_answers(wh, KIND, [clip]).to_pylist()
     if not answered:
-        if not rows:
-            return (), ()
-        newest = max(r["ingested_at"] for r in rows)
+        times = wh.read("label_files", [clip], filters=[("kind", "=", KIND)], columns=["ingested_at"]).column(
+            "ingested_at").to_pylist() if wh.has_partition("label_files", clip) else []
+        newest = max(times, default=None)  # ingested_at is strictly increasing in a clip: one file's
         return _answers([r for r in rows if r["ingested_at"] == newest]), ()
     not_objects, same_as = manual_answer_statements(wh, clip, task_id)
     return _answers([r for r in rows if r["task_id"] == task_id], same_as), tuple(sorted(not_objects))
