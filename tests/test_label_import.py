@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import pytest
 
+from conftest import table_rows
 from fuzz.harness import assert_clean_error, run_cli
 from tasks.human.label_import import import_labelstudio, write_label
 from tasks.human.label_import_cvat import import_cvat
@@ -229,3 +231,21 @@ def test_cli_import_prints_what_it_left_out_and_warns_of_one_line_each(lwh, tmp_
                   "--out", str(tmp_path / "out"))
     assert res.code == 0 and [ln.split(": ")[0] for ln in res.stderr.splitlines()] == ["left out", "warning"], res.stderr
     assert "cvat:0\\na: 1 box(es)" in res.stderr and "kitchen\\n2nd floor" in res.stderr
+
+
+def test_a_labelstudio_frame_count_off_the_clips_is_warned_of(lwh, tmp_path):
+    """Label Studio numbers frames by time x the labelling config's <Video frameRate> (24 unless
+    set): a count of frames other than the clip's (or, --frame-map video, its video's) says the
+    frame numbers are not the clip's, and the boxes would land on other frames."""
+    def export(count: int) -> Path:
+        return put(tmp_path, f"ls{count}.json", json.dumps(ls(lambda d: result(d)["value"].__setitem__("framesCount", count))))
+
+    assert import_labelstudio(lwh, export(10), CLIP).warnings == []
+    warned = import_labelstudio(lwh, export(8), CLIP).warnings
+    assert warned == [f"{tmp_path / 'ls8.json'}: $[0].annotations[0].result[0].value.framesCount: Label Studio counted 8 frames "
+                      "and the clip has 10: its frame numbers are the clip's only if the labelling config's <Video "
+                      "frameRate> is the rate of the video it showed"]
+    lwh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H, "duration_us": 2_500_000}]))
+    assert import_labelstudio(lwh, export(25), CLIP, frame_map="video").warnings == []
+    assert "Label Studio counted 20 frames and the clip's video has 25 (2.5 s at 10 fps)" \
+        in import_labelstudio(lwh, export(20), CLIP, frame_map="video").warnings[0]

@@ -69,7 +69,7 @@ def _tasks() -> list:
 @pytest.fixture(scope="module")
 def base_wh(tmp_path_factory) -> Path:
     wh = Warehouse(tmp_path_factory.mktemp("labels") / "wh")
-    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H}]))
+    wh.write("clips", CLIP, table_rows("clips", [{"clip": CLIP, "fps": 10.0, "width": W, "height": H, "duration_us": 1_000_000}]))
     wh.write("frames", CLIP, table_rows("frames", [{"clip": CLIP, "timestamp_us": t, "frame_index": i, "video_time_us": t + 1000,
                                                "width": W, "height": H} for i, t in enumerate(STAMPS)]))
     for task in _tasks():

@@ -29,7 +29,9 @@ frame n is ``frames.frame_index`` n (refused when the tool says it showed more f
 clip has: CVAT's ``stop_frame``, Label Studio's ``framesCount``); ``video``: the tool showed the video, so tool frame n (0-based) is at n / fps seconds and maps to the camera frame whose decoded
 video frame is nearest, within half a video frame (boxes between camera frames are dropped).
 Label Studio's ``time`` is not used: it writes frame f (1-based) at f / fps, a frame after the
-frame's own time.
+frame's own time. Label Studio numbers frames by time x the labelling config's ``<Video
+frameRate>`` (24 unless set): a ``framesCount`` other than the frames shown (the clip's; its video's,
+``duration_us`` x ``fps``) is warned of (:func:`frame_count_warnings`).
 """
 
 from __future__ import annotations
@@ -121,23 +123,36 @@ def file_time(path: str | Path) -> str:
 
 @dataclass(frozen=True)
 class ClipFrames:
+    """A clip's frames as the importers map tool frames to them; ``duration_us``: its video's
+    (None: not known)."""
+
     by_index: dict[int, int]
     video_times: list[int]
     timestamps: list[int]
     fps: float
     width: int
     height: int
+    duration_us: int | None = None
 
     @staticmethod
     def of(wh: Warehouse, clip: str) -> ClipFrames:
         rows = wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "video_time_us", "width", "height"]).to_pylist()
         if not rows:
             raise LabelError(f"clip {clip!r}: no frames in the warehouse")
-        clips = wh.read("clips", [clip], columns=["fps"]).column("fps").to_pylist()
+        clips = wh.read("clips", [clip], columns=["fps", "duration_us"]).to_pylist()
+        fps = clips[0]["fps"] if clips else None
         rows.sort(key=lambda r: r["video_time_us"])
         return ClipFrames({r["frame_index"]: r["timestamp_us"] for r in rows}, [r["video_time_us"] for r in rows],
-                          [r["timestamp_us"] for r in rows], float(clips[0]) if clips and clips[0] else 30.0,
-                          rows[0]["width"], rows[0]["height"])
+                          [r["timestamp_us"] for r in rows], float(fps) if fps else 30.0,
+                          rows[0]["width"], rows[0]["height"], clips[0]["duration_us"] if clips else None)
+
+    def shown(self, mode: FrameMapMode) -> tuple[int, str] | None:
+        """How many frames a tool showing the clip (``mode``) shows, in words; None: not known."""
+        if mode == "frames":
+            return len(self.timestamps), "the clip has"
+        if not self.duration_us:
+            return None
+        return round(self.duration_us / 1e6 * self.fps), "the clip's video has"
 
     def timestamp(self, b: ToolBox, mode: FrameMapMode) -> int | None:
         """The camera timestamp of a tool box's frame, or None when no camera frame matches."""
@@ -401,12 +416,30 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     return ImportResult(doc, dropped, kept)
 
 
+def frame_count_warnings(tracks: list[ToolTrack], frames: ClipFrames, mode: FrameMapMode) -> list[str]:
+    """Label Studio numbers a video's frames by time x the labelling config's ``<Video frameRate>``
+    (24 unless set), and counts them so (``framesCount``): a count off the frames the tool showed
+    (the clip's, or with ``mode`` video its video's: by more than a frame and 1 %) says its frame
+    numbers are not theirs, and the boxes would land on other frames."""
+    shown = frames.shown(mode)
+    if shown is None:
+        return []
+    have, words = shown
+    for t in tracks:
+        if t.shown_frames is not None and abs(t.shown_frames - have) > max(1, have / 100):
+            rate = f" ({frames.duration_us / 1e6:g} s at {frames.fps:g} fps)" if mode == "video" else ""
+            return [f"{t.shown_where}: Label Studio counted {t.shown_frames} frames and {words} {have}{rate}: its frame "
+                    "numbers are the clip's only if the labelling config's <Video frameRate> is the rate of the video it showed"]
+    return []
+
+
 def import_labelstudio(wh: Warehouse, path: str | Path, clip: str, task_id: str | None = None, *,
                        frame_map: FrameMapMode = "frames", label_map: dict[str, str] | None = None) -> ImportResult:
     """A ``manual_track`` label document from a Label Studio video JSON export."""
     frames = ClipFrames.of(wh, clip)
     warnings: list[str] = []
     tracks, saved = read_labelstudio(path, (frames.width, frames.height), clip, warnings)
+    warnings += frame_count_warnings(tracks, frames, frame_map)
     result = tracks_to_label(wh, tracks, clip, task_id, frame_map, label_map, source=f"labelstudio:{Path(path).name}",
                              name=str(path), created_at=saved or file_time(path), frames=frames)
     result.warnings.extend(warnings)
