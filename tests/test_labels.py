@@ -832,3 +832,14 @@ def test_validate_checks_a_folder_as_ingest_reads_it(lwh, tmp_path):
     assert len(report.warnings) == 1 and "a.json: answers task c1.cs, which a rerun replaced with c1.cs2" in report.warnings[0]
     assert checked.code == 1 and checked.stdout.splitlines() == [f"{d / 'a.json'}: ok (cad_selection, task c1.cs, 1 answer(s))"]
     assert checked.stderr.splitlines() == [f"error: {report.errors[0]}", f"warning: {report.warnings[0]}"]
+
+
+def test_a_manual_track_answer_to_a_replaced_task_is_said_to_leave_the_new_one_waiting(lwh, tmp_path):
+    """A manual-track answer answers its own task only (nothing of it carries to a newer task, which
+    shows it as 'previous'): the warning says the new task still waits, not that it counts where it holds."""
+    newer = next(t for t in _tasks() if t.kind == "manual_track")
+    write_task(lwh, dataclasses.replace(newer, task_id="c1.mt2", created_at="2026-01-05T00:00:00+00:00"))
+    report = ingest_labels(lwh, put(tmp_path / "in", "m.json", good("manual_track")))
+    assert report.ok and report.warnings == [f"{tmp_path / 'in' / 'm.json'}: answers task c1.mt, which a rerun replaced with "
+                                             "c1.mt2: a manual-track answer answers its own task only, so c1.mt2 still "
+                                             "waits for one (an import made again answers the newest task)"]

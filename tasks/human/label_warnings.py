@@ -2,7 +2,8 @@
 prints them; the files are ingested):
 
 - an answer to a task that a rerun has replaced (its answers count only where they still hold
-  on the newest task: :mod:`tasks.human.choices_in_force`, :mod:`tasks.human.clicks_in_force`);
+  on the newest task: :mod:`tasks.human.choices_in_force`, :mod:`tasks.human.clicks_in_force`;
+  a manual-track answer not at all: the newest task waits for its own);
 - a manual-track answer that leaves out objects of the one it replaces (the newest manual-track
   answer of a task is the whole answer: two tools' exports are not added up);
 - correspondences for a track that leave out key-frames clicked by the answer they replace (the
@@ -70,8 +71,11 @@ class LabelWarnings:
             self._tasks[lf.clip] = latest_tasks(self.wh, lf.clip, columns=["task_id", "kind", "created_at"])
         newest = self._tasks[lf.clip].get(lf.kind)
         if newest is not None and newest["task_id"] != lf.task_id:
-            out.append(f"{lf.path}: answers task {lf.task_id}, which a rerun replaced with {newest['task_id']}: its answers "
-                       "count only where they still hold on the newest task (`cadestate status` says what waits)")
+            replaced = f"{lf.path}: answers task {lf.task_id}, which a rerun replaced with {newest['task_id']}: "
+            out.append(replaced + (f"a manual-track answer answers its own task only, so {newest['task_id']} still waits for "
+                                   "one (an import made again answers the newest task)" if lf.kind == "manual_track" else
+                                   "its answers count only where they still hold on the newest task (`cadestate status` "
+                                   "says what waits)"))
         work = self._clip_work(lf.clip)
         document = json.loads(lf.document)
         for track, did in _work(lf.kind, document["answers"]).items():
