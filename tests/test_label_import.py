@@ -249,3 +249,14 @@ def test_a_labelstudio_frame_count_off_the_clips_is_warned_of(lwh, tmp_path):
     assert import_labelstudio(lwh, export(25), CLIP, frame_map="video").warnings == []
     assert "Label Studio counted 20 frames and the clip's video has 25 (2.5 s at 10 fps)" \
         in import_labelstudio(lwh, export(20), CLIP, frame_map="video").warnings[0]
+
+
+def test_an_import_for_a_clip_without_a_manual_track_task_says_why_there_is_none(lwh, tmp_path):
+    """A clip has no manual-track task when its split is not one of [manual_tracks] splits (or its
+    manual_tracks stage has not run): giving a task id would not help."""
+    lwh.write("frames", "c2", table_rows("frames", [{"clip": "c2", "timestamp_us": 0, "frame_index": 0, "width": W, "height": H}]))
+    res = run_cli("-w", str(lwh.root), "labels", "import-cvat", str(put(tmp_path, "a.xml", CVAT)), "--clip", "c2",
+                  "--out", str(tmp_path / "out"))
+    assert assert_clean_error(res) == ("error: clip 'c2': no manual_track task to answer: a clip gets one when its split "
+                                       "is one of [manual_tracks] splits (`cadestate ingest --split val`) and its "
+                                       "manual_tracks stage has run")

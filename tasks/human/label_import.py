@@ -354,7 +354,8 @@ def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
     if task_id is None:
         row = latest_task_of_kind(wh, clip, "manual_track")
         if row is None:
-            raise LabelError(f"clip {clip!r}: no manual_track task to answer (give the task id)")
+            raise LabelError(f"clip {clip!r}: no manual_track task to answer: a clip gets one when its split is one of "
+                             "[manual_tracks] splits (`cadestate ingest --split val`) and its manual_tracks stage has run")
         task_id = row["task_id"]
     task = ClipFacts(wh).task(clip, task_id)
     if task is None or task.kind != "manual_track":
