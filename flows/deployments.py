@@ -235,6 +235,8 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     logger = get_run_logger()
     for e in report.errors:
         logger.warning("invalid label file: %s", e)
+    for w in report.warnings:  # what `cadestate labels ingest` prints as warnings (an answer to a replaced task, ...)
+        logger.warning("%s", w)
     resumed = resume_clips(report.clips)
     for clip in sorted(set(report.clips) - set(resumed)):
         if not active_clip_runs(clip, ACTIVE):
