@@ -364,12 +364,14 @@ def publish_schemas(folder: str | None = None) -> list[str]:
     import json
     from pathlib import Path
 
+    from cadestate.atomic import atomic_write_bytes
+
     out = Path(folder) if folder else Path(__file__).parent / "json"
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for kind in KINDS:
         for which in ("task", "label"):
             path = out / schema_file_name(kind, which)
-            path.write_text(json.dumps(json_schema(kind, which), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+            atomic_write_bytes(path, (json.dumps(json_schema(kind, which), indent=2, ensure_ascii=False) + "\n").encode())
             paths.append(str(path))
     return paths

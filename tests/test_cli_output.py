@@ -26,6 +26,10 @@ def test_lines_naming_files_stay_whole_without_a_terminal(tmp_path):
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert lines and all(line.startswith(str(folder)) and line.endswith(".json") for line in lines), result.stdout
+    for narrowed in (("verification",), ("--file", "task")):  # it wrote every schema, silently ignoring these
+        refused = cli("labels", "schema", *narrowed, "--write", str(folder), cwd=tmp_path)
+        assert refused.returncode == 2 and refused.stderr.strip() == \
+            "error: --write writes every kind's task and label schemas: give it without KIND and --file", refused.stderr
     bad = folder / "bad.json"
     bad.write_text(json.dumps({"format": "cadestate-label/1", "kind": "verification"}))
     result = cli("labels", "validate", "--offline", str(bad), cwd=tmp_path)

@@ -177,13 +177,16 @@ def _schema(kind: str, which: str) -> dict:
 def labels_schema(
     kind: Annotated[Optional[str], typer.Argument(help="manual_track | cad_selection | correspondences | verification (default: all).")] = None,
     which: Annotated[Which, typer.Option("--file", help="The label file's schema or the task file's.")] = Which.label,
-    write: Annotated[Optional[Path], typer.Option(help="Write every schema into this folder instead of printing.")] = None,
+    write: Annotated[Optional[Path], typer.Option(help="Write every schema (each kind's task and label file) into this folder instead of printing.")] = None,
 ) -> None:
     """Print the JSON Schema (draft 2020-12) of a label or task file."""
     from schemas.label_kinds import KINDS
 
     if write is not None:
         from schemas.labels import publish_schemas
+
+        if kind is not None or which is not Which.label:
+            raise CliError("--write writes every kind's task and label schemas: give it without KIND and --file")
 
         with cannot_write(write, "the schemas", "; give a folder"):
             written = publish_schemas(str(write))
