@@ -395,7 +395,7 @@ class CadSelectionConfig:
 class CorrespondenceTaskConfig:
     """Stage ``correspondence_task`` (human task, paper 3.3): 3D<->2D clicks on the chosen CAD model."""
 
-    keyframes: int = _opt(6, "Evenly spaced frames of each track offered for clicking.", lo=1, hi=100)
+    keyframes: int = _opt(6, "Evenly spaced frames of each track offered for clicking (a pose needs two views).", lo=2, hi=100)
 
 
 @dataclass(frozen=True)

@@ -457,3 +457,29 @@ def test_task_ids_do_not_move_with_a_columns_description():
 
     assert table_digest(TABLES["cad_candidates"].schema.empty_table()) == "ab0bff7ffa78bba4"
     assert table_digest(TABLES["poses"].schema.empty_table().select(POSE_COLUMNS)) == "9c84f0787543b766"
+
+
+def test_a_track_seen_on_one_frame_is_not_asked_for_clicks(hwh, tmp_path):
+    """A track with boxes on one frame (a manual track drawn on one key-frame) was asked for clicks
+    on its one key-frame, which can never give a pose (pose's ``single_keyframe``), and the app then
+    said "pose failed: click again"; it is left out, and the stage says so."""
+    dets = hwh.read("detections", [CLIP]).to_pylist()
+    tds = hwh.read("track_detections", [CLIP]).to_pylist()
+    dets.append({**dets[0], "det_id": 3007, "timestamp_us": STAMPS[7], "frame_index": 7})
+    tds.append({**tds[0], "track_id": 3, "det_id": 3007, "frame_index": 7, "timestamp_us": STAMPS[7]})
+    hwh.write("detections", CLIP, table_rows("detections", dets))
+    hwh.write("track_detections", CLIP, table_rows("track_detections", tds))
+    hwh.write("tracks", CLIP, table_rows("tracks", [*hwh.read("tracks", [CLIP]).to_pylist(), {**hwh.read("tracks", [CLIP]).to_pylist()[0], "track_id": 3}]))
+    cands = hwh.read("cad_candidates", [CLIP]).to_pylist()
+    hwh.write("cad_candidates", CLIP, table_rows("cad_candidates", [*cands, *({**c, "track_id": 3} for c in cands if c["track_id"] == 0)]))
+    _select(hwh, tmp_path / "s" / "a.json", {0: "lib.chair_a", 1: None, 2: None, 3: "lib.chair_b"}, "2026-01-01T00:00:00+00:00")
+    corr = _corr(hwh)
+    assert corr.status == "paused" and [it["track_id"] for it in _task(hwh, corr.message)["items"]] == [0]
+    assert corr.message.endswith("0 of 1 tracks have correspondences; 1 track(s) seen on one frame only not asked "
+                                 "(one view gives no pose)"), corr.message
+
+    _select(hwh, tmp_path / "s" / "b.json", {0: None}, "2026-01-02T00:00:00+00:00")  # only the one-frame track is left
+    alone = _corr(hwh)
+    assert alone.status == "completed" and alone.rows_written == 0
+    assert alone.message == "no track with a chosen CAD model is seen on two frames; 1 track(s) seen on one frame only " \
+                            "not asked (one view gives no pose)"

@@ -1,5 +1,5 @@
 """Stage ``correspondence_task`` (paper 3.3), after ``cad_selection``: per track with a chosen model, the model's
-  mesh and key-frames to click on. The clicks that answer each item (given on this task, or on an
+  mesh and key-frames to click on (a track seen on one frame only is not asked: one view gives no pose). The clicks that answer each item (given on this task, or on an
   earlier one and still holding: :mod:`tasks.human.clicks_in_force`) go to ``correspondences``
   (the ``pose`` stage's input), here and at ingest.
 
@@ -29,9 +29,15 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     chosen = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
     if not chosen:
         return StageOutput(0, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
-    track_ids = sorted(chosen)
     tracks = clip_tracks(wh, clip)
-    keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
+    keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes)
+    # one view gives no depth: a track seen on one frame can never be posed (pose's single_keyframe)
+    track_ids = [t for t in sorted(chosen) if len(keyframes[t]) >= 2]
+    one_frame = len(chosen) - len(track_ids)
+    not_asked = f"; {one_frame} track(s) seen on one frame only not asked (one view gives no pose)" if one_frame else ""
+    if not track_ids:
+        return StageOutput(0, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
+                           f"no track with a chosen CAD model is seen on two frames{not_asked}")
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
     now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
@@ -51,7 +57,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     clicks, _ = sync_correspondences(wh, clip)
     output = digest("correspondence_task", task_id, table_digest(clicks))
     waiting = len(track_ids) - len(held)
-    summary = f"{len(held)} of {len(track_ids)} tracks have correspondences"
+    summary = f"{len(held)} of {len(track_ids)} tracks have correspondences{not_asked}"
     return task_output(len(held), output, summary, "correspondences", path, waiting, len(track_ids))
 
 
