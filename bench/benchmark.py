@@ -25,6 +25,7 @@ from bench.labels import label_statistics
 from bench.seeds import DEFAULT_SEED, seed_note
 from bench.stats import dataset_statistics, statistics_markdown
 from bench.walkthrough import WalkthroughSpec, generate_clip
+from cadestate.atomic import atomic_write_bytes
 from cadestate.lineage import digest
 from cadestate.progress import progress
 from schemas.official import ObjectAnnotation, TrackEntry, read_frames, read_objects
@@ -66,8 +67,13 @@ def read_manifest(bench_dir: Path) -> Manifest:
     path = Path(bench_dir) / MANIFEST
     if not path.is_file():
         raise BenchmarkError(f"{bench_dir}: not a benchmark folder (no {MANIFEST}); see `cadestate bench generate`")
-    data = json.loads(path.read_text())
-    return Manifest(int(data["seed"]), tuple(data["clips"]), str(data["library"]))
+    try:
+        data = json.loads(path.read_text())
+        manifest = Manifest(int(data["seed"]), tuple(str(c) for c in data["clips"]), str(data["library"]))
+    except (ValueError, KeyError, TypeError) as e:  # JSONDecodeError is a ValueError
+        what = f"no field {e}" if isinstance(e, KeyError) else str(e)
+        raise BenchmarkError(f"{path}: not a benchmark manifest ({what}); `cadestate bench generate` writes one") from None
+    return manifest
 
 
 def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: WalkthroughSpec = WalkthroughSpec(),
@@ -75,6 +81,10 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     """Generate the clips that are missing; returns the manifest and the seconds each new clip took."""
     bench_dir = Path(bench_dir)
     models = library_models(wh)
+    try:
+        bench_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file of that name (or above it), or a folder it may not write in
+        raise BenchmarkError(f"{bench_dir}: cannot be the benchmark folder ({e.strerror})") from None
     manifest = Manifest(seed, tuple(clip_name(seed, i, spec) for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
     if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
         raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
@@ -88,7 +98,7 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
                 raise
             fewer = f", or --clips {i} (the clips before it are kept)" if i else ""
             raise BenchmarkError(f"{bench_dir}: clip {i} of seed {seed} cannot be generated ({e}): use another --seed{fewer}") from None
-    (bench_dir / MANIFEST).write_text(json.dumps(manifest.to_json(), indent=1))
+    atomic_write_bytes(bench_dir / MANIFEST, json.dumps(manifest.to_json(), indent=1).encode())
     return manifest, seconds
 
 

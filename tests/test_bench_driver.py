@@ -127,6 +127,21 @@ def test_not_a_benchmark_folder(tmp_path):
         read_manifest(tmp_path)
 
 
+@pytest.mark.parametrize(("text", "why"), [("{", "Expecting property name"), ('{"seed": 1}', "no field 'clips'"),
+                                           ('{"seed": "x", "clips": [], "library": ""}', "invalid literal")])
+def test_a_broken_manifest_is_one_error_naming_it(tmp_path, text, why):
+    (tmp_path / MANIFEST).write_text(text)
+    with pytest.raises(BenchmarkError, match=rf"^{tmp_path / MANIFEST}: not a benchmark manifest \(.*{why}"):
+        read_manifest(tmp_path)
+
+
+def test_a_file_as_the_benchmark_folder_is_one_error(small_cad_library, tmp_path):
+    (tmp_path / "b").write_text("notes")
+    with pytest.raises(BenchmarkError, match=rf"^{tmp_path / 'b'}: cannot be the benchmark folder \(File exists\)$"):
+        generate(tmp_path / "b", 5, 1, small_cad_library[0], SPEC, show_progress=False)
+    assert (tmp_path / "b").read_text() == "notes"
+
+
 def test_cli_defaults_are_the_default_benchmark():
     import inspect
 

@@ -141,6 +141,13 @@ def test_bench_generate_refuses_no_clips(tmp_path):
     assert result.returncode == 2 and "Invalid value for '--clips'" in result.stderr and not (tmp_path / "b").exists()
 
 
+@pytest.mark.parametrize("option", [("--seed", "-1"), ("--frames", "0")])
+def test_bench_generate_refuses_a_negative_seed_or_no_frames(tmp_path, option):
+    """A negative seed was a numpy traceback after a clip folder (``bench--1-00_0``) was made; no frames, a traceback."""
+    result = cli("-w", str(tmp_path / "w"), "bench", "generate", "--out", str(tmp_path / "b"), *option)
+    assert result.returncode == 2 and f"Invalid value for '{option[0]}'" in result.stderr and not (tmp_path / "b").exists()
+
+
 def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     """`cadestate annotate` where nothing can listen: one error line naming the address, before Prefect
     starts or the app's address is printed; a port out of range is refused by the option (and by

@@ -16,10 +16,10 @@ from cadestate.cli.common import run_sources, bench_app, err, out
 def bench_generate(
     ctx: typer.Context,
     bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there are kept).")],
-    seed: Annotated[int, typer.Option(help="Benchmark seed (clip i uses seed*1000+i); the default is the default benchmark's. make "
+    seed: Annotated[int, typer.Option(min=0, help="Benchmark seed (clip i uses seed*1000+i); the default is the default benchmark's. make "
                                          "bench's fresh seed and the seeds already used while tuning: bench/seeds.py.")] = 20261123,
     clips: Annotated[int, typer.Option(min=1, help="Number of clips.")] = 12,
-    frames: Annotated[int, typer.Option(help="Video frames per clip at 30 fps; every 2nd is a camera line.")] = 276,
+    frames: Annotated[int, typer.Option(min=1, help="Video frames per clip at 30 fps; every 2nd is a camera line.")] = 276,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Generate walkthrough clips of furnished rooms from the CAD library, with exact ground truth
@@ -122,8 +122,8 @@ def bench_report(
 def bench_demo(
     out_dir: Annotated[Path, typer.Argument(help="Folder for <name>.mp4 and <name>.txt.")],
     name: Annotated[str, typer.Option(help="Clip name.")] = "demo_0000",
-    seed: Annotated[int, typer.Option(help="Random seed (same seed, same clip).")] = 0,
-    frames: Annotated[int, typer.Option(help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
+    seed: Annotated[int, typer.Option(min=0, help="Random seed (same seed, same clip).")] = 0,
+    frames: Annotated[int, typer.Option(min=1, help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
 ) -> None:
     """Generate one synthetic walkthrough clip with exact cameras (138 camera lines by default): a quick
     input for `cadestate ingest` and `cadestate run`, no CAD library needed."""
