@@ -174,6 +174,28 @@ def detection_frames(bench_dir: Path, clip: str, wh: Warehouse) -> list[FrameBox
                        [d["label"] for d in preds.get(f.timestamp, [])]) for f in frames.frames]
 
 
+def unfinished_clips(clips: list[str], wh: Warehouse) -> dict[str, str]:
+    """The clips of ``clips`` that have not run to the end in ``wh``, clip -> where it stands: "not
+    run" (not in the warehouse), or its first stage, in pipeline order, whose last run did not
+    complete ("waits at cad_selection", "failed at pose") or that never ran ("never ran pose")."""
+    from tasks.registry import stages_of
+    from tasks.status import read_runs
+
+    present = [c for c in clips if wh.has_partition("clips", c)]
+    last = {(r["clip"], r["stage"]): r["status"] for r in read_runs(wh, present)} if present else {}
+    out = {}
+    for clip in clips:
+        if clip not in present:
+            out[clip] = "not run"
+            continue
+        for stage in (s.name for s in stages_of("clip")):
+            status = last.get((clip, stage))
+            if status != "completed":
+                out[clip] = f"never ran {stage}" if status is None else f"{'waits' if status == 'paused' else status} at {stage}"
+                break
+    return out
+
+
 def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> dict:
     """The dataset's yield first (:mod:`bench.dataset_yield`), then metrics of what the pipeline
     can do so far (of the clips in ``wh``), dataset statistics, and example frames."""
@@ -201,6 +223,7 @@ def report(bench_dir: Path, examples: int = 3, wh: Warehouse | None = None) -> d
     return {
         "yield": dataset_yield(bench_dir, wh) if wh is not None else None,
         "benchmark": {"seed": manifest.seed, "clips": len(manifest.clips)},
+        "unfinished": unfinished_clips(list(manifest.clips), wh) if wh is not None else None,
         "detection": detection and {"clips": len(detected), **detection},
         "tracking": tracking_accuracy(bench_dir, wh) if wh is not None else None,
         "pose": pose_accuracy(bench_dir, wh) if wh is not None else None,
@@ -221,6 +244,7 @@ def report_markdown(result: dict) -> str:
 
     lines = [f"# Synthetic benchmark (seed {result['benchmark']['seed']}, {result['benchmark']['clips']} clips)", "",
              seed_note(result["benchmark"]["seed"]), "",
+             *unfinished_markdown(result.get("unfinished"), result["benchmark"]["clips"]),
              *yield_markdown(result.get("yield")),
              "## The benchmark's ground truth (the paper's Table 2 statistics; what the dataset built holds is above and in `cadestate stats`)", "", statistics_markdown(result["statistics"]), "",
              f"Ground-truth boxes: {result['ground_truth_boxes']['total']}, of which "
@@ -235,6 +259,19 @@ def report_markdown(result: dict) -> str:
              "## Examples (green: evaluated boxes, grey: ignore regions)", ""]
     lines += [f"![{p}]({p})" for p in result["examples"]]
     return "\n".join(lines) + "\n"
+
+
+def unfinished_markdown(unfinished: dict[str, str] | None, clips: int) -> list[str]:
+    """Lines saying which clips have not run to the end (:func:`unfinished_clips`), first in the
+    report: its numbers leave out a clip not run and count a clip that waits as far as it got."""
+    if not unfinished:
+        return []
+    if sum(why == "not run" for why in unfinished.values()) == clips:
+        return [f"**No clip of this benchmark is in the warehouse** ({clips} not run): `cadestate bench run` on it runs "
+                "them; the dataset's yield leads this report once they have run.", ""]
+    return [f"**{len(unfinished)} of {clips} clips {'has' if len(unfinished) == 1 else 'have'} not run to the end**: the numbers below leave out a clip not run "
+            "and count a clip that waits as far as it got (`cadestate bench run` on the benchmark goes on): "
+            + "; ".join(f"{clip} {why}" for clip, why in unfinished.items()) + ".", ""]
 
 
 def detection_markdown(detection: dict | None) -> list[str]:

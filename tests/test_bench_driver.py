@@ -96,6 +96,41 @@ def test_report_has_statistics_and_pictures(benchmark):
     json.dumps(result)
 
 
+def test_report_says_which_clips_have_not_run_to_the_end(benchmark, tmp_path):
+    """A report on a benchmark the warehouse ran in part (or not at all) gave its yield over the clips
+    that ran, or no yield section at all, without a word of the clips left out."""
+    import datetime as dt
+
+    from bench.benchmark import unfinished_clips
+    from conftest import table_rows
+    from tasks.registry import stages_of
+    from warehouse import Warehouse
+
+    folder, manifest, _ = benchmark
+    wh = Warehouse(tmp_path / "w")
+    none_run = report_markdown(report(folder, examples=0, wh=wh))
+    assert none_run.split("\n\n")[2] == ("**No clip of this benchmark is in the warehouse** (2 not run): `cadestate bench "
+                                         "run` on it runs them; the dataset's yield leads this report once they have run.")
+    first, second = manifest.clips
+    wh.write("clips", first, table_rows("clips", [{"clip": first, "split": "train"}]))
+    at = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    stages = [s.name for s in stages_of("clip")]
+    runs = [{"clip": first, "run_id": f"r{i}", "stage": stage, "status": "completed", "started_at": at}
+            for i, stage in enumerate(stages[:-1])]
+    wh.write("runs", first, table_rows("runs", runs))
+    assert unfinished_clips(list(manifest.clips), wh) == {first: f"never ran {stages[-1]}", second: "not run"}
+    wh.write("runs", first, table_rows("runs", [{**runs[-1], "run_id": "p", "status": "paused",
+                                                 "started_at": at + dt.timedelta(seconds=1)}]))
+    assert unfinished_clips(list(manifest.clips), wh) == {first: f"waits at {stages[-2]}", second: "not run"}
+    wh.write("runs", first, table_rows("runs", [{**runs[-1], "run_id": "c", "started_at": at + dt.timedelta(seconds=2)},
+                                                {"clip": first, "run_id": "v", "stage": stages[-1], "status": "completed",
+                                                 "started_at": at + dt.timedelta(seconds=3)}]))
+    assert unfinished_clips(list(manifest.clips), wh) == {second: "not run"}
+    assert report_markdown(report(folder, examples=0, wh=wh)).split("\n\n")[2] == (
+        f"**1 of 2 clips has not run to the end**: the numbers below leave out a clip not run and count a clip that "
+        f"waits as far as it got (`cadestate bench run` on the benchmark goes on): {second} not run.")
+
+
 def test_simulated_labels_match_the_noise_model(benchmark, small_cad_library):
     from bench.labels import label_statistics, simulate_labels
 

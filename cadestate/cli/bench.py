@@ -106,15 +106,17 @@ def bench_report(
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown.")] = False,
 ) -> None:
-    """Report the benchmark, leading with the dataset's yield (objects in view with exactly one accepted,
+    """Report the benchmark (first naming the clips the warehouse has not run to the end), leading with
+    the dataset's yield (objects in view with exactly one accepted,
     correct pose; duplicates; false annotations; tracks per object; human items per posed object; per
     split), then metrics of the stages that exist, dataset statistics, example frames with ground-truth
     boxes (written to <bench>/report/ and <bench>/report.md)."""
     from bench.benchmark import report, report_markdown
+    from cadestate.atomic import atomic_write_bytes
 
     result = report(bench_dir, wh=ctx.obj.open_warehouse(must_exist=True))
     markdown = report_markdown(result)
-    (bench_dir / "report.md").write_text(markdown)
+    atomic_write_bytes(bench_dir / "report.md", markdown.encode())
     print(json.dumps(result, indent=1) if as_json else markdown)
 
 
