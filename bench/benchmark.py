@@ -102,6 +102,17 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     return manifest, seconds
 
 
+def require_library(bench_dir: Path, clips: list[str], wh: Warehouse) -> None:
+    """Raise :class:`BenchmarkError` unless ``wh`` holds every CAD model of the ground truth of
+    ``clips`` (the simulated annotators click on them, and pick them among the candidates)."""
+    have = {r["cad_id"] for r in wh.read("cad_models", columns=["cad_id"]).to_pylist()}
+    missing = sorted({o.cad_id for c in clips for o in read_objects(Path(bench_dir) / c / "objects.json").objects} - have)
+    if missing:
+        raise BenchmarkError(f"{bench_dir}: {len(missing)} CAD model(s) of its ground truth are not in the warehouse "
+                             f"{wh.root} (e.g. {missing[0]}): use the warehouse it was generated from (-w), or "
+                             "`cadestate cad ingest` its library there")
+
+
 def clip_name(seed: int, index: int, spec: WalkthroughSpec = WalkthroughSpec()) -> str:
     """The benchmark's clip ``index`` named as the official CAD-Estate convention wants,
     ``<video_id>_<start_us>``: video id ``bench-<seed>-<index:02d>`` (one video per clip: no two

@@ -316,6 +316,22 @@ def _draw_missing_objects(folder, wh, clip):
     assert truth[gone] in manual
 
 
+def test_bench_run_in_a_warehouse_without_the_benchmarks_models_is_one_line(benchmark, tmp_path):
+    """A warehouse without the library the benchmark was drawn from (another -w) was a KeyError traceback
+    from the simulated annotators; now one line naming a missing model and the fix, before any clip runs."""
+    from typer.testing import CliRunner
+
+    from cadestate.cli import app
+    from warehouse import Warehouse
+
+    folder, _, _ = benchmark
+    result = CliRunner().invoke(app, ["-w", str(tmp_path / "w"), "bench", "run", str(folder), "--no-progress"])
+    assert isinstance(result.exception, BenchmarkError)  # main() prints it as one line
+    assert str(result.exception).startswith(f"{folder}: ") and "CAD model(s) of its ground truth are not in the warehouse" in str(result.exception)
+    assert str(result.exception).endswith("use the warehouse it was generated from (-w), or `cadestate cad ingest` its library there")
+    assert Warehouse(tmp_path / "w").partitions("clips") == []
+
+
 def test_bench_run_refuses_a_cad_library_the_configuration_makes_stale(small_library_warehouse, tmp_path):
     """A warehouse whose library was embedded with another [cad_embed] (copied from elsewhere, a
     descriptor retrained since) would have its retrieval measured against descriptors the

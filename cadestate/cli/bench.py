@@ -61,7 +61,7 @@ def bench_run(
     tracks (<bench>/simulated_clicks/<clip>.json, once), the input of `python -m bench.pose_bench`."""
     import dataclasses
 
-    from bench.benchmark import clip_sources, read_manifest
+    from bench.benchmark import clip_sources, read_manifest, require_library
     from bench.labels import simulate_labels, write_correspondences
 
     from tasks.status import stale_libraries
@@ -73,6 +73,7 @@ def bench_run(
         err.print(f"CAD library {escape(lib)} is stale ({'; '.join(reasons)}){more}: run `cadestate cad ingest` first")
         raise typer.Exit(1)
     clips = list(read_manifest(bench_dir).clips)
+    require_library(bench_dir, clips, ctx.obj.open_warehouse())
     sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
     made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)
     err.print(f"simulated clicks on every ground-truth object: {made} clip(s) made now")
