@@ -89,6 +89,8 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
         raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
     todo = [(i, name) for i, name in enumerate(manifest.clips) if not (bench_dir / name / "objects.json").is_file()]
+    for name in sorted(set(manifest.clips) - {name for _, name in todo}):
+        _require_spec(bench_dir, name, spec)
     seconds = []
     for i, name in progress(todo, total=len(todo), description="bench clips", enabled=show_progress):
         try:
@@ -111,6 +113,19 @@ def require_library(bench_dir: Path, clips: list[str], wh: Warehouse) -> None:
         raise BenchmarkError(f"{bench_dir}: {len(missing)} CAD model(s) of its ground truth are not in the warehouse "
                              f"{wh.root} (e.g. {missing[0]}): use the warehouse it was generated from (-w), or "
                              "`cadestate cad ingest` its library there")
+
+
+def _require_spec(bench_dir: Path, clip: str, spec: WalkthroughSpec) -> None:
+    """Raise :class:`BenchmarkError` unless the clip already in ``bench_dir`` was made as ``spec``
+    makes clips (its camera frames and image size): a clip's name does not say, so ``--frames 60``
+    and then ``--frames 276`` into one folder kept the short clips without a word."""
+    frames = read_frames(bench_dir / clip / "frames.json")
+    made = (len(frames.frames), tuple(frames.image_size))
+    asked = (len(range(0, spec.num_video_frames, spec.sample_every)), (spec.height, spec.width))
+    if made != asked:
+        raise BenchmarkError(f"{bench_dir}: clip {clip} has {made[0]} camera frames of {made[1][1]}x{made[1][0]} px, "
+                             f"not the {asked[0]} of {asked[1][1]}x{asked[1][0]} px asked for (--frames "
+                             f"{spec.num_video_frames}): choose a new folder, or the --frames it was generated with")
 
 
 def clip_name(seed: int, index: int, spec: WalkthroughSpec = WalkthroughSpec()) -> str:

@@ -41,6 +41,21 @@ def test_generate_is_cached_and_named_by_seed(benchmark, small_cad_library):
     assert (folder / "bench-5-00_0" / "objects.json").read_bytes() == before
 
 
+def test_generate_refuses_clips_there_made_with_other_frames(benchmark, small_cad_library):
+    """Clip names do not say how many frames a clip has: `--frames 60` and then `--frames 276` into
+    one folder kept the short clips, '0 generated now, 2 already there'."""
+    import dataclasses
+
+    folder, manifest, _ = benchmark
+    before = (folder / MANIFEST).read_bytes()
+    longer = dataclasses.replace(SPEC, num_video_frames=40)
+    with pytest.raises(BenchmarkError, match=rf"^{folder}: clip bench-5-00_0 has 12 camera frames of 320x180 px, not "
+                                             r"the 20 of 320x180 px asked for \(--frames 40\): choose a new folder, or "
+                                             r"the --frames it was generated with$"):
+        generate(folder, 5, 2, small_cad_library[0], longer, show_progress=False)
+    assert (folder / MANIFEST).read_bytes() == before
+
+
 def test_ignore_rule_uses_visibility_and_class(benchmark):
     from bench.benchmark import CLASS_NAMES
     from bench.ignore import DETECTABLE_CLASSES, MAX_TRUNCATED_FRACTION, MIN_VISIBLE_FRACTION

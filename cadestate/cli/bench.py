@@ -15,7 +15,7 @@ from cadestate.cli.common import run_sources, bench_app, err, out
 @bench_app.command("generate")
 def bench_generate(
     ctx: typer.Context,
-    bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there are kept).")],
+    bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there, made with the same --frames, are kept).")],
     seed: Annotated[int, typer.Option(min=0, help="Benchmark seed (clip i uses seed*1000+i); the default is the default benchmark's. make "
                                          "bench's fresh seed and the seeds already used while tuning: bench/seeds.py.")] = 20261123,
     clips: Annotated[int, typer.Option(min=1, help="Number of clips.")] = 12,
