@@ -148,6 +148,12 @@ def test_bench_generate_refuses_a_negative_seed_or_no_frames(tmp_path, option):
     assert result.returncode == 2 and f"Invalid value for '{option[0]}'" in result.stderr and not (tmp_path / "b").exists()
 
 
+def test_bench_run_refuses_no_rounds(tmp_path):
+    """--max-rounds 0 ran no clip and printed an empty table, exit status 0."""
+    result = cli("-w", str(tmp_path / "w"), "bench", "run", str(tmp_path / "b"), "--max-rounds", "0")
+    assert result.returncode == 2 and "Invalid value for '--max-rounds'" in result.stderr
+
+
 def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     """`cadestate annotate` where nothing can listen: one error line naming the address, before Prefect
     starts or the app's address is printed; a port out of range is refused by the option (and by

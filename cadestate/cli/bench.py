@@ -45,7 +45,7 @@ def bench_run(
              "whole pipeline from video to verified poses. --gt-tracks: no human tasks; the simulated clicks on the "
              "ground-truth tracks go into `correspondences` directly (poses of ground-truth tracks, as "
              "`python -m bench.pose_bench` solves them).")] = True,
-    max_rounds: Annotated[int, typer.Option(help="With --answer-tasks: at most this many runs of the clips.")] = 6,
+    max_rounds: Annotated[int, typer.Option(min=1, help="With --answer-tasks: at most this many runs of the clips.")] = 6,
     annotator_seed: Annotated[int, typer.Option(
         min=0, help="With --answer-tasks: the simulated annotators' seed (their noise: clicks, picks, boxes). One "
              "run's yield moves by a few objects with it; run other seeds in other warehouses (-w) to see how "
