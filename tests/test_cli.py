@@ -154,6 +154,16 @@ def test_bench_run_refuses_no_rounds(tmp_path):
     assert result.returncode == 2 and "Invalid value for '--max-rounds'" in result.stderr
 
 
+@pytest.mark.parametrize(("where", "name", "says"), [("f", "demo", "f: cannot write the demo clip there: File exists"),
+                                                    ("d", "../x", "invalid clip name '../x'")])
+def test_bench_demo_refuses_a_file_as_its_folder_or_a_name_with_a_path(tmp_path, where, name, says):
+    """A file as the folder was a FileExistsError traceback; --name ../x wrote ../x.mp4 beside the folder."""
+    (tmp_path / "f").write_text("notes")
+    result = cli("bench", "demo", str(tmp_path / where), "--name", name, "--frames", "4")
+    assert result.returncode == 2 and "Traceback" not in result.stderr and says in result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"] and (tmp_path / "f").read_text() == "notes"
+
+
 def test_annotate_on_a_taken_port_is_one_line(tmp_path):
     """`cadestate annotate` where nothing can listen: one error line naming the address, before Prefect
     starts or the app's address is printed; a port out of range is refused by the option (and by

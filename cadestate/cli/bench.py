@@ -131,7 +131,11 @@ def bench_demo(
     """Generate one synthetic walkthrough clip with exact cameras (138 camera lines by default): a quick
     input for `cadestate ingest` and `cadestate run`, no CAD library needed."""
     from bench.demo_clip import DemoClipSpec, make_demo_clip
+    from cadestate.cli.common import cannot_write
+    from warehouse.store import check_name
 
-    clip = make_demo_clip(out_dir, DemoClipSpec(name=name, seed=seed, num_video_frames=frames))
+    check_name(name)  # it names the clip's files (and the clip an ingest of them makes)
+    with cannot_write(out_dir, "the demo clip"):
+        clip = make_demo_clip(out_dir, DemoClipSpec(name=name, seed=seed, num_video_frames=frames))
     out.print(f"wrote {escape(str(clip.video_path))} and {escape(str(clip.cameras_path))} ({len(clip.frame_indices)} cameras)")
 
