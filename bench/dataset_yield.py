@@ -229,6 +229,15 @@ def _chosen_and_solved(wh: Warehouse, clips: list[str]) -> tuple[set[Key], set[K
     return chosen, {(r["clip"], str(r["track_id"])) for r in rows if r["status"] == "ok"}
 
 
+def _num(value: float | None) -> str:
+    """A rate of the report, "-" where it has no denominator (no object in view, none yielded, none found)."""
+    return "-" if value is None else str(value)
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value} %"
+
+
 def yield_markdown(result: dict | None) -> list[str]:
     """Lines of the report's yield section (first in the report)."""
     if not result:
@@ -241,13 +250,13 @@ def yield_markdown(result: dict | None) -> list[str]:
         notes = ([f"target {s['target_pct']} %"] if s["target_pct"] is not None else []) + (
             [f"95 % interval {interval[0]}-{interval[1]} % over resampled clips"] if interval else [])
         target = f" ({'; '.join(notes)})" if notes else ""
-        lines.append(f"**{split}** ({s['clips']} clips): yield **{m['yield_pct']} %**{target}: {m['yielded_objects']} of "
+        lines.append(f"**{split}** ({s['clips']} clips): yield **{_pct(m['yield_pct'])}**{target}: {m['yielded_objects']} of "
                      f"{m['expected_objects']} objects in view have exactly one accepted, correct pose; "
-                     f"{m['duplicates']} duplicates ({m['duplicates_pct_of_accepted']} % of {m['accepted_poses']} "
+                     f"{m['duplicates']} duplicates ({_pct(m['duplicates_pct_of_accepted'])} of {m['accepted_poses']} "
                      f"accepted poses); {m['wrong_poses']} wrong poses of objects in view; "
-                     f"{m['false_annotations']} false annotations; {s['tracks_per_object']} tracks per "
+                     f"{m['false_annotations']} false annotations; {_num(s['tracks_per_object'])} tracks per "
                      f"object ({s['expected_objects_found']} objects found by a track); "
-                     f"{m['human_items_per_posed_object']} human items per posed object ({s['human_items_total']} asked).")
+                     f"{_num(m['human_items_per_posed_object'])} human items per posed object ({s['human_items_total']} asked).")
         lines.append("")
     lines += [f"In view: ground-truth boxes visible >= {100 * MIN_VISIBLE_FRACTION:.0f} % and truncated <= "
               f"{100 * MAX_TRUNCATED_FRACTION:.0f} % on at least {result['min_frames_in_view']} "
@@ -264,6 +273,6 @@ def yield_markdown(result: dict | None) -> list[str]:
     for split, s in result["splits"].items():
         for mode, m in s["modes"].items():
             lines.append(f"| {split} | `{mode}` | {m['accepted_poses']} | {m['yielded_objects']} of {m['expected_objects']} "
-                         f"({m['yield_pct']} %) | {m['duplicates']} | {m['false_annotations']} | {m['on_other_objects']} | "
-                         f"{m['human_items_per_posed_object']} |")
+                         f"({_pct(m['yield_pct'])}) | {m['duplicates']} | {m['false_annotations']} | {m['on_other_objects']} | "
+                         f"{_num(m['human_items_per_posed_object'])} |")
     return lines + [""] + funnel_markdown({split: s["fates"] for split, s in result["splits"].items()})

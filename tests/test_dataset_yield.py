@@ -84,6 +84,24 @@ def test_the_report_line_gives_the_interval_where_there_is_one():
     assert val.startswith("**val** (9 clips): yield **87.5 %**: 49 of 56")
 
 
+def test_a_split_with_no_object_in_view_reads_dashes_not_none():
+    """A tiny benchmark (a few frames) can hold no object in view: the line read 'yield **None %**',
+    'None % of 0 accepted poses', 'None tracks per object', 'None human items'."""
+    from bench.dataset_yield import yield_markdown
+    from bench.loss_funnel import fate_counts
+
+    mode = pose_yield([], set()).as_dict(0)
+    split = {"clips": 1, "target_pct": 60, "interval_pct": None, **tracks_per_object({}, set()), "human_items_total": 0,
+             "fates": fate_counts({}), "modes": {"scan2cad-class": mode}}
+    lines = yield_markdown({"headline_mode": "scan2cad-class", "min_frames_in_view": 3, "splits": {"train": split}})
+    assert not [line for line in lines if "None" in line]
+    assert next(line for line in lines if line.startswith("**train**")) == (
+        "**train** (1 clips): yield **-** (target 60 %): 0 of 0 objects in view have exactly one accepted, correct pose; "
+        "0 duplicates (- of 0 accepted poses); 0 wrong poses of objects in view; 0 false annotations; - tracks per "
+        "object (0 objects found by a track); - human items per posed object (0 asked).")
+    assert "| train | `scan2cad-class` | 0 | 0 of 0 (-) | 0 | 0 | 0 | - |" in lines
+
+
 def _posed(track: str, cls: str, x: float, clip: str = "c") -> PosedObject:
     return PosedObject(track, cls, (x, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, f"m.{cls}", clip)
 
