@@ -6,8 +6,7 @@ scene occlude) and a manual track of :func:`bench.annotators.draw_manual_track`,
 noise model :class:`bench.noise.AnnotatorNoise`: the benchmark's own file, not a label file (the
 label files the simulated people answer tasks with go to ``<bench>/labels/<clip>/``,
 :mod:`bench.simulated_labels`; it sat in ``labels/``, where ``cadestate labels validate`` of that
-folder took it for a bad label file). ``bench run --gt-tracks``, :mod:`bench.pose_bench` and
-:mod:`bench.sfm_bench` read it.
+folder took it for a bad label file). :mod:`bench.pose_bench` and :mod:`bench.sfm_bench` read it.
 """
 
 from __future__ import annotations
@@ -120,24 +119,3 @@ def correspondence_rows(labels: dict) -> list[dict]:
                              "point_index": i, "cad_id": obj["cad_id"], "point_2d": list(xy), "point_3d": list(xyz),
                              "is_mirrored": kf.is_mirrored})
     return rows
-
-
-def write_correspondences(bench_dir: Path, clips: list[str], wh: Warehouse) -> int:
-    """Load each clip's simulated correspondences into the warehouse's ``correspondences`` table
-    (the pose stage's input; a partition is rewritten only when its content changes). Returns rows."""
-    import pyarrow as pa
-
-    from cadestate.lineage import table_digest
-    from schemas.pose import CORRESPONDENCES
-
-    total = 0
-    for clip in clips:
-        path = clicks_path(bench_dir, clip)
-        if not path.is_file():
-            continue
-        table = pa.Table.from_pylist(correspondence_rows(json.loads(path.read_text())), schema=CORRESPONDENCES.schema)
-        table = wh.conform("correspondences", clip, table).sort_by([(k, "ascending") for k in CORRESPONDENCES.key])
-        if table_digest(table) != table_digest(wh.read("correspondences", [clip])):
-            wh.write("correspondences", clip, table)
-        total += table.num_rows
-    return total

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from cadestate.cli.common import run_sources, bench_app, err, out
+from cadestate.cli.common import bench_app, err, out
 
 
 @bench_app.command("generate")
@@ -38,16 +38,9 @@ def bench_run(
     ctx: typer.Context,
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
-    answer_tasks: Annotated[bool, typer.Option(
-        "--answer-tasks/--gt-tracks",
-        help="--answer-tasks (default): the simulated annotators answer the clips' open human tasks through "
-             "label files (<bench>/labels/<clip>/), which are ingested, and the clips rerun until none waits: the "
-             "whole pipeline from video to verified poses. --gt-tracks: no human tasks; the simulated clicks on the "
-             "ground-truth tracks go into `correspondences` directly (poses of ground-truth tracks, as "
-             "`python -m bench.pose_bench` solves them).")] = True,
-    max_rounds: Annotated[int, typer.Option(min=1, help="With --answer-tasks: at most this many runs of the clips.")] = 6,
+    max_rounds: Annotated[int, typer.Option(min=1, help="At most this many runs of the clips.")] = 6,
     annotator_seed: Annotated[int, typer.Option(
-        min=0, help="With --answer-tasks: the simulated annotators' seed (their noise: clicks, picks, boxes). One "
+        min=0, help="The simulated annotators' seed (their noise: clicks, picks, boxes). One "
              "run's yield moves by a few objects with it; run other seeds in other warehouses (-w) to see how "
              "much.")] = 0,
     sfm_cameras: Annotated[bool, typer.Option(
@@ -57,12 +50,14 @@ def bench_run(
              "(-w) than the run with camera files, to compare the two reports.")] = False,
 ) -> None:
     """Run the pipeline on every benchmark clip, the simulated annotators answering its human tasks
-    (cached stages do no work). Also writes the simulated annotators' clicks on the ground-truth
+    through label files (<bench>/labels/<clip>/), which are ingested, and the clips rerun until none
+    waits: video to verified poses (cached stages do no work). The solver alone, on the simulated
+    clicks of the ground-truth tracks: `python -m bench.pose_bench`. Also writes the simulated annotators' clicks on the ground-truth
     tracks (<bench>/simulated_clicks/<clip>.json, once), the input of `python -m bench.pose_bench`."""
     import dataclasses
 
     from bench.benchmark import clip_sources, read_manifest, require_library
-    from bench.labels import simulate_labels, write_correspondences
+    from bench.labels import simulate_labels
 
     from tasks.status import stale_libraries
 
@@ -77,11 +72,6 @@ def bench_run(
     sources = {s.clip: dataclasses.replace(s, cameras=None) if sfm_cameras else s for s in clip_sources(bench_dir)}
     made = simulate_labels(bench_dir, clips, ctx.obj.open_warehouse(), progress)
     err.print(f"simulated clicks on every ground-truth object: {made} clip(s) made now")
-    if not answer_tasks:
-        rows = write_correspondences(bench_dir, clips, ctx.obj.open_warehouse())
-        err.print(f"correspondences: {rows} simulated clicks in the warehouse (input of the pose stage, ground-truth tracks)")
-        run_sources(ctx.obj, list(sources.values()), progress)
-        return
     from bench.noise import DEFAULT_NOISE
     from bench.simulated_labels import annotate_until_done, merge_rounds
     from cadestate.cli.common import print_reports

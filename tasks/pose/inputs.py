@@ -42,8 +42,7 @@ def answered_correspondences(wh: Warehouse, clip: str) -> pa.Table:
     newest correspondences task (:mod:`tasks.human.clicks_in_force`), kept only for the tracks
     whose clicks use the model chosen for them now (:func:`tasks.human.cad_selection.selected_models`):
     while the task is behind (nothing chosen any more, a choice changed, a manual track taken
-    back), no track is posed from stale clicks. Rows written directly (``bench run --gt-tracks``)
-    are all kept."""
+    back), no track is posed from stale clicks. Rows no label file wrote are all kept."""
     corr = wh.read("correspondences", [clip])
     if not wh.has_partition("correspondence_labels", clip):
         return corr
