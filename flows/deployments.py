@@ -3,7 +3,8 @@
 - ``annotate_clip`` (run on demand, one flow run per clip, named ``annotate_clip/<clip>``): the
   stages of one clip. When a human task waits, the run is **suspended** (a real Prefect pause,
   ``Suspended`` in the UI, for at most ``[schedule] suspend_timeout_s``); a label ingest that
-  answers the clip resumes it through the API and it goes on from its cached stages.
+  answers the clip resumes it through the API and it goes on from its cached stages. A clip with
+  a failed stage ends ``Failed``.
 - ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
   (``<name>.mp4`` + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
   ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
@@ -38,6 +39,7 @@ from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
+from prefect.states import State
 
 from cadestate.config import Config, load_config
 from cadestate.lineage import digest, file_sha256
@@ -188,11 +190,15 @@ def resume_clips(clips: list[str]) -> list[str]:
 
 @flow(name="annotate_clip", flow_run_name="annotate_clip/{clip}", log_prints=True)
 def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str, cameras: str,
-                         split: str = "train") -> list[StageReport]:
-    """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest)."""
+                         split: str = "train") -> list[StageReport] | State:
+    """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest).
+    A clip with a failed stage ends Failed (its state carries the reports), not suspended: the
+    inbox's next tick runs it again."""
     cfg = served_config(warehouse, config_path)
     root = str(Path(warehouse).resolve())
     state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
+    if state.is_failed():
+        return state
     reports: list[StageReport] = state.result(raise_on_failure=False)
     waits = sorted(f"{r.stage}: {r.message}" for r in reports if r.state == "paused")
     if waits:

@@ -120,6 +120,20 @@ def test_inbox_files_are_hashed_once_until_they_change(tmp_path):
     assert inbox_sha256(f) != first
 
 
+@pytest.mark.slow
+def test_a_served_clip_whose_stage_failed_ends_failed(tmp_path, small_clip):
+    """The served annotate_clip run of a clip whose ingest failed (a broken video) ends Failed in the
+    Prefect UI, as a command's run does; it ended Completed, a broken clip looking done."""
+    from flows.deployments import annotate_clip_served
+
+    (tmp_path / "broken.mp4").write_bytes(b"\x00" * 1000)
+    state = annotate_clip_served(str(tmp_path / "w"), "", "broken", str(tmp_path / "broken.mp4"),
+                                 str(small_clip.cameras_path), return_state=True)
+    assert state.is_failed() and "1 failed" in state.message, state
+    reports = state.result(raise_on_failure=False)
+    assert [(r.stage, r.state) for r in reports][:2] == [("cameras", "completed"), ("ingest", "failed")]
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
