@@ -565,8 +565,16 @@ def _check_value(where: str, f: dataclasses.Field, value: Any) -> Any:
     return value
 
 
+def dataset_splits(config: Config) -> tuple[str, ...]:
+    """The splits a clip may be ingested into: the dataset's, and ``[manual_tracks] splits``."""
+    return tuple(dict.fromkeys(("train", "val", "test", *config.manual_tracks.splits)))
+
+
 def _check_across(config: Config, source: str) -> None:
     """Checks of keys against each other (after each key on its own)."""
+    if (split := config.schedule.inbox_split) not in (splits := dataset_splits(config)):
+        raise ConfigError(f"{source}: [schedule] inbox_split: must be one of {', '.join(map(repr, splits))} (the "
+                          f"splits of the dataset and [manual_tracks] splits), got {_shown(split)}")
     if config.pose.lr_final > config.pose.lr:
         raise ConfigError(f"{source}: [pose] lr_final: must be <= [pose] lr ({config.pose.lr!r}), "
                           f"got {config.pose.lr_final!r} (the learning rate decays from lr to lr_final)")

@@ -58,12 +58,19 @@ def test_defaults_are_valid_and_documented():
         ({"schedule": {"inbox_cron": "bad cron"}}, "[schedule] inbox_cron: not a cron string"),
         ({"schedule": {"labels_cron": "61 * * * *"}}, "[schedule] labels_cron: not a cron string"),
         ({"schedule": {"report_cron": "R 3 * * *"}}, "[schedule] report_cron: random (R) and hashed (H) cron fields"),
+        ({"schedule": {"inbox_split": "vall"}}, "[schedule] inbox_split: must be one of 'train', 'val', 'test' (the "
+                                                "splits of the dataset and [manual_tracks] splits), got 'vall'"),
     ],
 )
 def test_bad_config_names_the_key(data, message):
     with pytest.raises(ConfigError) as e:
         config_from_dict(data, "my.toml")
     assert str(e.value).startswith("my.toml: ") and message in str(e.value)
+
+
+def test_an_inbox_split_of_the_manual_track_splits_is_known():
+    cfg = config_from_dict({"manual_tracks": {"splits": ["dev"]}, "schedule": {"inbox_split": "dev"}})
+    assert cfg.schedule.inbox_split == "dev"
 
 
 def test_section_hash_depends_on_values_only():

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Column, Table
 
 from cadestate.cli.common import CliError, State, check_writable, run_sources, app, config_app, err, out
-from cadestate.config import describe_defaults, load_config, to_toml
+from cadestate.config import dataset_splits, describe_defaults, load_config, to_toml
 
 
 @app.callback()
@@ -120,7 +120,7 @@ def ingest(
             items.append(ClipSource(official_clip_name(checked.cameras, cameras, clip), video, cameras,
                                     time_offset_us=checked.time_offset_us))
             urls.append((items[-1].clip, checked.cameras.url))
-    known_splits = tuple(dict.fromkeys(("train", "val", "test", *cfg.manual_tracks.splits)))
+    known_splits = dataset_splits(cfg)
     if split is not None and split not in known_splits:
         raise typer.BadParameter(f"{split!r} is none of {', '.join(known_splits)} (the splits of the dataset and "
                                  "[manual_tracks] splits)", param_hint="--split")
