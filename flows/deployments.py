@@ -4,7 +4,8 @@
   stages of one clip. When a human task waits, the run is **suspended** (a real Prefect pause,
   ``Suspended`` in the UI, for at most ``[schedule] suspend_timeout_s``); a label ingest that
   answers the clip resumes it through the API and it goes on from its cached stages. A clip with
-  a failed stage ends ``Failed``.
+  a failed stage ends ``Failed``. The runs a stopped or killed ``serve`` left pending or running are
+  marked Crashed by the next (:func:`crash_runs_left_running`).
 - ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
   (``<name>.mp4`` + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
   ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
@@ -39,7 +40,7 @@ from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
-from prefect.states import State
+from prefect.states import Crashed, State
 
 from cadestate.config import Config, load_config
 from cadestate.lineage import digest, file_sha256
@@ -164,6 +165,37 @@ def active_clip_runs(clip: str, states: list[StateType]) -> list:
                                           state=FlowRunFilterState(type=FlowRunFilterStateType(any_=states))),
             deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=[ANNOTATE_DEPLOYMENT])),
             sort=FlowRunSort.START_TIME_ASC, limit=200)
+
+
+LEFT_RUNNING = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING]
+"""States of a served run that only a live serve moves on (its runner runs the flow's process)."""
+
+
+def crash_runs_left_running(warehouse: str) -> list[str]:
+    """Mark Crashed the runs of this warehouse's deployments that an earlier ``serve`` left pending
+    or running (it was stopped or killed mid-run; the serve lock says none serves now), and return
+    their names. Such a run stayed Running on the server for good, and the inbox never ran its clip
+    again (a clip with an active run gets no new one): it now does on its next tick."""
+    names = [ANNOTATE_DEPLOYMENT, "build_dataset", "ingest_labels", "dataset_report"]
+    state = Crashed(message="the `cadestate serve` running it ended; a new serve found it left running")
+    found: list = []
+    with get_client(sync_client=True) as client:
+        while len(found) % PAGE == 0:  # read them all first: each one crashed leaves the filter
+            page = client.read_flow_runs(
+                flow_run_filter=FlowRunFilter(state=FlowRunFilterState(type=FlowRunFilterStateType(any_=LEFT_RUNNING))),
+                deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=names)),
+                sort=FlowRunSort.ID_DESC, limit=PAGE, offset=len(found))
+            found += page
+            if not page:
+                break
+        mine = [run for run in found if run.parameters.get("warehouse") == warehouse]
+        for run in mine:
+            client.set_flow_run_state(run.id, state, force=True)
+    return sorted(run.name for run in mine)
+
+
+PAGE = 200
+"""Flow runs per read (the most Prefect's API returns at once)."""
 
 
 def start_clip_run(warehouse: str, config_path: str, source: ClipSource) -> str:

@@ -134,6 +134,38 @@ def test_a_served_clip_whose_stage_failed_ends_failed(tmp_path, small_clip):
     assert [(r.stage, r.state) for r in reports][:2] == [("cameras", "completed"), ("ingest", "failed")]
 
 
+@pytest.mark.slow
+def test_a_new_serve_crashes_the_runs_an_earlier_one_left_running(tmp_path):
+    """A serve stopped (`server stop`) or killed while it ran a clip left that flow run Running on the
+    server for good, and build_dataset never started the clip again (it had an active run). A new
+    serve marks its warehouse's runs left pending or running Crashed; suspended runs, and another
+    warehouse's runs, are left as they are."""
+    from prefect.client.orchestration import get_client
+    from prefect.deployments.runner import EntrypointType
+    from prefect.states import Paused, Pending, Running
+
+    from flows.deployments import ANNOTATE_DEPLOYMENT, annotate_clip_served, crash_runs_left_running
+
+    mine, other = str(tmp_path / "w"), str(tmp_path / "other")
+    deployment_id = annotate_clip_served.to_deployment(name=ANNOTATE_DEPLOYMENT,
+                                                       entrypoint_type=EntrypointType.MODULE_PATH).apply()
+
+    def run(name: str, warehouse: str, state) -> str:
+        with get_client(sync_client=True) as client:
+            return client.create_flow_run_from_deployment(
+                deployment_id, name=name, state=state, parameters={"warehouse": warehouse, "config_path": "", "clip": name,
+                                                                   "video": "v.mp4", "cameras": "v.txt"}).id
+
+    runs = {name: run(name, warehouse, state) for name, warehouse, state in (
+        ("a", mine, Running()), ("b", mine, Pending()), ("c", mine, Paused(reschedule=True, timeout_seconds=600)),
+        ("d", other, Running()))}
+    assert crash_runs_left_running(mine) == ["a", "b"]
+    with get_client(sync_client=True) as client:
+        assert {name: client.read_flow_run(i).state.type.value for name, i in runs.items()} == \
+            {"a": "CRASHED", "b": "CRASHED", "c": "PAUSED", "d": "RUNNING"}
+    assert crash_runs_left_running(mine) == []
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,

@@ -114,7 +114,7 @@ def serve(ctx: typer.Context) -> None:
     os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))
     from prefect import serve as prefect_serve
 
-    from flows.deployments import deployments
+    from flows.deployments import crash_runs_left_running, deployments
 
     config_path = ctx.obj.config_path or (Path(cfg.source) if cfg.source else None)
     logging.getLogger("asyncio").addFilter(_quiet_cancelled_reads)
@@ -122,9 +122,12 @@ def serve(ctx: typer.Context) -> None:
     # RuntimeWarning with its "enable tracemalloc" line closed every clean `server stop`
     warnings.filterwarnings("ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning)
     try:
+        if left := crash_runs_left_running(str(root)):  # an earlier serve's: they would block their clips
+            err.print(f"marked Crashed {len(left)} run(s) an earlier serve left running: {escape(', '.join(left))} "
+                      "(the inbox's next tick runs their clips again)")
         prefect_serve(*deployments(cfg, str(config_path.resolve()) if config_path else ""))
     except Exception:
-        if not server.process_alive:  # ended while the deployments were being registered
+        if not server.process_alive:  # ended while the deployments were being registered (or runs read)
             _server_ended(server.api_url)
         raise
     finally:
