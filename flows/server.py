@@ -8,12 +8,14 @@ ephemeral mode. Its state lives under the warehouse:
     _prefect/server.json    the running server: pid, process start time, URL, database, log
     _prefect/server.log     its output
     _prefect/serve.lock     held by ``cadestate serve`` while it serves the deployments (its pid)
+    _prefect/start.lock     held by ``cadestate server start`` while it starts the server
 
 Nothing here imports Prefect: the server is a separate process (``prefect server start``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import errno
 import fcntl
@@ -27,6 +29,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -38,6 +41,7 @@ from warehouse.store import atomic_write_bytes
 SERVER_FILE = "server.json"
 LOG_FILE = "server.log"
 SERVE_LOCK = "serve.lock"
+START_LOCK = "start.lock"
 
 
 class ServerError(RuntimeError):
@@ -171,6 +175,22 @@ def start_server(root: Path, host: str = "127.0.0.1", port: int = 0, database_ur
     """Start ``prefect server start`` in the background for this warehouse and wait until its API
     answers (at most ``timeout_s``). A server already up is returned as is. ``port`` 0 takes a free one."""
     root = Path(root).resolve()
+    with _starting(root):  # a second start at once waits, then finds the first's server up
+        return _start_server(root, host, port, database_url, timeout_s)
+
+
+@contextlib.contextmanager
+def _starting(root: Path) -> Iterator[None]:
+    """Hold ``<warehouse>/_prefect/start.lock`` (blocking): two ``server start`` at once each
+    started a server, the second's record replaced the first's, and the one left running was
+    recorded nowhere (``server stop`` did not stop it)."""
+    prefect_dir(root).mkdir(parents=True, exist_ok=True)
+    with open(prefect_dir(root) / START_LOCK, "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        yield
+
+
+def _start_server(root: Path, host: str, port: int, database_url: str, timeout_s: float) -> ServerInfo:
     if (up := running_server(root)) is not None:
         return up
     if (known := read_server(root)) is not None and known.process_alive:  # alive, not answering: hung

@@ -141,6 +141,28 @@ def _record(w, pid: int) -> None:
         "root_id": folder_id(w)}))
 
 
+def test_two_server_starts_at_once_start_one_server(tmp_path):
+    """Two `server start` at once each started a server; the second's record replaced the first's,
+    and the first ran on, recorded nowhere: `server stop` left it running. The second now waits for
+    the first and finds its server up."""
+    import re
+
+    w = tmp_path / "w"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    starts = [subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "server", "start", "--port", "0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+              for _ in range(2)]
+    try:
+        said = [p.communicate(timeout=600) for p in starts]
+        assert [p.returncode for p in starts] == [0, 0], said
+        pids = {int(re.search(r"pid (\d+)", out).group(1)) for out, _ in said}
+        assert pids == {read_server(w).pid}, said
+    finally:
+        cli("-w", str(w), "server", "stop", cwd=tmp_path)
+        for p in starts:
+            p.kill()
+
+
 def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
     """A hung server (its process alive, its API silent): start says so and points to stop, where
     it recorded a second server over the first, which then outlived `server stop`."""
