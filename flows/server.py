@@ -234,22 +234,29 @@ def forget_server(root: Path) -> None:
 
 
 def log_cause(log: Path, offset: int = 0, limit: int = 300) -> str:
-    """Why the server stopped, in one line: the last paragraph the log got after ``offset`` (for a
-    traceback, its last line, the exception), at most about ``limit`` characters; '' when none."""
+    """Why the server stopped, in one line, from what the log got after ``offset``: the exception its
+    last traceback ended in, then its last paragraph (for a traceback, its last line) where that
+    says something else (uvicorn closes a failed start with "Application startup failed", Prefect
+    with "An exception occurred.": alone, they hid a database URL it cannot load or reach); at most
+    about ``limit`` characters; '' when none."""
     try:
         with open(log, "rb") as f:
             f.seek(offset)
-            text = f.read().decode("utf-8", errors="replace")
+            text = f.read().decode("utf-8", errors="replace").replace("\r", "")
     except OSError:
         return ""
-    paragraphs = [p.strip() for p in text.replace("\r", "").split("\n\n") if p.strip()]
-    if not paragraphs:
-        return ""
-    last = paragraphs[-1]
-    if "Traceback (most recent call last)" in last:
+    lines = text.splitlines()
+    starts = [i for i, line in enumerate(lines) if TRACEBACK in line]  # uvicorn writes "ERROR:    Traceback ..."
+    raised = next((ln for ln in lines[starts[-1] + 1:] if ln.strip() and not ln[0].isspace()), "") if starts else ""
+    paragraphs = [p.strip() for p in text.split("\n\n") if p.strip()]
+    last = paragraphs[-1] if paragraphs else ""
+    if TRACEBACK in last:
         last = last.splitlines()[-1]
-    line = " ".join(last.split())
+    line = "; then: ".join(dict.fromkeys(" ".join(p.split()) for p in (raised, last) if p.strip()))
     return line if len(line) <= limit else line[:limit] + "..."
+
+
+TRACEBACK = "Traceback (most recent call last)"
 
 
 def _terminate(info: ServerInfo, timeout_s: float = 20.0) -> None:

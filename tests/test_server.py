@@ -163,6 +163,29 @@ def test_two_server_starts_at_once_start_one_server(tmp_path):
             p.kill()
 
 
+@pytest.mark.parametrize("tail, says", [
+    ("ERROR:    Traceback (most recent call last):\n  File \"x.py\", line 1\n    connect()\n"
+     "ConnectionRefusedError: [Errno 111] Connect call failed ('127.0.0.1', 1)\n\n"
+     "ERROR:    Application startup failed. Exiting.\nServer stopped!\n",
+     "ConnectionRefusedError: [Errno 111] Connect call failed ('127.0.0.1', 1); then: ERROR: Application startup "
+     "failed. Exiting. Server stopped!"),
+    ("Traceback (most recent call last):\n  File \"x.py\", line 1\n"
+     "sqlalchemy.exc.NoSuchModuleError: Can't load plugin: sqlalchemy.dialects:bogus\nAn exception occurred.\n",
+     "sqlalchemy.exc.NoSuchModuleError: Can't load plugin: sqlalchemy.dialects:bogus; then: An exception occurred."),
+    ("Traceback (most recent call last):\n  File \"x.py\", line 1\nValueError: bad\n", "ValueError: bad"),
+    ("ERROR:    [Errno 98] address already in use\n", "ERROR: [Errno 98] address already in use"),
+    ("", ""),
+])
+def test_a_failed_start_names_the_exception_of_its_log(tmp_path, tail, says):
+    """A --database-url Prefect could not reach or load was told as "Application startup failed.
+    Exiting. Server stopped!" or "An exception occurred.", the log's last paragraph alone."""
+    from flows.server import log_cause
+
+    log = tmp_path / "server.log"
+    log.write_text("Traceback (most recent call last):\nOSError: an earlier start's\n\n" + tail)
+    assert log_cause(log, offset=len("Traceback (most recent call last):\nOSError: an earlier start's\n\n")) == says
+
+
 def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
     """A hung server (its process alive, its API silent): start says so and points to stop, where
     it recorded a second server over the first, which then outlived `server stop`."""
