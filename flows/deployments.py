@@ -26,6 +26,7 @@ after changing a ``*_cron``). Served runs keep their results under the warehouse
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -40,9 +41,9 @@ from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
-from prefect.states import Crashed, State
+from prefect.states import Crashed, Failed, State
 
-from cadestate.config import Config, load_config
+from cadestate.config import Config, ConfigError, load_config
 from cadestate.lineage import digest, file_sha256
 from flows.annotate_clip import _run
 from flows.runtime import run_tags
@@ -62,6 +63,20 @@ def served_config(warehouse: str, config_path: str) -> Config:
     """The config of a served run: the file (or the defaults), with the warehouse given."""
     cfg = load_config(Path(config_path) if config_path else None)
     return dataclasses.replace(cfg, warehouse=dataclasses.replace(cfg.warehouse, root=warehouse))
+
+
+def config_errors_fail(fn: Callable) -> Callable:
+    """A served flow's function whose run ends Failed with the one line of a config file that does
+    not load (edited under a serve: each run reads it again), as its message. Raised, it printed two
+    tracebacks a flow in the serve's log, three flows a tick."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ConfigError as e:
+            return Failed(message=str(e))
+
+    return run
 
 
 def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float | None = None) -> list[ClipSource]:
@@ -221,6 +236,7 @@ def resume_clips(clips: list[str]) -> list[str]:
 
 
 @flow(name="annotate_clip", flow_run_name="annotate_clip/{clip}", log_prints=True)
+@config_errors_fail
 def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str, cameras: str,
                          split: str = "train") -> list[StageReport] | State:
     """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest).
@@ -243,6 +259,7 @@ def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str
 
 
 @flow(name="build_dataset_inbox", flow_run_name="build_dataset/inbox", log_prints=True)
+@config_errors_fail
 def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
     """Start an annotate_clip run for every completely copied clip of ``[schedule] inbox`` that
     needs one (:func:`pairs_to_run`) and has no run under way; returns the clips started."""
@@ -258,6 +275,7 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
 
 
 @flow(name="ingest_labels", flow_run_name="ingest_labels/inbox", log_prints=True)
+@config_errors_fail
 def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     """Ingest the label files of ``[schedule] labels_inbox`` (files ingested before are skipped) and
     resume the clips they answer: a suspended run is resumed, a clip with none gets a new run."""
@@ -283,6 +301,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
 
 
 @flow(name="dataset_report", flow_run_name="dataset_report", log_prints=True)
+@config_errors_fail
 def dataset_report(warehouse: str, config_path: str = "") -> str:
     """`cadestate compact`, then the dataset's statistics (`cadestate stats`) as ``stats.json`` and
     an HTML report in ``[schedule] report``; returns the report's path."""

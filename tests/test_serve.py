@@ -166,6 +166,20 @@ def test_a_new_serve_crashes_the_runs_an_earlier_one_left_running(tmp_path):
     assert crash_runs_left_running(mine) == []
 
 
+@pytest.mark.slow
+def test_a_served_run_on_a_config_file_that_does_not_load_fails_in_one_line(tmp_path):
+    """A config file edited under a serve into one that does not load (a typo'd key): each run ends
+    Failed with the config error's one line as its message; raised, it printed two tracebacks a flow
+    in the serve's log (three flows a tick)."""
+    from flows.deployments import build_dataset_inbox, dataset_report, ingest_labels_inbox
+
+    config = tmp_path / "c.toml"
+    config.write_text("[tracking]\nmin_detection = 3\n")
+    for served in (build_dataset_inbox, ingest_labels_inbox, dataset_report):
+        state = served(str(tmp_path / "w"), str(config), return_state=True)
+        assert state.is_failed() and state.message.startswith(f"{config}: [tracking] unknown key 'min_detection'"), state
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
