@@ -25,8 +25,10 @@ after changing a ``*_cron``). Served runs keep their results under the warehouse
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -51,7 +53,7 @@ from tasks.stage_chain import StageReport
 from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
 from tasks.video.ingest import ClipSource, official_clip_name
-from warehouse import Warehouse
+from warehouse import Warehouse, atomic_write_bytes
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
 ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
@@ -115,31 +117,43 @@ def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None =
     return list(named.values())
 
 
-_SHA256: dict[tuple[str, int, int], str] = {}
-"""(path, size, mtime_ns) -> sha256 of the inbox files this serving process has read."""
+INBOX_SHA256 = "inbox_sha256.json"
+"""``<warehouse>/_cache/inbox_sha256.json``: the sha256 of each inbox file looked at, by path, with
+its identity when hashed (:func:`inbox_sha256s`)."""
 
 
-def inbox_sha256(path: Path) -> str:
-    """sha256 of an inbox file, read again only when its size or mtime changed: a served
-    ``build_dataset`` looks at every clip of the inbox on every tick, and done clips cost nothing."""
-    stat = path.stat()
-    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-    if key not in _SHA256:
-        _SHA256[key] = file_sha256(path)
-    return _SHA256[key]
+def inbox_sha256s(wh: Warehouse, paths: list[Path]) -> dict[Path, str]:
+    """sha256 of each inbox file of ``paths``, read again only when its identity (inode, size,
+    modification and change times) changed. Kept in ``_cache/`` of the warehouse (the files of
+    ``paths`` alone): Prefect's runner runs each served flow run in a new process, so a cache in
+    the process was empty at every tick, and every tick read every video of the inbox again (about
+    1.5 s a GB here, done clips included). Best effort: a read-only warehouse keeps nothing."""
+    cache = wh.root / "_cache" / INBOX_SHA256
+    try:
+        known = json.loads(cache.read_text())
+    except (OSError, ValueError):
+        known = {}
+    kept: dict[str, list] = {}
+    for path in paths:
+        st = path.stat()  # before reading: a file written meanwhile has another identity at the next tick
+        identity = [st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+        entry = known.get(str(path.resolve())) if isinstance(known, dict) else None
+        sha = entry[1] if isinstance(entry, list) and len(entry) == 2 and entry[0] == identity else file_sha256(path)
+        kept[str(path.resolve())] = [identity, sha]
+    if kept != known:
+        with contextlib.suppress(OSError):
+            atomic_write_bytes(cache, json.dumps(kept).encode(), durable=False)  # a cache: lost, files are read again
+    return {path: kept[str(path.resolve())][1] for path in paths}
 
 
 def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
     """The pairs that need a run: not ingested yet with these exact bytes (a changed file counts as
     new), or whose last run of some stage failed or was interrupted, or whose run a killed process
-    left unfinished (:func:`unfinished`). Clips done cost nothing."""
+    left unfinished (:func:`unfinished`). Clips done cost a look at their files' identities."""
     known = {(r["clip"], r["video_sha256"], r["cameras_sha256"])
              for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
-    todo = []
-    for p in pairs:
-        if (p.clip, inbox_sha256(p.video), inbox_sha256(p.cameras)) not in known or unfinished(wh, p.clip):
-            todo.append(p)
-    return todo
+    sha256 = inbox_sha256s(wh, [path for p in pairs for path in (p.video, p.cameras)])
+    return [p for p in pairs if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip)]
 
 
 def unfinished(wh: Warehouse, clip: str) -> bool:
@@ -305,12 +319,9 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
 def dataset_report(warehouse: str, config_path: str = "") -> str:
     """`cadestate compact`, then the dataset's statistics (`cadestate stats`) as ``stats.json`` and
     an HTML report in ``[schedule] report``; returns the report's path."""
-    import json
-
     from tasks.dataset.stats import dataset_tables, select_clips, statistics
     from tasks.dataset.stats_report import write_report
     from warehouse.catalog import compact_warehouse
-    from warehouse.store import atomic_write_bytes
 
     cfg = served_config(warehouse, config_path)
     wh = Warehouse(warehouse)

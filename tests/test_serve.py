@@ -108,16 +108,28 @@ def test_clips_done_are_not_run_again(tmp_path, small_clip):
     assert pairs_to_run(wh, [pair]) == []  # its run is under way (this process): not submitted again
 
 
-def test_inbox_files_are_hashed_once_until_they_change(tmp_path):
-    from flows.deployments import _SHA256, inbox_sha256
+def test_inbox_files_are_hashed_once_until_they_change(tmp_path, monkeypatch):
+    """Each served build_dataset tick runs in a new process (Prefect's runner): the digests are kept
+    in the warehouse, and a tick hashes only files new or changed since the last (each tick read
+    every video of the inbox again, done clips included: ~1.5 s a GB)."""
+    import cadestate.lineage
+    from flows import deployments
 
-    f = tmp_path / "clip.txt"
+    wh, f, g = Warehouse(tmp_path / "w"), tmp_path / "clip.txt", tmp_path / "other.txt"
     f.write_text("a")
-    first = inbox_sha256(f)
-    assert first == inbox_sha256(f) and sum(k[0] == str(f.resolve()) for k in _SHA256) == 1  # read once
-    f.write_text("b")  # same size, new bytes (and mtime)
+    g.write_text("b")
+    read: list[Path] = []
+    monkeypatch.setattr(deployments, "file_sha256", lambda p: (read.append(p), cadestate.lineage.file_sha256(p))[1])
+    first = deployments.inbox_sha256s(wh, [f, g])
+    assert read == [f, g] and first[f] == cadestate.lineage.file_sha256(f)
+    assert deployments.inbox_sha256s(wh, [f, g]) == first and read == [f, g]  # the next tick reads neither
+    f.write_text("c")  # same size, new bytes (and mtime)
     os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 1_000_000))
-    assert inbox_sha256(f) != first
+    again = deployments.inbox_sha256s(wh, [f, g])
+    assert read == [f, g, f] and again[f] != first[f] and again[g] == first[g]
+    assert list(json.loads((wh.root / "_cache" / deployments.INBOX_SHA256).read_text())) == [str(f.resolve()), str(g.resolve())]
+    deployments.inbox_sha256s(wh, [g])  # a file gone from the inbox leaves the cache
+    assert list(json.loads((wh.root / "_cache" / deployments.INBOX_SHA256).read_text())) == [str(g.resolve())]
 
 
 @pytest.mark.slow
