@@ -278,14 +278,25 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
     """Start an annotate_clip run for every completely copied clip of ``[schedule] inbox`` that
     needs one (:func:`pairs_to_run`) and has no run under way; returns the clips started."""
     cfg = served_config(warehouse, config_path)
-    pairs = pairs_to_run(Warehouse(warehouse), official_names(ready_pairs(Path(cfg.schedule.inbox), cfg.schedule.stable_s,
+    inbox = Path(cfg.schedule.inbox)
+    if not inbox.is_dir():
+        no_folder("inbox", inbox)
+    pairs = pairs_to_run(Warehouse(warehouse), official_names(ready_pairs(inbox, cfg.schedule.stable_s,
                                                                           cfg.schedule.inbox_split)))
     started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
     for p in pairs:
         if p.clip in started:
             start_clip_run(warehouse, config_path, p)
-    get_run_logger().info("inbox %s: %d new clip(s) started: %s", cfg.schedule.inbox, len(started), ", ".join(started))
+    named = f": {', '.join(started)}" if started else ""
+    get_run_logger().info("inbox %s: %d new clip(s) started%s", inbox, len(started), named)
     return started
+
+
+def no_folder(key: str, path: Path) -> None:
+    """Warn in the run's log that ``[schedule] <key>`` names no folder: nothing is taken from it
+    (a typo, or a relative path taken from another folder than meant, watched nothing, unsaid)."""
+    get_run_logger().warning("[schedule] %s: %s is no folder: nothing to take from it (a relative path is taken from "
+                             "the folder `cadestate serve` runs in)", key, path.absolute())
 
 
 @flow(name="ingest_labels", flow_run_name="ingest_labels/inbox", log_prints=True)
@@ -299,6 +310,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     cfg = served_config(warehouse, config_path)
     inbox = Path(cfg.schedule.labels_inbox)
     if not inbox.is_dir():
+        no_folder("labels_inbox", inbox)
         return []
     wh = Warehouse(warehouse)
     report = ingest_labels(wh, inbox, coplanar_tol=cfg.pose.coplanar_tol)

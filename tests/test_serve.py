@@ -192,6 +192,22 @@ def test_a_served_run_on_a_config_file_that_does_not_load_fails_in_one_line(tmp_
         assert state.is_failed() and state.message.startswith(f"{config}: [tracking] unknown key 'min_detection'"), state
 
 
+@pytest.mark.slow
+def test_an_inbox_that_is_no_folder_is_said_in_the_runs_log(tmp_path):
+    """A [schedule] inbox or labels_inbox naming no folder (a typo, a relative path from another
+    folder) was watched in silence: "0 new clip(s) started" every tick. (The runs' log, in a process
+    of its own as a served run's: Prefect's console handler writes to the stderr it found first.)"""
+    config = tmp_path / "c.toml"
+    config.write_text('[schedule]\ninbox = "inbx"\nlabels_inbox = "labls"\n')
+    runs = subprocess.run([sys.executable, "-c", "import sys; from flows.deployments import build_dataset_inbox, "
+                           "ingest_labels_inbox; w, c = sys.argv[1:]; print(build_dataset_inbox(w, c), ingest_labels_inbox(w, c))",
+                           str(tmp_path / "w"), str(config)], capture_output=True, text=True, cwd=tmp_path, timeout=600,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert runs.returncode == 0 and runs.stdout == "[] []\n", runs.stderr
+    assert f"[schedule] inbox: {tmp_path / 'inbx'} is no folder" in runs.stderr, runs.stderr
+    assert f"[schedule] labels_inbox: {tmp_path / 'labls'} is no folder" in runs.stderr, runs.stderr
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
