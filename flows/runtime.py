@@ -46,6 +46,11 @@ def prepare_prefect_environment(root: Path, verbose: bool = False, startup_timeo
     level = "INFO" if verbose else "CRITICAL"
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", level)
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", level)
+    # Prefect's internal services log under a level of their own (ERROR): a server stopped under a
+    # command printed an "EventsWorker failed to process item Event(...)" line of ~2,700 characters
+    # every 7 s for minutes before the command's one-line error. --verbose keeps Prefect's default.
+    if not verbose:
+        os.environ.setdefault("PREFECT_INTERNAL_LOGGING_LEVEL", level)
     # Dask's (clips on a cluster, flows.dask_clips): ~40 INFO lines a run, a traceback at times when
     # the local cluster shuts down; read when distributed is imported, here and in local workers.
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", level.lower())

@@ -279,11 +279,13 @@ def test_the_ephemeral_api_logs_at_the_commands_level(tmp_path, monkeypatch, ver
     from flows.runtime import prepare_prefect_environment
 
     for name in ("PREFECT_HOME", "PREFECT_API_URL", "PREFECT_LOGGING_LEVEL", "PREFECT_SERVER_LOGGING_LEVEL",
-                 "GLOG_minloglevel"):
+                 "PREFECT_INTERNAL_LOGGING_LEVEL", "GLOG_minloglevel"):
         monkeypatch.setenv(name, "")  # so that the test's end restores what was there (or its absence)
         monkeypatch.delenv(name)
     assert prepare_prefect_environment(tmp_path, verbose=verbose) == ""
     assert os.environ["PREFECT_LOGGING_LEVEL"] == os.environ["PREFECT_SERVER_LOGGING_LEVEL"] == level
+    # Prefect's internal services: ERROR lines of ~2,700 characters every 7 s under a command whose server stopped
+    assert os.environ.get("PREFECT_INTERNAL_LOGGING_LEVEL") == (None if verbose else "CRITICAL")
     assert os.environ["GLOG_minloglevel"] == glog
 
 
