@@ -210,7 +210,7 @@ def _start_server(root: Path, host: str, port: int, database_url: str, timeout_s
         process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                    env=server_environment(root, database_url), start_new_session=True)
     info = ServerInfo(pid=process.pid, process_start=psutil.Process(process.pid).create_time(),
-                      api_url=f"http://{host}:{port}/api", database_url=database_url, log=str(log),
+                      api_url=api_url(host, port), database_url=database_url, log=str(log),
                       started_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), root_id=folder_id(root))
     atomic_write_bytes(prefect_dir(root) / SERVER_FILE, json.dumps(asdict(info), indent=1).encode())
     deadline = time.monotonic() + timeout_s
@@ -226,6 +226,12 @@ def _start_server(root: Path, host: str, port: int, database_url: str, timeout_s
     forget_server(root)
     raise ServerError(f"the Prefect server did not answer within {timeout_s:.0f} s (see {log}); "
                       "a busy machine may need a longer [prefect] startup_timeout_s")
+
+
+def api_url(host: str, port: int) -> str:
+    """The API URL of a server listening on ``host:port``; an IPv6 address in brackets (``--host ::1``
+    was recorded as ``http://::1:4200/api``, and every command then ended in httpx's traceback)."""
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}/api"
 
 
 def forget_server(root: Path) -> None:

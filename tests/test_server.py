@@ -186,6 +186,24 @@ def test_a_failed_start_names_the_exception_of_its_log(tmp_path, tail, says):
     assert log_cause(log, offset=len("Traceback (most recent call last):\nOSError: an earlier start's\n\n")) == says
 
 
+def test_a_server_on_an_ipv6_address_is_recorded_at_a_url_prefects_client_takes(tmp_path):
+    """`server start --host ::1` recorded http://::1:PORT/api: it answered urllib's health check, and
+    every command then ended in a traceback (httpx.InvalidURL: Invalid port: ':1:PORT')."""
+    try:
+        free_port("::1")
+    except Exception:
+        pytest.skip("no IPv6 loopback here")
+    w = tmp_path / "w"
+    started = cli("-w", str(w), "server", "start", "--host", "::1", "--port", "0", cwd=tmp_path)
+    try:
+        assert started.returncode == 0, started.stderr
+        url = read_server(w).api_url
+        assert url.startswith("http://[::1]:"), url
+        assert httpx.get(f"{url}/health", timeout=10).status_code == 200
+    finally:
+        cli("-w", str(w), "server", "stop", cwd=tmp_path)
+
+
 def test_a_server_that_runs_but_does_not_answer_is_named_not_orphaned(tmp_path):
     """A hung server (its process alive, its API silent): start says so and points to stop, where
     it recorded a second server over the first, which then outlived `server stop`."""
