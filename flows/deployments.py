@@ -7,7 +7,7 @@
   a failed stage ends ``Failed``. The runs a stopped or killed ``serve`` left pending or running are
   marked Crashed by the next (:func:`crash_runs_left_running`).
 - ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
-  (``<name>.mp4`` + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
+  (``<name>.mp4``, or another video `cadestate ingest FOLDER` takes, + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
   ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
   ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
 - ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
@@ -52,7 +52,7 @@ from flows.runtime import run_tags
 from tasks.stage_chain import StageReport
 from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
-from tasks.video.ingest import ClipSource, official_clip_name
+from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, official_clip_name
 from warehouse import Warehouse, atomic_write_bytes
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
@@ -82,11 +82,14 @@ def config_errors_fail(fn: Callable) -> Callable:
 
 
 def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float | None = None) -> list[ClipSource]:
-    """The clips of ``inbox`` whose copy is complete: ``<name>.mp4`` with ``<name>.txt``, each
-    unchanged for ``stable_s`` seconds (mtime), or with a ``<name>.done`` marker; sorted by name."""
+    """The clips of ``inbox`` whose copy is complete: a video (``<name>.mp4``, or another of
+    :data:`VIDEO_SUFFIXES` in any case, as `cadestate ingest FOLDER` takes them: a phone's
+    ``VID_0001.MOV`` waited in the inbox for ever) with ``<name>.txt``, each unchanged for
+    ``stable_s`` seconds (mtime), or with a ``<name>.done`` marker; sorted by name."""
     now = time.time() if now is None else now
     ready = []
-    for video in sorted(inbox.glob("*.mp4")) if inbox.is_dir() else []:
+    videos = sorted(p for p in inbox.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES) if inbox.is_dir() else []
+    for video in videos:
         cameras = video.with_suffix(".txt")
         if not cameras.is_file():
             continue

@@ -25,17 +25,19 @@ from warehouse import Warehouse
 def test_only_completely_copied_pairs_are_taken(tmp_path):
     inbox = tmp_path / "inbox"
     inbox.mkdir()
-    for name in ("old", "fresh", "marked", "alone"):
-        (inbox / f"{name}.mp4").write_bytes(b"v")
+    for name in ("old", "fresh", "marked", "alone", "VID_0001"):
+        (inbox / f"{name}.{'MOV' if name.startswith('VID') else 'mp4'}").write_bytes(b"v")
         if name != "alone":
             (inbox / f"{name}.txt").write_text("c")
     (inbox / "marked.done").touch()
+    (inbox / "notes.json").write_text("{}")
     now = time.time()
     for p in (inbox / "old.mp4", inbox / "old.txt"):
         os.utime(p, (now - 60, now - 60))
     assert [p.clip for p in ready_pairs(inbox, 10.0, "val", now)] == ["marked", "old"]
     assert {p.split for p in ready_pairs(inbox, 10.0, "val", now)} == {"val"}
-    assert [p.clip for p in ready_pairs(inbox, 0.0, now=now)] == ["fresh", "marked", "old"]
+    # every video `cadestate ingest FOLDER` takes, in any case (a phone's .MOV was never taken)
+    assert [p.clip for p in ready_pairs(inbox, 0.0, now=now)] == ["VID_0001", "fresh", "marked", "old"]
     assert ready_pairs(tmp_path / "missing", 0.0) == []
 
 
