@@ -88,7 +88,7 @@ def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float |
     ``stable_s`` seconds (mtime), or with a ``<name>.done`` marker; sorted by name."""
     now = time.time() if now is None else now
     ready = []
-    videos = sorted(p for p in inbox.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES) if inbox.is_dir() else []
+    videos = sorted(p for p in inbox.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES and p.is_file()) if inbox.is_dir() else []
     for video in videos:
         cameras = video.with_suffix(".txt")
         if not cameras.is_file():
@@ -212,13 +212,13 @@ def crash_runs_left_running(warehouse: str) -> list[str]:
     state = Crashed(message="the `cadestate serve` running it ended; a new serve found it left running")
     found: list = []
     with get_client(sync_client=True) as client:
-        while len(found) % PAGE == 0:  # read them all first: each one crashed leaves the filter
+        while True:  # all read first: each one crashed leaves the filter
             page = client.read_flow_runs(
                 flow_run_filter=FlowRunFilter(state=FlowRunFilterState(type=FlowRunFilterStateType(any_=LEFT_RUNNING))),
                 deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=names)),
                 sort=FlowRunSort.ID_DESC, limit=PAGE, offset=len(found))
             found += page
-            if not page:
+            if len(page) < PAGE:
                 break
         mine = [run for run in found if run.parameters.get("warehouse") == warehouse]
         for run in mine:
