@@ -7,8 +7,8 @@
   a failed stage ends ``Failed``. The runs a stopped or killed ``serve`` left pending or running are
   marked Crashed by the next (:func:`crash_runs_left_running`).
 - ``build_dataset`` (cron ``[schedule] inbox_cron``): every clip of ``[schedule] inbox``
-  (``<name>.mp4``, or another video `cadestate ingest FOLDER` takes, + ``<name>.txt``, named ``<video_id>_<start_us>`` from its camera file) not
-  ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
+  (``<name>.mp4``, or another video `cadestate ingest FOLDER` takes, + ``<name>.txt``, named
+  ``<video_id>_<start_us>`` from its camera file) not ingested yet with the same bytes, or whose last run failed, gets an ``annotate_clip`` run. Files still being copied wait: a pair is taken once neither file changed for
   ``[schedule] stable_s`` seconds, or at once when ``<name>.done`` exists.
 - ``ingest_labels`` (cron ``[schedule] labels_cron``): ingests the label files of
   ``[schedule] labels_inbox`` and resumes the clips they answer.
