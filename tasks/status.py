@@ -174,7 +174,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
             result.append(StageStatus(
                 clip, stage.name,
                 latest["status"] if latest else "never run",
-                latest["started_at"].strftime("%m-%d %H:%M") if latest else "",
+                latest["started_at"].strftime("%Y-%m-%d %H:%M") if latest else "",
                 ok["rows_written"] if ok else 0,
                 tuple(reasons),
                 latest["message"] if latest else "",

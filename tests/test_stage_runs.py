@@ -150,16 +150,16 @@ def test_a_clip_line_says_where_it_stands_first_in_pipeline_order():
     """tasks.status.clip_summaries: running before failed before interrupted before paused before never run."""
     from tasks.status import StageStatus, clip_summaries
 
-    def row(clip, stage, status, stale=(), when="11-29 04:08"):
+    def row(clip, stage, status, stale=(), when="2026-11-29 04:08"):
         return StageStatus(clip, stage, status, when if status != "never run" else "", 1, stale)
 
     rows = [row("a", "ingest", "completed"), row("a", "frames", "paused"), row("a", "detect", "failed", ("upstream stale",)),
-            row("b", "ingest", "completed", when="11-29 05:00"), row("b", "frames", "paused"), row("b", "detect", "never run"),
-            row("c", "ingest", "completed"), row("c", "frames", "completed", ("code changed",), "11-29 04:09")]
+            row("b", "ingest", "completed", when="2026-11-29 05:00"), row("b", "frames", "paused"), row("b", "detect", "never run"),
+            row("c", "ingest", "completed"), row("c", "frames", "completed", ("code changed",), "2026-11-29 04:09")]
     a, b, c = clip_summaries(rows)
     assert (a.stands, a.done, a.stages, a.stale) == ("failed at detect", 1, 3, ("detect",))
-    assert (b.stands, b.last_run_at, b.done) == ("waits at frames", "11-29 05:00", 1)
-    assert (c.stands, c.last_run_at, c.done, c.stale) == ("completed", "11-29 04:09", 2, ("frames",))
+    assert (b.stands, b.last_run_at, b.done) == ("waits at frames", "2026-11-29 05:00", 1)
+    assert (c.stands, c.last_run_at, c.done, c.stale) == ("completed", "2026-11-29 04:09", 2, ("frames",))
 
 
 def test_status_beyond_eight_clips_shows_one_line_each_unless_asked_for_every_stage(tmp_path):
@@ -184,6 +184,25 @@ def test_status_beyond_eight_clips_shows_one_line_each_unless_asked_for_every_st
     assert "one line each" not in every.output and every.output.count("never run") == 9 * (len(stages_of("clip")) - 1)
     named = runner.invoke(app, ["-w", str(wh.root), "status", "c3"])
     assert "one line each" not in named.output and "c3" in named.output and "c4" not in named.output
+
+
+def test_a_clips_newest_run_is_its_newest_across_a_new_year(tmp_path):
+    """A clip line's newest run was the greatest "%m-%d %H:%M" string: a run of December 31 was
+    newer than one of January 1."""
+    import datetime as dt
+
+    import pyarrow as pa
+
+    from tasks.status import clip_summaries
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "c", pa.Table.from_pylist([
+        {"clip": "c", "run_id": f"r{i}", "stage": stage, "status": "completed", "config_hash": "c", "inputs_hash": "i",
+         "output_hash": "o", "code_hash": "k", "started_at": when, "duration_s": 1.0, "rows_written": 0, "message": ""}
+        for i, (stage, when) in enumerate([("ingest", dt.datetime(2026, 12, 31, 23, 0, tzinfo=dt.timezone.utc)),
+                                           ("cameras", dt.datetime(2027, 1, 1, 0, 30, tzinfo=dt.timezone.utc))])]))
+    [line] = clip_summaries(pipeline_status(wh, Config()))
+    assert line.last_run_at == "2027-01-01 00:30"
 
 
 def test_status_sees_an_input_edited_in_place_after_ingest(wh, small_clip, tmp_path):
