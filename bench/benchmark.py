@@ -88,7 +88,10 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     manifest = Manifest(seed, tuple(clip_name(seed, i, spec) for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
     if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
         raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
-    todo = [(i, name) for i, name in enumerate(manifest.clips) if not (bench_dir / name / "objects.json").is_file()]
+    # a clip is whole once its ground truth is: objects.json, then visibility.json, written last
+    # (bench/walkthrough.py, whose bytes key the trained models, writes them in that order)
+    todo = [(i, name) for i, name in enumerate(manifest.clips)
+            if not all((bench_dir / name / f).is_file() for f in ("objects.json", "visibility.json"))]
     for name in sorted(set(manifest.clips) - {name for _, name in todo}):
         _require_spec(bench_dir, name, spec)
     seconds = []

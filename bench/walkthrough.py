@@ -289,8 +289,8 @@ def generate_clip(out_dir: str | os.PathLike, name: str, seed: int, models: list
     }
     frames_path, objects_path, visibility_path = gt_dir / "frames.json", gt_dir / "objects.json", gt_dir / "visibility.json"
     write_json(frames_path, frames_to_json(frames_file))
+    write_json(objects_path, objects_to_json(ObjectsFile(name, tuple(objects))))
     write_json(visibility_path, visibility)
-    write_json(objects_path, objects_to_json(ObjectsFile(name, tuple(objects))))  # last: a clip with it is whole
     timings["ground_truth"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
     return ClipGroundTruth(name, scene, spec, lighting, video_path, cameras_path, frames_path, objects_path,
