@@ -832,6 +832,10 @@ def test_validate_checks_a_folder_as_ingest_reads_it(lwh, tmp_path):
     assert len(report.warnings) == 1 and "a.json: answers task c1.cs, which a rerun replaced with c1.cs2" in report.warnings[0]
     assert checked.code == 1 and checked.stdout.splitlines() == [f"{d / 'a.json'}: ok (cad_selection, task c1.cs, 1 answer(s))"]
     assert checked.stderr.splitlines() == [f"error: {report.errors[0]}", f"warning: {report.warnings[0]}"]
+    # a.json is ingested now: checked again, it is said so, with no warning (ingest skips it)
+    again = run_cli("-w", str(lwh.root), "labels", "validate", str(d / "a.json"))
+    assert again.code == 0 and again.stderr == "", again.stderr
+    assert again.stdout.splitlines() == [f"{d / 'a.json'}: ok, ingested before (cad_selection, task c1.cs): `labels ingest` skips it"]
 
 
 def test_a_manual_track_answer_to_a_replaced_task_is_said_to_leave_the_new_one_waiting(lwh, tmp_path):

@@ -123,12 +123,13 @@ def labels_validate(
     """Check label files without ingesting them (format, then the warehouse: clip, task, tracks,
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file;
     the files are checked together as `labels ingest` checks them (each against the ones before it,
-    with its warnings). Exit status 1 when any file is bad, 2 when a path given does not exist (as
+    with its warnings; a file ingested before is said so and skipped, as ingest skips it). Exit status 1 when any file is bad, 2 when a path given does not exist (as
     `labels ingest`); the other paths are still checked."""
-    from tasks.human.label_ingest import label_paths, order_warnings
+    from tasks.human.label_ingest import ingested_sha256, label_paths, order_warnings
     from tasks.human.labels import ClipFacts, LabelError, LabelFile, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
+    known = set() if facts is None else ingested_sha256(facts.wh)
     bad = missing = 0
     paths: list[Path] = []
     valid: list[LabelFile] = []
@@ -149,6 +150,9 @@ def labels_validate(
         except LabelError as e:
             bad += 1
             _problems([str(e)], [])
+            continue
+        if lf.sha256 in known:  # as ingest: skipped, neither its links nor its warnings count again
+            _say(f"{escape(str(f))}: ok, ingested before ({lf.kind}, task {escape(lf.task_id)}): `labels ingest` skips it")
             continue
         if facts is not None:
             facts.take(lf.label)  # as ingest: the files after it are checked against its links too

@@ -220,7 +220,7 @@ def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: 
     return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
 
 
-def _known(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
+def ingested_sha256(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
     """The SHA-256 of every label file ingested before (for ``clips``: of theirs; a file names its
     clip, so the same bytes were ingested for the same clip)."""
     return set(wh.read("label_files", clips, columns=["label_sha256"]).column("label_sha256").to_pylist())
@@ -229,7 +229,7 @@ def _known(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
     """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
     with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
-    known = _known(wh)
+    known = ingested_sha256(wh)
     accepted: list[LabelFile] = []
     for path in paths:
         try:
@@ -327,7 +327,7 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
     its file, and need not parse it again). A file whose bytes were ingested before is a duplicate.
     The warnings are those :func:`ingest_labels` gives (:mod:`tasks.human.label_warnings` too)."""
     report = IngestReport()
-    known = _known(wh, sorted({lf.clip for lf in files}))
+    known = ingested_sha256(wh, sorted({lf.clip for lf in files}))
     accepted = []
     for lf in files:
         if lf.sha256 in known:
@@ -352,7 +352,7 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
             _failed(report, lf, e)
     for clip, files in sorted(by_clip.items()):
         with labels_lock(wh, clip):  # another ingest of the same files commits them once: checked again here
-            known = _known(wh, [clip])
+            known = ingested_sha256(wh, [clip])
             report.duplicates += [str(f.lf.path) for f in files if f.lf.sha256 in known]
             committed = _commit_clip(wh, clip, [f for f in files if f.lf.sha256 not in known], report)
         for f in committed:
