@@ -33,7 +33,7 @@ The noise of a pick or a click on a track is drawn from the object the track fol
 track id (:meth:`_Clip.dice`): two pipelines compared on one benchmark (another detector, another
 tracking) see the same person where they hand over the same object.
 
-:func:`annotate_until_done` is the ``cadestate bench run`` loop (the default; ``--gt-tracks`` skips it): run the clips,
+:func:`annotate_until_done` is the ``cadestate bench run`` loop: run the clips,
 answer their open tasks, ingest the labels (:func:`tasks.human.label_ingest.ingest_labels`), rerun the
 clips that got labels, until no clip waits or ``max_rounds``.
 """

@@ -94,7 +94,7 @@ class PrefectConfig:
 class ScheduleConfig:
     """What `cadestate serve` schedules on the Prefect server (not part of lineage)."""
 
-    inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4 + <name>.txt) that the build_dataset deployment ingests.")
+    inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4, .mkv, .webm, .mov or .avi + <name>.txt) that the build_dataset deployment ingests.")
     inbox_cron: str = _opt("*/10 * * * *", "Cron schedule of the build_dataset deployment (UTC).", check=cron_problem)
     inbox_split: str = _opt("train", "Dataset split of the inbox's clips (val and test clips get the manual-track task).")
     labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.")

@@ -272,21 +272,22 @@ def test_a_default_export_leaves_out_clips_whose_verification_has_not_completed(
     _, clip, _ = built
     write_frames(wh, "kitchen", clip.video_path, clip.cameras_path, SPEC.width, SPEC.height)
     counts = export_dataset(wh, tmp_path / "a", cad=False, show_progress=False)
-    assert counts["clips"] == 1 and counts["note"] == ("left out 1 clip(s) whose verification has not completed: kitchen "
-                                                       "(name them with --clips to export them as they are)")
+    assert counts["clips"] == 1 and counts["note"] == ("left out 1 clip(s) not verified as they stand (verification not "
+                                                       "completed, or a task waits for people since): kitchen (name them "
+                                                       "with --clips to export them as they are)")
     assert (tmp_path / "a" / "scene_list.txt").read_text() == f"{CLIP}\n"
     with pytest.raises(ExportError, match=rf"^clips {CLIP}, kitchen would both be exported as '{CLIP}'"):
         export_dataset(wh, tmp_path / "b", [CLIP, "kitchen"], cad=False, show_progress=False)
     assert export_dataset(wh, tmp_path / "c", [CLIP, CLIP], cad=False, show_progress=False)["clips"] == 1
-    with pytest.raises(ExportError, match="no clip of .* has completed verification yet \\(1 with frames: kitchen\\)"):
+    with pytest.raises(ExportError, match="no clip of .* is verified as it stands yet \\(1 with frames: kitchen\\)"):
         export_dataset(_only_unfinished(tmp_path), tmp_path / "d", cad=False, show_progress=False)
     wh.write("runs", CLIP, table_rows("runs", [{"clip": CLIP, "run_id": "20260102T000000Z-waiting", "stage": "verification",
                                                 "status": "paused"}]))  # a rerun waits for verdicts on new poses
-    with pytest.raises(ExportError, match="no clip of .* has completed verification yet \\(2 with frames"):
+    with pytest.raises(ExportError, match="no clip of .* is verified as it stands yet \\(2 with frames"):
         export_dataset(wh, tmp_path / "e", cad=False, show_progress=False)
     named = export_scan2cad(wh, tmp_path / "s", [CLIP, "kitchen"])
     assert named["scans"] == 1 and named["note"].splitlines() == [
-        f"2 clip(s) written as they are, their verification not completed (poses still unjudged read as not posed): "
+        f"2 clip(s) written as they are, not verified as they stand (the poses accepted so far; the others read as not posed): "
         f"{CLIP}, kitchen", "left out 1 clip(s) with no accepted pose (no Scan2CAD scan): kitchen"]
     assert not (tmp_path / "s" / "kitchen.csv").exists()
     assert [a["id_scan"] for a in json.loads((tmp_path / "s" / "full_annotations.json").read_text())] == [CLIP]

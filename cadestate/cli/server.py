@@ -78,8 +78,8 @@ def serve(ctx: typer.Context) -> None:
     """Serve the dataset-building deployments on this warehouse's Prefect server until stopped (Ctrl-C).
 
     \b
-      build_dataset   on [schedule] inbox_cron: every new <name>.mp4 + <name>.txt
-                      of [schedule] inbox gets an annotate_clip run (half-copied
+      build_dataset   on [schedule] inbox_cron: every new <name>.mp4 (.mov, ...)
+                      + <name>.txt of [schedule] inbox gets an annotate_clip run (half-copied
                       files wait; <name>.done marks a pair ready)
       ingest_labels   on [schedule] labels_cron: the label files of [schedule]
                       labels_inbox are ingested, the clips they answer resumed

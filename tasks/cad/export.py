@@ -145,9 +145,9 @@ def publish(tmp: Path, out: Path) -> None:
 @dataclass(frozen=True)
 class ExportClips:
     """The clips a dataset export writes (``chosen``, in order, each once) and its clips whose
-    verification has not completed (``unfinished``: it never ran, or waits for verdicts, so poses
-    still unjudged would read as not posed): left out by default, written as they are when
-    ``named`` (``--clips``)."""
+    verification has not completed as they stand (``unfinished``: it never ran, waits for verdicts,
+    or a task waits for people since, e.g. clicks on models chosen anew; :func:`verification_completed`):
+    left out by default, written as they are when ``named`` (``--clips``)."""
 
     chosen: list[str]
     unfinished: list[str]
@@ -159,9 +159,10 @@ class ExportClips:
             return ""
         shown = some_named(self.unfinished)
         if self.named:
-            return (f"{len(self.unfinished)} clip(s) written as they are, their verification not completed (poses still "
-                    f"unjudged read as not posed): {shown}")
-        return f"left out {len(self.unfinished)} clip(s) whose verification has not completed: {shown}{hint}"
+            return (f"{len(self.unfinished)} clip(s) written as they are, not verified as they stand (the poses accepted "
+                    f"so far; the others read as not posed): {shown}")
+        return (f"left out {len(self.unfinished)} clip(s) not verified as they stand (verification not completed, or a "
+                f"task waits for people since): {shown}{hint}")
 
 
 def some_named(names: Sequence[str], limit: int = 10) -> str:
@@ -201,7 +202,7 @@ def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
     if missing:
         raise ExportError(f"clip {missing[0]!r} has no frames in {wh.root} (known: {', '.join(known) or 'none'})")
     if not chosen and unfinished:
-        raise ExportError(f"no clip of {wh.root} has completed verification yet ({len(unfinished)} with frames: "
+        raise ExportError(f"no clip of {wh.root} is verified as it stands yet ({len(unfinished)} with frames: "
                           f"{', '.join(unfinished[:5])}{', ...' if len(unfinished) > 5 else ''}); run them on "
                           "(`cadestate run`), or name them with --clips to export them as they are")
     if not chosen:
