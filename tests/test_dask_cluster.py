@@ -149,6 +149,7 @@ def test_a_dask_cluster_runs_whole_clips_on_both_workers(tmp_path, cluster):
                                               r"cannot reach Prefect's API at http://127.0.0.1:1/api: it listens on "
                                               r"this machine's loopback: .*PREFECT_API_URL"):
             check_workers_reach_api(client, "http://127.0.0.1:1/api", 2.0)
+        check_workers_reach_api(client, "https://127.0.0.1:1/api", 2.0)  # HTTPS: left to Prefect's client settings
 
 
 def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):

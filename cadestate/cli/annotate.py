@@ -34,7 +34,8 @@ def annotate(
     if not three_dir().is_dir():
         err.print(f"[yellow]warning:[/] three.js not found at {escape(str(three_dir()))} (run `make web-vendor`): "
                   "the correspondences page cannot show models", highlight=False)
-    err.print(f"annotation app for {escape(str(root))}: http://{host}:{port}/  (Ctrl-C stops it)", highlight=False)
+    shown = f"[{host}]" if ":" in host else host  # an IPv6 address goes in brackets in a URL
+    err.print(f"annotation app for {escape(str(root))}: http://{escape(shown)}:{port}/  (Ctrl-C stops it)", highlight=False)
     application = create_app(cfg, annotator)
     try:
         uvicorn.run(application, host=host, port=port, log_level="warning")  # SIGTERM: flows.local_api
