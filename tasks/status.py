@@ -243,6 +243,13 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     return notes
 
 
+def left_unrun(rows: Sequence[StageStatus]) -> bool:
+    """Whether a clip's stages (its :func:`pipeline_status` rows) have not taken in what the clip
+    holds: a stage's inputs changed since its last run (labels ingested by a command killed before
+    it resumed the clip), or a stage's last run was interrupted (killed while it resumed the clip)."""
+    return any(r.status == "interrupted" or any(w.startswith("inputs changed") for w in r.stale_reasons) for r in rows)
+
+
 @dataclass(frozen=True)
 class ClipSummary:
     """One clip's stages in a line (`cadestate status` beyond a few clips): where it stands (the first

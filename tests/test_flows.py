@@ -278,6 +278,34 @@ def test_clip_pauses_for_labels_and_ingest_resumes_it(small_library_warehouse, s
     assert {r.state for r in run_clips([source], config, show_progress=False)} == {"cached", "paused", "waiting"}
 
 
+def test_labels_ingest_again_resumes_the_clip_a_killed_ingest_left_unrun(small_library_warehouse, source, tmp_path):
+    """`labels ingest` killed after its file was in, before the clip's resume ran: the same command
+    again finds the file ingested and still resumes the clip; once it has run, again resumes nothing."""
+    from conftest import warehouse_copy
+    from fuzz.harness import run_cli
+
+    from cadestate.config import to_toml
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.human.labels import label_document
+
+    config = warehouse_copy(small_library_warehouse, tmp_path / "warehouse")
+    paused = {r.stage: r for r in run_clips([source], config, show_progress=False)}["cad_selection"]
+    wh = Warehouse(config.warehouse.root)
+    task = json.loads((wh.root / paused.message.split(" task ", 1)[1].split(";")[0]).read_text())
+    label = tmp_path / "sel.json"
+    label.write_text(json.dumps(label_document("cad_selection", "small", task["task_id"],
+                                               [{"track_id": it["track_id"], "cad_id": it["candidates"][0]["cad_id"]} for it in task["items"]])))
+    assert ingest_labels(wh, label).clips == ["small"]  # what the killed command did
+    (tmp_path / "c.toml").write_text(to_toml(config))
+    cli = ("-c", str(tmp_path / "c.toml"), "labels", "ingest", str(label), "--no-progress")
+    again = run_cli(*cli)
+    assert again.code == 0, again.stdout + again.stderr
+    assert f"{label}: already ingested" in again.stdout and "not yet run (a resume was stopped): small" in again.stdout
+    assert {r.stage: r.status for r in pipeline_status(wh, config)}["cad_selection"] == "completed"
+    done = run_cli(*cli)
+    assert done.code == 0 and "not yet run" not in done.stdout and "running" not in done.stderr, done.stdout + done.stderr
+
+
 def test_flow_state_names_the_paused_tasks():
     from flows.reports import final_state
     from tasks.stage_chain import StageReport

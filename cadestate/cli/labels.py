@@ -5,12 +5,16 @@ from __future__ import annotations
 import json
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 from rich.markup import escape
 
 from cadestate.cli.common import CliError, app, cannot_write, err, out
+
+if TYPE_CHECKING:
+    from cadestate.config import Config
+    from warehouse import Warehouse
 
 labels_app = typer.Typer(help="Label files of the human tasks: ingest them, validate them, print their JSON Schemas, "
                               "import manual tracks from CVAT or Label Studio.", no_args_is_help=True)
@@ -63,7 +67,8 @@ def labels_ingest(
     Each file is ingested on its own, all or nothing, and its outcome printed: ingested, already
     ingested, or an `error:` line (file and field); a bad file stops no other. The clips with new
     labels are rerun (the stages their labels made stale, e.g. cad_selection, and what follows;
-    everything upstream is cached). Exit status 1 when any file was not ingested or a resumed
+    everything upstream is cached), and so are the clips of files ingested before whose stages have
+    not taken them in (the command was stopped before its rerun ended: run it again). Exit status 1 when any file was not ingested or a resumed
     stage failed, 2 when the source does not exist.
     """
     from tasks.human.label_ingest import ingest_labels
@@ -83,17 +88,30 @@ def labels_ingest(
         _say(f"  {table}: {rows} row(s)")
     if report.clips:
         _say(f"clips with new labels: {escape(', '.join(report.clips))}")
+    wh = ctx.obj.open_warehouse(must_exist=True)
+    unrun = _unrun(wh, cfg, [c for c in dict.fromkeys(report.duplicate_clips) if c not in report.clips]) if resume else []
+    if unrun:
+        _say(f"clips whose labels were ingested but not yet run (a resume was stopped): {escape(', '.join(unrun))}")
     _problems(report.errors, report.warnings)
     code = 0 if report.ok else 1
-    if resume and report.clips:
+    if resume and (report.clips or unrun):
         from cadestate.cli.common import run_sources
         from tasks.video.ingest import registered_source
 
-        wh = ctx.obj.open_warehouse(must_exist=True)
-        clips = [c for c in report.clips if c not in resume_served(ctx, wh.root, report.clips)]
+        todo = report.clips + unrun
+        clips = [c for c in todo if c not in resume_served(ctx, wh.root, todo)]
         if clips:
             code = max(code, run_sources(ctx.obj, [registered_source(wh, c) for c in clips], progress, exit=False))
     raise typer.Exit(code)
+
+
+def _unrun(wh: Warehouse, config: Config, clips: list[str]) -> list[str]:
+    """The ``clips`` (of label files ingested before) whose stages have not taken in their labels:
+    a `labels ingest` killed after the ingest and before or during the resume
+    (:func:`tasks.status.left_unrun`); rerunning the command resumes them."""
+    from tasks.status import left_unrun, pipeline_status
+
+    return [c for c in clips if left_unrun(pipeline_status(wh, config, [c]))]
 
 
 def resume_served(ctx: typer.Context, root: Path, clips: list[str]) -> list[str]:
@@ -129,7 +147,7 @@ def labels_validate(
     from tasks.human.labels import ClipFacts, LabelError, LabelFile, validate_label
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
-    known = set() if facts is None else ingested_sha256(facts.wh)
+    known = {} if facts is None else ingested_sha256(facts.wh)
     bad = missing = 0
     paths: list[Path] = []
     valid: list[LabelFile] = []

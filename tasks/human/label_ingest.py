@@ -54,10 +54,12 @@ below this fraction of the largest."""
 class IngestReport:
     """What :func:`ingest_labels` did, file by file: ``ingested`` and ``duplicates`` (paths),
     ``errors`` (one line each, naming the file), ``warnings`` (on files ingested or not);
-    ``clips``: clips with new labels (the ones to resume)."""
+    ``clips``: clips with new labels (the ones to resume); ``duplicate_clips``: the clips of the
+    ``duplicates``, in their order (a run killed after their ingest may have left them unrun)."""
 
     ingested: list[str] = field(default_factory=list)
     duplicates: list[str] = field(default_factory=list)
+    duplicate_clips: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     clips: list[str] = field(default_factory=list)
@@ -220,10 +222,11 @@ def prepare_file(wh: Warehouse, lf: LabelFile, ingested_at: dt.datetime, facts: 
     return PreparedFile(lf, wh.conform(spec.name, lf.clip, answers), wh.conform(LABEL_FILES.name, lf.clip, record), sides)
 
 
-def ingested_sha256(wh: Warehouse, clips: list[str] | None = None) -> set[str]:
-    """The SHA-256 of every label file ingested before (for ``clips``: of theirs; a file names its
-    clip, so the same bytes were ingested for the same clip)."""
-    return set(wh.read("label_files", clips, columns=["label_sha256"]).column("label_sha256").to_pylist())
+def ingested_sha256(wh: Warehouse, clips: list[str] | None = None) -> dict[str, str]:
+    """The SHA-256 of every label file ingested before (for ``clips``: of theirs), each with its clip
+    (a file names its clip, so the same bytes were ingested for the same clip)."""
+    files = wh.read("label_files", clips, columns=["label_sha256", "clip"])
+    return dict(zip(files.column("label_sha256").to_pylist(), files.column("clip").to_pylist()))
 
 
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
@@ -234,8 +237,9 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
     for path in paths:
         try:
             data = read_limited(path, max_bytes)
-            if hashlib.sha256(data).hexdigest() in known:
+            if (clip := known.get(hashlib.sha256(data).hexdigest())) is not None:
                 report.duplicates.append(str(path))
+                report.duplicate_clips.append(clip)
                 continue
             lf = validate_label(path, facts=facts, data=data, max_bytes=max_bytes)
         except LabelError as e:
@@ -243,7 +247,7 @@ def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: in
             continue
         report.warnings += lf.warnings
         facts.take(lf.label)  # the files after it are checked against its links too (a ring across two files)
-        known.add(lf.sha256)
+        known[lf.sha256] = lf.clip
         accepted.append(lf)
     report.warnings += order_warnings(wh, accepted)
     return accepted
@@ -332,9 +336,10 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
     for lf in files:
         if lf.sha256 in known:
             report.duplicates.append(str(lf.path))
+            report.duplicate_clips.append(lf.clip)
             continue
         report.warnings += lf.warnings
-        known.add(lf.sha256)
+        known[lf.sha256] = lf.clip
         accepted.append(lf)
     report.warnings += order_warnings(wh, accepted)
     return _ingest(wh, accepted, facts, report, coplanar_tol, None)
@@ -354,6 +359,7 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
         with labels_lock(wh, clip):  # another ingest of the same files commits them once: checked again here
             known = ingested_sha256(wh, [clip])
             report.duplicates += [str(f.lf.path) for f in files if f.lf.sha256 in known]
+            report.duplicate_clips += [clip for f in files if f.lf.sha256 in known]
             committed = _commit_clip(wh, clip, [f for f in files if f.lf.sha256 not in known], report)
         for f in committed:
             _count(report, f)
