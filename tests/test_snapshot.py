@@ -230,3 +230,25 @@ def test_every_table_of_a_synthetic_warehouse_answers_the_same_through_its_snaps
         sql = f"SELECT {', '.join(columns)} FROM {table} ORDER BY ALL"
         assert through_view(wh, sql) == through_files(wh, table, sql), table
     assert snapshot_rows(wh, "frames") == 24 * 30
+
+
+def test_the_half_built_catalogs_and_pins_of_killed_rebuilds_are_removed_an_hour_on(wh):
+    """A rebuild killed mid-way (kill -9 of `cadestate compact`) leaves its half-built catalog, its
+    write-ahead log and its pin beside the catalog: the next rebuild removes them once an hour old
+    (a live rebuild's are younger), and nothing else."""
+    import os
+
+    from warehouse import catalog
+
+    wh.write("tracks", "a", tracks("a", 3))
+    snapshot(wh)
+    left = [wh.root / f".{CATALOG_FILE}.{'0' * 32}{end}" for end in (".tmp", ".tmp.wal", ".pin")]
+    young = wh.root / f".{CATALOG_FILE}.{'1' * 32}.tmp"
+    mine = wh.root / f".{CATALOG_FILE}.notes"
+    for f in [*left, young, mine]:
+        f.write_bytes(b"x")
+    for f in [*left, mine]:
+        os.utime(f, (time.time() - catalog.STALE_S - 60,) * 2)
+    catalog.refresh_catalog(wh)
+    assert sorted(p.name for p in wh.root.glob(f".{CATALOG_FILE}.*")) == sorted([young.name, mine.name])
+    assert through_view(wh, TRACKS) == [("a", "chair", 3)]

@@ -53,6 +53,8 @@ reads it removes a file it listed (the build reads again from the start)."""
 LAYOUT = 3
 """Version of how views are made; a catalog of another layout is rebuilt."""
 SCHEMA_DIGEST = b"cadestate.schema_sha256"
+STALE_S = 3600.0
+"""A pin or half-built catalog beside the catalog untouched this long is a killed rebuild's: removed."""
 
 _ENSURED: set[Path] = set()
 """Roots whose catalog this process has made sure of (after a write, checked once per process)."""
@@ -269,10 +271,11 @@ def _pinned(path: Path) -> Iterator[Path]:
     """``path`` as it is now, for the length of the block: a hard link to it beside it (removed
     after), so that the watermarks a rebuild reads and the snapshots it copies come from one
     catalog even when another process replaces the file meanwhile (a snapshot and a rebuild at
-    once). ``path`` itself where it is missing or the file system has no hard links."""
-    for stale in path.parent.glob(f".{path.name}.*.pin"):  # a killed rebuild's, an hour on
+    once). ``path`` itself where it is missing or the file system has no hard links. The pins and
+    half-built catalogs (``.tmp``, ``.tmp.wal``) of killed rebuilds are removed :data:`STALE_S` on."""
+    for stale in path.parent.glob(f".{path.name}.*"):  # a killed rebuild's, an hour on
         with contextlib.suppress(OSError):
-            if time.time() - stale.stat().st_mtime > 3600:
+            if stale.name.endswith((".pin", ".tmp", ".tmp.wal")) and time.time() - stale.stat().st_mtime > STALE_S:
                 stale.unlink()
     pin = path.with_name(f".{path.name}.{uuid.uuid4().hex}.pin")
     try:
