@@ -13,8 +13,9 @@ whose section changed, a stage downstream of a rerun stage reruns only if that s
 changed, a paused stage with nothing new answered stays paused, and a copied or moved warehouse
 reruns nothing: its runs travel with it.
 
-A stage whose upstream stage failed (or was skipped) is skipped; one whose upstream stage waits for
-people with nothing answered is ``waiting`` (:func:`tasks.stage.waiting_run`); the others still run.
+A stage whose upstream stage, or a stage it is listed ``after``, failed (or was skipped) is
+skipped; one whose upstream stage waits for people with nothing answered is ``waiting``
+(:func:`tasks.stage.waiting_run`); the others still run.
 """
 
 from __future__ import annotations
@@ -131,10 +132,10 @@ def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: A
                inputs: list[str], done: dict[str, StageRun], runs: list[dict[str, Any]], log: Any) -> StageReport:
     """Run (or find cached, waiting or skipped) one stage; its run goes into ``done`` and ``runs``."""
     upstream = [done.get(u) for u in stage.upstream]
-    if any(u is None for u in upstream):
+    if any(u is None for u in upstream) or any(a not in done for a in stage.after):  # pose after a skipped correspondence_task
         return StageReport(unit, stage.name, "skipped", message="an upstream stage failed")
     ups = [u for u in upstream if u is not None]
-    waiting = waiting_run(unit, stage.name, ups + [done[a] for a in stage.after if a in done])  # pose: no clicks yet
+    waiting = waiting_run(unit, stage.name, ups + [done[a] for a in stage.after])  # pose: no clicks yet
     if waiting is not None:
         done[stage.name] = waiting
         return report_of(waiting)

@@ -164,6 +164,21 @@ def test_a_bad_clip_does_not_stop_the_others(config, source, tmp_path):
     assert wh.partitions("frames") == ["small"]
 
 
+def test_a_stage_listed_after_a_skipped_one_is_skipped_too(config, source):
+    """pose runs after correspondence_task without reading its output: when a stage before that one
+    fails, pose (and verification after it) are skipped as well, not run on the correspondences
+    there were and recorded completed while the clip has not reached them."""
+    wh = Warehouse(config.warehouse.root)
+    blocker = wh.partition_dir("embeddings", "small")
+    blocker.parent.mkdir(parents=True)
+    blocker.write_text("")  # a file where the partition's folder goes: embed's write fails (as on a full disk)
+    reports = run_clips([source], config, show_progress=False)
+    assert states(reports) == expect("small", cameras="completed", ingest="completed", frames="completed",
+                                     detect="completed", embed="failed", rest="skipped")
+    assert {r["stage"] for r in wh.read("runs", partitions=["small"]).to_pylist()} == {
+        "cameras", "ingest", "frames", "detect", "embed"}
+
+
 def test_cad_library_flow_caches_per_stage(config, tmp_path):
     import trimesh
 
