@@ -18,3 +18,24 @@ def exit_on_sigterm() -> None:
 
 def _exit_on_signal(signum: int, frame) -> None:
     raise SystemExit(128 + signum)
+
+
+def quiet_exit() -> None:
+    """Have SIGTERM and Ctrl-C ignored from when the exit handlers registered before this call
+    start to run (the last registered runs first): a command that is done ends as it was ending
+    (the Prefect API it launched stopped, up to 5 s), where a signal then printed a traceback
+    ("Exception ignored in atexit callback ... SystemExit: 143"). Called when a command is done;
+    called again, it goes before every handler registered since."""
+    import atexit
+
+    atexit.unregister(_ignore_ending_signals)
+    atexit.register(_ignore_ending_signals)
+
+
+def _ignore_ending_signals() -> None:
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)

@@ -348,3 +348,17 @@ def prefect_apis_of(w: Path) -> list[int]:
         except (OSError, ValueError):
             continue
     return pids
+
+
+def test_a_sigterm_while_a_finished_command_exits_prints_no_traceback(tmp_path):
+    """SIGTERM (a group kill, `timeout`) that comes while a finished command's exit handlers run (the
+    Prefect API it launched being stopped, up to 5 s): the exit goes on quietly, as it was ending."""
+    script = ("import atexit, os, signal, sys, time\n"
+              "from cadestate.cli import main\n"
+              "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGTERM), time.sleep(0.5)))  # a handler under way\n"
+              "sys.argv = ['cadestate', 'stages']\n"
+              "main()\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert done.returncode == 0 and "pose" in done.stdout, done.stderr
+    assert "Traceback" not in done.stderr and not done.stderr.strip(), done.stderr

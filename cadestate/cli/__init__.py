@@ -14,7 +14,7 @@ import sys
 from rich.markup import escape
 
 from cadestate.cli import annotate, bench, cad, export, labels, pipeline, server  # noqa: F401  (register the commands)
-from cadestate import exit_on_sigterm
+from cadestate import exit_on_sigterm, quiet_exit
 from cadestate.cli.common import app, err
 
 __all__ = ["app", "main"]
@@ -51,7 +51,15 @@ def main() -> None:
     clear line on stderr and exit status 2 (1 for a failing environment); Ctrl-C is "interrupted",
     status 130. SIGTERM ends the command as an exit (status 143), so that its cleanup runs
     (temporary folders, the Prefect API it launched), as Ctrl-C's does. Output is UTF-8 whatever
-    the locale says (an 'é' in a CSV under an ASCII locale was a traceback half-way through)."""
+    the locale says (an 'é' in a CSV under an ASCII locale was a traceback half-way through). Once
+    it is done, a SIGTERM or Ctrl-C while the process exits is ignored (:func:`cadestate.quiet_exit`)."""
+    try:
+        _main()
+    finally:
+        quiet_exit()
+
+
+def _main() -> None:
     import typer
     from typer._click.exceptions import NoArgsIsHelpError, UsageError  # Typer carries its own Click
 
