@@ -124,7 +124,7 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         run = FlowRunContext.get()
         if run is None or run.flow_run is None:
             return
-        state = Cancelled(message="interrupted (Ctrl-C); `cadestate run` resumes its clips")
+        state = Cancelled(message="interrupted (Ctrl-C); the command run again resumes it")
 
         def send() -> None:
             with contextlib.suppress(Exception), get_client(sync_client=True) as client:
@@ -150,7 +150,7 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
             signal.signal(s, handler)
 
 
-STAGES_STOP = "the stages in progress stop unfinished (`cadestate run` resumes them)"
+STAGES_STOP = "the stages in progress stop unfinished (the command run again resumes them)"
 """What a command's Ctrl-C or SIGTERM does to the stages it runs (here, or on a local Dask cluster)."""
 
 

@@ -330,7 +330,7 @@ def test_ctrl_c_ends_a_command_on_a_local_cluster_at_once(tmp_path, sig):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + signum and time.monotonic() - sent < 10, err
     said = "interrupted" if signum == signal.SIGINT else "terminated"
-    assert f"{said}: the stages in progress stop unfinished (`cadestate run` resumes them)" in err, err
+    assert f"{said}: the stages in progress stop unfinished (the command run again resumes them)" in err, err
     assert "Traceback" not in err and "distributed" not in err, err
     deadline = time.monotonic() + 10
     while psutil.pid_exists(worker) and psutil.Process(worker).status() != psutil.STATUS_ZOMBIE \

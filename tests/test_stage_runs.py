@@ -70,6 +70,28 @@ def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
     assert settle_interrupted(wh, "c1") == []  # recorded once
 
 
+def test_status_says_a_killed_library_stage_is_rerun_by_cad_ingest(wh):
+    """A CAD library's stage killed mid-run: `cadestate status` names the command that reruns it,
+    `cadestate cad ingest` (`cadestate run LIBRARY` refuses: no clip of that name)."""
+    import datetime as dt
+
+    from tasks.stage import StageRun, record_run
+
+    record_run(wh, StageRun("lib", "cad_ingest", "r0", "completed", "c", "i", "o", "k", 1, 0.1, ""),
+               dt.datetime.now(dt.timezone.utc))
+    script = textwrap.dedent(f"""
+        import os, signal
+        from tasks.stage import run_stage
+        from warehouse import Warehouse
+        run_stage(Warehouse({str(wh.root)!r}), "lib", "cad_embed", config_hash="c", inputs_hash="i", code_hash="k",
+                  body=lambda run_id: os.kill(os.getpid(), signal.SIGKILL))
+    """)
+    assert subprocess.run([sys.executable, "-c", script], capture_output=True).returncode == -9
+    shown = CliRunner().invoke(app, ["-w", str(wh.root), "status", "lib"], terminal_width=200)
+    assert shown.exit_code == 0 and "lib was interrupted at cad_embed" in shown.output, shown.output
+    assert "`cadestate cad ingest` of its source reruns it" in shown.output and "cadestate run" not in shown.output
+
+
 def test_a_marker_of_another_host_is_alive_while_its_heartbeat_is(wh):
     """A run on a Dask worker: its pid means nothing here, its marker's heartbeat does, for `status`.
     The next run of the clip settles it as interrupted whatever its heartbeat: it holds the clip's

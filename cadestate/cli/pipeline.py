@@ -216,8 +216,9 @@ def status(
             if r.status == "paused":
                 out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
             elif r.status == "interrupted":
+                again = f"`cadestate run {escape(r.clip)}`" if scope == "clip" else "`cadestate cad ingest` of its source"
                 out.print(f"[red]{escape(r.clip)} was interrupted[/] at {r.stage} ({r.last_run_at}): {escape(r.message)}; "
-                          f"`cadestate run {escape(r.clip)}` reruns it")
+                          f"{again} reruns it")
         for note in clip_notes(rows):
             out.print(f"[yellow]note:[/] {escape(note)}")
     unknown = [c for c in dict.fromkeys(clips or ()) if c not in shown]
