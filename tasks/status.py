@@ -13,6 +13,7 @@ nothing).
 from __future__ import annotations
 
 import datetime as dt
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,8 +22,9 @@ from typing import Any
 from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
-from tasks.stage import StageRun, run_markers
+from tasks.stage import RUNNING_DIR, StageRun, run_markers
 from warehouse import Warehouse, check_name
+from warehouse.store import is_name
 
 SOURCE_FILE_STAGES = ("cameras", "ingest")
 """Clip stages that read the clip's input files themselves (their inputs digest is taken from the
@@ -120,13 +122,29 @@ def _registered(wh: Warehouse, table: str, names: Sequence[str] | None) -> set[s
     return {n for n in names if wh.has_partition(table, n)}
 
 
+def _marked(wh: Warehouse, names: Sequence[str] | None, stages: set[str]) -> set[str]:
+    """The clips or libraries (all, or those among ``names``) with a marker of one of ``stages``: a
+    run in progress, or killed, which may be the unit's first (a library's ``cad_ingest``, a clip's
+    ``cameras`` by SfM) and then left no row anywhere else."""
+    folder = wh.root / RUNNING_DIR
+    if names:
+        found = [n for n in names if is_name(n)]
+    else:
+        try:
+            found = [n for n in os.listdir(folder) if is_name(n)]
+        except OSError:  # no run yet
+            return set()
+    return {n for n in found if any(m.stage in stages for m in run_markers(wh, n))}
+
+
 def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None = None,
                     scope: str = "clip", runs: list[dict] | None = None) -> list[StageStatus]:
     """One :class:`StageStatus` per (clip or library, stage), names sorted, stages in pipeline order;
     ``runs``: :func:`read_runs` of ``names``, when the caller has read them already."""
     stages = stages_of(scope)
     runs = [r for r in (read_runs(wh, names) if runs is None else runs) if r["stage"] in {s.name for s in stages}]
-    known = _registered(wh, "clips" if scope == "clip" else "cad_models", names) | {r["clip"] for r in runs}
+    known = (_registered(wh, "clips" if scope == "clip" else "cad_models", names) | {r["clip"] for r in runs}
+             | _marked(wh, names, {s.name for s in stages}))
     names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here
     last: dict[tuple[str, str], dict] = {}
     last_ok: dict[tuple[str, str], dict] = {}

@@ -79,17 +79,37 @@ def test_status_says_a_killed_library_stage_is_rerun_by_cad_ingest(wh):
 
     record_run(wh, StageRun("lib", "cad_ingest", "r0", "completed", "c", "i", "o", "k", 1, 0.1, ""),
                dt.datetime.now(dt.timezone.utc))
+    _killed_in(wh, "lib", "cad_embed")
+    shown = CliRunner().invoke(app, ["-w", str(wh.root), "status", "lib"], terminal_width=200)
+    assert shown.exit_code == 0 and "lib was interrupted at cad_embed" in shown.output, shown.output
+    assert "`cadestate cad ingest` of its source reruns it" in shown.output and "cadestate run" not in shown.output
+
+
+def _killed_in(wh: Warehouse, unit: str, stage: str) -> None:
+    """Run ``stage`` of ``unit`` in a process that its body kills with SIGKILL (as `kill -9` would)."""
     script = textwrap.dedent(f"""
         import os, signal
         from tasks.stage import run_stage
         from warehouse import Warehouse
-        run_stage(Warehouse({str(wh.root)!r}), "lib", "cad_embed", config_hash="c", inputs_hash="i", code_hash="k",
+        run_stage(Warehouse({str(wh.root)!r}), {unit!r}, {stage!r}, config_hash="c", inputs_hash="i", code_hash="k",
                   body=lambda run_id: os.kill(os.getpid(), signal.SIGKILL))
     """)
     assert subprocess.run([sys.executable, "-c", script], capture_output=True).returncode == -9
-    shown = CliRunner().invoke(app, ["-w", str(wh.root), "status", "lib"], terminal_width=200)
-    assert shown.exit_code == 0 and "lib was interrupted at cad_embed" in shown.output, shown.output
-    assert "`cadestate cad ingest` of its source reruns it" in shown.output and "cadestate run" not in shown.output
+
+
+@pytest.mark.parametrize("unit, stage, title", [("lib", "cad_ingest", "CAD libraries"), ("room_0", "cameras", "clips")])
+def test_a_unit_whose_first_stage_was_killed_is_in_the_status(wh, unit, stage, title):
+    """The first stage of a CAD library (cad_ingest) or of a clip (cameras, minutes of SfM) killed on
+    its first run: nothing but its marker tells of it, and `cadestate status` shows it interrupted
+    (it said nothing of it, and 'no clip or CAD library named' it when named)."""
+    (wh.root / "tables").mkdir(parents=True)  # as the command that ran it made the warehouse
+    _killed_in(wh, unit, stage)
+    for args in ([], [unit]):
+        shown = CliRunner().invoke(app, ["-w", str(wh.root), "status", *args], terminal_width=200)
+        assert shown.exit_code == 0 and f"{unit} was interrupted at {stage}" in shown.output, shown.output
+        assert title in shown.output
+    rows = pipeline_status(wh, Config(), None, "library" if stage == "cad_ingest" else "clip")
+    assert [(r.clip, r.status) for r in rows][:2] == [(unit, "interrupted"), (unit, "never run")]
 
 
 def test_a_marker_of_another_host_is_alive_while_its_heartbeat_is(wh):
