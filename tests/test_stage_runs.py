@@ -302,3 +302,25 @@ def test_a_live_run_stays_alive_when_the_wall_clock_is_set():
                                         dt.datetime.now(dt.timezone.utc), Path("m.json"), 0.0, t)
     assert marker(stepped, ticks).alive and not marker(stepped + 5.0, ticks + 1).alive  # a recycled pid: other ticks
     assert not marker(stepped, None).alive and marker(stepped + 5.0, None).alive  # an older marker: seconds, as before
+
+
+def test_a_reingest_removes_the_part_copy_a_killed_ingest_left(wh, small_clip, tmp_path):
+    """Ctrl-C (which ends a run at once) or kill -9 while ingest copies a video from another file
+    system leaves the part copy under its temporary name in inputs/<clip>/: the next ingest of the
+    clip removes it (it stayed for ever, a video's size each time)."""
+    import shutil
+
+    from cadestate.config import IngestConfig
+    from cadestate.lineage import file_sha256
+    from tasks.video.ingest import ingest_clip
+
+    video, cams = tmp_path / "in.mp4", tmp_path / "in.txt"
+    shutil.copy(small_clip.video_path, video)
+    shutil.copy(small_clip.cameras_path, cams)
+    inputs = wh.inputs_dir("small")
+    inputs.mkdir(parents=True)
+    part = inputs / ".video.mp4.0a43f14656394a1bae048ca31069397c.tmp"  # as the killed copy named it
+    part.write_bytes(video.read_bytes()[:1000])
+    ingest_clip(wh, IngestConfig(up="+y", link_inputs=False), ClipSource("small", video, cams), file_sha256(video),
+                file_sha256(cams), "r0")
+    assert sorted(p.name for p in inputs.iterdir()) == ["cameras.txt", "placed.json", "video.mp4"]

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from cadestate.atomic import TMP_SUFFIX
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256, known_file_sha256
@@ -125,7 +126,7 @@ def _place(src: Path, dst: Path, link: bool) -> None:
     """Put a copy of ``src`` at ``dst`` atomically (hard link when allowed and possible)."""
     if dst.exists() and os.path.samefile(src, dst):
         return
-    tmp = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.tmp")
+    tmp = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
     try:
         try:
             if not link:
@@ -286,6 +287,10 @@ def ingest_clip(
     for old in inputs.glob("video.*"):  # a re-ingest with another container format
         if old.suffix.lower() != source.video.suffix.lower():
             old.unlink()
+    # a killed ingest's part copy of the video (Ctrl-C ends a run at once, SIGKILL): no live copy is under
+    # way, as the clip's stages run under its lock (tasks.stage_chain.run_unit)
+    for left in inputs.glob(f".*{TMP_SUFFIX}"):
+        left.unlink(missing_ok=True)
     video_dst = inputs / f"video{source.video.suffix.lower()}"
     cameras_dst = inputs / CAMERAS_FILE
     _place(source.video, video_dst, cfg.link_inputs)
