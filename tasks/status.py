@@ -264,8 +264,9 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
 def left_unrun(rows: Sequence[StageStatus]) -> bool:
     """Whether a clip's stages (its :func:`pipeline_status` rows) have not taken in what the clip
     holds: a stage's inputs changed since its last run (labels ingested by a command killed before
-    it resumed the clip), or a stage's last run was interrupted (killed while it resumed the clip)."""
-    return any(r.status == "interrupted" or any(w.startswith("inputs changed") for w in r.stale_reasons) for r in rows)
+    it resumed the clip; not its input files edited, nor its config), or a stage's last run was
+    interrupted (killed while it resumed the clip)."""
+    return any(r.status == "interrupted" or "inputs changed" in r.stale_reasons for r in rows)
 
 
 @dataclass(frozen=True)
