@@ -79,8 +79,9 @@ def serve(ctx: typer.Context) -> None:
 
     \b
       build_dataset   on [schedule] inbox_cron: every new <name>.mp4 (.mov, ...)
-                      + <name>.txt of [schedule] inbox gets an annotate_clip run (half-copied
-                      files wait; <name>.done marks a pair ready)
+                      + <name>.txt of [schedule] inbox gets an annotate_clip
+                      run (half-copied files wait; <name>.done marks a pair
+                      ready)
       ingest_labels   on [schedule] labels_cron: the label files of [schedule]
                       labels_inbox are ingested, the clips they answer resumed
       annotate_clip   one run per clip, suspended while people answer its tasks
