@@ -835,7 +835,14 @@ def test_validate_checks_a_folder_as_ingest_reads_it(lwh, tmp_path):
     # a.json is ingested now: checked again, it is said so, with no warning (ingest skips it)
     again = run_cli("-w", str(lwh.root), "labels", "validate", str(d / "a.json"))
     assert again.code == 0 and again.stderr == "", again.stderr
-    assert again.stdout.splitlines() == [f"{d / 'a.json'}: ok, ingested before (cad_selection, task c1.cs): `labels ingest` skips it"]
+    assert again.stdout.splitlines() == [f"{d / 'a.json'}: ok, its bytes were ingested before (clip {CLIP}): `labels ingest` skips it"]
+    # two copies of one new file: ingest takes the first and skips the second; validate says so
+    e = tmp_path / "copies"
+    for name in ("c.json", "d.json"):
+        put(e, name, good("verification"))
+    twice = run_cli("-w", str(lwh.root), "labels", "validate", str(e))
+    assert twice.code == 0 and twice.stdout.splitlines()[1] == f"{e / 'd.json'}: ok, its bytes are an earlier file's of these: `labels ingest` skips it"
+    assert ingest_labels(lwh, e).duplicates == [str(e / "d.json")]
 
 
 def test_a_manual_track_answer_to_a_replaced_task_is_said_to_leave_the_new_one_waiting(lwh, tmp_path):

@@ -143,14 +143,12 @@ def labels_validate(
     the files are checked together as `labels ingest` checks them (each against the ones before it,
     with its warnings; a file ingested before is said so and skipped, as ingest skips it). Exit status 1 when any file is bad, 2 when a path given does not exist (as
     `labels ingest`); the other paths are still checked."""
-    from tasks.human.label_ingest import ingested_sha256, label_paths, order_warnings
-    from tasks.human.labels import ClipFacts, LabelError, LabelFile, validate_label
+    from tasks.human.label_ingest import check_files, ingested_sha256, label_paths, order_warnings
+    from tasks.human.labels import ClipFacts
 
     facts = None if offline else ClipFacts(ctx.obj.open_warehouse(must_exist=True))
-    known = {} if facts is None else ingested_sha256(facts.wh)
     bad = missing = 0
     paths: list[Path] = []
-    valid: list[LabelFile] = []
     for source in files:
         try:
             found = label_paths(source)
@@ -162,21 +160,21 @@ def labels_validate(
             bad += 1
             _problems([f"{source}: no label file (*.json) in this folder"], [])
         paths += found
-    for f in paths:
-        try:
-            lf = validate_label(f, facts=facts, max_bytes=round(max_mb * 1e6))
-        except LabelError as e:
+    valid = []
+    known = {} if facts is None else ingested_sha256(facts.wh)
+    for checked in check_files(paths, facts, known, round(max_mb * 1e6)):
+        name = escape(str(checked.path))
+        if checked.error is not None:
             bad += 1
-            _problems([str(e)], [])
-            continue
-        if lf.sha256 in known:  # as ingest: skipped, neither its links nor its warnings count again
-            _say(f"{escape(str(f))}: ok, ingested before ({lf.kind}, task {escape(lf.task_id)}): `labels ingest` skips it")
-            continue
-        if facts is not None:
-            facts.take(lf.label)  # as ingest: the files after it are checked against its links too
+            _problems([checked.error], [])
+        elif checked.ingested_for is not None:  # as ingest: skipped, neither its links nor its warnings count again
+            before = "are an earlier file's of these" if checked.in_batch else f"were ingested before (clip {escape(checked.ingested_for)})"
+            _say(f"{name}: ok, its bytes {before}: `labels ingest` skips it")
+        else:
+            lf = checked.lf
             valid.append(lf)
-        _say(f"{escape(str(f))}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
-        _problems([], list(lf.warnings))
+            _say(f"{name}: ok ({lf.kind}, task {escape(lf.task_id)}, {len(lf.label.answers)} answer(s))")
+            _problems([], list(lf.warnings))
     if facts is not None:
         _problems([], order_warnings(facts.wh, valid))
     raise typer.Exit(2 if missing else 1 if bad else 0)

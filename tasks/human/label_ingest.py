@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -229,26 +229,56 @@ def ingested_sha256(wh: Warehouse, clips: list[str] | None = None) -> dict[str, 
     return dict(zip(files.column("label_sha256").to_pylist(), files.column("clip").to_pylist()))
 
 
-def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
-    """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
-    with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
-    known = ingested_sha256(wh)
-    accepted: list[LabelFile] = []
+@dataclass(frozen=True)
+class CheckedFile:
+    """One label file as ingest checks it: ``lf`` when it is valid and new; ``error`` (one line
+    naming the file) when it is not valid; ``ingested_for`` (its clip) when the same bytes were
+    ingested before (``in_batch``: came earlier in the same batch): ingest skips it."""
+
+    path: Path
+    lf: LabelFile | None = None
+    error: str | None = None
+    ingested_for: str | None = None
+    in_batch: bool = False
+
+
+def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str, str],
+                max_bytes: int = MAX_LABEL_BYTES) -> Iterator[CheckedFile]:
+    """Check ``paths`` in order as ingest does: the bytes' SHA-256 against ``known`` (SHA-256 to
+    clip, as :func:`ingested_sha256`; the new files are added to it) first, then the format and,
+    with ``facts``, the warehouse; each valid file's links go into ``facts``, so that the files
+    after it are checked against them too (a ring across two files)."""
+    batch: set[str] = set()
     for path in paths:
         try:
             data = read_limited(path, max_bytes)
-            if (clip := known.get(hashlib.sha256(data).hexdigest())) is not None:
-                report.duplicates.append(str(path))
-                report.duplicate_clips.append(clip)
+            if (clip := known.get(sha := hashlib.sha256(data).hexdigest())) is not None:
+                yield CheckedFile(path, ingested_for=clip, in_batch=sha in batch)
                 continue
             lf = validate_label(path, facts=facts, data=data, max_bytes=max_bytes)
         except LabelError as e:
-            report.errors.append(str(e))
+            yield CheckedFile(path, error=str(e))
             continue
-        report.warnings += lf.warnings
-        facts.take(lf.label)  # the files after it are checked against its links too (a ring across two files)
+        if facts is not None:
+            facts.take(lf.label)
         known[lf.sha256] = lf.clip
-        accepted.append(lf)
+        batch.add(lf.sha256)
+        yield CheckedFile(path, lf=lf)
+
+
+def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
+    """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
+    with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
+    accepted: list[LabelFile] = []
+    for checked in check_files(paths, facts, ingested_sha256(wh), max_bytes):
+        if checked.error is not None:
+            report.errors.append(checked.error)
+        elif checked.ingested_for is not None:
+            report.duplicates.append(str(checked.path))
+            report.duplicate_clips.append(checked.ingested_for)
+        else:
+            report.warnings += checked.lf.warnings
+            accepted.append(checked.lf)
     report.warnings += order_warnings(wh, accepted)
     return accepted
 
