@@ -57,6 +57,9 @@ from warehouse import Warehouse, atomic_write_bytes
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
 ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
+INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT = "build_dataset", "ingest_labels", "dataset_report"
+DEPLOYMENTS = (ANNOTATE_DEPLOYMENT, INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT)
+"""The names of the four deployments :func:`deployments` makes, in its order."""
 """The deployment (flow name/deployment name) that runs one clip."""
 ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED]
 
@@ -208,14 +211,13 @@ def crash_runs_left_running(warehouse: str) -> list[str]:
     or running (it was stopped or killed mid-run; the serve lock says none serves now), and return
     their names. Such a run stayed Running on the server for good, and the inbox never ran its clip
     again (a clip with an active run gets no new one): it now does on its next tick."""
-    names = [ANNOTATE_DEPLOYMENT, "build_dataset", "ingest_labels", "dataset_report"]
     state = Crashed(message="the `cadestate serve` running it ended; a new serve found it left running")
     found: list = []
     with get_client(sync_client=True) as client:
         while True:  # all read first: each one crashed leaves the filter
             page = client.read_flow_runs(
                 flow_run_filter=FlowRunFilter(state=FlowRunFilterState(type=FlowRunFilterStateType(any_=LEFT_RUNNING))),
-                deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=names)),
+                deployment_filter=DeploymentFilter(name=DeploymentFilterName(any_=list(DEPLOYMENTS))),
                 sort=FlowRunSort.ID_DESC, limit=PAGE, offset=len(found))
             found += page
             if len(page) < PAGE:
@@ -366,12 +368,12 @@ def deployments(config: Config, config_path: str) -> list:
             name=ANNOTATE_DEPLOYMENT, entrypoint_type=module, tags=["cadestate"],
             description="The stages of one clip; suspended while people answer its tasks."),
         build_dataset_inbox.to_deployment(
-            name="build_dataset", concurrency_limit=one, cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,
+            name=INBOX_DEPLOYMENT, concurrency_limit=one, cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Annotate every new clip of {config.schedule.inbox}."),
         ingest_labels_inbox.to_deployment(
-            name="ingest_labels", concurrency_limit=one, cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
+            name=LABELS_DEPLOYMENT, concurrency_limit=one, cron=config.schedule.labels_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Ingest the label files of {config.schedule.labels_inbox} and resume their clips."),
         dataset_report.to_deployment(
-            name="dataset_report", concurrency_limit=one, cron=config.schedule.report_cron, parameters=params, entrypoint_type=module,
+            name=REPORT_DEPLOYMENT, concurrency_limit=one, cron=config.schedule.report_cron, parameters=params, entrypoint_type=module,
             tags=["cadestate"], description=f"Write the dataset's statistics and HTML report to {config.schedule.report}."),
     ]
