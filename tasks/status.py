@@ -22,7 +22,7 @@ from typing import Any
 from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import config_hash, stages_of, upstream_inputs_hash
-from tasks.stage import RUNNING_DIR, StageRun, run_markers
+from tasks.stage import RUNNING_DIR, RunMarker, StageRun, run_markers
 from warehouse import Warehouse, check_name
 from warehouse.store import is_name
 
@@ -122,19 +122,18 @@ def _registered(wh: Warehouse, table: str, names: Sequence[str] | None) -> set[s
     return {n for n in names if wh.has_partition(table, n)}
 
 
-def _marked(wh: Warehouse, names: Sequence[str] | None, stages: set[str]) -> set[str]:
-    """The clips or libraries (all, or those among ``names``) with a marker of one of ``stages``: a
-    run in progress, or killed, which may be the unit's first (a library's ``cad_ingest``, a clip's
-    ``cameras`` by SfM) and then left no row anywhere else."""
-    folder = wh.root / RUNNING_DIR
+def _markers(wh: Warehouse, names: Sequence[str] | None) -> dict[str, list[RunMarker]]:
+    """The run markers (:func:`tasks.stage.run_markers`) of the clips and libraries (all, or those
+    among ``names``) that have any: runs in progress, or killed, which may have been the unit's
+    first (a library's ``cad_ingest``, a clip's ``cameras`` by SfM) and then left no row anywhere else."""
     if names:
         found = [n for n in names if is_name(n)]
     else:
         try:
-            found = [n for n in os.listdir(folder) if is_name(n)]
+            found = [n for n in os.listdir(wh.root / RUNNING_DIR) if is_name(n)]
         except OSError:  # no run yet
-            return set()
-    return {n for n in found if any(m.stage in stages for m in run_markers(wh, n))}
+            return {}
+    return {n: markers for n in found if (markers := run_markers(wh, n))}
 
 
 def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None = None,
@@ -143,8 +142,9 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     ``runs``: :func:`read_runs` of ``names``, when the caller has read them already."""
     stages = stages_of(scope)
     runs = [r for r in (read_runs(wh, names) if runs is None else runs) if r["stage"] in {s.name for s in stages}]
+    markers = _markers(wh, names)
     known = (_registered(wh, "clips" if scope == "clip" else "cad_models", names) | {r["clip"] for r in runs}
-             | _marked(wh, names, {s.name for s in stages}))
+             | {n for n, found in markers.items() if any(m.stage in {s.name for s in stages} for m in found)})
     names = sorted(known & set(names) if names else known)  # a name of the other scope is not listed here
     last: dict[tuple[str, str], dict] = {}
     last_ok: dict[tuple[str, str], dict] = {}
@@ -158,7 +158,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     for clip in names:
         stale_stages: set[str] = set()
         memo = InputsMemo(wh, clip)
-        for m in run_markers(wh, clip):  # runs not recorded yet: in progress, or their process was killed
+        for m in markers.get(clip, []):  # runs not recorded yet: in progress, or their process was killed
             if (recorded := last.get((clip, m.stage))) is not None and recorded["started_at"] > m.started_at:
                 continue  # a later run of the stage was recorded (a Dask retry on another worker): this one is over
             last[(clip, m.stage)] = {"status": "running" if m.alive else "interrupted", "started_at": m.started_at,
