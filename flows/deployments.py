@@ -363,9 +363,12 @@ def deployments(config: Config, config_path: str) -> list:
     # One run of each scheduled flow at a time: after the server was down, its missed ticks came due
     # together, and two build_dataset runs at once each started a run of the same new clip.
     one = ConcurrencyLimitConfig(limit=1, collision_strategy=ConcurrencyLimitStrategy.CANCEL_NEW)
+    # Clip runs: at most [schedule] clip_runs at once (a drop of 50 clips ran 5 at once, Prefect's
+    # runner's own limit, on any machine); the server frees a run's slot when it is suspended.
+    clips = ConcurrencyLimitConfig(limit=config.schedule.clip_runs, collision_strategy=ConcurrencyLimitStrategy.ENQUEUE)
     return [
         annotate_clip_served.to_deployment(
-            name=ANNOTATE_DEPLOYMENT, entrypoint_type=module, tags=["cadestate"],
+            name=ANNOTATE_DEPLOYMENT, concurrency_limit=clips, entrypoint_type=module, tags=["cadestate"],
             description="The stages of one clip; suspended while people answer its tasks."),
         build_dataset_inbox.to_deployment(
             name=INBOX_DEPLOYMENT, concurrency_limit=one, cron=config.schedule.inbox_cron, parameters=params, entrypoint_type=module,

@@ -281,6 +281,7 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
                          for d in deployments}  # missed ticks come due together after an outage: one runs
         assert one_at_a_time["build_dataset"] == one_at_a_time["ingest_labels"] == one_at_a_time["dataset_report"] == \
             (1, "CANCEL_NEW"), one_at_a_time
+        assert one_at_a_time["annotate_clip"] == (2, "ENQUEUE")  # [schedule] clip_runs: more clips wait for a slot
         second = cli(*common, "serve", cwd=tmp_path)  # stopping either would pause the schedules of both
         assert second.returncode == 2 and "`cadestate serve` already serves" in second.stderr, second.stderr
         shutil.copy(small_clip.video_path, inbox / "room_1.mp4")  # named small_0 from its camera file
@@ -318,6 +319,49 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         assert f"stopped `cadestate serve` (pid {serving.pid})" in stopped.stdout, stopped.stdout
         assert serving.wait(60) is not None and "Traceback" not in (tmp_path / "serve.log").read_text()
         assert "RuntimeWarning" not in (tmp_path / "serve.log").read_text()  # Prefect's un-awaited stop
+    finally:
+        if serving.poll() is None:
+            os.killpg(serving.pid, signal.SIGTERM)
+            serving.wait(60)
+        cli(*common, "server", "stop", cwd=tmp_path)
+
+
+@pytest.mark.slow
+def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_a_suspended_one_frees_it(tmp_path, small_clip):
+    """[schedule] clip_runs = 1 and two new clips: the second waits (AwaitingConcurrencySlot) until
+    the first is suspended waiting for people, then runs; their running spans never overlap."""
+    w, inbox = tmp_path / "w", tmp_path / "inbox"
+    inbox.mkdir()
+    config = tmp_path / "c.toml"
+    config.write_text(f'[schedule]\ninbox = "{inbox}"\nlabels_inbox = "{tmp_path / "labels"}"\nclip_runs = 1\n'
+                      'inbox_split = "val"\n'
+                      'inbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\nreport_cron = "0 0 1 1 *"\n')
+    common = ["-c", str(config), "-w", str(w)]
+    assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    serving = subprocess.Popen([sys.executable, "-m", "cadestate", *common, "serve"], cwd=tmp_path, env=env,
+                               stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        api = Api(read_server(w).api_url)
+        wait_for("the deployments", lambda: api.deployment_id("build_dataset"))
+        cameras = small_clip.cameras_path.read_text().split("\n", 1)
+        for name, video_id in (("room_1", cameras[0]), ("room_2", cameras[0] + "2")):  # clips small_0, small2_0
+            shutil.copy(small_clip.video_path, inbox / f"{name}.mp4")
+            (inbox / f"{name}.txt").write_text(f"{video_id}\n{cameras[1]}")
+            (inbox / f"{name}.done").touch()
+        api.run("build_dataset")
+        names = ["annotate_clip/small_0", "annotate_clip/small2_0"]
+        runs = wait_for("two suspended clips", lambda: (r := [api.flow_run(n) for n in names]) and
+                        all(x and x["state"]["name"] in ("Suspended", "Failed", "Crashed", "Completed") for x in r) and r or None,
+                        timeout_s=600)
+        assert [r["state"]["name"] for r in runs] == ["Suspended", "Suspended"], (tmp_path / "serve.log").read_text()[-3000:]
+        histories = [sorted(httpx.get(f"{api.url}/flow_run_states/", params={"flow_run_id": r["id"]}, timeout=30).json(),
+                            key=lambda s: s["timestamp"]) for r in runs]
+        spans = [(next(s["timestamp"] for s in h if s["type"] == "RUNNING"), next(s["timestamp"] for s in h if s["type"] == "PAUSED"))
+                 for h in histories]
+        first, second = sorted(range(2), key=lambda i: spans[i][0])
+        assert spans[first][1] <= spans[second][0], spans  # one clip ran at a time
+        assert "AwaitingConcurrencySlot" in [s["name"] for s in histories[second]], [s["name"] for s in histories[second]]
     finally:
         if serving.poll() is None:
             os.killpg(serving.pid, signal.SIGTERM)
