@@ -311,6 +311,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     resume the clips they answer: a suspended run is resumed, a clip with none gets a new run."""
     from tasks.video.ingest import registered_source
     from tasks.human.label_ingest import ingest_labels
+    from tasks.status import clips_left_unrun
 
     cfg = served_config(warehouse, config_path)
     inbox = Path(cfg.schedule.labels_inbox)
@@ -324,11 +325,17 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
         logger.warning("invalid label file: %s", e)
     for w in report.warnings:  # what `cadestate labels ingest` prints as warnings (an answer to a replaced task, ...)
         logger.warning("%s", w)
-    resumed = resume_clips(report.clips)
-    for clip in sorted(set(report.clips) - set(resumed)):
+    # and the clips of files ingested before whose stages never took them in: an ingest_labels run
+    # killed (a `server stop`) between its ingest and its resume left them suspended for good
+    unrun = clips_left_unrun(wh, cfg, [c for c in report.duplicate_clips if c not in report.clips])
+    for clip in unrun:
+        logger.warning("clip %s: its labels were ingested but never run (an earlier ingest was stopped): resuming it", clip)
+    todo = report.clips + unrun
+    resumed = resume_clips(todo)
+    for clip in sorted(set(todo) - set(resumed)):
         if not active_clip_runs(clip, ACTIVE):
             start_clip_run(warehouse, config_path, registered_source(wh, clip))
-    return report.clips
+    return todo
 
 
 @flow(name="dataset_report", flow_run_name="dataset_report", log_prints=True)

@@ -261,6 +261,18 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
     return notes
 
 
+def clips_left_unrun(wh: Warehouse, config: Config, clips: Sequence[str]) -> list[str]:
+    """The ``clips`` (those of label files ingested before, in their order) whose stages have not
+    taken in their labels (:func:`left_unrun`): a label ingest was killed after its ingest and
+    before or during its resume; ingesting the folder again resumes them. One status read for all."""
+    if not clips:
+        return []
+    by_clip: dict[str, list[StageStatus]] = {}
+    for r in pipeline_status(wh, config, list(dict.fromkeys(clips))):
+        by_clip.setdefault(r.clip, []).append(r)
+    return [c for c in dict.fromkeys(clips) if left_unrun(by_clip.get(c, []))]
+
+
 def left_unrun(rows: Sequence[StageStatus]) -> bool:
     """Whether a clip's stages (its :func:`pipeline_status` rows) have not taken in what the clip
     holds: a stage's inputs changed since its last run (labels ingested by a command killed before

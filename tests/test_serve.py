@@ -327,9 +327,10 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
 
 
 @pytest.mark.slow
-def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_a_suspended_one_frees_it(tmp_path, small_clip):
+def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_the_labels_inbox_resumes_an_unrun_one(tmp_path, small_clip):
     """[schedule] clip_runs = 1 and two new clips: the second waits (AwaitingConcurrencySlot) until
-    the first is suspended waiting for people, then runs; their running spans never overlap."""
+    the first is suspended waiting for people, then runs; their running spans never overlap. Then
+    labels ingested without a resume (an ingest killed before it): the labels inbox resumes the clip."""
     w, inbox = tmp_path / "w", tmp_path / "inbox"
     inbox.mkdir()
     config = tmp_path / "c.toml"
@@ -362,6 +363,19 @@ def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_a_suspended_one_frees
         first, second = sorted(range(2), key=lambda i: spans[i][0])
         assert spans[first][1] <= spans[second][0], spans  # one clip ran at a time
         assert "AwaitingConcurrencySlot" in [s["name"] for s in histories[second]], [s["name"] for s in histories[second]]
+        # labels ingested by an ingest that never resumed the clip (killed between the two, as
+        # --no-resume leaves it): the labels inbox, seeing the file again, resumes the clip
+        [task] = (w / "label_tasks" / "small_0").glob("*.json")
+        (tmp_path / "labels").mkdir()
+        (tmp_path / "labels" / "small_0.json").write_text(json.dumps({
+            "format": "cadestate-label/1", "kind": "manual_track", "clip": "small_0", "task_id": task.stem,
+            "annotator": "test", "created_at": "2026-11-23T00:00:00Z", "answers": []}))
+        assert cli(*common, "labels", "ingest", "--no-resume", str(tmp_path / "labels"), cwd=tmp_path).returncode == 0
+        api.run("ingest_labels")
+        done = wait_for("the resumed clip", lambda: (r := api.flow_run("annotate_clip/small_0")) and
+                        r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
+        assert done["id"] == runs[0]["id"] and done["state"]["type"] == "COMPLETED", (tmp_path / "serve.log").read_text()[-3000:]
+        assert api.flow_run("annotate_clip/small2_0")["state"]["name"] == "Suspended"  # no label of its own: left waiting
     finally:
         if serving.poll() is None:
             os.killpg(serving.pid, signal.SIGTERM)

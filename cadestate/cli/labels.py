@@ -5,16 +5,12 @@ from __future__ import annotations
 import json
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
 
 from cadestate.cli.common import CliError, app, cannot_write, err, out
-
-if TYPE_CHECKING:
-    from cadestate.config import Config
-    from warehouse import Warehouse
 
 labels_app = typer.Typer(help="Label files of the human tasks: ingest them, validate them, print their JSON Schemas, "
                               "import manual tracks from CVAT or Label Studio.", no_args_is_help=True)
@@ -72,6 +68,7 @@ def labels_ingest(
     stage failed, 2 when the source does not exist.
     """
     from tasks.human.label_ingest import ingest_labels
+    from tasks.status import clips_left_unrun
 
     cfg = ctx.obj.config()
     report = ingest_labels(ctx.obj.open_warehouse(must_exist=True), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
@@ -89,7 +86,7 @@ def labels_ingest(
     if report.clips:
         _say(f"clips with new labels: {escape(', '.join(report.clips))}")
     wh = ctx.obj.open_warehouse(must_exist=True)
-    unrun = _unrun(wh, cfg, [c for c in dict.fromkeys(report.duplicate_clips) if c not in report.clips]) if resume else []
+    unrun = clips_left_unrun(wh, cfg, [c for c in report.duplicate_clips if c not in report.clips]) if resume else []
     if unrun:
         _say(f"clips whose labels were ingested but not yet run (a resume was stopped): {escape(', '.join(unrun))}")
     _problems(report.errors, report.warnings)
@@ -103,15 +100,6 @@ def labels_ingest(
         if clips:
             code = max(code, run_sources(ctx.obj, [registered_source(wh, c) for c in clips], progress, exit=False))
     raise typer.Exit(code)
-
-
-def _unrun(wh: Warehouse, config: Config, clips: list[str]) -> list[str]:
-    """The ``clips`` (of label files ingested before) whose stages have not taken in their labels:
-    a `labels ingest` killed after the ingest and before or during the resume
-    (:func:`tasks.status.left_unrun`); rerunning the command resumes them."""
-    from tasks.status import left_unrun, pipeline_status
-
-    return [c for c in clips if left_unrun(pipeline_status(wh, config, [c]))]
 
 
 def resume_served(ctx: typer.Context, root: Path, clips: list[str]) -> list[str]:
