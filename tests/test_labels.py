@@ -28,6 +28,7 @@ from tasks.human.label_import_cvat import import_cvat, read_cvat
 from tasks.human.label_format import parse_task
 from tasks.human.answers_in_force import answers_digest, current_answers, label_history
 from tasks.human.label_ingest import ingest_labels, ingest_validated
+from tasks.tracking.relations import same_as_statements
 from tasks.human.labels import ClipFacts, LabelError, latest_task, new_task_id, validate_label, write_task
 from warehouse import Warehouse
 
@@ -747,6 +748,21 @@ def test_a_ring_closed_by_two_files_of_one_ingest_is_refused(lwh, tmp_path):
     report = ingest_labels(lwh, tmp_path / "in")
     assert len(report.ingested) == 1 and len(report.errors) == 1 and "b.json: $.answers[0].same_as_track: tracks 1 -> 0 -> 1" \
         in report.errors[0], report.errors
+
+
+def test_a_ring_is_checked_in_the_order_the_files_apply_not_by_name(lwh, tmp_path):
+    """a.json (newest: 0 -> 1), b.json (oldest: 0 is the object), c.json (between: 1 -> 0): checked
+    by name, b's answer seemed to free 0 and all three passed, leaving the ring 0 -> 1 -> 0 in force
+    (a's answer is the newest for 0). Checked as they apply (b, c, a), a closes the ring: refused."""
+    def links(created, answers):
+        return _edit("cad_selection", lambda d: (d.__setitem__("created_at", created), d.__setitem__("answers", answers)))
+    put(tmp_path / "in", "a.json", links("2026-01-03T00:00:00+00:00", [{"track_id": 0, "cad_id": None, "same_as_track": 1}]))
+    put(tmp_path / "in", "b.json", links("2026-01-01T00:00:00+00:00", [{"track_id": 0, "cad_id": "m0a"}]))
+    put(tmp_path / "in", "c.json", links("2026-01-02T00:00:00+00:00", [{"track_id": 1, "cad_id": None, "same_as_track": 0}]))
+    report = ingest_labels(lwh, tmp_path / "in")
+    assert len(report.errors) == 1 and f"{tmp_path / 'in' / 'a.json'}: $.answers[0].same_as_track: tracks 0 -> 1 -> 0" \
+        in report.errors[0], report.errors
+    assert same_as_statements(lwh, CLIP, "cad_selection", "c1.cs") == {1: 0}
 
 
 @pytest.mark.parametrize("newest_drops", [False, True])

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -243,27 +243,39 @@ class CheckedFile:
 
 
 def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str, str],
-                max_bytes: int = MAX_LABEL_BYTES) -> Iterator[CheckedFile]:
-    """Check ``paths`` in order as ingest does: the bytes' SHA-256 against ``known`` (SHA-256 to
-    clip, as :func:`ingested_sha256`; the new files are added to it) first, then the format and,
-    with ``facts``, the warehouse; each valid file's links go into ``facts``, so that the files
-    after it are checked against them too (a ring across two files)."""
+                max_bytes: int = MAX_LABEL_BYTES) -> list[CheckedFile]:
+    """Check ``paths`` as ingest does, one :class:`CheckedFile` each, in their order: the bytes'
+    SHA-256 against ``known`` (SHA-256 to clip, as :func:`ingested_sha256`; the new files are
+    added to it) first, then the format; then, with ``facts``, each file against the warehouse in
+    the order ingest applies them (:func:`_order`, the newest answer in force), its links going
+    into ``facts`` for the files after it (a ring across files is seen as it would stand)."""
+    checked: list[CheckedFile] = []
+    data: dict[int, bytes] = {}
     batch: set[str] = set()
     for path in paths:
         try:
-            data = read_limited(path, max_bytes)
-            if (clip := known.get(sha := hashlib.sha256(data).hexdigest())) is not None:
-                yield CheckedFile(path, ingested_for=clip, in_batch=sha in batch)
+            data[len(checked)] = read_limited(path, max_bytes)
+            if (clip := known.get(sha := hashlib.sha256(data[len(checked)]).hexdigest())) is not None:
+                checked.append(CheckedFile(path, ingested_for=clip, in_batch=sha in batch))
                 continue
-            lf = validate_label(path, facts=facts, data=data, max_bytes=max_bytes)
+            lf = validate_label(path, data=data[len(checked)], max_bytes=max_bytes)  # the format alone
         except LabelError as e:
-            yield CheckedFile(path, error=str(e))
+            checked.append(CheckedFile(path, error=str(e)))
             continue
-        if facts is not None:
-            facts.take(lf.label)
-        known[lf.sha256] = lf.clip
-        batch.add(lf.sha256)
-        yield CheckedFile(path, lf=lf)
+        known[sha] = lf.clip
+        batch.add(sha)
+        checked.append(CheckedFile(path, lf=lf))
+    if facts is None:
+        return checked
+    for i in sorted((i for i, c in enumerate(checked) if c.lf is not None), key=lambda i: _order(checked[i].lf)):
+        try:
+            lf = validate_label(checked[i].path, facts=facts, data=data[i], max_bytes=max_bytes)
+        except LabelError as e:
+            checked[i] = CheckedFile(checked[i].path, error=str(e))
+            continue
+        facts.take(lf.label)
+        checked[i] = CheckedFile(checked[i].path, lf=lf)
+    return checked
 
 
 def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
