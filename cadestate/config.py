@@ -103,6 +103,9 @@ class ScheduleConfig:
                                  "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
     report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).")
     report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).", check=cron_problem)
+    failed_runs: int = _opt(3, "A clip whose same stage failed this many runs in a row, with the config and code of now, "
+                               "is not run again by the inbox (it failed again every tick) until its files, the config "
+                               "or the code change; 0 runs it again every tick.", lo=0, hi=1000)
     clip_runs: int = _opt(2, "Clips the served annotate_clip deployment runs at once (a clip suspended while it waits "
                              "for people holds no slot); more wait, queued, for a slot.", lo=1, hi=256)
     suspend_timeout_s: int = _opt(7 * 86400, "A served clip waiting for people is suspended this long at most before it fails.",

@@ -152,14 +152,49 @@ def inbox_sha256s(wh: Warehouse, paths: list[Path]) -> dict[Path, str]:
     return {path: kept[str(path.resolve())][1] for path in paths}
 
 
-def pairs_to_run(wh: Warehouse, pairs: list[ClipSource]) -> list[ClipSource]:
+def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None = None,
+                 warn: Callable[[str], None] | None = None) -> list[ClipSource]:
     """The pairs that need a run: not ingested yet with these exact bytes (a changed file counts as
     new), or whose last run of some stage failed or was interrupted, or whose run a killed process
-    left unfinished (:func:`unfinished`). Clips done cost a look at their files' identities."""
+    left unfinished (:func:`unfinished`); with ``config``, not a clip whose stage failed
+    ``[schedule] failed_runs`` runs in a row with this config and code (:func:`failing`; ``warn``
+    says so). Clips done cost a look at their files' identities."""
     known = {(r["clip"], r["video_sha256"], r["cameras_sha256"])
              for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
     sha256 = inbox_sha256s(wh, [path for p in pairs for path in (p.video, p.cameras)])
-    return [p for p in pairs if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip)]
+    todo = [p for p in pairs if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip)]
+    if config is None or not config.schedule.failed_runs:
+        return todo
+    known_clips = {clip for clip, _, _ in known}
+    kept = []
+    for p in todo:
+        if p.clip in known_clips and (stage := failing(wh, p.clip, config)) is not None:
+            (warn or get_run_logger().warning)(
+                f"clip {p.clip}: its stage {stage} failed {config.schedule.failed_runs} runs in a row with this config and "
+                "code: not run again until its files, the config or the code change (`cadestate status` shows why; "
+                "`cadestate run` runs it)")
+            continue
+        kept.append(p)
+    return kept
+
+
+def failing(wh: Warehouse, clip: str, config: Config) -> str | None:
+    """The stage of ``clip`` whose last ``[schedule] failed_runs`` runs all failed with the config
+    and code of now (its config hash and code hash), if any: running it again fails again."""
+    from tasks.registry import STAGES, config_hash
+
+    n = config.schedule.failed_runs
+    rows = wh.read("runs", partitions=[clip], columns=["stage", "status", "config_hash", "code_hash", "started_at"])
+    by_stage: dict[str, list[dict]] = {}
+    for r in rows.sort_by("started_at").to_pylist():
+        by_stage.setdefault(r["stage"], []).append(r)
+    for stage, runs in by_stage.items():
+        last = runs[-n:]
+        if stage in STAGES and len(last) == n and all(
+                r["status"] == "failed" and r["config_hash"] == config_hash(stage, config)
+                and r["code_hash"] == STAGES[stage].code_hash for r in last):
+            return stage
+    return None
 
 
 def unfinished(wh: Warehouse, clip: str) -> bool:
@@ -287,7 +322,7 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
     if not inbox.is_dir():
         no_folder("inbox", inbox)
     pairs = pairs_to_run(Warehouse(warehouse), official_names(ready_pairs(inbox, cfg.schedule.stable_s,
-                                                                          cfg.schedule.inbox_split)))
+                                                                          cfg.schedule.inbox_split)), cfg)
     started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
     for p in pairs:
         if p.clip in started:

@@ -110,6 +110,38 @@ def test_clips_done_are_not_run_again(tmp_path, small_clip):
     assert pairs_to_run(wh, [pair]) == []  # its run is under way (this process): not submitted again
 
 
+def test_a_clip_whose_stage_keeps_failing_is_not_run_again_until_its_config_or_code_changes(tmp_path, small_clip):
+    """Each inbox tick ran a clip whose stage fails for good (a bad file, a bug) again, for ever:
+    after [schedule] failed_runs failures in a row with the config and code of now it is left, and
+    said so; a change of the stage's config (or code) gives it another run."""
+    import dataclasses
+    import datetime as dt
+
+    from conftest import table_rows
+    from cadestate.config import Config
+    from cadestate.lineage import file_sha256
+    from tasks.registry import STAGES, config_hash
+
+    wh, config = Warehouse(tmp_path / "w"), Config()
+    pair = ClipSource("room", small_clip.video_path, small_clip.cameras_path)
+    wh.write("clips", "room", table_rows("clips", [{"clip": "room", "video_sha256": file_sha256(pair.video),
+                                                     "cameras_sha256": file_sha256(pair.cameras)}]))
+    at = dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    now = {"config_hash": config_hash("detect", config), "code_hash": STAGES["detect"].code_hash}
+    warned: list[str] = []
+    for i in range(3):
+        assert pairs_to_run(wh, [pair], config, warned.append) == [pair] and not warned
+        wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": f"r{i}", "stage": "detect", "status": "failed",
+                                                     "started_at": at + dt.timedelta(seconds=i), **now}]))
+    assert pairs_to_run(wh, [pair], config, warned.append) == []
+    assert warned == ["clip room: its stage detect failed 3 runs in a row with this config and code: not run again until its "
+                      "files, the config or the code change (`cadestate status` shows why; `cadestate run` runs it)"]
+    changed = dataclasses.replace(config, detect=dataclasses.replace(config.detect, score_threshold=0.3))
+    assert pairs_to_run(wh, [pair], changed, warned.append) == [pair]
+    assert pairs_to_run(wh, [pair], dataclasses.replace(config, schedule=dataclasses.replace(config.schedule, failed_runs=0)),
+                        warned.append) == [pair]
+
+
 def test_inbox_files_are_hashed_once_until_they_change(tmp_path, monkeypatch):
     """Each served build_dataset tick runs in a new process (Prefect's runner): the digests are kept
     in the warehouse, and a tick hashes only files new or changed since the last (each tick read
