@@ -4,6 +4,7 @@ answers it."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -11,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -242,6 +244,24 @@ def test_an_inbox_that_is_no_folder_is_said_in_the_runs_log(tmp_path):
     assert f"[schedule] labels_inbox: {tmp_path / 'labls'} is no folder" in runs.stderr, runs.stderr
 
 
+@contextlib.contextmanager
+def served(tmp_path: Path, w: Path, config: Path) -> Iterator[tuple[list[str], subprocess.Popen]]:
+    """A Prefect server for warehouse ``w`` and a `cadestate serve` of ``config`` (its output in
+    serve.log): the common CLI arguments and the serve's process; both stopped after."""
+    common = ["-c", str(config), "-w", str(w)]
+    assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    serving = subprocess.Popen([sys.executable, "-m", "cadestate", *common, "serve"], cwd=tmp_path, env=env,
+                               stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        yield common, serving
+    finally:
+        if serving.poll() is None:
+            os.killpg(serving.pid, signal.SIGTERM)
+            serving.wait(60)
+        cli(*common, "server", "stop", cwd=tmp_path)
+
+
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     return subprocess.run([sys.executable, "-m", "cadestate", *args], capture_output=True, text=True, env=env, cwd=cwd,
@@ -295,12 +315,7 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
     config.write_text(f'[schedule]\ninbox = "{inbox}"\nlabels_inbox = "{labels}"\ninbox_split = "val"\n'
                       f'report = "{tmp_path / "report"}"\ninbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\n'
                       f'report_cron = "0 0 1 1 *"\n')  # runs are triggered by the test
-    common = ["-c", str(config), "-w", str(w)]
-    assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    serving = subprocess.Popen([sys.executable, "-m", "cadestate", *common, "serve"], cwd=tmp_path, env=env,
-                               stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
-    try:
+    with served(tmp_path, w, config) as (common, serving):
         api = Api(read_server(w).api_url)
         names = {"annotate_clip", "build_dataset", "ingest_labels", "dataset_report"}
         deployments = wait_for("the four deployments", lambda: (found := api.post("/deployments/filter", {"limit": 10}))
@@ -351,11 +366,6 @@ def test_an_inbox_clip_is_built_on_schedule_and_resumed_by_its_labels(tmp_path, 
         assert f"stopped `cadestate serve` (pid {serving.pid})" in stopped.stdout, stopped.stdout
         assert serving.wait(60) is not None and "Traceback" not in (tmp_path / "serve.log").read_text()
         assert "RuntimeWarning" not in (tmp_path / "serve.log").read_text()  # Prefect's un-awaited stop
-    finally:
-        if serving.poll() is None:
-            os.killpg(serving.pid, signal.SIGTERM)
-            serving.wait(60)
-        cli(*common, "server", "stop", cwd=tmp_path)
 
 
 @pytest.mark.slow
@@ -369,12 +379,7 @@ def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_the_labels_inbox_resu
     config.write_text(f'[schedule]\ninbox = "{inbox}"\nlabels_inbox = "{tmp_path / "labels"}"\nclip_runs = 1\n'
                       'inbox_split = "val"\n'
                       'inbox_cron = "0 0 1 1 *"\nlabels_cron = "0 0 1 1 *"\nreport_cron = "0 0 1 1 *"\n')
-    common = ["-c", str(config), "-w", str(w)]
-    assert cli(*common, "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    serving = subprocess.Popen([sys.executable, "-m", "cadestate", *common, "serve"], cwd=tmp_path, env=env,
-                               stdout=open(tmp_path / "serve.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
-    try:
+    with served(tmp_path, w, config) as (common, serving):
         api = Api(read_server(w).api_url)
         wait_for("the deployments", lambda: api.deployment_id("build_dataset"))
         cameras = small_clip.cameras_path.read_text().split("\n", 1)
@@ -408,8 +413,3 @@ def test_served_clips_beyond_clip_runs_wait_for_a_slot_and_the_labels_inbox_resu
                         r["state"]["type"] in ("COMPLETED", "FAILED", "CRASHED") and r or None)
         assert done["id"] == runs[0]["id"] and done["state"]["type"] == "COMPLETED", (tmp_path / "serve.log").read_text()[-3000:]
         assert api.flow_run("annotate_clip/small2_0")["state"]["name"] == "Suspended"  # no label of its own: left waiting
-    finally:
-        if serving.poll() is None:
-            os.killpg(serving.pid, signal.SIGTERM)
-            serving.wait(60)
-        cli(*common, "server", "stop", cwd=tmp_path)
