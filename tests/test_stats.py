@@ -354,3 +354,32 @@ def test_a_clip_whose_verification_waits_is_not_in_the_dataset(bench3, tmp_path)
     assert figures["scenes"] == 2 and figures["posed_objects"] == sum(len(c[2]) for c in clips if c[0] != waiting)
     assert result.stderr.strip() == (f"warning: left out 1 clip(s) not verified as they stand (verification not completed, or a task waits for "
                                      f"people since): {waiting}")
+
+
+def test_a_report_never_replaces_pages_and_pictures_it_did_not_write(tmp_path):
+    """`stats --html` into a folder holding an ``index.html``, ``img/`` or ``clips/`` of something
+    else (a web site) is refused in one line, before any figure, and the folder is left as it was
+    (they were replaced whole: the site's pictures deleted); beside an earlier report, or beside
+    other files only, it writes."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh = Warehouse(tmp_path / "w")
+    select_clips(wh)  # a warehouse with no clip: its catalog made
+    site = tmp_path / "site"
+    (site / "img").mkdir(parents=True)
+    (site / "img" / "logo.png").write_bytes(b"precious")
+    (site / "index.html").write_text("<title>my site</title>")
+    (tmp_path / "page").mkdir()
+    (tmp_path / "page" / "index.html").write_text("<title>my page</title>")
+    for folder, held in ((site, "img"), (tmp_path / "page", "index.html")):
+        result = run_cli("-w", str(wh.root), "stats", "--html", str(folder))
+        assert_clean_error(result, mentions=f"error: {folder}: holds {held!r}, which a report replaces")
+        assert result.stdout == ""
+        assert (folder / "index.html").read_text().startswith("<title>my ")
+    assert (site / "img" / "logo.png").read_bytes() == b"precious"
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "stats.json").write_text("{}")  # what the scheduled report writes beside it
+    for folder in ("other", "other"):  # the second time beside the first report
+        result = run_cli("-w", str(wh.root), "stats", "--html", str(tmp_path / folder))
+        assert result.code == 0, result.stderr
+    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["clips", "img", "index.html", "stats.json"]

@@ -69,6 +69,10 @@ def stats(
     from warehouse.query import QueryError
 
     wh = ctx.obj.open_warehouse(must_exist=True)
+    if html is not None:  # refused before any figure is printed
+        from tasks.dataset.stats_report import check_report_folder
+
+        check_report_folder(html.absolute())
     try:
         clips = select_clips(wh, where)
     except QueryError as e:

@@ -10,6 +10,7 @@ colour per object, its class and track id at its box) and its per-class counts. 
 from __future__ import annotations
 
 import html
+import os
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,10 @@ from tasks.human.shared import evenly_spaced
 from warehouse import Warehouse
 
 KEYFRAMES = 6
+TITLE = "cadestate dataset statistics"
+"""The index page's title: what marks a folder as holding an earlier report (:func:`check_report_folder`)."""
+REPLACED = ("clips", "img", "index.html")
+"""What a report replaces in its folder (:func:`write_report`); anything else there is left alone."""
 PALETTE = ((230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
            (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212))
 STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em} table{border-collapse:collapse} "
@@ -96,14 +101,37 @@ def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
     return paths
 
 
+def check_report_folder(out: Path) -> None:
+    """Refuse (:class:`tasks.cad.export.ExportError`) a folder ``out`` holding a ``clips``, ``img``
+    or ``index.html`` that no report wrote (no report's ``index.html``: :data:`TITLE`): a report
+    replaces them whole (a web site's own pages and pictures were deleted)."""
+    from tasks.cad.export import ExportError
+
+    held = [name for name in REPLACED if os.path.lexists(out / name)]
+    if held and not _report_index(out / "index.html"):
+        raise ExportError(f"{out}: holds {held[0]!r}, which a report replaces, and no earlier report of `cadestate stats "
+                          "--html`; choose a new folder (or that of an earlier report)")
+
+
+def _report_index(path: Path) -> bool:
+    """Whether ``path`` is the index page of a report (its title, :data:`TITLE`)."""
+    try:
+        with open(path, "rb") as f:
+            return f"<title>{TITLE}</title>".encode() in f.read(4096)
+    except OSError:  # missing, a folder, unreadable
+        return False
+
+
 def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> Path:
     """Write the report (module docstring) into ``out``; returns ``out/index.html``. It is made in a
     folder beside ``out``, then put in place (:func:`tasks.cad.export.publish`: its ``clips/``,
     ``img/`` and ``index.html`` replace those of an earlier report, in that order, the index last),
-    so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was."""
+    so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was. A folder holding a ``clips``,
+    ``img`` or ``index.html`` of something else is refused (:func:`check_report_folder`)."""
     from tasks.cad.export import publish, temp_folder_beside
 
     out = Path(out).absolute()
+    check_report_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)  # an OSError of its own: the caller names what cannot be written
     with temp_folder_beside(out) as tmp:
         _write_report(wh, tables, stats, tmp)
@@ -149,4 +177,4 @@ def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) 
             "<h2>Posed objects per class</h2>", _table(list(stats["per_class"].items()), ("class", "posed objects")),
             *[f"<img src=\"img/{f}\" alt=\"{f}\">" for f in figures],
             "<h2>Cost of the dataset</h2>", _table(cost, ("", "")), "<h2>Clips</h2>", "<ul>", *links, "</ul>"]
-    (out / "index.html").write_text(_page("cadestate dataset statistics", body), encoding="utf-8")
+    (out / "index.html").write_text(_page(TITLE, body), encoding="utf-8")
