@@ -480,3 +480,47 @@ def test_a_clip_waiting_for_clicks_on_models_chosen_anew_is_not_completed(tmp_pa
                                                       "stage": "correspondence_task", "status": "paused", "rows_written": 0,
                                                       "duration_s": 0.0}]))
     assert verification_completed(wh, ["done", "rechosen"]) == {"done"}
+
+
+@pytest.fixture
+def mount_point(tmp_path):
+    """A new empty folder that is a file system of its own (a tmpfs mounted there: a mounted drive,
+    a container's volume); skipped where mounting is not allowed (not root)."""
+    import subprocess
+
+    folders = [tmp_path / "mnt", tmp_path / "mnt2", tmp_path / "mnt3"]
+    mounted = []
+    try:
+        for folder in folders:
+            folder.mkdir()
+            if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(folder)],
+                              capture_output=True).returncode != 0:
+                pytest.skip("cannot mount a tmpfs here (needs root)")
+            mounted.append(folder)
+        yield folders
+    finally:
+        for folder in mounted:
+            subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_exports_into_a_mount_point(built, mount_point):
+    """An export into an empty folder that is a file system of its own (`export official /out`, a
+    container's volume) had its temporary folder beside it, on another file system, from which
+    nothing can be renamed into it: a traceback (Invalid cross-device link). Its temporary folder is
+    inside it now, hidden, and gone when done; a killed export's left there is removed by the next."""
+    from fuzz.harness import run_cli
+
+    wh, _, _ = built
+    official, scan2cad, report = mount_point
+    done = run_cli("-w", str(wh.root), "export", "official", str(official), "--no-progress")
+    assert done.code == 0 and done.stderr == "", done.stderr
+    assert sorted(p.name for p in official.iterdir()) == ["annotations", "cad", "frames", "scene_list.txt"]
+    left = scan2cad / f".{scan2cad.name}.{'0' * 32}.tmp"
+    left.mkdir()
+    done = run_cli("-w", str(wh.root), "export", "scan2cad", str(scan2cad))
+    assert done.code == 0 and f"removed {left}: the temporary folder of an earlier export" in done.stderr
+    assert sorted(p.name for p in scan2cad.iterdir()) == [f"{CLIP}.csv", "cad_appearances.json", "full_annotations.json"]
+    assert run_cli("-w", str(wh.root), "export", "scan2cad", str(scan2cad)).code == 0  # into its own earlier export
+    assert run_cli("-w", str(wh.root), "stats", "--html", str(report)).code == 0
+    assert sorted(p.name for p in report.iterdir()) == ["clips", "img", "index.html"]
+    assert not list(official.parent.glob(".*"))

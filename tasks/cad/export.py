@@ -45,9 +45,11 @@ class ExportError(ValueError):
 
 
 def check_new_folder(out: Path) -> None:
-    """Refuse (:class:`ExportError`) an export destination ``out`` that is a file or a folder holding files."""
+    """Refuse (:class:`ExportError`) an export destination ``out`` that is a file or a folder holding
+    files (a killed export's temporary folder in it removed first: :func:`remove_leftovers`)."""
     if out.exists() and not out.is_dir():
         raise ExportError(f"{out}: exists and is not a folder; choose a new folder")
+    remove_leftovers(out)
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"{out}: exists and is not empty; choose a new folder")
 
@@ -62,10 +64,23 @@ def make_folder(folder: Path, named: Path | None = None, exist_ok: bool = False)
     return folder
 
 
+def temp_home(out: Path) -> Path:
+    """The folder that holds the temporary folders of exports into ``out``: its parent, or ``out``
+    itself where ``out`` is a folder on a file system of its own (a mounted drive, a container's
+    volume), from which nothing can be renamed into it."""
+    try:
+        if out.is_dir() and os.stat(out).st_dev != os.stat(out.parent).st_dev:
+            return out
+    except OSError:
+        pass
+    return out.parent
+
+
 @contextlib.contextmanager
 def temp_folder_beside(out: Path) -> Iterator[Path]:
     """A new hidden folder ``.<name>.<uuid>.tmp`` beside ``out`` (an absolute path: ``.`` has no
-    name to put beside) to write an export into before moving it to ``out`` (:class:`ExportError`
+    name to put beside; inside ``out`` where it is a mount point: :func:`temp_home`) to write an
+    export into before moving it to ``out`` (:class:`ExportError`
     when none can be made there); removed on leaving, whatever ends the export. It is made inside
     the ``try``: a signal between making it and a caller's ``try`` (SIGTERM's exit) had left it
     behind. It is locked (``flock``) while in use, and the earlier ones that no process holds, left
@@ -75,7 +90,7 @@ def temp_folder_beside(out: Path) -> Iterator[Path]:
     held: list[int] = []
     try:
         for _ in range(3):
-            made.append(out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp"))
+            made.append(temp_home(out) / f".{out.name}.{uuid.uuid4().hex}.tmp")
             make_folder(made[-1], named=out)
             held.append(os.open(made[-1], os.O_RDONLY | os.O_DIRECTORY))
             fcntl.flock(held[-1], fcntl.LOCK_EX)
@@ -96,7 +111,7 @@ def remove_leftovers(out: Path) -> None:
     that no process holds (``flock``), each named on stderr."""
     prefix = f".{out.name}."
     try:
-        found = [e for e in out.parent.iterdir() if e.name.startswith(prefix) and e.name.endswith(".tmp")
+        found = [e for e in temp_home(out).iterdir() if e.name.startswith(prefix) and e.name.endswith(".tmp")
                  and re.fullmatch(r"[0-9a-f]{32}", e.name[len(prefix):-len(".tmp")])]
     except OSError:  # no parent folder yet: nothing left there
         return

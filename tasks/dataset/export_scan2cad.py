@@ -33,7 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from tasks.cad.export import ExportError, export_clips, publish, some_named, temp_folder_beside
+from tasks.cad.export import ExportError, export_clips, publish, remove_leftovers, some_named, temp_folder_beside
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
 
@@ -117,6 +117,7 @@ def earlier_csvs(out: Path) -> list[Path]:
     without ``full_annotations.json``, or holding anything but :data:`JSON_FILES` and ``*.csv`` files."""
     if out.exists() and not out.is_dir():
         raise ExportError(f"{out}: exists and is not a folder; choose a new folder")
+    remove_leftovers(out)  # a killed export's temporary folder, inside ``out`` where it is a mount point
     entries = sorted(out.iterdir()) if out.exists() else []
     if not entries:
         return []
