@@ -524,3 +524,25 @@ def test_exports_into_a_mount_point(built, mount_point):
     assert run_cli("-w", str(wh.root), "stats", "--html", str(report)).code == 0
     assert sorted(p.name for p in report.iterdir()) == ["clips", "img", "index.html"]
     assert not list(official.parent.glob(".*"))
+
+
+def test_an_export_into_a_folder_that_cannot_be_written_is_one_line(built, tmp_path):
+    """An empty destination this user cannot write (here immutable, which binds root too), its
+    parent writable: both exports and the report are refused in one line, nothing written beside it
+    (the export was written in full beside it, then a traceback, Operation not permitted)."""
+    import subprocess
+
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, _, _ = built
+    out = tmp_path / "locked"
+    out.mkdir()
+    if subprocess.run(["chattr", "+i", str(out)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not allowed here")
+    try:
+        for args in (("export", "official", str(out), "--no-progress"), ("export", "scan2cad", str(out)),
+                     ("stats", "--html", str(out))):
+            assert_clean_error(run_cli("-w", str(wh.root), *args), mentions=f"{out}: cannot write there")
+            assert sorted(p.name for p in tmp_path.iterdir()) == ["locked"], args
+    finally:
+        subprocess.run(["chattr", "-i", str(out)], check=True)

@@ -84,7 +84,11 @@ def temp_folder_beside(out: Path) -> Iterator[Path]:
     when none can be made there); removed on leaving, whatever ends the export. It is made inside
     the ``try``: a signal between making it and a caller's ``try`` (SIGTERM's exit) had left it
     behind. It is locked (``flock``) while in use, and the earlier ones that no process holds, left
-    by an export that could not clean up (SIGKILL, power loss), are removed first (:func:`remove_leftovers`)."""
+    by an export that could not clean up (SIGKILL, power loss), are removed first (:func:`remove_leftovers`).
+    An existing ``out`` that cannot be written is refused first: the export was written in full
+    beside it, then a traceback when moved in."""
+    if out.is_dir() and not os.access(out, os.W_OK | os.X_OK):
+        raise ExportError(f"{out}: cannot write there: permission denied")
     remove_leftovers(out)
     made: list[Path] = []
     held: list[int] = []
