@@ -346,6 +346,24 @@ def test_export_official_round_trip(ingested, tmp_path):
         export_official(wh, out, show_progress=False)
 
 
+def test_export_official_names_a_damaged_mesh(ingested, tmp_path):
+    """A model whose mesh in the warehouse is damaged (or gone): one error naming the file, not a
+    trimesh traceback ("incorrect header on GLB file", naming nothing), and nothing written."""
+    import shutil
+
+    from warehouse import Warehouse
+
+    wh, _ = ingested
+    shutil.copytree(wh.root, tmp_path / "wh")
+    copy = Warehouse(tmp_path / "wh")
+    mesh = copy.root / next(m for m in copy.read("cad_models").to_pylist() if m["cad_id"] == "testlib.chair")["mesh_path"]
+    for damage in (lambda: mesh.write_bytes(b"garbage"), mesh.unlink):
+        damage()
+        with pytest.raises(ExportError, match=f"^{mesh}: cannot read this CAD model's mesh "):
+            export_official(copy, tmp_path / "official", show_progress=False)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["wh"]
+
+
 @needs_sh3d
 def test_sweet_home_3d_catalogues():
     items = list(sweethome3d_items(SH3D))

@@ -230,10 +230,16 @@ def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
 
 
 def triangle_soup(mesh_file: Path) -> np.ndarray:
-    """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied)."""
-    scene = trimesh.load(mesh_file, force="scene")
-    parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
-    return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
+    """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied);
+    :class:`ExportError` naming the file when it cannot be read (the warehouse's copy removed or
+    damaged)."""
+    try:
+        scene = trimesh.load(mesh_file, force="scene")
+        parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
+        return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
+    except Exception as e:  # trimesh raises many kinds for a damaged file (ValueError, KeyError, struct.error, ...)
+        raise ExportError(f"{mesh_file}: cannot read this CAD model's mesh (missing or damaged: "
+                          f"{' '.join(str(e).split())[:200]})") from None
 
 
 def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:
