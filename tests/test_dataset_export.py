@@ -596,3 +596,19 @@ def test_an_export_holds_one_clips_dataset_at_a_time(built, tmp_path):
     # with the clips is what chooses them (their runs, names, first frames), about 1.5 datasets.
     assert kept.frames and five[0] - one[0] < 0.6 * len(copies) * size, (five[0] - one[0], size)
     assert sorted(p.name for p in (tmp_path / "five" / "annotations").iterdir()) == sorted([CLIP, *copies])
+
+
+def test_a_damaged_mesh_of_a_posed_model_is_one_line(built, tmp_path):
+    """The mesh of a posed model damaged in the warehouse: `export official` (its cad/) and `stats
+    --html` (the poses drawn over the key-frames) name the file in one line; the report was a
+    trimesh traceback naming none ("incorrect header on GLB file")."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    shutil.copytree(built[0].root, tmp_path / "wh")
+    wh = Warehouse(tmp_path / "wh")
+    cad_id = built[2][0].cad_id
+    mesh = wh.root / next(m for m in wh.read("cad_models").to_pylist() if m["cad_id"] == cad_id)["mesh_path"]
+    mesh.write_bytes(b"glTF damaged")
+    for args in (("export", "official", str(tmp_path / "out"), "--no-progress"), ("stats", "--html", str(tmp_path / "r"))):
+        assert_clean_error(run_cli("-w", str(wh.root), *args), mentions=f"{mesh}: cannot read this CAD model's mesh")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["wh"]

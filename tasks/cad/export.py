@@ -229,17 +229,23 @@ def export_clips(wh: Warehouse, clips: Sequence[str] | None) -> ExportClips:
     return ExportClips(chosen, unfinished, bool(clips))
 
 
-def triangle_soup(mesh_file: Path) -> np.ndarray:
-    """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied);
-    :class:`ExportError` naming the file when it cannot be read (the warehouse's copy removed or
-    damaged)."""
+def load_mesh(mesh_file: Path) -> trimesh.Scene:
+    """A canonical mesh of the warehouse; :class:`ExportError` naming the file when it cannot be
+    read (the warehouse's copy removed or damaged), not one of trimesh's many errors naming none."""
     try:
-        scene = trimesh.load(mesh_file, force="scene")
-        parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
-        return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
+        return trimesh.load(mesh_file, force="scene")
     except Exception as e:  # trimesh raises many kinds for a damaged file (ValueError, KeyError, struct.error, ...)
         raise ExportError(f"{mesh_file}: cannot read this CAD model's mesh (missing or damaged: "
                           f"{' '.join(str(e).split())[:200]})") from None
+
+
+def triangle_soup(mesh_file: Path) -> np.ndarray:
+    """float32[T, 3, 3] triangles of a canonical mesh (all parts, transforms applied;
+    :func:`load_mesh`)."""
+    parts = [g for g in load_mesh(mesh_file).dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
+    if not parts:
+        raise ExportError(f"{mesh_file}: cannot read this CAD model's mesh (missing or damaged: no triangles)")
+    return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
 
 
 def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:

@@ -68,14 +68,14 @@ def keyframe_stamps(ds: ClipDataset) -> list[int]:
 
 def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
     """Write the clip's key-frames with its accepted poses drawn over them; returns the image paths."""
-    import trimesh
     from PIL import Image, ImageDraw
 
     from cadestate.render import Camera, Instance, Renderer, RenderMesh
+    from tasks.cad.export import load_mesh
 
     meshes = {r["cad_id"]: r["mesh_path"] for r in wh.read("cad_models", columns=["cad_id", "mesh_path"]).to_pylist()}
     posed = [o for o in ds.objects if o.pose is not None and o.cad_id in meshes]
-    loaded = {c: RenderMesh.from_trimesh(trimesh.load(wh.root / meshes[c], force="scene")) for c in {o.cad_id for o in posed}}
+    loaded = {c: RenderMesh.from_trimesh(load_mesh(wh.root / meshes[c])) for c in {o.cad_id for o in posed}}
     frames = {f.timestamp_us: f for f in ds.frames}
     h, w = ds.image_size
     paths = []
