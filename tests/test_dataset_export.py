@@ -612,3 +612,26 @@ def test_a_damaged_mesh_of_a_posed_model_is_one_line(built, tmp_path):
     for args in (("export", "official", str(tmp_path / "out"), "--no-progress"), ("stats", "--html", str(tmp_path / "r"))):
         assert_clean_error(run_cli("-w", str(wh.root), *args), mentions=f"{mesh}: cannot read this CAD model's mesh")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["wh"]
+
+
+def test_export_official_shows_its_progress_over_the_clips(built, tmp_path):
+    """On a terminal, `export official` draws a bar over the clips as it writes them (stderr), not
+    only over the CAD root's models: with --no-cad, hours of a big dataset showed nothing."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    wh, _, _ = built
+    master, slave = pty.openpty()
+    done = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(wh.root), "export", "official",
+                           str(tmp_path / "out"), "--no-cad"], stdout=subprocess.PIPE, stderr=slave, timeout=300,
+                          env={**os.environ, "CADESTATE_PROGRESS": "1"})
+    os.close(slave)
+    try:
+        drawn = os.read(master, 1 << 16).decode(errors="replace")
+    except OSError:  # EIO: nothing was written to the terminal
+        drawn = ""
+    os.close(master)
+    assert done.returncode == 0 and done.stdout.decode().startswith(f"wrote {tmp_path / 'out'}: 1 clips"), done.stdout
+    assert "clips" in drawn and "1/1" in drawn, drawn

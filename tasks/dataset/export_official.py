@@ -35,6 +35,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from cadestate.geometry import matrix_to_quaternion, pixel_intrinsics
+from cadestate.progress import progress
 from schemas.official import (Correspondence, Frame, FramesFile, ObjectAnnotation, ObjectsFile, TrackEntry, frames_to_json,
                               objects_to_json, write_json)
 from tasks.cad.export import (ExportError, check_new_folder, export_clips, export_official as export_cad_root, publish,
@@ -177,7 +178,8 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     frame_of: dict[Path, tuple[str, Path]] = {}  # the current video's exported frames -> (clip, warehouse image)
     video = None
     with temp_folder_beside(out) as tmp:
-        for name, clip in sorted(zip(names, selection.chosen), key=lambda nc: (video_id_of(nc[0]), nc[0])):
+        order = sorted(zip(names, selection.chosen), key=lambda nc: (video_id_of(nc[0]), nc[0]))
+        for name, clip in progress(order, total=len(order), description="clips", enabled=show_progress):
             if video_id_of(name) != video:
                 counts["frames"] += len(frame_of)  # images written: a frame two clips share counts once
                 frame_of.clear()
