@@ -459,6 +459,22 @@ def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, 
     (tmp_path / "csvs" / "table.csv").write_text("a,b\n")
     with pytest.raises(ExportError, match="holds files but no full_annotations.json"):
         export_scan2cad(wh, tmp_path / "csvs")
+    # Scan2CAD's own release (scans in ScanNet's frames, unique_cads.csv beside them) is no earlier
+    # export: it had its unique_cads.csv deleted and its full_annotations.json replaced.
+    release = tmp_path / "Scan2CAD"
+    release.mkdir()
+    scan = {"id_scan": "scene0470_00", "trs": {"translation": [1.5, 2.0, 0.1], "rotation": [0.7, 0.0, 0.0, 0.7],
+                                               "scale": [1.0, 1.0, 1.0]}, "n_aligned_models": 0, "aligned_models": []}
+    files = {"full_annotations.json": json.dumps([scan]), "cad_appearances.json": "{}", "unique_cads.csv": "catid,id_cad\n"}
+    for name, text in files.items():
+        (release / name).write_text(text)
+    for keep in ("unique_cads.csv", None):
+        with pytest.raises(ExportError, match=rf"^{release}: its full_annotations.json is not one `cadestate export scan2cad` wrote"):
+            export_scan2cad(wh, release)
+        assert {p.name: p.read_text() for p in release.iterdir()} == files
+        if keep:  # without the CSV file, its scans' own transforms tell it apart
+            (release / keep).unlink()
+            files.pop(keep)
 
 
 def test_a_clip_waiting_for_clicks_on_models_chosen_anew_is_not_completed(tmp_path):

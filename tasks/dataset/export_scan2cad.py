@@ -41,6 +41,8 @@ MIRRORED_SUFFIX = "_mirrored"
 SYMMETRY_TAGS = {1: "__SYM_NONE", 2: "__SYM_ROTATE_UP_2", 4: "__SYM_ROTATE_UP_4", 36: "__SYM_ROTATE_UP_INF"}
 CSV_COLUMNS = ("catid", "id_cad", "tx", "ty", "tz", "qw", "qx", "qy", "qz", "sx", "sy", "sz")
 JSON_FILES = ("full_annotations.json", "cad_appearances.json")
+IDENTITY = {"translation": [0.0, 0.0, 0.0], "rotation": [1.0, 0.0, 0.0, 0.0], "scale": [1.0, 1.0, 1.0]}
+"""The transform of every scan this export writes (a clip's world is its scan's)."""
 
 
 def scan2cad_cad_id(cad_id: str, mirrored: bool) -> str:
@@ -106,8 +108,7 @@ def annotation(ds: ClipDataset) -> dict:
                        "trs": {"translation": list(o.pose.translation), "rotation": list(o.pose.rotation),
                                "scale": list(o.pose.scale)},
                        "center": [0.0, 0.0, 0.0], "bbox": [e / 2 for e in (o.extent or (0.0, 0.0, 0.0))]})
-    return {"id_scan": ds.clip, "trs": {"translation": [0.0, 0.0, 0.0], "rotation": [1.0, 0.0, 0.0, 0.0],
-                                        "scale": [1.0, 1.0, 1.0]},
+    return {"id_scan": ds.clip, "trs": dict(IDENTITY),
             "n_aligned_models": len(models), "aligned_models": models}
 
 
@@ -128,7 +129,24 @@ def earlier_csvs(out: Path) -> list[Path]:
     if not (out / JSON_FILES[0]).is_file():
         raise ExportError(f"{out}: holds files but no {JSON_FILES[0]}: not the folder of a Scan2CAD export; "
                           "choose a new folder")
-    return [e for e in entries if e.suffix == ".csv"]
+    csvs = [e for e in entries if e.suffix == ".csv"]
+    if not _ours(out / JSON_FILES[0], {e.stem for e in csvs}):
+        raise ExportError(f"{out}: its {JSON_FILES[0]} is not one `cadestate export scan2cad` wrote (a scan with a "
+                          "transform of its own, or a CSV file of no scan: Scan2CAD's own files?); choose a new folder")
+    return csvs
+
+
+def _ours(path: Path, stems: set[str]) -> bool:
+    """Whether ``path`` is the ``full_annotations.json`` of an export of ours: every scan's transform
+    :data:`IDENTITY`, and a scan for each of the folder's CSV files (``stems``). Scan2CAD's own
+    release (scans in ScanNet's frames, beside ``unique_cads.csv``) is not: an export replaced it."""
+    try:
+        scans = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(scans, list) or not all(isinstance(a, dict) and a.get("trs") == IDENTITY for a in scans):
+        return False
+    return stems <= {a.get("id_scan") for a in scans}
 
 
 def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None) -> dict[str, int]:
