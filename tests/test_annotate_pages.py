@@ -201,3 +201,26 @@ def test_no_verdict_on_a_model_that_cannot_be_shown(app):
     page.keyboard.press("a")
     page.wait_for_timeout(300)
     assert page.locator("#accept").is_disabled() and not list((app.wh.root / "labels" / CLIP).glob(f"{CLIP}.ve.*.json"))
+
+
+def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
+    """A key-frame image gone from the media: the page says which, for as long as it is open, and
+    sends no answer (the verification page said nothing and Accept went; the manual-track page's
+    toast went after 12 s and Enter said nothing was missing on frames nobody saw)."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})  # no image cached
+    (app.wh.root / "media" / "frames" / CLIP / "200000.jpg").unlink()  # a key-frame of the manual-track and verification tasks
+    files = lambda: sorted((app.wh.root / "labels" / CLIP).glob("*.json"))  # noqa: E731
+    before = files()
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.wait_for_selector("#stack[data-ready='1']")
+    page.keyboard.press("a")
+    page.wait_for_timeout(500)
+    assert files() == before and page.locator("#accept").is_disabled()
+    assert f"media/frames/{CLIP}/200000.jpg" in page.inner_text("#frames-missing")
+    page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
+    page.wait_for_selector("#frames-missing")
+    page.evaluate("document.activeElement.blur()")
+    page.keyboard.press("Enter")
+    page.wait_for_timeout(500)
+    assert "no answer without it" in page.inner_text("#status") and files() == before
+    page.close()

@@ -189,10 +189,35 @@ export function drawBoxes(canvas, boxes) {
   ctx.setLineDash([]);
 }
 
-// A frame image with an overlay canvas at the image's pixel size; an image that does not load is said so.
+// The item's key-frame images (warehouse-relative paths), each loaded once: one gone from the warehouse's
+// media is said above the page until it is left (a toast went after 12 s and left broken icons) and
+// ``framesNotShown()`` refuses the answer, which would be given on frames nobody saw ("nothing is
+// missing", a candidate, an Accept). Resolves to the paths that did not load.
+let framesOk = null;   // null: still loading
+export function checkFrames(paths) {
+  const missing = [];
+  return Promise.all([...new Set(paths)].map((path) => new Promise((done) => {
+    const img = new Image();
+    img.onload = () => done();
+    img.onerror = () => { missing.push(path); done(); };
+    img.src = media(path);
+  }))).then(() => {
+    framesOk = !missing.length;
+    if (missing.length) $("main").prepend(el("div", {id: "frames-missing", class: "toast error", role: "alert", style: "margin:0 0 10px"},
+      `${missing.length} of this item's key-frame images cannot be loaded (${missing.sort().join(", ")}): no answer can be given without seeing them.`));
+    return missing;
+  });
+}
+// Whether the answer must wait (the key-frames are loading) or cannot be given (one is missing): said so.
+export function framesNotShown() {
+  if (framesOk) return false;
+  toast(framesOk === null ? "the key-frames are still loading: answer once they are shown" : "a key-frame image cannot be loaded (above): no answer without it", "error");
+  return true;
+}
+
+// A frame image with an overlay canvas at the image's pixel size (an image that does not load: checkFrames).
 export function frameView(src, onload) {
   const img = el("img", {src, alt: "key-frame", draggable: "false"});
-  img.addEventListener("error", () => toast(`cannot load the image ${src}`, "error"));
   const canvas = el("canvas", {class: "over"});
   const wrap = el("div", {class: "frame"}, img, canvas);
   img.addEventListener("load", () => { canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
