@@ -29,12 +29,13 @@ TRACKS = (0, 1, 2)
 
 
 def _build(root: Path) -> Warehouse:
-    """Frames (grey pictures), six box models with one render each, and a task of each kind for ``TRACKS``."""
+    """Frames (grey pictures), six box models (unit cubes) with one render each, and a task of each kind for ``TRACKS``."""
     import trimesh
     from PIL import Image
 
-    from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, ExistingTrack, KeyframeView,
-                                ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask)
+    from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
+                                ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem,
+                                VerificationTask)
     from tasks.human.labels import write_task
 
     wh = Warehouse(root)
@@ -66,6 +67,9 @@ def _build(root: Path) -> Warehouse:
             CadCandidate(rank=r + 1, cad_id=c, library="lib", cad_class="chair", score=0.5, mesh_path=f"media/cad/{c}.glb",
                          render_paths=(f"media/cad/{c}/0.png",)) for r, c in enumerate((f"m{t}a", f"m{t}b"))))
         for t in TRACKS)))
+    write_task(wh, CorrespondenceTask(task_id="c1.co", **head, items=tuple(
+        CorrespondenceItem(track_id=t, label="chair", cad_id=f"m{t}a", library="lib", mesh_path=f"media/cad/m{t}a.glb",
+                           render_paths=(), symmetry=1, keyframes=(kf(0), kf(300_000))) for t in TRACKS)))
     write_task(wh, VerificationTask(task_id="c1.ve", **head, items=tuple(
         VerificationItem(track_id=t, label="chair", cad_id=f"m{t}a", mesh_path=f"media/cad/m{t}a.glb",
                          pose=Pose(translation=(0, 0, 3), rotation=(1, 0, 0, 0), scale=(1, 1, 1), is_mirrored=False),
@@ -170,6 +174,23 @@ def test_cad_selection_keys_after_tab(app):
     page.keyboard.press("Enter")
     page.wait_for_url("**track=1**")
     assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0b"
+
+
+def test_correspondences_click_pairs_without_scrolling_in_a_small_window(app):
+    """At 800 x 600 the model and the image stay side by side: each pair (a click on the model, then
+    one on the image) is clicked where the page shows them (stacked, the model was below the window
+    and every pair took two scrolls)."""
+    page = app.page.context.browser.new_page(viewport={"width": 800, "height": 600})
+    page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=0")
+    page.wait_for_selector("#viewer[data-ready='1']")
+    page.wait_for_function("() => document.querySelector('#image-canvas').width > 0")
+    model = [(0.3, 0.5, 0.2), (0.5, 0.1, 0.3), (0.2, -0.3, 0.5), (-0.3, 0.2, 0.5)]  # on the unit cube's faces in view
+    for k, xyz in enumerate(model):
+        page.mouse.click(*page.evaluate(f"window.viewer.screenOf({list(xyz)})"))
+        r = page.locator("#image-canvas").bounding_box()
+        page.mouse.click(r["x"] + (0.3 + 0.1 * k) * r["width"], r["y"] + 0.4 * r["height"])
+    assert page.inner_text("#count") == "(4; 4-6)" and page.evaluate("window.scrollY") == 0
+    page.close()
 
 
 def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
