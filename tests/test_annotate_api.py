@@ -464,6 +464,7 @@ def test_an_answer_to_a_task_the_pipeline_replaced_goes_to_the_new_task_where_it
         gone = client.post("/api/answers", json=_one(2, "m2a"))
         assert gone.status_code == 409 and "task c1.cs was replaced by task c1.cs2 (the pipeline ran again), which " \
             "this answer does not fit (answer: $.answers[0].track_id: unknown track 2" in gone.json()["detail"], gone.text
+        assert "the queue opens task c1.cs2" in gone.json()["detail"]  # not "reload the page", which opens c1.cs again
         again = client.post("/api/answers", json=_one(0, "m0a"), params={"as_of": ""})  # the page saw no answer
         assert again.status_code == 409 and "this item was answered by tester" in again.json()["detail"], again.text
     assert len(_label_files(lwh)) == 1

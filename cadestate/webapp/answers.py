@@ -143,7 +143,8 @@ def _retargeted(payload: dict, annotator: str | None, newest: str, facts: ClipFa
         return data, validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
     except LabelError as e:
         raise Conflict(f"task {replaced} was replaced by task {newest} (the pipeline ran again), which this answer "
-                       f"does not fit ({e}): reload the page; this answer was not saved") from None
+                       f"does not fit ({e}): this answer was not saved; the queue opens task {newest} (reloading this page "
+                       "opens the replaced task again)") from None
 
 
 def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str) -> None:
