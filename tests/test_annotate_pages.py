@@ -245,3 +245,14 @@ def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
     page.wait_for_timeout(500)
     assert "no answer without it" in page.inner_text("#status") and files() == before
     page.close()
+
+
+def test_a_model_that_cannot_be_loaded_is_said_where_it_is_clicked(app):
+    """The chosen model's mesh is gone: the correspondences page says so under the empty 3D view for
+    as long as it is open (a toast said it for 12 s, then the hint asked for a click on the model)."""
+    page = app.page
+    (app.wh.root / "media" / "cad" / "m2a.glb").unlink()
+    page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=2")
+    page.wait_for_selector("#status .toast.error")
+    assert page.inner_text("#hint").startswith("⚠ cannot load the model media/cad/m2a.glb")
+    assert page.locator("#submit").is_disabled()
