@@ -376,6 +376,7 @@ def test_an_item_answered_since_the_page_loaded_is_a_409_not_a_silent_replacemen
         assert client.post("/api/answers", json=_one(0, "m0a"), params={"as_of": tab_b}).status_code == 200
         late = client.post("/api/answers", json=_one(0, "m0b"), params={"as_of": tab_a})
         assert late.status_code == 409 and "this item was answered by tester at " in late.json()["detail"], late.text
+        assert " UTC since the page loaded" in late.json()["detail"]  # the time is the warehouse's (UTC), not the reader's clock
         assert client.post("/api/answers", json=_one(2, "m2b"), params={"as_of": tab_a}).status_code == 200  # another item
         reloaded = client.get(f"/api/tasks/{CLIP}/c1.cs").json()
         assert reloaded["answered"] == [0, 2] and reloaded["as_of"] > tab_a

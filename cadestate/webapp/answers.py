@@ -163,7 +163,7 @@ def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str) -> Non
         row = max(rows, key=lambda r: r["ingested_at"])
         who = f" by {row['annotator']}" if row["annotator"] else ""
         what = "this task" if lf.kind == "manual_track" else "this item"
-        raise Conflict(f"{what} was answered{who} at {row['ingested_at']:%H:%M:%S} since the page loaded: "
+        raise Conflict(f"{what} was answered{who} at {row['ingested_at']:%H:%M:%S} UTC since the page loaded: "
                        "reload the page to see that answer; yours was not saved")
 
 
