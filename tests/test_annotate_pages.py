@@ -26,6 +26,8 @@ W, H = 640, 360
 STAMPS = [i * 100_000 for i in range(10)]
 NOW = "2026-01-01T00:00:00+00:00"
 TRACKS = (0, 1, 2)
+CUBE_POINTS = [(0.3, 0.5, 0.2), (0.5, 0.1, 0.3), (0.2, -0.3, 0.5), (-0.3, 0.2, 0.5)]
+"""Points on the faces of a unit cube that the 3D view's first camera sees, not on one plane."""
 
 
 def _build(root: Path) -> Warehouse:
@@ -33,9 +35,9 @@ def _build(root: Path) -> Warehouse:
     import trimesh
     from PIL import Image
 
-    from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
-                                ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem,
-                                VerificationTask)
+    from schemas.labels import (CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceAnswer, CorrespondenceItem,
+                                CorrespondenceKeyframe, CorrespondencePoint, CorrespondenceTask, ExistingTrack,
+                                KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask)
     from tasks.human.labels import write_task
 
     wh = Warehouse(root)
@@ -67,9 +69,16 @@ def _build(root: Path) -> Warehouse:
             CadCandidate(rank=r + 1, cad_id=c, library="lib", cad_class="chair", score=0.5, mesh_path=f"media/cad/{c}.glb",
                          render_paths=(f"media/cad/{c}/0.png",)) for r, c in enumerate((f"m{t}a", f"m{t}b"))))
         for t in TRACKS)))
+    def clicked(ts: int) -> CorrespondenceKeyframe:
+        return CorrespondenceKeyframe(timestamp_us=ts, points=tuple(CorrespondencePoint(x=0.3 + 0.1 * k, y=0.4, xyz=xyz) for k, xyz in
+                                                                     enumerate(CUBE_POINTS)))
+
+    # track 1 carries clicks of an earlier task: on key-frame 0, shown here, and on 600000, not shown
     write_task(wh, CorrespondenceTask(task_id="c1.co", **head, items=tuple(
         CorrespondenceItem(track_id=t, label="chair", cad_id=f"m{t}a", library="lib", mesh_path=f"media/cad/m{t}a.glb",
-                           render_paths=(), symmetry=1, keyframes=(kf(0), kf(300_000))) for t in TRACKS)))
+                           render_paths=(), symmetry=1, keyframes=(kf(0), kf(300_000)), previous=CorrespondenceAnswer(
+                               track_id=t, cad_id=f"m{t}a", is_mirrored=False, keyframes=(clicked(0), clicked(600_000)))
+                           if t == 1 else None) for t in TRACKS)))
     write_task(wh, VerificationTask(task_id="c1.ve", **head, items=tuple(
         VerificationItem(track_id=t, label="chair", cad_id=f"m{t}a", mesh_path=f"media/cad/m{t}a.glb",
                          pose=Pose(translation=(0, 0, 3), rotation=(1, 0, 0, 0), scale=(1, 1, 1), is_mirrored=False),
@@ -184,13 +193,36 @@ def test_correspondences_click_pairs_without_scrolling_in_a_small_window(app):
     page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=0")
     page.wait_for_selector("#viewer[data-ready='1']")
     page.wait_for_function("() => document.querySelector('#image-canvas').width > 0")
-    model = [(0.3, 0.5, 0.2), (0.5, 0.1, 0.3), (0.2, -0.3, 0.5), (-0.3, 0.2, 0.5)]  # on the unit cube's faces in view
-    for k, xyz in enumerate(model):
+    for k, xyz in enumerate(CUBE_POINTS):
         page.mouse.click(*page.evaluate(f"window.viewer.screenOf({list(xyz)})"))
         r = page.locator("#image-canvas").bounding_box()
         page.mouse.click(r["x"] + (0.3 + 0.1 * k) * r["width"], r["y"] + 0.4 * r["height"])
     assert page.inner_text("#count") == "(4; 4-6)" and page.evaluate("window.scrollY") == 0
     page.close()
+
+
+def test_clicks_carried_on_a_key_frame_not_shown_go_back_with_the_answer(app):
+    """Track 1's clicks of an earlier task are on key-frames 0 (shown) and 600000 (not shown): one pair
+    on 0 clicked again, the answer keeps 600000's clicks (they were dropped without a word, and the
+    newest answer of a track is its whole answer)."""
+    page = app.page
+    page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=1")
+    page.wait_for_selector("#viewer[data-ready='1']")
+    page.wait_for_function("() => document.querySelector('#image-canvas').width > 0")
+    assert page.inner_text("#count") == "(4; 4-6)"
+    said = page.inner_text("#summary")
+    page.locator("#pairs li[data-index='3'] button").click()
+    page.mouse.click(*page.evaluate(f"window.viewer.screenOf({list(CUBE_POINTS[3])})"))
+    r = page.locator("#image-canvas").bounding_box()
+    page.mouse.click(r["x"] + 0.65 * r["width"], r["y"] + 0.5 * r["height"])
+    page.click("#submit")
+    page.wait_for_url("**track=0**")  # the next item waiting
+    (path,) = (app.wh.root / "labels" / CLIP).glob(f"{CLIP}.co.*.json")
+    (answer,) = json.loads(path.read_text())["answers"]
+    assert [k["timestamp_us"] for k in answer["keyframes"]] == [0, 600_000]
+    assert [p["x"] for p in answer["keyframes"][0]["points"]] == pytest.approx([0.3, 0.4, 0.5, 0.65], abs=0.01)
+    assert [tuple(p["xyz"]) for p in answer["keyframes"][1]["points"]] == CUBE_POINTS
+    assert "1 clicked before on key-frames not shown here, kept" in said
 
 
 def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
