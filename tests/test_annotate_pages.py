@@ -250,17 +250,36 @@ def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
     assert "no task 'c1.gone'" in page.inner_text("#load-error") and page.locator("#accept").count() == 0
 
 
+def test_a_verdict_given_before_is_shown(app):
+    """Reject track 0, open it again: the title says it was rejected (its comment was shown, the
+    verdict itself was not, and a person checking their answer could not tell)."""
+    page = app.page
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.wait_for_selector("#stack[data-ready='1']")
+    page.click("#comment")
+    page.keyboard.type("off by a hand")
+    page.keyboard.press("Escape")
+    page.keyboard.press("r")
+    page.wait_for_url("**track=1**")
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.wait_for_selector("#stack[data-ready='1']")
+    assert page.inner_text("#track-title").endswith("(answered before: rejected)")
+    assert page.input_value("#comment") == "off by a hand"
+
+
 def test_no_verdict_on_a_model_that_cannot_be_shown(app):
     """The posed model's mesh is gone and the key-frames have no overlay: the page says so and keeps
     Accept and Reject off (pressing a accepted a pose nobody saw)."""
     page = app.page
+    verdicts = lambda: list((app.wh.root / "labels" / CLIP).glob(f"{CLIP}.ve.*.json"))  # noqa: E731
+    before = verdicts()
     (app.wh.root / "media" / "cad" / "m1a.glb").unlink()
     page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=1")
     page.wait_for_selector("#stack[data-ready='1']")
     assert "no verdict without it" in page.inner_text("#loading")
     page.keyboard.press("a")
     page.wait_for_timeout(300)
-    assert page.locator("#accept").is_disabled() and not list((app.wh.root / "labels" / CLIP).glob(f"{CLIP}.ve.*.json"))
+    assert page.locator("#accept").is_disabled() and verdicts() == before
 
 
 def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
