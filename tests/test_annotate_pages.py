@@ -201,6 +201,22 @@ def test_correspondences_click_pairs_without_scrolling_in_a_small_window(app):
     page.close()
 
 
+def test_a_mirror_toggled_alone_is_work_the_page_asks_before_dropping(app):
+    """m alone, then the queue link: the browser asks first (the mirror was not counted as work)."""
+    page = app.page
+    page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=1")  # (2's model is not cached: it goes later)
+    page.wait_for_selector("#viewer[data-ready='1']")
+    page.keyboard.press("m")
+    asked = []
+    page.once("dialog", lambda d: (asked.append(d.type), d.dismiss()))
+    page.click("header a", no_wait_after=True)
+    page.wait_for_timeout(300)
+    assert asked == ["beforeunload"] and "/annotate/correspondences" in page.url, (asked, page.url)
+    page.keyboard.press("m")  # back as it was: nothing to lose
+    page.click("header a")
+    page.wait_for_selector("#clips")
+
+
 def test_clicks_carried_on_a_key_frame_not_shown_go_back_with_the_answer(app):
     """Track 1's clicks of an earlier task are on key-frames 0 (shown) and 600000 (not shown): one pair
     on 0 clicked again, the answer keeps 600000's clicks (they were dropped without a word, and the
@@ -251,17 +267,17 @@ def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
 
 
 def test_a_verdict_given_before_is_shown(app):
-    """Reject track 0, open it again: the title says it was rejected (its comment was shown, the
+    """Reject track 2, open it again: the title says it was rejected (its comment was shown, the
     verdict itself was not, and a person checking their answer could not tell)."""
     page = app.page
-    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=2")
     page.wait_for_selector("#stack[data-ready='1']")
     page.click("#comment")
     page.keyboard.type("off by a hand")
     page.keyboard.press("Escape")
     page.keyboard.press("r")
-    page.wait_for_url("**track=1**")
-    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.wait_for_url("**track=0**")  # (1's layers stay unrendered: its model goes later)
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=2")
     page.wait_for_selector("#stack[data-ready='1']")
     assert page.inner_text("#track-title").endswith("(answered before: rejected)")
     assert page.input_value("#comment") == "off by a hand"
