@@ -330,3 +330,18 @@ def test_a_model_that_cannot_be_loaded_is_said_where_it_is_clicked(app):
     page.wait_for_selector("#status .toast.error")
     assert page.inner_text("#hint").startswith("⚠ cannot load the model media/cad/m2a.glb")
     assert page.locator("#submit").is_disabled()
+
+
+def test_the_correspondences_page_says_when_the_3d_view_cannot_load(app, monkeypatch, tmp_path):
+    """An app started without three.js (no `make web-vendor`): the correspondences page says so
+    (it was blank, without its header; the warning went to the terminal of whoever started the app)."""
+    from cadestate.config import Config, WarehouseConfig
+    from cadestate.webapp.app import create_app
+
+    monkeypatch.setenv("CADESTATE_WEB_VENDOR", str(tmp_path))
+    with served_app(create_app(Config(warehouse=WarehouseConfig(root=str(app.wh.root))), annotator="pages-test")) as url:
+        page = app.page
+        page.goto(f"{url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=0")
+        page.wait_for_selector("#load-error")
+        assert page.inner_text("#load-error").startswith("The 3D view cannot be loaded: ")
+        assert "make web-vendor" in page.inner_text("#load-error") and page.inner_text("header h1") == "Correspondences"
