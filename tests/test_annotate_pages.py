@@ -64,10 +64,12 @@ def _build(root: Path) -> Warehouse:
                                    existing_tracks=tuple(ExistingTrack(track_id=k, label="chair", boxes=tuple(
                                        TimedBox(timestamp_us=t, box=(0.1, 0.1 + 0.2 * k, 0.3, 0.25 + 0.2 * k)) for t in STAMPS[::2]))
                                        for k in TRACKS)))
+    # ten candidates a track, as retrieval gives: the first two models of their own, the others' views the second's
     write_task(wh, CadSelectionTask(task_id="c1.cs", **head, items=tuple(
         CadSelectionItem(track_id=t, label="chair", keyframes=(kf(0), kf(500_000)), candidates=tuple(
-            CadCandidate(rank=r + 1, cad_id=c, library="lib", cad_class="chair", score=0.5, mesh_path=f"media/cad/{c}.glb",
-                         render_paths=(f"media/cad/{c}/0.png",)) for r, c in enumerate((f"m{t}a", f"m{t}b"))))
+            CadCandidate(rank=r + 1, cad_id=f"m{t}{c}", library="lib", cad_class="chair", score=0.5,
+                         mesh_path=f"media/cad/m{t}{min(c, 'b')}.glb", render_paths=(f"media/cad/m{t}{min(c, 'b')}/0.png",))
+            for r, c in enumerate("abcdefghij")))
         for t in TRACKS)))
     def clicked(ts: int) -> CorrespondenceKeyframe:
         return CorrespondenceKeyframe(timestamp_us=ts, points=tuple(CorrespondencePoint(x=0.3 + 0.1 * k, y=0.4, xyz=xyz) for k, xyz in
@@ -183,6 +185,19 @@ def test_cad_selection_keys_after_tab(app):
     page.keyboard.press("Enter")
     page.wait_for_url("**track=1**")
     assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0b"
+
+
+def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_small_window(app):
+    """At 800 x 600 the key-frame stays in view while the person scrolls to the tenth candidate and
+    clicks it (stacked, the candidates were below the frame, which left the window)."""
+    page = app.page.context.browser.new_page(viewport={"width": 800, "height": 600})
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=2")
+    page.wait_for_selector(".cand")
+    page.locator(".cand").nth(9).click()
+    box = page.locator("#keyframe").bounding_box()
+    assert page.inner_text("#choice") == "chosen: m2j" and page.evaluate("window.scrollY") > 0
+    assert box["y"] >= 0 and box["y"] + box["height"] <= 600, box
+    page.close()
 
 
 def test_correspondences_click_pairs_without_scrolling_in_a_small_window(app):
