@@ -193,25 +193,26 @@ export function drawBoxes(canvas, boxes) {
 // media is said above the page until it is left (a toast went after 12 s and left broken icons) and
 // ``framesNotShown()`` refuses the answer, which would be given on frames nobody saw ("nothing is
 // missing", a candidate, an Accept). Resolves to the paths that did not load.
-let framesOk = null;   // null: still loading
+let frameCheck = Promise.resolve([]);
 export function checkFrames(paths) {
   const missing = [];
-  return Promise.all([...new Set(paths)].map((path) => new Promise((done) => {
+  frameCheck = Promise.all([...new Set(paths)].map((path) => new Promise((done) => {
     const img = new Image();
     img.onload = () => done();
     img.onerror = () => { missing.push(path); done(); };
     img.src = media(path);
   }))).then(() => {
-    framesOk = !missing.length;
     if (missing.length) $("main").prepend(el("div", {id: "frames-missing", class: "toast error", role: "alert", style: "margin:0 0 10px"},
       `${missing.length} of this item's key-frame images cannot be loaded (${missing.sort().join(", ")}): no answer can be given without seeing them.`));
     return missing;
   });
+  return frameCheck;
 }
-// Whether the answer must wait (the key-frames are loading) or cannot be given (one is missing): said so.
-export function framesNotShown() {
-  if (framesOk) return false;
-  toast(framesOk === null ? "the key-frames are still loading: answer once they are shown" : "a key-frame image cannot be loaded (above): no answer without it", "error");
+// Whether the answer cannot be given (a key-frame image did not load: said so); waits for the images
+// still loading (an answer sent at once is not refused for that). Pages call it with their Submit off.
+export async function framesNotShown() {
+  if (!(await frameCheck).length) return false;
+  toast("a key-frame image cannot be loaded (above): no answer without it", "error");
   return true;
 }
 
