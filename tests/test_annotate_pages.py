@@ -71,9 +71,10 @@ def _build(root: Path) -> Warehouse:
                          mesh_path=f"media/cad/m{t}{min(c, 'b')}.glb", render_paths=(f"media/cad/m{t}{min(c, 'b')}/0.png",))
             for r, c in enumerate("abcdefghij")))
         for t in TRACKS)))
+
     def clicked(ts: int) -> CorrespondenceKeyframe:
-        return CorrespondenceKeyframe(timestamp_us=ts, points=tuple(CorrespondencePoint(x=0.3 + 0.1 * k, y=0.4, xyz=xyz) for k, xyz in
-                                                                     enumerate(CUBE_POINTS)))
+        points = tuple(CorrespondencePoint(x=0.3 + 0.1 * k, y=0.4, xyz=xyz) for k, xyz in enumerate(CUBE_POINTS))
+        return CorrespondenceKeyframe(timestamp_us=ts, points=points)
 
     # track 1 carries clicks of an earlier task: on key-frame 0, shown here, and on 600000, not shown
     write_task(wh, CorrespondenceTask(task_id="c1.co", **head, items=tuple(
