@@ -166,6 +166,25 @@ def test_manual_tracks_by_mouse_alone(app):
     assert page.locator(".obj").count() == 2 and page.locator("input.cls").nth(0).input_value() == "table"
 
 
+def test_a_refused_manual_track_answer_names_the_objects_as_the_page_does(app):
+    """Two drawings of one object: the refusal names them "new N", as the page does (it said
+    answers[N-1], which the person never saw)."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
+    page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+    drawn = page.locator(".obj").count()  # the answer in force: its objects come first
+    for i in (drawn, drawn + 1):
+        page.click("#new")
+        _drag(page, 0.5, 0.5, 0.7, 0.8)
+        page.locator("input.cls").nth(i).fill("table")
+        page.locator("input.cls").nth(i).dispatch_event("change")
+    page.evaluate("document.activeElement.blur()")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#status .toast.error")
+    assert page.inner_text("#status .toast.error").startswith(f"answer: new {drawn + 2}: the same object as new {drawn + 1} (class 'table'")
+    page.close()
+
+
 def test_cad_selection_keys_after_tab(app):
     """Tab to the first candidate, press 2, Enter: the second is submitted (Enter chose the tabbed one
     again); the fragment list steps with the arrow keys and keeps the focus."""
