@@ -283,6 +283,23 @@ def test_clicks_carried_on_a_key_frame_not_shown_go_back_with_the_answer(app):
     assert [k["timestamp_us"] for k in json.loads(newest.read_text())["answers"][0]["keyframes"]] == [0]
 
 
+def test_an_answer_saved_when_its_task_cannot_be_read_again_is_not_said_failed(app):
+    """The answer is saved, then reading its task again fails (the network, the app restarting): the
+    page goes on to the clip's next item; it said the error with Submit on again, and pressed again
+    the same answer met a 409 against itself."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=1")
+    page.wait_for_selector(".cand")
+    page.route("**/api/tasks/**", lambda route: route.abort())
+    page.keyboard.press("2")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#pipeline")
+    assert "the answer is saved, but the task cannot be read again" in page.inner_text("#status")
+    (saved,) = _answers(app, "cad_selection")[-1]
+    assert (saved["track_id"], saved["cad_id"]) == (1, "m1b")
+    page.close()
+
+
 def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
     """The clip has no video: the real resume after an answer fails, and the panel says so (it was
     overwritten by "next task ready"). A stale link says it cannot load, with no Submit to press."""

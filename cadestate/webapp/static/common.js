@@ -113,7 +113,14 @@ export async function afterAnswer(clip, taskId, kind, res) {
   const warnings = res.warnings || [];
   for (const w of warnings) toast(w, "warn");
   taskId = res.task_id || taskId;   // a replaced task's answer went to the newer one: go on there
-  const data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
+  let data;
+  try {
+    data = await api(`/api/tasks/${encodeURIComponent(clip)}/${encodeURIComponent(taskId)}`);
+  } catch (e) {  // the answer is saved: not said as a failure with Submit on again (pressed, it met a 409 against itself)
+    toast(`the answer is saved, but the task cannot be read again (${e.message}): the clip's next item follows`, "warn");
+    showWaiting(clip);
+    return;
+  }
   loaded = {...loaded, as_of: data.as_of};  // answering again from this page edits the person's own answer (no 409)
   const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
   if (waiting.length) {
