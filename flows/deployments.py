@@ -57,10 +57,10 @@ from warehouse import Warehouse, atomic_write_bytes
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
 ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
+"""The deployment (flow name/deployment name) that runs one clip."""
 INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT = "build_dataset", "ingest_labels", "dataset_report"
 DEPLOYMENTS = (ANNOTATE_DEPLOYMENT, INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT)
 """The names of the four deployments :func:`deployments` makes, in its order."""
-"""The deployment (flow name/deployment name) that runs one clip."""
 ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED]
 
 
@@ -362,7 +362,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
         logger.warning("%s", w)
     # and the clips of files ingested before whose stages never took them in: an ingest_labels run
     # killed (a `server stop`) between its ingest and its resume left them suspended for good
-    unrun = clips_left_unrun(wh, cfg, [c for c in report.duplicate_clips if c not in report.clips])
+    unrun = clips_left_unrun(wh, cfg, report.earlier_clips)
     for clip in unrun:
         logger.warning("clip %s: its labels were ingested but never run (an earlier ingest was stopped): resuming it", clip)
     todo = report.clips + unrun

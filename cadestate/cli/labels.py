@@ -86,7 +86,7 @@ def labels_ingest(
     if report.clips:
         _say(f"clips with new labels: {escape(', '.join(report.clips))}")
     wh = ctx.obj.open_warehouse(must_exist=True)
-    unrun = clips_left_unrun(wh, cfg, [c for c in report.duplicate_clips if c not in report.clips]) if resume else []
+    unrun = clips_left_unrun(wh, cfg, report.earlier_clips) if resume else []
     if unrun:
         _say(f"clips whose labels were ingested but not yet run (a resume was stopped): {escape(', '.join(unrun))}")
     _problems(report.errors, report.warnings)

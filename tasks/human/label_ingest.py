@@ -41,7 +41,7 @@ from schemas.labels import KINDS
 from tasks.human.answers_in_force import labels_lock, sync_correspondences
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line, read_limited
 from tasks.human.label_warnings import LabelWarnings
-from tasks.human.labels import ClipFacts, LabelFile, utc_now, validate_label
+from tasks.human.labels import ClipFacts, LabelFile, check_label, utc_now, validate_label
 from tasks.pose.checks import coplanar_axis
 from warehouse import Warehouse
 
@@ -69,6 +69,12 @@ class IngestReport:
     @property
     def ok(self) -> bool:
         return not self.errors
+
+    @property
+    def earlier_clips(self) -> list[str]:
+        """The clips of the ``duplicates`` with no new labels, once each: those a killed ingest
+        may have left unrun (:func:`tasks.status.clips_left_unrun` tells)."""
+        return [c for c in dict.fromkeys(self.duplicate_clips) if c not in self.clips]
 
 
 def label_paths(source: str | Path | Sequence[str | Path]) -> list[Path]:
@@ -250,15 +256,14 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
     the order ingest applies them (:func:`_order`, the newest answer in force), its links going
     into ``facts`` for the files after it (a ring across files is seen as it would stand)."""
     checked: list[CheckedFile] = []
-    data: dict[int, bytes] = {}
     batch: set[str] = set()
     for path in paths:
         try:
-            data[len(checked)] = read_limited(path, max_bytes)
-            if (clip := known.get(sha := hashlib.sha256(data[len(checked)]).hexdigest())) is not None:
+            data = read_limited(path, max_bytes)
+            if (clip := known.get(sha := hashlib.sha256(data).hexdigest())) is not None:
                 checked.append(CheckedFile(path, ingested_for=clip, in_batch=sha in batch))
                 continue
-            lf = validate_label(path, data=data[len(checked)], max_bytes=max_bytes)  # the format alone
+            lf = validate_label(path, data=data, max_bytes=max_bytes)  # the format alone
         except LabelError as e:
             checked.append(CheckedFile(path, error=str(e)))
             continue
@@ -268,13 +273,13 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
     if facts is None:
         return checked
     for i in sorted((i for i, c in enumerate(checked) if c.lf is not None), key=lambda i: _order(checked[i].lf)):
+        label = checked[i].lf.label
         try:
-            lf = validate_label(checked[i].path, facts=facts, data=data[i], max_bytes=max_bytes)
+            check_label(label, facts, str(checked[i].path))
         except LabelError as e:
             checked[i] = CheckedFile(checked[i].path, error=str(e))
             continue
-        facts.take(lf.label)
-        checked[i] = CheckedFile(checked[i].path, lf=lf)
+        facts.take(label)
     return checked
 
 
