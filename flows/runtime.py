@@ -78,7 +78,7 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     try:
         if not api:
             start_ephemeral_api(config.prefect.startup_timeout_s)
-        with prefect_tags(*tags), without_heartbeats(), ctrl_c_ends_the_run():
+        with prefect_tags(*tags), without_heartbeats(), ctrl_c_ends_the_run(), ends_with_its_server(root, api):
             state = configured(flow, config.prefect)(*args, return_state=True)
     except Exception as e:  # the flow's own failures are in its state: what gets here is Prefect's
         cause = api_failure(e)
@@ -148,6 +148,36 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         _ENDS_THE_RUN.reset(token)
         for s, handler in before.items():
             signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
+    """Within a command's flow run on this warehouse's server (``api`` is the URL it recorded; in
+    the main thread), the server ending (``cadestate server stop``, a crash) ends the command within
+    seconds, in one line with status 1, as Ctrl-C does: the stages in progress stop unfinished and
+    the command run again resumes them. Prefect's client retried each call to the dead API for
+    ~2.5 minutes before the command failed. A run on another API (``$PREFECT_API_URL``, the
+    ephemeral one) or in another thread (the annotation app's resumes) is not watched."""
+    from flows.server import end_with_server, read_server
+
+    info = read_server(root)
+    if info is None or not api or info.api_url != api.rstrip("/") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def ended() -> None:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout.flush()
+            sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {STAGES_STOP}; "
+                             "`cadestate server start` starts it again (without it, commands run on their own)\n")
+            sys.stderr.flush()
+        os._exit(1)
+
+    watching = end_with_server(info, ended)
+    try:
+        yield
+    finally:
+        watching.set()
 
 
 STAGES_STOP = "the stages in progress stop unfinished (the command run again resumes them)"

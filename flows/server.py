@@ -361,14 +361,18 @@ def stop_serving(root: Path, timeout_s: float = 30.0) -> int | None:
     return pid
 
 
-def end_with_server(info: ServerInfo, on_end, every_s: float = 2.0) -> threading.Thread:
+def end_with_server(info: ServerInfo, on_end, every_s: float = 2.0) -> threading.Event:
     """Watch the server's process in a daemon thread; once it has ended (stopped or crashed),
-    call ``on_end()`` (a serve exits: every poll of a dead API would print a traceback)."""
+    call ``on_end()`` (a serve exits: every poll of a dead API would print a traceback; a command's
+    run ends instead of retrying for minutes). Setting the event returned ends the watch."""
+    done = threading.Event()
+
     def watch() -> None:
         while info.process_alive:
-            time.sleep(every_s)
-        on_end()
+            if done.wait(every_s):
+                return
+        if not done.is_set():
+            on_end()
 
-    thread = threading.Thread(target=watch, name="server-watch", daemon=True)
-    thread.start()
-    return thread
+    threading.Thread(target=watch, name="server-watch", daemon=True).start()
+    return done

@@ -269,6 +269,33 @@ def test_a_serve_whose_server_ends_says_so_in_one_line_and_ends(tmp_path):
         cli("-w", str(w), "server", "stop", cwd=tmp_path)
 
 
+def test_a_command_whose_server_stops_under_it_ends_in_one_line(tmp_path):
+    """`server stop` under a command running on the warehouse's server (`cad ingest`: minutes of
+    stages): the command ends within seconds, in one line with status 1, where Prefect's client
+    retried every call to the dead API for ~2.5 minutes before the command failed."""
+    import time
+
+    w = tmp_path / "w"
+    assert cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    info = read_server(w)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    running = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(w), "cad", "ingest", "--no-progress"],
+                               cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not flow_runs(info.api_url) and running.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert running.poll() is None, running.stderr.read()  # its stages are under way
+        assert cli("-w", str(w), "server", "stop", cwd=tmp_path).returncode == 0
+        assert running.wait(60) == 1
+        said = running.stderr.read()
+    finally:
+        running.kill()
+        cli("-w", str(w), "server", "stop", cwd=tmp_path)
+    assert f"error: the Prefect server at {info.api_url} stopped under this run: the stages in progress stop" in said
+    assert "Traceback" not in said, said
+
+
 def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
     """`cp -a` of a warehouse copies its server record: the copy's `server stop` stopped the
     original's server. A record names its warehouse folder (device and inode); another's is no
