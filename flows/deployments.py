@@ -29,6 +29,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +43,7 @@ from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLi
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
+from prefect.exceptions import FailedRun
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
 from prefect.states import Crashed, Failed, State
 
@@ -54,6 +56,7 @@ from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
 from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, official_clip_name
 from warehouse import Warehouse, atomic_write_bytes
+from warehouse.catalog import one_line
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
 ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
@@ -62,6 +65,20 @@ INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT = "build_dataset", "inges
 DEPLOYMENTS = (ANNOTATE_DEPLOYMENT, INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT)
 """The names of the four deployments :func:`deployments` makes, in its order."""
 ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED]
+
+
+class _FailedRunSaidOnce(logging.Filter):
+    """Drop the traceback Prefect's engine logs ("Engine execution exited with unexpected
+    exception", :class:`prefect.exceptions.FailedRun`) for a served run that ends Failed, in the
+    run's own process: its "Finished in state Failed('<why>')" line says it, and a failed stage's
+    traceback is in the log above. Any other exception keeps its traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        return not (isinstance(exc, FailedRun) and record.getMessage() == "Engine execution exited with unexpected exception")
+
+
+logging.getLogger("prefect.flow_runs").addFilter(_FailedRunSaidOnce())  # imported where Prefect runs a served flow
 
 
 def served_config(warehouse: str, config_path: str) -> Config:
@@ -299,8 +316,9 @@ def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str
     cfg = served_config(warehouse, config_path)
     root = str(Path(warehouse).resolve())
     state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
-    if state.is_failed():
-        return state
+    if state.is_failed():  # its reports are in the runs table: Prefect takes a Failed state's data for an exception
+        failed = [f"{r.stage}: {r.message}" for r in state.result(raise_on_failure=False) if r.state == "failed"]
+        return Failed(message=one_line(f"{state.message}: {'; '.join(failed)}"))
     reports: list[StageReport] = state.result(raise_on_failure=False)
     waits = sorted(f"{r.stage}: {r.message}" for r in reports if r.state == "paused")
     if waits:
