@@ -486,6 +486,32 @@ def test_answers_without_a_commit_record_are_ignored(lwh, tmp_path):
     assert current_answers(lwh, "verification", [CLIP]).num_rows == 2
 
 
+def test_answers_left_without_a_commit_record_are_removed_by_the_next_ingest(lwh, tmp_path):
+    """An ingest whose ``label_files`` write fails (as one killed before it) leaves the answers,
+    effort and relations it wrote; they were ignored in force but seen by SQL, for ever. The clip's
+    next ingest removes them: the tables, and the views over them, hold committed rows only."""
+    from warehouse.catalog import connect
+
+    doc = good("verification")
+    doc["answers"][0].update(seconds=4.0, same_as_track=1)
+    path = put(tmp_path / "in", "v.json", doc)
+    block = lwh.partition_dir("label_files", CLIP)
+    block.parent.mkdir(parents=True, exist_ok=True)
+    block.write_text("")  # the commit record's folder cannot be made: the write fails after the answers' writes
+    report = ingest_labels(lwh, path)
+    assert report.ingested == [] and "writing failed" in report.errors[0]
+    uncommitted = {t: lwh.read(t, [CLIP]).num_rows for t in ("verification_labels", "label_effort", "track_relations")}
+    assert uncommitted == {"verification_labels": 2, "label_effort": 1, "track_relations": 1}
+    block.unlink()
+    report = ingest_labels(lwh, path)
+    assert report.ingested == [str(path)] and "removed 4 label row(s)" in report.warnings[0]
+    con = connect(lwh)
+    for table in uncommitted:
+        assert lwh.read(table, [CLIP]).num_rows == uncommitted[table]
+        assert con.execute(f"SELECT count(*) FROM {table}").fetchone()[0] == uncommitted[table]
+    assert ingest_labels(lwh, path).warnings == []
+
+
 # ------------------------------------------------------------------------------ tool imports
 
 CVAT = f"""<?xml version="1.0" encoding="utf-8"?>

@@ -553,6 +553,29 @@ class Warehouse:
         with self.locked(table, part):
             return self._compact_locked(table, part, min_files)
 
+    def drop_rows(self, table: str, part: str, dropped: Callable[[pa.Table], Sequence[bool]]) -> int:
+        """Rewrite one partition of an append-mode table without the rows that ``dropped`` marks
+        (given the partition's rows, read under its lock; one flag a row): merged into one file and
+        swapped in, as a compaction. For debris that no commit record names (a label file's answers
+        written by a process killed before its ``label_files`` row). Returns the rows dropped."""
+        import pyarrow as pa
+
+        if self.spec(table).mode != "append":
+            raise WarehouseError(f"table {table} is not append-mode: its writes replace the partition whole")
+        with self.locked(table, part):
+            folder = self.partition_dir(table, part)
+            files = data_files(folder)
+            if not files:
+                return 0
+            rows = _read_files(files, self.spec(table).schema, None, self._cache)
+            keep = [not d for d in dropped(rows)]
+            if all(keep):
+                return 0
+            self._swap_in(folder, rows.filter(pa.array(keep, pa.bool_())))
+        for hook in AFTER_WRITE:
+            hook(self)
+        return keep.count(False)
+
     def compact_tables(self, tables: Sequence[str] | None = None, min_files: int = 2) -> list[Compacted]:
         """:meth:`compact` every partition of the append-mode ``tables`` (default: all of them)."""
         names = list(tables) if tables is not None else [n for n, i in self.info.items() if i.mode == "append"]

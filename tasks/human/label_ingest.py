@@ -6,8 +6,9 @@ memory first (:func:`prepare_file`), then appended to its answer table (``manual
 ``cad_selection_labels``, ``correspondence_labels``, ``verification_labels``), to ``label_effort``
 (the ``seconds`` given per item) and ``track_relations`` (``not_objects``, every kind's ``same_as_track``), and then to
 ``label_files``, which is the commit record: answer rows whose file has no ``label_files`` row (a
-crash or a failed write between the two) are ignored, and the file is ingested again on the next
-run. Rules:
+crash or a failed write between the two) are ignored, the file is ingested again on the next run,
+and the clip's next ingest removes them (:func:`drop_uncommitted`: SQL over the tables counts them
+till then). Rules:
 
 - idempotent: a file whose bytes (SHA-256) were ingested before adds nothing, whatever its name;
 - every file's outcome is reported: ingested, already ingested, or its error (one line naming the
@@ -392,6 +393,24 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
     return _ingest(wh, accepted, facts, report, coplanar_tol, None)
 
 
+def drop_uncommitted(wh: Warehouse, clip: str) -> int:
+    """Remove the clip's rows of answer, ``label_effort`` and ``track_relations`` tables that no
+    ``label_files`` row commits (a process killed, or a write failed, before its file's commit
+    record); call it under :func:`labels_lock`, which every commit holds. Returns the rows removed."""
+    files = wh.read(LABEL_FILES.name, [clip], columns=["label_sha256", "ingested_at"])
+    committed = set(zip(files.column("label_sha256").to_pylist(), files.column("ingested_at").to_pylist()))
+
+    def uncommitted(rows: pa.Table) -> list[bool]:
+        return [k not in committed for k in zip(rows.column("label_sha256").to_pylist(), rows.column("ingested_at").to_pylist())]
+
+    removed = 0
+    for spec in (*ANSWER_TABLES.values(), *SIDE_TABLES):
+        keys = wh.read(spec.name, [clip], columns=["label_sha256", "ingested_at"])
+        if any(uncommitted(keys)):  # the partition is read whole only then
+            removed += wh.drop_rows(spec.name, clip, uncommitted)
+    return removed
+
+
 def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: IngestReport, coplanar_tol: float,
             now: dt.datetime | None) -> IngestReport:
     """Ingest the ``accepted`` files (valid, new) into ``report``: batched per clip and table."""
@@ -404,6 +423,12 @@ def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: 
             _failed(report, lf, e)
     for clip, files in sorted(by_clip.items()):
         with labels_lock(wh, clip):  # another ingest of the same files commits them once: checked again here
+            try:
+                if removed := drop_uncommitted(wh, clip):
+                    report.warnings.append(f"clip {clip}: removed {removed} label row(s) that an earlier ingest wrote "
+                                           "but never committed (stopped or failed before their label_files row)")
+            except WRITE_ERRORS as e:
+                report.warnings.append(one_line(f"clip {clip}: uncommitted label rows not removed: {e}"))
             known = ingested_sha256(wh, [clip])
             report.duplicates += [str(f.lf.path) for f in files if f.lf.sha256 in known]
             report.duplicate_clips += [clip for f in files if f.lf.sha256 in known]
