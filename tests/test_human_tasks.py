@@ -459,10 +459,8 @@ def test_task_ids_do_not_move_with_a_columns_description():
     assert table_digest(TABLES["poses"].schema.empty_table().select(POSE_COLUMNS)) == "9c84f0787543b766"
 
 
-def test_a_track_seen_on_one_frame_is_not_asked_for_clicks(hwh, tmp_path):
-    """A track with boxes on one frame (a manual track drawn on one key-frame) was asked for clicks
-    on its one key-frame, which can never give a pose (pose's ``single_keyframe``), and the app then
-    said "pose failed: click again"; it is left out, and the stage says so."""
+def _add_one_frame_track(hwh: Warehouse) -> None:
+    """Track 3: a chair with one box (frame 7), with track 0's CAD candidates."""
     dets = hwh.read("detections", [CLIP]).to_pylist()
     tds = hwh.read("track_detections", [CLIP]).to_pylist()
     dets.append({**dets[0], "det_id": 3007, "timestamp_us": STAMPS[7], "frame_index": 7})
@@ -472,6 +470,27 @@ def test_a_track_seen_on_one_frame_is_not_asked_for_clicks(hwh, tmp_path):
     hwh.write("tracks", CLIP, table_rows("tracks", [*hwh.read("tracks", [CLIP]).to_pylist(), {**hwh.read("tracks", [CLIP]).to_pylist()[0], "track_id": 3}]))
     cands = hwh.read("cad_candidates", [CLIP]).to_pylist()
     hwh.write("cad_candidates", CLIP, table_rows("cad_candidates", [*cands, *({**c, "track_id": 3} for c in cands if c["track_id"] == 0)]))
+
+
+@pytest.mark.parametrize("left", [{3: "lib.chair_b"}, {}], ids=["one-frame track", "nothing"])
+def test_earlier_clicks_do_not_outlive_a_rerun_with_nothing_to_click(hwh, tmp_path, left):
+    """Tracks 0 and 1 were clicked on; then no model is chosen for them, and the one track left
+    with a model is seen on one frame only (or none is left): nothing is asked, and pose's input
+    holds no clicks (the earlier ones stayed, of tracks with no chosen model)."""
+    _answered_correspondences(hwh, tmp_path)
+    assert sorted(_clicked(hwh)) == ["0", "1"]
+    _add_one_frame_track(hwh)
+    _select(hwh, tmp_path / "s" / "b.json", {0: None, 1: None, 2: None, 3: None, **left}, "2026-01-05T00:00:00+00:00")
+    out = _corr(hwh)
+    assert out.status == "completed" and out.rows_written == 0
+    assert hwh.read("correspondences", [CLIP]).num_rows == 0
+
+
+def test_a_track_seen_on_one_frame_is_not_asked_for_clicks(hwh, tmp_path):
+    """A track with boxes on one frame (a manual track drawn on one key-frame) was asked for clicks
+    on its one key-frame, which can never give a pose (pose's ``single_keyframe``), and the app then
+    said "pose failed: click again"; it is left out, and the stage says so."""
+    _add_one_frame_track(hwh)
     _select(hwh, tmp_path / "s" / "a.json", {0: "lib.chair_a", 1: None, 2: None, 3: "lib.chair_b"}, "2026-01-01T00:00:00+00:00")
     corr = _corr(hwh)
     assert corr.status == "paused" and [it["track_id"] for it in _task(hwh, corr.message)["items"]] == [0]

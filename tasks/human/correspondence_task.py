@@ -1,7 +1,7 @@
 """Stage ``correspondence_task`` (paper 3.3), after ``cad_selection``: per track with a chosen model, the model's
   mesh and key-frames to click on (a track seen on one frame only is not asked: one view gives no pose). The clicks that answer each item (given on this task, or on an
   earlier one and still holding: :mod:`tasks.human.clicks_in_force`) go to ``correspondences``
-  (the ``pose`` stage's input), here and at ingest.
+  (the ``pose`` stage's input), here and at ingest; with no task to ask, it is emptied.
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
 """
@@ -11,7 +11,8 @@ from __future__ import annotations
 from cadestate.config import CorrespondenceTaskConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
-from tasks.human.answers_in_force import current_answers, sync_correspondences
+from schemas.pose import CORRESPONDENCES
+from tasks.human.answers_in_force import current_answers, labels_lock, sync_correspondences
 from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
 from tasks.human.inputs import correspondence_inputs
@@ -28,6 +29,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     track has some."""
     chosen = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
     if not chosen:
+        _no_clicks(wh, clip)
         return StageOutput(0, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
     tracks = clip_tracks(wh, clip)
     keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes)
@@ -36,6 +38,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     one_frame = len(chosen) - len(track_ids)
     not_asked = f"; {one_frame} track(s) seen on one frame only not asked (one view gives no pose)" if one_frame else ""
     if not track_ids:
+        _no_clicks(wh, clip)
         return StageOutput(0, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
                            f"no track with a chosen CAD model is seen on two frames{not_asked}")
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
@@ -59,6 +62,14 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     waiting = len(track_ids) - len(held)
     summary = f"{len(held)} of {len(track_ids)} tracks have correspondences{not_asked}"
     return task_output(len(held), output, summary, "correspondences", path, waiting, len(track_ids))
+
+
+def _no_clicks(wh: Warehouse, clip: str) -> None:
+    """Empty the clip's ``correspondences`` when no task is asked: the clicks of an earlier task
+    (tracks whose model is no longer chosen) stayed there, though pose leaves them out."""
+    with labels_lock(wh, clip):
+        if wh.read("correspondences", [clip], columns=["track_id"]).num_rows:
+            wh.write("correspondences", clip, CORRESPONDENCES.schema.empty_table())
 
 
 def _run(ctx: StageContext) -> StageOutput:
