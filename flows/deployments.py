@@ -179,13 +179,21 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None =
     known = {(r["clip"], r["video_sha256"], r["cameras_sha256"])
              for r in wh.read("clips", columns=["clip", "video_sha256", "cameras_sha256"]).to_pylist()}
     sha256 = inbox_sha256s(wh, [path for p in pairs for path in (p.video, p.cameras)])
-    todo = [p for p in pairs if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip)]
+    runs: dict[str, list[dict]] = {}  # a clip's runs, read once for unfinished and failing
+
+    def runs_of(clip: str) -> list[dict]:
+        if clip not in runs:
+            runs[clip] = clip_runs(wh, clip)
+        return runs[clip]
+
+    todo = [p for p in pairs
+            if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip, runs_of(p.clip))]
     if config is None or not config.schedule.failed_runs:
         return todo
     known_clips = {clip for clip, _, _ in known}
     kept = []
     for p in todo:
-        if p.clip in known_clips and (stage := failing(wh, p.clip, config)) is not None:
+        if p.clip in known_clips and (stage := failing(runs_of(p.clip), config)) is not None:
             (warn or get_run_logger().warning)(
                 f"clip {p.clip}: its stage {stage} failed {config.schedule.failed_runs} runs in a row with this config and "
                 "code: not run again until its files, the config or the code change (`cadestate status` shows why; "
@@ -195,15 +203,22 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None =
     return kept
 
 
-def failing(wh: Warehouse, clip: str, config: Config) -> str | None:
-    """The stage of ``clip`` whose last ``[schedule] failed_runs`` runs all failed with the config
-    and code of now (its config hash and code hash), if any: running it again fails again."""
+def clip_runs(wh: Warehouse, clip: str) -> list[dict]:
+    """The ``runs`` rows of ``clip``, oldest first, with the columns :func:`unfinished` and
+    :func:`failing` look at."""
+    columns = ["stage", "status", "rows_written", "config_hash", "code_hash", "started_at"]
+    return wh.read("runs", partitions=[clip], columns=columns).sort_by("started_at").to_pylist()
+
+
+def failing(runs: list[dict], config: Config) -> str | None:
+    """The stage of a clip (its ``runs``: :func:`clip_runs`) whose last ``[schedule] failed_runs``
+    runs all failed with the config and code of now (its config hash and code hash), if any:
+    running it again fails again."""
     from tasks.registry import STAGES, config_hash
 
     n = config.schedule.failed_runs
-    rows = wh.read("runs", partitions=[clip], columns=["stage", "status", "config_hash", "code_hash", "started_at"])
     by_stage: dict[str, list[dict]] = {}
-    for r in rows.sort_by("started_at").to_pylist():
+    for r in runs:
         by_stage.setdefault(r["stage"], []).append(r)
     for stage, runs in by_stage.items():
         last = runs[-n:]
@@ -214,8 +229,8 @@ def failing(wh: Warehouse, clip: str, config: Config) -> str | None:
     return None
 
 
-def unfinished(wh: Warehouse, clip: str) -> bool:
-    """Whether ``clip``'s stages need a run to finish what the last left: the last run of some stage
+def unfinished(wh: Warehouse, clip: str, runs: list[dict]) -> bool:
+    """Whether ``clip``'s stages (its ``runs``: :func:`clip_runs`) need a run to finish what the last left: the last run of some stage
     failed or was interrupted; a killed process left a run's marker (recorded as interrupted only
     by the clip's next run, which nothing else starts); or a stage has no run though none of its
     upstream stages waits for people (paused with nothing answered): the process ended between two
@@ -224,8 +239,7 @@ def unfinished(wh: Warehouse, clip: str) -> bool:
     from tasks.registry import stages_of
     from tasks.stage import run_markers, waits_for_people
 
-    rows = wh.read("runs", partitions=[clip], columns=["stage", "status", "rows_written", "started_at"])
-    last = {r["stage"]: r for r in rows.sort_by("started_at").to_pylist()}
+    last = {r["stage"]: r for r in runs}
     if {"failed", "interrupted"} & {r["status"] for r in last.values()}:
         return True
     markers = run_markers(wh, clip)

@@ -284,11 +284,11 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
     return checked
 
 
-def _validated(wh: Warehouse, paths: list[Path], facts: ClipFacts, max_bytes: int, report: IngestReport) -> list[LabelFile]:
-    """The valid files of ``paths`` that were not ingested before; the others go to ``report``,
-    with the warnings of :mod:`tasks.human.label_warnings` on the valid ones."""
+def _accepted(wh: Warehouse, files: Sequence[CheckedFile], report: IngestReport) -> list[LabelFile]:
+    """The valid new files of ``files``; the errors and duplicates go to ``report``, with the
+    warnings of the valid ones (:func:`order_warnings` too)."""
     accepted: list[LabelFile] = []
-    for checked in check_files(paths, facts, ingested_sha256(wh), max_bytes):
+    for checked in files:
         if checked.error is not None:
             report.errors.append(checked.error)
         elif checked.ingested_for is not None:
@@ -368,7 +368,7 @@ def ingest_labels(wh: Warehouse, source: str | Path | Sequence[str | Path], *, c
     write rebuilds the catalog), falling back to one write per file when a batch fails."""
     report = IngestReport()
     facts = ClipFacts(wh)
-    accepted = _validated(wh, label_paths(source), facts, max_bytes, report)
+    accepted = _accepted(wh, check_files(label_paths(source), facts, ingested_sha256(wh), max_bytes), report)
     return _ingest(wh, accepted, facts, report, coplanar_tol, now)
 
 
@@ -380,17 +380,12 @@ def ingest_validated(wh: Warehouse, files: Sequence[LabelFile], facts: ClipFacts
     The warnings are those :func:`ingest_labels` gives (:mod:`tasks.human.label_warnings` too)."""
     report = IngestReport()
     known = ingested_sha256(wh, sorted({lf.clip for lf in files}))
-    accepted = []
+    checked = []
     for lf in files:
-        if lf.sha256 in known:
-            report.duplicates.append(str(lf.path))
-            report.duplicate_clips.append(lf.clip)
-            continue
-        report.warnings += lf.warnings
-        known[lf.sha256] = lf.clip
-        accepted.append(lf)
-    report.warnings += order_warnings(wh, accepted)
-    return _ingest(wh, accepted, facts, report, coplanar_tol, None)
+        earlier = known.get(lf.sha256)
+        checked.append(CheckedFile(lf.path, lf=lf) if earlier is None else CheckedFile(lf.path, ingested_for=earlier))
+        known.setdefault(lf.sha256, lf.clip)
+    return _ingest(wh, _accepted(wh, checked, report), facts, report, coplanar_tol, None)
 
 
 def drop_uncommitted(wh: Warehouse, clip: str) -> int:
