@@ -333,6 +333,17 @@ def test_ingest_a_list_of_files_reads_only_those(lwh, tmp_path):
     report = ingest_labels(lwh, chosen)
     assert report.ok and sorted(report.ingested) == sorted(map(str, chosen))
 
+def test_a_label_file_that_is_a_broken_link_is_reported_not_skipped(lwh, tmp_path):
+    """A *.json of the folder that links to nothing (a synced folder's placeholder, a file moved
+    away) was skipped in silence: the person's answers seemed ingested."""
+    d = tmp_path / "labels"
+    put(d, "sel.json", good("cad_selection"))
+    (d / "gone.json").symlink_to(tmp_path / "elsewhere" / "mt.json")
+    report = ingest_labels(lwh, d)
+    assert report.ingested == [str(d / "sel.json")]
+    assert report.errors == [f"{d / 'gone.json'}: $: cannot read: No such file or directory"]
+
+
 def test_ingest_is_idempotent_and_reports_bad_files(lwh, tmp_path):
     d = tmp_path / "labels"
     for kind in KINDS:

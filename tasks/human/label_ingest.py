@@ -80,7 +80,8 @@ class IngestReport:
 
 def label_paths(source: str | Path | Sequence[str | Path]) -> list[Path]:
     """The label files of ``source``: the file itself, every ``*.json`` below the folder (hidden
-    files and folders skipped), or the files of a list; sorted."""
+    files and folders skipped; a link to nothing is one, whose reading then fails), or the files of a
+    list; sorted."""
     if isinstance(source, (list, tuple)):
         return sorted(p for item in source for p in label_paths(item))
     source = Path(source)
@@ -89,7 +90,7 @@ def label_paths(source: str | Path | Sequence[str | Path]) -> list[Path]:
     if not source.is_dir():
         raise FileNotFoundError(f"{source}: no such label file or folder")
     return sorted(p for p in source.rglob("*.json")
-                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(source).parts))
+                  if (p.is_file() or (p.is_symlink() and not p.exists())) and not any(part.startswith(".") for part in p.relative_to(source).parts))
 
 
 # ------------------------------------------------------------------------------ rows
