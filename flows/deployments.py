@@ -410,7 +410,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
 def dataset_report(warehouse: str, config_path: str = "") -> str:
     """`cadestate compact`, then the dataset's statistics (`cadestate stats`) as ``stats.json`` and
     an HTML report in ``[schedule] report``; returns the report's path."""
-    from tasks.dataset.stats import dataset_tables, select_clips, statistics
+    from tasks.dataset.stats import select_clips
     from tasks.dataset.stats_report import write_report
     from warehouse.catalog import compact_warehouse
 
@@ -421,11 +421,10 @@ def dataset_report(warehouse: str, config_path: str = "") -> str:
     choice = select_clips(wh)
     if choice.unfinished:
         get_run_logger().info("%s", choice.note(hint=""))
-    tables = dataset_tables(wh, choice.chosen)
-    figures = statistics(tables)
     out = Path(cfg.schedule.report)
+    figures, index = write_report(wh, choice.chosen, out)
     atomic_write_bytes(out / "stats.json", json.dumps(figures, indent=1, default=str).encode())
-    return str(write_report(wh, tables, figures, out))
+    return str(index)
 
 
 def deployments(config: Config, config_path: str) -> list:

@@ -79,8 +79,13 @@ def stats(
         raise CliError(f"--where {where!r}: {e}") from None
     if clips.unfinished:
         err.print(f"[yellow]warning:[/] {escape(clips.note(hint=''))}", highlight=False)
-    tables = dataset_tables(wh, clips.chosen)
-    figures = statistics(tables)
+    if html is None:
+        figures = statistics(dataset_tables(wh, clips.chosen))
+    else:  # each clip's dataset read once, for its figures and its page
+        from tasks.dataset.stats_report import write_report
+
+        with cannot_write(html, "the HTML report", "; give a folder"):
+            figures, index = write_report(wh, clips.chosen, html)
     if as_json:
         out.print_json(json.dumps(figures))
     else:
@@ -89,8 +94,4 @@ def stats(
         for label, value in cost_lines(figures):
             out.print(f"{escape(label)}: {escape(value)}", highlight=False)
     if html is not None:
-        from tasks.dataset.stats_report import write_report
-
-        with cannot_write(html, "the HTML report", "; give a folder"):
-            index = write_report(wh, tables, figures, html)
         (err if as_json else out).print(f"wrote {escape(str(index))}", highlight=False)  # stdout stays one JSON document

@@ -26,6 +26,7 @@ gave no ``seconds`` (their time is missing from the sums).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -88,8 +89,11 @@ def _truncation_and_distance(ds: ClipDataset, o, frame) -> tuple[float, float]:
     return distance, float(1 - inside / area) if area > 0 else float("nan")
 
 
-def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
-    """The tables :func:`statistics` reads, for ``clips``."""
+def dataset_tables(wh: Warehouse, clips: list[str],
+                   each: Callable[[ClipDataset], None] | None = None) -> DatasetTables:
+    """The tables :func:`statistics` reads, for ``clips``; ``each`` (the HTML report's clip pages)
+    is called with every clip's dataset as it is read: one clip's dataset is in memory at a time,
+    and read once (~0.4 s a clip)."""
     import duckdb
     import pandas as pd
 
@@ -99,6 +103,8 @@ def dataset_tables(wh: Warehouse, clips: list[str]) -> DatasetTables:
     objects, visible = [], []
     for clip in clips:
         ds = clip_dataset(wh, clip)
+        if each is not None:
+            each(ds)
         frames = {f.timestamp_us: f for f in ds.frames}
         for o in ds.objects:
             objects.append({"clip": clip, "track_id": o.track_id, "class": o.class_name, "cad_id": o.cad_id,

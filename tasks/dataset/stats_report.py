@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import html
 import os
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from tasks.dataset.objects import ClipDataset, clip_dataset
-from tasks.dataset.stats import DatasetTables, cost_lines, statistics_lines
+from tasks.dataset.objects import ClipDataset
+from tasks.dataset.stats import DatasetTables, cost_lines, dataset_tables, statistics, statistics_lines
 from tasks.human.shared import evenly_spaced
 from warehouse import Warehouse
 
@@ -122,27 +123,45 @@ def _report_index(path: Path) -> bool:
         return False
 
 
-def write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> Path:
-    """Write the report (module docstring) into ``out``; returns ``out/index.html``. It is made in a
-    folder beside ``out``, then put in place (:func:`tasks.cad.export.publish`: its ``clips/``,
-    ``img/`` and ``index.html`` replace those of an earlier report, in that order, the index last),
-    so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was. A folder holding a ``clips``,
-    ``img`` or ``index.html`` of something else is refused (:func:`check_report_folder`)."""
+def write_report(wh: Warehouse, clips: list[str], out: Path) -> tuple[dict, Path]:
+    """Write the report (module docstring) of ``clips`` into ``out``; returns their figures
+    (:func:`tasks.dataset.stats.statistics`) and ``out/index.html``. Each clip's dataset is read once, for its figures and its page together.
+    It is made in a folder beside ``out``, then put in place (:func:`tasks.cad.export.publish`: its
+    ``clips/``, ``img/`` and ``index.html`` replace those of an earlier report, in that order, the
+    index last), so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was. A folder
+    holding a ``clips``, ``img`` or ``index.html`` of something else is refused (:func:`check_report_folder`)."""
     from tasks.cad.export import publish, temp_folder_beside
 
     out = Path(out).absolute()
     check_report_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)  # an OSError of its own: the caller names what cannot be written
     with temp_folder_beside(out) as tmp:
-        _write_report(wh, tables, stats, tmp)
+        (tmp / "img").mkdir()
+        (tmp / "clips").mkdir()
+        links: list[str] = []
+        tables = dataset_tables(wh, clips, lambda ds: links.append(_write_clip_page(wh, ds, tmp)))
+        stats = statistics(tables)
+        _write_index(tables, stats, links, tmp)
         publish(tmp, out)
-    return out / "index.html"
+    return stats, out / "index.html"
 
 
-def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) -> None:
-    """Write the report's files into the new folder ``out``."""
-    (out / "img").mkdir(parents=True, exist_ok=True)
-    (out / "clips").mkdir(exist_ok=True)
+def _write_clip_page(wh: Warehouse, ds: ClipDataset, out: Path) -> str:
+    """Write the clip's page and pictures into the new report folder ``out``; returns its link (HTML)."""
+    pictures = overlays(wh, ds, out / "img")
+    counts = Counter(o.class_name for o in ds.objects if o.pose is not None)
+    posed = sum(counts.values())
+    body = [f"<p><a href=\"../index.html\">all clips</a> · {len(ds.frames)} frames · {len(ds.objects)} objects, "
+            f"{posed} posed</p>", "<h2>Posed objects per class</h2>",
+            _table(sorted(counts.items()), ("class", "posed objects")),
+            "<h2>Key-frames with the accepted poses</h2>"]
+    body += [f"<img src=\"../img/{html.escape(p.name)}\" alt=\"{html.escape(p.stem)}\">" for p in pictures]
+    (out / "clips" / f"{ds.clip}.html").write_text(_page(f"Clip {ds.clip}", body), encoding="utf-8")
+    return f"<li><a href=\"clips/{html.escape(ds.clip)}.html\">{html.escape(ds.clip)}</a> ({posed} posed)</li>"
+
+
+def _write_index(tables: DatasetTables, stats: dict, links: list[str], out: Path) -> None:
+    """Write the index page (figures, histograms, cost, ``links`` to the clip pages) into the new report folder ``out``."""
     figures = []
     if len(tables.visible):
         per_frame = tables.visible.groupby(["clip", "timestamp_us"]).size().reindex(
@@ -160,21 +179,8 @@ def _write_report(wh: Warehouse, tables: DatasetTables, stats: dict, out: Path) 
             _histogram(truncated, "Truncation per visible object", "share of its projected box outside the image",
                        out / "img" / "truncation.png")
             figures.append("truncation.png")
-    cost = cost_lines(stats)
-    links = []
-    for clip in tables.clips:
-        ds = clip_dataset(wh, clip)
-        pictures = overlays(wh, ds, out / "img")
-        counts = tables.objects[(tables.objects["clip"] == clip) & tables.objects["posed"]]["class"].value_counts().sort_index()
-        body = [f"<p><a href=\"../index.html\">all clips</a> · {len(ds.frames)} frames · {len(ds.objects)} objects, "
-                f"{int(counts.sum())} posed</p>", "<h2>Posed objects per class</h2>",
-                _table([(k, int(v)) for k, v in counts.items()], ("class", "posed objects")),
-                "<h2>Key-frames with the accepted poses</h2>"]
-        body += [f"<img src=\"../img/{html.escape(p.name)}\" alt=\"{html.escape(p.stem)}\">" for p in pictures]
-        (out / "clips" / f"{clip}.html").write_text(_page(f"Clip {clip}", body), encoding="utf-8")
-        links.append(f"<li><a href=\"clips/{html.escape(clip)}.html\">{html.escape(clip)}</a> ({int(counts.sum())} posed)</li>")
     body = ["<h2>Dataset (the paper's Table 2 and section 4)</h2>", _table(statistics_lines(stats), ("", "value")),
             "<h2>Posed objects per class</h2>", _table(list(stats["per_class"].items()), ("class", "posed objects")),
             *[f"<img src=\"img/{f}\" alt=\"{f}\">" for f in figures],
-            "<h2>Cost of the dataset</h2>", _table(cost, ("", "")), "<h2>Clips</h2>", "<ul>", *links, "</ul>"]
+            "<h2>Cost of the dataset</h2>", _table(cost_lines(stats), ("", "")), "<h2>Clips</h2>", "<ul>", *links, "</ul>"]
     (out / "index.html").write_text(_page(TITLE, body), encoding="utf-8")
