@@ -248,6 +248,24 @@ def test_stats_of_no_clip_are_zeros(tmp_path):
     assert result.stdout.splitlines()[0] == "Yield (posed of all objects found): 0 of 0 (-)"
 
 
+def test_where_is_one_condition(tmp_path):
+    """`stats --where` is one SQL condition on the clips table: a second statement, a parenthesis
+    closing the WHERE with a clause after it (a UNION made up a clip 'zz' per frame; ORDER BY, LIMIT),
+    or nothing, is one error line naming --where; a condition with a comment or a ';' in a string works."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh = Warehouse(tmp_path / "w")
+    select_clips(wh)  # a warehouse with no clip: its catalog made
+    for where in ("true; SELECT 1", "true); SELECT 1; --", "true) UNION ALL SELECT 'zz' WHERE (true",
+                  "true) ORDER BY clip LIMIT 0 --", "split = 'val') --", " "):
+        result = run_cli("-w", str(wh.root), "stats", "--where", where)
+        assert_clean_error(result, mentions=f"error: --where {where!r}: ")
+        assert result.stdout == ""
+    for where in ("split = 'a;b) --'", "true -- every clip", "clip IN (SELECT clip FROM frames)"):
+        result = run_cli("-w", str(wh.root), "stats", "--where", where)
+        assert result.code == 0 and result.stderr == "" and "#Scenes (clips): 0" in result.stdout, (where, result)
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
 def test_html_report_renders_in_chromium(bench3, tmp_path):
     from tasks.dataset.stats_report import write_report

@@ -107,6 +107,20 @@ def read_only_statement(parser: duckdb.DuckDBPyConnection, sql: str) -> duckdb.S
     return statement
 
 
+def sql_condition(text: str) -> str:
+    """``text``, to put between ``WHERE (`` and a newline and ``)``, if it is one SQL expression (a
+    condition such as ``split = 'val'``): a :class:`QueryError` for anything else, a second statement
+    (``;``), a parenthesis closing the ``WHERE`` or a clause after it (``true) UNION SELECT ...``,
+    ``ORDER BY``, ``LIMIT``) included. Only parsed: nothing runs."""
+    if not text.strip():
+        raise QueryError("empty: give a SQL condition, e.g. \"split = 'val'\" (or true)")
+    try:
+        duckdb.SQLExpression(text)
+    except duckdb.Error as e:
+        raise QueryError(f"not one SQL condition: {one_line(str(e))}") from None
+    return text
+
+
 @dataclass
 class Result:
     """Column names and the rows, in batches (a batch is a list of tuples)."""

@@ -62,11 +62,13 @@ class DatasetTables:
 def select_clips(wh: Warehouse, where: str = "true") -> ExportClips:
     """The clips of the ``clips`` table matching the SQL condition ``where`` (sorted), as ``export
     official`` chooses them: ``chosen`` those whose verification completed, ``unfinished`` the others
-    (:func:`tasks.cad.export.verification_completed`)."""
+    (:func:`tasks.cad.export.verification_completed`). :class:`warehouse.query.QueryError` when
+    ``where`` is not one condition (:func:`warehouse.query.sql_condition`) or fails."""
     from tasks.cad.export import ExportClips, verification_completed
-    from warehouse.query import run_query
+    from warehouse.query import run_query, sql_condition
 
-    with run_query(wh, f"SELECT clip FROM clips WHERE ({where}) ORDER BY clip") as result:  # read-only: the user's SQL
+    sql = f"SELECT clip FROM clips WHERE (\n{sql_condition(where)}\n) ORDER BY clip"  # a trailing -- comment ends at the newline
+    with run_query(wh, sql) as result:  # read-only: the user's SQL
         matching = [row[0] for batch in result.batches for row in batch]
     done = verification_completed(wh, matching) if matching else set()
     return ExportClips([c for c in matching if c in done], [c for c in matching if c not in done])
