@@ -293,6 +293,31 @@ def test_a_default_export_leaves_out_clips_whose_verification_has_not_completed(
     assert [a["id_scan"] for a in json.loads((tmp_path / "s" / "full_annotations.json").read_text())] == [CLIP]
 
 
+def test_both_exports_name_a_clip_alike(built, tmp_path):
+    """A warehouse clip not named ``<video_id>_<start_us>`` (named by hand) is one scene under one
+    name in both exports: Scan2CAD's ``id_scan``, ``<name>.csv`` and ``cad_appearances.json`` key
+    are the name ``export official`` gives it (scene_list.txt, annotations/<name>/); Scan2CAD's
+    was the warehouse name, so the two could not be joined. Two clips of one video and first
+    timestamp would both be one scan: refused, naming them."""
+    from tasks.cad.export import ExportError
+
+    wh = _copy(built, tmp_path)
+    _copy_clip(wh, CLIP, "kitchen")  # its camera file's video: synthetic://walkthrough/kitchen
+    export_dataset(wh, tmp_path / "o", ["kitchen"], cad=False, show_progress=False)
+    [name] = (tmp_path / "o" / "scene_list.txt").read_text().split()
+    assert name == "kitchen_0" and (tmp_path / "o" / "annotations" / name / "objects.json").is_file()
+    assert export_scan2cad(wh, tmp_path / "s", ["kitchen"])["scans"] == 1
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["cad_appearances.json", "full_annotations.json",
+                                                                  f"{name}.csv"]
+    assert [a["id_scan"] for a in json.loads((tmp_path / "s" / "full_annotations.json").read_text())] == [name]
+    assert list(json.loads((tmp_path / "s" / "cad_appearances.json").read_text())) == [name]
+    row = wh.read("clips", [CLIP])
+    wh.write("clips", "kitchen", row.set_column(row.schema.get_field_index("clip"), "clip", pa.array(["kitchen"])))  # CLIP's video
+    with pytest.raises(ExportError, match=rf"^clips {CLIP}, kitchen would both be exported as '{CLIP}'"):
+        export_scan2cad(wh, tmp_path / "t")
+    assert not (tmp_path / "t").exists()
+
+
 def _only_unfinished(tmp_path) -> Warehouse:
     wh = Warehouse(tmp_path / "bare")
     frames = Warehouse(tmp_path / "wh")
@@ -436,25 +461,21 @@ def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, 
     from tasks.cad.export import ExportError
 
     wh = _copy(built, tmp_path)
-    for table in wh.info:  # a second clip, "other": a copy of the first
-        if CLIP in wh.partitions(table) and "clip" in wh.info[table].key:
-            data = wh.read(table, [CLIP])
-            wh.write(table, "other", data.set_column(data.schema.get_field_index("clip"), "clip",
-                                                     pa.array(["other"] * len(data), pa.string())))
+    _copy_clip(wh, CLIP, "other_0")  # a second clip, of a video of its own
     out = tmp_path / "s"
     assert export_scan2cad(wh, out)["scans"] == 2
     assert sorted(p.name for p in out.iterdir()) == [f"{CLIP}.csv", "cad_appearances.json", "full_annotations.json",
-                                                     "other.csv"]
-    assert export_scan2cad(wh, out, ["other"])["scans"] == 1
-    assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "other.csv"]
-    assert [a["id_scan"] for a in json.loads((out / "full_annotations.json").read_text())] == ["other"]
-    assert list(json.loads((out / "cad_appearances.json").read_text())) == ["other"]
+                                                     "other_0.csv"]
+    assert export_scan2cad(wh, out, ["other_0"])["scans"] == 1
+    assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "other_0.csv"]
+    assert [a["id_scan"] for a in json.loads((out / "full_annotations.json").read_text())] == ["other_0"]
+    assert list(json.loads((out / "cad_appearances.json").read_text())) == ["other_0"]
     assert not list(tmp_path.glob(".s.*.tmp"))
     (out / "notes.txt").write_text("mine")
     with pytest.raises(ExportError, match=rf"^{out}: holds 'notes.txt', which no Scan2CAD export writes"):
         export_scan2cad(wh, out)
     assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "notes.txt",
-                                                     "other.csv"]
+                                                     "other_0.csv"]
     (tmp_path / "csvs").mkdir()
     (tmp_path / "csvs" / "table.csv").write_text("a,b\n")
     with pytest.raises(ExportError, match="holds files but no full_annotations.json"):

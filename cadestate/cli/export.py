@@ -42,8 +42,9 @@ def export_scan2cad(
     out_dir: Annotated[Path, typer.Argument(help="New or empty folder, or that of an earlier `export scan2cad` (replaced: it then holds this export alone).")],
     clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
 ) -> None:
-    """Write the accepted poses as Scan2CAD files: <clip>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
-    (no header), full_annotations.json and cad_appearances.json; a mirrored model is the CAD id <cad_id>_mirrored."""
+    """Write the accepted poses as Scan2CAD files: <name>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
+    (no header), full_annotations.json and cad_appearances.json, a scan per clip under the name `export
+    official` gives it; a mirrored model is the CAD id <cad_id>_mirrored."""
     from tasks.dataset.export_scan2cad import export_scan2cad as write
 
     counts = write(ctx.obj.open_warehouse(must_exist=True), out_dir, clips)

@@ -1,13 +1,15 @@
 """``cadestate export scan2cad``: the dataset's accepted poses as Scan2CAD files (skanti/Scan2CAD).
 
-Each clip is a "scan" (``id_scan`` = the clip name); the world is the clip's aligned world (metres,
+Each clip is a "scan" named as ``export official`` names the clip (``id_scan`` and ``<name>.csv``:
+``<video_id>_<start_us>``, the CAD-Estate scene name, :func:`tasks.dataset.export_official.export_names`;
+a warehouse clip named otherwise is written under that name, so both exports join on it); the world is the clip's aligned world (metres,
 +Y up: the camera file's world turned by ``clips.up_rotation``, :mod:`tasks.video.world_up`), so every
 scan's own transform is the identity. Written into a temporary folder beside ``out`` and moved into
 place at the end (:func:`tasks.cad.export.publish`); ``out`` is new, empty, or the folder of an
 earlier Scan2CAD export, which then holds this export alone (its CSV files of scans not written
 this time are removed: :func:`earlier_csvs`):
 
-- ``<clip>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
+- ``<name>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
   no header (``EvaluateBenchmark.py`` reads every row as an alignment): the class id, the CAD id,
   translation (m, world), rotation (w, x, y, z) CAD -> world, scale along the CAD axes;
 - ``full_annotations.json``: the same objects as Scan2CAD annotations, a list of
@@ -34,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tasks.cad.export import ExportError, export_clips, publish, remove_leftovers, some_named, temp_folder_beside
+from tasks.dataset.export_official import export_names
 from tasks.dataset.objects import ClipDataset, clip_dataset
 from warehouse import Warehouse
 
@@ -97,8 +100,8 @@ def read_csv(path: Path) -> list[Alignment]:
     return out
 
 
-def annotation(ds: ClipDataset) -> dict:
-    """The clip's Scan2CAD annotation entry (identity scan transform)."""
+def annotation(ds: ClipDataset, name: str) -> dict:
+    """The clip's Scan2CAD annotation entry, scan ``name`` (identity scan transform)."""
     models = []
     for o in ds.objects:
         if o.pose is None or o.cad_id is None:
@@ -108,7 +111,7 @@ def annotation(ds: ClipDataset) -> dict:
                        "trs": {"translation": list(o.pose.translation), "rotation": list(o.pose.rotation),
                                "scale": list(o.pose.scale)},
                        "center": [0.0, 0.0, 0.0], "bbox": [e / 2 for e in (o.extent or (0.0, 0.0, 0.0))]})
-    return {"id_scan": ds.clip, "trs": dict(IDENTITY),
+    return {"id_scan": name, "trs": dict(IDENTITY),
             "n_aligned_models": len(models), "aligned_models": models}
 
 
@@ -154,22 +157,29 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     :func:`export_clips`) to ``out`` (see the module: new, empty or an earlier export's folder,
     which then holds this export alone); returns counts (scans, alignments, and ``note``: the
     warning lines, '' when none). A clip with no accepted pose is no scan (Scan2CAD's evaluation
-    divides by a scan's models): left out, its file of an earlier export removed, and named."""
+    divides by a scan's models): left out, its file of an earlier export removed, and named. Two
+    clips of one scan name (one video, one first timestamp) are refused, naming them."""
     out = Path(os.path.abspath(out))
     earlier = earlier_csvs(out)
     selection = export_clips(wh, clips)
+    names = export_names(wh, selection.chosen)[0]
     annotations, appearances, total, empty = [], {}, 0, []
+    written: dict[str, str] = {}  # scan name -> its clip
     with temp_folder_beside(out) as tmp:
-        for clip in selection.chosen:
+        for clip, name in zip(selection.chosen, names):
             ds = clip_dataset(wh, clip)
             ds.require_models()  # a model gone from cad_models has no box to write
             rows = alignments(ds)
             if not rows:
                 empty.append(clip)
                 continue
-            (tmp / f"{clip}.csv").write_text(csv_text(rows))
-            annotations.append(annotation(ds))
-            appearances[clip] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
+            if name in written:
+                raise ExportError(f"clips {written[name]}, {clip} would both be exported as {name!r} (one video, one "
+                                  "first timestamp); export one of them")
+            written[name] = clip
+            (tmp / f"{name}.csv").write_text(csv_text(rows))
+            annotations.append(annotation(ds, name))
+            appearances[name] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
             total += len(rows)
         (tmp / JSON_FILES[0]).write_text(json.dumps(annotations, indent=1))
         (tmp / JSON_FILES[1]).write_text(json.dumps(appearances, indent=1))
