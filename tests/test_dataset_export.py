@@ -454,6 +454,47 @@ def test_the_next_export_removes_a_killed_exports_temporary_folder_not_a_running
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+def test_an_export_killed_while_moving_into_an_empty_folder_does_not_block_the_next(built, tmp_path):
+    """SIGKILL while `export official` moves its entries into an existing empty folder leaves some
+    there (annotations/, not frames/): the next export refused the folder ("exists and is not
+    empty") until the user emptied it. It removes them, names them on stderr, and writes."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from fuzz.harness import run_cli
+
+    wh, _, _ = built
+    out = tmp_path / "out"
+    out.mkdir()
+    args = ["-w", str(wh.root), "export", "official", str(out), "--no-cad", "--no-progress"]
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
+        import os, signal, sys
+        from pathlib import Path
+
+        def killed_before_frames(move):  # after annotations/ is moved in
+            def moved(src, dst):
+                if Path(dst) == Path({str(out / "frames")!r}):
+                    os.kill(os.getpid(), signal.SIGKILL)
+                return move(src, dst)
+            return moved
+
+        os.rename, os.replace = killed_before_frames(os.rename), killed_before_frames(os.replace)
+        from cadestate.cli import main
+
+        sys.argv = ["cadestate", *{args!r}]
+        main()
+    """)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -9, done.stderr
+    assert (out / "annotations").is_dir() and not (out / "frames").exists()
+    again = run_cli(*args)
+    assert again.code == 0, again.stderr
+    assert again.stderr.splitlines()[0] == (f"warning: removed annotations from {out}: an earlier export into it was "
+                                            "stopped while moving them in")
+    assert sorted(p.name for p in out.iterdir()) == ["annotations", "frames", "scene_list.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
 def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, tmp_path):
     """Exporting one clip into the folder of an export of two leaves the CSV files, full_annotations.json
     and cad_appearances.json of that one clip alone (the other clip's CSV had stayed, named by neither

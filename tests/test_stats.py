@@ -420,3 +420,47 @@ def test_a_report_never_replaces_pages_and_pictures_it_did_not_write(tmp_path):
         result = run_cli("-w", str(wh.root), "stats", "--html", str(tmp_path / folder))
         assert result.code == 0, result.stderr
     assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["clips", "img", "index.html", "stats.json"]
+
+
+def test_a_report_killed_while_moving_in_does_not_block_the_next(tmp_path):
+    """SIGKILL (or a power loss) while `stats --html` moves its report into an existing empty folder
+    leaves ``clips/`` moved there and no ``index.html``: every later report was refused ("holds
+    'clips', which a report replaces, and no earlier report") until the user removed it by hand.
+    The next report removes what was moved in, names it on stderr, and writes."""
+    import sys
+    import textwrap
+
+    from fuzz.harness import run_cli
+
+    wh = Warehouse(tmp_path / "w")
+    select_clips(wh)  # a warehouse with no clip: its catalog made
+    out = tmp_path / "report"
+    out.mkdir()
+    script = textwrap.dedent(f"""
+        import os, signal, sys
+        from pathlib import Path
+
+        def killed_before_img(move):  # the kill comes after clips/ is moved in, before img/
+            def moved(src, dst):
+                if Path(dst) == Path({str(out / "img")!r}):
+                    os.kill(os.getpid(), signal.SIGKILL)
+                return move(src, dst)
+            return moved
+
+        os.rename, os.replace = killed_before_img(os.rename), killed_before_img(os.replace)
+        from cadestate.cli import main
+
+        sys.argv = ["cadestate", "-w", {str(wh.root)!r}, "stats", "--html", {str(out)!r}]
+        main()
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -9, done.stderr
+    assert (out / "clips").is_dir() and not (out / "img").exists() and not (out / "index.html").exists()
+    [left] = tmp_path.glob(".report.*.tmp")
+    result = run_cli("-w", str(wh.root), "stats", "--html", str(out))
+    assert result.code == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        f"warning: removed clips from {out}: an earlier export into it was stopped while moving them in",
+        f"warning: removed {left}: the temporary folder of an earlier export that did not finish"]
+    assert sorted(p.name for p in out.iterdir()) == ["clips", "img", "index.html"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "w"]

@@ -112,7 +112,9 @@ def temp_folder_beside(out: Path) -> Iterator[Path]:
 
 def remove_leftovers(out: Path) -> None:
     """Remove the temporary folders of earlier exports into ``out`` (:func:`temp_folder_beside`)
-    that no process holds (``flock``), each named on stderr."""
+    that no process holds (``flock``), each named on stderr, and what an export killed while it
+    moved its entries into ``out`` left there (:func:`remove_unfinished_move`)."""
+    remove_unfinished_move(out)
     prefix = f".{out.name}."
     try:
         found = [e for e in temp_home(out).iterdir() if e.name.startswith(prefix) and e.name.endswith(".tmp")
@@ -143,22 +145,75 @@ def _remove_unheld(folder: Path) -> None:
     warn(f"removed {folder}: the temporary folder of an earlier export that did not finish")
 
 
+MOVING = ".cadestate-moving"
+"""The file in an export's destination that names the entries being moved into it (:func:`publish`)."""
+
+
 def publish(tmp: Path, out: Path) -> None:
     """Move the finished export ``tmp`` to ``out``: renamed whole when ``out`` is not there, else
     (a folder, the current one say, which a rename cannot replace) entry by entry into it, in name
-    order, each replacing an entry of its name there (a folder is renamed aside, then removed)."""
+    order, each replacing an entry of its name there (a folder is renamed aside, then removed).
+    Meanwhile ``out/``:data:`MOVING` names those entries (JSON) and is locked (``flock``): an
+    export killed then (SIGKILL, power loss) left some of them moved and the others not, which
+    the next export into ``out`` removes (:func:`remove_unfinished_move`); it had refused that
+    folder (not empty, or holding a report's pages and no report) until the user removed them."""
     if not out.exists():
         tmp.rename(out)
         return
-    for entry in sorted(tmp.iterdir()):
-        there = out / entry.name
-        if there.is_dir() and not there.is_symlink():
-            aside = there.with_name(f".{there.name}.{uuid.uuid4().hex}.old")
-            there.rename(aside)
-            entry.rename(there)
-            shutil.rmtree(aside, ignore_errors=True)
-        else:
-            os.replace(entry, there)
+    entries = sorted(tmp.iterdir())
+    journal = out / MOVING
+    fd = os.open(journal, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.write(fd, json.dumps([e.name for e in entries]).encode())
+        for entry in entries:
+            there = out / entry.name
+            if there.is_dir() and not there.is_symlink():
+                aside = there.with_name(f".{there.name}.{uuid.uuid4().hex}.old")
+                there.rename(aside)
+                entry.rename(there)
+                shutil.rmtree(aside, ignore_errors=True)
+            else:
+                os.replace(entry, there)
+        journal.unlink()
+    finally:
+        os.close(fd)
+
+
+def remove_unfinished_move(out: Path) -> None:
+    """Remove the entries that an export killed while moving them into ``out`` (:func:`publish`)
+    had moved there or set aside, those it had yet to move replacing them (its :data:`MOVING` file
+    names them), and that file, unless a process holds it (an export moving in now); named on
+    stderr. ``out`` then holds no entry of those names, as though that export had not started
+    moving: the next export's checks pass as for a folder without them."""
+    journal = out / MOVING
+    try:
+        fd = os.open(journal, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:  # none (or not a file of ours)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # an export moving its entries in now
+            return
+        try:
+            names = json.loads(journal.read_text(encoding="utf-8"))
+        except (OSError, ValueError):  # killed while writing it: nothing moved yet
+            names = []
+        names = {n for n in names if isinstance(n, str) and n not in ("", ".", "..", MOVING) and "/" not in n} \
+            if isinstance(names, list) else set()
+        aside = re.compile(r"\.(.+)\.[0-9a-f]{32}\.old")
+        found = sorted(e for e in out.iterdir() if e.name in names or ((m := aside.fullmatch(e.name)) and m.group(1) in names))
+        for entry in found:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+        journal.unlink(missing_ok=True)
+    finally:
+        os.close(fd)
+    warn(f"removed {', '.join(e.name for e in found) or 'nothing'} from {out}: an earlier export into it was stopped "
+         "while moving them in")
 
 
 @dataclass(frozen=True)

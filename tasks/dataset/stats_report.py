@@ -105,9 +105,11 @@ def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
 def check_report_folder(out: Path) -> None:
     """Refuse (:class:`tasks.cad.export.ExportError`) a folder ``out`` holding a ``clips``, ``img``
     or ``index.html`` that no report wrote (no report's ``index.html``: :data:`TITLE`): a report
-    replaces them whole (a web site's own pages and pictures were deleted)."""
-    from tasks.cad.export import ExportError
+    replaces them whole (a web site's own pages and pictures were deleted). What a report killed
+    while moving into ``out`` left there is removed first (:func:`tasks.cad.export.remove_unfinished_move`)."""
+    from tasks.cad.export import ExportError, remove_unfinished_move
 
+    remove_unfinished_move(out)
     held = [name for name in REPLACED if os.path.lexists(out / name)]
     if held and not _report_index(out / "index.html"):
         raise ExportError(f"{out}: holds {held[0]!r}, which a report replaces, and no earlier report of `cadestate stats "
