@@ -179,6 +179,23 @@ def test_html_report_reads_each_clips_dataset_once(bench3, tmp_path, monkeypatch
     assert "#Scenes (clips): 3" in result.stdout and (tmp_path / "r" / "clips" / f"{clips[0][0]}.html").is_file()
 
 
+def test_a_damaged_frame_image_is_named_not_read_as_a_folder_not_written(bench3, tmp_path):
+    """A frame image of the warehouse missing or damaged: `stats --html` names it in one line; it
+    said "<report>: cannot write the HTML report there: cannot identify image file ...; give a folder"."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh, _ = bench3
+    shutil.copytree(wh.root, tmp_path / "w", ignore=shutil.ignore_patterns("catalog.duckdb", "_cache"))
+    copy = Warehouse(tmp_path / "w")
+    for damaged in (tmp_path / "w" / "media" / "frames").rglob("*.*"):
+        damaged.unlink()
+        damaged.write_bytes(b"not an image")  # a file of its own: the copy's images may be hard links
+    result = run_cli("-w", str(copy.root), "stats", "--html", str(tmp_path / "r"))
+    line = assert_clean_error(result, mentions=f"error: {tmp_path / 'w' / 'media' / 'frames'}")
+    assert ": cannot read this frame's image (missing or damaged: " in line and "give a folder" not in line, line
+    assert not (tmp_path / "r").exists()
+
+
 def test_bench_report_scores_the_poses_in_every_mode(bench3):
     """`cadestate bench report` on the benchmark folder and its warehouse: the accepted poses (the
     ground truth) are correct in every mode; of the solved ones, the mirrored-wrong pose fails

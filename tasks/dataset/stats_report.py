@@ -67,6 +67,23 @@ def keyframe_stamps(ds: ClipDataset) -> list[int]:
     return [stamps[i] for i in evenly_spaced(len(stamps), KEYFRAMES)]
 
 
+def frame_image(path: Path):
+    """The frame image ``path`` as an RGB PIL image; :class:`tasks.cad.export.ExportError` naming
+    it when it cannot be read (the warehouse's copy removed or damaged): the report said it could
+    not write its own folder ("give a folder")."""
+    from PIL import Image
+
+    from tasks.cad.export import ExportError
+
+    try:
+        with Image.open(path) as image:
+            return image.convert("RGB")
+    except (OSError, ValueError) as e:  # missing, unreadable, not an image, truncated
+        why = ("not an image" if isinstance(e, Image.UnidentifiedImageError)
+               else e.strerror if isinstance(e, OSError) and e.strerror else " ".join(str(e).split())[:200])
+        raise ExportError(f"{path}: cannot read this frame's image (missing or damaged: {why})") from None
+
+
 def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
     """Write the clip's key-frames with its accepted poses drawn over them; returns the image paths."""
     from PIL import Image, ImageDraw
@@ -83,7 +100,7 @@ def overlays(wh: Warehouse, ds: ClipDataset, folder: Path) -> list[Path]:
     with Renderer(w, h) as renderer:
         for ts in keyframe_stamps(ds):
             f = frames[ts]
-            image = np.asarray(Image.open(wh.root / f.image_path).convert("RGB").resize((w, h)), np.float32)
+            image = np.asarray(frame_image(wh.root / f.image_path).resize((w, h)), np.float32)
             if posed:
                 ids = renderer.render([Instance(loaded[o.cad_id], o.pose.matrix(), k + 1) for k, o in enumerate(posed)],
                                       Camera(f.K, f.R, f.t, w, h, 0.01, 1000.0)).instance_id
