@@ -251,6 +251,21 @@ def test_cad_ingest_failure_names_the_library(tmp_path):
     assert "clip mine" not in result.stderr and result.stderr.startswith("1 model from ")
 
 
+def test_cad_sheet_where_is_one_condition(tmp_path):
+    """`cad sheet --where` is one SQL condition on cad_models: a clause reaching past it (its own
+    ORDER BY and LIMIT after a closing parenthesis, a second statement) is one error line naming
+    --where, as a condition that fails is; it ran as part of the query."""
+    from fuzz.harness import assert_clean_error, run_cli
+    from warehouse import Warehouse, connect
+
+    connect(Warehouse(tmp_path / "w")).close()  # a warehouse with no model: its catalog made
+    for where, says in (("true) ORDER BY m.cad_id LIMIT 1000 --", "not one SQL condition: "),
+                        ("true; SELECT 1", "not one SQL condition: "), ("no_such_column = 1", "SQL error: ")):
+        result = run_cli("-w", str(tmp_path / "w"), "cad", "sheet", str(tmp_path / "s.png"), "--where", where)
+        assert_clean_error(result, mentions=f"error: --where {where!r}: {says}")
+    assert not (tmp_path / "s.png").exists()
+
+
 @pytest.mark.slow
 def test_cad_ingest_sheet_export(tmp_path):
     folder = box_library(tmp_path, bad=True)

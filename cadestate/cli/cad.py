@@ -129,11 +129,16 @@ def cad_sheet(
 ) -> None:
     """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
     from tasks.cad.sheet import contact_sheet
+    from warehouse.query import QueryError
 
     if out_file.suffix.lower() not in (".png", ".jpg", ".jpeg", ".webp"):
         raise CliError(f"{out_file}: a picture's name: .png, .jpg or .webp")
-    with cannot_write(out_file, "the sheet"):
-        count = contact_sheet(ctx.obj.open_warehouse(must_exist=True), out_file, where, limit)
+    wh = ctx.obj.open_warehouse(must_exist=True)
+    try:
+        with cannot_write(out_file, "the sheet"):
+            count = contact_sheet(wh, out_file, where, limit)
+    except QueryError as e:
+        raise CliError(f"--where {where!r}: {e}") from None
     if not count:
         raise CliError(f"no CAD model with rendered views matches --where {where!r}: nothing written "
                        "(`cadestate sql \"SELECT class, count(*) FROM cad_models GROUP BY class\"` lists the classes)")
