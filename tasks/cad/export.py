@@ -212,8 +212,9 @@ def remove_unfinished_move(out: Path) -> None:
         journal.unlink(missing_ok=True)
     finally:
         os.close(fd)
-    warn(f"removed {', '.join(e.name for e in found) or 'nothing'} from {out}: an earlier export into it was stopped "
-         "while moving them in")
+    if found:
+        warn(f"removed {', '.join(e.name for e in found)} from {out}: an earlier export into it was stopped while "
+             "moving them in")
 
 
 @dataclass(frozen=True)
