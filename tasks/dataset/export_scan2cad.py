@@ -2,9 +2,9 @@
 
 Each clip is a "scan" named as ``export official`` names the clip (``id_scan`` and ``<name>.csv``:
 ``<video_id>_<start_us>``, the CAD-Estate scene name, :func:`tasks.dataset.export_official.export_names`;
-a warehouse clip named otherwise is written under that name, so both exports join on it); the world is the clip's aligned world (metres,
-+Y up: the camera file's world turned by ``clips.up_rotation``, :mod:`tasks.video.world_up`), so every
-scan's own transform is the identity. Written into a temporary folder beside ``out`` and moved into
+a warehouse clip named otherwise is written under that name, so both exports join on it); the
+world is the clip's aligned world (metres, +Y up: the camera file's world turned by
+``clips.up_rotation``, :mod:`tasks.video.world_up`), so every scan's own transform is the identity. Written into a temporary folder beside ``out`` and moved into
 place at the end (:func:`tasks.cad.export.publish`); ``out`` is new, empty, or the folder of an
 earlier Scan2CAD export, which then holds this export alone (its CSV files of scans not written
 this time are removed: :func:`earlier_csvs`):

@@ -144,7 +144,8 @@ def _report_index(path: Path) -> bool:
 
 def write_report(wh: Warehouse, clips: list[str], out: Path) -> tuple[dict, Path]:
     """Write the report (module docstring) of ``clips`` into ``out``; returns their figures
-    (:func:`tasks.dataset.stats.statistics`) and ``out/index.html``. Each clip's dataset is read once, for its figures and its page together.
+    (:func:`tasks.dataset.stats.statistics`) and ``out/index.html``. Each clip's dataset is read
+    once, for its figures and its page together.
     It is made in a folder beside ``out``, then put in place (:func:`tasks.cad.export.publish`: its
     ``clips/``, ``img/`` and ``index.html`` replace those of an earlier report, in that order, the
     index last), so that a report stopped half-way (Ctrl-C) leaves ``out`` as it was. A folder
