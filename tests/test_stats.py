@@ -4,6 +4,7 @@ installed). Needs the Sweet Home 3D furniture (tests/conftest.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -194,6 +195,22 @@ def test_a_damaged_frame_image_is_named_not_read_as_a_folder_not_written(bench3,
     line = assert_clean_error(result, mentions=f"error: {tmp_path / 'w' / 'media' / 'frames'}")
     assert ": cannot read this frame's image (missing or damaged: " in line and "give a folder" not in line, line
     assert not (tmp_path / "r").exists()
+
+
+def test_a_click_on_no_frame_is_no_key_frame_of_the_report(bench3, tmp_path):
+    """A posed object's clicks on a timestamp that is no frame of the clip (frames extracted again
+    since the clicks): the report's key-frames are frames (its overlays failed on a KeyError)."""
+    from tasks.dataset.objects import clip_dataset
+    from tasks.dataset.stats_report import keyframe_stamps, overlays
+
+    wh, clips = bench3
+    ds = clip_dataset(wh, clips[0][0])
+    posed = next(o for o in ds.objects if o.pose is not None)
+    clicked = dataclasses.replace(posed, correspondences={**posed.correspondences, 1: ((0.5, 0.5), (0.0, 0.0, 0.0))})
+    moved = dataclasses.replace(ds, objects=tuple(clicked if o is posed else o for o in ds.objects))
+    stamps = keyframe_stamps(moved)
+    assert 1 not in stamps and set(stamps) <= {f.timestamp_us for f in ds.frames}
+    assert len(overlays(wh, moved, tmp_path)) == len(stamps)
 
 
 def test_bench_report_scores_the_poses_in_every_mode(bench3):

@@ -60,9 +60,12 @@ def _histogram(values, title: str, xlabel: str, path: Path, bins=20) -> None:
 
 
 def keyframe_stamps(ds: ClipDataset) -> list[int]:
-    """The clip's key-frames: those its posed objects were clicked on (else the manual-track
-    key-frames, else all frames), at most :data:`KEYFRAMES`, evenly spread."""
-    stamps = sorted({ts for o in ds.objects if o.pose is not None for ts in o.correspondences})
+    """The clip's key-frames: its frames its posed objects were clicked on (else the manual-track
+    key-frames, else all frames), at most :data:`KEYFRAMES`, evenly spread. A click on a timestamp
+    that is no frame of the clip (frames extracted again since) is not one: the report failed on it
+    (KeyError)."""
+    held = {f.timestamp_us for f in ds.frames}
+    stamps = sorted({ts for o in ds.objects if o.pose is not None for ts in o.correspondences} & held)
     stamps = stamps or [f.timestamp_us for f in ds.frames if f.key_frame] or [f.timestamp_us for f in ds.frames]
     return [stamps[i] for i in evenly_spaced(len(stamps), KEYFRAMES)]
 
