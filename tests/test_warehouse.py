@@ -85,6 +85,18 @@ def test_append_mode_keeps_history(wh):
     assert wh.read("runs").num_rows == 5 and len(wh.files("runs")) == 2
 
 
+def test_a_damaged_table_file_is_named_in_one_line(wh, tmp_path):
+    """A table file cut short (a disk full, a copy interrupted) was a pyarrow traceback in every
+    reader that reads tables through the warehouse (the exports' datasets, the stages, the annotation
+    app); a WarehouseError is one line naming the file (the CLI's input errors)."""
+    wh.write("clips", "a", clip_rows("a"))
+    [f] = wh.files("clips", ["a"])
+    with open(f, "r+b") as damaged:
+        damaged.truncate(os.path.getsize(f) // 2)
+    with pytest.raises(WarehouseError, match=f"^{f}: damaged table file \\(.*\\): restore it from a backup"):
+        wh.read("clips")
+
+
 def test_read_filters_columns_and_clips(wh):
     wh.write("runs", "a", run_rows("a", 4, "ingest"))
     wh.write("runs", "b", run_rows("b", 3, "frames"))

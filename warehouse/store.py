@@ -142,9 +142,15 @@ def _read_files(files: Sequence[str], schema: pa.Schema, columns: Sequence[str] 
         if cache is not None and (kept := cache.get_file(f, target, names)) is not None:
             parts.append(kept)
             continue
-        pf = pq.ParquetFile(f)
-        present = set(pf.schema_arrow.names)
-        table = pf.read(columns=[n for n in target.names if n in present])
+        try:
+            pf = pq.ParquetFile(f)
+            present = set(pf.schema_arrow.names)
+            table = pf.read(columns=[n for n in target.names if n in present])
+        except pa.ArrowException as e:  # a truncated or overwritten file (a disk full, a copy cut short)
+            why = " ".join(str(e).split())[:200]
+            raise WarehouseError(f"{f}: damaged table file ({why}): restore it from a backup; "
+                                 "a stage's output is written again by `cadestate run` once its partition "
+                                 "folder is removed") from None
         arrays = [table.column(fl.name).cast(fl.type) if fl.name in present else pa.nulls(table.num_rows, fl.type)
                   for fl in target]
         parts.append(pa.Table.from_arrays(arrays, schema=pa.schema(
