@@ -10,7 +10,7 @@ import time
 from conftest import table_rows
 from warehouse import Warehouse
 from warehouse.catalog import row_counts as counted
-from warehouse.kept import SETTLE_NS, kept_read, row_counts
+from warehouse.kept import SETTLE_NS, KeptInMemory, kept_read, row_counts
 
 
 def _settle(wh: Warehouse) -> None:
@@ -72,3 +72,44 @@ def test_a_warehouse_without_room_to_keep_still_answers(tmp_path):
     for _ in range(2):
         assert kept_read(wh, "splits", [("files", "clips", "c1")], lambda: ["train"]) == ["train"]
         assert row_counts(wh)["clips"] == 1
+
+
+def _settle_folders(wh: Warehouse) -> None:
+    """Date every table folder back past the settling time (as if its files came a while ago)."""
+    old = time.time_ns() - 10 * SETTLE_NS
+    for folder, _, _ in os.walk(wh.root / "tables"):
+        os.utime(folder, ns=(old, old))
+
+
+def test_a_value_kept_in_memory_serves_while_its_partitions_stay(tmp_path):
+    """The annotation app's start page worked out every clip's tasks on each refresh; kept in memory,
+    a value is served for a stat of each partition it read, and computed again once a file came into
+    one (an answer, a run) or the folder was swapped (a replace-mode write), never kept from folders
+    that changed while it was computed, nor when it read a whole table."""
+    wh = Warehouse(tmp_path / "w")
+    kept = KeptInMemory()
+    calls = []
+
+    def frames() -> int:
+        calls.append(1)
+        return wh.read("runs", ["c1"]).num_rows + wh.read("clips", ["c1"]).num_rows
+
+    _clip(wh, "c1", "train")
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r0"}]))
+    assert kept.get(wh, "c1", frames) == 2 and kept.get(wh, "c1", frames) == 2
+    assert len(calls) == 2  # its folders had just changed: not kept
+    _settle_folders(wh)
+    assert kept.get(wh, "c1", frames) == kept.get(wh, "c1", frames) == 2 and len(calls) == 3
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r1"}]))  # a file more
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 4
+    _settle_folders(wh)
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 5
+    _clip(wh, "c1", "val")  # swapped in: a new folder
+    old = time.time_ns() - 10 * SETTLE_NS
+    os.utime(wh.partition_dir("clips", "c1"), ns=(old, old))
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 6
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 6
+    kept.keep_only([])
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 7
+    every = lambda: calls.append(1) or wh.read("runs").num_rows  # noqa: E731
+    assert kept.get(wh, "all", every) == kept.get(wh, "all", every) == 2 and len(calls) == 9

@@ -13,7 +13,9 @@ nothing). :mod:`tasks.inputs_memo` keeps the stages' input digests by these rule
 keeps any value, in ``_cache/reads/<name>.json``: ``cadestate status`` its ``runs`` rows (those of
 every clip, or of each clip it is given, ``runs/<clip>.json``: one file per clip, not one per set
 of clips asked about), ``cadestate tables`` its row counts, each read again (DuckDB imported,
-every file opened) only when a file came or went.
+every file opened) only when a file came or went. :class:`KeptInMemory` keeps values in a
+long-lived process's memory instead, each with the reads its computation made (recorded:
+:func:`cadestate.lineage.recording_reads`): the annotation app's start page, each clip's tasks.
 """
 
 from __future__ import annotations
@@ -21,12 +23,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 from cadestate.atomic import atomic_write_bytes
-from cadestate.lineage import digest
+from cadestate.lineage import digest, recording_reads
 from warehouse.store import Warehouse, check_name
 
 SETTLE_NS = 50_000_000
@@ -85,6 +88,56 @@ def kept_read(wh: Warehouse, name: str, reads: Sequence[tuple[str, ...]], comput
             payload = json.dumps({"version": VERSION, "reads": what, "state": state, "value": value})
             atomic_write_bytes(path, payload.encode(), durable=False)
     return value
+
+
+def _folder_state(path: str) -> tuple[int, int] | None:
+    """A folder's (inode, modification time ns); None when it is missing."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+class KeptInMemory:
+    """Values computed from warehouse files, each kept under a key while the partitions it read are
+    unchanged; safe to share between threads. What a computation reads is recorded
+    (:func:`cadestate.lineage.recording_reads`), and kept are those values that read named
+    partitions only (``("files", table, partition, ...)``), with each partition folder's inode and
+    modification time: a file written into a folder, or removed from it, changes its time, and a
+    folder swapped in (a replace-mode write, a compaction) is a new inode, so a value is served
+    again for one ``stat`` per partition (where :func:`read_state` stats every file). As above, a
+    value whose folders changed within :data:`SETTLE_NS` of its computation is not kept."""
+
+    def __init__(self):
+        self._kept: dict[str, tuple[tuple[str, ...], tuple, Any]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, wh: Warehouse, key: str, compute: Callable[[], Any]) -> Any:
+        """The value kept under ``key`` while what it read is unchanged, else ``compute()`` (kept so).
+        A value is the one object kept: callers do not change it."""
+        with self._lock:
+            kept = self._kept.get(key)
+        if kept is not None and tuple(map(_folder_state, kept[0])) == kept[1]:
+            return kept[2]
+        started = time.time_ns()
+        with recording_reads() as noted:
+            value = compute()
+        if any(r[0] != "files" or "*" in r[2:] for r in noted):
+            return value
+        folders = tuple(dict.fromkeys(str(wh.partition_dir(r[1], p)) for r in noted for p in r[2:]))
+        state = tuple(map(_folder_state, folders))
+        if all(s is None or s[1] < started - SETTLE_NS for s in state):
+            with self._lock:
+                self._kept[key] = (folders, state, value)
+        return value
+
+    def keep_only(self, keys: Collection[str]) -> None:
+        """Drop the values of keys not in ``keys`` (a clip gone from the warehouse)."""
+        wanted = set(keys)
+        with self._lock:
+            for key in [k for k in self._kept if k not in wanted]:
+                del self._kept[key]
 
 
 def row_counts(wh: Warehouse) -> dict[str, int]:

@@ -63,22 +63,13 @@ def three_dir() -> Path:
     return vendor_dir() / f"three-{THREE_VERSION}" / "package"
 
 
-def _stage_runs(wh: Warehouse, clip: str) -> list[dict]:
-    """The last run of each stage of ``clip`` (stage, status, message), in the order they started."""
-    if not wh.has_partition("runs", clip):
-        return []
-    last: dict[str, dict] = {}
-    for r in wh.read("runs", [clip], columns=["stage", "status", "started_at", "message"]).sort_by("started_at").to_pylist():
-        last[r["stage"]] = {"stage": r["stage"], "status": r["status"], "message": r["message"] or ""}
-    return list(last.values())
-
-
 def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
     cache = ReadCache()  # each page view reads the clip's task tables again; the resumes write and read them too
     wh = Warehouse(config.warehouse.root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=cache)
     lock = threading.Lock()
+    clips_queue = queue.Queue(wh)
     worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
     tol = config.pose.coplanar_tol
@@ -98,7 +89,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         worker.stop()
 
     app = FastAPI(title="cadestate annotate", lifespan=lifespan)
-    app.state.warehouse, app.state.resumer, app.state.lock = wh, worker, lock
+    app.state.warehouse, app.state.resumer, app.state.lock, app.state.queue = wh, worker, lock, clips_queue
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     if three_dir().is_dir():
         app.mount("/vendor/three", StaticFiles(directory=three_dir()), name="three")
@@ -127,14 +118,14 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     def clip_view(clip: str) -> dict:
         resume = worker.status(clip)  # first: when it says ready, the tasks read next are what the resume left
-        open_tasks = queue.clip_tasks(wh, clip)
-        tasks = [t.as_dict() for t in open_tasks]
-        return {"clip": clip, "tasks": tasks, "waiting": sum(t["waiting"] for t in tasks), "runs": _stage_runs(wh, clip),
-                "resume": resume, "next": queue.first_waiting(open_tasks)}
+        state = clips_queue.state(clip)
+        tasks = [t.as_dict() for t in state.tasks]
+        return {"clip": clip, "tasks": tasks, "waiting": sum(t["waiting"] for t in tasks), "runs": state.runs,
+                "resume": resume, "next": queue.first_waiting(state.tasks)}
 
     @app.get("/api/clips")
     def clips() -> dict:
-        views = [clip_view(c) for c in queue.clips(wh)]
+        views = [clip_view(c) for c in clips_queue.clips()]
         nxt = next((v["next"] for v in views if v["next"]), None)
         return {"annotator": who, "clips": views, "next": nxt, "label_errors": getattr(app.state, "pending_errors", [])}
 
@@ -150,7 +141,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     def next_item(clip: str | None = None) -> JSONResponse:
         if clip is not None and not wh.has_partition("clips", clip):
             raise HTTPException(404, f"unknown clip {clip!r}")
-        return JSONResponse(queue.next_item(wh, clip))
+        return JSONResponse(clips_queue.next_item(clip))
 
     @app.get("/api/tasks/{clip}/{task_id}")
     def task(clip: str, task_id: str) -> dict:

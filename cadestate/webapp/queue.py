@@ -4,6 +4,12 @@ A clip's open task of a kind is its newest task file of that kind (``label_tasks
 that are not answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
 manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
+
+The app asks for every clip's tasks on each refresh of the start page (every 5 s): a :class:`Queue`
+keeps each clip's tasks and stage runs with what they were read from
+(:class:`warehouse.kept.KeptInMemory`) and reads a clip again only when one of its files came or
+went (an answer ingested, a resume's new task or run): an unchanged clip costs a listing of its
+partitions (about 0.1 ms, where reading its tasks took 3-25 ms).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from cadestate.webapp.served_task import served, with_pose_outcomes
 from tasks.human.answers_in_force import answered_items
 from tasks.human.labels import latest_tasks
 from warehouse import Warehouse
+from warehouse.kept import KeptInMemory
 
 
 @dataclass
@@ -60,13 +67,48 @@ def clips(wh: Warehouse) -> list[str]:
     return sorted(wh.partitions("clips"))
 
 
-def next_item(wh: Warehouse, clip: str | None = None) -> dict | None:
-    """The first waiting item (of ``clip``, else of any clip): clip, kind, task id, track id (-1:
-    a manual-track task) and the page's URL; None when nothing waits."""
-    for c in [clip] if clip else clips(wh):
-        if (item := first_waiting(clip_tasks(wh, c))) is not None:
-            return item
-    return None
+def stage_runs(wh: Warehouse, clip: str) -> list[dict]:
+    """The last run of each stage of ``clip`` (stage, status, message), in the order they started."""
+    if not wh.has_partition("runs", clip):
+        return []
+    last: dict[str, dict] = {}
+    for r in wh.read("runs", [clip], columns=["stage", "status", "started_at", "message"]).sort_by("started_at").to_pylist():
+        last[r["stage"]] = {"stage": r["stage"], "status": r["status"], "message": r["message"] or ""}
+    return list(last.values())
+
+
+@dataclass(frozen=True)
+class ClipState:
+    """What the warehouse says of one clip: its tasks (:func:`clip_tasks`) and its last stage runs
+    (:func:`stage_runs`). Kept and shared (:class:`Queue`): not to be changed."""
+
+    tasks: list[OpenTask]
+    runs: list[dict]
+
+
+class Queue:
+    """The clips of ``wh`` as a long-lived app reads them again and again (module docstring)."""
+
+    def __init__(self, wh: Warehouse):
+        self.wh = wh
+        self._kept = KeptInMemory()
+
+    def clips(self) -> list[str]:
+        """:func:`clips` (the kept states of clips gone are dropped)."""
+        names = clips(self.wh)
+        self._kept.keep_only(names)
+        return names
+
+    def state(self, clip: str) -> ClipState:
+        return self._kept.get(self.wh, clip, lambda: ClipState(clip_tasks(self.wh, clip), stage_runs(self.wh, clip)))
+
+    def next_item(self, clip: str | None = None) -> dict | None:
+        """The first waiting item (of ``clip``, else of any clip): clip, kind, task id, track id (-1:
+        a manual-track task) and the page's URL; None when nothing waits."""
+        for c in [clip] if clip else self.clips():
+            if (item := first_waiting(self.state(c).tasks)) is not None:
+                return item
+        return None
 
 
 def first_waiting(tasks: list[OpenTask]) -> dict | None:
