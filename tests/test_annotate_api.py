@@ -227,6 +227,51 @@ def test_the_start_page_reads_a_clip_again_only_when_its_files_changed(lwh):
         assert client.app.state.queue.state(CLIP) is client.app.state.queue.state(CLIP)
 
 
+def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):
+    """Two annotators on one app were given the same next item, and the second met a 409 after doing
+    the work: an item a page opened is held for its browser, and the queue (/api/next, the start
+    page's next item, a page's next after an answer) gives other browsers other items until the page
+    gives it back or stops renewing it."""
+    from cadestate.webapp.claims import HOLD_S
+
+    a, b = {"X-Cadestate-Client": "browser-a"}, {"X-Cadestate-Client": "browser-b"}
+    mt = {"clip": CLIP, "kind": "manual_track", "track_id": -1}
+    with _client(lwh, Requests()) as client:
+        first = client.get("/api/next", headers=a).json()
+        assert first["kind"] == "manual_track" and client.get("/api/next", headers=b).json() == first  # nobody holds it yet
+        assert client.post("/api/claims", json=mt, headers=a).json() == {"held_by_other": False, "age_s": None, "hold_s": HOLD_S}
+        assert client.get("/api/next", headers=a).json() == first  # a's own
+        other = client.get("/api/next", headers=b).json()
+        assert (other["kind"], other["track_id"]) == ("cad_selection", 0)
+        assert client.get("/api/next").json() == other  # no client id: every claim is someone else's
+        start = client.get("/api/clips", headers=b).json()
+        assert start["next"] == other and start["clips"][0]["next"] == other
+        tasks = {t["kind"]: t for t in start["clips"][0]["tasks"]}
+        assert tasks["manual_track"]["held_tracks"] == [-1] and tasks["cad_selection"]["held_tracks"] == []
+        assert client.get(f"/api/clips/{CLIP}", headers=a).json()["tasks"][0]["held_tracks"] == []
+        claimed = client.post("/api/claims", json=mt, headers=b).json()  # b opens it all the same: said, not taken
+        assert claimed["held_by_other"] is True and claimed["age_s"] >= 0
+        cs0 = {"clip": CLIP, "kind": "cad_selection", "track_id": 0}
+        assert client.post("/api/claims", json=cs0, headers=b).json()["held_by_other"] is False
+        assert client.get(f"/api/tasks/{CLIP}/c1.cs", headers=a).json()["held"] == [0]  # a's page goes on to track 1
+        assert client.get("/api/next", headers=a).json()["kind"] == "manual_track"
+        client.post("/api/claims/release", json=mt, headers=b)  # not b's: nothing given back
+        assert client.get("/api/next", headers=b).json() == other  # its own claim is no bar to it
+        assert client.post("/api/claims/release", json=mt, headers=a).status_code == 200  # a left the page
+        assert client.get("/api/next", headers=b).json() == first
+        lapsed = client.app.state.claims
+        lapsed.claim("browser-a", (CLIP, "manual_track", -1))
+        lapsed.hold_s = 0.0  # renewed no more: lapsed
+        lapsed.claim("browser-a", (CLIP, "manual_track", -1))
+        assert client.get("/api/next", headers=b).json() == first
+        bad = [({**mt, "kind": "nope"}, a, "claim: $.kind: one of manual_track"), ({**mt, "track_id": "0"}, a, "claim: $.track_id"),
+               ({"clip": CLIP}, a, "claim: $: an object with clip, kind and track_id"), (mt, {}, "header X-Cadestate-Client: missing"),
+               (mt, {"X-Cadestate-Client": "x" * 65}, "header X-Cadestate-Client: a client id of 1 to 64 characters, not 65")]
+        for body, headers, said in bad:
+            r = client.post("/api/claims", json=body, headers=headers)
+            assert r.status_code == 422 and r.json()["detail"].startswith(said), r.text
+
+
 FAULTS = [("write", "cad_selection_labels"), ("write", "label_effort"), ("write", "label_files"), ("read", "label_files")]
 
 

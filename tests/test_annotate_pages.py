@@ -130,6 +130,38 @@ def _open_manual_tracks(a: App) -> None:
     a.page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
 
 
+def test_a_second_browser_is_given_another_item_while_the_first_holds_one(app):
+    """Two annotators (two browsers: each its own client id in its localStorage) were given the same
+    next item, and the second met a 409 after the work: while one has the item open, the other's start
+    page offers the next one and says the first is being done; opened all the same, the page says
+    so; left, the item is offered again."""
+    browser = app.page.context.browser
+    first, second = (browser.new_context(viewport={"width": 1280, "height": 720}) for _ in range(2))
+    a, b = first.new_page(), second.new_page()
+    b.goto(app.url)
+    b.wait_for_selector("#go:not([disabled])")
+    offered = b.inner_text("#next")
+    a.goto(app.url)
+    a.wait_for_selector("#go:not([disabled])")
+    assert a.inner_text("#next") == offered
+    with a.expect_response("**/api/claims"):
+        a.keyboard.press("Enter")  # a opens the next item
+    url = a.url
+    b.reload()
+    b.wait_for_selector("#go:not([disabled])")
+    assert b.inner_text("#next") != offered
+    assert "(1 being done by someone else)" in b.inner_text("#clips")
+    b.goto(url)
+    b.wait_for_selector("#held-elsewhere")
+    assert "Another browser opened this item" in b.inner_text("#held-elsewhere")
+    a.goto("about:blank")  # a leaves the item: it is given back (not left held for HOLD_S)
+    b.goto(app.url)
+    b.wait_for_function("(offered) => document.querySelector('#next').textContent === offered", arg=offered, timeout=15_000)
+    assert "being done" not in b.inner_text("#clips")
+    first.close()
+    second.close()
+
+
 def test_manual_tracks_by_mouse_alone(app):
     """A click into an object's class field types there (the row was rebuilt under the click), and a
     class typed in another case is the task's (it was refused: "pick a class from the list"); deleting

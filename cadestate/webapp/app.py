@@ -3,14 +3,19 @@
 Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 ``/annotate/<kind>?clip=C&task=T[&track=N]`` for the four kinds. API (JSON):
 
-- ``GET /api/clips``: every clip with its tasks (items, waiting), its last stage runs, its resume state,
-  and the label files left un-ingested that failed again at this start (``label_errors``, one line each);
+- ``GET /api/clips``: every clip with its tasks (items, waiting, ``held_tracks``: waiting items
+  another browser holds), its last stage runs, its resume state, its next item, and the label files
+  left un-ingested that failed again at this start (``label_errors``, one line each);
 - ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
   the clip's next task learns it the moment the resume ends, without polling;
-- ``GET /api/next[?clip=C]``: the next waiting item (null: none);
-- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, the clip's resume
-  state, whether it is the newest task of its kind (``current``) and ``as_of``, what answers it saw;
+- ``GET /api/next[?clip=C]``: the next waiting item no other browser holds (null: none);
+- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, those another browser
+  holds (``held``), the clip's resume state, whether it is the newest task of its kind (``current``)
+  and ``as_of``, what answers it saw;
+- ``POST /api/claims``, ``POST /api/claims/release``: ``{clip, kind, track_id}``, the item a page
+  opened, held for its browser or given back (:mod:`cadestate.webapp.claims`); the claim answers
+  ``held_by_other`` (and ``age_s``) when another browser holds it, and ``hold_s``.
 - ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers
   (503, one line, when they cannot be rendered);
 - ``POST /api/answers[?as_of=T]``: a label document without ``format``/``created_at`` (see
@@ -22,6 +27,8 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 
 ``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
 overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).
+The pages send their browser's client id as the ``X-Cadestate-Client`` header (claims; a request
+without one counts every claim as another browser's).
 """
 
 from __future__ import annotations
@@ -33,13 +40,14 @@ import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import Body, FastAPI, HTTPException
+from fastapi import Body, FastAPI, Header, HTTPException
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from cadestate.config import Config
 from cadestate.webapp import queue
 from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, submit
+from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import SAME_POINT_M, LabelError, one_line
@@ -50,6 +58,8 @@ from warehouse.read_cache import ReadCache
 STATIC = Path(__file__).parent / "static"
 MAX_WAIT_S = 30.0
 """The longest ``GET /api/clips/<clip>?wait=`` holds a request."""
+MAX_CLIENT_ID = 64
+"""The longest client id a page may send (``X-Cadestate-Client``)."""
 THREE_VERSION = "0.187.0"
 """The three.js release the viewer uses (``make web-vendor`` fetches it from npm, sha256-checked)."""
 
@@ -63,6 +73,39 @@ def three_dir() -> Path:
     return vendor_dir() / f"three-{THREE_VERSION}" / "package"
 
 
+CLIENT_HEADER = "X-Cadestate-Client"
+
+
+def checked_client(client: str | None) -> str | None:
+    """The client id a request sent (:data:`CLIENT_HEADER`), checked: a 422 naming the header when
+    it is empty or longer than :data:`MAX_CLIENT_ID`."""
+    if client is not None and not 0 < len(client) <= MAX_CLIENT_ID:
+        raise HTTPException(422, f"header {CLIENT_HEADER}: a client id of 1 to {MAX_CLIENT_ID} characters, not {len(client)}")
+    return client
+
+
+def required_client(client: str | None) -> str:
+    """:func:`checked_client`, which a claim cannot do without (422 when missing)."""
+    if client is None:
+        raise HTTPException(422, f"header {CLIENT_HEADER}: missing (the browser's client id, which holds the item)")
+    return checked_client(client)
+
+
+def item_ref(payload: object) -> Item:
+    """The item a page names to claim it, ``{clip, kind, track_id}`` (-1: a manual-track task); a
+    422 naming the field when it is not one."""
+    if not isinstance(payload, dict) or set(payload) != {"clip", "kind", "track_id"}:
+        raise HTTPException(422, "claim: $: an object with clip, kind and track_id, nothing else")
+    clip, kind, track = payload["clip"], payload["kind"], payload["track_id"]
+    if not isinstance(clip, str):
+        raise HTTPException(422, "claim: $.clip: a clip name")
+    if kind not in KINDS:
+        raise HTTPException(422, f"claim: $.kind: one of {', '.join(KINDS)}")
+    if isinstance(track, bool) or not isinstance(track, int):
+        raise HTTPException(422, "claim: $.track_id: an integer (-1: a manual-track task)")
+    return clip, kind, track
+
+
 def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
@@ -70,6 +113,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     wh = Warehouse(config.warehouse.root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=cache)
     lock = threading.Lock()
     clips_queue = queue.Queue(wh)
+    claims = Claims()
     worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
     tol = config.pose.coplanar_tol
@@ -89,7 +133,8 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         worker.stop()
 
     app = FastAPI(title="cadestate annotate", lifespan=lifespan)
-    app.state.warehouse, app.state.resumer, app.state.lock, app.state.queue = wh, worker, lock, clips_queue
+    app.state.warehouse, app.state.resumer, app.state.lock = wh, worker, lock
+    app.state.queue, app.state.claims = clips_queue, claims
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     if three_dir().is_dir():
         app.mount("/vendor/three", StaticFiles(directory=three_dir()), name="three")
@@ -116,41 +161,58 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
             raise HTTPException(404, f"media/{path}: no such file")
         return FileResponse(target, headers={"Cache-Control": "max-age=3600"})
 
-    def clip_view(clip: str) -> dict:
+    def clip_view(clip: str, held: set[Item]) -> dict:
         resume = worker.status(clip)  # first: when it says ready, the tasks read next are what the resume left
         state = clips_queue.state(clip)
-        tasks = [t.as_dict() for t in state.tasks]
+        tasks = [t.as_dict(held) for t in state.tasks]
         return {"clip": clip, "tasks": tasks, "waiting": sum(t["waiting"] for t in tasks), "runs": state.runs,
-                "resume": resume, "next": queue.first_waiting(state.tasks)}
+                "resume": resume, "next": queue.first_waiting(state.tasks, held)}
 
     @app.get("/api/clips")
-    def clips() -> dict:
-        views = [clip_view(c) for c in clips_queue.clips()]
+    def clips(client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+        held = claims.held_by_others(checked_client(client))
+        views = [clip_view(c, held) for c in clips_queue.clips()]
         nxt = next((v["next"] for v in views if v["next"]), None)
         return {"annotator": who, "clips": views, "next": nxt, "label_errors": getattr(app.state, "pending_errors", [])}
 
     @app.get("/api/clips/{clip}")
-    def one_clip(clip: str, wait: float = 0.0) -> dict:
+    def one_clip(clip: str, wait: float = 0.0, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+        held = claims.held_by_others(checked_client(client))
         if not wh.has_partition("clips", clip):
             raise HTTPException(404, f"unknown clip {clip!r}")
         if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
             worker.wait_idle(clip, min(wait, MAX_WAIT_S))
-        return clip_view(clip)
+        return clip_view(clip, held)
 
     @app.get("/api/next")
-    def next_item(clip: str | None = None) -> JSONResponse:
+    def next_item(clip: str | None = None, client: str | None = Header(None, alias=CLIENT_HEADER)) -> JSONResponse:
+        held = claims.held_by_others(checked_client(client))
         if clip is not None and not wh.has_partition("clips", clip):
             raise HTTPException(404, f"unknown clip {clip!r}")
-        return JSONResponse(clips_queue.next_item(clip))
+        return JSONResponse(clips_queue.next_item(clip, held))
+
+    @app.post("/api/claims")
+    def claim(payload: object = Body(...), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+        other = claims.claim(required_client(client), item_ref(payload))
+        return {"held_by_other": other is not None, "age_s": None if other is None else round(claims.age_s(other), 1),
+                "hold_s": claims.hold_s}
+
+    @app.post("/api/claims/release")
+    def release(payload: object = Body(...), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+        claims.release(required_client(client), item_ref(payload))
+        return {}
 
     @app.get("/api/tasks/{clip}/{task_id}")
-    def task(clip: str, task_id: str) -> dict:
+    def task(clip: str, task_id: str, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+        held = claims.held_by_others(checked_client(client))
         as_of = answers_as_of(wh, clip)  # first: an answer landing meanwhile then counts as unseen
         doc = queue.task_document(wh, clip, task_id)
         if doc is None:
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
-        newest = latest_tasks(wh, clip).get(doc["task"]["kind"])
+        kind = doc["task"]["kind"]
+        newest = latest_tasks(wh, clip).get(kind)
         return {**doc, "annotator": who, "resume": worker.status(clip), "as_of": as_of,
+                "held": sorted(t for c, k, t in held if c == clip and k == kind),
                 "current": newest is None or newest["task_id"] == task_id,
                 "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span, "same_point_m": SAME_POINT_M}}
 

@@ -15,9 +15,11 @@ partitions (about 0.1 ms, where reading its tasks took 3-25 ms).
 from __future__ import annotations
 
 import json
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 from schemas.labels import KINDS
+from cadestate.webapp.claims import Item
 from cadestate.webapp.served_task import served, with_pose_outcomes
 from tasks.human.answers_in_force import answered_items
 from tasks.human.labels import latest_tasks
@@ -38,10 +40,17 @@ class OpenTask:
     waiting: list[int] = field(default_factory=list)
     pose_failed: list[int] = field(default_factory=list)
 
-    def as_dict(self) -> dict:
+    def as_dict(self, held: Collection[Item] = ()) -> dict:
+        """As the API gives it; ``held_tracks``: the waiting items another browser holds
+        (``held``: :meth:`cadestate.webapp.claims.Claims.held_by_others`)."""
         return {"clip": self.clip, "kind": self.kind, "task_id": self.task_id, "items": len(self.items),
                 "waiting": len(self.waiting), "waiting_tracks": self.waiting, "pose_failed": self.pose_failed,
-                "url": f"/annotate/{self.kind}?clip={self.clip}&task={self.task_id}"}
+                "held_tracks": [t for t in self.waiting if (self.clip, self.kind, t) in held], "url": self.url}
+
+    @property
+    def url(self) -> str:
+        """The task's page."""
+        return f"/annotate/{self.kind}?clip={self.clip}&task={self.task_id}"
 
 
 def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
@@ -102,21 +111,23 @@ class Queue:
     def state(self, clip: str) -> ClipState:
         return self._kept.get(self.wh, clip, lambda: ClipState(clip_tasks(self.wh, clip), stage_runs(self.wh, clip)))
 
-    def next_item(self, clip: str | None = None) -> dict | None:
-        """The first waiting item (of ``clip``, else of any clip): clip, kind, task id, track id (-1:
-        a manual-track task) and the page's URL; None when nothing waits."""
+    def next_item(self, clip: str | None = None, held: Collection[Item] = ()) -> dict | None:
+        """The first waiting item (of ``clip``, else of any clip) not in ``held``: clip, kind, task
+        id, track id (-1: a manual-track task) and the page's URL; None when nothing waits."""
         for c in [clip] if clip else self.clips():
-            if (item := first_waiting(self.state(c).tasks)) is not None:
+            if (item := first_waiting(self.state(c).tasks, held)) is not None:
                 return item
         return None
 
 
-def first_waiting(tasks: list[OpenTask]) -> dict | None:
-    """The first waiting item of ``tasks`` (one clip's, :func:`clip_tasks`), as :func:`next_item` gives it."""
+def first_waiting(tasks: list[OpenTask], held: Collection[Item] = ()) -> dict | None:
+    """The first waiting item of ``tasks`` (one clip's, :func:`clip_tasks`) not in ``held`` (another
+    browser's: :mod:`cadestate.webapp.claims`), as :meth:`Queue.next_item` gives it."""
     for t in tasks:
-        if t.waiting:
-            track = t.waiting[0]
-            url = t.as_dict()["url"] + ("" if track < 0 else f"&track={track}")
+        for track in t.waiting:
+            if (t.clip, t.kind, track) in held:
+                continue
+            url = t.url + ("" if track < 0 else f"&track={track}")
             return {"clip": t.clip, "kind": t.kind, "task_id": t.task_id, "track_id": track, "url": url}
     return None
 

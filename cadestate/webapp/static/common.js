@@ -13,8 +13,24 @@ export const el = (tag, attrs = {}, ...kids) => {
 export const media = (path) => "/" + path;   // warehouse-relative media paths start with "media/"
 export const params = () => Object.fromEntries(new URLSearchParams(location.search));
 
+// This browser's client id (kept in localStorage, shared by its tabs): items a page opens are held
+// for it (cadestate/webapp/claims.py), and the queue gives other browsers other items.
+const CLIENT_KEY = "cadestate-client";
+const newClientId = () => Array.from(crypto.getRandomValues(new Uint8Array(12)), (b) => b.toString(16).padStart(2, "0")).join("");
+export const clientId = (() => {
+  try {
+    let id = localStorage.getItem(CLIENT_KEY);
+    if (!id) { id = newClientId(); localStorage.setItem(CLIENT_KEY, id); }
+    return id;
+  } catch (e) {  // storage refused (a private window's settings): this page's own id
+    return newClientId();
+  }
+})();
+const CLIENT_HEADER = {"X-Cadestate-Client": clientId};
+
 export async function api(path, body) {
-  const r = await fetch(path, body === undefined ? {} : {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(body)});
+  const r = await fetch(path, body === undefined ? {headers: CLIENT_HEADER}
+    : {method: "POST", headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(body)});
   const data = await r.json().catch(() => null);
   if (!r.ok) throw new Error((data && (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail))) || r.statusText);
   return data;
@@ -99,9 +115,27 @@ export async function loadTask() {
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
   const items = data.task.items || [];
   const waiting = items.filter((it) => !data.answered.includes(it.track_id));
-  let item = items.find((it) => String(it.track_id) === p.track) || waiting[0] || items[0];
+  const free = waiting.filter((it) => !data.held.includes(it.track_id));  // not being done in another browser
+  let item = items.find((it) => String(it.track_id) === p.track) || free[0] || waiting[0] || items[0];
   $("#progress").textContent = items.length ? `${items.length - waiting.length} of ${items.length} answered` : "";
+  holdItem({clip: data.task.clip, kind: data.task.kind, track_id: item ? item.track_id : -1});
   return {...data, item, waiting, p};
+}
+
+// Hold the item shown for this browser while the page is open (claimed again every third of the
+// hold; given back when the page is left). One another browser holds is said: someone may be doing it.
+async function holdItem(ref) {
+  let res;
+  try {
+    res = await api("/api/claims", ref);
+  } catch (e) {
+    return;  // the app unreachable: the page says so when it saves
+  }
+  if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another browser opened this item ${Math.round(res.age_s)} s ago: ` +
+    "someone may be doing it now (of two answers, the second is refused)."), "warn");
+  setInterval(() => api("/api/claims", ref).catch(() => {}), res.hold_s * 1000 / 3);
+  window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
+    headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
@@ -122,7 +156,7 @@ export async function afterAnswer(clip, taskId, kind, res) {
     return;
   }
   loaded = {...loaded, as_of: data.as_of};  // answering again from this page edits the person's own answer (no 409)
-  const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id));
+  const waiting = (data.task.items || []).filter((it) => !data.answered.includes(it.track_id) && !data.held.includes(it.track_id));
   if (waiting.length) {
     const next = `/annotate/${kind}?clip=${encodeURIComponent(clip)}&task=${encodeURIComponent(taskId)}&track=${waiting[0].track_id}`;
     if (!warnings.length) { location.href = next; return; }
