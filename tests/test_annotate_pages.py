@@ -218,6 +218,46 @@ def test_a_refused_manual_track_answer_names_the_objects_as_the_page_does(app):
     page.close()
 
 
+def test_enter_in_a_class_field_confirms_it_and_a_box_drawn_in_a_small_window_stays_in_view(app):
+    """Below 900 px the class field is under the frame: the focus it took after a box was drawn
+    scrolled the frame away. Enter in the field did nothing; it now confirms the class (the keys go
+    back to the page: a second Enter submits, as the button does); a class not of the task's is said."""
+    page = app.page.context.browser.new_page(viewport={"width": 800, "height": 600})
+    page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
+    page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+    drawn = page.locator(".obj").count()  # the answer in force: its objects come first
+    _drag(page, 0.5, 0.5, 0.7, 0.8)  # none selected: a new object
+    box = page.locator("#draw").bounding_box()
+    assert page.evaluate("document.activeElement.classList.contains('cls')")  # the class is typed next
+    assert page.evaluate("window.scrollY") == 0 and box["y"] >= 0 and box["y"] + box["height"] <= 600, box
+    field = page.locator("input.cls").nth(drawn)
+    page.keyboard.type("sofa")
+    page.keyboard.press("Enter")
+    assert "pick a class from the list (sofa)" in page.inner_text("#status")
+    assert page.evaluate("document.activeElement.classList.contains('cls')")  # kept: the class is to be fixed
+    field.fill("Table")
+    page.keyboard.press("Enter")
+    assert field.input_value() == "table" and not page.evaluate("document.activeElement.classList.contains('cls')")
+    page.route("**/api/answers**", lambda route: route.abort())  # what was sent is enough: nothing saved
+    with page.expect_request("**/api/answers**") as sent:
+        page.keyboard.press("Enter")
+    labels = [o["label"] for o in json.loads(sent.value.post_data)["answers"]]
+    assert len(labels) == drawn + 1 and labels[-1] == "table"
+    page.close()
+
+
+def test_track_colours_stay_distinct_past_eight(app):
+    """Eight colours in turn gave tracks 0 and 8 one colour: the first 20 tracks' colours differ in
+    lightness or by 15 degrees of hue at least."""
+    page = app.page
+    page.goto(app.url)
+    colours = page.evaluate("import('/static/common.js').then((m) => Array.from({length: 20}, (_, i) => m.trackColor(i)))")
+    hsl = [tuple(float(v) for v in c[4:-1].replace("%", "").split(",")) for c in colours]
+    for i, (h, _, light) in enumerate(hsl):
+        for h2, _, light2 in hsl[i + 1:]:
+            assert light != light2 or min(abs(h - h2), 360 - abs(h - h2)) >= 15, colours
+
+
 def test_cad_selection_keys_after_tab(app):
     """Tab to the first candidate, press 2, Enter: the second is submitted (Enter chose the tabbed one
     again); the fragment list steps with the arrow keys and keeps the focus."""
@@ -399,6 +439,8 @@ def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
     assert f"media/frames/{CLIP}/200000.jpg" in page.inner_text("#frames-missing")
     page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
     page.wait_for_selector("#frames-missing")
+    gone = page.locator("#strip .thumb").nth(1)  # a dashed box: its alt text was written over its number
+    assert "missing" in gone.get_attribute("class") and gone.locator("img").is_hidden() and gone.inner_text() == "2"
     page.evaluate("document.activeElement.blur()")
     page.keyboard.press("Enter")
     page.wait_for_timeout(500)

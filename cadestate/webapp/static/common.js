@@ -267,10 +267,24 @@ export function frameView(src, onload) {
   return {wrap, img, canvas};
 }
 
+// A key-frame's thumbnail in a strip, numbered i + 1: an image that does not load is a dashed
+// empty box (checkFrames says which), not its alt text written over the number.
+export function thumb(src, i, onclick) {
+  const img = el("img", {src, alt: ""});
+  const t = el("div", {class: "thumb", title: `key-frame ${i + 1}`, onclick}, img, el("span", {}, i + 1));
+  img.addEventListener("error", () => t.classList.add("missing"));
+  return t;
+}
+
 // Normalised (x, y) of a mouse event over an element.
 export function normXY(ev, elem) {
   const r = elem.getBoundingClientRect();
   return [Math.min(1, Math.max(0, (ev.clientX - r.left) / r.width)), Math.min(1, Math.max(0, (ev.clientY - r.top) / r.height))];
 }
 
-export const COLORS = ["#4da3ff", "#ffb84d", "#3ccf7a", "#ff6b9a", "#b48cff", "#4dd9e6", "#e6d94d", "#ff8a4d"];
+// The colour of track (or pair) i: its hue steps by the golden angle, never coming back to one
+// before, and its lightness cycles over three levels, so that the hues that come close again (8, 13
+// and 21 steps on) differ in lightness; the first 20 are told apart. (Eight colours in turn gave
+// tracks 0 and 8 one colour.) Light enough for the black text drawn on them.
+const LIGHTNESS = [68, 54, 80];
+export const trackColor = (i) => `hsl(${Math.round((210 + i * 137.508) % 360)}, 85%, ${LIGHTNESS[i % LIGHTNESS.length]}%)`;
