@@ -272,6 +272,24 @@ def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):
             assert r.status_code == 422 and r.json()["detail"].startswith(said), r.text
 
 
+def test_the_start_page_asks_for_a_page_of_clips_and_the_next_item_of_all(lwh):
+    """A warehouse of thousands of clips was one table of all, every 5 s: a page of ``limit`` clips
+    from ``offset`` (with the total) comes back, and the next item is the first of all clips,
+    on that page or not."""
+    from conftest import table_rows
+
+    for name in ("c2", "c3"):  # clips with no task yet
+        lwh.write("clips", name, table_rows("clips", [{"clip": name, "fps": 10.0, "width": 320, "height": 192}]))
+    with _client(lwh, Requests()) as client:
+        every = client.get("/api/clips").json()
+        assert [c["clip"] for c in every["clips"]] == [CLIP, "c2", "c3"] and every["total"] == 3
+        page = client.get("/api/clips", params={"offset": 1, "limit": 1}).json()
+        assert [c["clip"] for c in page["clips"]] == ["c2"] and (page["total"], page["offset"]) == (3, 1)
+        assert page["next"] == every["next"] and page["next"]["clip"] == CLIP  # not on this page
+        assert client.get("/api/clips", params={"offset": 5, "limit": 2}).json()["clips"] == []
+        assert client.get("/api/clips", params={"limit": 0}).status_code == 422
+
+
 FAULTS = [("write", "cad_selection_labels"), ("write", "label_effort"), ("write", "label_files"), ("read", "label_files")]
 
 

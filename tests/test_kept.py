@@ -83,7 +83,7 @@ def _settle_folders(wh: Warehouse) -> None:
 
 def test_a_value_kept_in_memory_serves_while_its_partitions_stay(tmp_path):
     """The annotation app's start page worked out every clip's tasks on each refresh; kept in memory,
-    a value is served for a stat of each partition it read, and computed again once a file came into
+    a value is served for a listing of each partition it read, and computed again once a file came into
     one (an answer, a run) or the folder was swapped (a replace-mode write), never kept from folders
     that changed while it was computed, nor when it read a whole table."""
     wh = Warehouse(tmp_path / "w")

@@ -90,24 +90,31 @@ def kept_read(wh: Warehouse, name: str, reads: Sequence[tuple[str, ...]], comput
     return value
 
 
-def _folder_state(path: str) -> tuple[int, int] | None:
-    """A folder's (inode, modification time ns); None when it is missing."""
+def _listing(folder: str) -> tuple[str, ...] | None:
+    """The data files of a partition folder, sorted; None when it is missing."""
     try:
-        st = os.stat(path)
+        return tuple(sorted(n for n in os.listdir(folder) if n.endswith(".parquet")))
     except FileNotFoundError:
         return None
-    return st.st_ino, st.st_mtime_ns
+
+
+def _settled(folder: str, started_ns: int) -> bool:
+    """Whether ``folder`` (missing, or) last changed :data:`SETTLE_NS` before ``started_ns``."""
+    try:
+        return os.stat(folder).st_mtime_ns < started_ns - SETTLE_NS
+    except FileNotFoundError:
+        return True
 
 
 class KeptInMemory:
     """Values computed from warehouse files, each kept under a key while the partitions it read are
     unchanged; safe to share between threads. What a computation reads is recorded
     (:func:`cadestate.lineage.recording_reads`), and kept are those values that read named
-    partitions only (``("files", table, partition, ...)``), with each partition folder's inode and
-    modification time: a file written into a folder, or removed from it, changes its time, and a
-    folder swapped in (a replace-mode write, a compaction) is a new inode, so a value is served
-    again for one ``stat`` per partition (where :func:`read_state` stats every file). As above, a
-    value whose folders changed within :data:`SETTLE_NS` of its computation is not kept."""
+    partitions only (``("files", table, partition, ...)``), with each partition's listing: the
+    store never writes a name twice, so the same names are the same data, and a value is served
+    again for one listing per partition (where :func:`read_state` stats every file too). As above,
+    a value whose folders changed (their modification time) within :data:`SETTLE_NS` of its
+    computation is not kept: it may have listed them before the change."""
 
     def __init__(self):
         self._kept: dict[str, tuple[tuple[str, ...], tuple, Any]] = {}
@@ -118,7 +125,7 @@ class KeptInMemory:
         A value is the one object kept: callers do not change it."""
         with self._lock:
             kept = self._kept.get(key)
-        if kept is not None and tuple(map(_folder_state, kept[0])) == kept[1]:
+        if kept is not None and tuple(map(_listing, kept[0])) == kept[1]:
             return kept[2]
         started = time.time_ns()
         with recording_reads() as noted:
@@ -126,8 +133,8 @@ class KeptInMemory:
         if any(r[0] != "files" or "*" in r[2:] for r in noted):
             return value
         folders = tuple(dict.fromkeys(str(wh.partition_dir(r[1], p)) for r in noted for p in r[2:]))
-        state = tuple(map(_folder_state, folders))
-        if all(s is None or s[1] < started - SETTLE_NS for s in state):
+        state = tuple(map(_listing, folders))
+        if all(_settled(f, started) for f in folders):
             with self._lock:
                 self._kept[key] = (folders, state, value)
         return value

@@ -3,9 +3,11 @@
 Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 ``/annotate/<kind>?clip=C&task=T[&track=N]`` for the four kinds. API (JSON):
 
-- ``GET /api/clips``: every clip with its tasks (items, waiting, ``held_tracks``: waiting items
-  another browser holds), its last stage runs, its resume state, its next item, and the label files
-  left un-ingested that failed again at this start (``label_errors``, one line each);
+- ``GET /api/clips[?offset=N&limit=M]``: every clip (``limit`` of them from the ``offset``-th;
+  ``total``: how many there are) with its tasks (items, waiting, ``held_tracks``: waiting items
+  another browser holds), its last stage runs, its resume state, its next item; the next item of
+  all clips; how many items other browsers hold (``held``); and the label files left un-ingested
+  that failed again at this start (``label_errors``, one line each);
 - ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
   the clip's next task learns it the moment the resume ends, without polling;
@@ -40,7 +42,7 @@ import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import Body, FastAPI, Header, HTTPException
+from fastapi import Body, FastAPI, Header, HTTPException, Query
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -169,11 +171,14 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
                 "resume": resume, "next": queue.first_waiting(state.tasks, held)}
 
     @app.get("/api/clips")
-    def clips(client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+    def clips(offset: int = Query(0, ge=0), limit: int | None = Query(None, ge=1),
+              client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
         held = claims.held_by_others(checked_client(client))
-        views = [clip_view(c, held) for c in clips_queue.clips()]
-        nxt = next((v["next"] for v in views if v["next"]), None)
-        return {"annotator": who, "clips": views, "next": nxt, "label_errors": getattr(app.state, "pending_errors", [])}
+        names = clips_queue.clips()
+        views = [clip_view(c, held) for c in names[offset:None if limit is None else offset + limit]]
+        return {"annotator": who, "clips": views, "total": len(names), "offset": offset,
+                "next": clips_queue.next_item(held=held, names=names), "held": len(held),
+                "label_errors": getattr(app.state, "pending_errors", [])}
 
     @app.get("/api/clips/{clip}")
     def one_clip(clip: str, wait: float = 0.0, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
