@@ -202,7 +202,9 @@ export function showWaiting(clip) {
       shortcuts({Enter: () => (location.href = c.next.url)});
     } else {
       const why = failed ? "" : `: ${c.resume.message || "done"}`;
-      s.replaceChildren(...said, el("span", {id: "next-ready"}, `nothing waits for people on ${clip}${why}. `), el("a", {href: "/"}, "back to the queue"));
+      const held = c.tasks.reduce((n, t) => n + t.held_tracks.length, 0);  // waiting, but open in another browser
+      s.replaceChildren(...said, el("span", {id: "next-ready"}, held ? `nothing else waits on ${clip}: ${held} item(s) being done by someone else. `
+        : `nothing waits for people on ${clip}${why}. `), el("a", {href: "/"}, "back to the queue"));
     }
   };
   poll();
