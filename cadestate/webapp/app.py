@@ -182,12 +182,12 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     @app.get("/api/clips/{clip}")
     def one_clip(clip: str, wait: float = 0.0, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
-        held = claims.held_by_others(checked_client(client))
+        client = checked_client(client)
         if not wh.has_partition("clips", clip):
             raise HTTPException(404, f"unknown clip {clip!r}")
         if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
             worker.wait_idle(clip, min(wait, MAX_WAIT_S))
-        return clip_view(clip, held)
+        return clip_view(clip, claims.held_by_others(client))
 
     @app.get("/api/next")
     def next_item(clip: str | None = None, client: str | None = Header(None, alias=CLIENT_HEADER)) -> JSONResponse:

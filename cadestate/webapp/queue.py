@@ -5,8 +5,8 @@ that are not answered as the stages count them (:func:`tasks.human.answers_in_fo
 manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 
-The app asks for every clip's tasks on each refresh of the start page (every 5 s): a :class:`Queue`
-keeps each clip's tasks and stage runs with what they were read from
+The start page asks for its clips' tasks every 5 s, and the next item scans the clips from the
+first: a :class:`Queue` keeps each clip's tasks and stage runs with what they were read from
 (:class:`warehouse.kept.KeptInMemory`) and reads a clip again only when one of its files came or
 went (an answer ingested, a resume's new task or run): an unchanged clip costs a listing of each
 of its partitions (well under 1 ms, where reading its tasks took 3-25 ms).
