@@ -226,6 +226,7 @@ def test_enter_in_a_class_field_confirms_it_and_a_box_drawn_in_a_small_window_st
     page.bring_to_front()  # the page that has the focus (a field of a page behind others takes none)
     page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
     page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+    page.wait_for_load_state("networkidle")  # the strip's images in, the page laid out as it stays
     drawn = page.locator(".obj").count()  # the answer in force: its objects come first
     _drag(page, 0.5, 0.5, 0.7, 0.8)  # none selected: a new object
     box = page.locator("#draw").bounding_box()
@@ -288,6 +289,7 @@ def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_sm
     page = app.page.context.browser.new_page(viewport={"width": 800, "height": 600})
     page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=2")
     page.wait_for_selector(".cand")
+    page.wait_for_load_state("networkidle")  # the candidates' views in: the tenth is below the window
     page.locator(".cand").nth(9).click()
     box = page.locator("#keyframe").bounding_box()
     assert page.inner_text("#choice") == "chosen: m2j" and page.evaluate("window.scrollY") > 0
