@@ -458,33 +458,13 @@ def test_an_export_killed_while_moving_into_an_empty_folder_does_not_block_the_n
     """SIGKILL while `export official` moves its entries into an existing empty folder leaves some
     there (annotations/, not frames/): the next export refused the folder ("exists and is not
     empty") until the user emptied it. It removes them, names them on stderr, and writes."""
-    import subprocess
-    import sys
-    import textwrap
-
-    from fuzz.harness import run_cli
+    from fuzz.harness import killed_at_move, run_cli
 
     wh, _, _ = built
     out = tmp_path / "out"
     out.mkdir()
     args = ["-w", str(wh.root), "export", "official", str(out), "--no-cad", "--no-progress"]
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
-        import os, signal, sys
-        from pathlib import Path
-
-        def killed_before_frames(move):  # after annotations/ is moved in
-            def moved(src, dst):
-                if Path(dst) == Path({str(out / "frames")!r}):
-                    os.kill(os.getpid(), signal.SIGKILL)
-                return move(src, dst)
-            return moved
-
-        os.rename, os.replace = killed_before_frames(os.rename), killed_before_frames(os.replace)
-        from cadestate.cli import main
-
-        sys.argv = ["cadestate", *{args!r}]
-        main()
-    """)], capture_output=True, text=True, timeout=300)
+    done = killed_at_move(out / "frames", *args)  # after annotations/ is moved in
     assert done.returncode == -9, done.stderr
     assert (out / "annotations").is_dir() and not (out / "frames").exists()
     again = run_cli(*args)

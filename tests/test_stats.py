@@ -461,33 +461,13 @@ def test_a_report_killed_while_moving_in_does_not_block_the_next(tmp_path):
     leaves ``clips/`` moved there and no ``index.html``: every later report was refused ("holds
     'clips', which a report replaces, and no earlier report") until the user removed it by hand.
     The next report removes what was moved in, names it on stderr, and writes."""
-    import sys
-    import textwrap
-
-    from fuzz.harness import run_cli
+    from fuzz.harness import killed_at_move, run_cli
 
     wh = Warehouse(tmp_path / "w")
     select_clips(wh)  # a warehouse with no clip: its catalog made
     out = tmp_path / "report"
     out.mkdir()
-    script = textwrap.dedent(f"""
-        import os, signal, sys
-        from pathlib import Path
-
-        def killed_before_img(move):  # the kill comes after clips/ is moved in, before img/
-            def moved(src, dst):
-                if Path(dst) == Path({str(out / "img")!r}):
-                    os.kill(os.getpid(), signal.SIGKILL)
-                return move(src, dst)
-            return moved
-
-        os.rename, os.replace = killed_before_img(os.rename), killed_before_img(os.replace)
-        from cadestate.cli import main
-
-        sys.argv = ["cadestate", "-w", {str(wh.root)!r}, "stats", "--html", {str(out)!r}]
-        main()
-    """)
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    done = killed_at_move(out / "img", "-w", str(wh.root), "stats", "--html", str(out))  # after clips/ is moved in
     assert done.returncode == -9, done.stderr
     assert (out / "clips").is_dir() and not (out / "img").exists() and not (out / "index.html").exists()
     [left] = tmp_path.glob(".report.*.tmp")

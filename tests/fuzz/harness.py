@@ -15,7 +15,9 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import subprocess
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,3 +80,26 @@ def warehouse_digest(root: Path) -> dict[str, str]:
     for sub in ("tables", "label_tasks", "inputs", "media"):
         files += sorted((root / sub).rglob("*"))
     return {f.relative_to(root).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest() for f in files if f.is_file()}
+
+
+def killed_at_move(dst: Path, *args: str) -> subprocess.CompletedProcess:
+    """Run ``cadestate ARGS`` in a new process that is killed (SIGKILL, as by a power loss) as it
+    moves an entry to ``dst`` (``os.rename`` / ``os.replace``), before that move."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys
+        from pathlib import Path
+
+        def killed_at(move):
+            def moved(src, dst):
+                if Path(dst) == Path({str(dst)!r}):
+                    os.kill(os.getpid(), signal.SIGKILL)
+                return move(src, dst)
+            return moved
+
+        os.rename, os.replace = killed_at(os.rename), killed_at(os.replace)
+        from cadestate.cli import main
+
+        sys.argv = ["cadestate", *{list(args)!r}]
+        main()
+    """)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
