@@ -272,6 +272,20 @@ def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):
             assert r.status_code == 422 and r.json()["detail"].startswith(said), r.text
 
 
+def test_the_start_page_counts_only_waiting_items_as_being_done_elsewhere(lwh):
+    """A page stays open after its answer (the panel of what comes next), renewing its claim: the
+    other browser's start page said 'nothing else waits: 1 item(s) being done by someone else' for
+    as long as it stayed open; ``held`` counts the held items that still wait."""
+    a, b = {"X-Cadestate-Client": "browser-a"}, {"X-Cadestate-Client": "browser-b"}
+    with _client(lwh, Requests()) as client:
+        for track in (0, 99):  # an item of the task, and none (a page of an older task, say)
+            client.post("/api/claims", json={"clip": CLIP, "kind": "cad_selection", "track_id": track}, headers=a)
+        client.post("/api/claims", json={"clip": "gone", "kind": "cad_selection", "track_id": 0}, headers=a)
+        assert client.get("/api/clips", headers=b).json()["held"] == 1
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200  # answers track 0
+        assert client.get("/api/clips", headers=b).json()["held"] == 0
+
+
 def test_the_start_page_asks_for_a_page_of_clips_and_the_next_item_of_all(lwh):
     """A warehouse of thousands of clips was one table of all, every 5 s: a page of ``limit`` clips
     from ``offset`` (with the total) comes back, and the next item is the first of all clips,

@@ -6,7 +6,7 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 - ``GET /api/clips[?offset=N&limit=M]``: every clip (``limit`` of them from the ``offset``-th;
   ``total``: how many there are) with its tasks (items, waiting, ``held_tracks``: waiting items
   another browser holds), its last stage runs, its resume state, its next item; the next item of
-  all clips; how many items other browsers hold (``held``); and the label files left un-ingested
+  all clips; how many waiting items other browsers hold (``held``); and the label files left un-ingested
   that failed again at this start (``label_errors``, one line each);
 - ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
@@ -177,7 +177,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         names = clips_queue.clips()
         views = [clip_view(c, held) for c in names[offset:None if limit is None else offset + limit]]
         return {"annotator": who, "clips": views, "total": len(names), "offset": offset,
-                "next": clips_queue.next_item(held=held, names=names), "held": len(held),
+                "next": clips_queue.next_item(held=held, names=names), "held": clips_queue.waiting_among(held, names),
                 "label_errors": getattr(app.state, "pending_errors", [])}
 
     @app.get("/api/clips/{clip}")

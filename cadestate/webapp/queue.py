@@ -120,6 +120,13 @@ class Queue:
                 return item
         return None
 
+    def waiting_among(self, items: Collection[Item], names: Collection[str]) -> int:
+        """How many of ``items`` (claims: :meth:`cadestate.webapp.claims.Claims.held_by_others`)
+        still wait, in the clips ``names``: a claim on an item answered since (its page left open
+        after the answer, renewing it) or on no item holds back nothing."""
+        clips_held = set(names) & {c for c, _, _ in items}
+        return sum((c, t.kind, track) in items for c in sorted(clips_held) for t in self.state(c).tasks for track in t.waiting)
+
 
 def first_waiting(tasks: list[OpenTask], held: Collection[Item] = ()) -> dict | None:
     """The first waiting item of ``tasks`` (one clip's, :func:`clip_tasks`) not in ``held`` (another
