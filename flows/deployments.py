@@ -325,8 +325,8 @@ def resume_clips(clips: list[str]) -> list[str]:
 def annotate_clip_served(warehouse: str, config_path: str, clip: str, video: str, cameras: str,
                          split: str = "train") -> list[StageReport] | State:
     """Run the stages of one clip; suspend while a human task waits (resumed by a label ingest).
-    A clip with a failed stage ends Failed (its state carries the reports), not suspended: the
-    inbox's next tick runs it again."""
+    A clip with a failed stage ends Failed, its message naming the failed stages (the reports are
+    in the ``runs`` table), not suspended: the inbox's next tick runs it again."""
     cfg = served_config(warehouse, config_path)
     root = str(Path(warehouse).resolve())
     state = _run(root, [ClipSource(clip, Path(video), Path(cameras), split)], cfg, False)
