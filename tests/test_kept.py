@@ -97,19 +97,44 @@ def test_a_value_kept_in_memory_serves_while_its_partitions_stay(tmp_path):
     _clip(wh, "c1", "train")
     wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r0"}]))
     assert kept.get(wh, "c1", frames) == 2 and kept.get(wh, "c1", frames) == 2
-    assert len(calls) == 2  # its folders had just changed: not kept
-    _settle_folders(wh)
-    assert kept.get(wh, "c1", frames) == kept.get(wh, "c1", frames) == 2 and len(calls) == 3
+    assert len(calls) == 2  # its folders had just changed: the first not kept; the second listed them alike before and after
+    assert kept.get(wh, "c1", frames) == 2 and len(calls) == 2
     wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r1"}]))  # a file more
-    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 4
-    _settle_folders(wh)
-    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 5
+    assert kept.get(wh, "c1", frames) == kept.get(wh, "c1", frames) == 3 and len(calls) == 3
     _clip(wh, "c1", "val")  # swapped in: a new folder
-    old = time.time_ns() - 10 * SETTLE_NS
-    os.utime(wh.partition_dir("clips", "c1"), ns=(old, old))
-    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 6
-    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 6
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 4
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 4
     kept.keep_only([])
-    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 7
+    assert kept.get(wh, "c1", frames) == 3 and len(calls) == 5  # a key first seen: its folders' times decide
+    _settle_folders(wh)
+    kept.keep_only([])
+    assert kept.get(wh, "c1", frames) == kept.get(wh, "c1", frames) == 3 and len(calls) == 6
     every = lambda: calls.append(1) or wh.read("runs").num_rows  # noqa: E731
-    assert kept.get(wh, "all", every) == kept.get(wh, "all", every) == 2 and len(calls) == 9
+    assert kept.get(wh, "all", every) == kept.get(wh, "all", every) == 2 and len(calls) == 8
+
+
+def test_a_value_whose_partition_changed_while_it_was_computed_again_is_not_kept(tmp_path):
+    """A clip's tasks worked out again (a file came) while another write lands in a partition they
+    read, on a filesystem whose folder times are coarse (the folder's time then reads as before the
+    computation): the value was kept with the listing taken after it, the new file in it, and
+    served stale until the next write; a value is now kept when its partitions list the same files
+    before and after it was computed."""
+    wh = Warehouse(tmp_path / "w")
+    kept = KeptInMemory()
+    late = []
+
+    def runs() -> int:
+        n = wh.read("runs", ["c1"]).num_rows
+        for run_id in late:  # another process's write, just after the read
+            wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": run_id}]))
+            _settle_folders(wh)  # a coarse clock: the folder's time reads as before the computation
+        late.clear()
+        return n
+
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r0"}]))
+    _settle_folders(wh)
+    assert kept.get(wh, "c1", runs) == 1
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r1"}]))
+    late.append("r2")
+    assert kept.get(wh, "c1", runs) == 2  # read before r2 came
+    assert kept.get(wh, "c1", runs) == 3

@@ -112,21 +112,25 @@ class KeptInMemory:
     (:func:`cadestate.lineage.recording_reads`), and kept are those values that read named
     partitions only (``("files", table, partition, ...)``), with each partition's listing: the
     store never writes a name twice, so the same names are the same data, and a value is served
-    again for one listing per partition (where :func:`read_state` stats every file too). As above,
-    a value whose folders changed (their modification time) within :data:`SETTLE_NS` of its
-    computation is not kept: it may have listed them before the change."""
+    again for one listing per partition (where :func:`read_state` stats every file too). A value
+    computed again (a file came or went) is kept when its partitions list the same files before and
+    after it was computed: no name comes back, so it saw that listing. The first value of a key
+    (its partitions not known before) is kept, as above, when its folders last changed (their
+    modification time) :data:`SETTLE_NS` before its computation; a folder time from a coarse clock
+    may miss a change made meanwhile, and only that first value relies on it."""
 
     def __init__(self):
-        self._kept: dict[str, tuple[tuple[str, ...], tuple, Any]] = {}
+        self._kept: dict[str, tuple[tuple[str, ...], tuple | None, Any]] = {}
         self._lock = threading.Lock()
 
     def get(self, wh: Warehouse, key: str, compute: Callable[[], Any]) -> Any:
         """The value kept under ``key`` while what it read is unchanged, else ``compute()`` (kept so).
         A value is the one object kept: callers do not change it."""
         with self._lock:
-            kept = self._kept.get(key)
-        if kept is not None and tuple(map(_listing, kept[0])) == kept[1]:
-            return kept[2]
+            known = self._kept.get(key)  # (folders, their listing, value); listing None: folders only
+        before = None if known is None else tuple(map(_listing, known[0]))
+        if known is not None and known[1] is not None and before == known[1]:
+            return known[2]
         started = time.time_ns()
         with recording_reads() as noted:
             value = compute()
@@ -134,9 +138,12 @@ class KeptInMemory:
             return value
         folders = tuple(dict.fromkeys(str(wh.partition_dir(r[1], p)) for r in noted for p in r[2:]))
         state = tuple(map(_listing, folders))
-        if all(_settled(f, started) for f in folders):
-            with self._lock:
-                self._kept[key] = (folders, state, value)
+        if known is not None:
+            keep = folders == known[0] and state == before
+        else:
+            keep = all(_settled(f, started) for f in folders)
+        with self._lock:
+            self._kept[key] = (folders, state, value) if keep else (folders, None, None)
         return value
 
     def keep_only(self, keys: Collection[str]) -> None:
