@@ -693,3 +693,49 @@ def test_export_official_shows_its_progress_over_the_clips(built, tmp_path):
     os.close(master)
     assert done.returncode == 0 and done.stdout.decode().startswith(f"wrote {tmp_path / 'out'}: 1 clips"), done.stdout
     assert "clips" in drawn and "1/1" in drawn, drawn
+
+
+def test_the_move_journal_of_another_export_is_neither_read_nor_cut(tmp_path, monkeypatch):
+    """An export's check opened the .cadestate-moving of an export that then finished (and removed
+    it) while a third began moving in: it read the third's journal by its path and removed the
+    entries that export was moving (and its journal). And an export opening the journal to move in
+    emptied it before waiting for the lock, so that a kill of the export holding it left nothing to
+    clean up by, or, when the export holding it finished, wrote its list into the file removed
+    (and failed on removing it)."""
+    import fcntl
+    import os
+    import threading
+
+    import tasks.cad.export as export
+
+    out = tmp_path / "out"
+    out.mkdir()
+    journal = out / export.MOVING
+    journal.write_text('["a"]')  # an export moving "a" in now, about to finish
+    flock = fcntl.flock
+    held = []
+
+    def meanwhile(fd, op):  # between the check's open and its lock: that export ends, another starts
+        if not held:
+            journal.unlink()
+            held.append(os.open(journal, os.O_WRONLY | os.O_CREAT, 0o644))
+            flock(held[0], fcntl.LOCK_EX)
+            os.write(held[0], b'["x"]')
+            (out / "x").write_text("being moved in")
+        return flock(fd, op)
+
+    monkeypatch.setattr(export.fcntl, "flock", meanwhile)
+    export.remove_unfinished_move(out)
+    assert (out / "x").exists() and json.loads(journal.read_text()) == ["x"]
+    monkeypatch.setattr(export.fcntl, "flock", flock)
+    tmp = tmp_path / "new"
+    tmp.mkdir()
+    (tmp / "y").write_text("new")
+    other = threading.Thread(target=export.publish, args=(tmp, out))
+    other.start()
+    other.join(0.5)  # waits for the lock "x"'s export holds
+    assert other.is_alive() and json.loads(journal.read_text()) == ["x"]
+    journal.unlink()  # "x"'s export ends: the file the other export waits on is gone
+    os.close(held[0])
+    other.join(10)
+    assert (out / "y").read_text() == "new" and not journal.exists()

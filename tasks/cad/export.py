@@ -162,9 +162,8 @@ def publish(tmp: Path, out: Path) -> None:
         return
     entries = sorted(tmp.iterdir())
     journal = out / MOVING
-    fd = os.open(journal, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o644)
+    fd = _locked_journal(journal)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
         os.write(fd, json.dumps([e.name for e in entries]).encode())
         for entry in entries:
             there = out / entry.name
@@ -177,6 +176,25 @@ def publish(tmp: Path, out: Path) -> None:
                 os.replace(entry, there)
         journal.unlink()
     finally:
+        os.close(fd)
+
+
+def _locked_journal(journal: Path) -> int:
+    """The :data:`MOVING` file ``journal``, open, locked and emptied for this export: emptied only
+    once locked (another export's list while it moves is what a kill of it would be cleaned up by),
+    and opened again when the one locked was removed meanwhile (by the export that held it, or the
+    check of a killed one): a list written there would be in no file."""
+    while True:
+        fd = os.open(journal, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            with contextlib.suppress(FileNotFoundError):
+                if os.path.samestat(os.fstat(fd), os.stat(journal)):
+                    os.ftruncate(fd, 0)
+                    return fd
+        except BaseException:
+            os.close(fd)
+            raise
         os.close(fd)
 
 
@@ -197,7 +215,12 @@ def remove_unfinished_move(out: Path) -> None:
         except OSError:  # an export moving its entries in now
             return
         try:
-            names = json.loads(journal.read_text(encoding="utf-8"))
+            if not os.path.samestat(os.fstat(fd), os.stat(journal)):  # finished and removed; the file there now is
+                return                                                  # another export's, which holds it
+            with open(fd, encoding="utf-8", closefd=False) as f:
+                names = json.loads(f.read())
+        except FileNotFoundError:  # finished and removed by its export
+            return
         except (OSError, ValueError):  # killed while writing it: nothing moved yet
             names = []
         names = {n for n in names if isinstance(n, str) and n not in ("", ".", "..", MOVING) and "/" not in n} \
