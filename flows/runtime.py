@@ -158,6 +158,8 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
     the command run again resumes them. Prefect's client retried each call to the dead API for
     ~2.5 minutes before the command failed. A run on another API (``$PREFECT_API_URL``, the
     ephemeral one) or in another thread (the annotation app's resumes) is not watched."""
+    import psutil
+
     from flows.server import end_with_server, read_server
 
     info = read_server(root)
@@ -165,18 +167,29 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
         yield
         return
 
+    over = threading.Lock()  # held by whichever comes first: the run's end, or the server's
+    finished = threading.Event()
+
     def ended() -> None:
-        with contextlib.suppress(OSError, ValueError):
-            sys.stdout.flush()
-            sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {STAGES_STOP}; "
-                             "`cadestate server start` starts it again (without it, commands run on their own)\n")
-            sys.stderr.flush()
-        os._exit(1)
+        with over:
+            if finished.is_set():  # the run ended as the server did: it stands
+                return
+            with contextlib.suppress(OSError, ValueError):
+                sys.stdout.flush()
+                sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {STAGES_STOP}; "
+                                 "`cadestate server start` starts it again (without it, commands run on their own)\n")
+                sys.stderr.flush()
+            for child in psutil.Process().children(recursive=True):  # a process pool's workers (cad ingest's
+                with contextlib.suppress(psutil.Error):                # renders) would go on, orphaned
+                    child.terminate()
+            os._exit(1)
 
     watching = end_with_server(info, ended)
     try:
         yield
     finally:
+        with over:
+            finished.set()
         watching.set()
 
 
