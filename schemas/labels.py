@@ -46,6 +46,8 @@ room walkthrough reaches 100 m from its centre, so a bigger value is a unit or t
 SECONDS = {"minimum": 0.0, "maximum": 86400.0}
 """Bound on the seconds an annotator spends on one item (a day: more is a clock error)."""
 FORMAT = "Format and version of the file."
+WITHDRAWN = ("None: the stage withdrew its earlier task of this kind (a rerun asks nothing of it; the instructions "
+             "say why).")
 KIND = "The task kind."
 
 
@@ -262,7 +264,7 @@ class ManualTrackTask(TaskHeader):
 
     format: str = fixed(FORMAT, TASK_FORMAT)
     kind: str = fixed(KIND, "manual_track")
-    keyframes: tuple[KeyframeView, ...] = spec("Regularly spaced key-frames to draw on.", minItems=1)
+    keyframes: tuple[KeyframeView, ...] = spec("Regularly spaced key-frames to draw on. " + WITHDRAWN)
     existing_tracks: tuple[ExistingTrack, ...] = spec("Tracks found already, with their boxes on the key-frames.")
     classes: tuple[str, ...] = spec("Allowed classes; empty: any.")
     previous: tuple[ManualTrackAnswer, ...] = spec("Objects drawn before, if any: this task's answer in force (with what "
@@ -278,7 +280,7 @@ class CadSelectionTask(TaskHeader):
 
     format: str = fixed(FORMAT, TASK_FORMAT)
     kind: str = fixed(KIND, "cad_selection")
-    items: tuple[CadSelectionItem, ...] = spec("Tracks to answer.", minItems=1)
+    items: tuple[CadSelectionItem, ...] = spec("Tracks to answer. " + WITHDRAWN)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -287,7 +289,7 @@ class CorrespondenceTask(TaskHeader):
 
     format: str = fixed(FORMAT, TASK_FORMAT)
     kind: str = fixed(KIND, "correspondences")
-    items: tuple[CorrespondenceItem, ...] = spec("Tracks to answer.", minItems=1)
+    items: tuple[CorrespondenceItem, ...] = spec("Tracks to answer. " + WITHDRAWN)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -296,7 +298,7 @@ class VerificationTask(TaskHeader):
 
     format: str = fixed(FORMAT, TASK_FORMAT)
     kind: str = fixed(KIND, "verification")
-    items: tuple[VerificationItem, ...] = spec("Tracks to answer.", minItems=1)
+    items: tuple[VerificationItem, ...] = spec("Tracks to answer. " + WITHDRAWN)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -476,3 +476,24 @@ def test_the_correspondences_page_says_when_the_3d_view_cannot_load(app, monkeyp
         page.wait_for_selector("#load-error")
         assert page.inner_text("#load-error").startswith("The 3D view cannot be loaded: ")
         assert "make web-vendor" in page.inner_text("#load-error") and page.inner_text("header h1") == "Correspondences"
+
+
+def test_a_page_of_a_task_a_rerun_withdrew_says_so_with_nothing_to_submit(app, tmp_path):
+    """A verification page opened from a link kept after a rerun solved no pose: the task is
+    withdrawn (the newest of its kind asks nothing), so the page says why and offers nothing to
+    submit; the start page no longer lists it."""
+    from cadestate.config import Config, WarehouseConfig
+    from cadestate.webapp.app import create_app
+    from tasks.human.shared import withdraw_task
+
+    wh = _build(tmp_path / "wh")
+    assert withdraw_task(wh, CLIP, "verification", "no solved pose") == "; task c1.ve withdrawn"
+    with served_app(create_app(Config(warehouse=WarehouseConfig(root=str(wh.root))), annotator="pages-test")) as url:
+        page = app.page
+        page.goto(f"{url}/")
+        page.wait_for_selector(f"a[href*='task=c1.mt']")
+        assert page.locator("a[href*='task=c1.cs']").count() == 1 and page.locator("a[href*='verification']").count() == 0
+        page.goto(f"{url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+        page.wait_for_selector("#load-error")
+        assert page.inner_text("#load-error") == "A rerun withdrew this task: Nothing to answer: no solved pose. back to the queue"
+        assert page.locator("#accept").count() == 0

@@ -501,4 +501,40 @@ def test_a_track_seen_on_one_frame_is_not_asked_for_clicks(hwh, tmp_path):
     alone = _corr(hwh)
     assert alone.status == "completed" and alone.rows_written == 0
     assert alone.message == "no track with a chosen CAD model is seen on two frames; 1 track(s) seen on one frame only " \
-                            "not asked (one view gives no pose)"
+                            f"not asked (one view gives no pose); task {_task(hwh, corr.message)['task_id']} withdrawn"
+
+
+def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_again(hwh, tmp_path):
+    """The correspondences task waits for track 1's clicks; then no model is chosen at all: the
+    stage asks nothing, and the earlier task, still the newest of its kind, went on waiting in the
+    app (and took answers). The rerun withdraws it (a newest task that asks nothing, once); the app
+    lists no correspondences and refuses an answer to the old task, saying why; choosing a model
+    again brings a task back."""
+    import threading
+
+    from cadestate.webapp.answers import Conflict, submit
+    from cadestate.webapp.queue import clip_tasks
+    from tasks.human.labels import asks_nothing, latest_tasks
+
+    _select(hwh, tmp_path / "s" / "a.json", {0: "lib.chair_a", 1: "lib.chair_b", 2: None}, "2026-01-01T00:00:00+00:00")
+    old = _task(hwh, _corr(hwh).message)
+    assert _waiting(hwh) == [0, 1]
+    _select(hwh, tmp_path / "s" / "b.json", {0: None, 1: None}, "2026-01-02T00:00:00+00:00")
+    out = _corr(hwh)
+    assert out.status == "completed" and out.message == f"no track has a chosen CAD model; task {old['task_id']} withdrawn"
+    newest = json.loads(latest_tasks(hwh, CLIP)["correspondences"]["document"])
+    assert asks_nothing(newest) and newest["items"] == [] and newest["instructions"] == "Nothing to answer: no track has a chosen CAD model."
+    assert "correspondences" not in {t.kind for t in clip_tasks(hwh, CLIP)}
+    rows = hwh.read("label_tasks", [CLIP]).num_rows
+    assert _corr(hwh).message == "no track has a chosen CAD model" and hwh.read("label_tasks", [CLIP]).num_rows == rows
+
+    answer = {"kind": "correspondences", "clip": CLIP, "task_id": old["task_id"],
+              "answers": [_clicks(old["items"][0], [{"x": 0.2 + 0.05 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)])]}
+    with pytest.raises(Conflict, match=f"^task {old['task_id']} was withdrawn .*no track has a chosen CAD model.*not saved$"):
+        submit(hwh, answer, annotator="t", lock=threading.Lock())
+    assert not (hwh.root / "labels").exists() or not any((hwh.root / "labels").rglob("*.json"))
+
+    _select(hwh, tmp_path / "s" / "c.json", {0: "lib.chair_a"}, "2026-01-03T00:00:00+00:00")
+    back = _corr(hwh)
+    assert back.status == "paused" and [it["track_id"] for it in _task(hwh, back.message)["items"]] == [0]
+    assert _waiting(hwh) == [0]

@@ -85,6 +85,20 @@ def test_train_clip_completes_without_a_task(mwh):
     assert _run(mwh, ManualTracksConfig(splits=("train",))).status == "paused"  # the config decides
 
 
+def test_a_config_that_no_longer_asks_withdraws_the_task(mwh):
+    """A train clip asked while [manual_tracks] splits held train: taking train out leaves a newest
+    manual-track task that asks nothing (the app and status stop offering the old one), once."""
+    from cadestate.webapp.queue import clip_tasks
+
+    _clip(mwh, "train")
+    asked = _task(mwh, _run(mwh, ManualTracksConfig(splits=("train",))).message)
+    assert [t.kind for t in clip_tasks(mwh, CLIP)] == ["manual_track"]
+    run = _run(mwh)
+    assert run.status == "completed" and run.message.endswith(f"no manual-track task; task {asked['task_id']} withdrawn")
+    assert clip_tasks(mwh, CLIP) == [] and mwh.read("label_tasks").num_rows == 2
+    assert not _run(mwh).message.endswith("withdrawn") and mwh.read("label_tasks").num_rows == 2
+
+
 @needs_embedder
 def test_val_clip_pauses_until_a_label_answers_it(mwh, tmp_path):
     from tasks.detection.embed import embed_clip

@@ -182,6 +182,7 @@ def test_not_objects_and_fragments_act_downstream_while_in_force(rwh, tmp_path):
     assert selected_models(rwh, CLIP) == {1: None}
     corr = _run(rwh, "correspondence_task", lambda rid: correspondence_task_stage(rwh, CorrespondenceTaskConfig(), CLIP, rid))
     assert corr.status == "completed" and "no track has a chosen CAD model" in corr.message
+    assert corr.message.endswith("withdrawn")  # the task that waited for track 0's clicks
     assert _objects(rwh) == {2: ()}
 
 

@@ -13,8 +13,9 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
   the clip's next task learns it the moment the resume ends, without polling;
 - ``GET /api/next[?clip=C]``: the next waiting item no other browser holds (null: none);
 - ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, those another browser
-  holds (``held``), the clip's resume state, whether it is the newest task of its kind (``current``)
-  and ``as_of``, what answers it saw;
+  holds (``held``), the clip's resume state, whether it is the newest task of its kind (``current``),
+  why a rerun withdrew the kind's tasks (``withdrawn``: the newest asks nothing; else null) and
+  ``as_of``, what answers it saw;
 - ``POST /api/claims``, ``POST /api/claims/release``: ``{clip, kind, track_id}``, the item a page
   opened, held for its browser or given back (:mod:`cadestate.webapp.claims`); the claim answers
   ``held_by_other`` (and ``age_s``) when another browser holds it, and ``hold_s``.
@@ -36,6 +37,7 @@ without one counts every claim as another browser's).
 from __future__ import annotations
 
 import getpass
+import json
 import os
 import sys
 import threading
@@ -53,7 +55,7 @@ from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import SAME_POINT_M, LabelError, one_line
-from tasks.human.labels import latest_tasks
+from tasks.human.labels import asks_nothing, latest_tasks
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -216,9 +218,11 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
         kind = doc["task"]["kind"]
         newest = latest_tasks(wh, clip).get(kind)
+        newest_doc = None if newest is None else json.loads(newest["document"])
         return {**doc, "annotator": who, "resume": worker.status(clip), "as_of": as_of,
                 "held": sorted(t for c, k, t in held if c == clip and k == kind),
                 "current": newest is None or newest["task_id"] == task_id,
+                "withdrawn": newest_doc["instructions"] if newest_doc is not None and asks_nothing(newest_doc) else None,
                 "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span, "same_point_m": SAME_POINT_M}}
 
     @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")

@@ -1,7 +1,7 @@
 """What waits for people: the open tasks of every clip, their items, and the next item to do.
 
-A clip's open task of a kind is its newest task file of that kind (``label_tasks``) with items
-that are not answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
+A clip's open task of a kind is its newest task file of that kind (``label_tasks``), unless it
+asks nothing (withdrawn: :func:`tasks.human.labels.asks_nothing`), with items that are not answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
 manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 
@@ -22,7 +22,7 @@ from schemas.labels import KINDS
 from cadestate.webapp.claims import Item
 from cadestate.webapp.served_task import served, with_pose_outcomes
 from tasks.human.answers_in_force import answered_items
-from tasks.human.labels import latest_tasks
+from tasks.human.labels import asks_nothing, latest_tasks
 from warehouse import Warehouse
 from warehouse.kept import KeptInMemory
 
@@ -62,6 +62,8 @@ def clip_tasks(wh: Warehouse, clip: str) -> list[OpenTask]:
         if row is None:
             continue
         doc = json.loads(row["document"])
+        if asks_nothing(doc):  # withdrawn: a rerun asks nothing of this kind
+            continue
         items = [-1] if kind == "manual_track" else [int(it["track_id"]) for it in doc["items"]]
         done = answered_items(wh, clip, doc)
         waiting = [t for t in items if t not in done]

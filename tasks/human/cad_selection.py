@@ -39,7 +39,8 @@ from tasks.human.answers_in_force import current_answers
 from tasks.human.choices_in_force import held_choices
 from tasks.human.inputs import cad_selection_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, write_task_once
+from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, withdraw_task,
+                                 write_task_once)
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from tasks.tracking.relations import left_out_tracks, same_as_statements
@@ -89,7 +90,8 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     """Write the clip's cad_selection task; completed when every track is answered, else paused."""
     cands = candidates(wh, clip)
     if cands.num_rows == 0:
-        return StageOutput(0, digest("cad_selection", "no candidates"), "no CAD candidates: nothing to choose")
+        return StageOutput(0, digest("cad_selection", "no candidates"),
+                           f"no CAD candidates: nothing to choose{withdraw_task(wh, clip, 'cad_selection', 'no CAD candidates')}")
     task_id = cad_selection_task_id(wh, clip, cands)
     answers = {int(r["track_id"]): r["cad_id"] for r in current_answers(wh, "cad_selection", [clip], task_id).to_pylist()}
     rows = cands.to_pylist()
@@ -99,8 +101,9 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     left_out = left_out_tracks(wh, clip)
     track_ids = sorted(t for t in by_track if t not in left_out)
     if not track_ids:
+        why = f"all {len(by_track)} tracks are said to be no object or another track"
         return StageOutput(0, digest("cad_selection", task_id, "all left out"),
-                           f"all {len(by_track)} tracks are said to be no object or another track: nothing to choose")
+                           f"{why}: nothing to choose{withdraw_task(wh, clip, 'cad_selection', why)}")
     tracks = clip_tracks(wh, clip)
     labels = {t: track.label for t, track in tracks.items()}
     models, renders = model_facts(wh, {r["cad_id"] for r in rows})

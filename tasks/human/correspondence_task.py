@@ -17,7 +17,8 @@ from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, write_task_once
+from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, task_output, track_keyframes, withdraw_task,
+                                 write_task_once)
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
 from warehouse import Warehouse
@@ -30,7 +31,8 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     chosen = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
     if not chosen:
         _no_clicks(wh, clip)
-        return StageOutput(0, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
+        why = "no track has a chosen CAD model"
+        return StageOutput(0, digest("correspondence_task", "nothing chosen"), why + withdraw_task(wh, clip, "correspondences", why))
     tracks = clip_tracks(wh, clip)
     keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes)
     # one view gives no depth: a track seen on one frame can never be posed (pose's single_keyframe)
@@ -39,8 +41,9 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     not_asked = f"; {one_frame} track(s) seen on one frame only not asked (one view gives no pose)" if one_frame else ""
     if not track_ids:
         _no_clicks(wh, clip)
+        why = "no track with a chosen CAD model is seen on two frames"
         return StageOutput(0, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
-                           f"no track with a chosen CAD model is seen on two frames{not_asked}")
+                           f"{why}{not_asked}{withdraw_task(wh, clip, 'correspondences', why)}")
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
     now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])

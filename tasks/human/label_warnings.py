@@ -1,9 +1,10 @@
 """Warnings on valid label files that may not do what their annotator meant (``labels ingest``
 prints them; the files are ingested):
 
-- an answer to a task that a rerun has replaced (its answers count only where they still hold
-  on the newest task: :mod:`tasks.human.choices_in_force`, :mod:`tasks.human.clicks_in_force`;
-  a manual-track answer not at all: the newest task waits for its own);
+- an answer to a task that a rerun has withdrawn (:func:`tasks.human.shared.withdraw_task`), or
+  replaced (its answers count only where they still hold on the newest task:
+  :mod:`tasks.human.choices_in_force`, :mod:`tasks.human.clicks_in_force`; a manual-track answer
+  not at all: the newest task waits for its own);
 - a manual-track answer that leaves out objects of the one it replaces (the newest manual-track
   answer of a task is the whole answer: two tools' exports are not added up);
 - correspondences for a track that leave out key-frames clicked by the answer they replace (the
@@ -68,9 +69,12 @@ class LabelWarnings:
         """The warnings of ``lf``; it is then counted as ingested for the files after it."""
         out = []
         if lf.clip not in self._tasks:
-            self._tasks[lf.clip] = latest_tasks(self.wh, lf.clip, columns=["task_id", "kind", "created_at"])
+            self._tasks[lf.clip] = latest_tasks(self.wh, lf.clip, columns=["task_id", "kind", "created_at", "num_items"])
         newest = self._tasks[lf.clip].get(lf.kind)
-        if newest is not None and newest["task_id"] != lf.task_id:
+        if newest is not None and newest["task_id"] != lf.task_id and not newest["num_items"]:  # it asks nothing
+            out.append(f"{lf.path}: answers task {lf.task_id}, which a rerun withdrew (nothing of its kind is asked now): "
+                       "its answers count only if a later run asks about its tracks again")
+        elif newest is not None and newest["task_id"] != lf.task_id:
             replaced = f"{lf.path}: answers task {lf.task_id}, which a rerun replaced with {newest['task_id']}: "
             out.append(replaced + (f"a manual-track answer answers its own task only, so {newest['task_id']} still waits for "
                                    "one (an import made again answers the newest task)" if lf.kind == "manual_track" else

@@ -133,6 +133,13 @@ def latest_tasks(wh: Warehouse, clip: str, columns: Sequence[str] | None = None)
     return {kind: table.slice(i, 1).to_pylist()[0] for kind, i in _newest_rows(table, "kind").items()}
 
 
+def asks_nothing(document: Mapping[str, Any]) -> bool:
+    """Whether a task document (parsed JSON) has nothing to answer: the stage withdrew its earlier
+    task of the kind (:func:`tasks.human.shared.withdraw_task`); such a task is in force, as the
+    newest of its kind, only to say so."""
+    return not document.get("keyframes" if document.get("kind") == "manual_track" else "items")
+
+
 def _newest_rows(table: pa.Table, column: str) -> dict[str, int]:
     """Index of the newest ``label_tasks`` row (the first of equal times) of each value of ``column``."""
     values, created = table.column(column).to_pylist(), table.column("created_at").to_pylist()

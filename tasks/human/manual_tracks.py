@@ -44,7 +44,7 @@ from tasks.human.inputs import manual_track_inputs
 from tasks.human.answers_in_force import answered_tasks, current_answers
 from tasks.human.labels import new_task_id, utc_now
 from tasks.human.keyframes import regular_keyframes
-from tasks.human.shared import INSTRUCTIONS, image_size, task_output, write_task_once
+from tasks.human.shared import INSTRUCTIONS, image_size, task_output, withdraw_task, write_task_once
 from tasks.retrieval.label_similarity import similarity_labels
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
@@ -126,12 +126,12 @@ def manual_tracks_stage(wh: Warehouse, cfg: ManualTracksConfig, embed_cfg: Embed
     split = clip_split(clip_inputs(wh, clip)[2])
     if split not in cfg.splits:
         empty = _empty(wh, clip)
-        return StageOutput(0, table_digest(empty), f"split {split!r} is not one of [manual_tracks] splits "
-                                                   f"({', '.join(cfg.splits) or 'none'}): no manual-track task")
+        why = f"split {split!r} is not one of [manual_tracks] splits ({', '.join(cfg.splits) or 'none'})"
+        return StageOutput(0, table_digest(empty), f"{why}: no manual-track task{withdraw_task(wh, clip, KIND, why)}")
     frames = wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).sort_by("timestamp_us").to_pylist()
     if not frames:
         empty = _empty(wh, clip)
-        return StageOutput(0, table_digest(empty), "no frames: no manual-track task")
+        return StageOutput(0, table_digest(empty), f"no frames: no manual-track task{withdraw_task(wh, clip, KIND, 'no frames')}")
     keyframes = [frames[i] for i in regular_keyframes([f["timestamp_us"] for f in frames], cfg.keyframes)]
     stamps = {f["timestamp_us"] for f in keyframes}
     existing = tuple(ExistingTrack(track_id=t.track_id, label=t.label,

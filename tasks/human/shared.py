@@ -1,5 +1,6 @@
 """What the human-task stages share: the instructions people read, key-frames of a track, writing a task
-file once, and a stage's result (completed, or paused while items wait).
+file once, withdrawing one when a rerun asks nothing, and a stage's result (completed, or paused
+while items wait).
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from schemas.dataclass_json import to_json
-from schemas.labels import KeyframeView
+from schemas.labels import TASK_CLASSES, KeyframeView
 from tasks.human.keyframes import evenly_spaced
-from tasks.human.labels import latest_task_of_kind, parse_task, write_task
+from tasks.human.labels import asks_nothing, latest_task_of_kind, new_task_id, parse_task, utc_now, write_task
 from tasks.stage import StageOutput
 from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
 from warehouse import Warehouse
@@ -80,6 +81,21 @@ def write_task_once(wh: Warehouse, task) -> Path:
         if to_json(same) == json.loads(row["document"]):
             return write_task(wh, same)
     return write_task(wh, task)
+
+
+def withdraw_task(wh: Warehouse, clip: str, kind: str, why: str) -> str:
+    """When a rerun asks nothing of ``kind`` (``why``: e.g. "no track has a chosen CAD model"), make
+    the clip's newest task of the kind one with nothing to answer
+    (:func:`tasks.human.labels.asks_nothing`), so that its earlier task, no longer in force, stops
+    waiting in the app and in ``cadestate status``; nothing is written when there is no earlier
+    task or it asks nothing already. Returns what to add to the stage's message ("" if nothing)."""
+    row = latest_task_of_kind(wh, clip, kind)
+    if row is None or asks_nothing(json.loads(row["document"])):
+        return ""
+    empty = {"keyframes": (), "existing_tracks": (), "classes": ()} if kind == "manual_track" else {"items": ()}
+    write_task(wh, TASK_CLASSES[kind](task_id=new_task_id(kind, clip, "withdrawn"), clip=clip, created_at=utc_now().isoformat(),
+                                      image_size=image_size(wh, clip), instructions=f"Nothing to answer: {why}.", **empty))
+    return f"; task {row['task_id']} withdrawn"
 
 
 def task_output(rows: int, output_hash: str, summary: str, kind: str, path: str, waiting: int, total: int,

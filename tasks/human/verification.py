@@ -28,7 +28,7 @@ from schemas.labels import KeyframeView, Pose, VerificationAnswer, VerificationI
 from tasks.human.answers_in_force import current_answers
 from tasks.human.inputs import verification_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, write_task_once
+from tasks.human.shared import INSTRUCTIONS, evenly_spaced, image_size, task_output, withdraw_task, write_task_once
 from tasks.human.verdicts_in_force import NEAR_M, FrameCamera, held_verdicts
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.relations import left_out_tracks
@@ -122,7 +122,7 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     if poses.num_rows == 0:
         empty = VERIFIED_POSES.schema.empty_table()
         wh.write("verified_poses", clip, empty)
-        return StageOutput(0, table_digest(empty), "no solved pose to verify")
+        return StageOutput(0, table_digest(empty), "no solved pose to verify" + withdraw_task(wh, clip, "verification", "no solved pose"))
     task_id = verification_task_id(clip, poses)
     rows = poses.to_pylist()
     in_force = current_answers(wh, "verification", [clip])
@@ -154,7 +154,8 @@ def verification_stage(wh: Warehouse, cfg: VerificationConfig, clip: str, run_id
     if not items:
         empty = VERIFIED_POSES.schema.empty_table()
         wh.write("verified_poses", clip, empty)
-        return StageOutput(0, table_digest(empty), "no solved pose on a frame of the clip")
+        why = "no solved pose on a frame of the clip"
+        return StageOutput(0, table_digest(empty), why + withdraw_task(wh, clip, "verification", why))
     task = VerificationTask(task_id=task_id, clip=clip, created_at=utc_now().isoformat(), image_size=image_size(wh, clip),
                             instructions=INSTRUCTIONS["verification"], items=tuple(items))
     path = wh.relative(write_task_once(wh, task))

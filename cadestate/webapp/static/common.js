@@ -99,16 +99,22 @@ window.addEventListener("pageshow", (ev) => { if (ev.persisted) location.reload(
 
 // The task and its answered tracks; the item to show: ?track=N, else the first waiting one. A task the
 // pipeline has replaced since the link was made is said so at once (its answers would be refused).
-// A task that cannot be loaded (a stale link, the app down) leaves the page with that said, and nothing to submit.
+// A task that cannot be loaded (a stale link, the app down) or that a rerun withdrew (it asks nothing of
+// this kind now) leaves the page with that said, and nothing to submit.
 export async function loadTask() {
   const p = params();
   let data;
+  const stop = (what, why) => $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"},
+    el("b", {}, what), why, " ", el("a", {href: "/"}, "back to the queue")));
   try {
     data = await api(`/api/tasks/${encodeURIComponent(p.clip)}/${encodeURIComponent(p.task)}`);
   } catch (e) {
-    $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"}, el("b", {}, "This task cannot be loaded: "),
-      e.message, " ", el("a", {href: "/"}, "back to the queue")));
+    stop("This task cannot be loaded: ", e.message);
     throw e;
+  }
+  if (data.withdrawn) {
+    stop("A rerun withdrew this task: ", data.withdrawn);
+    throw new Error(`task ${p.task} was withdrawn`);
   }
   loaded = data;
   if (data.current === false) toast("A rerun replaced this task with a newer one: answers here go to it where they fit. The queue opens the newer task.", "error");
