@@ -508,8 +508,8 @@ def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_ag
     """The correspondences task waits for track 1's clicks; then no model is chosen at all: the
     stage asks nothing, and the earlier task, still the newest of its kind, went on waiting in the
     app (and took answers). The rerun withdraws it (a newest task that asks nothing, once); the app
-    lists no correspondences and refuses an answer to the old task, saying why; choosing a model
-    again brings a task back."""
+    lists no correspondences and refuses an answer to the old task, saying why (an ingested file
+    answering it is taken with a warning); choosing a model again brings a task back."""
     import threading
 
     from cadestate.webapp.answers import Conflict, submit
@@ -533,8 +533,12 @@ def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_ag
     with pytest.raises(Conflict, match=f"^task {old['task_id']} was withdrawn .*no track has a chosen CAD model.*not saved$"):
         submit(hwh, answer, annotator="t", lock=threading.Lock())
     assert not (hwh.root / "labels").exists() or not any((hwh.root / "labels").rglob("*.json"))
+    late = ingest_labels(hwh, _label(tmp_path / "c", "late.json", "correspondences", old["task_id"], answer["answers"],
+                                     "2026-01-02T12:00:00+00:00"))  # a file from another tool: taken, with a warning
+    assert late.ok and any(f"answers task {old['task_id']}, which a rerun withdrew" in w for w in late.warnings), late.warnings
 
     _select(hwh, tmp_path / "s" / "c.json", {0: "lib.chair_a"}, "2026-01-03T00:00:00+00:00")
-    back = _corr(hwh)
-    assert back.status == "paused" and [it["track_id"] for it in _task(hwh, back.message)["items"]] == [0]
-    assert _waiting(hwh) == [0]
+    back = _corr(hwh)  # asked again: the clicks given late on the withdrawn task still hold, and count
+    [item] = json.loads(latest_tasks(hwh, CLIP)["correspondences"]["document"])["items"]
+    assert back.status == "completed" and item["track_id"] == 0 and item["previous"]["cad_id"] == "lib.chair_a"
+    assert _waiting(hwh) == []
