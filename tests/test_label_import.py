@@ -260,3 +260,10 @@ def test_an_import_for_a_clip_without_a_manual_track_task_says_why_there_is_none
     assert assert_clean_error(res) == ("error: clip 'c2': no manual_track task to answer: a clip gets one when its split "
                                        "is one of [manual_tracks] splits (`cadestate ingest --split val`) and its "
                                        "manual_tracks stage has run")
+    from tasks.human.shared import withdraw_task  # one it had is withdrawn (its split taken out, say): said so too
+
+    assert withdraw_task(lwh, CLIP, "manual_track", "split 'train' is not one of [manual_tracks] splits (val, test)")
+    res = run_cli("-w", str(lwh.root), "labels", "import-cvat", str(put(tmp_path, "a.xml", CVAT)), "--clip", CLIP,
+                  "--out", str(tmp_path / "out"))
+    assert assert_clean_error(res) == (f"error: clip '{CLIP}': its manual_track task was withdrawn: Nothing to answer: split "
+                                       "'train' is not one of [manual_tracks] splits (val, test).")
