@@ -536,6 +536,7 @@ def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_ag
     late = ingest_labels(hwh, _label(tmp_path / "c", "late.json", "correspondences", old["task_id"], answer["answers"],
                                      "2026-01-02T12:00:00+00:00"))  # a file from another tool: taken, with a warning
     assert late.ok and any(f"answers task {old['task_id']}, which a rerun withdrew" in w for w in late.warnings), late.warnings
+    assert hwh.read("correspondences", [CLIP]).num_rows == 0  # pose's input: no task asks for these clicks
 
     _select(hwh, tmp_path / "s" / "c.json", {0: "lib.chair_a"}, "2026-01-03T00:00:00+00:00")
     back = _corr(hwh)  # asked again: the clicks given late on the withdrawn task still hold, and count

@@ -1,7 +1,7 @@
 """Stage ``correspondence_task`` (paper 3.3), after ``cad_selection``: per track with a chosen model, the model's
   mesh and key-frames to click on (a track seen on one frame only is not asked: one view gives no pose). The clicks that answer each item (given on this task, or on an
   earlier one and still holding: :mod:`tasks.human.clicks_in_force`) go to ``correspondences``
-  (the ``pose`` stage's input), here and at ingest; with no task to ask, it is emptied.
+  (the ``pose`` stage's input), here and at ingest; with no task to ask, the task is withdrawn and it is emptied.
 
 How it waits for people: :mod:`tasks.human.cad_selection`.
 """
@@ -11,8 +11,7 @@ from __future__ import annotations
 from cadestate.config import CorrespondenceTaskConfig
 from cadestate.lineage import digest, table_digest
 from schemas.labels import CorrespondenceItem, CorrespondenceTask
-from schemas.pose import CORRESPONDENCES
-from tasks.human.answers_in_force import current_answers, labels_lock, sync_correspondences
+from tasks.human.answers_in_force import current_answers, sync_correspondences
 from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
 from tasks.human.inputs import correspondence_inputs
@@ -30,9 +29,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     track has some."""
     chosen = {t: c for t, c in selected_models(wh, clip).items() if c is not None}
     if not chosen:
-        _no_clicks(wh, clip)
-        why = "no track has a chosen CAD model"
-        return StageOutput(0, digest("correspondence_task", "nothing chosen"), why + withdraw_task(wh, clip, "correspondences", why))
+        return _nothing_asked(wh, clip, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
     tracks = clip_tracks(wh, clip)
     keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes)
     # one view gives no depth: a track seen on one frame can never be posed (pose's single_keyframe)
@@ -40,10 +37,8 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     one_frame = len(chosen) - len(track_ids)
     not_asked = f"; {one_frame} track(s) seen on one frame only not asked (one view gives no pose)" if one_frame else ""
     if not track_ids:
-        _no_clicks(wh, clip)
-        why = "no track with a chosen CAD model is seen on two frames"
-        return StageOutput(0, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
-                           f"{why}{not_asked}{withdraw_task(wh, clip, 'correspondences', why)}")
+        return _nothing_asked(wh, clip, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
+                              "no track with a chosen CAD model is seen on two frames", not_asked)
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
     now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
@@ -67,12 +62,13 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     return task_output(len(held), output, summary, "correspondences", path, waiting, len(track_ids))
 
 
-def _no_clicks(wh: Warehouse, clip: str) -> None:
-    """Empty the clip's ``correspondences`` when no task is asked: the clicks of an earlier task
-    (tracks whose model is no longer chosen) stayed there, though pose leaves them out."""
-    with labels_lock(wh, clip):
-        if wh.read("correspondences", [clip], columns=["track_id"]).num_rows:
-            wh.write("correspondences", clip, CORRESPONDENCES.schema.empty_table())
+def _nothing_asked(wh: Warehouse, clip: str, output: str, why: str, note: str = "") -> StageOutput:
+    """Nothing to ask (``why``): withdraw the clip's correspondences task, which empties its
+    ``correspondences`` (the clicks of an earlier task, of tracks whose model is no longer chosen,
+    stayed there, though pose leaves them out; a label answering that task later adds none)."""
+    withdrawn = withdraw_task(wh, clip, "correspondences", why)
+    sync_correspondences(wh, clip)
+    return StageOutput(0, output, f"{why}{note}{withdrawn}")
 
 
 def _run(ctx: StageContext) -> StageOutput:
