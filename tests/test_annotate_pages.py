@@ -150,16 +150,37 @@ def test_a_second_browser_is_given_another_item_while_the_first_holds_one(app):
     b.reload()
     b.wait_for_selector("#go:not([disabled])")
     assert b.inner_text("#next") != offered
-    assert "(1 being done by someone else)" in b.inner_text("#clips")
+    assert "(1 being done in another tab or browser)" in b.inner_text("#clips")
     b.goto(url)
     b.wait_for_selector("#held-elsewhere")
-    assert "Another browser opened this item" in b.inner_text("#held-elsewhere")
+    assert "Another tab or browser opened this item" in b.inner_text("#held-elsewhere")
     a.goto("about:blank")  # a leaves the item: it is given back (not left held for HOLD_S)
     b.goto(app.url)
     b.wait_for_function("(offered) => document.querySelector('#next').textContent === offered", arg=offered, timeout=15_000)
     assert "being done" not in b.inner_text("#clips")
     first.close()
     second.close()
+
+
+def test_two_tabs_of_one_browser_are_given_different_items_and_a_reload_keeps_its_own(app):
+    """One person opening a second tab to work on was given the item the first tab held (the client
+    id was the browser's, shared by its tabs), and met a 409 after the work. Each tab has its own
+    id now; a reload keeps the tab's (its page is not said to be open elsewhere)."""
+    context = app.page.context.browser.new_context(viewport={"width": 1280, "height": 720})
+    a, b = context.new_page(), context.new_page()
+    a.goto(app.url)
+    a.wait_for_selector("#go:not([disabled])")
+    offered = a.inner_text("#next")
+    with a.expect_response("**/api/claims"):
+        a.keyboard.press("Enter")
+    with a.expect_response("**/api/claims"):
+        a.reload()
+    assert a.locator("#held-elsewhere").count() == 0
+    b.goto(app.url)
+    b.wait_for_selector("#go:not([disabled])")
+    assert b.inner_text("#next") != offered and "(1 being done in another tab or browser)" in b.inner_text("#clips")
+    assert a.evaluate("sessionStorage.getItem('cadestate-client')") != b.evaluate("sessionStorage.getItem('cadestate-client')")
+    context.close()
 
 
 def test_manual_tracks_by_mouse_alone(app):

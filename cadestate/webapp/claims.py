@@ -1,13 +1,14 @@
-"""Items held by the browser that opened them: two people using one app are not given the same item.
+"""Items held by the browser tab that opened them: two people (or tabs) using one app are not given the same item.
 
 Without it, two browsers were given the same next item, and the second person met a 409 after
-doing the work. A page that opens an item claims it for its browser (a client id the pages keep in
-``localStorage`` and send as the ``X-Cadestate-Client`` header), and claims it again every
+doing the work. A page that opens an item claims it for its client (its browser tab: an id the
+pages keep in ``sessionStorage`` and send as the ``X-Cadestate-Client`` header; another tab has its
+own, so one person in two tabs is given two items), and claims it again every
 :data:`HOLD_S` / 3 seconds while it stays open; a claim not renewed lapses after :data:`HOLD_S`,
 and a page that is left gives its claim back. The next item (``/api/next``, the start page's, a
-page's after an answer) skips the items another browser holds, and the start page counts them.
+page's after an answer) skips the items another client holds, and the start page counts them.
 
-A claim is advice, not a lock: a page opened on an item another browser holds says so and can
+A claim is advice, not a lock: a page opened on an item another client holds says so and can
 still answer it (the answer that comes second is refused, 409, as without claims). Claims live in
 the memory of the app's process: one app served to a team shares them; two apps over one warehouse
 do not see each other's, and a restart forgets them (the pages claim again within HOLD_S / 3).

@@ -13,14 +13,15 @@ export const el = (tag, attrs = {}, ...kids) => {
 export const media = (path) => "/" + path;   // warehouse-relative media paths start with "media/"
 export const params = () => Object.fromEntries(new URLSearchParams(location.search));
 
-// This browser's client id (kept in localStorage, shared by its tabs): items a page opens are held
-// for it (cadestate/webapp/claims.py), and the queue gives other browsers other items.
+// This tab's client id (kept in sessionStorage: a reload keeps it, another tab has its own): items a
+// page opens are held for it (cadestate/webapp/claims.py), and the queue gives other tabs and
+// browsers other items (one person working in two tabs is given two items).
 const CLIENT_KEY = "cadestate-client";
 const newClientId = () => Array.from(crypto.getRandomValues(new Uint8Array(12)), (b) => b.toString(16).padStart(2, "0")).join("");
 export const clientId = (() => {
   try {
-    let id = localStorage.getItem(CLIENT_KEY);
-    if (!id) { id = newClientId(); localStorage.setItem(CLIENT_KEY, id); }
+    let id = sessionStorage.getItem(CLIENT_KEY);
+    if (!id) { id = newClientId(); sessionStorage.setItem(CLIENT_KEY, id); }
     return id;
   } catch (e) {  // storage refused (a private window's settings): this page's own id
     return newClientId();
@@ -121,15 +122,15 @@ export async function loadTask() {
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
   const items = data.task.items || [];
   const waiting = items.filter((it) => !data.answered.includes(it.track_id));
-  const free = waiting.filter((it) => !data.held.includes(it.track_id));  // not being done in another browser
+  const free = waiting.filter((it) => !data.held.includes(it.track_id));  // not being done in another tab or browser
   let item = items.find((it) => String(it.track_id) === p.track) || free[0] || waiting[0] || items[0];
   $("#progress").textContent = items.length ? `${items.length - waiting.length} of ${items.length} answered` : "";
   holdItem({clip: data.task.clip, kind: data.task.kind, track_id: item ? item.track_id : -1});
   return {...data, item, waiting, p};
 }
 
-// Hold the item shown for this browser while the page is open (claimed again every third of the
-// hold; given back when the page is left). One another browser holds is said: someone may be doing it.
+// Hold the item shown for this tab while the page is open (claimed again every third of the hold;
+// given back when the page is left). One another tab or browser holds is said: someone may be doing it.
 async function holdItem(ref) {
   let res;
   try {
@@ -137,7 +138,7 @@ async function holdItem(ref) {
   } catch (e) {
     return;  // the app unreachable: the page says so when it saves
   }
-  if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another browser opened this item ${Math.round(res.age_s)} s ago: ` +
+  if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
     "someone may be doing it now (of two answers, the second is refused)."), "warn");
   setInterval(() => api("/api/claims", ref).catch(() => {}), res.hold_s * 1000 / 3);
   window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
@@ -208,8 +209,8 @@ export function showWaiting(clip) {
       shortcuts({Enter: () => (location.href = c.next.url)});
     } else {
       const why = failed ? "" : `: ${c.resume.message || "done"}`;
-      const held = c.tasks.reduce((n, t) => n + t.held_tracks.length, 0);  // waiting, but open in another browser
-      s.replaceChildren(...said, el("span", {id: "next-ready"}, held ? `nothing else waits on ${clip}: ${held} item(s) being done by someone else. `
+      const held = c.tasks.reduce((n, t) => n + t.held_tracks.length, 0);  // waiting, but open in another tab or browser
+      s.replaceChildren(...said, el("span", {id: "next-ready"}, held ? `nothing else waits on ${clip}: ${held} item(s) being done in another tab or browser. `
         : `nothing waits for people on ${clip}${why}. `), el("a", {href: "/"}, "back to the queue"));
     }
   };
