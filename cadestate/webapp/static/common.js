@@ -140,9 +140,11 @@ async function holdItem(ref) {
   }
   if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
     "someone may be doing it now (of two answers, the second is refused)."), "warn");
-  setInterval(() => api("/api/claims", ref).catch(() => {}), res.hold_s * 1000 / 3);
+  const renew = () => api("/api/claims", ref).catch(() => {});
+  setInterval(renew, res.hold_s * 1000 / 3);
   window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
     headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
+  window.addEventListener("pageshow", (e) => { if (e.persisted) renew(); });  // back from the back-forward cache
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
