@@ -132,19 +132,21 @@ export async function loadTask() {
 // Hold the item shown for this tab while the page is open (claimed again every third of the hold;
 // given back when the page is left). One another tab or browser holds is said: someone may be doing it.
 async function holdItem(ref) {
+  const claim = () => api("/api/claims", ref);
+  const renew = () => claim().catch(() => {});
+  // first: a page left (or restored from the back-forward cache) before the claim is answered acts too
+  window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
+    headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
+  window.addEventListener("pageshow", (e) => { if (e.persisted) renew(); });
   let res;
   try {
-    res = await api("/api/claims", ref);
+    res = await claim();
   } catch (e) {
     return;  // the app unreachable: the page says so when it saves
   }
   if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
     "someone may be doing it now (of two answers, the second is refused)."), "warn");
-  const renew = () => api("/api/claims", ref).catch(() => {});
   setInterval(renew, res.hold_s * 1000 / 3);
-  window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
-    headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
-  window.addEventListener("pageshow", (e) => { if (e.persisted) renew(); });  // back from the back-forward cache
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
