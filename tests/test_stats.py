@@ -300,6 +300,25 @@ def test_where_is_one_condition(tmp_path):
         assert result.code == 0 and result.stderr == "" and "#Scenes (clips): 0" in result.stdout, (where, result)
 
 
+def test_a_damaged_table_file_is_not_blamed_on_where(tmp_path):
+    """`stats --where` over a damaged clips file: one line naming the table and the file, as the
+    warehouse's reads say it, not --where (it said "--where \"split = 'val'\": SQL error: ... No magic
+    bytes ..."); a condition that fails is still said to be --where's, and `sql` names the file alike."""
+    from fuzz.harness import assert_clean_error, run_cli
+
+    wh = Warehouse(tmp_path / "w")
+    for clip, split in (("a", "val"), ("b", "train")):
+        wh.write("clips", clip, table_rows("clips", [{"clip": clip, "split": split}]))
+    damaged = wh.files("clips", ["a"])[0]
+    damaged.write_bytes(b"not parquet at all")
+    for args in (("stats", "--where", "split = 'val'"), ("stats",), ("sql", "SELECT count(*) FROM clips")):
+        result = run_cli("-w", str(wh.root), *args)
+        line = assert_clean_error(result, mentions="error: table clips: cannot read its files: ")
+        assert str(damaged) in line and "--where" not in line and result.stdout == "", line
+    bad = run_cli("-w", str(wh.root), "stats", "--where", "no_such_column = 1")
+    assert_clean_error(bad, mentions="error: --where 'no_such_column = 1': SQL error: Binder Error: ")
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium is not installed (/usr/bin/chromium)")
 def test_html_report_renders_in_chromium(bench3, tmp_path):
     from tasks.dataset.stats_report import write_report

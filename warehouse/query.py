@@ -66,6 +66,24 @@ def _error(e: duckdb.Error) -> QueryError:
     return QueryError(f"SQL error: {one_line(_LINE_CONTEXT.sub('', str(e)))}")
 
 
+_QUOTED = re.compile(r"""['"]([^'"]+)['"]""")
+
+
+def _failure(e: duckdb.Error, wh: Warehouse) -> WarehouseError:
+    """A DuckDB error of a running statement as one line: a file of ``wh``'s tables that cannot be
+    read (damaged: "No magic bytes found", "too small to be a Parquet file") is the warehouse's
+    failure, said as :func:`read_rows` says it (a :class:`WarehouseError`, not a
+    :class:`QueryError`: the statement is not what is wrong); any other error is the statement's."""
+    tables = wh.root / "tables"
+    if isinstance(e, (duckdb.IOException, duckdb.InvalidInputException)):
+        for quoted in _QUOTED.findall(str(e)):
+            path = Path(quoted)
+            if path.is_relative_to(tables) and path.is_file():
+                table = path.relative_to(tables).parts[0]
+                return WarehouseError(f"table {table}: cannot read its files: {one_line(_LINE_CONTEXT.sub('', str(e)))}")
+    return _error(e)
+
+
 def _parse(parser: duckdb.DuckDBPyConnection, sql: str) -> list[duckdb.Statement]:
     """The statements of ``sql``; a :class:`QueryError` when it does not parse."""
     try:
@@ -135,7 +153,7 @@ def _lock_down(con: duckdb.DuckDBPyConnection, wh: Warehouse) -> None:
     try:
         attach_views(con, wh)
     except (OSError, duckdb.Error) as e:
-        raise QueryError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
+        raise WarehouseError(f"cannot read the warehouse {wh.root}: {one_line(str(e))}") from None
     tables = wh.root / "tables"  # as the views name it too: a pattern whose '[', '*' and '?' match themselves
     readable = sorted({f"{tables.as_posix()}/", f"{literal(tables)}/"})
     con.execute("SET allowed_directories = ?", [readable])
@@ -152,16 +170,17 @@ def _fetch(cursor: duckdb.DuckDBPyConnection, batch_rows: int) -> list[tuple]:
         raise KeyboardInterrupt from None
 
 
-def _batches(cursor: duckdb.DuckDBPyConnection, first: list[tuple], batch_rows: int) -> Iterator[list[tuple]]:
-    """``first`` (the rows already fetched), then the rest of the open result of ``cursor``,
-    ``batch_rows`` at a time; errors as one line."""
+def _batches(cursor: duckdb.DuckDBPyConnection, first: list[tuple], batch_rows: int,
+             wh: Warehouse) -> Iterator[list[tuple]]:
+    """``first`` (the rows already fetched), then the rest of the open result of ``cursor`` (over
+    ``wh``), ``batch_rows`` at a time; errors as one line (:func:`_failure`)."""
     rows = first
     while rows:
         yield rows
         try:
             rows = _fetch(cursor, batch_rows)
         except duckdb.Error as e:
-            raise _error(e) from None
+            raise _failure(e, wh) from None
 
 
 _CANNOT_OPEN = re.compile(r'Cannot open file "([^"]+)"')
@@ -223,7 +242,7 @@ def run_query(wh: Warehouse, sql: str, limit: int | None = None, batch_rows: int
             statement = read_only_statement(con, sql)
             _lock_down(con, wh)
             cursor, first = _start(con, statement, wh, batch_rows)
-            yield Result([d[0] for d in cursor.description], head(_batches(cursor, first, batch_rows), limit))
+            yield Result([d[0] for d in cursor.description], head(_batches(cursor, first, batch_rows, wh), limit))
         finally:
             con.close()
 
@@ -247,7 +266,7 @@ def _start(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement, wh: Ware
         except duckdb.Error as e:
             vanished += 1
             if not _vanished(e, wh) or vanished == READ_RETRIES:
-                raise _error(e) from None
+                raise _failure(e, wh) from None
     raise QueryError(f"SQL error: partitions of the tables were rewritten under each of {PLAN_TRIES} tries of the "
                      "statement: run it again")
 

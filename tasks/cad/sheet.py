@@ -17,7 +17,8 @@ COLUMNS = 8
 def contact_sheet(wh: Warehouse, out_file: Path, where: str = "true", limit: int = 48) -> int:
     """Write a PNG of up to ``limit`` models matching the SQL condition ``where``; returns the count
     (0: no model matches, and nothing is written). :class:`warehouse.query.QueryError` when ``where``
-    is not one condition (:func:`warehouse.query.sql_condition`) or fails."""
+    is not one condition (:func:`warehouse.query.sql_condition`) or fails; a
+    :class:`warehouse.WarehouseError` naming a file of the tables that cannot be read."""
     sql = (f"SELECT m.cad_id, m.name, m.class, m.symmetry, v.image_path FROM cad_models m JOIN cad_views v "
            f"USING (library, cad_id) WHERE v.view = 0 AND (\n{sql_condition(where)}\n) ORDER BY m.cad_id LIMIT {int(limit)}")
     out_file.parent.mkdir(parents=True, exist_ok=True)  # first: a path that cannot be written is said before anything

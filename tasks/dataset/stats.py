@@ -63,7 +63,8 @@ def select_clips(wh: Warehouse, where: str = "true") -> ExportClips:
     """The clips of the ``clips`` table matching the SQL condition ``where`` (sorted), as ``export
     official`` chooses them: ``chosen`` those whose verification completed, ``unfinished`` the others
     (:func:`tasks.cad.export.verification_completed`). :class:`warehouse.query.QueryError` when
-    ``where`` is not one condition (:func:`warehouse.query.sql_condition`) or fails."""
+    ``where`` is not one condition (:func:`warehouse.query.sql_condition`) or fails; a
+    :class:`warehouse.WarehouseError` naming a file of the tables that cannot be read."""
     from tasks.cad.export import ExportClips, verification_completed
     from warehouse.query import run_query, sql_condition
 
