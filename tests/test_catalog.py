@@ -135,6 +135,22 @@ def test_a_damaged_file_is_one_line_for_status_and_stats(tmp_path):
         assert "cannot read" in result.stderr, result.stderr
 
 
+def test_a_damaged_file_when_the_catalog_is_built_is_one_line_naming_it(tmp_path):
+    """The catalog built anew (none yet, or outdated) reads every file's footer: a damaged one was a
+    pyarrow traceback ("Parquet magic bytes not found in footer") for `sql`, `stats`; now one line
+    naming the table and the file."""
+    wh = Warehouse(tmp_path / "w")
+    for clip in ("a", "b"):
+        wh.write("clips", clip, table_rows("clips", [{"clip": clip}]))
+    damaged = wh.files("clips", ["a"])[0]
+    damaged.write_bytes(b"not parquet at all")
+    for command in (["sql", "SELECT 1"], ["stats"]):
+        (wh.root / CATALOG_FILE).unlink(missing_ok=True)
+        result = run_cli("-w", str(wh.root), *command)
+        assert result.code == 2 and "Traceback" not in result.stderr and result.stderr.count("\n") == 1, result.stderr
+        assert result.stderr.startswith(f"error: table clips: cannot read its files: {damaged}: "), result.stderr
+
+
 def test_temporary_files_of_a_killed_write_go_with_the_next_compaction(tmp_path):
     """A write killed before its rename leaves ``.<uuid>.tmp`` in an append partition: the next
     compaction (past ``compact_after`` files, or ``cadestate compact``) swaps in a folder without it."""

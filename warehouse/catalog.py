@@ -103,7 +103,9 @@ def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> P
 
 
 def uniform(wh: Warehouse, table: str) -> bool:
-    """Whether every data file of ``table`` has its current schema (every footer is read)."""
+    """Whether every data file of ``table`` has its current schema (every footer is read); a
+    :class:`WarehouseError` naming a file whose footer cannot be read (damaged)."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     expected = pq.read_schema(_schema_file(wh, table, duckdb.connect()))
@@ -113,6 +115,8 @@ def uniform(wh: Warehouse, table: str) -> bool:
                 return False
         except FileNotFoundError:  # compacted or replaced meanwhile: its successor has the current schema
             continue
+        except (OSError, pa.ArrowException) as e:  # "Parquet magic bytes not found in footer": a traceback
+            raise WarehouseError(f"table {table}: cannot read its files: {f}: {one_line(str(e))}") from None
     return True
 
 
