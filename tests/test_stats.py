@@ -285,7 +285,8 @@ def test_stats_of_no_clip_are_zeros(tmp_path):
 def test_where_is_one_condition(tmp_path):
     """`stats --where` is one SQL condition on the clips table: a second statement, a parenthesis
     closing the WHERE with a clause after it (a UNION made up a clip 'zz' per frame; ORDER BY, LIMIT),
-    or nothing, is one error line naming --where; a condition with a comment or a ';' in a string works."""
+    an alias or a ';' after it, or nothing, is one error line naming --where; a condition with a
+    comment or a ';' in a string works."""
     from fuzz.harness import assert_clean_error, run_cli
 
     wh = Warehouse(tmp_path / "w")
@@ -295,6 +296,9 @@ def test_where_is_one_condition(tmp_path):
         result = run_cli("-w", str(wh.root), "stats", "--where", where)
         assert_clean_error(result, mentions=f"error: --where {where!r}: ")
         assert result.stdout == ""
+    for where in ("true;", "true AS x", "split = 'val' x", "true; -- c"):  # a SELECT list's tail, refused up front
+        result = run_cli("-w", str(wh.root), "stats", "--where", where)  # (was 'SQL error: ... syntax error')
+        assert_clean_error(result, mentions=f"error: --where {where!r}: not one SQL condition: ")
     for where in ("split = 'a;b) --'", "true -- every clip", "clip IN (SELECT clip FROM frames)"):
         result = run_cli("-w", str(wh.root), "stats", "--where", where)
         assert result.code == 0 and result.stderr == "" and "#Scenes (clips): 0" in result.stdout, (where, result)

@@ -129,13 +129,23 @@ def sql_condition(text: str) -> str:
     """``text``, to put between ``WHERE (`` and a newline and ``)``, if it is one SQL expression (a
     condition such as ``split = 'val'``): a :class:`QueryError` for anything else, a second statement
     (``;``), a parenthesis closing the ``WHERE`` or a clause after it (``true) UNION SELECT ...``,
-    ``ORDER BY``, ``LIMIT``) included. Only parsed: nothing runs."""
+    ``ORDER BY``, ``LIMIT``) included, and what one expression of a SELECT list may have after it
+    but a condition may not (an alias, ``true AS x``; a ``;``, ``true;``): the text is parsed where
+    it goes, too. Only parsed: nothing runs."""
     if not text.strip():
         raise QueryError("empty: give a SQL condition, e.g. \"split = 'val'\" (or true)")
     try:
         duckdb.SQLExpression(text)
     except duckdb.Error as e:
         raise QueryError(f"not one SQL condition: {one_line(str(e))}") from None
+    parser = _reader()
+    try:
+        parser.extract_statements(f"SELECT 1 WHERE (\n{text}\n)")
+    except duckdb.Error as e:  # SQLExpression takes "true AS x" (an alias) and "true;" (its ';' dropped)
+        raise QueryError(f"not one SQL condition: {one_line(_LINE_CONTEXT.sub('', str(e)))} "
+                         "(nothing may follow the condition: no alias, no ';')") from None
+    finally:
+        parser.close()
     return text
 
 
