@@ -304,6 +304,25 @@ def test_the_start_page_asks_for_a_page_of_clips_and_the_next_item_of_all(lwh):
         assert client.get("/api/clips", params={"limit": 0}).status_code == 422
 
 
+def test_a_bad_query_or_path_parameter_is_a_one_line_422_naming_it(lwh):
+    """FastAPI's own refusal of a parameter was a 422 whose detail was a JSON list of objects (the
+    pages showed it as it is); now one line naming the parameter, what is wrong and what was sent,
+    as the app's other errors are."""
+    with _client(lwh, Requests()) as client:
+        for url, said in (("/api/clips?offset=-1", "query parameter offset: input should be greater than or equal to 0 (got '-1')"),
+                          ("/api/clips?limit=abc", "query parameter limit: input should be a valid integer"),
+                          (f"/api/clips/{CLIP}?wait=soon", "query parameter wait: input should be a valid number"),
+                          (f"/api/verification_layers/{CLIP}/t/abc", "path parameter track_id: input should be a valid integer")):
+            r = client.get(url)
+            detail = r.json()["detail"]
+            assert r.status_code == 422 and isinstance(detail, str) and detail.startswith(said), r.text
+            assert "\n" not in detail and url.split("=")[-1].split("/")[-1] in detail, detail
+        both = client.get("/api/clips", params={"offset": -1, "limit": "x"}).json()["detail"]
+        assert both.startswith("query parameter offset: ") and "; query parameter limit: " in both, both
+        r = client.post("/api/answers", content=b"{not json", headers={"Content-Type": "application/json"})
+        assert r.status_code == 422 and r.json()["detail"].startswith("body: not JSON: "), r.text
+
+
 FAULTS = [("write", "cad_selection_labels"), ("write", "label_effort"), ("write", "label_files"), ("read", "label_files")]
 
 

@@ -28,6 +28,9 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
   item answered since ``as_of`` (nothing written either way); 500 when it was written but not
   ingested (it is ingested at the next start, unless answered again meanwhile).
 
+Every error is a ``detail`` of one line: a query or path parameter that does not parse or is out of
+range (``offset=-1``, ``wait=soon``) a 422 naming it (:func:`invalid_request`).
+
 ``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
 overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).
 The pages send their browser's client id as the ``X-Cadestate-Client`` header (claims; a request
@@ -41,10 +44,13 @@ import json
 import os
 import sys
 import threading
+from collections.abc import Mapping, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import Any
 
-from fastapi import Body, FastAPI, Header, HTTPException, Query
+from fastapi import Body, FastAPI, Header, HTTPException, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -110,6 +116,28 @@ def item_ref(payload: object) -> Item:
     return clip, kind, track
 
 
+PLACES = {"query": "query parameter", "path": "path parameter", "header": "header", "cookie": "cookie"}
+"""How :func:`invalid_request` names where a request's value came from (FastAPI's ``loc[0]``)."""
+
+
+def invalid_request(errors: Sequence[Mapping[str, Any]]) -> str:
+    """FastAPI's validation errors of a request (a query or path parameter that is not a number or
+    is out of range, a body that is not JSON) as one line naming each parameter, as the app's other
+    errors are: "query parameter offset: input should be greater than or equal to 0 (got '-1')"
+    (FastAPI's default was a JSON list of objects, which a page showed as it is)."""
+    said = []
+    for error in errors:
+        source, *names = [str(part) for part in error["loc"]]
+        message = error["msg"][:1].lower() + error["msg"][1:]
+        if error["type"] == "json_invalid":
+            message = f"not JSON: {error.get('ctx', {}).get('error', message)}"
+        elif isinstance(error.get("input"), str):
+            message += f" (got {error['input']!r})"
+        where = "body" if source == "body" else f"{PLACES.get(source, source)} {'.'.join(names)}"
+        said.append(f"{where}: {message}")
+    return one_line("; ".join(said))
+
+
 def create_app(config: Config, annotator: str | None = None, resumer: Resumer | None = None) -> FastAPI:
     """The app over ``config``'s warehouse; answers are signed ``annotator`` (default: the user).
     ``resumer``: the background resume (default: a :class:`Resumer` running the clip's flow)."""
@@ -137,6 +165,11 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         worker.stop()
 
     app = FastAPI(title="cadestate annotate", lifespan=lifespan)
+
+    @app.exception_handler(RequestValidationError)
+    async def refused(request: Request, e: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": invalid_request(e.errors())}, status_code=422)
+
     app.state.warehouse, app.state.resumer, app.state.lock = wh, worker, lock
     app.state.queue, app.state.claims = clips_queue, claims
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
