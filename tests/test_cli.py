@@ -266,6 +266,32 @@ def test_cad_sheet_where_is_one_condition(tmp_path):
     assert not (tmp_path / "s.png").exists()
 
 
+def test_cad_sheet_names_a_rendered_view_that_is_missing_or_damaged(tmp_path):
+    """A model's rendered view in the warehouse missing or damaged: one line naming it, not the
+    sheet (it said "<sheet>: cannot write the sheet there: No such file or directory"); no sheet."""
+    from PIL import Image
+
+    from conftest import table_rows
+    from fuzz.harness import assert_clean_error, run_cli
+    from warehouse import Warehouse
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("cad_models", "lib", table_rows("cad_models", [{"library": "lib", "cad_id": "m1", "name": "chair",
+                                                             "class": "chair", "symmetry": 1}]))
+    wh.write("cad_views", "lib", table_rows("cad_views", [{"library": "lib", "cad_id": "m1", "view": 0,
+                                                           "image_path": "media/cad/m1_0.png"}]))
+    view = wh.root / "media" / "cad" / "m1_0.png"
+    view.parent.mkdir(parents=True)
+    Image.new("RGB", (8, 8)).save(view)
+    assert run_cli("-w", str(wh.root), "cad", "sheet", str(tmp_path / "s.png")).code == 0
+    (tmp_path / "s.png").unlink()
+    for damage, why in ((lambda: view.write_bytes(b"not a png"), "not an image"), (view.unlink, "No such file or directory")):
+        damage()
+        result = run_cli("-w", str(wh.root), "cad", "sheet", str(tmp_path / "s.png"))
+        line = assert_clean_error(result, mentions=f"error: {view}: cannot read this CAD model's rendered view (missing or damaged: {why})")
+        assert "cannot write" not in line and not (tmp_path / "s.png").exists(), line
+
+
 @pytest.mark.slow
 def test_cad_ingest_sheet_export(tmp_path):
     folder = box_library(tmp_path, bad=True)
