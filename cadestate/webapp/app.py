@@ -5,20 +5,20 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
 
 - ``GET /api/clips[?offset=N&limit=M]``: every clip (``limit`` of them from the ``offset``-th;
   ``total``: how many there are) with its tasks (items, waiting, ``held_tracks``: waiting items
-  another browser holds), its last stage runs, its resume state, its next item; the next item of
-  all clips; how many waiting items other browsers hold (``held``); and the label files left un-ingested
+  another client holds), its last stage runs, its resume state, its next item; the next item of
+  all clips; how many waiting items other clients hold (``held``); and the label files left un-ingested
   that failed again at this start (``label_errors``, one line each);
 - ``GET /api/clips/<clip>[?wait=S]``: one clip so; with ``wait``, answered once the clip's resume is
   over or after S seconds (at most :data:`MAX_WAIT_S`), whichever comes first: a page waiting for
   the clip's next task learns it the moment the resume ends, without polling;
-- ``GET /api/next[?clip=C]``: the next waiting item no other browser holds (null: none);
-- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, those another browser
+- ``GET /api/next[?clip=C]``: the next waiting item no other client holds (null: none);
+- ``GET /api/tasks/<clip>/<task_id>``: the task document, the tracks answered, those another client
   holds (``held``), the clip's resume state, whether it is the newest task of its kind (``current``),
   why a rerun withdrew the kind's tasks (``withdrawn``: the newest asks nothing; else null) and
   ``as_of``, what answers it saw;
 - ``POST /api/claims``, ``POST /api/claims/release``: ``{clip, kind, track_id}``, the item a page
-  opened, held for its browser or given back (:mod:`cadestate.webapp.claims`); the claim answers
-  ``held_by_other`` (and ``age_s``) when another browser holds it, and ``hold_s``.
+  opened, held for its client or given back (:mod:`cadestate.webapp.claims`); the claim answers
+  ``held_by_other`` (and ``age_s``) when another client holds it, and ``hold_s``.
 - ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers
   (503, one line, when they cannot be rendered);
 - ``POST /api/answers[?as_of=T]``: a label document without ``format``/``created_at`` (see
@@ -33,8 +33,8 @@ range (``offset=-1``, ``wait=soon``) a 422 naming it (:func:`invalid_request`).
 
 ``/media/<path>`` serves files under ``<warehouse>/media`` (frames, CAD meshes and renders,
 overlays); ``/vendor/three/`` the three.js package that ``make web-vendor`` unpacked (no CDN).
-The pages send their browser's client id as the ``X-Cadestate-Client`` header (claims; a request
-without one counts every claim as another browser's).
+The pages send their tab's client id as the ``X-Cadestate-Client`` header (claims; a request
+without one counts every claim as another client's).
 """
 
 from __future__ import annotations
