@@ -1,7 +1,8 @@
 """What waits for people: the open tasks of every clip, their items, and the next item to do.
 
 A clip's open task of a kind is its newest task file of that kind (``label_tasks``), unless it
-asks nothing (withdrawn: :func:`tasks.human.labels.asks_nothing`), with items that are not answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
+asks nothing (withdrawn: :func:`tasks.human.labels.asks_nothing`), with items that are not
+answered as the stages count them (:func:`tasks.human.answers_in_force.answered_items`); a
 manual-track task is one item, answered whole. Kinds come in pipeline order (manual_track, cad_selection,
 correspondences, verification).
 
