@@ -73,8 +73,8 @@ def test_folder_source_lists_every_row(mesh_folder):
     assert items[0].cls == "other" and items[1].cls == "chair" and items[0].unit_m == 0.01
     (mesh_folder / "models.csv").rename(mesh_folder / "models.bak")
     try:  # a ShapeNet synset id names its class
-        (mesh_folder / "models.csv").write_text("id,class\ncrate,04379243\n")
-        assert [i.cls for i in folder_items(mesh_folder)] == ["table"]
+        (mesh_folder / "models.csv").write_text("id,class\ncrate,04379243\nstool,Benches\n")
+        assert [i.cls for i in folder_items(mesh_folder)] == ["table", "bench"]  # a plural too (it was 'other')
     finally:
         (mesh_folder / "models.bak").replace(mesh_folder / "models.csv")
     assert guess_kind(mesh_folder) == "folder"
@@ -123,6 +123,21 @@ def test_shapenet_layout(tmp_path):
     assert missing == [] and np.allclose(scene.extents, [0.5, 0.9, 0.5])
     with pytest.raises(CadSourceError, match="no <synset>/<model_id>"):
         list(shapenet_items(tmp_path / "03001627"))
+
+
+def test_a_shapenet_layout_of_named_category_folders_takes_its_classes_from_their_names(tmp_path):
+    """<category>/<model_id>/models/model_normalized.obj with a category named, not a synset id (a
+    lab's own collection in ShapeNet's layout): its models were none (0 models, exit 0)."""
+    for category, model in (("chair", "c1"), ("Dining Tables", "t1"), ("bags", "b1"), ("03001627", "s1")):
+        folder = tmp_path / category / model / "models"
+        folder.mkdir(parents=True)
+        trimesh.creation.box((0.5, 0.9, 0.5)).export(folder / "model_normalized.obj")
+    (tmp_path / "notes" / "old").mkdir(parents=True)  # a folder of no model is no category
+    assert guess_kind(tmp_path) == "shapenet"
+    items = list(shapenet_items(tmp_path))
+    assert [(i.cad_id, i.category, i.cls) for i in items] == [
+        ("shapenet.s1", "03001627", "chair"), ("shapenet.t1", "Dining Tables", "table"), ("shapenet.b1", "bags", "other"),
+        ("shapenet.c1", "chair", "chair")]
 
 
 def test_ids_that_slug_alike_are_made_unique_and_the_others_kept(tmp_path):
@@ -178,6 +193,10 @@ def test_a_held_model_keeps_its_id_when_a_new_item_slugs_alike(tmp_path):
     ("id,class\n,table\n", "models.csv:2: empty id"),
     ('id,class,creator\nbox,table,"A\nB"\n,chair,\n', "models.csv:4: empty id"),  # the line a quoted break moved it to
     ("id,class\nsame,table\n", "models.csv:2: id 'same' has 2 meshes (same.obj, same.ply); name one in a file column"),
+    ("id,class,file\nbox,table,box.obj\nbox,chair,same.obj\n", "models.csv:3: id 'box' is on line 2 too; an id names "
+                                                                 "one model"),  # it failed at the end: a duplicate key
+    ("id,class,unit_m\n", "models.csv: lists no model (a row per model under the header)"),  # it ingested nothing, rc 0
+    ("id,class\n,\n", "models.csv: lists no model (a row per model under the header)"),
 ])
 def test_a_bad_models_csv_is_one_line_naming_its_line(tmp_path, table, message):
     trimesh.creation.box((1, 1, 1)).export(tmp_path / "box.obj")

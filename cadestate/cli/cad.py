@@ -35,7 +35,8 @@ def cad_ingest(
       sweethome3d  a folder of *.sh3f catalogues (default: Debian's
                    sweethome3d-furniture, `make cad-library`)
       shapenet     ShapeNetCore v2: <synset>/<model_id>/models/
-                   model_normalized.obj
+                   model_normalized.obj (a category folder may be named
+                   instead, chairs/: its name gives the class)
       folder       meshes (OBJ/GLB/PLY/OFF/STL) + models.csv with columns
                    id,class[,file,licence,creator,unit_m]
 
