@@ -550,3 +550,22 @@ def test_a_library_name_held_from_another_folder_is_refused_and_the_same_folder_
     other = [dataclasses.replace(i, path=str(tmp_path / "elsewhere" / Path(i.path).name)) for i in items]
     with pytest.raises(CliError, match=f"library 'testlib' already holds models from {mesh_folder}, not "):
         held_elsewhere(wh.root, other)
+
+
+def test_warnings_are_counted_in_the_message_and_a_mesh_in_millimetres_is_one(tmp_path):
+    """A run report said nothing of warned items (a texture missing, a class unknown): only the skipped
+    were counted, so a user never learnt of them; a desk in millimetres without unit_m was a 1.2 km
+    desk, without a word."""
+    from warehouse import Warehouse
+
+    trimesh.creation.box((1200, 750, 800)).export(tmp_path / "desk.stl")
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(tmp_path / "crate.stl")
+    (tmp_path / "models.csv").write_text("id,class\ndesk,table\ncrate,crate\n")
+    wh = Warehouse(tmp_path / "w")
+    out = ingest_library(wh, CadIngestConfig(samples=256), "lab", list(folder_items(tmp_path, "lab")), "r",
+                         show_progress=False)
+    assert out.message == "2 item(s) with warnings, see cad_issues"
+    problems = {r["item"]: r["problem"] for r in wh.read("cad_issues").to_pylist()}
+    assert problems["desk"] == ("largest extent 1.2e+03 m, more than 25 m: is the mesh in other units? models.csv's "
+                                "unit_m gives metres per mesh unit (0.001 for millimetres)")
+    assert wh.read("cad_models").num_rows == 2  # a warning, not a skip

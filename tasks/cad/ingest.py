@@ -9,7 +9,9 @@ Canonical CAD frame: metres, +Y up, front +Z, origin at the centre of the axis-a
 box. A source's mesh gets, in order: its pre-rotation (Sweet Home 3D ``modelRotation``), then a
 per-axis scale to the catalogue size (Sweet Home 3D) or a uniform unit scale, then the
 translation that centres its bounding box. An item that cannot be read, is empty, or is
-degenerate is skipped and listed in ``cad_issues``; the stage never stops halfway. A library none
+degenerate is skipped and listed in ``cad_issues``, as is a warning (a file it refers to missing,
+a class outside the vocabulary, a folder model over :data:`MAX_EXTENT_M`); the stage's message
+counts both; the stage never stops halfway. A library none
 of whose items could be ingested fails the stage (naming the first item's problem) and keeps
 what it held.
 """
@@ -39,6 +41,9 @@ from warehouse import Warehouse
 MEDIA_KIND = "cad"
 MIN_EXTENT_M = 1e-3
 """A model whose largest extent is below this is degenerate."""
+MAX_EXTENT_M = 25.0
+"""A folder model whose largest extent is above this gets a warning: its mesh is likely in other units
+(millimetres, centimetres) than its ``unit_m`` says; a room's objects are smaller."""
 
 
 class CadItemError(ValueError):
@@ -140,6 +145,9 @@ def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResul
     if item.source == "folder" and item.cls == "other" and item.category.lower() != "other":
         problems.append(f"class {item.category!r} is none of the vocabulary's (tasks/cad/classes.py) nor a synonym of "
                         "one: ingested as 'other'")
+    if item.source == "folder" and model.extent.max() > MAX_EXTENT_M:  # a desk in millimetres was a 1.2 km desk
+        problems.append(f"largest extent {model.extent.max():.2g} m, more than {MAX_EXTENT_M:g} m: is the mesh in other "
+                        "units? models.csv's unit_m gives metres per mesh unit (0.001 for millimetres)")
     issues = [{**issue, "severity": "warning", "problem": "; ".join(problems)}] if problems else []  # one row an item
     row = {
         "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id, "name": item.name,
@@ -185,8 +193,9 @@ def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: lis
     wh.write("cad_samples", library, pa.Table.from_pylist(samples, schema=wh.spec("cad_samples").schema))
     wh.write("cad_issues", library, pa.Table.from_pylist(issues, schema=wh.spec("cad_issues").schema))
     wh.prune_media(MEDIA_KIND, library, keep=version)
-    skipped = sum(i["severity"] == "skipped" for i in issues)
-    said = [f"{skipped} item(s) skipped, see cad_issues"] if skipped else []
+    skipped, warned = (sum(i["severity"] == severity for i in issues) for severity in ("skipped", "warning"))
+    counts = [f"{skipped} item(s) skipped"] * bool(skipped) + [f"{warned} item(s) with warnings"] * bool(warned)
+    said = [f"{', '.join(counts)}, see cad_issues"] if counts else []  # warnings went unsaid: never seen
     outside = [m["source_category"] for m in models if m["source"] == "shapenet" and m["class"] == "other"]
     if outside:  # one line, not a row per model (ShapeNetCore's airplanes alone are 4,045)
         said.append(f"{len(outside)} model(s) of ShapeNet synsets outside the vocabulary (tasks/cad/classes.py) "
