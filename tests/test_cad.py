@@ -569,3 +569,26 @@ def test_warnings_are_counted_in_the_message_and_a_mesh_in_millimetres_is_one(tm
     assert problems["desk"] == ("largest extent 1.2e+03 m, more than 25 m: is the mesh in other units? models.csv's "
                                 "unit_m gives metres per mesh unit (0.001 for millimetres)")
     assert wh.read("cad_models").num_rows == 2  # a warning, not a skip
+
+
+def test_a_folder_that_is_no_source_says_what_would_make_it_one(tmp_path):
+    """Meshes without models.csv, or a ShapeNet synset folder given for its root: the error said only
+    'not a CAD source', the user left to guess the models.csv or the folder above."""
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    for name in ("a.stl", "b.obj"):
+        trimesh.creation.box((1, 1, 1)).export(loose / name)
+    with pytest.raises(CadSourceError) as e:
+        guess_kind(loose)
+    assert str(e.value) == (f"{loose}: 2 mesh file(s) but no models.csv: write one, a row per model "
+                            "(columns id,class[,file,licence,creator,unit_m])")
+    folder = tmp_path / "sn" / "03001627" / "m1" / "models"
+    folder.mkdir(parents=True)
+    trimesh.creation.box((1, 1, 1)).export(folder / "model_normalized.obj")
+    with pytest.raises(CadSourceError) as e:
+        guess_kind(tmp_path / "sn" / "03001627")
+    assert str(e.value) == (f"{tmp_path / 'sn' / '03001627'}: a category folder of the ShapeNet layout: give the folder "
+                            f"above it ({tmp_path / 'sn'})")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CadSourceError, match=r"empty: not a CAD source \(no \*.sh3f catalogues, no models.csv, no ShapeNet"):
+        guess_kind(tmp_path / "empty")

@@ -115,6 +115,12 @@ def test_usage_errors_are_one_clear_line(tmp_path):
     (tmp_path / "room.mp4").write_bytes(b"")
     result = cli("-w", str(tmp_path / "w"), "ingest", str(tmp_path / "room.mp4"), str(tmp_path / "room.txt"))
     assert result.returncode == 2 and result.stderr.strip() == f"error: {tmp_path / 'room.txt'}: no such file or folder"
+    table = tmp_path / "lib" / "models.csv"  # a library's models.csv given for its folder: "folder not found"
+    table.parent.mkdir()
+    table.write_text("id,class\n")
+    result = cli("-w", str(tmp_path / "w"), "cad", "ingest", str(table))
+    assert result.returncode == 2 and result.stderr.strip() == (f"error: {table}: a file, not a CAD source folder: "
+                                                               f"give its folder ({table.parent})")
     from fuzz.harness import assert_clean_error, run_cli
 
     (tmp_path / "file").write_text("x")

@@ -47,6 +47,8 @@ def cad_ingest(
 
     cfg = ctx.obj.config()
     path = source or (Path(cfg.cad_ingest.source) if cfg.cad_ingest.source else default_source())
+    if path.is_file():  # a library's models.csv, or one catalogue: "not found" sent the user looking for it
+        raise CliError(f"{path}: a file, not a CAD source folder: give its folder ({path.parent})")
     if not path.is_dir():
         raise CliError(f"{path}: CAD source folder not found" + ("" if source else " (run `make cad-library`)"))
     path = path.resolve()  # one folder, one library and one lineage, from whatever working directory

@@ -363,6 +363,12 @@ def guess_kind(path: Path) -> str:
         return "folder"
     if any(path.glob(f"*/*/{SHAPENET_MESH.as_posix()}")):
         return "shapenet"
+    # what would make it one (the error named none)
+    if any(path.glob(f"*/{SHAPENET_MESH.as_posix()}")):
+        raise CadSourceError(f"{path}: a category folder of the ShapeNet layout: give the folder above it ({path.parent})")
+    if meshes := [p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES]:
+        raise CadSourceError(f"{path}: {len(meshes)} mesh file(s) but no models.csv: write one, a row per model "
+                             "(columns id,class[,file,licence,creator,unit_m])")
     raise CadSourceError(f"{path}: not a CAD source (no *.sh3f catalogues, no models.csv, no ShapeNet layout)")
 
 
