@@ -37,10 +37,15 @@ def cad_ingest(
       shapenet     ShapeNetCore v2: <synset>/<model_id>/models/
                    model_normalized.obj (a category folder may be named
                    instead, chairs/: its name gives the class)
-      folder       meshes (OBJ/GLB/PLY/OFF/STL) + models.csv with columns
-                   id,class[,file,licence,creator,unit_m]
+      folder       meshes (OBJ/GLB/PLY/OFF/STL, +Y up) + models.csv with
+                   columns id,class[,file,licence,creator,unit_m] (file:
+                   default <id>.*; unit_m: metres per mesh unit, 0.001 for
+                   millimetres)
 
-    Unreadable, empty or degenerate models are skipped and listed in the cad_issues table.
+    Unreadable, empty or degenerate models are skipped and listed in the cad_issues table, as are
+    warnings (missing textures, unknown classes, a folder model over 25 m): `cadestate sql "SELECT * FROM
+    cad_issues"`. Run again after the folder changed: the library is ingested again, models gone
+    from it are dropped, the others keep their ids; an unchanged folder is cached.
     """
     from flows.runtime import prepare_prefect_environment
     from tasks.cad.sources import default_source, guess_kind, source_items
