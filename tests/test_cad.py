@@ -214,6 +214,15 @@ def test_a_spreadsheets_empty_rows_are_no_models(tmp_path):
     assert [i.item for i in folder_items(tmp_path)] == ["box"]
 
 
+def test_a_hand_written_models_csv_with_spaces_after_its_commas_is_read(tmp_path):
+    """"id, class, file" was refused for having no class column, and "box, table, box.obj" looked for
+    the file " box.obj"."""
+    trimesh.creation.box((1, 1, 1)).export(tmp_path / "box.obj")
+    (tmp_path / "models.csv").write_text('id, class, file, unit_m\nbox, table, box.obj, 0.5\n"a, b", Chair, box.obj, 1\n')
+    assert [(i.item, i.cls, i.path, i.unit_m) for i in folder_items(tmp_path)] == [
+        ("box", "table", str(tmp_path / "box.obj"), 0.5), ("a, b", "chair", str(tmp_path / "box.obj"), 1.0)]
+
+
 def test_spreadsheet_csv_glob_characters_and_a_bang_in_the_path(tmp_path):
     """A byte-order mark (as spreadsheets save UTF-8) is read; Latin-1 is refused by name; an id
     with glob characters finds its mesh; a folder with '!' in its path is no archive."""

@@ -198,7 +198,8 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
         raise CadSourceError(f"{folder}: no models.csv (columns: id,class[,file,licence,creator,unit_m])")
     try:
         with open(table, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
-            reader = csv.DictReader(f)
+            reader = csv.DictReader(f, skipinitialspace=True)  # "id, class": a hand-written table's spaces
+            reader.fieldnames = [name.strip() for name in reader.fieldnames or ()]  # "id ,class" too
             rows = [(reader.line_num, row) for row in reader]  # the line a row ends on (quoted line breaks)
     except UnicodeDecodeError as e:
         raise CadSourceError(f"{table}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
@@ -218,8 +219,8 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
         if name in lines:  # two models of one id: it failed after every model was ingested, on a duplicate key
             raise CadSourceError(f"{table}:{line}: id {name!r} is on line {lines[name]} too; an id names one model")
         lines[name] = line
-        if row.get("file"):
-            path = folder / row["file"]
+        if file := (row.get("file") or "").strip():
+            path = folder / file
         else:
             candidates = sorted(p for p in folder.glob(f"{glob.escape(name)}.*") if p.suffix.lower() in MESH_SUFFIXES)
             if len(candidates) > 1:
