@@ -93,3 +93,26 @@ def test_a_verdict_goes_to_the_one_pose_it_matches_best():
     assert held([pose(4, 0.001)]) == {4}
     assert held([pose(4, 0.001), pose(0, 0.002)]) == {4}, "the smaller shift before the same id"
     assert held([pose(4, 0.05)]) == set(), "moved by 5.6 px"
+
+
+def test_a_half_turn_with_the_other_quaternion_sign_is_the_same_pose():
+    """q and -q are one rotation: a pose solved again with a half turn's other sign (w = 0) is the
+    identical overlay, which counts where overlays are not compared (no model size, or
+    [verification] carry_max_px 0): its verdict was asked again."""
+    import datetime as dt
+    import json
+
+    import pyarrow as pa
+
+    from tasks.human.verdicts_in_force import held_verdicts
+
+    at = dt.datetime(2026, 12, 1, tzinfo=dt.timezone.utc)
+    turn = (0.0, 0.0, 1.0, 0.0)  # half a turn about +Y
+    item = {"track_id": 0, "cad_id": "lib.a", "pose": _pose(rotation=turn), "keyframes": [{"timestamp_us": 10}]}
+    tasks = pa.Table.from_pylist([{"task_id": "old", "kind": "verification", "created_at": at, "document": json.dumps({"items": [item]})}])
+    answers = pa.Table.from_pylist([{"task_id": "old", "track_id": 0, "accepted": True, "comment": "", "same_as_track": None,
+                                     "ingested_at": at + dt.timedelta(hours=1)}])
+    for q, kept in ((turn, {0}), ((0.0, 0.0, -1.0, 0.0), {0}), ((0.0, 1.0, 0.0, 0.0), set())):
+        pose = {"track_id": 0, "cad_id": "lib.a", **_pose(rotation=q), "keyframe_timestamps_us": [10]}
+        for extents, max_px in (({}, 2.0), ({"lib.a": UNIT}, 0.0)):
+            assert set(held_verdicts("new", [pose], answers, tasks, extents, {10: AHEAD}, max_px)) == kept, (q, extents, max_px)

@@ -116,6 +116,14 @@ def held_verdicts(task_id: str, poses: list[dict], answers: pa.Table, tasks: pa.
     return out
 
 
+def _same_pose(a: Mapping[str, Sequence[float]], b: Mapping[str, Sequence[float]]) -> bool:
+    """Whether two poses (translation, rotation as a (w, x, y, z) quaternion, scale) are the same:
+    q and -q are one rotation (a half turn, w = 0, may come out with either sign)."""
+    close = lambda u, v: np.allclose(u, v, rtol=0, atol=1e-9)  # noqa: E731
+    return (close(a["translation"], b["translation"]) and close(a["scale"], b["scale"])
+            and (close(a["rotation"], b["rotation"]) or close(a["rotation"], np.negative(b["rotation"]))))
+
+
 def _overlay_match(item: dict, pose: dict, extents: Mapping[str, Sequence[float]], cameras: Mapping[int, FrameCamera],
                    max_px: float) -> Match | None:
     """Whether (and how well: 1 and minus the shift in px, as a :data:`Match`) a verification item
@@ -126,7 +134,7 @@ def _overlay_match(item: dict, pose: dict, extents: Mapping[str, Sequence[float]
     then = item["pose"]
     if item["cad_id"] != pose["cad_id"] or bool(then["is_mirrored"]) != bool(pose["is_mirrored"]):
         return None
-    if all(np.allclose(then[k], pose[k], rtol=0, atol=1e-9) for k in ("translation", "rotation", "scale")):
+    if _same_pose(then, pose):
         return 1, 0.0
     extent = extents.get(pose["cad_id"])
     stamps = {int(k["timestamp_us"]) for k in item["keyframes"]} | {int(s) for s in pose["keyframe_timestamps_us"] or ()}
