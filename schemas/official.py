@@ -15,7 +15,8 @@ Conventions (google-research/cad-estate, ``input_file_structures.py``, ``frames.
   ``cad_id``, optional pose ``translation``, ``rotation`` (w, x, y, z), ``scale`` (absent when the
   pose failed verification), ``is_mirrored``, and ``track``: per-frame entries with ``timestamp``,
   ``box`` (ymin, xmin, ymax, xmax) normalised to [0, 1] and ``correspondences`` (list of
-  ``{"2d": (x, y) normalised, "3d": (x, y, z) object space}``) or null.
+  ``{"2d": (x, y) normalised, "3d": (x, y, z) object space}``: the CAD model's own canonical frame,
+  before the mirror, so a mirrored object's points are those clicked on the unmirrored model) or null.
 - Object-to-world: mirror => scale => rotation => translation (``cadestate.render.object_to_world``).
 """
 
