@@ -20,6 +20,7 @@ import threading
 from collections.abc import Iterator
 from contextvars import ContextVar, copy_context
 from pathlib import Path
+from typing import NoReturn
 
 from cadestate.config import Config, PrefectConfig
 from flows.server import ServerError, prefect_home, running_server
@@ -158,8 +159,6 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
     the command run again resumes them. Prefect's client retried each call to the dead API for
     ~2.5 minutes before the command failed. A run on another API (``$PREFECT_API_URL``, the
     ephemeral one) or in another thread (the annotation app's resumes) is not watched."""
-    import psutil
-
     from flows.server import end_with_server, read_server
 
     info = read_server(root)
@@ -179,10 +178,7 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
                 sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {STAGES_STOP}; "
                                  "`cadestate server start` starts it again (without it, commands run on their own)\n")
                 sys.stderr.flush()
-            for child in psutil.Process().children(recursive=True):  # a process pool's workers (cad ingest's
-                with contextlib.suppress(psutil.Error):                # renders) would go on, orphaned
-                    child.terminate()
-            os._exit(1)
+            exit_now(1)
 
     watching = end_with_server(info, ended)
     try:
@@ -191,6 +187,27 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
         with over:
             finished.set()
         watching.set()
+
+
+def exit_now(status: int) -> NoReturn:
+    """End this process at once with ``status`` (``os._exit``: its exit handlers would wait for the
+    threads of the run it leaves), its child processes terminated first (a process pool's workers,
+    cad ingest's renders, went on orphaned, holding the command's stderr) and the named semaphores
+    of its multiprocessing objects (the pool's queues and locks) unlinked, as their finalizers do at
+    a normal exit: else multiprocessing's resource tracker unlinked them after the process ended and
+    printed a 2-line "leaked semaphore objects" warning under the command's one line."""
+    from multiprocessing import synchronize, util
+
+    import psutil
+
+    for child in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            child.terminate()
+    for finalizer in list(util._finalizer_registry.values()):  # those a normal exit runs
+        if getattr(finalizer, "_callback", None) is synchronize.SemLock._cleanup:
+            with contextlib.suppress(OSError):
+                finalizer()
+    os._exit(status)
 
 
 STAGES_STOP = "the stages in progress stop unfinished (the command run again resumes them)"

@@ -292,8 +292,10 @@ def test_a_command_whose_server_stops_under_it_ends_in_one_line(tmp_path):
     finally:
         running.kill()
         cli("-w", str(w), "server", "stop", cwd=tmp_path)
-    assert f"error: the Prefect server at {info.api_url} stopped under this run: the stages in progress stop" in said
-    assert "Traceback" not in said, said
+    last = said.strip().splitlines()[-1]  # nothing after it: multiprocessing's resource tracker warned of the
+    assert last.startswith(f"error: the Prefect server at {info.api_url} stopped under this run: the stages in "
+                           "progress stop"), said  # render pool's semaphores, "leaked" by the command's exit
+    assert "Traceback" not in said and "leaked semaphore" not in said, said
 
 
 def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
