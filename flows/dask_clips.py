@@ -32,8 +32,9 @@ when imported): :func:`annotate_clip_here` sets them first.
 
 A clip whose task fails as a whole (its worker lost three times, its code not importable there,
 Prefect's API unreachable) is one ``failed`` report of stage ``annotate_clip``; the other clips go on.
-Ctrl-C or SIGTERM ends the command at once, as with threads (:func:`signals_end_the_clips`): a local
-cluster's workers are killed; a remote cluster's finish the clips they run.
+Ctrl-C or SIGTERM ends the command at once, as with threads (:func:`signals_end_the_clips`), and so
+does the warehouse's Prefect server stopping under it (:func:`flows.runtime.ends_with_its_server`,
+status 1): a local cluster's workers are killed; a remote cluster's finish the clips they run.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import sys
 import threading
 import urllib.parse
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -281,19 +282,47 @@ def _cancel_flow_runs(api_url: str, clips: list[str], since: dt.datetime) -> Non
                                                                  "resumes its clip"), force=True)
 
 
+def _stop_clips_now(client: Client, futures: dict[Future, int], probe: str,
+                    then: Callable[[], None] | None = None) -> None:
+    """Stop the clips of ``futures`` at once: a local cluster's worker processes are killed (the
+    stages in progress stop unfinished, read as interrupted: `cadestate run` resumes them), the
+    clips cancelled on the scheduler (on a cluster of ``dask_address``, those not started: Dask does
+    not stop a running task), then ``then()``, both given at most :data:`CANCEL_WAIT_S`; the token
+    file ``probe`` is removed."""
+    for nanny in client.cluster.workers.values() if client.cluster is not None else ():
+        with contextlib.suppress(AttributeError, OSError):  # a worker process not started, or gone
+            os.kill(nanny.process.process.pid, signal.SIGKILL)
+
+    def cancel() -> None:
+        client.cancel(list(futures), force=True)
+        if then is not None:
+            then()
+
+    stopping = threading.Thread(target=cancel, daemon=True)
+    stopping.start()
+    stopping.join(CANCEL_WAIT_S)
+    with contextlib.suppress(OSError):
+        Path(probe).unlink(missing_ok=True)
+
+
+def _what_stops(client: Client) -> str:
+    """What ending the command does to its clips on the cluster of ``client`` (local or not)."""
+    from flows.runtime import STAGES_STOP
+
+    return STAGES_STOP if client.cluster is not None else REMOTE_CLIPS_GO_ON
+
+
 @contextlib.contextmanager
 def signals_end_the_clips(client: Client, futures: dict[Future, int], clips: list[str], api_url: str,
                           probe: str) -> Iterator[None]:
     """Within the block (the main thread waiting for ``futures``, future -> index in ``clips``, a
     dict it empties as they end), Ctrl-C or SIGTERM ends the command at once, status 128 + the
-    signal, as with threads (:func:`flows.runtime.ctrl_c_ends_the_run`): a local cluster's worker
-    processes are killed (the stages in progress stop unfinished, read as interrupted: `cadestate
-    run` resumes them) and their flow runs marked Cancelled on the Prefect API at ``api_url``; on a
-    cluster of ``dask_address`` the clips not started are cancelled, and those running finish (Dask
-    does not stop a running task). Then the token file ``probe`` is removed and the Prefect API the
-    command launched stopped. Elsewhere, or where the signals are not ours, nothing changes."""
+    signal, as with threads (:func:`flows.runtime.ctrl_c_ends_the_run`): the clips stop
+    (:func:`_stop_clips_now`), a local cluster's flow runs are marked Cancelled on the Prefect API at
+    ``api_url``, and the Prefect API the command launched is stopped. Elsewhere, or where the
+    signals are not ours, nothing changes."""
     from flows.local_api import stop_launched_now  # not in the handler: an import there may wait on the main thread's
-    from flows.runtime import STAGES_STOP, ending_signals, say_ended
+    from flows.runtime import ending_signals, exit_now, say_ended
 
     signals = ending_signals()
     if not signals:
@@ -301,25 +330,13 @@ def signals_end_the_clips(client: Client, futures: dict[Future, int], clips: lis
         return
     since = dt.datetime.now(dt.timezone.utc)
 
-    def stop_clips(local: bool) -> None:
-        unfinished = [clips[i] for i in list(futures.values())]
-        client.cancel(list(futures), force=True)
-        if local:
-            _cancel_flow_runs(api_url, unfinished, since)
-
     def end(signum, frame) -> None:
         local = client.cluster is not None
-        say_ended(signum, STAGES_STOP if local else REMOTE_CLIPS_GO_ON)
-        for nanny in client.cluster.workers.values() if local else ():
-            with contextlib.suppress(AttributeError, OSError):  # a worker process not started, or gone
-                os.kill(nanny.process.process.pid, signal.SIGKILL)
-        stopping = threading.Thread(target=stop_clips, args=(local,), daemon=True)
-        stopping.start()
-        stopping.join(CANCEL_WAIT_S)
-        with contextlib.suppress(OSError):
-            Path(probe).unlink(missing_ok=True)
+        say_ended(signum, _what_stops(client))
+        unfinished = [clips[i] for i in list(futures.values())]
+        _stop_clips_now(client, futures, probe, then=lambda: local and _cancel_flow_runs(api_url, unfinished, since))
         stop_launched_now()
-        os._exit(128 + signum)
+        exit_now(128 + signum)
 
     before = {s: signal.signal(s, end) for s in signals}
     try:
@@ -377,7 +394,7 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
     run in another folder)."""
     from distributed import as_completed
 
-    from flows.runtime import ServerError, api_error_line, api_failure
+    from flows.runtime import ServerError, api_error_line, api_failure, ends_with_its_server
     from warehouse import Warehouse
     from warehouse.catalog import ensure_catalog
 
@@ -399,17 +416,25 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
         check_workers_api(client, api_url)
         check_workers_reach_api(client, api_url, API_CHECK_TIMEOUT_S)
         futures: dict[Future, int] = {}
-        with signals_end_the_clips(client, futures, [s.clip for s in sources], api_url, probe[0]):
+        taking = threading.Lock()  # a clip's outcome is taken under it
+
+        def server_ended() -> None:
+            taking.acquire()  # for good: no clip's outcome (its workers killed) is said after the server's line
+            _stop_clips_now(client, futures, probe[0])
+
+        with signals_end_the_clips(client, futures, [s.clip for s in sources], api_url, probe[0]), \
+                ends_with_its_server(Path(root), api_url, _what_stops(client), server_ended):
             futures.update({client.submit(annotate_clip_here, root, s, config, api_url, probe, pure=False,
                                           key=f"{WHOLE_CLIP}-{s.clip}-{uuid.uuid4().hex[:8]}"): i
                             for i, s in enumerate(sources)})
             for future in as_completed(list(futures)):
-                i = futures.pop(future)
-                try:
-                    outcomes[i] = future.result()
-                except Exception as e:  # the clip's task as a whole: report it, go on with the others
-                    outcomes[i] = _failed(sources[i].clip, e)
-                future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
-                if show_progress:
-                    print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)
+                with taking:
+                    i = futures.pop(future)
+                    try:
+                        outcomes[i] = future.result()
+                    except Exception as e:  # the clip's task as a whole: report it, go on with the others
+                        outcomes[i] = _failed(sources[i].clip, e)
+                    future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
+                    if show_progress:
+                        print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)
     return [outcomes[i] for i in range(len(sources))]

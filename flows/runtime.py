@@ -17,7 +17,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextvars import ContextVar, copy_context
 from pathlib import Path
 from typing import NoReturn
@@ -93,6 +93,10 @@ def run_flow(flow, config: Config, *args, run_name: str, tags: list[str]):
     return state_reports(state)
 
 
+STAGES_STOP = "the stages in progress stop unfinished (the command run again resumes them)"
+"""What a command's Ctrl-C, SIGTERM or server's end does to the stages it runs (here, or on a local Dask cluster)."""
+
+
 CANCEL_WAIT_S = 3.0
 """How long Ctrl-C waits for the API to mark the flow run Cancelled before the process ends."""
 
@@ -152,12 +156,15 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
+def ends_with_its_server(root: Path, api: str, what: str = STAGES_STOP,
+                         stop_work: Callable[[], None] | None = None) -> Iterator[None]:
     """Within a command's flow run on this warehouse's server (``api`` is the URL it recorded; in
     the main thread), the server ending (``cadestate server stop``, a crash) ends the command within
-    seconds, in one line with status 1, as Ctrl-C does: the stages in progress stop unfinished and
-    the command run again resumes them. Prefect's client retried each call to the dead API for
-    ~2.5 minutes before the command failed. A run on another API (``$PREFECT_API_URL``, the
+    seconds, in one line with status 1, as Ctrl-C does: ``what`` happens to the work in progress
+    (by default the stages in progress stop unfinished and the command run again resumes them),
+    ``stop_work()`` first stops what runs beyond this process's children (:func:`exit_now`; the clips of
+    a Dask cluster, :mod:`flows.dask_clips`). Prefect's client retried each call to the dead API
+    for ~2.5 minutes before the command failed. A run on another API (``$PREFECT_API_URL``, the
     ephemeral one) or in another thread (the annotation app's resumes) is not watched."""
     from flows.server import end_with_server, read_server
 
@@ -175,9 +182,11 @@ def ends_with_its_server(root: Path, api: str) -> Iterator[None]:
                 return
             with contextlib.suppress(OSError, ValueError):
                 sys.stdout.flush()
-                sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {STAGES_STOP}; "
+                sys.stderr.write(f"\nerror: the Prefect server at {api} stopped under this run: {what}; "
                                  "`cadestate server start` starts it again (without it, commands run on their own)\n")
                 sys.stderr.flush()
+            if stop_work is not None:
+                stop_work()
             exit_now(1)
 
     watching = end_with_server(info, ended)
@@ -208,10 +217,6 @@ def exit_now(status: int) -> NoReturn:
             with contextlib.suppress(OSError):
                 finalizer()
     os._exit(status)
-
-
-STAGES_STOP = "the stages in progress stop unfinished (the command run again resumes them)"
-"""What a command's Ctrl-C or SIGTERM does to the stages it runs (here, or on a local Dask cluster)."""
 
 
 def ending_signals() -> list[int]:

@@ -298,6 +298,53 @@ def test_a_command_whose_server_stops_under_it_ends_in_one_line(tmp_path):
     assert "Traceback" not in said and "leaked semaphore" not in said, said
 
 
+def test_a_command_on_a_local_dask_cluster_whose_server_stops_ends_in_one_line(tmp_path, small_clip):
+    """`server stop` under `ingest` on a local Dask cluster (`task_runner = "dask"`): the command ends
+    within seconds, in the one line a command on threads gives, status 1, its worker processes gone.
+    Its driver watched nothing: the clip failed ~2.5 minutes later, the worker's client having
+    retried the dead API, and the line said so under a progress line."""
+    import json
+    import time
+    from pathlib import Path
+
+    import psutil
+
+    w = tmp_path / "w"
+    cfg = tmp_path / "dask.toml"
+    cfg.write_text('[prefect]\ntask_runner = "dask"\nmax_workers = 1\n')
+    assert cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path).returncode == 0
+    info = read_server(w)
+    root = str(Path(__file__).resolve().parents[1])  # the local workers import this checkout
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")},
+           "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    running = subprocess.Popen([sys.executable, "-m", "cadestate", "-c", str(cfg), "-w", str(w), "ingest",
+                                str(small_clip.video_path), str(small_clip.cameras_path), "--no-progress"],
+                               cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not (markers := list((w / "_running" / "small_0").glob("detect.*.json"))) \
+                and running.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # until the detect stage runs on the worker (its run marker)
+        assert running.poll() is None, running.stderr.read()
+        worker = psutil.Process(json.loads(markers[0].read_text())["pid"])
+        family = psutil.Process(running.pid).children(recursive=True)
+        assert worker in family
+        assert cli("-w", str(w), "server", "stop", cwd=tmp_path).returncode == 0
+        assert running.wait(30) == 1
+        _, said = running.communicate(timeout=30)
+        _, alive = psutil.wait_procs(family, timeout=10)
+        assert not alive, alive
+    finally:
+        running.kill()
+        cli("-w", str(w), "server", "stop", cwd=tmp_path)
+    assert said.strip().splitlines()[-1] == (
+        f"error: the Prefect server at {info.api_url} stopped under this run: the stages in progress stop unfinished "
+        "(the command run again resumes them); `cadestate server start` starts it again (without it, commands run "
+        "on their own)"), said
+    assert "Traceback" not in said and "distributed" not in said and "leaked semaphore" not in said, said
+    assert not [p.name for p in w.iterdir() if p.name.startswith(".dask-probe-")]
+
+
 def test_a_server_record_copied_with_its_warehouse_is_not_the_copys(tmp_path):
     """`cp -a` of a warehouse copies its server record: the copy's `server stop` stopped the
     original's server. A record names its warehouse folder (device and inode); another's is no
