@@ -107,8 +107,9 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
     "interrupted", the Prefect API the command launched stopped, status 130. The thread runner had
     queued every stage of every clip, and ran them all before a KeyboardInterrupt got out. What a
     stage was writing is not published (partitions go in whole or not at all), and its run reads as
-    interrupted: `cadestate run` resumes it. The exit handlers are not run: Prefect's wait on its
-    own threads, which the interrupted ones may hold. Elsewhere (the annotation app's threads), or
+    interrupted: `cadestate run` resumes it; child processes (cad ingest's render pool) end with it
+    (:func:`exit_now`). The exit handlers are not run: Prefect's wait on its own threads, which the
+    interrupted ones may hold. Elsewhere (the annotation app's threads), or
     where Ctrl-C is ignored (a shell's background job), nothing changes. The flow run is marked
     Cancelled on the API first (:func:`cancel_flow_run`), so the Prefect UI does not show it running
     for ever. SIGTERM (``kill``, a service manager, ``timeout``) ends it the same way, status 143:
@@ -143,7 +144,7 @@ def ctrl_c_ends_the_run() -> Iterator[None]:
         say_ended(signum, STAGES_STOP)
         cancel_flow_run()
         stop_launched_now()
-        os._exit(128 + signum)
+        exit_now(128 + signum)
 
     before = {s: signal.signal(s, interrupted) for s in signals}
     token = _ENDS_THE_RUN.set(interrupted if signal.SIGTERM in signals else None)

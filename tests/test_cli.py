@@ -384,6 +384,45 @@ def test_ctrl_c_ends_a_run_at_once_and_run_resumes_it(tmp_path, small_clip, sig)
     assert rows == [{"status": "completed"}]
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_ends_cad_ingest_with_its_render_pool(tmp_path, sig):
+    """Ctrl-C or SIGTERM while `cad ingest` renders on its process pool: the pool's worker
+    processes end with the command, which says its one line last. They went on, orphaned, holding
+    the command's stderr (a reader of it waited for them), and with them multiprocessing's resource
+    tracker, which warned of the pool's "leaked" semaphores once they had ended."""
+    import contextlib
+    import signal
+
+    import psutil
+
+    signum = getattr(signal, sig)
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+    proc = subprocess.Popen([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "w"), "cad", "ingest",
+                             "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 180
+        pool: list[psutil.Process] = []
+        while not pool and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+            pool = [p for p in psutil.Process(proc.pid).children(recursive=True)
+                    if "multiprocessing.spawn" in " ".join(p.cmdline())]
+        time.sleep(3)  # its workers at work: one still starting prints its KeyboardInterrupt
+        assert proc.poll() is None and pool, proc.returncode
+        family = psutil.Process(proc.pid).children(recursive=True)
+        os.killpg(proc.pid, signum) if signum == signal.SIGINT else proc.send_signal(signum)
+        _, err = proc.communicate(timeout=30)
+        _, alive = psutil.wait_procs(family, timeout=10)
+        assert proc.returncode == 128 + signum and not alive, alive
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # its session: the pool's workers too
+    said = "interrupted" if signum == signal.SIGINT else "terminated"
+    assert err.strip().splitlines()[-1] == f"{said}: the stages in progress stop unfinished (the command run again " \
+                                           "resumes them)", err
+
+
 def prefect_apis_of(w: Path) -> list[int]:
     """Pids of the Prefect API processes (uvicorn) whose Prefect home is under warehouse ``w``."""
     pids = []
