@@ -149,17 +149,10 @@ _ENDING = threading.Lock()
 
 def _server_ended(api_url: str) -> None:
     """The server stopped under a serve: say so in one line and end, with the runs it started
-    (their API is gone too), instead of a traceback per poll."""
-    import os
-
-    import psutil
+    (their API is gone too: :func:`flows.runtime.exit_now`), instead of a traceback per poll."""
+    from flows.runtime import exit_now
 
     if not _ENDING.acquire(blocking=False):  # the watch and the main thread both saw it: one says it
         threading.Event().wait()
     err.print(f"the Prefect server at {escape(api_url)} stopped: serve ends (`cadestate server start`, then serve again)")
-    for child in psutil.Process().children(recursive=True):
-        try:
-            child.terminate()
-        except psutil.Error:
-            pass
-    os._exit(1)
+    exit_now(1)
