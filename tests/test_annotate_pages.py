@@ -191,9 +191,10 @@ def test_two_tabs_of_one_browser_are_given_different_items_and_a_reload_keeps_it
 
 
 def test_a_page_back_from_the_back_forward_cache_holds_its_item_again_at_once(app):
-    """A page left gives its item back (pagehide); restored from the back-forward cache it held the
-    item again only at its next renewal, a minute later. Chromium under automation keeps no page in
-    that cache, so the page is sent the two events the browser sends it then."""
+    """A page left gives its item back (pagehide); restored from the back-forward cache it is loaded
+    again, and so holds its item again at once, not only at its next renewal a minute later.
+    Chromium under automation keeps no page in that cache, so the page is sent the two events the
+    browser sends it then."""
     context = app.page.context.browser.new_context(viewport={"width": 1280, "height": 720})
     a, other = context.new_page(), app.page.context.browser.new_context().new_page()
     offered = _open_next(a, app.url)

@@ -133,11 +133,10 @@ export async function loadTask() {
 // given back when the page is left). One another tab or browser holds is said: someone may be doing it.
 async function holdItem(ref) {
   const claim = () => api("/api/claims", ref);
-  const renew = () => claim().catch(() => {});
-  // first: a page left (or restored from the back-forward cache) before the claim is answered acts too
+  // first: a page left before the claim is answered gives it back too (a page restored from the
+  // back-forward cache is loaded again, above, and claims again so)
   window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
     headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
-  window.addEventListener("pageshow", (e) => { if (e.persisted) renew(); });
   let res;
   try {
     res = await claim();
@@ -146,7 +145,7 @@ async function holdItem(ref) {
   }
   if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
     "someone may be doing it now (of two answers, the second is refused)."), "warn");
-  setInterval(renew, res.hold_s * 1000 / 3);
+  setInterval(() => claim().catch(() => {}), res.hold_s * 1000 / 3);
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
