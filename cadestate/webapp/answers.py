@@ -29,7 +29,7 @@ from typing import Any
 from schemas.labels import LABEL_FORMAT
 from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line
 from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels, ingest_validated
-from tasks.human.labels import ClipFacts, asks_nothing, latest_tasks, utc_now, validate_label
+from tasks.human.labels import ClipFacts, latest_tasks, utc_now, validate_label, withdrawn_why
 from warehouse import Warehouse, atomic_write_bytes
 
 LABELS_DIR = "labels"
@@ -181,9 +181,9 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
         lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
         asked, moved = lf.task_id, []
         newest = latest_tasks(wh, lf.clip).get(lf.kind)
-        if newest is not None and newest["task_id"] != asked and asks_nothing(json.loads(newest["document"])):
+        if newest is not None and newest["task_id"] != asked and (why := withdrawn_why(newest)) is not None:
             raise Conflict(f"task {asked} was withdrawn (the pipeline ran again and asks nothing of this kind now: "
-                           f"{json.loads(newest['document'])['instructions']}): this answer was not saved")
+                           f"{why}): this answer was not saved")
         if newest is not None and newest["task_id"] != asked:
             data, lf = _retargeted(payload, annotator, newest["task_id"], facts, asked)
             moved = [f"task {asked} was replaced by task {lf.task_id} (the pipeline ran again): the answer went to it"]

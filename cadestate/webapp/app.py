@@ -40,7 +40,6 @@ without one counts every claim as another client's).
 from __future__ import annotations
 
 import getpass
-import json
 import os
 import sys
 import threading
@@ -61,7 +60,7 @@ from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import SAME_POINT_M, LabelError, one_line
-from tasks.human.labels import asks_nothing, latest_tasks
+from tasks.human.labels import latest_tasks, withdrawn_why
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -251,11 +250,10 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
             raise HTTPException(404, f"no task {task_id!r} for clip {clip!r}")
         kind = doc["task"]["kind"]
         newest = latest_tasks(wh, clip).get(kind)
-        newest_doc = None if newest is None else json.loads(newest["document"])
         return {**doc, "annotator": who, "resume": worker.status(clip), "as_of": as_of,
                 "held": sorted(t for c, k, t in held if c == clip and k == kind),
                 "current": newest is None or newest["task_id"] == task_id,
-                "withdrawn": newest_doc["instructions"] if newest_doc is not None and asks_nothing(newest_doc) else None,
+                "withdrawn": withdrawn_why(newest),
                 "pose": {"coplanar_tol": tol, "min_axis_span": config.pose.min_axis_span, "same_point_m": SAME_POINT_M}}
 
     @app.get("/api/verification_layers/{clip}/{task_id}/{track_id}")

@@ -49,7 +49,7 @@ from typing import Literal
 
 from schemas.labels import Task
 from tasks.human.label_format import LabelError, parse_label, read_limited
-from tasks.human.labels import ClipFacts, asks_nothing, check_label, label_document, latest_task_of_kind
+from tasks.human.labels import ClipFacts, check_label, label_document, latest_task_of_kind, withdrawn_why
 from tasks.tracking.relations import manual_answer_statements
 from warehouse import Warehouse, atomic_write_bytes
 
@@ -356,8 +356,8 @@ def _answered_task(wh: Warehouse, clip: str, task_id: str | None) -> Task:
         if row is None:
             raise LabelError(f"clip {clip!r}: no manual_track task to answer: a clip gets one when its split is one of "
                              "[manual_tracks] splits (`cadestate ingest --split val`) and its manual_tracks stage has run")
-        if asks_nothing(json.loads(row["document"])):
-            raise LabelError(f"clip {clip!r}: its manual_track task was withdrawn: {json.loads(row['document'])['instructions']}")
+        if (why := withdrawn_why(row)) is not None:
+            raise LabelError(f"clip {clip!r}: its manual_track task was withdrawn: {why}")
         task_id = row["task_id"]
     task = ClipFacts(wh).task(clip, task_id)
     if task is None or task.kind != "manual_track":

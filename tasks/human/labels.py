@@ -140,6 +140,15 @@ def asks_nothing(document: Mapping[str, Any]) -> bool:
     return not document.get("keyframes" if document.get("kind") == "manual_track" else "items")
 
 
+def withdrawn_why(row: Mapping[str, Any] | None) -> str | None:
+    """Why the task of a ``label_tasks`` row (with its document; a kind's newest) was withdrawn: its
+    instructions when it asks nothing (:func:`asks_nothing`); None when it asks something, or no row."""
+    if row is None:
+        return None
+    document = json.loads(row["document"])
+    return document["instructions"] if asks_nothing(document) else None
+
+
 def _newest_rows(table: pa.Table, column: str) -> dict[str, int]:
     """Index of the newest ``label_tasks`` row (the first of equal times) of each value of ``column``."""
     values, created = table.column(column).to_pylist(), table.column("created_at").to_pylist()
