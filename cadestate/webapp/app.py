@@ -96,7 +96,7 @@ def checked_client(client: str | None) -> str | None:
 def required_client(client: str | None) -> str:
     """:func:`checked_client`, which a claim cannot do without (422 when missing)."""
     if client is None:
-        raise HTTPException(422, f"header {CLIENT_HEADER}: missing (the browser's client id, which holds the item)")
+        raise HTTPException(422, f"header {CLIENT_HEADER}: missing (the page's client id, which holds the item)")
     return checked_client(client)
 
 

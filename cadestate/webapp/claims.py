@@ -55,7 +55,7 @@ class Claims:
 
     def claim(self, client: str, item: Item) -> Claim | None:
         """Hold ``item`` for ``client`` for :attr:`hold_s` from now (renewed if it held it); None,
-        or the claim of the other browser that holds it (left as it is)."""
+        or the claim of the other client that holds it (left as it is)."""
         with self._lock:
             now = self._clock()
             held = self._live(now).get(item)
@@ -71,10 +71,10 @@ class Claims:
                 del self._claims[item]
 
     def held_by_others(self, client: str | None) -> set[Item]:
-        """The items held by browsers other than ``client`` (None: by any)."""
+        """The items held by clients other than ``client`` (None: by any)."""
         with self._lock:
             return {i for i, c in self._live(self._clock()).items() if c.client != client}
 
     def age_s(self, claim: Claim) -> float:
-        """Seconds since ``claim``'s browser opened its item."""
+        """Seconds since ``claim``'s client opened its item."""
         return self._clock() - claim.since

@@ -42,7 +42,7 @@ class OpenTask:
     pose_failed: list[int] = field(default_factory=list)
 
     def as_dict(self, held: Collection[Item] = ()) -> dict:
-        """As the API gives it; ``held_tracks``: the waiting items another browser holds
+        """As the API gives it; ``held_tracks``: the waiting items another client holds
         (``held``: :meth:`cadestate.webapp.claims.Claims.held_by_others`)."""
         return {"clip": self.clip, "kind": self.kind, "task_id": self.task_id, "items": len(self.items),
                 "waiting": len(self.waiting), "waiting_tracks": self.waiting, "pose_failed": self.pose_failed,
@@ -133,7 +133,7 @@ class Queue:
 
 def first_waiting(tasks: list[OpenTask], held: Collection[Item] = ()) -> dict | None:
     """The first waiting item of ``tasks`` (one clip's, :func:`clip_tasks`) not in ``held`` (another
-    browser's: :mod:`cadestate.webapp.claims`), as :meth:`Queue.next_item` gives it."""
+    client's: :mod:`cadestate.webapp.claims`), as :meth:`Queue.next_item` gives it."""
     for t in tasks:
         for track in t.waiting:
             if (t.clip, t.kind, track) in held:
