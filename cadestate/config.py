@@ -324,7 +324,8 @@ class PoseConfig:
 
     alpha: float = _opt(100.0, "Weight of the up-axis term |R e_y - e_y|_1 (px per unit); 0 switches it off.", lo=0.0)
     beta: float = _opt(1000.0, "Weight of the front-of-camera term (px per metre of depth below min_depth).", lo=0.0)
-    min_depth: float = _opt(0.05, "Depth (m) below which an annotated point counts as not in front of its camera.", lo=0.0)
+    min_depth: float = _opt(0.05, "Depth (m) below which an annotated point counts as not in front of its camera: "
+                            "metres of the object's CAD model, so worlds of any scale (SfM, RealEstate10K) alike.", lo=0.0)
     upright_classes: tuple = _opt(
         ("chair", "sofa", "bed", "table", "cabinet", "bookshelf", "lamp", "display", "bin", "plant", "bathtub", "toilet",
          "sink", "bench", "piano", "stove", "microwave", "washer", "refrigerator", "radiator", "jar", "clock",

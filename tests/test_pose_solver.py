@@ -125,6 +125,26 @@ def test_each_key_frame_has_its_own_pixel_intrinsics():
             assert rotation_error_deg(r.rotation, q, problem.symmetry) < 0.1
 
 
+@pytest.mark.parametrize("k", [0.01, 100.0])
+def test_a_world_of_another_scale_gets_the_same_pose_in_its_units(k):
+    """RealEstate10K and SfM worlds have an arbitrary scale: the cameras of make_object's problems
+    (3 m away) moved into a world k times as large give the same pose, translation and scale times
+    k, and the same status, every symmetry, mirrored or not, noisy clicks included (at k = 0.01
+    every point lay within the old absolute 0.05 of its camera: the front term made them fail)."""
+    cases = [dict(symmetry=sym, swap=True, mirrored=m, noise=n) for sym in (1, 2, 4, 36) for m in (False, True)
+             for n in (0.0, 2.0)]
+    problems = [make_object(40 + i, **kw)[0] for i, kw in enumerate(cases)]
+    base = solve_poses(problems)
+    scaled = solve_poses([dataclasses.replace(p, t=p.t * k) for p in problems])
+    for p, a, b in zip(problems, base, scaled):
+        assert a.status == "ok" and b.status == "ok", b.message
+        assert np.allclose(b.translation / k, a.translation, atol=1e-4) and np.allclose(b.scale / k, a.scale, rtol=1e-4)
+        if p.symmetry < 36:
+            assert rotation_error_deg(b.rotation, a.rotation, p.symmetry) < 0.01
+        assert np.allclose(b.keyframe_error_px, a.keyframe_error_px, atol=1e-3)
+        assert b.loss_front == pytest.approx(a.loss_front, abs=1e-9)
+
+
 def test_noisy_clicks_still_close():
     problem, (T, q, s) = make_object(11, noise=2.0, keyframes=5, points=6)
     r = solve_poses([problem])[0]
@@ -158,6 +178,10 @@ def test_loss_terms_match_hand_computation():
     assert float(e["up"]) == pytest.approx(np.abs(R[:, 1] - [0, 1, 0]).sum(), rel=1e-9)
     assert float(e["front"]) == pytest.approx(np.maximum(0, 3.2 - np.array(depth)).sum() / n, rel=1e-9)
     assert float(e["front"]) > 0
+    b.unit = torch.tensor([2.0], dtype=torch.float64)  # a world in half-metres: min_depth is 6.4 of its units
+    e2 = evaluate(b, t(R), t(s), t(T2), torch.zeros(1, 2, dtype=torch.float64), off, om, opts)
+    assert float(e2["front"]) == pytest.approx(np.maximum(0, 3.2 - np.array(depth) / 2).sum() / n, rel=1e-9)
+    b.unit = torch.ones(1, dtype=torch.float64)
     prop = 3.0 * ((np.log(s) - np.log(s).mean()) ** 2).sum()  # no axis tied: the model's proportions on all three
     assert prop > 0.01
     assert float(e["total"]) == pytest.approx(sum(l1) / n + 7 * float(e["up"]) + 11 * float(e["front"]) + prop, rel=1e-9)
@@ -466,6 +490,7 @@ def test_lm_jacobian_matches_finite_differences():
     opts = SolverOptions(min_depth=2.9)  # some points inside min_depth: the front term is active
     b = make_batch([problem], [-1], opts)
     b.prior = torch.tensor([[[0.0, 0.0, 0.0], [-1.5, 3.0, -1.5], [0.0, 0.0, 0.0]]], dtype=torch.float64)  # y held
+    b.unit = torch.tensor([1.25], dtype=torch.float64)  # world units per metre of the model: the front term divides by it
     off, om = symmetry_offsets(torch.ones_like(b.sym), True)
     L = scale_ties(b.tied, b.sym >= 36)
     pb = Problem(b, off, om, L, torch.ones(1, 3, dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64))

@@ -30,7 +30,11 @@ class Batch:
     rows for the loose axes and, with a proportion prior, the other untied ones); half
     float[B, 3] half the CAD bounding-box size (canonical CAD frame, 0 when unknown); floor_y
     float[B] the support-plane (floor) height on world +Y and floor_w float[B] the weight of the
-    floor term (px per world unit; 0: no floor term, see :func:`tasks.pose.lm.support_bottom`).
+    floor term (px per world unit; 0: no floor term, see :func:`tasks.pose.lm.support_bottom`);
+    unit float[B] world units per metre of the object's CAD model (the geometric mean of its
+    linear fit's scales, :func:`tasks.pose.solver.world_unit`; 1 until that fit): the front term's
+    ``min_depth`` and ``beta`` are per metre of it, so a world of any scale gets the same pose
+    (RealEstate10K's and SfM's are arbitrary).
 
     Derived per point (not fields; recomputed by :meth:`repeat` and :meth:`select`): Rp float[B, P,
     3, 3], tp float[B, P, 3], Kp float[B, P, 3, 3] its key-frame's camera; npts float[B] points per
@@ -56,6 +60,7 @@ class Batch:
     half: torch.Tensor
     floor_y: torch.Tensor
     floor_w: torch.Tensor
+    unit: torch.Tensor
 
     def __post_init__(self) -> None:
         B, P = self.kf.shape

@@ -134,6 +134,13 @@ def robust(d: torch.Tensor, huber_px: float) -> torch.Tensor:
     return a if huber_px <= 0 else torch.where(a <= huber_px, a * a / (2 * huber_px), a - huber_px / 2)
 
 
+def front_gap(b: Batch, z: torch.Tensor, min_depth: float) -> torch.Tensor:
+    """How far inside ``min_depth`` of its camera each point lies, float[B, P], in metres of its
+    object's CAD model (depths z float[B, P] in world units over ``b.unit``, world units per metre:
+    the same for a world of any scale); 0 beyond it and for padding."""
+    return torch.relu(min_depth - z / b.unit[:, None]) * b.pmask
+
+
 def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, beta: float, huber_px: float = 0.0):
     """Total loss float[B] (min over each key-frame's symmetric rotations) and the chosen offset
     per key-frame int[B, F]."""
@@ -152,7 +159,7 @@ def loss_and_choice(pb: Problem, R, s, T, phi, min_depth: float, alpha: float, b
     best, choice = per_kf.min(-1)  # the rotation is chosen by the reprojection term (as the solver's evaluate)
     best = torch.where(pb.b.fmask, best, torch.zeros_like(best))
     z = torch.gather(depth, 2, torch.gather(choice, 1, pb.b.kf)[..., None])[..., 0]
-    front = (torch.relu(min_depth - z) * pb.b.pmask).sum(1)
+    front = front_gap(pb.b, z, min_depth).sum(1)
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * pb.b.upright
     floor = floor_residual(pb.b, R, s, T).abs()
     prior = axis_prior(pb.b, s).sum(-1)
@@ -193,9 +200,9 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     onehot = torch.nn.functional.one_hot(pb.b.kf, F).to(DTYPE) * torch.gather(pb.free_phi, 1, pb.b.kf)[..., None]
     Jpix = torch.cat([dpix_dX @ G, torch.einsum("bpai,bpi->bpa", dpix_dX, dX_dphi)[..., None] * onehot[:, :, None, :]], -1)
     Jpix = Jpix * w[..., None, None]  # float[B, P, 2, D]
-    # front of camera: beta * relu(min_depth - z) / npts
-    active = (z < min_depth).to(DTYPE) * w
-    r_front = beta * torch.relu(min_depth - z) * w
+    # front of camera: beta * relu(min_depth - z / unit) / npts (unit: world units per metre)
+    active = (z < min_depth * pb.b.unit[:, None]).to(DTYPE) * w / pb.b.unit[:, None]
+    r_front = beta * front_gap(pb.b, z, min_depth) * w
     dz = torch.cat([pb.b.Rp[..., 2:, :] @ G, (pb.b.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
     J_front = -beta * active[..., None] * dz[:, :, 0]  # float[B, P, D]
     # up axis: alpha * (R e_y - e_y); d/dw = -alpha R [e_y]x

@@ -16,7 +16,9 @@ Objective per object (all key-frames together)::
               sum over the key-frame's points rho(u(T, R, S, M Q x) - u_click) (px), / points
     rho     = per coordinate: |d| (the paper's L1, ``huber_px`` = 0) or Huber(d; huber_px)
     L_up    = |R e_y - e_y|_1                   (upright classes only; world up +Y)
-    L_front = sum over points of max(0, min_depth - z_cam) (metres), / points
+    L_front = sum over points of max(0, min_depth - z_cam / unit) (metres), / points; unit: world
+              units per metre of the object's model (:func:`world_unit`, from the linear fit), so
+              a world of any scale (RealEstate10K's and SfM's are arbitrary) gets the same pose
     L_prop  = proportion_prior · sum over the untied axes a of (log s_a - their mean log-scale)^2
               (px; not the co-planar tie's axis, nor those L_axes holds): the chosen model's
               proportions, a weak prior beyond the paper (the paper's free scales: 0)
@@ -65,7 +67,7 @@ from cadestate.geometry import matrix_to_quaternion
 from tasks.pose.batch import Batch
 from tasks.pose.checks import check_object, coplanar_axis, final_status, prior_matrix, unobserved_axes
 from tasks.pose.initial import DTYPE, fit_scale_translation, linear_init, rotate_y, split_affine, symmetry_offsets, tie_scales, yaw_matrix
-from tasks.pose.lm import Problem, axis_prior, bottom_sd, floor_residual, lm_solve, robust, scale_ties
+from tasks.pose.lm import Problem, axis_prior, bottom_sd, floor_residual, front_gap, lm_solve, robust, scale_ties
 
 
 @dataclass(frozen=True)
@@ -117,7 +119,8 @@ class SolverOptions:
     beta: float = 1000.0
     """Weight of the front-of-camera term (px per metre behind ``min_depth``)."""
     min_depth: float = 0.05
-    """Depth (m, camera z) below which the front-of-camera term penalises a point."""
+    """Depth (m, camera z) below which the front-of-camera term penalises a point: metres of the
+    object's CAD model (world units over :func:`world_unit`), whatever the world's scale."""
     iterations: int = 400
     """Adam iterations: the fallback for objects the LM leaves unusable (every object when lm_iterations = 0)."""
     lr: float = 0.02
@@ -240,7 +243,7 @@ def make_batch(objects: list[ObjectCorrespondences], axes: list[int], opts: Solv
                  torch.as_tensor([bool(o.upright) and opts.alpha > 0 for o in objects]),
                  torch.as_tensor(axis), torch.as_tensor(tied), torch.as_tensor(loose), T(prior), T(np.stack(half)),
                  T([float(o.floor_height) for o in objects]),
-                 T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]))
+                 T([float(o.floor_weight) if o.extent is not None else 0.0 for o in objects]), torch.ones(B, dtype=DTYPE))
 
 
 def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: torch.Tensor,
@@ -272,24 +275,35 @@ def evaluate(b: Batch, R: torch.Tensor, s: torch.Tensor, T: torch.Tensor, phi: t
     kf_px = torch.zeros(B, F, dtype=DTYPE).scatter_add(1, b.kf, e) / cnt.clamp(min=1)
     repr_ = best_kf.sum(1) / npts
     up = (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)).abs().sum(-1) * b.upright
-    front = (torch.relu(opts.min_depth - z) * b.pmask).sum(1) / npts
+    gap = front_gap(b, z, opts.min_depth)
+    front = gap.sum(1) / npts
     d_best = torch.gather(d, 2, choice_p[..., None].expand(B, P, 1, 2))[:, :, 0] * b.pmask[..., None]
     floor = floor_residual(b, R, s, T)
     prior = axis_prior(b, s)
     # Signed residuals whose absolute sum is the total loss (for the IRLS / Levenberg-Marquardt polish).
     residuals = torch.cat([d_best.flatten(1) / npts[:, None],
                            opts.alpha * (R[:, :, 1] - torch.tensor([0.0, 1.0, 0.0], dtype=DTYPE)) * b.upright[:, None],
-                           opts.beta * torch.relu(opts.min_depth - z) * b.pmask / npts[:, None], prior, floor[:, None]], 1)
+                           opts.beta * gap / npts[:, None], prior, floor[:, None]], 1)
     return {"total": repr_ + opts.alpha * up + opts.beta * front + floor.abs() + prior.sum(-1), "reprojection": repr_, "up": up,
             "front": front, "floor": floor.abs(), "kf_px": kf_px, "z": torch.where(b.pmask, z, torch.ones_like(z)),
             "residuals": residuals}
 
 
+def world_unit(s: torch.Tensor) -> torch.Tensor:
+    """World units per metre of each object's CAD model, float[B], from the linear fit's scales s
+    float[B, 3] (world units per CAD metre along each axis): their geometric mean, 1 where it is
+    not a positive finite number. About 1 in a metric world; RealEstate10K's and SfM's worlds have
+    an arbitrary scale, which this carries into the front term's metres."""
+    g = torch.exp(torch.log(s).mean(-1))
+    return torch.where(torch.isfinite(g) & (g > 0), g, torch.ones_like(g))
+
+
 def _start_scale(b: Batch, T0: torch.Tensor) -> torch.Tensor:
-    """Translation unit per object float[B]: the start's mean distance to its key-frame cameras."""
+    """Translation unit per object float[B]: the start's mean distance to its key-frame cameras
+    (at least a millimetre of its model, :func:`world_unit`)."""
     cam_c = -torch.einsum("bfji,bfj->bfi", b.Rc, b.tc)
     dist = torch.linalg.norm(cam_c - T0[:, None], dim=-1)
-    return (torch.where(b.fmask, dist, torch.zeros_like(dist)).sum(1) / b.fmask.sum(1).clamp(min=1)).clamp(min=1e-3)
+    return torch.maximum(torch.where(b.fmask, dist, torch.zeros_like(dist)).sum(1) / b.fmask.sum(1).clamp(min=1), 1e-3 * b.unit)
 
 
 def _adam(b: Batch, R0, s0, T0, phi0, offsets, omask, scale_t, is36, opts: SolverOptions):
@@ -392,6 +406,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
     ok = torch.isfinite(A).all(-1).all(-1) & torch.isfinite(T).all(-1)
     R = torch.where(ok[:, None, None], R, torch.eye(3, dtype=DTYPE))
     s, T = torch.where(ok[:, None], s, torch.ones_like(s)), torch.nan_to_num(T)
+    b.unit = world_unit(s)
     angle = torch.gather(phi, 1, b.kf)  # float[B, P]: each point's symmetric rotation in the linear fit
     # 2- and 4-way offsets stay discrete (the min in the loss); 36-way ones become continuous.
     phi = torch.where((b.sym >= 36)[:, None], phi, torch.zeros_like(phi))
@@ -404,7 +419,7 @@ def _solve(objects, todo, axes, opts, results) -> None:
         # the better of the two (by the loss) is kept: a poor affine split cannot spoil every start.
         s1, T1 = fit_scale_translation(bs.pts, bs.xn, bs.kf, bs.pmask, bs.Rc, bs.tc, bs.mirror, Rs,
                                        angle.repeat_interleave(S, 0), scale_ties(bs.tied | bs.loose, bs.sym >= 36))
-        usable = torch.isfinite(s1).all(-1) & torch.isfinite(T1).all(-1) & (s1 > 1e-3).all(-1)
+        usable = torch.isfinite(s1).all(-1) & torch.isfinite(T1).all(-1) & (s1 > 1e-3 * bs.unit[:, None]).all(-1)
         s1, T1 = torch.where(usable[:, None], s1, s0), torch.where(usable[:, None], T1, T0)
         off0, om0 = symmetry_offsets(torch.where(bs.sym >= 36, torch.ones_like(bs.sym), bs.sym), True)
         l0 = torch.nan_to_num(evaluate(bs, Rs, s0, T0, phi0, off0, om0, opts)["total"], nan=float("inf"))
