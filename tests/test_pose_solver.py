@@ -458,12 +458,15 @@ def test_degenerate_inputs_get_a_clear_status():
     no_focal[1, 0, 0] = 0.0  # a singular K crashed the clip's every track (LinAlgError)
     mirror[2] = mirror[2] @ np.diag([1.0, 1.0, -1.0])  # a reflection was solved to a wrong pose, ok
     zero_k, reflected = dataclasses.replace(good, K=no_focal), dataclasses.replace(good, R=mirror)
-    results = solve_poses([few, one_view, collinear, nan, bad_index, behind, good, zero_k, reflected])
+    # camera arrays of different lengths raised (a reshape) and took the whole batch down
+    short_t, short_r = dataclasses.replace(good, t=good.t[:-1]), dataclasses.replace(good, R=good.R[:-1])
+    results = solve_poses([few, one_view, collinear, nan, bad_index, behind, good, zero_k, reflected, short_t, short_r])
     status = [r.status for r in results]
     assert status[:5] == ["too_few_points", "single_keyframe", "collinear_points", "invalid_input", "invalid_input"]
     assert status[5] in ("behind_camera", "high_residual"), results[5].message
     assert status[6] == "ok"
-    assert status[7:] == ["invalid_input"] * 2 and "focal" in results[7].message and "reflection" in results[8].message
+    assert status[7:] == ["invalid_input"] * 4 and "focal" in results[7].message and "reflection" in results[8].message
+    assert "camera shapes" in results[9].message and "camera shapes" in results[10].message
     for r in results[:5]:
         assert r.translation is None and r.message
     assert "NaN" in results[3].message or "non-finite" in results[3].message

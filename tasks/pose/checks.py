@@ -123,10 +123,12 @@ def check_object(o, opts) -> tuple[str, str] | None:
     F = len(o.K)
     if xy.ndim != 2 or xy.shape[1:] != (2,) or xyz.shape != (len(xy), 3) or kf.shape != (len(xy),):
         return "invalid_input", f"shapes do not match: xy {xy.shape}, xyz {xyz.shape}, keyframe {kf.shape}"
-    for name, a in (("2D click", xy), ("3D point", xyz), ("camera K", o.K), ("camera R", o.R), ("camera t", o.t)):
-        if not np.isfinite(np.asarray(a, float)).all():
+    K, R, t = np.asarray(o.K, float), np.asarray(o.R, float), np.asarray(o.t, float)
+    if K.shape != (F, 3, 3) or R.shape != (F, 3, 3) or t.shape != (F, 3):
+        return "invalid_input", f"camera shapes do not match: K {K.shape}, R {R.shape}, t {t.shape} (F, 3, 3 / F, 3)"
+    for name, a in (("2D click", xy), ("3D point", xyz), ("camera K", K), ("camera R", R), ("camera t", t)):
+        if not np.isfinite(a).all():
             return "invalid_input", f"non-finite {name} value(s)"
-    K, R = np.asarray(o.K, float).reshape(F, 3, 3), np.asarray(o.R, float).reshape(F, 3, 3)
     if F and not ((K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)).all():
         return "invalid_input", "a camera K whose focal length is not positive"
     if any(rotation_error(r) > ROTATION_TOL for r in R):
