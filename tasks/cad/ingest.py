@@ -19,6 +19,7 @@ what it held.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -160,12 +161,22 @@ def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResul
 
 
 def _map_items(items: list[CadItem], cfg: CadIngestConfig, out_dir: Path) -> Iterator[ItemResult]:
-    """ingest_item over ``items`` in order, on ``cfg.workers`` processes (spawned: safe beside threads)."""
+    """ingest_item over ``items`` in order, on ``cfg.workers`` processes (spawned: safe beside threads).
+
+    The workers start with Ctrl-C's SIGINT blocked (a signal mask is inherited across fork and
+    exec, and ``map`` spawns them all in this thread): a Ctrl-C reaches the terminal's whole
+    process group, and a worker still importing printed its KeyboardInterrupt traceback under the
+    command's one line; the command's end takes its workers down (:func:`flows.runtime.exit_now`)."""
     if cfg.workers == 1 or len(items) < 2:
         yield from (ingest_item(item, cfg, out_dir) for item in items)
         return
     with ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        yield from pool.map(ingest_item, items, repeat(cfg), repeat(out_dir), chunksize=4)
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            results = pool.map(ingest_item, items, repeat(cfg), repeat(out_dir), chunksize=4)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        yield from results
 
 
 def ingest_library(wh: Warehouse, cfg: CadIngestConfig, library: str, items: list[CadItem], run_id: str,
