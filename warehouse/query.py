@@ -69,17 +69,21 @@ def _error(e: duckdb.Error) -> QueryError:
 _QUOTED = re.compile(r"""['"]([^'"]+)['"]""")
 
 
+def _table_files(e: duckdb.Error, wh: Warehouse) -> list[Path]:
+    """The paths under ``wh``'s ``tables/`` that DuckDB's error ``e`` names (in quotes), there or not."""
+    tables = wh.root / "tables"
+    return [path for path in map(Path, _QUOTED.findall(str(e))) if path.is_relative_to(tables)]
+
+
 def _failure(e: duckdb.Error, wh: Warehouse) -> WarehouseError:
     """A DuckDB error of a running statement as one line: a file of ``wh``'s tables that cannot be
     read (damaged: "No magic bytes found", "too small to be a Parquet file") is the warehouse's
     failure, said as :func:`read_rows` says it (a :class:`WarehouseError`, not a
     :class:`QueryError`: the statement is not what is wrong); any other error is the statement's."""
-    tables = wh.root / "tables"
     if isinstance(e, (duckdb.IOException, duckdb.InvalidInputException)):
-        for quoted in _QUOTED.findall(str(e)):
-            path = Path(quoted)
-            if path.is_relative_to(tables) and path.is_file():
-                table = path.relative_to(tables).parts[0]
+        for path in _table_files(e, wh):
+            if path.is_file():
+                table = path.relative_to(wh.root / "tables").parts[0]
                 return WarehouseError(f"table {table}: cannot read its files: {one_line(_LINE_CONTEXT.sub('', str(e)))}")
     return _error(e)
 
@@ -193,17 +197,12 @@ def _batches(cursor: duckdb.DuckDBPyConnection, first: list[tuple], batch_rows: 
             raise _failure(e, wh) from None
 
 
-_CANNOT_OPEN = re.compile(r'Cannot open file "([^"]+)"')
-
-
 def _vanished(e: duckdb.Error, wh: Warehouse) -> bool:
     """Whether ``e`` says a file under ``wh``'s ``tables/`` that is no longer there could not be
     opened: a partition rewritten (its files swapped) while the statement read it."""
-    opened = _CANNOT_OPEN.search(str(e))
-    if not isinstance(e, duckdb.IOException) or not opened:
+    if not isinstance(e, duckdb.IOException) or "Cannot open file" not in str(e):
         return False
-    path = Path(opened.group(1))
-    return path.is_relative_to(wh.root / "tables") and not path.exists()
+    return any(not path.exists() for path in _table_files(e, wh))
 
 
 def _execute(con: duckdb.DuckDBPyConnection, statement: duckdb.Statement) -> duckdb.DuckDBPyConnection:
