@@ -270,6 +270,10 @@ def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):
         for body, headers, said in bad:
             r = client.post("/api/claims", json=body, headers=headers)
             assert r.status_code == 422 and r.json()["detail"].startswith(said), r.text
+        before = len(client.app.state.claims._claims)
+        r = client.post("/api/claims", json={**mt, "clip": "no-such-clip"}, headers=a)  # was held, in memory, for nothing
+        assert r.status_code == 404 and r.json()["detail"] == "unknown clip 'no-such-clip'", r.text
+        assert len(client.app.state.claims._claims) == before
 
 
 def test_the_start_page_counts_only_waiting_items_as_being_done_elsewhere(lwh):
@@ -280,7 +284,7 @@ def test_the_start_page_counts_only_waiting_items_as_being_done_elsewhere(lwh):
     with _client(lwh, Requests()) as client:
         for track in (0, 99):  # an item of the task, and none (a page of an older task, say)
             client.post("/api/claims", json={"clip": CLIP, "kind": "cad_selection", "track_id": track}, headers=a)
-        client.post("/api/claims", json={"clip": "gone", "kind": "cad_selection", "track_id": 0}, headers=a)
+        client.app.state.claims.claim("browser-a", ("gone", "cad_selection", 0))  # a clip removed since its claim
         assert client.get("/api/clips", headers=b).json()["held"] == 1
         assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200  # answers track 0
         assert client.get("/api/clips", headers=b).json()["held"] == 0

@@ -18,7 +18,8 @@ Pages (``static/``): ``/`` (clips, their waiting tasks, the next-item queue) and
   ``as_of``, what answers it saw;
 - ``POST /api/claims``, ``POST /api/claims/release``: ``{clip, kind, track_id}``, the item a page
   opened, held for its client or given back (:mod:`cadestate.webapp.claims`); the claim answers
-  ``held_by_other`` (and ``age_s``) when another client holds it, and ``hold_s``.
+  ``held_by_other`` (and ``age_s``) when another client holds it, and ``hold_s``; a clip the
+  warehouse does not hold is a 404.
 - ``GET /api/verification_layers/<clip>/<task_id>/<track_id>``: the posed model's image layers
   (503, one line, when they cannot be rendered);
 - ``POST /api/answers[?as_of=T]``: a label document without ``format``/``created_at`` (see
@@ -232,7 +233,10 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     @app.post("/api/claims")
     def claim(payload: object = Body(...), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
-        other = claims.claim(required_client(client), item_ref(payload))
+        client, item = required_client(client), item_ref(payload)
+        if not wh.has_partition("clips", item[0]):  # held in memory until it lapsed, for nothing
+            raise HTTPException(404, f"unknown clip {item[0]!r}")
+        other = claims.claim(client, item)
         return {"held_by_other": other is not None, "age_s": None if other is None else round(claims.age_s(other), 1),
                 "hold_s": claims.hold_s}
 
