@@ -62,6 +62,8 @@ USED_SEEDS: dict[int, str] = {
                 "for the pose solver's proportion prior; stop 66: one of the seven seeds the fitted 480 canvas "
                 "was chosen on",
     5550001: "generated in stop 72 at 1920 x 1080 to judge an antialiased shrink of the detector's input (not adopted)",
+    3000101: "generated in stop 78 (2 clips): SfM's world scale measured on it, and the room depth that brings it "
+             "to metres (tasks.video.sfm.ROOM_DEPTH_M) chosen with it",
     999983: "generated in stop 64 to judge the drawn class exponent and the descriptor's training rooms; stop 65: "
             "its wrong poses studied for the pose solver's proportion prior; stop 66: one of the seven seeds the "
             "fitted 480 canvas was chosen on",

@@ -15,8 +15,11 @@ model), else interpolated between its registered neighbours (slerp of the rotati
 centre; the nearest one's pose at the ends) and flagged.
 
 Frames: COLMAP's ``cam_from_world`` is world->camera with OpenCV camera axes, as RealEstate10K
-(:mod:`cadestate.geometry`); the world is SfM's, of arbitrary scale, origin and up (the ``ingest``
-stage finds up). Several disconnected models: the largest is kept, the others are reported.
+(:mod:`cadestate.geometry`); the world is SfM's, of arbitrary origin and up (the ``ingest`` stage
+finds up), and of its scale (GLOMAP's: 7-11 units per metre on two benchmark clips) brought to
+about metres (:func:`room_scale`): its points' median depth, from the frames that see them, made
+:data:`ROOM_DEPTH_M`; the stages' metric constants (tracking's 3D cues, :mod:`tasks.tracking.track3d`)
+assume a room's scale. Several disconnected models: the largest is kept, the others are reported.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from cadestate.geometry import camera_to_world, world_to_camera
 from tasks.video.camera_file import CameraTrack
 from tasks.video.decode import VideoError, probe_video, upright
 from tasks.video.sfm_focal import FocalEstimate, ba_options, bundle_adjust, estimate_focal, refine_focal, set_focal
-from tasks.video.sfm_register import frame_correspondences, register_frames
+from tasks.video.sfm_register import frame_correspondences, point_ids, register_frames
 
 
 class SfmError(ValueError):
@@ -71,6 +74,7 @@ class SfmResult:
         whether the last bundle adjustment's was kept.
       polished: observations the polish dropped (:func:`polish`; 0 when it is off).
       reprojection_px: the kept model's mean reprojection error, px.
+      scale: the factor :func:`room_scale` applied to SfM's world (track units per SfM unit).
     """
 
     track: CameraTrack
@@ -81,6 +85,7 @@ class SfmResult:
     focal_refined: bool = False
     polished: int = 0
     reprojection_px: float = 0.0
+    scale: float = 1.0
 
     @property
     def registered_fraction(self) -> float:
@@ -232,6 +237,29 @@ def check_registered(video: Path | str, registered: np.ndarray, cfg: CamerasConf
     return others
 
 
+ROOM_DEPTH_M = 3.0
+"""The median depth (m) of an indoor walkthrough's SfM points, seen from the frames that see them:
+:func:`room_scale` makes SfM's world's median this. 3.6 and 2.7 m in the true world on two
+benchmark clips of seed 3000101 (bench/seeds.py), whose SfM worlds it brought to 1.21 and 0.89 m per
+unit (from 0.09 and 0.14); the true depth varies with the room, so the world keeps a scale of its
+own, within a small factor of metres."""
+
+
+def room_scale(reconstruction) -> float:
+    """The factor that brings ``reconstruction``'s world to a room's scale: :data:`ROOM_DEPTH_M`
+    over the median camera-frame depth of every observation of its 3D points (1 when it has none)."""
+    depths = []
+    for image in reconstruction.images.values():
+        ids = point_ids(image) if image.has_pose else np.zeros(0, np.int64)
+        ids = ids[ids >= 0]
+        if len(ids):
+            X = np.array([reconstruction.points3D[int(i)].xyz for i in ids])
+            pose = image.cam_from_world()
+            depths.append(X @ pose.rotation.matrix()[2] + pose.translation[2])
+    median = float(np.median(np.concatenate(depths))) if depths else 0.0
+    return ROOM_DEPTH_M / median if median > 0 else 1.0
+
+
 def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, float, float] | None = None,
             url: str | None = None, work_dir: Path | None = None) -> SfmResult:
     """Cameras of ``video`` by SfM (module docstring); ``url`` is the camera file's line 1
@@ -303,6 +331,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             seconds["between"] = time.perf_counter() - t
         else:
             extra = {}
+        scale = room_scale(best)
     index = {name: i for i, name in enumerate(names)}
     registered = np.zeros(n, dtype=bool)
     R, c = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -313,7 +342,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         c[i] = camera_to_world(R[i], np.asarray(pose.translation))[1]
         registered[i] = True
     check_registered(video, registered, cfg, [m.num_reg_images() for m in ranked])
-    R, c = _interpolate(frames.times_us, registered, R, c)
+    R, c = _interpolate(frames.times_us, registered, R, c * scale)
     R_wc, t_wc = world_to_camera(np.swapaxes(R, -1, -2), c)
     camera = best.cameras[next(iter(best.cameras))]
     fx, fy = camera.focal_length_x, camera.focal_length_y
@@ -324,7 +353,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
                         np.concatenate([R_wc, t_wc[:, :, None]], axis=2))
     seconds["total"] = time.perf_counter() - t0
     return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()},
-                     focal, refined, dropped, round(float(best.compute_mean_reprojection_error()), 3))
+                     focal, refined, dropped, round(float(best.compute_mean_reprojection_error()), 3), scale)
 
 
 def sfm_report(result: SfmResult) -> dict:
@@ -332,7 +361,7 @@ def sfm_report(result: SfmResult) -> dict:
     return {"registered_fraction": round(result.registered_fraction, 4),
             "interpolated": [bool(not r) for r in result.registered],
             "models": result.models, "seconds": result.seconds, "polished_observations": result.polished,
-            "reprojection_px": result.reprojection_px, **focal_report(result)}
+            "reprojection_px": result.reprojection_px, "scale": round(result.scale, 6), **focal_report(result)}
 
 
 def focal_report(result: SfmResult) -> dict:

@@ -33,7 +33,7 @@ class Correspondences:
     points3D: np.ndarray
 
 
-def _point_ids(image) -> np.ndarray:
+def point_ids(image) -> np.ndarray:
     """int64[K] the 3D point id of each of a registered image's keypoints (-1: none)."""
     return np.array([p.point3D_id if p.has_point3D() else -1 for p in image.points2D], dtype=np.int64)
 
@@ -50,7 +50,7 @@ def frame_correspondences(db_path: Path, reconstruction, names: list[str]) -> di
         ids = {image.name: image.image_id for image in db.read_all_images()}
         wanted = {ids[name]: name for name in names}
         registered = {i for i, image in reconstruction.images.items() if image.has_pose}
-        point_ids: dict[int, np.ndarray] = {}
+        seen_ids: dict[int, np.ndarray] = {}
         links: dict[int, dict[int, int]] = {i: {} for i in wanted}
         for pair_id, geometry in zip(*db.read_two_view_geometries()):
             pair = pycolmap.pair_id_to_image_pair(pair_id)
@@ -59,9 +59,9 @@ def frame_correspondences(db_path: Path, reconstruction, names: list[str]) -> di
                 mine, other = pair[side], pair[1 - side]
                 if mine not in wanted or other not in registered or not len(matches):
                     continue
-                if other not in point_ids:
-                    point_ids[other] = _point_ids(reconstruction.images[other])
-                seen = point_ids[other][matches[:, 1 - side]]
+                if other not in seen_ids:
+                    seen_ids[other] = point_ids(reconstruction.images[other])
+                seen = seen_ids[other][matches[:, 1 - side]]
                 for keypoint, point in zip(matches[seen >= 0, side].tolist(), seen[seen >= 0].tolist()):
                     links[mine].setdefault(keypoint, point)
         out = {}
