@@ -201,8 +201,9 @@ def residuals_jacobian(pb: Problem, R, ls, T, phi, choice, min_depth: float, alp
     Jpix = torch.cat([dpix_dX @ G, torch.einsum("bpai,bpi->bpa", dpix_dX, dX_dphi)[..., None] * onehot[:, :, None, :]], -1)
     Jpix = Jpix * w[..., None, None]  # float[B, P, 2, D]
     # front of camera: beta * relu(min_depth - z / unit) / npts (unit: world units per metre)
-    active = (z < min_depth * pb.b.unit[:, None]).to(DTYPE) * w / pb.b.unit[:, None]
-    r_front = beta * front_gap(pb.b, z, min_depth) * w
+    gap = front_gap(pb.b, z, min_depth)
+    active = (gap > 0).to(DTYPE) * w / pb.b.unit[:, None]
+    r_front = beta * gap * w
     dz = torch.cat([pb.b.Rp[..., 2:, :] @ G, (pb.b.Rp[..., 2, :] * dX_dphi).sum(-1)[..., None, None] * onehot[:, :, None, :]], -1)
     J_front = -beta * active[..., None] * dz[:, :, 0]  # float[B, P, D]
     # up axis: alpha * (R e_y - e_y); d/dw = -alpha R [e_y]x
