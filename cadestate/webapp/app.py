@@ -198,6 +198,12 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
             raise HTTPException(404, f"media/{path}: no such file")
         return FileResponse(target, headers={"Cache-Control": "max-age=3600"})
 
+    def known_clip(clip: str) -> str:
+        """``clip``, or a 404 when the warehouse does not hold it."""
+        if not wh.has_partition("clips", clip):
+            raise HTTPException(404, f"unknown clip {clip!r}")
+        return clip
+
     def clip_view(clip: str, held: set[Item]) -> dict:
         resume = worker.status(clip)  # first: when it says ready, the tasks read next are what the resume left
         state = clips_queue.state(clip)
@@ -217,9 +223,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
 
     @app.get("/api/clips/{clip}")
     def one_clip(clip: str, wait: float = 0.0, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
-        client = checked_client(client)
-        if not wh.has_partition("clips", clip):
-            raise HTTPException(404, f"unknown clip {clip!r}")
+        client, clip = checked_client(client), known_clip(clip)
         if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
             worker.wait_idle(clip, min(wait, MAX_WAIT_S))
         return clip_view(clip, claims.held_by_others(client))
@@ -227,15 +231,12 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     @app.get("/api/next")
     def next_item(clip: str | None = None, client: str | None = Header(None, alias=CLIENT_HEADER)) -> JSONResponse:
         held = claims.held_by_others(checked_client(client))
-        if clip is not None and not wh.has_partition("clips", clip):
-            raise HTTPException(404, f"unknown clip {clip!r}")
-        return JSONResponse(clips_queue.next_item(clip, held))
+        return JSONResponse(clips_queue.next_item(None if clip is None else known_clip(clip), held))
 
     @app.post("/api/claims")
     def claim(payload: object = Body(...), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
         client, item = required_client(client), item_ref(payload)
-        if not wh.has_partition("clips", item[0]):  # held in memory until it lapsed, for nothing
-            raise HTTPException(404, f"unknown clip {item[0]!r}")
+        known_clip(item[0])  # a claim of no clip was held in memory until it lapsed, for nothing
         other = claims.claim(client, item)
         return {"held_by_other": other is not None, "age_s": None if other is None else round(claims.age_s(other), 1),
                 "hold_s": claims.hold_s}
