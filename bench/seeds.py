@@ -63,7 +63,12 @@ USED_SEEDS: dict[int, str] = {
                 "was chosen on",
     5550001: "generated in stop 72 at 1920 x 1080 to judge an antialiased shrink of the detector's input (not adopted)",
     3000101: "generated in stop 78 (2 clips): SfM's world scale measured on it, and the room depth that brings it "
-             "to metres (tasks.video.sfm.ROOM_DEPTH_M) chosen with it",
+             "to metres (tasks.video.sfm.ROOM_DEPTH_M) chosen with it; stop 79: its focal length 18 % off studied "
+             "for SfM's remapping ([cameras] focal_remaps)",
+    3000201: "generated in stop 79 (8 clips): SfM's focal length on each, one 38 % off studied for SfM's remapping "
+             "([cameras] focal_remaps, its cap of 2 remaps)",
+    3000301: "generated in stop 79 (8 clips): SfM's focal length before and after its remapping, measured once, "
+             "not tuned on",
     999983: "generated in stop 64 to judge the drawn class exponent and the descriptor's training rooms; stop 65: "
             "its wrong poses studied for the pose solver's proportion prior; stop 66: one of the seven seeds the "
             "fitted 480 canvas was chosen on",

@@ -8,7 +8,8 @@ camera shared by every frame (pinhole: ``SIMPLE_PINHOLE`` with the principal poi
 centre and its focal length estimated from field-of-view hypotheses and held fixed while mapping,
 or ``PINHOLE`` fixed to the given ``intrinsics``), a polish (observations past
 ``[cameras] polish_reproj_error_px`` dropped and the model adjusted again, :func:`polish`), a last
-bundle adjustment with the estimated focal length free (:mod:`tasks.video.sfm_focal`), the frames
+bundle adjustment with the estimated focal length free (:mod:`tasks.video.sfm_focal`; where it
+moves the focal length too far, the keyframes are mapped again holding the one it moved to), the frames
 between keyframes registered to that model (:mod:`tasks.video.sfm_register`), then one camera
 line per sampled frame: SfM's own pose when the frame was registered (mapped or registered to the
 model), else interpolated between its registered neighbours (slerp of the rotation, linear camera
@@ -72,6 +73,10 @@ class SfmResult:
         between: registering the frames between keyframes, total).
       focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
         whether the last bundle adjustment's was kept.
+      focal_held: the focal length (px) each mapping held: the estimate's, then the one the
+        bundle adjustment of each mapping moved to where it moved past ``max_focal_change`` and
+        stayed within the hypotheses' range (``[cameras] focal_remaps``); empty with given
+        intrinsics.
       polished: observations the polish dropped (:func:`polish`; 0 when it is off).
       reprojection_px: the kept model's mean reprojection error, px.
       scale: the factor :func:`room_scale` applied to SfM's world (track units per SfM unit).
@@ -83,6 +88,7 @@ class SfmResult:
     seconds: dict[str, float] = field(default_factory=dict)
     focal: FocalEstimate | None = None
     focal_refined: bool = False
+    focal_held: list[float] = field(default_factory=list)
     polished: int = 0
     reprojection_px: float = 0.0
     scale: float = 1.0
@@ -260,6 +266,35 @@ def room_scale(reconstruction) -> float:
     return ROOM_DEPTH_M / median if median > 0 else 1.0
 
 
+def _map_keyframes(db: Path, tmp: Path, out: Path, keyframes: list[str], cfg: CamerasConfig, mapping,
+                   seconds: dict[str, float], video: Path, n: int):
+    """Map ``keyframes`` of the database ``db`` (images in ``tmp``/images, the models into the new
+    folder ``out``) with its camera as it is, then :func:`polish` the largest model; returns (every
+    model, largest first; the polished largest; observations the polish dropped). Adds the wall
+    seconds to ``seconds`` (mapping, polish). Raises :class:`SfmError` when there is no model
+    (``n``: the sampled frames of ``video``)."""
+    import pycolmap
+
+    t = time.perf_counter()
+    out.mkdir()
+    if cfg.mapper == "global":
+        models = pycolmap.global_mapping(db, tmp / "images", out, _global_options(cfg, keyframes))
+    else:
+        if cfg.keyframe_every > 1:
+            mapping.image_names = keyframes
+        models = pycolmap.incremental_mapping(db, tmp / "images", out, mapping)
+    seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t
+    if not models:
+        raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
+    ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
+    best, dropped = ranked[0], 0
+    if cfg.polish_reproj_error_px > 0:
+        t = time.perf_counter()
+        best, dropped = polish(best, cfg.polish_reproj_error_px, mapping.mapper.filter_min_tri_angle, cfg.threads)
+        seconds["polish"] = seconds.get("polish", 0.0) + time.perf_counter() - t
+    return ranked, best, dropped
+
+
 def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, float, float] | None = None,
             url: str | None = None, work_dir: Path | None = None) -> SfmResult:
     """Cameras of ``video`` by SfM (module docstring); ``url`` is the camera file's line 1
@@ -299,31 +334,22 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             t = time.perf_counter()
             focal = estimate_focal(db, tmp / "images", names, frames.width, cfg, mapping, tmp)
             seconds["focal"] = time.perf_counter() - t
-        t = time.perf_counter()
-        (tmp / "sparse").mkdir()
-        if focal:
-            set_focal(db, focal.focal_px)
         keyframes = names[::cfg.keyframe_every]
-        if cfg.mapper == "global":
-            models = pycolmap.global_mapping(db, tmp / "images", tmp / "sparse", _global_options(cfg, keyframes))
-        else:
-            if cfg.keyframe_every > 1:
-                mapping.image_names = keyframes
-            models = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", mapping)
-        seconds["mapping"] = time.perf_counter() - t
-        n = len(frames.paths)
-        if not models:
-            raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
-        ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
-        best, refined, dropped = ranked[0], False, 0
-        if cfg.polish_reproj_error_px > 0:
+        held = [focal.focal_px] if focal else []  # the focal length (px) each mapping held
+        while True:
+            if focal:
+                set_focal(db, held[-1])
+            ranked, best, dropped = _map_keyframes(db, tmp, tmp / f"sparse-{len(held)}", keyframes, cfg, mapping, seconds,
+                                                   video, len(names))
+            if not focal:
+                refined = False
+                break
             t = time.perf_counter()
-            best, dropped = polish(best, cfg.polish_reproj_error_px, mapping.mapper.filter_min_tri_angle, cfg.threads)
-            seconds["polish"] = time.perf_counter() - t
-        if focal:
-            t = time.perf_counter()
-            best, refined = refine_focal(best, cfg.max_focal_change, cfg.threads)
-            seconds["refine"] = time.perf_counter() - t
+            best, refined, proposed = refine_focal(best, cfg.max_focal_change, cfg.threads)
+            seconds["refine"] = seconds.get("refine", 0.0) + time.perf_counter() - t
+            if refined or len(held) > cfg.focal_remaps or not focal.hypotheses_px.min() <= proposed <= focal.hypotheses_px.max():
+                break  # a move out of the hypotheses' range is not followed (sfm_focal's docstring)
+            held.append(proposed)
         between = sorted(set(names) - set(keyframes))
         if between:
             t = time.perf_counter()
@@ -332,6 +358,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         else:
             extra = {}
         scale = room_scale(best)
+    n = len(names)
     index = {name: i for i, name in enumerate(names)}
     registered = np.zeros(n, dtype=bool)
     R, c = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -353,7 +380,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
                         np.concatenate([R_wc, t_wc[:, :, None]], axis=2))
     seconds["total"] = time.perf_counter() - t0
     return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()},
-                     focal, refined, dropped, round(float(best.compute_mean_reprojection_error()), 3), scale)
+                     focal, refined, held, dropped, round(float(best.compute_mean_reprojection_error()), 3), scale)
 
 
 def sfm_report(result: SfmResult) -> dict:
@@ -366,14 +393,17 @@ def sfm_report(result: SfmResult) -> dict:
 
 def focal_report(result: SfmResult) -> dict:
     """The focal length found, as a fraction of the image width (``fx / w``): the kept one, the
-    hypotheses' estimate, whether the last bundle adjustment was kept, and per hypothesis [start,
+    hypotheses' estimate, the one each mapping held (:attr:`SfmResult.focal_held`), whether the
+    last bundle adjustment was kept, and per hypothesis [start,
     adjusted (None: no model), mean reprojection error px (None: too few frames registered)].
     Empty with given intrinsics."""
     f = result.focal
     if f is None:
         return {}
     return {"focal_fx_over_width": round(float(result.track.intrinsics[0, 0]), 4),
-            "focal_estimate_fx_over_width": round(f.focal_px / f.width, 4), "focal_refined": result.focal_refined,
+            "focal_estimate_fx_over_width": round(f.focal_px / f.width, 4),
+            "focal_held_fx_over_width": [round(h / f.width, 4) for h in result.focal_held],
+            "focal_refined": result.focal_refined,
             "focal_hypotheses": [[round(h / f.width, 4), round(a / f.width, 4) if np.isfinite(a) else None,
                                   round(float(e), 3) if np.isfinite(e) else None]
                                  for h, a, e in zip(f.hypotheses_px, f.adjusted_px, f.errors_px)]}
