@@ -73,10 +73,10 @@ class SfmResult:
         between: registering the frames between keyframes, total).
       focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
         whether the last bundle adjustment's was kept.
-      focal_held: the focal length (px) each mapping held: the estimate's, then the one the
-        bundle adjustment of each mapping moved to where it moved past ``max_focal_change`` and
-        stayed within the hypotheses' range (``[cameras] focal_remaps``); empty with given
-        intrinsics.
+      focal_held: the focal length (px) each kept mapping held: the estimate's, then the one the
+        bundle adjustment of the mapping before moved to, past ``max_focal_change`` and within
+        the hypotheses' range (``[cameras] focal_remaps``; :mod:`tasks.video.sfm_focal`); empty
+        with given intrinsics.
       polished: observations the polish dropped (:func:`polish`; 0 when it is off).
       reprojection_px: the kept model's mean reprojection error, px.
       scale: the factor :func:`room_scale` applied to SfM's world (track units per SfM unit).
@@ -335,21 +335,29 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             focal = estimate_focal(db, tmp / "images", names, frames.width, cfg, mapping, tmp)
             seconds["focal"] = time.perf_counter() - t
         keyframes = names[::cfg.keyframe_every]
-        held = [focal.focal_px] if focal else []  # the focal length (px) each mapping held
-        while True:
-            if focal:
-                set_focal(db, held[-1])
-            ranked, best, dropped = _map_keyframes(db, tmp, tmp / f"sparse-{len(held)}", keyframes, cfg, mapping, seconds,
-                                                   video, len(names))
-            if not focal:
-                refined = False
-                break
+        held = [focal.focal_px] if focal else []  # the focal length (px) each kept mapping held
+        if focal:
+            set_focal(db, focal.focal_px)
+        ranked, best, dropped = _map_keyframes(db, tmp, tmp / "sparse-0", keyframes, cfg, mapping, seconds, video, len(names))
+        refined = False
+        while focal:
             t = time.perf_counter()
-            best, refined, proposed = refine_focal(best, cfg.max_focal_change, cfg.threads)
+            adjusted, refined, proposed = refine_focal(best, cfg.max_focal_change, cfg.threads)
             seconds["refine"] = seconds.get("refine", 0.0) + time.perf_counter() - t
-            if refined or len(held) > cfg.focal_remaps or not focal.hypotheses_px.min() <= proposed <= focal.hypotheses_px.max():
+            if refined:
+                best = adjusted
+                break
+            if len(held) > cfg.focal_remaps or not focal.hypotheses_px.min() <= proposed <= focal.hypotheses_px.max():
                 break  # a move out of the hypotheses' range is not followed (sfm_focal's docstring)
+            set_focal(db, proposed)
+            try:
+                again = _map_keyframes(db, tmp, tmp / f"sparse-{len(held)}", keyframes, cfg, mapping, seconds, video, len(names))
+            except SfmError:
+                break
+            if again[0][0].num_reg_images() < ranked[0].num_reg_images():
+                break  # fewer keyframes registered than the mapping before: that one is kept
             held.append(proposed)
+            ranked, best, dropped = again
         between = sorted(set(names) - set(keyframes))
         if between:
             t = time.perf_counter()

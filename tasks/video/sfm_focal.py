@@ -21,7 +21,8 @@ true focal length is 0.785), and the adjustment of every keyframe knows better: 
 mapped again holding the focal length it moved to, up to ``focal_remaps`` times, and the last
 mapping is kept (refined when its adjustment stayed within the bound). A move out of the
 hypotheses' range is not followed: on a 2-second clip the adjustment drifted from a focal length
-0.8 % off to past the range's end, and mapping there kept it 28 % off.
+0.8 % off to past the range's end, and mapping there kept it 28 % off. A mapping again that finds
+no model, or registers fewer keyframes than the one before, is dropped: the one before is kept.
 Deterministic: each hypothesis runs the seeded mapper on its own copy of the database;
 ``[cameras] workers`` of them side by side.
 """
