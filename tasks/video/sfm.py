@@ -69,8 +69,8 @@ class SfmResult:
       registered: bool[N], True where the camera is SfM's own, mapped or registered to the model
         (False: interpolated).
       models: mapped frames (keyframes) of every model found, largest first (the first one is kept).
-      seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, polish, refine,
-        between: registering the frames between keyframes, total).
+      seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, polish, refine:
+        summed over the mappings; between: registering the frames between keyframes, total).
       focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
         whether the last bundle adjustment's was kept.
       focal_held: the focal length (px) each kept mapping held: the estimate's, then the one the
