@@ -270,10 +270,61 @@ def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):
         for body, headers, said in bad:
             r = client.post("/api/claims", json=body, headers=headers)
             assert r.status_code == 422 and r.json()["detail"].startswith(said), r.text
-        before = len(client.app.state.claims._claims)
+        before = client.app.state.claims.all()
         r = client.post("/api/claims", json={**mt, "clip": "no-such-clip"}, headers=a)  # was held, in memory, for nothing
         assert r.status_code == 404 and r.json()["detail"] == "unknown clip 'no-such-clip'", r.text
-        assert len(client.app.state.claims._claims) == before
+        assert client.app.state.claims.all() == before
+
+
+def test_every_app_over_one_warehouse_sees_the_claims_and_a_restart_keeps_them(lwh):
+    """Claims lived in one app's memory: two annotators each running ``cadestate annotate`` over one
+    warehouse were both given the same item, and a restarted app had forgotten every claim."""
+    a, b = {"X-Cadestate-Client": "browser-a"}, {"X-Cadestate-Client": "browser-b"}
+    mt = {"clip": CLIP, "kind": "manual_track", "track_id": -1}
+    with _client(lwh, Requests()) as one, _client(lwh, Requests()) as two:
+        first = one.get("/api/next", headers=a).json()
+        assert two.get("/api/next", headers=b).json() == first
+        assert one.post("/api/claims", json=mt, headers=a).json()["held_by_other"] is False
+        other = two.get("/api/next", headers=b).json()
+        assert other != first and (other["kind"], other["track_id"]) == ("cad_selection", 0)
+        assert two.post("/api/claims", json=mt, headers=b).json()["held_by_other"] is True
+        assert two.get("/api/clips", headers=b).json()["held"] == 1
+    with _client(lwh, Requests()) as restarted:
+        assert restarted.get("/api/next", headers=b).json() == other
+        restarted.post("/api/claims/release", json=mt, headers=a)  # a's page, left, tells the app it reaches
+        assert restarted.get("/api/next", headers=b).json() == first
+
+
+def _claim_at_once(root: str, client: str, start: float) -> bool:
+    from cadestate.webapp.claims import Claims
+
+    time.sleep(max(0.0, start - time.time()))
+    return Claims(root).claim(client, ("c", "cad_selection", 3)) is None
+
+
+def test_claims_of_processes_at_once_give_an_item_to_one_and_lapse_on_time(tmp_path):
+    import multiprocessing
+
+    from cadestate.webapp.claims import Claims
+
+    start = time.time() + 2.0  # every process imported and waiting when the claims are made
+    with multiprocessing.get_context("spawn").Pool(4) as pool:
+        won = pool.starmap(_claim_at_once, [(str(tmp_path), f"tab-{i}", start) for i in range(4)])
+    assert sum(won) == 1
+    now = [time.time()]
+    claims = Claims(tmp_path, clock=lambda: now[0])
+    (item, held), = claims.all().items()
+    assert item == ("c", "cad_selection", 3) and held.client == f"tab-{won.index(True)}"
+    assert claims.claim(held.client, item) is None and claims.all()[item].since == held.since  # renewed, not restarted
+    now[0] += claims.hold_s + 1  # renewed no more: lapsed, and another tab may take it
+    assert claims.all() == {} and claims.held_by_others(None) == set()
+    assert claims.claim("tab-new", item) is None and len(list((tmp_path / "_claims").glob("*.json"))) == 1
+    claims.release("tab-other", item)  # not its claim: kept
+    assert set(claims.all()) == {item}
+    claims.release("tab-new", item)
+    assert claims.all() == {} and list((tmp_path / "_claims").glob("*.json")) == []
+    (tmp_path / "_claims" / "edited.json").write_text("{not json")  # a file that is no claim is no bar
+    assert claims.all() == {} and claims.claim("tab-new", item) is None
 
 
 def test_the_start_page_counts_only_waiting_items_as_being_done_elsewhere(lwh):

@@ -15,6 +15,7 @@ Layout under the warehouse root::
     _locks/_units/<clip or library>.lock           held by a run of the unit's stages (tasks.stage_chain.run_unit)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
     _cache/reads/...                               values kept with their files' state: status's runs, row counts (warehouse.kept)
+    _claims/<item digest>.json                     items the annotation app's pages hold (cadestate.webapp.claims)
 
 File names: ``<time>-<id>.parquet``, ``<time>`` the 20-digit nanoseconds since the epoch at which
 the file was published (taken just before it becomes visible), ``<id>`` random. Every write makes a

@@ -9,7 +9,7 @@ resumed in the background by one worker (:mod:`cadestate.webapp.resume`).
 - :mod:`cadestate.webapp.queue`: the open tasks and items of each clip (what waits for people);
 - :mod:`cadestate.webapp.answers`: an answer in, a label file out, ingested;
 - :mod:`cadestate.webapp.resume`: the background resume of clips that got answers;
-- :mod:`cadestate.webapp.claims`: the items held by the browsers that opened them (in memory);
+- :mod:`cadestate.webapp.claims`: the items held by the browsers that opened them (in the warehouse, ``_claims/``);
 - :mod:`cadestate.webapp.overlays`: the posed model as image layers for the verification page;
 - :mod:`cadestate.webapp.app`: the HTTP routes; ``static/``: the pages (plain HTML + JS modules;
   three.js from ``make web-vendor``, served locally).

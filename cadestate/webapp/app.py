@@ -145,7 +145,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     wh = Warehouse(config.warehouse.root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=cache)
     lock = threading.Lock()
     clips_queue = queue.Queue(wh)
-    claims = Claims()
+    claims = Claims(config.warehouse.root)  # in the warehouse: every app over it sees them
     worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
     tol = config.pose.coplanar_tol
@@ -236,7 +236,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     @app.post("/api/claims")
     def claim(payload: object = Body(...), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
         client, item = required_client(client), item_ref(payload)
-        known_clip(item[0])  # a claim of no clip was held in memory until it lapsed, for nothing
+        known_clip(item[0])  # a claim of no clip was kept until it lapsed, for nothing
         other = claims.claim(client, item)
         return {"held_by_other": other is not None, "age_s": None if other is None else round(claims.age_s(other), 1),
                 "hold_s": claims.hold_s}
