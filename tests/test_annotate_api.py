@@ -367,6 +367,7 @@ def test_a_bad_query_or_path_parameter_is_a_one_line_422_naming_it(lwh):
         for url, said in (("/api/clips?offset=-1", "query parameter offset: input should be greater than or equal to 0 (got '-1')"),
                           ("/api/clips?limit=abc", "query parameter limit: input should be a valid integer"),
                           (f"/api/clips/{CLIP}?wait=soon", "query parameter wait: input should be a valid number"),
+                          (f"/api/clips/{CLIP}?wait=-5", "query parameter wait: input should be greater than or equal to 0"),
                           (f"/api/verification_layers/{CLIP}/t/abc", "path parameter track_id: input should be a valid integer")):
             r = client.get(url)
             detail = r.json()["detail"]

@@ -332,6 +332,51 @@ def test_cad_selection_keys_after_tab(app):
     assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0b"
 
 
+def test_a_candidate_chosen_while_the_answer_is_on_its_way_does_not_replace_it(app):
+    """On a slow link, 1 Enter then 3 Enter before the reply: choosing turned Submit on again, a second
+    answer went out and was refused (409) while the first reply moved the page on, so the correction
+    was dropped unseen. While an answer is on its way the choice stays, and nothing more is sent."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    held, posts = [], []
+    page.on("request", lambda r: posts.append(r) if r.method == "POST" and "/api/answers" in r.url else None)
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=0")
+    page.wait_for_selector(".cand")
+    page.route("**/api/answers*", lambda route: held.append(route))  # the answer waits, as on a slow link
+    with page.expect_request(lambda r: r.method == "POST" and "/api/answers" in r.url):
+        page.keyboard.press("1")
+        page.keyboard.press("Enter")
+    page.keyboard.press("3")
+    page.keyboard.press("Enter")
+    page.wait_for_timeout(500)  # a second answer went out at once (before this page's change)
+    assert page.locator(".cand.sel").get_attribute("data-cad") == "m0a" and page.locator("#submit").is_disabled()
+    assert len(posts) == 1 and len(held) == 1
+    held[0].continue_()
+    page.wait_for_url(lambda url: "track=0" not in url)  # the page went on to the next item
+    assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0a" and len(posts) == 1
+    page.close()
+
+
+def test_a_claim_that_got_no_answer_is_made_again(app):
+    """The first claim of a page failed (the app restarting, a network blip) and the page never
+    claimed again: the item stayed free for others all the while it was open. It is claimed again."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    tries = []
+
+    def first_fails(route) -> None:
+        tries.append(route.request.post_data_json)
+        route.abort() if len(tries) == 1 else route.continue_()
+
+    page.route("**/api/claims", first_fails)
+    page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=2")
+    page.wait_for_selector(".cand")
+    with page.expect_response("**/api/claims", timeout=30_000) as claimed:
+        pass
+    assert claimed.value.ok and len(tries) == 2 and tries[1] == {"clip": CLIP, "kind": "cad_selection", "track_id": 2}
+    held = page.request.get(f"{app.url}/api/clips/{CLIP}").json()  # no client id: every claim is someone else's
+    assert 2 in {t["kind"]: t for t in held["tasks"]}["cad_selection"]["held_tracks"]
+    page.close()
+
+
 def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_small_window(app):
     """At 800 x 600 the key-frame stays in view while the person scrolls to the tenth candidate and
     clicks it (stacked, the candidates were below the frame, which left the window)."""
@@ -442,6 +487,10 @@ def test_the_page_says_a_failed_resume_and_a_task_that_cannot_load(app):
     page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.gone")
     page.wait_for_selector("#load-error")
     assert "no task 'c1.gone'" in page.inner_text("#load-error") and page.locator("#accept").count() == 0
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.cs")  # a link to a task of another kind: was a blank page
+    page.wait_for_selector("#load-error")
+    assert "This is not a verification task: c1.cs is a cad_selection task" in page.inner_text("#load-error")
+    assert page.locator("#accept").count() == 0
 
 
 def test_a_verdict_given_before_is_shown(app):

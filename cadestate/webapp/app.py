@@ -222,7 +222,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
                 "label_errors": getattr(app.state, "pending_errors", [])}
 
     @app.get("/api/clips/{clip}")
-    def one_clip(clip: str, wait: float = 0.0, client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
+    def one_clip(clip: str, wait: float = Query(0.0, ge=0.0), client: str | None = Header(None, alias=CLIENT_HEADER)) -> dict:
         client, clip = checked_client(client), known_clip(clip)
         if wait > 0:  # a worker thread of the server's pool blocks, not the event loop
             worker.wait_idle(clip, min(wait, MAX_WAIT_S))

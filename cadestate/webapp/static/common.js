@@ -117,6 +117,15 @@ export async function loadTask() {
     stop("A rerun withdrew this task: ", data.withdrawn);
     throw new Error(`task ${p.task} was withdrawn`);
   }
+  const kind = location.pathname.split("/").pop();  // the page's: /annotate/<kind>
+  if (data.task.kind !== kind) {
+    stop(`This is not a ${kind} task: `, `${p.task} is a ${data.task.kind} task (the queue opens it on its page).`);
+    throw new Error(`task ${p.task} is a ${data.task.kind} task`);
+  }
+  if (kind !== "manual_track" && !(data.task.items || []).length) {
+    stop("This task asks nothing: ", "a rerun left it no item to answer.");
+    throw new Error(`task ${p.task} has no item`);
+  }
   loaded = data;
   if (data.current === false) toast("A rerun replaced this task with a newer one: answers here go to it where they fit. The queue opens the newer task.", "error");
   $("#who").textContent = data.annotator ? `annotator: ${data.annotator}` : "";
@@ -129,6 +138,8 @@ export async function loadTask() {
   return {...data, item, waiting, p};
 }
 
+const CLAIM_RETRY_MS = 10000;  // a claim that got no answer is tried again this soon (not left unclaimed for the page's life)
+
 // Hold the item shown for this tab while the page is open (claimed again every third of the hold;
 // given back when the page is left). One another tab or browser holds is said: someone may be doing it.
 async function holdItem(ref) {
@@ -137,15 +148,21 @@ async function holdItem(ref) {
   // back-forward cache is loaded again, above, and claims again so)
   window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
     headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
-  let res;
-  try {
-    res = await claim();
-  } catch (e) {
-    return;  // the app unreachable: the page says so when it saves
-  }
-  if (res.held_by_other) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
-    "someone may be doing it now (of two answers, the second is refused)."), "warn");
-  setInterval(() => claim().catch(() => {}), res.hold_s * 1000 / 3);
+  let said = false;
+  const hold = async () => {
+    let res;
+    try {
+      res = await claim();
+    } catch (e) {
+      setTimeout(hold, CLAIM_RETRY_MS);  // the app unreachable (restarting, a network blip): claimed again soon
+      return;
+    }
+    if (res.held_by_other && !said) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
+      "someone may be doing it now (of two answers, the second is refused)."), "warn");
+    said = said || res.held_by_other;
+    setTimeout(hold, res.hold_s * 1000 / 3);
+  };
+  await hold();
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
