@@ -77,7 +77,7 @@ class Stage:
     @cached_property
     def code_hash(self) -> str:
         """Digest of the source of the stage's module and the logic it imports (module docstring)."""
-        return digest(*(f"{m}\n{_source(m)}" for m in sorted(logic_imports(self.module))))
+        return code_digest(self.module)
 
     @cached_property
     def definition(self) -> StageDef:
@@ -147,6 +147,11 @@ def _imported_from(module: str, name: str) -> str | None:
             if any(n[0] == name and len(n) == 1 for n in names):
                 return m.group(1)
     return None
+
+
+def code_digest(module: str) -> str:
+    """Digest of the source of ``module`` and the logic modules it imports (:func:`logic_imports`)."""
+    return digest(*(f"{m}\n{_source(m)}" for m in sorted(logic_imports(module))))
 
 
 def logic_imports(module: str) -> set[str]:

@@ -192,6 +192,7 @@ def test_the_start_page_reads_a_clip_again_only_when_its_files_changed(lwh):
     """Every 5 s the start page asked for every clip's tasks, each worked out again (~22 ms a clip:
     minutes at thousands of clips): an unchanged clip is served as kept, and read again the moment
     an answer is ingested, a resume writes a new task, or another process writes a run."""
+    from cadestate.webapp.queue import ClipState
     from conftest import table_rows
     from test_labels import _tasks
     from warehouse.kept import SETTLE_NS
@@ -225,6 +226,17 @@ def test_the_start_page_reads_a_clip_again_only_when_its_files_changed(lwh):
         assert waiting(client)["runs"] == 1
         settle()
         assert client.app.state.queue.state(CLIP) is client.app.state.queue.state(CLIP)
+        after = waiting(client)
+    # the app started again: the clip's state kept on disk is served, not worked out again (an app
+    # over 1,000 finished clips read them all for 43 s when it started)
+    copy = lwh.root / "_cache" / "reads" / "queue" / f"{CLIP}.json"
+    doc = json.loads(copy.read_text())
+    assert ClipState.from_json(doc["value"]).runs[0]["stage"] == "pose"
+    doc["value"]["runs"][0]["message"] = "marked in the copy"  # what the next app serves shows where it came from
+    copy.write_text(json.dumps(doc))
+    with TestClient(create_app(config, annotator="tester", resumer=Resumer(config, run=new_task))) as client:
+        assert waiting(client) == after
+        assert client.get(f"/api/clips/{CLIP}").json()["runs"][0]["message"] == "marked in the copy"
 
 
 def test_two_browsers_are_given_different_items_while_a_page_holds_one(lwh):

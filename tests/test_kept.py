@@ -138,3 +138,39 @@ def test_a_value_whose_partition_changed_while_it_was_computed_again_is_not_kept
     late.append("r2")
     assert kept.get(wh, "c1", runs) == 2  # read before r2 came
     assert kept.get(wh, "c1", runs) == 3
+
+
+def test_a_value_kept_on_disk_serves_a_process_started_later_while_its_partitions_stay(tmp_path):
+    """The annotation app read every clip's tasks again when it started (1,000 finished clips: 43 s);
+    a copy of each kept value on disk serves the next process while the partitions it read list the
+    same files, and not for other code, a changed partition, or a copy of the warehouse that changed."""
+    import shutil
+
+    from warehouse.kept import OnDisk
+
+    calls = []
+
+    def runs(w: Warehouse):
+        return lambda: calls.append(1) or {"runs": w.read("runs", ["c1"]).num_rows}
+
+    def disk(w: Warehouse, version: str = "v1") -> OnDisk:
+        return OnDisk(w.root / "_cache" / "reads" / "test", version, lambda v: v, lambda d: d)
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r0"}]))
+    _settle_folders(wh)
+    assert KeptInMemory(disk(wh)).get(wh, "c1", runs(wh)) == {"runs": 1} and len(calls) == 1
+    assert (wh.root / "_cache" / "reads" / "test" / "c1.json").is_file()
+    later = KeptInMemory(disk(wh))  # another process
+    assert later.get(wh, "c1", runs(wh)) == later.get(wh, "c1", runs(wh)) == {"runs": 1} and len(calls) == 1
+    assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 1} and len(calls) == 2  # other code
+    copy = Warehouse(shutil.copytree(wh.root, tmp_path / "copy"))
+    copy.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r9"}]))  # the copy changed, not the original
+    _settle_folders(copy)
+    assert KeptInMemory(disk(copy, "v2")).get(copy, "c1", runs(copy)) == {"runs": 2} and len(calls) == 3
+    assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 1} and len(calls) == 3
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r1"}, {"clip": "c1", "run_id": "r2"}]))
+    _settle_folders(wh)
+    assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 3} and len(calls) == 4
+    (wh.root / "_cache" / "reads" / "test" / "c1.json").write_text("{")  # a file cut short: computed again
+    assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 3} and len(calls) == 5

@@ -14,7 +14,7 @@ Layout under the warehouse root::
     _locks/catalog.lock                            lock of compaction and the snapshot (warehouse.catalog)
     _locks/_units/<clip or library>.lock           held by a run of the unit's stages (tasks.stage_chain.run_unit)
     _cache/inputs/<partition>.json                 input digests that `cadestate status` keeps (tasks.inputs_memo)
-    _cache/reads/...                               values kept with their files' state: status's runs, row counts (warehouse.kept)
+    _cache/reads/...                               values kept with their files' state: status's runs, row counts, the annotation app's clip states (warehouse.kept)
     _claims/<item digest>.json                     items the annotation app's pages hold (cadestate.webapp.claims)
 
 File names: ``<time>-<id>.parquet``, ``<time>`` the 20-digit nanoseconds since the epoch at which

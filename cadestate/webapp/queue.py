@@ -10,14 +10,18 @@ The start page asks for its clips' tasks every 5 s, and the next item scans the 
 first: a :class:`Queue` keeps each clip's tasks and stage runs with what they were read from
 (:class:`warehouse.kept.KeptInMemory`) and reads a clip again only when one of its files came or
 went (an answer ingested, a resume's new task or run): an unchanged clip costs a listing of each
-of its partitions (well under 1 ms, where reading its tasks took 3-25 ms).
+of its partitions (well under 1 ms, where reading its tasks took 3-25 ms). A copy of each state is
+kept in ``_cache/reads/queue/<clip>.json``, so that an app started again does not read every clip
+again (1,000 finished clips: 43 s).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Collection
 from dataclasses import dataclass, field
+from functools import cache
 
 from schemas.labels import KINDS
 from cadestate.webapp.claims import Item
@@ -25,7 +29,7 @@ from cadestate.webapp.served_task import served, with_pose_outcomes
 from tasks.human.answers_in_force import answered_items
 from tasks.human.labels import asks_nothing, latest_tasks
 from warehouse import Warehouse
-from warehouse.kept import KeptInMemory
+from warehouse.kept import KeptInMemory, OnDisk
 
 
 @dataclass
@@ -97,13 +101,30 @@ class ClipState:
     tasks: list[OpenTask]
     runs: list[dict]
 
+    def as_json(self) -> dict:
+        return {"tasks": [dataclasses.asdict(t) for t in self.tasks], "runs": self.runs}
+
+    @classmethod
+    def from_json(cls, d: dict) -> ClipState:
+        return cls([OpenTask(**t) for t in d["tasks"]], d["runs"])
+
+
+@cache
+def code_version() -> str:
+    """Digest of the code that works out a :class:`ClipState` (this module and the logic it
+    imports, as a stage's code digest: :mod:`tasks.registry`): kept states of other code are not used."""
+    from tasks.registry import code_digest
+
+    return code_digest(__name__)
+
 
 class Queue:
     """The clips of ``wh`` as a long-lived app reads them again and again (module docstring)."""
 
     def __init__(self, wh: Warehouse):
         self.wh = wh
-        self._kept = KeptInMemory()
+        self._kept = KeptInMemory(OnDisk(wh.root / "_cache" / "reads" / "queue", code_version(), ClipState.as_json,
+                                         ClipState.from_json))
 
     def clips(self) -> list[str]:
         """:func:`clips` (the kept states of clips gone are dropped)."""
