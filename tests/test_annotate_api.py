@@ -504,6 +504,36 @@ def test_a_clip_answered_again_soon_is_recorded_in_prefect_once_after_its_last_r
     assert recorded.clips == [CLIP] and resumer.status(CLIP)["runs"] == 3
 
 
+def test_another_clips_page_does_not_wait_for_a_record_in_prefect(tmp_path):
+    """One worker took clips and records in one line: a clip answered while another's record waited
+    (or ran: a whole local flow run) waited for it before its stages ran. Queued clips go first."""
+    order, lock = [], threading.Lock()
+
+    def step(what: str):
+        def call(clip: str) -> str:
+            with lock:
+                order.append(f"{what} {clip}")
+            return "ok"
+        return call
+
+    resumer = Resumer(Config(warehouse=WarehouseConfig(root=str(tmp_path))), run=step("run"), record=step("record"),
+                      record_delay_s=1.0).start()
+    try:
+        resumer.request("a")
+        assert resumer.wait_idle("a", 10)
+        t0 = time.monotonic()
+        resumer.request("b")  # within a's record delay
+        assert resumer.wait_idle("b", 10) and time.monotonic() - t0 < 0.9
+        assert resumer.wait_idle("a", 10, settled=True) and resumer.wait_idle("b", 10, settled=True)
+        assert order == ["run a", "run b", "record a", "record b"]
+        assert resumer.status("a")["state"] == resumer.status("b")["state"] == "idle"
+        resumer.request("c")  # stopping while its record waits: dropped, and the clip is not left "recording"
+        assert resumer.wait_idle("c", 10)
+    finally:
+        resumer.stop()
+    assert not resumer.alive() and resumer.status("c")["state"] == "idle" and order[-1] == "run c"
+
+
 def test_the_worker_warms_up_before_its_first_resume_and_goes_on_if_that_fails(lwh):
     """An answer that comes while the app warms up (cadestate.webapp.resume.warm_up) is queued and
     runs once the warm-up is over; a warm-up that fails keeps its error and stops nothing."""

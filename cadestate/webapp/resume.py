@@ -18,7 +18,9 @@ wait for them. A resume has two phases, and a page waits only for the first:
 A page used to wait for a whole flow run: on a small clip with the server up, 0.35 s of the
 0.53 s from an answer to the next task were Prefect's (flow and task runs, their API calls and
 events) around 0.17 s of stage work. A request that comes while a clip is recorded queues it
-again at once (a page never reads a clip as ready before its newest answers have run). Prefect's
+again at once (a page never reads a clip as ready before its newest answers have run). Records
+wait while any clip is queued: another clip's page does not wait for this one's record (it did,
+the worker taking clips and records in one line), though a record under way is finished first. Prefect's
 environment must be prepared (:func:`flows.runtime.prepare_prefect_environment`) before the worker starts.
 """
 
@@ -186,6 +188,7 @@ class Resumer:
         """Set once the warm-up is over (at once without one); :attr:`warm_message` says how it went."""
         self.warm_message = ""
         self._queue: deque[str] = deque()
+        self._records: dict[str, float] = {}  # clips whose record waits, in order: when it is due (monotonic s)
         self._clips: dict[str, ClipRun] = {}
         self._cond = threading.Condition()
         self._stop = False
@@ -244,13 +247,21 @@ class Resumer:
         self.warmed.set()
         while True:
             with self._cond:
-                while not self._queue and not self._stop:
-                    self._cond.wait()
-                if self._stop:
+                clip = self._next_clip()
+                if clip is None:
                     return
-                clip = self._queue.popleft()
                 run = self._clips[clip]
-                run.state, run.again = "running", False
+                recording = run.state == "recording"
+                if not recording:
+                    run.state, run.again = "running", False
+            if recording:
+                _, recorded = self._attempt(self._record, clip)
+                with self._cond:
+                    run.prefect = recorded
+                    if run.state == "recording":  # else a request queued it meanwhile
+                        run.state = "failed" if run.failed else "idle"
+                    self._cond.notify_all()
+                continue
             try:
                 message, ran, failed = self._run(clip), True, False
             except StagesFailed as e:  # the stages ran (the failed one logged its error): recorded in Prefect too
@@ -266,22 +277,36 @@ class Resumer:
                     self._queue.append(clip)
                 else:
                     run.state = "recording" if ran and self._record else ("failed" if failed else "idle")
+                if run.state == "recording":  # the page loads the next task first
+                    self._records.pop(clip, None)
+                    self._records[clip] = time.monotonic() + self.record_delay_s
                 self._cond.notify_all()
-                if run.state != "recording":
-                    continue
-                end = time.monotonic() + self.record_delay_s  # the page loads the next task first
-                while run.state == "recording" and not self._stop and (left := end - time.monotonic()) > 0:
-                    self._cond.wait(left)
-                if self._stop:
-                    run.state = "idle"
-                if run.state != "recording":  # asked again (that run is recorded), or stopping
-                    continue
-            _, recorded = self._attempt(self._record, clip)
-            with self._cond:
-                run.prefect = recorded
-                if run.state == "recording":  # else a request queued it meanwhile
-                    run.state = "failed" if run.failed else "idle"
+
+    def _next_clip(self) -> str | None:
+        """The worker's next clip (called with the lock held): a queued one first (a page may wait
+        for it), else the first whose record is due, waited for; None when stopping (records not
+        made are dropped, their clips idle)."""
+        while True:
+            if self._stop:
+                for clip in self._records:
+                    if self._clips[clip].state == "recording":
+                        self._clips[clip].state = "idle"
+                self._records.clear()
                 self._cond.notify_all()
+                return None
+            if self._queue:
+                return self._queue.popleft()
+            for clip in [c for c in self._records if self._clips[c].state != "recording"]:
+                del self._records[clip]  # asked for again meanwhile: that run is recorded
+            if not self._records:
+                self._cond.wait()
+                continue
+            clip, due = next(iter(self._records.items()))
+            if (left := due - time.monotonic()) > 0:
+                self._cond.wait(left)
+                continue
+            del self._records[clip]
+            return clip
 
     @staticmethod
     def _attempt(call: Callable[[str], str], clip: str) -> tuple[bool, str]:
