@@ -177,7 +177,7 @@ class CamerasConfig:
                                          "2.2 % and put the focal length 8.6 % low; 1.3 % and 0.4 % polished. "
                                          "0 turns it off.", lo=0.0, hi=100.0)
     max_focal_change: float = _opt(0.1, "The final bundle adjustment frees the focal length and is kept when it moves the "
-                                   "estimate by less than this fraction.", lo=0.0, hi=1.0)
+                                   "focal length the mapping held by less than this fraction.", lo=0.001, hi=1.0)
     focal_remaps: int = _opt(2, "When the final bundle adjustment moves the focal length farther than max_focal_change, "
                              "the keyframes are mapped again holding the focal length it moved to, up to this many "
                              "times (on 21 benchmark clips the hypotheses put 4 focal lengths 18-38 % off; remapped, all "
@@ -585,6 +585,9 @@ def _check_across(config: Config, source: str) -> None:
     if (split := config.schedule.inbox_split) not in (splits := dataset_splits(config)):
         raise ConfigError(f"{source}: [schedule] inbox_split: must be one of {', '.join(map(repr, splits))} (the "
                           f"splits of the dataset and [manual_tracks] splits), got {_shown(split)}")
+    if config.cameras.fov_min_deg >= config.cameras.fov_max_deg:
+        raise ConfigError(f"{source}: [cameras] fov_min_deg: must be < [cameras] fov_max_deg ({config.cameras.fov_max_deg!r}), "
+                          f"got {config.cameras.fov_min_deg!r} (the focal hypotheses span the fields of view between them)")
     if config.pose.lr_final > config.pose.lr:
         raise ConfigError(f"{source}: [pose] lr_final: must be <= [pose] lr ({config.pose.lr!r}), "
                           f"got {config.pose.lr_final!r} (the learning rate decays from lr to lr_final)")

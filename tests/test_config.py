@@ -47,6 +47,8 @@ def test_defaults_are_valid_and_documented():
         ({"frames": {"seek_threshold_us": 16**5000}}, "[frames] seek_threshold_us: must fit in 64 bits, got <int too large to show>"),
         ({"pose": {"lr": 0.01, "lr_final": 0.02}}, "[pose] lr_final: must be <= [pose] lr (0.01), got 0.02"),
         ({"pose": {"lr_final": 0.5}}, "[pose] lr_final: must be <= [pose] lr (0.02)"),
+        ({"cameras": {"fov_min_deg": 60.0, "fov_max_deg": 60.0}}, "[cameras] fov_min_deg: must be < [cameras] fov_max_deg (60.0), got 60.0"),
+        ({"cameras": {"max_focal_change": 0.0}}, "[cameras] max_focal_change: must be >= 0.001"),
         ({"cad_embed": {"whitening_dims": DESCRIPTOR_DIM + 1}}, "[cad_embed] whitening_dims: must be <= 768, got 769"),
         ({"label_similarity": {"template": "a photo of a {name}"}},
          "[label_similarity] template: not a format string with one '{}' for the name (KeyError: 'name')"),

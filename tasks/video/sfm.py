@@ -9,11 +9,13 @@ centre and its focal length estimated from field-of-view hypotheses and held fix
 or ``PINHOLE`` fixed to the given ``intrinsics``), a polish (observations past
 ``[cameras] polish_reproj_error_px`` dropped and the model adjusted again, :func:`polish`), a last
 bundle adjustment with the estimated focal length free (:mod:`tasks.video.sfm_focal`; where it
-moves the focal length too far, the keyframes are mapped again holding the one it moved to), the frames
-between keyframes registered to that model (:mod:`tasks.video.sfm_register`), then one camera
-line per sampled frame: SfM's own pose when the frame was registered (mapped or registered to the
-model), else interpolated between its registered neighbours (slerp of the rotation, linear camera
-centre; the nearest one's pose at the ends) and flagged.
+moves the focal length too far, the keyframes are mapped again holding the one it moved to), the
+frames between keyframes registered to that model (:mod:`tasks.video.sfm_register`), and so are
+keyframes the mapping left out or put in another model (a benchmark clip registered 75 % of its
+frames without them, 100 % with them), then one camera line per sampled frame: SfM's own pose
+when the frame was registered (mapped or registered to the model), else interpolated between its
+registered neighbours (slerp of the rotation, linear camera centre; the nearest one's pose at the
+ends) and flagged.
 
 Frames: COLMAP's ``cam_from_world`` is world->camera with OpenCV camera axes, as RealEstate10K
 (:mod:`cadestate.geometry`); the world is SfM's, of arbitrary origin and up (the ``ingest`` stage
@@ -70,9 +72,10 @@ class SfmResult:
         (False: interpolated).
       models: mapped frames (keyframes) of every model found, largest first (the first one is kept).
       seconds: {step: wall seconds} (sampling, features, matching, focal, mapping, polish, refine:
-        summed over the mappings; between: registering the frames between keyframes, total).
-      focal: the focal length estimate (None with given intrinsics): the hypotheses' one, and
-        whether the last bundle adjustment's was kept.
+        summed over the mappings; between: registering the frames the kept mapping left without a
+        pose, total).
+      focal: the focal length estimate (None with given intrinsics): the hypotheses' one.
+      focal_refined: whether the last bundle adjustment's focal length was kept.
       focal_held: the focal length (px) each kept mapping held: the estimate's, then the one the
         bundle adjustment of the mapping before moved to, past ``max_focal_change`` and within
         the hypotheses' range (``[cameras] focal_remaps``; :mod:`tasks.video.sfm_focal`); empty
@@ -251,6 +254,14 @@ unit (from 0.09 and 0.14); the true depth varies with the room, so the world kee
 own, within a small factor of metres."""
 
 
+def unposed(reconstruction, names: list[str]) -> list[str]:
+    """The frames of ``names`` (image names) without a pose in ``reconstruction``, sorted: those
+    between keyframes, and keyframes the mapping left out or put in another model (they were
+    interpolated: a benchmark clip registered 75 % of its frames so, 100 % registering them too)."""
+    posed = {image.name for image in reconstruction.images.values() if image.has_pose}
+    return sorted(set(names) - posed)
+
+
 def room_scale(reconstruction) -> float:
     """The factor that brings ``reconstruction``'s world to a room's scale: :data:`ROOM_DEPTH_M`
     over the median camera-frame depth of every observation of its 3D points (1 when it has none)."""
@@ -358,7 +369,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
                 break  # fewer keyframes registered than the mapping before: that one is kept
             held.append(proposed)
             ranked, best, dropped = again
-        between = sorted(set(names) - set(keyframes))
+        between = unposed(best, names)
         if between:
             t = time.perf_counter()
             extra = register_frames(best, frame_correspondences(db, best, between), mapping.mapper, cfg.seed)

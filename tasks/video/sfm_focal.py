@@ -14,7 +14,8 @@ Instead, before mapping every frame:
    (the middle of the range when none registered enough frames, and the full mapping decides).
 
 The full mapping then holds the estimate fixed; a last bundle adjustment frees the focal length
-and keeps its result only when the focal length moves by less than ``max_focal_change``. When it
+and keeps its result only when the focal length moves by less than ``max_focal_change`` of the
+one the mapping held. When it
 moves farther, the estimate was off (the hypotheses map a subset of the frames, and their errors
 can be near equal: 0.63 px at 0.93 of the width beside 0.65 px at 0.83 on a benchmark clip whose
 true focal length is 0.785), and the adjustment of every keyframe knows better: the keyframes are
@@ -23,8 +24,9 @@ mapping is kept (refined when its adjustment stayed within the bound). A move ou
 hypotheses' range is not followed: on a 2-second clip the adjustment drifted from a focal length
 0.8 % off to past the range's end, and mapping there kept it 28 % off. A mapping again that finds
 no model, or registers fewer keyframes than the one before, is dropped: the one before is kept.
-Deterministic: each hypothesis runs the seeded mapper on its own copy of the database;
-``[cameras] workers`` of them side by side.
+Deterministic: each hypothesis sets its focal length, then runs the seeded mapper on its lane's
+copy of the database (``[cameras] workers`` lanes side by side, each taking its hypotheses one
+after another; the first lane works on the database itself).
 """
 
 from __future__ import annotations
