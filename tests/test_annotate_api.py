@@ -620,6 +620,30 @@ def test_an_item_answered_since_the_page_loaded_is_a_409_not_a_silent_replacemen
     assert {a["track_id"]: a["cad_id"] for a in current_answers(lwh, "cad_selection", [CLIP]).to_pylist()} == {0: "m0b", 2: "m2b"}
 
 
+def test_an_answer_sent_again_after_its_reply_was_lost_is_said_saved(lwh):
+    """The answer was saved but its reply lost (the network): the page said the error, and the same
+    answer sent again met a 409 naming its own annotator, "yours was not saved". The same answers
+    (but the seconds, counted anew) by the same annotator are that answer: said saved, nothing written."""
+    with _client(lwh, Requests()) as client:
+        first = client.post("/api/answers", json=_one(0, "m0a") | {"answers": [{"track_id": 0, "cad_id": "m0a", "seconds": 4.0}]},
+                            params={"as_of": ""})
+        assert first.status_code == 200, first.text
+        again = client.post("/api/answers", json=_one(0, "m0a") | {"answers": [{"track_id": 0, "cad_id": "m0a", "seconds": 9.5}]},
+                            params={"as_of": ""})
+        assert again.status_code == 200 and again.json()["path"] == first.json()["path"], again.text
+        assert again.json()["warnings"] == ["this answer was saved already (sent again, the reply to it lost on the way): "
+                                            "nothing written"]
+        other = client.post("/api/answers", json=_one(0, "m0b"), params={"as_of": ""})  # another answer: refused as before
+        assert other.status_code == 409 and "yours was not saved" in other.json()["detail"]
+        drawn = {**payload("manual_track"), "seconds": 30.0}
+        assert client.post("/api/answers", json=drawn, params={"as_of": ""}).status_code == 200
+        assert client.post("/api/answers", json={**drawn, "seconds": 41.0}, params={"as_of": ""}).json()["warnings"][-1] \
+            .startswith("this answer was saved already")
+        changed = client.post("/api/answers", json={**drawn, "not_objects": [0]}, params={"as_of": ""})  # one more thing said
+        assert changed.status_code == 409, changed.text
+    assert len(_label_files(lwh)) == 2
+
+
 @pytest.mark.parametrize("kind", ["manual_track", "cad_selection", "correspondences", "verification"])
 def test_a_task_served_after_an_answer_shows_that_answer_before_any_resume(lwh, kind):
     """The task file holds an answer only once the clip's resume has rerun its stage: a page opened

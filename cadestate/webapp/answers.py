@@ -18,6 +18,7 @@ silent replacement of their answer.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import json
@@ -109,7 +110,7 @@ def _ingested(wh: Warehouse, clip: str) -> tuple[set[str], list[dict]]:
     if not wh.has_partition("label_files", clip):
         return set(), []
     rows = wh.read("label_files", [clip], columns=["label_sha256", "task_id", "kind", "ingested_at", "created_at",
-                                                   "annotator", "document"]).to_pylist()
+                                                   "annotator", "document", "source_path"]).to_pylist()
     return {r["label_sha256"] for r in rows}, rows
 
 
@@ -147,9 +148,30 @@ def _retargeted(payload: dict, annotator: str | None, newest: str, facts: ClipFa
                        "opens the replaced task again)") from None
 
 
-def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str) -> None:
+def _essence(doc: Any) -> Any:
+    """A label document less what a page counts or stamps anew when it sends the same answers again:
+    its time, format and the seconds spent (on the task, and on each answer)."""
+    if not isinstance(doc, dict):
+        return doc
+    answers = doc.get("answers")
+    if isinstance(answers, list):
+        doc = {**doc, "answers": [{k: v for k, v in x.items() if k != "seconds"} if isinstance(x, dict) else x for x in answers]}
+    return {k: v for k, v in doc.items() if k not in ("seconds", "created_at", "format")}
+
+
+def _repeat_of(row: dict, document: dict) -> bool:
+    """Whether the ingested label ``row`` is ``document`` (the label file an answer would write) sent
+    again: the same annotator, task and answers, because the reply to the first never came (the network)."""
+    try:
+        return _essence(json.loads(row["document"])) == _essence(document)
+    except ValueError:
+        return False
+
+
+def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str, document: dict) -> dict | None:
     """Raise :class:`Conflict` when an item of ``lf`` was answered (under one of ``task_ids``) after
-    ``as_of``, what the page had seen."""
+    ``as_of``, what the page had seen, unless that answer is ``document`` (this label file) sent
+    again (:func:`_repeat_of`): its ``label_files`` row is returned then; None when nothing was answered since."""
     try:
         since = dt.datetime.fromisoformat(as_of) if as_of else None
     except ValueError:
@@ -161,10 +183,13 @@ def _check_unseen(wh: Warehouse, lf: Any, task_ids: set[str], as_of: str) -> Non
     rows = [r for t in sorted(task_ids) if (r := _answered_since(ingested, t, tracks, since)) is not None]
     if rows:
         row = max(rows, key=lambda r: r["ingested_at"])
+        if _repeat_of(row, document):
+            return row
         who = f" by {row['annotator']}" if row["annotator"] else ""
         what = "this task" if lf.kind == "manual_track" else "this item"
         raise Conflict(f"{what} was answered{who} at {row['ingested_at']:%H:%M:%S} UTC since the page loaded: "
                        "reload the page to see that answer; yours was not saved")
+    return None
 
 
 def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threading.Lock, as_of: str | None = None,
@@ -187,8 +212,12 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
         if newest is not None and newest["task_id"] != asked:
             data, lf = _retargeted(payload, annotator, newest["task_id"], facts, asked)
             moved = [f"task {asked} was replaced by task {lf.task_id} (the pipeline ran again): the answer went to it"]
-        if as_of is not None:
-            _check_unseen(wh, lf, {asked, lf.task_id}, as_of)
+        if as_of is not None and (saved := _check_unseen(wh, lf, {asked, lf.task_id}, as_of, json.loads(data))) is not None:
+            repeat = "this answer was saved already (sent again, the reply to it lost on the way): nothing written"
+            path = saved["source_path"]
+            with contextlib.suppress(ValueError):
+                path = wh.relative(Path(path))
+            return Submitted(path, lf.clip, lf.kind, lf.task_id, [*moved, repeat], {})
         path = _free_path(folder_root / lf.clip, lf.task_id)
         atomic_write_bytes(path, data)
         try:  # the file as validated (its bytes), not parsed again
