@@ -18,7 +18,7 @@ from cadestate.config import CamerasConfig
 from cadestate.geometry import camera_to_world
 from tasks.video.camera_file import parse_camera_file
 from tasks.video.decode import probe_video
-from tasks.video.sfm import SfmError, _interpolate, _options, check_registered, run_sfm, sample_frames, unposed
+from tasks.video.sfm import SfmError, _interpolate, _options, check_registered, focal_report, run_sfm, sample_frames, unposed
 from tasks.video.sfm_focal import best_focal, focal_hypotheses
 from tasks.video.sfm_register import Correspondences, register_frames
 
@@ -298,13 +298,16 @@ def test_a_focal_length_the_hypotheses_put_off_is_mapped_again(small_cad_library
     true_fx = parse_camera_file(clip.cameras_path).intrinsics[0, 0]
     once = run_sfm(clip.video_path, CamerasConfig(sample_fps=15.0, focal_remaps=0))
     assert not once.focal_refined and once.focal_held == [once.focal.focal_px]
+    assert once.focal_note.startswith("not refined: the last adjustment moved it to ") and "after 0 remap(s)" in once.focal_note
     assert abs(once.track.intrinsics[0, 0] / true_fx - 1) > 0.15
     remapped = run_sfm(clip.video_path, CamerasConfig(sample_fps=15.0))
     assert remapped.focal_refined and len(remapped.focal_held) == 2 and remapped.focal_held[0] == once.focal_held[0]
+    assert remapped.focal_note.startswith("refined") and focal_report(remapped)["focal_note"] == remapped.focal_note
     assert abs(remapped.track.intrinsics[0, 0] / true_fx - 1) < 0.05
     drifted = generate_clip(tmp_path, "walk5", 5, rows, wh.root, spec)
     kept = run_sfm(drifted.video_path, CamerasConfig(sample_fps=15.0))
     assert not kept.focal_refined and kept.focal_held == [kept.focal.focal_px] and CamerasConfig().focal_remaps > 0
+    assert kept.focal_note.endswith("of the width, out of the hypotheses' range (not followed)")
     assert abs(kept.track.intrinsics[0, 0] / parse_camera_file(drifted.cameras_path).intrinsics[0, 0] - 1) < 0.02
 
 

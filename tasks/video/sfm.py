@@ -83,6 +83,9 @@ class SfmResult:
       polished: observations the polish dropped (:func:`polish`; 0 when it is off).
       reprojection_px: the kept model's mean reprojection error, px.
       scale: the factor :func:`room_scale` applied to SfM's world (track units per SfM unit).
+      focal_note: how the focal length search ended, one line ('' with given intrinsics): refined,
+        or why not (remaps spent, a move out of the range, a mapping again dropped, and where the
+        last adjustment moved it).
     """
 
     track: CameraTrack
@@ -95,6 +98,7 @@ class SfmResult:
     polished: int = 0
     reprojection_px: float = 0.0
     scale: float = 1.0
+    focal_note: str = ""
 
     @property
     def registered_fraction(self) -> float:
@@ -350,23 +354,31 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         if focal:
             set_focal(db, focal.focal_px)
         ranked, best, dropped = _map_keyframes(db, tmp, tmp / "sparse-0", keyframes, cfg, mapping, seconds, video, len(names))
-        refined = False
+        refined, note = False, ""
         while focal:
             t = time.perf_counter()
             adjusted, refined, proposed = refine_focal(best, cfg.max_focal_change, cfg.threads)
             seconds["refine"] = seconds.get("refine", 0.0) + time.perf_counter() - t
+            moved = f"the last adjustment moved it to {proposed / focal.width:.4f} of the width"
             if refined:
-                best = adjusted
+                best, note = adjusted, "refined: the last adjustment kept"
                 break
-            if len(held) > cfg.focal_remaps or not focal.hypotheses_px.min() <= proposed <= focal.hypotheses_px.max():
+            if len(held) > cfg.focal_remaps:
+                note = f"not refined: {moved}, past max_focal_change, after {cfg.focal_remaps} remap(s) ([cameras] focal_remaps)"
+                break
+            if not focal.hypotheses_px.min() <= proposed <= focal.hypotheses_px.max():
+                note = f"not refined: {moved}, out of the hypotheses' range (not followed)"
                 break  # a move out of the hypotheses' range is not followed (sfm_focal's docstring)
             set_focal(db, proposed)
             try:
                 again = _map_keyframes(db, tmp, tmp / f"sparse-{len(held)}", keyframes, cfg, mapping, seconds, video, len(names))
-            except SfmError:
+            except SfmError as e:
+                note = f"not refined: {moved}; mapped again holding it, no model ({e})"
                 break
-            if again[0][0].num_reg_images() < ranked[0].num_reg_images():
-                break  # fewer keyframes registered than the mapping before: that one is kept
+            if again[0][0].num_reg_images() < ranked[0].num_reg_images():  # the mapping before is kept
+                note = (f"not refined: {moved}; mapped again holding it, {again[0][0].num_reg_images()} keyframes "
+                        f"registered, fewer than {ranked[0].num_reg_images()} (dropped)")
+                break
             held.append(proposed)
             ranked, best, dropped = again
         between = unposed(best, names)
@@ -399,7 +411,7 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
                         np.concatenate([R_wc, t_wc[:, :, None]], axis=2))
     seconds["total"] = time.perf_counter() - t0
     return SfmResult(track, registered, [m.num_reg_images() for m in ranked], {k: round(v, 2) for k, v in seconds.items()},
-                     focal, refined, held, dropped, round(float(best.compute_mean_reprojection_error()), 3), scale)
+                     focal, refined, held, dropped, round(float(best.compute_mean_reprojection_error()), 3), scale, note)
 
 
 def sfm_report(result: SfmResult) -> dict:
@@ -413,9 +425,9 @@ def sfm_report(result: SfmResult) -> dict:
 def focal_report(result: SfmResult) -> dict:
     """The focal length found, as a fraction of the image width (``fx / w``): the kept one, the
     hypotheses' estimate, the one each mapping held (:attr:`SfmResult.focal_held`), whether the
-    last bundle adjustment was kept, and per hypothesis [start,
-    adjusted (None: no model), mean reprojection error px (None: too few frames registered)].
-    Empty with given intrinsics."""
+    last bundle adjustment was kept and how the search ended (:attr:`SfmResult.focal_note`), and
+    per hypothesis [start, adjusted (None: no model), mean reprojection error px (None: too few
+    frames registered)]. Empty with given intrinsics."""
     f = result.focal
     if f is None:
         return {}
@@ -423,6 +435,7 @@ def focal_report(result: SfmResult) -> dict:
             "focal_estimate_fx_over_width": round(f.focal_px / f.width, 4),
             "focal_held_fx_over_width": [round(h / f.width, 4) for h in result.focal_held],
             "focal_refined": result.focal_refined,
+            "focal_note": result.focal_note,
             "focal_hypotheses": [[round(h / f.width, 4), round(a / f.width, 4) if np.isfinite(a) else None,
                                   round(float(e), 3) if np.isfinite(e) else None]
                                  for h, a, e in zip(f.hypotheses_px, f.adjusted_px, f.errors_px)]}
