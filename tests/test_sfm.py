@@ -186,6 +186,14 @@ def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
         sample_frames(small_clip.video_path, 0.1, tmp_path)
 
 
+def test_too_few_keyframes_is_said_before_any_mapping(small_clip):
+    """Two keyframes were mapped all the same, and failed as "no model in 3 sampled frames (too
+    little texture or parallax?)", blaming the video for what the settings did."""
+    with pytest.raises(SfmError, match=r"small.mp4: 3 frame\(s\) sampled at 1 fps give 2 keyframe\(s\) \(\[cameras\] "
+                                       r"keyframe_every = 2\); SfM maps at least 3: a longer clip, or a higher sample_fps"):
+        run_sfm(small_clip.video_path, CamerasConfig(sample_fps=1.0))
+
+
 SPEC = WalkthroughSpec(width=320, height=180, num_video_frames=60, sample_every=2, alone_scale=0.5)
 """A 2-second benchmark walkthrough (textured room, real CAD furniture): 30 camera lines at 15 fps."""
 SEEDS = (1, 2, 3, 4)
@@ -316,7 +324,7 @@ def test_sfm_on_a_textureless_clip_is_a_clear_error(small_clip):
     """The demo clip (flat-coloured boxes, almost blank walls: ~100 SIFT features a frame) is no
     input for SfM: a one-line SfmError naming the video and how many frames were registered."""
     with pytest.raises(SfmError, match=r"small.mp4: SfM (registered \d+ of 30 sampled frames \(\d+%\), fewer than "
-                                       r"\[cameras\] min_registered_fraction|found no model in 30 sampled frames)"):
+                                       r"\[cameras\] min_registered_fraction|found no model in 15 keyframes of 30 sampled frames)"):
         run_sfm(small_clip.video_path, CamerasConfig(sample_fps=10.0))
 
 

@@ -171,7 +171,7 @@ def _options(cfg: CamerasConfig, intrinsics: tuple[float, ...] | None, pixel_asp
     mapping.num_threads = cfg.threads
     mapping.random_seed = cfg.seed
     mapping.mapper.random_seed = cfg.seed
-    mapping.min_model_size = 3
+    mapping.min_model_size = MIN_KEYFRAMES
     mapping.ba_global_frames_ratio = mapping.ba_global_points_ratio = 1 + cfg.global_ba_growth
     mapping.ba_refine_focal_length = False  # fixed: the given one, or estimated first (tasks/video/sfm_focal.py)
     mapping.ba_refine_principal_point = False
@@ -188,7 +188,7 @@ def _global_options(cfg: CamerasConfig, names: list[str]):
 
     options = pycolmap.GlobalPipelineOptions()
     options.image_names = names
-    options.min_model_size = 3
+    options.min_model_size = MIN_KEYFRAMES
     options.num_threads = options.mapper.num_threads = cfg.threads
     mapper = options.mapper
     for part in (options, mapper, mapper.rotation_averaging, mapper.global_positioning, mapper.retriangulation):
@@ -281,6 +281,10 @@ def room_scale(reconstruction) -> float:
     return ROOM_DEPTH_M / median if median > 0 else 1.0
 
 
+MIN_KEYFRAMES = 3
+"""The fewest keyframes a model is made of (the mappers' ``min_model_size``)."""
+
+
 def _map_keyframes(db: Path, tmp: Path, out: Path, keyframes: list[str], cfg: CamerasConfig, mapping,
                    seconds: dict[str, float], video: Path, n: int):
     """Map ``keyframes`` of the database ``db`` (images in ``tmp``/images, the models into the new
@@ -300,7 +304,8 @@ def _map_keyframes(db: Path, tmp: Path, out: Path, keyframes: list[str], cfg: Ca
         models = pycolmap.incremental_mapping(db, tmp / "images", out, mapping)
     seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t
     if not models:
-        raise SfmError(f"{video}: SfM found no model in {n} sampled frames (too little texture or parallax?)")
+        raise SfmError(f"{video}: SfM found no model in {len(keyframes)} keyframes of {n} sampled frames (too little "
+                       "texture or parallax?)")
     ranked = sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
     best, dropped = ranked[0], 0
     if cfg.polish_reproj_error_px > 0:
@@ -350,6 +355,10 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             focal = estimate_focal(db, tmp / "images", names, frames.width, cfg, mapping, tmp)
             seconds["focal"] = time.perf_counter() - t
         keyframes = names[::cfg.keyframe_every]
+        if len(keyframes) < MIN_KEYFRAMES:
+            raise SfmError(f"{video}: {len(names)} frame(s) sampled at {cfg.sample_fps:g} fps give {len(keyframes)} "
+                           f"keyframe(s) ([cameras] keyframe_every = {cfg.keyframe_every}); SfM maps at least {MIN_KEYFRAMES}: "
+                           "a longer clip, or a higher sample_fps or a lower keyframe_every")
         held = [focal.focal_px] if focal else []  # the focal length (px) each kept mapping held
         if focal:
             set_focal(db, focal.focal_px)
