@@ -472,6 +472,36 @@ def test_degenerate_inputs_get_a_clear_status():
     assert "NaN" in results[3].message or "non-finite" in results[3].message
 
 
+def test_a_camera_with_no_click_neither_passes_nor_judges_a_pose():
+    """Cameras given with no click counted in the parallax (and as 0 px in the mean error): clicks
+    from one camera centre twice, plus an unclicked camera far off, passed as ok with the object
+    collapsed (scale ~1e-5). A K that is not a pinhole's (last row not 0 0 1) crashed the whole
+    batch in a linear solve; it is the one object's invalid_input."""
+    good, _ = make_object(1, keyframes=3)
+    first = good.keyframe == 0
+    R, t = good.R.copy(), good.t.copy()
+    R[1], t[1] = R[0], t[0]  # the second camera where the first is: no parallax between the clicked ones
+    same_spot = dataclasses.replace(good, xy=np.concatenate([good.xy[first]] * 2), xyz=np.concatenate([good.xyz[first]] * 2),
+                                    keyframe=np.repeat([0, 1], first.sum()), R=R, t=t)  # camera 2: no click
+    K = good.K.copy()
+    K[2, 2, 2] = 0.0
+    not_pinhole = dataclasses.replace(good, K=K)
+    alone, spot, bad = solve_poses([good, same_spot, not_pinhole])
+    assert alone.status == "ok" and alone.parallax_deg > 5
+    assert spot.status == "low_parallax" and spot.parallax_deg < 1e-3, (spot.status, spot.parallax_deg)
+    assert bad.status == "invalid_input" and "last row (0, 0, 1)" in bad.message
+
+
+def test_a_round_models_x_or_z_is_not_reported_tied():
+    """A 36-way model's co-planar x or z is not tied (it has one horizontal scale): the pose said
+    coplanar_axis 2 all the same."""
+    obj, _ = make_object(2, symmetry=36)
+    flat = obj.xyz.copy()
+    flat[:, 2] = 0.3
+    round_, plain = solve_poses([dataclasses.replace(obj, xyz=flat), dataclasses.replace(obj, xyz=flat, symmetry=1)])
+    assert round_.coplanar_axis == -1 and plain.coplanar_axis == 2
+
+
 def test_batching_and_determinism():
     """An object's pose does not depend on what else is in the batch, and reruns are identical."""
     a, _ = make_object(7, noise=1.0)

@@ -131,6 +131,8 @@ def check_object(o, opts) -> tuple[str, str] | None:
             return "invalid_input", f"non-finite {name} value(s)"
     if F and not ((K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)).all():
         return "invalid_input", "a camera K whose focal length is not positive"
+    if F and not ((K[:, 2] == [0.0, 0.0, 1.0]).all() and (K[:, 1, 0] == 0).all()):
+        return "invalid_input", "a camera K that is not upper triangular with last row (0, 0, 1) (a pinhole camera's)"
     if any(rotation_error(r) > ROTATION_TOL for r in R):
         return "invalid_input", "a camera R that is not a rotation (not orthonormal, or a reflection)"
     if len(kf) and (kf.min() < 0 or kf.max() >= F):
@@ -146,14 +148,14 @@ def check_object(o, opts) -> tuple[str, str] | None:
 
 
 def final_status(depth: np.ndarray, kf_px: np.ndarray, parallax_deg: float, opts) -> tuple[str, str]:
-    """(status, message) of a solved object from its points' depths float[N] (m), per-key-frame
-    errors float[F] (px) and parallax (degrees)."""
+    """(status, message) of a solved object from its points' depths float[N] (world units: only
+    their sign counts), the errors float[F] (px) of its clicked key-frames and parallax (degrees)."""
     if not (np.isfinite(depth).all() and np.isfinite(kf_px).all()):
         return "high_residual", "the solution is not finite"
     if (depth <= 0).any():
         return "behind_camera", f"{int((depth <= 0).sum())} point(s) behind the camera that clicked them"
     if kf_px.mean() > opts.max_reprojection_px:
         return "high_residual", f"mean reprojection error {kf_px.mean():.1f} px > {opts.max_reprojection_px} px"
-    if parallax_deg < opts.min_parallax_deg:
+    if not parallax_deg >= opts.min_parallax_deg:  # NaN too
         return "low_parallax", f"key-frames see the object under {parallax_deg:.2f} deg < {opts.min_parallax_deg} deg"
     return "ok", f"mean reprojection error {kf_px.mean():.2f} px"

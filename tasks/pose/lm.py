@@ -12,9 +12,10 @@ Parameters per object, relative to the current pose: a rotation increment ``w`` 
 no singularity), a translation step in units of ``scale_t`` (the distance to the cameras),
 log-scales ``ls`` (the scales are ``L exp(ls)`` with ``L`` float[B, 3, 3] the linear scale ties of
 :func:`tasks.pose.initial.tie_scales`) and, for 36-way symmetric models, one rotation about +Y per
-key-frame ``phi``. The discrete symmetric rotation of every key-frame (2/4-way, and the 30-degree
-grid of 36-way models) is re-chosen at every iteration as the best at the current pose (the min
-of the objective). A step is kept only when it lowers the object's loss (then the damping
+key-frame ``phi``. The discrete symmetric rotation of every key-frame of a 2/4-way model is
+re-chosen at every iteration as the best at the current pose (the min of the objective); a 36-way
+model's key-frames have no discrete choice here (their 30-degree grid is the linear start's), only
+their angle ``phi``. A step is kept only when it lowers the object's loss (then the damping
 shrinks; otherwise it grows), so the loss never increases; an object stops once its steps no
 longer help (its later iterations are skipped: per-object convergence mask).
 

@@ -170,9 +170,12 @@ class SolverOptions:
 class PoseResult:
     """The solver's answer for one object. Pose fields are None when no pose was computed.
 
-    ``translation`` float[3] (world, m), ``rotation`` float[4] (w, x, y, z), ``scale`` float[3]:
-    object-to-world = T · R · S · diag(-1, 1, 1)[mirrored] (:func:`cadestate.render.object_to_world`).
-    ``keyframe_error_px`` float[F]: mean Euclidean reprojection error per key-frame (px).
+    ``translation`` float[3] (world units: metres in a metric world), ``rotation`` float[4] (w, x,
+    y, z), ``scale`` float[3]: object-to-world = T · R · S · diag(-1, 1, 1)[mirrored]
+    (:func:`cadestate.render.object_to_world`). ``coplanar_axis``: the CAD axis whose scale was
+    tied for co-planar 3D points (-1: none; a round model's x or z is not tied). ``keyframe_error_px``
+    float[F]: mean Euclidean reprojection error per key-frame (px; 0 on a camera with no click,
+    which the status checks and the parallax leave out).
     ``status``: ok | invalid_input | too_few_points | single_keyframe | collinear_points |
     behind_camera | high_residual | low_parallax. ``loss_floor``: the final support term (px; 0
     without it); ``floor_prior``: how the support prior treated the object (none | no_floor |
@@ -458,13 +461,14 @@ def _solve(objects, todo, axes, opts, results) -> None:
         Rn, sn, Tn = Rf[k].numpy(), sf[k].numpy(), Tf[k].numpy()
         kf_px = terms["kf_px"][k, :F].numpy()
         z = terms["z"][k, : len(o.xy)].numpy()
-        rays = cam_c[j, :F] - Tn
+        clicked = np.unique(np.asarray(o.keyframe))  # a camera with no click says nothing of the pose
+        rays = cam_c[j, clicked] - Tn
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         parallax = float(np.degrees(np.arccos(np.clip(rays @ rays.T, -1, 1)).max()))
-        status, message = final_status(z, kf_px, parallax, opts)
+        status, message = final_status(z, kf_px[clicked], parallax, opts)
         message += _tie_note(b.loose[j].numpy(), opts.min_axis_span)
         results[i] = PoseResult(
-            status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]),
+            status, message, Tn.copy(), matrix_to_quaternion(Rn), sn.copy(), int(b.axis[j]) if bool(b.tied[j].any()) else -1,
             float(terms["total"][k]), float(terms["reprojection"][k]), float(terms["up"][k]),
             float(terms["front"][k]), kf_px.copy(), parallax, int(its[k]), int(best[j]), float(terms["floor"][k]),
             bottom_sd=float(sd[j]))
