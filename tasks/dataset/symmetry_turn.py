@@ -32,6 +32,12 @@ ROUND = 36
 """Symmetry order of a round model (any turn about +Y)."""
 SAME_SCALE = 1e-3
 """Relative difference of a round model's x and z scales under which any turn keeps its shape."""
+MIN_GAIN_PX2 = 16.0
+"""A turn is taken when it brings its clicks' squared reprojection errors down by more than this
+per click (px^2, 4 px root-mean-square): less is the clicks' noise fitted (a round model posed
+exactly, clicked with 1.5 px of noise, was turned by a few degrees, a key-frame's 3D points moved
+8.7 mm off what was clicked, for 0.4-1.4 px^2 a click), where clicks on another turn of a
+symmetric model are tens of pixels off (hundreds of px^2 a click)."""
 
 
 def y_rotation(angle: float) -> np.ndarray:
@@ -95,12 +101,13 @@ def turn_to_clicks(obj: DatasetObject, frames: Mapping[int, DatasetFrame], image
         return obj
     total = np.sum(list(errors.values()), axis=0)
     best = int(np.argmin(total))
-    if not total[best] < total[0]:
+    clicked = {ts: len(obj.correspondences[ts]) for ts in errors}
+    if not total[best] < total[0] - MIN_GAIN_PX2 * sum(clicked.values()):
         best = 0
     clicks = dict(obj.correspondences)
     for ts, e in errors.items():
         own = int(np.argmin(e))
-        if e[own] < e[best]:  # this key-frame's clicks were matched to another turn of the model
+        if e[own] < e[best] - MIN_GAIN_PX2 * clicked[ts]:  # this key-frame's clicks were matched to another turn of the model
             Y = y_rotation(float(angles[own] - angles[best]))
             clicks[ts] = tuple((xy, tuple(float(v) for v in Y @ np.asarray(xyz, np.float64))) for xy, xyz in clicks[ts])
     if best == 0 and clicks == obj.correspondences:
