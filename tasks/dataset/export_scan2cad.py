@@ -158,7 +158,8 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
     which then holds this export alone); returns counts (scans, alignments, and ``note``: the
     warning lines, '' when none). A clip with no accepted pose is no scan (Scan2CAD's evaluation
     divides by a scan's models): left out, its file of an earlier export removed, and named. Two
-    clips of one scan name (one video, one first timestamp) are refused, naming them."""
+    exported clips of one scan name (one video, one first timestamp) are refused, naming them (a
+    clip left out has no scan to clash)."""
     out = Path(os.path.abspath(out))
     earlier = earlier_csvs(out)
     selection = export_clips(wh, clips)
