@@ -211,6 +211,21 @@ def test_a_page_back_from_the_back_forward_cache_holds_its_item_again_at_once(ap
     other.context.close()
 
 
+def test_the_start_page_asks_again_only_once_its_last_answer_came(app):
+    """The start page asked every 5 s whether or not the last answer had come: an app reading
+    thousands of clips for the first time took longer, and each tick sent another request to read
+    them all again. The next request goes 5 s after the last answer."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    held = []
+    page.route("**/api/clips?**", lambda route: held.append(route))  # the answer takes long
+    page.goto(f"{app.url}/")
+    page.wait_for_timeout(6_500)
+    assert len(held) == 1
+    with page.expect_request("**/api/clips?**", timeout=15_000):  # and 5 s after its answer, the next
+        held[0].continue_()
+    page.close()
+
+
 def test_manual_tracks_by_mouse_alone(app):
     """A click into an object's class field types there (the row was rebuilt under the click), and a
     class typed in another case is the task's (it was refused: "pick a class from the list"); deleting

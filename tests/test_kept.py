@@ -174,3 +174,23 @@ def test_a_value_kept_on_disk_serves_a_process_started_later_while_its_partition
     assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 3} and len(calls) == 4
     (wh.root / "_cache" / "reads" / "test" / "c1.json").write_text("{")  # a file cut short: computed again
     assert KeptInMemory(disk(wh, "v2")).get(wh, "c1", runs(wh)) == {"runs": 3} and len(calls) == 5
+
+
+def test_threads_asking_for_a_value_being_computed_wait_for_it(tmp_path):
+    """The start page's first refreshes each read every clip while the first was still at it: every
+    clip was computed once per request in flight. Threads asking for a key being computed wait for it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "c1", table_rows("runs", [{"clip": "c1", "run_id": "r0"}]))
+    _settle_folders(wh)
+    kept, calls = KeptInMemory(), []
+
+    def slow() -> int:
+        calls.append(1)
+        time.sleep(0.3)
+        return wh.read("runs", ["c1"]).num_rows
+
+    with ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(lambda _: kept.get(wh, "c1", slow), range(4))) == [1] * 4
+    assert len(calls) == 1

@@ -158,12 +158,12 @@ class KeptInMemory:
 
     def __init__(self, disk: OnDisk | None = None):
         self._kept: dict[str, tuple[tuple[str, ...], tuple | None, Any]] = {}
+        self._flights: dict[str, threading.Lock] = {}  # held while a key's value is computed
         self._lock = threading.Lock()
         self._disk = disk
 
-    def get(self, wh: Warehouse, key: str, compute: Callable[[], Any]) -> Any:
-        """The value kept under ``key`` while what it read is unchanged, else ``compute()`` (kept so).
-        A value is the one object kept: callers do not change it."""
+    def _served(self, wh: Warehouse, key: str) -> tuple[bool, tuple | None, tuple | None]:
+        """(whether the value kept for ``key`` holds, what is kept, its folders' listing now)."""
         with self._lock:
             known = self._kept.get(key)  # (folders, their listing, value); listing None: folders only
         if known is None and self._disk is not None:
@@ -172,7 +172,26 @@ class KeptInMemory:
         if known is not None and known[1] is not None and before == known[1]:
             with self._lock:
                 self._kept[key] = known
+            return True, known, before
+        return False, known, before
+
+    def get(self, wh: Warehouse, key: str, compute: Callable[[], Any]) -> Any:
+        """The value kept under ``key`` while what it read is unchanged, else ``compute()`` (kept so).
+        A value is the one object kept: callers do not change it. Threads asking for one key while
+        it is computed wait for that value (an app's first refreshes, each reading every clip, had
+        computed each clip once per request in flight)."""
+        hit, known, before = self._served(wh, key)
+        if hit:
             return known[2]
+        with self._lock:
+            flight = self._flights.setdefault(key, threading.Lock())
+        with flight:
+            hit, known, before = self._served(wh, key)  # computed while this thread waited
+            if hit:
+                return known[2]
+            return self._compute(wh, key, compute, known, before)
+
+    def _compute(self, wh: Warehouse, key: str, compute: Callable[[], Any], known: tuple | None, before: tuple | None) -> Any:
         started = time.time_ns()
         with recording_reads() as noted:
             value = compute()
@@ -196,6 +215,8 @@ class KeptInMemory:
         with self._lock:
             for key in [k for k in self._kept if k not in wanted]:
                 del self._kept[key]
+            for key in [k for k in self._flights if k not in wanted]:
+                del self._flights[key]
 
 
 def row_counts(wh: Warehouse) -> dict[str, int]:
