@@ -151,6 +151,26 @@ def test_a_damaged_file_when_the_catalog_is_built_is_one_line_naming_it(tmp_path
         assert result.stderr.startswith(f"error: table clips: cannot read its files: {damaged}: "), result.stderr
 
 
+def test_a_write_is_not_failed_by_a_damaged_file_of_another_table(tmp_path):
+    """A process's first write builds the catalog, which reads every footer: a damaged file of any
+    table raised after the write was in, so a retried append wrote its rows twice. The write
+    stands; the damage is a warning."""
+    import subprocess
+    import sys
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("clips", "a", table_rows("clips", [{"clip": "a"}]))
+    damaged = wh.files("clips", ["a"])[0]
+    damaged.write_bytes(b"not parquet at all")
+    (wh.root / CATALOG_FILE).unlink()
+    script = ("import sys; sys.path.insert(0, 'tests'); from conftest import table_rows; from warehouse import Warehouse; "
+              f"Warehouse({str(wh.root)!r}).write('runs', 'b', table_rows('runs', [{{'clip': 'b', 'run_id': 'r1'}}])); print('written')")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout == "written\n", result.stderr
+    assert f"table clips: cannot read its files: {damaged}" in result.stderr and "the write itself is done" in result.stderr
+    assert wh.read("runs", ["b"]).num_rows == 1
+
+
 def test_temporary_files_of_a_killed_write_go_with_the_next_compaction(tmp_path):
     """A write killed before its rename leaves ``.<uuid>.tmp`` in an append partition: the next
     compaction (past ``compact_after`` files, or ``cadestate compact``) swaps in a folder without it."""

@@ -365,11 +365,12 @@ def after_write(wh: Warehouse) -> None:
     """The store's after-write hook: :func:`ensure_catalog`, once per process and root (so a
     warehouse has a catalog from its first write, and new code's schemas reach it). A catalog that
     cannot be built is a warning, not a failed write: the data is in, and readers rebuild it or
-    read the tables without it (:func:`connect`)."""
+    read the tables without it (:func:`connect`). So is a damaged file of any table (it raised
+    after the write was in: a retried append wrote its rows twice)."""
     if wh.root not in _ENSURED:
         try:
             ensure_catalog(wh)
-        except CatalogError as e:
+        except WarehouseError as e:  # CatalogError included
             _ENSURED.add(wh.root)  # said once per process
             warn(f"{e} (the write itself is done)")
 
