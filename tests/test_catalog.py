@@ -4,6 +4,7 @@ to full and across a schema change; append-mode partitions are compacted atomica
 from __future__ import annotations
 
 import json
+import shutil
 import multiprocessing as mp
 import threading
 
@@ -323,3 +324,22 @@ def test_a_catalog_that_cannot_be_rebuilt_gives_way_to_views_in_memory(wh, tmp_p
     con.close()
     with pytest.raises(CatalogError, match="cannot rebuild the catalog"):
         connect(copy, read_only=False)
+
+
+def test_a_partition_or_lock_that_cannot_be_opened_is_one_line_naming_it(tmp_path):
+    """A partition folder the warehouse cannot list (here a link to itself: "too many levels of
+    symbolic links"; a folder without read permission alike) and a lock whose folder is a file ended
+    `tables`, `status` and `compact` in a traceback; now one line naming the path."""
+    from fuzz.harness import assert_clean_error
+
+    wh = Warehouse(tmp_path / "w")
+    for clip in ("a", "b"):
+        wh.write("runs", clip, runs(clip, "r1"))
+    loop = wh.partition_dir("runs", "c")
+    loop.symlink_to(loop)
+    for command in (["tables"], ["status"]):
+        assert_clean_error(run_cli("-w", str(wh.root), *command), mentions=f"{loop}: cannot list its files: ")
+    loop.unlink()
+    shutil.rmtree(wh.root / "_locks")
+    (wh.root / "_locks").write_text("not a folder")
+    assert_clean_error(run_cli("-w", str(wh.root), "compact"), mentions=f"{wh.root / '_locks'}")

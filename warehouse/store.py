@@ -235,13 +235,20 @@ def data_files(folder: Path | str) -> list[str]:
                 return [prefix + n for n in sorted(names) if n.endswith(".parquet")]
         except (FileNotFoundError, NotADirectoryError):
             return []
+        except OSError as e:  # a folder it may not read: one line naming it, not a traceback
+            raise WarehouseError(f"{base}: cannot list its files: {e.strerror or e}") from None
 
 
 @contextlib.contextmanager
 def file_lock(path: Path) -> Iterator[None]:
-    """Hold an exclusive ``flock`` on ``path`` (made, with its folder, if missing)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as f:
+    """Hold an exclusive ``flock`` on ``path`` (made, with its folder, if missing); a
+    :class:`WarehouseError` naming it when it cannot be made or opened."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(path, "a")
+    except OSError as e:
+        raise WarehouseError(f"{path}: cannot take its lock: {e.strerror or e}") from None
+    with f:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         try:
             yield
