@@ -23,6 +23,15 @@ def test_bound_is_at_least_the_exact_optimum(seed):
     assert b.value <= e * 1.02  # and come close: on these instances the relaxation is nearly tight
 
 
+def test_negative_group_ids_keep_the_bound_valid():
+    """Group-star rows were keyed by node x (max group + 1) + group: negative ids collided, merged
+    rows of different nodes into one invalid inequality, and the bound fell below the optimum."""
+    i, j, w = [0, 0, 1], [1, 2, 2], [-0.23, 0.87, 0.24]
+    e = objective(solve_exact(3, i, j, w, groups=[-3, 1, -1]), i, j, w)
+    assert upper_bound(3, i, j, w, groups=[-3, 1, -1]).value >= e - TOL
+    assert upper_bound(3, i, j, w, groups=[-3, 1, -1]).value == pytest.approx(upper_bound(3, i, j, w, groups=[0, 2, 1]).value)
+
+
 def test_bound_equals_the_optimum_when_the_relaxation_is_integral():
     # three cliques of detections over frames, attractive inside, repulsive across: the optimum joins
     # each clique, and so does the LP (no inequality is violated by the integral solution)

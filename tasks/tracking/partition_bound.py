@@ -188,7 +188,8 @@ def _star_rows(g: Graph) -> tuple[sp.csr_matrix, np.ndarray]:
     node = np.concatenate([g.i[pos], g.j[pos]])
     other = np.concatenate([g.j[pos], g.i[pos]])
     edge = np.concatenate([pos, pos])
-    key = node * (int(g.groups.max()) + 1) + g.groups[other]
+    dense = np.unique(g.groups, return_inverse=True)[1]  # 0..G-1: any group ids (negative ones collided)
+    key = node * (int(dense.max()) + 1) + dense[other]
     uniq, row, count = np.unique(key, return_inverse=True, return_counts=True)
     keep = count[row] >= 2
     rows_kept, row = np.unique(row[keep], return_inverse=True)

@@ -7,6 +7,7 @@ between pairs of clusters, and cluster joins, repeated until none improves."""
 from __future__ import annotations
 
 import heapq
+from collections import Counter
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,9 +32,10 @@ class _State:
         self.members: dict[int, set[int]] = {}
         for v, c in enumerate(self.labels):
             self.members.setdefault(c, set()).add(v)
-        self.occupied: set[tuple[int, int]] = set()  # (cluster, group)
+        # nodes per (cluster, group): counted, as a swap moves a node in before its group's other one leaves
+        self.occupied: Counter[tuple[int, int]] = Counter()
         if self.groups is not None:
-            self.occupied = {(c, self.groups[v]) for v, c in enumerate(self.labels)}
+            self.occupied = Counter((c, self.groups[v]) for v, c in enumerate(self.labels))
         self.next_label = g.n  # fresh labels for nodes moved out
         self.local = np.full(g.n, -1, dtype=np.int64)  # scratch of _kl_pair (node -> local index), all -1 between uses
         self.lab_np = np.array(self.labels, dtype=np.int64)  # labels as an array (kept in step by move)
@@ -48,7 +50,7 @@ class _State:
         return out
 
     def allowed(self, v: int, c: int) -> bool:
-        return self.groups is None or (c, self.groups[v]) not in self.occupied
+        return self.groups is None or self.occupied[(c, self.groups[v])] == 0
 
     def move(self, v: int, c: int) -> None:
         old = self.labels[v]
@@ -60,8 +62,8 @@ class _State:
         self.lab_np[v] = c
         self.touched.append(v)
         if self.groups is not None:
-            self.occupied.discard((old, self.groups[v]))
-            self.occupied.add((c, self.groups[v]))
+            self.occupied[(old, self.groups[v])] -= 1
+            self.occupied[(c, self.groups[v])] += 1
 
     def best_move(self, v: int) -> tuple[float, int]:
         """(gain, target) of the best move of ``v``; target -1 = a new cluster of its own."""

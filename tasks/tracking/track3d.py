@@ -9,7 +9,8 @@ A ray's error is angular: the box centre is not the projection of the object's c
 wanders more the larger the box looks, so ray i has the angular standard deviation
 ``sigma_i = SIGMA0 + SIGMA_BOX * (box half-diagonal, radians)`` and, at depth ``z_i`` along it, the
 perpendicular standard deviation ``sigma_i * z_i`` (metres). The point minimises the weighted sum
-of squared perpendicular distances (:func:`triangulate`); its chi-square ``cost`` is that sum. Rays
+of squared perpendicular distances (:func:`triangulate`); its ``cost`` is that sum (a chi-square),
+plus each depth behind a camera squared in its ray's weight (a point behind the cameras fits no box). Rays
 of too narrow a baseline (a camera that turns on the spot, a single box) leave the point poorly
 determined along them: a weak prior (:data:`PRIOR_DEPTH` m along the mean ray, standard deviation
 :data:`PRIOR_SIGMA` m) keeps the system solvable and the covariance large along the rays.
@@ -61,7 +62,8 @@ class Rays:
 @dataclass(frozen=True)
 class Point3D:
     """A triangulated point: ``X`` float64[3] (m, aligned world), ``cov`` float64[3,3] (m^2),
-    ``cost``: chi-square of the rays about it (the prior excluded), ``depth`` float64[N] of each
+    ``cost``: chi-square of the rays about it (the prior excluded), plus the weighted squares of the
+    depths behind a camera, ``depth`` float64[N] of each
     ray's foot point (m)."""
 
     X: np.ndarray
