@@ -66,6 +66,8 @@ def test_ingest_then_sql_status_tables(tmp_path, small_clip, monkeypatch):
     assert named.exit_code == 0 and "small_0" in named.output and "named" not in named.output, named.output
     tables = runner.invoke(app, ["-w", w, "tables"])
     assert "frames" in tables.output and "30" in tables.output
+    for name, column in (("frames", "clip"), ("cad_models", "library")):  # cad_models was said partitioned by clip
+        assert f"partitioned by {column}" in runner.invoke(app, ["-w", w, "tables", name]).output.splitlines()[-1]
     (tmp_path / "c.toml").write_text("[warehouse]\nsnapshot_after_clips = 1\n")
     again = runner.invoke(app, ["-w", w, "-c", str(tmp_path / "c.toml"), "run"])  # a batch big enough for a snapshot
     assert again.exit_code == 0 and again.output.count("cached") == len(stages)

@@ -97,6 +97,8 @@ def test_one_statement_of_a_read_only_kind(w):
     refused(sql(w, "CREATE TABLE t (i INT)"), mentions="read-only")
     refused(sql(w, "   -- nothing"), mentions="no statement")
     refused(sql(w, "UPDATE EXTENSIONS"), mentions="UPDATE")  # a kind DuckDB's Python client has no name for
+    refused(sql(w, "WITH x AS (DELETE FROM runs RETURNING 1) SELECT * FROM x"))  # a SELECT that would change: the views cannot
+    refused(sql(w, "WITH x AS (DELETE FROM warehouse.snapshot.runs RETURNING 1) SELECT * FROM x"))
     assert warehouse_digest(w) == before
     for ok in ("DESCRIBE clips", "SHOW TABLES", "SUMMARIZE runs", "EXPLAIN SELECT * FROM clips",
                "FROM clips", "WITH c AS (FROM clips) SELECT count(*) FROM c", "VALUES (1)"):

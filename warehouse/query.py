@@ -8,10 +8,12 @@ from itself, and a broken catalog file does not matter), then locked down before
 - one statement, of a read-only kind: SELECT and its forms (WITH, FROM, VALUES, TABLE, DESCRIBE,
   SHOW, SUMMARIZE, UNPIVOT), or EXPLAIN [ANALYZE] of one. Every other kind (COPY, EXPORT, ATTACH,
   INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, CHECKPOINT, ...) is refused, before the warehouse is
-  even read;
-- files: only the warehouse's ``tables/`` folder can be read
-  (``enable_external_access = false`` with ``allowed_directories``): no other file, no network, no
-  extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
+  even read. A change written inside a SELECT (``WITH x AS (DELETE ... RETURNING ...) SELECT ...``)
+  is of the SELECT kind; it fails on the views, which nothing can change (the catalog is attached
+  read-only, or the views are made in memory over the files);
+- files: only the warehouse's ``tables/`` folder can be read, and the catalog file the session
+  attached (``enable_external_access = false`` with ``allowed_directories``): no other file, no
+  network, no extension installed or loaded (none is auto-installed or auto-loaded), no Python object;
 - the configuration is locked, and intermediate results that spill go to a private temporary
   folder, removed with the session. Nothing is written to the warehouse but derived files, as any
   command that opens the catalog writes them: the catalog file and a table's schema file

@@ -293,8 +293,8 @@ def sql(
 
     Read-only: one SELECT (or WITH, FROM, VALUES, TABLE, DESCRIBE, SHOW, SUMMARIZE), or EXPLAIN of
     one. Any other statement (COPY, EXPORT, ATTACH, INSTALL, LOAD, SET, PRAGMA, CREATE, INSERT, ...)
-    is refused, and only the warehouse's table files can be read: no other file, no network, no
-    extension. The table format shows the first rows (--limit) and counts the others, and a list of
+    is refused (a change inside a SELECT fails: nothing can change the views), and only the
+    warehouse's table files can be read: no other file, no network, no extension. The table format shows the first rows (--limit) and counts the others, and a list of
     more than 8 items (an embedding) as its first 6 and its length; csv and json stream every row
     whole as it comes (json: an array, one row a line).
 
@@ -364,7 +364,7 @@ def tables(
         for row in spec.describe():
             table.add_row(*map(escape, row))
         out.print(table)
-        out.print(f"key: {', '.join(spec.key)}   mode: {spec.mode}   partitioned by clip")
+        out.print(f"key: {', '.join(spec.key)}   mode: {spec.mode}   partitioned by {spec.schema[0].name}")
         return
     from warehouse.kept import row_counts  # kept while no table file came or went: no DuckDB then
 
@@ -394,7 +394,7 @@ def catalog(ctx: typer.Context) -> None:
 @app.command()
 def compact(
     ctx: typer.Context,
-    tables: Annotated[Optional[list[str]], typer.Argument(help="Append-mode tables to compact (default: runs, label_files, label_tasks).")] = None,
+    tables: Annotated[Optional[list[str]], typer.Argument(help="Append-mode tables to compact (default: every one; `cadestate tables NAME` gives a table's mode).")] = None,
     min_files: Annotated[int, typer.Option("--min-files", min=2, help="Compact a partition only if it has at least this many files.")] = 2,
     whole: Annotated[bool, typer.Option("--whole", help="Take the snapshot from every file, not from the last snapshot and the files it lacks (after a file was changed in place, under its old name).")] = False,
 ) -> None:
