@@ -13,7 +13,8 @@ for one whose items were answered again later (:func:`set_aside_superseded`).
 An answer to a task that a rerun replaced goes to the newest task of its kind where it fits it
 (:class:`Conflict` otherwise), and a page says which answers it saw (``as_of``,
 :func:`answers_as_of`): an item answered by someone else since then is a :class:`Conflict`, not a
-silent replacement of their answer.
+silent replacement of their answer; the same answer by the same annotator (a page that sent it
+again, the reply to the first lost) is said saved, and nothing is written.
 """
 
 from __future__ import annotations
