@@ -259,12 +259,13 @@ export function drawBoxes(canvas, boxes) {
   ctx.setLineDash([]);
 }
 
-// The item's key-frame images (warehouse-relative paths), each loaded once: one gone from the warehouse's
+// The item's images (warehouse-relative paths: its key-frames; CAD selection: the candidates' views too,
+// named by ``what``), each loaded once: one gone from the warehouse's
 // media is said above the page until it is left (a toast went after 12 s and left broken icons) and
 // ``framesNotShown()`` refuses the answer, which would be given on frames nobody saw ("nothing is
 // missing", a candidate, an Accept). Resolves to the paths that did not load.
 let frameCheck = Promise.resolve([]);
-export function checkFrames(paths) {
+export function checkFrames(paths, what = "key-frame images") {
   const missing = [];
   frameCheck = Promise.all([...new Set(paths)].map((path) => new Promise((done) => {
     const img = new Image();
@@ -273,16 +274,16 @@ export function checkFrames(paths) {
     img.src = media(path);
   }))).then(() => {
     if (missing.length) $("main").prepend(el("div", {id: "frames-missing", class: "toast error", role: "alert", style: "margin:0 0 10px"},
-      `${missing.length} of this item's key-frame images cannot be loaded (${missing.sort().join(", ")}): no answer can be given without seeing them.`));
+      `${missing.length} of this item's ${what} cannot be loaded (${missing.sort().join(", ")}): no answer can be given without seeing them.`));
     return missing;
   });
   return frameCheck;
 }
-// Whether the answer cannot be given (a key-frame image did not load: said so); waits for the images
+// Whether the answer cannot be given (an image of checkFrames did not load: said so); waits for the images
 // still loading (an answer sent at once is not refused for that). Pages call it with their Submit off.
 export async function framesNotShown() {
   if (!(await frameCheck).length) return false;
-  toast("a key-frame image cannot be loaded (above): no answer without it", "error");
+  toast("an image of this item cannot be loaded (above): no answer without it", "error");
   return true;
 }
 
