@@ -543,3 +543,28 @@ def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_ag
     [item] = json.loads(latest_tasks(hwh, CLIP)["correspondences"]["document"])["items"]
     assert back.status == "completed" and item["track_id"] == 0 and item["previous"]["cad_id"] == "lib.chair_a"
     assert _waiting(hwh) == []
+
+
+def test_clicks_of_a_track_no_longer_asked_do_not_answer_the_task(hwh, tmp_path):
+    """A track with a chosen model that a rerun sees on one frame only is no item (one view gives no
+    pose), yet its earlier clicks still held it and were counted against the items: with track 0
+    unanswered, "1 of 1 tracks have correspondences" and the stage completed."""
+    sel = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    ingest_labels(hwh, _label(tmp_path / "l1", "a.json", "cad_selection", _task(hwh, sel.message)["task_id"],
+                              [{"track_id": 0, "cad_id": "lib.chair_a"}, {"track_id": 1, "cad_id": "lib.chair_b"},
+                               {"track_id": 2, "cad_id": None}], "2026-01-01T00:00:00+00:00"))
+    _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
+    corr = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    ctask = _task(hwh, corr.message)
+    shown = [k["timestamp_us"] for k in ctask["items"][1]["keyframes"]]
+    pts = [{"x": 0.1 + 0.1 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)]
+    answer = {"track_id": 1, "cad_id": "lib.chair_b", "is_mirrored": False,
+              "keyframes": [{"timestamp_us": shown[1], "points": pts}]}  # one key-frame clicked so far
+    assert ingest_labels(hwh, _label(tmp_path / "l2", "b.json", "correspondences", ctask["task_id"], [answer],
+                                     "2026-01-02T00:00:00+00:00")).ok
+    # a rerun of tracking: track 1 keeps one detection, on the first frame its clicks were made on
+    tds = [r for r in hwh.read("track_detections", [CLIP]).to_pylist() if r["track_id"] != 1 or r["timestamp_us"] == shown[1]]
+    hwh.write("track_detections", CLIP, table_rows("track_detections", tds))
+    again = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    assert again.status == "paused" and "0 of 1 tracks have correspondences" in again.message, again.message
+    assert [it["track_id"] for it in _task(hwh, again.message)["items"]] == [0]

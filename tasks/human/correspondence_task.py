@@ -42,7 +42,8 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
     now = boxes_now(tracks)
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
-    held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)
+    held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)  # every chosen track
+    held = {t: a for t, a in held.items() if t in track_ids}  # (matched among all) but only items answer the task
     models, renders = model_facts(wh, set(chosen.values()))
     labels = {t: track.label for t, track in tracks.items()}
     items = []
