@@ -907,3 +907,18 @@ def test_a_manual_track_answer_to_a_replaced_task_is_said_to_leave_the_new_one_w
     assert report.ok and report.warnings == [f"{tmp_path / 'in' / 'm.json'}: answers task c1.mt, which a rerun replaced with "
                                              "c1.mt2: a manual-track answer answers its own task only, so c1.mt2 still "
                                              "waits for one (an import made again answers the newest task)"]
+
+
+def test_an_answer_to_a_withdrawn_task_is_refused(lwh, tmp_path):
+    """A rerun withdrew the clip's manual-track task (a task with nothing to answer took its place):
+    an answer to that task passed (boxes only need clip frames, there are no tracks to check), was
+    ingested and counted as answering it. Refused, naming the task id."""
+    from tasks.human.labels import new_task_id
+    from tasks.human.shared import withdraw_task
+
+    assert withdraw_task(lwh, CLIP, "manual_track", "split 'train' is not one of [manual_tracks] splits (val, test)")
+    doc = {**good("manual_track"), "task_id": new_task_id("manual_track", CLIP, "withdrawn")}
+    path = put(tmp_path / "labels", "x.json", json.dumps(doc))
+    with pytest.raises(LabelError, match=r"\$\.task_id: task c1\.manual_track\.\w+ asks nothing \(a rerun withdrew the "
+                                         r"kind's task: Nothing to answer: split 'train'"):
+        validate_label(path, lwh)

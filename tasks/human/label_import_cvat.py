@@ -125,7 +125,8 @@ def cvat_source(root: ET.Element, name: str, clip: str | None) -> CvatSource:
             frames, span = _frames_of(task, where)
             if j < i:
                 offset += frames
-        return CvatSource(tasks[i].findtext("id") if len(tasks) > 1 else None, offset, span, f"{where}/stop_frame",
+        field = "stop_frame" if tasks[i].find("stop_frame") is not None else "size"  # what the span came from
+        return CvatSource(tasks[i].findtext("id") if len(tasks) > 1 else None, offset, span, f"{where}/{field}",
                           _size(tasks[i], where), "", _video_names(tasks[i]), dumped)
     for owner in ("task", "job"):
         if (meta := root.find(f"meta/{owner}")) is not None:

@@ -289,6 +289,9 @@ def check_label(label: Label, facts: ClipFacts, name: str) -> None:
         raise _fail(name, ["task_id"], f"unknown task {label.task_id!r} for clip {label.clip!r}")
     if task.kind != label.kind:
         raise _fail(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
+    if not (task.keyframes if task.kind == "manual_track" else task.items):  # asks_nothing: withdrawn by a rerun
+        raise _fail(name, ["task_id"], f"task {label.task_id} asks nothing (a rerun withdrew the kind's task: "
+                                       f"{task.instructions})")
     stamps = facts.timestamps(label.clip)
     if label.kind == "manual_track":
         existing = {t.track_id for t in task.existing_tracks}
