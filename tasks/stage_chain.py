@@ -60,8 +60,9 @@ def run_unit(root: str, scope: str, unit: str, config: Config, source: Any = Non
              log: logging.Logger | logging.LoggerAdapter | None = None, read_cache: ReadCache | None = None) -> list[StageReport]:
     """Run every stage of ``scope`` for ``unit`` in pipeline order (see the module); one report per
     stage. Runs of the unit that a killed process left unrecorded are recorded as interrupted first.
-    An input file that cannot be read is one failed report of the stage that reads it, and nothing
-    of the unit runs. ``read_cache``: where the input digests' reads are kept (default: a new cache
+    An input that cannot be digested (a file unreadable or damaged) is one failed report of the
+    stage that reads it: before any stage ran, nothing of the unit runs; after, the stages that
+    ran keep their reports and the others go on. ``read_cache``: where the input digests' reads are kept (default: a new cache
     for this call); a process that runs the unit again and again passes one that lives on, which
     the stages read and write through too (their next run and the process's other readers find
     the files they wrote without reading them)."""
@@ -90,7 +91,7 @@ def _run_unit(wh: Warehouse, scope: str, unit: str, config: Config, source: Any,
             for stage in stages:  # what each reads besides its upstream outputs, taken now, as status takes it
                 try:
                     inputs[stage.name] = _inputs(stage, config, source, memo)
-                except OSError as e:  # an unreadable input file
+                except Exception as e:  # an unreadable or damaged input file: that stage's failed report
                     return [_unreadable(unit, stage, e, log)]
         runs = read_runs(wh, [unit])
         len_before = len(runs)  # each stage that runs appends its run (_one_stage)
@@ -104,7 +105,7 @@ def _run_unit(wh: Warehouse, scope: str, unit: str, config: Config, source: Any,
         if len(runs) > len_before and not stage.has("source_inputs"):  # an earlier stage ran: what it wrote
             try:  # may be what this one's digests read (pose reads the answers to cad_selection's new task)
                 inputs[stage.name] = _inputs(stage, config, source, memo)
-            except OSError as e:
+            except Exception as e:  # the reports of the stages that ran stay
                 reports.append(_unreadable(unit, stage, e, log))
                 continue
         report = _one_stage(wh, stage, unit, config, source, show_progress, inputs[stage.name], done, runs, log)
@@ -122,10 +123,13 @@ def _inputs(stage: Stage, config: Config, source: Any, memo: InputsMemo) -> list
     return stage.config_inputs(config) + memo.clip_inputs(stage, fresh=True)
 
 
-def _unreadable(unit: str, stage: Stage, error: OSError, log: Any) -> StageReport:
-    """The failed report of a stage whose input file cannot be read (logged)."""
-    log.error("%s %s: %s", unit, stage.name, error)
-    return StageReport(unit, stage.name, "failed", message=str(error))
+def _unreadable(unit: str, stage: Stage, error: Exception, log: Any) -> StageReport:
+    """The failed report of a stage whose inputs cannot be digested (logged): a file that cannot be
+    read (an OSError) or is damaged (a WarehouseError, pyarrow's ValueError), or any other error
+    there, named by its type (it escaped as one report named 'stages', the stage unnamed)."""
+    message = str(error) if isinstance(error, (OSError, ValueError)) else f"{type(error).__name__}: {error}"
+    log.error("%s %s: %s", unit, stage.name, message)
+    return StageReport(unit, stage.name, "failed", message=message)
 
 
 def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: Any, show_progress: bool,

@@ -121,3 +121,22 @@ def test_one_run_of_a_unit_at_a_time(tmp_path):
     with file_lock(unit_lock_path(wh, "c1")):  # another clip runs beside a run of c1
         other = run_unit(str(wh.root), "clip", "c2", Config(), dataclasses.replace(source, clip="c2"), False)
     assert [(r.stage, r.state) for r in other] == [("cameras", "failed")]
+
+
+def test_a_damaged_input_file_is_the_failed_report_of_the_stage_that_reads_it(tmp_path):
+    """Only an OSError of a stage's input digests was its failed report: a damaged label file (a
+    WarehouseError) escaped the chain, one report named 'stages', the stage not named."""
+    from cadestate.config import Config
+    from conftest import table_rows
+    from tasks.stage_chain import run_unit
+    from tasks.video.ingest import ClipSource
+
+    wh = Warehouse(tmp_path / "w")
+    wh.write("cad_selection_labels", "c1", table_rows("cad_selection_labels", [{"clip": "c1", "task_id": "t", "track_id": 0}]))
+    damaged = wh.files("cad_selection_labels", ["c1"])[0]
+    damaged.write_bytes(b"not parquet at all")
+    for name in ("v.mp4", "v.txt"):  # digested, never decoded: the chain stops before any stage runs
+        (tmp_path / name).write_bytes(b"x")
+    source = ClipSource("c1", tmp_path / "v.mp4", tmp_path / "v.txt", "train")
+    [report] = run_unit(str(wh.root), "clip", "c1", Config(), source, False)
+    assert report.state == "failed" and report.stage != "stages" and str(damaged) in report.message, report
