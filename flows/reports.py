@@ -61,12 +61,17 @@ def final_state(reports: list[StageReport], what: str) -> State:
 
 def state_reports(state: State) -> list[StageReport]:
     """The reports a finished flow run's final ``state`` carries; when Prefect handed back a state
-    without its data, those its run kept in this process (:data:`_KEPT`)."""
+    without its data, those its run kept in this process (:data:`_KEPT`). A flow that raised (its
+    state carries the exception, not reports) is raised again: a caller iterating it met "object is
+    not iterable" and lost the cause."""
     from prefect.exceptions import MissingResult
 
     run_id = str(state.state_details.flow_run_id)
     try:
-        return state.result(raise_on_failure=False)
+        result = state.result(raise_on_failure=False)
+        if isinstance(result, BaseException):
+            raise result
+        return result
     except MissingResult:
         if run_id in _KEPT:
             return _KEPT[run_id]

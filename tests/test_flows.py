@@ -358,6 +358,13 @@ def test_a_flow_runs_reports_survive_a_final_state_handed_back_without_its_data(
     with pytest.raises(MissingResult):
         state_reports(bare)  # kept once, for the run that made it
 
+    @flow
+    def broken():
+        raise LookupError("the flow's own error")
+
+    with pytest.raises(LookupError, match="the flow's own error"):  # was: 'LookupError' object is not iterable, later
+        run_flow(broken, config, run_name="broken/a", tags=[])
+
 def test_a_val_clip_waits_for_its_manual_tracks(config, source, tmp_path):
     """Changing the split reruns ingest (frames rerun and write the same frames) and manual_tracks,
     which pauses; what follows waits; an empty answer ("nothing missing") resumes the clip."""
