@@ -111,6 +111,9 @@ def serve(ctx: typer.Context) -> None:
     except ServerError as e:
         raise CliError(str(e)) from None
     end_with_server(server, lambda: _server_ended(server.api_url))
+    # the server found above, not found again: a second look missed by a busy machine left the URL
+    # unset, and the schedules went to a throwaway API of this process
+    os.environ.setdefault("PREFECT_API_URL", server.api_url)
     prepare_prefect_environment(root, True, cfg.prefect.startup_timeout_s)  # serving shows Prefect's logs
     os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", str(root / "_prefect" / "results"))
     from prefect import serve as prefect_serve
