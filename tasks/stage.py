@@ -272,13 +272,19 @@ def run_markers(wh: Warehouse, clip: str) -> list[RunMarker]:
 
 def settle_interrupted(wh: Warehouse, clip: str) -> list[StageRun]:
     """Record every run of ``clip`` whose process ended without recording it (its marker is left)
-    as an ``interrupted`` row of ``runs``, and remove its marker. Returns them. The caller holds the
+    as an ``interrupted`` row of ``runs``, and remove its marker (only that for a run whose row is
+    in: a second row of its run_id, interrupted, had hidden the completed one). Returns them. The caller holds the
     clip's lock (:func:`tasks.stage_chain.run_unit`), which every run holds while its marker is
     there, so a marker left now is a dead run's whatever its host (a marker of another host was
     taken for a live run until its heartbeat was 5 minutes old, after a Dask retry had finished the
     clip)."""
-    settled = []
-    for m in run_markers(wh, clip):
+    settled, markers = [], run_markers(wh, clip)
+    recorded = set(wh.read("runs", [clip], columns=["run_id"]).column("run_id").to_pylist()) \
+        if markers and wh.has_partition("runs", clip) else set()
+    for m in markers:
+        if m.run_id in recorded:  # the process ended after recording its run, before removing the marker
+            m.path.unlink(missing_ok=True)
+            continue
         run = StageRun(clip=clip, stage=m.stage, run_id=m.run_id, status="interrupted", config_hash="", inputs_hash="",
                        output_hash="", code_hash="", rows_written=0, duration_s=0.0,
                        message=f"interrupted: process {m.pid} on {m.host} ended before the run finished (killed or crashed); "

@@ -70,6 +70,21 @@ def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
     assert settle_interrupted(wh, "c1") == []  # recorded once
 
 
+def test_a_run_killed_after_its_row_was_written_is_not_recorded_again(wh):
+    """A process killed between writing its run's row and removing its marker (the row's write may be
+    the process's first, which builds the catalog): the next run appended an interrupted row of the
+    same run_id, which hid the completed one, and the stage ran again."""
+    import datetime as dt
+
+    from tasks.stage import _start_marker
+
+    done = run_stage(wh, "c1", "detect", body=lambda run_id: StageOutput(1, "o", "ok"), **HASHES)
+    _start_marker(wh, "c1", "detect", done.run_id, dt.datetime.now(dt.timezone.utc))  # left by the kill
+    assert len(run_markers(wh, "c1")) == 1
+    assert settle_interrupted(wh, "c1") == [] and run_markers(wh, "c1") == []
+    assert [(r["run_id"], r["status"]) for r in wh.read("runs").to_pylist()] == [(done.run_id, "completed")]
+
+
 def test_status_says_a_killed_library_stage_is_rerun_by_cad_ingest(wh):
     """A CAD library's stage killed mid-run: `cadestate status` names the command that reruns it,
     `cadestate cad ingest` (`cadestate run LIBRARY` refuses: no clip of that name)."""
