@@ -43,7 +43,7 @@ from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLi
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.deployments import run_deployment
 from prefect.deployments.runner import EntrypointType
-from prefect.exceptions import FailedRun
+from prefect.exceptions import FailedRun, FlowPauseTimeout, NotPausedError
 from prefect.flow_runs import resume_flow_run, suspend_flow_run
 from prefect.states import Crashed, Failed, State
 
@@ -309,13 +309,23 @@ def start_clip_run(warehouse: str, config_path: str, source: ClipSource) -> str:
 
 def resume_clips(clips: list[str]) -> list[str]:
     """Resume the suspended annotate_clip runs of ``clips`` (through the API); returns the clips
-    resumed. The others have no suspended run (they run in ephemeral mode, or not at all yet)."""
+    resumed. The others have no suspended run (they run in ephemeral mode, or not at all yet), or
+    one whose suspension ran out (the caller starts a run): that one raised and left the other
+    clips of the tick neither resumed nor started. A run another process resumed meanwhile (a
+    `labels ingest` beside the tick) counts as resumed."""
     resumed = []
     for clip in clips:
         runs = [r for r in active_clip_runs(clip, [StateType.PAUSED]) if r.state_name == "Suspended"]
+        going = False
         for r in runs:
-            resume_flow_run(r.id)
-        if runs:
+            try:
+                resume_flow_run(r.id)
+                going = True
+            except NotPausedError:  # resumed by another process just now: it runs
+                going = True
+            except FlowPauseTimeout:  # its suspension ran out: not resumed
+                continue
+        if going:
             resumed.append(clip)
     return resumed
 
