@@ -5,7 +5,8 @@ does; importing Prefect for it would cost about a second a command (issue 16's b
 validates a cron string with the croniter it vendors (``prefect._internal.schemas.validators.
 validate_cron_string``: ``croniter.is_valid``, and no random "R" or hashed "H" fields); that one
 module is loaded from Prefect's install by its path (~20 ms: pytz and dateutil), and
-``tests/test_config.py`` holds the two checks to the same answers.
+``tests/test_config.py`` holds the two checks to the same answers, but for what cadestate refuses
+and Prefect takes (a sixth field, read as seconds; a date that never comes: ``STRICTER`` there).
 """
 
 from __future__ import annotations

@@ -129,9 +129,9 @@ class StageDef:
 
 @dataclass(frozen=True)
 class StageRun:
-    """One recorded stage run (a row of ``runs``). ``status``: completed | failed | paused, or
-    ``waiting`` (not recorded: the stage did not run because an upstream stage is paused with
-    nothing answered yet)."""
+    """One recorded stage run (a row of ``runs``). ``status``: completed | failed | paused |
+    interrupted (its process ended first: :func:`settle_interrupted`), or ``waiting`` (not
+    recorded: the stage did not run because an upstream stage is paused with nothing answered yet)."""
 
     clip: str
     stage: str
