@@ -20,8 +20,9 @@ A page used to wait for a whole flow run: on a small clip with the server up, 0.
 events) around 0.17 s of stage work. A request that comes while a clip is recorded queues it
 again at once (a page never reads a clip as ready before its newest answers have run). Records
 wait while any clip is queued: another clip's page does not wait for this one's record (it did,
-the worker taking clips and records in one line), though a record under way is finished first. Prefect's
-environment must be prepared (:func:`flows.runtime.prepare_prefect_environment`) before the worker starts.
+the worker taking clips and records in one line), though a record under way is finished first.
+Prefect's environment must be prepared (:func:`flows.runtime.prepare_prefect_environment`) before
+the worker starts.
 """
 
 from __future__ import annotations
