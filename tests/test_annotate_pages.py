@@ -8,6 +8,7 @@ through all four pages with the pipeline running between them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -226,6 +227,23 @@ def test_the_start_page_asks_again_only_once_its_last_answer_came(app):
     page.close()
 
 
+@contextlib.contextmanager
+def _own_app(app: App, root: Path):
+    """An app of its own over a fresh warehouse (``root``), with a new page of the module's browser:
+    for a test whose page holds an item the module's other tests would then be kept from."""
+    from cadestate.config import Config, WarehouseConfig
+    from cadestate.webapp.app import create_app
+
+    wh = _build(root)
+    with served_app(create_app(Config(warehouse=WarehouseConfig(root=str(wh.root))), annotator="pages-test")) as url:
+        page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+        page.set_default_timeout(30_000)
+        try:
+            yield App(url, wh, page)
+        finally:
+            page.close()
+
+
 def test_manual_tracks_by_mouse_alone(app):
     """A click into an object's class field types there (the row was rebuilt under the click), and a
     class typed in another case is the task's (it was refused: "pick a class from the list"); deleting
@@ -347,11 +365,16 @@ def test_cad_selection_keys_after_tab(app):
     assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0b"
 
 
-def test_a_candidate_chosen_while_the_answer_is_on_its_way_does_not_replace_it(app):
+def test_a_candidate_chosen_while_the_answer_is_on_its_way_does_not_replace_it(app, tmp_path):
     """On a slow link, 1 Enter then 3 Enter before the reply: choosing turned Submit on again, a second
     answer went out and was refused (409) while the first reply moved the page on, so the correction
     was dropped unseen. While an answer is on its way the choice stays, and nothing more is sent."""
-    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    with _own_app(app, tmp_path / "wh") as own:
+        _choice_while_sending(own)
+
+
+def _choice_while_sending(app: App) -> None:
+    page = app.page
     held, posts = [], []
     page.on("request", lambda r: posts.append(r) if r.method == "POST" and "/api/answers" in r.url else None)
     page.goto(f"{app.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=0")
@@ -368,13 +391,17 @@ def test_a_candidate_chosen_while_the_answer_is_on_its_way_does_not_replace_it(a
     held[0].continue_()
     page.wait_for_url(lambda url: "track=0" not in url)  # the page went on to the next item
     assert _answers(app, "cad_selection")[-1][0]["cad_id"] == "m0a" and len(posts) == 1
-    page.close()
 
 
-def test_a_claim_that_got_no_answer_is_made_again(app):
+def test_a_claim_that_got_no_answer_is_made_again(app, tmp_path):
     """The first claim of a page failed (the app restarting, a network blip) and the page never
     claimed again: the item stayed free for others all the while it was open. It is claimed again."""
-    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    with _own_app(app, tmp_path / "wh") as own:
+        _claim_retried(own)
+
+
+def _claim_retried(app: App) -> None:
+    page = app.page
     tries = []
 
     def first_fails(route) -> None:
@@ -389,7 +416,6 @@ def test_a_claim_that_got_no_answer_is_made_again(app):
     assert claimed.value.ok and len(tries) == 2 and tries[1] == {"clip": CLIP, "kind": "cad_selection", "track_id": 2}
     held = page.request.get(f"{app.url}/api/clips/{CLIP}").json()  # no client id: every claim is someone else's
     assert 2 in {t["kind"]: t for t in held["tasks"]}["cad_selection"]["held_tracks"]
-    page.close()
 
 
 def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_small_window(app):
