@@ -166,12 +166,14 @@ class KeptInMemory:
         """(whether the value kept for ``key`` holds, what is kept, its folders' listing now)."""
         with self._lock:
             known = self._kept.get(key)  # (folders, their listing, value); listing None: folders only
-        if known is None and self._disk is not None:
+        loaded = known is None and self._disk is not None
+        if loaded:
             known = self._disk.load(wh.root, key)
         before = None if known is None else tuple(map(_listing, known[0]))
         if known is not None and known[1] is not None and before == known[1]:
-            with self._lock:
-                self._kept[key] = known
+            if loaded:  # kept in memory from now on (the warm path takes no second lock)
+                with self._lock:
+                    self._kept[key] = known
             return True, known, before
         return False, known, before
 
