@@ -594,22 +594,17 @@ def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
 def test_no_none_of_these_on_candidates_whose_views_cannot_be_shown(app, tmp_path):
     """A candidate's view gone from the media: "none of these" was taken with its picture broken,
     unseen. The page names it and sends no answer."""
-    from cadestate.config import Config, WarehouseConfig
-    from cadestate.webapp.app import create_app
-
-    wh = _build(tmp_path / "wh")
-    (wh.root / "media" / "cad" / "m0b" / "0.png").unlink()  # the views of candidates 2-10 of track 0
-    with served_app(create_app(Config(warehouse=WarehouseConfig(root=str(wh.root))), annotator="pages-test")) as url:
-        page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
-        page.goto(f"{url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=0")
+    with _own_app(app, tmp_path / "wh") as own:
+        (own.wh.root / "media" / "cad" / "m0b" / "0.png").unlink()  # the views of candidates 2-10 of track 0
+        page = own.page
+        page.goto(f"{own.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=0")
         page.wait_for_selector("#frames-missing")
         assert "key-frame images and candidate views cannot be loaded (media/cad/m0b/0.png)" in page.inner_text("#frames-missing")
         page.keyboard.press("n")
         page.keyboard.press("Enter")
         page.wait_for_timeout(500)
         assert "no answer without it" in page.inner_text("#status")
-        assert not (wh.root / "labels").exists() or not list((wh.root / "labels").rglob("*.json"))
-        page.close()
+        assert not (own.wh.root / "labels").exists() or not list((own.wh.root / "labels").rglob("*.json"))
 
 
 def test_a_model_that_cannot_be_loaded_is_said_where_it_is_clicked(app):
