@@ -90,8 +90,8 @@ class Claims:
                 if found is not None and found[1].until <= now:
                     path.unlink(missing_ok=True)
             path = self._path(item)
-            found = self._read(path)
-            held = found[1] if found is not None and found[1].until > now else None
+            found = self._read(path)  # lapsed ones were removed just now
+            held = found[1] if found is not None else None
             if held is not None and held.client != client:
                 return held
             new = Claim(client, held.since if held else now, now + self.hold_s)
