@@ -239,7 +239,7 @@ class TaskHeader:
 
     format: str = spec("Format and version.", default="")
     kind: str = spec("The task kind.", default="")
-    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=r"^(?=[.-]*[A-Za-z0-9_])[A-Za-z0-9_-][A-Za-z0-9_.-]{0,199}$")
     clip: str = spec("Clip name.", minLength=1)
     created_at: str = spec("When the task was written, ISO 8601 UTC.")
     image_size: tuple[int, int] = spec("(height, width) of the clip's frames.", unit="px", items={"minimum": 1})

@@ -16,7 +16,7 @@ from cadestate.lineage import file_sha256
 from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file, write_camera_file
 from tasks.video.decode import VideoError, decode_at, probe_video, write_video
 from tasks.video.frames import extract_frames
-from tasks.video.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip
+from tasks.video.ingest import ASPECT_ERROR, ClipSource, check_clip_inputs, discover_clips, ingest_clip, official_clip_name
 from warehouse import WarehouseError, connect
 
 
@@ -206,6 +206,22 @@ def test_malformed_camera_file_fails_at_ingest_naming_the_line(wh, small_clip, t
     assert wh.read("clips").num_rows == 0
 
 
+def test_a_youtube_id_that_starts_with_a_dash_names_a_clip_end_to_end(wh, small_clip, tmp_path):
+    """1 in 64 YouTube ids starts with '-', and CAD-Estate names the clip by it: such names were
+    refused, so those RealEstate10K clips could not be ingested. Now its frames are extracted and
+    queried by name."""
+    lines = small_clip.cameras_path.read_text().splitlines()
+    cameras = tmp_path / "c.txt"
+    cameras.write_text("\n".join(["https://www.youtube.com/watch?v=-0AK9iy8y0c", *lines[1:]]) + "\n")
+    clip = official_clip_name(parse_camera_file(cameras), cameras)
+    assert clip == f"-0AK9iy8y0c_{lines[1].split()[0]}"
+    ingest(wh, small_clip.video_path, cameras, clip)
+    extract_frames(wh, FramesConfig(), clip, "run1", show_progress=False)
+    con = connect(wh)
+    assert con.execute("SELECT DISTINCT clip FROM frames").fetchall() == [(clip,)]
+    assert con.execute("SELECT count(*) FROM frames WHERE clip = ?", [clip]).fetchone() == (30,)
+
+
 def test_png_frames_are_lossless(wh, small_clip):
     ingest(wh, small_clip.video_path, small_clip.cameras_path)
     extract_frames(wh, FramesConfig(image_format="png"), "small", "run1", show_progress=False)
@@ -247,6 +263,37 @@ def remux(src: Path, dst: Path) -> None:
             if packet.dts is not None:
                 packet.stream = stream
                 out.mux(packet)
+
+
+def test_a_reingest_from_another_container_that_fails_keeps_the_video_in_force(wh, small_clip, tmp_path, monkeypatch):
+    """A clip ingested again from an .mkv, whose copy fails (a full disk): the .mp4 the clip's row
+    names stays (it was deleted before the copy, leaving the row naming no video); once a copy
+    succeeds, the row names the .mkv and the .mp4 goes."""
+    cfg = IngestConfig(up="+y", link_inputs=False)
+
+    def again(video: Path):
+        return ingest_clip(wh, cfg, ClipSource("small", video, small_clip.cameras_path), file_sha256(video),
+                           file_sha256(small_clip.cameras_path), "r0")
+
+    again(small_clip.video_path)
+    mkv = tmp_path / "small.mkv"
+    remux(small_clip.video_path, mkv)
+
+    def full_disk(src, dst, *args, **kwargs):
+        Path(dst).write_bytes(b"part")
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr("tasks.video.ingest.shutil.copyfile", full_disk)
+        with pytest.raises(OSError, match="No space left"):
+            again(mkv)
+    (row,) = wh.read("clips").to_pylist()
+    assert row["video_path"].endswith("video.mp4") and file_sha256(wh.root / row["video_path"]) == row["video_sha256"]
+    assert sorted(p.name for p in wh.inputs_dir("small").iterdir()) == ["cameras.txt", "placed.json", "video.mp4"]
+    again(mkv)
+    (row,) = wh.read("clips").to_pylist()
+    assert row["video_path"].endswith("video.mkv") and file_sha256(wh.root / row["video_path"]) == file_sha256(mkv)
+    assert sorted(p.name for p in wh.inputs_dir("small").iterdir()) == ["cameras.txt", "placed.json", "video.mkv"]
 
 
 def test_video_that_opens_but_ends_early_fails_at_ingest(wh, small_clip, tmp_path):

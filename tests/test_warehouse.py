@@ -173,10 +173,11 @@ def test_write_rejects_data_that_does_not_fit(wh, mutate, message):
     assert wh.read("clips").column("num_cameras").to_pylist() == [1]  # previous state intact
 
 
-@pytest.mark.parametrize("name", ["", "../x", "a/b", ".hidden", "-x", "a b", "x" * 201])
+@pytest.mark.parametrize("name", ["", "../x", "a/b", ".hidden", "-", "--", "-.", "a b", "x" * 201])
 def test_clip_names_that_are_not_safe_folder_names_are_rejected(name):
     with pytest.raises(WarehouseError, match="invalid clip name"):
         check_name(name)
+
 
 
 def test_a_partition_name_no_folder_can_have_has_no_data(wh):

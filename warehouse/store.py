@@ -80,7 +80,9 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
     from schemas.index import TableInfo
     from warehouse.read_cache import ReadCache
 
-NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+NAME = re.compile(r"^(?=[.-]*[A-Za-z0-9_])[A-Za-z0-9_-][A-Za-z0-9_.-]{0,199}$")
+"""A clip, library or model name: a folder and file name. It may start with '-': 1 in 64 YouTube
+ids does, and CAD-Estate names a clip by its video's id (``-0AK9iy8y0c_122914456``)."""
 LEGACY_FILE = "part.parquet"
 """Name of a replace-mode file in warehouses written before file names held their time."""
 STALE_STAGING_S = 86_400.0
@@ -281,10 +283,11 @@ def is_name(name: object) -> bool:
 
 def check_name(name: str, what: str = "clip") -> str:
     """Clip, library and model names become folder and file names: letters, digits, '_', '.', '-'
-    (at most 200, not starting with '.' or '-')."""
+    (at most 200, not starting with '.', not only '-' and '.'; see :data:`NAME`)."""
     if not is_name(name):
         raise WarehouseError(
-            f"invalid {what} name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.' or '-')"
+            f"invalid {what} name {name!r}: use letters, digits, '_', '.' and '-' (at most 200, not starting with '.', "
+            "not only '-' and '.')"
         )
     return name
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from cadestate.atomic import TMP_SUFFIX
+from cadestate.atomic import TMP_SUFFIX, fsync_dir
 from cadestate.config import FramesConfig, IngestConfig
 from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256, known_file_sha256
@@ -123,7 +123,9 @@ def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split:
         return digest("ingest", clip, video_sha256, cameras_sha256, split, f"offset={int(time_offset_us)}")
     return digest("ingest", clip, video_sha256, cameras_sha256, split)
 def _place(src: Path, dst: Path, link: bool) -> None:
-    """Put a copy of ``src`` at ``dst`` atomically (hard link when allowed and possible)."""
+    """Put a copy of ``src`` at ``dst`` atomically and durably (a hard link when allowed and
+    possible; a copy is on disk before it is renamed, and the rename before this returns: the
+    ``clips`` row written next, durable, names it)."""
     if dst.exists() and os.path.samefile(src, dst):
         return
     tmp = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}{TMP_SUFFIX}")
@@ -134,7 +136,10 @@ def _place(src: Path, dst: Path, link: bool) -> None:
             os.link(src, tmp)
         except OSError:
             shutil.copyfile(src, tmp)
+            with open(tmp, "rb") as copied:
+                os.fsync(copied.fileno())
         os.replace(tmp, dst)
+        fsync_dir(dst.parent)
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -284,9 +289,6 @@ def ingest_clip(
     last = int(cameras.timestamps_us[-1])
     inputs = wh.inputs_dir(source.clip)
     inputs.mkdir(parents=True, exist_ok=True)
-    for old in inputs.glob("video.*"):  # a re-ingest with another container format
-        if old.suffix.lower() != source.video.suffix.lower():
-            old.unlink()
     # a killed ingest's part copy of the video (Ctrl-C ends a run at once, SIGKILL): no live copy is under
     # way, as the clip's stages run under its lock (tasks.stage_chain.run_unit)
     for left in inputs.glob(f".*{TMP_SUFFIX}"):
@@ -323,6 +325,9 @@ def ingest_clip(
         "up_line_segments": up.line_segments if up.source == "auto" else None,
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row], schema=wh.spec("clips").schema))
+    for old in inputs.glob("video.*"):  # a re-ingest's from another container: only once the row names the new one
+        if old != video_dst:
+            old.unlink()
     notes = [*checked.warnings, *([f"world up: {up.note}"] if up.note else [])]
     # The output is the registered inputs and the world they are turned into: a new up reruns frames.
     output = digest(ingest_inputs_hash(source.clip, video_sha256, cameras_sha256, source.split, source.time_offset_us),
