@@ -21,6 +21,7 @@ from tasks.cad.sources import (
     source_items, sweethome3d_items,
 )
 from tasks.cad.views import render_library, view_camera, viewpoints
+from warehouse import Warehouse
 
 SH3D = default_source()
 needs_sh3d = pytest.mark.skipif(not SH3D.is_dir(), reason="Sweet Home 3D library not fetched (make cad-library)")
@@ -286,6 +287,30 @@ def test_a_repainted_model_is_a_new_input_and_a_new_output(tmp_path):
     assert len(list((wh.root / "media" / "cad" / "mylib").iterdir())) == 1
 
 
+def test_a_repainted_texture_beside_the_meshes_folder_is_a_new_input(tmp_path):
+    """``meshes/chair.obj`` whose material names ``../textures/wood.png`` (models.csv: file=meshes/...):
+    only the mesh's own folder was walked, so a repainted texture kept the library's digest, and
+    cad_ingest went on serving the old one."""
+    import os
+
+    from PIL import Image
+
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "textures").mkdir()
+    quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    (tmp_path / "meshes" / "chair.mtl").write_text("newmtl m\nmap_Kd ../textures/wood.png\n")
+    (tmp_path / "meshes" / "chair.obj").write_text("mtllib chair.mtl\n" + quad)
+    (tmp_path / "models.csv").write_text("id,class,file\nchair,chair,meshes/chair.obj\n")
+    Image.new("RGB", (4, 4), (255, 0, 0)).save(tmp_path / "textures" / "wood.png")
+    items = list(folder_items(tmp_path))
+    assert load_item(items[0])[1] == []  # the texture is found
+    red = items_digest(items)
+    Image.new("RGB", (4, 4), (0, 0, 255)).save(tmp_path / "textures" / "wood.png")
+    st = (tmp_path / "textures" / "wood.png").stat()
+    os.utime(tmp_path / "textures" / "wood.png", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    assert items_digest(items) != red
+
+
 def test_java_properties():
     data = "# c\nname#1=Caf\\u00e9 table\nlong=a \\\n   b\nkey\\ with\\ space = v\n! bang\ncolon:x\n".encode("latin-1")
     assert read_java_properties(data) == {"name#1": "Café table", "long": "a b", "key with space": "v", "colon": "x"}
@@ -480,6 +505,43 @@ def test_a_catalogue_item_without_an_id_is_listed(tmp_path):
     assert [(i.cad_id, i.cls, i.size_m) for i in items] == [("sh3d-mine.chair1", "chair", (0.5, 0.9, 0.4)),
                                                            ("sh3d-mine.blue-table-2", "table", (1.2, 0.75, 0.8))]
     assert all(load_item(i)[0].extents.max() > 0 for i in items)
+
+
+def test_entries_of_one_id_and_category_and_a_bang_above_the_catalogue_are_models_apart(tmp_path):
+    """Two creators' "#chair" (or a copied entry) in one category were given one cad_id, and the
+    library failed after every model was ingested; a '!' in a folder above the catalogue split its
+    path there, and no item could be read."""
+    import zipfile
+
+    from tasks.cad.ingest import ingest_library
+
+    obj = trimesh.creation.box((50, 90, 40)).export(file_type="obj")
+    entries = [("me#chair", "c1"), ("you#chair", "c2"), ("me#chair", "c3")]
+    props = "name=Mine\nlicense=Public domain\nprovider=Me\n" + "".join(
+        f"id#{i}={id_}\nname#{i}=Chair\ncategory#{i}=Living room\nmodel#{i}=/{m}/c.obj\nwidth#{i}=50\ndepth#{i}=40\n"
+        f"height#{i}=90\n" for i, (id_, m) in enumerate(entries, 1))
+    folder = tmp_path / "wow!furniture"
+    folder.mkdir()
+    with zipfile.ZipFile(folder / "Mine.sh3f", "w") as z:
+        z.writestr("PluginFurnitureCatalog.properties", props)
+        for _, m in entries:
+            z.writestr(f"{m}/c.obj", obj)
+    items = source_items("sweethome3d", folder)
+    assert [i.cad_id for i in items] == ["sh3d-mine.chair", "sh3d-mine.you-chair", "sh3d-mine.me-chair"]
+    assert [i.path.rsplit("!", 1)[1] for i in items] == ["c1/c.obj", "c2/c.obj", "c3/c.obj"]
+    wh = Warehouse(tmp_path / "w")
+    ingest_library(wh, CadIngestConfig(samples=256, workers=1), "sh3d-mine", items, "r1", show_progress=False)
+    assert sorted(wh.read("cad_models").column("cad_id").to_pylist()) == sorted(i.cad_id for i in items)
+    assert wh.read("cad_issues").num_rows == 0
+
+
+def test_a_quote_left_open_in_a_long_models_csv_is_one_line(tmp_path):
+    """A quote opened and not closed swallows the rest of a long table into one field: csv's
+    "field larger than field limit" was a traceback."""
+    rows = "".join(f"m{i},chair\n" for i in range(12_000))
+    (tmp_path / "models.csv").write_text('id,class\n"Eames chair,chair\n' + rows)
+    with pytest.raises(CadSourceError, match=r"models.csv:\d+: field larger than field limit .*\(a quote opened and not closed\?\)$"):
+        list(folder_items(tmp_path))
 
 
 def test_a_malformed_catalogue_entry_or_catalogue_is_one_line_naming_it(tmp_path):

@@ -133,6 +133,7 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
     catalogues = sorted(Path(folder).glob("*.sh3f"))
     if not catalogues:
         raise CadSourceError(f"{folder}: no Sweet Home 3D catalogues (*.sh3f); run `make cad-library`")
+    seen: set[tuple[str, str, str]] = set()  # (library, item, category): what unique_keys tells apart
     for archive in catalogues:
         if archive.stem.lower() in SH3D_EXCLUDED_SETS:
             continue
@@ -152,6 +153,10 @@ def sweethome3d_items(folder: Path) -> Iterator[CadItem]:
             rotation = _numbers(archive, f"modelRotation#{i}", get("modelRotation"), (0, 9)) or None
             name = get("name")
             item = get("id").split("#", 1)[-1] or f"{name}-{i}"  # the id is optional in a catalogue
+            # a second entry of that id (two creators' "#chair", a copied entry) in that category: its own
+            # id, else its index, so the two are two models (they were given one cad_id, and failed on it)
+            item = next(k for k in (item, get("id"), f"{get('id') or name}-{i}") if (library, k, get("category")) not in seen)
+            seen.add((library, item, get("category")))
             yield CadItem(
                 library=library, item=item, name=name, category=get("category"),
                 cls=classify(name, get("category"), f"{library}.{slug(item)}"), source="sweethome3d",
@@ -203,6 +208,8 @@ def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
             rows = [(reader.line_num, row) for row in reader]  # the line a row ends on (quoted line breaks)
     except UnicodeDecodeError as e:
         raise CadSourceError(f"{table}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
+    except csv.Error as e:  # a quote left open swallows the rest of the table into one field
+        raise CadSourceError(f"{table}:{reader.line_num}: {e} (a quote opened and not closed?)") from None
     if not {"id", "class"} <= set(reader.fieldnames or ()):
         raise CadSourceError(f"{table}: needs a header with columns id and class")
     library = library or slug(folder.name)
@@ -265,7 +272,10 @@ class _FolderResolver(trimesh.resolvers.ZipResolver):
 def archive_member(item: CadItem) -> tuple[str, str] | None:
     """(archive, member) of an item inside a catalogue zip (Sweet Home 3D), None for a loose file
     (whose path may hold a '!')."""
-    return tuple(item.path.split("!", 1)) if item.source == "sweethome3d" else None  # type: ignore[return-value]
+    if item.source != "sweethome3d":
+        return None
+    archive, _, member = item.path.rpartition(".sh3f!")  # the last: a folder above the catalogue may hold a '!'
+    return f"{archive}.sh3f", member
 
 
 def load_item(item: CadItem) -> tuple[trimesh.Scene, list[str]]:
@@ -379,12 +389,16 @@ def rotation_matrix(item: CadItem) -> np.ndarray:
 
 
 def item_folder(item: CadItem) -> Path | None:
-    """The folder of the files a loose mesh may refer to (materials, textures): its own folder, or
-    for ShapeNet's ``<model>/models/model_normalized.obj`` the model's folder (its ``images/``);
-    None for a mesh inside an archive (the archive is one file)."""
+    """The folder of the files a loose mesh may refer to (materials, textures): for a models.csv
+    source the folder of the models.csv above it (``meshes/chair.obj`` and ``textures/wood.png``
+    beside each other: its own folder missed a repainted texture), else its own folder, or for
+    ShapeNet's ``<model>/models/model_normalized.obj`` the model's folder (its ``images/``); None
+    for a mesh inside an archive (the archive is one file)."""
     if archive_member(item) is not None:
         return None
     folder = Path(item.path).parent
+    if item.source == "folder":
+        return next((p for p in Path(item.path).parents if (p / "models.csv").is_file()), folder)
     return folder.parent if folder.name == SHAPENET_MESH.parent.name and item.source == "shapenet" else folder
 
 
