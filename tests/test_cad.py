@@ -311,6 +311,54 @@ def test_a_repainted_texture_beside_the_meshes_folder_is_a_new_input(tmp_path):
     assert items_digest(items) != red
 
 
+def test_a_model_that_kills_its_worker_is_skipped_not_the_library(tmp_path):
+    """A worker process that dies (the out-of-memory killer on a huge mesh) broke the process pool,
+    and the whole library failed with BrokenProcessPool, no model named. Here each process that
+    opens one model's texture (a FIFO: it waits there) is killed with SIGKILL: that model is skipped,
+    named, and every other is ingested."""
+    import signal
+    import threading
+
+    for i in range(6):
+        trimesh.creation.box((0.5 + i / 10, 0.9, 0.5)).export(tmp_path / f"box{i}.obj")
+    quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    (tmp_path / "killer.mtl").write_text("newmtl m\nmap_Kd killer.png\n")
+    (tmp_path / "killer.obj").write_text("mtllib killer.mtl\n" + quad)
+    os.mkfifo(tmp_path / "killer.png")
+    (tmp_path / "models.csv").write_text("id,class\n" + "".join(f"box{i},table\n" for i in range(3)) + "killer,table\n"
+                                         + "".join(f"box{i},table\n" for i in range(3, 6)))
+    fifo, done, killed = str(tmp_path / "killer.png"), threading.Event(), []
+
+    def kill_its_readers() -> None:
+        while not done.is_set():
+            fd = os.open(fifo, os.O_WRONLY)  # waits for a reader
+            for pid in (int(d) for d in os.listdir("/proc") if d.isdigit()):
+                try:
+                    if any(os.readlink(f"/proc/{pid}/fd/{n}") == fifo for n in os.listdir(f"/proc/{pid}/fd")) \
+                            and pid != os.getpid():
+                        os.kill(pid, signal.SIGKILL)
+                        killed.append(pid)
+                except OSError:
+                    continue
+            os.close(fd)
+
+    killer = threading.Thread(target=kill_its_readers, daemon=True)
+    killer.start()
+    wh = Warehouse(tmp_path / "w")
+    try:
+        ingest_library(wh, CadIngestConfig(samples=256, workers=2), "lib", list(folder_items(tmp_path, "lib")), "r1",
+                       show_progress=False)
+    finally:
+        done.set()
+        os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))  # wakes the killer's last open
+        killer.join(10)
+    assert len(killed) >= 2  # in the pool, then alone
+    assert sorted(wh.read("cad_models").column("cad_id").to_pylist()) == [f"lib.box{i}" for i in range(6)]
+    (issue,) = wh.read("cad_issues").to_pylist()
+    assert (issue["item"], issue["severity"]) == ("killer", "skipped") and "worker process died" in issue["problem"]
+    assert wh.read("cad_samples").column("cad_id").to_pylist() == wh.read("cad_models").column("cad_id").to_pylist()
+
+
 def test_java_properties():
     data = "# c\nname#1=Caf\\u00e9 table\nlong=a \\\n   b\nkey\\ with\\ space = v\n! bang\ncolon:x\n".encode("latin-1")
     assert read_java_properties(data) == {"name#1": "Café table", "long": "a b", "key with space": "v", "colon": "x"}
