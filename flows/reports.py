@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import concurrent.futures
+
 from prefect.futures import PrefectFuture, wait
 from prefect.states import Completed, Failed, State
 
@@ -18,6 +20,8 @@ it: ``MissingResult``, seen once in a Dask worker on a loaded machine), and no c
 be lost that way (:func:`state_reports`). The oldest go past :data:`KEEP_AT_MOST` (a served
 deployment's runs are never read back here)."""
 KEEP_AT_MOST = 256
+AWAKE_S = 0.2
+"""How often the main thread wakes while it waits for a flow run's tasks (:func:`finish`)."""
 
 
 def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
@@ -33,8 +37,19 @@ def unit_reports(unit: str, future: PrefectFuture) -> list[StageReport]:
 def finish(submitted: list[tuple[str, PrefectFuture]], what: str) -> State:
     """Wait for the submitted unit tasks (unit, future); the flow's final state carries every report."""
     with sigterm_ends_the_run():
-        wait([fut for _, fut in submitted])
+        _wait_awake([fut for _, fut in submitted])
     return final_state([r for unit, fut in submitted for r in unit_reports(unit, fut)], what)
+
+
+def _wait_awake(futures: list[PrefectFuture]) -> None:
+    """Wait for ``futures`` (of Prefect's thread runner), waking every :data:`AWAKE_S`: Python runs a
+    signal's handler in the main thread, and the kernel may hand a Ctrl-C or SIGTERM to any of the
+    process's threads; one taken by a stage's thread left the main thread asleep on a lock until
+    every task had ended (a `cad ingest` interrupted ~1 time in 20 went on rendering the library)."""
+    pending = {fut.wrapped_future for fut in futures}
+    while pending:
+        pending = concurrent.futures.wait(pending, timeout=AWAKE_S).not_done
+    wait(futures)
 
 
 def final_state(reports: list[StageReport], what: str) -> State:
