@@ -100,6 +100,10 @@ def test_ingest_canonicalises_and_reports_bad_items(ingested):
     assert {k: models[k]["symmetry"] for k in models} == {"crate": 2, "cube": 4, "stool": 36, "chair": 1}
     samples = wh.read("cad_samples").to_pylist()
     assert all(len(s["points"]) == 2048 for s in samples)
+    for s in samples:  # each model's own points: on its surface, so inside its centred box, reaching its sides
+        half = np.asarray(models[s["cad_id"].split(".")[1]]["extent"]) / 2
+        points = np.asarray(s["points"])
+        assert (np.abs(points) <= half + 1e-5).all() and np.allclose(np.abs(points).max(axis=0), half, rtol=0.05)
 
 
 def test_ingest_rerun_gives_the_same_result(ingested, mesh_folder):
