@@ -30,6 +30,7 @@ import dataclasses
 import functools
 import json
 import logging
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -54,8 +55,9 @@ from flows.runtime import run_tags
 from tasks.stage_chain import StageReport
 from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError
-from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, official_clip_name
+from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, check_video_ids, official_clip_name
 from warehouse import Warehouse, atomic_write_bytes
+from warehouse.store import is_name
 from warehouse.catalog import one_line
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
@@ -115,28 +117,49 @@ def ready_pairs(inbox: Path, stable_s: float, split: str = "train", now: float |
             continue
         done = video.with_suffix(".done").exists()
         if done or all(now - p.stat().st_mtime >= stable_s for p in (video, cameras)):
-            ready.append(ClipSource(video.stem, video, cameras, split))
+            ready.append(ClipSource(_placeholder(video.stem), video, cameras, split))
     return ready
 
 
-def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None = None) -> list[ClipSource]:
+def _placeholder(stem: str) -> str:
+    """A clip name for a pair until :func:`official_names` names it from its camera file: its file
+    name, made a valid name ("living room.mp4" raised, and no clip of the inbox was taken)."""
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).lstrip(".")[:200]
+    return name if is_name(name) else "clip"
+
+
+def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None = None,
+                   wh: Warehouse | None = None) -> list[ClipSource]:
     """``pairs`` named ``<video_id>_<start_us>`` from their camera files (as `cadestate ingest` names
     them); a pair whose camera file is bad is left out with a warning naming the file and line, and
     so is every pair after the first that gets a name already taken (two runs of one clip would
-    write its tables at once). ``warn``: where the warnings go (default: the flow run's log)."""
+    write its tables at once), and, with ``wh``, one whose video id a clip of another video has
+    there or among the pairs before it (:func:`check_video_ids`, as `cadestate ingest` refuses it:
+    their frames would mix in the official layout). ``warn``: where the warnings go (default: the
+    flow run's log)."""
     warn = warn or get_run_logger().warning
     named: dict[str, ClipSource] = {}
+    urls: list[tuple[str, str]] = []
     for p in pairs:
         try:
-            clip = official_clip_name(parse_camera_file(p.cameras), p.cameras)
+            track = parse_camera_file(p.cameras)
+            clip = official_clip_name(track, p.cameras)
         except (CameraFileError, ClipNameError) as e:
             warn(f"left out of the inbox: {e}")
+            continue
+        try:
+            if wh is not None:
+                check_video_ids(wh, [*urls, (clip, track.url)])
+        except ClipNameError as e:
+            warn(f"left out of the inbox: {p.cameras}: {str(e).split(': give one')[0]}; ingest it with `cadestate "
+                 "ingest VIDEO CAMERAS --clip NAME`, a name of its own")
             continue
         if clip in named:
             warn(f"left out of the inbox: {p.video}: its camera file names clip {clip}, as {named[clip].video}'s does "
                  "(the same video id and first timestamp); give it a camera file of its own")
             continue
         named[clip] = dataclasses.replace(p, clip=clip)
+        urls.append((clip, track.url))
     return list(named.values())
 
 
@@ -363,8 +386,8 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
     inbox = Path(cfg.schedule.inbox)
     if not inbox.is_dir():
         no_folder("inbox", inbox)
-    pairs = pairs_to_run(Warehouse(warehouse), official_names(ready_pairs(inbox, cfg.schedule.stable_s,
-                                                                          cfg.schedule.inbox_split)), cfg)
+    wh = Warehouse(warehouse)
+    pairs = pairs_to_run(wh, official_names(ready_pairs(inbox, cfg.schedule.stable_s, cfg.schedule.inbox_split), wh=wh), cfg)
     started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
     for p in pairs:
         if p.clip in started:

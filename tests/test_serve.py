@@ -63,6 +63,36 @@ def test_two_inbox_pairs_naming_one_clip_start_one_run(tmp_path):
     assert any("c.txt:2: expected 19 columns" in w for w in warnings), warnings
 
 
+def test_an_odd_file_name_or_a_shared_video_id_leaves_out_one_pair_not_the_inbox(tmp_path):
+    """A video named "living room.mp4" raised while the inbox was listed (its file name was checked
+    as a clip name), so no clip of the inbox was taken; two pairs of different videos sharing a
+    video id, or one sharing it with a registered clip, were both taken (`cadestate ingest`
+    refuses them: their frames would mix in the official layout)."""
+    from conftest import table_rows
+
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+
+    def pair(name: str, url: str, start: int) -> None:
+        (inbox / f"{name}.mp4").write_bytes(name.encode())
+        (inbox / f"{name}.txt").write_text("\n".join([url] + [
+            f"{t} 0.8 1.4 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0" for t in (start, start + 33_333)]) + "\n")
+
+    pair("living room", "file:///videos/a/room.mp4", 0)
+    pair("other room", "file:///videos/b/room.mp4", 5_000_000)  # another video, the same id: room
+    pair("hall", "file:///videos/hall.mp4", 0)  # its id registered from another video
+    wh = Warehouse(tmp_path / "w")
+    wh.write("clips", "hall_7", table_rows("clips", [{"clip": "hall_7", "url": "file:///elsewhere/hall.mp4"}]))
+    ready = ready_pairs(inbox, 0.0)
+    assert [p.clip for p in ready] == ["hall", "living_room", "other_room"]
+    warnings = []
+    named = official_names(ready, warnings.append, wh)
+    assert [(p.clip, p.video.name) for p in named] == [("room_0", "living room.mp4")]
+    assert len(warnings) == 2 and all("share the video id" in w for w in warnings), warnings
+    assert any(w.startswith(f"left out of the inbox: {inbox / 'hall.txt'}: clips hall_0 (") for w in warnings), warnings
+    assert any(w.startswith(f"left out of the inbox: {inbox / 'other room.txt'}: ") for w in warnings), warnings
+
+
 def test_clips_done_are_not_run_again(tmp_path, small_clip):
     import datetime as dt
     import json
