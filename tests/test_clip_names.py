@@ -65,6 +65,8 @@ def test_a_local_video_may_get_any_safe_video_id():
         check_clip_name("../up_0", "file:///videos/room.mp4", 0)
     with pytest.raises(ClipNameError, match="is not the YouTube id"):
         check_clip_name("room2_0", "https://youtu.be/ZxUv_7CnPBE", 0)  # YouTube stays strict
+    with pytest.raises(ClipNameError, match=r"'kitchen_01200000': write its start without leading zeros \(kitchen_1200000\)"):
+        check_clip_name("kitchen_01200000", "file:///videos/room.mp4", 1200000)  # a second name of one clip
 
 
 def test_shared_video_ids():

@@ -126,6 +126,9 @@ def check_clip_name(name: str, url: str, first_timestamp_us: int, source: str = 
     if parsed.start_us != first_timestamp_us:
         raise ClipNameError(f"clip name {name!r}: start {parsed.start_us} µs is not the first timestamp of {source} "
                             f"({first_timestamp_us} µs)")
+    if name != f"{parsed.video_id}_{parsed.start_us}":  # leading zeros: a second name of the same clip
+        raise ClipNameError(f"clip name {name!r}: write its start without leading zeros "
+                            f"({parsed.video_id}_{parsed.start_us})")
     if not _SAFE_VIDEO_ID.match(parsed.video_id):
         raise ClipNameError(f"clip name {name!r}: video id {parsed.video_id!r} has characters outside "
                             "[A-Za-z0-9_-] (it names the clip's frame folder)")
