@@ -77,6 +77,19 @@ def test_a_forward_walk_fixes_the_pitch_the_rotations_alone_cannot(seed):
     assert walked.reliable and walked.walk_deg > 80
 
 
+@pytest.mark.parametrize("slope_deg, noted", [(0.0, False), (8.0, False), (35.0, True), (60.0, True)])
+def test_a_walk_that_climbs_is_noted(slope_deg, noted):
+    """The walk holds up level with the path: up stairs (35°) or a steep ramp (60°) it put up
+    that far off and said nothing (the camera walks forward, so the pitch's note stayed quiet); now
+    it is noted. A level walk or an 8° driveway stays unnoted (the axes alone are off by the pitch)."""
+    R, c = straight_walk(pitch_deg=12.0)
+    climbing = c.copy()
+    climbing[:, 1] += np.tan(np.radians(slope_deg)) * c[:, 2]
+    est = estimate_up(R, centres=climbing)
+    assert angle_deg(est.up, np.array([0, 1.0, 0])) == pytest.approx(slope_deg, abs=1.5)
+    assert ("the path climbs (stairs, a ramp)" in est.note) == noted, est.note
+
+
 def test_a_sideways_walk_or_a_shaking_camera_leaves_the_pitch_to_the_rotations():
     R, c = straight_walk(heading_deg=90.0)  # along the camera's right axis: no new direction
     est = estimate_up(R, centres=c)

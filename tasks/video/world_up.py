@@ -52,6 +52,10 @@ MIN_WALK_DEG = 30.0
 fixes the tilt about the viewing direction together with it."""
 MIN_WALK_COHERENCE = 0.5
 """A walk whose net move is at least this fraction of its path length has a main direction."""
+MAX_CLIMB_DEG = 20.0
+"""An estimate the walk moved further than this from the cameras' axes' own (x level, y down) is
+unreliable: the walk holds up level with the path, so stairs, a ramp or a rising camera tilt it by
+their slope (a 35° stair: 35° off); the axes alone err by the phone's pitch (2-13° on the benchmark)."""
 AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
         "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
 """``[ingest] up`` values that force the input world's up axis (``auto`` estimates it)."""
@@ -123,6 +127,15 @@ def walk_term(centres: np.ndarray | None) -> tuple[np.ndarray, float]:
     return d.T @ d / total, min(1.0, float(np.linalg.norm(c[-1] - c[0])) / path)
 
 
+def _least_down(x: np.ndarray, y: np.ndarray, walk: np.ndarray | None = None) -> np.ndarray:
+    """Up float64[3] minimising the module docstring's objective over the cameras' x and y axes
+    float[N, 3] and the walk's term float64[3, 3] (weighted; None: left out)."""
+    n = len(x)
+    A = x.T @ x + MU * (n * np.eye(3) - y.T @ y) + (0 if walk is None else walk)
+    v = np.linalg.eigh(A)[1][:, 0]  # down or up: up is the one against the cameras' y axes (down)
+    return v if float((y @ v).sum()) < 0 else -v
+
+
 def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np.ndarray | None = None,
                 lines: "SegmentNormals | None" = None, line_tolerance_deg: float = 0.5) -> UpEstimate:
     """Up of the input world from the cameras' world->camera rotations float[N, 3, 3] (OpenCV
@@ -139,13 +152,7 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
             raise ValueError(f"up must be 'auto' or one of {', '.join(AXES)}, got {forced!r}")
         up = np.array(AXES[forced])
     else:
-        n = len(R)
-        A = x.T @ x + coherence * n * walk + MU * (n * np.eye(3) - y.T @ y)
-        _, vectors = np.linalg.eigh(A)
-        down = vectors[:, 0]
-        if float((y @ down).sum()) < 0:
-            down = -down
-        up = -down
+        up = _least_down(x, y, coherence * len(R) * walk)
     from_lines = None
     if forced == "auto" and lines is not None:
         from tasks.video.vertical_lines import refine_up
@@ -172,6 +179,9 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
             note = (f"the camera barely pans ({pan_rms:.1f}° RMS, less than {MIN_PAN_DEG:g}°) and does not walk "
                     f"forward or back (its walk is {walk_deg:.0f}° from sideways, less than {MIN_WALK_DEG:g}°): the up "
                     "direction rests on the phone being held level in pitch; set [ingest] up to force it")
+        elif coherence > 0 and (climb := _deg(float(np.arccos(np.clip(up @ _least_down(x, y), -1, 1))))) > MAX_CLIMB_DEG:
+            note = (f"the walk puts up {climb:.0f}° from where the cameras' axes put it (more than {MAX_CLIMB_DEG:g}°): "
+                    "the path climbs (stairs, a ramp) or the phone points far down; set [ingest] up to force it")
     return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note, walk_deg,
                       from_lines.segments if from_lines else 0)
 
