@@ -74,6 +74,13 @@ def test_descriptor_file_round_trips_and_its_bytes_depend_on_values_only(tmp_pat
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(DescriptorMissing, match="bad.npz: not a descriptor file"):
         load_descriptor(tmp_path / "bad.npz")
+    (tmp_path / "cut.npz").write_bytes(a.read_bytes()[: a.stat().st_size // 2])  # BadZipFile: not caught, `make models` failed on it
+    with pytest.raises(DescriptorMissing, match="cut.npz: not a descriptor file .*run `make models` again"):
+        load_descriptor(tmp_path / "cut.npz")
+    W[3, 5] = np.nan  # every score NaN: every track went without a candidate, unsaid
+    save_descriptor(tmp_path / "nan.npz", W, mu, {})
+    with pytest.raises(DescriptorMissing, match="nan.npz: holds values that are not finite"):
+        load_descriptor(tmp_path / "nan.npz")
 
 
 def test_learned_whitening_is_the_trained_map_centred_on_the_trained_mean():

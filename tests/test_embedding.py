@@ -113,6 +113,23 @@ def test_whitening_centres_and_whitens():
     assert table.num_rows == 1 and table["dims"][0].as_py() == 8
 
 
+def test_whitening_keeps_only_the_directions_the_views_span():
+    """Views that repeat (one model's renders alike) span fewer directions than 'whiten' kept: the
+    others, LAPACK's arbitrary choice, got the largest scale, so a detection's whitened descriptor
+    changed with the order of the views (up to 0.5 a component) though the views' did not."""
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(4, 64))
+    views = np.concatenate([b + 0.05 * rng.normal(size=(3, 64)) for b in base[:3]] + [np.repeat(base[3:], 3, 0)])
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    detection = base[1] + 0.05 * rng.normal(size=64)
+    fits = [fit_whitening(views[order], "whiten", 32) for order in (np.arange(12), np.arange(12)[::-1], rng.permutation(12))]
+    assert all(f.projection.shape == (9, 64) for f in fits)  # 12 views, 4 of them one: rank 9, not min(32, 11)
+    for f in fits[1:]:
+        np.testing.assert_allclose(np.abs(f.apply(detection)), np.abs(fits[0].apply(detection)), atol=1e-4)
+    same = fit_whitening(np.repeat(views[:1], 5, 0), "whiten", 32)  # no variance at all: centred only
+    assert same.method == "centre"
+
+
 # ---- stages ------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def detected(small_clip, tmp_path_factory):

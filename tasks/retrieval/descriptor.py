@@ -60,6 +60,8 @@ def save_descriptor(path: Path, projection: np.ndarray, mean: np.ndarray, meta: 
 def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict, np.ndarray]:
     """(projection float32[k, D], meta, mean float32[D]) of the descriptor file (default
     :func:`descriptor_path`)."""
+    import zipfile
+
     import numpy as np
 
     path = path or descriptor_path()
@@ -70,7 +72,7 @@ def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict, np.ndar
         with np.load(path, allow_pickle=False) as f:
             projection, meta = f["projection"], json.loads(str(f["meta"]))
             mean = f["mean"] if "mean" in f.files else None
-    except (OSError, ValueError, KeyError) as e:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:  # BadZipFile: a file cut short
         raise DescriptorMissing(f"{path}: not a descriptor file ({e}); run `make models` again") from None
     if projection.ndim != 2 or projection.dtype != np.float32:
         raise DescriptorMissing(f"{path}: projection must be float32[k, D], got {projection.dtype}{list(projection.shape)}")
@@ -78,6 +80,9 @@ def load_descriptor(path: Path | None = None) -> tuple[np.ndarray, dict, np.ndar
         shape = "none" if mean is None else f"{mean.dtype}{list(mean.shape)}"
         raise DescriptorMissing(f"{path}: mean must be float32[{projection.shape[1]}], got {shape} (a file made before "
                                 "the mean was kept); run `make models` again")
+    if not (np.isfinite(projection).all() and np.isfinite(mean).all()):  # every score NaN: no track had a candidate
+        raise DescriptorMissing(f"{path}: holds values that are not finite (a training that diverged?); run `make models` "
+                                "again")
     return projection, meta, mean
 
 

@@ -21,6 +21,10 @@ from warehouse import Warehouse
 
 METHODS = ("none", "centre", "whiten", "learned")
 SHRINKAGE = 0.1
+RANK_TOL = 1e-6
+"""'whiten' keeps the directions whose variance is above this fraction of the largest: the views
+span no more (views that repeat: one model's renders alike, a mesh ingested twice), and a direction
+of none got the largest scale, 1 / sqrt(shrinkage), though chosen at random (by the views' order)."""
 
 
 @dataclass(frozen=True)
@@ -41,7 +45,8 @@ class Whitening:
 
 def fit_whitening(vectors: np.ndarray, method: str, dims: int, learned: np.ndarray | None = None,
                   learned_mean: np.ndarray | None = None) -> Whitening:
-    """Fit ``method`` on descriptors float[N,D]; 'whiten' keeps min(dims, D, N - 1) directions;
+    """Fit ``method`` on descriptors float[N,D]; 'whiten' keeps min(dims, D, N - 1) directions, those
+    of them the views span (:data:`RANK_TOL`);
     'learned' needs the trained projection ``learned`` float32[k, D] (``dims`` does not apply) and
     is centred on ``learned_mean`` float32[D], the mean the training centred on (None: the mean of
     ``vectors``, which is that mean only for the library the projection was trained on)."""
@@ -64,6 +69,11 @@ def fit_whitening(vectors: np.ndarray, method: str, dims: int, learned: np.ndarr
     eig, vecs = np.linalg.eigh(centred.T @ centred / (len(v) - 1))  # ascending; D x D, cheap for many views
     k = min(dims, d, len(v) - 1)
     eig, rows = np.clip(eig[::-1][:k], 0.0, None), vecs[:, ::-1][:, :k].T
+    spanned = eig > max(RANK_TOL * eig[0], 1e-12)  # views that repeat span fewer directions: the others are LAPACK's choice
+    if not spanned.any():
+        return Whitening("centre", mean.astype(np.float32), np.eye(d, dtype=np.float32))
+    eig, rows = eig[spanned], rows[spanned]
+    k = len(eig)
     basis = rows * np.where(rows[np.arange(k), np.abs(rows).argmax(1)] < 0, -1, 1)[:, None]  # fixed signs
     projection = basis / np.sqrt(eig + SHRINKAGE * eig.mean() + 1e-12)[:, None]
     return Whitening("whiten", mean.astype(np.float32), projection.astype(np.float32))
