@@ -258,7 +258,8 @@ class EmbedConfig:
     """Stage ``embed``: one appearance descriptor per detection crop, from the detector's own
     backbone (NanoDet-m, average-pooled). ``cad_embed`` embeds the CAD views with these settings too."""
 
-    crop_size: int = _opt(128, "Side of the square letterboxed crop fed to the embedder.", lo=32, hi=1024)
+    crop_size: int = _opt(128, "Side of the square letterboxed crop fed to the embedder (a multiple of 32: the "
+                               "backbone's stride).", lo=32, hi=1024, check=lambda v: None if v % 32 == 0 else "must be a multiple of 32")
     context: float = _opt(0.1, "Box margin added on every side before cropping, as a fraction of the box size.", lo=0.0, hi=2.0)
     batch_size: int = _opt(32, "Crops per network call.", lo=1, hi=4096)
     threads: int = _opt(2, "onnxruntime intra-op threads (results do not depend on it).", lo=1, hi=256, runtime=True)

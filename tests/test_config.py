@@ -55,6 +55,7 @@ def test_defaults_are_valid_and_documented():
         ({"label_similarity": {"template": "a photo"}}, "[label_similarity] template: must contain '{}', where the name goes"),
         ({"label_similarity": {"template": "{"}}, "[label_similarity] template: not a format string"),
         ({"warehouse": {"root": " "}}, "[warehouse] root: must not be empty"),
+        ({"embed": {"crop_size": 100}}, "[embed] crop_size: must be a multiple of 32"),  # it failed at the embed stage
         ({"a\nb": {}}, "unknown section ['a\\nb']"),
         ({"detect": {"classes": [1] * 1000}}, "[detect] classes: expected a list of strings, got [" + "1, " * 19 + "1,..."),
         ({"schedule": {"inbox_cron": "bad cron"}}, "[schedule] inbox_cron: not a cron string"),
