@@ -37,17 +37,27 @@ class Letterbox:
         ch, cw = (size, size) if multiple is None else (-(-nh // multiple) * multiple, -(-nw // multiple) * multiple)
         return Letterbox((ch, cw), scale, ((cw - nw) // 2, (ch - nh) // 2), (h, w))
 
+    @property
+    def scales(self) -> tuple[float, float]:
+        """(x, y): the factors each side was resized by. Its length is rounded to whole pixels, so
+        they differ from ``scale`` (a 4096x2160 frame at 416: 2160 px became 219, not 219.375, and a box
+        at its bottom edge came back 3.7 px short); exact for 640x360 at 416."""
+        h, w = self.image_size
+        return _scaled(w, self.scale) / w, _scaled(h, self.scale) / h
+
     def to_image(self, boxes: np.ndarray) -> np.ndarray:
         """Canvas boxes float[K,4] (x1, y1, x2, y2) -> image pixels, clipped to the image."""
         px, py = self.pad
+        sx, sy = self.scales
         h, w = self.image_size
-        out = (np.asarray(boxes, np.float64) - [px, py, px, py]) / self.scale
+        out = (np.asarray(boxes, np.float64) - [px, py, px, py]) / [sx, sy, sx, sy]
         return np.clip(out, 0, [w, h, w, h]).astype(np.float32)
 
     def to_canvas(self, boxes: np.ndarray) -> np.ndarray:
         """Image-pixel boxes float[K,4] -> canvas pixels."""
         px, py = self.pad
-        return (np.asarray(boxes, np.float64) * self.scale + [px, py, px, py]).astype(np.float32)
+        sx, sy = self.scales
+        return (np.asarray(boxes, np.float64) * [sx, sy, sx, sy] + [px, py, px, py]).astype(np.float32)
 
 
 def resize_bilinear(rgb: np.ndarray, nh: int, nw: int) -> np.ndarray:
