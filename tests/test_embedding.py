@@ -150,8 +150,16 @@ def detected(small_clip, tmp_path_factory):
     return wh, cfg, out, emb
 
 
+def upstream_of(name: str) -> tuple[str, ...]:
+    from tasks.registry import stages_of
+
+    return next(s.definition.upstream for s in stages_of("clip") if s.name == name)
+
+
 def test_detect_and_embed_stages(detected):
+    from cadestate.lineage import recording_reads
     from tasks.detection.detect import DET_ID_STRIDE, detect_clip
+    from tasks.registry import stages_of
     from tasks.detection.embed import embed_clip
 
     from tasks.detection.model_inputs import detector_labels, model_fingerprint
@@ -175,7 +183,12 @@ def test_detect_and_embed_stages(detected):
     assert {v["owner"] for v in vectors} == {"detection"} and len(vectors[0]["vector"]) == 768
     # reruns are idempotent: same rows, same output digests
     assert detect_clip(wh, cfg, "small", "r4", show_progress=False).output_hash == out.output_hash
-    assert embed_clip(wh, EmbedConfig(), "small", "r5", show_progress=False).output_hash == emb.output_hash
+    with recording_reads() as reads:
+        assert embed_clip(wh, EmbedConfig(), "small", "r5", show_progress=False).output_hash == emb.output_hash
+    # what embed reads is what its upstream stages write: it crops the frames' images, and a frames rerun
+    # that left the detections alike (a new [frames] jpeg_quality) left its descriptors stale
+    upstream = {t for s in stages_of("clip") if s.name in {"embed", *upstream_of("embed")} for t in s.definition.tables}
+    assert {r[1] for r in reads if r[0] == "files"} <= upstream and "frames" in {r[1] for r in reads}
     # the label filter drops other classes before ranking
     only = detect_clip(wh, DetectConfig(score_threshold=0.2, classes=(dets[0]["label"],)), "small", "r6", show_progress=False)
     kept = wh.read("detections").to_pylist()

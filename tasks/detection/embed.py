@@ -85,7 +85,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="embed", section="embed", scope="clip", upstream=("detect",), tables=("embeddings",),
+    name="embed", section="embed", scope="clip", upstream=("frames", "detect"), tables=("embeddings",),
     description="one appearance descriptor per detection",
     run=_run,
 )
