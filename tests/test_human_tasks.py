@@ -136,6 +136,24 @@ def test_cad_selection_pauses_then_resumes_with_partial_labels(hwh, tmp_path):
     assert sorted(set(hwh.read("correspondences", [CLIP]).column("track_id").to_pylist())) == ["0", "1"]
 
 
+def test_a_task_that_shows_the_frames_reruns_when_they_change(hwh):
+    """A task names the frames' image files (media/frames/<clip>/<version>/...): a new [frames]
+    setting writes a new version, and a task stage whose upstream output stayed alike (the same
+    candidates, the same poses) kept naming the old one, which is pruned, and the app showed no
+    frames. Each stage that reads the frames lists them upstream."""
+    from cadestate.lineage import recording_reads
+    from tasks.registry import stages_of
+
+    upstream = {s.name: s.definition.upstream for s in stages_of("clip")}
+    with recording_reads() as reads:
+        message = cad_selection_stage(hwh, CadSelectionConfig(), CLIP, "r1").message
+    assert "frames" in {r[1] for r in reads} and "frames" in upstream["cad_selection"]
+    task = _task(hwh, message)
+    assert task["items"][0]["keyframes"][0]["image_path"].startswith(f"media/frames/{CLIP}/v/")
+    for stage in ("correspondence_task", "verification"):  # they show key-frames too
+        assert "frames" in upstream[stage], stage
+
+
 def test_no_candidates_completes_with_nothing(wh):
     out = _run(wh, "cad_selection", lambda rid: cad_selection_stage(wh, CadSelectionConfig(), CLIP, rid))
     assert out.status == "completed" and out.rows_written == 0 and "no CAD candidates" in out.message

@@ -143,7 +143,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="cad_selection", section="cad_selection", scope="clip", upstream=("retrieval",), tables=("label_tasks",),
+    name="cad_selection", section="cad_selection", scope="clip", upstream=("retrieval", "frames"), tables=("label_tasks",),
     description="human task (3.2): people choose each track's CAD model among its candidates; pauses until answered",
     run=_run, clip_inputs=cad_selection_inputs,
 )

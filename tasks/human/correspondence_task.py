@@ -77,7 +77,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="correspondence_task", section="correspondence_task", scope="clip", upstream=("cad_selection",), tables=("label_tasks",),
+    name="correspondence_task", section="correspondence_task", scope="clip", upstream=("cad_selection", "frames"), tables=("label_tasks",),
     description="human task (3.3): people click 3D<->2D correspondences on the chosen models; pauses until answered",
     run=_run, clip_inputs=correspondence_inputs,
 )

@@ -177,7 +177,7 @@ def _run(ctx: StageContext) -> StageOutput:
 
 
 STAGE = StageDef(
-    name="verification", section="verification", scope="clip", upstream=("pose",), tables=("label_tasks", "verified_poses"),
+    name="verification", section="verification", scope="clip", upstream=("pose", "frames"), tables=("label_tasks", "verified_poses"),
     description="human task (3.5): people accept or reject each solved pose over its key-frames; pauses until answered",
     run=_run, clip_inputs=verification_inputs,
 )
