@@ -205,12 +205,14 @@ def detection_frames(bench_dir: Path, clip: str, wh: Warehouse) -> list[FrameBox
 
 def unfinished_clips(clips: list[str], wh: Warehouse) -> dict[str, str]:
     """The clips of ``clips`` that have not run to the end in ``wh``, clip -> where it stands: "not
-    run" (not in the warehouse), or its first stage, in pipeline order, whose last run did not
-    complete ("waits at cad_selection", "failed at pose") or that never ran ("never ran pose")."""
+    run" (no run of it in the warehouse), or its first stage, in pipeline order, whose last run did
+    not complete ("waits at cad_selection", "failed at pose", "failed at cameras": before ingest
+    registered it) or that never ran ("never ran pose")."""
     from tasks.registry import stages_of
     from tasks.status import read_runs
 
-    present = [c for c in clips if wh.has_partition("clips", c)]
+    ran = set(wh.partitions("runs"))
+    present = [c for c in clips if c in ran]
     last = {(r["clip"], r["stage"]): r["status"] for r in read_runs(wh, present)} if present else {}
     out = {}
     for clip in clips:

@@ -154,15 +154,27 @@ def clip_splits(wh: Warehouse, clips: list[str]) -> dict[str, str]:
     return {r["clip"]: r["split"] or DEFAULT_SPLIT for r in rows}
 
 
+def tried_clip_splits(wh: Warehouse, clips: list[str]) -> dict[str, str]:
+    """:func:`clip_splits`, and the split (:func:`bench.benchmark.clip_split`, by its place in
+    ``clips``) of each clip that ran but failed before ingest registered it (SfM found no cameras):
+    it has runs, no ``clips`` row, and its objects in view count, none of them yielded (they
+    dropped out of the yield's denominator)."""
+    from bench.benchmark import clip_split
+
+    splits = clip_splits(wh, clips)
+    ran = set(wh.partitions("runs"))
+    return {**splits, **{c: clip_split(i) for i, c in enumerate(clips) if c not in splits and c in ran}}
+
+
 def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
     """The yield section of ``bench report`` (module docstring) over the benchmark clips that the
-    warehouse has; None when it has none."""
+    warehouse has run (:func:`tried_clip_splits`); None when it has run none."""
     from bench.benchmark import CLASS_NAMES, read_manifest
     from bench.pose_bench import accepted_predictions, scoring_inputs
     from bench.retrieval_bench import track_truth
     from bench.scoring import score_all
 
-    splits = clip_splits(wh, list(read_manifest(bench_dir).clips))
+    splits = tried_clip_splits(wh, list(read_manifest(bench_dir).clips))
     clips = sorted(splits)
     if not clips:
         return None

@@ -429,6 +429,30 @@ def test_bench_report_leads_with_the_yield(bench3, tmp_path, monkeypatch):
     assert got["all"]["interval_pct"] != dy.clip_interval([counts[n] for n in sorted(names)], min_clips=2)
 
 
+def test_a_clip_that_failed_before_ingest_counts_in_the_yield(bench3, tmp_path):
+    """A clip whose cameras (SfM) failed has runs but no ``clips`` row: its objects in view left the
+    yield's denominator and it was said "not run", raising the yield; they count now, none yielded,
+    and it is said to have failed at cameras."""
+    import bench.dataset_yield as dy
+    from bench.benchmark import unfinished_clips
+
+    wh, clips = bench3
+    shutil.copytree(wh.root, tmp_path / "w")
+    copy = Warehouse(tmp_path / "w")
+    failed = clips[2][0]
+    bench = wh.root.parent / "bench"
+    (before,) = (s["modes"]["scan2cad-class"] for s in dy.dataset_yield(bench, copy)["splits"].values())  # one split
+    for table in (tmp_path / "w" / "tables").iterdir():
+        shutil.rmtree(table / f"clip={failed}", ignore_errors=True)
+    copy.write("runs", failed, table_rows("runs", [{"clip": failed, "run_id": "r9", "stage": "cameras", "status": "failed"}]))
+    assert unfinished_clips([c[0] for c in clips], copy) == {failed: "failed at cameras"}
+    after = dy.dataset_yield(bench, copy)["splits"]
+    assert after["all"]["clips"] == 3 and after["train"]["clips"] == 1  # its split: the benchmark's, by its place
+    assert after["all"]["modes"]["scan2cad-class"]["expected_objects"] == before["expected_objects"]
+    lost = len(_in_view(clips[2][1]) & {o.track_id for o in clips[2][2]})
+    assert lost and after["all"]["modes"]["scan2cad-class"]["yielded_objects"] == before["yielded_objects"] - lost
+
+
 def test_a_clip_whose_verification_waits_is_not_in_the_dataset(bench3, tmp_path):
     """As `export official` chooses them: a clip whose newest verification run waits for verdicts
     (its poses unjudged) is left out of the figures and named, not counted as objects not posed."""
