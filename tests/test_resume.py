@@ -90,6 +90,24 @@ def test_resumed_clip_equals_an_uninterrupted_run(small_library_warehouse, answe
     assert ids(wb) == ids(wa), "the same tasks (their files differ only in the media paths of each warehouse)"
 
 
+def test_a_stale_correspondences_partition_keeps_the_track_map(answered, tmp_path):
+    """A clip answered through label files whose ``correspondences`` partition differs from the
+    answers in force by one row (stale): its pipeline track ids were read as ground-truth object
+    ids, and the `pose` mode scored its poses against other objects."""
+    import shutil
+
+    from bench.pose_bench import _ground_truth_map
+    from bench.retrieval_bench import track_truth
+
+    shutil.copytree(answered.config.warehouse.root, tmp_path / "w")
+    wh = Warehouse(tmp_path / "w")
+    truth = {str(t): gt for t, gt in track_truth(answered.folder, wh, answered.clip).items()}
+    assert truth and _ground_truth_map(answered.folder, wh, answered.clip) == truth
+    rows = wh.read("correspondences", [answered.clip])
+    wh.write("correspondences", answered.clip, rows.slice(0, rows.num_rows - 1))
+    assert _ground_truth_map(answered.folder, wh, answered.clip) == truth
+
+
 def test_a_rerun_that_asks_again_leaves_no_stale_pose(answered, tmp_path):
     """Retrieval reruns with other scores (a config change): cad_selection gets a new task, and the
     choices still among the candidates are carried to it, so the poses stay. A person then says
