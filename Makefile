@@ -1,9 +1,13 @@
 # One entry point per job. Every target sets up what it needs first (idempotent).
-#   make run          - set up, build the CAD library, generate a demo clip, run it end to end (simulated
-#                       annotators answer its human tasks through label files), print a SQL summary
-#   make test         - set up and run the whole test suite (slow end-to-end tests included; CI runs this)
-#   make bench        - set up, run the throughput benchmarks (bench/results/), then the synthetic benchmark
-#                       (12 rendered walkthroughs, generated once into data/bench/default) and its report
+#   make run          - set up, build the CAD library, train the models (make models: about an hour the first
+#                       time), generate a demo clip, run it end to end (simulated annotators answer its human
+#                       tasks through label files), print a SQL summary
+#   make test         - set up (the models too) and run the whole test suite (slow end-to-end tests included;
+#                       CI runs this); make test-fast leaves out the tests marked slow
+#   make bench        - set up, generate and run the default benchmark (12 rendered walkthroughs, data/bench/default)
+#                       and a fresh one (seed FRESH_SEED, 8 clips, never used while tuning), then the throughput
+#                       benchmarks (bench/results/latest.json), then both reports
+#   make setup        - the virtual environment (.venv, requirements.lock), three.js and chromium
 #   make cad-library  - fetch Debian's sweethome3d-furniture (the embedded CAD library) into the cache
 #   make web-vendor   - fetch three.js (npm, pinned, sha256-checked) for the annotation app's 3D viewer into the cache
 #   make browser      - install Debian's chromium (the annotation app's browser tests drive it with Playwright) and strace
@@ -12,11 +16,12 @@
 #                       DETECTOR_SEED; ~40 min the first time) and the retrieval descriptor (seed DESCRIPTOR_SEED;
 #                       ~20 min); each is skipped when the file there was made by the same recipe
 #   make lock         - re-resolve requirements.lock from pyproject.toml
+#   make clean        - remove .venv and data/ (the cache under ~/.cache/cadestate stays)
 SHELL := /bin/bash
 PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
-# The CPU torch wheel lives in a local find-links folder on these machines (see ../shared/reference/stack.md).
+# The CPU torch wheel lives in a local find-links folder on these machines ($PIP_FIND_LINKS, else /opt/wheels).
 FIND_LINKS ?= $(or $(PIP_FIND_LINKS),/opt/wheels)
 UV_VERSION := 0.13.9
 DEMO_DIR ?= data/demo
