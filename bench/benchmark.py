@@ -88,6 +88,8 @@ def generate(bench_dir: Path, seed: int, clips: int, wh: Warehouse, spec: Walkth
     manifest = Manifest(seed, tuple(clip_name(seed, i, spec) for i in range(clips)), digest(*sorted(m["cad_id"] for m in models)))
     if (bench_dir / MANIFEST).is_file() and read_manifest(bench_dir).library != manifest.library:
         raise BenchmarkError(f"{bench_dir} was generated from another CAD library; choose a new folder")
+    if (bench_dir / MANIFEST).is_file() and (held := read_manifest(bench_dir).seed) != seed:  # its clips were forgotten
+        raise BenchmarkError(f"{bench_dir} holds the benchmark of seed {held}; choose a new folder for seed {seed}")
     # a clip is whole once its ground truth is: objects.json, then visibility.json, written last
     # (bench/walkthrough.py, whose bytes key the trained models, writes them in that order)
     todo = [(i, name) for i, name in enumerate(manifest.clips)

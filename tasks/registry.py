@@ -328,7 +328,7 @@ def stages_markdown(scope: str) -> str:
     rows = ["| stage | after | writes | config | module | what it does |", "|---|---|---|---|---|---|"]
     for s in stages_of(scope):
         after = ", ".join(f"`{u}`" for u in s.upstream + s.after) or "(the source)"
-        writes = ", ".join(f"`{t}`" for t in s.tables) or "(files)"
+        writes = ", ".join(f"`{t}`" for t in s.tables) or ("(files)" if s.has("source_inputs") else "(nothing)")
         config = f"`[{s.section}]`" if s.section else ""
         config += "".join(f", `{extra_shown(e)}`" for e in s.extra_sections)
         module = "tasks/" + "/".join(s.module.split(".")[1:]) + ".py"

@@ -56,6 +56,16 @@ def test_generate_refuses_clips_there_made_with_other_frames(benchmark, small_ca
     assert (folder / MANIFEST).read_bytes() == before
 
 
+def test_generate_refuses_a_folder_of_another_seed(benchmark, small_cad_library):
+    """Another --seed into a folder of seed 5 rewrote its manifest: seed 5's clips were forgotten
+    there (a report then said they were not run) and its report overwritten."""
+    folder, manifest, _ = benchmark
+    before = (folder / MANIFEST).read_bytes()
+    with pytest.raises(BenchmarkError, match=rf"^{folder} holds the benchmark of seed 5; choose a new folder for seed 6$"):
+        generate(folder, 6, 1, small_cad_library[0], SPEC, show_progress=False)
+    assert (folder / MANIFEST).read_bytes() == before
+
+
 def test_ignore_rule_uses_visibility_and_class(benchmark):
     from bench.benchmark import CLASS_NAMES
     from bench.ignore import DETECTABLE_CLASSES, MAX_TRUNCATED_FRACTION, MIN_VISIBLE_FRACTION

@@ -15,7 +15,7 @@ from cadestate.cli.common import bench_app, err, out
 @bench_app.command("generate")
 def bench_generate(
     ctx: typer.Context,
-    bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there, made with the same --frames, are kept).")],
+    bench_dir: Annotated[Path, typer.Option("--out", help="Benchmark folder (clips already there, made with the same --seed and --frames, are kept).")],
     seed: Annotated[int, typer.Option(min=0, help="Benchmark seed (clip i uses seed*1000+i); the default is the default benchmark's. make "
                                          "bench's fresh seed and the seeds already used while tuning: bench/seeds.py.")] = 20261123,
     clips: Annotated[int, typer.Option(min=1, help="Number of clips.")] = 12,
@@ -51,9 +51,9 @@ def bench_run(
 ) -> None:
     """Run the pipeline on every benchmark clip, the simulated annotators answering its human tasks
     through label files (<bench>/labels/<clip>/), which are ingested, and the clips rerun until none
-    waits: video to verified poses (cached stages do no work). The solver alone, on the simulated
-    clicks of the ground-truth tracks: `python -m bench.pose_bench`. Also writes the simulated annotators' clicks on the ground-truth
-    tracks (<bench>/simulated_clicks/<clip>.json, once), the input of `python -m bench.pose_bench`."""
+    waits: video to verified poses (cached stages do no work). Also writes the simulated annotators'
+    clicks on the ground-truth tracks (<bench>/simulated_clicks/<clip>.json, once), the input of
+    `python -m bench.pose_bench` (the solver alone)."""
     import dataclasses
 
     from bench.benchmark import clip_sources, read_manifest, require_library
@@ -95,7 +95,8 @@ def bench_run(
 def bench_report(
     ctx: typer.Context,
     bench_dir: Annotated[Path, typer.Argument(help="Benchmark folder.")],
-    as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON instead of markdown (report.md and "
+                                                          "report/ are written either way).")] = False,
 ) -> None:
     """Report the benchmark (first naming the clips the warehouse has not run to the end), leading with
     the dataset's yield (objects in view with exactly one accepted,
@@ -114,12 +115,12 @@ def bench_report(
 @bench_app.command("demo")
 def bench_demo(
     out_dir: Annotated[Path, typer.Argument(help="Folder for <name>.mp4 and <name>.txt.")],
-    name: Annotated[str, typer.Option(help="Clip name.")] = "demo_0000",
+    name: Annotated[str, typer.Option(help="File stem and video id (an ingest of the files makes clip <name>_0).")] = "demo_0000",
     seed: Annotated[int, typer.Option(min=0, help="Random seed (same seed, same clip).")] = 0,
     frames: Annotated[int, typer.Option(min=1, help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
 ) -> None:
     """Generate one synthetic walkthrough clip with exact cameras (138 camera lines by default): a quick
-    input for `cadestate ingest` and `cadestate run`, no CAD library needed."""
+    input for `cadestate ingest` (its retrieval needs a CAD library: `cadestate cad ingest`); making it needs none."""
     from bench.demo_clip import DemoClipSpec, make_demo_clip
     from cadestate.cli.common import cannot_write
     from warehouse.store import check_name

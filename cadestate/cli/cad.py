@@ -121,7 +121,9 @@ def cad_export_official(
     library: Annotated[Optional[list[str]], typer.Option(help="Only these libraries (repeatable; default: all).")] = None,
 ) -> None:
     """Write the library in the official CAD-Estate layout (shapenet_classes.json, symmetry_dict.json,
-    <class>/<cad_id>.npz with float32[T,3,3] vertices), loadable by the official cad_estate code."""
+    <class id>/<cad_id>.npz with float32[T,3,3] vertices: a ShapeNet synset id, or cadestate-<class> for a
+    class ShapeNet lacks; ATTRIBUTION.csv with every model's licence), loadable by the official
+    cad_estate code."""
     from tasks.cad.export import export_official
 
     count = export_official(ctx.obj.open_warehouse(must_exist=True), out_dir, library)

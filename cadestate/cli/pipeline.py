@@ -29,7 +29,8 @@ def main_options(
 @app.command()
 def ingest(
     ctx: typer.Context,
-    sources: Annotated[list[Path], typer.Argument(help="VIDEO CAMERAS.txt for one clip, or one or more folders of <name>.mp4 + <name>.txt pairs.")],
+    sources: Annotated[list[Path], typer.Argument(help="VIDEO [CAMERAS.txt] for one clip (no camera file: SfM), or folders of <name>.<mp4|mkv|webm|mov|avi> + "
+                                                         "<name>.txt pairs (every video needs its .txt).")],
     clip: Annotated[Optional[str], typer.Option(help="Clip name, <video_id>_<start_us> as in CAD-Estate (one clip only; default: "
                                                      "derived from the camera file: the video id of its URL line, its first "
                                                      "timestamp).")] = None,
@@ -368,7 +369,7 @@ def tables(
         return
     from warehouse.kept import row_counts  # kept while no table file came or went: no DuckDB then
 
-    table = Table("table", "rows", "clips", "description")
+    table = Table("table", "rows", "partitions", "description")  # clips, or CAD libraries (`tables NAME` says which)
     counts = row_counts(wh)
     for tname, info in wh.info.items():
         table.add_row(tname, str(counts[tname]), str(len(wh.partitions(tname))), escape(info.description))
