@@ -213,6 +213,31 @@ def test_stale_reasons_too_wide_for_the_terminal_go_under_the_status_table(monke
                              f"[yellow](2)[/] bench-7-00_0 correspondence_task: {'; '.join(why)}"]
 
 
+def test_a_status_table_of_long_names_fits_80_columns_with_no_cell_cut_short(monkeypatch):
+    """The default CAD libraries' names and the stage names took more than 80 columns: rich cut the
+    cells to "sh3d-blendswap-…", row counts to "17…" and the notes' numbers to nothing. Narrow, the
+    times lose their year and long names fold over lines; every row count and note number shows."""
+    import io
+    from types import SimpleNamespace
+
+    import cadestate.cli.pipeline as pipeline
+    from cadestate.cli.common import LineConsole
+
+    rows = [SimpleNamespace(clip="sh3d-blendswap-cc-0-and-more", stage=s, last_run_at="2026-12-07 10:00", status="completed",
+                            rows_written=17300 + i, stale_reasons=("code changed",)) for i, s in
+            enumerate(("cad_ingest", "label_similarity", "cad_embed"))]
+    screen = LineConsole(file=io.StringIO(), force_terminal=True, width=80, soft_wrap=True, color_system=None)
+    monkeypatch.setattr(pipeline, "out", screen)
+    table, _ = pipeline._stage_table(rows, "library", "CAD libraries", inline=False)
+    assert pipeline._wider_than_terminal(table)
+    table, notes = pipeline._stage_table(rows, "library", "CAD libraries", inline=False, narrow=True)
+    screen.print(table)
+    text = screen.file.getvalue()
+    assert max(len(ln) for ln in text.splitlines()) <= 80 and "…" not in text, text
+    assert all(str(r.rows_written) in text for r in rows) and all(f"no ({i})" in text for i in (1, 2, 3))
+    assert "12-07 10:00" in text and "2026-12-07" not in text
+
+
 def test_progress_bars_are_drawn_on_the_terminal_of_stderr_not_into_stdout(tmp_path):
     """`cmd > log` on a terminal: the bars go to stderr (the terminal); stdout, a file, holds the
     command's output alone (the bars went to stdout: a blank line in the file per bar, none shown)."""

@@ -209,6 +209,8 @@ def status(
             table, why = _stage_table(rows, scope, title, inline=True)
             if _wider_than_terminal(table):  # the reasons would be folded to a word a line: under the table instead
                 table, why = _stage_table(rows, scope, title, inline=False)
+            if _wider_than_terminal(table):  # 80 columns: times without the year, long names folded, no cell cut short
+                table, why = _stage_table(rows, scope, title, inline=False, narrow=True)
             if rows or not clips:  # names found in neither scope are one error below, not a line per scope
                 out.print(table if rows else f"no {title} yet")
             for line in why:
@@ -227,11 +229,18 @@ def status(
         raise CliError(f"no clip or CAD library named {', '.join(unknown)} in {wh.root}")
 
 
-def _stage_table(rows, scope: str, title: str, inline: bool) -> tuple[Table, list[str]]:
+def _stage_table(rows, scope: str, title: str, inline: bool, narrow: bool = False) -> tuple[Table, list[str]]:
     """The status table of one scope, and the lines that go under it: each stale stage's reasons
-    in its 'fresh' cell (``inline``), or numbered there and written out under the table."""
-    table = Table(*(Column(name, no_wrap=True) for name in (scope, "stage", "last run", "status", "rows")),
-                  Column("fresh", min_width=5 if inline else len(f"no ({len(rows)})")), title=f"{title} (times UTC)")
+    in its 'fresh' cell (``inline``), or numbered there and written out under the table.
+    ``narrow``: times without the year, and clip and stage names folded over lines where the
+    terminal is too narrow (they were cut to "bench-5-…", as the rows and the notes' numbers)."""
+    names = (Column(scope, overflow="fold"), Column("stage", overflow="fold")) if narrow else \
+        (Column(scope, no_wrap=True), Column("stage", no_wrap=True))
+    rows_width = max([len("rows"), *(len(str(r.rows_written)) for r in rows)])
+    table = Table(*names, *(Column(name, no_wrap=True) for name in ("last run", "status")),
+                  Column("rows", no_wrap=True, min_width=rows_width),
+                  Column("fresh", min_width=5 if inline else len(f"no ({len(rows)})")),
+                  title=f"{title} (times UTC{', month-day' if narrow else ''})")
     notes: list[str] = []
     for r in rows:
         reasons = "; ".join(r.stale_reasons)
@@ -242,7 +251,8 @@ def _stage_table(rows, scope: str, title: str, inline: bool) -> tuple[Table, lis
         else:
             notes.append(f"[yellow]({len(notes) + 1})[/] {escape(r.clip)} {r.stage}: {escape(reasons)}")
             fresh = f"[yellow]no ({len(notes)})[/]"
-        table.add_row(escape(r.clip), r.stage, r.last_run_at, r.status, str(r.rows_written), fresh)
+        when = r.last_run_at[5:] if narrow and r.last_run_at[:4].isdigit() else r.last_run_at
+        table.add_row(escape(r.clip), r.stage, when, r.status, str(r.rows_written), fresh)
     return table, notes
 
 
