@@ -177,24 +177,26 @@ def _map_items(items: list[CadItem], cfg: CadIngestConfig, out_dir: Path) -> Ite
     todo, alone = list(items), False
     while todo:
         with ProcessPoolExecutor(1 if alone else cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            futures = []
             try:
-                futures = [pool.submit(ingest_item, item, cfg, out_dir) for item in (todo[:1] if alone else todo)]
-            finally:
-                signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-            try:
+                blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                try:  # a worker may die while the items are still being submitted: submit raises then
+                    futures += (pool.submit(ingest_item, item, cfg, out_dir) for item in (todo[:1] if alone else todo))
+                finally:
+                    signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
                 for future in futures:
                     result = future.result()
                     todo.pop(0)
                     alone = False
                     yield result
-            except BrokenProcessPool:
+            except BrokenProcessPool:  # its futures are failed by the pool's own thread: cancelling them raced it
                 if alone:  # it killed its worker alone: it, not a neighbour
                     yield _died(todo.pop(0), out_dir)
                 alone = not alone and bool(todo)
-            finally:
+            except BaseException:  # the caller stopped early (GeneratorExit), or Ctrl-C: what is not started, never is
                 for future in futures:
                     future.cancel()
+                raise
 
 
 def _died(item: CadItem, out_dir: Path) -> ItemResult:
