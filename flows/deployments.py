@@ -54,8 +54,8 @@ from flows.annotate_clip import _run
 from flows.runtime import run_tags
 from tasks.stage_chain import StageReport
 from tasks.video.camera_file import CameraFileError, parse_camera_file
-from tasks.video.clip_names import ClipNameError
-from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, check_video_ids, official_clip_name
+from tasks.video.clip_names import ClipNameError, shared_video_ids, video_id_of
+from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, official_clip_name
 from warehouse import Warehouse, atomic_write_bytes
 from warehouse.store import is_name
 from warehouse.catalog import one_line
@@ -134,12 +134,14 @@ def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None =
     them); a pair whose camera file is bad is left out with a warning naming the file and line, and
     so is every pair after the first that gets a name already taken (two runs of one clip would
     write its tables at once), and, with ``wh``, one whose video id a clip of another video has
-    there or among the pairs before it (:func:`check_video_ids`, as `cadestate ingest` refuses it:
-    their frames would mix in the official layout). ``warn``: where the warnings go (default: the
-    flow run's log)."""
+    there or among the pairs before it (as `cadestate ingest` refuses it: their frames would mix in
+    the official layout; the warehouse's clips are read once). ``warn``: where the warnings go
+    (default: the flow run's log)."""
     warn = warn or get_run_logger().warning
     named: dict[str, ClipSource] = {}
-    urls: list[tuple[str, str]] = []
+    by_id: dict[str, list[tuple[str, str]]] = {}  # video id -> (clip, URL line) of the warehouse's clips and those named
+    for r in wh.read("clips", columns=["clip", "url"]).to_pylist() if wh is not None else ():
+        by_id.setdefault(video_id_of(r["clip"]), []).append((r["clip"], r["url"]))
     for p in pairs:
         try:
             track = parse_camera_file(p.cameras)
@@ -147,19 +149,20 @@ def official_names(pairs: list[ClipSource], warn: Callable[[str], None] | None =
         except (CameraFileError, ClipNameError) as e:
             warn(f"left out of the inbox: {e}")
             continue
-        try:
-            if wh is not None:
-                check_video_ids(wh, [*urls, (clip, track.url)])
-        except ClipNameError as e:
-            warn(f"left out of the inbox: {p.cameras}: {str(e).split(': give one')[0]}; ingest it with `cadestate "
-                 "ingest VIDEO CAMERAS --clip NAME`, a name of its own")
+        # its own video id only: two registered clips that share one (from before the inbox checked) refuse no pair
+        same_id = by_id.setdefault(video_id_of(clip), [])
+        if wh is not None and (others := shared_video_ids([*same_id, (clip, track.url)]).get(video_id_of(clip))):
+            listed = ", ".join(sorted(c for c in others if c != clip)) or clip
+            warn(f"left out of the inbox: {p.cameras}: clip {clip} comes from another video (line 1: {track.url.strip()}) "
+                 f"than {listed}, which share its video id {video_id_of(clip)!r}; ingest it with `cadestate ingest "
+                 "VIDEO CAMERAS --clip NAME`, a name of its own")
             continue
         if clip in named:
             warn(f"left out of the inbox: {p.video}: its camera file names clip {clip}, as {named[clip].video}'s does "
                  "(the same video id and first timestamp); give it a camera file of its own")
             continue
         named[clip] = dataclasses.replace(p, clip=clip)
-        urls.append((clip, track.url))
+        same_id.append((clip, track.url))
     return list(named.values())
 
 

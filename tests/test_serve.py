@@ -81,16 +81,21 @@ def test_an_odd_file_name_or_a_shared_video_id_leaves_out_one_pair_not_the_inbox
     pair("living room", "file:///videos/a/room.mp4", 0)
     pair("other room", "file:///videos/b/room.mp4", 5_000_000)  # another video, the same id: room
     pair("hall", "file:///videos/hall.mp4", 0)  # its id registered from another video
+    pair("kitchen", "file:///videos/kitchen.mp4", 0)  # its id is no other clip's
     wh = Warehouse(tmp_path / "w")
     wh.write("clips", "hall_7", table_rows("clips", [{"clip": "hall_7", "url": "file:///elsewhere/hall.mp4"}]))
+    for clip, url in (("attic_0", "file:///a/attic.mp4"), ("attic_9", "file:///b/attic.mp4")):  # a clash of old: no one else's
+        wh.write("clips", clip, table_rows("clips", [{"clip": clip, "url": url}]))
     ready = ready_pairs(inbox, 0.0)
-    assert [p.clip for p in ready] == ["hall", "living_room", "other_room"]
+    assert [p.clip for p in ready] == ["hall", "kitchen", "living_room", "other_room"]
     warnings = []
     named = official_names(ready, warnings.append, wh)
-    assert [(p.clip, p.video.name) for p in named] == [("room_0", "living room.mp4")]
-    assert len(warnings) == 2 and all("share the video id" in w for w in warnings), warnings
-    assert any(w.startswith(f"left out of the inbox: {inbox / 'hall.txt'}: clips hall_0 (") for w in warnings), warnings
-    assert any(w.startswith(f"left out of the inbox: {inbox / 'other room.txt'}: ") for w in warnings), warnings
+    assert [(p.clip, p.video.name) for p in named] == [("kitchen_0", "kitchen.mp4"), ("room_0", "living room.mp4")]
+    assert len(warnings) == 2 and all("which share its video id" in w for w in warnings), warnings
+    assert f"left out of the inbox: {inbox / 'hall.txt'}: clip hall_0 comes from another video (line 1: " \
+           "file:///videos/hall.mp4) than hall_7, which share its video id 'hall'; ingest it with `cadestate ingest " \
+           "VIDEO CAMERAS --clip NAME`, a name of its own" in warnings, warnings
+    assert any(w.startswith(f"left out of the inbox: {inbox / 'other room.txt'}: clip room_5000000 ") for w in warnings)
 
 
 def test_clips_done_are_not_run_again(tmp_path, small_clip):
