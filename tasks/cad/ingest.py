@@ -47,6 +47,11 @@ MAX_EXTENT_M = 25.0
 (millimetres, centimetres) than its ``unit_m`` says; a room's objects are smaller."""
 
 
+MAX_DEATHS_IN_A_ROW = 5
+"""Worker processes that may die in a row, each ingesting one model alone, before the library fails
+(:func:`_map_items`): more are workers that cannot run at all, not models that kill them."""
+
+
 class CadItemError(ValueError):
     """An item that cannot be ingested (recorded in ``cad_issues``, then skipped)."""
 
@@ -168,31 +173,39 @@ def _map_items(items: list[CadItem], cfg: CadIngestConfig, out_dir: Path) -> Ite
     terminal's whole process group, and a worker still importing printed its KeyboardInterrupt
     traceback under the command's one line; the command's end takes its workers down
     (:func:`flows.runtime.exit_now`). A worker that dies (the kernel's out-of-memory killer on a huge
-    mesh, a crash in native code) broke the pool and failed the whole library: the items it left
-    unfinished go on in a new pool, the first of them alone, and one that kills its worker alone
-    too is skipped (:func:`_died`)."""
+    mesh, a crash in native code) broke the pool and failed the whole library: the items that may
+    have been in its workers then (the next ``workers + 1`` unfinished) run one at a time in a pool
+    of one, so the one that kills its worker alone is known and skipped (:func:`_died`), and the
+    rest go on in a new pool; :data:`MAX_DEATHS_IN_A_ROW` deaths in a row (workers that cannot
+    start at all) end the library."""
     if cfg.workers == 1 or len(items) < 2:
         yield from (ingest_item(item, cfg, out_dir) for item in items)
         return
-    todo, alone = list(items), False
+    todo, suspects, deaths = list(items), 0, 0
     while todo:
-        with ProcessPoolExecutor(1 if alone else cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(1 if suspects else cfg.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = []
             try:
                 blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
                 try:  # a worker may die while the items are still being submitted: submit raises then
-                    futures += (pool.submit(ingest_item, item, cfg, out_dir) for item in (todo[:1] if alone else todo))
+                    futures += (pool.submit(ingest_item, item, cfg, out_dir) for item in (todo[:suspects] or todo))
                 finally:
                     signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
                 for future in futures:
                     result = future.result()
                     todo.pop(0)
-                    alone = False
+                    suspects, deaths = max(0, suspects - 1), 0
                     yield result
             except BrokenProcessPool:  # its futures are failed by the pool's own thread: cancelling them raced it
-                if alone:  # it killed its worker alone: it, not a neighbour
-                    yield _died(todo.pop(0), out_dir)
-                alone = not alone and bool(todo)
+                if not suspects:
+                    suspects = min(len(todo), cfg.workers + 1)
+                    continue
+                deaths += 1  # alone, the first unfinished is the one its worker was ingesting
+                if deaths >= MAX_DEATHS_IN_A_ROW:
+                    raise CadItemError(f"{deaths} worker processes died in a row, each ingesting one model alone (the "
+                                       f"last: {todo[0].path}): they cannot run here (out of memory?)") from None
+                suspects -= 1
+                yield _died(todo.pop(0), out_dir)
             except BaseException:  # the caller stopped early (GeneratorExit), or Ctrl-C: what is not started, never is
                 for future in futures:
                     future.cancel()
