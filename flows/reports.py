@@ -45,7 +45,7 @@ def _wait_awake(futures: list[PrefectFuture]) -> None:
     """Wait for ``futures`` (of Prefect's thread runner), waking every :data:`AWAKE_S`: Python runs a
     signal's handler in the main thread, and the kernel may hand a Ctrl-C or SIGTERM to any of the
     process's threads; one taken by a stage's thread left the main thread asleep on a lock until
-    every task had ended (a `cad ingest` interrupted ~1 time in 20 went on rendering the library)."""
+    every task had ended (a `cad ingest` interrupted went on rendering the library: 1 run in 5 to 25)."""
     pending = {fut.wrapped_future for fut in futures}
     while pending:
         pending = concurrent.futures.wait(pending, timeout=AWAKE_S).not_done

@@ -179,7 +179,6 @@ def test_clip_names_that_are_not_safe_folder_names_are_rejected(name):
         check_name(name)
 
 
-
 def test_a_partition_name_no_folder_can_have_has_no_data(wh):
     wh.write("clips", "a", clip_rows("a", 1))
     assert wh.has_partition("clips", "a") and not wh.has_partition("clips", "b")

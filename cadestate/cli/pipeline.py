@@ -155,7 +155,8 @@ def _parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | N
 @app.command()
 def run(
     ctx: typer.Context,
-    clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to rerun (default: every ingested clip).")] = None,
+    clips: Annotated[Optional[list[str]], typer.Argument(help="Clips to rerun (default: every ingested clip; a name "
+                                                              "that starts with '-' after --: run -- -0AK9iy8y0c_0).")] = None,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Rerun the pipeline on ingested clips (each keeps its split): stages whose config, code and inputs are
@@ -219,7 +220,8 @@ def status(
             if r.status == "paused":
                 out.print(f"[magenta]{escape(r.clip)} waits[/] at {r.stage}: {escape(r.message)}")
             elif r.status == "interrupted":
-                again = f"`cadestate run {escape(r.clip)}`" if scope == "clip" else "`cadestate cad ingest` of its source"
+                dashes = "-- " if r.clip.startswith("-") else ""  # a clip named by a YouTube id that starts with '-'
+                again = f"`cadestate run {dashes}{escape(r.clip)}`" if scope == "clip" else "`cadestate cad ingest` of its source"
                 out.print(f"[red]{escape(r.clip)} was interrupted[/] at {r.stage} ({r.last_run_at}): {escape(r.message)}; "
                           f"{again} reruns it")
         for note in clip_notes(rows):

@@ -297,7 +297,6 @@ def ingest_clip(
     cameras_dst = inputs / CAMERAS_FILE
     _place(source.video, video_dst, cfg.link_inputs)
     _place(cameras_path, cameras_dst, cfg.link_inputs)
-    record_placed(inputs, {video_dst: video_sha256, cameras_dst: cameras_sha256})
     row = {
         "clip": source.clip,
         "url": cameras.url,
@@ -325,6 +324,7 @@ def ingest_clip(
         "up_line_segments": up.line_segments if up.source == "auto" else None,
     }
     rows = wh.write("clips", source.clip, pa.Table.from_pylist([row], schema=wh.spec("clips").schema))
+    record_placed(inputs, {video_dst: video_sha256, cameras_dst: cameras_sha256})  # the files the row now names
     for old in inputs.glob("video.*"):  # a re-ingest's from another container: only once the row names the new one
         if old != video_dst:
             old.unlink()

@@ -127,7 +127,7 @@ def walk_term(centres: np.ndarray | None) -> tuple[np.ndarray, float]:
     return d.T @ d / total, min(1.0, float(np.linalg.norm(c[-1] - c[0])) / path)
 
 
-def _least_down(x: np.ndarray, y: np.ndarray, walk: np.ndarray | None = None) -> np.ndarray:
+def _up_of_axes(x: np.ndarray, y: np.ndarray, walk: np.ndarray | None = None) -> np.ndarray:
     """Up float64[3] minimising the module docstring's objective over the cameras' x and y axes
     float[N, 3] and the walk's term float64[3, 3] (weighted; None: left out)."""
     n = len(x)
@@ -152,7 +152,7 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
             raise ValueError(f"up must be 'auto' or one of {', '.join(AXES)}, got {forced!r}")
         up = np.array(AXES[forced])
     else:
-        up = _least_down(x, y, coherence * len(R) * walk)
+        up = _up_of_axes(x, y, coherence * len(R) * walk)
     from_lines = None
     if forced == "auto" and lines is not None:
         from tasks.video.vertical_lines import refine_up
@@ -179,7 +179,7 @@ def estimate_up(world_to_camera_R: np.ndarray, forced: str = "auto", centres: np
             note = (f"the camera barely pans ({pan_rms:.1f}° RMS, less than {MIN_PAN_DEG:g}°) and does not walk "
                     f"forward or back (its walk is {walk_deg:.0f}° from sideways, less than {MIN_WALK_DEG:g}°): the up "
                     "direction rests on the phone being held level in pitch; set [ingest] up to force it")
-        elif coherence > 0 and (climb := _deg(float(np.arccos(np.clip(up @ _least_down(x, y), -1, 1))))) > MAX_CLIMB_DEG:
+        elif coherence > 0 and (climb := _deg(float(np.arccos(np.clip(up @ _up_of_axes(x, y), -1, 1))))) > MAX_CLIMB_DEG:
             note = (f"the walk puts up {climb:.0f}° from where the cameras' axes put it (more than {MAX_CLIMB_DEG:g}°): "
                     "the path climbs (stairs, a ramp) or the phone points far down; set [ingest] up to force it")
     return UpEstimate(up, rotation_to_y(up), forced, roll_rms, pan_rms, tilt, note, walk_deg,
