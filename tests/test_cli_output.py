@@ -84,7 +84,10 @@ def test_a_result_too_wide_for_the_terminal_is_shown_as_records(tmp_path):
     assert all(f"column_{i}   value{i}" in lines for i in range(10)) and lines.count("column_11  value11") == 2
 
 
-@pytest.mark.parametrize("command", [("sql", "--help"), ("compact", "--help"), ("ingest", "--help")])
+@pytest.mark.parametrize("command", [("sql", "--help"), ("compact", "--help"), ("ingest", "--help"), ("run", "--help"),
+                                     ("status", "--help"), ("stats", "--help"), ("annotate", "--help"),
+                                     ("export", "official", "--help"), ("cad", "ingest", "--help"),
+                                     ("labels", "ingest", "--help"), ("bench", "generate", "--help")])
 def test_help_examples_stay_whole_at_80_columns(tmp_path, command):
     """An example in --help is a line to copy: never wrapped, whatever the width."""
     result = cli(*command, cwd=tmp_path)

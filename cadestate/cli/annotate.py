@@ -20,7 +20,15 @@ def annotate(
     """Open the annotation app: the clips' waiting human tasks (manual tracks, CAD selection,
     correspondences, verification) as web pages. Each answer is validated as `labels ingest`
     validates a file, written to <warehouse>/labels/<clip>/, ingested, and its clip resumed in the
-    background."""
+    background.
+
+    \b
+    Examples:
+      # on this machine: open the address it prints
+      cadestate annotate
+      # for annotators on the network, each named in the label files
+      cadestate annotate --host 0.0.0.0 --port 8080 --annotator alice
+    """
     from flows.runtime import prepare_prefect_environment
 
     check_listen(host, port)

@@ -23,7 +23,17 @@ def bench_generate(
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Generate walkthrough clips of furnished rooms from the CAD library, with exact ground truth
-    (official frames.json/objects.json, RealEstate10K cameras, visibility). Needs `cadestate cad ingest`."""
+    (official frames.json/objects.json, RealEstate10K cameras, visibility). Needs `cadestate cad ingest`.
+
+    \b
+    Examples:
+      # the default benchmark (12 clips), then run and report it
+      cadestate bench generate --out data/bench/default
+      cadestate bench run data/bench/default
+      cadestate bench report data/bench/default
+      # a seed never used while tuning, in a folder of its own
+      cadestate bench generate --out data/bench/fresh --seed 3000017 --clips 8
+    """
     from bench.benchmark import generate
     from bench.walkthrough import WalkthroughSpec
 

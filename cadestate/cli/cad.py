@@ -46,6 +46,13 @@ def cad_ingest(
     warnings (missing textures, unknown classes, a folder model over 25 m): `cadestate sql "SELECT * FROM
     cad_issues"`. Run again after the folder changed: the library is ingested again, models gone
     from it are dropped, the others keep their ids; an unchanged folder is cached.
+
+    \b
+    Examples:
+      # the embedded Sweet Home 3D library (make cad-library)
+      cadestate cad ingest
+      cadestate cad ingest /data/ShapeNetCore.v2
+      cadestate cad ingest my_meshes/ --library mine
     """
     from flows.runtime import prepare_prefect_environment
     from tasks.cad.sources import default_source, guess_kind, source_items

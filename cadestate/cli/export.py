@@ -26,7 +26,14 @@ def export_official(
 ) -> None:
     """Write annotations/<clip>/{frames,objects}.json (pixel intrinsics; one object per physical object,
     poses only where accepted in verification), frames/<video_id>/<video_id>_<timestamp>.jpg, the CAD
-    root cad/ and scene_list.txt: what the official cad_estate dataset classes read."""
+    root cad/ and scene_list.txt: what the official cad_estate dataset classes read.
+
+    \b
+    Examples:
+      cadestate export official release/
+      # two clips, without the CAD root
+      cadestate export official val_only/ --clips room_0 --clips hall_0 --no-cad
+    """
     from tasks.dataset.export_official import export_dataset
 
     counts = export_dataset(ctx.obj.open_warehouse(must_exist=True), out_dir, clips, cad, progress)
@@ -65,7 +72,13 @@ def stats(
     and its cost (compute seconds per stage, human items answered, annotation seconds the label files
     record per kind and per posed object, and how many answered items recorded none). The dataset is
     what `export official` writes: the clips of --where whose verification completed (the others are
-    named on stderr: their poses still unjudged would read as not posed)."""
+    named on stderr: their poses still unjudged would read as not posed).
+
+    \b
+    Examples:
+      cadestate stats
+      cadestate stats --where "split = 'val'" --html val_stats/
+    """
     from tasks.dataset.stats import cost_lines, dataset_tables, select_clips, statistics, statistics_lines
     from warehouse.query import QueryError
 

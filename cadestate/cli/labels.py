@@ -66,6 +66,12 @@ def labels_ingest(
     everything upstream is cached), and so are the clips of files ingested before whose stages have
     not taken them in (the command was stopped before its rerun ended: run it again). Exit status 1 when any file was not ingested or a resumed
     stage failed, 2 when the source does not exist.
+
+    \b
+    Examples:
+      cadestate labels ingest labels/
+      # keep the answers now, rerun the clips later (`cadestate run`)
+      cadestate labels ingest labels/room_0/ --no-resume
     """
     from tasks.human.label_ingest import ingest_labels
     from tasks.status import clips_left_unrun

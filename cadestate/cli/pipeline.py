@@ -160,7 +160,14 @@ def run(
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Rerun the pipeline on ingested clips (each keeps its split): stages whose config, code and inputs are
-    unchanged are cached (no work)."""
+    unchanged are cached (no work).
+
+    \b
+    Examples:
+      # after editing cadestate.toml: only the stale stages work
+      cadestate run
+      cadestate -c other.toml run room_0 hall_0
+    """
     from tasks.detection.detectors import check_detect_config
     from tasks.video.ingest import registered_source
 
@@ -188,7 +195,15 @@ def status(
     """Each clip's (and CAD library's) stages: last run, and whether it is stale (config, code or inputs changed
     since); then, per clip, the human tasks it waits for (the task file and how many items are unanswered).
     Beyond 8 clips, and none named, one line per clip (where it stands, its stale stages): name clips
-    or give --stages for every stage."""
+    or give --stages for every stage.
+
+    \b
+    Examples:
+      cadestate status
+      cadestate status room_0
+      # what a config would make stale, before running it
+      cadestate -c other.toml status
+    """
     from tasks.status import clip_notes, clip_summaries, pipeline_status, read_runs
 
     wh, cfg = ctx.obj.open_warehouse(must_exist=True), ctx.obj.config()
