@@ -31,7 +31,6 @@ from typing import Literal
 
 from schemas.dataclass_json import fixed, json_schema_of, spec
 from schemas.label_kinds import KINDS, LABEL_FORMAT, TASK_FORMAT, schema_file_name
-from warehouse.store import NAME  # a task id is a file name, as a clip's (tasks.human.labels checks it so)
 
 Kind = Literal["manual_track", "cad_selection", "correspondences", "verification"]
 
@@ -240,7 +239,7 @@ class TaskHeader:
 
     format: str = spec("Format and version.", default="")
     kind: str = spec("The task kind.", default="")
-    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=NAME.pattern)
+    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=r"^(?=[.-]*[A-Za-z0-9_])[A-Za-z0-9_-][A-Za-z0-9_.-]{0,199}$")
     clip: str = spec("Clip name.", minLength=1)
     created_at: str = spec("When the task was written, ISO 8601 UTC.")
     image_size: tuple[int, int] = spec("(height, width) of the clip's frames.", unit="px", items={"minimum": 1})
