@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from cadestate.names import NAME  # a task id is a file name, as a clip's
 from schemas.dataclass_json import fixed, json_schema_of, spec
 from schemas.label_kinds import KINDS, LABEL_FORMAT, TASK_FORMAT, schema_file_name
 
@@ -239,7 +240,7 @@ class TaskHeader:
 
     format: str = spec("Format and version.", default="")
     kind: str = spec("The task kind.", default="")
-    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=r"^(?=[.-]*[A-Za-z0-9_])[A-Za-z0-9_-][A-Za-z0-9_.-]{0,199}$")
+    task_id: str = spec("Unique id of the task (letters, digits, '_', '.', '-').", pattern=NAME.pattern)
     clip: str = spec("Clip name.", minLength=1)
     created_at: str = spec("When the task was written, ISO 8601 UTC.")
     image_size: tuple[int, int] = spec("(height, width) of the clip's frames.", unit="px", items={"minimum": 1})

@@ -3,7 +3,7 @@
 function still runs, only later), and ``importlib.import_module("literal")``.
 
 From the bottom up: the foundation (``cadestate/``: config and cron, geometry, render, lineage, progress,
-atomic file writes), ``schemas/``, ``warehouse/``, ``tasks/``, then ``flows/``, the CLI and the web
+atomic file writes, names), ``schemas/``, ``warehouse/``, ``tasks/``, then ``flows/``, the CLI and the web
 app; ``bench/`` sits beside the top and only its own commands reach it.
 """
 
@@ -21,7 +21,7 @@ PACKAGES = ("cadestate", "tasks", "flows", "warehouse", "schemas", "bench")
 """The project's top-level packages (``tests/`` is not a layer)."""
 
 FOUNDATION = frozenset({"cadestate", "cadestate.atomic", "cadestate.config", "cadestate.cron", "cadestate.geometry",
-                        "cadestate.lineage", "cadestate.progress", "cadestate.render"})
+                        "cadestate.lineage", "cadestate.names", "cadestate.progress", "cadestate.render"})
 """Modules that import no other project module but each other."""
 
 

@@ -60,7 +60,6 @@ import errno
 import fcntl
 import functools
 import os
-import re
 import shutil
 import time
 import uuid
@@ -71,6 +70,7 @@ from typing import TYPE_CHECKING
 
 from cadestate.atomic import TMP_SUFFIX, atomic_write_bytes, exchange, fsync_dir  # noqa: F401  (atomic_write_bytes: also warehouse's)
 from cadestate.lineage import note_read
+from cadestate.names import NAME
 
 if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: commands that only query pay nothing for it
     import pyarrow as pa
@@ -80,9 +80,6 @@ if TYPE_CHECKING:  # pyarrow is imported where a table is read or written: comma
     from schemas.index import TableInfo
     from warehouse.read_cache import ReadCache
 
-NAME = re.compile(r"^(?=[.-]*[A-Za-z0-9_])[A-Za-z0-9_-][A-Za-z0-9_.-]{0,199}$")
-"""A clip, library or model name: a folder and file name. It may start with '-': 1 in 64 YouTube
-ids does, and CAD-Estate names a clip by its video's id (``-0AK9iy8y0c_122914456``)."""
 LEGACY_FILE = "part.parquet"
 """Name of a replace-mode file in warehouses written before file names held their time."""
 STALE_STAGING_S = 86_400.0
