@@ -84,13 +84,24 @@ def test_a_result_too_wide_for_the_terminal_is_shown_as_records(tmp_path):
     assert all(f"column_{i}   value{i}" in lines for i in range(10)) and lines.count("column_11  value11") == 2
 
 
-@pytest.mark.parametrize("command", [("sql", "--help"), ("compact", "--help"), ("ingest", "--help"), ("run", "--help"),
-                                     ("status", "--help"), ("stats", "--help"), ("annotate", "--help"),
-                                     ("export", "official", "--help"), ("cad", "ingest", "--help"),
-                                     ("labels", "ingest", "--help"), ("bench", "generate", "--help")])
+def leaf_commands() -> list[tuple[str, ...]]:
+    """Every command that runs something (``cadestate cad ingest``, not the group ``cad``)."""
+    from typer.main import get_command
+
+    from cadestate.cli import app
+
+    def walk(group, prefix: tuple[str, ...]):  # Typer's own click: a group is what has commands
+        for name, cmd in group.commands.items():
+            yield from walk(cmd, (*prefix, name)) if hasattr(cmd, "commands") else [(*prefix, name)]
+
+    return list(walk(get_command(app), ()))
+
+
+@pytest.mark.parametrize("command", leaf_commands(), ids=" ".join)
 def test_help_examples_stay_whole_at_80_columns(tmp_path, command):
-    """An example in --help is a line to copy: never wrapped, whatever the width."""
-    result = cli(*command, cwd=tmp_path)
+    """Every command's --help teaches by examples, and an example is a line to copy: never wrapped,
+    whatever the width."""
+    result = cli(*command, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     examples = [ln.strip() for ln in lines if ln.strip().startswith("cadestate ")]

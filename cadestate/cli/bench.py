@@ -63,7 +63,14 @@ def bench_run(
     through label files (<bench>/labels/<clip>/), which are ingested, and the clips rerun until none
     waits: video to verified poses (cached stages do no work). Also writes the simulated annotators'
     clicks on the ground-truth tracks (<bench>/simulated_clicks/<clip>.json, once), the input of
-    `python -m bench.pose_bench` (the solver alone)."""
+    `python -m bench.pose_bench` (the solver alone).
+
+    \b
+    Examples:
+      cadestate bench run data/bench/default
+      # cameras by SfM instead of the camera files, in a warehouse of its own
+      cadestate -w data/wh_sfm bench run data/bench/default --sfm-cameras
+    """
     import dataclasses
 
     from bench.benchmark import clip_sources, read_manifest, require_library
@@ -112,7 +119,13 @@ def bench_report(
     the dataset's yield (objects in view with exactly one accepted,
     correct pose; duplicates; false annotations; tracks per object; human items per posed object; per
     split), then metrics of the stages that exist, dataset statistics, example frames with ground-truth
-    boxes (written to <bench>/report/ and <bench>/report.md)."""
+    boxes (written to <bench>/report/ and <bench>/report.md).
+
+    \b
+    Examples:
+      cadestate bench report data/bench/default
+      cadestate bench report data/bench/default --json > metrics.json
+    """
     from bench.benchmark import report, report_markdown
     from cadestate.atomic import atomic_write_bytes
 
@@ -130,7 +143,13 @@ def bench_demo(
     frames: Annotated[int, typer.Option(min=1, help="Video frames at 30 fps; every 2nd is a camera line.")] = 276,
 ) -> None:
     """Generate one synthetic walkthrough clip with exact cameras (138 camera lines by default): a quick
-    input for `cadestate ingest` (its retrieval needs a CAD library: `cadestate cad ingest`); making it needs none."""
+    input for `cadestate ingest` (its retrieval needs a CAD library: `cadestate cad ingest`); making it needs none.
+
+    \b
+    Examples:
+      cadestate bench demo demo/
+      cadestate ingest demo/demo_0000.mp4 demo/demo_0000.txt
+    """
     from bench.demo_clip import DemoClipSpec, make_demo_clip
     from cadestate.cli.common import cannot_write
     from warehouse.store import check_name

@@ -125,12 +125,18 @@ def held_elsewhere(root: Path, items: list) -> None:
 def cad_export_official(
     ctx: typer.Context,
     out_dir: Annotated[Path, typer.Argument(help="New (or empty) folder to write.")],
-    library: Annotated[Optional[list[str]], typer.Option(help="Only these libraries (repeatable; default: all).")] = None,
+    library: Annotated[Optional[list[str]], typer.Option(metavar="<library>", help="Only these libraries (repeatable; default: all).")] = None,
 ) -> None:
     """Write the library in the official CAD-Estate layout (shapenet_classes.json, symmetry_dict.json,
     <class id>/<cad_id>.npz with float32[T,3,3] vertices: a ShapeNet synset id, or cadestate-<class> for a
     class ShapeNet lacks; ATTRIBUTION.csv with every model's licence), loadable by the official
-    cad_estate code."""
+    cad_estate code.
+
+    \b
+    Examples:
+      cadestate cad export-official release/cad/
+      cadestate cad export-official mine_only/ --library mine
+    """
     from tasks.cad.export import export_official
 
     count = export_official(ctx.obj.open_warehouse(must_exist=True), out_dir, library)
@@ -144,7 +150,13 @@ def cad_sheet(
     where: Annotated[str, typer.Option(help="SQL condition on cad_models, e.g. \"class = 'chair'\".")] = "true",
     limit: Annotated[int, typer.Option(min=1, help="At most this many models.")] = 48,
 ) -> None:
-    """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at."""
+    """A contact sheet of CAD models (first rendered view, name, class and symmetry) to look at.
+
+    \b
+    Examples:
+      cadestate cad sheet models.png
+      cadestate cad sheet chairs.png --where "class = 'chair'" --limit 100
+    """
     from tasks.cad.sheet import contact_sheet
     from warehouse.query import QueryError
 

@@ -20,7 +20,7 @@ app.add_typer(export_app, name="export")
 def export_official(
     ctx: typer.Context,
     out_dir: Annotated[Path, typer.Argument(help="New (or empty) folder to write.")],
-    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", metavar="<clip>", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
     cad: Annotated[bool, typer.Option(help="Also write the CAD root (cad/, as `cadestate cad export-official`).")] = True,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
@@ -47,11 +47,17 @@ def export_official(
 def export_scan2cad(
     ctx: typer.Context,
     out_dir: Annotated[Path, typer.Argument(help="New or empty folder, or that of an earlier `export scan2cad` (replaced: it then holds this export alone).")],
-    clips: Annotated[Optional[list[str]], typer.Option("--clips", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
+    clips: Annotated[Optional[list[str]], typer.Option("--clips", metavar="<clip>", help="Only these clips (repeatable; default: all whose verification completed).")] = None,
 ) -> None:
     """Write the accepted poses as Scan2CAD files: <name>.csv rows catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz
     (no header), full_annotations.json and cad_appearances.json, a scan per clip under the name `export
-    official` gives it; a mirrored model is the CAD id <cad_id>_mirrored."""
+    official` gives it; a mirrored model is the CAD id <cad_id>_mirrored.
+
+    \b
+    Examples:
+      cadestate export scan2cad scan2cad/
+      cadestate export scan2cad val_scan2cad/ --clips room_0 --clips hall_0
+    """
     from tasks.dataset.export_scan2cad import export_scan2cad as write
 
     counts = write(ctx.obj.open_warehouse(must_exist=True), out_dir, clips)

@@ -136,7 +136,14 @@ def labels_validate(
     frames). Prints `ok`, `warning:` lines (legal but suspicious values) or an `error:` line per file;
     the files are checked together as `labels ingest` checks them (each against the ones before it,
     with its warnings; a file ingested before is said so and skipped, as ingest skips it). Exit status 1 when any file is bad, 2 when a path given does not exist (as
-    `labels ingest`); the other paths are still checked."""
+    `labels ingest`); the other paths are still checked.
+
+    \b
+    Examples:
+      cadestate labels validate labels/
+      # the format alone, where the warehouse is not
+      cadestate labels validate answer.json --offline
+    """
     from tasks.human.label_ingest import check_files, ingested_sha256, label_paths, order_warnings
     from tasks.human.labels import ClipFacts
 
@@ -193,7 +200,14 @@ def labels_schema(
     which: Annotated[Which, typer.Option("--file", help="The label file's schema or the task file's.")] = Which.label,
     write: Annotated[Optional[Path], typer.Option(help="Write every schema (each kind's task and label file) into this folder instead of printing.")] = None,
 ) -> None:
-    """Print the JSON Schema (draft 2020-12) of a label or task file."""
+    """Print the JSON Schema (draft 2020-12) of a label or task file.
+
+    \b
+    Examples:
+      cadestate labels schema correspondences
+      cadestate labels schema verification --file task
+      cadestate labels schema --write label_schemas/
+    """
     from schemas.label_kinds import KINDS
 
     if write is not None:
@@ -245,7 +259,7 @@ TaskOpt = Annotated[Optional[str], typer.Option("--task", help="The manual_track
 OutOpt = Annotated[Path, typer.Option("--out", help="Folder to write the label file to.")]
 FrameOpt = Annotated[FrameMap, typer.Option("--frame-map", help="frames: tool frame n = the clip's n-th extracted frame; "
                                                                   "video: tool frame n = video frame n.")]
-MapOpt = Annotated[Optional[list[str]], typer.Option("--map", help="Rename a tool label: TOOL_LABEL=CLASS (repeatable).")]
+MapOpt = Annotated[Optional[list[str]], typer.Option("--map", metavar="<label=class>", help="Rename a tool label: TOOL_LABEL=CLASS (repeatable).")]
 
 
 @labels_app.command("import-cvat")
@@ -257,11 +271,17 @@ def labels_import_cvat(
     out_dir: OutOpt = Path("labels"),
     frame_map: FrameOpt = FrameMap.frames,
     all_frames: Annotated[bool, typer.Option(help="Keep interpolated boxes too (default: keyframe=1 boxes only).")] = False,
-    skip_source: Annotated[Optional[list[str]], typer.Option(help="Leave out tracks with this source (e.g. file: pre-loaded tracks).")] = None,
+    skip_source: Annotated[Optional[list[str]], typer.Option(metavar="<source>", help="Leave out tracks with this source (repeatable; e.g. file: pre-loaded tracks).")] = None,
     label_map: MapOpt = None,
 ) -> None:
     """Make a manual_track label file from a CVAT for video 1.1 export of a task, a job or a
-    project (boxes in pixels; frames as CVAT numbers them, a project's from the clip's task)."""
+    project (boxes in pixels; frames as CVAT numbers them, a project's from the clip's task).
+
+    \b
+    Examples:
+      cadestate labels import-cvat annotations.xml --clip room_0
+      cadestate labels ingest labels/
+    """
     from tasks.human.label_import_cvat import import_cvat
 
     result = import_cvat(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value, keyframes_only=not all_frames,
@@ -279,7 +299,13 @@ def labels_import_labelstudio(
     frame_map: FrameOpt = FrameMap.frames,
     label_map: MapOpt = None,
 ) -> None:
-    """Make a manual_track label file from a Label Studio video export (percent boxes, 1-based frames)."""
+    """Make a manual_track label file from a Label Studio video export (percent boxes, 1-based frames).
+
+    \b
+    Examples:
+      cadestate labels import-labelstudio export.json --clip room_0 --map Couch=sofa
+      cadestate labels ingest labels/
+    """
     from tasks.human.label_import import import_labelstudio
 
     result = import_labelstudio(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value,

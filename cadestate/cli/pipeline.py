@@ -286,7 +286,13 @@ def stages(
 ) -> None:
     """The pipeline's stages, in order: what each runs after, the tables it writes, its config
     section, its module and what it does. A stage is declared in its module (``STAGE = StageDef(...)``);
-    adding one is writing such a module."""
+    adding one is writing such a module.
+
+    \b
+    Examples:
+      cadestate stages
+      cadestate stages --markdown > docs/stages.md
+    """
     from tasks.registry import extra_shown, stages_markdown, stages_of
 
     for scope, title in (("clip", "per clip"), ("library", "per CAD library")):
@@ -384,7 +390,14 @@ def tables(
     ctx: typer.Context,
     name: Annotated[Optional[str], typer.Argument(help="A table: show its columns with units and frames.")] = None,
 ) -> None:
-    """List the warehouse tables (row counts), or one table's columns."""
+    """List the warehouse tables (row counts), or one table's columns.
+
+    \b
+    Examples:
+      cadestate tables
+      # columns with units and coordinate frames
+      cadestate tables poses
+    """
     wh = ctx.obj.open_warehouse(must_exist=True)
     if name:
         spec = wh.spec(name)
@@ -413,6 +426,11 @@ def catalog(ctx: typer.Context) -> None:
     (a moved or copied warehouse) or a table's schema changed. A table with files of an older schema
     is read by name (slower); once its files are rewritten (`cadestate compact`), this command makes
     its view fast again.
+
+    \b
+    Examples:
+      cadestate catalog
+      duckdb -readonly data/warehouse/catalog.duckdb "SELECT count(*) FROM poses"
     """
     from warehouse.catalog import rebuild_catalog
 
@@ -462,7 +480,14 @@ def config_show(
     ctx: typer.Context,
     defaults: Annotated[bool, typer.Option("--defaults", help="Print every key with its documentation and default.")] = False,
 ) -> None:
-    """Print the effective configuration as TOML (or the documented defaults)."""
+    """Print the effective configuration as TOML (or the documented defaults).
+
+    \b
+    Examples:
+      # a starting point to edit
+      cadestate config show > my.toml
+      cadestate config show --defaults
+    """
     print(describe_defaults() if defaults else to_toml(ctx.obj.config()))
 
 
@@ -470,7 +495,12 @@ def config_show(
 def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to validate.")]) -> None:
     """Validate a config file: unknown sections or keys, bad values (nan and inf included), keys that
     contradict each other and a [detect] model that does not fit its adapter and labels are errors
-    naming the key."""
+    naming the key.
+
+    \b
+    Example:
+      cadestate config check my.toml && cadestate -c my.toml run
+    """
     from tasks.detection.detectors import check_detect_config
 
     config = load_config(path)

@@ -34,6 +34,12 @@ def server_start(
 
     Its PID, URL and log are kept under <warehouse>/_prefect/ (server.json, server.log);
     `cadestate server stop` stops it.
+
+    \b
+    Examples:
+      cadestate server start
+      # reachable from other machines, on a free port
+      cadestate server start --host 0.0.0.0 --port 0
     """
     from flows.server import running_server, start_server
 
@@ -49,7 +55,12 @@ def server_start(
 @server_app.command("stop")
 def server_stop(ctx: typer.Context) -> None:
     """Stop the server of this warehouse, and its `cadestate serve` first; commands fall back to
-    ephemeral mode."""
+    ephemeral mode.
+
+    \b
+    Example:
+      cadestate server stop
+    """
     from flows.server import stop_server
 
     info, served = stop_server(ctx.obj.root())
@@ -60,7 +71,12 @@ def server_stop(ctx: typer.Context) -> None:
 
 @server_app.command("status")
 def server_status(ctx: typer.Context) -> None:
-    """Whether this warehouse's server is up (exit status 0) or down (exit status 1)."""
+    """Whether this warehouse's server is up (exit status 0) or down (exit status 1).
+
+    \b
+    Example:
+      cadestate server status || cadestate server start
+    """
     from flows.server import read_server, running_server
 
     root = ctx.obj.root()
@@ -93,6 +109,11 @@ def serve(ctx: typer.Context) -> None:
     build_dataset_inbox/build_dataset`. Each scheduled flow runs one at a time. The schedules are
     set when serve starts: restart it after changing a [schedule] *_cron. One serve per warehouse;
     it ends when the server stops (`cadestate server stop` stops it first).
+
+    \b
+    Examples:
+      cadestate server start
+      cadestate serve
     """
     import os
 
