@@ -22,6 +22,7 @@ def _settle(wh: Warehouse) -> None:
         for name in names:
             os.utime(os.path.join(folder, name), ns=(old, old))
         os.utime(folder, ns=(old, old))
+    time.sleep(2 * SETTLE_NS / 1e9)  # the status changes (renames, this dating) cannot be dated back: waited out
 
 
 def _tamper(wh: Warehouse, unit: str, stage: str) -> None:

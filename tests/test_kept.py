@@ -14,11 +14,13 @@ from warehouse.kept import SETTLE_NS, KeptInMemory, kept_read, row_counts
 
 
 def _settle(wh: Warehouse) -> None:
-    """Date every table file back past the settling time (as if written a while ago)."""
+    """Date every table file back past the settling time (as if written a while ago), then wait it
+    out: what changed a file's status (a rename, this dating) counts too, and cannot be dated back."""
     old = time.time_ns() - 10 * SETTLE_NS
     for folder, _, names in os.walk(wh.root / "tables"):
         for name in names:
             os.utime(os.path.join(folder, name), ns=(old, old))
+    time.sleep(2 * SETTLE_NS / 1e9)
 
 
 def _clip(wh: Warehouse, name: str, split: str) -> None:
@@ -47,6 +49,26 @@ def test_a_kept_read_serves_while_its_files_stay_and_only_once_settled(tmp_path)
     assert kept_read(wh, "splits", reads, splits) == ["val"] and len(calls) == 3
     (wh.root / "_cache" / "reads" / "splits.json").write_text("{not json")  # damaged: computed again
     assert kept_read(wh, "splits", reads, splits) == ["val"] and len(calls) == 4
+
+
+def test_a_file_renamed_in_while_a_value_was_computed_is_not_kept_whatever_its_time(tmp_path):
+    """A file's time is when its data was written: written, flushed for a while (a loaded disk), then
+    renamed into its partition while a value was computed, it looked settled, and the value computed
+    without it was kept and served until another file came (`tables` missing a run's rows)."""
+    wh = Warehouse(tmp_path / "w")
+    _clip(wh, "c1", "train")
+    _settle(wh)
+    reads = [("files", "clips", "*")]
+
+    def clips_as_another_comes() -> list[str]:
+        seen = sorted(wh.partitions("clips"))
+        _clip(wh, "c2", "val")  # renamed in just after the listing ...
+        old = time.time_ns() - 10 * SETTLE_NS
+        os.utime(wh.files("clips", ["c2"])[0], ns=(old, old))  # ... its data written long before
+        return seen
+
+    assert kept_read(wh, "clips", reads, clips_as_another_comes) == ["c1"]
+    assert kept_read(wh, "clips", reads, lambda: sorted(wh.partitions("clips"))) == ["c1", "c2"]
 
 
 def test_row_counts_are_kept_until_a_file_of_any_table_comes(tmp_path):
@@ -79,6 +101,7 @@ def _settle_folders(wh: Warehouse) -> None:
     old = time.time_ns() - 10 * SETTLE_NS
     for folder, _, _ in os.walk(wh.root / "tables"):
         os.utime(folder, ns=(old, old))
+    time.sleep(2 * SETTLE_NS / 1e9)  # as _settle
 
 
 def test_a_value_kept_in_memory_serves_while_its_partitions_stay(tmp_path):
@@ -138,6 +161,29 @@ def test_a_value_whose_partition_changed_while_it_was_computed_again_is_not_kept
     late.append("r2")
     assert kept.get(wh, "c1", runs) == 2  # read before r2 came
     assert kept.get(wh, "c1", runs) == 3
+
+
+def test_a_first_value_is_not_kept_from_a_folder_swapped_in_while_it_was_computed(tmp_path):
+    """A replace-mode write swaps a partition's folder in whole, and the folder swapped in keeps the
+    time of its making, before the computation: a clip's tasks first worked out from the folder
+    swapped out were kept, and served stale by the annotation app (and its copy on disk)."""
+    wh = Warehouse(tmp_path / "w")
+    kept = KeptInMemory()
+    _clip(wh, "c1", "train")
+    _settle_folders(wh)
+    calls = []
+
+    def split() -> list[str]:
+        calls.append(1)
+        got = wh.read("clips", ["c1"]).column("split").to_pylist()
+        if len(calls) == 1:
+            _clip(wh, "c1", "val")  # swapped in just after the read ...
+            old = time.time_ns() - 10 * SETTLE_NS
+            os.utime(wh.partition_dir("clips", "c1"), ns=(old, old))  # ... made before it
+        return got
+
+    assert kept.get(wh, "c1", split) == ["train"]
+    assert kept.get(wh, "c1", split) == ["val"]
 
 
 def test_a_value_kept_on_disk_serves_a_process_started_later_while_its_partitions_stay(tmp_path):

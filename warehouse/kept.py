@@ -6,9 +6,9 @@ its files' (name, inode, size, modification time), or of the partitions listed w
 modification times. Files are written whole, under new names or by an atomic rename (a new inode),
 so an unchanged state means unchanged data.
 
-A value is stored only when nothing it read was modified while it was computed: file times come
-from a coarse clock, so a read whose newest file is younger than the computation's start minus
-:data:`SETTLE_NS` may have changed meanwhile. Storing is best effort (a read-only warehouse keeps
+A value is stored only when nothing it read was modified while it was computed: its state is the
+same after as before, and, file times coming from a coarse clock, no file or folder it read changed
+(written or renamed) later than the computation's start minus :data:`SETTLE_NS`. Storing is best effort (a read-only warehouse keeps
 nothing). :mod:`tasks.inputs_memo` keeps the stages' input digests by these rules; :func:`kept_read`
 keeps any value, in ``_cache/reads/<name>.json``: ``cadestate status`` its ``runs`` rows (those of
 every clip, or of each clip it is given, ``runs/<clip>.json``: one file per clip, not one per set
@@ -59,10 +59,17 @@ def read_state(wh: Warehouse, read: Sequence[str]) -> tuple[str, int]:
         for path in paths:
             st = os.stat(path)
             lines.append(f"{os.path.basename(path)} {st.st_ino} {st.st_size} {st.st_mtime_ns}")
-            newest = max(newest, st.st_mtime_ns)
+            newest = max(newest, changed_ns(st))
     except FileNotFoundError:  # a file went away while it was listed (compacted): changing now
         return "changing", time.time_ns()
     return digest(*read, *lines), newest
+
+
+def changed_ns(st: os.stat_result) -> int:
+    """When a file or folder last changed: its data (modification time) or its place (a rename sets
+    the status-change time only: a file written, flushed for a while, then renamed into a partition
+    keeps the time its data was written; a folder swapped in keeps its own)."""
+    return max(st.st_mtime_ns, st.st_ctime_ns)
 
 
 def _states(wh: Warehouse, reads: Sequence[tuple[str, ...]]) -> tuple[str, int]:
@@ -85,8 +92,8 @@ def kept_read(wh: Warehouse, name: str, reads: Sequence[tuple[str, ...]], comput
             return doc["value"]
     started = time.time_ns()
     value = compute()
-    state, newest = _states(wh, reads)
-    if newest < started - SETTLE_NS:
+    after, newest = _states(wh, reads)
+    if after == state and newest < started - SETTLE_NS:  # nothing came, went or changed while computing
         with contextlib.suppress(OSError):
             payload = json.dumps({"version": VERSION, "reads": what, "state": state, "value": value})
             atomic_write_bytes(path, payload.encode(), durable=False)
@@ -104,7 +111,7 @@ def _listing(folder: str) -> tuple[str, ...] | None:
 def _settled(folder: str, started_ns: int) -> bool:
     """Whether ``folder`` (missing, or) last changed :data:`SETTLE_NS` before ``started_ns``."""
     try:
-        return os.stat(folder).st_mtime_ns < started_ns - SETTLE_NS
+        return changed_ns(os.stat(folder)) < started_ns - SETTLE_NS
     except FileNotFoundError:
         return True
 
@@ -150,8 +157,8 @@ class KeptInMemory:
     again for one listing per partition (where :func:`read_state` stats every file too). A value
     computed again (a file came or went) is kept when its partitions list the same files before and
     after it was computed: no name comes back, so it saw that listing. The first value of a key
-    (its partitions not known before) is kept, as above, when its folders last changed (their
-    modification time) :data:`SETTLE_NS` before its computation; a folder time from a coarse clock
+    (its partitions not known before) is kept, as above, when its folders last changed (written
+    into or swapped in: :func:`changed_ns`) :data:`SETTLE_NS` before its computation; a folder time from a coarse clock
     may miss a change made meanwhile, and only that first value relies on it. With ``disk``
     (:class:`OnDisk`), a key not kept in memory is looked for there first, and what is kept is
     copied there."""
