@@ -679,6 +679,46 @@ def test_a_damaged_mesh_of_a_posed_model_is_one_line(built, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["wh"]
 
 
+def test_a_damaged_mesh_of_an_unposed_model_ends_the_export_first_and_names_no_cad(built, tmp_path, monkeypatch):
+    """The CAD root holds every model of the library, posed or not: one damaged mesh ended `export
+    official` after every clip was written (hours at the published size), and named no way around."""
+    from tasks.cad.export import ExportError
+
+    shutil.copytree(built[0].root, tmp_path / "wh")
+    wh = Warehouse(tmp_path / "wh")
+    posed = {o.cad_id for o in built[2].values()}
+    model = next(m for m in wh.read("cad_models").to_pylist() if m["cad_id"] not in posed)
+    mesh = wh.root / model["mesh_path"]
+    mesh.write_bytes(b"glTF damaged")
+    import tasks.dataset.export_official as official
+
+    written = []  # the clips written (the real writer, watched)
+    real = official.write_clip
+    monkeypatch.setattr(official, "write_clip", lambda *a: written.append(a[2]) or real(*a))
+    with pytest.raises(ExportError, match=rf"{mesh}: cannot read this CAD model's mesh.*--no-cad"):
+        export_dataset(wh, tmp_path / "out", show_progress=False)
+    assert written == [] and not (tmp_path / "out").exists()
+    assert export_dataset(wh, tmp_path / "out", cad=False, show_progress=False)["clips"] == 1
+
+
+def test_a_frame_image_that_cannot_be_read_is_one_line_naming_it(tmp_path):
+    """Frames kept as PNG ([frames] image_format) are converted to JPEG: a damaged one ended the
+    export with a traceback naming no file ("image file is truncated")."""
+    from PIL import Image
+
+    from tasks.cad.export import ExportError
+    from tasks.dataset.export_official import _put_jpeg
+
+    png = tmp_path / "0.png"
+    Image.new("RGB", (64, 48), (200, 10, 10)).save(png)
+    _put_jpeg(png, tmp_path / "0.jpg")
+    assert Image.open(tmp_path / "0.jpg").size == (64, 48)
+    png.write_bytes(png.read_bytes()[:60])
+    with pytest.raises(ExportError, match=rf"^{png}: cannot read this frame's image"):
+        _put_jpeg(png, tmp_path / "1.jpg")
+    assert not (tmp_path / "1.jpg").exists()
+
+
 def test_export_official_shows_its_progress_over_the_clips(built, tmp_path):
     """On a terminal, `export official` draws a bar over the clips as it writes them (stderr), not
     only over the CAD root's models: with --no-cad, hours of a big dataset showed nothing."""

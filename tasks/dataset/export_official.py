@@ -106,7 +106,13 @@ def _put_jpeg(src: Path, dst: Path) -> None:
     if src.suffix.lower() not in (".jpg", ".jpeg"):
         from PIL import Image
 
-        Image.open(src).convert("RGB").save(dst, quality=95)
+        try:
+            with Image.open(src) as image:
+                rgb = image.convert("RGB")
+        except (OSError, ValueError) as e:  # truncated, not an image
+            raise ExportError(f"{src}: cannot read this frame's image ({e}); the export leaves out its clip "
+                              "with --clips") from None
+        rgb.save(dst, quality=95)
         return
     try:
         os.link(src, dst)
@@ -178,6 +184,11 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
     frame_of: dict[Path, tuple[str, Path]] = {}  # the current video's exported frames -> (clip, warehouse image)
     video = None
     with temp_folder_beside(out) as tmp:
+        if cad:  # first: a model that cannot be written ends the export before hours of clips
+            try:
+                counts["cad_models"] = export_cad_root(wh, tmp / "cad", show_progress=show_progress)
+            except ExportError as e:
+                raise ExportError(f"{e} (the CAD root; --no-cad exports the clips without it)") from None
         order = sorted(zip(names, selection.chosen), key=lambda nc: (video_id_of(nc[0]), nc[0]))
         for name, clip in progress(order, total=len(order), description="clips", enabled=show_progress):
             if video_id_of(name) != video:
@@ -189,7 +200,5 @@ def export_dataset(wh: Warehouse, out: Path, clips: Sequence[str] | None = None,
             counts["posed_objects"] += sum(o.translation is not None for o in objects)
         counts["frames"] += len(frame_of)
         (tmp / "scene_list.txt").write_text("".join(f"{n}\n" for n in sorted(names)))
-        if cad:
-            counts["cad_models"] = export_cad_root(wh, tmp / "cad", show_progress=show_progress)
         publish(tmp, out)
     return counts
