@@ -97,15 +97,21 @@ def test_a_never_null_column_added_to_a_table_with_data_reads_as_nulls_and_compa
     assert new.read("numbers").to_pydict() == {"clip": ["a"] * 3, "i": [1, 2, 3], "host": [None, "h", "h"]}
 
 
-@pytest.mark.parametrize("folder", ["br[ab]", "v*1"])
+@pytest.mark.parametrize("folder", ["br[ab]", "v*1", "g[1]"])
 def test_a_warehouse_in_a_folder_whose_name_is_a_pattern_reads_its_own_files(tmp_path, folder):
     """'[ab]' and '*' in the warehouse's path made DuckDB's views read nothing (no file matched) or a
-    sibling's files (v*1 matched vX1 too)."""
-    for name in (folder, "vX1", "b"):
+    sibling's files (v*1 matched vX1 too); g[1] read g1's schema file (its digest), so that g[1]'s
+    own was never written and its catalog could not be built."""
+    from warehouse.catalog import row_counts
+    from warehouse.query import read_rows
+
+    for name in ("vX1", "b", "g1", folder):
         Warehouse(tmp_path / name).write("runs", "a", runs("a", *[f"r{i}" for i in range(3 if name == folder else 5)]))
-    con = connect(Warehouse(tmp_path / folder))
+    wh = Warehouse(tmp_path / folder)
+    con = connect(wh)
     assert con.execute("SELECT count(*) FROM runs").fetchone() == (3,)
     con.close()
+    assert row_counts(wh)["runs"] == 3 and len(read_rows(wh, "runs", ["run_id"])) == 3
     result = run_cli("-w", str(tmp_path / folder), "sql", "SELECT count(*) AS n FROM runs", "-f", "csv")
     assert result.code == 0 and result.stdout.splitlines() == ["n", "3"], result.stderr
     assert run_cli("-w", str(tmp_path / folder), "compact").code == 0
@@ -343,3 +349,33 @@ def test_a_partition_or_lock_that_cannot_be_opened_is_one_line_naming_it(tmp_pat
     shutil.rmtree(wh.root / "_locks")
     (wh.root / "_locks").write_text("not a folder")
     assert_clean_error(run_cli("-w", str(wh.root), "compact"), mentions=f"{wh.root / '_locks'}")
+
+
+def test_row_counts_list_again_when_a_file_goes_while_they_are_read(tmp_path):
+    """`cadestate tables` while the pipeline writes: a file listed, then swapped away (its partition
+    rewritten) before its footer was read, failed the command ("No files found that match")."""
+    from warehouse.catalog import row_counts
+
+    wh = Warehouse(tmp_path / "w")
+    clips = [f"c{i}" for i in range(40)]
+    for c in clips:
+        wh.write("clips", c, table_rows("clips", [{"clip": c, "video_sha256": "v" * 64, "split": "train"}]))
+    stop = threading.Event()
+
+    def rewrite() -> None:  # another process's runs, rewriting the clips one after another
+        writer = Warehouse(tmp_path / "w")
+        k = 0
+        while not stop.is_set():
+            c = clips[k % len(clips)]
+            writer.write("clips", c, table_rows("clips", [{"clip": c, "video_sha256": "v" * 64, "split": "val"}]))
+            k += 1
+            stop.wait(0.01)  # 100 writes a second: far more than the pipeline's
+
+    thread = threading.Thread(target=rewrite)
+    thread.start()
+    try:
+        counts = [row_counts(wh)["clips"] for _ in range(25)]
+    finally:
+        stop.set()
+        thread.join()
+    assert counts == [40] * 25

@@ -252,3 +252,23 @@ def test_the_half_built_catalogs_and_pins_of_killed_rebuilds_are_removed_an_hour
     catalog.refresh_catalog(wh)
     assert sorted(p.name for p in wh.root.glob(f".{CATALOG_FILE}.*")) == sorted([young.name, mine.name])
     assert through_view(wh, TRACKS) == [("a", "chair", 3)]
+
+
+def test_a_live_pin_of_a_catalog_built_long_ago_is_not_removed_by_another_rebuild(wh):
+    """A pin is a hard link to the catalog, so it has the catalog's modification time: with the
+    catalog built over an hour before, a rebuild running beside a compaction took the compaction's
+    live pin for a killed one's and removed it (the compaction then failed: "database does not
+    exist"). A pin's age is now the time in its name."""
+    import os
+
+    from warehouse import catalog
+
+    wh.write("tracks", "a", tracks("a", 3))
+    snapshot(wh)
+    final = wh.root / CATALOG_FILE
+    os.utime(final, (time.time() - catalog.STALE_S - 60,) * 2)
+    with catalog._pinned(final) as pin:
+        assert pin != final and os.path.samefile(pin, final)
+        catalog.refresh_catalog(wh, recheck=True)  # another process's rebuild, meanwhile
+        assert pin.exists()
+    assert not pin.exists()

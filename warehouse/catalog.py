@@ -41,7 +41,7 @@ from pathlib import Path
 import duckdb
 
 from warehouse import snapshot
-from warehouse.store import Compacted, Warehouse, WarehouseError, file_lock, warn
+from warehouse.store import READ_RETRIES, Compacted, Warehouse, WarehouseError, file_lock, warn
 
 CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
@@ -78,7 +78,7 @@ def _schema_digest(con: duckdb.DuckDBPyConnection, path: Path) -> str | None:
     DuckDB (the file's key-value metadata), so that a current file costs no pyarrow."""
     try:
         rows = con.execute("SELECT decode(value) FROM parquet_kv_metadata(?) WHERE decode(key) = ?",
-                           [str(path), SCHEMA_DIGEST.decode()]).fetchall()
+                           [snapshot.literal(path), SCHEMA_DIGEST.decode()]).fetchall()  # a pattern: g[1]'s, not g1's
     except (duckdb.Error, UnicodeDecodeError):
         return None
     return rows[0][0] if rows else None
@@ -171,17 +171,25 @@ def plan_views(wh: Warehouse, previous: dict | None = None, recheck: Collection[
 
 
 def row_counts(wh: Warehouse) -> dict[str, int]:
-    """Rows of each table, from its Parquet files' footers (read by DuckDB)."""
-    files = {name: wh.file_paths(name) for name in wh.info}
-    every = [f for paths in files.values() for f in paths]
+    """Rows of each table, from its Parquet files' footers (read by DuckDB). The files are listed
+    just before they are read (DuckDB connected first: connecting takes 4x the reading), and a file
+    that vanished meanwhile (its partition rewritten or compacted) makes it list them again."""
     con = duckdb.connect()
+    tries = 0
     try:
-        rows = dict(con.execute("SELECT file_name, num_rows FROM parquet_file_metadata(?)", [every]).fetchall()) if every else {}
-    except duckdb.Error as e:
-        raise WarehouseError(f"cannot read the tables of {wh.root}: {one_line(str(e))}") from None
+        while True:
+            tries += 1
+            files = {name: wh.file_paths(name) for name in wh.info}
+            every = [f for paths in files.values() for f in paths]
+            try:
+                rows = dict(con.execute("SELECT file_name, num_rows FROM parquet_file_metadata(?)",
+                                        [[snapshot.literal(Path(f)) for f in every]]).fetchall()) if every else {}
+                return {name: sum(rows[f] for f in paths) for name, paths in files.items()}
+            except duckdb.Error as e:
+                if all(map(os.path.exists, every)) or tries == READ_RETRIES:
+                    raise WarehouseError(f"cannot read the tables of {wh.root}: {one_line(str(e))}") from None
     finally:
         con.close()
-    return {name: sum(rows[f] for f in paths) for name, paths in files.items()}
 
 
 def create_views(con: duckdb.DuckDBPyConnection, wh: Warehouse, plan: dict | None = None) -> dict:
@@ -279,9 +287,9 @@ def _pinned(path: Path) -> Iterator[Path]:
     half-built catalogs (``.tmp``, ``.tmp.wal``) of killed rebuilds are removed :data:`STALE_S` on."""
     for stale in path.parent.glob(f".{path.name}.*"):  # a killed rebuild's, an hour on
         with contextlib.suppress(OSError):
-            if stale.name.endswith((".pin", ".tmp", ".tmp.wal")) and time.time() - stale.stat().st_mtime > STALE_S:
+            if stale.name.endswith((".pin", ".tmp", ".tmp.wal")) and _age_s(stale) > STALE_S:
                 stale.unlink()
-    pin = path.with_name(f".{path.name}.{uuid.uuid4().hex}.pin")
+    pin = path.with_name(f".{path.name}.{time.time_ns()}-{uuid.uuid4().hex}.pin")
     try:
         os.link(path, pin)
     except OSError:
@@ -291,6 +299,16 @@ def _pinned(path: Path) -> Iterator[Path]:
         yield pin
     finally:
         pin.unlink(missing_ok=True)
+
+
+def _age_s(left: Path) -> float:
+    """Seconds since a pin was made, from the time in its name (a hard link has the catalog's own
+    modification time: a live pin of a catalog built an hour before looked stale, and another
+    rebuild removed it under a compaction), or since a half-built catalog was last written."""
+    made, dash, _ = left.name.removesuffix(".pin").rpartition(".")[2].partition("-")
+    if left.name.endswith(".pin") and dash and made.isdigit():
+        return time.time() - int(made) / 1e9
+    return time.time() - left.stat().st_mtime
 
 
 def rebuild_catalog(wh: Warehouse, recheck: bool | Collection[str] = False,

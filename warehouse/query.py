@@ -316,7 +316,7 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
                 rows = _select(con, files, columns, timestamps, wh.info[table].key, set(columns) | set(wh.info[table].key))
             except duckdb.BinderException:  # a column that no file has (an older schema) reads as None
                 source = "read_parquet(?, union_by_name = true)"
-                present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [files]).fetchall()}
+                present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [[literal(Path(f)) for f in files]]).fetchall()}
                 rows = _select(con, files, columns, timestamps, wh.info[table].key, present)
             break
         except duckdb.IOException as e:
@@ -340,7 +340,8 @@ def _select(con: duckdb.DuckDBPyConnection, files: list[str], columns: Sequence[
     select = [("epoch_us" + f"({_ident(c)})" if c in timestamps else _ident(c)) if c in present else "NULL"
               for c in columns]
     order = "".join(f"{', ' if i else ' ORDER BY '}{_ident(k)}" for i, k in enumerate(k for k in key if k in present))
-    return con.execute(f"SELECT {', '.join(select)} FROM read_parquet(?, union_by_name = true){order}", [files]).fetchall()
+    return con.execute(f"SELECT {', '.join(select)} FROM read_parquet(?, union_by_name = true){order}",
+                       [[literal(Path(f)) for f in files]]).fetchall()  # patterns: each matches its file alone
 
 
 def _ident(name: str) -> str:
