@@ -30,8 +30,13 @@ unchanged rerun on Dask is cached, a clip waiting for people ends
 ``paused``. A worker must not import Prefect before its first clip (Prefect reads its settings
 when imported): :func:`annotate_clip_here` sets them first.
 
-A clip whose task fails as a whole (its worker lost three times, its code not importable there,
-Prefect's API unreachable) is one ``failed`` report of stage ``annotate_clip``; the other clips go on.
+Before any clip, the workers are checked, each refusal one line naming them: a scheduler no worker
+joined (within ``startup_timeout_s``), workers that cannot run cadestate's code (another environment:
+:func:`on_workers`), that do not see the warehouse, talk to or cannot reach another Prefect API, or
+would read other model files than this command (their own ``$CADESTATE_MODELS``:
+:func:`check_workers_read_the_same_models`). A clip whose task fails as a whole (its worker lost
+three times, a worker that joined later and cannot run it) is one ``failed`` report of stage
+``annotate_clip``; the other clips go on.
 Ctrl-C or SIGTERM ends the command at once, as with threads (:func:`signals_end_the_clips`), and so
 does the warehouse's Prefect server stopping under it (:func:`flows.runtime.ends_with_its_server`,
 status 1): a local cluster's workers are killed; a remote cluster's finish the clips they run.
@@ -132,13 +137,28 @@ def _blind_line(workers: list[str], root: str) -> str:
             "those of this machine): workers need it at the same path on a shared file system")
 
 
+def on_workers(client: Client, function: Callable[..., object], *args: object) -> dict[str, object]:
+    """``function(*args)`` on every worker of ``client``: worker address -> result. Refuses
+    (:class:`flows.server.ServerError`, one line naming them) workers where it raised: cadestate's
+    code not importable there (another environment or checkout) failed the command with a traceback."""
+    from flows.server import ServerError
+
+    results = client.run(function, *args, on_error="return")
+    broken = sorted(w for w, r in results.items() if isinstance(r, BaseException))
+    if broken:
+        raise ServerError(f"the Dask worker(s) {', '.join(broken)} cannot run cadestate's code "
+                          f"({_first_line(results[broken[0]])}): start them in this checkout's environment "
+                          "(its virtual environment, or PYTHONPATH naming it)")
+    return results
+
+
 def check_workers_see(client: Client, root: str, probe: tuple[str, str]) -> None:
     """Refuse (:class:`flows.server.ServerError`, one line naming them) workers that do not read the
     token of ``probe`` (:func:`warehouse_probe`): without a shared file system they would write a
     warehouse of their own, and every stage would report ``completed`` into nothing."""
     from flows.server import ServerError
 
-    blind = sorted(w for w, sees in client.run(_sees_probe, *probe).items() if not sees)
+    blind = sorted(w for w, sees in on_workers(client, _sees_probe, *probe).items() if not sees)
     if blind:
         raise ServerError(_blind_line(blind, root))
 
@@ -154,7 +174,7 @@ def check_workers_api(client: Client, api_url: str) -> None:
     local API, would refuse every clip."""
     from flows.server import ServerError
 
-    other = sorted({api for api in client.run(_worker_api).values() if api and api != api_url})
+    other = sorted({api for api in on_workers(client, _worker_api).values() if api and api != api_url})
     if other:
         raise ServerError(f"the Dask workers talk to Prefect's API at {other[0]}, not this command's ({api_url}): "
                           "a cluster that outlives one command needs a Prefect server they all keep "
@@ -179,9 +199,34 @@ def check_workers_reach_api(client: Client, api_url: str, timeout_s: float) -> N
 
     if urllib.parse.urlsplit(api_url).scheme != "http":  # TLS: Prefect's client settings (certificates, keys) decide
         return
-    unreached = sorted(w for w, ok in client.run(healthy, api_url, timeout_s).items() if not ok)
+    unreached = sorted(w for w, ok in on_workers(client, healthy, api_url, timeout_s).items() if not ok)
     if unreached:
         raise ServerError(_unreached_line(unreached, api_url))
+
+
+def environment_inputs(config: Config) -> dict[str, list[str]]:
+    """What each clip stage reads from files its config and this process's environment name (its
+    ``config_inputs``: the detector's model file, the descriptor under ``$CADESTATE_MODELS``)."""
+    from tasks.registry import stages_of
+
+    return {stage.name: stage.config_inputs(config) for stage in stages_of("clip")}
+
+
+def check_workers_read_the_same_models(client: Client, config: Config) -> None:
+    """Refuse (:class:`flows.server.ServerError`, one line naming them) workers whose stages would
+    read other model files than this command's (:func:`environment_inputs`): a worker on another
+    machine finds the models under its own ``$CADESTATE_MODELS`` (else ``~/.cache/cadestate/models``),
+    and ran its clips with another detector, which ``cadestate status`` then called stale."""
+    from flows.server import ServerError
+
+    mine = environment_inputs(config)
+    other = {w: theirs for w, theirs in on_workers(client, environment_inputs, config).items() if theirs != mine}
+    if other:
+        first = sorted(other)[0]
+        stages = [name for name, inputs in mine.items() if other[first].get(name) != inputs]
+        raise ServerError(f"the Dask worker(s) {', '.join(sorted(other))} read other model files than this command "
+                          f"(stage(s) {', '.join(stages)}): give them the same files ($CADESTATE_MODELS, else "
+                          "~/.cache/cadestate/models, on each; `make models` builds them)")
 
 
 def annotate_clip_here(root: str, source: ClipSource, config: Config, api_url: str,
@@ -238,6 +283,11 @@ def dask_client(cfg: PrefectConfig, api_url: str) -> Iterator[Client]:
                               f"{cfg.startup_timeout_s:g} s ({_first_line(e)}); start it (`dask scheduler`), or leave "
                               "dask_address empty for a local cluster") from None
         with client:
+            try:
+                client.wait_for_workers(1, timeout=cfg.startup_timeout_s)
+            except TimeoutError:
+                raise ServerError(f"[prefect] dask_address {cfg.dask_address}: the scheduler has no worker after "
+                                  f"{cfg.startup_timeout_s:g} s; start some (`dask worker {cfg.dask_address}`)") from None
             yield client
         return
     try:
@@ -361,18 +411,20 @@ def prefect_api_url(config: Config) -> str:
     return api or start_ephemeral_api(config.prefect.startup_timeout_s)
 
 
-def _failed(clip: str, e: BaseException) -> ClipOutcome:
+def _failed(clip: str, e: BaseException, local: bool) -> ClipOutcome:
     """The failed outcome of a clip whose Dask task failed as a whole: its error, one line; for
-    distributed's ``KilledWorker`` (which names no cause, and a long URL) what may have killed them."""
+    distributed's ``KilledWorker`` (which names no cause, and a long URL) what may have killed them
+    (``local``: on a local cluster, whose memory limits the config sets)."""
     from tasks.stage_chain import StageReport
     from warehouse.catalog import one_line
 
     message = f"{type(e).__name__}: {e}"
     if type(e).__name__ == "KilledWorker":
         last = getattr(getattr(e, "last_worker", None), "address", "?")
-        message = (f"KilledWorker: every worker that ran it died (the last: {last}): out of memory? a local cluster "
-                   "gives each worker the machine's memory / [prefect] max_workers and kills it at 95 %: lower "
-                   "max_workers, or use task_runner = \"threads\"")
+        message = f"KilledWorker: every worker that ran it died (the last: {last}): out of memory? " + (
+            "a local cluster gives each worker the machine's memory / [prefect] max_workers and kills it at 95 %: "
+            "lower max_workers, or use task_runner = \"threads\"" if local else
+            "a worker is killed at 95 % of its --memory-limit: see the workers' logs, give them more memory")
     return ClipOutcome(clip, [StageReport(clip, WHOLE_CLIP, "failed", message=one_line(message))], "", 0)
 
 
@@ -415,6 +467,7 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
         check_workers_see(client, root, probe)
         check_workers_api(client, api_url)
         check_workers_reach_api(client, api_url, API_CHECK_TIMEOUT_S)
+        check_workers_read_the_same_models(client, config)
         futures: dict[Future, int] = {}
         taking = threading.Lock()  # a clip's outcome is taken under it
 
@@ -433,7 +486,7 @@ def run_clips_on_dask(sources: list[ClipSource], config: Config, show_progress: 
                     try:
                         outcomes[i] = future.result()
                     except Exception as e:  # the clip's task as a whole: report it, go on with the others
-                        outcomes[i] = _failed(sources[i].clip, e)
+                        outcomes[i] = _failed(sources[i].clip, e, client.cluster is not None)
                     future.release()  # a result still wanted is recomputed when its worker is lost: the clip again
                     if show_progress:
                         print(progress_line(outcomes[i], len(outcomes), len(sources)), file=sys.stderr, flush=True)

@@ -295,6 +295,17 @@ def settle_interrupted(wh: Warehouse, clip: str) -> list[StageRun]:
     return settled
 
 
+def failure_message(e: BaseException) -> str:
+    """A failed stage's message: the error's own, named by its type where the text alone does not
+    say what happened (empty: ``MemoryError()``, a bare ``assert``; a built-in error of the code,
+    not of the input: a ``KeyError``'s text is only its key). Errors of bad input (``OSError``,
+    ``ValueError``) and the project's own errors speak for themselves."""
+    text = str(e)
+    if text and not (type(e).__module__ == "builtins" and not isinstance(e, (OSError, ValueError))):
+        return text
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
 def run_stage(
     wh: Warehouse,
     clip: str,
@@ -319,7 +330,7 @@ def run_stage(
             out = body(run_id)
     except Exception as e:
         failed = StageRun(**common, status="failed", output_hash="", rows_written=0,
-                          duration_s=time.perf_counter() - t0, message=str(e))
+                          duration_s=time.perf_counter() - t0, message=failure_message(e))
         record_run(wh, failed, started_at)
         marker.unlink(missing_ok=True)
         raise

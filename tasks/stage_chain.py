@@ -28,7 +28,7 @@ from typing import Any
 from cadestate.config import Config
 from tasks.inputs_memo import InputsMemo
 from tasks.registry import Stage, config_hash, stages_of, upstream_inputs_hash
-from tasks.stage import StageContext, StageRun, run_stage, settle_interrupted, waiting_run
+from tasks.stage import StageContext, StageRun, failure_message, run_stage, settle_interrupted, waiting_run
 from tasks.status import Signature, cached_run, read_runs
 from warehouse import Warehouse, check_name
 from warehouse.read_cache import ReadCache
@@ -155,7 +155,7 @@ def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: A
                                                                    config, source, show_progress)))
     except Exception as e:  # recorded in runs by run_stage; the unit's other stages go on
         log.error("%s %s failed", unit, stage.name, exc_info=True)
-        return StageReport(unit, stage.name, "failed", message=str(e))
+        return StageReport(unit, stage.name, "failed", message=failure_message(e))
     done[stage.name] = run
     runs.append(dataclasses.asdict(run))  # the latest: after every recorded run
     return report_of(run)

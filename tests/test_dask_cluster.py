@@ -74,8 +74,9 @@ def _cluster(tmp_path: Path, prefixes: list[tuple[str, ...]]) -> Iterator[str]:
         address = json.loads(scheduler_file.read_text())["address"]
         procs += [_start(["worker", address, "--nthreads", "1", "--host", "127.0.0.1", "--no-dashboard",
                           "--name", f"w{i}"], tmp_path / f"worker{i}.log", prefix) for i, prefix in enumerate(prefixes)]
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(len(prefixes), timeout=180)
+        if prefixes:
+            with Client(address, timeout=60) as client:
+                client.wait_for_workers(len(prefixes), timeout=180)
         yield address
     finally:
         for proc in reversed(procs):
@@ -161,6 +162,56 @@ def test_a_dask_scheduler_that_does_not_answer_is_one_line(tmp_path):
         with dask_client(PrefectConfig(task_runner="dask", dask_address="tcp://127.0.0.1:9", startup_timeout_s=2), ""):
             pass
     assert "\n" not in str(e.value)
+
+
+def test_a_scheduler_without_workers_is_one_line(tmp_path):
+    """A scheduler that no worker joined: every check passed (no worker to refuse) and the command
+    waited for ever on its clips, saying nothing."""
+    from flows.dask_clips import dask_client
+    from flows.server import ServerError
+
+    with _cluster(tmp_path, []) as address:
+        with pytest.raises(ServerError, match=rf"^\[prefect\] dask_address {address}: the scheduler has no worker after "
+                                              rf"2 s; start some \(`dask worker {address}`\)$"):
+            with dask_client(PrefectConfig(task_runner="dask", dask_address=address, startup_timeout_s=2), ""):
+                pass
+
+
+def test_workers_that_cannot_run_our_code_or_read_other_models_are_refused_in_one_line(tmp_path):
+    """A worker that cannot import cadestate (another environment) failed the command with a
+    traceback and no clip ran; a worker on a machine whose $CADESTATE_MODELS holds other models ran
+    its clips with another detector, said completed, and `status` then called them stale."""
+    from distributed import Client
+
+    from flows.dask_clips import check_workers_read_the_same_models
+    from flows.server import ServerError
+
+    (tmp_path / "no_cadestate.py").write_text(  # a worker whose Python does not import this checkout
+        "import sys\n"
+        f"sys.path[:] = [p for p in sys.path if p not in ({str(ROOT)!r}, '', '.')]\n"
+        "for m in [m for m in sys.modules if m.split('.')[0] in ('flows', 'tasks', 'cadestate', 'warehouse')]:\n"
+        "    del sys.modules[m]\n")
+    (tmp_path / "other_models").mkdir()
+    root = tmp_path / "warehouse"
+    clip = make_demo_clip(tmp_path / "clips", dataclasses.replace(SMALL_CLIP, name="e0"))
+    source = ClipSource("e0", clip.video_path, clip.cameras_path)
+    other_models = ("env", f"CADESTATE_MODELS={tmp_path / 'other_models'}")
+    with _cluster(tmp_path, [(), other_models, ("env", f"DASK_DISTRIBUTED__WORKER__PRELOAD=['{tmp_path / 'no_cadestate.py'}']")]) as address:
+        config = Config(warehouse=WarehouseConfig(root=str(root)),
+                        prefect=PrefectConfig(task_runner="dask", dask_address=address))
+        with Client(address) as client:
+            names = {info["name"]: w for w, info in client.scheduler_info()["workers"].items()}
+        with pytest.raises(ServerError, match=rf"^the Dask worker\(s\) {re.escape(names['w2'])} cannot run cadestate's "
+                                              r"code \(.*No module named '\w+'.*\): .*environment"):
+            run_clips([source], config, show_progress=False)
+        with Client(address) as client:
+            client.retire_workers([names["w2"]], close_workers=True)
+            with pytest.raises(ServerError, match=rf"^the Dask worker\(s\) {re.escape(names['w1'])} read other model "
+                                                  r"files than this command \(stage\(s\) detect\): .*CADESTATE_MODELS"):
+                check_workers_read_the_same_models(client, config)
+        with pytest.raises(ServerError, match=r"read other model files"):  # refused before any clip
+            run_clips([source], config, show_progress=False)
+    assert not Warehouse(root).partitions("clips")
 
 
 def _hides_folders() -> bool:
@@ -353,9 +404,11 @@ def test_a_clip_whose_workers_died_says_what_may_have_killed_them():
 
     last = WorkerState(address="tcp://127.0.0.1:1", status=None, pid=1, name="w", memory_limit=0, local_directory="/tmp",
                        nanny=None, server_id="s")
-    [report] = _failed("c0", KilledWorker("annotate_clip-c0", last, 3)).reports
+    [report] = _failed("c0", KilledWorker("annotate_clip-c0", last, 3), local=True).reports
     assert report.stage == WHOLE_CLIP and report.state == "failed" and "\n" not in report.message
     assert report.message.startswith("KilledWorker: every worker that ran it died (the last: tcp://127.0.0.1:1): out of "
                                      "memory? ") and "max_workers" in report.message
-    [other] = _failed("c0", RuntimeError("boom")).reports
+    [remote] = _failed("c0", KilledWorker("annotate_clip-c0", last, 3), local=False).reports
+    assert "max_workers" not in remote.message and "--memory-limit" in remote.message  # the knob of its workers
+    [other] = _failed("c0", RuntimeError("boom"), local=True).reports
     assert other.message == "RuntimeError: boom"

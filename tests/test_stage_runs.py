@@ -43,6 +43,21 @@ def test_a_failed_run_leaves_no_marker(wh):
     assert run_markers(wh, "c1") == [] and wh.read("runs").column("status").to_pylist() == ["failed"]
 
 
+@pytest.mark.parametrize("error, message", [
+    (MemoryError(), "MemoryError"), (AssertionError(), "AssertionError"), (KeyError("track_id"), "KeyError: 'track_id'"),
+    (ValueError("frames.json: line 3: bad box"), "frames.json: line 3: bad box"),
+    (FileNotFoundError(2, "No such file or directory"), "[Errno 2] No such file or directory")])
+def test_a_failed_run_says_what_failed_even_when_the_error_has_no_text(wh, error, message):
+    """A stage that failed with MemoryError() or a bare assert recorded (and `run` printed) an empty
+    message; a KeyError only its key. Errors of the input keep their own words."""
+    def fail(run_id: str) -> StageOutput:
+        raise error
+
+    with pytest.raises(type(error)):
+        run_stage(wh, "c1", "detect", body=fail, **HASHES)
+    assert wh.read("runs").column("message").to_pylist() == [message]
+
+
 def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
     """A real process runs a stage whose body kills it with SIGKILL (as `kill -9` would)."""
     wh.write("clips", "c1", _clip_row("c1"))
