@@ -512,6 +512,35 @@ def test_a_scan2cad_export_into_an_earlier_ones_folder_replaces_it_whole(built, 
             files.pop(keep)
 
 
+def test_a_scan2cad_export_that_fails_moving_in_leaves_every_listed_scan_with_its_csv(built, tmp_path, monkeypatch):
+    """The earlier export's CSV files that this one does not write were removed before the new files
+    moved in: a failure then (a full disk, a kill) left the old full_annotations.json naming scans
+    whose CSV files were gone. They now go with the move, in its journal."""
+    import os
+
+    from tasks.cad import export
+
+    wh = _copy(built, tmp_path)
+    _copy_clip(wh, CLIP, "other_0")
+    out = tmp_path / "s"
+    assert export_scan2cad(wh, out)["scans"] == 2
+    real = os.replace
+
+    def full_disk(src, dst):
+        if Path(dst).parent == out:
+            raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(export.os, "replace", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        export_scan2cad(wh, out, ["other_0"])
+    monkeypatch.setattr(export.os, "replace", real)
+    listed = [a["id_scan"] for a in json.loads((out / "full_annotations.json").read_text())]
+    assert all((out / f"{scan}.csv").is_file() for scan in listed), (listed, sorted(p.name for p in out.iterdir()))
+    assert export_scan2cad(wh, out, ["other_0"])["scans"] == 1  # the next export cleans up and replaces it
+    assert sorted(p.name for p in out.iterdir()) == ["cad_appearances.json", "full_annotations.json", "other_0.csv"]
+
+
 def test_a_clip_waiting_for_clicks_on_models_chosen_anew_is_not_completed(tmp_path):
     """A person chose another model for every posed track: correspondence_task paused with nothing
     answered, so pose and verification wait and do not run, and their newest recorded runs stay the

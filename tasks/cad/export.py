@@ -149,14 +149,16 @@ MOVING = ".cadestate-moving"
 """The file in an export's destination that names the entries being moved into it (:func:`publish`)."""
 
 
-def publish(tmp: Path, out: Path) -> None:
+def publish(tmp: Path, out: Path, remove: Sequence[str] = ()) -> None:
     """Move the finished export ``tmp`` to ``out``: renamed whole when ``out`` is not there, else
     (a folder, the current one say, which a rename cannot replace) entry by entry into it, in name
-    order, each replacing an entry of its name there (a folder is renamed aside, then removed).
-    Meanwhile ``out/``:data:`MOVING` names those entries (JSON) and is locked (``flock``): an
-    export killed then (SIGKILL, power loss) left some of them moved and the others not, which
-    the next export into ``out`` removes (:func:`remove_unfinished_move`); it had refused that
-    folder (not empty, or holding a report's pages and no report) until the user removed them."""
+    order, each replacing an entry of its name there (a folder is renamed aside, then removed),
+    then the files of ``out`` named in ``remove`` (an earlier export's that this one does not
+    write) removed. Meanwhile ``out/``:data:`MOVING` names those entries (JSON) and is locked
+    (``flock``): an export killed then (SIGKILL, power loss) left some of them moved and the others
+    not, which the next export into ``out`` removes (:func:`remove_unfinished_move`); it had
+    refused that folder (not empty, or holding a report's pages and no report) until the user
+    removed them."""
     if not out.exists():
         tmp.rename(out)
         return
@@ -164,7 +166,7 @@ def publish(tmp: Path, out: Path) -> None:
     journal = out / MOVING
     fd = _locked_journal(journal)
     try:
-        os.write(fd, json.dumps([e.name for e in entries]).encode())
+        os.write(fd, json.dumps([e.name for e in entries] + list(remove)).encode())
         for entry in entries:
             there = out / entry.name
             if there.is_dir() and not there.is_symlink():
@@ -174,6 +176,8 @@ def publish(tmp: Path, out: Path) -> None:
                 shutil.rmtree(aside, ignore_errors=True)
             else:
                 os.replace(entry, there)
+        for name in remove:
+            (out / name).unlink(missing_ok=True)
         journal.unlink()
     finally:
         os.close(fd)

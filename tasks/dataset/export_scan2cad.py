@@ -7,7 +7,7 @@ world is the clip's aligned world (metres, +Y up: the camera file's world turned
 ``clips.up_rotation``, :mod:`tasks.video.world_up`), so every scan's own transform is the identity. Written into a temporary folder beside ``out`` and moved into
 place at the end (:func:`tasks.cad.export.publish`); ``out`` is new, empty, or the folder of an
 earlier Scan2CAD export, which then holds this export alone (its CSV files of scans not written
-this time are removed: :func:`earlier_csvs`):
+this time are removed as the new files move in: :func:`earlier_csvs`):
 
 - ``<name>.csv``: one row per posed physical object, ``catid,id_cad,tx,ty,tz,qw,qx,qy,qz,sx,sy,sz``,
   no header (``EvaluateBenchmark.py`` reads every row as an alignment): the class id, the CAD id,
@@ -184,10 +184,9 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
             total += len(rows)
         (tmp / JSON_FILES[0]).write_text(json.dumps(annotations, indent=1))
         (tmp / JSON_FILES[1]).write_text(json.dumps(appearances, indent=1))
-        for stale in earlier:  # the earlier export's scans not written this time
-            if not (tmp / stale.name).exists():
-                stale.unlink(missing_ok=True)
-        publish(tmp, out)
+        # the earlier export's scans not written this time go as the new files come (a kill meanwhile:
+        # the next export removes both, not the old full_annotations.json naming CSVs already gone)
+        publish(tmp, out, remove=[e.name for e in earlier if not (tmp / e.name).exists()])
     notes = [selection.note()] if selection.note() else []
     if empty:
         notes.append(f"left out {len(empty)} clip(s) with no accepted pose (no Scan2CAD scan): {some_named(empty)}")
