@@ -7,7 +7,8 @@ scoring mode of :mod:`bench.scoring` (headline: :data:`HEADLINE_MODE`) and per s
   the rule stated once there) whose class the CAD library has (the warehouse's ``cad_models`` classes);
 - **yield** = expected objects with exactly one accepted pose on them, that pose correct / expected
   objects. What "on" and "correct" mean is the mode's (:class:`bench.scoring.Outcome`): an object
-  with two accepted poses does not count, even if one is right;
+  with two accepted poses does not count, even if one is right. A pose whose track follows an object
+  is on that object in every mode (scored by track: :func:`bench.scoring.score_all`);
 - **duplicates**: accepted poses beyond the first on one object (any object), also as % of accepted poses;
 - **wrong poses**: accepted poses on an expected object that are not correct (its only pose, or one of several);
 - **false annotations**: accepted poses on no ground-truth object;
@@ -182,7 +183,7 @@ def dataset_yield(bench_dir: Path, wh: Warehouse) -> dict | None:
     expected = {k for c in clips for k in expected_objects(bench_dir, c, library, CLASS_NAMES)}
     gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, clips)
     outcomes = {m: r.outcomes for m, r in score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries,
-                                                    extents).items()}
+                                                    extents, by_track=True).items()}
     tracked = set(wh.partitions("track_detections")) | set(wh.partitions("manual_tracks"))
     track_objects = {(c, str(t)): (c, gt_id) for c in clips if c in tracked
                      for t, gt_id in track_truth(bench_dir, wh, c).items()}

@@ -130,14 +130,18 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     (None before the pose stage ran): the solver's (``poses``, status ok) and the dataset's (the
     poses accepted in verification, ``verified_poses``; None before any verdict), and how the
     verification verdicts relate to the ``pose`` criterion."""
+    from bench.dataset_yield import tried_clip_splits
     from bench.scoring import score_all
 
-    clips = [c for c in read_manifest(bench_dir).clips if c in wh.partitions("poses")]
+    every = list(read_manifest(bench_dir).clips)
+    clips = [c for c in every if c in wh.partitions("poses")]
     if not clips:
         return None
     rows = [r for c in clips for r in wh.read("poses", [c]).to_pylist()]
     verdicts = [r for r in wh.read("verified_poses", clips).to_pylist()]
-    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, clips)
+    # the objects of every clip that ran: one that never reached the pose stage (no cameras, still
+    # waiting) has its objects missed, not left out (as the yield counts them)
+    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, sorted(tried_clip_splits(wh, every)))
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
@@ -145,7 +149,8 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     solved = score_all(solved_poses, gt, truth, symmetries, extents)
     accepted = score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries, extents) if verdicts else None
     annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
-    return {"clips": len(clips), "ground_truth_objects": len(gt), "annotated_objects": len(annotated),
+    return {"clips": len(clips), "clips_run": len(tried_clip_splits(wh, every)), "ground_truth_objects": len(gt),
+            "annotated_objects": len(annotated),
             "statuses": statuses,
             "solved": {m: v.as_dict() for m, v in solved.items()},
             "accepted": accepted and {m: v.as_dict() for m, v in accepted.items()},
@@ -193,7 +198,8 @@ def pose_markdown(result: dict | None) -> list[str]:
             rows.append(f"| `{mode}` | {label}: {m['predictions']} | {m['correct']} of {m['ground_truth']} | "
                         f"{m['instance_accuracy_pct']} % | {m['class_accuracy_pct']} % | {m['duplicates']} | "
                         f"{m['false_positives']} |")
-    return [f"## Pose accuracy (Scan2CAD thresholds: <= 20 cm, 20 deg, 20 %; {result['clips']} clips, "
+    posed_only = f" ({result['clips']} reached the pose stage)" if result["clips_run"] != result["clips"] else ""
+    return [f"## Pose accuracy (Scan2CAD thresholds: <= 20 cm, 20 deg, 20 %; {result['clips_run']} clips{posed_only}, "
             f"{result['ground_truth_objects']} posed ground-truth objects the clips show, {result['annotated_objects']} with "
             "correspondences)", "",
             "Every pose is scored; an object is credited once by any of its poses, further poses on it are duplicates. "

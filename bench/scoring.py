@@ -28,7 +28,10 @@ object is credited at most once; accuracy = credited objects / all posed ground-
     has objects of it; the symmetry is the predicted model's (as the script reads it).
 
 In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
-``duplicate``, any other unmatched one a ``false_positive``.
+``duplicate``, any other unmatched one a ``false_positive``. The dataset's yield scores them *by
+track* (``by_track``): a prediction whose track follows an object is matched against that object
+alone, as the dataset publishes it (that track's pose); in 3D alone a chair's pose that landed on
+the chair beside it credited that one, though its own track had none.
 
 Scales: a pose's scale multiplies its own model's size (the library's models are in metres, where
 Scan2CAD's ShapeNet models are normalised, so that a scale there is the object's size). A
@@ -164,9 +167,11 @@ def _aligns(p: PosedObject, g: PosedObject, symmetry: int, extents: Mapping[str,
 
 def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], symmetries: Mapping[str, int],
                    exact: bool, truth: Mapping[tuple[str, str], str] | None = None,
-                   extents: Mapping[str, tuple] | None = None) -> ModeResult:
+                   extents: Mapping[str, tuple] | None = None, by_track: bool = False) -> ModeResult:
     """Mode ``scan2cad-exact`` (``exact``) or ``scan2cad-class``; predictions in the order given;
-    ``truth`` (the track map of :func:`score_pose`) places a false positive on its track's object."""
+    ``truth`` (the track map of :func:`score_pose`) places a false positive on its track's object.
+    ``by_track``: a prediction whose track follows an object is matched against that object alone
+    (the dataset's record of a track: the yield), not the first of its class it aligns in 3D."""
     preds, gts = list(predictions), list(ground_truth)
     open_gt: dict[tuple[str, str], list[PosedObject]] = {}
     for g in gts:
@@ -184,8 +189,9 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
                 continue
             used[model] += 1
         candidates = open_gt.get((p.clip, p.cls), [])
-        hit = next((g for g in candidates
-                    if _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id), extents)), None)
+        followed = _followed(p, truth, by_track)
+        hit = next((g for g in candidates if (followed is None or g.key == followed)
+                    and _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id), extents)), None)
         if hit is None:
             unmatched.append(p)
             continue
@@ -195,7 +201,9 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
     duplicates = 0
     known = {g.key for g in gts}
     for p in unmatched:
+        followed = _followed(p, truth, by_track)
         aligned = next((g for g in credited_objects if g.clip == p.clip and g.cls == p.cls
+                        and (followed is None or g.key == followed)
                         and _aligns(p, g, _symmetry(symmetries, g.cad_id), extents)), None)
         duplicates += aligned is not None
         tracked = (p.clip, (truth or {}).get(p.key, ""))
@@ -205,10 +213,19 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
                    duplicates, len(unmatched) - duplicates, outcomes)
 
 
+def _followed(p: PosedObject, truth: Mapping[tuple[str, str], str] | None, by_track: bool) -> Key | None:
+    """The object ``p``'s track follows, when matching ``by_track`` (None: any object of its class)."""
+    gt_id = (truth or {}).get(p.key) if by_track else None
+    return (p.clip, gt_id) if gt_id else None
+
+
 def score_all(predictions: list[PosedObject], ground_truth: list[PosedObject], truth: Mapping[tuple[str, str], str],
-              symmetries: Mapping[str, int], extents: Mapping[str, tuple] | None = None) -> dict[str, ModeResult]:
-    """Every mode of :data:`MODES` on the same predictions (ordered by clip, then track id)."""
+              symmetries: Mapping[str, int], extents: Mapping[str, tuple] | None = None,
+              by_track: bool = False) -> dict[str, ModeResult]:
+    """Every mode of :data:`MODES` on the same predictions (ordered by clip, then track id);
+    ``by_track``: the Scan2CAD modes match a prediction on a track that follows an object against
+    that object alone (:func:`score_scan2cad`)."""
     ordered = sorted(predictions, key=lambda p: (p.clip, int(p.track_id) if p.track_id.isdigit() else 0, p.track_id))
     return {"pose": score_pose(ordered, ground_truth, truth, symmetries, extents),
-            "scan2cad-class": score_scan2cad(ordered, ground_truth, symmetries, False, truth, extents),
-            "scan2cad-exact": score_scan2cad(ordered, ground_truth, symmetries, True, truth, extents)}
+            "scan2cad-class": score_scan2cad(ordered, ground_truth, symmetries, False, truth, extents, by_track),
+            "scan2cad-exact": score_scan2cad(ordered, ground_truth, symmetries, True, truth, extents, by_track)}

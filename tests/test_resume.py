@@ -108,6 +108,32 @@ def test_a_stale_correspondences_partition_keeps_the_track_map(answered, tmp_pat
     assert _ground_truth_map(answered.folder, wh, answered.clip) == truth
 
 
+def test_pose_accuracy_counts_the_objects_of_a_clip_that_never_reached_the_pose_stage(answered, tmp_path):
+    """The pose section scored only clips with a ``poses`` partition: a clip that ran and stopped
+    before (SfM found no cameras, still waiting for people) left its objects out of the accuracy's
+    denominator, where the yield counts them as missed."""
+    import json
+    import shutil
+
+    from conftest import table_rows
+
+    folder = tmp_path / "bench"
+    shutil.copytree(answered.folder, folder)
+    shutil.copytree(folder / answered.clip, folder / "stopped_0")  # the same room: as many objects
+    manifest = json.loads((folder / "manifest.json").read_text())
+    (folder / "manifest.json").write_text(json.dumps({**manifest, "clips": [answered.clip, "stopped_0"]}))
+    shutil.copytree(answered.config.warehouse.root, tmp_path / "w")
+    wh = Warehouse(tmp_path / "w")
+    alone = pose_accuracy(folder, wh)
+    wh.write("runs", "stopped_0", table_rows("runs", [{"clip": "stopped_0", "run_id": "r0", "stage": "cameras",
+                                                       "status": "failed"}]))
+    both = pose_accuracy(folder, wh)
+    assert (alone["clips_run"], both["clips_run"], both["clips"]) == (1, 2, 1)
+    assert both["ground_truth_objects"] == 2 * alone["ground_truth_objects"]
+    for mode, m in both["accepted"].items():
+        assert m["correct"] == alone["accepted"][mode]["correct"] and m["ground_truth"] == 2 * alone["accepted"][mode]["ground_truth"]
+
+
 def test_a_rerun_that_asks_again_leaves_no_stale_pose(answered, tmp_path):
     """Retrieval reruns with other scores (a config change): cad_selection gets a new task, and the
     choices still among the candidates are carried to it, so the poses stay. A person then says
