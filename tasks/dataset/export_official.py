@@ -110,8 +110,7 @@ def _put_jpeg(src: Path, dst: Path) -> None:
             with Image.open(src) as image:
                 rgb = image.convert("RGB")
         except (OSError, ValueError) as e:  # truncated, not an image
-            raise ExportError(f"{src}: cannot read this frame's image ({e}); the export leaves out its clip "
-                              "with --clips") from None
+            raise ExportError(f"{src}: cannot read this frame's image ({e}); --clips exports the other clips") from None
         rgb.save(dst, quality=95)
         return
     try:
