@@ -137,11 +137,12 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     clips = [c for c in every if c in wh.partitions("poses")]
     if not clips:
         return None
+    ran = sorted(tried_clip_splits(wh, every))
     rows = [r for c in clips for r in wh.read("poses", [c]).to_pylist()]
     verdicts = [r for r in wh.read("verified_poses", clips).to_pylist()]
     # the objects of every clip that ran: one that never reached the pose stage (no cameras, still
     # waiting) has its objects missed, not left out (as the yield counts them)
-    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, sorted(tried_clip_splits(wh, every)))
+    gt, truth, symmetries, extents = scoring_inputs(bench_dir, wh, ran)
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
@@ -149,7 +150,7 @@ def pose_accuracy(bench_dir: Path, wh: Warehouse) -> dict | None:
     solved = score_all(solved_poses, gt, truth, symmetries, extents)
     accepted = score_all(accepted_predictions(wh, clips, bench_dir), gt, truth, symmetries, extents) if verdicts else None
     annotated = {(r["clip"], truth[(r["clip"], r["track_id"])]) for r in rows if (r["clip"], r["track_id"]) in truth}
-    return {"clips": len(clips), "clips_run": len(tried_clip_splits(wh, every)), "ground_truth_objects": len(gt),
+    return {"clips": len(clips), "clips_run": len(ran), "ground_truth_objects": len(gt),
             "annotated_objects": len(annotated),
             "statuses": statuses,
             "solved": {m: v.as_dict() for m, v in solved.items()},

@@ -311,13 +311,14 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
         if not files:
             return []
         con = _reader()
+        patterns = [literal(Path(f)) for f in files]  # each matches its file alone
         try:
             try:  # every column in some file (the common case): one pass
-                rows = _select(con, files, columns, timestamps, wh.info[table].key, set(columns) | set(wh.info[table].key))
+                rows = _select(con, patterns, columns, timestamps, wh.info[table].key, set(columns) | set(wh.info[table].key))
             except duckdb.BinderException:  # a column that no file has (an older schema) reads as None
                 source = "read_parquet(?, union_by_name = true)"
-                present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [[literal(Path(f)) for f in files]]).fetchall()}
-                rows = _select(con, files, columns, timestamps, wh.info[table].key, present)
+                present = {r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {source}", [patterns]).fetchall()}
+                rows = _select(con, patterns, columns, timestamps, wh.info[table].key, present)
             break
         except duckdb.IOException as e:
             if all(Path(f).exists() for f in files) or attempt == READ_RETRIES - 1:
@@ -334,14 +335,14 @@ def read_rows(wh: Warehouse, table: str, columns: Sequence[str], partitions: Seq
     return out
 
 
-def _select(con: duckdb.DuckDBPyConnection, files: list[str], columns: Sequence[str], timestamps: Sequence[str],
+def _select(con: duckdb.DuckDBPyConnection, patterns: list[str], columns: Sequence[str], timestamps: Sequence[str],
             key: Sequence[str], present: set[str]) -> list[tuple]:
-    """:func:`read_rows`'s query over ``files``, reading as NULL the columns not ``present``."""
+    """:func:`read_rows`'s query over the files of ``patterns`` (:func:`warehouse.snapshot.literal`),
+    reading as NULL the columns not ``present``."""
     select = [("epoch_us" + f"({_ident(c)})" if c in timestamps else _ident(c)) if c in present else "NULL"
               for c in columns]
     order = "".join(f"{', ' if i else ' ORDER BY '}{_ident(k)}" for i, k in enumerate(k for k in key if k in present))
-    return con.execute(f"SELECT {', '.join(select)} FROM read_parquet(?, union_by_name = true){order}",
-                       [[literal(Path(f)) for f in files]]).fetchall()  # patterns: each matches its file alone
+    return con.execute(f"SELECT {', '.join(select)} FROM read_parquet(?, union_by_name = true){order}", [patterns]).fetchall()
 
 
 def _ident(name: str) -> str:
