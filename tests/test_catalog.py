@@ -119,6 +119,19 @@ def test_a_warehouse_in_a_folder_whose_name_is_a_pattern_reads_its_own_files(tmp
     assert result.stdout.splitlines() == ["n", "3"], result.stderr
 
 
+def test_a_warehouse_whose_path_holds_a_backslash_is_refused_in_one_line(tmp_path):
+    """DuckDB splits a pattern at a backslash: a warehouse there wrote its files and every view,
+    `tables` and `sql` read none of them. It is refused before anything is written."""
+    root = tmp_path / "a\\b"
+    with pytest.raises(WarehouseError, match="backslash"):
+        Warehouse(root)
+    assert not root.exists()
+    root.mkdir()
+    result = run_cli("-w", str(root), "tables")
+    assert result.code == 2 and result.stderr.count("\n") == 1 and "backslash" in result.stderr
+    assert list(root.iterdir()) == []
+
+
 def test_a_warehouse_whose_path_holds_a_question_mark_writes_and_reads_without_a_catalog(tmp_path, capsys):
     """DuckDB cannot keep a catalog there: the write says so once and is not failed by it (its rows
     are in), and reads go on without it."""

@@ -312,6 +312,9 @@ class Warehouse:
     def __init__(self, root: str | os.PathLike, tables: dict[str, TableSpec] | None = None,
                  compact_after: int = COMPACT_AFTER):
         self.root = Path(root).expanduser().resolve()
+        if "\\" in self.root.as_posix():  # DuckDB reads it as a folder separator: the views would read no file
+            raise WarehouseError(f"{self.root}: a warehouse's path cannot hold a backslash (DuckDB takes it for "
+                                 "a folder separator); choose another folder")
         self._tables = tables
         self._default_tables = tables is None  # `tables` fills _tables in: the index stays theirs
         self._info: dict[str, TableInfo] | None = None
