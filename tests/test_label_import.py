@@ -185,6 +185,27 @@ def test_an_import_keeps_the_not_an_object_statements_in_force_and_the_same_expo
     assert ls_doc["created_at"] == "2026-02-03T04:05:06+00:00"
 
 
+def test_an_import_keeps_this_is_track_n_of_the_tool_tracks_drawn_before(lwh, tmp_path):
+    """A person imported a CVAT track, then said in the app that it is track 0 (a fragment); the
+    next export of the same task dropped that statement silently."""
+    from tasks.human.label_ingest import ingest_labels
+    from tasks.tracking.relations import manual_answer_statements
+
+    meta = f"<task><id>4</id><name>{CLIP}</name><size>10</size></task>"
+    first = import_cvat(lwh, put(tmp_path, "a.xml", _export(meta, f'<track id="0" label="chair">{_box(0)}</track>')), CLIP)
+    assert ingest_labels(lwh, write_label(first.document, tmp_path / "l1", "c1.a.cvat")).ok
+    web = {**first.document, "annotator": "a", "created_at": "2026-01-02T00:00:00+00:00"}
+    web["answers"] = [{**first.document["answers"][0], "same_as_track": 0}]
+    assert ingest_labels(lwh, put(tmp_path / "web", "w.json", json.dumps(web))).ok
+    assert manual_answer_statements(lwh, CLIP, "c1.mt")[1] == {0: 0}
+    tracks = f'<track id="0" label="chair">{_box(0)}{_box(3)}</track><track id="1" label="table">{_box(2)}</track>'
+    again = import_cvat(lwh, put(tmp_path, "b.xml", _export(meta, tracks)), CLIP)
+    assert [a.get("same_as_track") for a in again.document["answers"]] == [0, None]
+    assert any("'this is track N': cvat:0 is track 0" in w for w in again.warnings), again.warnings
+    assert ingest_labels(lwh, write_label(again.document, tmp_path / "l2", "c1.b.cvat")).ok
+    assert manual_answer_statements(lwh, CLIP, "c1.mt")[1] == {0: 0}
+
+
 def test_exports_of_nothing_the_importer_reads_are_refused_not_nothing_missing(lwh, tmp_path):
     """An image export, polygons, or every track skipped made an empty answer: 'nothing is missing'."""
     rect = ls(lambda d: result(d).__setitem__("type", "rectanglelabels"))

@@ -2,8 +2,9 @@
 
 Both become a ``manual_track`` label file (:mod:`schemas.labels`) for a task of the clip, checked
 like any label file before it is written; ``cadestate labels ingest`` then ingests it. The label
-file keeps the "track N is not an object" statements of the task's answer in force (an import
-answers the task whole), and is dated by the export, so the same export makes the same file.
+file keeps the "track N is not an object" statements of the task's answer in force, and each tool
+track's "this is track N" of it (the object of the same tool id: an import answers the task whole,
+and a statement made in the app would otherwise be lost by the next import), and is dated by the export, so the same export makes the same file.
 
 - CVAT for video 1.1: :mod:`tasks.human.label_import_cvat`.
 - Label Studio video (JSON export): results of type ``videorectangle`` with
@@ -48,6 +49,7 @@ from pathlib import Path
 from typing import Literal
 
 from schemas.labels import Task
+from tasks.human.answers_in_force import current_answers
 from tasks.human.label_format import LabelError, parse_label, read_limited
 from tasks.human.labels import ClipFacts, check_label, label_document, latest_task_of_kind, withdrawn_why
 from tasks.tracking.relations import manual_answer_statements
@@ -371,7 +373,8 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
                     frames: ClipFrames | None = None) -> ImportResult:
     """A validated ``manual_track`` label document from tool tracks (answering ``task_id``, else the
     clip's newest manual-track task), dated ``created_at`` (default: now), keeping the "track N is
-    not an object" statements of the task's answer in force; ``name``: the file, for errors;
+    not an object" statements of the task's answer in force, and its "this is track N" of each tool
+    track it drew before (by ``source_id``); ``name``: the file, for errors;
     ``frames``: the clip's, when the caller read them already."""
     task = _answered_task(wh, clip, task_id)
     frames = frames or ClipFrames.of(wh, clip)
@@ -380,6 +383,7 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
             if t.shown_frames is not None and t.shown_frames > len(frames.timestamps):
                 raise LabelError(f"{t.shown_where}: the tool showed {t.shown_frames} frames and clip {clip!r} has "
                                  f"{len(frames.timestamps)}: was the task made on the video? (--frame-map video)")
+    not_objects, same_as = _statements_in_force(wh, clip, task.task_id)
     answers, dropped = [], []
     for t in tracks:
         label = (label_map or {}).get(t.label, t.label)
@@ -405,18 +409,32 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
             dropped.append(f"{t.source_id}: no box left, track left out")
             continue
         answers.append({"label": label, "boxes": [{"timestamp_us": ts, "box": list(boxes[ts])} for ts in sorted(boxes)],
-                        "source_id": t.source_id})
+                        "source_id": t.source_id,
+                        **({"same_as_track": same_as[t.source_id]} if t.source_id in same_as else {})})
     if tracks and not answers:
         raise LabelError(f"{name}: none of its {len(tracks)} track(s) has a box on a frame of clip {clip!r} "
                          f"(--frame-map {'video' if frame_map == 'frames' else 'frames'}?)")
     created = created_at or dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    not_objects = sorted(manual_answer_statements(wh, clip, task.task_id)[0])
     doc = label_document("manual_track", clip, task.task_id, answers, annotator=f"import:{source}" if source else None,
                          created_at=created, **({"not_objects": not_objects} if not_objects else {}))
     check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
     kept = [f"{name}: keeps the answer in force's 'track N is not an object' for track(s) "
             f"{', '.join(map(str, not_objects))} (put them in the label file to change them)"] if not_objects else []
+    if linked := [f"{a['source_id']} is track {a['same_as_track']}" for a in answers if "same_as_track" in a]:
+        kept.append(f"{name}: keeps the answer in force's 'this is track N': {'; '.join(linked)} "
+                    "(put them in the label file to change them)")
     return ImportResult(doc, dropped, kept)
+
+
+def _statements_in_force(wh: Warehouse, clip: str, task_id: str) -> tuple[list[int], dict[str, int]]:
+    """(tracks said to be no object, {tool id of a drawn object: the existing track it was said to
+    be}) of the manual-track task's answer in force."""
+    not_objects, same_as = manual_answer_statements(wh, clip, task_id)
+    if not same_as:
+        return sorted(not_objects), {}
+    rows = current_answers(wh, "manual_track", [clip], task_id).to_pylist()
+    source = {r["object_index"]: r["source_id"] for r in rows if r["task_id"] == task_id and r["source_id"]}
+    return sorted(not_objects), {source[i]: track for i, track in same_as.items() if i in source}
 
 
 def frame_count_warnings(tracks: list[ToolTrack], frames: ClipFrames, mode: FrameMapMode) -> list[str]:
