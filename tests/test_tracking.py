@@ -214,3 +214,28 @@ def test_detection_vectors_read_from_arrow_as_the_row_by_row_read():
     empty = pa.Table.from_pylist([{**r, "vector": []} for r in rows], schema=EMBEDDINGS.schema)
     with pytest.raises(TrackingError, match="descriptors of length 0"):
         detection_vectors(empty, det_id, "c")
+
+
+def test_bins_no_fitted_pair_fell_in_take_the_nearest_fitted_value_not_zero():
+    """An empty bin's ratio was 0, "no evidence": cosines under -0.8 (two objects of opposite
+    look, a clip's two main ones once centred) weighed 0 where -0.8 to -0.3 weighed -10, so two
+    chairs side by side were joined; gaps past the fitting window took no prior at all."""
+    from tasks.tracking.affinity import PairFeatures, affinities, fit_calibration
+    from tasks.tracking.calibration import CALIBRATION
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    same = rng.random(n) < 0.3
+    gap = rng.integers(1, 5, n)  # fitted on gaps 1 to 4 only
+    cos = np.where(same, rng.uniform(0.5, 1.0, n), rng.uniform(-0.6, 0.4, n))  # no cosine under -0.6
+    iou = np.where(same, rng.uniform(0.4, 1.0, n), rng.uniform(0.0, 0.3, n))
+    pairs = PairFeatures(np.zeros(n, np.int64), np.ones(n, np.int64), gap, cos, np.ones(n, bool), iou)
+    cal = fit_calibration([pairs], [same])
+    assert cal["appearance"][0] == cal["appearance"][1] == cal["appearance"][4] < -5  # -1 .. -0.6: as -0.6 .. -0.5
+    assert cal["prior"][-2:] == [cal["prior"][3]] * 2 and cal["motion"][-1] == cal["motion"][3]  # gaps 5+: as 3-4
+    far = PairFeatures(np.zeros(2, np.int64), np.ones(2, np.int64), np.array([4, 30]), np.array([-0.95, -0.95]),
+                       np.ones(2, bool), np.array([0.5, 0.5]))
+    w = affinities(far, cal)
+    assert w[1] == w[0] < 0
+    w = affinities(far, CALIBRATION)  # the shipped tables: opposite looks keep apart, within the window or past it
+    assert w[0] < -5 and w[1] < -5

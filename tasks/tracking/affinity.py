@@ -196,6 +196,24 @@ def _llr(hist_true: np.ndarray, hist_false: np.ndarray) -> np.ndarray:
     return np.clip(np.log(np.maximum(t, 1e-300)) - np.log(np.maximum(f, 1e-300)), -LLR_CLIP, LLR_CLIP)
 
 
+def _fill_empty(values: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """``values`` (last axis = bins) with each bin that no pair fell in (``seen`` False, broadcast
+    to ``values``) given the value of the nearest bin one did (the lower of two as near). Such a
+    bin's ratio is 0, "no evidence", which read as neutral what lies past the fitted range: cosines
+    under -0.8 (two objects of opposite look, the clip's two main ones once centred) weighed 0
+    where -0.8 to -0.3 weighed -10, and gaps past the fitting window took no prior at all."""
+    out = np.array(values, np.float64)
+    seen = np.broadcast_to(np.asarray(seen, bool), out.shape)
+    for row, row_seen in zip(out.reshape(-1, out.shape[-1]), seen.reshape(-1, out.shape[-1])):
+        have = np.flatnonzero(row_seen)
+        if len(have) == 0:
+            continue
+        bins = np.arange(len(row))
+        nearest = have[np.argmin(np.abs(bins[:, None] - have[None, :]), axis=1)]
+        row[:] = row[nearest]
+    return out
+
+
 def gap_bucket(gap: np.ndarray, edges) -> np.ndarray:
     """Index of each gap's bucket: bucket k holds gaps in [edges[k], edges[k+1]) (last one open)."""
     return np.clip(np.searchsorted(np.asarray(edges), gap, side="right") - 1, 0, len(edges) - 1)
@@ -226,14 +244,16 @@ def fit_calibration(features: list[PairFeatures], truth: list[np.ndarray], *, ga
     hf = np.zeros((ng, ni))
     np.add.at(ht, (gb[y], ib[y]), 1)
     np.add.at(hf, (gb[~y], ib[~y]), 1)
-    prior = np.log((ht.sum(1) + 1.0) / (hf.sum(1) + 1.0))
+    seen_gap = (ht + hf).sum(1) > 0  # a bucket past the fitting window: the last fitted one's values
+    prior = _fill_empty(np.log((ht.sum(1) + 1.0) / (hf.sum(1) + 1.0)), seen_gap)
+    motion = _fill_empty(_fill_empty(_llr(ht, hf), ht + hf > 0).T, seen_gap).T
     lab = _llr(np.array([np.sum(y & ~same), np.sum(y & same)], float),
                np.array([np.sum(~y & ~same), np.sum(~y & same)], float))
     if label_clip is not None:
         lab = np.clip(lab, -label_clip, label_clip)
     out = {
         "gap_edges": list(gap_edges), "prior": prior.round(4).tolist(),
-        "iou_edges": list(iou_edges), "motion": _llr(ht, hf).round(4).tolist(),
+        "iou_edges": list(iou_edges), "motion": motion.round(4).tolist(),
         "label": {"different": round(float(lab[0]), 4), "same": round(float(lab[1]), 4)},
         "cos_edges": list(cos_edges), "appearance": None,
         "pairs": {"true": int(y.sum()), "false": int((~y).sum())},
@@ -242,8 +262,8 @@ def fit_calibration(features: list[PairFeatures], truth: list[np.ndarray], *, ga
         cos = np.concatenate([p.cosine for p in features])
         cb = _bin(cos, cos_edges)
         nc = len(cos_edges) - 1
-        out["appearance"] = _llr(np.bincount(cb[y], minlength=nc).astype(float),
-                                 np.bincount(cb[~y], minlength=nc).astype(float)).round(4).tolist()
+        ct, cf = np.bincount(cb[y], minlength=nc).astype(float), np.bincount(cb[~y], minlength=nc).astype(float)
+        out["appearance"] = _fill_empty(_llr(ct, cf), ct + cf > 0).round(4).tolist()
     return out
 
 

@@ -4,14 +4,14 @@ embed stages must have run in the configured warehouse, or pass ``--warehouse DI
 saw are ``training_seeds``. Do not edit by hand."""
 
 CALIBRATION = {'gap_edges': [1, 2, 3, 5, 9, 17],
- 'prior': [-1.6682, -1.672, -1.6747, -1.6789, -1.6848, 0.0],
+ 'prior': [-1.6682, -1.672, -1.6747, -1.6789, -1.6848, -1.6848],
  'iou_edges': [0.0, 1e-06, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.000000001],
  'motion': [[-7.0111, -7.5968, -5.5581, -4.2846, -2.4891, -1.3606, 0.4868, 3.4136, 6.0555, 10.0, 10.0],
             [-6.5537, -6.0481, -4.5897, -3.7794, -2.2371, -0.3655, 1.0448, 3.9244, 6.5622, 10.0, 10.0],
             [-6.1097, -5.3045, -3.3945, -2.8282, -1.5574, 0.1646, 1.8598, 4.8461, 8.2316, 9.1548, 10.0],
             [-5.0443, -4.0707, -2.8323, -1.8483, -0.289, 1.4492, 2.9922, 5.4706, 7.5099, 10.0, 10.0],
             [-3.8885, -2.9281, -1.2355, -0.2486, 0.749, 1.8288, 3.6296, 5.9445, 8.0013, 10.0, 10.0],
-            [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]],
+            [-3.8885, -2.9281, -1.2355, -0.2486, 0.749, 1.8288, 3.6296, 5.9445, 8.0013, 10.0, 10.0]],
  'label': {'different': -2.8731, 'same': 1.9561},
  'cos_edges': [-1.0,
                -0.9,
@@ -34,8 +34,8 @@ CALIBRATION = {'gap_edges': [1, 2, 3, 5, 9, 17],
                0.8,
                0.9,
                1.000000001],
- 'appearance': [0.0,
-                0.0,
+ 'appearance': [-10.0,
+                -10.0,
                 -10.0,
                 -10.0,
                 -10.0,
@@ -59,4 +59,6 @@ CALIBRATION = {'gap_edges': [1, 2, 3, 5, 9, 17],
  'fitted_on': 'ground-truth boxes and detector boxes matched to ground truth (IoU >= 0.5; pairs with an '
               'unmatched box left out), pooled (label cue: detector boxes only) of 8 benchmark clips (seeds '
               '101, 31, 77, 9137; detections and descriptors from /tmp/s41/whX6), pairs up to 16 frames '
-              'apart'}
+              'apart; bins no pair fell in (the gaps past 16 frames, cosines under -0.8) then given the '
+              "nearest fitted bin's values as fit_calibration now does (2026-12-07: their ratios were "
+              'exactly 0)'}
