@@ -204,6 +204,14 @@ def test_an_import_keeps_this_is_track_n_of_the_tool_tracks_drawn_before(lwh, tm
     assert any("'this is track N': cvat:0 is track 0" in w for w in again.warnings), again.warnings
     assert ingest_labels(lwh, write_label(again.document, tmp_path / "l2", "c1.b.cvat")).ok
     assert manual_answer_statements(lwh, CLIP, "c1.mt")[1] == {0: 0}
+    # CVAT numbers each export's tracks from 0: the chair deleted there, id 0 is the table now, and
+    # kept by id the statement pinned "track 0 (a chair)" on it; elsewhere drawn, a chair is no more it either
+    renumbered = f'<track id="0" label="table">{_box(2)}</track>'
+    for tracks in (renumbered, f'<track id="0" label="chair">{_box(0, 200, 300)}</track>'):
+        moved = import_cvat(lwh, put(tmp_path, "c.xml", _export(meta, tracks)), CLIP)
+        assert [a.get("same_as_track") for a in moved.document["answers"]] == [None]
+        assert any("leaves out the answer in force's 'this is track N' of cvat:0 (was track 0)" in w
+                   for w in moved.warnings), moved.warnings
 
 
 def test_exports_of_nothing_the_importer_reads_are_refused_not_nothing_missing(lwh, tmp_path):

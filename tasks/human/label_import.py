@@ -2,9 +2,12 @@
 
 Both become a ``manual_track`` label file (:mod:`schemas.labels`) for a task of the clip, checked
 like any label file before it is written; ``cadestate labels ingest`` then ingests it. The label
-file keeps the "track N is not an object" statements of the task's answer in force, and each tool
-track's "this is track N" of it (the object of the same tool id: an import answers the task whole,
-and a statement made in the app would otherwise be lost by the next import), and is dated by the export, so the same export makes the same file.
+file keeps the "track N is not an object" statements of the task's answer in force, and the "this is
+track N" said of a tool track imported before (an import answers the task whole, and a statement
+made in the app would otherwise be lost by the next import) where the track of that tool id is
+still that drawing: CVAT numbers the tracks of each export from 0, so an id names another object
+once a track was deleted (kept: the same class, boxes overlapping by IoU >= :data:`SAME_DRAWING_IOU`
+on every frame both have, one at least). It is dated by the export, so the same export makes the same file.
 
 - CVAT for video 1.1: :mod:`tasks.human.label_import_cvat`.
 - Label Studio video (JSON export): results of type ``videorectangle`` with
@@ -50,6 +53,7 @@ from typing import Literal
 
 from schemas.labels import Task
 from tasks.human.answers_in_force import current_answers
+from tasks.human.clicks_in_force import box_iou
 from tasks.human.label_format import LabelError, parse_label, read_limited
 from tasks.human.labels import ClipFacts, check_label, label_document, latest_task_of_kind, withdrawn_why
 from tasks.tracking.relations import manual_answer_statements
@@ -383,8 +387,8 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
             if t.shown_frames is not None and t.shown_frames > len(frames.timestamps):
                 raise LabelError(f"{t.shown_where}: the tool showed {t.shown_frames} frames and clip {clip!r} has "
                                  f"{len(frames.timestamps)}: was the task made on the video? (--frame-map video)")
-    not_objects, same_as = _statements_in_force(wh, clip, task.task_id)
-    answers, dropped = [], []
+    not_objects, drawn_as = _statements_in_force(wh, clip, task.task_id)
+    answers, dropped, unlinked = [], [], []
     for t in tracks:
         label = (label_map or {}).get(t.label, t.label)
         if task.classes and label not in task.classes:
@@ -408,9 +412,12 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
         if not boxes:
             dropped.append(f"{t.source_id}: no box left, track left out")
             continue
+        link = drawn_as.get(t.source_id)
+        if link is not None and not _same_drawing(link, label, boxes):
+            unlinked.append(f"{t.source_id} (was track {link.track})")
+            link = None
         answers.append({"label": label, "boxes": [{"timestamp_us": ts, "box": list(boxes[ts])} for ts in sorted(boxes)],
-                        "source_id": t.source_id,
-                        **({"same_as_track": same_as[t.source_id]} if t.source_id in same_as else {})})
+                        "source_id": t.source_id, **({"same_as_track": link.track} if link is not None else {})})
     if tracks and not answers:
         raise LabelError(f"{name}: none of its {len(tracks)} track(s) has a box on a frame of clip {clip!r} "
                          f"(--frame-map {'video' if frame_map == 'frames' else 'frames'}?)")
@@ -423,18 +430,47 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     if linked := [f"{a['source_id']} is track {a['same_as_track']}" for a in answers if "same_as_track" in a]:
         kept.append(f"{name}: keeps the answer in force's 'this is track N': {'; '.join(linked)} "
                     "(put them in the label file to change them)")
+    if unlinked:
+        kept.append(f"{name}: leaves out the answer in force's 'this is track N' of {', '.join(unlinked)}: that id "
+                    "is another drawing in this export (another class, or boxes elsewhere; CVAT numbers tracks anew "
+                    "in each export)")
     return ImportResult(doc, dropped, kept)
 
 
-def _statements_in_force(wh: Warehouse, clip: str, task_id: str) -> tuple[list[int], dict[str, int]]:
-    """(tracks said to be no object, {tool id of a drawn object: the existing track it was said to
-    be}) of the manual-track task's answer in force."""
+SAME_DRAWING_IOU = 0.5
+"""Least IoU, on every frame both have, of a tool track's boxes with those of the object of the same
+tool id in the answer in force for the "this is track N" said of it to be kept."""
+
+
+@dataclass(frozen=True)
+class DrawnAs:
+    """An object of the answer in force said to be an existing ``track``: its class and boxes
+    ({timestamp_us: (ymin, xmin, ymax, xmax) normalised})."""
+
+    track: int
+    label: str
+    boxes: dict[int, tuple]
+
+
+def _same_drawing(link: DrawnAs, label: str, boxes: dict[int, tuple]) -> bool:
+    """Whether a tool track (``label``, ``boxes`` by timestamp) is still the object ``link``."""
+    shared = [ts for ts in boxes if ts in link.boxes]
+    return label == link.label and bool(shared) and \
+        all(box_iou(tuple(boxes[ts]), tuple(link.boxes[ts])) >= SAME_DRAWING_IOU for ts in shared)
+
+
+def _statements_in_force(wh: Warehouse, clip: str, task_id: str) -> tuple[list[int], dict[str, DrawnAs]]:
+    """(tracks said to be no object, {tool id of a drawn object said to be an existing track: that
+    object}) of the manual-track task's answer in force."""
     not_objects, same_as = manual_answer_statements(wh, clip, task_id)
     if not same_as:
         return sorted(not_objects), {}
-    rows = current_answers(wh, "manual_track", [clip], task_id).to_pylist()
-    source = {r["object_index"]: r["source_id"] for r in rows if r["task_id"] == task_id and r["source_id"]}
-    return sorted(not_objects), {source[i]: track for i, track in same_as.items() if i in source}
+    objects: dict[int, list[dict]] = {}
+    for r in current_answers(wh, "manual_track", [clip], task_id).to_pylist():
+        if r["task_id"] == task_id and r["source_id"] and r["object_index"] in same_as:
+            objects.setdefault(r["object_index"], []).append(r)
+    return sorted(not_objects), {rs[0]["source_id"]: DrawnAs(same_as[i], rs[0]["label"], {r["timestamp_us"]: tuple(r["box"]) for r in rs})
+                                 for i, rs in objects.items()}
 
 
 def frame_count_warnings(tracks: list[ToolTrack], frames: ClipFrames, mode: FrameMapMode) -> list[str]:
