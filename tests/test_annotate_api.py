@@ -763,3 +763,71 @@ def test_layers_that_cannot_be_rendered_are_a_one_line_503_and_odd_media_names_a
         assert client.get("/media/" + "x" * 300).status_code == 404
         assert client.get("/media/a%00b").status_code == 404
         assert client.get("/api/next", params={"clip": "nope"}).status_code == 404
+
+
+def test_a_verdict_or_none_of_these_is_not_moved_onto_a_pose_or_candidates_nobody_saw(lwh):
+    """A verification answer names no model nor pose, and "none of these" no candidate: each
+    validated against any task that replaced its own, so an Accept given to track 0 posed as m0a
+    was recorded against a rerun's m0b, posed elsewhere, mirrored. Unchanged items still move."""
+    from schemas.labels import Pose
+    from test_labels import _tasks
+
+    cs, ve = _tasks()[1], _tasks()[3]
+    moved_pose = Pose(translation=(1.5, 0.0, 4.0), rotation=(0.0, 1.0, 0.0, 0.0), scale=(2.0, 2.0, 2.0), is_mirrored=True)
+    write_task(lwh, dataclasses.replace(ve, task_id="c1.ve2", created_at="2026-01-01T00:05:00+00:00",
+                                        items=(dataclasses.replace(ve.items[0], cad_id="m0b", pose=moved_pose), *ve.items[1:])))
+    write_task(lwh, dataclasses.replace(cs, task_id="c1.cs2", created_at="2026-01-01T00:05:00+00:00", items=(
+        dataclasses.replace(cs.items[0], candidates=cs.items[0].candidates[::-1]), *cs.items[1:])))
+    verdict = lambda t: {"kind": "verification", "clip": CLIP, "task_id": "c1.ve",  # noqa: E731
+                         "answers": [{"track_id": t, "verdict": "accept"}]}
+    with _client(lwh, Requests()) as client:
+        posed_anew = client.post("/api/answers", json=verdict(0))
+        assert posed_anew.status_code == 409 and "track 0 is posed anew there (m0b)" in posed_anew.json()["detail"], posed_anew.text
+        same = client.post("/api/answers", json=verdict(1))
+        assert same.status_code == 200 and same.json()["task_id"] == "c1.ve2", same.text
+        none_of_others = client.post("/api/answers", json=_one(0, None))
+        assert none_of_others.status_code == 409 and "track 0 has other candidates there" in none_of_others.json()["detail"]
+        assert client.post("/api/answers", json=_one(0, "m0a")).status_code == 200  # a model chosen: still one of them
+        assert client.post("/api/answers", json=_one(1, None)).status_code == 200  # the same candidates: moved
+    assert len(_label_files(lwh)) == 3
+
+
+def test_two_apps_on_one_warehouse_do_not_both_take_an_answer_to_one_item(lwh):
+    """Each annotator may run their own app on a shared warehouse: the check that nothing was
+    answered since the page loaded, the write and the ingest were one step within an app only, so
+    two answers to one item at once were both taken and the later silently replaced the other."""
+    with _client(lwh, Requests()) as first, _client(lwh, Requests()) as second:
+        for track in (0, 1, 2):
+            as_of = first.get(f"/api/tasks/{CLIP}/c1.cs").json()["as_of"]
+            go = threading.Barrier(2)
+
+            def send(client, cad_id):
+                go.wait()
+                return client.post("/api/answers", json=_one(track, cad_id), params={"as_of": as_of}).status_code
+
+            with ThreadPoolExecutor(2) as pool:
+                codes = sorted(pool.map(send, (first, second), (f"m{track}a", f"m{track}b")))
+            assert codes == [200, 409], (track, codes)
+    assert len(_label_files(lwh)) == 3
+
+
+def test_an_answer_committed_whose_clicks_table_failed_to_update_is_saved_and_its_clip_resumed(lwh, monkeypatch):
+    """Fault injection: the warehouse's ``write`` of ``correspondences`` raises OSError after the
+    answer was committed. It was a 500 "written but not ingested", though in force: the page's
+    second try met a 409 against its own answer, and the clip (whose run rewrites the table) was
+    never resumed."""
+    real = Warehouse.write
+
+    def failing(self, name, *args, **kwargs):
+        if name == "correspondences":
+            raise OSError(28, "No space left on device")
+        return real(self, name, *args, **kwargs)
+
+    runs = Requests()
+    monkeypatch.setattr(Warehouse, "write", failing)
+    with _client(lwh, runs) as client:
+        r = client.post("/api/answers", json=payload("correspondences"), params={"as_of": ""})
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+    assert r.status_code == 200, r.text
+    assert any("the correspondences table was not updated" in w and "No space left" in w for w in r.json()["warnings"])
+    assert runs.clips == [CLIP] and current_answers(lwh, "correspondences", [CLIP]).num_rows > 0

@@ -14,7 +14,10 @@ An answer to a task that a rerun replaced goes to the newest task of its kind wh
 (:class:`Conflict` otherwise), and a page says which answers it saw (``as_of``,
 :func:`answers_as_of`): an item answered by someone else since then is a :class:`Conflict`, not a
 silent replacement of their answer; the same answer by the same annotator (a page that sent it
-again, the reply to the first lost) is said saved, and nothing is written.
+again, the reply to the first lost) is said saved, and nothing is written. The check, the write and
+the ingest hold the clip's :func:`answers_lock`, which every app over the warehouse takes. A
+verdict or a "none of these" is moved to a replacing task only where the model, pose or candidates
+it judged are the same there (:func:`_changed_under`).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from tasks.human.label_format import MAX_LABEL_BYTES, LabelError, one_line
 from tasks.human.label_ingest import DEFAULT_COPLANAR_TOL, IngestReport, ingest_labels, ingest_validated
 from tasks.human.labels import ClipFacts, latest_tasks, utc_now, validate_label, withdrawn_why
 from warehouse import Warehouse, atomic_write_bytes
+from warehouse.store import check_name, file_lock
 
 LABELS_DIR = "labels"
 """Folder of the app's label files under the warehouse root (one subfolder per clip)."""
@@ -142,11 +146,33 @@ def _retargeted(payload: dict, annotator: str | None, newest: str, facts: ClipFa
     else :class:`Conflict`."""
     data = label_bytes({**payload, "task_id": newest}, annotator)
     try:
-        return data, validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
+        lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
+        if (why := _changed_under(lf, facts.task(lf.clip, replaced), facts.task(lf.clip, newest))) is not None:
+            raise LabelError(why)
     except LabelError as e:
         raise Conflict(f"task {replaced} was replaced by task {newest} (the pipeline ran again), which this answer "
                        f"does not fit ({e}): this answer was not saved; the queue opens task {newest} (reloading this page "
                        "opens the replaced task again)") from None
+    return data, lf
+
+
+def _changed_under(lf: Any, old: Any, new: Any) -> str | None:
+    """Why an answer to task ``old`` that validates against ``new`` (its replacement) still does
+    not hold there, or None: a verdict judged a model and pose (the answer names neither), and
+    "none of these" judged a list of candidates; either changed under it is what nobody saw."""
+    if old is None or new is None or lf.kind not in ("verification", "cad_selection"):
+        return None
+    before, after = ({it.track_id: it for it in t.items} for t in (old, new))
+    for a in lf.label.answers:
+        was, now = before.get(a.track_id), after.get(a.track_id)
+        if was is None or now is None:
+            continue
+        if lf.kind == "verification" and (was.cad_id, was.mesh_path, was.pose) != (now.cad_id, now.mesh_path, now.pose):
+            return f"track {a.track_id} is posed anew there ({now.cad_id}): the verdict was given on the pose shown before"
+        if lf.kind == "cad_selection" and a.cad_id is None and \
+                [c.cad_id for c in was.candidates] != [c.cad_id for c in now.candidates]:
+            return f"track {a.track_id} has other candidates there: 'none of these' was said of those shown before"
+    return None
 
 
 def _essence(doc: Any) -> Any:
@@ -205,29 +231,47 @@ def submit(wh: Warehouse, payload: Any, *, annotator: str | None, lock: threadin
     with lock:  # one writer: file names, ingest times and the answer tables stay consistent
         facts = ClipFacts(wh)
         lf = validate_label("answer", facts=facts, data=data, max_bytes=MAX_LABEL_BYTES)
-        asked, moved = lf.task_id, []
-        newest = latest_tasks(wh, lf.clip).get(lf.kind)
-        if newest is not None and newest["task_id"] != asked and (why := withdrawn_why(newest)) is not None:
-            raise Conflict(f"task {asked} was withdrawn (the pipeline ran again and asks nothing of this kind now: "
-                           f"{why}): this answer was not saved")
-        if newest is not None and newest["task_id"] != asked:
-            data, lf = _retargeted(payload, annotator, newest["task_id"], facts, asked)
-            moved = [f"task {asked} was replaced by task {lf.task_id} (the pipeline ran again): the answer went to it"]
-        if as_of is not None and (saved := _check_unseen(wh, lf, {asked, lf.task_id}, as_of, json.loads(data))) is not None:
-            repeat = "this answer was saved already (sent again, the reply to it lost on the way): nothing written"
-            path = saved["source_path"]
-            with contextlib.suppress(ValueError):
-                path = wh.relative(Path(path))
-            return Submitted(path, lf.clip, lf.kind, lf.task_id, [*moved, repeat], {})
-        path = _free_path(folder_root / lf.clip, lf.task_id)
-        atomic_write_bytes(path, data)
-        try:  # the file as validated (its bytes), not parsed again
-            report = ingest_validated(wh, [replace(lf, path=path)], facts, coplanar_tol=coplanar_tol)
-        except Exception as e:  # noqa: BLE001  (any failure past the write: the file waits for the next start)
-            raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
-    if report.errors or not report.ingested:
+        with answers_lock(wh, lf.clip):
+            return _submit_clip(wh, payload, data, lf, facts, annotator, as_of, folder_root, coplanar_tol)
+
+
+def answers_lock(wh: Warehouse, clip: str):
+    """The lock (``_locks/_answers/<clip>.lock``) under which an app checks that no answer came
+    since the page loaded, writes its answer and ingests it: every app over the warehouse takes it
+    (one per annotator, on one shared warehouse), else two answers to one item both passed the
+    check and the later silently replaced the other. Not the ingest's own :func:`labels_lock`,
+    which it takes inside."""
+    return file_lock(wh.root / "_locks" / "_answers" / f"{check_name(clip)}.lock")
+
+
+def _submit_clip(wh: Warehouse, payload: Any, data: bytes, lf: Any, facts: ClipFacts, annotator: str | None,
+                 as_of: str | None, folder_root: Path, coplanar_tol: float) -> Submitted:
+    """:func:`submit` of a validated answer ``lf`` (its bytes ``data``), under the clip's :func:`answers_lock`."""
+    asked, moved = lf.task_id, []
+    newest = latest_tasks(wh, lf.clip).get(lf.kind)
+    if newest is not None and newest["task_id"] != asked and (why := withdrawn_why(newest)) is not None:
+        raise Conflict(f"task {asked} was withdrawn (the pipeline ran again and asks nothing of this kind now: "
+                       f"{why}): this answer was not saved")
+    if newest is not None and newest["task_id"] != asked:
+        data, lf = _retargeted(payload, annotator, newest["task_id"], facts, asked)
+        moved = [f"task {asked} was replaced by task {lf.task_id} (the pipeline ran again): the answer went to it"]
+    if as_of is not None and (saved := _check_unseen(wh, lf, {asked, lf.task_id}, as_of, json.loads(data))) is not None:
+        repeat = "this answer was saved already (sent again, the reply to it lost on the way): nothing written"
+        path = saved["source_path"]
+        with contextlib.suppress(ValueError):
+            path = wh.relative(Path(path))
+        return Submitted(path, lf.clip, lf.kind, lf.task_id, [*moved, repeat], {})
+    path = _free_path(folder_root / lf.clip, lf.task_id)
+    atomic_write_bytes(path, data)
+    try:  # the file as validated (its bytes), not parsed again
+        report = ingest_validated(wh, [replace(lf, path=path)], facts, coplanar_tol=coplanar_tol)
+    except Exception as e:  # noqa: BLE001  (any failure past the write: the file waits for the next start)
+        raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
+    if not report.ingested:
         raise IngestFailed(_not_ingested(path, report.errors))
-    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(report.warnings), dict(report.rows))
+    # committed, though a table kept from the answers may not have been updated (the clip's run rewrites it)
+    return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(report.warnings) + list(report.errors),
+                     dict(report.rows))
 
 
 def ingest_pending(wh: Warehouse, lock: threading.Lock, labels_dir: Path | None = None,
