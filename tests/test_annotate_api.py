@@ -52,6 +52,17 @@ def payload(kind: str) -> dict:
     return doc
 
 
+def _ran(wh: Warehouse) -> None:
+    """Record a stage run of the clip started now, as a resume does (:class:`Requests` runs nothing):
+    an app starting later finds no answer newer than the clip's last run to resume."""
+    import datetime as dt
+
+    from conftest import table_rows
+
+    wh.write("runs", CLIP, table_rows("runs", [{"clip": CLIP, "run_id": f"r-{time.time_ns()}", "stage": "verification",
+                                                 "status": "paused", "started_at": dt.datetime.now(dt.timezone.utc)}]))
+
+
 def _label_files(wh: Warehouse) -> list:
     return sorted((wh.root / "labels").rglob("*.json")) if (wh.root / "labels").exists() else []
 
@@ -552,6 +563,7 @@ def test_the_worker_warms_up_before_its_first_resume_and_goes_on_if_that_fails(l
     def broken() -> str:
         raise ImportError("no module named torch")
 
+    _ran(lwh)  # what a real resume records: else the next start resumes the clip answered above
     runs = Requests()
     resumer = Resumer(config, run=runs, warm=broken)
     with TestClient(create_app(config, annotator="tester", resumer=resumer)) as client:
@@ -831,3 +843,25 @@ def test_an_answer_committed_whose_clicks_table_failed_to_update_is_saved_and_it
     assert r.status_code == 200, r.text
     assert any("the correspondences table was not updated" in w and "No space left" in w for w in r.json()["warnings"])
     assert runs.clips == [CLIP] and current_answers(lwh, "correspondences", [CLIP]).num_rows > 0
+
+
+def test_a_clip_answered_since_its_last_run_is_resumed_when_the_app_starts(lwh, tmp_path):
+    """The resume queue is in memory: an answer taken while the worker was busy (another clip, the
+    warm-up) was never resumed once the app stopped, nor by the next start, though the app said
+    "a clip it ran resumes on the next start". Answers ingested by `cadestate labels ingest` with no
+    run since are resumed too; a clip whose run started after its newest answer is not."""
+    from tasks.human.label_ingest import ingest_labels
+
+    doc = {**good("verification")}
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "v.json").write_text(json.dumps(doc))
+    assert ingest_labels(lwh, tmp_path / "in").ok
+    runs = Requests()
+    with _client(lwh, runs) as client:
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+    assert runs.clips == [CLIP]
+    _ran(lwh)
+    again = Requests()
+    with _client(lwh, again) as client:
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
+    assert again.clips == []

@@ -56,7 +56,7 @@ from fastapi.staticfiles import StaticFiles
 
 from cadestate.config import Config
 from cadestate.webapp import queue
-from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, submit
+from cadestate.webapp.answers import Conflict, IngestFailed, answered_since_run, answers_as_of, ingest_pending, submit
 from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
@@ -154,7 +154,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     async def lifespan(app: FastAPI):
         worker.start()
         report = ingest_pending(wh, lock, coplanar_tol=tol)  # answers a crash left un-ingested
-        for clip in report.clips if report else []:
+        for clip in sorted({*(report.clips if report else []), *answered_since_run(wh)}):
             worker.request(clip)
         app.state.pending_errors = list(report.errors) if report else []  # shown on the start page too
         for line in app.state.pending_errors:
