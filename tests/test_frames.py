@@ -128,6 +128,19 @@ def test_cameras_between_the_frames_inside_the_clip_fail_at_ingest(wh, small_cli
     assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs" / "small").exists()
 
 
+def test_cameras_on_one_frame_fail_at_ingest(wh, small_clip, tmp_path):
+    """A camera file in milliseconds (0, 67, 133, ...): every camera lay within 3 ms of the first
+    frame, so the clip was ingested with every pose on one image."""
+    cams = parse_camera_file(small_clip.cameras_path)
+    ms = tmp_path / "ms.txt"
+    write_camera_file(ms, CameraTrack(cams.url, cams.timestamps_us // 1000, cams.intrinsics, cams.world_to_camera))
+    with pytest.raises(CameraFileError, match=rf"^{ms}:3: timestamp {cams.timestamps_us[1] // 1000} µs falls on the same "
+                                              r"frame of .*small.mp4 as line 2's \(0 µs\): each camera needs a frame of "
+                                              r"its own \(timestamps in milliseconds, not µs\?\)"):
+        ingest(wh, small_clip.video_path, ms)
+    assert wh.read("clips").num_rows == 0 and not (wh.root / "inputs" / "small").exists()
+
+
 def test_corrupt_video_fails_clearly_at_ingest(wh, small_clip, tmp_path):
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(np.random.default_rng(0).bytes(50_000))

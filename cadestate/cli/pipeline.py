@@ -38,7 +38,7 @@ def ingest(
         help="Dataset split of these clips: train, val, test ([manual_tracks] splits, val and test by default, get "
              "the manual-track task). Default: a clip ingested before keeps its split, a new one is train. "
              "Changing it reruns what depends on it.")] = None,
-    time_offset_us: Annotated[int, typer.Option("--time-offset-us", min=0, help=(
+    time_offset_us: Annotated[int, typer.Option("--time-offset-us", min=0, max=2**63 - 1, help=(
         "Subtract N µs from every camera timestamp to find its frame in the video (RealEstate10K counts from the "
         "start of the full YouTube video; a clip cut from it starts at 0). Kept in `clips`; timestamps stay as written."))] = 0,
     align_start: Annotated[bool, typer.Option("--align-start", help=(

@@ -36,7 +36,8 @@ def cameras_stage(wh: Warehouse, cfg: CamerasConfig, source: ClipSource, cameras
 
     path = sfm_cameras_path(wh, source.clip)
     path.parent.mkdir(parents=True, exist_ok=True)
-    result = run_sfm(source.video, cfg, source.intrinsics, url=_sfm_url(wh, source), work_dir=wh.root)
+    with wh.staging() as work_dir:  # its frames (gigabytes) go with a killed run: a later write sweeps _staging/
+        result = run_sfm(source.video, cfg, source.intrinsics, url=_sfm_url(wh, source), work_dir=work_dir)
     report = sfm_report(result) | {"given_intrinsics": list(source.intrinsics) if source.intrinsics else None}
     atomic_write_bytes(path.with_name(SFM_REPORT_FILE), json.dumps(report).encode())
     write_camera_file(path, result.track)

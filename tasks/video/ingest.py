@@ -235,6 +235,12 @@ def _check_frame_times(track: CameraTrack, video: Path, cameras: Path, offset: i
     bad = np.flatnonzero(np.abs(nearest - targets) > tolerance_us)
     if bad.size:
         refuse(int(bad[0]), int(nearest[bad[0]]), int(targets[bad[0]]))
+    shared = np.flatnonzero(np.diff(nearest) == 0)  # cameras a few ms apart: a file in milliseconds passed whole
+    if shared.size:
+        i = int(shared[0])
+        raise CameraFileError(str(cameras), i + 3, (
+            f"timestamp {int(track.timestamps_us[i + 1])} µs falls on the same frame of {video} as line {i + 2}'s "
+            f"({int(nearest[i])} µs): each camera needs a frame of its own (timestamps in milliseconds, not µs?)"))
 
 
 def check_clip_inputs(video: Path, cameras: Path, time_offset_us: int = 0, align_start: bool = False,
