@@ -868,6 +868,33 @@ def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_pa
     assert lwh.read("label_files").num_rows == 2 and lwh.read("verification_labels").num_rows == 2
 
 
+def test_an_answer_committed_while_another_ingest_waits_for_the_clip_comes_before_it(lwh, tmp_path):
+    """The answer times were taken before the clip's lock: an ingest that waited for it while
+    another committed wrote an older time than that other's, so the file committed last never came
+    in force (and two ingests in one clock tick put two answers in force). Here the main thread
+    holds the lock and commits bob's answer as an ingest does, while alice's ingest waits."""
+    import threading
+    import time
+
+    from tasks.human.answers_in_force import labels_lock
+    from tasks.human.label_ingest import _commit_clip, _ingest_times, prepare_file, IngestReport
+
+    alice = _edit("cad_selection", lambda x: x.update(annotator="alice", answers=[{"track_id": 0, "cad_id": "m0b"}]))
+    bob = _edit("cad_selection", lambda x: x.update(annotator="bob", answers=[{"track_id": 0, "cad_id": "m0a"}]))
+    reports = []
+    waiting = threading.Thread(target=lambda: reports.append(ingest_labels(lwh, put(tmp_path / "a", "a.json", alice))))
+    with labels_lock(lwh, CLIP):
+        waiting.start()
+        time.sleep(0.5)  # alice's ingest is at the lock
+        lf = validate_label(put(tmp_path / "b", "b.json", bob), lwh)
+        (at,) = _ingest_times(lwh, 1, None, [CLIP])
+        assert _commit_clip(lwh, CLIP, [prepare_file(lwh, lf, at, ClipFacts(lwh))], IngestReport())
+    waiting.join(30)
+    assert reports and reports[0].ingested, reports
+    times = {r["annotator"]: r["ingested_at"] for r in lwh.read("label_files").to_pylist()}
+    assert times["alice"] > times["bob"], times
+    assert [r["cad_id"] for r in current_answers(lwh, "cad_selection", [CLIP]).to_pylist() if r["track_id"] == 0] == ["m0b"]
+
 
 def test_validate_checks_a_folder_as_ingest_reads_it(lwh, tmp_path):
     """`labels validate` of a folder refuses what `labels ingest` of it refuses (a ring closed by

@@ -410,15 +410,20 @@ def drop_uncommitted(wh: Warehouse, clip: str) -> int:
 def _ingest(wh: Warehouse, accepted: list[LabelFile], facts: ClipFacts, report: IngestReport, coplanar_tol: float,
             now: dt.datetime | None) -> IngestReport:
     """Ingest the ``accepted`` files (valid, new) into ``report``: batched per clip and table."""
-    accepted = sorted(accepted, key=_order)
-    by_clip: dict[str, list[PreparedFile]] = {}
-    for lf, at in zip(accepted, _ingest_times(wh, len(accepted), now, sorted({lf.clip for lf in accepted}))):
-        try:
-            by_clip.setdefault(lf.clip, []).append(prepare_file(wh, lf, at, facts, coplanar_tol))
-        except WRITE_ERRORS as e:
-            _failed(report, lf, e)
-    for clip, files in sorted(by_clip.items()):
-        with labels_lock(wh, clip):  # another ingest of the same files commits them once: checked again here
+    by_clip: dict[str, list[LabelFile]] = {}
+    for lf in sorted(accepted, key=_order):
+        by_clip.setdefault(lf.clip, []).append(lf)
+    for clip, lfs in sorted(by_clip.items()):
+        # another ingest of the same files commits them once: checked again here; and the times are
+        # taken here, after every answer another process committed (taken before, a file committed
+        # last could carry an older time than one committed meanwhile, and never come in force)
+        with labels_lock(wh, clip):
+            files = []
+            for lf, at in zip(lfs, _ingest_times(wh, len(lfs), now, [clip])):
+                try:
+                    files.append(prepare_file(wh, lf, at, facts, coplanar_tol))
+                except WRITE_ERRORS as e:
+                    _failed(report, lf, e)
             try:
                 if removed := drop_uncommitted(wh, clip):
                     report.warnings.append(f"clip {clip}: removed {removed} label row(s) that an earlier ingest wrote "
