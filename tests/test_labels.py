@@ -147,7 +147,20 @@ def _edit(kind, fn):
     return doc
 
 
+def _many_then_one_again(d: dict) -> None:
+    """600 chairs, one box each at its own place on one of the clip's frames, then answers[5]
+    drawn again: a box shifted by a pixel on its frame, and one on a frame it has no box on."""
+    d["answers"] = [{"label": "chair", "boxes": [{"timestamp_us": STAMPS[i % 10],
+                                                  "box": [(i // 10) % 30 / 32, i // 300 / 4, (i // 10) % 30 / 32 + 0.03, i // 300 / 4 + 0.2]}]}
+                    for i in range(600)]
+    again = copy.deepcopy(d["answers"][5])
+    again["boxes"][0]["box"][1] += 1 / W
+    again["boxes"].append({"timestamp_us": STAMPS[9], "box": [0.9, 0.9, 0.95, 0.95]})
+    d["answers"].append(again)
+
+
 MALFORMED = [
+    ("manual_track", _many_then_one_again, r"\$\.answers\[600\]: the same object as answers\[5\] \(class 'chair'"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][3].__setitem__("x", float("nan")),
      r"\$\.answers\[0\]\.keyframes\[0\]\.points\[3\]\.x: not a finite number"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][0]["points"][1].__setitem__("y", 1.2),
