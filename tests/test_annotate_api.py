@@ -865,3 +865,16 @@ def test_a_clip_answered_since_its_last_run_is_resumed_when_the_app_starts(lwh, 
     with _client(lwh, again) as client:
         assert client.app.state.resumer.wait_idle(CLIP, 10)
     assert again.clips == []
+
+
+def test_a_body_larger_than_an_answer_may_be_is_refused_before_it_is_read(lwh):
+    """FastAPI read and parsed a body of any size before the answer's check refused it (24 MB: 7 s
+    and 250 MB of memory), for anyone who could reach the app."""
+    from tasks.human.label_format import MAX_LABEL_BYTES
+
+    big = b'{"kind": "cad_selection", "pad": "' + b"x" * MAX_LABEL_BYTES + b'"}'
+    with _client(lwh, Requests()) as client:
+        r = client.post("/api/answers", content=big, headers={"Content-Type": "application/json"})
+        assert r.status_code == 413 and r.json()["detail"].startswith("the request's body is 20.0 MB, more than an answer"), r.text
+        assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
+    assert len(_label_files(lwh)) == 1

@@ -424,6 +424,27 @@ def _claim_retried(app: App) -> None:
     assert 2 in {t["kind"]: t for t in held["tasks"]}["cad_selection"]["held_tracks"]
 
 
+def test_two_pages_opened_on_one_task_link_at_once_are_given_two_items(app, tmp_path):
+    """Two people open the start page's link of a task (no track): both read it with the first item
+    free, the other's page claims it in between, and this one was given it too (a toast, then a
+    409 after the work). The page goes on to the next free item it can claim."""
+    with _own_app(app, tmp_path / "wh") as own:
+        page = own.page
+
+        def claimed_meanwhile(route) -> None:
+            response = route.fetch()
+            other = page.request.post(f"{own.url}/api/claims", data={"clip": CLIP, "kind": "cad_selection", "track_id": 0},
+                                      headers={"X-Cadestate-Client": "the-other-page"})
+            assert other.ok and not other.json()["held_by_other"]
+            route.fulfill(response=response)
+
+        page.route(f"**/api/tasks/{CLIP}/c1.cs", claimed_meanwhile)
+        page.goto(f"{own.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs")
+        page.wait_for_selector(".cand")
+        assert page.inner_text("#track-title").startswith("Track 1"), page.inner_text("#track-title")
+        assert page.locator("#held-elsewhere").count() == 0
+
+
 def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_small_window(app):
     """At 800 x 600 the key-frame stays in view while the person scrolls to the tenth candidate and
     clicks it (stacked, the candidates were below the frame, which left the window)."""
@@ -435,6 +456,47 @@ def test_cad_selection_keeps_the_key_frame_in_view_beside_the_candidates_in_a_sm
     box = page.locator("#keyframe").bounding_box()
     assert page.inner_text("#choice") == "chosen: m2j" and page.evaluate("window.scrollY") > 0
     assert box["y"] >= 0 and box["y"] + box["height"] <= 600, box
+    page.close()
+
+
+def test_a_task_done_leaves_only_enter_for_the_next_task(app):
+    """The task's own shortcuts stayed on once its page was replaced by "Task done": every key threw
+    (n, arrows, o, x, /), and Enter ran the gone task's submit beside opening the next."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(f"{app.url}/annotate/manual_track?clip={CLIP}&task=c1.mt")
+    page.wait_for_function("() => document.querySelector('#draw') && document.querySelector('#draw').width > 0")
+    page.keyboard.press("Enter")  # nothing is missing
+    page.wait_for_selector("#next-link", timeout=30_000)
+    for key in ("n", "ArrowRight", "ArrowLeft", "o", "x", "/"):
+        page.keyboard.press(key)
+    page.wait_for_timeout(300)
+    assert errors == [], errors
+    with page.expect_navigation():
+        page.keyboard.press("Enter")
+    assert "/annotate/" in page.url and "manual_track" not in page.url and errors == [], (page.url, errors)
+    page.close()
+
+
+PHONE_PAGES = [("/", "#clips tbody tr"), (f"/annotate/manual_track?clip={CLIP}&task=c1.mt", "#keyframe"),
+               (f"/annotate/cad_selection?clip={CLIP}&task=c1.cs", ".cand"),
+               (f"/annotate/correspondences?clip={CLIP}&task=c1.co", "#keyframe"),
+               (f"/annotate/verification?clip={CLIP}&task=c1.ve", "#stack[data-ready]")]
+
+
+def test_no_page_is_wider_than_a_phone(app):
+    """At 375 x 667 the candidates were five a row (the fifth cut off) and the header ran 90 px
+    past the window's edge: every page fits the width, the candidates two a row."""
+    page = app.page.context.browser.new_page(viewport={"width": 375, "height": 667})
+    for path, ready in PHONE_PAGES:
+        page.goto(app.url + path)
+        page.wait_for_selector(ready)
+        wide = page.evaluate("() => [document.documentElement.scrollWidth, Math.max(...[...document.querySelectorAll("
+                             "'header *')].map(e => e.getBoundingClientRect().right))]")
+        assert wide[0] <= 375 and wide[1] <= 375, (path, wide)
+        if ".cand" in ready:
+            assert len(page.evaluate("getComputedStyle(document.querySelector('.grid')).gridTemplateColumns").split()) == 2
     page.close()
 
 

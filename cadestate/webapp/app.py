@@ -60,7 +60,7 @@ from cadestate.webapp.answers import Conflict, IngestFailed, answered_since_run,
 from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
-from tasks.human.label_format import SAME_POINT_M, LabelError, one_line
+from tasks.human.label_format import MAX_LABEL_BYTES, SAME_POINT_M, LabelError, one_line
 from tasks.human.labels import latest_tasks, withdrawn_why
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
@@ -165,6 +165,16 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         worker.stop()
 
     app = FastAPI(title="cadestate annotate", lifespan=lifespan)
+
+    @app.middleware("http")
+    async def bounded(request: Request, call_next):
+        """A body larger than a label file may be is refused before it is read (FastAPI read and
+        parsed any size, then the answer's check refused it: 7 s and 250 MB of memory for 24 MB)."""
+        size = request.headers.get("content-length", "")
+        if size.isdigit() and int(size) > MAX_LABEL_BYTES:
+            return JSONResponse({"detail": f"the request's body is {int(size) / 1e6:.1f} MB, more than an answer may be "
+                                           f"({MAX_LABEL_BYTES / 1e6:.0f} MB)"}, status_code=413)
+        return await call_next(request)
 
     @app.exception_handler(RequestValidationError)
     async def refused(request: Request, e: RequestValidationError) -> JSONResponse:

@@ -58,10 +58,17 @@ export function timer() {
   return () => Math.round(((total + (since === null ? 0 : performance.now() - since)) / 1000) * 10) / 10;
 }
 
+let keymap = null;  // the shortcuts in force (null: none set yet, no listener)
+
 // Keyboard shortcuts: {"a": fn, "ArrowRight": fn, ...}; ignored while typing in a field. A drop-down
 // lets go of the keys once a choice is made in it with the mouse (it kept them, and the page's letters
-// chose options); one stepped through with the arrow keys keeps them until Tab or Escape.
+// chose options); one stepped through with the arrow keys keeps them until Tab or Escape. A second call
+// replaces the first's keys: a task done keeps only Enter for the next task (the task's own, left on,
+// threw on every key once its page was gone).
 export function shortcuts(map) {
+  const installed = keymap !== null;
+  keymap = map;
+  if (installed) return;
   let tabbedTo = null, byPointer = false;  // the control Tab moved the focus to (a click moves it elsewhere)
   document.addEventListener("keyup", (ev) => { if (ev.key === "Tab") tabbedTo = document.activeElement; }, true);
   document.addEventListener("pointerdown", () => { tabbedTo = null; byPointer = true; }, true);
@@ -76,8 +83,8 @@ export function shortcuts(map) {
     // a button or link reached with Tab keeps its own Enter and Space (the page's Enter submitted instead);
     // one focused by a click leaves Enter to the page, as its help says
     if ((ev.key === "Enter" || ev.key === " ") && tabbedTo === ev.target) return;
-    if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = map["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
-    const f = map[ev.key];
+    if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = keymap["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
+    const f = keymap[ev.key];
     if (f) { ev.preventDefault(); f(ev); }
   });
 }
@@ -132,10 +139,23 @@ export async function loadTask() {
   const items = data.task.items || [];
   const waiting = items.filter((it) => !data.answered.includes(it.track_id));
   const free = waiting.filter((it) => !data.held.includes(it.track_id));  // not being done in another tab or browser
-  let item = items.find((it) => String(it.track_id) === p.track) || free[0] || waiting[0] || items[0];
+  const item = items.find((it) => String(it.track_id) === p.track) || await firstUnclaimed(data.task, free) || waiting[0] || items[0];
   $("#progress").textContent = items.length ? `${items.length - waiting.length} of ${items.length} answered` : "";
   holdItem({clip: data.task.clip, kind: data.task.kind, track_id: item ? item.track_id : -1});
   return {...data, item, waiting, p};
+}
+
+// The first of the free items that this tab can claim: another page that read the task as this one
+// did (two people on one start-page link) claims the first one in between, and both were given it.
+async function firstUnclaimed(task, free) {
+  for (const it of free) {
+    try {
+      if (!(await api("/api/claims", {clip: task.clip, kind: task.kind, track_id: it.track_id})).held_by_other) return it;
+    } catch (e) {
+      return it;  // the app unreachable: the page's own claim tries again
+    }
+  }
+  return null;
 }
 
 const CLAIM_RETRY_MS = 10000;  // a claim that got no answer is tried again this soon (not left unclaimed for the page's life)
@@ -210,6 +230,7 @@ export function showWaiting(clip) {
   const started = performance.now();
   const panel = el("div", {id: "pipeline", class: "panel"}, el("b", {}, "Task done. "), el("span", {id: "pipeline-state"}, "the pipeline resumes the clip…"));
   $("main").replaceChildren(panel);
+  shortcuts({});
   const poll = async () => {
     const s = $("#pipeline-state");
     let c;
