@@ -262,6 +262,13 @@ def test_discover_clips_pairs_videos_with_camera_files(tmp_path, small_clip):
     shutil.copy(small_clip.video_path, tmp_path / "b.mp4")
     with pytest.raises(FileNotFoundError, match="b.mp4: no camera file b.txt"):
         discover_clips(tmp_path)
+    (tmp_path / "b.mp4").rename(tmp_path / "b.m4v")  # a suffix not read: its camera file was skipped without a word
+    shutil.copy(small_clip.cameras_path, tmp_path / "b.txt")
+    (tmp_path / "notes.txt").write_text("not a camera file\n1 2 3\n")
+    with pytest.raises(FileNotFoundError, match=r"b.txt: a camera file with no video beside it \(b.mp4, b.mkv"):
+        discover_clips(tmp_path)
+    (tmp_path / "b.txt").unlink()
+    assert discover_clips(tmp_path) == [(tmp_path / "living room é.mp4", tmp_path / "living room é.txt")]
     with pytest.raises(WarehouseError, match="invalid clip name"):
         ClipSource("bad name", tmp_path / "a.mp4", tmp_path / "a.txt")
 

@@ -185,7 +185,7 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _is_camera_line(line: str) -> bool:
+def is_camera_line(line: str) -> bool:
     """Whether ``line`` is 19 numbers: a camera line, which a URL line never is."""
     fields = line.split()
     return len(fields) == len(COLUMNS) and all(map(_is_number, fields))
@@ -226,7 +226,7 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
         raise CameraFileError(source, 0, "empty file")
     if not lines[0].strip():
         raise CameraFileError(source, 1, "line 1 (the URL) is empty")
-    if _is_camera_line(lines[0]):
+    if is_camera_line(lines[0]):
         raise CameraFileError(source, 1, "line 1 is a camera line (19 numbers), not the video URL: "
                                          "the URL line is missing")
     first = lines[0].split()

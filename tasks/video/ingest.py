@@ -32,7 +32,7 @@ from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256, known_file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
-from tasks.video.camera_file import CameraFileError, CameraTrack, parse_camera_file
+from tasks.video.camera_file import CameraFileError, CameraTrack, is_camera_line, parse_camera_file
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.video.decode import VideoInfo, decode_at, frame_times_us, probe_video
 from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
@@ -97,7 +97,9 @@ def discover_clips(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
     ``<name>.txt``. The clips are named from their camera files (:func:`official_clip_name`), not
     from the file names, which may hold any character (``living room.mp4``).
 
-    A video without a camera file is an error (naming it), since SfM cameras come later.
+    A video without a camera file is an error (naming it), since SfM cameras come later; so is a
+    camera file (a ``.txt`` whose second line is a camera line) without a video of a suffix read
+    (a ``.m4v`` beside it): its clip was left out of the batch without a word.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -111,7 +113,21 @@ def discover_clips(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
         if not cameras.is_file():
             raise FileNotFoundError(f"{video}: no camera file {cameras.name} beside it")
         pairs.append((video, cameras))
+    paired = {c for _, c in pairs}
+    for text in sorted(p for p in folder.iterdir() if p.suffix == ".txt" and p not in paired and _is_camera_file(p)):
+        raise FileNotFoundError(f"{text}: a camera file with no video beside it ({', '.join(text.stem + s for s in VIDEO_SUFFIXES)}): "
+                                "its clip would be left out")
     return pairs
+
+
+def _is_camera_file(path: Path) -> bool:
+    """Whether ``path``'s second line is a camera line (its first is the video's URL)."""
+    try:
+        with path.open("rb") as f:
+            lines = [f.readline(4096) for _ in range(2)]
+    except OSError:
+        return False
+    return is_camera_line(lines[1].decode("utf-8", "replace"))
 
 
 def ingest_inputs_hash(clip: str, video_sha256: str, cameras_sha256: str, split: str = DEFAULT_SPLIT,
