@@ -58,6 +58,10 @@ def test_a_video_alone_is_an_sfm_clip_named_after_its_file(tmp_path, small_clip,
 @pytest.mark.parametrize("args, message", [
     (["--intrinsics", "250,250,160"], "--intrinsics must be fx,fy,cx,cy in pixels"),
     (["--intrinsics", "250,250,900,96"], "--intrinsics: principal point (900, 96) px is outside the 320x192 frame"),
+    # said after all of SfM's work, as column 2 of a camera file the user never wrote
+    (["--intrinsics", "100000,250,160,96"], "--intrinsics: fx = 100000 px is not a field of view of 1 to 179 degrees on "
+                                            "the 320x192 frame (1.396 to 1.833e+04 px)"),
+    (["--intrinsics", "250,0.5,160,96"], "--intrinsics: fy = 0.5 px is not a field of view"),
     (["--time-offset-us", "5"], "--time-offset-us and --align-start need a camera file"),
 ])
 def test_sfm_options_are_checked(tmp_path, small_clip, started, args, message):

@@ -32,7 +32,8 @@ from cadestate.geometry import camera_to_world
 from cadestate.lineage import digest, file_sha256, known_file_sha256
 from schemas.core import DEFAULT_SPLIT
 from tasks.stage import StageContext, StageDef, StageOutput
-from tasks.video.camera_file import CameraFileError, CameraTrack, is_camera_line, parse_camera_file
+from tasks.video.camera_file import (FOCAL_RANGE, FOV_RANGE_DEG, CameraFileError, CameraTrack, is_camera_line,
+                                     parse_camera_file)
 from tasks.video.clip_names import ClipNameError, check_clip_name, derive_clip_name, shared_video_ids, video_id_of
 from tasks.video.decode import VideoInfo, decode_at, frame_times_us, probe_video
 from tasks.video.inputs import clip_split, ingest_source_digest, registered_inputs
@@ -421,6 +422,13 @@ def sfm_source(video: Path, given: str | None = None,
         if not (0 <= cx <= info.width and 0 <= cy <= info.height):
             raise CameraFileError(str(video), 0, f"--intrinsics: principal point ({cx:g}, {cy:g}) px is outside the "
                                                  f"{info.width}x{info.height} frame")
+        low, high = FOCAL_RANGE  # checked here, not by the SfM camera file made after all of SfM's work
+        for axis, f, size in (("fx", fx, info.width), ("fy", fy, info.height)):
+            if not low <= f / size <= high:
+                raise CameraFileError(str(video), 0, (
+                    f"--intrinsics: {axis} = {f:g} px is not a field of view of {FOV_RANGE_DEG[0]:g} to "
+                    f"{FOV_RANGE_DEG[1]:g} degrees on the {info.width}x{info.height} frame ({low * size:.4g} to "
+                    f"{high * size:.4g} px)"))
     return ClipSource(name, video, None, intrinsics=intrinsics)
 
 
