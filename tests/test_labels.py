@@ -881,6 +881,18 @@ def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_pa
     assert lwh.read("label_files").num_rows == 2 and lwh.read("verification_labels").num_rows == 2
 
 
+def test_a_copy_of_a_file_refused_is_refused_too_not_already_ingested(lwh, tmp_path):
+    """Two copies of one file that fails the warehouse's checks: the second was "already
+    ingested", though those bytes never were (and its clip counted as one whose answers are in)."""
+    bad = _edit("cad_selection", lambda x: x["answers"][0].__setitem__("track_id", 5))
+    d = tmp_path / "in"
+    put(d, "a.json", bad), put(d, "b.json", bad)
+    report = ingest_labels(lwh, d)
+    assert report.duplicates == [] and report.duplicate_clips == [] and not report.ingested
+    assert len(report.errors) == 2 and "unknown track 5" in report.errors[0], report.errors
+    assert report.errors[1] == f"{d / 'b.json'}: the same bytes as {d / 'a.json'}, not ingested either (its error above)"
+
+
 def test_an_answer_committed_while_another_ingest_waits_for_the_clip_comes_before_it(lwh, tmp_path):
     """The answer times were taken before the clip's lock: an ingest that waited for it while
     another committed wrote an older time than that other's, so the file committed last never came

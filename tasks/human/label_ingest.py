@@ -258,11 +258,14 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
     the order ingest applies them (:func:`_order`, the newest answer in force), its links going
     into ``facts`` for the files after it (a ring across files is seen as it would stand)."""
     checked: list[CheckedFile] = []
-    batch: set[str] = set()
+    batch: dict[str, int] = {}  # the batch's new bytes: the file that has them first
+    copies: list[tuple[int, str]] = []
     for path in paths:
         try:
             data = read_limited(path, max_bytes)
             if (clip := known.get(sha := hashlib.sha256(data).hexdigest())) is not None:
+                if sha in batch:
+                    copies.append((len(checked), sha))
                 checked.append(CheckedFile(path, ingested_for=clip, in_batch=sha in batch))
                 continue
             lf = validate_label(path, data=data, max_bytes=max_bytes)  # the format alone
@@ -270,7 +273,7 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
             checked.append(CheckedFile(path, error=str(e)))
             continue
         known[sha] = lf.clip
-        batch.add(sha)
+        batch[sha] = len(checked)
         checked.append(CheckedFile(path, lf=lf))
     if facts is None:
         return checked
@@ -282,6 +285,10 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
             checked[i] = CheckedFile(checked[i].path, error=str(e))
             continue
         facts.take(label)
+    for i, sha in copies:  # a copy of a file refused here is not "already ingested": those bytes never were
+        if (original := checked[batch[sha]]).error is not None:
+            checked[i] = CheckedFile(checked[i].path, error=f"{checked[i].path}: the same bytes as {original.path}, "
+                                                           "not ingested either (its error above)")
     return checked
 
 
