@@ -46,6 +46,10 @@ CVAT_CASES = [
     (CVAT.replace('encoding="utf-8"', 'encoding="no-such-codec"'), r": not a readable XML file: unknown encoding"),
     (CVAT[:200], r": not well-formed XML"),
     (CVAT.replace('frame="0"', 'frame="90"').replace('frame="3"', 'frame="93"'), r": none of its 1 track\(s\) has a box on a frame"),
+    # a track split and drawn again: named as the export's tracks, not as answers of a label in no file
+    (CVAT.replace('</annotations>', '<track id="7" label="chair" source="manual"><box frame="0" xtl="33" ytl="19.2" xbr="160" '
+                  'ybr="96" outside="0" occluded="0" keyframe="1"/></track></annotations>'),
+     r"xml: /annotations/track\[2\] \(cvat:7\): the same object as /annotations/track\[0\] \(cvat:0\) \(class 'chair'"),
 ]
 
 

@@ -424,7 +424,13 @@ def tracks_to_label(wh: Warehouse, tracks: list[ToolTrack], clip: str, task_id: 
     created = created_at or dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     doc = label_document("manual_track", clip, task.task_id, answers, annotator=f"import:{source}" if source else None,
                          created_at=created, **({"not_objects": not_objects} if not_objects else {}))
-    check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
+    try:
+        check_label(parse_label(json.dumps(doc).encode(), name)[0], ClipFacts(wh), name)
+    except LabelError as e:  # its paths are the label's, which is in no file: named as the export's tracks
+        where = {t.source_id: t.where.removeprefix(f"{name}: ") for t in tracks if t.where}
+        named = [f"{where[a['source_id']]} ({a['source_id']})" if a["source_id"] in where else a["source_id"] for a in answers]
+        raise LabelError(re.sub(r"\$\.answers\[(\d+)\]|answers\[(\d+)\]",
+                                lambda m: named[int(m.group(1) or m.group(2))], str(e))) from None
     kept = [f"{name}: keeps the answer in force's 'track N is not an object' for track(s) "
             f"{', '.join(map(str, not_objects))} (put them in the label file to change them)"] if not_objects else []
     if linked := [f"{a['source_id']} is track {a['same_as_track']}" for a in answers if "same_as_track" in a]:
