@@ -11,7 +11,8 @@ import pytest
 
 from conftest import table_rows
 from fuzz.harness import assert_clean_error, run_cli
-from tasks.human.label_import import import_labelstudio, write_label
+from tasks.human.label_import import write_label
+from tasks.human.label_import_labelstudio import import_labelstudio
 from tasks.human.label_import_cvat import import_cvat
 from tasks.human.labels import LabelError
 from test_labels import CLIP, CVAT, H, STAMPS, W, base_wh, lwh, put  # noqa: F401  (fixtures)

@@ -23,7 +23,8 @@ from schemas import TABLES
 from schemas.labels import (KINDS, CadCandidate, CadSelectionItem, CadSelectionTask, CorrespondenceItem, CorrespondenceTask,
                             ExistingTrack, KeyframeView, ManualTrackTask, Pose, TimedBox, VerificationItem, VerificationTask,
                             json_schema, schema_file_name)
-from tasks.human.label_import import import_labelstudio, write_label
+from tasks.human.label_import import write_label
+from tasks.human.label_import_labelstudio import import_labelstudio
 from tasks.human.label_import_cvat import import_cvat, read_cvat
 from tasks.human.label_format import parse_task
 from tasks.human.answers_in_force import answers_digest, current_answers, label_history

@@ -306,7 +306,7 @@ def labels_import_labelstudio(
       cadestate labels import-labelstudio export.json --clip room_0 --map Couch=sofa
       cadestate labels ingest labels/
     """
-    from tasks.human.label_import import import_labelstudio
+    from tasks.human.label_import_labelstudio import import_labelstudio
 
     result = import_labelstudio(ctx.obj.open_warehouse(must_exist=True), file, clip, task, frame_map=frame_map.value,
                                 label_map=_label_map(label_map))
