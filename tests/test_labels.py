@@ -882,6 +882,23 @@ def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_pa
     assert lwh.read("label_files").num_rows == 2 and lwh.read("verification_labels").num_rows == 2
 
 
+def test_an_answer_given_before_the_one_it_replaces_is_warned_of(lwh, tmp_path):
+    """A folder synced late: Alice's 09:00 "accept" ingested after Bob's 11:00 "reject" came in
+    force over it without a word (the answer ingested last is in force, whenever it was given)."""
+    bob = _edit("verification", lambda x: x.update(annotator="bob", created_at="2026-01-01T11:00:00+00:00",
+                                                    answers=[{"track_id": 0, "verdict": "reject"}]))
+    alice = _edit("verification", lambda x: x.update(annotator="alice", created_at="2026-01-01T09:00:00+00:00",
+                                                      answers=[{"track_id": 0, "verdict": "accept"}, {"track_id": 1, "verdict": "accept"}]))
+    first = put(tmp_path / "b", "bob.json", bob)
+    assert ingest_labels(lwh, first).warnings == []
+    report = ingest_labels(lwh, put(tmp_path / "a", "alice.json", alice))
+    assert report.ingested and report.warnings == [
+        f"{tmp_path / 'a' / 'alice.json'}: its answer for track 0 was given at 2026-01-01 09:00:00 UTC, before the one it "
+        f"replaces ({first}, given at 2026-01-01 11:00:00 UTC): the answer ingested last is in force, whenever it was given"]
+    later = _edit("verification", lambda x: x.update(created_at="2026-01-01T12:00:00+00:00"))
+    assert ingest_labels(lwh, put(tmp_path / "c", "carol.json", later)).warnings == []
+
+
 def test_a_copy_of_a_file_refused_is_refused_too_not_already_ingested(lwh, tmp_path):
     """Two copies of one file that fails the warehouse's checks: the second was "already
     ingested", though those bytes never were (and its clip counted as one whose answers are in)."""

@@ -8,19 +8,23 @@ prints them; the files are ingested):
 - a manual-track answer that leaves out objects of the one it replaces (the newest manual-track
   answer of a task is the whole answer: two tools' exports are not added up);
 - correspondences for a track that leave out key-frames clicked by the answer they replace (the
-  newest answer of a track is its whole answer: two sessions' clicks are not added up).
+  newest answer of a track is its whole answer: two sessions' clicks are not added up);
+- an answer given before the one it replaces (the answer ingested last is in force, whenever it
+  was given: a folder synced late put a 09:00 "accept" over an 11:00 "reject" without a word).
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 
 from tasks.human.labels import LabelFile, latest_tasks
 from warehouse import Warehouse
 
-Work = dict[tuple[str, int | None], tuple[str, list]]
+Work = dict[tuple[str, int | None], tuple[str, list, dt.datetime | None]]
 """(task id, track id; None for a manual-track answer) -> (the file's path, what it did: the
-objects' tool ids (None each when it gives none), or the track's clicked key-frames)."""
+objects' tool ids (None each when it gives none), or the track's clicked key-frames (empty for
+other kinds), and when its answers were given: None when it does not say)."""
 
 
 def _work(kind: str, answers: list) -> dict[int | None, list]:
@@ -30,7 +34,7 @@ def _work(kind: str, answers: list) -> dict[int | None, list]:
     if kind == "correspondences":
         return {a["track_id"]: [k.get("timestamp_us") for k in a.get("keyframes", [])]
                 for a in answers if isinstance(a, dict) and "track_id" in a}
-    return {}
+    return {a["track_id"]: [] for a in answers if isinstance(a, dict) and "track_id" in a}
 
 
 def _dropped(earlier: list, now: list) -> int:
@@ -52,8 +56,8 @@ class LabelWarnings:
 
     def _clip_work(self, clip: str) -> Work:
         if clip not in self._work:
-            rows = self.wh.read("label_files", [clip], filters=[("kind", "in", ["manual_track", "correspondences"])],
-                                columns=["kind", "task_id", "source_path", "ingested_at", "document"]).to_pylist()
+            rows = self.wh.read("label_files", [clip], columns=["kind", "task_id", "source_path", "ingested_at", "created_at",
+                                                                "document"]).to_pylist() if self.wh.has_partition("label_files", clip) else []
             work: Work = {}
             for r in sorted(rows, key=lambda r: r["ingested_at"]):
                 try:
@@ -61,7 +65,7 @@ class LabelWarnings:
                 except (ValueError, AttributeError):
                     answers = []
                 for track, did in _work(r["kind"], answers if isinstance(answers, list) else []).items():
-                    work[(r["task_id"], track)] = (r["source_path"], did)
+                    work[(r["task_id"], track)] = (r["source_path"], did, r["created_at"])
             self._work[clip] = work
         return self._work[clip]
 
@@ -82,8 +86,11 @@ class LabelWarnings:
                                    "says what waits)"))
         work = self._clip_work(lf.clip)
         document = json.loads(lf.document)
+        older = []
         for track, did in _work(lf.kind, document["answers"]).items():
-            before, earlier = work.get((lf.task_id, track), ("", []))
+            before, earlier, given = work.get((lf.task_id, track), ("", [], None))
+            if given is not None and lf.created_at is not None and lf.created_at < given:
+                older.append((track, before, given))
             if (lost := _dropped(earlier, did)):
                 if track is None:
                     out.append(f"{lf.path}: its answer replaces that of {before} for task {lf.task_id} and leaves out "
@@ -93,5 +100,12 @@ class LabelWarnings:
                     out.append(f"{lf.path}: its clicks for track {track} replace those of {before} and leave out {lost} "
                                f"of its key-frame(s): the newest answer of a track is its whole answer, so give every "
                                "key-frame's clicks in one file")
-            work[(lf.task_id, track)] = (str(lf.path), did)
+            work[(lf.task_id, track)] = (str(lf.path), did, lf.created_at)
+        if older:
+            track, before, given = older[0]
+            which = "its answer" if track is None else f"its answer for track {track}" + (
+                f" (and {len(older) - 1} more)" if len(older) > 1 else "")
+            out.append(f"{lf.path}: {which} was given at {lf.created_at:%Y-%m-%d %H:%M:%S} UTC, before the one it replaces "
+                       f"({before}, given at {given:%Y-%m-%d %H:%M:%S} UTC): the answer ingested last is in force, whenever "
+                       "it was given")
         return out
