@@ -586,3 +586,24 @@ def test_clicks_of_a_track_no_longer_asked_do_not_answer_the_task(hwh, tmp_path)
     again = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
     assert again.status == "paused" and "0 of 1 tracks have correspondences" in again.message, again.message
     assert [it["track_id"] for it in _task(hwh, again.message)["items"]] == [0]
+
+
+def test_correspondence_key_frames_are_frames_whose_camera_sfm_registered(tmp_path):
+    """SfM interpolates the cameras of frames it did not register (and holds the ends: frozen while
+    the video moves); clicks there solve the pose through a made-up camera. The correspondence task's
+    key-frames leave such frames out where the track has others; the CAD selection's (no camera
+    used) and a track seen only there keep them."""
+    from tasks.human.shared import track_keyframes
+    from tasks.tracking.clip_tracks import ClipTrack, TrackBox
+
+    wh = Warehouse(tmp_path / "wh")
+    held = {0, 1, 2, 7, 8, 9}  # the ends, held
+    wh.write("frames", "c", table_rows("frames", [{"clip": "c", "timestamp_us": 1000 * i, "frame_index": i, "image_path": f"f{i}.jpg",
+                                                  "camera_interpolated": i in held} for i in range(10)]))
+    box = (0.1, 0.1, 0.5, 0.5)
+    tracks = {1: ClipTrack(1, "chair", False, tuple(TrackBox(i, 1000 * i, box, "chair") for i in range(10))),
+              2: ClipTrack(2, "chair", False, tuple(TrackBox(i, 1000 * i, box, "chair") for i in (0, 1)))}
+    posed = track_keyframes(wh, "c", tracks, [1, 2], 3, posed=True)
+    assert [v.frame_index for v in posed[1]] == [3 + i for i in evenly_spaced(4, 3)]  # of frames 3 to 6
+    assert [v.frame_index for v in posed[2]] == list(evenly_spaced(2, 3))
+    assert [v.frame_index for v in track_keyframes(wh, "c", tracks, [1], 3)[1]] == list(evenly_spaced(10, 3))

@@ -31,7 +31,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
     if not chosen:
         return _nothing_asked(wh, clip, digest("correspondence_task", "nothing chosen"), "no track has a chosen CAD model")
     tracks = clip_tracks(wh, clip)
-    keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes)
+    keyframes = track_keyframes(wh, clip, tracks, sorted(chosen), cfg.keyframes, posed=True)
     # one view gives no depth: a track seen on one frame can never be posed (pose's single_keyframe)
     track_ids = [t for t in sorted(chosen) if len(keyframes[t]) >= 2]
     one_frame = len(chosen) - len(track_ids)

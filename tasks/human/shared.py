@@ -39,13 +39,20 @@ def image_size(wh: Warehouse, clip: str) -> tuple[int, int]:
 
 
 def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], track_ids: list[int],
-                    k: int) -> dict[int, tuple[KeyframeView, ...]]:
+                    k: int, posed: bool = False) -> dict[int, tuple[KeyframeView, ...]]:
     """Per track of ``track_ids`` (automatic or manual, from ``tracks``: :func:`clip_tracks`),
-    ``k`` evenly spaced frames of its boxes with its box there."""
-    frames = {f["frame_index"]: f for f in wh.read("frames", [clip], columns=["timestamp_us", "frame_index", "image_path"]).to_pylist()}
+    ``k`` evenly spaced frames of its boxes with its box there. ``posed``: only frames whose camera
+    SfM registered (``frames.camera_interpolated`` not true), where the track has any: the clicks of
+    a key-frame solve the pose through its camera, and an interpolated one (held at the clip's ends:
+    frozen while the video moves) is a made-up camera."""
+    columns = ["timestamp_us", "frame_index", "image_path", "camera_interpolated"]
+    frames = {f["frame_index"]: f for f in wh.read("frames", [clip], columns=columns).to_pylist()}
     out = {}
     for t in track_ids:
         boxes = tracks[t].boxes if t in tracks else ()
+        if posed:
+            registered = tuple(b for b in boxes if not (frames.get(b.frame_index) or {}).get("camera_interpolated"))
+            boxes = registered or boxes
         views = []
         for i in evenly_spaced(len(boxes), k):
             frame = frames.get(boxes[i].frame_index)
