@@ -94,14 +94,14 @@ class PrefectConfig:
 class ScheduleConfig:
     """What `cadestate serve` schedules on the Prefect server (not part of lineage)."""
 
-    inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4, .mkv, .webm, .mov or .avi + <name>.txt) that the build_dataset deployment ingests.")
+    inbox: str = _opt("data/inbox", "Folder of new clips (<name>.mp4, .mkv, .webm, .mov or .avi + <name>.txt) that the build_dataset deployment ingests.", check=_non_empty)
     inbox_cron: str = _opt("*/10 * * * *", "Cron schedule of the build_dataset deployment (UTC).", check=cron_problem)
     inbox_split: str = _opt("train", "Dataset split of the inbox's clips (val and test clips get the manual-track task).")
-    labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.")
+    labels_inbox: str = _opt("data/labels_inbox", "Folder of label files that the ingest_labels deployment ingests.", check=_non_empty)
     labels_cron: str = _opt("*/5 * * * *", "Cron schedule of the ingest_labels deployment (UTC).", check=cron_problem)
     stable_s: float = _opt(10.0, "A clip's files are taken once neither was modified (mtime) for this long "
                                  "(or at once when <name>.done exists): half-copied files wait.", lo=0, hi=86400)
-    report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).")
+    report: str = _opt("data/report", "Folder the dataset_report deployment writes the statistics to (stats.json, HTML report).", check=_non_empty)
     report_cron: str = _opt("0 3 * * *", "Cron schedule of the dataset_report deployment (UTC).", check=cron_problem)
     failed_runs: int = _opt(3, "A clip whose same stage failed this many runs in a row, with the config and code of now, "
                                "is not run again by the inbox (it failed again every tick) until its files, the config "

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import re
 from pathlib import Path
 from types import ModuleType
 
@@ -32,7 +33,7 @@ def cron_problem(value: str) -> str | None:
     or @daily and the like), or None."""
     if not _croniter().croniter.is_valid(value):
         return "not a cron string (minute hour day-of-month month day-of-week, e.g. \"*/10 * * * *\")"
-    if any(field.casefold() in ("r", "h") for field in value.split()):
+    if any(piece.casefold() in ("r", "h") for piece in re.split(r"[\s,/()-]+", value)):  # R/10 too: new minutes each loop
         return "random (R) and hashed (H) cron fields are not supported by Prefect"
     if not value.strip().startswith("@") and len(value.split()) != 5:  # croniter takes a sixth, seconds: 60 runs a minute
         return f"{len(value.split())} fields, not five (minute hour day-of-month month day-of-week)"

@@ -66,7 +66,8 @@ ANNOTATE = f"annotate_clip/{ANNOTATE_DEPLOYMENT}"
 INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT = "build_dataset", "ingest_labels", "dataset_report"
 DEPLOYMENTS = (ANNOTATE_DEPLOYMENT, INBOX_DEPLOYMENT, LABELS_DEPLOYMENT, REPORT_DEPLOYMENT)
 """The names of the four deployments :func:`deployments` makes, in its order."""
-ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED]
+ACTIVE = [StateType.SCHEDULED, StateType.PENDING, StateType.RUNNING, StateType.PAUSED, StateType.CANCELLING]
+"""States of a clip's run that keep the inbox from starting another (one being cancelled still runs)."""
 
 
 class _FailedRunSaidOnce(logging.Filter):
@@ -216,10 +217,9 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None =
             if (p.clip, sha256[p.video], sha256[p.cameras]) not in known or unfinished(wh, p.clip, runs_of(p.clip))]
     if config is None or not config.schedule.failed_runs:
         return todo
-    known_clips = {clip for clip, _, _ in known}
     kept = []
-    for p in todo:
-        if p.clip in known_clips and (stage := failing(runs_of(p.clip), config)) is not None:
+    for p in todo:  # new bytes are a new try (its failures were of the files before)
+        if (p.clip, sha256[p.video], sha256[p.cameras]) in known and (stage := failing(runs_of(p.clip), config)) is not None:
             (warn or get_run_logger().warning)(
                 f"clip {p.clip}: its stage {stage} failed {config.schedule.failed_runs} runs in a row with this config and "
                 "code: not run again until its files, the config or the code change (`cadestate status` shows why; "

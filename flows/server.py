@@ -184,8 +184,12 @@ def _starting(root: Path) -> Iterator[None]:
     """Hold ``<warehouse>/_prefect/start.lock`` (blocking): two ``server start`` at once each
     started a server, the second's record replaced the first's, and the one left running was
     recorded nowhere (``server stop`` did not stop it)."""
-    prefect_dir(root).mkdir(parents=True, exist_ok=True)
-    with open(prefect_dir(root) / START_LOCK, "a") as f:
+    try:
+        prefect_dir(root).mkdir(parents=True, exist_ok=True)
+        f = open(prefect_dir(root) / START_LOCK, "a")
+    except OSError as e:  # a warehouse path that is a file, or not writable: one line, not a traceback
+        raise ServerError(f"{prefect_dir(root)}: cannot make the server's folder: {e.strerror or e}") from None
+    with f:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         yield
 

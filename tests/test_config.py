@@ -55,6 +55,9 @@ def test_defaults_are_valid_and_documented():
         ({"label_similarity": {"template": "a photo"}}, "[label_similarity] template: must contain '{}', where the name goes"),
         ({"label_similarity": {"template": "{"}}, "[label_similarity] template: not a format string"),
         ({"warehouse": {"root": " "}}, "[warehouse] root: must not be empty"),
+        ({"schedule": {"inbox": ""}}, "[schedule] inbox: must not be empty"),  # was the folder serve ran in
+        ({"schedule": {"labels_inbox": ""}}, "[schedule] labels_inbox: must not be empty"),
+        ({"schedule": {"report": ""}}, "[schedule] report: must not be empty"),
         ({"embed": {"crop_size": 100}}, "[embed] crop_size: must be a multiple of 32"),  # it failed at the embed stage
         ({"a\nb": {}}, "unknown section ['a\\nb']"),
         ({"detect": {"classes": [1] * 1000}}, "[detect] classes: expected a list of strings, got [" + "1, " * 19 + "1,..."),
@@ -165,13 +168,15 @@ def test_config_check_checks_the_detect_model(tmp_path):
 
 CRON_STRINGS = ["*/10 * * * *", "0 3 * * *", "@daily", "@hourly", "0 3 * * mon-fri", "0 0 L * *", "0 0 * * 1#2",
                 "*/5 * * * * 30", "bad cron", "61 * * * *", "* * * *", "0 24 * * *", "R 3 * * *", "0 r * * *",
-                "H 3 * * *", "", "0 0 31 2 *", "*/0 * * * *", "0 0 1 jan,jul *"]
+                "H 3 * * *", "", "0 0 31 2 *", "*/0 * * * *", "0 0 1 jan,jul *", "R/10 * * * *", "0 h/2 * * *",
+                "0 0 * * thu", "0 0 * * mon-fri,sun"]
 
 
 STRICTER = {"*/5 * * * * 30": "6 fields, not five", "0 3 * * * *": "6 fields, not five",
-            "0 0 31 2 *": "names no date that exists"}
+            "0 0 31 2 *": "names no date that exists", "R/10 * * * *": "random (R) and hashed (H)"}
 """Cron strings Prefect takes that misbehave on its server: a sixth field is seconds (one schedule
-ran 60 times a minute), and a date that never comes makes the scheduler log an error every loop."""
+ran 60 times a minute), a date that never comes makes the scheduler log an error every loop, and a
+random field with a step draws new minutes on each scheduler loop (runs at irregular times)."""
 
 
 @pytest.mark.parametrize("value", CRON_STRINGS)

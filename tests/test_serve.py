@@ -177,6 +177,12 @@ def test_a_clip_whose_stage_keeps_failing_is_not_run_again_until_its_config_or_c
     assert pairs_to_run(wh, [pair], changed, warned.append) == [pair]
     assert pairs_to_run(wh, [pair], dataclasses.replace(config, schedule=dataclasses.replace(config.schedule, failed_runs=0)),
                         warned.append) == [pair]
+    # its files replaced (the user fixed the bad file): the failures were the old bytes', it is run again
+    fixed = tmp_path / "fixed.txt"
+    fixed.write_text(small_clip.cameras_path.read_text() + "\n")
+    warned.clear()
+    assert pairs_to_run(wh, [dataclasses.replace(pair, cameras=fixed)], config, warned.append) == [
+        dataclasses.replace(pair, cameras=fixed)] and not warned
 
 
 def test_inbox_files_are_hashed_once_until_they_change(tmp_path, monkeypatch):

@@ -72,6 +72,15 @@ def test_prefect_failing_to_start_is_one_line(tmp_path, small_clip):
     assert len(errors) == 1 and "cadestate server start" in errors[0] and "[prefect] startup_timeout_s" in errors[0]
 
 
+def test_server_start_where_its_folder_cannot_be_made_is_one_line(tmp_path):
+    """A warehouse path under a file (or not writable) ended `server start` in a traceback."""
+    (tmp_path / "file").write_text("")
+    result = subprocess.run([sys.executable, "-m", "cadestate", "-w", str(tmp_path / "file" / "wh"), "server", "start"],
+                            capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert result.returncode == 1 and result.stderr == (f"error: {tmp_path / 'file' / 'wh' / '_prefect'}: cannot make the "
+                                                       "server's folder: Not a directory\n"), result.stderr
+
+
 def test_a_dead_prefect_api_url_is_one_line(tmp_path, small_clip):
     api = f"http://127.0.0.1:{free_port('127.0.0.1')}/api"  # bound, then released: nothing listens
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}, "PREFECT_API_URL": api}
