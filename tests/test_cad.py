@@ -639,6 +639,42 @@ def test_a_model_whose_texture_cannot_be_written_is_skipped_not_the_library(tmp_
     assert result.model is None and result.issues[0]["severity"] == "skipped" and "f32" in result.issues[0]["item"]
 
 
+def test_a_file_name_that_is_not_utf8_is_named_not_a_codec_error(tmp_path):
+    """A stray texture named in Latin-1 beside a library's models failed the whole library with
+    "'utf-8' codec can't encode character '\\udce9'", naming no file; a model's own such name is
+    refused naming it (the tables hold UTF-8 text only)."""
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(tmp_path / "cube.obj")
+    (tmp_path / "models.csv").write_text("id,class\ncube,chair\n")
+    (tmp_path / os.fsdecode(b"textur\xe9.png")).write_bytes(b"")
+    items = source_items("folder", tmp_path)
+    assert [i.item for i in items] == ["cube"] and len(items_digest(items)) == 16
+    model = tmp_path / "sn" / "03001627" / os.fsdecode(b"chaise-\xe9") / "models"
+    model.mkdir(parents=True)
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(model / "model_normalized.obj")
+    with pytest.raises(CadSourceError, match=r"chaise-\\xe9/models/model_normalized.obj: a model's file or folder name "
+                                             r"that is not UTF-8: rename it"):
+        source_items("shapenet", tmp_path / "sn")
+
+
+def test_a_model_of_too_long_an_id_or_beyond_float32_is_skipped_not_the_library(tmp_path):
+    """An id whose files' names pass 255 bytes raised out of ingest_item (the GLB written outside
+    its try) and failed every model of the library, or passed ingest by a few bytes and failed the
+    views; a mesh at 1e300 was stored as float32 infinities and read as fully symmetric."""
+    from tasks.cad.ingest import ingest_item
+
+    long_id = "oak_dining_chair_with_upholstered_seat_" * 6
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(tmp_path / "long.obj")
+    (tmp_path / "huge.obj").write_text("v 0 0 0\nv 1e300 0 0\nv 0 1e300 0\nv 0 0 1e300\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 4\n")
+    (tmp_path / "models.csv").write_text(f"id,class,file\n{long_id},chair,long.obj\nhuge,chair,huge.obj\n")
+    by_item = {item.item: item for item in folder_items(tmp_path)}
+    out = tmp_path / "out"
+    out.mkdir()
+    too_long = ingest_item(by_item[long_id], CadIngestConfig(samples=256), out)
+    assert too_long.model is None and "its id makes file names longer than 255 bytes" in too_long.issues[0]["problem"]
+    huge = ingest_item(by_item["huge"], CadIngestConfig(samples=256), out)
+    assert huge.model is None and "beyond float32's range" in huge.issues[0]["problem"] and not list(out.iterdir())
+
+
 def test_a_shapenet_synset_outside_the_vocabulary_is_named_in_the_message(tmp_path):
     """A ShapeNet pillow (03938244) is ingested as 'other': said once in the stage's message (a row per
     model would be thousands); a model folder without its mesh is a skipped item (it vanished without a trace)."""

@@ -125,6 +125,12 @@ def _is_textured(scene: trimesh.Scene) -> bool:
     return False
 
 
+MAX_FILE_NAME = 255
+"""Longest file name (bytes) of the file systems the warehouse lives on."""
+LONGEST_SUFFIX = "_00.png"
+"""The longest suffix a model's files add to its cad_id (its views: ``<cad_id>_NN.png``)."""
+
+
 @dataclass(frozen=True)
 class ItemResult:
     """What ingesting one item produced: its ``cad_models`` row (None when skipped), its surface
@@ -138,15 +144,20 @@ class ItemResult:
 def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResult:
     """Canonicalise one item, write ``out_dir/<cad_id>.glb``; never raises for a bad item."""
     issue = {"library": item.library, "item": item.item, "source_path": item.path}
+    if len(f"{item.cad_id}{LONGEST_SUFFIX}".encode()) > MAX_FILE_NAME:  # its files' names: it failed the whole library
+        return ItemResult(None, None, [{**issue, "severity": "skipped", "problem": (
+            f"its id makes file names longer than {MAX_FILE_NAME} bytes ({item.cad_id[:40]}...): give it a shorter one")}])
     try:  # through its GLB: a texture the exporter cannot write (a float TIFF) failed the whole library
         scene, missing = load_item(item)
         model = canonicalise(scene, item)
+        if not np.isfinite(np.asarray(model.mesh.vertices, np.float32)).all():  # stored as float32: inf, symmetric
+            raise ValueError("coordinates beyond float32's range (about 3e38)")
         points = sample_surface(model.mesh, cfg.samples, seed=0)
         symmetry = detect_symmetry(points, cfg.symmetry_tolerance)
         glb = model.scene.export(file_type="glb")
+        (out_dir / f"{item.cad_id}.glb").write_bytes(glb)
     except Exception as e:  # any unreadable item is reported and skipped
         return ItemResult(None, None, [{**issue, "severity": "skipped", "problem": f"{type(e).__name__}: {e}"}])
-    (out_dir / f"{item.cad_id}.glb").write_bytes(glb)
     problems = [f"missing or unreadable files (rendered without them): {', '.join(missing)}"] if missing else []
     if item.source == "folder" and item.cls == "other" and item.category.lower() != "other":
         problems.append(f"class {item.category!r} is none of the vocabulary's (tasks/cad/classes.py) nor a synonym of "

@@ -344,6 +344,9 @@ def source_items(kind: str, path: Path, library: str | None = None,
         items = list(folder_items(path, library))
     else:
         raise CadSourceError(f"unknown CAD source kind {kind!r} (sweethome3d, shapenet, folder)")
+    for item in items:  # its name goes into tables, which hold UTF-8 text only
+        if _shown(item.path) != item.path or _shown(item.item) != item.item:
+            raise CadSourceError(f"{_shown(item.path)}: a model's file or folder name that is not UTF-8: rename it")
     return unique_keys(items, held)
 
 
@@ -417,8 +420,15 @@ def items_digest(items: list[CadItem]) -> str:
     parts = []
     for f in sorted(files):
         stat = Path(f).stat() if Path(f).exists() else None
-        parts.append(f"{f}:{stat.st_size}:{stat.st_mtime_ns}" if stat else f"{f}:missing")
+        name = _shown(f)  # a stray texture named in Latin-1 failed the whole library, naming no file
+        parts.append(f"{name}:{stat.st_size}:{stat.st_mtime_ns}" if stat else f"{name}:missing")
     return digest(*(repr(item) for item in items), *parts)
+
+
+def _shown(path: str) -> str:
+    """``path`` as text that can be written: itself when it is UTF-8, else its bytes with the ones
+    that are not UTF-8 as escapes (``textur\\xe9.png``)."""
+    return path.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def default_source() -> Path:
