@@ -451,6 +451,23 @@ def test_export_official_round_trip(ingested, tmp_path):
         export_official(wh, out, show_progress=False)
 
 
+def test_attribution_keeps_the_catalogues_copyright_notices(tmp_path, capsys):
+    """CC BY asks that copyright notices be kept: the catalogue's licence line was cut to its SPDX
+    id, and ATTRIBUTION.csv lost "Copyright © 2003-2008 Andrew Kator & Jennifer Legaz" of 88 models."""
+    from tasks.cad.export import catalogue_notices
+
+    catalogues = {p.stem: str(p) for p in default_source().glob("*.sh3f")}
+    rows = [{"source": "sweethome3d", "source_path": f"{catalogues[name]}!{name}/model.obj"} for name in ("KatorLegaz", "Scopia")]
+    gone = str(tmp_path / "Moved.sh3f")
+    notices = catalogue_notices([*rows, {"source": "sweethome3d", "source_path": f"{gone}!a.obj"},
+                                 {"source": "folder", "source_path": str(tmp_path / "a.obj")}])
+    assert notices == {catalogues["KatorLegaz"]: "Creative Commons Attribution 3.0 United States license  Copyright © "
+                                                 "2003-2008 Andrew Kator & Jennifer Legaz",
+                       catalogues["Scopia"]: "Creative Commons Attribution 3.0 Unported license  © Emmanuel Puybaret / "
+                                             "eTeks and Scopia Visual Interfaces Systems"}
+    assert capsys.readouterr().err.startswith(f"warning: {gone}: cannot read its licence line for ATTRIBUTION.csv")
+
+
 def test_export_official_names_a_damaged_mesh(ingested, tmp_path):
     """A model whose mesh in the warehouse is damaged (or gone): one error naming the file, not a
     trimesh traceback ("incorrect header on GLB file", naming nothing), and nothing written."""

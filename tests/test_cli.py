@@ -317,7 +317,7 @@ def test_cad_ingest_sheet_export(tmp_path):
     export = runner.invoke(app, ["-w", w, "cad", "export-official", str(tmp_path / "official")])
     assert export.exit_code == 0 and (tmp_path / "official" / "04379243" / "mine.box.npz").is_file()
     credits = (tmp_path / "official" / "ATTRIBUTION.csv").read_text().splitlines()
-    assert credits == ["cad_id,library,name,licence,creator,source", "mine.box,mine,box,unknown,unknown,folder"]
+    assert credits == ["cad_id,library,name,licence,creator,source,notice", "mine.box,mine,box,unknown,unknown,folder,"]
     unknown = cli("-w", w, "cad", "export-official", str(tmp_path / "o2"), "--library", "nosuch")
     assert unknown.returncode == 2 and "no CAD library 'nosuch'" in unknown.stderr and "(libraries: mine)" in unknown.stderr
     import trimesh

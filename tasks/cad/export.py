@@ -26,6 +26,7 @@ import os
 import re
 import shutil
 import uuid
+import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,7 @@ import trimesh
 
 from cadestate.progress import progress
 from tasks.cad.classes import CLASSES
+from tasks.cad.sources import read_java_properties
 from tasks.stage import waits_for_people
 from warehouse import Warehouse
 from warehouse.store import warn
@@ -331,6 +333,22 @@ def triangle_soup(mesh_file: Path) -> np.ndarray:
     return np.concatenate([p.vertices[p.faces] for p in parts]).astype(np.float32)
 
 
+def catalogue_notices(models: list[dict]) -> dict[str, str]:
+    """{Sweet Home 3D catalogue: its licence line as written} of the catalogues ``models`` (rows of
+    ``cad_models``) come from: the line holds the copyright notice that CC BY asks to keep
+    ("Copyright © 2003-2008 Andrew Kator & Jennifer Legaz"), which the licence's SPDX id drops. A
+    catalogue that cannot be read any more (moved) gives none, said once."""
+    notices = {}
+    for archive in sorted({m["source_path"].split("!")[0] for m in models if m["source"] == "sweethome3d"}):
+        try:
+            with zipfile.ZipFile(archive) as z:
+                notices[archive] = read_java_properties(z.read("PluginFurnitureCatalog.properties")).get("license", "").strip()
+        except (OSError, KeyError, zipfile.BadZipFile) as e:
+            warn(f"{archive}: cannot read its licence line for ATTRIBUTION.csv's notice column ({e}): its models' "
+                 "notices are empty")
+    return notices
+
+
 def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = None, show_progress: bool = True) -> int:
     """Write the official layout of ``libraries`` (default: all) to ``out``; returns the model count."""
     out = Path(os.path.abspath(out))
@@ -340,7 +358,7 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
     if unknown:
         raise ExportError(f"no CAD library {unknown[0]!r} in {wh.root} (libraries: {', '.join(held) or 'none'})")
     models = wh.read("cad_models", partitions=libraries, columns=["cad_id", "class_id", "symmetry", "mesh_path", "library",
-                                                                  "name", "licence", "creator", "source"]).to_pylist()
+                                                                  "name", "licence", "creator", "source", "source_path"]).to_pylist()
     if not models:
         raise ExportError("no CAD model in the warehouse (run `cadestate cad ingest` first)")
     with temp_folder_beside(out) as tmp:
@@ -348,11 +366,13 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
         (tmp / "shapenet_classes.json").write_text(json.dumps(classes, indent=1))
         symmetry = {f"{m['class_id']}_{m['cad_id']}": m["symmetry"] for m in models}
         (tmp / "symmetry_dict.json").write_text(json.dumps(symmetry, indent=1, sort_keys=True))
+        notices = catalogue_notices(models)
         with open(tmp / "ATTRIBUTION.csv", "w", newline="", encoding="utf-8") as f:
-            columns = ["cad_id", "library", "name", "licence", "creator", "source"]
+            columns = ["cad_id", "library", "name", "licence", "creator", "source", "notice"]
             writer = csv.DictWriter(f, columns, extrasaction="ignore")
             writer.writeheader()
-            writer.writerows(sorted(models, key=lambda m: m["cad_id"]))
+            writer.writerows({**m, "notice": notices.get(m["source_path"].split("!")[0], "")}
+                             for m in sorted(models, key=lambda m: m["cad_id"]))
         for m in progress(models, total=len(models), description="export", enabled=show_progress):
             folder = tmp / m["class_id"]
             folder.mkdir(exist_ok=True)
