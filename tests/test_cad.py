@@ -726,6 +726,11 @@ def test_a_library_name_held_from_another_folder_is_refused_and_the_same_folder_
     other = [dataclasses.replace(i, path=str(tmp_path / "elsewhere" / Path(i.path).name)) for i in items]
     with pytest.raises(CliError, match=f"library 'testlib' already holds models from {mesh_folder}, not "):
         held_elsewhere(wh.root, other)
+    # A Sweet Home 3D library is named after its catalogue, and --library is refused for it: the same
+    # catalogue moved (another $CADESTATE_SH3D_DIR, a warehouse copied to another machine) was refused for good.
+    moved = [dataclasses.replace(i, source="sweethome3d", path=f"{tmp_path / 'elsewhere' / 'Lib.sh3f'}!{i.item}.obj")
+             for i in items]
+    held_elsewhere(wh.root, moved)
 
 
 def test_warnings_are_counted_in_the_message_and_a_mesh_in_millimetres_is_one(tmp_path):

@@ -112,6 +112,8 @@ def held_elsewhere(root: Path, items: list) -> None:
         return
     wh = Warehouse(root)
     for library in sorted({i.library for i in items} & set(wh.partitions("cad_models"))):
+        if all(i.source == "sweethome3d" for i in items if i.library == library):
+            continue  # named after its catalogue (sh3d-<catalogue>): the same catalogue moved (another $CADESTATE_SH3D_DIR)
         held = [p for p in wh.read("cad_models", partitions=[library], columns=["source_path"]).column(0).to_pylist()
                 if os.path.isabs(p)]  # stored relative by older versions: not comparable
         theirs, ours = Path(_root_of(held)) if held else None, Path(_root_of([i.path for i in items if i.library == library]))
