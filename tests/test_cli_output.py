@@ -283,3 +283,11 @@ def test_output_is_utf8_whatever_the_locale_says(tmp_path):
     done = subprocess.run([sys.executable, "-m", "cadestate", "labels", "schema", "--write", folder], capture_output=True,
                           env={**os.environ, "COLUMNS": "80"}, cwd=tmp_path)
     assert done.returncode == 0 and done.stdout.startswith(os.fsencode(folder)), done.stderr.decode()
+
+
+def test_tables_stay_whole_in_a_pipe_when_colour_is_forced(tmp_path):
+    """CI sets FORCE_COLOR (or TTY_COMPATIBLE), which makes Rich take a pipe for a terminal: `stages`
+    then cut its module names at 80 columns ("tasks.vide…") and broke descriptions a word a line."""
+    env = {**os.environ, "COLUMNS": "80", "FORCE_COLOR": "1"}
+    result = subprocess.run([sys.executable, "-m", "cadestate", "stages"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert result.returncode == 0 and "…" not in result.stdout and "tasks.video.cameras" in result.stdout, result.stdout[:2000]

@@ -50,7 +50,15 @@ class LineConsole(Console):
     @property
     def size(self) -> ConsoleDimensions:
         size = Console.size.fget(self)
-        return size if self.is_terminal else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
+        return size if self.is_terminal and self._on_a_terminal() else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
+
+    def _on_a_terminal(self) -> bool:
+        """Whether the output really is a terminal: Rich's ``is_terminal`` is also true in a pipe
+        under ``FORCE_COLOR`` or ``TTY_COMPATIBLE`` (CI sets them), where tables were cut at 80 columns."""
+        try:
+            return self.file.isatty()
+        except (AttributeError, ValueError):  # no such method, or a closed file
+            return False
 
     @size.setter
     def size(self, new_size: tuple[int, int]) -> None:
