@@ -52,9 +52,16 @@ class LineConsole(Console):
         size = Console.size.fget(self)
         return size if self.is_terminal and self._on_a_terminal() else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
 
+    def __init__(self, *args, force_terminal: bool | None = None, **kwargs) -> None:
+        super().__init__(*args, force_terminal=force_terminal, **kwargs)
+        self._told_terminal = force_terminal
+
     def _on_a_terminal(self) -> bool:
-        """Whether the output really is a terminal: Rich's ``is_terminal`` is also true in a pipe
-        under ``FORCE_COLOR`` or ``TTY_COMPATIBLE`` (CI sets them), where tables were cut at 80 columns."""
+        """Whether the output is a terminal: one the console was told it writes to, else a real one.
+        Rich's ``is_terminal`` is also true in a pipe under ``FORCE_COLOR`` or ``TTY_COMPATIBLE``
+        (CI sets them), where tables were cut at 80 columns."""
+        if self._told_terminal is not None:
+            return self._told_terminal
         try:
             return self.file.isatty()
         except (AttributeError, ValueError):  # no such method, or a closed file
