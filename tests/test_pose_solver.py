@@ -234,13 +234,6 @@ def test_coplanar_detection_and_ties():
     front = np.array([[0.2, 0.1, 0.5], [-0.3, 0.4, 0.5], [0.1, -0.2, 0.5]])
     assert coplanar_axis(np.concatenate([sides, front]), np.repeat([0, 1, 2], [4, 4, 3]), 2, 0.02) == -1
     assert coplanar_axis(np.concatenate([sides, sides[:3]]), np.repeat([0, 1, 2], [4, 4, 3]), 2, 0.02) == 0
-    # A slanted face (a chair's back leaning by 10 degrees) observes every scale: nothing is tied
-    # (its nearest axis z was, and the size came out 16 % off); 4 degrees is a face of z still.
-    for slant, axis in ((10, -1), (4, 2)):
-        lean = np.array([[x, np.cos(np.radians(slant)) * y, -np.sin(np.radians(slant)) * y]
-                         for x in (-0.5, 0.5) for y in (-0.5, 0.5)]) + [0.0, 0.0, 0.5]
-        assert coplanar_axis(np.concatenate([lean, (lean - lean.mean(0)) * 0.5 + lean.mean(0)]), np.repeat([0, 1], 4), 1, 0.02) == axis
-        assert coplanar_axis(np.concatenate([lean, lean @ rotation_y(180).T]), np.repeat([0, 1], 4), 2, 0.02) == axis
     s = tie_scales(torch.tensor([[1.0, 5.0, 3.0], [1.0, 5.0, 3.0]]), torch.tensor([[False, True, False], [False] * 3]),
                    torch.tensor([False, True]))
     assert s.tolist() == [[1.0, 2.0, 3.0], [2.0, 5.0, 2.0]]

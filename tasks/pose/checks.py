@@ -39,25 +39,11 @@ def _normal(points: np.ndarray, tol: float) -> np.ndarray | None:
     return vt[2] if sv[2] <= tol * sv[0] else None
 
 
-COPLANAR_AXIS_DEG = 5.0
-"""Largest angle between co-planar points' normal and a CAD axis for that axis's scale to be tied:
-the points of a slanted face (a chair's back leaning 10 to 30 degrees) observe the scale along the
-axis nearest its normal through the slant, and tying it there gave a wrong size (13 to 16 % off at
-10 and 20 degrees, 1 px of click noise) that the solver made up for by tilting the model."""
-
-
-def _axis(normal: np.ndarray) -> int:
-    """The CAD axis within :data:`COPLANAR_AXIS_DEG` of a unit ``normal``, or -1."""
-    k = int(np.argmax(np.abs(normal)))
-    return k if abs(normal[k]) >= np.cos(np.radians(COPLANAR_AXIS_DEG)) else -1
-
-
 def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: float) -> int:
     """The CAD axis (0 x, 1 y, 2 z) perpendicular to co-planar annotated points, or -1.
 
     Co-planar: all points (at least 4) lie on one plane within ``tol`` (relative to their spread);
-    the axis is the CAD axis within :data:`COPLANAR_AXIS_DEG` of its normal (none: a slanted face,
-    which observes every scale, ties nothing). A 2-way model's key-frames may carry the face and
+    the axis is the CAD axis nearest its normal. A 2-way model's key-frames may carry the face and
     its twin under the half turn about +Y (x, z -> -x, -z): there each key-frame with 4 or more
     points must be co-planar with the same nearest axis x or z, and all the points (those of every
     key-frame) must be co-planar once each key-frame's face is turned to the positive side of that axis. Turns about +Y keep
@@ -67,7 +53,7 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
     """
     xyz = np.asarray(xyz, np.float64)
     if len(xyz) >= 4 and (n := _normal(xyz, tol)) is not None:
-        return _axis(n)
+        return int(np.argmax(np.abs(n)))
     if symmetry != 2:
         return -1
     faces = [xyz[keyframe == f] for f in np.unique(keyframe)]
@@ -76,8 +62,8 @@ def coplanar_axis(xyz: np.ndarray, keyframe: np.ndarray, symmetry: int, tol: flo
         if len(p) >= 4:
             if (n := _normal(p, tol)) is None:
                 return -1
-            axes.append(_axis(n))
-    if not axes or len(set(axes)) != 1 or axes[0] in (-1, 1):
+            axes.append(int(np.argmax(np.abs(n))))
+    if not axes or len(set(axes)) != 1 or axes[0] == 1:
         return -1
     a = axes[0]  # every key-frame turned, those of fewer than 4 points too: their clicks off the plane untie
     turned = [p * np.array([-1.0, 1.0, -1.0]) if p[:, a].mean() < 0 else p for p in faces]
