@@ -263,22 +263,35 @@ def clip_notes(rows: Sequence[StageStatus]) -> list[str]:
 
 def clips_left_unrun(wh: Warehouse, config: Config, clips: Sequence[str]) -> list[str]:
     """The ``clips`` (those of label files ingested before, in their order) whose stages have not
-    taken in their labels (:func:`left_unrun`): a label ingest was killed after its ingest and
-    before or during its resume; ingesting the folder again resumes them. One status read for all."""
+    taken in their labels: answered since their last stage run started (:func:`answered_since_run`:
+    a label ingest was killed after its ingest and before its resume), or with a stage whose last
+    run was interrupted (killed while it resumed the clip); ingesting the folder again resumes them.
+    Not a clip whose stages are stale for another reason: a changed detector or CAD library made
+    every labelled clip "never run" and ran it again. One status read for all."""
     if not clips:
         return []
-    by_clip: dict[str, list[StageStatus]] = {}
-    for r in pipeline_status(wh, config, list(dict.fromkeys(clips))):
-        by_clip.setdefault(r.clip, []).append(r)
-    return [c for c in dict.fromkeys(clips) if left_unrun(by_clip.get(c, []))]
+    clips = list(dict.fromkeys(clips))
+    interrupted = {r.clip for r in pipeline_status(wh, config, clips) if r.status == "interrupted"}
+    answered = set(answered_since_run(wh, clips))
+    return [c for c in clips if c in interrupted or c in answered]
 
 
-def left_unrun(rows: Sequence[StageStatus]) -> bool:
-    """Whether a clip's stages (its :func:`pipeline_status` rows) have not taken in what the clip
-    holds: a stage's inputs changed since its last run (labels ingested by a command killed before
-    it resumed the clip; not its input files edited, nor its config), or a stage's last run was
-    interrupted (killed while it resumed the clip)."""
-    return any(r.status == "interrupted" or "inputs changed" in r.stale_reasons for r in rows)
+def answered_since_run(wh: Warehouse, clips: Sequence[str] | None = None) -> list[str]:
+    """The clips (of ``clips``; None: all) whose newest answer was ingested after their last stage
+    run started: a label ingest killed before its resume, an annotation app stopped before its
+    resume worker took them (its queue is in memory), answers ``labels ingest --no-resume`` took."""
+    answered = _newest(wh, "label_files", "ingested_at", clips)
+    ran = _newest(wh, "runs", "started_at", list(answered))
+    return sorted(clip for clip, at in answered.items() if clip not in ran or ran[clip] < at)
+
+
+def _newest(wh: Warehouse, table: str, column: str, clips: Sequence[str] | None = None) -> dict:
+    """{clip: the newest ``column`` (a time) of its rows in ``table``} (of ``clips``; None: every clip's)."""
+    clips = [c for c in (wh.partitions(table) if clips is None else clips) if wh.has_partition(table, c)]
+    if not clips:
+        return {}
+    rows = wh.read(table, clips, columns=["clip", column]).group_by("clip").aggregate([(column, "max")]).to_pylist()
+    return {r["clip"]: r[f"{column}_max"] for r in rows}
 
 
 @dataclass(frozen=True)

@@ -319,6 +319,15 @@ def test_labels_ingest_again_resumes_the_clip_a_killed_ingest_left_unrun(small_l
     assert {r.stage: r.status for r in pipeline_status(wh, config)}["cad_selection"] == "completed"
     done = run_cli(*cli)
     assert done.code == 0 and "not yet run" not in done.stdout and "running" not in done.stderr, done.stdout + done.stderr
+    # another detector makes detect's inputs change: the clip is stale, not left unrun by a killed
+    # ingest (the labels tick ran every labelled clip again, saying its labels were never run)
+    import dataclasses
+
+    from tasks.status import clips_left_unrun
+
+    coco = dataclasses.replace(config, detect=dataclasses.replace(config.detect, model="coco"))
+    assert any("inputs changed" in r.stale_reasons for r in pipeline_status(wh, coco) if r.stage == "detect")
+    assert clips_left_unrun(wh, coco, ["small"]) == [] and clips_left_unrun(wh, config, ["small"]) == []
 
 
 def test_flow_state_names_the_paused_tasks():

@@ -274,25 +274,6 @@ def _submit_clip(wh: Warehouse, payload: Any, data: bytes, lf: Any, facts: ClipF
                      dict(report.rows))
 
 
-def answered_since_run(wh: Warehouse) -> list[str]:
-    """The clips whose newest answer was ingested after their last stage run started: an app that
-    stopped before its resume worker took them (busy with another clip, or warming up, when the
-    answer came; the queue is in memory), or answers that ``cadestate labels ingest`` took with no
-    run since. The app resumes them when it starts."""
-    answered = _newest(wh, "label_files", "ingested_at")
-    ran = _newest(wh, "runs", "started_at", list(answered))
-    return sorted(clip for clip, at in answered.items() if clip not in ran or ran[clip] < at)
-
-
-def _newest(wh: Warehouse, table: str, column: str, clips: list[str] | None = None) -> dict[str, dt.datetime]:
-    """{clip: the newest ``column`` of its rows in ``table``} (of ``clips``; None: every clip's)."""
-    clips = [c for c in (wh.partitions(table) if clips is None else clips) if wh.has_partition(table, c)]
-    if not clips:
-        return {}
-    rows = wh.read(table, clips, columns=["clip", column]).group_by("clip").aggregate([(column, "max")]).to_pylist()
-    return {r["clip"]: r[f"{column}_max"] for r in rows}
-
-
 def ingest_pending(wh: Warehouse, lock: threading.Lock, labels_dir: Path | None = None,
                    coplanar_tol: float = DEFAULT_COPLANAR_TOL) -> IngestReport | None:
     """Ingest the app's label files that are not ingested yet (after a crash); None when there is no folder."""

@@ -56,12 +56,13 @@ from fastapi.staticfiles import StaticFiles
 
 from cadestate.config import Config
 from cadestate.webapp import queue
-from cadestate.webapp.answers import Conflict, IngestFailed, answered_since_run, answers_as_of, ingest_pending, submit
+from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, submit
 from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import MAX_LABEL_BYTES, SAME_POINT_M, LabelError, one_line
 from tasks.human.labels import latest_tasks, withdrawn_why
+from tasks.status import answered_since_run
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
