@@ -42,6 +42,12 @@ def test_commands_use_the_server_while_it_is_up_and_fall_back_when_it_is_down(tm
         assert again.returncode == 0 and read_server(w).pid == info.pid and "already up" not in again.stderr
         moved = cli("-w", str(w), "server", "start", "--port", "4399", cwd=tmp_path)  # said, not silently ignored
         assert moved.returncode == 0 and f"already up at {info.api_url}: --port 4399 is not taken" in moved.stderr
+        # any free port is the one it has; another host or database was ignored without a word
+        assert "already up" not in cli("-w", str(w), "server", "start", "--port", "0", cwd=tmp_path).stderr
+        other = cli("-w", str(w), "server", "start", "--host", "0.0.0.0", "--database-url", "postgresql+asyncpg://u@h/db",
+                    cwd=tmp_path)
+        assert other.returncode == 0 and f"already up at {info.api_url}: --host 0.0.0.0 is not taken" in other.stderr
+        assert "--database-url postgresql+asyncpg://u@h/db is not taken" in other.stderr
         run = cli("-w", str(w), "ingest", video, cameras, "--split", "val", "--no-progress", cwd=tmp_path)
         assert f"on the Prefect server at {info.api_url}" in run.stderr, run.stderr
         [flow_run] = flow_runs(info.api_url)

@@ -8,6 +8,7 @@ import threading
 import warnings
 from pathlib import Path
 from typing import Annotated, Optional
+from urllib.parse import urlsplit
 
 import typer
 from rich.markup import escape
@@ -23,7 +24,8 @@ app.add_typer(server_app, name="server")
 @server_app.command("start")
 def server_start(
     ctx: typer.Context,
-    host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
+    host: Annotated[Optional[str], typer.Option(help="Address to listen on.  [default: 127.0.0.1]",
+                                                show_default=False)] = None,
     port: Annotated[Optional[int], typer.Option(min=0, max=65535, help="Port (0: a free one).  [default: 4200]",
                                                 show_default=False)] = None,
     database_url: Annotated[str, typer.Option(help="SQLAlchemy URL of a PostgreSQL database "
@@ -44,9 +46,14 @@ def server_start(
     from flows.server import running_server, start_server
 
     root = ctx.obj.root()
-    if (up := running_server(root)) is not None and port is not None and not up.api_url.endswith(f":{port}/api"):
-        err.print(f"already up at {escape(up.api_url)}: --port {port} is not taken (`cadestate server stop` first to move it)")
-    info = up or start_server(root, host, 4200 if port is None else port, database_url,
+    if (up := running_server(root)) is not None:  # what was asked of a new server, and is not so: said
+        where = urlsplit(up.api_url)
+        for option, given, now in (("--port", port, where.port), ("--host", host, where.hostname),
+                                   ("--database-url", database_url or None, up.database_url)):
+            if given not in (None, 0, now):
+                err.print(f"already up at {escape(up.api_url)}: {option} {escape(str(given))} is not taken "
+                          "(`cadestate server stop` first to change it)")
+    info = up or start_server(root, host or "127.0.0.1", 4200 if port is None else port, database_url,
                               timeout_s=ctx.obj.config().prefect.startup_timeout_s)
     out.print(f"Prefect server up: {escape(info.api_url)} (UI {escape(info.api_url.removesuffix('/api'))}, "
               f"pid {info.pid}, log {escape(info.log)})")
