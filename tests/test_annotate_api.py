@@ -636,15 +636,18 @@ def test_an_answer_sent_again_after_its_reply_was_lost_is_said_saved(lwh):
     """The answer was saved but its reply lost (the network): the page said the error, and the same
     answer sent again met a 409 naming its own annotator, "yours was not saved". The same answers
     (but the seconds, counted anew) by the same annotator are that answer: said saved, nothing written."""
-    with _client(lwh, Requests()) as client:
+    runs = Requests()
+    with _client(lwh, runs) as client:
         first = client.post("/api/answers", json=_one(0, "m0a") | {"answers": [{"track_id": 0, "cad_id": "m0a", "seconds": 4.0}]},
                             params={"as_of": ""})
         assert first.status_code == 200, first.text
+        assert client.app.state.resumer.wait_idle(CLIP, 10)
         again = client.post("/api/answers", json=_one(0, "m0a") | {"answers": [{"track_id": 0, "cad_id": "m0a", "seconds": 9.5}]},
                             params={"as_of": ""})
         assert again.status_code == 200 and again.json()["path"] == first.json()["path"], again.text
         assert again.json()["warnings"] == ["this answer was saved already (sent again, the reply to it lost on the way): "
                                             "nothing written"]
+        assert client.app.state.resumer.wait_idle(CLIP, 10) and runs.clips == [CLIP]  # nothing new: no resume
         other = client.post("/api/answers", json=_one(0, "m0b"), params={"as_of": ""})  # another answer: refused as before
         assert other.status_code == 409 and "yours was not saved" in other.json()["detail"]
         drawn = {**payload("manual_track"), "seconds": 30.0}

@@ -297,7 +297,8 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
             raise HTTPException(409, str(e)) from None
         except IngestFailed as e:
             raise HTTPException(500, str(e)) from None
-        worker.request(done.clip)
+        if done.rows:  # an answer sent again (saved already) changes nothing: no resume
+            worker.request(done.clip)
         return {"path": done.path, "clip": done.clip, "kind": done.kind, "task_id": done.task_id, "warnings": done.warnings,
                 "rows": done.rows, "resume": worker.status(done.clip)}
 
