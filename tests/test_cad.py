@@ -673,6 +673,23 @@ def test_a_file_name_that_is_not_utf8_is_named_not_a_codec_error(tmp_path):
         source_items("shapenet", tmp_path / "sn")
 
 
+def test_a_warehouse_inside_the_source_folder_is_not_part_of_its_digest(tmp_path):
+    """`cadestate cad ingest .` where models.csv sits beside the default data/warehouse: the digest
+    walked the warehouse too, so each ingest's own writes made the library new and it was ingested
+    again every time. A texture added beside the models still counts."""
+    trimesh.creation.box((0.5, 0.9, 0.5)).export(tmp_path / "cube.obj")
+    (tmp_path / "models.csv").write_text("id,class\ncube,chair\n")
+    items = source_items("folder", tmp_path)
+    wh = tmp_path / "data" / "warehouse"
+    (wh / "tables" / "runs").mkdir(parents=True)
+    (wh / "catalog.duckdb").write_bytes(b"x")
+    before = items_digest(items)
+    (wh / "tables" / "runs" / "part.parquet").write_bytes(b"written by the ingest")
+    assert items_digest(items) == before
+    (tmp_path / "wood.png").write_bytes(b"a texture")
+    assert items_digest(items) != before
+
+
 def test_a_model_of_too_long_an_id_or_beyond_float32_is_skipped_not_the_library(tmp_path):
     """An id whose files' names pass 255 bytes raised out of ingest_item (the GLB written outside
     its try) and failed every model of the library, or passed ingest by a few bytes and failed the

@@ -408,7 +408,9 @@ def item_folder(item: CadItem) -> Path | None:
 def items_digest(items: list[CadItem]) -> str:
     """Lineage digest of a library's items: their metadata, and the size and mtime of their source
     files and of every file under their folders (:func:`item_folder`: a repainted material or a new
-    texture is a change); content hashes of whole CAD collections would cost more than ingesting them."""
+    texture is a change); content hashes of whole CAD collections would cost more than ingesting them.
+    A warehouse inside a folder (``cadestate cad ingest .`` beside the default ``data/warehouse``) is
+    left out: its own writes changed the digest, and the library was ingested anew every time."""
     files = {inside[0] if (inside := archive_member(item)) else item.path for item in items}
     folders = sorted({f for f in map(item_folder, items) if f is not None})
     walked: set[Path] = set()
@@ -416,13 +418,21 @@ def items_digest(items: list[CadItem]) -> str:
         if walked.intersection(folder.parents):
             continue
         walked.add(folder)
-        files.update(str(f) for f in folder.rglob("*") if f.is_file())
+        for top, dirs, names in os.walk(folder):
+            dirs[:] = sorted(d for d in dirs if not _is_warehouse(Path(top) / d))
+            files.update(os.path.join(top, n) for n in names if os.path.isfile(os.path.join(top, n)))
     parts = []
     for f in sorted(files):
         stat = Path(f).stat() if Path(f).exists() else None
         name = _shown(f)  # a stray texture named in Latin-1 failed the whole library, naming no file
         parts.append(f"{name}:{stat.st_size}:{stat.st_mtime_ns}" if stat else f"{name}:missing")
     return digest(*(repr(item) for item in items), *parts)
+
+
+def _is_warehouse(folder: Path) -> bool:
+    """Whether ``folder`` is a warehouse's root (its tables and catalog; warehouse.store.TABLES_DIR,
+    warehouse.catalog.CATALOG_FILE)."""
+    return (folder / "tables").is_dir() and (folder / "catalog.duckdb").exists()
 
 
 def _shown(path: str) -> str:
