@@ -47,11 +47,6 @@ class LineConsole(Console):
     lines on screen, a script reads them whole), and when the output is not a terminal (a pipe, a
     file, CI) tables take their natural width instead of the 80 columns Rich assumes."""
 
-    @property
-    def size(self) -> ConsoleDimensions:
-        size = Console.size.fget(self)
-        return size if self.is_terminal and self._on_a_terminal() else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
-
     def __init__(self, *args, force_terminal: bool | None = None, **kwargs) -> None:
         super().__init__(*args, force_terminal=force_terminal, **kwargs)
         self._told_terminal = force_terminal
@@ -66,6 +61,11 @@ class LineConsole(Console):
             return self.file.isatty()
         except (AttributeError, ValueError):  # no such method, or a closed file
             return False
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        size = Console.size.fget(self)
+        return size if self.is_terminal and self._on_a_terminal() else ConsoleDimensions(UNWRAPPED_WIDTH, size.height)
 
     @size.setter
     def size(self, new_size: tuple[int, int]) -> None:
