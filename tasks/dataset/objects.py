@@ -30,7 +30,8 @@ whose root has no track stays an object of its own.
 **Fragments and duplicates nobody named.** A tracker may cut one object into several tracks, and
 several of them may be posed. Each accepted pose, in order of more key-frames, then lower track id,
 claims every other track whose boxes the projection of its posed CAD bounding box covers: mean box
-IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist. Claimed tracks (posed or not) join
+IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist; and every other posed track whose
+projection covers its own boxes (between two poses the claim goes both ways). Claimed tracks (posed or not) join
 its object the same way (with the tracks already joined to them). Tracks no pose claims stay
 objects of their own.
 """
@@ -210,6 +211,15 @@ def _covers(claimer: DatasetObject, other: DatasetObject, frames: dict[int, Data
     return bool(ious) and float(np.mean(ious)) >= SAME_OBJECT_IOU
 
 
+def _same_object(claimer: DatasetObject, other: DatasetObject, frames: dict[int, DatasetFrame], image_size) -> bool:
+    """Whether ``claimer``'s accepted pose claims ``other``: its projection covers ``other``'s
+    boxes, or ``other`` is posed too and its projection covers ``claimer``'s (between two poses the
+    claim goes both ways: a pose on tight boxes (a partial detection) was claimed only when it had
+    fewer key-frames, and with more both were exported, one object twice)."""
+    return _covers(claimer, other, frames, image_size) or (
+        other.pose is not None and other.extent is not None and _covers(other, claimer, frames, image_size))
+
+
 def join(root: DatasetObject, parts: list[DatasetObject]) -> DatasetObject:
     """``root``'s object with ``parts`` joined: their boxes fill the frames ``root`` has none on
     (in ``parts`` order); their ids, and the tracks joined to them before, go to ``merged``."""
@@ -258,7 +268,7 @@ def merge_objects(objects: list[DatasetObject], frames: tuple[DatasetFrame, ...]
         if o.track_id in claimed:
             continue
         joined = [x for x in objects if x.track_id != o.track_id and x.track_id not in claimed
-                  and x.track_id not in result and _covers(o, x, by_ts, image_size)]
+                  and x.track_id not in result and _same_object(o, x, by_ts, image_size)]
         claimed |= {x.track_id for x in joined}
         result[o.track_id] = join(o, joined)
         claimed.add(o.track_id)
