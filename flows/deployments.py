@@ -57,7 +57,7 @@ from tasks.video.camera_file import CameraFileError, parse_camera_file
 from tasks.video.clip_names import ClipNameError, shared_video_ids, video_id_of
 from tasks.video.ingest import VIDEO_SUFFIXES, ClipSource, official_clip_name
 from warehouse import Warehouse, atomic_write_bytes
-from warehouse.store import is_name
+from warehouse.store import check_name, file_lock, is_name
 from warehouse.catalog import one_line
 
 ANNOTATE_DEPLOYMENT = "annotate_clip"
@@ -333,6 +333,18 @@ def start_clip_run(warehouse: str, config_path: str, source: ClipSource) -> str:
     return str(run.id)
 
 
+def start_clip_once(warehouse: str, config_path: str, source: ClipSource) -> bool:
+    """:func:`start_clip_run` unless the clip has an active run; whether it started one. The check
+    and the start hold the clip's ``_locks/_clip_start/<clip>.lock``: the inbox's and the labels
+    inbox's ticks (two deployments, each one run at a time, but not one with the other) both
+    checked, found none, and each started a run of one clip (its stages then ran twice over)."""
+    with file_lock(Path(warehouse) / "_locks" / "_clip_start" / f"{check_name(source.clip)}.lock"):
+        if active_clip_runs(source.clip, ACTIVE):
+            return False
+        start_clip_run(warehouse, config_path, source)
+        return True
+
+
 def resume_clips(clips: list[str]) -> list[str]:
     """Resume the suspended annotate_clip runs of ``clips`` (through the API); returns the clips
     resumed. The others have no suspended run (they run in ephemeral mode, or not at all yet), or
@@ -391,10 +403,7 @@ def build_dataset_inbox(warehouse: str, config_path: str = "") -> list[str]:
         no_folder("inbox", inbox)
     wh = Warehouse(warehouse)
     pairs = pairs_to_run(wh, official_names(ready_pairs(inbox, cfg.schedule.stable_s, cfg.schedule.inbox_split), wh=wh), cfg)
-    started = [p.clip for p in pairs if not active_clip_runs(p.clip, ACTIVE)]
-    for p in pairs:
-        if p.clip in started:
-            start_clip_run(warehouse, config_path, p)
+    started = [p.clip for p in pairs if start_clip_once(warehouse, config_path, p)]
     named = f": {', '.join(started)}" if started else ""
     get_run_logger().info("inbox %s: %d new clip(s) started%s", inbox, len(started), named)
     return started
@@ -436,8 +445,7 @@ def ingest_labels_inbox(warehouse: str, config_path: str = "") -> list[str]:
     todo = report.clips + unrun
     resumed = resume_clips(todo)
     for clip in sorted(set(todo) - set(resumed)):
-        if not active_clip_runs(clip, ACTIVE):
-            start_clip_run(warehouse, config_path, registered_source(wh, clip))
+        start_clip_once(warehouse, config_path, registered_source(wh, clip))
     return todo
 
 

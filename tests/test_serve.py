@@ -256,6 +256,41 @@ def test_a_new_serve_crashes_the_runs_an_earlier_one_left_running(tmp_path):
 
 
 @pytest.mark.slow
+def test_two_ticks_starting_one_clip_start_one_run(tmp_path, monkeypatch):
+    """The inbox's tick and the labels inbox's (two deployments: each runs once at a time, not once
+    with the other) both found no active run of a clip and each started one: its stages ran twice
+    over. The check and the start now hold the clip's lock. The API's answer is slowed by a second
+    (a busy server), so that both checks come before either start unless the lock orders them."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from prefect.client.orchestration import get_client
+    from prefect.deployments.runner import EntrypointType
+    from prefect.states import Cancelled
+
+    from flows import deployments
+    from flows.deployments import ACTIVE, ANNOTATE_DEPLOYMENT, annotate_clip_served, start_clip_once
+
+    annotate_clip_served.to_deployment(name=ANNOTATE_DEPLOYMENT, entrypoint_type=EntrypointType.MODULE_PATH).apply()
+    real = deployments.active_clip_runs
+
+    def slow_answer(clip, states):
+        found = real(clip, states)
+        time.sleep(1.0)
+        return found
+
+    monkeypatch.setattr(deployments, "active_clip_runs", slow_answer)
+    clip = f"twice_{os.getpid()}"
+    source = ClipSource(clip, tmp_path / "v.mp4", tmp_path / "v.txt", "train")
+    with ThreadPoolExecutor(2) as pool:
+        started = list(pool.map(lambda _: start_clip_once(str(tmp_path / "w"), "", source), range(2)))
+    runs = real(clip, ACTIVE)
+    with get_client(sync_client=True) as client:  # not left scheduled on the tests' API
+        for run in runs:
+            client.set_flow_run_state(run.id, Cancelled(), force=True)
+    assert sorted(started) == [False, True] and len(runs) == 1, (started, len(runs))
+
+
+@pytest.mark.slow
 def test_a_served_run_on_a_config_file_that_does_not_load_fails_in_one_line(tmp_path):
     """A config file edited under a serve into one that does not load (a typo'd key): each run ends
     Failed with the config error's one line as its message; raised, it printed two tracebacks a flow
