@@ -97,6 +97,30 @@ def test_a_never_null_column_added_to_a_table_with_data_reads_as_nulls_and_compa
     assert new.read("numbers").to_pydict() == {"clip": ["a"] * 3, "i": [1, 2, 3], "host": [None, "h", "h"]}
 
 
+def test_partitions_from_before_and_after_a_never_null_column_read_together_and_compact_to_the_fast_view(tmp_path):
+    """Partition a holds a file from before the never-null column ``host`` (read as nulls: nullable)
+    and one after, partition b only files after (never null): a read of both failed ("Schema at
+    index 1 was different"), and once ``a`` was compacted (its merged file holds ``host`` nullable,
+    its old row null) the table was never judged uniform again: every query read every footer."""
+    v3 = TableSpec(name="numbers", mode="append", key=("clip", "i"), description="test table",
+                   schema=V1.schema.append(pa.field("host", pa.string(), False)))
+    Warehouse(tmp_path / "w", {"numbers": V1}).write("numbers", "a", pa.table({"clip": ["a"], "i": [1]}))
+    new = Warehouse(tmp_path / "w", {"numbers": v3})
+    new.write("numbers", "a", pa.table({"clip": ["a"], "i": [2], "host": ["h"]}))
+    new.write("numbers", "b", pa.table({"clip": ["b"], "i": [3], "host": ["h"]}))
+    rows = {"clip": ["a", "a", "b"], "i": [1, 2, 3], "host": [None, "h", "h"]}
+    assert new.read("numbers").to_pydict() == rows
+    assert Warehouse(tmp_path / "w", {"numbers": v3}).cache_reads().read("numbers").to_pydict() == rows
+    refresh_catalog(new, recheck=["numbers"])
+    assert recorded_views(new.root / CATALOG_FILE)["tables"]["numbers"]["uniform"] is False
+    assert [c.files for c in new.compact_tables(["numbers"])] == [2]
+    refresh_catalog(new, recheck=["numbers"])
+    assert recorded_views(new.root / CATALOG_FILE)["tables"]["numbers"]["uniform"]
+    con = connect(new)
+    assert con.execute("SELECT clip, i, host FROM numbers ORDER BY i").fetchall() == [("a", 1, None), ("a", 2, "h"), ("b", 3, "h")]
+    con.close()
+
+
 @pytest.mark.parametrize("folder", ["br[ab]", "v*1", "g[1]"])
 def test_a_warehouse_in_a_folder_whose_name_is_a_pattern_reads_its_own_files(tmp_path, folder):
     """'[ab]' and '*' in the warehouse's path made DuckDB's views read nothing (no file matched) or a

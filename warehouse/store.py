@@ -198,7 +198,7 @@ def _read_listed(files: Sequence[str], schema: pa.Schema, columns: Sequence[str]
     if not parts:
         target = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata) if columns else schema
         return target.empty_table()
-    return pa.concat_tables(parts)
+    return _concat(parts)
 
 
 SMALL_TABLE_BYTES = 64 * 1024
