@@ -188,6 +188,38 @@ def test_a_schema_change_drops_that_tables_snapshot_only_and_a_moved_warehouse_k
     assert through_view(moved, TRACKS) == [("a", "chair", 1)] and through_view(wh, TRACKS) == [("a", "chair", 3)]
 
 
+def test_a_client_holding_the_catalog_open_read_write_costs_no_snapshot(wh, monkeypatch):
+    """`duckdb catalog.duckdb` (any client may open it, the catalog's module says) holds it open
+    read-write: DuckDB then refuses even a read-only open, and the next write's check and `sql`
+    took the catalog for unreadable and rebuilt it from nothing: every snapshot lost, every table's
+    footers read again. Its record and snapshots are read from a copy now."""
+    import subprocess
+    import sys
+
+    from warehouse import catalog
+
+    wh.write("tracks", "a", tracks("a", 3))
+    wh.write("runs", "a", runs("a", "r0"))
+    snapshot(wh)
+    before = marks(wh)
+    assert before["runs"] and before["tracks"]
+    client = subprocess.Popen([sys.executable, "-c", "import duckdb, sys; c = duckdb.connect(sys.argv[1]); "
+                               "print('open', flush=True); sys.stdin.read()", str(wh.root / CATALOG_FILE)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    checked = []
+    monkeypatch.setattr(catalog, "uniform", lambda w, table: checked.append(table) or True)
+    try:
+        assert client.stdout.readline() == "open\n"
+        catalog._ENSURED.clear()
+        Warehouse(wh.root).write("runs", "b", runs("b", "r1"))  # a new process's first write checks the catalog
+        assert through_view(wh, RUNS) == [("a", "r0"), ("b", "r1")]
+    finally:
+        client.stdin.close()
+        client.wait(60)
+    assert marks(wh) == before and snapshot_rows(wh, "tracks") == 3 and checked == []
+    assert not list(wh.root.glob(f".{CATALOG_FILE}.*"))  # no copy left
+
+
 def test_files_of_an_older_layout_are_renamed_and_read_once(wh):
     wh.write("tracks", "a", tracks("a", 3))
     (only,) = wh.files("tracks", ["a"])

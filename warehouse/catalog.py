@@ -37,11 +37,15 @@ import uuid
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import duckdb
 
 from warehouse import snapshot
 from warehouse.store import READ_RETRIES, Compacted, Warehouse, WarehouseError, file_lock, warn
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 CATALOG_FILE = "catalog.duckdb"
 SCHEMA_FILE = "_schema.parquet"
@@ -111,13 +115,21 @@ def uniform(wh: Warehouse, table: str) -> bool:
     expected = pq.read_schema(_schema_file(wh, table, duckdb.connect()))
     for f in wh.files(table):
         try:
-            if not pq.read_schema(f).equals(expected, check_metadata=False):
+            if not _same_columns(pq.read_schema(f), expected):
                 return False
         except FileNotFoundError:  # compacted or replaced meanwhile: its successor has the current schema
             continue
         except (OSError, pa.ArrowException) as e:  # "Parquet magic bytes not found in footer": a traceback
             raise WarehouseError(f"table {table}: cannot read its files: {f}: {one_line(str(e))}") from None
     return True
+
+
+def _same_columns(found: pa.Schema, expected: pa.Schema) -> bool:
+    """Whether a file's schema has ``expected``'s columns, in its order and of its types: whether a
+    column may hold nulls does not count (DuckDB reads them alike), and a file merged from files
+    written before a never-null column was added holds it as nullable (their rows are null there):
+    with it counted, a table never had its fast view back after `cadestate compact`."""
+    return found.names == expected.names and all(a.type.equals(b.type) for a, b in zip(found, expected))
 
 
 def view_sql(wh: Warehouse, table: str, uniform: bool = True, mark: str | None = None) -> str:
@@ -146,8 +158,11 @@ def recorded_views(path: Path) -> dict | None:
         return None
     try:
         con = duckdb.connect(str(path), read_only=True)
-    except duckdb.Error:
-        return None
+    except duckdb.Error as e:
+        if not _held_for_writing(e):
+            return None
+        with _copied(path) as copy:
+            return recorded_views(copy)
     try:
         record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
         return record if isinstance(record, dict) and record.get("layout") == LAYOUT else None
@@ -289,7 +304,11 @@ def _pinned(path: Path) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             if stale.name.endswith((".pin", ".tmp", ".tmp.wal")) and _age_s(stale) > STALE_S:
                 stale.unlink()
-    pin = path.with_name(f".{path.name}.{time.time_ns()}-{uuid.uuid4().hex}.pin")
+    if _opened_for_writing(path):
+        with _copied(path) as copy:
+            yield copy
+        return
+    pin = _pin_name(path)
     try:
         os.link(path, pin)
     except OSError:
@@ -299,6 +318,43 @@ def _pinned(path: Path) -> Iterator[Path]:
         yield pin
     finally:
         pin.unlink(missing_ok=True)
+
+
+def _pin_name(path: Path) -> Path:
+    """A new pin's name beside ``path``: the time made, a random id (see :func:`_age_s`)."""
+    return path.with_name(f".{path.name}.{time.time_ns()}-{uuid.uuid4().hex}.pin")
+
+
+def _held_for_writing(e: duckdb.Error) -> bool:
+    """Whether ``e``, from opening a database, says another process holds it open read-write."""
+    return "Could not set lock" in str(e) or "Conflicting lock" in str(e)
+
+
+def _opened_for_writing(path: Path) -> bool:
+    """Whether another process holds the catalog ``path`` open read-write: a DuckDB client opened
+    on it (``duckdb data/warehouse/catalog.duckdb``, as the module says any client can)."""
+    try:
+        duckdb.connect(str(path), read_only=True).close()
+    except duckdb.Error as e:
+        return _held_for_writing(e)
+    return False
+
+
+@contextlib.contextmanager
+def _copied(path: Path) -> Iterator[Path]:
+    """A copy of the catalog ``path`` (a pin's name, removed after; None when ``path`` is gone) to
+    read its record and snapshots from while another process holds it open read-write: DuckDB
+    refuses to open it even read-only then, and a write or `sql` took it for unreadable and
+    rebuilt the catalog without its record: every table's footers read again, every snapshot lost.
+    (Its changes not yet checkpointed, in its ``.wal``, are not the catalog's.)"""
+    import shutil
+
+    copy = _pin_name(path)
+    try:
+        shutil.copyfile(path, copy)
+        yield copy
+    finally:
+        copy.unlink(missing_ok=True)
 
 
 def _age_s(left: Path) -> float:
@@ -408,6 +464,9 @@ def connect(wh: Warehouse, read_only: bool = True) -> duckdb.DuckDBPyConnection:
     try:
         return duckdb.connect(str(path), read_only=read_only)
     except duckdb.Error as e:
+        if read_only and _held_for_writing(e):  # a client holds it open read-write: a copy built aside replaces it
+            with contextlib.suppress(CatalogError, duckdb.Error):
+                return duckdb.connect(str(rebuild_catalog(wh)), read_only=True)
         raise CatalogError(f"cannot open the catalog {path}: {one_line(str(e))}") from None
 
 
