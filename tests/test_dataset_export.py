@@ -259,6 +259,28 @@ def test_scan2cad_csv_errors_name_the_line(tmp_path):
     assert read_csv_text(csv_text([mirrored]), tmp_path) == [mirrored]
 
 
+def test_a_scan2cad_csv_is_utf8_under_any_locale(tmp_path):
+    """A model id in another script (a folder of meshes named in Cyrillic) under an ASCII locale:
+    the CSV was written and read in the locale's encoding (a UnicodeEncodeError, or mojibake read
+    back elsewhere)."""
+    script = textwrap.dedent("""
+        import sys
+        from pathlib import Path
+        from tasks.dataset.export_scan2cad import Alignment, read_csv, write_csv
+        row = Alignment("03001627", "meshes.\\u0441\\u0442\\u0443\\u043b_2", (0.5, 0.0, -1.0), (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+        path = Path(sys.argv[1])
+        write_csv(path, [row])
+        assert read_csv(path) == [row]
+        print(sys.getfilesystemencoding(), open(path).encoding)
+    """)
+    env = {**__import__("os").environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+    done = subprocess.run([sys.executable, "-X", "utf8=0", "-c", script, str(tmp_path / "s.csv")], capture_output=True,
+                          text=True, env=env, cwd=Path(__file__).parents[1], timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split()[1] != "UTF-8"  # the locale's encoding really was not UTF-8
+    assert "стул" in (tmp_path / "s.csv").read_text(encoding="utf-8")
+
+
 def _copy(built, tmp_path) -> Warehouse:
     wh, _, _ = built
     shutil.copytree(wh.root, tmp_path / "wh", ignore=shutil.ignore_patterns("catalog.duckdb", "_cache"))

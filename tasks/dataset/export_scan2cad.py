@@ -85,10 +85,15 @@ def csv_text(rows: Sequence[Alignment]) -> str:
     return buf.getvalue()
 
 
+def write_csv(path: Path, rows: Sequence[Alignment]) -> None:
+    """``rows`` as a Scan2CAD per-scan CSV, UTF-8 whatever the locale (a model id of any script)."""
+    path.write_text(csv_text(rows), encoding="utf-8")
+
+
 def read_csv(path: Path) -> list[Alignment]:
-    """A Scan2CAD per-scan CSV back into alignments; a bad row names the file and line."""
+    """A Scan2CAD per-scan CSV (UTF-8) back into alignments; a bad row names the file and line."""
     out = []
-    with open(path, newline="") as f:
+    with open(path, newline="", encoding="utf-8") as f:
         for i, row in enumerate(csv.reader(f), 1):
             if len(row) != len(CSV_COLUMNS):
                 raise ExportError(f"{path}:{i}: expected {len(CSV_COLUMNS)} columns ({','.join(CSV_COLUMNS)}), got {len(row)}")
@@ -178,7 +183,7 @@ def export_scan2cad(wh: Warehouse, out: Path, clips: Sequence[str] | None = None
                 raise ExportError(f"clips {written[name]}, {clip} would both be exported as {name!r} (one video, one "
                                   "first timestamp); export one of them")
             written[name] = clip
-            (tmp / f"{name}.csv").write_text(csv_text(rows))
+            write_csv(tmp / f"{name}.csv", rows)
             annotations.append(annotation(ds, name))
             appearances[name] = dict(sorted(Counter(f"{a.catid}_{a.id_cad}" for a in rows).items()))
             total += len(rows)
