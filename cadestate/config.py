@@ -496,12 +496,14 @@ def runtime_keys(section: Any) -> frozenset[str]:
 
 def section_hash(name: str, section: Any) -> str:
     """Stable 16-hex digest of a section's values that affect results (key order and file formatting
-    do not matter; :func:`runtime_keys` are left out; a file a key names is digested by its absolute
-    path, :func:`absolute_section`, so that a run on a Dask worker, given absolute paths, digests
+    do not matter; :func:`runtime_keys` are left out; a key naming a file counts as "a file": the
+    stages reading it digest its bytes among their inputs (``[detect] model``: the detect stage's
+    model fingerprint), and its path, absolute, made every clip's detection run again in another
+    folder or on another machine with the same file; a Dask worker, given absolute paths, digests
     what a run here does). Remembered by the section's ``repr`` (which
     tells 1 from 1.0 and True, as the digest does): a long-lived process digests the same sections
     for every stage of every resume."""
-    section = absolute_section(section)
+    section = _files_unnamed(section)
     key = (name, repr(section))
     known = _SECTION_HASHES.get(key)
     if known is None:
@@ -513,6 +515,13 @@ def section_hash(name: str, section: Any) -> str:
 
 
 _SECTION_HASHES: dict[tuple[str, str], str] = {}
+
+
+def _files_unnamed(section: Any) -> Any:
+    """``section`` with each key that names a file (``file_unless``) saying only that it does."""
+    changes = {f.name: "<a file: its bytes are digested>" for f in dataclasses.fields(section)
+               if (names := f.metadata.get("file_unless")) is not None and getattr(section, f.name) not in names}
+    return dataclasses.replace(section, **changes) if changes else section
 
 
 def absolute_section(section: Any) -> Any:

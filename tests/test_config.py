@@ -104,6 +104,26 @@ def test_section_hash_is_remembered_by_value_and_type():
         assert [section_hash("pose", s) for s in sections] == fresh
 
 
+def test_a_model_file_counts_by_its_bytes_not_by_where_it_is(tmp_path, monkeypatch):
+    """``[detect] model = "models/det.onnx"`` in two project folders holding the same file (a project
+    moved, another machine, a command run from elsewhere): its path, made absolute, was in the
+    section's digest and every clip's detection ran again. The bytes count (the detect stage's
+    inputs), whether the path is given relative or absolute (a Dask worker gets it absolute)."""
+    from cadestate.config import absolute_paths
+    from tasks.detection.model_inputs import model_file_inputs
+
+    config = config_from_dict({"detect": {"model": "models/det.onnx"}})
+    seen = []
+    for folder, data in (("a", b"weights"), ("b", b"weights"), ("c", b"other weights")):
+        (tmp_path / folder / "models").mkdir(parents=True)
+        (tmp_path / folder / "models" / "det.onnx").write_bytes(data)
+        monkeypatch.chdir(tmp_path / folder)
+        assert absolute_paths(config).section_hash("detect") == config.section_hash("detect")
+        seen.append((config.section_hash("detect"), model_file_inputs(config)))
+    assert seen[0] == seen[1] and seen[2][0] == seen[0][0] and seen[2][1] != seen[0][1]
+    assert config.section_hash("detect") != Config().section_hash("detect")  # a file, not the built-in detector
+
+
 def test_keys_that_only_say_how_to_run_leave_the_digest_alone():
     """Threads, workers and input links change no result: changing them reruns no stage."""
     from cadestate.config import runtime_keys
