@@ -28,7 +28,8 @@ object is credited at most once; accuracy = credited objects / all posed ground-
     has objects of it; the symmetry is the predicted model's (as the script reads it).
 
 In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
-``duplicate``, any other unmatched one a ``false_positive``. The dataset's yield scores them *by
+``duplicate`` (in ``scan2cad-exact``, only with that object's model, by its own symmetry: a model
+the mode dropped came back as a correct duplicate), any other unmatched one a ``false_positive``. The dataset's yield scores them *by
 track* (``by_track``): a prediction whose track follows an object is matched against that object
 alone, as the dataset publishes it (that track's pose); in 3D alone a chair's pose that landed on
 the chair beside it credited that one, though its own track had none.
@@ -165,6 +166,11 @@ def _aligns(p: PosedObject, g: PosedObject, symmetry: int, extents: Mapping[str,
             and scale_error_pct(p.scale, g.scale) <= MAX_SCALE_PCT)
 
 
+def _model(o: PosedObject) -> str:
+    """The CAD model of ``o`` as Scan2CAD names it (a mirrored model is one of its own)."""
+    return scan2cad_cad_id(o.cad_id or "", o.is_mirrored)
+
+
 def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[PosedObject], symmetries: Mapping[str, int],
                    exact: bool, truth: Mapping[tuple[str, str], str] | None = None,
                    extents: Mapping[str, tuple] | None = None, by_track: bool = False) -> ModeResult:
@@ -176,13 +182,13 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
     open_gt: dict[tuple[str, str], list[PosedObject]] = {}
     for g in gts:
         open_gt.setdefault((g.clip, g.cls), []).append(g)
-    allowed = Counter((g.clip, g.cls, scan2cad_cad_id(g.cad_id or "", g.is_mirrored)) for g in gts)
+    allowed = Counter((g.clip, g.cls, _model(g)) for g in gts)
     used: Counter[tuple[str, str, str]] = Counter()
     credited_objects: list[PosedObject] = []
     unmatched: list[PosedObject] = []
     outcomes = []
     for p in preds:
-        model = (p.clip, p.cls, scan2cad_cad_id(p.cad_id or "", p.is_mirrored))
+        model = (p.clip, p.cls, _model(p))
         if exact:
             if used[model] >= allowed[model]:
                 unmatched.append(p)
@@ -204,7 +210,8 @@ def score_scan2cad(predictions: Iterable[PosedObject], ground_truth: Iterable[Po
         followed = _followed(p, truth, by_track)
         aligned = next((g for g in credited_objects if g.clip == p.clip and g.cls == p.cls
                         and (followed is None or g.key == followed)
-                        and _aligns(p, g, _symmetry(symmetries, g.cad_id), extents)), None)
+                        and (not exact or _model(p) == _model(g))
+                        and _aligns(p, g, _symmetry(symmetries, p.cad_id if exact else g.cad_id), extents)), None)
         duplicates += aligned is not None
         tracked = (p.clip, (truth or {}).get(p.key, ""))
         on = aligned.key if aligned is not None else (tracked if tracked in known else None)

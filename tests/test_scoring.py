@@ -53,6 +53,19 @@ def test_scan2cad_exact_needs_a_ground_truth_model_at_most_as_often():
     assert score_scan2cad([mirrored], gt, {}, exact=False).num_correct == 1
 
 
+def test_a_model_scan2cad_exact_drops_is_a_false_positive_not_a_correct_duplicate():
+    """A pose of a model the clip's ground truth lacks is dropped by scan2cad-exact; it went on to
+    the duplicates' test (which looked at neither model) and came back a correct duplicate."""
+    gt = [obj("0", cad="a")]
+    exact = score_scan2cad([obj("1", cad="a"), obj("2", cad="zzz")], gt, {}, exact=True)
+    assert (exact.num_correct, exact.duplicates, exact.false_positives) == (1, 0, 1)
+    assert [(o.on_object, o.correct) for o in exact.outcomes] == [(("a_0", "0"), True), (None, False)]
+    twice = score_scan2cad([obj("1", cad="a"), obj("3", cad="a", t=(0.05, 0, 0))], gt, {}, exact=True)
+    assert (twice.num_correct, twice.duplicates, twice.false_positives) == (1, 1, 0)  # its own model twice
+    wide = score_scan2cad([obj("1", cad="a"), obj("2", cad="zzz")], gt, {}, exact=False)
+    assert (wide.num_correct, wide.duplicates, wide.false_positives) == (1, 1, 0)  # the class mode takes any model
+
+
 def test_duplicates_in_scan2cad_modes_and_all_modes():
     gt = [obj("0")]
     preds = [obj("1"), obj("2", t=(0.05, 0, 0)), obj("3", t=(4.0, 0, 0))]
