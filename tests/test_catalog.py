@@ -195,6 +195,16 @@ def test_a_damaged_file_when_the_catalog_is_built_is_one_line_naming_it(tmp_path
         assert result.stderr.startswith(f"error: table clips: cannot read its files: {damaged}: "), result.stderr
 
 
+def test_a_statement_reading_a_file_above_tables_is_the_statements_error(tmp_path):
+    """``read_text('<root>/tables/../catalog.duckdb')`` (DuckDB lets a statement read its attached
+    catalog) fails as the statement's error: it was blamed on a table ("table ..: cannot read its
+    files"), the path taken as under ``tables/``."""
+    wh = Warehouse(tmp_path / "w")
+    wh.write("runs", "a", runs("a", "r1"))
+    result = run_cli("-w", str(wh.root), "sql", f"SELECT * FROM read_text('{wh.root}/tables/../{CATALOG_FILE}')")
+    assert result.code != 0 and result.stderr.startswith("error: SQL error: "), result.stderr
+
+
 def test_a_write_is_not_failed_by_a_damaged_file_of_another_table(tmp_path):
     """A process's first write builds the catalog, which reads every footer: a damaged file of any
     table raised after the write was in, so a retried append wrote its rows twice. The write

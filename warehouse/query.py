@@ -72,9 +72,10 @@ _QUOTED = re.compile(r"""['"]([^'"]+)['"]""")
 
 
 def _table_files(e: duckdb.Error, wh: Warehouse) -> list[Path]:
-    """The paths under ``wh``'s ``tables/`` that DuckDB's error ``e`` names (in quotes), there or not."""
+    """The paths under ``wh``'s ``tables/`` that DuckDB's error ``e`` names (in quotes), there or not
+    (normalised: ``tables/../catalog.duckdb``, a file a statement named, is not a table's)."""
     tables = wh.root / "tables"
-    return [path for path in map(Path, _QUOTED.findall(str(e))) if path.is_relative_to(tables)]
+    return [path for path in (Path(os.path.normpath(q)) for q in _QUOTED.findall(str(e))) if path.is_relative_to(tables)]
 
 
 def _failure(e: duckdb.Error, wh: Warehouse) -> WarehouseError:
