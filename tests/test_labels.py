@@ -859,6 +859,24 @@ def test_answers_to_a_replaced_task_and_clicks_leaving_out_key_frames_are_warned
                                              "(`cadestate status` says what waits)"]
 
 
+def test_a_task_written_on_a_clock_behind_still_comes_in_force(lwh):
+    """A rerun's task written by a process whose clock is behind (another machine's, a clock set
+    back) was older than the task it replaced, which stayed in force: people answered the new one
+    and their answers never reached the data. It is dated a microsecond after the newest of its kind."""
+    from tasks.human.labels import latest_task_of_kind
+
+    before = next(t for t in _tasks() if t.kind == "correspondences")
+    assert latest_task_of_kind(lwh, CLIP, "correspondences")["task_id"] == before.task_id
+    path = write_task(lwh, dataclasses.replace(before, task_id="c1.co2", created_at="2020-01-01T00:00:00+00:00"))
+    newest = latest_task_of_kind(lwh, CLIP, "correspondences")
+    assert newest["task_id"] == "c1.co2"
+    written = json.loads(path.read_text())["created_at"]
+    assert dt.datetime.fromisoformat(written) == dt.datetime.fromisoformat(NOW) + dt.timedelta(microseconds=1)
+    assert json.loads(newest["document"])["created_at"] == written
+    write_task(lwh, dataclasses.replace(before, task_id="c1.co2", created_at=written))  # written again: nothing new
+    assert lwh.read("label_tasks", [CLIP], filters=[("task_id", "=", "c1.co2")]).num_rows == 1
+
+
 def test_two_ingests_of_the_same_files_at_once_commit_each_file_once(lwh, tmp_path):
     """Two processes (here threads) ingesting one folder: the duplicate check and the commit hold
     the clip's labels lock, so each file is committed once and reported a duplicate by the other."""

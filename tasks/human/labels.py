@@ -28,7 +28,7 @@ import functools
 import hashlib
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -88,17 +88,20 @@ def write_task(wh: Warehouse, task: Task) -> Path:
     """Write the task file (atomically) and register it in ``label_tasks``; returns its path.
 
     Checks the task against its own schema first (a stage bug must not reach people). Writing the
-    same task again (same id and bytes) leaves everything as it is."""
-    doc = to_json(task)
-    text = json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n"
-    parse_task(text, f"task {task.task_id}")
-    created_at = check_time(task.created_at, "created_at", f"task {task.task_id}")
+    same task again (same id and bytes) leaves everything as it is. A new row is dated after every
+    task of its kind the clip has (:func:`_dated_after_its_kind`)."""
+    text, created_at = _task_text(task)
     data = text.encode()
     path = wh.root / TASK_DIR / check_name(task.clip) / f"{check_name(task.task_id, 'task id')}.json"
     sha = hashlib.sha256(data).hexdigest()
     known = wh.read("label_tasks", [task.clip], filters=[("task_id", "=", task.task_id)], columns=["task_sha256"])
     if path.is_file() and path.read_bytes() == data and sha in known.column("task_sha256").to_pylist():
         return path
+    if (later := _dated_after_its_kind(wh, task, created_at)) is not task:
+        task = later
+        text, created_at = _task_text(task)
+        data = text.encode()
+        sha = hashlib.sha256(data).hexdigest()
     atomic_write_bytes(path, data)
     items = getattr(task, "items", None)
     row = {"clip": task.clip, "task_id": task.task_id, "kind": task.kind, "path": wh.relative(path),
@@ -106,6 +109,27 @@ def write_task(wh: Warehouse, task: Task) -> Path:
            "created_at": created_at, "document": text}
     wh.write("label_tasks", task.clip, pa.Table.from_pylist([row]))
     return path
+
+
+def _task_text(task: Task) -> tuple[str, dt.datetime]:
+    """The task file's text, checked against its own schema, and its ``created_at`` (UTC)."""
+    text = json.dumps(to_json(task), indent=1, ensure_ascii=False, allow_nan=False) + "\n"
+    parse_task(text, f"task {task.task_id}")
+    return text, check_time(task.created_at, "created_at", f"task {task.task_id}")
+
+
+def _dated_after_its_kind(wh: Warehouse, task: Task, created_at: dt.datetime) -> Task:
+    """``task``, dated a microsecond after the newest task of its kind of its clip where it is not
+    after it already: the newest by date is the one in force, and a stage run on a clock behind
+    (another machine's, a clock set back) wrote a task people were told to answer while the one
+    before stayed in force (their answers never reached the data, and each run wrote it again)."""
+    if not wh.has_partition("label_tasks", task.clip):
+        return task
+    rows = wh.read("label_tasks", [task.clip], filters=[("kind", "=", task.kind)], columns=["created_at"])
+    newest = max(rows.column("created_at").to_pylist(), default=None)
+    if newest is None or created_at > newest:
+        return task
+    return replace(task, created_at=(newest + dt.timedelta(microseconds=1)).isoformat())
 
 
 def latest_task(wh: Warehouse, clip: str, task_id: str) -> dict | None:
