@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -149,13 +150,14 @@ def _one_stage(wh: Warehouse, stage: Stage, unit: str, config: Config, source: A
     if hit is not None:
         done[stage.name] = hit
         return report_of(hit, cached=True)
+    started = time.monotonic()
     try:
         run = run_stage(wh, unit, stage.name, **dataclasses.asdict(signature),
                         body=lambda run_id: stage.run(StageContext(wh, stage.name, stage.section, unit, run_id,
                                                                    config, source, show_progress)))
     except Exception as e:  # recorded in runs by run_stage; the unit's other stages go on
-        log.error("%s %s failed", unit, stage.name, exc_info=True)
-        return StageReport(unit, stage.name, "failed", message=failure_message(e))
+        log.error("%s %s failed", unit, stage.name, exc_info=True)  # its time too (a failed SfM showed 0.00 s)
+        return StageReport(unit, stage.name, "failed", duration_s=time.monotonic() - started, message=failure_message(e))
     done[stage.name] = run
     runs.append(dataclasses.asdict(run))  # the latest: after every recorded run
     return report_of(run)

@@ -140,3 +140,19 @@ def test_a_damaged_input_file_is_the_failed_report_of_the_stage_that_reads_it(tm
     source = ClipSource("c1", tmp_path / "v.mp4", tmp_path / "v.txt", "train")
     [report] = run_unit(str(wh.root), "clip", "c1", Config(), source, False)
     assert report.state == "failed" and report.stage != "stages" and str(damaged) in report.message, report
+
+
+def test_a_failed_stage_reports_the_time_it_took(tmp_path):
+    """A stage that failed was reported as taking 0.00 s (an SfM that ran 12 s and registered too
+    few frames), though its ``runs`` row had its time."""
+    from cadestate.config import Config
+    from tasks.stage_chain import run_unit
+    from tasks.video.ingest import ClipSource
+
+    (tmp_path / "v.mp4").write_bytes(b"x")
+    (tmp_path / "v.txt").write_text("https://example.com/v\n0 not a camera line\n")
+    source = ClipSource("c1", tmp_path / "v.mp4", tmp_path / "v.txt", "train")
+    [report] = [r for r in run_unit(str(tmp_path / "w"), "clip", "c1", Config(), source, False) if r.state == "failed"]
+    [recorded] = [r for r in Warehouse(tmp_path / "w").read("runs", ["c1"]).to_pylist() if r["stage"] == report.stage]
+    assert recorded["status"] == "failed", recorded
+    assert 0 < report.duration_s and abs(report.duration_s - recorded["duration_s"]) < 0.5, (report, recorded["duration_s"])
