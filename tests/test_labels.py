@@ -709,6 +709,10 @@ def test_cli_ingest_reports_every_file_on_one_line_each(lwh, tmp_path):
     assert {f"{d / 'b.json'}: ingested", f"{d / 'e.json'}: ingested"} <= set(result.stdout.splitlines())
     again = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"))
     assert again.code == 0 and f"{d / 'b.json'}: already ingested" in again.stdout.splitlines()
+    both = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"), str(d / "e.json"))  # as validate takes them
+    assert both.code == 0 and both.stdout.splitlines()[:2] == [f"{d / 'b.json'}: already ingested", f"{d / 'e.json'}: already ingested"]
+    gone = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(d / "b.json"), str(d / "gone.json"))
+    assert gone.code == 2 and "gone.json: no such label file or folder" in gone.stderr and gone.stdout == "", gone
     (tmp_path / "none").mkdir()
     nothing = run_cli("-w", str(lwh.root), "labels", "ingest", "--no-resume", str(tmp_path / "none"))
     assert nothing.code == 0 and nothing.stderr.startswith(f"warning: no label file (*.json) in {tmp_path / 'none'}: ")

@@ -52,7 +52,7 @@ def _say(text: str) -> None:
 @labels_app.command("ingest")
 def labels_ingest(
     ctx: typer.Context,
-    source: Annotated[Path, typer.Argument(help="Folder of label files (every *.json below it), or one file.")],
+    sources: Annotated[list[Path], typer.Argument(help="Folders of label files (every *.json below them), or files.")],
     resume: Annotated[bool, typer.Option(help="Rerun the flow of every clip with new labels (cached stages do no work).")] = True,
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
     max_mb: MaxMbOpt = DEFAULT_MAX_MB,
@@ -65,11 +65,12 @@ def labels_ingest(
     labels are rerun (the stages their labels made stale, e.g. cad_selection, and what follows;
     everything upstream is cached), and so are the clips of files ingested before whose stages have
     not taken them in (the command was stopped before its rerun ended: run it again). Exit status 1 when any file was not ingested or a resumed
-    stage failed, 2 when the source does not exist.
+    stage failed, 2 when a path given does not exist (then nothing is ingested).
 
     \b
     Examples:
       cadestate labels ingest labels/
+      cadestate labels ingest labels/room_0/selection.json labels/room_0/verdicts.json
       # keep the answers now, rerun the clips later (`cadestate run`)
       cadestate labels ingest labels/room_0/ --no-resume
     """
@@ -77,7 +78,7 @@ def labels_ingest(
     from tasks.status import clips_left_unrun
 
     cfg = ctx.obj.config()
-    report = ingest_labels(ctx.obj.open_warehouse(must_exist=True), source, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
+    report = ingest_labels(ctx.obj.open_warehouse(must_exist=True), sources, coplanar_tol=cfg.pose.coplanar_tol, max_bytes=round(max_mb * 1e6))
     for path in report.ingested:
         _say(f"{escape(path)}: ingested")
     for path in report.duplicates:
@@ -85,8 +86,8 @@ def labels_ingest(
     _say(f"{len(report.ingested)} label file(s) ingested, {len(report.duplicates)} already ingested, "
          f"{len(report.errors)} not ingested; {report.coplanar_keyframes} co-planar key-frame(s)")
     if not (report.ingested or report.duplicates or report.errors):
-        err.print(f"[yellow]warning:[/] no label file (*.json) in {escape(str(source))}: is it the folder the "
-                  "annotators' files went to?", highlight=False)
+        err.print(f"[yellow]warning:[/] no label file (*.json) in {escape(', '.join(map(str, sources)))}: is it the "
+                  "folder the annotators' files went to?", highlight=False)
     for table, rows in sorted(report.rows.items()):
         _say(f"  {table}: {rows} row(s)")
     if report.clips:
