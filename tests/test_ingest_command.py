@@ -78,6 +78,10 @@ def test_two_videos_or_a_camera_file_first_are_named_as_such(tmp_path, small_cli
         result = run_cli("-w", str(tmp_path / "w"), "ingest", *map(str, args))
         assert result.code == 2 and "two files are VIDEO CAMERAS.txt, in that order" in result.stderr, result.stderr
         assert "UTF-8" not in result.stderr and started == []
+    # three or more paths, files among them (two clips' pairs): said as such, not "<video>: not a folder"
+    result = run_cli("-w", str(tmp_path / "w"), "ingest", *map(str, [small_clip.video_path, small_clip.cameras_path, other]))
+    assert result.code == 2 and f"{small_clip.video_path}: a file among 3 paths: give one clip" in result.stderr, result.stderr
+    assert "not a folder" not in result.stderr and started == []
 
 
 def test_align_start_prints_the_offset_and_hands_it_on(tmp_path, small_clip, started):

@@ -66,7 +66,7 @@ def ingest(
 
     \b
     Examples:
-      # clip room_0 when line 1 of room.txt is file:///videos/room.mp4
+      # clip room_0 (room.txt: URL file:///videos/room.mp4, first timestamp 0)
       cadestate ingest room.mp4 room.txt
       # no camera file: cameras by SfM, clip room_0
       cadestate ingest room.mp4
@@ -108,6 +108,9 @@ def ingest(
         else:
             if clip:
                 raise typer.BadParameter("--clip names one clip: give VIDEO CAMERAS.txt (or VIDEO alone), not folders")
+            if files := [s for s in sources if s.is_file()]:  # discover_clips said "not a folder" of a video
+                raise typer.BadParameter(f"{files[0]}: a file among {len(sources)} paths: give one clip (VIDEO "
+                                         "[CAMERAS.txt]) or folders of clips (each <name>.mp4 with its <name>.txt)")
             pairs = [pair for folder in sources for pair in discover_clips(folder)]
         cfg = ctx.obj.config()
         items, urls = [], []
