@@ -453,3 +453,13 @@ def test_a_sigterm_while_a_finished_command_exits_prints_no_traceback(tmp_path):
                           env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
     assert done.returncode == 0 and "pose" in done.stdout, done.stderr
     assert "Traceback" not in done.stderr and not done.stderr.strip(), done.stderr
+
+
+def test_version_prints_the_installed_version():
+    """`cadestate --version` (a new user's first check) was "No such option: --version"."""
+    from importlib.metadata import version
+
+    from fuzz.harness import run_cli
+
+    result = run_cli("--version")
+    assert result.code == 0 and result.stdout == f"cadestate {version('cadestate')}\n" and result.stderr == "", result

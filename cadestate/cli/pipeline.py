@@ -16,12 +16,23 @@ from cadestate.cli.common import CliError, State, check_writable, run_sources, a
 from cadestate.config import dataset_splits, describe_defaults, load_config, to_toml
 
 
+def _version(asked: bool) -> None:
+    """``--version``: the installed package's version, then exit."""
+    if asked:
+        from importlib.metadata import version
+
+        out.print(f"cadestate {version('cadestate')}", highlight=False)
+        raise typer.Exit()
+
+
 @app.callback()
 def main_options(
     ctx: typer.Context,
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Config TOML (default: $CADESTATE_CONFIG, else ./cadestate.toml, else built-in defaults); its relative paths are taken from the current folder.")] = None,
     warehouse: Annotated[Optional[Path], typer.Option("--warehouse", "-w", help="Warehouse root (overrides [warehouse] root and $CADESTATE_WAREHOUSE).")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's flow and task logs.")] = False,
+    version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
+                                          help="Print cadestate's version and exit.")] = False,
 ) -> None:
     ctx.obj = State(config, warehouse, verbose)
 
@@ -294,7 +305,8 @@ def stages(
     \b
     Examples:
       cadestate stages
-      cadestate stages --markdown > docs/stages.md
+      # the README's stage tables (a test compares them)
+      cadestate stages --markdown
     """
     from tasks.registry import extra_shown, stages_markdown, stages_of
 
