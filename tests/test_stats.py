@@ -300,8 +300,11 @@ def test_where_is_one_condition(tmp_path):
         result = run_cli("-w", str(wh.root), "stats", "--where", where)  # (was 'SQL error: ... syntax error')
         assert_clean_error(result, mentions=f"error: --where {where!r}: not one SQL condition: ")
     for where in ("split = 'a;b) --'", "true -- every clip", "clip IN (SELECT clip FROM frames)"):
-        result = run_cli("-w", str(wh.root), "stats", "--where", where)
-        assert result.code == 0 and result.stderr == "" and "#Scenes (clips): 0" in result.stdout, (where, result)
+        result = run_cli("-w", str(wh.root), "stats", "--where", where)  # none matches (no clip yet): said, not all zeros alone
+        assert result.code == 0 and "#Scenes (clips): 0" in result.stdout, (where, result)
+        assert result.stderr == f"warning: --where {where!r}: no clip matches it\n", (where, result)
+    result = run_cli("-w", str(wh.root), "stats")
+    assert result.code == 0 and result.stderr == "" and "#Scenes (clips): 0" in result.stdout, result
 
 
 def test_a_damaged_table_file_is_not_blamed_on_where(tmp_path):

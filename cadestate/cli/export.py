@@ -99,6 +99,8 @@ def stats(
         raise CliError(f"--where {where!r}: {e}") from None
     if clips.unfinished:
         err.print(f"[yellow]warning:[/] {escape(clips.note(hint=''))}", highlight=False)
+    elif not clips.chosen and where != "true":  # all zeros, said as if a dataset of nothing had been asked for
+        err.print(f"[yellow]warning:[/] --where {escape(repr(where))}: no clip matches it", highlight=False)
     if html is None:
         figures = statistics(dataset_tables(wh, clips.chosen))
     else:  # each clip's dataset read once, for its figures and its page
