@@ -142,6 +142,12 @@ def test_config_check_names_the_key(tmp_path):
     f.write_text("[frames]\njpeg_quality = 50\n")
     assert cli("config", "check", str(f)).returncode == 0
     assert "jpeg_quality = 50" in cli("-c", str(f), "config", "show").stdout
+    # no path: the config the other commands read (-c, then $CADESTATE_CONFIG), as `config show` reads it
+    assert cli("-c", str(f), "config", "check").stdout == f"{f}: ok\n"
+    assert cli("config", "check", env={"CADESTATE_CONFIG": str(f)}).stdout == f"{f}: ok\n"
+    f.write_text("[frames]\njpeg_quality = 500\n")
+    result = cli("-c", str(f), "config", "check")
+    assert result.returncode == 2 and "[frames] jpeg_quality: must be <= 100, got 500" in result.stderr
 
 
 def test_bench_generate_refuses_no_clips(tmp_path):

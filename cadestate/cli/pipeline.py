@@ -507,17 +507,23 @@ def config_show(
 
 
 @config_app.command("check")
-def config_check(path: Annotated[Path, typer.Argument(help="Config TOML to validate.")]) -> None:
+def config_check(
+    ctx: typer.Context,
+    path: Annotated[Optional[Path], typer.Argument(help="Config TOML to validate (default: the one commands read: -c, "
+                                                        "$CADESTATE_CONFIG, ./cadestate.toml).")] = None,
+) -> None:
     """Validate a config file: unknown sections or keys, bad values (nan and inf included), keys that
     contradict each other and a [detect] model that does not fit its adapter and labels are errors
     naming the key.
 
     \b
-    Example:
+    Examples:
       cadestate config check my.toml && cadestate -c my.toml run
+      # the config the other commands read (here none: the built-in defaults)
+      cadestate config check
     """
     from tasks.detection.detectors import check_detect_config
 
-    config = load_config(path)
+    config = load_config(path or ctx.obj.config_path)
     check_detect_config(config.detect, config.source)
-    out.print(f"{escape(str(path))}: ok")
+    out.print(f"{escape(config.source or 'the built-in defaults')}: ok", highlight=False)
