@@ -181,7 +181,9 @@ def test_a_usage_error_is_one_line_naming_the_help(tmp_path):
     for args, message in ((("sql", "SELECT 1", "-f", "xml"), "error: Invalid value for '--format' / '-f': 'xml' is not "
                                                              "one of 'table', 'csv', 'json'. (`cadestate sql --help`)"),
                           (("--nope",), "error: No such option: --nope (`cadestate --help`)"),
-                          (("ingest",), "error: Missing argument 'sources'. (`cadestate ingest --help`)")):
+                          (("ingest",), "error: Missing argument 'sources'. (`cadestate ingest --help`)"),
+                          (("cad", "ingest", "-w", "wh"), "error: No such option: -w (-w is an option of `cadestate` itself: "
+                                                          "give it before the command, `cadestate -w ... cad ingest`)")):
         result = cli(*args, cwd=tmp_path)
         assert result.returncode == 2 and result.stderr.splitlines() == [message], result.stderr
 

@@ -36,6 +36,9 @@ INPUT_ERRORS = {
 }
 """Exception types that mean bad input (module -> class): shown as one line, exit status 2."""
 
+GLOBAL_OPTIONS = frozenset({"-c", "--config", "-w", "--warehouse", "-v", "--verbose"})
+"""The options of ``cadestate`` itself, which a user may put after a command (``status -w wh``)."""
+
 ENVIRONMENT_ERRORS = {"flows.server": "ServerError"}
 """Exception types that mean the environment failed (Prefect's API): one line, exit status 1."""
 
@@ -76,6 +79,9 @@ def _main() -> None:
     except UsageError as e:  # a mistyped option or value: one line, and where the help is
         where = f" (`{e.ctx.command_path} --help`)" if e.ctx is not None else ""
         message = e.format_message().replace("Value error, ", "")  # Typer's parsing says it of every value
+        if (option := getattr(e, "option_name", None)) in GLOBAL_OPTIONS and e.ctx is not None and e.ctx.parent is not None:
+            where = f" ({option} is an option of `cadestate` itself: give it before the command, `cadestate {option} ... " \
+                    f"{e.ctx.command_path.removeprefix('cadestate ')}`)"
         err.print(f"[red]error:[/] {escape(message)}{escape(where)}", highlight=False)
         sys.exit(e.exit_code)
     except typer.Abort:  # input ended where a prompt waited
