@@ -132,6 +132,9 @@ def test_usage_errors_are_one_clear_line(tmp_path):
     (tmp_path / "w").mkdir()
     result = cli("-w", str(tmp_path / "w"), "tables", "nope")
     assert result.returncode == 2 and "unknown table 'nope'" in result.stderr
+    # one table's columns are the code's data model: shown before any warehouse exists, and none made
+    result = cli("-w", str(tmp_path / "none"), "tables", "poses")
+    assert result.returncode == 0 and "key: clip, track_id" in result.stdout and not (tmp_path / "none").exists(), result.stderr
 
 
 def test_config_check_names_the_key(tmp_path):

@@ -405,7 +405,8 @@ def tables(
     ctx: typer.Context,
     name: Annotated[Optional[str], typer.Argument(help="A table: show its columns with units and frames.")] = None,
 ) -> None:
-    """List the warehouse tables (row counts), or one table's columns.
+    """List the warehouse tables (row counts), or one table's columns (no warehouse needed: the data
+    model is the code's).
 
     \b
     Examples:
@@ -413,7 +414,7 @@ def tables(
       # columns with units and coordinate frames
       cadestate tables poses
     """
-    wh = ctx.obj.open_warehouse(must_exist=True)
+    wh = ctx.obj.open_warehouse(must_exist=not name)
     if name:
         spec = wh.spec(name)
         table = Table("column", "type", "unit", "frame", "description", title=f"{name}: {spec.description}")
