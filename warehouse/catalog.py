@@ -162,7 +162,7 @@ def recorded_views(path: Path) -> dict | None:
         if not _held_for_writing(e):
             return None
         with _copied(path) as copy:
-            return recorded_views(copy)
+            return recorded_views(copy) if copy != path else None
     try:
         record = json.loads(con.execute(f"SELECT {VIEWS_MACRO}()").fetchone()[0])
         return record if isinstance(record, dict) and record.get("layout") == LAYOUT else None
@@ -342,16 +342,21 @@ def _opened_for_writing(path: Path) -> bool:
 
 @contextlib.contextmanager
 def _copied(path: Path) -> Iterator[Path]:
-    """A copy of the catalog ``path`` (a pin's name, removed after; None when ``path`` is gone) to
-    read its record and snapshots from while another process holds it open read-write: DuckDB
-    refuses to open it even read-only then, and a write or `sql` took it for unreadable and
-    rebuilt the catalog without its record: every table's footers read again, every snapshot lost.
-    (Its changes not yet checkpointed, in its ``.wal``, are not the catalog's.)"""
+    """A copy of the catalog ``path`` (a pin's name, removed after) to read its record and snapshots
+    from while another process holds it open read-write: DuckDB refuses to open it even read-only
+    then, and a write or `sql` took it for unreadable and rebuilt the catalog without its record:
+    every table's footers read again, every snapshot lost. (Its changes not yet checkpointed, in its
+    ``.wal``, are not the catalog's.) ``path`` itself where no copy can be made (gone meanwhile, a
+    full disk): what opens it then fails as it did."""
     import shutil
 
     copy = _pin_name(path)
     try:
-        shutil.copyfile(path, copy)
+        try:
+            shutil.copyfile(path, copy)
+        except OSError:
+            yield path
+            return
         yield copy
     finally:
         copy.unlink(missing_ok=True)
