@@ -29,8 +29,8 @@ object is credited at most once; accuracy = credited objects / all posed ground-
 
 In the Scan2CAD modes, an unmatched prediction that aligns an object already credited is a
 ``duplicate`` (in ``scan2cad-exact``, only with that object's model, by its own symmetry: a model
-the mode dropped came back as a correct duplicate), any other unmatched one a ``false_positive``. The dataset's yield scores them *by
-track* (``by_track``): a prediction whose track follows an object is matched against that object
+the mode dropped came back as a correct duplicate), any other unmatched one a
+``false_positive``. The dataset's yield scores them *by track* (``by_track``): a prediction whose track follows an object is matched against that object
 alone, as the dataset publishes it (that track's pose); in 3D alone a chair's pose that landed on
 the chair beside it credited that one, though its own track had none.
 
