@@ -321,3 +321,38 @@ def relations(wh: Warehouse) -> set[tuple]:
     """The clip's verification statements in ``track_relations``: (relation, track_id, other_track_id)."""
     return {(r["relation"], r["track_id"], r["other_track_id"]) for r in wh.read("track_relations", [CLIP]).to_pylist()
             if r["kind"] == "verification"}
+
+
+def test_clicks_on_a_camera_sfm_now_interpolates_are_asked_again(rwh, tmp_path):
+    """Clicks given on every key-frame of track 0; SfM run again then interpolates the cameras of
+    its first frames. The new task leaves those frames out, and the clicks given there no longer
+    hold (they went on to the pose solver, through made-up cameras): the track is asked again."""
+    import pyarrow.compute as pc
+
+    _, task = _cad_task(rwh)
+    _ingest(rwh, _label(tmp_path / "c", "cad_selection", task["task_id"], [{"track_id": 0, "cad_id": "lib.chair_a"}],
+                        "2026-01-01T00:00:00+00:00"))
+    _cad_task(rwh)
+
+    def clicks_task():
+        out = _run(rwh, "correspondence_task", lambda rid: correspondence_task_stage(rwh, CorrespondenceTaskConfig(), CLIP, rid))
+        rows = rwh.read("label_tasks", [CLIP]).filter(pc.equal(pc.field("kind"), "correspondences"))
+        return out, json.loads(rows.sort_by([("created_at", "descending")]).column("document")[0].as_py())
+
+    out, first = clicks_task()
+    stamps = [k["timestamp_us"] for k in first["items"][0]["keyframes"]]
+    points = [{"x": 0.2 + 0.05 * i, "y": 0.2 + 0.03 * i * i, "xyz": [0.1 * i - 0.2, 0.05 * i, 0.1 * (i % 2)]} for i in range(4)]
+    _ingest(rwh, _label(tmp_path / "k", "correspondences", first["task_id"], [
+        {"track_id": 0, "cad_id": "lib.chair_a", "is_mirrored": False, "keyframes": [{"timestamp_us": t, "points": points}
+                                                                                  for t in stamps]}], "2026-01-02T00:00:00+00:00"))
+    assert clicks_task()[0].status == "completed"
+    frames = rwh.read("frames", [CLIP]).to_pylist()
+    for f in frames:
+        f["camera_interpolated"] = f["frame_index"] < 3
+    rwh.write("frames", CLIP, table_rows("frames", frames))
+    made_up = {f["timestamp_us"] for f in frames if f["camera_interpolated"]}
+    assert made_up & set(stamps)  # clicks were given on frames now interpolated
+    out, second = clicks_task()
+    assert second["task_id"] != first["task_id"] and not made_up & {k["timestamp_us"] for k in second["items"][0]["keyframes"]}
+    assert out.status == "paused" and second["items"][0].get("previous") is None
+    assert not made_up & set(rwh.read("correspondences", [CLIP]).column("timestamp_us").to_pylist())

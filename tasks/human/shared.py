@@ -75,6 +75,23 @@ def boxes_now(tracks: dict[int, ClipTrack]) -> dict[int, dict[int, list[tuple]]]
     return now
 
 
+def on_registered_cameras(wh: Warehouse, clip: str, boxes: dict[int, dict[int, list[tuple]]]) -> dict[int, dict[int, list[tuple]]]:
+    """``boxes`` (:func:`boxes_now`) less those on frames whose camera SfM interpolated, for each
+    track with a box on a registered frame (as :func:`track_keyframes` with ``posed`` asks): clicks
+    carried from an earlier task hold only where the track has a box now, so clicks on a frame
+    that an SfM run again made interpolated (a made-up camera) no longer hold, and the track is
+    asked again; they went on to the pose solver."""
+    frames = wh.read("frames", [clip], columns=["timestamp_us", "camera_interpolated"]).to_pylist()
+    made_up = {int(f["timestamp_us"]) for f in frames if f["camera_interpolated"]}
+    if not made_up:
+        return boxes
+    out = {}
+    for t, by_ts in boxes.items():
+        registered = {ts: b for ts, b in by_ts.items() if ts not in made_up}
+        out[t] = registered or by_ts
+    return out
+
+
 def write_task_once(wh: Warehouse, task) -> Path:
     """Write ``task``; if the newest version of the same task id says the same (but for
     ``created_at``) and is still the clip's newest task of its kind, keep that version (no new
