@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 import duckdb
 
 from warehouse import snapshot
-from warehouse.store import READ_RETRIES, Compacted, Warehouse, WarehouseError, file_lock, warn
+from warehouse.store import READ_RETRIES, Compacted, Warehouse, WarehouseError, atomic_write_bytes, file_lock, warn
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -94,14 +94,16 @@ def _schema_file(wh: Warehouse, table: str, con: duckdb.DuckDBPyConnection) -> P
     path = schema_path(wh, table)
     digest = wh.info[table].schema_sha256  # the schema's (schemas.index.schema_sha256)
     if _schema_digest(con, path) != digest:
+        import pyarrow as pa
         import pyarrow.parquet as pq
 
         schema = wh.spec(table).schema
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
         meta = {**(schema.metadata or {}), SCHEMA_DIGEST: digest.encode()}
-        pq.write_table(schema.with_metadata(meta).empty_table(), tmp)
-        os.replace(tmp, path)
+        sink = pa.BufferOutputStream()
+        pq.write_table(schema.with_metadata(meta).empty_table(), sink)
+        # synced before the rename: an empty file after a power cut failed every query of the table
+        atomic_write_bytes(path, sink.getvalue().to_pybytes())
         (wh.table_dir(table) / SCHEMA_FILE).unlink(missing_ok=True)  # where an older layout kept it
     return path
 
