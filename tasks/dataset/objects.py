@@ -31,9 +31,9 @@ whose root has no track stays an object of its own.
 several of them may be posed. Each accepted pose, in order of more key-frames, then lower track id,
 claims every other track whose boxes the projection of its posed CAD bounding box covers: mean box
 IoU >= :data:`SAME_OBJECT_IOU` over the frames where both exist; and every other posed track whose
-projection covers its own boxes (between two poses the claim goes both ways). Claimed tracks (posed or not) join
-its object the same way (with the tracks already joined to them). Tracks no pose claims stay
-objects of their own.
+projection covers its own boxes (between two poses the claim goes both ways). Claimed tracks
+(posed or not) join its object the same way (with the tracks already joined to them). Tracks no
+pose claims stay objects of their own.
 """
 
 from __future__ import annotations
