@@ -19,8 +19,9 @@ label files (validated by :func:`tasks.human.labels.validate_label`) to ``<bench
   clicking on the **selected** model (the mesh the task shows) placed at the ground-truth object's
   pose, with the other objects of the scene occluding. When the selected model is not the true one
   the clicks are where that model would be if it stood in the object's place (what a person
-  clicking on the shown model would do). A track with no clickable key-frame gets a new
-  cad_selection answer null (the annotator gives up on the model), so nothing waits forever.
+  clicking on the shown model would do). A track with fewer than two clickable key-frames (an
+  answer needs two: one view gives no depth) gets a new cad_selection answer null (the annotator
+  gives up on the model), so nothing waits forever.
 - ``verification``: :func:`bench.annotators.verify_pose` of the solved pose with the posed model,
   seen through the clip's own cameras (the warehouse's ``frames``: the camera file's or SfM's, as
   the verification page shows it), against the true model at the true pose through the true
@@ -216,7 +217,7 @@ def _correspond(c: _Clip, item, noise: AnnotatorNoise, renderer: Renderer) -> di
                                       rng=noise.rng(c.clip, "correspondences", *c.dice(item.track_id), item.cad_id),
                                       renderer=renderer, symmetry_order=int(item.symmetry), keyframes=keyframes,
                                       occluders=c.occluders(o.track_id))
-    if not clicks:
+    if len(clicks) < 2:  # one view gives no depth: the label format refuses an answer on one key-frame
         return None
     return {"track_id": item.track_id, "cad_id": item.cad_id, "is_mirrored": bool(o.is_mirrored),
             "keyframes": [{"timestamp_us": int(kf.timestamp),
@@ -296,7 +297,7 @@ def answer_tasks(bench_dir: Path, wh: Warehouse, clip: str, noise: AnnotatorNois
                 for it in items:
                     a = _correspond(c, it, noise, renderer)
                     (answers.append(a) if a is not None else give_up.append(it.track_id))
-                if give_up:  # nothing to click on: the annotator rejects the model instead
+                if give_up:  # under two key-frames to click on: the annotator rejects the model instead
                     sel = latest_task_of_kind(wh, clip, "cad_selection")
                     if sel is not None:
                         sel_task = parse_task(sel["document"], sel["path"])

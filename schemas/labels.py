@@ -160,7 +160,8 @@ class CorrespondenceAnswer:
     track_id: int = spec("tracks.track_id.", **TRACK_ID)
     cad_id: str = spec("The CAD model clicked on (the task's cad_id for the track).", minLength=1)
     is_mirrored: bool = spec("The annotator mirrored the model (x -> -x); 3D points stay unmirrored.")
-    keyframes: tuple[CorrespondenceKeyframe, ...] = spec("Key-frames annotated (one entry per timestamp).", minItems=1)
+    keyframes: tuple[CorrespondenceKeyframe, ...] = spec("Key-frames annotated (one entry per timestamp), at least two: "
+                                                         "one view gives no depth.", minItems=2)
     seconds: float | None = spec("Time the annotator spent on this item.", unit="s", default=None, **SECONDS)
 
 

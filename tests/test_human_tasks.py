@@ -563,10 +563,12 @@ def test_a_task_a_rerun_no_longer_asks_is_withdrawn_and_comes_back_when_asked_ag
     assert _waiting(hwh) == []
 
 
-def test_clicks_of_a_track_no_longer_asked_do_not_answer_the_task(hwh, tmp_path):
-    """A track with a chosen model that a rerun sees on one frame only is no item (one view gives no
-    pose), yet its earlier clicks still held it and were counted against the items: with track 0
-    unanswered, "1 of 1 tracks have correspondences" and the stage completed."""
+def test_clicks_on_one_key_frame_do_not_answer_and_a_track_no_longer_asked_is_not_counted(hwh, tmp_path):
+    """Clicks on one key-frame can never give a pose (one view gives no depth): such an answer was
+    ingested and counted, so the track got pose ``single_keyframe`` and was never asked again. The
+    label is refused, naming the field, and the track still waits. A track with a chosen model that
+    a rerun sees on one frame only is no item: its earlier clicks must not be counted against the
+    items (with track 0 unanswered, "1 of 1 tracks have correspondences" and the stage completed)."""
     sel = _run(hwh, "cad_selection", lambda rid: cad_selection_stage(hwh, CadSelectionConfig(), CLIP, rid))
     ingest_labels(hwh, _label(tmp_path / "l1", "a.json", "cad_selection", _task(hwh, sel.message)["task_id"],
                               [{"track_id": 0, "cad_id": "lib.chair_a"}, {"track_id": 1, "cad_id": "lib.chair_b"},
@@ -578,9 +580,19 @@ def test_clicks_of_a_track_no_longer_asked_do_not_answer_the_task(hwh, tmp_path)
     pts = [{"x": 0.1 + 0.1 * i, "y": 0.2 + 0.05 * i, "xyz": p} for i, p in enumerate(CUBE)]
     answer = {"track_id": 1, "cad_id": "lib.chair_b", "is_mirrored": False,
               "keyframes": [{"timestamp_us": shown[1], "points": pts}]}  # one key-frame clicked so far
-    assert ingest_labels(hwh, _label(tmp_path / "l2", "b.json", "correspondences", ctask["task_id"], [answer],
+    one = ingest_labels(hwh, _label(tmp_path / "l2", "b.json", "correspondences", ctask["task_id"], [answer],
+                                    "2026-01-02T00:00:00+00:00"))
+    assert not one.ok and one.errors == [f"{tmp_path / 'l2' / 'b.json'}: $.answers[0].keyframes: 1 item(s), at least 2 "
+                                         "needed: Key-frames annotated (one entry per timestamp), at least two: one view "
+                                         "gives no depth."], one.errors
+    waits = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    assert waits.status == "paused" and "0 of 2 tracks have correspondences" in waits.message, waits.message
+    answer["keyframes"].append({"timestamp_us": shown[0], "points": pts})
+    assert ingest_labels(hwh, _label(tmp_path / "l2", "c.json", "correspondences", ctask["task_id"], [answer],
                                      "2026-01-02T00:00:00+00:00")).ok
-    # a rerun of tracking: track 1 keeps one detection, on the first frame its clicks were made on
+    held = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))
+    assert held.status == "paused" and "1 of 2 tracks have correspondences" in held.message, held.message
+    # a rerun of tracking: track 1 keeps one detection, on a frame its clicks were made on
     tds = [r for r in hwh.read("track_detections", [CLIP]).to_pylist() if r["track_id"] != 1 or r["timestamp_us"] == shown[1]]
     hwh.write("track_detections", CLIP, table_rows("track_detections", tds))
     again = _run(hwh, "correspondence_task", lambda rid: correspondence_task_stage(hwh, CorrespondenceTaskConfig(), CLIP, rid))

@@ -148,6 +148,17 @@ def _edit(kind, fn):
     return doc
 
 
+def _third_keyframe(d: dict) -> None:
+    """Answer 0 clicked on key-frame 600000 too (so that one left out leaves two: an answer on one
+    key-frame is refused, one view gives no depth)."""
+    d["answers"][0]["keyframes"].append({"timestamp_us": 600_000, "points": copy.deepcopy(d["answers"][0]["keyframes"][0]["points"])})
+
+
+def _third_keyframe_then_first_left_out(d: dict) -> None:
+    _third_keyframe(d)
+    d["answers"][0]["keyframes"].pop(0)
+
+
 def _many_then_one_again(d: dict) -> None:
     """600 chairs, one box each at its own place on one of the clip's frames, then answers[5]
     drawn again: a box shifted by a pixel on its frame, and one on a frame it has no box on."""
@@ -169,7 +180,10 @@ MALFORMED = [
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"][0]["xyz"].__setitem__(2, float("inf")),
      r"\$\.answers\[0\]\.keyframes\[1\]\.points\[0\]\.xyz\[2\]: not a finite number"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1]["points"].pop(),
-     r"\$\.answers\[0\]\.keyframes\[1\]\.points: .*(too short|non-empty|fewer)"),
+     r"\$\.answers\[0\]\.keyframes\[1\]\.points: 3 item\(s\), at least 4 needed: 4-6 correspondences\.$"),
+    # clicks on one key-frame can never give a pose (pose's single_keyframe): refused, the item waits
+    ("correspondences", lambda d: d["answers"][0]["keyframes"].pop(),
+     r"\$\.answers\[0\]\.keyframes: 1 item\(s\), at least 2 needed: .*one view gives no depth\.$"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 123),
      r"\$\.answers\[0\]\.keyframes\[1\]\.timestamp_us: 123 is not a frame of the clip"),
     ("correspondences", lambda d: d["answers"][0]["keyframes"][1].__setitem__("timestamp_us", 0),
@@ -398,7 +412,7 @@ def test_ingest_validated_ingests_what_was_validated_once(lwh, tmp_path):
     assert ingest_labels(lwh, d).duplicates == sorted(str(f.path) for f in files)
     # The app's answers get the warnings a file's ingest gives (a second session's clicks leaving out a key-frame).
     second = _edit("correspondences", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
-                                                 d["answers"][0]["keyframes"].pop(0)))
+                                                 _third_keyframe_then_first_left_out(d)))
     fewer = validate_label(put(d, "fewer.json", second), facts=ClipFacts(lwh))
     assert [w.split(": ", 1)[1][:40] for w in ingest_validated(lwh, [fewer], ClipFacts(lwh)).warnings] == [
         "its clicks for track 0 replace those of "]
@@ -473,11 +487,12 @@ def test_supersession_keeps_history(lwh, tmp_path):
     assert current_answers(lwh, "manual_track", [CLIP]).num_rows == 0 and lwh.read("manual_track_labels").num_rows == 2
     # correspondences: the newest answer to the task, track by track, is what the pose stage reads
     ingest_labels(lwh, put(tmp_path / "f", "co.json", good("correspondences")))
-    flipped = _edit("correspondences", lambda d: (d["answers"][0].__setitem__("is_mirrored", False), d["answers"][0]["keyframes"].pop()))
+    flipped = _edit("correspondences", lambda d: (d["answers"][0].__setitem__("is_mirrored", False),
+                                                  d["answers"][0]["keyframes"][0]["points"].pop()))
     ingest_labels(lwh, put(tmp_path / "g", "co.json", flipped))
     corr = lwh.read("correspondences").to_pylist()
-    assert len(corr) == 5 and not any(r["is_mirrored"] for r in corr)
-    assert lwh.read("correspondence_labels").num_rows == 14
+    assert len(corr) == 8 and not any(r["is_mirrored"] for r in corr)
+    assert lwh.read("correspondence_labels").num_rows == 17
 
 
 def test_answers_digest_follows_the_answers_not_the_files(lwh, tmp_path):
@@ -825,7 +840,7 @@ def test_the_key_frame_warning_follows_the_order_answers_are_applied_in(lwh, tmp
     """Files of one ingest apply by created_at, not by name: the warning is the newest answer's."""
     def clicks(created, drop_first):
         return _edit("correspondences", lambda d: (d.__setitem__("created_at", created),
-                                                   d["answers"][0]["keyframes"].pop(0) if drop_first else None))
+                                                   (_third_keyframe_then_first_left_out if drop_first else _third_keyframe)(d)))
     put(tmp_path / "in", "a.json", clicks("2026-01-03T00:00:00+00:00", newest_drops))  # the newer, in force
     put(tmp_path / "in", "b.json", clicks("2026-01-02T00:00:00+00:00", not newest_drops))
     warnings = ingest_labels(lwh, tmp_path / "in").warnings
@@ -846,17 +861,17 @@ def test_clicked_points_lie_within_the_models_box(lwh, tmp_path):
 def test_answers_to_a_replaced_task_and_clicks_leaving_out_key_frames_are_warned_of(lwh, tmp_path):
     """Two sessions of clicks for one track: the second replaces the first whole. An answer to a
     task that a newer one replaced counts only where it still holds."""
-    first = good("correspondences")
+    first = _edit("correspondences", _third_keyframe)
     assert ingest_labels(lwh, put(tmp_path / "a", "s1.json", first)).warnings == []
     second = _edit("correspondences", lambda d: (d.__setitem__("created_at", "2026-01-02T00:00:00+00:00"),
-                                                 d["answers"][0]["keyframes"].pop(0)))
+                                                 _third_keyframe_then_first_left_out(d)))
     report = ingest_labels(lwh, put(tmp_path / "b", "s2.json", second))
     assert report.ok and report.warnings == [f"{tmp_path / 'b' / 's2.json'}: its clicks for track 0 replace those of "
                                              f"{tmp_path / 'a' / 's1.json'} and leave out 1 of its key-frame(s): the newest "
                                              "answer of a track is its whole answer, so give every key-frame's clicks in one file"]
     newer = next(t for t in _tasks() if t.kind == "correspondences")
     write_task(lwh, dataclasses.replace(newer, task_id="c1.co2", created_at="2026-01-05T00:00:00+00:00"))
-    third = _edit("correspondences", lambda d: d.__setitem__("created_at", "2026-01-03T00:00:00+00:00"))
+    third = _edit("correspondences", lambda d: (d.__setitem__("created_at", "2026-01-03T00:00:00+00:00"), _third_keyframe(d)))
     report = ingest_labels(lwh, put(tmp_path / "c", "s3.json", third))
     assert report.ok and report.warnings == [f"{tmp_path / 'c' / 's3.json'}: answers task c1.co, which a rerun replaced with "
                                              "c1.co2: its answers count only where they still hold on the newest task "

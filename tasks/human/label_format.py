@@ -160,6 +160,9 @@ def _schema_error(e: jsonschema.ValidationError) -> str:
     if e.validator == "anyOf":  # a nullable field: say which types fit
         kinds = [repr(b["type"]) if "type" in b else b.get("$ref", "?").rsplit("/", 1)[-1] for b in e.validator_value]
         return f"{e.instance!r} is not of type {' or '.join(kinds)}"[:200]
+    if e.validator in ("minItems", "maxItems") and isinstance(e.instance, list):  # not the whole list's repr
+        bound = "at least {} needed" if e.validator == "minItems" else "at most {} allowed"
+        return f"{len(e.instance)} item(s), {bound.format(e.validator_value)}: {e.schema.get('description', '')}".rstrip(": ")
     message = e.message
     return message if len(message) <= 200 else message[:197] + "..."
 
