@@ -425,6 +425,20 @@ def test_a_matroska_video_starting_late_lasts_its_own_length(tmp_path):
     assert abs(probe_video(path).duration_us - 3_000_000) <= 34_000
 
 
+def test_an_avi_with_b_frames_is_refused_naming_the_file(tmp_path):
+    """AVI states no presentation times: FFmpeg times the decoded frames of a stream with B-frames
+    in decode order (x264: out of order; MPEG-4 part 2: one frame late), the packets' times look
+    regular, and every camera got another frame's picture with a timestamp error of 0. Refused at
+    the probe; an AVI without B-frames is decoded frame for frame."""
+    frames = [np.full((48, 64, 3), 8 * i, np.uint8) for i in range(30)]  # frame i: grey level 8 i
+    with pytest.raises(VideoError, match=r"^\S+b\.avi: an AVI whose h264 stream has B-frames: AVI states no presentation "
+                                         r"times, so its frames' times are not known; convert it to MP4 or MKV first$"):
+        probe_video(_write(tmp_path / "b.avi", frames, fmt="avi"))
+    plain = _write(tmp_path / "plain.avi", frames, fmt="avi", codec="mjpeg")
+    wanted = np.array([round(i * 1e6 / 30) for i in range(1, 29)])
+    assert [round(int(f.rgb[0, 0, 0]) / 8) for f in decode_at(plain, wanted)] == list(range(1, 29))
+
+
 def test_mpeg_ts_frames_before_the_first_keyframe_after_the_start_are_reached(tmp_path):
     """A seek to 0 in MPEG-TS (no index) landed on the keyframe at 0.5 s: with seeks on every
     target (threshold 0) frames 7 and 14 came out as frame 15. The start is decoded from the file

@@ -58,6 +58,13 @@ def _open(path: str | os.PathLike) -> av.container.InputContainer:
     if not container.streams.video:
         container.close()
         raise VideoError(f"{path}: no video stream")
+    codec = container.streams.video[0].codec_context
+    if container.format.name == "avi" and codec.has_b_frames:
+        # AVI states no presentation times: FFmpeg times B-frame streams' decoded frames in decode
+        # order (shifted a frame, or out of order), so every camera would get another frame's picture
+        container.close()
+        raise VideoError(f"{path}: an AVI whose {codec.name} stream has B-frames: AVI states no presentation times, so "
+                         "its frames' times are not known; convert it to MP4 or MKV first")
     return container
 
 
