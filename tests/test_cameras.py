@@ -221,8 +221,8 @@ def test_malformed_camera_lines(tmp_path, camera_lines, line, message):
     pytest.param("", 0, "empty file", id="empty"),
     pytest.param(" \n\r\n\t", 0, "empty file", id="whitespace-only"),
     pytest.param("\n" + GOOD[0], 1, "line 1 (the URL) is empty", id="empty-url"),
-    pytest.param(URL, 0, "no camera lines", id="url-only"),
-    pytest.param(URL + "\n\n  \n", 0, "no camera lines", id="url-and-blank-lines"),
+    pytest.param(URL, 2, "no camera lines after the URL (line 1)", id="url-only"),
+    pytest.param(URL + "\n\n  \n", 2, "no camera lines", id="url-and-blank-lines"),
     pytest.param("\n".join(GOOD), 1, "line 1 is a camera line (19 numbers), not the video URL: the URL line is "
                  "missing", id="missing-url"),
     pytest.param("\n".join(GOOD).replace("100", "nan", 1), 1, "the URL line is missing", id="missing-url-nan"),
@@ -236,11 +236,11 @@ def test_malformed_whole_file(text, line, message):
     with pytest.raises(CameraFileError) as info:
         parse_camera_text(text, source="mem.txt")
     assert (info.value.path, info.value.line) == ("mem.txt", line)
-    assert message in str(info.value) and str(info.value).startswith(f"mem.txt:{line}: ")
+    assert message in str(info.value) and str(info.value).startswith(f"mem.txt:{line}: " if line else "mem.txt: ")
 
 
 def test_default_source_name():
-    with pytest.raises(CameraFileError, match=r"^<string>:0: empty file$"):
+    with pytest.raises(CameraFileError, match=r"^<string>: empty file$"):  # the whole file: no line
         parse_camera_text("")
 
 
@@ -250,12 +250,16 @@ def test_non_utf8_file(tmp_path):
     with pytest.raises(CameraFileError, match="not valid UTF-8") as info:
         parse_camera_file(path)
     assert (info.value.path, info.value.line) == (str(path), 3)  # the line of the bad byte
+    for end in ("\r", "\r\n", "\r\r\n"):  # counted as the parser splits lines (\r alone: classic Mac)
+        path.write_bytes(end.join([URL, GOOD[0], GOOD[1] + " \xff"]).encode("latin-1") + end.encode())
+        with pytest.raises(CameraFileError, match=r":3: not valid UTF-8"):
+            parse_camera_file(path)
 
 
 def test_missing_file(tmp_path):
     with pytest.raises(CameraFileError, match="cannot read file") as info:
         parse_camera_file(tmp_path / "absent.txt")
-    assert info.value.line == 0
+    assert info.value.line == 0 and str(info.value).startswith(f"{tmp_path / 'absent.txt'}: cannot read file")
 
 
 def test_camera_file_error_is_value_error_and_pickles():

@@ -123,10 +123,13 @@ class CameraTrack:
         return self.world_to_camera[:, :, 3]
 
 
-class CameraFileError(ValueError):
-    """A malformed camera file. str(e) == f"{path}:{line}: {message}".
+LINE_END = re.compile(r"\r*\n|\r")
+"""Unix, Windows (also \r\r\n) and classic Mac line ends, mixed too."""
 
-    ``line`` is 1-based; it is 0 when the problem is the whole file.
+
+class CameraFileError(ValueError):
+    """A malformed camera file. str(e) == f"{path}:{line}: {message}", or f"{path}: {message}"
+    when the problem is the whole file (``line`` 0; else 1-based).
     """
 
     def __init__(self, path: str, line: int, message: str):
@@ -134,7 +137,7 @@ class CameraFileError(ValueError):
         self.path, self.line, self.message = path, line, message
 
     def __str__(self) -> str:
-        return f"{self.path}:{self.line}: {self.message}"
+        return f"{self.path}:{self.line}: {self.message}" if self.line else f"{self.path}: {self.message}"
 
 
 def _column(name: str) -> str:
@@ -221,7 +224,7 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
       CameraFileError: ``f"{source}:{line}: {what is wrong}"`` at the first problem found.
     """
     text = text.removeprefix(BOM)
-    lines = re.split(r"\r*\n|\r", text)  # Unix, Windows (also \r\r\n) and classic Mac line ends, mixed too
+    lines = LINE_END.split(text)
     if not text.strip():
         raise CameraFileError(source, 0, "empty file")
     if not lines[0].strip():
@@ -235,7 +238,7 @@ def parse_camera_text(text: str, source: str = "<string>") -> CameraTrack:
                                          f"missing (and a camera line has {len(COLUMNS)} numbers)")
     last = max(i for i, line in enumerate(lines) if line.strip())
     if last == 0:
-        raise CameraFileError(source, 0, "no camera lines after the URL")
+        raise CameraFileError(source, 2, "no camera lines after the URL (line 1)")
     timestamps: list[int] = []
     rows: list[np.ndarray] = []
     line_of: dict[int, int] = {}
@@ -278,7 +281,7 @@ def parse_camera_file(path: str | os.PathLike[str]) -> CameraTrack:
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
+        line = len(LINE_END.split(data[:e.start].decode("utf-8", "replace")))  # as the parser counts lines
         raise CameraFileError(source, line, f"not valid UTF-8 (byte 0x{data[e.start]:02x} at "
                                             f"offset {e.start})") from None
     return parse_camera_text(text, source)
