@@ -186,9 +186,16 @@ def test_too_few_frames_is_a_clear_error(tmp_path, small_clip):
         sample_frames(small_clip.video_path, 0.1, tmp_path)
 
 
-def test_too_few_keyframes_is_said_before_any_mapping(small_clip):
+def test_too_few_keyframes_is_said_before_any_mapping(small_clip, monkeypatch):
     """Two keyframes were mapped all the same, and failed as "no model in 3 sampled frames (too
-    little texture or parallax?)", blaming the video for what the settings did."""
+    little texture or parallax?)", blaming the video for what the settings did; then it was said
+    after the features, the matching and the focal search (seconds to minutes): before them now."""
+    import pycolmap
+
+    def too_late(*args, **kwargs):
+        raise AssertionError("features extracted before the keyframe count was checked")
+
+    monkeypatch.setattr(pycolmap, "extract_features", too_late)
     with pytest.raises(SfmError, match=r"small.mp4: 3 frame\(s\) sampled at 1 fps give 2 keyframe\(s\) \(\[cameras\] "
                                        r"keyframe_every = 2\); SfM maps at least 3: a longer clip, or a higher sample_fps"):
         run_sfm(small_clip.video_path, CamerasConfig(sample_fps=1.0))

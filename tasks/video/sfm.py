@@ -338,6 +338,11 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
         options = _options(cfg, intrinsics, probe_video(video).pixel_aspect if intrinsics else 1.0)
         reader, extraction, matching, pairing, verification, mapping = options
         db, names = tmp / "database.db", [p.name for p in frames.paths]
+        keyframes = names[::cfg.keyframe_every]  # too few: said before minutes of features, matching and focal search
+        if len(keyframes) < MIN_KEYFRAMES:
+            raise SfmError(f"{video}: {len(names)} frame(s) sampled at {cfg.sample_fps:g} fps give {len(keyframes)} "
+                           f"keyframe(s) ([cameras] keyframe_every = {cfg.keyframe_every}); SfM maps at least {MIN_KEYFRAMES}: "
+                           "a longer clip, or a higher sample_fps or a lower keyframe_every")
         t = time.perf_counter()
         pycolmap.Database.open(str(db)).close()
         # Image ids in time order, whatever order the extraction threads finish in: the mapper's choices follow the ids.
@@ -354,11 +359,6 @@ def run_sfm(video: Path, cfg: CamerasConfig, intrinsics: tuple[float, float, flo
             t = time.perf_counter()
             focal = estimate_focal(db, tmp / "images", names, frames.width, cfg, mapping, tmp)
             seconds["focal"] = time.perf_counter() - t
-        keyframes = names[::cfg.keyframe_every]
-        if len(keyframes) < MIN_KEYFRAMES:
-            raise SfmError(f"{video}: {len(names)} frame(s) sampled at {cfg.sample_fps:g} fps give {len(keyframes)} "
-                           f"keyframe(s) ([cameras] keyframe_every = {cfg.keyframe_every}); SfM maps at least {MIN_KEYFRAMES}: "
-                           "a longer clip, or a higher sample_fps or a lower keyframe_every")
         held = [focal.focal_px] if focal else []  # the focal length (px) each kept mapping held
         if focal:
             set_focal(db, focal.focal_px)
