@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -466,6 +467,11 @@ def test_attribution_keeps_the_catalogues_copyright_notices(tmp_path, capsys):
                        catalogues["Scopia"]: "Creative Commons Attribution 3.0 Unported license  © Emmanuel Puybaret / "
                                              "eTeks and Scopia Visual Interfaces Systems"}
     assert capsys.readouterr().err.startswith(f"warning: {gone}: cannot read its licence line for ATTRIBUTION.csv")
+    # a folder above the catalogue with a '!' in its name: the notice was lost (the path cut at the first '!')
+    (tmp_path / "lib!x").mkdir()
+    moved = shutil.copy(catalogues["Scopia"], tmp_path / "lib!x" / "Scopia.sh3f")
+    assert catalogue_notices([{"source": "sweethome3d", "source_path": f"{moved}!Scopia/model.obj"}]) == {
+        str(moved): notices[catalogues["Scopia"]]}
 
 
 def test_export_official_names_a_damaged_mesh(ingested, tmp_path):

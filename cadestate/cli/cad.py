@@ -89,7 +89,9 @@ def cad_ingest(
 
 def _root_of(paths: list[str]) -> str:
     """The folder holding every file of ``paths`` (an archive member counts as its archive)."""
-    return os.path.commonpath([os.path.dirname(p.split("!", 1)[0]) for p in paths])
+    from tasks.cad.sources import archive_of
+
+    return os.path.commonpath([os.path.dirname(archive_of(p)) for p in paths])
 
 
 def held_ids(root: Path) -> list[tuple[str, str, str]]:

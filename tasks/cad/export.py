@@ -36,7 +36,7 @@ import trimesh
 
 from cadestate.progress import progress
 from tasks.cad.classes import CLASSES
-from tasks.cad.sources import read_java_properties
+from tasks.cad.sources import archive_of, read_java_properties
 from tasks.stage import waits_for_people
 from warehouse import Warehouse
 from warehouse.store import warn
@@ -339,7 +339,7 @@ def catalogue_notices(models: list[dict]) -> dict[str, str]:
     ("Copyright © 2003-2008 Andrew Kator & Jennifer Legaz"), which the licence's SPDX id drops. A
     catalogue that cannot be read any more (moved) gives none, said once."""
     notices = {}
-    for archive in sorted({m["source_path"].split("!")[0] for m in models if m["source"] == "sweethome3d"}):
+    for archive in sorted({archive_of(m["source_path"]) for m in models if m["source"] == "sweethome3d"}):
         try:
             with zipfile.ZipFile(archive) as z:
                 notices[archive] = read_java_properties(z.read("PluginFurnitureCatalog.properties")).get("license", "").strip()
@@ -371,7 +371,7 @@ def export_official(wh: Warehouse, out: Path, libraries: Sequence[str] | None = 
             columns = ["cad_id", "library", "name", "licence", "creator", "source", "notice"]
             writer = csv.DictWriter(f, columns, extrasaction="ignore")
             writer.writeheader()
-            writer.writerows({**m, "notice": notices.get(m["source_path"].split("!")[0], "")}
+            writer.writerows({**m, "notice": notices.get(archive_of(m["source_path"]), "")}
                              for m in sorted(models, key=lambda m: m["cad_id"]))
         for m in progress(models, total=len(models), description="export", enabled=show_progress):
             folder = tmp / m["class_id"]

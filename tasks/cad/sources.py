@@ -269,13 +269,20 @@ class _FolderResolver(trimesh.resolvers.ZipResolver):
             raise
 
 
+def archive_of(path: str) -> str:
+    """The file holding the model at ``path`` (an item's or a ``cad_models.source_path``): its
+    catalogue for a member of a Sweet Home 3D catalogue (``<catalogue>.sh3f!<member>``), else the
+    path itself (a loose file's path, or a folder above a catalogue, may hold a '!')."""
+    archive, sep, _ = path.rpartition(".sh3f!")  # the last
+    return f"{archive}.sh3f" if sep else path
+
+
 def archive_member(item: CadItem) -> tuple[str, str] | None:
-    """(archive, member) of an item inside a catalogue zip (Sweet Home 3D), None for a loose file
-    (whose path may hold a '!')."""
+    """(archive, member) of an item inside a catalogue zip (Sweet Home 3D), None for a loose file."""
     if item.source != "sweethome3d":
         return None
-    archive, _, member = item.path.rpartition(".sh3f!")  # the last: a folder above the catalogue may hold a '!'
-    return f"{archive}.sh3f", member
+    archive = archive_of(item.path)
+    return archive, item.path[len(archive) + 1:]
 
 
 def load_item(item: CadItem) -> tuple[trimesh.Scene, list[str]]:
