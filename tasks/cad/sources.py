@@ -36,7 +36,7 @@ import numpy as np
 import trimesh
 
 from cadestate.lineage import digest
-from tasks.cad.classes import BY_NAME, CLASSES, classify
+from tasks.cad.classes import BY_NAME, CLASSES, class_of_label, classify
 
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".off", ".stl")
 SH3D_EXCLUDED_SETS = ("reallusion",)
@@ -184,15 +184,18 @@ def shapenet_items(root: Path, library: str = "shapenet") -> Iterator[CadItem]:
 
 def class_of_category(category: str) -> str:
     """The class a collection's own category names (a models.csv class, a ShapeNet-layout folder):
-    the class of that name or ShapeNet synset id, else :func:`classify` of it, else of it with its
-    words singular ("Dining Tables", "benches": the rules' whole words missed a plural), else 'other'.
+    the class of that name or ShapeNet synset id, else the class whose COCO labels hold it ("car"),
+    else :func:`classify` of it; each tried as written, then with its words singular ("washers",
+    "Dining Tables": the names and the rules' whole words missed a plural); else 'other'.
     Here, not in :mod:`tasks.cad.classes`: most stages import that, and its code digest with it."""
     text = category.strip().lower()
     named = {c.id: c.name for c in CLASSES}.get(text, text)
-    if named in BY_NAME:
-        return named
     singular = re.sub(r"(?<=[a-z])(?:(?<=ch|sh|ss)es|(?<![su])s)\b", "", text)
-    return next((c for c in (classify(text), classify(singular)) if c != "other"), "other")
+    for find in (lambda t: t if t in BY_NAME else None, class_of_label, classify):
+        for t in (named, singular):
+            if (c := find(t)) not in (None, "other"):
+                return c
+    return "other"
 
 
 def folder_items(folder: Path, library: str | None = None) -> Iterator[CadItem]:
