@@ -10,8 +10,8 @@ box. A source's mesh gets, in order: its pre-rotation (Sweet Home 3D ``modelRota
 per-axis scale to the catalogue size (Sweet Home 3D) or a uniform unit scale, then the
 translation that centres its bounding box. An item that cannot be read, is empty, or is
 degenerate is skipped and listed in ``cad_issues``, as is a warning (a file it refers to missing,
-a class outside the vocabulary, a folder model over :data:`MAX_EXTENT_M`); the stage's message
-counts both; the stage never stops halfway. A library none
+a class outside the vocabulary, a folder model over :data:`MAX_EXTENT_M` or under
+:data:`SMALL_EXTENT_M`); the stage's message counts both; the stage never stops halfway. A library none
 of whose items could be ingested fails the stage (naming the first item's problem) and keeps
 what it held.
 """
@@ -45,6 +45,9 @@ MIN_EXTENT_M = 1e-3
 MAX_EXTENT_M = 25.0
 """A folder model whose largest extent is above this gets a warning: its mesh is likely in other units
 (millimetres, centimetres) than its ``unit_m`` says; a room's objects are smaller."""
+SMALL_EXTENT_M = 0.05
+"""A folder model whose largest extent is below this gets a warning: a ``unit_m`` of 0.001 on a mesh in
+metres (a 1.2 mm desk); a room's objects are larger."""
 
 
 MAX_DEATHS_IN_A_ROW = 5
@@ -108,7 +111,8 @@ def canonicalise(scene: trimesh.Scene, item: CadItem) -> CanonicalModel:
     mesh = trimesh.util.concatenate([trimesh.Trimesh(p.vertices, p.faces, process=False) for p in parts])
     extent = mesh.bounds[1] - mesh.bounds[0]
     if extent.max() < MIN_EXTENT_M:
-        raise CadItemError(f"degenerate: largest extent {extent.max():.2g} m")
+        units = f" (unit_m {item.unit_m:g}: is the mesh in other units?)" if item.source == "folder" and item.unit_m != 1 else ""
+        raise CadItemError(f"degenerate: largest extent {extent.max():.2g} m{units}")
     if mesh.area <= 0:
         raise CadItemError("degenerate: zero surface area")
     return CanonicalModel(trimesh.Scene(parts), mesh, extent)
@@ -165,6 +169,9 @@ def ingest_item(item: CadItem, cfg: CadIngestConfig, out_dir: Path) -> ItemResul
     if item.source == "folder" and model.extent.max() > MAX_EXTENT_M:  # a desk in millimetres was a 1.2 km desk
         problems.append(f"largest extent {model.extent.max():.2g} m, more than {MAX_EXTENT_M:g} m: is the mesh in other "
                         "units? models.csv's unit_m gives metres per mesh unit (0.001 for millimetres)")
+    if item.source == "folder" and model.extent.max() < SMALL_EXTENT_M:
+        problems.append(f"largest extent {model.extent.max():.2g} m, less than {SMALL_EXTENT_M:g} m: is the mesh in other "
+                        "units? models.csv's unit_m gives metres per mesh unit (1 for metres)")
     issues = [{**issue, "severity": "warning", "problem": "; ".join(problems)}] if problems else []  # one row an item
     row = {
         "cad_id": item.cad_id, "class": item.cls, "class_id": BY_NAME[item.cls].id, "name": item.name,
