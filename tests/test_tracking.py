@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from cadestate.config import TrackingConfig
 from tasks.tracking.affinity import candidate_pairs, rotation_warp, Cameras
@@ -239,3 +240,23 @@ def test_bins_no_fitted_pair_fell_in_take_the_nearest_fitted_value_not_zero():
     assert w[1] == w[0] < 0
     w = affinities(far, CALIBRATION)  # the shipped tables: opposite looks keep apart, within the window or past it
     assert w[0] < -5 and w[1] < -5
+
+
+def test_a_nan_cue_is_refused_not_the_strongest_attraction():
+    """A NaN cosine or IoU was binned past the last edge: the top bin, a pair with a NaN descriptor
+    and different labels weighed +15 (and one NaN descriptor, through the clip's mean, made every
+    cosine NaN). ``pair_features`` and ``affinities`` are public (the benchmark calls them)."""
+    from tasks.tracking.affinity import PairFeatures, affinities, pair_features
+    from tasks.tracking.calibration import CALIBRATION
+
+    one = np.zeros(1, np.int64)
+    nan_cos = PairFeatures(one, one + 1, one + 1, np.array([np.nan]), np.zeros(1, bool), np.array([0.5]))
+    with pytest.raises(ValueError, match=r"^1 pair cue\(s\) are NaN \(a NaN box or descriptor\)"):
+        affinities(nan_cos, CALIBRATION)
+    vectors = np.eye(3, 8, dtype=np.float32)
+    vectors[1, 0] = np.nan
+    boxes = np.array([[0.1, 0.1, 0.5, 0.5]] * 3)
+    with pytest.raises(ValueError, match="are NaN"):
+        affinities(pair_features(np.arange(3), boxes, np.array(["chair"] * 3), vectors, None, 5), CALIBRATION)
+    assert np.isfinite(affinities(pair_features(np.arange(3), boxes, np.array(["chair"] * 3), np.eye(3, 8), None, 5),
+                                  CALIBRATION)).all()

@@ -220,6 +220,9 @@ def gap_bucket(gap: np.ndarray, edges) -> np.ndarray:
 
 
 def _bin(x: np.ndarray, edges) -> np.ndarray:
+    """The bin of each cue value among ``edges`` (the ends' bins take what lies beyond them)."""
+    if np.isnan(x).any():  # searchsorted puts NaN past every edge: the strongest attraction there is
+        raise ValueError(f"{int(np.isnan(x).sum())} pair cue(s) are NaN (a NaN box or descriptor): no weight can be given")
     return np.clip(np.searchsorted(np.asarray(edges), x, side="right") - 1, 0, len(edges) - 2)
 
 
