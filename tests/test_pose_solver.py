@@ -472,6 +472,45 @@ def test_degenerate_inputs_get_a_clear_status():
     assert "NaN" in results[3].message or "non-finite" in results[3].message
 
 
+def test_a_symmetry_order_the_solver_does_not_know_is_invalid_input():
+    """A 6-way model was solved with 4 of its turns, another result beside a 36-way model in a
+    batch (which cut it to 4 offsets), and ``ok`` with key-frames 22 px off: not solved now. The
+    orders known are those the CAD ingest detects."""
+    from tasks.cad.symmetry import SYMMETRY_ORDERS
+    from tasks.pose.checks import SYMMETRY_ORDERS as SOLVED
+
+    assert SOLVED == SYMMETRY_ORDERS
+    six, _ = make_object(3, symmetry=6)
+    [r] = solve_poses([six])
+    assert r.status == "invalid_input" and r.message == "symmetry order 6: the solver knows 1, 2, 4, 36"
+
+
+def test_the_fallback_judges_the_clicked_cameras_as_the_verdict_does(monkeypatch):
+    """Poor clicks (40 px of noise) leave LM's pose over ``max_reprojection_px``, which calls the
+    Adam fallback; cameras given with no click counted as 0 px in the fallback's mean (not in the
+    verdict's), so six of them hid the bad answer and the fallback never ran."""
+    import tasks.pose.solver as solver
+
+    calls: list[bool] = []
+    real = solver.optimise
+
+    def counted(*args, **kwargs):  # the real optimiser, its runs counted
+        calls.append(bool(kwargs.get("adam")))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(solver, "optimise", counted)
+    poor, _ = make_object(9, keyframes=3, noise=40.0)
+    runs = []
+    for extra in (0, 6):
+        idle = np.repeat(poor.K[:1], extra, 0), np.repeat(poor.R[:1], extra, 0), np.repeat(poor.t[:1], extra, 0)
+        calls.clear()
+        [r] = solve_poses([dataclasses.replace(poor, K=np.concatenate([poor.K, idle[0]]), R=np.concatenate([poor.R, idle[1]]),
+                                               t=np.concatenate([poor.t, idle[2]]))])
+        runs.append(list(calls))
+        assert r.status == "high_residual", r.message
+    assert runs == [[False, True], [False, True]]
+
+
 def test_a_camera_with_no_click_neither_passes_nor_judges_a_pose():
     """Cameras given with no click counted in the parallax (and as 0 px in the mean error): clicks
     from one camera centre twice, plus an unclicked camera far off, passed as ok with the object

@@ -3,8 +3,9 @@
 Every object gets a status; only ``ok`` poses are fit for use. Before solving:
 
 - ``invalid_input``: a non-finite click, 3D point or camera value, a camera K of no positive
-  focal length or an R that is no rotation (a reflection), or a key-frame index that names no
-  camera (the object is not solved: no silent repair);
+  focal length or an R that is no rotation (a reflection), a key-frame index that names no
+  camera, or a symmetry order the solver does not know (:data:`SYMMETRY_ORDERS`) (the object is
+  not solved: no silent repair);
 - ``too_few_points``: fewer than ``min_points`` clicks (9 unknowns, 2 equations per click);
 - ``single_keyframe``: every click on one key-frame: one view cannot tell the depth, hence the
   size, of the object (scaling it about the camera centre leaves every projection unchanged);
@@ -24,6 +25,11 @@ from __future__ import annotations
 import numpy as np
 
 from cadestate.geometry import rotation_error
+
+SYMMETRY_ORDERS = (1, 2, 4, 36)
+"""The symmetry orders about +Y the solver knows (those :mod:`tasks.cad.symmetry` detects): its
+offset tables hold 1, 2 or 4 turns, and 36 is a round model (x and z one scale). Another order (6)
+was solved with some of its turns, differently alone and beside a 36-way model in a batch."""
 
 ROTATION_TOL = 1e-2
 """Largest :func:`rotation_error` of a key-frame camera's R the solver takes: ten times what a
@@ -137,6 +143,8 @@ def check_object(o, opts) -> tuple[str, str] | None:
         return "invalid_input", "a camera R that is not a rotation (not orthonormal, or a reflection)"
     if len(kf) and (kf.min() < 0 or kf.max() >= F):
         return "invalid_input", f"key-frame index outside 0..{F - 1}"
+    if o.symmetry not in SYMMETRY_ORDERS:
+        return "invalid_input", f"symmetry order {o.symmetry}: the solver knows {', '.join(map(str, SYMMETRY_ORDERS))}"
     if len(xy) < opts.min_points:
         return "too_few_points", f"{len(xy)} correspondence(s), at least {opts.min_points} needed"
     if len(np.unique(kf)) < 2:
