@@ -437,7 +437,8 @@ def _solve(objects, todo, axes, opts, results) -> None:
         # reprojection error above max_reprojection_px) are refined again with Adam + LM.
         best = total.argmin(1)
         pick = torch.arange(B) * S + best
-        kf_mean = (terms["kf_px"] * bs.fmask).sum(1) / bs.fmask.sum(1).clamp(min=1)
+        clicked = torch.zeros_like(terms["kf_px"]).scatter_add(1, bs.kf, bs.pmask.to(DTYPE)) > 0  # as final_status counts
+        kf_mean = (terms["kf_px"] * clicked).sum(1) / clicked.sum(1).clamp(min=1)
         bad = ((terms["front"] > 0) | ((terms["z"] <= 0) & bs.pmask).any(1) | ~(kf_mean <= opts.max_reprojection_px)
                | ~torch.isfinite(terms["total"]))[pick]
         if bool(bad.any()):
