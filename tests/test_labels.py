@@ -1029,3 +1029,23 @@ def test_an_answer_to_a_withdrawn_task_is_refused(lwh, tmp_path):
     with pytest.raises(LabelError, match=r"\$\.task_id: task c1\.manual_track\.\w+ asks nothing \(a rerun withdrew the "
                                          r"kind's task: Nothing to answer: split 'train'"):
         validate_label(path, lwh)
+
+
+def test_a_drawn_object_over_an_existing_track_is_warned_of(lwh, tmp_path):
+    """A "new" object drawn where track 0 is (IoU 1 on the key-frame both have), not said to be
+    track 0, was taken without a word: it became a second track of the chair, asked about in CAD
+    selection, correspondences and verification twice. Warned of (and ingested); said to be track 0,
+    or drawn elsewhere, it is not."""
+    over = {"label": "chair", "boxes": [{"timestamp_us": 0, "box": [0.1, 0.1, 0.3, 0.31]},
+                                        {"timestamp_us": 400_000, "box": [0.5, 0.4, 0.9, 0.7]}]}  # no box of track 0 there
+    doc = _edit("manual_track", lambda d: d["answers"].append(over))
+    lf = validate_label(put(tmp_path, "mt.json", doc), lwh)
+    assert list(lf.warnings) == [f"{tmp_path / 'mt.json'}: $.answers[1]: its boxes overlap track 0's on every key-frame both "
+                                 "have (IoU >= 0.5): if it is that object, say \"same_as_track\": 0 (or leave it out: it is "
+                                 "tracked), else it becomes a second track of it"]
+    assert ingest_labels(lwh, put(tmp_path / "in", "mt.json", doc)).warnings == [
+        w.replace(str(tmp_path / "mt.json"), str(tmp_path / "in" / "mt.json")) for w in lf.warnings]
+    said = _edit("manual_track", lambda d: d["answers"].append({**over, "same_as_track": 0}))
+    beside = _edit("manual_track", lambda d: d["answers"].append({**over, "boxes": [{"timestamp_us": 0, "box": [0.3, 0.1, 0.5, 0.3]}]}))
+    assert validate_label(put(tmp_path, "said.json", said), lwh).warnings == ()
+    assert validate_label(put(tmp_path, "beside.json", beside), lwh).warnings == ()

@@ -68,6 +68,11 @@ def json_path(parts: Iterator[Any] | list[Any]) -> str:
     return out
 
 
+def field_error(name: str, path: list, message: str) -> LabelError:
+    """The error of file ``name`` at the field ``path`` (JSON path elements): one line naming both."""
+    return LabelError(f"{name}: {json_path(path)}: {message}")
+
+
 def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     keys = [k for k, _ in pairs]
     dup = sorted({k for k in keys if keys.count(k) > 1})

@@ -28,6 +28,7 @@ till then). Rules:
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import hashlib
 from collections.abc import Sequence
@@ -278,13 +279,15 @@ def check_files(paths: Sequence[Path], facts: ClipFacts | None, known: dict[str,
     if facts is None:
         return checked
     for i in sorted((i for i, c in enumerate(checked) if c.lf is not None), key=lambda i: _order(checked[i].lf)):
-        label = checked[i].lf.label
+        lf = checked[i].lf
         try:
-            check_label(label, facts, str(checked[i].path))
+            warnings = check_label(lf.label, facts, str(checked[i].path))
         except LabelError as e:
             checked[i] = CheckedFile(checked[i].path, error=str(e))
             continue
-        facts.take(label)
+        if warnings:
+            checked[i] = CheckedFile(checked[i].path, lf=dataclasses.replace(lf, warnings=lf.warnings + tuple(warnings)))
+        facts.take(lf.label)
     for i, sha in copies:  # a copy of a file refused here is not "already ingested": those bytes never were
         if (original := checked[batch[sha]]).error is not None:
             checked[i] = CheckedFile(checked[i].path, error=f"{checked[i].path}: the same bytes as {original.path}, "

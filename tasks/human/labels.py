@@ -17,7 +17,8 @@ and pauses; :func:`validate_label` checks a label file in two steps:
 So everything that could make a row fail to be written is refused here, before ingest writes
 anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
 the field as a JSON path, e.g. ``labels/c1.json: $.answers[0].track_id: unknown track 7``.
-Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`). Ingest (into
+Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`: two clicks at one
+image point, a drawn object over an existing track: :func:`tasks.human.drawn_objects.drawn_over_tracks`). Ingest (into
 the answer tables) is :mod:`tasks.human.label_ingest`.
 """
 
@@ -32,14 +33,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
 
 from cadestate.lineage import digest
 from schemas.dataclass_json import to_json
 from schemas.labels import LABEL_FORMAT, Label, Task
-from tasks.human.clicks_in_force import box_iou
-from tasks.human.label_format import (MAX_LABEL_BYTES, LabelError, check_clicks, check_size, check_time, json_path, parse_label,
+from tasks.human.drawn_objects import check_drawn_once, drawn_over_tracks
+from tasks.human.label_format import (MAX_LABEL_BYTES, LabelError, check_clicks, check_size, check_time, field_error, parse_label,
                                 parse_task, read_limited)
 from warehouse import Warehouse, atomic_write_bytes, check_name
 
@@ -235,21 +235,17 @@ class ClipFacts:
         return None if row is None else parse_task(row["document"], f"task {task_id}")
 
 
-def _fail(name: str, path: list, message: str) -> LabelError:
-    return LabelError(f"{name}: {json_path(path)}: {message}")
-
-
 def _check_boxes(boxes, stamps: frozenset[int], name: str, path: list) -> None:
     seen = set()
     for j, b in enumerate(boxes):
         if b.timestamp_us not in stamps:
-            raise _fail(name, [*path, j, "timestamp_us"], f"{b.timestamp_us} is not a frame of the clip")
+            raise field_error(name, [*path, j, "timestamp_us"], f"{b.timestamp_us} is not a frame of the clip")
         if b.timestamp_us in seen:
-            raise _fail(name, [*path, j, "timestamp_us"], f"a second box on frame {b.timestamp_us}")
+            raise field_error(name, [*path, j, "timestamp_us"], f"a second box on frame {b.timestamp_us}")
         seen.add(b.timestamp_us)
         ymin, xmin, ymax, xmax = b.box
         if not (ymin < ymax and xmin < xmax):
-            raise _fail(name, [*path, j, "box"], f"empty box {list(b.box)}: need ymin < ymax and xmin < xmax")
+            raise field_error(name, [*path, j, "box"], f"empty box {list(b.box)}: need ymin < ymax and xmin < xmax")
 
 
 BOX_SLACK = (0.05, 0.01)
@@ -264,53 +260,8 @@ def _check_xyz(points, extent: tuple[float, float, float] | None, name: str, pat
     limit = [e / 2 * (1 + BOX_SLACK[0]) + BOX_SLACK[1] for e in extent]
     for k, q in enumerate(points):
         if any(abs(v) > lim for v, lim in zip(q.xyz, limit)):
-            raise _fail(name, [*path, k, "xyz"], f"{list(q.xyz)} is outside the model's bounding box "
-                        f"(extent {[round(e, 3) for e in extent]} m, centred on 0): metres expected")
-
-
-def _same_drawing(a, b) -> bool:
-    """Whether two drawn objects are one: the same class and, on every frame both have a box (at
-    least one), boxes overlapping by IoU >= 0.9."""
-    mine = {x.timestamp_us: x.box for x in a.boxes}
-    shared = [x for x in b.boxes if x.timestamp_us in mine]
-    return a.label == b.label and bool(shared) and all(box_iou(mine[x.timestamp_us], x.box) >= 0.9 for x in shared)
-
-
-def _check_drawn_once(label: Label, name: str) -> None:
-    """Refuse a manual-track answer naming one object twice (a repeated ``source_id``, two drawings
-    of one object, two objects each 'track N'): each would become a manual track of its own. Only
-    objects of one class with a box on one frame are compared (every pair was: 8 s for 4,000 objects,
-    a tool export of single-box tracks)."""
-    sources: dict[str, int] = {}
-    tracks: dict[int, int] = {}
-    on_frame: dict[tuple[str, int], tuple[list[int], list]] = {}
-    for i, a in enumerate(label.answers):
-        if a.source_id is not None and (j := sources.setdefault(a.source_id, i)) != i:
-            raise _fail(name, ["answers", i, "source_id"], f"{a.source_id!r} is also answers[{j}]'s")
-        if a.same_as_track is not None and (j := tracks.setdefault(a.same_as_track, i)) != i:
-            raise _fail(name, ["answers", i, "same_as_track"], f"answers[{j}] is track {a.same_as_track} too: "
-                                                               "one drawn object per track")
-        near = sorted({j for x in a.boxes for j in _overlapping(on_frame.get((a.label, x.timestamp_us)), x.box)})
-        if (j := next((j for j in near if _same_drawing(a, label.answers[j])), None)) is not None:
-            raise _fail(name, ["answers", i], f"the same object as answers[{j}] (class {a.label!r}, boxes overlapping "
-                                              "by IoU >= 0.9 on every frame both have)")
-        for x in a.boxes:
-            ids, boxes = on_frame.setdefault((a.label, x.timestamp_us), ([], []))
-            ids.append(i)
-            boxes.append(x.box)
-
-
-def _overlapping(drawn: tuple[list[int], list] | None, box) -> list[int]:
-    """The objects of ``drawn`` (their indices, and their boxes on one frame) whose box there
-    overlaps ``box`` by IoU >= 0.9: those that may be its drawing (all at once, not one by one)."""
-    if not drawn:
-        return []
-    ids, boxes = drawn
-    b, q = np.asarray(boxes, np.float64), np.asarray(box, np.float64)
-    inter = (np.clip(np.minimum(b[:, 2], q[2]) - np.maximum(b[:, 0], q[0]), 0, None)
-             * np.clip(np.minimum(b[:, 3], q[3]) - np.maximum(b[:, 1], q[1]), 0, None))
-    union = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) + (q[2] - q[0]) * (q[3] - q[1]) - inter
-    return [ids[k] for k in np.flatnonzero(inter >= 0.9 * union - 1e-12)]
+            raise field_error(name, [*path, k, "xyz"], f"{list(q.xyz)} is outside the model's bounding box "
+                              f"(extent {[round(e, 3) for e in extent]} m, centred on 0): metres expected")
 
 
 def _items(task: Task, name: str, label: Label) -> dict[int, Any]:
@@ -319,75 +270,77 @@ def _items(task: Task, name: str, label: Label) -> dict[int, Any]:
     seen = set()
     for i, a in enumerate(label.answers):
         if a.track_id not in items:
-            raise _fail(name, ["answers", i, "track_id"],
-                        f"unknown track {a.track_id} (task {task.task_id} has tracks {', '.join(map(str, sorted(items)))})")
+            raise field_error(name, ["answers", i, "track_id"],
+                              f"unknown track {a.track_id} (task {task.task_id} has tracks {', '.join(map(str, sorted(items)))})")
         if a.track_id in seen:
-            raise _fail(name, ["answers", i, "track_id"], f"track {a.track_id} is answered twice")
+            raise field_error(name, ["answers", i, "track_id"], f"track {a.track_id} is answered twice")
         seen.add(a.track_id)
     return items
 
 
-def check_label(label: Label, facts: ClipFacts, name: str) -> None:
-    """The warehouse checks of a parsed label (see the module docstring)."""
+def check_label(label: Label, facts: ClipFacts, name: str) -> list[str]:
+    """The warehouse checks of a parsed label (see the module docstring); returns its warnings
+    that need the warehouse (:mod:`tasks.human.drawn_objects`)."""
     if not facts.has_clip(label.clip):
-        raise _fail(name, ["clip"], f"unknown clip {label.clip!r}")
+        raise field_error(name, ["clip"], f"unknown clip {label.clip!r}")
     task = facts.task(label.clip, label.task_id)
     if task is None:
-        raise _fail(name, ["task_id"], f"unknown task {label.task_id!r} for clip {label.clip!r}")
+        raise field_error(name, ["task_id"], f"unknown task {label.task_id!r} for clip {label.clip!r}")
     if task.kind != label.kind:
-        raise _fail(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
+        raise field_error(name, ["kind"], f"task {label.task_id} is a {task.kind} task, not {label.kind}")
     if not (task.keyframes if task.kind == "manual_track" else task.items):  # asks_nothing: withdrawn by a rerun
-        raise _fail(name, ["task_id"], f"task {label.task_id} asks nothing (a rerun withdrew the kind's task: "
-                                       f"{task.instructions})")
+        raise field_error(name, ["task_id"], f"task {label.task_id} asks nothing (a rerun withdrew the kind's task: "
+                                             f"{task.instructions})")
     stamps = facts.timestamps(label.clip)
     if label.kind == "manual_track":
         existing = {t.track_id for t in task.existing_tracks}
         for i, a in enumerate(label.answers):
             if task.classes and a.label not in task.classes:
-                raise _fail(name, ["answers", i, "label"], f"class {a.label!r} is not one of the task's: {', '.join(task.classes)}")
+                raise field_error(name, ["answers", i, "label"], f"class {a.label!r} is not one of the task's: {', '.join(task.classes)}")
             _check_boxes(a.boxes, stamps, name, ["answers", i, "boxes"])
             if a.same_as_track is not None and a.same_as_track not in existing:
-                raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is not an existing track of task {task.task_id}")
+                raise field_error(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is not an existing track of task {task.task_id}")
             if a.same_as_track is not None and a.same_as_track in label.not_objects:
-                raise _fail(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is also said to be no object "
-                                                                   "(not_objects): one of the two is wrong")
+                raise field_error(name, ["answers", i, "same_as_track"], f"track {a.same_as_track} is also said to be no object "
+                                                                         "(not_objects): one of the two is wrong")
         for i, t in enumerate(label.not_objects):
             if t not in existing:
-                raise _fail(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")
+                raise field_error(name, ["not_objects", i], f"track {t} is not an existing track of task {task.task_id}")
             if t in label.not_objects[:i]:
-                raise _fail(name, ["not_objects", i], f"track {t} is listed twice")
-        _check_drawn_once(label, name)
-        return
+                raise field_error(name, ["not_objects", i], f"track {t} is listed twice")
+        check_drawn_once(label, name)
+        return drawn_over_tracks(label, task, name)
     items = _items(task, name, label)
     for i, a in enumerate(label.answers):
         item = items[a.track_id]
         if label.kind == "cad_selection" and a.cad_id is not None and a.cad_id not in {c.cad_id for c in item.candidates}:
-            raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
+            raise field_error(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not a candidate of track {a.track_id}")
         if label.kind in ("cad_selection", "verification") and a.same_as_track is not None:
             if a.same_as_track not in items or a.same_as_track == a.track_id:
-                raise _fail(name, ["answers", i, "same_as_track"],
-                            f"track {a.same_as_track} is not another track of task {task.task_id}")
+                raise field_error(name, ["answers", i, "same_as_track"],
+                                  f"track {a.same_as_track} is not another track of task {task.task_id}")
             if label.kind == "cad_selection" and a.cad_id is not None:
-                raise _fail(name, ["answers", i, "cad_id"], f"must be null when same_as_track is given (track {a.track_id} "
-                                                            f"is a fragment of track {a.same_as_track})")
+                raise field_error(name, ["answers", i, "cad_id"], f"must be null when same_as_track is given (track {a.track_id} "
+                                                                  f"is a fragment of track {a.same_as_track})")
         if label.kind == "correspondences":
             if a.cad_id != item.cad_id:
-                raise _fail(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")
+                raise field_error(name, ["answers", i, "cad_id"], f"{a.cad_id!r} is not the task's model {item.cad_id!r} for track {a.track_id}")
             shown = {k.timestamp_us for k in item.keyframes}
             shown |= {k.timestamp_us for k in item.previous.keyframes} if item.previous is not None else set()
             seen = set()
             for j, kf in enumerate(a.keyframes):
                 where = ["answers", i, "keyframes", j, "timestamp_us"]
                 if kf.timestamp_us not in stamps:
-                    raise _fail(name, where, f"{kf.timestamp_us} is not a frame of the clip")
+                    raise field_error(name, where, f"{kf.timestamp_us} is not a frame of the clip")
                 if kf.timestamp_us not in shown:
-                    raise _fail(name, where, f"{kf.timestamp_us} is not a key-frame of track {a.track_id} in task "
-                                             f"{task.task_id} (its key-frames: {', '.join(map(str, sorted(shown)))})")
+                    raise field_error(name, where, f"{kf.timestamp_us} is not a key-frame of track {a.track_id} in task "
+                                                   f"{task.task_id} (its key-frames: {', '.join(map(str, sorted(shown)))})")
                 if kf.timestamp_us in seen:
-                    raise _fail(name, where, f"key-frame {kf.timestamp_us} is answered twice")
+                    raise field_error(name, where, f"key-frame {kf.timestamp_us} is answered twice")
                 seen.add(kf.timestamp_us)
                 _check_xyz(kf.points, facts.extents.get(a.cad_id), name, ["answers", i, "keyframes", j, "points"])
     _check_same_as_cycles(label, name, facts.same_as(label.clip, label.kind, label.task_id))  # each names another track
+    return []
 
 
 def _check_same_as_cycles(label, name: str, in_force: Mapping[int, int] | None = None) -> None:
@@ -408,9 +361,9 @@ def _check_same_as_cycles(label, name: str, in_force: Mapping[int, int] | None =
             before = [t for t in seen if same[t][0] is None]
             said = f" ({', '.join(f'{t} -> {same[t][1]}' for t in before)} answered before)" if before else ""
             ring = " -> ".join(str(t) for t in [*seen, start])
-            raise _fail(name, ["answers", same[start][0], "same_as_track"],
-                        f"tracks {ring} each name the next as the same object{said}: one of them must be the object "
-                        "(its own answer)")
+            raise field_error(name, ["answers", same[start][0], "same_as_track"],
+                              f"tracks {ring} each name the next as the same object{said}: one of them must be the object "
+                              "(its own answer)")
 
 
 def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFacts | None = None,
@@ -428,7 +381,7 @@ def validate_label(path: str | Path, wh: Warehouse | None = None, facts: ClipFac
     if facts is None and wh is not None:
         facts = ClipFacts(wh)
     if facts is not None:
-        check_label(label, facts, name)
+        warnings += check_label(label, facts, name)
     text = data.decode("utf-8").removeprefix("\ufeff")  # a byte-order mark is no part of the JSON document kept
     return LabelFile(path, hashlib.sha256(data).hexdigest(), text, label, created_at, tuple(warnings))
 
