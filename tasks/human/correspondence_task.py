@@ -16,7 +16,7 @@ from tasks.human.cad_selection import selected_models, model_facts
 from tasks.human.clicks_in_force import held_clicks, item_key
 from tasks.human.inputs import correspondence_inputs
 from tasks.human.labels import new_task_id, utc_now
-from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, on_registered_cameras, task_output, track_keyframes,
+from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, made_up_cameras, task_output, track_keyframes,
                                  withdraw_task, write_task_once)
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
@@ -40,7 +40,7 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
         return _nothing_asked(wh, clip, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
                               "no track with a chosen CAD model is seen on two frames", not_asked)
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
-    now = on_registered_cameras(wh, clip, boxes_now(tracks))  # clicks on a camera SfM now interpolates hold no more
+    now = boxes_now(tracks, made_up_cameras(wh, clip))  # clicks on a camera SfM now interpolates hold no more
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)  # every chosen track
     held = {t: a for t, a in held.items() if t in track_ids}  # (matched among all) but only items answer the task

@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
-
-import numpy as np
+from typing import TypeVar
 
 from schemas.dataclass_json import to_json
 from schemas.labels import TASK_CLASSES, KeyframeView
 from tasks.human.keyframes import evenly_spaced
 from tasks.human.labels import asks_nothing, latest_task_of_kind, new_task_id, parse_task, utc_now, write_task
 from tasks.stage import StageOutput
-from tasks.tracking.clip_tracks import ClipTrack, clip_tracks
+from tasks.tracking.clip_tracks import ClipTrack
 from warehouse import Warehouse
+
+B = TypeVar("B")
 
 
 INSTRUCTIONS = {
@@ -25,8 +27,9 @@ INSTRUCTIONS = {
                     "where it is visible. Answer with no object if nothing is missing.",
     "cad_selection": "For every track, choose the CAD candidate whose shape is closest to the object; "
                      "cad_id null if none is similar enough.",
-    "correspondences": "For every track, on each key-frame you annotate, click 4-6 points on the CAD model and the "
-                       "same points in the image; mirror the model if it is the mirror image of the object.",
+    "correspondences": "For every track, on each key-frame you annotate (two at least: one view gives no depth), click "
+                       "4-6 points on the CAD model and the same points in the image; mirror the model if it is the "
+                       "mirror image of the object.",
     "verification": "For every track, accept only if the rendered CAD model aligns with the object on every key-frame.",
 }
 
@@ -38,21 +41,33 @@ def image_size(wh: Warehouse, clip: str) -> tuple[int, int]:
     return int(frames.column("height")[0].as_py()), int(frames.column("width")[0].as_py())
 
 
+def made_up_cameras(wh: Warehouse, clip: str) -> frozenset[int]:
+    """Timestamps (µs) of the clip's frames whose camera SfM interpolated (``frames.camera_interpolated``):
+    made-up cameras (held at the clip's ends: frozen while the video moves)."""
+    frames = wh.read("frames", [clip], columns=["timestamp_us", "camera_interpolated"]).to_pylist()
+    return frozenset(int(f["timestamp_us"]) for f in frames if f["camera_interpolated"])
+
+
+def on_registered(boxes: Sequence[B], made_up: frozenset[int]) -> tuple[B, ...]:
+    """A track's ``boxes`` (each with a ``timestamp_us``) less those on a frame of a made-up camera
+    (:func:`made_up_cameras`), where it has others: the clicks of a key-frame solve the pose through
+    its camera. The rule of the correspondence task's key-frames (:func:`track_keyframes` with
+    ``posed``) and of the boxes its carried clicks must still fall on (:func:`boxes_now`)."""
+    registered = tuple(b for b in boxes if b.timestamp_us not in made_up)
+    return registered or tuple(boxes)
+
+
 def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], track_ids: list[int],
                     k: int, posed: bool = False) -> dict[int, tuple[KeyframeView, ...]]:
     """Per track of ``track_ids`` (automatic or manual, from ``tracks``: :func:`clip_tracks`),
     ``k`` evenly spaced frames of its boxes with its box there. ``posed``: only frames whose camera
-    SfM registered (``frames.camera_interpolated`` not true), where the track has any: the clicks of
-    a key-frame solve the pose through its camera, and an interpolated one (held at the clip's ends:
-    frozen while the video moves) is a made-up camera."""
+    SfM registered, where the track has any (:func:`on_registered`)."""
     columns = ["timestamp_us", "frame_index", "image_path", "camera_interpolated"]
     frames = {f["frame_index"]: f for f in wh.read("frames", [clip], columns=columns).to_pylist()}
+    made_up = frozenset(int(f["timestamp_us"]) for f in frames.values() if f["camera_interpolated"]) if posed else frozenset()
     out = {}
     for t in track_ids:
-        boxes = tracks[t].boxes if t in tracks else ()
-        if posed:
-            registered = tuple(b for b in boxes if not (frames.get(b.frame_index) or {}).get("camera_interpolated"))
-            boxes = registered or boxes
+        boxes = on_registered(tracks[t].boxes if t in tracks else (), made_up)
         views = []
         for i in evenly_spaced(len(boxes), k):
             frame = frames.get(boxes[i].frame_index)
@@ -63,33 +78,19 @@ def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], trac
     return out
 
 
-def boxes_now(tracks: dict[int, ClipTrack]) -> dict[int, dict[int, list[tuple]]]:
+def boxes_now(tracks: dict[int, ClipTrack], made_up: frozenset[int] = frozenset()) -> dict[int, dict[int, list[tuple]]]:
     """Per track of the clip (``tracks``: :func:`tasks.tracking.clip_tracks.clip_tracks`), its boxes by
     frame timestamp (µs): what :mod:`tasks.human.clicks_in_force` and
     :mod:`tasks.human.choices_in_force` compare earlier tasks with (every track, also those not
-    asked about: an earlier answer goes to the track that matches it best)."""
+    asked about: an earlier answer goes to the track that matches it best). ``made_up``: frames of
+    made-up cameras, left out as :func:`on_registered` says (for clicks: carried clicks hold only
+    where the track has a box now, so those on a frame an SfM run again made interpolated no
+    longer hold, and the track is asked again; they went on to the pose solver)."""
     now: dict[int, dict[int, list[tuple]]] = {}
     for t, track in tracks.items():
-        for b in track.boxes:
+        for b in on_registered(track.boxes, made_up):
             now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
     return now
-
-
-def on_registered_cameras(wh: Warehouse, clip: str, boxes: dict[int, dict[int, list[tuple]]]) -> dict[int, dict[int, list[tuple]]]:
-    """``boxes`` (:func:`boxes_now`) less those on frames whose camera SfM interpolated, for each
-    track with a box on a registered frame (as :func:`track_keyframes` with ``posed`` asks): clicks
-    carried from an earlier task hold only where the track has a box now, so clicks on a frame
-    that an SfM run again made interpolated (a made-up camera) no longer hold, and the track is
-    asked again; they went on to the pose solver."""
-    frames = wh.read("frames", [clip], columns=["timestamp_us", "camera_interpolated"]).to_pylist()
-    made_up = {int(f["timestamp_us"]) for f in frames if f["camera_interpolated"]}
-    if not made_up:
-        return boxes
-    out = {}
-    for t, by_ts in boxes.items():
-        registered = {ts: b for ts, b in by_ts.items() if ts not in made_up}
-        out[t] = registered or by_ts
-    return out
 
 
 def write_task_once(wh: Warehouse, task) -> Path:
