@@ -186,8 +186,11 @@ def test_a_partition_name_no_folder_can_have_has_no_data(wh):
 
 
 def test_unknown_table(wh):
-    with pytest.raises(WarehouseError, match="unknown table 'nope'"):
+    """One line: the nearest name, and where all are (every table was listed: 500 characters)."""
+    with pytest.raises(WarehouseError, match=r"^unknown table 'nope': `cadestate tables` lists the \d+ tables$"):
         wh.read("nope")
+    with pytest.raises(WarehouseError, match=r"^unknown table 'frame' \(did you mean 'frames'\?\): `cadestate tables` lists"):
+        wh.compact_tables(["frame"])
 
 
 @pytest.mark.parametrize("small_bytes", [store.SMALL_TABLE_BYTES, 0], ids=["encoded-in-memory", "written-to-file"])

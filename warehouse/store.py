@@ -56,6 +56,7 @@ folder nothing reads. Writes to a partition and its compaction hold the partitio
 from __future__ import annotations
 
 import contextlib
+import difflib
 import errno
 import fcntl
 import functools
@@ -273,6 +274,14 @@ class WarehouseError(ValueError):
     """Data that does not fit its table, or an unknown table or partition."""
 
 
+def _unknown_table(table: str, known) -> str:
+    """One line for a table name that is none of ``known``: the nearest name, and where all are listed
+    (29 names made a line of 500 characters)."""
+    near = difflib.get_close_matches(table, sorted(known), n=1)
+    return f"unknown table {table!r}" + (f" (did you mean {near[0]!r}?)" if near else "") + \
+        f": `cadestate tables` lists the {len(known)} tables"
+
+
 def is_name(name: object) -> bool:
     """Whether ``name`` can be a clip, library or model name (:func:`check_name`)."""
     return isinstance(name, str) and bool(NAME.match(name))
@@ -346,7 +355,7 @@ class Warehouse:
         try:
             return self.info[table]
         except KeyError:
-            raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.info))})") from None
+            raise WarehouseError(_unknown_table(table, self.info)) from None
 
     def __repr__(self) -> str:
         return f"Warehouse({str(self.root)!r})"
@@ -356,7 +365,7 @@ class Warehouse:
         try:
             return self.tables[table]
         except KeyError:
-            raise WarehouseError(f"unknown table {table!r} (known: {', '.join(sorted(self.tables))})") from None
+            raise WarehouseError(_unknown_table(table, self.tables)) from None
 
     def table_dir(self, table: str) -> Path:
         return self._folder(table, None)
