@@ -172,6 +172,9 @@ def test_json_is_valid_json(w):
     assert strict(sql(w, "SELECT * FROM clips WHERE false", "-f", "json").stdout) == []
     # a join's columns of one name: each kept, under a name of its own
     assert strict(sql(w, "SELECT 1 AS a, 2 AS a, 3 AS a_1", "-f", "json").stdout) == [{"a": 1, "a_2": 2, "a_1": 3}]
+    # a BLOB: base64, not Python's repr (b'ab'); in lists too, and in CSV
+    assert strict(sql(w, "SELECT 'ab'::BLOB AS b, ['\\xFF'::BLOB] AS l", "-f", "json").stdout) == [{"b": "YWI=", "l": ["/w=="]}]
+    assert sql(w, "SELECT 'ab'::BLOB AS b", "-f", "csv").stdout.splitlines() == ["b", "YWI="]
 
 
 def test_csv_is_for_unix_tools(w):

@@ -28,6 +28,7 @@ could have left that partition's rows out without an error.
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import csv
 import datetime as dt
@@ -374,10 +375,12 @@ def split(batches: Iterator[list[tuple]], limit: int) -> tuple[list[tuple], int]
 
 
 def json_value(value: Any) -> Any:
-    """``value`` as JSON can hold it: non-finite floats become null, map keys strings, and what
-    JSON has no type for (dates, decimals, UUIDs, bytes) its text."""
+    """``value`` as JSON can hold it: non-finite floats become null, map keys strings, bytes (a
+    BLOB) base64, and what JSON has no type for (dates, decimals, UUIDs) its text."""
     if value is None or isinstance(value, (bool, int, str)):
         return value
+    if isinstance(value, (bytes, bytearray)):  # str() gave Python's repr, b'...'
+        return base64.b64encode(value).decode("ascii")
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
@@ -417,7 +420,10 @@ def write_json(result: Result, out: TextIO) -> None:
 
 
 def csv_value(value: Any) -> Any:
-    """``value`` as a CSV field: lists and maps as JSON (not Python's repr), non-finite floats empty."""
+    """``value`` as a CSV field: lists and maps as JSON and bytes base64 (not Python's repr),
+    non-finite floats empty."""
+    if isinstance(value, (bytes, bytearray)):
+        return json_value(value)
     if isinstance(value, (list, tuple, dict)):
         return json.dumps(json_value(value))
     if isinstance(value, float) and not math.isfinite(value):
