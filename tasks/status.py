@@ -158,7 +158,10 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
     for clip in names:
         stale_stages: set[str] = set()
         memo = InputsMemo(wh, clip)
+        recorded_ids = {(r["stage"], r["run_id"]) for r in by_unit.get(clip, [])}
         for m in markers.get(clip, []):  # runs not recorded yet: in progress, or their process was killed
+            if (m.stage, m.run_id) in recorded_ids:
+                continue  # recorded, its process killed before it took its marker away (as settle_interrupted finds)
             if (recorded := last.get((clip, m.stage))) is not None and recorded["started_at"] > m.started_at:
                 continue  # a later run of the stage was recorded (a Dask retry on another worker): this one is over
             last[(clip, m.stage)] = {"status": "running" if m.alive else "interrupted", "started_at": m.started_at,
@@ -185,7 +188,7 @@ def pipeline_status(wh: Warehouse, config: Config, names: Sequence[str] | None =
                     reasons.append(f"last run {latest['status']}")
                 if stage.name in SOURCE_FILE_STAGES and (edited := _edited_inputs(wh, clip)):
                     reasons.append(f"inputs changed ({', '.join(edited)} of inputs/{clip}/ edited since ingest)")
-                if any(u in stale_stages for u in stage.upstream):
+                if any(u in stale_stages for u in stage.upstream + stage.after):  # after: it reads what that one writes
                     reasons.append("upstream stale")
             if reasons:
                 stale_stages.add(stage.name)
@@ -267,12 +270,17 @@ def clips_left_unrun(wh: Warehouse, config: Config, clips: Sequence[str]) -> lis
     a label ingest was killed after its ingest and before its resume), or with a stage whose last
     run was interrupted (killed while it resumed the clip); ingesting the folder again resumes them.
     Not a clip whose stages are stale for another reason: a changed detector or CAD library made
-    every labelled clip "never run" and ran it again. One status read for all."""
+    every labelled clip "never run" and ran it again. Nor one answered since with no stage's inputs
+    changed (a file of the answers in force again, or one ingested while the clip was running): its
+    run would be all cached and record nothing, so it stayed "answered since" and was resumed on
+    every labels tick, ingest and app start. One status read for all."""
     if not clips:
         return []
     clips = list(dict.fromkeys(clips))
-    interrupted = {r.clip for r in pipeline_status(wh, config, clips) if r.status == "interrupted"}
-    answered = set(answered_since_run(wh, clips))
+    rows = pipeline_status(wh, config, clips)
+    interrupted = {r.clip for r in rows if r.status == "interrupted"}
+    moved = {r.clip for r in rows if "inputs changed" in r.stale_reasons}
+    answered = set(answered_since_run(wh, clips)) & moved
     return [c for c in clips if c in interrupted or c in answered]
 
 

@@ -88,7 +88,8 @@ def test_a_killed_run_shows_as_interrupted_and_is_recorded_by_the_next_run(wh):
 def test_a_run_killed_after_its_row_was_written_is_not_recorded_again(wh):
     """A process killed between writing its run's row and removing its marker (the row's write may be
     the process's first, which builds the catalog): the next run appended an interrupted row of the
-    same run_id, which hid the completed one, and the stage ran again."""
+    same run_id, which hid the completed one, and the stage ran again; and `status` said the stage
+    was interrupted (the marker's time is after its row's start), so the labels tick resumed it."""
     import datetime as dt
 
     from tasks.stage import _start_marker
@@ -96,6 +97,7 @@ def test_a_run_killed_after_its_row_was_written_is_not_recorded_again(wh):
     done = run_stage(wh, "c1", "detect", body=lambda run_id: StageOutput(1, "o", "ok"), **HASHES)
     _start_marker(wh, "c1", "detect", done.run_id, dt.datetime.now(dt.timezone.utc))  # left by the kill
     assert len(run_markers(wh, "c1")) == 1
+    assert {r.stage: r.status for r in pipeline_status(wh, Config(), ["c1"])}["detect"] == "completed"
     assert settle_interrupted(wh, "c1") == [] and run_markers(wh, "c1") == []
     assert [(r["run_id"], r["status"]) for r in wh.read("runs").to_pylist()] == [(done.run_id, "completed")]
 
@@ -354,3 +356,31 @@ def test_a_reingest_removes_the_part_copy_a_killed_ingest_left(wh, small_clip, t
     ingest_clip(wh, IngestConfig(up="+y", link_inputs=False), ClipSource("small", video, cams), file_sha256(video),
                 file_sha256(cams), "r0")
     assert sorted(p.name for p in inputs.iterdir()) == ["cameras.txt", "placed.json", "video.mp4"]
+
+
+def test_a_stage_after_a_stale_one_is_stale(tmp_path):
+    """pose runs after correspondence_task (``after``: it reads the task's answers, not its output
+    table): with correspondence_task's config changed, `status` called pose and verification fresh,
+    though a run replaces the task and pose then waits for its clicks."""
+    import dataclasses
+    import datetime as dt
+
+    from cadestate.config import CorrespondenceTaskConfig
+    from tasks.inputs_memo import InputsMemo
+    from tasks.registry import config_hash, upstream_inputs_hash
+    from tasks.stage import StageRun, record_run
+
+    config = Config(warehouse=WarehouseConfig(root=str(tmp_path / "w")))
+    wh, out = Warehouse(config.warehouse.root), {}
+    memo, t0 = InputsMemo(wh, "c1"), dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    for i, s in enumerate(stages_of("clip")):  # every stage completed as things are: hashed as `status` hashes them
+        inputs = (upstream_inputs_hash([out[u] for u in s.upstream] + s.config_inputs(config) + memo.clip_inputs(s))
+                  if s.upstream else "source")
+        out[s.name] = f"out-{s.name}"
+        record_run(wh, StageRun("c1", s.name, f"r{i}", "completed", config_hash(s.name, config), inputs, out[s.name],
+                                s.code_hash, 1, 0.1, ""), t0 + dt.timedelta(seconds=i))
+    assert all(not r.stale_reasons for r in pipeline_status(wh, config, ["c1"]))
+    more = dataclasses.replace(config, correspondence_task=CorrespondenceTaskConfig(keyframes=8))
+    stale = {r.stage: r.stale_reasons for r in pipeline_status(wh, more, ["c1"]) if r.stale_reasons}
+    assert stale == {"correspondence_task": ("config changed",), "pose": ("upstream stale",),
+                     "verification": ("upstream stale",)}, stale
