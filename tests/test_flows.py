@@ -328,6 +328,12 @@ def test_labels_ingest_again_resumes_the_clip_a_killed_ingest_left_unrun(small_l
     coco = dataclasses.replace(config, detect=dataclasses.replace(config.detect, model="coco"))
     assert any("inputs changed" in r.stale_reasons for r in pipeline_status(wh, coco) if r.stage == "detect")
     assert clips_left_unrun(wh, coco, ["small"]) == [] and clips_left_unrun(wh, config, ["small"]) == []
+    # the answers in force again, in other bytes: ingested, but no stage's inputs change, so its run
+    # records nothing; it stayed "answered since its last run" and was resumed on every labels tick
+    same = tmp_path / "same.json"
+    same.write_text(json.dumps(json.loads(label.read_text()), indent=2))
+    assert ingest_labels(wh, same).clips == ["small"]
+    assert clips_left_unrun(wh, config, ["small"]) == []
 
 
 def test_flow_state_names_the_paused_tasks():

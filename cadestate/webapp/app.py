@@ -62,7 +62,7 @@ from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
 from tasks.human.label_format import MAX_LABEL_BYTES, SAME_POINT_M, LabelError, one_line
 from tasks.human.labels import latest_tasks, withdrawn_why
-from tasks.status import answered_since_run
+from tasks.status import answered_since_run, clips_left_unrun
 from warehouse import Warehouse
 from warehouse.read_cache import ReadCache
 
@@ -155,7 +155,8 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     async def lifespan(app: FastAPI):
         worker.start()
         report = ingest_pending(wh, lock, coplanar_tol=tol)  # answers a crash left un-ingested
-        for clip in sorted({*(report.clips if report else []), *answered_since_run(wh)}):
+        left = clips_left_unrun(wh, config, answered_since_run(wh))  # answered while no app ran, not yet taken in
+        for clip in sorted({*(report.clips if report else []), *left}):
             worker.request(clip)
         app.state.pending_errors = list(report.errors) if report else []  # shown on the start page too
         for line in app.state.pending_errors:
