@@ -219,11 +219,11 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None =
         return todo
     kept = []
     for p in todo:  # new bytes are a new try (its failures were of the files before)
-        if (p.clip, sha256[p.video], sha256[p.cameras]) in known and (stage := failing(runs_of(p.clip), config)) is not None:
+        if (p.clip, sha256[p.video], sha256[p.cameras]) in known and (stage := failing(wh, p.clip, runs_of(p.clip), config)):
             (warn or get_run_logger().warning)(
-                f"clip {p.clip}: its stage {stage} failed {config.schedule.failed_runs} runs in a row with this config and "
-                "code: not run again until its files, the config or the code change (`cadestate status` shows why; "
-                "`cadestate run` runs it)")
+                f"clip {p.clip}: its stage {stage} failed {config.schedule.failed_runs} runs in a row with this config, "
+                "code and inputs: not run again until its files, the config, the code or what it reads change (a model "
+                "file made, answers given; `cadestate status` shows why; `cadestate run` runs it)")
             continue
         kept.append(p)
     return kept
@@ -232,26 +232,38 @@ def pairs_to_run(wh: Warehouse, pairs: list[ClipSource], config: Config | None =
 def clip_runs(wh: Warehouse, clip: str) -> list[dict]:
     """The ``runs`` rows of ``clip``, oldest first, with the columns :func:`unfinished` and
     :func:`failing` look at."""
-    columns = ["stage", "status", "rows_written", "config_hash", "code_hash", "started_at"]
+    columns = ["stage", "status", "rows_written", "config_hash", "code_hash", "inputs_hash", "output_hash", "started_at"]
     return wh.read("runs", partitions=[clip], columns=columns).sort_by("started_at").to_pylist()
 
 
-def failing(runs: list[dict], config: Config) -> str | None:
-    """The stage of a clip (its ``runs``: :func:`clip_runs`) whose last ``[schedule] failed_runs``
-    runs all failed with the config and code of now (its config hash and code hash), if any:
-    running it again fails again."""
-    from tasks.registry import STAGES, config_hash
+def failing(wh: Warehouse, clip: str, runs: list[dict], config: Config) -> str | None:
+    """The stage of ``clip`` (its ``runs``: :func:`clip_runs`) whose last ``[schedule] failed_runs``
+    runs all failed with the config, code and inputs of now (its config hash, code hash, and the
+    inputs hash its next run would have, as the stage chain digests it: its upstream stages'
+    outputs, its config's files, what it reads of the warehouse), if any: running it again fails
+    again. A model file made since (`make models`, as the detect stage's error asks), answers given
+    or an upstream stage's new output is a new try."""
+    from tasks.inputs_memo import InputsMemo
+    from tasks.registry import STAGES, config_hash, upstream_inputs_hash
 
     n = config.schedule.failed_runs
     by_stage: dict[str, list[dict]] = {}
+    output: dict[str, str] = {}  # each stage's newest valid output (a paused run's too), as the chain's next run takes it
     for r in runs:
         by_stage.setdefault(r["stage"], []).append(r)
-    for stage, runs in by_stage.items():
-        last = runs[-n:]
-        if stage in STAGES and len(last) == n and all(
-                r["status"] == "failed" and r["config_hash"] == config_hash(stage, config)
-                and r["code_hash"] == STAGES[stage].code_hash for r in last):
-            return stage
+        if r["status"] in ("completed", "paused"):
+            output[r["stage"]] = r["output_hash"]
+    memo = InputsMemo(wh, clip)
+    for stage, tried in by_stage.items():
+        last, s = tried[-n:], STAGES.get(stage)
+        if s is None or len(last) < n or any(r["status"] != "failed" or r["config_hash"] != config_hash(stage, config)
+                                             or r["code_hash"] != s.code_hash for r in last):
+            continue
+        if not s.has("source_inputs") and all(u in output for u in s.upstream):  # a source's bytes: new bytes, new try
+            inputs = upstream_inputs_hash([output[u] for u in s.upstream] + s.config_inputs(config) + memo.clip_inputs(s))
+            if any(r["inputs_hash"] != inputs for r in last):
+                continue
+        return stage
     return None
 
 

@@ -171,8 +171,9 @@ def test_a_clip_whose_stage_keeps_failing_is_not_run_again_until_its_config_or_c
         wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": f"r{i}", "stage": "detect", "status": "failed",
                                                      "started_at": at + dt.timedelta(seconds=i), **now}]))
     assert pairs_to_run(wh, [pair], config, warned.append) == []
-    assert warned == ["clip room: its stage detect failed 3 runs in a row with this config and code: not run again until its "
-                      "files, the config or the code change (`cadestate status` shows why; `cadestate run` runs it)"]
+    assert warned == ["clip room: its stage detect failed 3 runs in a row with this config, code and inputs: not run again "
+                      "until its files, the config, the code or what it reads change (a model file made, answers given; "
+                      "`cadestate status` shows why; `cadestate run` runs it)"]
     changed = dataclasses.replace(config, detect=dataclasses.replace(config.detect, score_threshold=0.3))
     assert pairs_to_run(wh, [pair], changed, warned.append) == [pair]
     assert pairs_to_run(wh, [pair], dataclasses.replace(config, schedule=dataclasses.replace(config.schedule, failed_runs=0)),
@@ -183,6 +184,40 @@ def test_a_clip_whose_stage_keeps_failing_is_not_run_again_until_its_config_or_c
     warned.clear()
     assert pairs_to_run(wh, [dataclasses.replace(pair, cameras=fixed)], config, warned.append) == [
         dataclasses.replace(pair, cameras=fixed)] and not warned
+
+
+def test_a_clip_whose_stage_failed_for_a_missing_model_runs_again_once_the_model_is_made(tmp_path, small_clip):
+    """detect failed three inbox ticks in a row for its model file missing; `make models` (what its
+    error asks) changes neither its config nor its code, so the clip was left for good: the failed
+    runs' inputs (the model file's digest among them) are compared with today's too."""
+    import dataclasses
+    import datetime as dt
+
+    from conftest import table_rows
+    from cadestate.config import Config
+    from cadestate.lineage import file_sha256
+    from tasks.inputs_memo import InputsMemo
+    from tasks.registry import STAGES, config_hash, upstream_inputs_hash
+
+    model = tmp_path / "det.onnx"
+    config = Config()
+    config = dataclasses.replace(config, detect=dataclasses.replace(config.detect, model=str(model)))
+    wh = Warehouse(tmp_path / "w")
+    pair = ClipSource("room", small_clip.video_path, small_clip.cameras_path)
+    wh.write("clips", "room", table_rows("clips", [{"clip": "room", "video_sha256": file_sha256(pair.video),
+                                                     "cameras_sha256": file_sha256(pair.cameras)}]))
+    detect, at = STAGES["detect"], dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc)
+    ups = [{"stage": u, "status": "completed", "output_hash": f"out-{u}"} for u in detect.upstream]
+    inputs = upstream_inputs_hash([u["output_hash"] for u in ups] + detect.config_inputs(config)
+                                  + InputsMemo(wh, "room").clip_inputs(detect))  # as the stage chain digests them
+    failed = {"stage": "detect", "status": "failed", "config_hash": config_hash("detect", config),
+              "code_hash": detect.code_hash, "inputs_hash": inputs}
+    wh.write("runs", "room", table_rows("runs", [{"clip": "room", "run_id": f"r{i}", "started_at": at + dt.timedelta(seconds=i), **r}
+                                                 for i, r in enumerate(ups + [failed] * 3)]))
+    warned: list[str] = []
+    assert pairs_to_run(wh, [pair], config, warned.append) == [] and len(warned) == 1
+    model.write_bytes(b"a model made since")
+    assert pairs_to_run(wh, [pair], config, warned.append) == [pair] and len(warned) == 1
 
 
 def test_inbox_files_are_hashed_once_until_they_change(tmp_path, monkeypatch):
