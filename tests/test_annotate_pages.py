@@ -424,6 +424,28 @@ def _claim_retried(app: App) -> None:
     assert 2 in {t["kind"]: t for t in held["tasks"]}["cad_selection"]["held_tracks"]
 
 
+def test_an_answered_item_is_given_back_at_once(app, tmp_path):
+    """A page left open on "Task done" held the item it had answered for good (claimed again every
+    minute): a rerun asking about the track again had it skipped for everyone else while that tab
+    stayed open. The claim goes with the answer."""
+    with _own_app(app, tmp_path / "wh") as own:
+        page = own.page
+        as_of = page.request.get(f"{own.url}/api/tasks/{CLIP}/c1.cs").json()["as_of"]
+        others = [{"track_id": t, "cad_id": f"m{t}a"} for t in (0, 1)]  # every item but track 2 answered elsewhere
+        assert page.request.post(f"{own.url}/api/answers?as_of={as_of}", data={"kind": "cad_selection", "clip": CLIP,
+                                 "task_id": "c1.cs", "answers": others}).ok
+        with page.expect_response("**/api/claims"):
+            page.goto(f"{own.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs&track=2")
+        page.wait_for_selector(".cand")
+        claims = lambda: [json.loads(f.read_text()) for f in (own.wh.root / "_claims").glob("*.json")]  # noqa: E731
+        assert any(c["kind"] == "cad_selection" and c["track_id"] == 2 for c in claims())
+        page.keyboard.press("1")
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#pipeline")  # the task done: the page stays
+        page.wait_for_timeout(500)
+        assert not [c for c in claims() if c["kind"] == "cad_selection"], claims()
+
+
 def test_two_pages_opened_on_one_task_link_at_once_are_given_two_items(app, tmp_path):
     """Two people open the start page's link of a task (no track): both read it with the first item
     free, the other's page claims it in between, and this one was given it too (a toast, then a
@@ -632,6 +654,33 @@ def test_no_verdict_on_a_model_that_cannot_be_shown(app):
     page.keyboard.press("a")
     page.wait_for_timeout(300)
     assert page.locator("#accept").is_disabled() and verdicts() == before
+
+
+def test_no_verdict_on_overlays_that_cannot_be_shown(app, tmp_path):
+    """The model's layers cannot be rendered (its mesh gone), so the page shows the stage's overlays
+    (the model blended in): those missing too, the key-frame was a broken image with no word, and
+    pressing a saved an accept of a pose nobody saw."""
+    import datetime as dt
+
+    from schemas.labels import KeyframeView, Pose, VerificationItem, VerificationTask
+    from tasks.human.labels import write_task
+
+    with _own_app(app, tmp_path / "wh") as own:
+        kf = [KeyframeView(timestamp_us=ts, frame_index=ts // 100_000, image_path=f"media/frames/{CLIP}/{ts}.jpg",
+                           box=(0.2, 0.2, 0.6, 0.6), overlay_path=f"media/verification/{CLIP}/overlays/7_{ts}.jpg")
+              for ts in (0, 200_000)]  # frames of the clip; no such overlays
+        write_task(own.wh, VerificationTask(task_id=f"{CLIP}.ve7", clip=CLIP, created_at=dt.datetime.now(dt.timezone.utc).isoformat(),
+                                            image_size=(H, W), items=(VerificationItem(
+                                                track_id=7, label="chair", cad_id="gone", mesh_path="media/cad/gone.glb",
+                                                pose=Pose(translation=(0, 0, 3), rotation=(1, 0, 0, 0), scale=(1, 1, 1), is_mirrored=False),
+                                                keyframes=tuple(kf)),)))
+        page = own.page
+        page.goto(f"{own.url}/annotate/verification?clip={CLIP}&task={CLIP}.ve7&track=7")
+        page.wait_for_selector("#stack[data-ready='1']")
+        assert "overlays cannot be loaded" in page.inner_text("#frames-missing")
+        page.keyboard.press("a")
+        page.wait_for_timeout(300)
+        assert page.locator("#accept").is_disabled() and not list((own.wh.root / "labels").rglob(f"{CLIP}.ve7.*.json"))
 
 
 def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):

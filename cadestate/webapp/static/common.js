@@ -160,16 +160,23 @@ async function firstUnclaimed(task, free) {
 
 const CLAIM_RETRY_MS = 10000;  // a claim that got no answer is tried again this soon (not left unclaimed for the page's life)
 
-// Hold the item shown for this tab while the page is open (claimed again every third of the hold;
-// given back when the page is left). One another tab or browser holds is said: someone may be doing it.
+// Hold the item shown for this tab while the page is open and its answer not saved (claimed again
+// every third of the hold; given back when the page is left or the answer saved: a page left on "Task
+// done" held it for good, and a rerun asking about its track again had it skipped for everyone else).
+// One another tab or browser holds is said: someone may be doing it.
+let releaseHeld = () => {};
 async function holdItem(ref) {
   const claim = () => api("/api/claims", ref);
+  let holding = true;
+  const release = () => fetch("/api/claims/release", {method: "POST", keepalive: true,
+    headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)});
+  releaseHeld = () => { if (holding) { holding = false; release(); } };
   // first: a page left before the claim is answered gives it back too (a page restored from the
   // back-forward cache is loaded again, above, and claims again so)
-  window.addEventListener("pagehide", () => fetch("/api/claims/release", {method: "POST", keepalive: true,
-    headers: {"Content-Type": "application/json", ...CLIENT_HEADER}, body: JSON.stringify(ref)}));
+  window.addEventListener("pagehide", () => releaseHeld());
   let said = false;
   const hold = async () => {
+    if (!holding) return;
     let res;
     try {
       res = await claim();
@@ -180,7 +187,8 @@ async function holdItem(ref) {
     if (res.held_by_other && !said) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
       "someone may be doing it now (of two answers, the second is refused)."), "warn");
     said = said || res.held_by_other;
-    setTimeout(hold, res.hold_s * 1000 / 3);
+    if (holding) setTimeout(hold, res.hold_s * 1000 / 3);
+    else release();  // the answer was saved while this claim was on its way
   };
   await hold();
 }
@@ -190,6 +198,7 @@ async function holdItem(ref) {
 // Warnings (legal but suspicious answers) stay on screen until the person goes on (they vanished with the page).
 export async function afterAnswer(clip, taskId, kind, res) {
   leaving = true;
+  releaseHeld();  // answered: nobody need be kept from it
   toast(`saved ${res.path}`, "ok");
   const warnings = res.warnings || [];
   for (const w of warnings) toast(w, "warn");
