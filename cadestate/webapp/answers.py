@@ -26,6 +26,7 @@ import contextlib
 import datetime as dt
 import hashlib
 import json
+import os
 import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -87,10 +88,18 @@ def _free_path(folder: Path, task_id: str) -> Path:
     return folder / f"{task_id}.{stamp}.{n}.json"
 
 
-def _not_ingested(path: Path, errors: list[str]) -> str:
+def shown(wh: Warehouse, text: str) -> str:
+    """``text`` for a page: paths in the warehouse relative to it (a page is no place for the
+    server's folders)."""
+    for root in dict.fromkeys((str(wh.root.resolve()), str(wh.root))):
+        text = text.replace(root + os.sep, "")
+    return text
+
+
+def _not_ingested(wh: Warehouse, path: Path, errors: list[str]) -> str:
     """The one-line message of :class:`IngestFailed` for ``path``."""
     why = one_line("; ".join(errors) or "unknown reason")
-    return f"{path}: written but not ingested ({why}); it is ingested when the app starts next"
+    return shown(wh, f"{path}: written but not ingested ({why}); it is ingested when the app starts next")
 
 
 def answers_as_of(wh: Warehouse, clip: str) -> str:
@@ -266,9 +275,9 @@ def _submit_clip(wh: Warehouse, payload: Any, data: bytes, lf: Any, facts: ClipF
     try:  # the file as validated (its bytes), not parsed again
         report = ingest_validated(wh, [replace(lf, path=path)], facts, coplanar_tol=coplanar_tol)
     except Exception as e:  # noqa: BLE001  (any failure past the write: the file waits for the next start)
-        raise IngestFailed(_not_ingested(path, [f"{type(e).__name__}: {e}"])) from e
+        raise IngestFailed(_not_ingested(wh, path, [f"{type(e).__name__}: {e}"])) from e
     if not report.ingested:
-        raise IngestFailed(_not_ingested(path, report.errors))
+        raise IngestFailed(_not_ingested(wh, path, report.errors))
     # committed, though a table kept from the answers may not have been updated (the clip's run rewrites it)
     return Submitted(wh.relative(path), lf.clip, lf.kind, lf.task_id, moved + list(report.warnings) + list(report.errors),
                      dict(report.rows))

@@ -56,7 +56,7 @@ from fastapi.staticfiles import StaticFiles
 
 from cadestate.config import Config
 from cadestate.webapp import queue
-from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, submit
+from cadestate.webapp.answers import Conflict, IngestFailed, answers_as_of, ingest_pending, shown, submit
 from cadestate.webapp.claims import Claims, Item
 from cadestate.webapp.resume import Resumer
 from schemas.labels import KINDS
@@ -286,7 +286,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
         try:
             return verification_layers(wh, clip, task_id, item)
         except Exception as e:  # noqa: BLE001  (a missing mesh or frame, a renderer failing: the page says so)
-            raise HTTPException(503, one_line(f"cannot render track {track_id}'s posed model: {type(e).__name__}: {e}"))
+            raise HTTPException(503, one_line(shown(wh, f"cannot render track {track_id}'s posed model: {type(e).__name__}: {e}")))
 
     @app.post("/api/answers")
     def answer(payload: object = Body(...), as_of: str | None = None) -> dict:
