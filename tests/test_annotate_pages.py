@@ -191,6 +191,33 @@ def test_two_tabs_of_one_browser_are_given_different_items_and_a_reload_keeps_it
     context.close()
 
 
+def test_a_duplicated_tab_takes_an_id_of_its_own(app, tmp_path):
+    """The browser's "Duplicate tab" copies sessionStorage, the client id with it: both tabs were
+    one client, given one item with no word, and closing the copy gave back the first tab's claim
+    (a second annotator was then given the item too). The copy takes a new id and another item.
+    Playwright has no "duplicate": the second tab is given the first's sessionStorage, as Chrome does."""
+    with _own_app(app, tmp_path / "wh") as own:
+        context = own.page.context.browser.new_context(viewport={"width": 1280, "height": 720})
+        first, copy = context.new_page(), context.new_page()
+        link = f"{own.url}/annotate/cad_selection?clip={CLIP}&task=c1.cs"  # the start page's task link: no track
+        with first.expect_response("**/api/claims"):
+            first.goto(link)
+        first.wait_for_selector(".cand")
+        shared = first.evaluate("sessionStorage.getItem('cadestate-client')")
+        copy.add_init_script(f"sessionStorage.setItem('cadestate-client', {json.dumps(shared)})")
+        with copy.expect_response("**/api/claims"):
+            copy.goto(link)
+        copy.wait_for_selector(".cand")
+        assert copy.evaluate("sessionStorage.getItem('cadestate-client')") not in (shared, None)
+        assert copy.inner_text("#track-title") != first.inner_text("#track-title")
+        held = lambda: {c["track_id"] for c in (json.loads(f.read_text()) for f in (own.wh.root / "_claims").glob("*.json"))}  # noqa: E731
+        mine = int(first.inner_text("#track-title").split()[1])
+        copy.close()
+        first.wait_for_timeout(500)
+        assert mine in held()  # the first tab's claim stays
+        context.close()
+
+
 def test_a_page_back_from_the_back_forward_cache_holds_its_item_again_at_once(app):
     """A page left gives its item back (pagehide); restored from the back-forward cache it is loaded
     again, and so holds its item again at once, not only at its next renewal a minute later.
@@ -578,11 +605,18 @@ def test_clicks_carried_on_a_key_frame_not_shown_go_back_with_the_answer(app):
     assert "1 clicked before on key-frames not shown here, kept" in said
     page.goto(f"{app.url}/annotate/correspondences?clip={CLIP}&task=c1.co&track=1")
     page.wait_for_selector("#viewer[data-ready='1']")
-    page.click("#drop-unshown")
+    page.click("#drop-unshown")  # key-frame 0 alone is left: one view gives no depth, so no answer yet
+    assert page.locator("#submit").is_disabled() and "annotate 2 key-frames at least" in page.inner_text("#summary")
+    page.keyboard.press("ArrowRight")  # key-frame 300000: four pairs
+    page.wait_for_function("() => document.querySelector('#image-canvas').width > 0")
+    for k, xyz in enumerate(CUBE_POINTS):
+        page.mouse.click(*page.evaluate(f"window.viewer.screenOf({list(xyz)})"))
+        r = page.locator("#image-canvas").bounding_box()
+        page.mouse.click(r["x"] + (0.3 + 0.1 * k) * r["width"], r["y"] + 0.4 * r["height"])
     page.click("#submit")
     page.wait_for_selector("#next-item")  # with ingest's warning: the answer leaves out a key-frame its earlier one clicked
     newest = max((app.wh.root / "labels" / CLIP).glob(f"{CLIP}.co.*.json"))
-    assert [k["timestamp_us"] for k in json.loads(newest.read_text())["answers"][0]["keyframes"]] == [0]
+    assert [k["timestamp_us"] for k in json.loads(newest.read_text())["answers"][0]["keyframes"]] == [0, 300_000]
 
 
 def test_an_answer_saved_when_its_task_cannot_be_read_again_is_not_said_failed(app):

@@ -18,16 +18,40 @@ export const params = () => Object.fromEntries(new URLSearchParams(location.sear
 // browsers other items (one person working in two tabs is given two items).
 const CLIENT_KEY = "cadestate-client";
 const newClientId = () => Array.from(crypto.getRandomValues(new Uint8Array(12)), (b) => b.toString(16).padStart(2, "0")).join("");
-export const clientId = (() => {
+let storedId = null;
+const clientId = (() => {
   try {
-    let id = sessionStorage.getItem(CLIENT_KEY);
-    if (!id) { id = newClientId(); sessionStorage.setItem(CLIENT_KEY, id); }
+    storedId = sessionStorage.getItem(CLIENT_KEY);
+    const id = storedId || newClientId();
+    if (!storedId) sessionStorage.setItem(CLIENT_KEY, id);
     return id;
   } catch (e) {  // storage refused (a private window's settings): this page's own id
     return newClientId();
   }
 })();
 const CLIENT_HEADER = {"X-Cadestate-Client": clientId};
+
+// A tab the browser duplicates copies sessionStorage, this id with it: the two tabs were one client,
+// given one item with no word, and closing either gave back the other's claim. Each page says its id
+// on a BroadcastChannel when it loads; of two live pages with one id, the younger takes a new one.
+// A page whose id came from storage waits a moment for the answer before its first request.
+let onNewClientId = () => {};
+const clientChecked = new Promise((checked) => {
+  if (typeof BroadcastChannel === "undefined") { checked(); return; }
+  if (!storedId) checked();  // a new id: no page has it (but this one answers a copy of itself)
+  const born = performance.timeOrigin, channel = new BroadcastChannel("cadestate-client");
+  channel.onmessage = ({data}) => {
+    if (!data || data.id !== CLIENT_HEADER["X-Cadestate-Client"] || data.born === born) return;
+    if (data.born > born) { channel.postMessage({id: data.id, born}); return; }  // the other page is the copy: tell it
+    const id = newClientId();  // this page is the copy
+    try { sessionStorage.setItem(CLIENT_KEY, id); } catch (e) { /* this page's own id, as above */ }
+    CLIENT_HEADER["X-Cadestate-Client"] = id;
+    checked();
+    onNewClientId();
+  };
+  channel.postMessage({id: clientId, born});
+  setTimeout(checked, 150);  // no other page of this id answered
+});
 
 export async function api(path, body) {
   const r = await fetch(path, body === undefined ? {headers: CLIENT_HEADER}
@@ -110,6 +134,7 @@ window.addEventListener("pageshow", (ev) => { if (ev.persisted) location.reload(
 // A task that cannot be loaded (a stale link, the app down) or that a rerun withdrew (it asks nothing of
 // this kind now) leaves the page with that said, and nothing to submit.
 export async function loadTask() {
+  await clientChecked;
   const p = params();
   let data;
   const stop = (what, why) => $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"},
@@ -174,23 +199,24 @@ async function holdItem(ref) {
   // first: a page left before the claim is answered gives it back too (a page restored from the
   // back-forward cache is loaded again, above, and claims again so)
   window.addEventListener("pagehide", () => releaseHeld());
-  let said = false;
-  const hold = async () => {
-    if (!holding) return;
+  let said = false, chain = 0;  // one chain of claims at a time: a new client id starts another at once
+  const hold = async (mine) => {
+    if (!holding || mine !== chain) return;
     let res;
     try {
       res = await claim();
     } catch (e) {
-      setTimeout(hold, CLAIM_RETRY_MS);  // the app unreachable (restarting, a network blip): claimed again soon
+      setTimeout(() => hold(mine), CLAIM_RETRY_MS);  // the app unreachable (restarting, a network blip): claimed again soon
       return;
     }
     if (res.held_by_other && !said) toast(el("span", {id: "held-elsewhere"}, `Another tab or browser opened this item ${Math.round(res.age_s)} s ago: ` +
       "someone may be doing it now (of two answers, the second is refused)."), "warn");
     said = said || res.held_by_other;
-    if (holding) setTimeout(hold, res.hold_s * 1000 / 3);
+    if (holding) setTimeout(() => hold(mine), res.hold_s * 1000 / 3);
     else release();  // the answer was saved while this claim was on its way
   };
-  await hold();
+  onNewClientId = () => hold(++chain);  // a copied tab's new id claims its item (and hears of the other tab)
+  await hold(++chain);
 }
 
 // After an answer: the next waiting item of the same task, else wait until the clip's resume has
