@@ -273,13 +273,15 @@ def clips_left_unrun(wh: Warehouse, config: Config, clips: Sequence[str]) -> lis
     every labelled clip "never run" and ran it again. Nor one answered since with no stage's inputs
     changed (a file of the answers in force again, or one ingested while the clip was running): its
     run would be all cached and record nothing, so it stayed "answered since" and was resumed on
-    every labels tick, ingest and app start. One status read for all."""
+    every labels tick, ingest and app start (a clip with no run at all has its first). One status read
+    for all."""
     if not clips:
         return []
     clips = list(dict.fromkeys(clips))
     rows = pipeline_status(wh, config, clips)
     interrupted = {r.clip for r in rows if r.status == "interrupted"}
-    moved = {r.clip for r in rows if "inputs changed" in r.stale_reasons}
+    ran = {r.clip for r in rows if r.status != "never run"}
+    moved = {r.clip for r in rows if "inputs changed" in r.stale_reasons} | (set(clips) - ran)
     answered = set(answered_since_run(wh, clips)) & moved
     return [c for c in clips if c in interrupted or c in answered]
 
