@@ -880,5 +880,8 @@ def test_a_body_larger_than_an_answer_may_be_is_refused_before_it_is_read(lwh):
     with _client(lwh, Requests()) as client:
         r = client.post("/api/answers", content=big, headers={"Content-Type": "application/json"})
         assert r.status_code == 413 and r.json()["detail"].startswith("the request's body is 20.0 MB, more than an answer"), r.text
+        # sent in chunks, with no length: it was read whole, then refused naming `labels ingest`'s --max-mb
+        chunked = client.post("/api/answers", content=iter([big[:1000], big[1000:]]), headers={"Content-Type": "application/json"})
+        assert chunked.status_code == 411 and "needs a Content-Length" in chunked.json()["detail"], chunked.text
         assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
     assert len(_label_files(lwh)) == 1

@@ -171,8 +171,12 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     @app.middleware("http")
     async def bounded(request: Request, call_next):
         """A body larger than a label file may be is refused before it is read (FastAPI read and
-        parsed any size, then the answer's check refused it: 7 s and 250 MB of memory for 24 MB)."""
+        parsed any size, then the answer's check refused it: 7 s and 250 MB of memory for 24 MB),
+        and so is one of no stated length (chunked: read whole before its size was known)."""
         size = request.headers.get("content-length", "")
+        if request.method == "POST" and not size.isdigit():
+            return JSONResponse({"detail": "a request's body needs a Content-Length (as the app's pages send): one sent "
+                                           "in chunks is refused"}, status_code=411)
         if size.isdigit() and int(size) > MAX_LABEL_BYTES:
             return JSONResponse({"detail": f"the request's body is {int(size) / 1e6:.1f} MB, more than an answer may be "
                                            f"({MAX_LABEL_BYTES / 1e6:.0f} MB)"}, status_code=413)
