@@ -717,6 +717,20 @@ def test_no_verdict_on_overlays_that_cannot_be_shown(app, tmp_path):
         assert page.locator("#accept").is_disabled() and not list((own.wh.root / "labels").rglob(f"{CLIP}.ve7.*.json"))
 
 
+def test_a_page_without_its_task_says_so_and_caps_lock_keeps_the_keys(app):
+    """/annotate/verification alone said "no task 'undefined' for clip 'undefined'"; with Caps Lock on
+    no letter key did anything (the keys are lower case)."""
+    page = app.page.context.browser.new_page(viewport={"width": 1280, "height": 720})
+    page.goto(f"{app.url}/annotate/verification")
+    assert "No task named" in page.inner_text("#load-error") and "undefined" not in page.inner_text("main")
+    page.goto(f"{app.url}/annotate/verification?clip={CLIP}&task=c1.ve&track=0")
+    page.wait_for_selector("#stack[data-ready='1']")
+    assert "on" not in (page.get_attribute("#outline", "class") or "")
+    page.evaluate("document.dispatchEvent(new KeyboardEvent('keydown', {key: 'O', modifierCapsLock: true, bubbles: true}))")
+    assert "on" in page.get_attribute("#outline", "class").split()
+    page.close()
+
+
 def test_no_answer_on_a_key_frame_that_cannot_be_shown(app):
     """A key-frame image gone from the media: the page says which, for as long as it is open, and
     sends no answer (the verification page said nothing and Accept went; the manual-track page's

@@ -108,7 +108,9 @@ export function shortcuts(map) {
     // one focused by a click leaves Enter to the page, as its help says
     if ((ev.key === "Enter" || ev.key === " ") && tabbedTo === ev.target) return;
     if (ev.ctrlKey || ev.metaKey || ev.altKey) { const f = keymap["Ctrl+" + ev.key]; if (f) { ev.preventDefault(); f(ev); } return; }
-    const f = keymap[ev.key];
+    // Caps Lock on: a letter is the one its key gives without it (no shortcut fired: the keys are lower case)
+    const caps = ev.key.length === 1 && ev.getModifierState && ev.getModifierState("CapsLock");
+    const f = keymap[caps ? (ev.key === ev.key.toUpperCase() ? ev.key.toLowerCase() : ev.key.toUpperCase()) : ev.key];
     if (f) { ev.preventDefault(); f(ev); }
   });
 }
@@ -137,6 +139,11 @@ export async function loadTask() {
   await clientChecked;
   const p = params();
   let data;
+  if (!p.clip || !p.task) {  // the page's address without its task (it said "no task 'undefined'")
+    $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"}, el("b", {}, "No task named: "),
+      "this page's address names a clip and a task (?clip=…&task=…), as the queue's links do. ", el("a", {href: "/"}, "back to the queue")));
+    throw new Error("no clip or task in the address");
+  }
   const stop = (what, why) => $("main").replaceChildren(el("div", {id: "load-error", class: "panel", role: "alert"},
     el("b", {}, what), why, " ", el("a", {href: "/"}, "back to the queue")));
   try {
