@@ -11,9 +11,9 @@ per-axis scale to the catalogue size (Sweet Home 3D) or a uniform unit scale, th
 translation that centres its bounding box. An item that cannot be read, is empty, or is
 degenerate is skipped and listed in ``cad_issues``, as is a warning (a file it refers to missing,
 a class outside the vocabulary, a folder model over :data:`MAX_EXTENT_M` or under
-:data:`SMALL_EXTENT_M`); the stage's message counts both; the stage never stops halfway. A library none
-of whose items could be ingested fails the stage (naming the first item's problem) and keeps
-what it held.
+:data:`SMALL_EXTENT_M`); the stage's message counts both; the stage never stops halfway. A
+library none of whose items could be ingested fails the stage (naming the first item's problem)
+and keeps what it held.
 """
 
 from __future__ import annotations

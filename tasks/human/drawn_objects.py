@@ -52,18 +52,18 @@ def drawn_over_tracks(label: Label, task: Task, name: str) -> list[str]:
     an existing track's of the task by IoU >= :data:`SAME_OBJECT_IOU` on every key-frame both have a
     box (one at least): most likely that track drawn again, which would become a second track of
     the object, asked about and posed twice."""
+    tracks = {t.track_id: {b.timestamp_us: b.box for b in t.boxes} for t in task.existing_tracks}
     shown: dict[int, list[tuple[int, tuple]]] = {}  # timestamp -> (track, its box there)
-    for t in task.existing_tracks:
-        for b in t.boxes:
-            shown.setdefault(b.timestamp_us, []).append((t.track_id, b.box))
+    for t, boxes in tracks.items():
+        for ts, box in boxes.items():
+            shown.setdefault(ts, []).append((t, box))
     out = []
     for i, a in enumerate(label.answers):
         if a.same_as_track is not None:
             continue
         near = sorted({t for x in a.boxes for t, box in shown.get(x.timestamp_us, ()) if box_iou(box, x.box) >= SAME_OBJECT_IOU})
         for t in near:
-            boxes = {b.timestamp_us: b.box for b in next(e for e in task.existing_tracks if e.track_id == t).boxes}
-            if all(box_iou(boxes[x.timestamp_us], x.box) >= SAME_OBJECT_IOU for x in a.boxes if x.timestamp_us in boxes):
+            if all(box_iou(tracks[t][x.timestamp_us], x.box) >= SAME_OBJECT_IOU for x in a.boxes if x.timestamp_us in tracks[t]):
                 out.append(f"{name}: {json_path(['answers', i])}: its boxes overlap track {t}'s on every key-frame both "
                            f"have (IoU >= {SAME_OBJECT_IOU:g}): if it is that object, say \"same_as_track\": {t} (or leave it "
                            "out: it is tracked), else it becomes a second track of it")

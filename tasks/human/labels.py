@@ -18,7 +18,7 @@ So everything that could make a row fail to be written is refused here, before i
 anything. Every failure is a :class:`LabelError` whose message is one line naming the file and
 the field as a JSON path, e.g. ``labels/c1.json: $.answers[0].track_id: unknown track 7``.
 Values that are legal but suspicious become warnings (:attr:`LabelFile.warnings`: two clicks at one
-image point, a drawn object over an existing track: :func:`tasks.human.drawn_objects.drawn_over_tracks`). Ingest (into
+image point, a drawn object over an existing track: :mod:`tasks.human.drawn_objects`). Ingest (into
 the answer tables) is :mod:`tasks.human.label_ingest`.
 """
 
