@@ -4,7 +4,7 @@ Every key has a default, so an empty file (or none) is a valid configuration. Un
 unknown keys, wrong types, out-of-range values (nan and inf included; integers must fit in 64 bits)
 and keys that contradict each other are errors that name the file, the section and the key.
 Checks that need a file the configuration names (the detector model) are
-:func:`tasks.detection.detectors.check_detect_config`'s, run by ``cadestate config check`` and before a run. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
+:func:`tasks.config_checks.check_config`'s, run by ``cadestate config check`` and before a run. Each stage section hashes to a short digest that the ``runs`` table records, so a rerun
 knows which stages a config change made stale (see :mod:`cadestate.lineage`).
 
 Sections ``warehouse`` and ``prefect`` say *where* and *how* to run; they do not change any
@@ -54,7 +54,8 @@ def _opt(default: Any, doc: str, *, choices: tuple | None = None, lo: float | No
 
 
 def _non_empty(value: str) -> str | None:
-    return None if value.strip() else "must not be empty"
+    """A path or name: not empty, and no NUL (no file can be named with one: a traceback at the first open)."""
+    return "must not be empty" if not value.strip() else "must not hold a NUL character" if "\0" in value else None
 
 
 def _template_problem(template: str) -> str | None:
@@ -209,7 +210,7 @@ class FramesConfig:
 class CadIngestConfig:
     """Stage ``cad_ingest``: canonicalise a CAD library, detect symmetries, sample surfaces."""
 
-    source: str = _opt("", "CAD source folder (Sweet Home 3D *.sh3f, ShapeNet layout, or meshes + models.csv); empty = the embedded Sweet Home 3D library.")
+    source: str = _opt("", "CAD source folder (Sweet Home 3D *.sh3f, ShapeNet layout, or meshes + models.csv); empty = the embedded Sweet Home 3D library. Where to look only: the library's items are the stage's input, so naming its folder otherwise reruns nothing.", runtime=True)
     samples: int = _opt(4096, "Surface samples per model (symmetry detection, later geometry).", lo=256, hi=1_000_000)
     symmetry_tolerance: float = _opt(0.008, "Largest symmetric-copy distance, relative to the model size, that counts as symmetric.", lo=0.0, hi=1.0)
     workers: int = _opt(2, "Processes that ingest models in parallel (results do not depend on it).", lo=1, hi=256, runtime=True)

@@ -55,6 +55,7 @@ def test_defaults_are_valid_and_documented():
         ({"label_similarity": {"template": "a photo"}}, "[label_similarity] template: must contain '{}', where the name goes"),
         ({"label_similarity": {"template": "{"}}, "[label_similarity] template: not a format string"),
         ({"warehouse": {"root": " "}}, "[warehouse] root: must not be empty"),
+        ({"warehouse": {"root": "a\0b"}}, "[warehouse] root: must not hold a NUL character"),  # a traceback, exit 1
         ({"schedule": {"inbox": ""}}, "[schedule] inbox: must not be empty"),  # was the folder serve ran in
         ({"schedule": {"labels_inbox": ""}}, "[schedule] labels_inbox: must not be empty"),
         ({"schedule": {"report": ""}}, "[schedule] report: must not be empty"),
@@ -130,7 +131,8 @@ def test_keys_that_only_say_how_to_run_leave_the_digest_alone():
 
     c = Config()
     for name, key, value in [("detect", "threads", 7), ("embed", "threads", 7), ("pose", "threads", 3),
-                             ("cameras", "workers", 5), ("cad_ingest", "workers", 5), ("ingest", "link_inputs", False)]:
+                             ("cameras", "workers", 5), ("cad_ingest", "workers", 5), ("ingest", "link_inputs", False),
+                             ("cad_ingest", "source", "lib1")]:  # where to look: the items are digested (a re-ingest each)
         assert key in runtime_keys(c.section(name))
         changed = dataclasses.replace(c, **{name: dataclasses.replace(c.section(name), **{key: value})})
         assert changed.section_hash(name) == c.section_hash(name), (name, key)
@@ -184,6 +186,10 @@ def test_config_check_checks_the_detect_model(tmp_path):
     f.write_text("[detect]\nscore_threshold = 0.5\n")
     result = run_cli("config", "check", str(f))
     assert result.code == 0 and f"{f}: ok" in result.stdout
+    # a class no CAD model has: taken and never matched, it left chairs out of the up-axis term
+    f.write_text('[pose]\nupright_classes = ["Chair", "sofa"]\n')
+    assert_clean_error(run_cli("config", "check", str(f)),
+                       mentions=f"{f}: [pose] upright_classes: 'Chair' is no class a CAD model has (the classes: bathtub, ")
 
 
 CRON_STRINGS = ["*/10 * * * *", "0 3 * * *", "@daily", "@hourly", "0 3 * * mon-fri", "0 0 L * *", "0 0 * * 1#2",

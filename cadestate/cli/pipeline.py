@@ -92,7 +92,7 @@ def ingest(
     import dataclasses
     from collections import Counter
 
-    from tasks.detection.detectors import check_detect_config
+    from tasks.config_checks import check_config
     from tasks.video.ingest import (ClipSource, check_clip_inputs, check_video_ids, discover_clips, official_clip_name,
                               registered_splits, sfm_source, VIDEO_SUFFIXES)
 
@@ -139,7 +139,7 @@ def ingest(
     if split is not None and split not in known_splits:
         raise typer.BadParameter(f"{split!r} is none of {', '.join(known_splits)} (the splits of the dataset and "
                                  "[manual_tracks] splits)", param_hint="--split")
-    check_detect_config(cfg.detect, cfg.source)
+    check_config(cfg)
     wh = ctx.obj.open_warehouse()
     check_video_ids(wh, urls)
     twice = [c for c, n in Counter(s.clip for s in items).items() if n > 1]
@@ -182,11 +182,11 @@ def run(
       cadestate run
       cadestate -c other.toml run room_0 hall_0
     """
-    from tasks.detection.detectors import check_detect_config
+    from tasks.config_checks import check_config
     from tasks.video.ingest import registered_source
 
     cfg = ctx.obj.config()
-    check_detect_config(cfg.detect, cfg.source)  # a bad [detect] stops the run before it starts
+    check_config(cfg)  # a bad [detect] or [pose] stops the run before it starts
     wh = ctx.obj.open_warehouse(must_exist=True)
     names = list(dict.fromkeys(clips)) if clips else wh.partitions("clips")  # a clip named twice runs once
     if not names:
@@ -523,8 +523,8 @@ def config_check(
       # the config the other commands read (here none: the built-in defaults)
       cadestate config check
     """
-    from tasks.detection.detectors import check_detect_config
+    from tasks.config_checks import check_config
 
     config = load_config(path or ctx.obj.config_path)
-    check_detect_config(config.detect, config.source)
+    check_config(config)
     out.print(f"{escape(config.source or 'the built-in defaults')}: ok", highlight=False)
