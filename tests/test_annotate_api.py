@@ -885,3 +885,15 @@ def test_a_body_larger_than_an_answer_may_be_is_refused_before_it_is_read(lwh):
         assert chunked.status_code == 411 and "needs a Content-Length" in chunked.json()["detail"], chunked.text
         assert client.post("/api/answers", json=payload("cad_selection")).status_code == 200
     assert len(_label_files(lwh)) == 1
+
+
+def test_claims_are_kept_in_the_warehouse_a_tilde_root_names(tmp_path, monkeypatch):
+    """A root given as ~/wh: the tables went to $HOME/wh but the claims to ./~/wh/_claims, so two
+    apps started from other folders did not see each other's claims (both gave one item)."""
+    from cadestate.webapp.claims import CLAIMS_DIR
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    config = Config(warehouse=WarehouseConfig(root="~/wh"))
+    app = create_app(config, annotator="tester", resumer=Resumer(config, run=Requests()))
+    assert app.state.claims.folder == tmp_path / "home" / "wh" / CLAIMS_DIR

@@ -146,7 +146,7 @@ def create_app(config: Config, annotator: str | None = None, resumer: Resumer | 
     wh = Warehouse(config.warehouse.root, compact_after=config.warehouse.compact_after_files).cache_reads(cache=cache)
     lock = threading.Lock()
     clips_queue = queue.Queue(wh)
-    claims = Claims(config.warehouse.root)  # in the warehouse: every app over it sees them
+    claims = Claims(wh.root)  # in the warehouse (its root as resolved: ~ too): every app over it sees them
     worker = resumer or Resumer(config, read_cache=cache)
     who = annotator if annotator is not None else getpass.getuser()
     tol = config.pose.coplanar_tol
