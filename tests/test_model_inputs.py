@@ -37,3 +37,11 @@ def test_a_missing_model_has_no_digest_and_an_unwritable_cache_costs_nothing(tmp
     model = tmp_path / "mine.onnx"
     model.write_bytes(b"a model")
     assert model_fingerprint(DetectConfig(model=str(model))) == hashlib.sha256(b"a model").hexdigest()
+
+
+def test_the_models_folder_of_the_environment_takes_a_tilde(tmp_path, monkeypatch):
+    """$CADESTATE_MODELS='~/models' was a folder named '~' in the current one (the detect stage then
+    asked for `make models` though they were there); $CADESTATE_SH3D_DIR expands it."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("CADESTATE_MODELS", "~/models")
+    assert default_cache_dir() == tmp_path / "models"

@@ -23,6 +23,6 @@ COCO_LABELS: tuple[str, ...] = (
 
 
 def default_cache_dir() -> Path:
-    """$CADESTATE_MODELS, else ~/.cache/cadestate/models."""
+    """$CADESTATE_MODELS (~ expanded, as $CADESTATE_SH3D_DIR's), else ~/.cache/cadestate/models."""
     env = os.environ.get("CADESTATE_MODELS")
-    return Path(env) if env else Path.home() / ".cache" / "cadestate" / "models"
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "cadestate" / "models"
