@@ -156,6 +156,25 @@ def upstream_of(name: str) -> tuple[str, ...]:
     return next(s.definition.upstream for s in stages_of("clip") if s.name == name)
 
 
+def test_a_librarys_whitened_vectors_do_not_depend_on_the_blas_threads():
+    """The whitening's fit and product ran on the process's BLAS threads: one library embedded on
+    one core and on two differed in the last bits, so every clip's candidates (and CAD-selection
+    task id) changed with the machine. They are made on one thread, whatever the process has."""
+    from threadpoolctl import threadpool_limits
+
+    from tasks.cad.embed import whitened
+
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(2000, 768)).astype(np.float32)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    made = []
+    for threads in (1, 2):
+        with threadpool_limits(threads, user_api="blas"):
+            fitted, projected = whitened(v, CadEmbedConfig(whitening="whiten", whitening_dims=128))
+            made.append((fitted.projection.tobytes(), projected.tobytes()))
+    assert made[0] == made[1]
+
+
 def test_detect_and_embed_stages(detected):
     from cadestate.lineage import recording_reads
     from tasks.detection.detect import DET_ID_STRIDE, detect_clip

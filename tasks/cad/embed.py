@@ -7,13 +7,14 @@ Writes: ``cad_embeddings`` (raw unit-norm descriptors), ``embedding_whitening`` 
 ``[cad_embed] whitening`` fitted on them, :mod:`tasks.retrieval.whitening`) and ``cad_model_embeddings``
 (per model, the mean of its whitened view descriptors: what retrieval compares tracks with).
 With ``whitening = "learned"`` the whitening is the projection `make models` trained
-(:mod:`tasks.retrieval.descriptor`), centred on this library's mean view descriptor.
+(:mod:`tasks.retrieval.descriptor`), centred on the mean stored with it (one map for every library).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+from threadpoolctl import threadpool_limits
 
 from cadestate.config import CadEmbedConfig, EmbedConfig
 from cadestate.lineage import digest, table_digest
@@ -66,6 +67,15 @@ def library_whitening(vectors: np.ndarray, cfg: CadEmbedConfig) -> Whitening:
     return fit_whitening(vectors, cfg.whitening, cfg.whitening_dims)
 
 
+def whitened(vectors: np.ndarray, cfg: CadEmbedConfig) -> tuple[Whitening, np.ndarray]:
+    """:func:`library_whitening` of ``vectors`` float[N, D] and the vectors it maps, on one BLAS
+    thread, as retrieval's products: their last bits depend on the threads, and another core count
+    (another machine, a Dask worker) changed every clip's candidates and CAD-selection task id."""
+    with threadpool_limits(1, user_api="blas"):
+        fitted = library_whitening(vectors, cfg)
+        return fitted, fitted.apply(vectors)
+
+
 def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, library: str, run_id: str,
                   show_progress: bool = True) -> StageOutput:
     """Embed every view of ``library``, fit the whitening, write both tables."""
@@ -87,10 +97,10 @@ def embed_library(wh: Warehouse, embed_cfg: EmbedConfig, cfg: CadEmbedConfig, li
         "view": pa.array([v["view"] for v in views], pa.int32()), "vector": vectors_array(vectors),
         "model_sha256": [embedder.sha256] * len(views),
     }, schema=wh.spec("cad_embeddings").schema)
-    fitted = library_whitening(vectors, cfg)
+    fitted, projected = whitened(vectors, cfg)
     whitening = whitening_table(library, fitted, len(views)).cast(wh.spec("embedding_whitening").schema)
     classes = {r["cad_id"]: r["class"] for r in wh.read("cad_models", partitions=[library], columns=["cad_id", "class"]).to_pylist()}
-    per_model = model_embeddings(library, classes, [v["cad_id"] for v in views], fitted.apply(vectors))
+    per_model = model_embeddings(library, classes, [v["cad_id"] for v in views], projected)
     written = (wh.write("cad_embeddings", library, table) + wh.write("embedding_whitening", library, whitening)
                + wh.write("cad_model_embeddings", library, per_model))
     return StageOutput(written, digest(table_digest(table), table_digest(whitening), table_digest(per_model)),
