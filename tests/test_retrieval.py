@@ -144,6 +144,37 @@ def test_retrieval_names_what_is_missing(wh, clip_and_library):
         retrieve_clip(wh, RetrievalConfig(), "c", "r")
 
 
+def test_non_finite_and_mismatched_descriptors_are_named(clip_and_library):
+    """One NaN descriptor of a track scored every model NaN: its ten candidates were ranked by name,
+    or none was kept (a larger library), and the stage said it succeeded. A library's vector NaN
+    did the same for every track; ragged or other-length vectors said neither the table nor the library."""
+    from tasks.retrieval.index import clear_cache
+    from tasks.retrieval.whitening import Whitening
+
+    wh = clip_and_library
+    embeddings = wh.read("embeddings", partitions=["c"]).to_pylist()
+    bad = next(e for e in embeddings if e["owner_id"] == 10000)  # track 0's box on frame 1
+    bad["vector"] = [float("nan")] * len(bad["vector"])
+    write(wh, "embeddings", "c", embeddings)
+    with pytest.raises(RetrievalError, match=r"^clip c: track 0: the descriptor of its box on frame 1 is not finite"):
+        retrieve_clip(wh, RetrievalConfig(), "c", "r")
+    write(wh, "embeddings", "c", [{**e, "vector": [0.25] * len(e["vector"])} for e in embeddings])
+    models = wh.read("cad_model_embeddings", partitions=["lib"]).to_pylist()
+    models[2]["vector"] = [float("nan")] * len(models[2]["vector"])
+    write(wh, "cad_model_embeddings", "lib", models)
+    clear_cache()
+    with pytest.raises(RetrievalError, match=r"^CAD library 'lib': cad_model_embeddings.vector of lib.m2 \(and 0 more\) is not finite"):
+        retrieve_clip(wh, RetrievalConfig(), "c", "r")
+    models[2]["vector"] = models[2]["vector"][:4]
+    write(wh, "cad_model_embeddings", "lib", models)
+    clear_cache()
+    with pytest.raises(RetrievalError, match=r"^CAD library 'lib': cad_model_embeddings.vector: vectors of unequal lengths"):
+        retrieve_clip(wh, RetrievalConfig(), "c", "r")
+    white = Whitening("centre", np.zeros(16, np.float32), np.eye(8, 16, dtype=np.float32))
+    with pytest.raises(ValueError, match="^descriptors of 12 values, but the whitening takes 16$"):
+        white.apply(np.ones((4, 12)))  # 48 values: read as three descriptors of 16
+
+
 @pytest.mark.slow
 def test_label_similarity_uses_the_packaged_sentence_encoder():
     from tasks.retrieval.label_similarity import similarity

@@ -73,8 +73,15 @@ def build_index(wh: Warehouse, library: str) -> LibraryIndex:
     for r in wh.read("label_similarity", partitions=[library], columns=["detector_label", "cad_class", "similarity"]).to_pylist():
         table.setdefault(r["detector_label"], {})[r["cad_class"]] = max(float(r["similarity"]), 0.0)
     class_sim = {label: np.array([by_class.get(c, 0.0) for c in names], np.float32)[codes] for label, by_class in table.items()}
+    try:
+        vectors = list_matrix(models.column("vector"))
+    except ValueError as e:
+        raise RetrievalError(f"CAD library {library!r}: cad_model_embeddings.vector: {e}") from None
+    if bad := np.flatnonzero(~np.isfinite(vectors).all(axis=1)).tolist():  # NaN scores: ranked by name, or none kept
+        raise RetrievalError(f"CAD library {library!r}: cad_model_embeddings.vector of {models.column('cad_id')[bad[0]]} "
+                             f"(and {len(bad) - 1} more) is not finite: run its cad_embed stage again")
     return LibraryIndex(library, models.column("cad_id").to_numpy(), np.array(names, dtype=object)[codes],
-                        list_matrix(models.column("vector")), read_whitening(wh, library), class_sim)
+                        vectors, read_whitening(wh, library), class_sim)
 
 
 def content_digest(wh: Warehouse, library: str) -> str:

@@ -167,6 +167,9 @@ def track_groups(wh: Warehouse, clip: str) -> tuple[list[int], list[TrackGroups]
     for t, track in tracks.items():
         by_label: dict[str, list[np.ndarray]] = {}
         for b in track.boxes:
+            if not np.isfinite(b.vector).all():  # a NaN scored every model NaN: ten ranked by name, or none kept
+                raise RetrievalError(f"clip {clip}: track {t}: the descriptor of its box on frame {b.frame_index} is not "
+                                     "finite (embeddings or manual_tracks): run its embed stage again")
             by_label.setdefault(b.label, []).append(b.vector)
         labels = sorted(by_label)
         ids.append(t)

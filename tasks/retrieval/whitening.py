@@ -37,7 +37,10 @@ class Whitening:
 
     def apply(self, vectors: np.ndarray) -> np.ndarray:
         """float[N,D] -> float32[N,k], unit L2 norm (a zero vector stays zero)."""
-        v = np.asarray(vectors, np.float32).reshape(-1, self.mean.shape[0])
+        v = np.asarray(vectors, np.float32)
+        if v.shape[-1] != self.mean.shape[0]:  # four 12-value vectors were read as three of 16
+            raise ValueError(f"descriptors of {v.shape[-1]} values, but the whitening takes {self.mean.shape[0]}")
+        v = v.reshape(-1, self.mean.shape[0])
         w = (v - self.mean) @ self.projection.T
         n = np.linalg.norm(w, axis=1, keepdims=True)
         return (w / np.where(n > 0, n, 1)).astype(np.float32)
