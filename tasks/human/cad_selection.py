@@ -77,12 +77,17 @@ def selected_models(wh: Warehouse, clip: str) -> dict[int, str | None]:
 
 
 def model_facts(wh: Warehouse, cad_ids: set[str]) -> tuple[dict[str, dict], dict[str, tuple[str, ...]]]:
-    models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "library", "class", "symmetry", "mesh_path"]).to_pylist()
-              if r["cad_id"] in cad_ids}
+    """Of the models ``cad_ids``: their ``cad_models`` rows, and their render paths in view order.
+    Those rows alone are read (every library's were made Python rows: 0.35 s and 67 MB per run for
+    300,000 views)."""
+    if not cad_ids:
+        return {}, {}
+    only = [("cad_id", "in", sorted(cad_ids))]
+    models = {r["cad_id"]: r for r in wh.read("cad_models", columns=["cad_id", "library", "class", "symmetry", "mesh_path"],
+                                              filters=only).to_pylist()}
     renders: dict[str, list[tuple[int, str]]] = defaultdict(list)
-    for r in wh.read("cad_views", columns=["cad_id", "view", "image_path"]).to_pylist():
-        if r["cad_id"] in cad_ids:
-            renders[r["cad_id"]].append((r["view"], r["image_path"]))
+    for r in wh.read("cad_views", columns=["cad_id", "view", "image_path"], filters=only).to_pylist():
+        renders[r["cad_id"]].append((r["view"], r["image_path"]))
     return models, {c: tuple(p for _, p in sorted(v)) for c, v in renders.items()}
 
 
