@@ -167,3 +167,26 @@ def test_clicks_go_to_one_track_where_two_now_hold_them():
     assert held_clicks("now", {4: "a"}, {4: _at(near), 5: _at(PLACES[0])}, answers, tasks) == {}, \
         "track 5 matches best: the clicks are its object's, though it has no model chosen"
     assert set(held_clicks("now", {4: "a"}, {4: _at(near)}, answers, tasks)) == {4}
+
+
+def test_a_drawn_fragment_of_a_track_does_not_take_its_earlier_answer():
+    """A drawn object said to be track 7 (left out of the tasks) drawn tighter than 7's box matched
+    7's earlier item better, took its answer, and 7 was asked again: a fragment's boxes are its track's."""
+    import json
+
+    from tasks.human.choices_in_force import held_choices
+    from tasks.human.shared import boxes_now
+    from tasks.tracking.clip_tracks import ClipTrack, TrackBox
+
+    shown, shifted, stamps = (0.1, 0.1, 0.5, 0.5), (0.14, 0.14, 0.54, 0.54), (0, 100_000, 200_000)  # IoU 0.67
+    item = {"track_id": 5, "keyframes": [{"timestamp_us": ts, "box": list(shown)} for ts in stamps]}
+    tasks = pa.Table.from_pylist([{"task_id": "old", "kind": "cad_selection", "created_at": T[0],
+                                   "document": json.dumps({"items": [item]})}])
+    answers = pa.Table.from_pylist([{"task_id": "old", "track_id": 5, "cad_id": "a", "ingested_at": T[1]}])
+
+    def track(t: int, box, manual: bool = False) -> ClipTrack:
+        return ClipTrack(t, "chair", manual, tuple(TrackBox(i, ts, box, "chair") for i, ts in enumerate(stamps)))
+
+    tracks = {7: track(7, shifted), 1_000_000: track(1_000_000, shown, manual=True)}  # the drawing: "is track 7"
+    assert held_choices("now", {7: {"a", "b"}}, boxes_now(tracks), answers, tasks) == {}  # the fragment took it
+    assert held_choices("now", {7: {"a", "b"}}, boxes_now(tracks, fragments={1_000_000: 7}), answers, tasks) == {7: "a"}

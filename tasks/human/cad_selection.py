@@ -43,7 +43,7 @@ from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, task_output
                                  write_task_once)
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
-from tasks.tracking.relations import left_out_tracks, same_as_statements
+from tasks.tracking.relations import left_out_tracks, manual_statements, same_as_statements
 from warehouse import Warehouse
 
 
@@ -113,7 +113,7 @@ def cad_selection_stage(wh: Warehouse, cfg: CadSelectionConfig, clip: str, run_i
     labels = {t: track.label for t, track in tracks.items()}
     models, renders = model_facts(wh, {r["cad_id"] for r in rows})
     keyframes = track_keyframes(wh, clip, tracks, track_ids, cfg.keyframes)
-    now = boxes_now(tracks)
+    now = boxes_now(tracks, fragments=manual_statements(wh, clip)[1])
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_choices(task_id, {t: {r["cad_id"] for r in by_track[t]} for t in track_ids}, now,
                         current_answers(wh, "cad_selection", [clip]), tasks)

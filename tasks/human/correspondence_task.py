@@ -20,6 +20,7 @@ from tasks.human.shared import (INSTRUCTIONS, boxes_now, image_size, made_up_cam
                                  withdraw_task, write_task_once)
 from tasks.stage import StageContext, StageDef, StageOutput
 from tasks.tracking.clip_tracks import clip_tracks
+from tasks.tracking.relations import manual_statements
 from warehouse import Warehouse
 
 
@@ -40,7 +41,8 @@ def correspondence_task_stage(wh: Warehouse, cfg: CorrespondenceTaskConfig, clip
         return _nothing_asked(wh, clip, digest("correspondence_task", "one frame", *map(str, sorted(chosen))),
                               "no track with a chosen CAD model is seen on two frames", not_asked)
     task_id = new_task_id("correspondences", clip, *(item_key(t, chosen[t], keyframes[t]) for t in track_ids))
-    now = boxes_now(tracks, made_up_cameras(wh, clip))  # clicks on a camera SfM now interpolates hold no more
+    now = boxes_now(tracks, made_up_cameras(wh, clip), manual_statements(wh, clip)[1])  # clicks on a camera SfM
+    # interpolates now hold no more; a drawn fragment's boxes are its track's
     tasks = wh.read("label_tasks", [clip], columns=["task_id", "kind", "created_at", "document"])
     held = held_clicks(task_id, chosen, now, current_answers(wh, "correspondences", [clip]), tasks)  # every chosen track
     held = {t: a for t, a in held.items() if t in track_ids}  # (matched among all) but only items answer the task

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TypeVar
 
@@ -78,18 +78,23 @@ def track_keyframes(wh: Warehouse, clip: str, tracks: dict[int, ClipTrack], trac
     return out
 
 
-def boxes_now(tracks: dict[int, ClipTrack], made_up: frozenset[int] = frozenset()) -> dict[int, dict[int, list[tuple]]]:
+def boxes_now(tracks: dict[int, ClipTrack], made_up: frozenset[int] = frozenset(),
+              fragments: Mapping[int, int] | None = None) -> dict[int, dict[int, list[tuple]]]:
     """Per track of the clip (``tracks``: :func:`tasks.tracking.clip_tracks.clip_tracks`), its boxes by
     frame timestamp (µs): what :mod:`tasks.human.clicks_in_force` and
     :mod:`tasks.human.choices_in_force` compare earlier tasks with (every track, also those not
     asked about: an earlier answer goes to the track that matches it best). ``made_up``: frames of
     made-up cameras, left out as :func:`on_registered` says (for clicks: carried clicks hold only
     where the track has a box now, so those on a frame an SfM run again made interpolated no
-    longer hold, and the track is asked again; they went on to the pose solver)."""
+    longer hold, and the track is asked again; they went on to the pose solver). ``fragments``:
+    tracks said to be another (a drawn object "is track N",
+    :func:`tasks.tracking.relations.manual_statements`): their boxes are N's (a drawing tighter
+    than N's box took N's earlier answer, and N was asked again)."""
+    fragments = fragments or {}
     now: dict[int, dict[int, list[tuple]]] = {}
     for t, track in tracks.items():
         for b in on_registered(track.boxes, made_up):
-            now.setdefault(t, {}).setdefault(b.timestamp_us, []).append(b.box)
+            now.setdefault(fragments.get(t, t), {}).setdefault(b.timestamp_us, []).append(b.box)
     return now
 
 
